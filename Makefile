@@ -1,0 +1,35 @@
+# SensorBox: every target installs what it needs first.
+PYTHON ?= python3
+VENV   ?= .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed
+DEMO_OUT ?= out/demo
+
+.PHONY: setup demo test bench lint fixtures clean
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml
+	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	@bash tools/ensure_libusb.sh $(BIN)/python
+	@touch $(STAMP)
+
+demo: setup
+	$(BIN)/sensorbox calib check calibration/sensorbox.yaml --plot $(DEMO_OUT)/rig.png
+	@echo "Demo output: $(DEMO_OUT)/rig.png"
+
+test: setup
+	$(BIN)/python -m pytest -q -n 2 tests
+
+bench: setup
+	$(BIN)/python bench/bench_models.py
+
+lint: setup
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+	$(BIN)/mypy
+
+clean:
+	rm -rf $(VENV) out .pytest_cache .mypy_cache .ruff_cache

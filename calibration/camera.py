@@ -1,0 +1,194 @@
+"""The camera-model contract shared by every projection.
+
+A camera model maps 3D points in its own frame (x right, y down, z forward,
+metres) to continuous pixel coordinates (the centre of pixel (col i, row j) is
+(i, j)) and back to unit rays. Every call returns a validity mask next to the
+values; entries that are not valid are NaN, so an invalid entry can never pass
+for a real pixel or ray. Model validity (the maths is defined and invertible
+there) is separate from image bounds (`CameraModel.in_image`).
+"""
+
+from __future__ import annotations
+
+import math
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, fields, replace
+from typing import Any, Self
+
+import numpy as np
+
+from calibration.errors import CalibrationError
+from calibration.types import F64, ArrayLike, Bool
+
+
+def _check_shape(arr: F64, last: int, what: str) -> None:
+    if arr.ndim == 0 or arr.shape[-1] != last:
+        raise ValueError(f"{what}: expected an array of shape (..., {last}), got {arr.shape}")
+
+
+class CameraModel(ABC):
+    """Abstract camera model; concrete models are frozen dataclasses.
+
+    Subclasses implement `_project` and `_unproject` on flat float64 arrays;
+    this base handles shapes, NaN-filling of invalid entries and ray
+    normalisation. Being frozen dataclasses, models are hashable by value and
+    serve as cache keys (e.g. for warp maps).
+    """
+
+    width: int
+    height: int
+
+    # -- subclass hooks -------------------------------------------------
+    @abstractmethod
+    def _project(self, x: F64, y: F64, z: F64) -> tuple[F64, F64, Bool]:
+        """Project flat coordinate arrays; return (u, v, valid)."""
+
+    @abstractmethod
+    def _unproject(self, u: F64, v: F64) -> tuple[F64, F64, F64, Bool]:
+        """Unproject flat pixel arrays; return (x, y, z, valid), not necessarily unit."""
+
+    @abstractmethod
+    def _scaled_params(self, factor: float) -> dict[str, Any]:
+        """Parameters that change when the image is resized by ``factor``."""
+
+    # -- public contract -------------------------------------------------
+    def project(self, points: ArrayLike) -> tuple[F64, Bool]:
+        """Project points of shape (..., 3) in metres to pixels (..., 2).
+
+        Returns ``(uv, valid)``; ``valid`` is the model's validity (not image
+        bounds) and invalid ``uv`` entries are NaN.
+        """
+        P = np.asarray(points, dtype=np.float64)
+        _check_shape(P, 3, f"{type(self).__name__}.project")
+        flat = P.reshape(-1, 3)
+        with np.errstate(all="ignore"):
+            u, v, valid = self._project(flat[:, 0], flat[:, 1], flat[:, 2])
+            valid = valid & np.isfinite(u) & np.isfinite(v) & np.all(np.isfinite(flat), axis=1)
+        uv = np.stack([u, v], axis=-1)
+        uv[~valid] = np.nan
+        return uv.reshape(*P.shape[:-1], 2), valid.reshape(P.shape[:-1])
+
+    def unproject(self, pixels: ArrayLike) -> tuple[F64, Bool]:
+        """Unproject pixels of shape (..., 2) to unit rays (..., 3).
+
+        Returns ``(rays, valid)``; invalid rays are NaN. A ray times the range
+        gives the 3D point (range, not z depth).
+        """
+        uv = np.asarray(pixels, dtype=np.float64)
+        _check_shape(uv, 2, f"{type(self).__name__}.unproject")
+        flat = uv.reshape(-1, 2)
+        with np.errstate(all="ignore"):
+            x, y, z, valid = self._unproject(flat[:, 0], flat[:, 1])
+            norm = np.sqrt(x * x + y * y + z * z)
+            rays = np.stack([x / norm, y / norm, z / norm], axis=-1)
+            valid = valid & np.all(np.isfinite(rays), axis=1) & (norm > 0.0)
+        rays[~valid] = np.nan
+        return rays.reshape(*uv.shape[:-1], 3), valid.reshape(uv.shape[:-1])
+
+    def in_image(self, pixels: ArrayLike) -> Bool:
+        """Mask of pixels inside the image: u in [-0.5, W - 0.5), v in [-0.5, H - 0.5)."""
+        uv = np.asarray(pixels, dtype=np.float64)
+        with np.errstate(invalid="ignore"):
+            return (
+                (uv[..., 0] >= -0.5)
+                & (uv[..., 0] < self.width - 0.5)
+                & (uv[..., 1] >= -0.5)
+                & (uv[..., 1] < self.height - 0.5)
+            )
+
+    def scaled(self, factor: float) -> Self:
+        """The same lens on an image resized by ``factor`` (e.g. 0.5 for half size).
+
+        Focal lengths scale by ``factor``; the principal point follows the
+        pixel-centre convention, ``c' = (c + 0.5) * factor - 0.5``; the size is
+        rounded to whole pixels.
+        """
+        if not (math.isfinite(factor) and factor > 0.0):
+            raise ValueError(f"scale factor must be a positive number, got {factor!r}")
+        params = self._scaled_params(factor)
+        params["width"] = max(1, round(self.width * factor))
+        params["height"] = max(1, round(self.height * factor))
+        return replace(self, **params)  # type: ignore[type-var]
+
+    def pixel_grid(self) -> F64:
+        """Pixel centres of the whole image, shape (H, W, 2) as (u, v)."""
+        u, v = np.meshgrid(
+            np.arange(self.width, dtype=np.float64), np.arange(self.height, dtype=np.float64)
+        )
+        return np.stack([u, v], axis=-1)
+
+    def params(self) -> dict[str, Any]:
+        """All parameters as a plain dict (for reports and serialisation)."""
+        return {f.name: getattr(self, f.name) for f in fields(self)}  # type: ignore[arg-type]
+
+
+@dataclass(frozen=True)
+class FieldOfView:
+    """True field of view found by unprojecting the image border (radians).
+
+    Each value is the sum of the largest off-axis angles on the two sides of
+    the principal point along the central row (horizontal), central column
+    (vertical) and the image diagonals (diagonal), so it exceeds pi for lenses
+    that see behind the image plane.
+    """
+
+    horizontal_rad: float
+    vertical_rad: float
+    diagonal_rad: float
+
+
+def _max_angle_along(model: CameraModel, start: F64, end: F64, samples: int) -> float:
+    """Largest off-axis angle of valid rays on the segment start->end."""
+    t = np.linspace(0.0, 1.0, samples)[:, None]
+    uv = start[None, :] * (1.0 - t) + end[None, :] * t
+    rays, valid = model.unproject(uv)
+    if not np.any(valid):
+        return 0.0
+    r = rays[valid]
+    return float(np.max(np.arctan2(np.hypot(r[:, 0], r[:, 1]), r[:, 2])))
+
+
+def field_of_view(model: CameraModel, samples: int = 4001) -> FieldOfView:
+    """Measure the true FOV of ``model`` by unprojecting its image border.
+
+    Lines run from the principal point (``cx``, ``cy``; the image centre for
+    models without one) to the outer edge of the image (-0.5 and W - 0.5);
+    where the model stops being valid before the border, the last valid ray
+    along the line counts.
+    """
+    cx = float(getattr(model, "cx", (model.width - 1) / 2.0))
+    cy = float(getattr(model, "cy", (model.height - 1) / 2.0))
+    c = np.array([cx, cy])
+    left, right = np.array([-0.5, cy]), np.array([model.width - 0.5, cy])
+    top, bottom = np.array([cx, -0.5]), np.array([cx, model.height - 0.5])
+    corners = [
+        np.array([-0.5, -0.5]),
+        np.array([model.width - 0.5, model.height - 0.5]),
+        np.array([model.width - 0.5, -0.5]),
+        np.array([-0.5, model.height - 0.5]),
+    ]
+
+    def side(end: F64) -> float:
+        return _max_angle_along(model, c, end, samples)
+
+    diag = max(side(corners[0]) + side(corners[1]), side(corners[2]) + side(corners[3]))
+    return FieldOfView(side(left) + side(right), side(top) + side(bottom), diag)
+
+
+def require_positive(name: str, value: float, model: str) -> None:
+    """Raise `CalibrationError` unless ``value`` is a finite number > 0."""
+    if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+        raise CalibrationError(f"{model}: {name} must be a finite number > 0, got {value!r}")
+
+
+def require_finite(name: str, value: float, model: str) -> None:
+    """Raise `CalibrationError` unless ``value`` is a finite number."""
+    if not (isinstance(value, int | float) and math.isfinite(value)):
+        raise CalibrationError(f"{model}: {name} must be a finite number, got {value!r}")
+
+
+def require_size(width: int, height: int, model: str) -> None:
+    """Raise `CalibrationError` unless width and height are positive integers."""
+    for name, value in (("width", width), ("height", height)):
+        if isinstance(value, bool) or not isinstance(value, int | np.integer) or value <= 0:
+            raise CalibrationError(f"{model}: {name} must be a positive integer, got {value!r}")

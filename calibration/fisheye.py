@@ -1,0 +1,262 @@
+"""Wide-angle camera models: Double Sphere, (Extended) Unified and Kannala-Brandt.
+
+Formulas follow the Double Sphere paper (Usenko et al., 3DV 2018) and
+basalt-headers; validity conditions match Kalibr's (see notes/cameras.md).
+All are closed form except Kannala-Brandt unprojection, which solves the
+polynomial by Newton's method to `KB_TOL` radians.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import cached_property
+from typing import Any
+
+import numpy as np
+
+from calibration.camera import CameraModel, require_finite, require_positive, require_size
+from calibration.errors import CalibrationError
+from calibration.types import F64, Bool
+
+KB_TOL = 1e-13
+"""Kannala-Brandt unprojection tolerance on theta, radians."""
+KB_MAX_ITER = 30
+
+
+def _focal_scaled(model: Any, factor: float) -> dict[str, Any]:
+    return {
+        "fx": model.fx * factor,
+        "fy": model.fy * factor,
+        "cx": (model.cx + 0.5) * factor - 0.5,
+        "cy": (model.cy + 0.5) * factor - 0.5,
+    }
+
+
+def _check_focal(model: Any, name: str) -> None:
+    for key in ("fx", "fy"):
+        require_positive(key, getattr(model, key), name)
+    for key in ("cx", "cy"):
+        require_finite(key, getattr(model, key), name)
+    require_size(model.width, model.height, name)
+
+
+def _alpha_w1(alpha: float) -> float:
+    """w1 of the DS/EUCM validity test: alpha/(1-alpha) if alpha <= 0.5 else (1-alpha)/alpha."""
+    return alpha / (1.0 - alpha) if alpha <= 0.5 else (1.0 - alpha) / alpha
+
+
+@dataclass(frozen=True)
+class DoubleSphere(CameraModel):
+    """Double Sphere model: fx, fy, cx, cy in pixels; xi and alpha unitless.
+
+    Projection is valid where z > -w2 * |p|; unprojection where
+    r^2 <= 1/(2 alpha - 1) when alpha > 0.5. The FOV may exceed 180 degrees.
+    """
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    xi: float
+    alpha: float
+    width: int
+    height: int
+
+    def __post_init__(self) -> None:
+        _check_focal(self, "DoubleSphere")
+        require_finite("xi", self.xi, "DoubleSphere")
+        require_finite("alpha", self.alpha, "DoubleSphere")
+        if not 0.0 <= self.alpha < 1.0:
+            raise CalibrationError(f"DoubleSphere: alpha must be in [0, 1), got {self.alpha!r}")
+
+    @cached_property
+    def w2(self) -> float:
+        """Projection validity constant: valid iff z > -w2 * |p|."""
+        w1 = _alpha_w1(self.alpha)
+        return (w1 + self.xi) / math.sqrt(2.0 * w1 * self.xi + self.xi * self.xi + 1.0)
+
+    def _project(self, x: F64, y: F64, z: F64) -> tuple[F64, F64, Bool]:
+        d1 = np.sqrt(x * x + y * y + z * z)
+        k = self.xi * d1 + z
+        d2 = np.sqrt(x * x + y * y + k * k)
+        n = self.alpha * d2 + (1.0 - self.alpha) * k
+        valid = (z > -self.w2 * d1) & (n > 0.0)
+        return self.fx * x / n + self.cx, self.fy * y / n + self.cy, valid
+
+    def _unproject(self, u: F64, v: F64) -> tuple[F64, F64, F64, Bool]:
+        a, xi = self.alpha, self.xi
+        mx = (u - self.cx) / self.fx
+        my = (v - self.cy) / self.fy
+        r2 = mx * mx + my * my
+        valid = np.ones_like(r2, dtype=bool) if a <= 0.5 else r2 <= 1.0 / (2.0 * a - 1.0)
+        mz = (1.0 - a * a * r2) / (a * np.sqrt(1.0 - (2.0 * a - 1.0) * r2) + 1.0 - a)
+        s = (mz * xi + np.sqrt(mz * mz + (1.0 - xi * xi) * r2)) / (mz * mz + r2)
+        return s * mx, s * my, s * mz - xi, valid
+
+    def _scaled_params(self, factor: float) -> dict[str, Any]:
+        return _focal_scaled(self, factor)
+
+
+def _eucm_project(x: F64, y: F64, z: F64, alpha: float, beta: float) -> tuple[F64, F64, Bool]:
+    d = np.sqrt(beta * (x * x + y * y) + z * z)
+    n = alpha * d + (1.0 - alpha) * z
+    valid = (z > -_alpha_w1(alpha) * d) & (n > 0.0)
+    return x / n, y / n, valid
+
+
+def _eucm_unproject(mx: F64, my: F64, alpha: float, beta: float) -> tuple[F64, F64, F64, Bool]:
+    r2 = mx * mx + my * my
+    if alpha <= 0.5:
+        valid = np.ones_like(r2, dtype=bool)
+    else:
+        valid = r2 <= 1.0 / (beta * (2.0 * alpha - 1.0))
+    mz = (1.0 - beta * alpha * alpha * r2) / (
+        alpha * np.sqrt(1.0 - (2.0 * alpha - 1.0) * beta * r2) + 1.0 - alpha
+    )
+    return mx, my, mz, valid
+
+
+@dataclass(frozen=True)
+class ExtendedUnified(CameraModel):
+    """Extended Unified Camera Model (EUCM): alpha in [0, 1], beta > 0."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    alpha: float
+    beta: float
+    width: int
+    height: int
+
+    def __post_init__(self) -> None:
+        _check_focal(self, "ExtendedUnified")
+        require_finite("alpha", self.alpha, "ExtendedUnified")
+        require_positive("beta", self.beta, "ExtendedUnified")
+        if not 0.0 <= self.alpha < 1.0:
+            raise CalibrationError(f"ExtendedUnified: alpha must be in [0, 1), got {self.alpha!r}")
+
+    def _project(self, x: F64, y: F64, z: F64) -> tuple[F64, F64, Bool]:
+        mx, my, valid = _eucm_project(x, y, z, self.alpha, self.beta)
+        return self.fx * mx + self.cx, self.fy * my + self.cy, valid
+
+    def _unproject(self, u: F64, v: F64) -> tuple[F64, F64, F64, Bool]:
+        return _eucm_unproject(
+            (u - self.cx) / self.fx, (v - self.cy) / self.fy, self.alpha, self.beta
+        )
+
+    def _scaled_params(self, factor: float) -> dict[str, Any]:
+        return _focal_scaled(self, factor)
+
+
+@dataclass(frozen=True)
+class Unified(CameraModel):
+    """Unified Camera Model (UCM) in the alpha form: u = fx x / (alpha |p| + (1-alpha) z) + cx.
+
+    Equal to Mei/omni with xi = alpha/(1-alpha) and gamma = f/(1-alpha).
+    """
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    alpha: float
+    width: int
+    height: int
+
+    def __post_init__(self) -> None:
+        _check_focal(self, "Unified")
+        require_finite("alpha", self.alpha, "Unified")
+        if not 0.0 <= self.alpha < 1.0:
+            raise CalibrationError(f"Unified: alpha must be in [0, 1), got {self.alpha!r}")
+
+    def _project(self, x: F64, y: F64, z: F64) -> tuple[F64, F64, Bool]:
+        mx, my, valid = _eucm_project(x, y, z, self.alpha, 1.0)
+        return self.fx * mx + self.cx, self.fy * my + self.cy, valid
+
+    def _unproject(self, u: F64, v: F64) -> tuple[F64, F64, F64, Bool]:
+        return _eucm_unproject((u - self.cx) / self.fx, (v - self.cy) / self.fy, self.alpha, 1.0)
+
+    def _scaled_params(self, factor: float) -> dict[str, Any]:
+        return _focal_scaled(self, factor)
+
+
+@dataclass(frozen=True)
+class KannalaBrandt(CameraModel):
+    """Kannala-Brandt / equidistant fisheye with four coefficients (OpenCV fisheye).
+
+    theta_d = theta (1 + k1 theta^2 + k2 theta^4 + k3 theta^6 + k4 theta^8) with
+    theta the angle from the optical axis. Valid up to `theta_max`, the first
+    angle where theta_d stops increasing (or pi), so rays beyond 90 degrees work.
+    Kalibr stores this model as ``pinhole`` + ``equidistant``.
+    """
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    k1: float
+    k2: float
+    k3: float
+    k4: float
+    width: int
+    height: int
+
+    def __post_init__(self) -> None:
+        _check_focal(self, "KannalaBrandt")
+        for name in ("k1", "k2", "k3", "k4"):
+            require_finite(name, getattr(self, name), "KannalaBrandt")
+
+    def _poly(self, theta: F64) -> F64:
+        t2 = theta * theta
+        return theta * (1.0 + t2 * (self.k1 + t2 * (self.k2 + t2 * (self.k3 + t2 * self.k4))))
+
+    def _dpoly(self, theta: F64) -> F64:
+        t2 = theta * theta
+        return 1.0 + t2 * (
+            3.0 * self.k1 + t2 * (5.0 * self.k2 + t2 * (7.0 * self.k3 + t2 * 9.0 * self.k4))
+        )
+
+    @cached_property
+    def theta_max(self) -> float:
+        """Largest valid angle from the axis (radians): where d theta_d/d theta first hits 0."""
+        theta = np.linspace(0.0, math.pi, 20001)
+        bad = np.nonzero(self._dpoly(theta) <= 0.0)[0]
+        if bad.size == 0:
+            return math.pi
+        lo, hi = float(theta[bad[0] - 1]), float(theta[bad[0]])
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            if self._dpoly(np.array([mid]))[0] > 0.0:
+                lo = mid
+            else:
+                hi = mid
+        return lo
+
+    def _project(self, x: F64, y: F64, z: F64) -> tuple[F64, F64, Bool]:
+        r = np.hypot(x, y)
+        theta = np.arctan2(r, z)
+        rd = self._poly(theta)
+        scale = np.where(r > 0.0, rd / r, 0.0)
+        valid = (theta < self.theta_max) & ((r > 0.0) | (z > 0.0))
+        return self.fx * x * scale + self.cx, self.fy * y * scale + self.cy, valid
+
+    def _unproject(self, u: F64, v: F64) -> tuple[F64, F64, F64, Bool]:
+        mx = (u - self.cx) / self.fx
+        my = (v - self.cy) / self.fy
+        rd = np.hypot(mx, my)
+        rd_max = float(self._poly(np.array([self.theta_max]))[0])
+        valid = rd < rd_max
+        theta = np.minimum(rd, self.theta_max)
+        for _ in range(KB_MAX_ITER):
+            step = (self._poly(theta) - rd) / self._dpoly(theta)
+            theta = np.clip(theta - step, 0.0, self.theta_max)
+            if np.all(np.abs(step[valid]) < KB_TOL):
+                break
+        valid &= np.abs(self._poly(theta) - rd) < KB_TOL * np.maximum(1.0, rd) * 10.0
+        s = np.where(rd > 0.0, np.sin(theta) / rd, 0.0)
+        return mx * s, my * s, np.cos(theta), valid
+
+    def _scaled_params(self, factor: float) -> dict[str, Any]:
+        return _focal_scaled(self, factor)

@@ -1,0 +1,324 @@
+"""Kalibr camchain YAML: read and write every model/distortion pair Kalibr accepts.
+
+Kalibr's intrinsics order per ``camera_model``:
+
+=========  ==========================  ==================================
+model      intrinsics                  distortion_model
+=========  ==========================  ==================================
+pinhole    [fu, fv, pu, pv]            radtan, equidistant, fov, none
+omni       [xi, fu, fv, pu, pv]        radtan, none
+eucm       [alpha, beta, fu, fv, pu, pv]  none
+ds         [xi, alpha, fu, fv, pu, pv]    none
+=========  ==========================  ==================================
+
+``pinhole`` + ``equidistant`` is read as `KannalaBrandt`. ``T_cn_cnm1`` of cam n
+maps cam n-1 into cam n; it is chained into ``T_cam_cam0``. Focal lengths and
+principal points must be floats (Kalibr rejects ints), resolutions ints.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from calibration.camera import CameraModel
+from calibration.distortion import Fov, RadTan
+from calibration.errors import CalibrationError
+from calibration.fisheye import DoubleSphere, ExtendedUnified, KannalaBrandt, Unified
+from calibration.pinhole import Omni, Pinhole
+from calibration.transforms import as_transform
+from calibration.types import F64
+
+_INTRINSIC_NAMES: dict[str, list[str]] = {
+    "pinhole": ["fu", "fv", "pu", "pv"],
+    "omni": ["xi", "fu", "fv", "pu", "pv"],
+    "eucm": ["alpha", "beta", "fu", "fv", "pu", "pv"],
+    "ds": ["xi", "alpha", "fu", "fv", "pu", "pv"],
+}
+_DISTORTIONS: dict[str, dict[str, int]] = {
+    "pinhole": {"radtan": 4, "equidistant": 4, "fov": 1, "none": 0},
+    "omni": {"radtan": 4, "none": 0},
+    "eucm": {"none": 0},
+    "ds": {"none": 0},
+}
+_FLOAT_ONLY = {"fu", "fv", "pu", "pv"}
+
+
+@dataclass(frozen=True, eq=False)
+class KalibrCamera:
+    """One ``camN`` block of a camchain.
+
+    ``T_cn_cnm1`` is kept exactly as read (None for cam0) so a write-read round
+    trip is exact; ``T_cam_cam0`` is the chained transform p_camN = T p_cam0.
+    """
+
+    name: str
+    model: CameraModel
+    T_cam_cam0: F64
+    T_cn_cnm1: F64 | None = None
+    T_cam_imu: F64 | None = None
+    timeshift_cam_imu: float | None = None
+    rostopic: str | None = None
+    cam_overlaps: tuple[int, ...] | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class CameraChain:
+    """A Kalibr camchain: cameras in order cam0, cam1, ..."""
+
+    cameras: tuple[KalibrCamera, ...]
+    source: Path | None = field(default=None)
+
+    def __getitem__(self, name: str) -> KalibrCamera:
+        for cam in self.cameras:
+            if cam.name == name:
+                return cam
+        known = ", ".join(c.name for c in self.cameras)
+        raise CalibrationError(f"camchain has no camera {name!r} (has: {known})")
+
+
+def model_to_kalibr(model: CameraModel) -> tuple[str, list[float], str, list[float]]:
+    """Kalibr (camera_model, intrinsics, distortion_model, distortion_coeffs) of a model."""
+    if isinstance(model, DoubleSphere):
+        return "ds", [model.xi, model.alpha, model.fx, model.fy, model.cx, model.cy], "none", []
+    if isinstance(model, ExtendedUnified):
+        intr = [model.alpha, model.beta, model.fx, model.fy, model.cx, model.cy]
+        return "eucm", intr, "none", []
+    if isinstance(model, Unified):
+        # UCM is EUCM with beta = 1; Kalibr has no separate ``ucm`` model.
+        return "eucm", [model.alpha, 1.0, model.fx, model.fy, model.cx, model.cy], "none", []
+    if isinstance(model, KannalaBrandt):
+        coeffs = [model.k1, model.k2, model.k3, model.k4]
+        return "pinhole", [model.fx, model.fy, model.cx, model.cy], "equidistant", coeffs
+    if isinstance(model, Omni):
+        dist = model.distortion
+        return (
+            "omni",
+            [model.xi, model.fx, model.fy, model.cx, model.cy],
+            "none" if dist is None else dist.kalibr_name,
+            [] if dist is None else dist.coeffs(),
+        )
+    if isinstance(model, Pinhole):
+        dist = model.distortion
+        return (
+            "pinhole",
+            [model.fx, model.fy, model.cx, model.cy],
+            "none" if dist is None else dist.kalibr_name,
+            [] if dist is None else dist.coeffs(),
+        )
+    raise CalibrationError(f"{type(model).__name__} has no Kalibr representation")
+
+
+def model_from_kalibr(
+    camera_model: str,
+    intrinsics: Sequence[float],
+    distortion_model: str,
+    coeffs: Sequence[float],
+    resolution: Sequence[int],
+) -> CameraModel:
+    """Build a camera model from already type-checked Kalibr fields."""
+    w, h = int(resolution[0]), int(resolution[1])
+    if camera_model == "ds":
+        xi, alpha, fu, fv, pu, pv = intrinsics
+        return DoubleSphere(fu, fv, pu, pv, xi, alpha, w, h)
+    if camera_model == "eucm":
+        alpha, beta, fu, fv, pu, pv = intrinsics
+        return ExtendedUnified(fu, fv, pu, pv, alpha, beta, w, h)
+    radtan = RadTan(*coeffs) if distortion_model == "radtan" else None
+    if camera_model == "omni":
+        xi, fu, fv, pu, pv = intrinsics
+        return Omni(xi, fu, fv, pu, pv, w, h, radtan)
+    fu, fv, pu, pv = intrinsics
+    if distortion_model == "equidistant":
+        k1, k2, k3, k4 = coeffs
+        return KannalaBrandt(fu, fv, pu, pv, k1, k2, k3, k4, w, h)
+    if distortion_model == "fov":
+        return Pinhole(fu, fv, pu, pv, w, h, Fov(coeffs[0]))
+    return Pinhole(fu, fv, pu, pv, w, h, radtan)
+
+
+def _number_list(value: object, where: str, count: int | None) -> list[float]:
+    if not isinstance(value, list) or not all(
+        isinstance(v, int | float) and not isinstance(v, bool) for v in value
+    ):
+        raise CalibrationError(f"{where}: expected a list of numbers, got {value!r}")
+    if count is not None and len(value) != count:
+        raise CalibrationError(f"{where}: expected {count} values, got {len(value)}")
+    if not all(math.isfinite(v) for v in value):
+        raise CalibrationError(f"{where}: values must be finite, got {value!r}")
+    return list(value)
+
+
+def load_yaml(path: Path, what: str) -> Any:
+    """Read a YAML file, turning I/O and syntax errors into `CalibrationError`."""
+    try:
+        text = path.read_text()
+    except FileNotFoundError as err:
+        raise CalibrationError(f"{path}: {what} file not found") from err
+    except OSError as err:
+        raise CalibrationError(f"{path}: cannot read {what} file: {err.strerror}") from err
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        where = f" line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        problem = getattr(err, "problem", None) or str(err)
+        raise CalibrationError(f"{path}:{where}: malformed YAML: {problem}") from err
+
+
+def _parse_camera(name: str, block: object, where: str) -> dict[str, Any]:
+    if not isinstance(block, Mapping):
+        raise CalibrationError(f"{where}: expected a mapping of camera keys, got {block!r}")
+    for key in (
+        "camera_model",
+        "intrinsics",
+        "distortion_model",
+        "distortion_coeffs",
+        "resolution",
+    ):
+        if key not in block:
+            raise CalibrationError(f"{where}: missing key '{key}'")
+    model = block["camera_model"]
+    if model not in _INTRINSIC_NAMES:
+        raise CalibrationError(
+            f"{where}.camera_model: unknown model {model!r} (expected one of "
+            f"{', '.join(_INTRINSIC_NAMES)})"
+        )
+    names = _INTRINSIC_NAMES[model]
+    intr = _number_list(
+        block["intrinsics"], f"{where}.intrinsics ({model}: [{', '.join(names)}])", len(names)
+    )
+    for key, value in zip(names, intr, strict=True):
+        if key in _FLOAT_ONLY and not isinstance(value, float):
+            raise CalibrationError(
+                f"{where}.intrinsics: {key} must be a float (Kalibr rejects integers), got {value!r}"
+            )
+        if key in ("fu", "fv") and value <= 0.0:
+            raise CalibrationError(f"{where}.intrinsics: {key} must be > 0, got {value!r}")
+    dist = block["distortion_model"]
+    if dist not in _DISTORTIONS[model]:
+        raise CalibrationError(
+            f"{where}.distortion_model: {dist!r} is not valid with camera_model {model!r} "
+            f"(expected one of {', '.join(_DISTORTIONS[model])})"
+        )
+    coeffs = _number_list(
+        block["distortion_coeffs"], f"{where}.distortion_coeffs ({dist})", _DISTORTIONS[model][dist]
+    )
+    res = block["resolution"]
+    if (
+        not isinstance(res, list)
+        or len(res) != 2
+        or not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in res)
+    ):
+        raise CalibrationError(
+            f"{where}.resolution: expected [width, height] positive ints, got {res!r}"
+        )
+    try:
+        camera = model_from_kalibr(model, intr, dist, coeffs, res)
+    except CalibrationError as err:
+        raise CalibrationError(f"{where}: {err}") from err
+    out: dict[str, Any] = {"model": camera}
+    if "T_cn_cnm1" in block:
+        out["T_cn_cnm1"] = as_transform(block["T_cn_cnm1"], f"{where}.T_cn_cnm1")
+    if "T_cam_imu" in block:
+        out["T_cam_imu"] = as_transform(block["T_cam_imu"], f"{where}.T_cam_imu")
+    if "timeshift_cam_imu" in block:
+        ts = block["timeshift_cam_imu"]
+        if not isinstance(ts, int | float) or isinstance(ts, bool) or not math.isfinite(ts):
+            raise CalibrationError(
+                f"{where}.timeshift_cam_imu: expected seconds as a number, got {ts!r}"
+            )
+        out["timeshift_cam_imu"] = float(ts)
+    if "rostopic" in block:
+        if not isinstance(block["rostopic"], str):
+            raise CalibrationError(
+                f"{where}.rostopic: expected a string, got {block['rostopic']!r}"
+            )
+        out["rostopic"] = block["rostopic"]
+    if "cam_overlaps" in block:
+        ov = block["cam_overlaps"]
+        if not isinstance(ov, list) or not all(isinstance(i, int) for i in ov):
+            raise CalibrationError(
+                f"{where}.cam_overlaps: expected a list of camera indices, got {ov!r}"
+            )
+        out["cam_overlaps"] = tuple(ov)
+    return out
+
+
+def parse_kalibr_camchain(data: object, source: str) -> CameraChain:
+    """Build a `CameraChain` from an already loaded YAML document."""
+    if not isinstance(data, Mapping) or not data:
+        raise CalibrationError(f"{source}: expected a Kalibr camchain (keys cam0, cam1, ...)")
+    names = [f"cam{i}" for i in range(len(data))]
+    if sorted(data, key=str) != sorted(names):
+        raise CalibrationError(
+            f"{source}: expected camera keys {', '.join(names)}, got {', '.join(map(str, data))}"
+        )
+    cameras: list[KalibrCamera] = []
+    T_prev_cam0 = np.eye(4)
+    for i, name in enumerate(names):
+        parsed = _parse_camera(name, data[name], f"{source}: {name}")
+        if i == 0:
+            parsed.pop("T_cn_cnm1", None)
+            T_cam_cam0 = np.eye(4)
+        else:
+            if "T_cn_cnm1" not in parsed:
+                raise CalibrationError(f"{source}: {name}: missing key 'T_cn_cnm1'")
+            T_cam_cam0 = parsed["T_cn_cnm1"] @ T_prev_cam0
+        cameras.append(KalibrCamera(name=name, T_cam_cam0=T_cam_cam0, **parsed))
+        T_prev_cam0 = T_cam_cam0
+    return CameraChain(tuple(cameras))
+
+
+def read_kalibr_camchain(path: str | Path) -> CameraChain:
+    """Read a Kalibr camchain (or camchain-imucam) YAML file.
+
+    Raises `CalibrationError` naming the file, camera and key at fault.
+    """
+    p = Path(path)
+    chain = parse_kalibr_camchain(load_yaml(p, "Kalibr camchain"), str(p))
+    return CameraChain(chain.cameras, source=p)
+
+
+def _matrix(T: F64) -> list[list[float]]:
+    return [[float(v) for v in row] for row in T]
+
+
+def camchain_to_dict(chain: CameraChain) -> dict[str, Any]:
+    """The camchain as the plain dict Kalibr writes."""
+    out: dict[str, Any] = {}
+    for i, cam in enumerate(chain.cameras):
+        model, intr, dist, coeffs = model_to_kalibr(cam.model)
+        block: dict[str, Any] = {}
+        if cam.cam_overlaps is not None:
+            block["cam_overlaps"] = list(cam.cam_overlaps)
+        block["camera_model"] = model
+        block["distortion_coeffs"] = [float(c) for c in coeffs]
+        block["distortion_model"] = dist
+        block["intrinsics"] = [float(v) for v in intr]
+        block["resolution"] = [int(cam.model.width), int(cam.model.height)]
+        if cam.rostopic is not None:
+            block["rostopic"] = cam.rostopic
+        if i > 0:
+            T = cam.T_cn_cnm1
+            if T is None:
+                T = cam.T_cam_cam0 @ np.linalg.inv(chain.cameras[i - 1].T_cam_cam0)
+            block["T_cn_cnm1"] = _matrix(T)
+        if cam.T_cam_imu is not None:
+            block["T_cam_imu"] = _matrix(cam.T_cam_imu)
+        if cam.timeshift_cam_imu is not None:
+            block["timeshift_cam_imu"] = float(cam.timeshift_cam_imu)
+        out[f"cam{i}"] = block
+    return out
+
+
+def write_kalibr_camchain(chain: CameraChain, path: str | Path) -> None:
+    """Write a camchain in Kalibr's YAML layout (floats written exactly, via repr)."""
+    text = yaml.safe_dump(camchain_to_dict(chain), default_flow_style=None, sort_keys=False)
+    Path(path).write_text(text)

@@ -1,0 +1,370 @@
+"""The SensorBox rig file: a Kalibr camchain plus LiDARs, IMUs, topics and roles.
+
+A rig file is YAML::
+
+    sensorbox_rig: 1
+    name: sensorbox-reference
+    camchain: sensorbox-camchain.yaml      # relative to the rig file
+    cameras:
+      cam0: {role: upper, topic: /zed_upper/zed_node/rgb/color/rect/image}
+      cam1: {role: lower}                  # topic defaults to the camchain's rostopic
+    lidars:
+      lidar_top:
+        topic: /livox/lidar_192_168_1_12
+        ip: 192.168.1.12                   # optional
+        T_cam0_lidar: [[...4x4...]]        # p_cam0 = T_cam0_lidar @ p_lidar, metres
+      lidar_bottom:
+        topic: /livox/lidar_192_168_1_13
+        livox_extrinsic: {roll: 180.0, pitch: 0.0, yaw: 0.0, x: 0, y: 0, z: -220}
+        T_cam0_base: [[...]]               # optional, default identity
+    imus:
+      imu_top: {topic: /livox/imu_192_168_1_12, T_cam0_imu: [[...]], rate_hz: 200}
+
+A LiDAR's pose is either ``T_cam0_lidar`` or the Livox driver's extrinsic
+(``livox_extrinsic`` inline, or ``livox_config: FILE.json`` + ``ip``), which maps
+the LiDAR into a base frame, placed in cam0 by ``T_cam0_base``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from calibration.camera import CameraModel
+from calibration.errors import CalibrationError
+from calibration.kalibr import (
+    CameraChain,
+    KalibrCamera,
+    camchain_to_dict,
+    load_yaml,
+    parse_kalibr_camchain,
+)
+from calibration.transforms import as_transform, invert, livox_extrinsic_to_transform
+from calibration.types import F64
+
+RIG_VERSION = 1
+ROLES = ("upper", "lower")
+_LIVOX_KEYS = ("roll", "pitch", "yaw", "x", "y", "z")
+
+
+@dataclass(frozen=True, eq=False)
+class Camera:
+    """A camera of the rig: its model, pose relative to cam0, role and topic."""
+
+    name: str
+    model: CameraModel
+    T_cam_cam0: F64
+    role: str | None = None
+    topic: str | None = None
+
+    @property
+    def T_cam0_cam(self) -> F64:
+        """Pose of this camera in cam0."""
+        return invert(self.T_cam_cam0)
+
+
+@dataclass(frozen=True, eq=False)
+class Lidar:
+    """A LiDAR of the rig; points map into cam0 by ``T_cam0_lidar`` (metres)."""
+
+    name: str
+    topic: str
+    T_cam0_lidar: F64
+    ip: str | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class Imu:
+    """An IMU of the rig; ``T_cam0_imu`` maps IMU-frame vectors into cam0."""
+
+    name: str
+    topic: str
+    T_cam0_imu: F64
+    rate_hz: float | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class Rig:
+    """Cameras (from a Kalibr camchain), LiDARs and IMUs, all placed in cam0."""
+
+    cameras: tuple[Camera, ...]
+    lidars: tuple[Lidar, ...] = ()
+    imus: tuple[Imu, ...] = ()
+    name: str = "rig"
+    source: Path | None = field(default=None)
+    camchain: CameraChain | None = field(default=None)
+
+    def camera(self, name_or_role: str) -> Camera:
+        """The camera with this name (``cam0``) or role (``upper``/``lower``)."""
+        for cam in self.cameras:
+            if name_or_role in (cam.name, cam.role):
+                return cam
+        known = ", ".join(f"{c.name} ({c.role})" if c.role else c.name for c in self.cameras)
+        raise CalibrationError(
+            f"{self._where}: no camera named or role {name_or_role!r} (has: {known})"
+        )
+
+    def lidar(self, name: str) -> Lidar:
+        """The LiDAR with this name."""
+        for lidar in self.lidars:
+            if lidar.name == name:
+                return lidar
+        known = ", ".join(li.name for li in self.lidars) or "none"
+        raise CalibrationError(f"{self._where}: no lidar named {name!r} (has: {known})")
+
+    @property
+    def upper(self) -> Camera:
+        """The reference (upper) camera."""
+        return self.camera("upper")
+
+    @property
+    def lower(self) -> Camera:
+        """The lower camera of the vertical stereo pair."""
+        return self.camera("lower")
+
+    @property
+    def _where(self) -> str:
+        return str(self.source) if self.source is not None else f"rig {self.name!r}"
+
+    def baseline_m(self, a: str = "upper", b: str = "lower") -> float:
+        """Distance between two camera centres in metres."""
+        ca = self.camera(a).T_cam0_cam[:3, 3]
+        cb = self.camera(b).T_cam0_cam[:3, 3]
+        return float(np.linalg.norm(cb - ca))
+
+
+def _require_mapping(value: object, where: str) -> Mapping[str, Any]:
+    if not isinstance(value, Mapping):
+        raise CalibrationError(f"{where}: expected a mapping, got {value!r}")
+    return value
+
+
+def _require_str(block: Mapping[str, Any], key: str, where: str) -> str:
+    if key not in block:
+        raise CalibrationError(f"{where}: missing key '{key}'")
+    value = block[key]
+    if not isinstance(value, str) or not value:
+        raise CalibrationError(f"{where}.{key}: expected a non-empty string, got {value!r}")
+    return value
+
+
+def read_livox_config(path: str | Path) -> dict[str, F64]:
+    """Read a livox_ros_driver2 JSON config; return ``{ip: T_base_lidar}``.
+
+    Each ``lidar_configs[i].extrinsic_parameter`` holds roll/pitch/yaw in
+    degrees and x/y/z in millimetres (R = Rz(yaw) Ry(pitch) Rx(roll)).
+    """
+    p = Path(path)
+    try:
+        data = json.loads(p.read_text())
+    except FileNotFoundError as err:
+        raise CalibrationError(f"{p}: Livox config file not found") from err
+    except json.JSONDecodeError as err:
+        raise CalibrationError(f"{p}: line {err.lineno}: malformed JSON: {err.msg}") from err
+    configs = data.get("lidar_configs") if isinstance(data, dict) else None
+    if not isinstance(configs, list):
+        raise CalibrationError(f"{p}: missing key 'lidar_configs' (a list)")
+    out: dict[str, F64] = {}
+    for i, cfg in enumerate(configs):
+        where = f"{p}: lidar_configs[{i}]"
+        cfg = _require_mapping(cfg, where)
+        ip = _require_str(cfg, "ip", where)
+        ext = cfg.get("extrinsic_parameter")
+        if ext is None:
+            raise CalibrationError(f"{where}: missing key 'extrinsic_parameter'")
+        out[ip] = _livox_block(ext, f"{where}.extrinsic_parameter")
+    return out
+
+
+def _livox_block(block: object, where: str) -> F64:
+    block = _require_mapping(block, where)
+    values = []
+    for key in _LIVOX_KEYS:
+        if key not in block:
+            raise CalibrationError(
+                f"{where}: missing key '{key}' (degrees for roll/pitch/yaw, mm for x/y/z)"
+            )
+        v = block[key]
+        if not isinstance(v, int | float) or isinstance(v, bool) or not math.isfinite(v):
+            raise CalibrationError(f"{where}.{key}: expected a number, got {v!r}")
+        values.append(float(v))
+    return livox_extrinsic_to_transform(*values)
+
+
+def _parse_lidar(name: str, block: object, where: str, base_dir: Path) -> Lidar:
+    block = _require_mapping(block, where)
+    topic = _require_str(block, "topic", where)
+    ip = block.get("ip")
+    if ip is not None and not isinstance(ip, str):
+        raise CalibrationError(f"{where}.ip: expected a dotted IPv4 string, got {ip!r}")
+    given = [k for k in ("T_cam0_lidar", "livox_extrinsic", "livox_config") if k in block]
+    if len(given) != 1:
+        raise CalibrationError(
+            f"{where}: expected exactly one of 'T_cam0_lidar', 'livox_extrinsic', 'livox_config', "
+            f"got {given or 'none'}"
+        )
+    if given[0] == "T_cam0_lidar":
+        T = as_transform(block["T_cam0_lidar"], f"{where}.T_cam0_lidar")
+    else:
+        if given[0] == "livox_extrinsic":
+            T_base_lidar = _livox_block(block["livox_extrinsic"], f"{where}.livox_extrinsic")
+        else:
+            cfg_path = base_dir / str(block["livox_config"])
+            table = read_livox_config(cfg_path)
+            if ip is None or ip not in table:
+                raise CalibrationError(
+                    f"{where}.ip: {ip!r} not found in {cfg_path} (has: {', '.join(table) or 'none'})"
+                )
+            T_base_lidar = table[ip]
+        T_cam0_base = (
+            as_transform(block["T_cam0_base"], f"{where}.T_cam0_base")
+            if "T_cam0_base" in block
+            else np.eye(4)
+        )
+        T = T_cam0_base @ T_base_lidar
+    return Lidar(name=name, topic=topic, T_cam0_lidar=T, ip=ip)
+
+
+def _parse_imu(name: str, block: object, where: str) -> Imu:
+    block = _require_mapping(block, where)
+    topic = _require_str(block, "topic", where)
+    if "T_cam0_imu" not in block:
+        raise CalibrationError(f"{where}: missing key 'T_cam0_imu'")
+    rate = block.get("rate_hz")
+    if rate is not None and (
+        not isinstance(rate, int | float) or isinstance(rate, bool) or rate <= 0
+    ):
+        raise CalibrationError(f"{where}.rate_hz: expected a positive number, got {rate!r}")
+    return Imu(
+        name=name,
+        topic=topic,
+        T_cam0_imu=as_transform(block["T_cam0_imu"], f"{where}.T_cam0_imu"),
+        rate_hz=None if rate is None else float(rate),
+    )
+
+
+def rig_from_camchain(chain: CameraChain, name: str = "camchain") -> Rig:
+    """A rig made of a bare camchain: cam0 is the upper camera, cam1 the lower one."""
+    cams = tuple(
+        Camera(
+            name=c.name,
+            model=c.model,
+            T_cam_cam0=c.T_cam_cam0,
+            role=ROLES[i] if i < len(ROLES) else None,
+            topic=c.rostopic,
+        )
+        for i, c in enumerate(chain.cameras)
+    )
+    return Rig(cameras=cams, name=name, source=chain.source, camchain=chain)
+
+
+def _parse_cameras(block: object, chain: CameraChain, where: str) -> tuple[Camera, ...]:
+    block = _require_mapping(block, where)
+    cams: list[Camera] = []
+    for kc in chain.cameras:
+        entry = _require_mapping(block.get(kc.name, {}), f"{where}.{kc.name}")
+        role = entry.get("role")
+        if role is not None and role not in ROLES:
+            raise CalibrationError(f"{where}.{kc.name}.role: expected one of {ROLES}, got {role!r}")
+        topic = entry.get("topic", kc.rostopic)
+        if topic is not None and not isinstance(topic, str):
+            raise CalibrationError(f"{where}.{kc.name}.topic: expected a string, got {topic!r}")
+        cams.append(Camera(kc.name, kc.model, kc.T_cam_cam0, role, topic))
+    unknown = set(block) - {c.name for c in chain.cameras}
+    if unknown:
+        raise CalibrationError(
+            f"{where}: cameras {sorted(unknown)} are not in the camchain "
+            f"(has: {', '.join(c.name for c in chain.cameras)})"
+        )
+    roles = [c.role for c in cams if c.role is not None]
+    if len(roles) != len(set(roles)):
+        raise CalibrationError(f"{where}: each role may be given to one camera only, got {roles}")
+    return tuple(cams)
+
+
+def read_rig(path: str | Path) -> Rig:
+    """Read a rig file, or a bare Kalibr camchain (then cam0 = upper, cam1 = lower)."""
+    p = Path(path)
+    data = load_yaml(p, "rig")
+    if isinstance(data, Mapping) and "cam0" in data and "sensorbox_rig" not in data:
+        chain = parse_kalibr_camchain(data, str(p))
+        return rig_from_camchain(CameraChain(chain.cameras, source=p), name=p.stem)
+    where = str(p)
+    data = _require_mapping(data, where)
+    version = data.get("sensorbox_rig")
+    if version != RIG_VERSION:
+        raise CalibrationError(
+            f"{where}: sensorbox_rig: expected version {RIG_VERSION} "
+            f"(or a Kalibr camchain with cam0, cam1, ...), got {version!r}"
+        )
+    chain_name = _require_str(data, "camchain", where)
+    chain_path = p.parent / chain_name
+    chain_data = load_yaml(chain_path, f"Kalibr camchain (referenced by {p.name})")
+    chain = CameraChain(
+        parse_kalibr_camchain(chain_data, str(chain_path)).cameras, source=chain_path
+    )
+    cameras = _parse_cameras(data.get("cameras", {}), chain, f"{where}: cameras")
+    lidars = tuple(
+        _parse_lidar(str(n), b, f"{where}: lidars.{n}", p.parent)
+        for n, b in _require_mapping(data.get("lidars", {}), f"{where}: lidars").items()
+    )
+    imus = tuple(
+        _parse_imu(str(n), b, f"{where}: imus.{n}")
+        for n, b in _require_mapping(data.get("imus", {}), f"{where}: imus").items()
+    )
+    name = data.get("name", p.stem)
+    return Rig(cameras, lidars, imus, name=str(name), source=p, camchain=chain)
+
+
+def _matrix(T: F64) -> list[list[float]]:
+    return [[float(v) for v in row] for row in T]
+
+
+def write_rig(rig: Rig, path: str | Path, camchain_name: str | None = None) -> Path:
+    """Write ``rig`` as a rig file plus its camchain beside it; returns the camchain path.
+
+    LiDAR poses are written as ``T_cam0_lidar`` (the resolved form).
+    """
+    p = Path(path)
+    camchain_name = camchain_name or f"{p.stem}-camchain.yaml"
+    chain = rig.camchain or CameraChain(
+        tuple(KalibrCamera(c.name, c.model, c.T_cam_cam0, rostopic=c.topic) for c in rig.cameras)
+    )
+    chain_path = p.parent / camchain_name
+    chain_path.write_text(
+        yaml.safe_dump(camchain_to_dict(chain), default_flow_style=None, sort_keys=False)
+    )
+    doc: dict[str, Any] = {
+        "sensorbox_rig": RIG_VERSION,
+        "name": rig.name,
+        "camchain": camchain_name,
+        "cameras": {
+            c.name: {k: v for k, v in (("role", c.role), ("topic", c.topic)) if v is not None}
+            for c in rig.cameras
+        },
+        "lidars": {
+            li.name: {
+                "topic": li.topic,
+                **({"ip": li.ip} if li.ip else {}),
+                "T_cam0_lidar": _matrix(li.T_cam0_lidar),
+            }
+            for li in rig.lidars
+        },
+        "imus": {
+            imu.name: {
+                "topic": imu.topic,
+                "T_cam0_imu": _matrix(imu.T_cam0_imu),
+                **({"rate_hz": imu.rate_hz} if imu.rate_hz is not None else {}),
+            }
+            for imu in rig.imus
+        },
+    }
+    p.write_text(yaml.safe_dump(doc, default_flow_style=None, sort_keys=False))
+    return chain_path

@@ -1,0 +1,110 @@
+"""Rigid transforms: validation, inversion and Euler-angle conventions.
+
+`T_a_b` is a 4x4 float64 matrix mapping points in frame b to frame a:
+``p_a = T_a_b @ p_b``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+from calibration.errors import CalibrationError
+from calibration.types import F64
+
+ORTHONORMAL_TOL = 1e-6
+"""Largest |R^T R - I| entry accepted for a rotation read from a file."""
+
+
+def as_transform(value: object, what: str) -> F64:
+    """Validate ``value`` as a 4x4 rigid transform and return it as float64.
+
+    ``what`` names the source (file, camera, key) for the error message.
+    Raises `CalibrationError` if the shape is not 4x4, an entry is not a
+    finite number, the bottom row is not [0, 0, 0, 1], or the rotation block
+    is not orthonormal with determinant +1 (tolerance `ORTHONORMAL_TOL`).
+    """
+    try:
+        T = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError) as err:
+        raise CalibrationError(f"{what}: expected a 4x4 list of numbers, got {value!r}") from err
+    if T.shape != (4, 4):
+        raise CalibrationError(f"{what}: expected a 4x4 matrix, got shape {T.shape}")
+    if not np.all(np.isfinite(T)):
+        raise CalibrationError(f"{what}: matrix has non-finite entries")
+    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=1e-12, rtol=0.0):
+        raise CalibrationError(f"{what}: bottom row must be [0, 0, 0, 1], got {T[3].tolist()}")
+    R = T[:3, :3]
+    err = float(np.max(np.abs(R.T @ R - np.eye(3))))
+    if err > ORTHONORMAL_TOL:
+        raise CalibrationError(
+            f"{what}: rotation is not orthonormal (max |R^T R - I| = {err:.2e}, "
+            f"expected <= {ORTHONORMAL_TOL:.0e})"
+        )
+    if np.linalg.det(R) < 0.0:
+        raise CalibrationError(f"{what}: rotation has determinant -1 (a reflection)")
+    return T
+
+
+def invert(T_a_b: F64) -> F64:
+    """Return ``T_b_a`` for a rigid transform ``T_a_b``."""
+    R = T_a_b[:3, :3]
+    T_b_a = np.eye(4)
+    T_b_a[:3, :3] = R.T
+    T_b_a[:3, 3] = -R.T @ T_a_b[:3, 3]
+    return T_b_a
+
+
+def make_transform(R: F64 | Sequence[Sequence[float]], t: F64 | Sequence[float]) -> F64:
+    """Assemble a 4x4 transform from a 3x3 rotation and a translation (metres)."""
+    T = np.eye(4)
+    T[:3, :3] = np.asarray(R, dtype=np.float64)
+    T[:3, 3] = np.asarray(t, dtype=np.float64)
+    return T
+
+
+def rot_x(angle_rad: float) -> F64:
+    """Rotation about x by ``angle_rad`` (right-handed)."""
+    c, s = math.cos(angle_rad), math.sin(angle_rad)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def rot_y(angle_rad: float) -> F64:
+    """Rotation about y by ``angle_rad`` (right-handed)."""
+    c, s = math.cos(angle_rad), math.sin(angle_rad)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def rot_z(angle_rad: float) -> F64:
+    """Rotation about z by ``angle_rad`` (right-handed)."""
+    c, s = math.cos(angle_rad), math.sin(angle_rad)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def rodrigues(rotvec: F64 | Sequence[float]) -> F64:
+    """Rotation matrix of a rotation vector (axis * angle in radians)."""
+    w = np.asarray(rotvec, dtype=np.float64)
+    angle = float(np.linalg.norm(w))
+    if angle < 1e-15:
+        return np.eye(3)
+    k = w / angle
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + math.sin(angle) * K + (1.0 - math.cos(angle)) * (K @ K)
+
+
+def livox_extrinsic_to_transform(
+    roll_deg: float, pitch_deg: float, yaw_deg: float, x_mm: float, y_mm: float, z_mm: float
+) -> F64:
+    """Transform of a livox_ros_driver2 ``extrinsic_parameter`` block.
+
+    The driver applies ``p' = R p + t`` with ``R = Rz(yaw) Ry(pitch) Rx(roll)``,
+    angles in degrees and ``t`` in millimetres; the result is returned in metres.
+    """
+    R = (
+        rot_z(math.radians(yaw_deg))
+        @ rot_y(math.radians(pitch_deg))
+        @ rot_x(math.radians(roll_deg))
+    )
+    return make_transform(R, np.array([x_mm, y_mm, z_mm], dtype=np.float64) / 1000.0)

@@ -1,0 +1,96 @@
+"""Matplotlib figures for people to look at (rig layout)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+
+from calibration.report import RigReport
+from calibration.rig import Rig
+from calibration.types import F64
+
+# Plot frame: cam0 rotated so that x = forward, y = left, z = up (a familiar robot view).
+_R_VIEW_CAM0 = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+_COLORS = {"camera": "tab:blue", "lidar": "tab:red", "imu": "tab:green"}
+LIDAR_VFOV_DEG = (-7.0, 52.0)
+
+
+def _fov_rays_camera(rig: Rig, name: str, n: int = 181) -> tuple[F64, F64]:
+    """Border rays of a camera's central row and column, in cam0 (unit)."""
+    cam = rig.camera(name)
+    m = cam.model
+    cx = float(getattr(m, "cx", (m.width - 1) / 2))
+    cy = float(getattr(m, "cy", (m.height - 1) / 2))
+    row = np.stack([np.linspace(-0.5, m.width - 0.5, n), np.full(n, cy)], axis=-1)
+    col = np.stack([np.full(n, cx), np.linspace(-0.5, m.height - 0.5, n)], axis=-1)
+    R = cam.T_cam0_cam[:3, :3]
+    out = []
+    for uv in (row, col):
+        rays, valid = m.unproject(uv)
+        out.append(rays[valid] @ R.T)
+    return out[0], out[1]
+
+
+def plot_rig(rig: Rig, report: RigReport, path: str | Path, cone_m: float = 0.15) -> Path:
+    """Draw the rig from the top and the side: frames with axes, camera and LiDAR FOV cones."""
+    fig, axes = plt.subplots(1, 2, figsize=(13, 6.5))
+    views = [("Top view (x forward, y left)", 0, 1), ("Side view (x forward, z up)", 0, 2)]
+    for ax, (title, i, j) in zip(axes, views, strict=True):
+        for fr in report.frames:
+            p = _R_VIEW_CAM0 @ fr.position_m
+            R = _R_VIEW_CAM0 @ fr.T_cam0_sensor[:3, :3]
+            color = _COLORS.get(fr.kind, "k")
+            ax.plot(p[i], p[j], "o", color=color, ms=6)
+            for axis, c in zip(range(3), ("r", "g", "b"), strict=True):
+                a = R[:, axis] * 0.04
+                ax.annotate(
+                    "",
+                    (p[i] + a[i], p[j] + a[j]),
+                    (p[i], p[j]),
+                    arrowprops={"arrowstyle": "->", "color": c, "lw": 1.2},
+                )
+            ax.annotate(
+                fr.name,
+                (p[i], p[j]),
+                textcoords="offset points",
+                xytext=(6, -12),
+                fontsize=8,
+                color=color,
+            )
+            if fr.kind == "camera":
+                h_rays, v_rays = _fov_rays_camera(rig, fr.name)
+                rays = h_rays if j == 1 else v_rays
+                pts = (_R_VIEW_CAM0 @ rays.T).T * cone_m + p
+                ax.fill(
+                    np.r_[p[i], pts[:, i], p[i]],
+                    np.r_[p[j], pts[:, j], p[j]],
+                    color=color,
+                    alpha=0.12,
+                )
+            if fr.kind == "lidar" and j == 2:
+                for el in LIDAR_VFOV_DEG:
+                    for az in (0.0, np.pi):
+                        e = np.radians(el)
+                        d_l = np.array([np.cos(e) * np.cos(az), np.cos(e) * np.sin(az), np.sin(e)])
+                        d = R @ d_l * cone_m * 1.5
+                        ax.plot(
+                            [p[i], p[i] + d[i]], [p[j], p[j] + d[j]], color=color, lw=0.8, alpha=0.6
+                        )
+        ax.set_title(title)
+        ax.set_aspect("equal")
+        ax.grid(alpha=0.3)
+        ax.set_xlabel("forward [m]")
+        ax.set_ylabel("left [m]" if j == 1 else "up [m]")
+    base = f", baseline {report.baseline_m * 1000:.1f} mm" if report.baseline_m else ""
+    fig.suptitle(f"Rig '{report.name}'{base}  (axes: x red, y green, z blue; cones = FOV)")
+    fig.tight_layout()
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return out
