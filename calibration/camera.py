@@ -112,9 +112,7 @@ class CameraModel(ABC):
 
     def pixel_grid(self) -> F64:
         """Pixel centres of the whole image, shape (H, W, 2) as (u, v)."""
-        u, v = np.meshgrid(
-            np.arange(self.width, dtype=np.float64), np.arange(self.height, dtype=np.float64)
-        )
+        u, v = np.meshgrid(np.arange(self.width, dtype=np.float64), np.arange(self.height, dtype=np.float64))
         return np.stack([u, v], axis=-1)
 
     def params(self) -> dict[str, Any]:
@@ -137,15 +135,34 @@ class FieldOfView:
     diagonal_rad: float
 
 
+def _off_axis(rays: F64) -> F64:
+    return np.arctan2(np.hypot(rays[..., 0], rays[..., 1]), rays[..., 2])
+
+
 def _max_angle_along(model: CameraModel, start: F64, end: F64, samples: int) -> float:
-    """Largest off-axis angle of valid rays on the segment start->end."""
-    t = np.linspace(0.0, 1.0, samples)[:, None]
-    uv = start[None, :] * (1.0 - t) + end[None, :] * t
-    rays, valid = model.unproject(uv)
+    """Largest off-axis angle of valid rays on the segment start->end.
+
+    Where validity ends inside the segment (an image circle smaller than the
+    sensor), the boundary is refined by bisection: the angle grows steeply
+    there, so a sampled value would understate the FOV by a degree or more.
+    """
+    t = np.linspace(0.0, 1.0, samples)
+    rays, valid = model.unproject(start[None, :] * (1.0 - t[:, None]) + end[None, :] * t[:, None])
     if not np.any(valid):
         return 0.0
-    r = rays[valid]
-    return float(np.max(np.arctan2(np.hypot(r[:, 0], r[:, 1]), r[:, 2])))
+    best = float(np.max(_off_axis(rays[valid])))
+    last = int(np.nonzero(valid)[0][-1])
+    if last + 1 < samples and not valid[last + 1]:
+        lo, hi = float(t[last]), float(t[last + 1])
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            ray, ok = model.unproject(start * (1.0 - mid) + end * mid)
+            if ok:
+                lo = mid
+                best = max(best, float(_off_axis(ray)))
+            else:
+                hi = mid
+    return best
 
 
 def field_of_view(model: CameraModel, samples: int = 4001) -> FieldOfView:

@@ -63,15 +63,20 @@ class RadTan:
     def undistort(self, xd: F64, yd: F64) -> tuple[F64, F64, Bool]:
         """Invert `distort` by Newton's method; returns (mx, my, converged)."""
         mx, my = xd.copy(), yd.copy()
+        tol = UNDISTORT_TOL * np.maximum(1.0, np.hypot(xd, yd))
         for _ in range(UNDISTORT_MAX_ITER):
             fx, fy = self.distort(mx, my)
             ex, ey = fx - xd, fy - yd
+            converged = np.hypot(ex, ey) < tol
+            if converged.all():
+                break
             j00, j01, j10, j11 = self._jacobian(mx, my)
             det = j00 * j11 - j01 * j10
             mx = mx - (j11 * ex - j01 * ey) / det
             my = my - (-j10 * ex + j00 * ey) / det
-        fx, fy = self.distort(mx, my)
-        converged = np.hypot(fx - xd, fy - yd) < UNDISTORT_TOL * np.maximum(1.0, np.hypot(xd, yd))
+        else:
+            fx, fy = self.distort(mx, my)
+            converged = np.hypot(fx - xd, fy - yd) < tol
         # The Jacobian must stay positive definite-ish: past the fold the inverse is not unique.
         j00, j01, j10, j11 = self._jacobian(mx, my)
         converged &= (j00 * j11 - j01 * j10) > 0.0

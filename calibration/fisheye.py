@@ -107,10 +107,9 @@ def _eucm_project(x: F64, y: F64, z: F64, alpha: float, beta: float) -> tuple[F6
 
 def _eucm_unproject(mx: F64, my: F64, alpha: float, beta: float) -> tuple[F64, F64, F64, Bool]:
     r2 = mx * mx + my * my
-    if alpha <= 0.5:
-        valid = np.ones_like(r2, dtype=bool)
-    else:
-        valid = r2 <= 1.0 / (beta * (2.0 * alpha - 1.0))
+    # alpha <= 0.5: every pixel unprojects; else the image circle r^2 <= 1/(beta (2 alpha - 1)).
+    bound = np.inf if alpha <= 0.5 else 1.0 / (beta * (2.0 * alpha - 1.0))
+    valid = r2 <= bound
     mz = (1.0 - beta * alpha * alpha * r2) / (
         alpha * np.sqrt(1.0 - (2.0 * alpha - 1.0) * beta * r2) + 1.0 - alpha
     )
@@ -142,9 +141,7 @@ class ExtendedUnified(CameraModel):
         return self.fx * mx + self.cx, self.fy * my + self.cy, valid
 
     def _unproject(self, u: F64, v: F64) -> tuple[F64, F64, F64, Bool]:
-        return _eucm_unproject(
-            (u - self.cx) / self.fx, (v - self.cy) / self.fy, self.alpha, self.beta
-        )
+        return _eucm_unproject((u - self.cx) / self.fx, (v - self.cy) / self.fy, self.alpha, self.beta)
 
     def _scaled_params(self, factor: float) -> dict[str, Any]:
         return _focal_scaled(self, factor)
@@ -214,9 +211,7 @@ class KannalaBrandt(CameraModel):
 
     def _dpoly(self, theta: F64) -> F64:
         t2 = theta * theta
-        return 1.0 + t2 * (
-            3.0 * self.k1 + t2 * (5.0 * self.k2 + t2 * (7.0 * self.k3 + t2 * 9.0 * self.k4))
-        )
+        return 1.0 + t2 * (3.0 * self.k1 + t2 * (5.0 * self.k2 + t2 * (7.0 * self.k3 + t2 * 9.0 * self.k4)))
 
     @cached_property
     def theta_max(self) -> float:

@@ -97,12 +97,12 @@ def model_to_kalibr(model: CameraModel) -> tuple[str, list[float], str, list[flo
         coeffs = [model.k1, model.k2, model.k3, model.k4]
         return "pinhole", [model.fx, model.fy, model.cx, model.cy], "equidistant", coeffs
     if isinstance(model, Omni):
-        dist = model.distortion
+        odist = model.distortion
         return (
             "omni",
             [model.xi, model.fx, model.fy, model.cx, model.cy],
-            "none" if dist is None else dist.kalibr_name,
-            [] if dist is None else dist.coeffs(),
+            "none" if odist is None else odist.kalibr_name,
+            [] if odist is None else odist.coeffs(),
         )
     if isinstance(model, Pinhole):
         dist = model.distortion
@@ -187,8 +187,7 @@ def _parse_camera(name: str, block: object, where: str) -> dict[str, Any]:
     model = block["camera_model"]
     if model not in _INTRINSIC_NAMES:
         raise CalibrationError(
-            f"{where}.camera_model: unknown model {model!r} (expected one of "
-            f"{', '.join(_INTRINSIC_NAMES)})"
+            f"{where}.camera_model: unknown model {model!r} (expected one of {', '.join(_INTRINSIC_NAMES)})"
         )
     names = _INTRINSIC_NAMES[model]
     intr = _number_list(
@@ -216,9 +215,7 @@ def _parse_camera(name: str, block: object, where: str) -> dict[str, Any]:
         or len(res) != 2
         or not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in res)
     ):
-        raise CalibrationError(
-            f"{where}.resolution: expected [width, height] positive ints, got {res!r}"
-        )
+        raise CalibrationError(f"{where}.resolution: expected [width, height] positive ints, got {res!r}")
     try:
         camera = model_from_kalibr(model, intr, dist, coeffs, res)
     except CalibrationError as err:
@@ -231,22 +228,16 @@ def _parse_camera(name: str, block: object, where: str) -> dict[str, Any]:
     if "timeshift_cam_imu" in block:
         ts = block["timeshift_cam_imu"]
         if not isinstance(ts, int | float) or isinstance(ts, bool) or not math.isfinite(ts):
-            raise CalibrationError(
-                f"{where}.timeshift_cam_imu: expected seconds as a number, got {ts!r}"
-            )
+            raise CalibrationError(f"{where}.timeshift_cam_imu: expected seconds as a number, got {ts!r}")
         out["timeshift_cam_imu"] = float(ts)
     if "rostopic" in block:
         if not isinstance(block["rostopic"], str):
-            raise CalibrationError(
-                f"{where}.rostopic: expected a string, got {block['rostopic']!r}"
-            )
+            raise CalibrationError(f"{where}.rostopic: expected a string, got {block['rostopic']!r}")
         out["rostopic"] = block["rostopic"]
     if "cam_overlaps" in block:
         ov = block["cam_overlaps"]
         if not isinstance(ov, list) or not all(isinstance(i, int) for i in ov):
-            raise CalibrationError(
-                f"{where}.cam_overlaps: expected a list of camera indices, got {ov!r}"
-            )
+            raise CalibrationError(f"{where}.cam_overlaps: expected a list of camera indices, got {ov!r}")
         out["cam_overlaps"] = tuple(ov)
     return out
 

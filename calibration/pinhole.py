@@ -77,9 +77,7 @@ class Omni(CameraModel):
         if self.xi < 0.0:
             raise CalibrationError(f"Omni: xi must be >= 0, got {self.xi!r}")
         if self.distortion is not None and not isinstance(self.distortion, RadTan):
-            raise CalibrationError(
-                f"Omni: only radtan distortion is supported, got {self.distortion!r}"
-            )
+            raise CalibrationError(f"Omni: only radtan distortion is supported, got {self.distortion!r}")
         require_positive("fx", self.fx, "Omni")
 
     @property

@@ -107,9 +107,7 @@ class Rig:
             if name_or_role in (cam.name, cam.role):
                 return cam
         known = ", ".join(f"{c.name} ({c.role})" if c.role else c.name for c in self.cameras)
-        raise CalibrationError(
-            f"{self._where}: no camera named or role {name_or_role!r} (has: {known})"
-        )
+        raise CalibrationError(f"{self._where}: no camera named or role {name_or_role!r} (has: {known})")
 
     def lidar(self, name: str) -> Lidar:
         """The LiDAR with this name."""
@@ -188,9 +186,7 @@ def _livox_block(block: object, where: str) -> F64:
     values = []
     for key in _LIVOX_KEYS:
         if key not in block:
-            raise CalibrationError(
-                f"{where}: missing key '{key}' (degrees for roll/pitch/yaw, mm for x/y/z)"
-            )
+            raise CalibrationError(f"{where}: missing key '{key}' (degrees for roll/pitch/yaw, mm for x/y/z)")
         v = block[key]
         if not isinstance(v, int | float) or isinstance(v, bool) or not math.isfinite(v):
             raise CalibrationError(f"{where}.{key}: expected a number, got {v!r}")
@@ -238,9 +234,7 @@ def _parse_imu(name: str, block: object, where: str) -> Imu:
     if "T_cam0_imu" not in block:
         raise CalibrationError(f"{where}: missing key 'T_cam0_imu'")
     rate = block.get("rate_hz")
-    if rate is not None and (
-        not isinstance(rate, int | float) or isinstance(rate, bool) or rate <= 0
-    ):
+    if rate is not None and (not isinstance(rate, int | float) or isinstance(rate, bool) or rate <= 0):
         raise CalibrationError(f"{where}.rate_hz: expected a positive number, got {rate!r}")
     return Imu(
         name=name,
@@ -307,9 +301,7 @@ def read_rig(path: str | Path) -> Rig:
     chain_name = _require_str(data, "camchain", where)
     chain_path = p.parent / chain_name
     chain_data = load_yaml(chain_path, f"Kalibr camchain (referenced by {p.name})")
-    chain = CameraChain(
-        parse_kalibr_camchain(chain_data, str(chain_path)).cameras, source=chain_path
-    )
+    chain = CameraChain(parse_kalibr_camchain(chain_data, str(chain_path)).cameras, source=chain_path)
     cameras = _parse_cameras(data.get("cameras", {}), chain, f"{where}: cameras")
     lidars = tuple(
         _parse_lidar(str(n), b, f"{where}: lidars.{n}", p.parent)
@@ -338,9 +330,7 @@ def write_rig(rig: Rig, path: str | Path, camchain_name: str | None = None) -> P
         tuple(KalibrCamera(c.name, c.model, c.T_cam_cam0, rostopic=c.topic) for c in rig.cameras)
     )
     chain_path = p.parent / camchain_name
-    chain_path.write_text(
-        yaml.safe_dump(camchain_to_dict(chain), default_flow_style=None, sort_keys=False)
-    )
+    chain_path.write_text(yaml.safe_dump(camchain_to_dict(chain), default_flow_style=None, sort_keys=False))
     doc: dict[str, Any] = {
         "sensorbox_rig": RIG_VERSION,
         "name": rig.name,

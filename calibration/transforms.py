@@ -37,10 +37,10 @@ def as_transform(value: object, what: str) -> F64:
     if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=1e-12, rtol=0.0):
         raise CalibrationError(f"{what}: bottom row must be [0, 0, 0, 1], got {T[3].tolist()}")
     R = T[:3, :3]
-    err = float(np.max(np.abs(R.T @ R - np.eye(3))))
-    if err > ORTHONORMAL_TOL:
+    ortho_err = float(np.max(np.abs(R.T @ R - np.eye(3))))
+    if ortho_err > ORTHONORMAL_TOL:
         raise CalibrationError(
-            f"{what}: rotation is not orthonormal (max |R^T R - I| = {err:.2e}, "
+            f"{what}: rotation is not orthonormal (max |R^T R - I| = {ortho_err:.2e}, "
             f"expected <= {ORTHONORMAL_TOL:.0e})"
         )
     if np.linalg.det(R) < 0.0:
@@ -91,7 +91,8 @@ def rodrigues(rotvec: F64 | Sequence[float]) -> F64:
         return np.eye(3)
     k = w / angle
     K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    return np.eye(3) + math.sin(angle) * K + (1.0 - math.cos(angle)) * (K @ K)
+    R: F64 = np.eye(3) + math.sin(angle) * K + (1.0 - math.cos(angle)) * (K @ K)
+    return R
 
 
 def livox_extrinsic_to_transform(
@@ -102,9 +103,5 @@ def livox_extrinsic_to_transform(
     The driver applies ``p' = R p + t`` with ``R = Rz(yaw) Ry(pitch) Rx(roll)``,
     angles in degrees and ``t`` in millimetres; the result is returned in metres.
     """
-    R = (
-        rot_z(math.radians(yaw_deg))
-        @ rot_y(math.radians(pitch_deg))
-        @ rot_x(math.radians(roll_deg))
-    )
+    R = rot_z(math.radians(yaw_deg)) @ rot_y(math.radians(pitch_deg)) @ rot_x(math.radians(roll_deg))
     return make_transform(R, np.array([x_mm, y_mm, z_mm], dtype=np.float64) / 1000.0)

@@ -86,16 +86,11 @@ def calib_check(
             c.role or "-",
             c.model,
             f"{c.params['width']}x{c.params['height']}",
-            *(
-                f"{math.degrees(a):.1f}°"
-                for a in (fov.horizontal_rad, fov.vertical_rad, fov.diagonal_rad)
-            ),
+            *(f"{math.degrees(a):.1f}°" for a in (fov.horizontal_rad, fov.vertical_rad, fov.diagonal_rad)),
         )
     console.print(cams)
     for c in report.cameras:
-        params = ", ".join(
-            f"{k}={_fmt(v)}" for k, v in c.params.items() if k not in ("width", "height")
-        )
+        params = ", ".join(f"{k}={_fmt(v)}" for k, v in c.params.items() if k not in ("width", "height"))
         console.print(f"  {c.name}: {params}", highlight=False)
 
     frames = Table(title="Frames in cam0 (x right, y down, z forward)")
@@ -111,9 +106,7 @@ def calib_check(
         )
     console.print(frames)
     if report.baseline_m is not None:
-        console.print(
-            f"Stereo baseline upper->lower: [bold]{report.baseline_m * 1000:.2f} mm[/bold]"
-        )
+        console.print(f"Stereo baseline upper->lower: [bold]{report.baseline_m * 1000:.2f} mm[/bold]")
     if plot is not None:
         from sensorbox.plots import plot_rig
 

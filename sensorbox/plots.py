@@ -78,9 +78,7 @@ def plot_rig(rig: Rig, report: RigReport, path: str | Path, cone_m: float = 0.15
                         e = np.radians(el)
                         d_l = np.array([np.cos(e) * np.cos(az), np.cos(e) * np.sin(az), np.sin(e)])
                         d = R @ d_l * cone_m * 1.5
-                        ax.plot(
-                            [p[i], p[i] + d[i]], [p[j], p[j] + d[j]], color=color, lw=0.8, alpha=0.6
-                        )
+                        ax.plot([p[i], p[i] + d[i]], [p[j], p[j] + d[j]], color=color, lw=0.8, alpha=0.6)
         ax.set_title(title)
         ax.set_aspect("equal")
         ax.grid(alpha=0.3)

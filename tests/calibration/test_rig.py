@@ -1,0 +1,162 @@
+"""Rig files: the reference rig, Livox extrinsics, round trips and bad input."""
+
+import json
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from calibration import CalibrationError, DoubleSphere, read_livox_config, read_rig, write_rig
+from calibration.transforms import livox_extrinsic_to_transform
+
+REF = Path(__file__).resolve().parents[2] / "calibration" / "sensorbox.yaml"
+
+
+def test_reference_rig_matches_design():
+    rig = read_rig(REF)
+    up, low = rig.upper, rig.lower
+    assert (up.name, low.name) == ("cam0", "cam1")
+    assert isinstance(up.model, DoubleSphere) and (up.model.width, up.model.height) == (1920, 1200)
+    assert up.model.xi == pytest.approx(-0.18, abs=0.01) and up.model.alpha == pytest.approx(0.59, abs=0.01)
+    assert up.model.fx == pytest.approx(500.0, abs=2.0)
+    # lower camera 0.12 m below (cam y points down)
+    c1 = low.T_cam0_cam[:3, 3]
+    assert c1[1] == pytest.approx(0.12, abs=0.002) and abs(c1[0]) < 0.005 and abs(c1[2]) < 0.005
+    assert rig.baseline_m() == pytest.approx(0.12, abs=0.002)
+    top, bottom = rig.lidar("lidar_top"), rig.lidar("lidar_bottom")
+    # LiDAR z (up) in cam0: top upright -> points up (-y), bottom upside down -> points down (+y)
+    assert top.T_cam0_lidar[1, 2] < -0.999 and bottom.T_cam0_lidar[1, 2] > 0.999
+    # LiDAR x (forward) looks along the camera axis for both
+    assert top.T_cam0_lidar[2, 0] > 0.999 and bottom.T_cam0_lidar[2, 0] > 0.999
+    assert top.T_cam0_lidar[1, 3] < 0 < c1[1] < bottom.T_cam0_lidar[1, 3]  # above cams, below cams
+    assert {i.topic for i in rig.imus} == {"/livox/imu_192_168_1_12", "/livox/imu_192_168_1_13"}
+
+
+def test_reference_lidars_cover_the_camera_view_vertically():
+    # Elevation in cam0 seen by each Mid-360 (-7..+52 deg in its own frame), along the optical axis.
+    rig = read_rig(REF)
+    covered = []
+    for lidar in rig.lidars:
+        R = lidar.T_cam0_lidar[:3, :3]
+        els = []
+        for el in np.radians(np.linspace(-7, 52, 60)):
+            d = R @ np.array([math.cos(el), 0.0, math.sin(el)])
+            els.append(math.degrees(math.atan2(-d[1], d[2])))
+        covered.append((min(els), max(els)))
+    lo = min(c[0] for c in covered)
+    hi = max(c[1] for c in covered)
+    assert lo < -50 and hi > 50  # together the pair spans about -52..+52 deg
+    overlap = min(c[1] for c in covered) - max(c[0] for c in covered)
+    assert overlap > 10  # the -7..+7 bands overlap around the horizon
+
+
+def test_livox_extrinsic_convention():
+    # R = Rz(yaw) Ry(pitch) Rx(roll), degrees; t in mm
+    T = livox_extrinsic_to_transform(0.0, 0.0, 90.0, 100, -20, 5)
+    assert np.allclose(T[:3, :3] @ [1, 0, 0], [0, 1, 0], atol=1e-15)
+    assert np.allclose(T[:3, 3], [0.1, -0.02, 0.005])
+    T = livox_extrinsic_to_transform(90.0, 0.0, 0.0, 0, 0, 0)
+    assert np.allclose(T[:3, :3] @ [0, 1, 0], [0, 0, 1], atol=1e-15)
+    # order: roll first, then pitch, then yaw (applied to the point)
+    T = livox_extrinsic_to_transform(90.0, 90.0, 0.0, 0, 0, 0)
+    # y --roll 90--> z --pitch 90 about y--> x
+    assert np.allclose(T[:3, :3] @ [0, 1, 0], [1, 0, 0], atol=1e-12)
+
+
+def test_livox_config_json(tmp_path):
+    cfg = {
+        "lidar_summary_info": {"lidar_type": 8},
+        "lidar_configs": [
+            {"ip": "192.168.1.12", "extrinsic_parameter": {"roll": 0.0, "pitch": 0.0, "yaw": 0.0, "x": 0, "y": 0, "z": 100}},
+            {"ip": "192.168.1.13", "extrinsic_parameter": {"roll": 180.0, "pitch": 0.0, "yaw": 0.0, "x": 0, "y": 0, "z": -120}},
+        ],
+    }  # fmt: skip
+    path = tmp_path / "MID360_config.json"
+    path.write_text(json.dumps(cfg))
+    table = read_livox_config(path)
+    assert np.allclose(table["192.168.1.12"][:3, 3], [0, 0, 0.1])
+    assert np.allclose(table["192.168.1.13"][:3, :3], np.diag([1, -1, -1]), atol=1e-15)
+    # used from a rig file, placed in cam0 by T_cam0_base
+    shutil.copy(REF.parent / "sensorbox-camchain.yaml", tmp_path)
+    T_cam0_base = [[0, -1, 0, 0], [0, 0, -1, 0], [1, 0, 0, 0], [0, 0, 0, 1]]
+    rig_doc = {
+        "sensorbox_rig": 1,
+        "camchain": "sensorbox-camchain.yaml",
+        "lidars": {"bottom": {"topic": "/l", "ip": "192.168.1.13", "livox_config": "MID360_config.json",
+                              "T_cam0_base": T_cam0_base}},
+    }  # fmt: skip
+    (tmp_path / "rig.yaml").write_text(yaml.safe_dump(rig_doc))
+    rig = read_rig(tmp_path / "rig.yaml")
+    T = rig.lidar("bottom").T_cam0_lidar
+    # base z up = cam -y; the bottom lidar sits 0.12 m below the base -> +0.12 in cam y; its z points down
+    assert np.allclose(T[:3, 3], [0, 0.12, 0]) and np.allclose(T[:3, 2], [0, 1, 0])
+
+
+def test_rig_write_read_round_trip(tmp_path):
+    rig = read_rig(REF)
+    write_rig(rig, tmp_path / "copy.yaml")
+    back = read_rig(tmp_path / "copy.yaml")
+    assert [c.model for c in back.cameras] == [c.model for c in rig.cameras]
+    assert [c.role for c in back.cameras] == ["upper", "lower"]
+    for a, b in zip(rig.lidars, back.lidars, strict=True):
+        assert (a.name, a.topic, a.ip) == (b.name, b.topic, b.ip)
+        assert np.array_equal(a.T_cam0_lidar, b.T_cam0_lidar)
+    for ia, ib in zip(rig.imus, back.imus, strict=True):
+        assert np.array_equal(ia.T_cam0_imu, ib.T_cam0_imu) and ia.rate_hz == ib.rate_hz
+    assert np.array_equal(back.lower.T_cam_cam0, rig.lower.T_cam_cam0)
+
+
+def test_bare_camchain_is_a_rig():
+    rig = read_rig(REF.parent / "sensorbox-camchain.yaml")
+    assert rig.upper.name == "cam0" and rig.lower.name == "cam1" and rig.lidars == ()
+    assert rig.upper.topic == "/zed_upper/zed_node/rgb/color/rect/image"
+
+
+def _rig_with(tmp_path, **changes):
+    shutil.copy(REF.parent / "sensorbox-camchain.yaml", tmp_path)
+    doc = yaml.safe_load(REF.read_text())
+    for dotted, value in changes.items():
+        node = doc
+        keys = dotted.split("__")
+        for k in keys[:-1]:
+            node = node[k]
+        if value is None:
+            del node[keys[-1]]
+        else:
+            node[keys[-1]] = value
+    path = tmp_path / "rig.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    return path
+
+
+@pytest.mark.parametrize(
+    ("changes", "message"),
+    [
+        ({"sensorbox_rig": 7}, r"sensorbox_rig: expected version 1"),
+        ({"camchain": "missing.yaml"}, r"missing\.yaml: Kalibr camchain \(referenced by rig\.yaml\) file not found"),
+        ({"lidars__lidar_top__topic": None}, r"lidars\.lidar_top: missing key 'topic'"),
+        ({"lidars__lidar_top__T_cam0_lidar": None}, r"lidars\.lidar_top: expected exactly one of 'T_cam0_lidar', 'livox_extrinsic', 'livox_config', got none"),
+        ({"lidars__lidar_top__T_cam0_lidar": [[2.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}, r"lidars\.lidar_top\.T_cam0_lidar: rotation is not orthonormal"),
+        ({"lidars__lidar_top__T_cam0_lidar": [[-1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}, r"T_cam0_lidar: rotation has determinant -1"),
+        ({"cameras__cam0__role": "middle"}, r"cameras\.cam0\.role: expected one of \('upper', 'lower'\), got 'middle'"),
+        ({"cameras__cam1__role": "upper"}, r"each role may be given to one camera only"),
+        ({"cameras__cam5": {"role": "lower"}}, r"cameras \['cam5'\] are not in the camchain \(has: cam0, cam1\)"),
+        ({"imus__imu_top__T_cam0_imu": None}, r"imus\.imu_top: missing key 'T_cam0_imu'"),
+        ({"lidars__lidar_top__livox_extrinsic": {"roll": 0.0}}, r"expected exactly one of .*got \['T_cam0_lidar', 'livox_extrinsic'\]"),
+    ],
+)  # fmt: skip
+def test_bad_rig_messages(tmp_path, changes, message):
+    path = _rig_with(tmp_path, **changes)
+    with pytest.raises(CalibrationError, match=message):
+        read_rig(path)
+
+
+def test_unknown_role_lookup_lists_cameras():
+    rig = read_rig(REF)
+    with pytest.raises(
+        CalibrationError, match=r"no camera named or role 'left' \(has: cam0 \(upper\), cam1 \(lower\)\)"
+    ):
+        rig.camera("left")

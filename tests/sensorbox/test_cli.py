@@ -1,0 +1,45 @@
+"""The command line as a user runs it: exit codes, output, files."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+
+ROOT = Path(__file__).resolve().parents[2]
+REF = ROOT / "calibration" / "sensorbox.yaml"
+
+
+def run(*args):
+    return subprocess.run(
+        [sys.executable, "-m", "sensorbox.cli", *args], capture_output=True, text=True, cwd=ROOT, check=False
+    )
+
+
+def test_calib_check_reference_rig(tmp_path):
+    png = tmp_path / "rig.png"
+    res = run("calib", "check", str(REF), "--plot", str(png))
+    assert res.returncode == 0, res.stderr
+    assert "181.7°" in res.stdout and "182.1°" in res.stdout  # true HFOV of cam0 / cam1
+    assert "120.31 mm" in res.stdout
+    for name in ("lidar_top", "lidar_bottom", "imu_top", "/livox/lidar_192_168_1_13"):
+        assert name in res.stdout
+    img = cv2.imread(str(png))
+    assert img is not None and img.shape[0] > 400 and img.shape[1] > 800
+
+
+def test_bad_input_is_one_line_and_exit_2(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("cam0:\n  camera_model: fancy\n")
+    res = run("calib", "check", str(bad))
+    assert res.returncode == 2
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1, res.stderr
+    assert lines[0].startswith("error: ") and "bad.yaml: cam0: missing key" in lines[0]
+    assert "Traceback" not in res.stderr
+
+
+def test_help_texts():
+    for args in ([], ["calib"], ["calib", "check"]):
+        res = run(*args, "--help")
+        assert res.returncode == 0 and "Usage" in res.stdout
