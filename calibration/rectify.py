@@ -1,0 +1,79 @@
+"""Stereo rectification for spherical and pinhole pairs.
+
+Vertical stereo (DESIGN.md section 3): the rectified frame's y axis points
+along the baseline from cam0 (upper) to cam1 (lower), its z axis is the mean
+optical axis made orthogonal to y, and x = y cross z. In that frame an
+`Equirectangular` image has its pole on -y ("up", away from the lower
+camera) and columns are epipolar lines.
+
+Horizontal stereo (the benchmark's RIGHT camera): x along the baseline from
+the left (reference) to the right camera, z the orthogonalised mean optical
+axis, y = z cross x; rows of a pinhole or `Cassini` image are epipolar lines.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from calibration.errors import CalibrationError
+from calibration.rig import Rig
+from calibration.transforms import invert
+from calibration.types import F64
+
+
+@dataclass(frozen=True, eq=False)
+class StereoRectification:
+    """Rotations from the shared rectified frame into each camera, and the baseline.
+
+    ``R_cam0_rect`` maps rectified vectors into cam0 (reference), ``R_cam1_rect``
+    into cam1. ``baseline_m`` is the distance between the camera centres; in
+    the rectified frame cam1 sits at ``baseline_m`` along +y (vertical) or +x
+    (horizontal) from cam0.
+    """
+
+    R_cam0_rect: F64
+    R_cam1_rect: F64
+    baseline_m: float
+    orientation: str
+
+
+def _unit(v: F64, what: str) -> F64:
+    n = float(np.linalg.norm(v))
+    if n < 1e-12:
+        raise CalibrationError(f"rectification: {what} is degenerate (zero length)")
+    out: F64 = v / n
+    return out
+
+
+def rectify_stereo(T_cam1_cam0: F64, orientation: str = "vertical") -> StereoRectification:
+    """Rectify a pair given ``T_cam1_cam0`` (p_cam1 = T p_cam0).
+
+    ``orientation`` is ``"vertical"`` (baseline becomes +y) or ``"horizontal"``
+    (baseline becomes +x).
+    """
+    T_cam0_cam1 = invert(T_cam1_cam0)
+    R_cam0_cam1 = T_cam0_cam1[:3, :3]
+    b = T_cam0_cam1[:3, 3]  # cam1's centre in cam0
+    axis = _unit(b, "baseline")
+    z_mean = _unit(np.array([0.0, 0.0, 1.0]) + R_cam0_cam1[:, 2], "mean optical axis")
+    z = _unit(z_mean - (z_mean @ axis) * axis, "optical axis orthogonal to the baseline")
+    if orientation == "vertical":
+        y = axis
+        x = np.cross(y, z)
+    elif orientation == "horizontal":
+        x = axis
+        y = np.cross(z, x)
+    else:
+        raise CalibrationError(f"rectification: orientation must be 'vertical' or 'horizontal', got {orientation!r}")
+    R_cam0_rect = np.column_stack([x, y, z])
+    R_cam1_rect = R_cam0_cam1.T @ R_cam0_rect
+    return StereoRectification(R_cam0_rect, R_cam1_rect, float(np.linalg.norm(b)), orientation)
+
+
+def rectify_rig(rig: Rig, reference: str = "upper", other: str = "lower") -> StereoRectification:
+    """Vertical-stereo rectification of a rig's upper/lower pair (upper = reference)."""
+    ref, oth = rig.camera(reference), rig.camera(other)
+    T_oth_ref = oth.T_cam_cam0 @ ref.T_cam0_cam
+    return rectify_stereo(T_oth_ref, "vertical")

@@ -1,0 +1,153 @@
+"""One generic image warp between any two camera models, with cached remap maps.
+
+For every target pixel: unproject it, rotate the ray into the source camera
+(``R_src_dst``), project it into the source and sample there with
+`cv2.remap`. Fisheye -> equirect, -> pinhole, -> cubemap and -> Cassini are
+all calls of `warp`. Maps are cached by the (hashable, frozen) models and the
+rotation, so a sequence of frames from one rig builds them once.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import OrderedDict
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+
+from calibration.camera import CameraModel
+from calibration.spherical import Equirectangular
+from calibration.types import Bool, F64
+
+MAP_CACHE_SIZE = 8
+_CACHE: OrderedDict[tuple[Any, ...], RemapMaps] = OrderedDict()
+
+
+@dataclass(frozen=True, eq=False)
+class RemapMaps:
+    """cv2.remap maps from a target grid into a source image, and the target validity mask.
+
+    ``map_x``/``map_y`` are float32 source pixel coordinates (-1 where
+    invalid); ``valid`` marks target pixels with a valid source sample inside
+    the source image.
+    """
+
+    map_x: np.ndarray[Any, np.dtype[np.float32]]
+    map_y: np.ndarray[Any, np.dtype[np.float32]]
+    valid: Bool
+
+
+def _key(src: CameraModel, dst: CameraModel, R_src_dst: F64) -> tuple[Any, ...]:
+    return (src, dst, np.asarray(R_src_dst, dtype=np.float64).tobytes())
+
+
+def build_maps(src: CameraModel, dst: CameraModel, R_src_dst: F64 | None = None) -> RemapMaps:
+    """Remap maps that render ``dst``'s view from ``src``'s image (cached, LRU).
+
+    ``R_src_dst`` rotates rays from the target frame into the source frame
+    (identity when None).
+    """
+    R = np.eye(3) if R_src_dst is None else np.asarray(R_src_dst, dtype=np.float64)
+    key = _key(src, dst, R)
+    hit = _CACHE.get(key)
+    if hit is not None:
+        _CACHE.move_to_end(key)
+        return hit
+    rays_dst, ok_dst = dst.unproject(dst.pixel_grid())
+    rays_src = rays_dst @ R.T
+    uv, ok_src = src.project(rays_src)
+    valid = ok_dst & ok_src & src.in_image(uv)
+    map_x = np.where(valid, uv[..., 0], -1.0).astype(np.float32)
+    map_y = np.where(valid, uv[..., 1], -1.0).astype(np.float32)
+    maps = RemapMaps(map_x, map_y, valid)
+    _CACHE[key] = maps
+    while len(_CACHE) > MAP_CACHE_SIZE:
+        _CACHE.popitem(last=False)
+    return maps
+
+
+def clear_map_cache() -> None:
+    """Forget every cached map (e.g. after changing a calibration in place)."""
+    _CACHE.clear()
+
+
+def warp(
+    image: np.ndarray[Any, Any],
+    src_model: CameraModel,
+    dst_model: CameraModel,
+    R_src_dst: F64 | None = None,
+    interpolation: int = cv2.INTER_LINEAR,
+    fill: float = 0.0,
+) -> tuple[np.ndarray[Any, Any], Bool]:
+    """Render ``dst_model``'s view from an image taken with ``src_model``.
+
+    Returns ``(warped, valid)``: pixels with no valid source are set to
+    ``fill`` and are False in ``valid``. ``interpolation`` is a cv2 flag
+    (INTER_NEAREST for label/depth images, INTER_LINEAR or INTER_CUBIC for
+    colour).
+    """
+    if image.shape[:2] != (src_model.height, src_model.width):
+        raise ValueError(
+            f"warp: image is {image.shape[1]}x{image.shape[0]}, but the source model is "
+            f"{src_model.width}x{src_model.height}"
+        )
+    maps = build_maps(src_model, dst_model, R_src_dst)
+    out = cv2.remap(
+        image, maps.map_x, maps.map_y, interpolation,
+        borderMode=cv2.BORDER_CONSTANT, borderValue=fill,
+    )  # fmt: skip
+    out[~maps.valid] = fill
+    return out, maps.valid
+
+
+def default_height_full(fisheye: CameraModel, multiple: int = 256) -> int:
+    """Full-sphere rows so the equirect pitch matches the fisheye's centre resolution.
+
+    The fisheye's angular resolution at its principal point (pixels per
+    radian, from a small ray step) times pi, rounded up to ``multiple`` so
+    the image stays friendly to networks that downsample; the reference rig
+    gives 2048 (a 2048 x 4096 sphere).
+    """
+    eps = 1e-6
+    uv, ok = fisheye.project(np.array([[0.0, 0.0, 1.0], [math.sin(eps), 0.0, math.cos(eps)],
+                                       [0.0, math.sin(eps), math.cos(eps)]]))  # fmt: skip
+    if not ok.all():
+        raise ValueError("default_height_full: the camera does not see along its optical axis")
+    px_per_rad = max(abs(uv[1, 0] - uv[0, 0]), abs(uv[2, 1] - uv[0, 1])) / eps
+    return int(math.ceil(px_per_rad * math.pi / multiple) * multiple)
+
+
+def covering_crop(
+    fisheye: CameraModel, R_src_eq: F64, height_full: int, margin_px: int = 1, samples: int = 400
+) -> Equirectangular:
+    """Smallest equirect crop (same pitch as the full sphere) covering everything the fisheye sees.
+
+    ``R_src_eq`` rotates equirect-frame rays into the fisheye frame (e.g.
+    ``R_cam0_rect``). Valid fisheye pixels are sampled on a dense grid plus
+    the whole border, their rays rotated into the equirect frame, and the
+    bounding rows/columns kept with ``margin_px`` spare. If the fisheye sees
+    across the equirect's +-pi seam, the crop keeps the full width.
+    """
+    full = Equirectangular(height_full)
+    W, H = fisheye.width, fisheye.height
+    us = np.linspace(-0.5, W - 0.5, samples)
+    vs = np.linspace(-0.5, H - 0.5, samples)
+    grid = np.stack(np.meshgrid(us, vs), axis=-1).reshape(-1, 2)
+    rays, ok = fisheye.unproject(grid)
+    rays_eq = rays[ok] @ np.asarray(R_src_eq, dtype=np.float64)  # R_eq_src = R_src_eq^T
+    uv, _ = full.project(rays_eq)
+    r0 = max(0, int(math.floor(uv[:, 1].min() + 0.5)) - margin_px)
+    r1 = min(height_full, int(math.floor(uv[:, 1].max() + 0.5)) + 1 + margin_px)
+    # The seen longitudes form an arc; it avoids the +-pi seam iff the widest gap between
+    # neighbouring longitudes is the one that wraps around from the largest to the smallest.
+    phi = np.sort(np.arctan2(rays_eq[:, 0], rays_eq[:, 2]))
+    inner_gap = float(np.max(np.diff(phi))) if phi.size > 1 else 0.0
+    wrap_gap = float(phi[0] + 2.0 * math.pi - phi[-1])
+    if inner_gap > wrap_gap:
+        c0, c1 = 0, 2 * height_full  # the view crosses the seam behind the camera
+    else:
+        c0 = max(0, int(math.floor(uv[:, 0].min() + 0.5)) - margin_px)
+        c1 = min(2 * height_full, int(math.floor(uv[:, 0].max() + 0.5)) + 1 + margin_px)
+    return full.crop(r0, c0, r1 - r0, c1 - c0)
