@@ -25,6 +25,7 @@ test: setup
 
 bench: setup
 	$(BIN)/python bench/bench_models.py
+	$(BIN)/python bench/bench_warp.py
 
 lint: setup
 	$(BIN)/ruff check .

@@ -10,7 +10,7 @@ from pathlib import Path
 OUT_DIR = Path(__file__).resolve().parents[1] / "out" / "bench"
 
 
-def median_seconds(fn: Callable[[], object], runs: int, warmup: int = 1) -> float:
+def median_seconds(fn: Callable[[], object], runs: int, warmup: int = 2) -> float:
     """Median wall time of ``fn`` over ``runs`` calls after ``warmup`` calls."""
     for _ in range(warmup):
         fn()

@@ -66,7 +66,9 @@ def rectify_stereo(T_cam1_cam0: F64, orientation: str = "vertical") -> StereoRec
         x = axis
         y = np.cross(z, x)
     else:
-        raise CalibrationError(f"rectification: orientation must be 'vertical' or 'horizontal', got {orientation!r}")
+        raise CalibrationError(
+            f"rectification: orientation must be 'vertical' or 'horizontal', got {orientation!r}"
+        )
     R_cam0_rect = np.column_stack([x, y, z])
     R_cam1_rect = R_cam0_cam1.T @ R_cam0_rect
     return StereoRectification(R_cam0_rect, R_cam1_rect, float(np.linalg.norm(b)), orientation)

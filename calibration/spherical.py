@@ -25,7 +25,7 @@ import numpy as np
 from calibration.camera import CameraModel
 from calibration.errors import CalibrationError
 from calibration.pinhole import Pinhole
-from calibration.types import Bool, F64
+from calibration.types import F64, Bool
 
 # Rotation taking the standard (pole -y) frame to the pole-on-x frame: -y -> -x, +z -> +z.
 _R_POLE = {
@@ -62,9 +62,9 @@ class Equirectangular(CameraModel):
         if self.pole_axis not in _R_POLE:
             raise CalibrationError(f"Equirectangular: pole_axis must be 'y' or 'x', got {self.pole_axis!r}")
         if not (
-            0 <= self.row_offset
+            self.row_offset >= 0
             and self.row_offset + self.height <= self.height_full
-            and 0 <= self.col_offset
+            and self.col_offset >= 0
             and self.col_offset + self.width <= 2 * self.height_full
             and self.width > 0
             and self.height > 0
@@ -159,7 +159,9 @@ class Cassini(CameraModel):
 
     def __post_init__(self) -> None:
         if not isinstance(self.height_full, int) or self.height_full <= 0:
-            raise CalibrationError(f"Cassini: height_full must be a positive integer, got {self.height_full!r}")
+            raise CalibrationError(
+                f"Cassini: height_full must be a positive integer, got {self.height_full!r}"
+            )
         if self.width == 0 and self.height == 0:
             object.__setattr__(self, "width", self.height_full)
             object.__setattr__(self, "height", 2 * self.height_full)

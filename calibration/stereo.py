@@ -20,7 +20,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from calibration.types import ArrayLike, Bool, F64
+from calibration.types import F64, ArrayLike, Bool
 
 
 def depth_to_disparity(

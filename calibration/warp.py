@@ -19,9 +19,12 @@ import numpy as np
 
 from calibration.camera import CameraModel
 from calibration.spherical import Equirectangular
-from calibration.types import Bool, F64
+from calibration.types import F64, Bool
 
 MAP_CACHE_SIZE = 8
+INVALID_COORD = -1000.0
+"""Map value of target pixels with no source: so far outside that every interpolation tap
+reads the constant border, so `cv2.remap` itself writes the fill value."""
 _CACHE: OrderedDict[tuple[Any, ...], RemapMaps] = OrderedDict()
 
 
@@ -29,9 +32,10 @@ _CACHE: OrderedDict[tuple[Any, ...], RemapMaps] = OrderedDict()
 class RemapMaps:
     """cv2.remap maps from a target grid into a source image, and the target validity mask.
 
-    ``map_x``/``map_y`` are float32 source pixel coordinates (-1 where
-    invalid); ``valid`` marks target pixels with a valid source sample inside
-    the source image.
+    ``map_x``/``map_y`` are float32 source pixel coordinates (`INVALID_COORD`
+    where invalid); ``valid`` marks target pixels with a valid source sample
+    inside the source image. (OpenCV's fixed-point CV_16SC2 maps were measured
+    slower than float maps here, see bench/bench_warp.py, so they are not used.)
     """
 
     map_x: np.ndarray[Any, np.dtype[np.float32]]
@@ -59,8 +63,8 @@ def build_maps(src: CameraModel, dst: CameraModel, R_src_dst: F64 | None = None)
     rays_src = rays_dst @ R.T
     uv, ok_src = src.project(rays_src)
     valid = ok_dst & ok_src & src.in_image(uv)
-    map_x = np.where(valid, uv[..., 0], -1.0).astype(np.float32)
-    map_y = np.where(valid, uv[..., 1], -1.0).astype(np.float32)
+    map_x = np.where(valid, uv[..., 0], INVALID_COORD).astype(np.float32)
+    map_y = np.where(valid, uv[..., 1], INVALID_COORD).astype(np.float32)
     maps = RemapMaps(map_x, map_y, valid)
     _CACHE[key] = maps
     while len(_CACHE) > MAP_CACHE_SIZE:
@@ -96,9 +100,8 @@ def warp(
     maps = build_maps(src_model, dst_model, R_src_dst)
     out = cv2.remap(
         image, maps.map_x, maps.map_y, interpolation,
-        borderMode=cv2.BORDER_CONSTANT, borderValue=fill,
+        borderMode=cv2.BORDER_CONSTANT, borderValue=(fill, fill, fill, fill),
     )  # fmt: skip
-    out[~maps.valid] = fill
     return out, maps.valid
 
 
@@ -138,8 +141,8 @@ def covering_crop(
     rays, ok = fisheye.unproject(grid)
     rays_eq = rays[ok] @ np.asarray(R_src_eq, dtype=np.float64)  # R_eq_src = R_src_eq^T
     uv, _ = full.project(rays_eq)
-    r0 = max(0, int(math.floor(uv[:, 1].min() + 0.5)) - margin_px)
-    r1 = min(height_full, int(math.floor(uv[:, 1].max() + 0.5)) + 1 + margin_px)
+    r0 = max(0, math.floor(uv[:, 1].min() + 0.5) - margin_px)
+    r1 = min(height_full, math.floor(uv[:, 1].max() + 0.5) + 1 + margin_px)
     # The seen longitudes form an arc; it avoids the +-pi seam iff the widest gap between
     # neighbouring longitudes is the one that wraps around from the largest to the smallest.
     phi = np.sort(np.arctan2(rays_eq[:, 0], rays_eq[:, 2]))
@@ -148,6 +151,6 @@ def covering_crop(
     if inner_gap > wrap_gap:
         c0, c1 = 0, 2 * height_full  # the view crosses the seam behind the camera
     else:
-        c0 = max(0, int(math.floor(uv[:, 0].min() + 0.5)) - margin_px)
-        c1 = min(2 * height_full, int(math.floor(uv[:, 0].max() + 0.5)) + 1 + margin_px)
+        c0 = max(0, math.floor(uv[:, 0].min() + 0.5) - margin_px)
+        c1 = min(2 * height_full, math.floor(uv[:, 0].max() + 0.5) + 1 + margin_px)
     return full.crop(r0, c0, r1 - r0, c1 - c0)

@@ -76,7 +76,9 @@ def test_cubemap_seams_are_continuous():
         return r
 
     def edge(face, u, v):  # the face's own pinhole at the border coordinate, rotated to the cube
-        r, _ = cube.face_model.unproject(np.stack([np.broadcast_to(u, t.shape), np.broadcast_to(v, t.shape)], -1))
+        r, _ = cube.face_model.unproject(
+            np.stack([np.broadcast_to(u, t.shape), np.broadcast_to(v, t.shape)], -1)
+        )
         return r @ R[face].T
 
     seams = [  # (face a, border pixels, border coords), (face b, border pixels, border coords)

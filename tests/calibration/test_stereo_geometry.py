@@ -122,8 +122,8 @@ def test_rotation_gives_horizontal_disparity():
     theta = eq.theta_of_row(uv0[:, 1])
     disp = depth_to_disparity(np.linalg.norm(p0, axis=1), theta, rect.baseline_m, 256)
     i = int(np.argmax(disp))  # a near point: several pixels of disparity
-    c, r0 = int(round(uv0[i, 0])), int(round(uv0[i, 1]))
-    r1 = int(round(uv1[i, 1]))
+    c, r0 = round(uv0[i, 0]), round(uv0[i, 1])
+    r1 = round(uv1[i, 1])
     up[r0, c] = 1
     low[r1, c] = 1
     disp_map[r0, c] = disp[i]
