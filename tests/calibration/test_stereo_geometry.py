@@ -134,3 +134,26 @@ def test_rotation_gives_horizontal_disparity():
     assert d_rot[yl, xl] == disp[i]
     assert abs((xl - xr) - d_rot[yl, xl]) <= 1.0  # rounding of both rows
     assert np.array_equal(unrotate_from_stereo(left), up)
+
+
+def test_horizontal_rectification_pinhole_and_cassini():
+    from calibration.spherical import Cassini, pinhole_for_fov
+
+    # RIGHT camera 0.2 m to the right with a small rotation
+    R_r_l = rodrigues([0.01, -0.02, 0.015])
+    c_r = np.array([0.2, 0.003, -0.004])
+    rect = rectify_stereo(make_transform(R_r_l, -R_r_l @ c_r), "horizontal")
+    assert np.allclose(rect.R_cam0_rect[:, 0], c_r / np.linalg.norm(c_r), atol=1e-15)
+    rng = np.random.default_rng(5)
+    p = np.column_stack([rng.uniform(-2, 2, 500), rng.uniform(-1, 1, 500), rng.uniform(1, 8, 500)])
+    p_r = p @ R_r_l.T - R_r_l @ c_r
+    q_l, q_r = p @ rect.R_cam0_rect, p_r @ rect.R_cam1_rect  # both in their rectified frames
+    pin = pinhole_for_fov(math.radians(90), 640, 480)
+    uv_l, ok_l = pin.project(q_l)
+    uv_r, ok_r = pin.project(q_r)
+    assert ok_l.all() and ok_r.all()
+    assert np.abs(uv_l[:, 1] - uv_r[:, 1]).max() < 1e-9  # rows are epipolar lines
+    disp = pinhole_depth_to_disparity(q_l[:, 2], pin.fx, rect.baseline_m)
+    assert np.abs((uv_l[:, 0] - uv_r[:, 0]) - disp).max() < 1e-9  # x_right = x_left - f B / z
+    cas = Cassini(512)
+    assert np.abs(cas.project(q_l)[0][:, 1] - cas.project(q_r)[0][:, 1]).max() < 1e-9
