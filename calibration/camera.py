@@ -209,3 +209,22 @@ def require_size(width: int, height: int, model: str) -> None:
     for name, value in (("width", width), ("height", height)):
         if isinstance(value, bool) or not isinstance(value, int | np.integer) or value <= 0:
             raise CalibrationError(f"{model}: {name} must be a positive integer, got {value!r}")
+
+
+def focal_scaled_params(model: Any, factor: float) -> dict[str, Any]:
+    """fx, fy, cx, cy of a model on an image resized by ``factor`` (pixel-centre convention)."""
+    return {
+        "fx": model.fx * factor,
+        "fy": model.fy * factor,
+        "cx": (model.cx + 0.5) * factor - 0.5,
+        "cy": (model.cy + 0.5) * factor - 0.5,
+    }
+
+
+def check_focal(model: Any, name: str) -> None:
+    """Validate fx, fy > 0, finite cx, cy and a positive integer size; raise `CalibrationError`."""
+    for key in ("fx", "fy"):
+        require_positive(key, getattr(model, key), name)
+    for key in ("cx", "cy"):
+        require_finite(key, getattr(model, key), name)
+    require_size(model.width, model.height, name)

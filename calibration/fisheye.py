@@ -15,30 +15,19 @@ from typing import Any
 
 import numpy as np
 
-from calibration.camera import CameraModel, require_finite, require_positive, require_size
+from calibration.camera import (
+    CameraModel,
+    check_focal,
+    focal_scaled_params,
+    require_finite,
+    require_positive,
+)
 from calibration.errors import CalibrationError
 from calibration.types import F64, Bool
 
 KB_TOL = 1e-13
 """Kannala-Brandt unprojection tolerance on theta, radians."""
 KB_MAX_ITER = 30
-
-
-def _focal_scaled(model: Any, factor: float) -> dict[str, Any]:
-    return {
-        "fx": model.fx * factor,
-        "fy": model.fy * factor,
-        "cx": (model.cx + 0.5) * factor - 0.5,
-        "cy": (model.cy + 0.5) * factor - 0.5,
-    }
-
-
-def _check_focal(model: Any, name: str) -> None:
-    for key in ("fx", "fy"):
-        require_positive(key, getattr(model, key), name)
-    for key in ("cx", "cy"):
-        require_finite(key, getattr(model, key), name)
-    require_size(model.width, model.height, name)
 
 
 def _alpha_w1(alpha: float) -> float:
@@ -64,7 +53,7 @@ class DoubleSphere(CameraModel):
     height: int
 
     def __post_init__(self) -> None:
-        _check_focal(self, "DoubleSphere")
+        check_focal(self, "DoubleSphere")
         require_finite("xi", self.xi, "DoubleSphere")
         require_finite("alpha", self.alpha, "DoubleSphere")
         if not 0.0 <= self.alpha < 1.0:
@@ -95,7 +84,7 @@ class DoubleSphere(CameraModel):
         return s * mx, s * my, s * mz - xi, valid
 
     def _scaled_params(self, factor: float) -> dict[str, Any]:
-        return _focal_scaled(self, factor)
+        return focal_scaled_params(self, factor)
 
 
 def _eucm_project(x: F64, y: F64, z: F64, alpha: float, beta: float) -> tuple[F64, F64, Bool]:
@@ -130,7 +119,7 @@ class ExtendedUnified(CameraModel):
     height: int
 
     def __post_init__(self) -> None:
-        _check_focal(self, "ExtendedUnified")
+        check_focal(self, "ExtendedUnified")
         require_finite("alpha", self.alpha, "ExtendedUnified")
         require_positive("beta", self.beta, "ExtendedUnified")
         if not 0.0 <= self.alpha < 1.0:
@@ -144,7 +133,7 @@ class ExtendedUnified(CameraModel):
         return _eucm_unproject((u - self.cx) / self.fx, (v - self.cy) / self.fy, self.alpha, self.beta)
 
     def _scaled_params(self, factor: float) -> dict[str, Any]:
-        return _focal_scaled(self, factor)
+        return focal_scaled_params(self, factor)
 
 
 @dataclass(frozen=True)
@@ -163,7 +152,7 @@ class Unified(CameraModel):
     height: int
 
     def __post_init__(self) -> None:
-        _check_focal(self, "Unified")
+        check_focal(self, "Unified")
         require_finite("alpha", self.alpha, "Unified")
         if not 0.0 <= self.alpha < 1.0:
             raise CalibrationError(f"Unified: alpha must be in [0, 1), got {self.alpha!r}")
@@ -176,7 +165,7 @@ class Unified(CameraModel):
         return _eucm_unproject((u - self.cx) / self.fx, (v - self.cy) / self.fy, self.alpha, 1.0)
 
     def _scaled_params(self, factor: float) -> dict[str, Any]:
-        return _focal_scaled(self, factor)
+        return focal_scaled_params(self, factor)
 
 
 @dataclass(frozen=True)
@@ -201,7 +190,7 @@ class KannalaBrandt(CameraModel):
     height: int
 
     def __post_init__(self) -> None:
-        _check_focal(self, "KannalaBrandt")
+        check_focal(self, "KannalaBrandt")
         for name in ("k1", "k2", "k3", "k4"):
             require_finite(name, getattr(self, name), "KannalaBrandt")
 
@@ -254,4 +243,4 @@ class KannalaBrandt(CameraModel):
         return mx * s, my * s, np.cos(theta), valid
 
     def _scaled_params(self, factor: float) -> dict[str, Any]:
-        return _focal_scaled(self, factor)
+        return focal_scaled_params(self, factor)

@@ -277,7 +277,8 @@ def read_kalibr_camchain(path: str | Path) -> CameraChain:
     return CameraChain(chain.cameras, source=p)
 
 
-def _matrix(T: F64) -> list[list[float]]:
+def matrix_to_list(T: F64) -> list[list[float]]:
+    """A 4x4 matrix as nested lists of Python floats (exact in YAML via repr)."""
     return [[float(v) for v in row] for row in T]
 
 
@@ -300,9 +301,9 @@ def camchain_to_dict(chain: CameraChain) -> dict[str, Any]:
             T = cam.T_cn_cnm1
             if T is None:
                 T = cam.T_cam_cam0 @ np.linalg.inv(chain.cameras[i - 1].T_cam_cam0)
-            block["T_cn_cnm1"] = _matrix(T)
+            block["T_cn_cnm1"] = matrix_to_list(T)
         if cam.T_cam_imu is not None:
-            block["T_cam_imu"] = _matrix(cam.T_cam_imu)
+            block["T_cam_imu"] = matrix_to_list(cam.T_cam_imu)
         if cam.timeshift_cam_imu is not None:
             block["timeshift_cam_imu"] = float(cam.timeshift_cam_imu)
         out[f"cam{i}"] = block

@@ -7,10 +7,9 @@ from typing import Any
 
 import numpy as np
 
-from calibration.camera import CameraModel, require_finite, require_positive
+from calibration.camera import CameraModel, check_focal, focal_scaled_params, require_finite
 from calibration.distortion import Distortion, Fov, RadTan
 from calibration.errors import CalibrationError
-from calibration.fisheye import _check_focal, _focal_scaled
 from calibration.types import F64, Bool
 
 
@@ -27,7 +26,7 @@ class Pinhole(CameraModel):
     distortion: Distortion | None = None
 
     def __post_init__(self) -> None:
-        _check_focal(self, "Pinhole")
+        check_focal(self, "Pinhole")
         if self.distortion is not None and not isinstance(self.distortion, RadTan | Fov):
             raise CalibrationError(f"Pinhole: unsupported distortion {self.distortion!r}")
 
@@ -51,7 +50,7 @@ class Pinhole(CameraModel):
         return mx, my, np.ones_like(mx), valid
 
     def _scaled_params(self, factor: float) -> dict[str, Any]:
-        return _focal_scaled(self, factor)
+        return focal_scaled_params(self, factor)
 
 
 @dataclass(frozen=True)
@@ -72,13 +71,12 @@ class Omni(CameraModel):
     distortion: RadTan | None = None
 
     def __post_init__(self) -> None:
-        _check_focal(self, "Omni")
+        check_focal(self, "Omni")
         require_finite("xi", self.xi, "Omni")
         if self.xi < 0.0:
             raise CalibrationError(f"Omni: xi must be >= 0, got {self.xi!r}")
         if self.distortion is not None and not isinstance(self.distortion, RadTan):
             raise CalibrationError(f"Omni: only radtan distortion is supported, got {self.distortion!r}")
-        require_positive("fx", self.fx, "Omni")
 
     @property
     def _w(self) -> float:
@@ -108,4 +106,4 @@ class Omni(CameraModel):
         return x, y, z, valid
 
     def _scaled_params(self, factor: float) -> dict[str, Any]:
-        return _focal_scaled(self, factor)
+        return focal_scaled_params(self, factor)

@@ -42,9 +42,10 @@ from calibration.errors import CalibrationError
 from calibration.kalibr import (
     CameraChain,
     KalibrCamera,
-    camchain_to_dict,
     load_yaml,
+    matrix_to_list,
     parse_kalibr_camchain,
+    write_kalibr_camchain,
 )
 from calibration.transforms import as_transform, invert, livox_extrinsic_to_transform
 from calibration.types import F64
@@ -315,10 +316,6 @@ def read_rig(path: str | Path) -> Rig:
     return Rig(cameras, lidars, imus, name=str(name), source=p, camchain=chain)
 
 
-def _matrix(T: F64) -> list[list[float]]:
-    return [[float(v) for v in row] for row in T]
-
-
 def write_rig(rig: Rig, path: str | Path, camchain_name: str | None = None) -> Path:
     """Write ``rig`` as a rig file plus its camchain beside it; returns the camchain path.
 
@@ -330,7 +327,7 @@ def write_rig(rig: Rig, path: str | Path, camchain_name: str | None = None) -> P
         tuple(KalibrCamera(c.name, c.model, c.T_cam_cam0, rostopic=c.topic) for c in rig.cameras)
     )
     chain_path = p.parent / camchain_name
-    chain_path.write_text(yaml.safe_dump(camchain_to_dict(chain), default_flow_style=None, sort_keys=False))
+    write_kalibr_camchain(chain, chain_path)
     doc: dict[str, Any] = {
         "sensorbox_rig": RIG_VERSION,
         "name": rig.name,
@@ -343,14 +340,14 @@ def write_rig(rig: Rig, path: str | Path, camchain_name: str | None = None) -> P
             li.name: {
                 "topic": li.topic,
                 **({"ip": li.ip} if li.ip else {}),
-                "T_cam0_lidar": _matrix(li.T_cam0_lidar),
+                "T_cam0_lidar": matrix_to_list(li.T_cam0_lidar),
             }
             for li in rig.lidars
         },
         "imus": {
             imu.name: {
                 "topic": imu.topic,
-                "T_cam0_imu": _matrix(imu.T_cam0_imu),
+                "T_cam0_imu": matrix_to_list(imu.T_cam0_imu),
                 **({"rate_hz": imu.rate_hz} if imu.rate_hz is not None else {}),
             }
             for imu in rig.imus
