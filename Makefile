@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 DEMO_OUT ?= out/demo
 
-.PHONY: setup demo test bench lint fixtures clean
+.PHONY: setup demo test bench lint clean
 
 setup: $(STAMP)
 
