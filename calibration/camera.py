@@ -49,7 +49,10 @@ class CameraModel(ABC):
 
     @abstractmethod
     def _scaled_params(self, factor: float) -> dict[str, Any]:
-        """Parameters that change when the image is resized by ``factor``."""
+        """Parameters that change when the image is resized by ``factor``.
+
+        ``width``/``height`` may be included; otherwise they are the rounded scaled size.
+        """
 
     # -- public contract -------------------------------------------------
     def project(self, points: ArrayLike) -> tuple[F64, Bool]:
@@ -106,8 +109,9 @@ class CameraModel(ABC):
         if not (math.isfinite(factor) and factor > 0.0):
             raise ValueError(f"scale factor must be a positive number, got {factor!r}")
         params = self._scaled_params(factor)
-        params["width"] = max(1, round(self.width * factor))
-        params["height"] = max(1, round(self.height * factor))
+        # Models whose size follows from other parameters (spherical images) set it themselves.
+        params.setdefault("width", max(1, round(self.width * factor)))
+        params.setdefault("height", max(1, round(self.height * factor)))
         return replace(self, **params)  # type: ignore[type-var]
 
     def pixel_grid(self) -> F64:

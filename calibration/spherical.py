@@ -127,19 +127,15 @@ class Equirectangular(CameraModel):
     def _scaled_params(self, factor: float) -> dict[str, Any]:
         hf = max(1, round(self.height_full * factor))
         if self.is_full:
-            return {"height_full": hf, "row_offset": 0, "col_offset": 0}
+            return {"height_full": hf, "width": 2 * hf, "height": hf}
+        row, col = round(self.row_offset * factor), round(self.col_offset * factor)
         return {
             "height_full": hf,
-            "row_offset": round(self.row_offset * factor),
-            "col_offset": round(self.col_offset * factor),
+            "row_offset": row,
+            "col_offset": col,
+            "height": max(1, min(round(self.height * factor), hf - row)),
+            "width": max(1, min(round(self.width * factor), 2 * hf - col)),
         }
-
-    def scaled(self, factor: float) -> Equirectangular:
-        """The same view at ``factor`` times the resolution (crop offsets rounded)."""
-        out = super().scaled(factor)
-        if self.is_full:
-            return Equirectangular(out.height_full, pole_axis=self.pole_axis)
-        return out
 
 
 @dataclass(frozen=True)
@@ -187,7 +183,8 @@ class Cassini(CameraModel):
         return np.sin(a), ca * np.sin(b), ca * np.cos(b), valid
 
     def _scaled_params(self, factor: float) -> dict[str, Any]:
-        return {"height_full": max(1, round(self.height_full * factor))}
+        hf = max(1, round(self.height_full * factor))
+        return {"height_full": hf, "width": hf, "height": 2 * hf}
 
 
 # Face order of the strip layout and each face's rotation R_cube_face (columns: face x, y, z axes).
@@ -266,11 +263,8 @@ class Cubemap(CameraModel):
         return ray[:, 0], ray[:, 1], ray[:, 2], valid
 
     def _scaled_params(self, factor: float) -> dict[str, Any]:
-        return {"face_size": max(1, round(self.face_size * factor))}
-
-    def scaled(self, factor: float) -> Cubemap:
-        """The cubemap with faces of ``round(face_size * factor)`` pixels."""
-        return Cubemap(max(1, round(self.face_size * factor)))
+        face = max(1, round(self.face_size * factor))
+        return {"face_size": face, "width": 6 * face, "height": face}
 
 
 def pinhole_for_fov(fov_rad: float, width: int, height: int) -> Pinhole:

@@ -112,3 +112,18 @@ def test_cassini_rows_are_horizontal_epipolar_lines():
     uv_l, _ = cas.project(p)
     uv_r, _ = cas.project(p - [0.2, 0.0, 0.0])  # right camera 0.2 m along +x
     assert np.abs(uv_l[:, 1] - uv_r[:, 1]).max() < 1e-9
+
+
+@pytest.mark.parametrize("factor", [0.5, 0.3, 2.0])
+def test_scaled_spherical_models_keep_their_shape(factor):
+    # odd sizes: width/height must follow height_full / face_size, not be rounded on their own
+    cas = Cassini(5).scaled(factor)
+    assert (cas.width, cas.height) == (cas.height_full, 2 * cas.height_full)
+    eq = Equirectangular(5).scaled(factor)
+    assert eq.is_full and (eq.width, eq.height) == (2 * eq.height_full, eq.height_full)
+    cube = Cubemap(5).scaled(factor)
+    assert (cube.width, cube.height) == (6 * cube.face_size, cube.face_size)
+    crop = Equirectangular(2048).crop(449, 994, 1216, 2112).scaled(factor)
+    assert crop.row_offset + crop.height <= crop.height_full
+    assert crop.col_offset + crop.width <= 2 * crop.height_full
+    assert crop.pitch_rad == pytest.approx(math.pi / round(2048 * factor))
