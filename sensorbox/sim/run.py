@@ -1,0 +1,308 @@
+"""Simulate a SensorBox recording: one bag plus its truth folder.
+
+Recipe, per 100 ms of simulated time: render the camera frames whose stamps
+fall in it, cast the LiDAR sweeps that start in it, sample both IMUs, and queue
+every message by its log time (host receive time = stamp + a fixed driver
+latency, so log time is deliberately not the header stamp). Messages whose log
+time can no longer be preceded are flushed to the bag in log-time order.
+"""
+
+from __future__ import annotations
+
+import heapq
+import itertools
+import shutil
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from calibration.errors import SensorboxError
+from calibration.rig import Rig, read_rig
+from calibration.types import F64
+from ingest.rostypes import IMU_TYPE
+from sensorbox import messages
+from sensorbox.bagwriter import BagFormat, BagWriter
+from sensorbox.messages import RosVersion
+from sensorbox.sim.appearance import Texture
+from sensorbox.sim.camera import CameraSim, render
+from sensorbox.sim.lidar import SWEEP_PERIOD_NS, LidarSim, simulate_sweep, sweep_windows
+from sensorbox.sim.scenes import SCENES, Scene, build_scene
+from sensorbox.sim.trajectory import TRAJECTORIES, Trajectory, TumSpline, imu_readings, static, walk
+from sensorbox.sim.truth import truth_dir, write_truth
+
+REFERENCE_RIG = Path(__file__).resolve().parents[2] / "calibration" / "sensorbox.yaml"
+CAMERA_LATENCY_NS = 18_000_000
+LIDAR_LATENCY_NS = 2_000_000  # after the sweep's end
+IMU_LATENCY_NS = 1_000_000
+LIVOX_IMU_T_LIDAR_IMU_M = (0.011, 0.02329, -0.04412)
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """Every knob of a simulated recording (times in ns unless named otherwise)."""
+
+    scene: str = "indoor"
+    trajectory: str = "static"
+    tum: Path | None = None
+    duration_s: float = 1.0
+    seed: int = 0
+    format: BagFormat = "mcap"
+    lidar_msg: Literal["custom", "pointcloud2"] = "custom"
+    image: Literal["raw", "jpeg"] = "raw"
+    jpeg_quality: int = 90
+    scale: float = 1.0
+    supersample: int = 1
+    range_noise_m: float = 0.02
+    dust_fraction: float = 0.01
+    lidar_clock_offset_ns: int = 0  # the second LiDAR's stamps run ahead of the first by this
+    camera_rate_hz: float = 30.0
+    camera_jitter_ns: int = 500_000  # uniform +-, on each camera's mid-exposure time
+    stereo_offset_ns: int = 100_000  # lower camera's nominal exposure after the upper's
+    imu_rate_hz: float = 200.0
+    gyro_noise_rad_s: float = 0.0
+    acc_noise_g: float = 0.0
+    gyro_bias_rad_s: float = 0.0
+    acc_bias_g: float = 0.0
+    start_ns: int = 1_700_000_000_000_000_000
+    compress: bool = True
+    rig: Path = field(default=REFERENCE_RIG)
+
+    def validate(self) -> None:
+        if self.scene not in SCENES:
+            raise SensorboxError(f"--scene {self.scene!r}: expected one of {', '.join(SCENES)}")
+        if self.trajectory not in TRAJECTORIES:
+            raise SensorboxError(
+                f"--trajectory {self.trajectory!r}: expected one of {', '.join(TRAJECTORIES)}"
+            )
+        if self.trajectory == "custom" and self.tum is None:
+            raise SensorboxError(
+                "--trajectory custom needs --tum FILE (t tx ty tz qx qy qz qw, T_world_cam0)"
+            )
+        for name, value, lo in (("duration", self.duration_s, 0.0), ("scale", self.scale, 0.0)):
+            if not value > lo:
+                raise SensorboxError(f"--{name} must be > {lo}, got {value}")
+        if self.range_noise_m < 0:
+            raise SensorboxError(f"--range-noise must be >= 0 m, got {self.range_noise_m}")
+        if self.supersample < 1:
+            raise SensorboxError(f"--supersample must be >= 1, got {self.supersample}")
+
+
+@dataclass
+class SimSummary:
+    bag: Path
+    truth: Path
+    counts: dict[str, int]
+    size_bytes: int
+    seconds: float
+    stage_seconds: dict[str, float]
+
+
+def scaled_rig(rig: Rig, scale: float) -> Rig:
+    """The rig with every camera model at `scale` x its resolution (extrinsics unchanged)."""
+    if scale == 1.0:
+        return rig
+    cams = tuple(replace(c, model=c.model.scaled(scale)) for c in rig.cameras)
+    return replace(rig, cameras=cams, camchain=None)
+
+
+def _imu_pose(rig: Rig, lidar_index: int) -> tuple[str, F64]:
+    """IMU topic and T_cam0_imu for a LiDAR: the rig's IMU on the same IP, else the Mid-360 default."""
+    lidar = rig.lidars[lidar_index]
+    key = lidar.ip.replace(".", "_") if lidar.ip else lidar.topic.rsplit("lidar", 1)[-1]
+    for imu in rig.imus:
+        if imu.topic.endswith(key):
+            return imu.topic, imu.T_cam0_imu
+    T = np.eye(4)
+    T[:3, 3] = LIVOX_IMU_T_LIDAR_IMU_M
+    return lidar.topic.replace("/lidar", "/imu"), lidar.T_cam0_lidar @ T
+
+
+def build_trajectory(cfg: SimConfig, start_world: F64) -> Trajectory:
+    if cfg.trajectory == "static":
+        return static(start_world)
+    if cfg.trajectory == "walk":
+        return walk(start_world, cfg.seed)
+    assert cfg.tum is not None
+    return TumSpline(cfg.tum)
+
+
+@dataclass(frozen=True)
+class _Setup:
+    """Everything a time window of the simulation needs, built once from the config."""
+
+    cfg: SimConfig
+    rig: Rig
+    scene: Scene
+    texture: Texture
+    traj: Trajectory
+    lidars: list[LidarSim]
+    cams: list[CameraSim]
+    cam_topics: list[str]
+    imus: list[tuple[str, F64]]
+    camera_phase_ns: int
+    duration_ns: int
+    ros: RosVersion
+
+    def params(self) -> dict[str, Any]:
+        """sim.yaml: the config plus every derived parameter (phases, offsets, trajectory)."""
+        out: dict[str, Any] = {
+            k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(self.cfg).items() if k != "tum"
+        }
+        out["rig"] = "rig.yaml"
+        out["trajectory"] = self.traj.params()
+        out["lidars"] = [
+            {
+                "name": sim.name, "topic": lidar.topic, "clock_offset_ns": sim.clock_offset_ns,
+                "first_packet_ns": sim.first_packet_ns, "pattern_phase": sim.pattern_phase, "seed": sim.seed,
+                "min_range_m": sim.min_range_m, "max_range_m": sim.max_range_m,
+            }
+            for sim, lidar in zip(self.lidars, self.rig.lidars, strict=True)
+        ]  # fmt: skip
+        out["imus"] = [{"topic": t, "T_cam0_imu": T.tolist()} for t, T in self.imus]
+        out["cameras"] = {"topics": self.cam_topics, "first_frame_ns": self.camera_phase_ns}
+        out["latency_ns"] = {
+            "camera": CAMERA_LATENCY_NS, "lidar_after_sweep": LIDAR_LATENCY_NS, "imu": IMU_LATENCY_NS
+        }  # fmt: skip
+        return out
+
+
+def _setup(cfg: SimConfig) -> _Setup:
+    cfg.validate()
+    rig = scaled_rig(read_rig(cfg.rig), cfg.scale)
+    if not rig.lidars:
+        raise SensorboxError(f"{cfg.rig}: the rig has no lidars to simulate")
+    scene = build_scene(cfg.scene, cfg.seed)
+    rng = np.random.default_rng([cfg.seed, 0xC0FFEE])
+    lidars = [
+        LidarSim(
+            lidar.name, lidar.T_cam0_lidar, clock_offset_ns=cfg.lidar_clock_offset_ns if k else 0,
+            first_packet_ns=int(rng.integers(0, 480_000)), pattern_phase=float(rng.uniform(0, 2 * np.pi)),
+            range_noise_m=cfg.range_noise_m, dust_fraction=cfg.dust_fraction, seed=cfg.seed * 100 + k,
+        )
+        for k, lidar in enumerate(rig.lidars)
+    ]  # fmt: skip
+    pair = (rig.upper, rig.lower)
+    suffix = "/compressed" if cfg.image == "jpeg" else ""
+    return _Setup(
+        cfg, rig, scene, Texture(cfg.seed), build_trajectory(cfg, scene.start_world), lidars,
+        [CameraSim(c.name, c.model, c.T_cam0_cam) for c in pair],
+        [(c.topic or f"/{c.name}/image") + suffix for c in pair],
+        [_imu_pose(rig, k) for k in range(len(lidars))],
+        int(rng.integers(0, int(1e9 / cfg.camera_rate_hz))), round(cfg.duration_s * 1e9),
+        1 if cfg.format == "bag" else 2,
+    )  # fmt: skip
+
+
+Message = tuple[int, str, bytes]  # (log_ns, topic, serialised bytes)
+
+
+def _camera_messages(s: _Setup, w0: int, w1: int, pool: ThreadPoolExecutor) -> list[Message]:
+    """Both cameras' frames whose nominal time lies in the sim-time window [w0, w1) ns."""
+    cfg = s.cfg
+    period_ns = 1e9 / cfg.camera_rate_hz
+    k0 = max(0, int(np.ceil((w0 - s.camera_phase_ns) / period_ns)))
+    out: list[Message] = []
+    for k in range(k0, 10**9):
+        nominal = s.camera_phase_ns + k * period_ns
+        if nominal >= w1:
+            break
+        jitter = np.random.default_rng([cfg.seed, k, 0x1A]).uniform(-1, 1, 2) * cfg.camera_jitter_ns
+        t_ns = [round(nominal + c * cfg.stereo_offset_ns + jitter[c]) for c in range(2)]
+        poses = s.traj.T_world_cam0(np.array(t_ns) / 1e9)
+        # numpy sines and Embree both release the GIL: the two cameras render in parallel
+        jobs = [pool.submit(render, s.cams[c], s.scene, s.texture, poses[c], cfg.supersample) for c in (0, 1)]
+        images = [job.result() for job in jobs]
+        for c, img in enumerate(images):
+            stamp = cfg.start_ns + t_ns[c]
+            frame_id = f"{s.cams[c].name}_optical_frame"
+            raw = (
+                messages.compressed_image_msg(stamp, frame_id, img, cfg.jpeg_quality, s.ros)
+                if cfg.image == "jpeg"
+                else messages.image_msg(stamp, frame_id, img, s.ros)
+            )
+            out.append((stamp + CAMERA_LATENCY_NS, s.cam_topics[c], raw))
+    return out
+
+
+def _lidar_messages(s: _Setup, w0: int, w1: int) -> list[Message]:
+    """Every sweep (of each LiDAR) whose 100 ms sensor-clock window starts in [w0, w1)."""
+    encode = messages.custom_msg if s.cfg.lidar_msg == "custom" else messages.pointcloud2_msg
+    out: list[Message] = []
+    for sim, lidar in zip(s.lidars, s.rig.lidars, strict=True):
+        for win in sweep_windows(sim, s.cfg.start_ns, s.duration_ns):
+            if w0 <= win[0] < w1:
+                sweep = simulate_sweep(sim, s.scene, s.texture, s.traj, s.cfg.start_ns, win)
+                if sweep is not None:
+                    log_ns = s.cfg.start_ns + win[1] + LIDAR_LATENCY_NS
+                    out.append((log_ns, lidar.topic, encode(sweep.timebase_ns, sweep.points, s.ros)))
+    return out
+
+
+def _imu_messages(s: _Setup, w0: int, w1: int) -> list[Message]:
+    """Each LiDAR's IMU samples in [w0, w1), on that LiDAR's clock, with optional noise and bias."""
+    cfg = s.cfg
+    period = round(1e9 / cfg.imu_rate_hz)
+    out: list[Message] = []
+    for k, (sim, (topic, T_cam0_imu)) in enumerate(zip(s.lidars, s.imus, strict=True)):
+        first, last = -(-(w0 - sim.first_packet_ns) // period), -(-(w1 - sim.first_packet_ns) // period)
+        t_ns = sim.first_packet_ns + np.arange(max(first, 0), last, dtype=np.int64) * period
+        if len(t_ns) == 0:
+            continue
+        gyro, acc = imu_readings(s.traj, t_ns / 1e9, T_cam0_imu)
+        rng = np.random.default_rng([cfg.seed, k, w0 // SWEEP_PERIOD_NS, 0x1B])
+        gyro = gyro + cfg.gyro_bias_rad_s + rng.normal(0, 1, gyro.shape) * cfg.gyro_noise_rad_s
+        acc = acc + cfg.acc_bias_g + rng.normal(0, 1, acc.shape) * cfg.acc_noise_g
+        for j, t in enumerate(t_ns.tolist()):
+            stamp = cfg.start_ns + t + sim.clock_offset_ns
+            raw = messages.imu_msg(stamp, gyro[j], acc[j], s.ros)
+            out.append((cfg.start_ns + t + IMU_LATENCY_NS, topic, raw))
+    return out
+
+
+def simulate(cfg: SimConfig, out: Path, progress: Callable[[float], None] | None = None) -> SimSummary:
+    """Write a bag at `out` (rosbag2 folder or `.bag`) and its truth at `<bag>.truth/`.
+
+    `progress` is called with the simulated seconds done after every 100 ms window.
+    """
+    t_start = time.perf_counter()
+    s = _setup(cfg)
+    stage = {"cameras": 0.0, "lidars": 0.0, "imu": 0.0, "write": 0.0}
+    queue: list[tuple[int, int, str, bytes]] = []
+    order = itertools.count()  # tie-break equal log times by creation order: deterministic
+    with BagWriter(out, cfg.format, compress=cfg.compress) as bag, ThreadPoolExecutor(2) as pool:
+        for topic in s.cam_topics:
+            bag.add(topic, messages.IMAGE_MSG_TYPES[cfg.image])
+        for lidar, (imu_topic, _) in zip(s.rig.lidars, s.imus, strict=True):
+            bag.add(lidar.topic, messages.LIDAR_MSG_TYPES[cfg.lidar_msg])
+            bag.add(imu_topic, IMU_TYPE)
+        for w0 in range(0, s.duration_ns, SWEEP_PERIOD_NS):
+            w1 = min(w0 + SWEEP_PERIOD_NS, s.duration_ns)
+            for name in ("cameras", "lidars", "imu"):
+                t0 = time.perf_counter()
+                if name == "cameras":
+                    made = _camera_messages(s, w0, w1, pool)
+                else:
+                    made = (_lidar_messages if name == "lidars" else _imu_messages)(s, w0, w1)
+                for log_ns, topic, raw in made:
+                    heapq.heappush(queue, (log_ns, next(order), topic, raw))
+                stage[name] += time.perf_counter() - t0
+            # later windows only add messages logged at or after start + w1: flush the rest in order
+            t0 = time.perf_counter()
+            last = w1 >= s.duration_ns
+            while queue and (last or queue[0][0] < cfg.start_ns + w1):
+                log_ns, _, topic, raw = heapq.heappop(queue)
+                bag.write(topic, log_ns, raw)
+            stage["write"] += time.perf_counter() - t0
+            if progress is not None:
+                progress(w1 / 1e9)
+        counts = dict(bag.counts)
+    tdir = truth_dir(bag.path)
+    if tdir.exists():
+        shutil.rmtree(tdir)  # stale truth of a bag that is no longer there
+    write_truth(tdir, s.scene, s.traj, s.rig, s.params(), cfg.tum)
+    return SimSummary(bag.path, tdir, counts, bag.size_bytes, time.perf_counter() - t_start, stage)
