@@ -25,6 +25,12 @@ def quad(corner: F64 | list[float], edge_u: F64 | list[float], edge_v: F64 | lis
     return verts, np.array([[0, 1, 2], [0, 2, 3]], np.int64)
 
 
+def grid(corner: F64 | list[float], edge_u: F64 | list[float], edge_v: F64 | list[float], n: int) -> Mesh:
+    """`quad` split into n x n cells, so no triangle is huge (keeps float32 queries precise)."""
+    c, u, v = (np.asarray(a, np.float64) for a in (corner, edge_u, edge_v))
+    return merge([quad(c + u * i / n + v * j / n, u / n, v / n) for i in range(n) for j in range(n)])
+
+
 def box(lo: F64 | list[float], hi: F64 | list[float]) -> Mesh:
     """Axis-aligned box between corners `lo` and `hi` (12 triangles)."""
     mesh = o3d.geometry.TriangleMesh.create_box(*(np.asarray(hi) - np.asarray(lo)).tolist())
@@ -37,7 +43,9 @@ def cylinder(p0: F64 | list[float], p1: F64 | list[float], radius_m: float, reso
     a, b = np.asarray(p0, np.float64), np.asarray(p1, np.float64)
     axis = b - a
     length = float(np.linalg.norm(axis))
-    mesh = o3d.geometry.TriangleMesh.create_cylinder(radius_m, length, resolution=resolution, split=1)
+    # <= 0.5 m segments: Open3D's float32 closest-point query degrades on long sliver triangles
+    split = max(1, int(np.ceil(length / 0.5)))
+    mesh = o3d.geometry.TriangleMesh.create_cylinder(radius_m, length, resolution=resolution, split=split)
     verts = np.asarray(mesh.vertices, np.float64)  # axis along +z, centred at the origin
     z = axis / length
     helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])

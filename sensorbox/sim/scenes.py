@@ -21,7 +21,7 @@ import numpy as np
 
 from calibration.errors import SensorboxError
 from calibration.types import F64
-from sensorbox.sim.meshes import Mesh, box, cylinder, merge, quad, sphere
+from sensorbox.sim.meshes import Mesh, box, cylinder, grid, merge, quad, sphere
 from sensorbox.sim.raycast import RayCaster
 
 SCENES = ("indoor", "outdoor")
@@ -232,7 +232,7 @@ def build_outdoor(seed: int) -> Scene:
     """A 200 m square ground, facades along |y| > 9 m, street furniture along the kerbs."""
     rng = np.random.default_rng(seed)
     objs: list[SceneObject] = [
-        SceneObject("ground", quad([-100, -100, 0], [200, 0, 0], [0, 200, 0]), (0.35, 0.38, 0.4))
+        SceneObject("ground", grid([-100, -100, 0], [200, 0, 0], [0, 200, 0], 20), (0.35, 0.38, 0.4))
     ]
     for side in (-1, 1):
         x = -40.0
