@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 DEMO_OUT ?= out/demo
 
-.PHONY: setup demo test bench lint clean
+.PHONY: setup demo test bench lint clean fixtures
 
 setup: $(STAMP)
 
@@ -26,6 +26,10 @@ test: setup
 bench: setup
 	$(BIN)/python bench/bench_models.py
 	$(BIN)/python bench/bench_warp.py
+
+# Regenerate the small simulated bags in tests/fixtures (deterministic: same bytes every time).
+fixtures: setup
+	$(BIN)/python -m sensorbox.sim.fixtures
 
 lint: setup
 	$(BIN)/ruff check .

@@ -4,8 +4,9 @@ Every connection embeds its full message definition (rosbags `typestore=`), so
 `ros2 bag`, Foxglove, the `mcap` library and rosbags' AnyReader read the bag
 without registering types. rosbag2 bags use metadata version 8, which Humble's
 `ros2 bag` still parses (version 9's QoS format breaks it, notes/rosbags.md).
-mcap chunks are zstd-compressed (transparent to every mcap reader), ROS 1 chunks
-lz4; sqlite3 stays uncompressed (rosbag2's default).
+With `compress` (the default) mcap chunks are zstd-compressed (transparent to
+every mcap reader), sqlite3 messages are zstd-compressed one by one (rosbag2's
+`--compression-mode message`), and ROS 1 chunks use lz4.
 
 The bag is written under a hidden temporary name beside the target and renamed
 into place only when it was closed cleanly, so a crash or Ctrl-C never leaves a
@@ -68,8 +69,9 @@ class BagWriter:
         else:
             plugin = StoragePlugin.MCAP if self.fmt == "mcap" else StoragePlugin.SQLITE3
             w2 = Writer2(target, version=8, storage_plugin=plugin)
-            if self._compress and self.fmt == "mcap":
-                w2.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+            if self._compress:
+                mode = CompressionMode.STORAGE if self.fmt == "mcap" else CompressionMode.MESSAGE
+                w2.set_compression(mode, CompressionFormat.ZSTD)
             self._writer = w2
         self._writer.open()
         return self
