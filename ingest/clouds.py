@@ -1,0 +1,145 @@
+"""LiDAR points into cam0 at a camera frame time: filters, extrinsics, motion compensation.
+
+A point measured at t_i maps into cam0 at the frame time t_c as
+
+    p_c = R_c_i (T_cam0_lidar p_lidar) + v_c (t_i - t_c)
+
+where R_c_i = R_world_cam0(t_c)^T R_world_cam0(t_i) comes from integrating the
+gyro (rotation) and v_c is a constant velocity in cam0 at t_c (translation).
+Compensation is applied only when the motion over the window would move a
+point by more than `min_motion_px` pixels ("model no more than a scene needs");
+the decision and the measured motion are returned for the sample's metadata.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+
+from calibration.types import F64, Bool
+
+I64 = np.ndarray[Any, np.dtype[np.int64]]
+U8 = np.ndarray[Any, np.dtype[np.uint8]]
+NOISE_TAG_BITS = 0b0011_1100
+"""Livox tag fields rain/fog/dust (bits 2-3) and other (bits 4-5): non-zero means a doubtful echo."""
+
+
+@dataclass(frozen=True)
+class FilterCounts:
+    """How many points each filter removed (in this order), and how many remained."""
+
+    total: int = 0
+    zero: int = 0
+    non_finite: int = 0
+    too_close: int = 0
+    noise_tag: int = 0
+    kept: int = 0
+
+    def __add__(self, other: FilterCounts) -> FilterCounts:
+        return FilterCounts(*(a + b for a, b in zip(self.astuple(), other.astuple(), strict=True)))
+
+    def astuple(self) -> tuple[int, ...]:
+        return (self.total, self.zero, self.non_finite, self.too_close, self.noise_tag, self.kept)
+
+
+def filter_points(xyz_m: F64, tag: U8 | None, min_range_m: float) -> tuple[Bool, FilterCounts]:
+    """Keep mask for points that are real returns: non-zero, finite, >= min range, no noise tag."""
+    xyz = np.asarray(xyz_m, np.float64)
+    finite = np.isfinite(xyz).all(axis=1)
+    zero = finite & ~xyz.any(axis=1)
+    with np.errstate(invalid="ignore"):
+        r = np.linalg.norm(xyz, axis=1)
+    close = finite & ~zero & (r < min_range_m)
+    tagged = np.zeros(len(xyz), bool) if tag is None else (np.asarray(tag) & NOISE_TAG_BITS) != 0
+    tagged &= finite & ~zero & ~close
+    keep = finite & ~zero & ~close & ~tagged
+    counts = FilterCounts(
+        len(xyz), int(zero.sum()), int((~finite).sum()), int(close.sum()), int(tagged.sum()), int(keep.sum())
+    )
+    return keep, counts
+
+
+@dataclass(frozen=True)
+class GyroTrack:
+    """cam0 orientation relative to its first sample, integrated from gyro readings."""
+
+    stamps_ns: I64
+    rotations: Rotation  # R_ref_cam0(t_k)
+
+    def relative(self, t_ns: I64, t_ref_ns: int) -> Rotation:
+        """R_c_i: rotations taking cam0 at each t_i into cam0 at t_ref (clamped to the track)."""
+        slerp = Slerp(self.stamps_ns.astype(np.float64), self.rotations)
+        lo, hi = float(self.stamps_ns[0]), float(self.stamps_ns[-1])
+        at = slerp(np.clip(np.asarray(t_ns, np.float64), lo, hi))
+        ref = slerp(np.clip(np.array([float(t_ref_ns)]), lo, hi))
+        out: Rotation = ref.inv() * at
+        return out
+
+
+def integrate_gyro(stamps_ns: I64, gyro_imu_rad_s: F64, R_cam0_imu: F64) -> GyroTrack:
+    """Integrate body rates (rad/s, IMU frame) into cam0 orientations with the midpoint rule."""
+    order = np.argsort(stamps_ns, kind="stable")
+    t = np.asarray(stamps_ns, np.int64)[order]
+    keep = np.concatenate([[True], np.diff(t) > 0])  # duplicated stamps add nothing
+    t = t[keep]
+    w = (np.asarray(gyro_imu_rad_s, np.float64)[order][keep]) @ np.asarray(R_cam0_imu).T
+    dt = np.diff(t) / 1e9
+    steps = Rotation.from_rotvec(0.5 * (w[1:] + w[:-1]) * dt[:, None])
+    mats = np.empty((len(t), 3, 3))
+    mats[0] = np.eye(3)
+    R = np.eye(3)
+    step_mats = steps.as_matrix()
+    for k in range(len(dt)):
+        R = R @ step_mats[k]
+        mats[k + 1] = R
+    return GyroTrack(t, Rotation.from_matrix(mats))
+
+
+@dataclass(frozen=True)
+class MotionDecision:
+    """What the compensation step measured and decided for one sample."""
+
+    applied: bool
+    max_rotation_deg: float
+    speed_mps: float
+    motion_px: float  # predicted worst-case image motion of an uncompensated point
+    source: str  # "imu", "imu+velocity", "none"
+    velocity_cam0_mps: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+
+
+def compensate(
+    pts_cam0: F64,
+    stamps_ns: I64,
+    t_c_ns: int,
+    gyro: GyroTrack | None,
+    velocity_cam0_mps: F64 | None,
+    px_per_rad: float,
+    min_motion_px: float = 0.25,
+    reference_range_m: float = 2.0,
+) -> tuple[F64, MotionDecision]:
+    """Move cam0-frame points measured at `stamps_ns` to cam0 at `t_c_ns` when motion matters.
+
+    The predicted image motion is the largest rotation angle times `px_per_rad`
+    plus the translation over the largest |t_i - t_c| seen from
+    `reference_range_m`; below `min_motion_px` the points are returned as they are.
+    """
+    dt_s = (np.asarray(stamps_ns, np.int64) - t_c_ns) / 1e9
+    v = np.zeros(3) if velocity_cam0_mps is None else np.asarray(velocity_cam0_mps, np.float64)
+    R_ci = gyro.relative(stamps_ns, t_c_ns) if gyro is not None and len(dt_s) else None
+    angle = float(np.max(R_ci.magnitude())) if R_ci is not None else 0.0
+    speed = float(np.linalg.norm(v))
+    span_s = float(np.abs(dt_s).max()) if len(dt_s) else 0.0
+    motion_px = angle * px_per_rad + speed * span_s / reference_range_m * px_per_rad
+    source = "imu" if R_ci is not None else "none"
+    if velocity_cam0_mps is not None:
+        source += "+velocity"
+    decision = MotionDecision(
+        motion_px > min_motion_px, float(np.degrees(angle)), speed, motion_px, source, v.tolist()
+    )
+    if not decision.applied:
+        return pts_cam0, decision
+    out = R_ci.apply(pts_cam0) if R_ci is not None else np.array(pts_cam0, np.float64)
+    return out + dt_s[:, None] * v, decision

@@ -1,0 +1,188 @@
+"""The per-sample function: one stereo pair + LiDAR points -> WideDepth files on disk.
+
+`process_sample` is pure apart from writing its own files, takes only
+picklable inputs and is what the local process pool or a Dask cluster runs.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from calibration.rectify import StereoRectification, rectify_rig
+from calibration.rig import Rig
+from calibration.spherical import Equirectangular
+from calibration.types import F64
+from calibration.warp import default_height_full, warp
+from ingest.clouds import FilterCounts, compensate, filter_points, integrate_gyro
+from ingest.dataset import SampleFiles, write_sample
+from ingest.groundtruth import (
+    GtParams,
+    Normals,
+    equirect_disparity,
+    fisheye_range,
+    in_view,
+    occlusion_filter,
+    px_per_rad,
+    splat_to_pixels,
+    surface_normals,
+)
+
+I64 = np.ndarray[Any, np.dtype[np.int64]]
+
+
+@dataclass(frozen=True)
+class Geometry:
+    """Rig-derived geometry shared by every sample (built once)."""
+
+    rig: Rig
+    rect: StereoRectification
+    equirect: Equirectangular  # full sphere in cam0's rectified frame
+    px_per_rad: float
+    fisheye_valid_px: int  # pixels of cam0 with a valid ray: the denominator of GT density
+
+    @classmethod
+    def from_rig(cls, rig: Rig, height_full: int | None = None) -> Geometry:
+        model = rig.upper.model
+        h = height_full or default_height_full(model)
+        valid = int(model.unproject(model.pixel_grid().reshape(-1, 2))[1].sum())
+        return cls(rig, rectify_rig(rig), Equirectangular(h), px_per_rad(model), valid)
+
+
+@dataclass(frozen=True)
+class LidarPoints:
+    """Raw points of one LiDAR around a frame time: sensor frame (m), absolute stamps, Livox tags."""
+
+    name: str
+    xyz_m: np.ndarray[Any, Any]
+    stamps_ns: I64
+    tag: np.ndarray[Any, Any] | None
+
+
+@dataclass(frozen=True)
+class ImuWindow:
+    """Gyro readings (rad/s, IMU frame) around a frame time, and the IMU's pose in cam0."""
+
+    stamps_ns: I64
+    gyro_rad_s: F64
+    R_cam0_imu: F64
+
+
+@dataclass(frozen=True)
+class SampleParams:
+    """Per-run settings every sample needs (all plain values)."""
+
+    min_range_m: float = 0.3
+    min_motion_px: float = 0.25
+    exr: bool = False
+    png_level: int = 1
+    gt: GtParams = field(default_factory=GtParams)
+
+
+@dataclass(frozen=True)
+class SampleJob:
+    """Everything `process_sample` needs for one sample."""
+
+    out: Path
+    sid: str
+    source: str
+    upper_stamp_ns: int
+    lower_stamp_ns: int
+    upper_bgr: np.ndarray[Any, Any]
+    lower_bgr: np.ndarray[Any, Any]
+    lidars: tuple[LidarPoints, ...]
+    imu: ImuWindow | None
+    velocity_cam0_mps: F64 | None
+    geometry: Geometry
+    params: SampleParams
+
+
+@dataclass(frozen=True)
+class SampleResult:
+    """What happened to one sample: counts for the summary, milliseconds per stage."""
+
+    sid: str
+    written: bool
+    reason: str
+    meta: dict[str, Any]
+    stage_ms: dict[str, float]
+
+
+def _points_in_cam0(job: SampleJob) -> tuple[F64, I64, FilterCounts, dict[str, float]]:
+    """Filtered points of every LiDAR in cam0 (at their own times), their stamps, counts, skews."""
+    pts, stamps, total, skew = [], [], FilterCounts(), {}
+    for lp in job.lidars:
+        keep, counts = filter_points(lp.xyz_m, lp.tag, job.params.min_range_m)
+        T = job.geometry.rig.lidar(lp.name).T_cam0_lidar
+        xyz = np.asarray(lp.xyz_m, np.float64)[keep]
+        pts.append(xyz @ T[:3, :3].T + T[:3, 3])
+        stamps.append(lp.stamps_ns[keep])
+        total = total + counts
+        dt = (lp.stamps_ns[keep] - job.upper_stamp_ns) / 1e6
+        skew[lp.name] = float(np.abs(dt).max()) if len(dt) else 0.0
+    return np.concatenate(pts), np.concatenate(stamps), total, skew
+
+
+def process_sample(job: SampleJob) -> SampleResult:
+    """Clouds -> motion compensation -> GT (fisheye range, equirect disparity) -> images -> files."""
+    ms: dict[str, float] = {}
+    t0 = time.perf_counter()
+    geo, prm = job.geometry, job.params
+    pts, stamps, counts, skew_ms = _points_in_cam0(job)
+    gyro = None
+    if job.imu is not None and len(job.imu.stamps_ns) >= 2:
+        gyro = integrate_gyro(job.imu.stamps_ns, job.imu.gyro_rad_s, job.imu.R_cam0_imu)
+    pts, motion = compensate(
+        pts, stamps, job.upper_stamp_ns, gyro, job.velocity_cam0_mps, geo.px_per_rad, prm.min_motion_px
+    )
+    t1 = time.perf_counter()
+    ms["clouds"] = (t1 - t0) * 1e3
+    model = geo.rig.upper.model
+    normals = surface_normals(pts, prm.gt.plane_neighbours, prm.gt.plane_max_flatness)
+    seen, _, _ = in_view(model, pts)
+    visible = occlusion_filter(model, pts, prm.gt)
+    kept = Normals(normals.normal[visible], normals.planar[visible])
+    splat = splat_to_pixels(model, pts[visible], kept, prm.gt)
+    range_img = fisheye_range(model, splat)
+    R_rect_cam0 = geo.rect.R_cam0_rect.T
+    disp_img, _, unstable = equirect_disparity(
+        geo.equirect, R_rect_cam0, pts[visible], kept, geo.rect.baseline_m, prm.gt
+    )
+    t2 = time.perf_counter()
+    ms["ground_truth"] = (t2 - t1) * 1e3
+    up, _ = warp(job.upper_bgr, model, geo.equirect, geo.rect.R_cam0_rect)
+    down, _ = warp(job.lower_bgr, geo.rig.lower.model, geo.equirect, geo.rect.R_cam1_rect)
+    t3 = time.perf_counter()
+    ms["images"] = (t3 - t2) * 1e3
+    meta: dict[str, Any] = {
+        "stamp_ns": job.upper_stamp_ns,
+        "lower_stamp_ns": job.lower_stamp_ns,
+        "stereo_dt_ms": (job.lower_stamp_ns - job.upper_stamp_ns) / 1e6,
+        "source_bag": job.source,
+        "lidar_skew_ms": skew_ms,
+        "motion": {
+            "applied": motion.applied, "source": motion.source, "max_rotation_deg": motion.max_rotation_deg,
+            "speed_mps": motion.speed_mps, "predicted_motion_px": motion.motion_px,
+            "velocity_cam0_mps": motion.velocity_cam0_mps,
+        },
+        "points": {
+            "total": counts.total, "zero": counts.zero, "non_finite": counts.non_finite,
+            "too_close": counts.too_close, "noise_tag": counts.noise_tag, "kept": counts.kept,
+            "out_of_view": int(len(seen) - seen.sum()),
+            "occluded": int(seen.sum() - visible.sum()),
+        },
+        "gt": {
+            "depth_pixels": int(np.count_nonzero(range_img)),
+            "disp_pixels": int(np.count_nonzero(disp_img)),
+            "disp_unstable": unstable,
+            "density": float(np.count_nonzero(range_img)) / geo.fisheye_valid_px,
+        },
+    }  # fmt: skip
+    files = SampleFiles(job.upper_bgr, job.lower_bgr, up, down, disp_img, range_img, meta)
+    drops = write_sample(job.out, job.sid, files, prm.exr, prm.png_level)
+    ms["write"] = (time.perf_counter() - t3) * 1e3
+    return SampleResult(job.sid, True, "", {**meta, "dropped": drops}, ms)

@@ -1,0 +1,88 @@
+"""Time alignment on header stamps (int64 ns): stereo pairs, sample selection, point windows.
+
+Bag log times are never used here: they are receive times, shifted by driver
+latency (18 ms for ZED images, a whole sweep for Livox messages).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+I64 = np.ndarray[Any, np.dtype[np.int64]]
+DEFAULT_LIDAR_WINDOW_NS = 50_000_000
+
+
+@dataclass(frozen=True)
+class StereoPairs:
+    """Indices into the upper and lower stamp arrays of matched frames, and what was dropped."""
+
+    upper: I64
+    lower: I64
+    dt_ns: I64  # lower - upper stamp of each pair
+    dropped_upper: int
+    dropped_lower: int
+
+
+def pair_stereo(upper_ns: I64, lower_ns: I64, tolerance_ns: int) -> StereoPairs:
+    """Match each upper frame to the nearest lower frame within `tolerance_ns`, each used once.
+
+    Greedy by increasing |dt|, so a duplicated or jittered frame never steals a
+    better partner's match; unmatched frames on either side are counted drops.
+    """
+    up = np.asarray(upper_ns, np.int64)
+    lo = np.asarray(lower_ns, np.int64)
+    if len(up) == 0 or len(lo) == 0:
+        empty = np.zeros(0, np.int64)
+        return StereoPairs(empty, empty, empty, len(up), len(lo))
+    order = np.argsort(lo, kind="stable")
+    lo_sorted = lo[order]
+    pos = np.searchsorted(lo_sorted, up)
+    cand_i: list[int] = []
+    cand_j: list[int] = []
+    for k in (pos - 1, pos):  # the neighbours on each side of every upper stamp
+        ok = (k >= 0) & (k < len(lo_sorted))
+        cand_i += np.nonzero(ok)[0].tolist()
+        cand_j += k[ok].tolist()
+    i = np.array(cand_i, np.int64)
+    j = np.array(cand_j, np.int64)
+    dt = np.abs(lo_sorted[j] - up[i])
+    keep = dt <= tolerance_ns
+    i, j, dt = i[keep], j[keep], dt[keep]
+    used_i: set[int] = set()
+    used_j: set[int] = set()
+    pairs: list[tuple[int, int]] = []
+    for idx in np.lexsort((i, dt)):
+        a, b = int(i[idx]), int(j[idx])
+        if a not in used_i and b not in used_j:
+            used_i.add(a)
+            used_j.add(b)
+            pairs.append((a, b))
+    pairs.sort()
+    pu = np.array([a for a, _ in pairs], np.int64)
+    pl = order[np.array([b for _, b in pairs], np.int64)] if pairs else np.zeros(0, np.int64)
+    return StereoPairs(pu, pl, lo[pl] - up[pu], len(up) - len(pu), len(lo) - len(pl))
+
+
+def select_samples(
+    frame_ns: I64,
+    lidar_spans_ns: list[tuple[int, int]],
+    window_ns: int = DEFAULT_LIDAR_WINDOW_NS,
+    every: int = 1,
+) -> I64:
+    """Indices of frames that have LiDAR points within +-`window_ns`, thinned to every `every`-th.
+
+    `lidar_spans_ns` are (first, last) point stamps of each sweep of any LiDAR;
+    a frame qualifies when some sweep overlaps [t - window, t + window].
+    """
+    t = np.asarray(frame_ns, np.int64)
+    if not lidar_spans_ns or len(t) == 0:
+        return np.zeros(0, np.int64)
+    spans = np.array(sorted(lidar_spans_ns), np.int64)
+    ok = np.zeros(len(t), bool)
+    for first, last in spans:
+        ok |= (t + window_ns >= first) & (t - window_ns <= last)
+    idx = np.nonzero(ok)[0].astype(np.int64)
+    return idx[:: max(1, every)]
