@@ -7,9 +7,9 @@ Steps, each a pure function:
    point is dropped when a k x k window around its pixel (square splats of
    nearer points, ETH3D-style) holds a point nearer by more than
    max(`tau_m`, `tau_rel` * range). The window spans `window_rad` of view
-   (default 0.018 rad: 9 px at the reference rig's 500 px/rad), about the
-   Mid-360's point spacing within a 100 ms window, so a foreground surface
-   covers its own gaps.
+   (default 0.018 rad: 9 px at the reference rig's 500 px/rad) or two mean
+   point spacing in the image, whichever is wider, so a foreground surface
+   covers its own gaps even when the window holds few points.
 3. `splat_to_pixels`: nearest pixel centre per point and a z-buffer on range.
    The value stored is the range along the pixel-centre ray, not the point's
    own range: the ray is intersected with the point's local plane (when the
@@ -35,6 +35,7 @@ from calibration.stereo import depth_to_disparity, disparity_stability_mask
 from calibration.types import F64, Bool
 
 F32 = np.ndarray[Any, np.dtype[np.float32]]
+VALID_FRACTION_DS = 0.9  # share of a fisheye image with valid rays (point spacing estimate only)
 
 
 @dataclass(frozen=True)
@@ -42,6 +43,7 @@ class GtParams:
     """Ground-truth parameters (written to dataset.yaml)."""
 
     window_rad: float = 0.018
+    window_spacings: float = 2.0  # ... or this many mean point spacings, whichever is wider
     tau_m: float = 0.10
     tau_rel: float = 0.03
     plane_neighbours: int = 8
@@ -136,7 +138,9 @@ def occlusion_filter(model: CameraModel, pts_model: F64, params: GtParams) -> Bo
     img = np.full((model.height, model.width), np.inf, np.float32)
     ci, ri = cols[ok].astype(np.int64), rows[ok].astype(np.int64)
     np.minimum.at(img, (ri, ci), r[ok].astype(np.float32))
-    k = max(3, round(params.window_rad * px_per_rad(model)) | 1)
+    # the window must also bridge the gaps between points: their mean spacing in pixels
+    spacing_px = np.sqrt(model.width * model.height * VALID_FRACTION_DS / max(int(ok.sum()), 1))
+    k = max(3, round(max(params.window_rad * px_per_rad(model), params.window_spacings * spacing_px)) | 1)
     nearest = cv2.erode(img, np.ones((k, k), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=np.inf)
     keep = ok.copy()
     tau = np.maximum(params.tau_m, params.tau_rel * r[ok])

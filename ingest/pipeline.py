@@ -172,6 +172,15 @@ def _lidar_window(sweeps: list[Sweep], name: str, t_c: int, w: int) -> LidarPoin
     return LidarPoints(name, xyz, st, tag)
 
 
+def _check_size(frame: Frame, camera: Any, topic: str) -> None:
+    h, w = frame.image.shape[:2]
+    if (w, h) != (camera.model.width, camera.model.height):
+        raise BagError(
+            f"{topic}: images are {w}x{h} but the rig's {camera.name} is "
+            f"{camera.model.width}x{camera.model.height}; wrong rig file for this bag?"
+        )
+
+
 def stream_jobs(
     bags: BagSet, topics: Topics, the_plan: Plan, cfg: IngestConfig, geometry: Geometry
 ) -> Iterator[SampleJob | tuple[str, str]]:
@@ -229,6 +238,7 @@ def stream_jobs(
                 continue
             frame = decode(msg.msgtype, msg.raw, msg.ros_version)
             assert isinstance(frame, Frame)
+            _check_size(frame, geometry.rig.upper if side == "upper" else geometry.rig.lower, msg.topic)
             frames.setdefault(k, {})[side] = frame
         elif msg.topic == topics.imu:
             sample = decode(msg.msgtype, msg.raw, msg.ros_version)

@@ -254,6 +254,15 @@ def ingest_cmd(
     console.print(f"Dataset: {out} (dataset.yaml describes it)", highlight=False)
 
 
+def _register_inspect() -> None:
+    from sensorbox.cli_inspect import inspect_cmd
+
+    app.command("inspect")(inspect_cmd)
+
+
+_register_inspect()
+
+
 @app.callback()
 def _root() -> None:
     """SensorBox command line."""

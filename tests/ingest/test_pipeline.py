@@ -1,0 +1,248 @@
+"""Ingest end to end against the simulator's exact truth, plus resume, Dask and bad input."""
+
+from __future__ import annotations
+
+import errno
+import filecmp
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+
+from calibration.spherical import Equirectangular
+from calibration.stereo import rotate_for_stereo
+from ingest.bags import open_bags
+from ingest.dataset import DEPTH_SCALE, DISP_SCALE, DatasetError, read_png_u16
+from ingest.errors import BagError
+from ingest.pipeline import IngestConfig, ingest, load_meta
+from sensorbox.bagwriter import BagWriter
+from sensorbox.sim.fixtures import FIXTURES_DIR
+from sensorbox.sim.run import SimConfig, simulate
+from sensorbox.sim.truth import Truth, truth_dir
+
+INDOOR = FIXTURES_DIR / "indoor_static_mcap"
+
+
+def _rig(bag: Path) -> Path:
+    return truth_dir(bag) / "rig.yaml"
+
+
+def _errors(out: Path, truth: Truth, sid: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Depth error (m), its truth, and disparity error (px) of one written sample."""
+    meta = load_meta(out, sid)
+    model = truth.rig.upper.model
+    depth = read_png_u16(out / "depth_fisheye" / f"{sid}.png", DEPTH_SCALE)
+    rows, cols = np.nonzero(depth)
+    exact = truth.range_at(model, np.stack([cols, rows], 1).astype(float), meta["stamp_ns"])
+    doc = yaml.safe_load((out / "dataset.yaml").read_text())
+    eq = Equirectangular(doc["height_full"])
+    disp = read_png_u16(out / "disp_equirect" / f"{sid}.png", DISP_SCALE)
+    r2, c2 = np.nonzero(disp)
+    exact_disp = truth.disparity_at(eq, np.stack([c2, r2], 1).astype(float), meta["stamp_ns"])
+    return depth[rows, cols] - exact, exact, disp[r2, c2] - exact_disp
+
+
+@pytest.fixture(scope="module")
+def full_res_static(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """Full-resolution, noise-free, static indoor: 0.12 s, ingested."""
+    root = tmp_path_factory.mktemp("full")
+    cfg = SimConfig(scene="indoor", duration_s=0.12, scale=1.0, image="jpeg", range_noise_m=0.0, seed=1)
+    bag = simulate(cfg, root / "bag").bag
+    out = root / "ds"
+    summary = ingest([bag], IngestConfig(rig=_rig(bag), out=out, workers=1))
+    assert summary.written >= 2
+    return bag, out
+
+
+def test_static_indoor_depth_and_disparity_match_the_truth(full_res_static: tuple[Path, Path]) -> None:
+    bag, out = full_res_static
+    truth = Truth.load(bag)
+    for meta in sorted((out / "meta").glob("*.json")):
+        e, exact, ed = _errors(out, truth, meta.stem)
+        ok = np.isfinite(e)
+        assert ok.mean() > 0.99 and ok.sum() > 5_000
+        assert np.median(np.abs(e[ok])) <= 0.002
+        outliers = np.abs(e[ok]) > np.maximum(0.05, 0.03 * exact[ok])
+        assert outliers.mean() <= 0.005, outliers.mean()
+        okd = np.isfinite(ed)
+        assert np.median(np.abs(ed[okd])) <= 0.05
+        assert (np.abs(ed[okd]) > 1.0).mean() <= 0.005
+
+
+def test_range_noise_of_2cm_gives_median_error_below_15mm(tmp_path: Path) -> None:
+    bag = FIXTURES_DIR / "outdoor_static_bag.bag"
+    out = tmp_path / "ds"
+    ingest([bag], IngestConfig(rig=_rig(bag), out=out, workers=1, every=7))
+    truth = Truth.load(bag)
+    errors = np.concatenate([_errors(out, truth, m.stem)[0] for m in (out / "meta").glob("*.json")])
+    errors = errors[np.isfinite(errors)]
+    assert 0.008 < np.median(np.abs(errors)) <= 0.015
+    assert abs(np.median(errors)) < 0.003  # no bias
+    meta = load_meta(out, "000000")
+    assert meta["points"]["noise_tag"] > 0  # the simulator's dust echoes were dropped by their tag
+
+
+def _sgbm(up: np.ndarray, down: np.ndarray) -> np.ndarray:
+    left = cv2.cvtColor(rotate_for_stereo(up), cv2.COLOR_BGR2GRAY)
+    right = cv2.cvtColor(rotate_for_stereo(down), cv2.COLOR_BGR2GRAY)
+    matcher = cv2.StereoSGBM_create(  # type: ignore[attr-defined]
+        minDisparity=0, numDisparities=64, blockSize=5, P1=200, P2=800, uniquenessRatio=5,
+        mode=cv2.STEREO_SGBM_MODE_HH,
+    )  # fmt: skip
+    out: np.ndarray = matcher.compute(left, right).astype(np.float32) / 16.0
+    return out
+
+
+def test_rectified_pair_agrees_with_disparity_gt_under_sgbm(tmp_path: Path) -> None:
+    out = tmp_path / "ds"
+    ingest([INDOOR], IngestConfig(rig=_rig(INDOOR), out=out, workers=1, every=10))
+    up = np.asarray(cv2.imread(str(out / "equirect_up" / "000001.png")))
+    down = np.asarray(cv2.imread(str(out / "equirect_down_virt" / "000001.png")))
+    gt = rotate_for_stereo(read_png_u16(out / "disp_equirect" / "000001.png", DISP_SCALE))
+
+    def stats(disp: np.ndarray, ref: np.ndarray) -> tuple[float, float]:
+        m = (ref != 0) & (disp > 0)
+        e = np.abs(disp[m] - ref[m])
+        return float(np.median(e)), float((e > 3).mean())
+
+    median, bad3 = stats(_sgbm(up, down), gt)
+    assert median < 0.4 and bad3 < 0.1, (median, bad3)
+    # what the test guards against: a one-row offset of the pair, or a flipped disparity sign
+    assert stats(_sgbm(up, np.roll(down, 1, axis=0)), gt)[0] > 0.8
+    assert stats(_sgbm(up, down), -gt)[1] > 0.9
+
+
+def test_rerun_resumes_and_output_is_deterministic(tmp_path: Path) -> None:
+    a, b = tmp_path / "a", tmp_path / "b"
+    cfg = IngestConfig(rig=_rig(INDOOR), out=a, workers=2, every=5)
+    first = ingest([INDOOR], cfg)
+    assert first.written == 5 and first.resumed == 0
+    ingest([INDOOR], IngestConfig(rig=_rig(INDOOR), out=b, workers=1, every=5))
+    cmp = filecmp.dircmp(a, b)
+    for sub in ("depth_fisheye", "disp_equirect", "equirect_up", "equirect_down_virt", "meta"):
+        match, mismatch, errs = filecmp.cmpfiles(
+            a / sub, b / sub, sorted(p.name for p in (a / sub).iterdir()), False
+        )
+        assert not mismatch and not errs and len(match) == 5, (sub, mismatch)
+    assert cmp.left_only == [] and cmp.right_only == []
+    # an interrupted run: one sample's metadata missing, a half-written temp file left behind
+    (a / "meta" / "000002.json").unlink()
+    (a / "depth_fisheye" / ".000002.png.xyz.tmp").write_bytes(b"partial")
+    again = ingest([INDOOR], cfg)
+    assert (again.written, again.resumed) == (1, 4)
+    assert filecmp.cmp(a / "meta" / "000002.json", b / "meta" / "000002.json", shallow=False)
+
+
+def test_dask_local_cluster_writes_the_same_files(tmp_path: Path) -> None:
+    from distributed import LocalCluster
+
+    local = tmp_path / "local"
+    ingest([INDOOR], IngestConfig(rig=_rig(INDOOR), out=local, workers=1, every=10))
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+        out = tmp_path / "dask"
+        summary = ingest(
+            [INDOOR], IngestConfig(rig=_rig(INDOOR), out=out, dask=cluster.scheduler_address, every=10)
+        )
+    assert summary.written == 3
+    for sub in ("depth_fisheye", "disp_equirect", "meta"):
+        for f in (local / sub).iterdir():
+            assert filecmp.cmp(f, out / sub / f.name, shallow=False)
+
+
+def test_missing_topic_lists_the_bag_topics(tmp_path: Path) -> None:
+    rig_text = _rig(INDOOR).read_text().replace("/livox/lidar_192_168_1_13", "/livox/lidar_10_0_0_9")
+    (tmp_path / "rig.yaml").write_text(rig_text)
+    shutil.copy(truth_dir(INDOOR) / "camchain.yaml", tmp_path / "camchain.yaml")
+    with pytest.raises(BagError, match=r"lidar_10_0_0_9.*\n.*/livox/imu_192_168_1_12"):
+        ingest([INDOOR], IngestConfig(rig=tmp_path / "rig.yaml", out=tmp_path / "ds", workers=1))
+
+
+def test_rig_that_does_not_match_the_bag(tmp_path: Path) -> None:
+    # the reference rig is full resolution; the fixture images are 480x300
+    from sensorbox.sim.run import REFERENCE_RIG
+
+    with pytest.raises(BagError, match=r"images are 480x300 but the rig's cam0 is 1920x1200"):
+        ingest([INDOOR], IngestConfig(rig=REFERENCE_RIG, out=tmp_path / "ds", workers=1))
+
+
+def _rewrite(src: Path, dst: Path, keep: object) -> Path:
+    """Copy a fixture bag message by message through `keep(topic, index, raw) -> list[raw]`."""
+    with open_bags([src]) as bags, BagWriter(dst, "mcap") as out:
+        for topic, info in bags.topics().items():
+            out.add(topic, info.msgtype)
+        seen: dict[str, int] = {}
+        for msg in bags.messages():
+            k = seen[msg.topic] = seen.get(msg.topic, -1) + 1
+            for raw in keep(msg.topic, k, bytes(msg.raw)):  # type: ignore[operator]
+                out.write(msg.topic, msg.log_ns, raw)
+    return dst
+
+
+def test_lidar_that_stops_and_duplicated_or_reordered_frames(tmp_path: Path) -> None:
+    held: list[bytes] = []
+
+    def keep(topic: str, k: int, raw: bytes) -> list[bytes]:
+        if topic.endswith("lidar_192_168_1_13") and k >= 3:
+            return []  # the bottom LiDAR dies after 0.3 s
+        if topic.startswith("/zed_upper") and k == 4:
+            return [raw, raw]  # a duplicated frame
+        if topic.startswith("/zed_lower") and k == 6:
+            held.append(raw)  # delivered after frame 7: out of order
+            return []
+        if topic.startswith("/zed_lower") and k == 7:
+            return [raw, held.pop()]
+        return [raw]
+
+    bag = _rewrite(INDOOR, tmp_path / "broken", keep)
+    shutil.copytree(truth_dir(INDOOR), truth_dir(bag))
+    out = tmp_path / "ds"
+    summary = ingest([bag], IngestConfig(rig=_rig(bag), out=out, workers=1))
+    assert summary.frames == 21 and summary.pairs == 21 and summary.written == 21
+    early, late = load_meta(out, "000001"), load_meta(out, "000020")
+    assert set(early["lidar_skew_ms"]) == {"lidar_top", "lidar_bottom"}
+    assert late["points"]["total"] < 0.75 * early["points"]["total"]  # only the top LiDAR left
+
+
+def test_nan_points_are_counted_not_fatal(tmp_path: Path) -> None:
+    from ingest.livox_msg import decode_custom_msg, encode_custom_msg
+
+    def keep(topic: str, k: int, raw: bytes) -> list[bytes]:
+        if "lidar" in topic:
+            msg = decode_custom_msg(raw)
+            pts = msg.points.copy()
+            pts["x"][::50] = np.nan
+            return [encode_custom_msg(msg.stamp_ns, msg.frame_id, msg.timebase_ns, pts, msg.lidar_id)]
+        return [raw]
+
+    bag = _rewrite(INDOOR, tmp_path / "nan", keep)
+    shutil.copytree(truth_dir(INDOOR), truth_dir(bag))
+    out = tmp_path / "ds"
+    ingest([bag], IngestConfig(rig=_rig(bag), out=out, workers=1, every=10))
+    meta = load_meta(out, "000000")
+    assert meta["points"]["non_finite"] == pytest.approx(meta["points"]["total"] / 50, rel=0.05)
+
+
+def test_disk_full_is_a_clear_error_and_leaves_no_partial_file(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    calls = {"n": 0}
+    real = Path.replace
+
+    def full_disk(self: Path, target: Path) -> Path:
+        calls["n"] += 1
+        if calls["n"] > 9:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(self, target)
+
+    monkeypatch.setattr(Path, "replace", full_disk)
+    out = tmp_path / "ds"
+    with pytest.raises(DatasetError, match="No space left on device"):
+        ingest([INDOOR], IngestConfig(rig=_rig(INDOOR), out=out, workers=1))
+    monkeypatch.undo()
+    assert not list(out.rglob("*.tmp"))
+    assert len(list((out / "meta").glob("*.json"))) == 1  # the finished sample; the broken one has no meta
+    resumed = ingest([INDOOR], IngestConfig(rig=_rig(INDOOR), out=out, workers=1))
+    assert (resumed.resumed, resumed.written) == (1, 20)
