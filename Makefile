@@ -16,9 +16,14 @@ $(STAMP): pyproject.toml
 	@bash tools/ensure_libusb.sh $(BIN)/python
 	@touch $(STAMP)
 
+DEMO_BAG := tests/fixtures/indoor_static_mcap
+
+# The main job on the bundled example: a simulated recording (bag + exact truth) -> WideDepth training set.
 demo: setup
-	$(BIN)/sensorbox calib check calibration/sensorbox.yaml --plot $(DEMO_OUT)/rig.png
-	@echo "Demo output: $(DEMO_OUT)/rig.png"
+	$(BIN)/sensorbox calib check $(DEMO_BAG).truth/rig.yaml --plot $(DEMO_OUT)/rig.png
+	$(BIN)/sensorbox inspect $(DEMO_BAG) --rig $(DEMO_BAG).truth/rig.yaml
+	$(BIN)/sensorbox ingest $(DEMO_BAG) --rig $(DEMO_BAG).truth/rig.yaml --out $(DEMO_OUT)/widedepth
+	@echo "Demo output: $(DEMO_OUT)/widedepth (WideDepth layout, dataset.yaml) and $(DEMO_OUT)/rig.png"
 
 test: setup
 	$(BIN)/python -m pytest -q -n 2 tests

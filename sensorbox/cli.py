@@ -251,6 +251,12 @@ def ingest_cmd(
     for item, value in rows:
         table.add_row(item, value)
     console.print(table)
+    metas = sorted((out / "meta").glob("*.json"))
+    if metas:
+        from sensorbox.plots import plot_sample
+
+        preview = plot_sample(out, metas[len(metas) // 2].stem, out / "preview.png")
+        console.print(f"Preview of sample {metas[len(metas) // 2].stem}: {preview}", highlight=False)
     console.print(f"Dataset: {out} (dataset.yaml describes it)", highlight=False)
 
 

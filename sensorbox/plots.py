@@ -92,3 +92,37 @@ def plot_rig(rig: Rig, report: RigReport, path: str | Path, cone_m: float = 0.15
     fig.savefig(out, dpi=110)
     plt.close(fig)
     return out
+
+
+def plot_sample(dataset_dir: Path, sid: str, out: Path) -> Path:
+    """Preview of one written sample: fisheye with its range GT, the rectified pair with disparity GT."""
+    import cv2
+
+    from ingest.dataset import DEPTH_SCALE, DISP_SCALE, read_png_u16
+
+    def rgb(folder: str) -> np.ndarray:
+        img = cv2.imread(str(dataset_dir / folder / f"{sid}.png"))
+        return np.asarray(img)[..., ::-1]
+
+    depth = read_png_u16(dataset_dir / "depth_fisheye" / f"{sid}.png", DEPTH_SCALE)
+    disp = read_png_u16(dataset_dir / "disp_equirect" / f"{sid}.png", DISP_SCALE)
+    fig, axes = plt.subplots(2, 2, figsize=(14, 9), constrained_layout=True)
+    panels = [
+        (axes[0, 0], rgb("left_fisheye"), depth, "left_fisheye + depth_fisheye (range, m)"),
+        (axes[0, 1], rgb("right_fisheye"), None, "right_fisheye"),
+        (axes[1, 0], rgb("equirect_up"), disp, "equirect_up + disp_equirect (px)"),
+        (axes[1, 1], rgb("equirect_down_virt"), None, "equirect_down_virt"),
+    ]
+    for ax, image, gt, title in panels:
+        ax.imshow(image)
+        if gt is not None:
+            rows, cols = np.nonzero(gt)
+            dot = float(np.clip(3e5 / gt.size, 0.3, 3.0))  # visible on small and large images alike
+            sc = ax.scatter(cols, rows, c=gt[rows, cols], s=dot, cmap="turbo", linewidths=0)
+            fig.colorbar(sc, ax=ax, shrink=0.7)
+        ax.set_title(f"{title} [{sid}]")
+        ax.set_axis_off()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=90)
+    plt.close(fig)
+    return out
