@@ -69,6 +69,11 @@ class GyroTrack:
     stamps_ns: I64
     rotations: Rotation  # R_ref_cam0(t_k)
 
+    def covers(self, t_ns: I64) -> Bool:
+        """Which times lie inside the integrated span (outside it rotations are unknown)."""
+        out: Bool = (t_ns >= self.stamps_ns[0]) & (t_ns <= self.stamps_ns[-1])
+        return out
+
     def relative(self, t_ns: I64, t_ref_ns: int) -> Rotation:
         """R_c_i: rotations taking cam0 at each t_i into cam0 at t_ref (clamped to the track)."""
         slerp = Slerp(self.stamps_ns.astype(np.float64), self.rotations)
@@ -112,34 +117,104 @@ class MotionDecision:
 
 def compensate(
     pts_cam0: F64,
-    stamps_ns: I64,
-    t_c_ns: int,
-    gyro: GyroTrack | None,
+    dt_s: F64,
+    R_ci: Rotation | None,
     velocity_cam0_mps: F64 | None,
     px_per_rad: float,
     min_motion_px: float = 0.25,
     reference_range_m: float = 2.0,
+    source: str = "none",
 ) -> tuple[F64, MotionDecision]:
-    """Move cam0-frame points measured at `stamps_ns` to cam0 at `t_c_ns` when motion matters.
+    """Move cam0-frame points measured `dt_s` after the frame time to cam0 at the frame time.
 
-    The predicted image motion is the largest rotation angle times `px_per_rad`
-    plus the translation over the largest |t_i - t_c| seen from
-    `reference_range_m`; below `min_motion_px` the points are returned as they are.
+    `R_ci` are the per-point rotations from the gyro, `velocity_cam0_mps` the
+    constant velocity. The predicted image motion is the largest rotation
+    angle times `px_per_rad` plus the translation over the largest |dt| seen
+    from `reference_range_m`; below `min_motion_px` the points stay as they are.
     """
-    dt_s = (np.asarray(stamps_ns, np.int64) - t_c_ns) / 1e9
     v = np.zeros(3) if velocity_cam0_mps is None else np.asarray(velocity_cam0_mps, np.float64)
-    R_ci = gyro.relative(stamps_ns, t_c_ns) if gyro is not None and len(dt_s) else None
-    angle = float(np.max(R_ci.magnitude())) if R_ci is not None else 0.0
+    angle = float(np.max(R_ci.magnitude())) if R_ci is not None and len(dt_s) else 0.0
     speed = float(np.linalg.norm(v))
     span_s = float(np.abs(dt_s).max()) if len(dt_s) else 0.0
     motion_px = angle * px_per_rad + speed * span_s / reference_range_m * px_per_rad
-    source = "imu" if R_ci is not None else "none"
-    if velocity_cam0_mps is not None:
-        source += "+velocity"
     decision = MotionDecision(
         motion_px > min_motion_px, float(np.degrees(angle)), speed, motion_px, source, v.tolist()
     )
     if not decision.applied:
         return pts_cam0, decision
     out = R_ci.apply(pts_cam0) if R_ci is not None else np.array(pts_cam0, np.float64)
-    return out + dt_s[:, None] * v, decision
+    return out + np.asarray(dt_s)[:, None] * v, decision
+
+
+@dataclass(frozen=True)
+class VelocityEstimate:
+    """Constant velocity of cam0 (m/s, cam0 frame at the frame time) and how well it was determined."""
+
+    velocity_cam0_mps: F64
+    pairs: int
+    residual_m: float  # RMS point-to-plane residual after the fit
+    weakest_m_s: float  # 1-sigma of the worst-determined direction (from the normal equations)
+
+
+def _local_normals(pts: F64, k: int) -> tuple[F64, Bool]:
+    from scipy.spatial import cKDTree
+
+    _, idx = cKDTree(pts).query(pts, k=k)
+    nb = pts[idx]
+    c = nb - nb.mean(axis=1, keepdims=True)
+    evals, evecs = np.linalg.eigh(np.einsum("nki,nkj->nij", c, c) / k)
+    flat = evals[:, 0] / np.maximum(evals.sum(axis=1), 1e-30)
+    return evecs[:, :, 0], (flat < 0.02) & (np.sqrt(evals[:, 2]) < 0.3)
+
+
+def estimate_velocity(
+    pts_cam0: F64,
+    dt_s: F64,
+    iterations: int = 5,
+    min_dt_s: float = 0.02,
+    max_gap_m: float = 0.2,
+    max_points: int = 12_000,
+) -> VelocityEstimate | None:
+    """Velocity that makes points measured at different times agree (rotation already compensated).
+
+    A point measured dt after the frame time moved by v * dt relative to where it
+    would have been seen at the frame time, so q = p + v * dt puts every point in
+    cam0 at the frame time. Pairs of nearby points measured at least `min_dt_s`
+    apart must then lie on the same local plane: n . (q_i - q_j) = 0 is linear
+    in v, solved by iterated, trimmed least squares (an ICP on the sweep itself).
+    None when the scene does not constrain all three directions.
+    """
+    from scipy.spatial import cKDTree
+
+    if len(pts_cam0) < 200:
+        return None
+    v = np.zeros(3)
+    step = max(1, len(pts_cam0) // max_points)  # a regular subsample keeps the fit deterministic
+    p = np.asarray(pts_cam0, np.float64)[::step]
+    dt = np.asarray(dt_s, np.float64)[::step]
+    for _ in range(iterations):
+        q = p + dt[:, None] * v
+        normals, planar = _local_normals(q, 8)
+        dist, idx = cKDTree(q).query(q, k=12)
+        far_in_time = np.abs(dt[idx] - dt[:, None]) >= min_dt_s
+        ok = far_in_time & (dist < max_gap_m)
+        first = np.argmax(ok, axis=1)
+        has = ok[np.arange(len(q)), first]
+        i = np.nonzero(has)[0]
+        j = idx[i, first[i]]
+        keep = planar[j]
+        i, j = i[keep], j[keep]
+        if len(i) < 100:
+            return None
+        n = normals[j]
+        r = np.einsum("ij,ij->i", n, q[i] - q[j])
+        A = n * (dt[i] - dt[j])[:, None]
+        cut = max(3.0 * 1.4826 * float(np.median(np.abs(r))), 0.1)  # never trim the informative pairs
+        inl = np.abs(r) <= cut
+        H = A[inl].T @ A[inl]
+        if np.linalg.cond(H) > 1e6:
+            return None
+        v = v + np.linalg.solve(H, -A[inl].T @ r[inl])
+    res = float(np.sqrt(np.mean(r[inl] ** 2)))
+    weakest = float(res * np.sqrt(np.linalg.inv(H).diagonal().max()))
+    return VelocityEstimate(v, int(inl.sum()), res, weakest)

@@ -18,7 +18,7 @@ import struct
 import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import Executor, Future, ProcessPoolExecutor
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -345,6 +345,7 @@ def ingest(
 ) -> IngestSummary:
     """Run the whole job; `progress(done, total)` after each sample."""
     t_start = time.perf_counter()
+    cfg = replace(cfg, sample=replace(cfg.sample, window_ns=cfg.lidar_window_ns))
     rig = read_rig(cfg.rig)
     geometry = Geometry.from_rig(rig, cfg.height_full)
     summary = IngestSummary(out=cfg.out)

@@ -7,7 +7,7 @@ picklable inputs and is what the local process pool or a Dask cluster runs.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -18,7 +18,7 @@ from calibration.rig import Rig
 from calibration.spherical import Equirectangular
 from calibration.types import F64
 from calibration.warp import default_height_full, warp
-from ingest.clouds import FilterCounts, compensate, filter_points, integrate_gyro
+from ingest.clouds import FilterCounts, compensate, estimate_velocity, filter_points, integrate_gyro
 from ingest.dataset import SampleFiles, write_sample
 from ingest.groundtruth import (
     GtParams,
@@ -78,6 +78,8 @@ class SampleParams:
 
     min_range_m: float = 0.3
     min_motion_px: float = 0.25
+    estimate_velocity: bool = True  # constant-velocity translation from the sweep's self-consistency
+    window_ns: int = 50_000_000  # +- LiDAR window around the frame time (set from IngestConfig)
     exr: bool = False
     png_level: int = 1
     gt: GtParams = field(default_factory=GtParams)
@@ -136,9 +138,22 @@ def process_sample(job: SampleJob) -> SampleResult:
     gyro = None
     if job.imu is not None and len(job.imu.stamps_ns) >= 2:
         gyro = integrate_gyro(job.imu.stamps_ns, job.imu.gyro_rad_s, job.imu.R_cam0_imu)
-    pts, motion = compensate(
-        pts, stamps, job.upper_stamp_ns, gyro, job.velocity_cam0_mps, geo.px_per_rad, prm.min_motion_px
-    )
+        covered = gyro.covers(stamps)  # rotations outside the IMU's span are unknown: drop those points
+        counts = replace(counts, kept=counts.kept - int((~covered).sum()))
+        pts, stamps = pts[covered], stamps[covered]
+    dt_s = (stamps - job.upper_stamp_ns) / 1e9
+    R_ci = gyro.relative(stamps, job.upper_stamp_ns) if gyro is not None else None
+    velocity, source = job.velocity_cam0_mps, ("imu" if gyro is not None else "none")
+    if velocity is None and prm.estimate_velocity:
+        est = estimate_velocity(R_ci.apply(pts) if R_ci is not None else pts, dt_s)
+        velocity = est.velocity_cam0_mps if est is not None else None
+    if velocity is not None:
+        source += "+velocity"
+    pts, motion = compensate(pts, dt_s, R_ci, velocity, geo.px_per_rad, prm.min_motion_px, source=source)
+    half = prm.window_ns / 2e9
+    if motion.applied and not (len(dt_s) and dt_s.min() <= -half and dt_s.max() >= half):
+        # a one-sided window (bag start/end, a LiDAR gap) leaves the velocity poorly determined
+        return SampleResult(job.sid, False, "moving, LiDAR window one-sided (bag start/end or gap)", {}, {})
     t1 = time.perf_counter()
     ms["clouds"] = (t1 - t0) * 1e3
     model = geo.rig.upper.model

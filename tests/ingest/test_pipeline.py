@@ -72,6 +72,34 @@ def test_static_indoor_depth_and_disparity_match_the_truth(full_res_static: tupl
         assert (np.abs(ed[okd]) > 1.0).mean() <= 0.005
 
 
+def test_walk_outdoor_with_motion_compensation(tmp_path: Path) -> None:
+    """1.2 m/s and up to 60 deg/s: IMU rotation + estimated velocity; off for contrast."""
+    from ingest.sample import SampleParams
+
+    cfg = SimConfig(
+        scene="outdoor", trajectory="walk", duration_s=0.2, scale=0.5, image="jpeg", range_noise_m=0.0, seed=2
+    )
+    bag = simulate(cfg, tmp_path / "walk").bag
+    truth = Truth.load(bag)
+    medians = {}
+    for name, params in (("on", SampleParams()), ("off", SampleParams(min_motion_px=1e9))):
+        out = tmp_path / name
+        summary = ingest([bag], IngestConfig(rig=_rig(bag), out=out, workers=1, sample=params))
+        assert summary.written >= 4
+        for meta in sorted((out / "meta").glob("*.json")):
+            e, exact, ed = _errors(out, truth, meta.stem)
+            ok = np.isfinite(e)
+            medians.setdefault(name, []).append(np.median(np.abs(e[ok])))
+            if name == "on":
+                motion = load_meta(out, meta.stem)["motion"]
+                assert motion["applied"] and motion["speed_mps"] == pytest.approx(1.24, abs=0.1)
+                assert (np.abs(e[ok]) > np.maximum(0.05, 0.03 * exact[ok])).mean() <= 0.005
+                okd = np.isfinite(ed)
+                assert np.median(np.abs(ed[okd])) <= 0.05 and (np.abs(ed[okd]) > 1).mean() <= 0.005
+    assert max(medians["on"]) <= 0.002
+    assert min(medians["off"]) > 0.02  # uncompensated: centimetres
+
+
 def test_range_noise_of_2cm_gives_median_error_below_15mm(tmp_path: Path) -> None:
     bag = FIXTURES_DIR / "outdoor_static_bag.bag"
     out = tmp_path / "ds"
