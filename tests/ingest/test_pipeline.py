@@ -81,7 +81,7 @@ def test_walk_outdoor_with_motion_compensation(tmp_path: Path) -> None:
     )
     bag = simulate(cfg, tmp_path / "walk").bag
     truth = Truth.load(bag)
-    medians = {}
+    medians: dict[str, list[float]] = {}
     for name, params in (("on", SampleParams()), ("off", SampleParams(min_motion_px=1e9))):
         out = tmp_path / name
         summary = ingest([bag], IngestConfig(rig=_rig(bag), out=out, workers=1, sample=params))
@@ -89,7 +89,7 @@ def test_walk_outdoor_with_motion_compensation(tmp_path: Path) -> None:
         for meta in sorted((out / "meta").glob("*.json")):
             e, exact, ed = _errors(out, truth, meta.stem)
             ok = np.isfinite(e)
-            medians.setdefault(name, []).append(np.median(np.abs(e[ok])))
+            medians.setdefault(name, []).append(float(np.median(np.abs(e[ok]))))
             if name == "on":
                 motion = load_meta(out, meta.stem)["motion"]
                 assert motion["applied"] and motion["speed_mps"] == pytest.approx(1.24, abs=0.1)
