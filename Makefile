@@ -31,6 +31,8 @@ test: setup
 bench: setup
 	$(BIN)/python bench/bench_models.py
 	$(BIN)/python bench/bench_warp.py
+	$(BIN)/python bench/bench_sim.py
+	$(BIN)/python bench/bench_ingest.py
 
 # Regenerate the small simulated bags in tests/fixtures (deterministic: same bytes every time).
 fixtures: setup
