@@ -20,6 +20,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from calibration.types import F64, Bool
+from ingest.groundtruth import surface_normals
 
 I64 = np.ndarray[Any, np.dtype[np.int64]]
 U8 = np.ndarray[Any, np.dtype[np.uint8]]
@@ -156,17 +157,6 @@ class VelocityEstimate:
     weakest_m_s: float  # 1-sigma of the worst-determined direction (from the normal equations)
 
 
-def _local_normals(pts: F64, k: int) -> tuple[F64, Bool]:
-    from scipy.spatial import cKDTree
-
-    _, idx = cKDTree(pts).query(pts, k=k)
-    nb = pts[idx]
-    c = nb - nb.mean(axis=1, keepdims=True)
-    evals, evecs = np.linalg.eigh(np.einsum("nki,nkj->nij", c, c) / k)
-    flat = evals[:, 0] / np.maximum(evals.sum(axis=1), 1e-30)
-    return evecs[:, :, 0], (flat < 0.02) & (np.sqrt(evals[:, 2]) < 0.3)
-
-
 def estimate_velocity(
     pts_cam0: F64,
     dt_s: F64,
@@ -194,7 +184,8 @@ def estimate_velocity(
     dt = np.asarray(dt_s, np.float64)[::step]
     for _ in range(iterations):
         q = p + dt[:, None] * v
-        normals, planar = _local_normals(q, 8)
+        local = surface_normals(q, 8, max_flatness=0.02)
+        normals, planar = local.normal, local.planar
         dist, idx = cKDTree(q).query(q, k=12)
         far_in_time = np.abs(dt[idx] - dt[:, None]) >= min_dt_s
         ok = far_in_time & (dist < max_gap_m)
