@@ -18,6 +18,7 @@ from ingest.bags import open_bags
 from ingest.dataset import DEPTH_SCALE, DISP_SCALE, DatasetError, read_png_u16
 from ingest.errors import BagError
 from ingest.pipeline import IngestConfig, ingest, load_meta
+from ingest.sample import SampleParams
 from sensorbox.bagwriter import BagWriter
 from sensorbox.sim.fixtures import FIXTURES_DIR
 from sensorbox.sim.run import SimConfig, simulate
@@ -274,3 +275,27 @@ def test_disk_full_is_a_clear_error_and_leaves_no_partial_file(
     assert len(list((out / "meta").glob("*.json"))) == 1  # the finished sample; the broken one has no meta
     resumed = ingest([INDOOR], IngestConfig(rig=_rig(INDOOR), out=out, workers=1))
     assert (resumed.resumed, resumed.written) == (1, 20)
+
+
+def test_exr_copies_hold_the_unquantised_values(tmp_path: Path) -> None:
+    import OpenEXR
+
+    out = tmp_path / "ds"
+    ingest(
+        [INDOOR], IngestConfig(rig=_rig(INDOOR), out=out, workers=1, every=20, sample=SampleParams(exr=True))
+    )
+    depth_png = read_png_u16(out / "depth_fisheye" / "000000.png", DEPTH_SCALE)
+    disp_png = read_png_u16(out / "disp_equirect" / "000000.png", DISP_SCALE)
+    depth = OpenEXR.File(str(out / "depth_fisheye_exr" / "000000.exr")).channels()["Y"].pixels
+    disp = OpenEXR.File(str(out / "disp_equirect_exr" / "000000.exr")).channels()["Y"].pixels
+    assert depth.dtype == np.float32 and depth.shape == depth_png.shape
+    np.testing.assert_array_equal(depth > 0, depth_png > 0)
+    np.testing.assert_allclose(depth, depth_png, atol=0.5e-3 + 1e-6)  # PNG: mm, rounded
+    np.testing.assert_allclose(disp, disp_png, atol=0.005 + 1e-6)  # PNG: 1/100 px, rounded
+    assert np.abs(depth - depth_png).max() > 0  # the EXR is not the quantised copy
+    doc = yaml.safe_load((out / "dataset.yaml").read_text())
+    assert doc["crop_offset"] == [0, 0] and doc["equirect_size"] == [
+        doc["height_full"],
+        2 * doc["height_full"],
+    ]
+    assert np.allclose(np.array(doc["R_cam0_rect"]) @ np.array(doc["R_cam0_rect"]).T, np.eye(3))
