@@ -75,8 +75,6 @@ def test_static_indoor_depth_and_disparity_match_the_truth(full_res_static: tupl
 
 def test_walk_outdoor_with_motion_compensation(tmp_path: Path) -> None:
     """1.2 m/s and up to 60 deg/s: IMU rotation + estimated velocity; off for contrast."""
-    from ingest.sample import SampleParams
-
     cfg = SimConfig(
         scene="outdoor", trajectory="walk", duration_s=0.2, scale=0.5, image="jpeg", range_noise_m=0.0, seed=2
     )
