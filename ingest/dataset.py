@@ -68,15 +68,20 @@ def write_atomic(path: Path, data: bytes) -> None:
 
 def to_uint16(values: F32, scale: float) -> tuple[np.ndarray[Any, np.dtype[np.uint16]], int]:
     """round(values * scale) as uint16; values that would not fit become 0 and are counted."""
-    scaled = np.round(values.astype(np.float64) * scale)
-    too_big = scaled > np.iinfo(np.uint16).max
-    scaled[too_big | ~np.isfinite(scaled) | (scaled < 0)] = 0
-    return scaled.astype(np.uint16), int(too_big.sum())
+    out = np.zeros(values.shape, np.uint16)
+    idx = np.flatnonzero(values)  # sparse GT: work on the few valid pixels only
+    scaled = np.round(values.reshape(-1)[idx].astype(np.float64) * scale)
+    fits = np.isfinite(scaled) & (scaled >= 0) & (scaled <= np.iinfo(np.uint16).max)
+    out.reshape(-1)[idx[fits]] = scaled[fits].astype(np.uint16)
+    return out, int((np.isfinite(scaled) & (scaled > np.iinfo(np.uint16).max)).sum())
 
 
 def encode_png(image: np.ndarray[Any, Any], level: int) -> bytes:
     """PNG bytes (BGR input is stored as RGB, uint16 as 16-bit grey)."""
-    ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, level])
+    params = [cv2.IMWRITE_PNG_COMPRESSION, level]
+    if hasattr(cv2, "IMWRITE_PNG_FILTER"):  # no row filters: 2.3x faster at level 1, same size (bench_ingest)
+        params += [cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_NONE]
+    ok, buf = cv2.imencode(".png", image, params)
     if not ok:
         raise DatasetError(f"PNG encoding failed for an image of shape {image.shape} {image.dtype}")
     return buf.tobytes()

@@ -61,13 +61,19 @@ class Normals:
     planar: Bool
 
 
-def surface_normals(pts: F64, k: int, max_flatness: float) -> Normals:
-    """PCA normal of each point's k-neighbourhood (the point included)."""
-    n = len(pts)
-    if n < 3:
+def surface_normals(pts: F64, k: int, max_flatness: float, query: Bool | None = None) -> Normals:
+    """PCA normal of each point's k-neighbourhood (the point included).
+
+    With `query` (a mask over `pts`) only those points get normals, still
+    fitted to neighbours among all points: the ground truth needs normals of
+    the points the camera sees, not of the whole 360 degree cloud.
+    """
+    q = pts if query is None else pts[query]
+    n = len(q)
+    if len(pts) < 3 or n == 0:
         return Normals(np.zeros((n, 3)), np.zeros(n, bool))
-    k = min(k, n)
-    _, idx = cKDTree(pts).query(pts, k=k)
+    k = min(k, len(pts))
+    _, idx = cKDTree(pts).query(q, k=k)
     nb = pts[idx]  # (N, k, 3)
     centred = nb - nb.mean(axis=1, keepdims=True)
     cov = np.einsum("nki,nkj->nij", centred, centred) / k
@@ -75,7 +81,7 @@ def surface_normals(pts: F64, k: int, max_flatness: float) -> Normals:
     flatness = evals[:, 0] / np.maximum(evals.sum(axis=1), 1e-30)
     # the neighbourhood must be local: no wider than a tenth of the range (plus 5 cm)
     spread = np.sqrt(evals[:, 2])
-    local = spread < 0.1 * np.linalg.norm(pts, axis=1) + 0.05
+    local = spread < 0.1 * np.linalg.norm(q, axis=1) + 0.05
     return Normals(evecs[:, :, 0], (flatness <= max_flatness) & local)
 
 

@@ -33,6 +33,7 @@ from ingest.groundtruth import (
 )
 
 I64 = np.ndarray[Any, np.dtype[np.int64]]
+VELOCITY_SIGMAS = 4.0  # an estimated velocity counts when its norm exceeds this many standard errors
 
 
 @dataclass(frozen=True)
@@ -146,7 +147,9 @@ def process_sample(job: SampleJob) -> SampleResult:
     velocity, source = job.velocity_cam0_mps, ("imu" if gyro is not None else "none")
     if velocity is None and prm.estimate_velocity:
         est = estimate_velocity(R_ci.apply(pts) if R_ci is not None else pts, dt_s)
-        velocity = est.velocity_cam0_mps if est is not None else None
+        # use it only when it is significant: a static rig must not be "compensated" with fit noise
+        if est is not None and np.linalg.norm(est.velocity_cam0_mps) > VELOCITY_SIGMAS * est.weakest_m_s:
+            velocity = est.velocity_cam0_mps
     if velocity is not None:
         source += "+velocity"
     pts, motion = compensate(pts, dt_s, R_ci, velocity, geo.px_per_rad, prm.min_motion_px, source=source)
@@ -157,10 +160,11 @@ def process_sample(job: SampleJob) -> SampleResult:
     t1 = time.perf_counter()
     ms["clouds"] = (t1 - t0) * 1e3
     model = geo.rig.upper.model
-    normals = surface_normals(pts, prm.gt.plane_neighbours, prm.gt.plane_max_flatness)
     seen, _, _ = in_view(model, pts)
-    visible = occlusion_filter(model, pts, prm.gt)
-    kept = Normals(normals.normal[visible], normals.planar[visible])
+    normals = surface_normals(pts, prm.gt.plane_neighbours, prm.gt.plane_max_flatness, query=seen)
+    visible = occlusion_filter(model, pts, prm.gt)  # a subset of `seen`
+    in_seen = visible[seen]
+    kept = Normals(normals.normal[in_seen], normals.planar[in_seen])
     splat = splat_to_pixels(model, pts[visible], kept, prm.gt)
     range_img = fisheye_range(model, splat)
     R_rect_cam0 = geo.rect.R_cam0_rect.T
