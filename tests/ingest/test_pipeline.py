@@ -12,7 +12,6 @@ import numpy as np
 import pytest
 import yaml
 
-from calibration.spherical import Equirectangular
 from calibration.stereo import rotate_for_stereo
 from ingest.bags import open_bags
 from ingest.dataset import DEPTH_SCALE, DISP_SCALE, DatasetError, read_png_u16
@@ -22,6 +21,7 @@ from ingest.sample import SampleParams
 from sensorbox.bagwriter import BagWriter
 from sensorbox.sim.fixtures import FIXTURES_DIR
 from sensorbox.sim.run import SimConfig, simulate
+from sensorbox.sim.score import score_dataset
 from sensorbox.sim.truth import Truth, truth_dir
 
 INDOOR = FIXTURES_DIR / "indoor_static_mcap"
@@ -29,21 +29,6 @@ INDOOR = FIXTURES_DIR / "indoor_static_mcap"
 
 def _rig(bag: Path) -> Path:
     return truth_dir(bag) / "rig.yaml"
-
-
-def _errors(out: Path, truth: Truth, sid: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Depth error (m), its truth, and disparity error (px) of one written sample."""
-    meta = load_meta(out, sid)
-    model = truth.rig.upper.model
-    depth = read_png_u16(out / "depth_fisheye" / f"{sid}.png", DEPTH_SCALE)
-    rows, cols = np.nonzero(depth)
-    exact = truth.range_at(model, np.stack([cols, rows], 1).astype(float), meta["stamp_ns"])
-    doc = yaml.safe_load((out / "dataset.yaml").read_text())
-    eq = Equirectangular(doc["height_full"])
-    disp = read_png_u16(out / "disp_equirect" / f"{sid}.png", DISP_SCALE)
-    r2, c2 = np.nonzero(disp)
-    exact_disp = truth.disparity_at(eq, np.stack([c2, r2], 1).astype(float), meta["stamp_ns"])
-    return depth[rows, cols] - exact, exact, disp[r2, c2] - exact_disp
 
 
 @pytest.fixture(scope="module")
@@ -61,16 +46,11 @@ def full_res_static(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Pat
 def test_static_indoor_depth_and_disparity_match_the_truth(full_res_static: tuple[Path, Path]) -> None:
     bag, out = full_res_static
     truth = Truth.load(bag)
-    for meta in sorted((out / "meta").glob("*.json")):
-        e, exact, ed = _errors(out, truth, meta.stem)
-        ok = np.isfinite(e)
-        assert ok.mean() > 0.99 and ok.sum() > 5_000
-        assert np.median(np.abs(e[ok])) <= 0.002
-        outliers = np.abs(e[ok]) > np.maximum(0.05, 0.03 * exact[ok])
-        assert outliers.mean() <= 0.005, outliers.mean()
-        okd = np.isfinite(ed)
-        assert np.median(np.abs(ed[okd])) <= 0.05
-        assert (np.abs(ed[okd]) > 1.0).mean() <= 0.005
+    for score in score_dataset(out, truth):
+        assert score.depth_pixels > 5_000
+        assert score.depth_median_abs_m <= 0.002
+        assert score.depth_outlier_rate <= 0.005, score
+        assert score.disp_median_abs_px <= 0.05 and score.disp_over_1px_rate <= 0.005, score
 
 
 def test_walk_outdoor_with_motion_compensation(tmp_path: Path) -> None:
@@ -85,16 +65,13 @@ def test_walk_outdoor_with_motion_compensation(tmp_path: Path) -> None:
         out = tmp_path / name
         summary = ingest([bag], IngestConfig(rig=_rig(bag), out=out, workers=1, sample=params))
         assert summary.written >= 4
-        for meta in sorted((out / "meta").glob("*.json")):
-            e, exact, ed = _errors(out, truth, meta.stem)
-            ok = np.isfinite(e)
-            medians.setdefault(name, []).append(float(np.median(np.abs(e[ok]))))
+        for score in score_dataset(out, truth):
+            medians.setdefault(name, []).append(score.depth_median_abs_m)
             if name == "on":
-                motion = load_meta(out, meta.stem)["motion"]
+                motion = load_meta(out, score.sid)["motion"]
                 assert motion["applied"] and motion["speed_mps"] == pytest.approx(1.24, abs=0.1)
-                assert (np.abs(e[ok]) > np.maximum(0.05, 0.03 * exact[ok])).mean() <= 0.005
-                okd = np.isfinite(ed)
-                assert np.median(np.abs(ed[okd])) <= 0.05 and (np.abs(ed[okd]) > 1).mean() <= 0.005
+                assert score.depth_outlier_rate <= 0.005, score
+                assert score.disp_median_abs_px <= 0.05 and score.disp_over_1px_rate <= 0.005, score
     assert max(medians["on"]) <= 0.002
     assert min(medians["off"]) > 0.02  # uncompensated: centimetres
 
@@ -104,10 +81,9 @@ def test_range_noise_of_2cm_gives_median_error_below_15mm(tmp_path: Path) -> Non
     out = tmp_path / "ds"
     ingest([bag], IngestConfig(rig=_rig(bag), out=out, workers=1, every=7))
     truth = Truth.load(bag)
-    errors = np.concatenate([_errors(out, truth, m.stem)[0] for m in (out / "meta").glob("*.json")])
-    errors = errors[np.isfinite(errors)]
-    assert 0.008 < np.median(np.abs(errors)) <= 0.015
-    assert abs(np.median(errors)) < 0.003  # no bias
+    for score in score_dataset(out, truth):
+        assert 0.008 < score.depth_median_abs_m <= 0.015, score
+        assert abs(score.depth_bias_m) < 0.003, score  # no bias
     meta = load_meta(out, "000000")
     assert meta["points"]["noise_tag"] > 0  # the simulator's dust echoes were dropped by their tag
 
