@@ -36,9 +36,10 @@ class Texture:
 
     def __call__(self, points_world: F64) -> F64:
         # float32: half the time of float64 sines, and 3e-3 rad phase error at 50 m is invisible
-        arg = points_world.astype(np.float32) @ self.waves.T.astype(np.float32)
+        # einsum instead of BLAS matmuls: see camera.render
+        arg = np.einsum("ij,kj->ik", points_world.astype(np.float32), self.waves.astype(np.float32))
         arg += self.phases.astype(np.float32)
-        s = np.sin(arg, out=arg) @ self.amps.astype(np.float32)
+        s = np.einsum("ij,j->i", np.sin(arg, out=arg), self.amps.astype(np.float32))
         out: F64 = 0.5 + 0.5 * np.tanh(2.0 * s.astype(np.float64) / self.norm)
         return out
 
@@ -63,7 +64,7 @@ def shade(scene: Scene, texture: Texture, origins_world: F64, dirs_world: F64, h
             continue
         sel = obj_index == k
         albedo[sel] = obj.checker.shade(p[sel])[:, None]
-    lambert = np.abs(hits.normal_world[hit] @ LIGHT_DIR_WORLD)
+    lambert = np.abs(np.einsum("ij,j->i", hits.normal_world[hit], LIGHT_DIR_WORLD))
     out[hit] = albedo * (AMBIENT + (1 - AMBIENT) * lambert)[:, None]
     return out
 

@@ -48,7 +48,9 @@ def render(cam: CameraSim, scene: Scene, texture: Texture, T_world_cam0: F64, su
     """BGR uint8 image (H, W, 3) seen by `cam` when cam0 is at `T_world_cam0` (4x4)."""
     rays, ok = _rays(cam.model, supersample)
     T_world_cam = T_world_cam0 @ cam.T_cam0_cam
-    dirs = rays[ok] @ T_world_cam[:3, :3].T
+    # einsum, not @: a tall (N,3)x(3,3) BLAS call can spin up OpenBLAS threads that fight the
+    # render pool and make frames 3-4x slower at random (bench_sim)
+    dirs = np.einsum("ij,kj->ik", rays[ok], T_world_cam[:3, :3])
     origins = np.broadcast_to(T_world_cam[:3, 3], dirs.shape)
     colour = np.zeros((len(rays), 3))
     colour[ok] = shade(scene, texture, origins, dirs, scene.caster.cast(np.ascontiguousarray(origins), dirs))
