@@ -26,6 +26,7 @@ match their type raise `MessageDecodeError`.
 
 from __future__ import annotations
 
+import struct
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any, Literal
@@ -61,6 +62,7 @@ __all__ = [
     "decode_image",
     "decode_imu",
     "decode_pointcloud2",
+    "header_stamp_ns",
     "pointfield_dtype",
     "sweep_from_custom_msg",
     "sweep_from_pointcloud",
@@ -473,3 +475,22 @@ def decode(msgtype: str, raw: Raw, ros_version: RosVersion = 2) -> Sweep | Frame
             f"no decoder for message type {msgtype!r}; expected one of {sorted(_DECODERS)}"
         )
     return decoder(raw, ros_version)
+
+
+def header_stamp_ns(raw: bytes | memoryview, ros_version: RosVersion) -> int:
+    """Header stamp (ns) of a serialised message that starts with `std_msgs/Header`.
+
+    Reads 12 bytes only. ROS 2 CDR honours the encapsulation's byte order
+    (byte 1: 0 big, 1 little endian). Raises `MessageDecodeError` when the
+    buffer is too short or the nanoseconds are out of range.
+    """
+    if len(raw) < 12:
+        raise MessageDecodeError(f"{len(raw)} bytes are too few for a ROS {ros_version} message header")
+    if ros_version == 1:
+        sec, nsec = struct.unpack_from("<II", raw, 4)
+    else:
+        order = "<" if raw[1] & 1 else ">"
+        sec, nsec = struct.unpack_from(order + "iI", raw, 4)
+    if nsec >= 1_000_000_000:
+        raise MessageDecodeError(f"header stamp nanoseconds {nsec} >= 1e9: not a std_msgs/Header")
+    return int(sec) * 1_000_000_000 + int(nsec)

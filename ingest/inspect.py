@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import dataclasses
 import re
-import struct
 from array import array
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
@@ -52,7 +51,7 @@ import yaml
 
 from calibration.rig import Rig
 from ingest.bags import BagSet, RawMessage, open_bags
-from ingest.decode import ImuSample, RosVersion, Sweep, decode
+from ingest.decode import ImuSample, RosVersion, Sweep, decode, header_stamp_ns
 from ingest.errors import BagError
 from ingest.livox_msg import MessageDecodeError
 from ingest.rostypes import COMPRESSED_IMAGE_TYPE, IMAGE_TYPE, IMU_TYPE, LIVOX_PACKAGES, POINTCLOUD2_TYPE
@@ -262,25 +261,6 @@ class BagReport:
 
 
 # ---------------------------------------------------------------- header stamps
-
-
-def header_stamp_ns(raw: bytes | memoryview, ros_version: RosVersion) -> int:
-    """Header stamp (ns) of a serialised message that starts with `std_msgs/Header`.
-
-    Reads 12 bytes only. ROS 2 CDR honours the encapsulation's byte order
-    (byte 1: 0 big, 1 little endian). Raises `MessageDecodeError` when the
-    buffer is too short or the nanoseconds are out of range.
-    """
-    if len(raw) < 12:
-        raise MessageDecodeError(f"{len(raw)} bytes are too few for a ROS {ros_version} message header")
-    if ros_version == 1:
-        sec, nsec = struct.unpack_from("<II", raw, 4)
-    else:
-        order = "<" if raw[1] & 1 else ">"
-        sec, nsec = struct.unpack_from(order + "iI", raw, 4)
-    if nsec >= 1_000_000_000:
-        raise MessageDecodeError(f"header stamp nanoseconds {nsec} >= 1e9: not a std_msgs/Header")
-    return int(sec) * 1_000_000_000 + int(nsec)
 
 
 @cache

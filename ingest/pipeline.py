@@ -14,7 +14,6 @@ Finished samples (their meta/<id>.json exists) are skipped on a rerun.
 from __future__ import annotations
 
 import json
-import struct
 import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import Executor, Future, ProcessPoolExecutor
@@ -36,7 +35,7 @@ from ingest.dataset import (
     sample_id,
     write_atomic,
 )
-from ingest.decode import Frame, ImuSample, Sweep, decode
+from ingest.decode import Frame, ImuSample, Sweep, decode, header_stamp_ns
 from ingest.errors import BagError
 from ingest.sample import (
     Geometry,
@@ -123,12 +122,6 @@ def _resolve_topics(rig: Rig, bag_topics: dict[str, Any], where: str) -> Topics:
     return Topics(upper, lower, lidars, imu.topic if imu else None, imu.T_cam0_imu[:3, :3] if imu else None)
 
 
-def header_stamp_ns(raw: bytes | memoryview) -> int:
-    """Header stamp without decoding the message: sec/nsec sit at bytes 4..12 in CDR and ROS 1."""
-    sec, nsec = struct.unpack_from("<iI", raw, 4)
-    return int(sec) * 1_000_000_000 + int(nsec)
-
-
 @dataclass(frozen=True)
 class Plan:
     """The samples of a run: their upper/lower stamps and the sweeps each needs."""
@@ -146,7 +139,7 @@ def plan(bags: BagSet, topics: Topics, cfg: IngestConfig) -> Plan:
     spans: dict[str, list[tuple[int, int]]] = {t: [] for t in topics.lidars}
     for msg in bags.messages(topics=[*stamps, *spans]):
         if msg.topic in stamps:
-            stamps[msg.topic].append(header_stamp_ns(msg.raw))
+            stamps[msg.topic].append(header_stamp_ns(msg.raw, msg.ros_version))
             continue
         sweep = decode(msg.msgtype, msg.raw, msg.ros_version)
         assert isinstance(sweep, Sweep)
@@ -228,7 +221,7 @@ def stream_jobs(
     wanted = [topics.upper, topics.lower, *topics.lidars, *([topics.imu] if topics.imu else [])]
     for msg in bags.messages(topics=wanted):
         if msg.topic in (topics.upper, topics.lower):
-            stamp = header_stamp_ns(msg.raw)
+            stamp = header_stamp_ns(msg.raw, msg.ros_version)
             side = "upper" if msg.topic == topics.upper else "lower"
             k = (index if side == "upper" else lower_index).get(stamp)
             if k is None or k < next_k:
