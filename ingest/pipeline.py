@@ -194,6 +194,7 @@ def stream_jobs(
     imu_g: list[Any] = []
     next_k = 0
     sids = [sample_id(k) for k in range(len(the_plan.upper_ns))]
+    done = {sid for sid in sids if is_done(cfg.out, sid)}  # finished by an earlier run (one stat each)
     source = ",".join(p.name for p in bags.paths)
 
     def ready(k: int) -> bool:
@@ -226,7 +227,7 @@ def stream_jobs(
             k = (index if side == "upper" else lower_index).get(stamp)
             if k is None or k < next_k:
                 continue
-            if is_done(cfg.out, sids[k]):
+            if sids[k] in done:
                 frames.setdefault(k, {})
                 continue
             frame = decode(msg.msgtype, msg.raw, msg.ros_version)
@@ -243,8 +244,8 @@ def stream_jobs(
             assert isinstance(sweep, Sweep)
             if len(sweep.stamps_ns):
                 sweeps[msg.topic].append(sweep)
-        while next_k < len(sids) and (is_done(cfg.out, sids[next_k]) or ready(next_k)):
-            if is_done(cfg.out, sids[next_k]):
+        while next_k < len(sids) and (sids[next_k] in done or ready(next_k)):
+            if sids[next_k] in done:
                 frames.pop(next_k, None)
                 yield (sids[next_k], "done")
             else:
@@ -255,7 +256,7 @@ def stream_jobs(
                 for t in sweeps:
                     sweeps[t] = [s for s in sweeps[t] if s.stamps_ns[-1] >= horizon]
     for k in range(next_k, len(sids)):  # the bag ended: whatever is complete still goes
-        if is_done(cfg.out, sids[k]):
+        if sids[k] in done:
             yield (sids[k], "done")
         elif len(frames.get(k, {})) == 2:
             yield job(k)

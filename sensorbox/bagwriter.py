@@ -100,11 +100,6 @@ class BagWriter:
             shutil.rmtree(self._tmp_dir, ignore_errors=True)
 
     @property
-    def total(self) -> int:
-        """Messages written so far, all topics."""
-        return sum(self.counts.values())
-
-    @property
     def size_bytes(self) -> int:
         """Bytes on disk of the finished bag (a folder is summed)."""
         if self.path.is_dir():

@@ -151,12 +151,6 @@ def simulate_cmd(
 
     from sensorbox.sim.run import SimConfig, simulate
 
-    if fmt not in ("mcap", "db3", "bag"):
-        raise SensorboxError(f"--format {fmt!r}: expected mcap, db3 or bag")
-    if lidar_msg not in ("custom", "pointcloud2") or image not in ("raw", "jpeg"):
-        raise SensorboxError(
-            f"--lidar-msg {lidar_msg!r} / --image {image!r}: expected custom|pointcloud2, raw|jpeg"
-        )
     cfg = SimConfig(
         scene=scene, trajectory=trajectory, tum=tum, duration_s=duration, seed=seed, format=fmt,  # type: ignore[arg-type]
         lidar_msg=lidar_msg, image=image, scale=scale, range_noise_m=range_noise,  # type: ignore[arg-type]

@@ -69,10 +69,6 @@ class Sweep:
     timebase_ns: int  # sensor clock, the first point's stamp (= header.stamp)
     points: Points  # POINT_DTYPE
 
-    @property
-    def point_stamps_ns(self) -> I64:
-        return np.int64(self.timebase_ns) + self.points["offset_time"].astype(np.int64)
-
 
 def scan_directions(t_s: F64, line: I64, phase: float) -> F64:
     """Unit ray directions (N,3) in the LiDAR frame (x forward, y left, z up) at sensor times `t_s`."""

@@ -26,7 +26,7 @@ from calibration.rig import Rig, read_rig
 from calibration.types import F64
 from ingest.rostypes import IMU_TYPE
 from sensorbox import messages
-from sensorbox.bagwriter import BagFormat, BagWriter
+from sensorbox.bagwriter import FORMATS, BagFormat, BagWriter
 from sensorbox.messages import RosVersion
 from sensorbox.sim.appearance import Texture
 from sensorbox.sim.camera import CameraSim, render
@@ -83,6 +83,13 @@ class SimConfig:
             raise SensorboxError(
                 "--trajectory custom needs --tum FILE (t tx ty tz qx qy qz qw, T_world_cam0)"
             )
+        for flag, choice, known in (
+            ("--format", self.format, FORMATS),
+            ("--lidar-msg", self.lidar_msg, ("custom", "pointcloud2")),
+            ("--image", self.image, ("raw", "jpeg")),
+        ):
+            if choice not in known:
+                raise SensorboxError(f"{flag} {choice!r}: expected one of {', '.join(known)}")
         for name, value, lo in (("duration", self.duration_s, 0.0), ("scale", self.scale, 0.0)):
             if not value > lo:
                 raise SensorboxError(f"--{name} must be > {lo}, got {value}")
