@@ -17,10 +17,11 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
+from scipy.spatial.transform import Rotation
 
 from calibration.types import F64, Bool
-from ingest.groundtruth import surface_normals
+from ingest.groundtruth import normals_from_neighbours
+from ingest.linalg3 import apply_rotations, rotation_angle, rotvec_to_matrix
 
 I64 = np.ndarray[Any, np.dtype[np.int64]]
 U8 = np.ndarray[Any, np.dtype[np.uint8]]
@@ -68,20 +69,38 @@ class GyroTrack:
     """cam0 orientation relative to its first sample, integrated from gyro readings."""
 
     stamps_ns: I64
-    rotations: Rotation  # R_ref_cam0(t_k)
+    rotations: F64  # (K, 3, 3) R_ref_cam0(t_k)
 
     def covers(self, t_ns: I64) -> Bool:
         """Which times lie inside the integrated span (outside it rotations are unknown)."""
         out: Bool = (t_ns >= self.stamps_ns[0]) & (t_ns <= self.stamps_ns[-1])
         return out
 
-    def relative(self, t_ns: I64, t_ref_ns: int) -> Rotation:
-        """R_c_i: rotations taking cam0 at each t_i into cam0 at t_ref (clamped to the track)."""
-        slerp = Slerp(self.stamps_ns.astype(np.float64), self.rotations)
-        lo, hi = float(self.stamps_ns[0]), float(self.stamps_ns[-1])
-        at = slerp(np.clip(np.asarray(t_ns, np.float64), lo, hi))
-        ref = slerp(np.clip(np.array([float(t_ref_ns)]), lo, hi))
-        out: Rotation = ref.inv() * at
+    def relative(self, t_ns: I64, t_ref_ns: int) -> F64:
+        """R_c_i (N, 3, 3): rotations taking cam0 at each t_i into cam0 at t_ref (clamped to the track).
+
+        Spherical-linear interpolation between the integrated samples, as
+        scipy's Slerp defines it (R_k exp(a log(R_k^T R_k+1))), in closed form:
+        one Rodrigues exponential per point instead of Rotation objects.
+        """
+        t = np.asarray(t_ns, np.int64)
+        R = self.rotations
+        if len(self.stamps_ns) == 1:
+            return np.broadcast_to(np.eye(3), (len(t), 3, 3)).copy()
+        steps = Rotation.from_matrix(np.einsum("kji,kjl->kil", R[:-1], R[1:])).as_rotvec()  # R_k^T R_k+1
+
+        def at(times: I64) -> tuple[np.ndarray[Any, Any], F64]:
+            tc = np.clip(times, self.stamps_ns[0], self.stamps_ns[-1])
+            k = np.clip(np.searchsorted(self.stamps_ns, tc, side="right") - 1, 0, len(R) - 2)
+            t0, t1 = self.stamps_ns[k], self.stamps_ns[k + 1]
+            frac = (tc - t0).astype(np.float64) / (t1 - t0).astype(np.float64)
+            return k, rotvec_to_matrix(steps[k] * frac[:, None])
+
+        k_ref, e_ref = at(np.array([t_ref_ns], np.int64))
+        R_ref = R[k_ref[0]] @ e_ref[0]
+        k, e = at(t)
+        M = np.einsum("ji,kjl->kil", R_ref, R)  # R_ref^T R_k for every track sample (few)
+        out: F64 = np.einsum("nij,njl->nil", M[k], e)
         return out
 
 
@@ -93,15 +112,12 @@ def integrate_gyro(stamps_ns: I64, gyro_imu_rad_s: F64, R_cam0_imu: F64) -> Gyro
     t = t[keep]
     w = (np.asarray(gyro_imu_rad_s, np.float64)[order][keep]) @ np.asarray(R_cam0_imu).T
     dt = np.diff(t) / 1e9
-    steps = Rotation.from_rotvec(0.5 * (w[1:] + w[:-1]) * dt[:, None])
+    step_mats = rotvec_to_matrix(0.5 * (w[1:] + w[:-1]) * dt[:, None])
     mats = np.empty((len(t), 3, 3))
     mats[0] = np.eye(3)
-    R = np.eye(3)
-    step_mats = steps.as_matrix()
     for k in range(len(dt)):
-        R = R @ step_mats[k]
-        mats[k + 1] = R
-    return GyroTrack(t, Rotation.from_matrix(mats))
+        mats[k + 1] = mats[k] @ step_mats[k]
+    return GyroTrack(t, mats)
 
 
 @dataclass(frozen=True)
@@ -119,7 +135,7 @@ class MotionDecision:
 def compensate(
     pts_cam0: F64,
     dt_s: F64,
-    R_ci: Rotation | None,
+    R_ci: F64 | None,
     velocity_cam0_mps: F64 | None,
     px_per_rad: float,
     min_motion_px: float = 0.25,
@@ -128,13 +144,13 @@ def compensate(
 ) -> tuple[F64, MotionDecision]:
     """Move cam0-frame points measured `dt_s` after the frame time to cam0 at the frame time.
 
-    `R_ci` are the per-point rotations from the gyro, `velocity_cam0_mps` the
+    `R_ci` (N, 3, 3) are the per-point rotations from the gyro, `velocity_cam0_mps` the
     constant velocity. The predicted image motion is the largest rotation
     angle times `px_per_rad` plus the translation over the largest |dt| seen
     from `reference_range_m`; below `min_motion_px` the points stay as they are.
     """
     v = np.zeros(3) if velocity_cam0_mps is None else np.asarray(velocity_cam0_mps, np.float64)
-    angle = float(np.max(R_ci.magnitude())) if R_ci is not None and len(dt_s) else 0.0
+    angle = float(np.max(rotation_angle(R_ci))) if R_ci is not None and len(dt_s) else 0.0
     speed = float(np.linalg.norm(v))
     span_s = float(np.abs(dt_s).max()) if len(dt_s) else 0.0
     motion_px = angle * px_per_rad + speed * span_s / reference_range_m * px_per_rad
@@ -143,7 +159,7 @@ def compensate(
     )
     if not decision.applied:
         return pts_cam0, decision
-    out = R_ci.apply(pts_cam0) if R_ci is not None else np.array(pts_cam0, np.float64)
+    out = apply_rotations(R_ci, pts_cam0) if R_ci is not None else np.array(pts_cam0, np.float64)
     return out + np.asarray(dt_s)[:, None] * v, decision
 
 
@@ -164,6 +180,8 @@ def estimate_velocity(
     min_dt_s: float = 0.02,
     max_gap_m: float = 0.2,
     max_points: int = 12_000,
+    tol_m_s: float = 1e-3,
+    neighbours: int = 8,
 ) -> VelocityEstimate | None:
     """Velocity that makes points measured at different times agree (rotation already compensated).
 
@@ -171,7 +189,11 @@ def estimate_velocity(
     would have been seen at the frame time, so q = p + v * dt puts every point in
     cam0 at the frame time. Pairs of nearby points measured at least `min_dt_s`
     apart must then lie on the same local plane: n . (q_i - q_j) = 0 is linear
-    in v, solved by iterated, trimmed least squares (an ICP on the sweep itself).
+    in v, solved by iterated, trimmed least squares (an ICP on the sweep itself)
+    until the update is below `tol_m_s` or a quarter of the fit's own standard
+    error (further steps would only chase noise). One k-d tree query per
+    iteration serves both the plane fits (8 nearest) and the pairing
+    (`neighbours` nearest).
     None when the scene does not constrain all three directions.
     """
     from scipy.spatial import cKDTree
@@ -184,9 +206,9 @@ def estimate_velocity(
     dt = np.asarray(dt_s, np.float64)[::step]
     for _ in range(iterations):
         q = p + dt[:, None] * v
-        local = surface_normals(q, 8, max_flatness=0.02)
+        dist, idx = cKDTree(q, balanced_tree=False).query(q, k=neighbours)
+        local = normals_from_neighbours(q, q, idx[:, :8], max_flatness=0.02)
         normals, planar = local.normal, local.planar
-        dist, idx = cKDTree(q).query(q, k=12)
         far_in_time = np.abs(dt[idx] - dt[:, None]) >= min_dt_s
         ok = far_in_time & (dist < max_gap_m)
         first = np.argmax(ok, axis=1)
@@ -202,10 +224,13 @@ def estimate_velocity(
         A = n * (dt[i] - dt[j])[:, None]
         cut = max(3.0 * 1.4826 * float(np.median(np.abs(r))), 0.1)  # never trim the informative pairs
         inl = np.abs(r) <= cut
-        H = A[inl].T @ A[inl]
+        H = np.einsum("ni,nj->ij", A[inl], A[inl])
         if np.linalg.cond(H) > 1e6:
             return None
-        v = v + np.linalg.solve(H, -A[inl].T @ r[inl])
-    res = float(np.sqrt(np.mean(r[inl] ** 2)))
-    weakest = float(res * np.sqrt(np.linalg.inv(H).diagonal().max()))
+        dv = np.linalg.solve(H, -np.einsum("ni,n->i", A[inl], r[inl]))
+        v = v + dv
+        res = float(np.sqrt(np.mean(r[inl] ** 2)))
+        weakest = float(res * np.sqrt(np.linalg.inv(H).diagonal().max()))
+        if np.linalg.norm(dv) < max(tol_m_s, 0.25 * weakest):
+            break
     return VelocityEstimate(v, int(inl.sum()), res, weakest)

@@ -33,8 +33,9 @@ from calibration.camera import CameraModel
 from calibration.spherical import Equirectangular
 from calibration.stereo import depth_to_disparity, disparity_stability_mask
 from calibration.types import F64, Bool
+from ingest.linalg3 import sym3_smallest
+from ingest.sparse import SparseImage
 
-F32 = np.ndarray[Any, np.dtype[np.float32]]
 VALID_FRACTION_DS = 0.9  # share of a fisheye image with valid rays (point spacing estimate only)
 
 
@@ -61,6 +62,20 @@ class Normals:
     planar: Bool
 
 
+def normals_from_neighbours(pts: F64, q: F64, idx: np.ndarray[Any, Any], max_flatness: float) -> Normals:
+    """PCA normals of the neighbourhoods `pts[idx]` (N, k) of the points `q` (N, 3)."""
+    k = idx.shape[1]
+    nb = pts[idx]  # (N, k, 3)
+    centred = nb - nb.mean(axis=1, keepdims=True)
+    cov = np.einsum("nki,nkj->nij", centred, centred) / k
+    evals, normal = sym3_smallest(cov)  # ascending
+    flatness = evals[:, 0] / np.maximum(evals.sum(axis=1), 1e-30)
+    # the neighbourhood must be local: no wider than a tenth of the range (plus 5 cm)
+    spread = np.sqrt(np.maximum(evals[:, 2], 0.0))
+    local = spread < 0.1 * np.linalg.norm(q, axis=1) + 0.05
+    return Normals(normal, (flatness <= max_flatness) & local)
+
+
 def surface_normals(pts: F64, k: int, max_flatness: float, query: Bool | None = None) -> Normals:
     """PCA normal of each point's k-neighbourhood (the point included).
 
@@ -73,16 +88,8 @@ def surface_normals(pts: F64, k: int, max_flatness: float, query: Bool | None = 
     if len(pts) < 3 or n == 0:
         return Normals(np.zeros((n, 3)), np.zeros(n, bool))
     k = min(k, len(pts))
-    _, idx = cKDTree(pts).query(q, k=k)
-    nb = pts[idx]  # (N, k, 3)
-    centred = nb - nb.mean(axis=1, keepdims=True)
-    cov = np.einsum("nki,nkj->nij", centred, centred) / k
-    evals, evecs = np.linalg.eigh(cov)  # ascending
-    flatness = evals[:, 0] / np.maximum(evals.sum(axis=1), 1e-30)
-    # the neighbourhood must be local: no wider than a tenth of the range (plus 5 cm)
-    spread = np.sqrt(evals[:, 2])
-    local = spread < 0.1 * np.linalg.norm(q, axis=1) + 0.05
-    return Normals(evecs[:, :, 0], (flatness <= max_flatness) & local)
+    _, idx = cKDTree(pts, balanced_tree=False).query(q, k=k)
+    return normals_from_neighbours(pts, q, idx.reshape(n, k), max_flatness)
 
 
 def px_per_rad(model: CameraModel) -> float:
@@ -154,11 +161,9 @@ def occlusion_filter(model: CameraModel, pts_model: F64, params: GtParams) -> Bo
     return keep
 
 
-def fisheye_range(model: CameraModel, splat: Splat) -> F32:
-    """(H, W) float32 range image in metres; 0 = no ground truth."""
-    out = np.zeros(model.height * model.width, np.float32)
-    out[splat.pixel] = splat.range_m
-    return out.reshape(model.height, model.width)
+def fisheye_range(model: CameraModel, splat: Splat) -> SparseImage:
+    """Range image (H, W) in metres along each pixel's ray."""
+    return SparseImage((model.height, model.width), splat.pixel, splat.range_m.astype(np.float32))
 
 
 def equirect_disparity(
@@ -168,11 +173,11 @@ def equirect_disparity(
     normals_cam0: Normals,
     baseline_m: float,
     params: GtParams,
-) -> tuple[F32, F32, int]:
+) -> tuple[SparseImage, SparseImage, int]:
     """Disparity (px of the full sphere) and range images in cam0's rectified equirect.
 
-    Returns (disparity, range, unstable): pixels failing the stability mask are
-    0 in the disparity image (their range is kept) and counted in `unstable`.
+    Returns (disparity, range, unstable): pixels failing the stability mask
+    have no disparity (their range is kept) and are counted in `unstable`.
     """
     pts_rect = pts_cam0 @ R_rect_cam0.T
     normals_rect = Normals(normals_cam0.normal @ R_rect_cam0.T, normals_cam0.planar)
@@ -187,9 +192,7 @@ def equirect_disparity(
         params.stability_max_rel_error,
         params.stability_disp_error_px,
     )
-    disp_img = np.zeros(eq.height * eq.width, np.float32)
-    range_img = np.zeros(eq.height * eq.width, np.float32)
-    disp_img[splat.pixel[stable]] = disp[stable]
-    range_img[splat.pixel] = splat.range_m
     shape = (eq.height, eq.width)
-    return disp_img.reshape(shape), range_img.reshape(shape), int((~stable).sum())
+    disp_img = SparseImage(shape, splat.pixel[stable], disp[stable].astype(np.float32))
+    range_img = SparseImage(shape, splat.pixel, splat.range_m.astype(np.float32))
+    return disp_img, range_img, int((~stable).sum())

@@ -31,6 +31,7 @@ from ingest.groundtruth import (
     splat_to_pixels,
     surface_normals,
 )
+from ingest.linalg3 import apply_rotations
 
 I64 = np.ndarray[Any, np.dtype[np.int64]]
 VELOCITY_SIGMAS = 4.0  # an estimated velocity counts when its norm exceeds this many standard errors
@@ -122,7 +123,7 @@ def _points_in_cam0(job: SampleJob) -> tuple[F64, I64, FilterCounts, dict[str, f
         keep, counts = filter_points(lp.xyz_m, lp.tag, job.params.min_range_m)
         T = job.geometry.rig.lidar(lp.name).T_cam0_lidar
         xyz = np.asarray(lp.xyz_m, np.float64)[keep]
-        pts.append(xyz @ T[:3, :3].T + T[:3, 3])
+        pts.append(np.einsum("ij,nj->ni", T[:3, :3], xyz) + T[:3, 3])
         stamps.append(lp.stamps_ns[keep])
         total = total + counts
         dt = (lp.stamps_ns[keep] - job.upper_stamp_ns) / 1e6
@@ -146,7 +147,7 @@ def process_sample(job: SampleJob) -> SampleResult:
     R_ci = gyro.relative(stamps, job.upper_stamp_ns) if gyro is not None else None
     velocity, source = job.velocity_cam0_mps, ("imu" if gyro is not None else "none")
     if velocity is None and prm.estimate_velocity:
-        est = estimate_velocity(R_ci.apply(pts) if R_ci is not None else pts, dt_s)
+        est = estimate_velocity(apply_rotations(R_ci, pts) if R_ci is not None else pts, dt_s)
         # use it only when it is significant: a static rig must not be "compensated" with fit noise
         if est is not None and np.linalg.norm(est.velocity_cam0_mps) > VELOCITY_SIGMAS * est.weakest_m_s:
             velocity = est.velocity_cam0_mps
@@ -195,10 +196,10 @@ def process_sample(job: SampleJob) -> SampleResult:
             "occluded": int(seen.sum() - visible.sum()),
         },
         "gt": {
-            "depth_pixels": int(np.count_nonzero(range_img)),
-            "disp_pixels": int(np.count_nonzero(disp_img)),
+            "depth_pixels": range_img.count,
+            "disp_pixels": disp_img.count,
             "disp_unstable": unstable,
-            "density": float(np.count_nonzero(range_img)) / geo.fisheye_valid_px,
+            "density": range_img.count / geo.fisheye_valid_px,
         },
     }  # fmt: skip
     files = SampleFiles(job.upper_bgr, job.lower_bgr, up, down, disp_img, range_img, meta)
