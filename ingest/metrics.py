@@ -1,0 +1,306 @@
+"""Stereo and depth error metrics over valid ground truth, per sample and pooled.
+
+Stereo (disparity in px): EPE = mean |pred - gt|, its median and 95th
+percentile, and bad-k = share of pixels with |pred - gt| > k px (k = 1, 2, 3).
+Depth (metres): AbsRel = mean |pred - gt| / gt, MAE, RMSE and delta_k = share
+of pixels with max(pred/gt, gt/pred) < 1.25**k (k = 1, 2, 3).
+
+Which pixels count:
+- ground truth: finite and > 0 (0 = invalid in files, NaN in memory), inside
+  the optional boolean `mask` (an edge band, a stability map, ...);
+- prediction: finite, and >= 0 for disparity (SGBM's -1 means "no match") or
+  > 0 for depth. A pixel with valid GT but no valid prediction is not scored;
+  it lowers `coverage` = scored / valid-GT pixels, which is always reported
+  beside the errors so a method cannot look good by abstaining unseen.
+With nothing to score every error metric is NaN (never 0, never a warning).
+
+Accumulators keep float64 sums, so pooling is exact for means and shares:
+`add` returns one sample's metrics and folds the sample into the pool;
+`result` gives the pooled metrics (every scored pixel weighs the same, as in
+KITTI). Pooled quantiles come from a log-spaced histogram of errors
+(`HIST_BINS_PER_OCTAVE` bins per octave: the reported value is within 0.3 %
+of the exact quantile; errors below 2**-14 px count as exactly 0). Per-sample
+quantiles are exact (numpy's linear interpolation).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import Any, ClassVar
+
+import cv2
+import numpy as np
+
+from calibration.types import F64, Bool
+
+BAD_THRESHOLDS_PX = (1.0, 2.0, 3.0)
+DELTA_BASE = 1.25
+HIST_BINS_PER_OCTAVE = 128
+HIST_MIN_EXP = -14  # errors below 2**-14 px (6e-5 px) go into the zero bin
+HIST_MAX_EXP = 14  # errors at or above 2**14 px go into the last bin
+_N_LOG_BINS = (HIST_MAX_EXP - HIST_MIN_EXP) * HIST_BINS_PER_OCTAVE
+
+LOWER_IS_BETTER = frozenset(
+    {"epe_px", "median_px", "p95_px", "bad1", "bad2", "bad3", "abs_rel", "mae_m", "rmse_m"}
+)
+HIGHER_IS_BETTER = frozenset({"delta1", "delta2", "delta3", "coverage"})
+
+
+def _nan_if_empty(n: int, value: float) -> float:
+    return value if n > 0 else math.nan
+
+
+@dataclass(frozen=True)
+class StereoMetrics:
+    """Disparity errors (px) over `n` scored pixels of `n_gt` valid-GT pixels; bad-k are shares 0..1."""
+
+    n_gt: int
+    n: int
+    epe_px: float
+    median_px: float
+    p95_px: float
+    bad1: float
+    bad2: float
+    bad3: float
+
+    @property
+    def coverage(self) -> float:
+        """Scored / valid-GT pixels (NaN without valid GT)."""
+        return self.n / self.n_gt if self.n_gt else math.nan
+
+    def as_dict(self) -> dict[str, float | int]:
+        return {**asdict(self), "coverage": self.coverage}
+
+
+@dataclass(frozen=True)
+class DepthMetrics:
+    """Depth errors (m) over `n` scored pixels of `n_gt` valid-GT pixels; delta_k are shares 0..1."""
+
+    n_gt: int
+    n: int
+    abs_rel: float
+    mae_m: float
+    rmse_m: float
+    delta1: float
+    delta2: float
+    delta3: float
+
+    @property
+    def coverage(self) -> float:
+        """Scored / valid-GT pixels (NaN without valid GT)."""
+        return self.n / self.n_gt if self.n_gt else math.nan
+
+    def as_dict(self) -> dict[str, float | int]:
+        return {**asdict(self), "coverage": self.coverage}
+
+
+Metrics = StereoMetrics | DepthMetrics
+
+
+def _check_shapes(pred: np.ndarray[Any, Any], gt: np.ndarray[Any, Any], mask: Bool | None) -> None:
+    if pred.shape != gt.shape or (mask is not None and mask.shape != gt.shape):
+        shapes = f"pred {pred.shape}, gt {gt.shape}" + ("" if mask is None else f", mask {mask.shape}")
+        raise ValueError(f"metric inputs differ in shape: {shapes}")
+
+
+def valid_gt(gt: np.ndarray[Any, Any], mask: Bool | None = None) -> Bool:
+    """GT pixels that count: finite, > 0 and inside `mask`."""
+    with np.errstate(invalid="ignore"):
+        ok: Bool = np.isfinite(gt) & (gt > 0)
+    return ok & mask if mask is not None else ok
+
+
+def _scored(
+    pred: np.ndarray[Any, Any], gt: np.ndarray[Any, Any], mask: Bool | None, pred_min_exclusive: bool
+) -> tuple[int, F64, F64]:
+    """(valid-GT count, pred, gt) as float64 at the pixels with valid GT and a valid prediction."""
+    _check_shapes(pred, gt, mask)
+    ok = valid_gt(gt, mask)
+    n_gt = int(np.count_nonzero(ok))
+    p = np.asarray(pred)[ok].astype(np.float64)
+    g = np.asarray(gt)[ok].astype(np.float64)
+    with np.errstate(invalid="ignore"):
+        good = np.isfinite(p) & ((p > 0) if pred_min_exclusive else (p >= 0))
+    return n_gt, p[good], g[good]
+
+
+def _hist_index(err: F64) -> np.ndarray[Any, np.dtype[np.intp]]:
+    """Histogram bin of each error: 0 = below 2**HIST_MIN_EXP, then log-spaced bins."""
+    with np.errstate(divide="ignore"):
+        k = np.floor((np.log2(err) - HIST_MIN_EXP) * HIST_BINS_PER_OCTAVE)
+    k = np.where(err < 2.0**HIST_MIN_EXP, -1, np.minimum(k, _N_LOG_BINS - 1))
+    return (k + 1).astype(np.intp)
+
+
+def _hist_value(index: int) -> float:
+    """Representative error of a histogram bin (0 for the zero bin, else its geometric centre)."""
+    if index == 0:
+        return 0.0
+    return float(2.0 ** (HIST_MIN_EXP + (index - 1 + 0.5) / HIST_BINS_PER_OCTAVE))
+
+
+def _hist_quantile(hist: np.ndarray[Any, np.dtype[np.int64]], q: float) -> float:
+    """Nearest-rank quantile (rank ceil(q n), at least 1) of the errors in `hist`."""
+    n = int(hist.sum())
+    if n == 0:
+        return math.nan
+    rank = max(1, math.ceil(q * n))
+    return _hist_value(int(np.searchsorted(np.cumsum(hist), rank)))
+
+
+class StereoAccumulator:
+    """Pools disparity errors over samples; `add` also returns the sample's own metrics."""
+
+    kind: ClassVar[str] = "stereo"
+
+    def __init__(self) -> None:
+        self.n_gt = 0
+        self.n = 0
+        self.sum_abs = 0.0
+        self.bad = np.zeros(len(BAD_THRESHOLDS_PX), np.int64)
+        self.hist = np.zeros(_N_LOG_BINS + 1, np.int64)
+
+    def add(
+        self, pred_px: np.ndarray[Any, Any], gt_px: np.ndarray[Any, Any], mask: Bool | None = None
+    ) -> StereoMetrics:
+        """Score one sample (same-shape disparity maps, px) and fold it into the pool."""
+        n_gt, p, g = _scored(pred_px, gt_px, mask, pred_min_exclusive=False)
+        err = np.abs(p - g)
+        n = len(err)
+        bad = np.array([np.count_nonzero(err > t) for t in BAD_THRESHOLDS_PX], np.int64)
+        total = float(err.sum())
+        self.n_gt += n_gt
+        self.n += n
+        self.sum_abs += total
+        self.bad += bad
+        self.hist += np.bincount(_hist_index(err), minlength=len(self.hist))
+        if n == 0:
+            return StereoMetrics(n_gt, 0, *[math.nan] * 6)
+        median, p95 = np.percentile(err, [50.0, 95.0])
+        return StereoMetrics(n_gt, n, total / n, float(median), float(p95), *(bad / n).tolist())
+
+    def merge(self, other: StereoAccumulator) -> None:
+        """Pool another accumulator's pixels into this one."""
+        self.n_gt += other.n_gt
+        self.n += other.n
+        self.sum_abs += other.sum_abs
+        self.bad += other.bad
+        self.hist += other.hist
+
+    def result(self) -> StereoMetrics:
+        """Metrics of every pixel added so far (quantiles from the histogram, see the module doc)."""
+        n = self.n
+        return StereoMetrics(
+            self.n_gt,
+            n,
+            _nan_if_empty(n, self.sum_abs / max(n, 1)),
+            _hist_quantile(self.hist, 0.5),
+            _hist_quantile(self.hist, 0.95),
+            *(_nan_if_empty(n, float(b) / max(n, 1)) for b in self.bad),
+        )
+
+
+class DepthAccumulator:
+    """Pools depth errors over samples; `add` also returns the sample's own metrics."""
+
+    kind: ClassVar[str] = "depth"
+
+    def __init__(self) -> None:
+        self.n_gt = 0
+        self.n = 0
+        self.sum_rel = 0.0
+        self.sum_abs = 0.0
+        self.sum_sq = 0.0
+        self.delta = np.zeros(3, np.int64)
+
+    def add(
+        self, pred_m: np.ndarray[Any, Any], gt_m: np.ndarray[Any, Any], mask: Bool | None = None
+    ) -> DepthMetrics:
+        """Score one sample (same-shape depth maps, metres) and fold it into the pool."""
+        n_gt, p, g = _scored(pred_m, gt_m, mask, pred_min_exclusive=True)
+        e = np.abs(p - g)
+        ratio = np.maximum(p / g, g / p)
+        delta = np.array([np.count_nonzero(ratio < DELTA_BASE**k) for k in (1, 2, 3)], np.int64)
+        sums = (float((e / g).sum()), float(e.sum()), float((e * e).sum()))
+        n = len(e)
+        self.n_gt += n_gt
+        self.n += n
+        self.sum_rel += sums[0]
+        self.sum_abs += sums[1]
+        self.sum_sq += sums[2]
+        self.delta += delta
+        return _depth_metrics(n_gt, n, *sums, delta)
+
+    def merge(self, other: DepthAccumulator) -> None:
+        """Pool another accumulator's pixels into this one."""
+        self.n_gt += other.n_gt
+        self.n += other.n
+        self.sum_rel += other.sum_rel
+        self.sum_abs += other.sum_abs
+        self.sum_sq += other.sum_sq
+        self.delta += other.delta
+
+    def result(self) -> DepthMetrics:
+        """Metrics of every pixel added so far."""
+        return _depth_metrics(self.n_gt, self.n, self.sum_rel, self.sum_abs, self.sum_sq, self.delta)
+
+
+def _depth_metrics(
+    n_gt: int, n: int, sum_rel: float, sum_abs: float, sum_sq: float, delta: np.ndarray[Any, Any]
+) -> DepthMetrics:
+    if n == 0:
+        return DepthMetrics(n_gt, 0, *[math.nan] * 6)
+    return DepthMetrics(n_gt, n, sum_rel / n, sum_abs / n, math.sqrt(sum_sq / n), *(delta / n).tolist())
+
+
+Accumulator = StereoAccumulator | DepthAccumulator
+
+
+def stereo_metrics(
+    pred_px: np.ndarray[Any, Any], gt_px: np.ndarray[Any, Any], mask: Bool | None = None
+) -> StereoMetrics:
+    """Disparity metrics of one sample (see the module doc for which pixels count)."""
+    return StereoAccumulator().add(pred_px, gt_px, mask)
+
+
+def depth_metrics(
+    pred_m: np.ndarray[Any, Any], gt_m: np.ndarray[Any, Any], mask: Bool | None = None
+) -> DepthMetrics:
+    """Depth metrics of one sample (see the module doc for which pixels count)."""
+    return DepthAccumulator().add(pred_m, gt_m, mask)
+
+
+def median_scale(pred: np.ndarray[Any, Any], gt: np.ndarray[Any, Any], mask: Bool | None = None) -> float:
+    """median(gt) / median(pred) over the scored depth pixels: aligns scale-free (relative) predictions.
+
+    Returns 1.0 when nothing can be scored (the prediction is then left as it is).
+    """
+    _, p, g = _scored(pred, gt, mask, pred_min_exclusive=True)
+    if len(p) == 0:
+        return 1.0
+    return float(np.median(g) / np.median(p))
+
+
+def edge_band(
+    gt: np.ndarray[Any, Any], band_px: int = 3, step_abs: float = 0.05, step_rel: float = 0.03
+) -> Bool:
+    """Valid-GT pixels within `band_px` of a discontinuity of the GT map itself.
+
+    A discontinuity is a 3x3 neighbourhood whose valid values differ by more
+    than max(`step_abs`, `step_rel` * their minimum) (in the map's unit: 5 cm /
+    3 % suit depth in metres; for disparity use e.g. 0.25 px / 3 %). Only
+    steps between valid GT pixels are seen, so sparse GT finds fewer edges
+    than dense GT does.
+    """
+    g = np.where(valid_gt(gt), gt, np.nan).astype(np.float32)
+    ok = np.isfinite(g)
+    kernel = np.ones((3, 3), np.uint8)
+    hi = cv2.dilate(np.where(ok, g, 0.0).astype(np.float32), kernel)
+    lo = cv2.erode(np.where(ok, g, np.float32(np.inf)).astype(np.float32), kernel)
+    with np.errstate(invalid="ignore"):
+        step = (hi - lo > np.maximum(step_abs, step_rel * lo)) & np.isfinite(lo)
+    size = 2 * band_px + 1
+    band = cv2.dilate(step.astype(np.uint8), np.ones((size, size), np.uint8)) > 0
+    out: Bool = band & ok
+    return out
