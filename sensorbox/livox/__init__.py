@@ -1,0 +1,16 @@
+"""Livox Mid-360 without the vendor SDK: the wire protocol (`protocol`) and a UDP driver (`driver`)."""
+
+from sensorbox.livox.driver import DriverConfig, DriverStats, LidarEndpoint, LidarStats, Mid360Driver, Publish
+from sensorbox.livox.protocol import DeviceInfo, Ports, ProtocolError
+
+__all__ = [
+    "DeviceInfo",
+    "DriverConfig",
+    "DriverStats",
+    "LidarEndpoint",
+    "LidarStats",
+    "Mid360Driver",
+    "Ports",
+    "ProtocolError",
+    "Publish",
+]

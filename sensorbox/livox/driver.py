@@ -1,0 +1,833 @@
+"""SDK-free Livox Mid-360 driver: UDP discovery, configuration, point/IMU streams, sweeps.
+
+What it does, in the order livox_ros_driver2 + Livox-SDK2 do it (notes/livox.md):
+
+1. `discover()` broadcasts an empty 0x0000 REQ on the discovery port and
+   collects the lidars' ACKs (serial, IP, command port), dropping datagrams whose
+   source is the host itself, as the SDK does.
+2. `start()` binds the host's command, push, point and IMU ports (large
+   SO_RCVBUF), starts the receive threads, then configures each lidar with
+   0x0100 commands: keys 0x0005/6/7 (push, point and IMU host addresses),
+   0x0000 data type, 0x0001 pattern 0, 0x0012 install attitude (when an
+   extrinsic is given), 0x001C IMU enable, 0x001A work mode normal. Each command
+   is matched to its ACK by sequence number and source, retried on timeout and
+   its ret_code/error_key checked; a lidar that never answers is a DriverError
+   naming its IP.
+3. Point datagrams are received in batches into fixed-size slots of one buffer
+   and decoded with numpy (protocol.decode_point_batch): no Python per point.
+   Only the configured lidars' (IP, port) are accepted; anything else is counted
+   as foreign. Malformed, short or oversized datagrams are counted by reason and
+   dropped. udp_cnt is unwrapped (16 bits) per lidar to count lost, duplicate
+   (dropped) and reordered packets.
+4. Point time: packet timestamp when time_type is 1/2 (PTP/GPS), otherwise the
+   host clock at reception (the lidar is then flagged unsynced); point i adds
+   i * (time_interval * 100 // dot_num) ns.
+5. Sweeps: a packet belongs to the sweep floor(packet time / publish interval),
+   so synced sweeps are aligned to multiples of 100 ms of device time (unsynced:
+   of the host clock). A sweep is published once a packet `reorder_slack_ns`
+   past its end has arrived (late reordered packets still make it), when the
+   stream goes idle, or on `stop()`. Points are sorted by time; header.stamp =
+   timebase = the first point's time. livox_ros_driver2 instead cuts after the
+   packet whose last point passes the ms boundary (and skips a cut when that
+   packet is lost); cutting on the packet's first point is what the simulator's
+   sweeps do, so emulated captures compare 1:1.
+6. Optional extrinsic (roll, pitch, yaw deg; x, y, z mm): p' = R p + t with
+   R = Rz(yaw) Ry(pitch) Rx(roll), applied in the data type's native unit
+   before the division to metres (t // 10 for data type 2, t / 1000 for
+   spherical), as livox_ros_driver2 does. IMU samples are published unrotated.
+7. Output: livox_ros_driver2 `CustomMsg` or `PointCloud2` per sweep and
+   `sensor_msgs/Imu` per IMU packet (acceleration in g), serialised by
+   sensorbox.messages, handed to `publish(topic, msgtype, stamp_ns, raw)`.
+   `publish` is never called concurrently (a lock serialises both threads).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import logging
+import selectors
+import socket
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from types import TracebackType
+from typing import Any, Literal
+
+import numpy as np
+
+from calibration.types import F64
+from ingest.livox_msg import POINT_DTYPE
+from ingest.rostypes import CUSTOM_MSG_TYPE, IMU_TYPE, POINTCLOUD2_TYPE
+from sensorbox import messages
+from sensorbox.errors import DriverError
+from sensorbox.livox import protocol as proto
+from sensorbox.livox.protocol import I64, DeviceInfo, Ports, ProtocolError
+
+log = logging.getLogger(__name__)
+
+Publish = Callable[[str, str, int, bytes], None]
+"""(topic, msgtype, stamp_ns, serialised bytes) -> None."""
+Extrinsic = tuple[float, float, float, float, float, float]
+
+SLOT = 2048  # receive slot per datagram: any datagram that fills it is oversized (real ones are <= 1380 B)
+BATCH = 64  # datagrams drained per wake-up of the point thread
+POLL_S = 0.05
+TIME_JUMP_NS = 1_000_000_000  # a packet this far from the newest one restarts framing (sync gained/lost)
+
+
+@dataclass(frozen=True)
+class LidarEndpoint:
+    """One Mid-360 to configure and listen to."""
+
+    ip: str  # e.g. "192.168.1.12" or "127.0.0.2"
+    extrinsic: Extrinsic | None = None  # roll, pitch, yaw deg; x, y, z mm (livox_ros_driver2 convention)
+
+
+@dataclass(frozen=True)
+class DriverConfig:
+    """Everything the driver needs; the defaults are livox_ros_driver2's (msg_MID360 launch)."""
+
+    host_ip: str  # the address the driver binds and announces to the lidars
+    lidars: tuple[LidarEndpoint, ...]
+    msg_format: Literal["custom", "pointcloud2"] = "custom"
+    ros_version: Literal[1, 2] = 2
+    publish_interval_ns: int = 100_000_000
+    multi_topic: bool = True  # /livox/lidar_192_168_1_12 instead of /livox/lidar
+    imu: bool = True
+    data_type: int = proto.DATA_TYPE_CARTESIAN_HIGH
+    ports: Ports = field(default_factory=Ports)
+    discovery_address: str = "255.255.255.255"
+    command_timeout_s: float = 0.5  # per try
+    command_retries: int = 3  # tries after the first
+    reorder_slack_ns: int = 2_000_000  # how long past a sweep's end late packets may still join it
+    idle_flush_s: float = 0.25  # publish open sweeps of a lidar silent this long
+    rcvbuf_bytes: int = 8 << 20
+    check_crc: bool = True  # verify the data packets' CRC-32 (the SDK does not)
+
+    def validate(self) -> None:
+        if not self.lidars:
+            raise DriverError("DriverConfig.lidars is empty: name at least one lidar IP")
+        ips = [li.ip for li in self.lidars]
+        if len(set(ips)) != len(ips):
+            raise DriverError(f"DriverConfig.lidars lists an IP twice: {ips}")
+        if self.host_ip in ips:
+            raise DriverError(f"host_ip {self.host_ip} equals a lidar IP (the SDK drops such datagrams)")
+        if self.data_type not in proto.POINT_DTYPES:
+            raise DriverError(f"data_type {self.data_type}: expected 1 (mm), 2 (10 mm) or 3 (spherical)")
+        if not 10_000_000 <= self.publish_interval_ns <= 2_000_000_000:
+            raise DriverError(
+                f"publish_interval_ns {self.publish_interval_ns}: expected 10 ms..2 s "
+                "(publish_freq 0.5..100 Hz)"
+            )
+        if self.msg_format not in ("custom", "pointcloud2"):
+            raise DriverError(f"msg_format {self.msg_format!r}: expected 'custom' or 'pointcloud2'")
+        if self.ros_version not in (1, 2):
+            raise DriverError(f"ros_version {self.ros_version}: expected 1 or 2")
+
+
+@dataclass
+class LidarStats:
+    """Counters of one lidar since `start()`; packets/points count what was kept and published."""
+
+    ip: str
+    packets: int = 0  # valid point packets kept (not duplicates, not late)
+    points: int = 0  # points in published sweeps
+    lost: int = 0  # point packets missing by udp_cnt
+    duplicates: int = 0  # dropped repeats of an udp_cnt already seen
+    reordered: int = 0  # packets that arrived after a later udp_cnt (kept)
+    late: int = 0  # packets whose sweep was already published (dropped)
+    malformed: int = 0  # from this lidar's point/IMU ports, dropped
+    malformed_by_reason: dict[str, int] = field(default_factory=dict)
+    imu_packets: int = 0
+    imu_lost: int = 0
+    sweeps: int = 0  # published
+    unsynced: bool | None = None  # True while packets arrive with time_type 0 (host-clock stamps)
+    time_type: int | None = None  # of the newest packet
+    time_jumps: int = 0  # framing restarts after a jump of the packet clock
+    counter_resets: int = 0  # udp_cnt jumped far backwards (lidar restarted): counting restarted
+    pushes: int = 0  # 0x0102 status pushes received
+    work_state: int | None = None  # key 0x8006 of the newest push
+
+
+@dataclass
+class DriverStats:
+    lidars: dict[str, LidarStats]
+    foreign: int = 0  # datagrams from addresses/ports that are no configured lidar's
+    foreign_sources: dict[str, int] = field(default_factory=dict)  # "ip:port" -> datagrams
+
+
+def topic_suffix(ip: str) -> str:
+    return ip.replace(".", "_")
+
+
+def lidar_topic(ip: str, multi_topic: bool) -> str:
+    return f"/livox/lidar_{topic_suffix(ip)}" if multi_topic else "/livox/lidar"
+
+
+def imu_topic(ip: str, multi_topic: bool) -> str:
+    return f"/livox/imu_{topic_suffix(ip)}" if multi_topic else "/livox/imu"
+
+
+def extrinsic_rotation(roll_deg: float, pitch_deg: float, yaw_deg: float) -> F64:
+    """R = Rz(yaw) Ry(pitch) Rx(roll) (livox_ros_driver2), angles in degrees."""
+    r, p, y = np.radians([roll_deg, pitch_deg, yaw_deg])
+    cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
+    return np.array(
+        [
+            [cp * cy, sr * sp * cy - cr * sy, cr * sp * cy + sr * sy],
+            [cp * sy, sr * sp * sy + cr * cy, cr * sp * sy - sr * cy],
+            [-sp, sr * cp, cr * cp],
+        ]
+    )
+
+
+def to_metres(data_type: int, xyz_native: F64, extrinsic: Extrinsic | None = None) -> F64:
+    """Native coordinates (..., 3) -> metres, applying p' = R p + t in the native unit first."""
+    if extrinsic is not None:
+        R = extrinsic_rotation(*extrinsic[:3])
+        t_mm = np.asarray(extrinsic[3:], np.float64)
+        if data_type == proto.DATA_TYPE_CARTESIAN_LOW:
+            t = np.trunc(np.round(t_mm) / 10.0)  # the driver's integer division to 10 mm
+        elif data_type == proto.DATA_TYPE_SPHERICAL:
+            t = t_mm / 1000.0
+        else:
+            t = t_mm
+        x, y, z = xyz_native[..., 0], xyz_native[..., 1], xyz_native[..., 2]
+        xyz_native = np.stack(
+            [R[i, 0] * x + R[i, 1] * y + R[i, 2] * z + t[i] for i in range(3)], axis=-1
+        )  # component arithmetic: no tall BLAS matmul on the hot path
+    out: F64 = xyz_native / proto.UNIT_DIVISOR[data_type]
+    return out
+
+
+class SeqTracker:
+    """Unwraps a 16-bit udp_cnt and counts lost, duplicate and reordered packets exactly.
+
+    lost = (highest - lowest + 1) - unique packets seen, so a reordered packet
+    first counts as lost and then fills its gap. Counters within `WINDOW` of the
+    newest are remembered; an older one cannot be told apart from a duplicate and
+    is dropped as stale; a run of `RESET_RUN` stale ones means the lidar restarted
+    its counter, and counting restarts (the loss so far is kept).
+    """
+
+    WINDOW = 4096
+    RESET_RUN = 16
+
+    def __init__(self) -> None:
+        self.lowest: int | None = None
+        self.highest = 0
+        self.seen: set[int] = set()
+        self.unique = 0
+        self.duplicates = 0
+        self.reordered = 0
+        self.stale = 0
+        self.resets = 0
+        self._stale_run = 0
+        self._lost_before = 0
+
+    @property
+    def lost(self) -> int:
+        span = 0 if self.lowest is None else self.highest - self.lowest + 1
+        return self._lost_before + span - self.unique
+
+    def add(self, cnt: int) -> bool:
+        """Record one udp_cnt; True when the packet is new (keep it), False for a duplicate/stale one."""
+        if self.lowest is None:
+            self.lowest = self.highest = cnt
+            self.seen = {cnt}
+            self.unique = 1
+            return True
+        d = ((cnt - self.highest + 0x8000) & 0xFFFF) - 0x8000
+        seq = self.highest + d
+        if d > 0:
+            self.highest = seq
+            self._stale_run = 0
+            self.seen.add(seq)
+            self.unique += 1
+            if len(self.seen) > 2 * self.WINDOW:
+                floor = seq - self.WINDOW
+                self.seen = {s for s in self.seen if s > floor}
+            return True
+        if seq <= self.highest - self.WINDOW:
+            self.stale += 1
+            self._stale_run += 1
+            if self._stale_run >= self.RESET_RUN:
+                self.stale -= 1  # this one starts the new count
+                self._lost_before = self.lost
+                self.resets += 1
+                self.lowest = None
+                self._stale_run = 0
+                return self.add(cnt)
+            return False
+        if seq in self.seen:
+            self.duplicates += 1
+            return False
+        self.seen.add(seq)
+        self.unique += 1
+        self.reordered += 1
+        self.lowest = min(self.lowest, seq)
+        return True
+
+
+@dataclass
+class _Chunk:
+    stamps_ns: I64
+    xyz_m: np.ndarray[Any, np.dtype[np.float32]]  # (n, 3)
+    reflectivity: np.ndarray[Any, np.dtype[np.uint8]]
+    tag: np.ndarray[Any, np.dtype[np.uint8]]
+    line: np.ndarray[Any, np.dtype[np.uint8]]
+
+
+class _Lidar:
+    """Per-lidar receive state: sequence trackers, open sweeps, counters."""
+
+    def __init__(self, endpoint: LidarEndpoint, cfg: DriverConfig) -> None:
+        self.endpoint = endpoint
+        self.ip = endpoint.ip
+        self.stats = LidarStats(endpoint.ip)
+        self.points_seq = SeqTracker()
+        self.imu_seq = SeqTracker()
+        self.frames: dict[int, list[_Chunk]] = {}
+        self.published_key: int | None = None
+        self.newest_ns: int | None = None
+        self.last_packet_wall = 0.0
+        self.lidar_id = int(endpoint.ip.split(".")[0])  # (uint8) inet_addr(ip): the first octet
+        self.topic = lidar_topic(endpoint.ip, cfg.multi_topic)
+        self.imu_topic = imu_topic(endpoint.ip, cfg.multi_topic)
+        self.cmd_port = cfg.ports.lidar_cmd
+
+    def malformed(self, reason: str, count: int = 1) -> None:
+        self.stats.malformed += count
+        by = self.stats.malformed_by_reason
+        by[reason] = by.get(reason, 0) + count
+
+
+class _Waiter:
+    def __init__(self) -> None:
+        self.event = threading.Event()
+        self.frame: proto.ControlFrame | None = None
+
+
+def _udp_socket(ip: str, port: int, *, rcvbuf: int = 0, broadcast: bool = False) -> socket.socket:
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        if broadcast:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
+        if rcvbuf:
+            force = getattr(socket, "SO_RCVBUFFORCE", None)
+            try:
+                if force is None:
+                    raise PermissionError
+                sock.setsockopt(socket.SOL_SOCKET, force, rcvbuf)  # beyond rmem_max when privileged
+            except PermissionError:
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
+        sock.bind((ip, port))
+    except OSError as err:
+        sock.close()
+        raise DriverError(f"cannot bind UDP {ip}:{port}: {err}") from err
+    return sock
+
+
+class Mid360Driver:
+    """Configure one or more Mid-360s and publish their sweeps and IMU samples."""
+
+    def __init__(self, config: DriverConfig, publish: Publish) -> None:
+        config.validate()
+        self.config = config
+        self._publish_fn = publish
+        self._publish_lock = threading.Lock()
+        self._lock = threading.Lock()  # guards the counters for stats()
+        self._lidars = {li.ip: _Lidar(li, config) for li in config.lidars}
+        ports = config.ports
+        self._by_point_src = {(li.ip, ports.lidar_point): li for li in self._lidars.values()}
+        self._by_imu_src = {(li.ip, ports.lidar_imu): li for li in self._lidars.values()}
+        self._by_push_src = {(li.ip, ports.lidar_push): li for li in self._lidars.values()}
+        self._foreign = 0
+        self._foreign_sources: dict[str, int] = {}
+        self._seq = itertools.count(1)
+        self._pending: dict[tuple[str, int], _Waiter] = {}
+        self._socks: dict[str, socket.socket] = {}
+        self._threads: list[threading.Thread] = []
+        self._stop = threading.Event()
+        self._started = False
+        self._devices: dict[str, DeviceInfo] = {}
+
+    # ------------------------------------------------------------------ public API
+
+    def discover(self, timeout_s: float = 3.0) -> list[DeviceInfo]:
+        """Broadcast discovery every second for `timeout_s`; every lidar that answered (any IP)."""
+        cfg = self.config
+        sock = _udp_socket("", cfg.ports.discovery, broadcast=True)
+        req = proto.build_control_frame(
+            proto.ControlFrame(proto.CMD_DISCOVERY, proto.REQ, proto.SENDER_HOST, next(self._seq) & 0xFFFF)
+        )
+        found: dict[str, DeviceInfo] = {}
+        try:
+            end = time.monotonic() + timeout_s
+            next_send = 0.0
+            while (now := time.monotonic()) < end:
+                if now >= next_send:
+                    sock.sendto(req, (cfg.discovery_address, cfg.ports.discovery))
+                    next_send = now + 1.0
+                sock.settimeout(max(0.001, min(end, next_send) - now))
+                try:
+                    raw, (src_ip, _port) = sock.recvfrom(SLOT)
+                except TimeoutError:
+                    continue
+                if src_ip == cfg.host_ip:
+                    continue  # our own broadcast (the SDK drops these too)
+                try:
+                    frame = proto.parse_control_frame(raw)
+                    if frame.cmd_id != proto.CMD_DISCOVERY or frame.cmd_type != proto.ACK:
+                        continue
+                    info = proto.decode_discovery_ack(frame.payload)
+                except ProtocolError as err:
+                    log.debug("discovery: dropped datagram from %s: %s", src_ip, err)
+                    continue
+                if info.ret_code == 0:
+                    found[info.ip] = info
+        finally:
+            sock.close()
+        self._devices.update(found)
+        for info in found.values():
+            if info.ip in self._lidars:
+                self._lidars[info.ip].cmd_port = info.cmd_port
+        return sorted(found.values(), key=lambda d: tuple(int(o) for o in d.ip.split(".")))
+
+    def start(self) -> None:
+        """Bind the host ports, start the receive threads and configure every lidar."""
+        if self._started:
+            return
+        cfg, ports = self.config, self.config.ports
+        try:
+            self._socks["cmd"] = _udp_socket(cfg.host_ip, ports.host_cmd)
+            self._socks["push"] = _udp_socket(cfg.host_ip, ports.host_push)
+            self._socks["imu"] = _udp_socket(cfg.host_ip, ports.host_imu, rcvbuf=1 << 20)
+            self._socks["point"] = _udp_socket(cfg.host_ip, ports.host_point, rcvbuf=cfg.rcvbuf_bytes)
+        except DriverError:
+            self._close_sockets()
+            raise
+        self._stop.clear()
+        self._threads = [
+            threading.Thread(
+                target=self._run_guarded, args=(self._control_loop,), name="livox-control", daemon=True
+            ),
+            threading.Thread(
+                target=self._run_guarded, args=(self._point_loop,), name="livox-points", daemon=True
+            ),
+        ]
+        for t in self._threads:
+            t.start()
+        self._started = True
+        try:
+            for lidar in self._lidars.values():
+                self._configure(lidar)
+        except BaseException:
+            self._shutdown(standby=False)
+            raise
+
+    def stop(self) -> None:
+        """Standby every lidar, stop the threads, publish the open sweeps, close the sockets."""
+        if self._started:
+            self._shutdown(standby=True)
+
+    def stats(self) -> DriverStats:
+        """A snapshot of every counter (safe to call from any thread)."""
+        with self._lock:
+            lidars = {}
+            for ip, li in self._lidars.items():
+                s = replace(li.stats, malformed_by_reason=dict(li.stats.malformed_by_reason))
+                s.lost, s.duplicates, s.reordered = (
+                    li.points_seq.lost,
+                    li.points_seq.duplicates,
+                    li.points_seq.reordered,
+                )
+                s.imu_lost = li.imu_seq.lost
+                s.counter_resets = li.points_seq.resets
+                lidars[ip] = s
+            return DriverStats(lidars, self._foreign, dict(self._foreign_sources))
+
+    def set_params(self, ip: str, items: list[proto.KV]) -> None:
+        """Send one 0x0100 with `items` to lidar `ip`; DriverError unless it ACKs with ret_code 0."""
+        ack = self._command(ip, proto.CMD_SET_PARAMS, proto.encode_kv_list(items))
+        try:
+            ret, key = proto.decode_set_ack(ack.payload)
+        except ProtocolError as err:
+            raise DriverError(f"lidar {ip}: bad ACK to set-parameters: {err}") from err
+        if ret != 0:
+            keys = ", ".join(f"{k:#06x}" for k, _ in items)
+            raise DriverError(
+                f"lidar {ip}: set-parameters ({keys}) refused: ret_code {ret:#04x} "
+                f"({proto.RET_CODES.get(ret, 'unknown')}), error_key {key:#06x}"
+            )
+
+    def query(self, ip: str, keys: list[int]) -> dict[int, bytes]:
+        """0x0101: read parameters of lidar `ip`, e.g. KEY_WORK_MODE or KEY_SN."""
+        ack = self._command(ip, proto.CMD_QUERY_PARAMS, proto.encode_query(keys))
+        try:
+            ret, items = proto.decode_query_ack(ack.payload)
+        except ProtocolError as err:
+            raise DriverError(f"lidar {ip}: bad ACK to query: {err}") from err
+        if ret != 0:
+            raise DriverError(
+                f"lidar {ip}: query refused: ret_code {ret:#04x} ({proto.RET_CODES.get(ret, 'unknown')})"
+            )
+        return dict(items)
+
+    def __enter__(self) -> Mid360Driver:
+        self.start()
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.stop()
+
+    # ------------------------------------------------------------------ configuration
+
+    def _configure(self, lidar: _Lidar) -> None:
+        cfg, ports = self.config, self.config.ports
+        host = cfg.host_ip
+        self.set_params(
+            lidar.ip,
+            [
+                (proto.KEY_STATE_HOST, proto.host_address_value(host, ports.host_push, ports.lidar_push)),
+                (proto.KEY_POINT_HOST, proto.host_address_value(host, ports.host_point, ports.lidar_point)),
+                (proto.KEY_IMU_HOST, proto.host_address_value(host, ports.host_imu, ports.lidar_imu)),
+            ],
+        )
+        self.set_params(lidar.ip, [(proto.KEY_PCL_DATA_TYPE, proto.u8_value(cfg.data_type))])
+        self.set_params(lidar.ip, [(proto.KEY_PATTERN_MODE, proto.u8_value(0))])
+        if lidar.endpoint.extrinsic is not None:
+            self.set_params(
+                lidar.ip,
+                [(proto.KEY_INSTALL_ATTITUDE, proto.install_attitude_value(lidar.endpoint.extrinsic))],
+            )
+        self.set_params(lidar.ip, [(proto.KEY_IMU_DATA_EN, proto.u8_value(1 if cfg.imu else 0))])
+        self.set_params(lidar.ip, [(proto.KEY_WORK_MODE, proto.u8_value(proto.WORK_MODE_NORMAL))])
+
+    def _command(self, ip: str, cmd_id: int, payload: bytes) -> proto.ControlFrame:
+        """Send a REQ and wait for the ACK with the same seq from `ip`; resend on timeout."""
+        if ip not in self._lidars:
+            raise DriverError(f"lidar {ip} is not in the driver's configuration")
+        sock = self._socks.get("cmd")
+        if sock is None:
+            raise DriverError(f"lidar {ip}: the driver is not started (no command socket)")
+        cfg = self.config
+        seq = next(self._seq) & 0xFFFF
+        raw = proto.build_control_frame(
+            proto.ControlFrame(cmd_id, proto.REQ, proto.SENDER_HOST, seq, payload)
+        )
+        waiter = _Waiter()
+        self._pending[(ip, seq)] = waiter
+        try:
+            for _ in range(cfg.command_retries + 1):
+                sock.sendto(raw, (ip, self._lidars[ip].cmd_port))
+                if waiter.event.wait(cfg.command_timeout_s):
+                    assert waiter.frame is not None
+                    if waiter.frame.cmd_id != cmd_id:
+                        raise DriverError(
+                            f"lidar {ip}: ACK seq {seq} is for command {waiter.frame.cmd_id:#06x}, "
+                            f"sent {cmd_id:#06x}"
+                        )
+                    return waiter.frame
+        finally:
+            self._pending.pop((ip, seq), None)
+        raise DriverError(
+            f"lidar {ip}: no ACK to command {cmd_id:#06x} (seq {seq}) after {cfg.command_retries + 1} tries "
+            f"of {cfg.command_timeout_s} s on port {self._lidars[ip].cmd_port}"
+        )
+
+    # ------------------------------------------------------------------ threads
+
+    def _run_guarded(self, loop: Callable[[], None]) -> None:
+        """Run a receive loop; restart it after an unexpected error so bad input never kills it."""
+        while not self._stop.is_set():
+            try:
+                loop()
+            except Exception:
+                log.exception("livox driver: receive loop failed; restarting it")
+                time.sleep(0.01)
+
+    def _count_foreign(self, src: tuple[str, int]) -> None:
+        key = f"{src[0]}:{src[1]}"
+        with self._lock:
+            self._foreign += 1
+            self._foreign_sources[key] = self._foreign_sources.get(key, 0) + 1
+
+    def _control_loop(self) -> None:
+        """Command ACKs, status pushes and IMU datagrams (all low-rate) on one selector."""
+        sel = selectors.DefaultSelector()
+        handlers = {"cmd": self._on_cmd, "push": self._on_push, "imu": self._on_imu}
+        for name, handler in handlers.items():
+            self._socks[name].setblocking(False)
+            sel.register(self._socks[name], selectors.EVENT_READ, handler)
+        try:
+            while not self._stop.is_set():
+                for key, _ in sel.select(POLL_S):
+                    sock: socket.socket = key.fileobj  # type: ignore[assignment]
+                    while True:
+                        try:
+                            raw, src = sock.recvfrom(SLOT)
+                        except (BlockingIOError, InterruptedError):
+                            break
+                        except OSError:
+                            if self._stop.is_set():
+                                return
+                            break  # e.g. ICMP port unreachable surfaced on a UDP socket
+                        key.data(raw, src, time.time_ns())
+        finally:
+            sel.close()
+
+    def _on_cmd(self, raw: bytes, src: tuple[str, int], _now: int) -> None:
+        lidar = self._lidars.get(src[0])
+        if lidar is None or src[1] != lidar.cmd_port:
+            self._count_foreign(src)
+            return
+        try:
+            frame = proto.parse_control_frame(raw)
+        except ProtocolError as err:
+            log.debug("lidar %s: bad control frame: %s", src[0], err)
+            with self._lock:
+                lidar.malformed("control")
+            return
+        if frame.cmd_type != proto.ACK:
+            return
+        waiter = self._pending.get((src[0], frame.seq))
+        if waiter is not None and not waiter.event.is_set():
+            waiter.frame = frame
+            waiter.event.set()
+
+    def _on_push(self, raw: bytes, src: tuple[str, int], _now: int) -> None:
+        lidar = self._by_push_src.get(src)
+        if lidar is None:
+            self._count_foreign(src)
+            return
+        try:
+            frame = proto.parse_control_frame(raw)
+            items = dict(proto.decode_kv_list(frame.payload)) if frame.cmd_id == proto.CMD_PUSH else {}
+        except ProtocolError as err:
+            log.debug("lidar %s: bad push: %s", src[0], err)
+            with self._lock:
+                lidar.malformed("push")
+            return
+        with self._lock:
+            lidar.stats.pushes += 1
+            state = items.get(proto.KEY_WORK_STATE)
+            if state is not None and len(state) == 1:
+                lidar.stats.work_state = state[0]
+
+    def _on_imu(self, raw: bytes, src: tuple[str, int], now_ns: int) -> None:
+        lidar = self._by_imu_src.get(src)
+        if lidar is None:
+            self._count_foreign(src)
+            return
+        try:
+            pkt = proto.decode_imu_packet(raw, self.config.check_crc)
+        except ProtocolError as err:
+            with self._lock:
+                lidar.malformed("imu")
+            log.debug("lidar %s: bad IMU datagram: %s", src[0], err)
+            return
+        with self._lock:
+            if not lidar.imu_seq.add(pkt.udp_cnt):
+                return
+            lidar.stats.imu_packets += 1
+        if not self.config.imu:
+            return
+        stamp = pkt.timestamp_ns if pkt.time_type != proto.TIME_TYPE_NO_SYNC else now_ns
+        raw_msg = messages.imu_msg(stamp, pkt.gyro_rad_s, pkt.acc_g, self.config.ros_version)
+        self._emit(lidar.imu_topic, IMU_TYPE, stamp, raw_msg)
+
+    def _point_loop(self) -> None:
+        sock = self._socks["point"]
+        sock.setblocking(False)
+        buf = bytearray(SLOT * BATCH)
+        mv = memoryview(buf)
+        sel = selectors.DefaultSelector()
+        sel.register(sock, selectors.EVENT_READ)
+        sizes = np.zeros(BATCH, np.int64)
+        recv_ns = np.zeros(BATCH, np.int64)
+        try:
+            while not self._stop.is_set():
+                if not sel.select(POLL_S):
+                    self._flush_idle()
+                    continue
+                srcs: list[tuple[str, int]] = []
+                n = 0
+                while n < BATCH:
+                    try:
+                        size, src = sock.recvfrom_into(mv[n * SLOT : (n + 1) * SLOT], SLOT)
+                    except (BlockingIOError, InterruptedError):
+                        break
+                    except OSError:
+                        if self._stop.is_set():
+                            return
+                        break
+                    sizes[n], recv_ns[n] = size, time.time_ns()
+                    srcs.append(src)
+                    n += 1
+                if n:
+                    self._on_point_batch(buf, n, sizes[:n].copy(), recv_ns[:n].copy(), srcs)
+                    self._flush_idle()
+        finally:
+            sel.close()
+
+    # ------------------------------------------------------------------ point processing
+
+    def _on_point_batch(
+        self, buf: bytearray, n: int, sizes: I64, recv_ns: I64, srcs: list[tuple[str, int]]
+    ) -> None:
+        owner = np.full(n, -1, np.int64)
+        lidars = list(self._lidars.values())
+        index = {id(li): k for k, li in enumerate(lidars)}
+        for k, src in enumerate(srcs):
+            lidar = self._by_point_src.get(src)
+            if lidar is None:
+                self._count_foreign(src)
+                sizes[k] = 0  # never parsed
+            else:
+                owner[k] = index[id(lidar)]
+        if (owner < 0).all():
+            return
+        groups, rejects = proto.decode_point_batch(buf, SLOT, sizes, self.config.check_crc)
+        with self._lock:
+            for reason, rows in rejects.items():
+                for k in rows.tolist():
+                    if owner[k] >= 0:
+                        lidars[owner[k]].malformed(reason)
+        for g in sorted(groups, key=lambda g: int(g.rows[0])):
+            owners = owner[g.rows]
+            for o in np.unique(owners[owners >= 0]).tolist():
+                sel = owners == o
+                self._on_packets(lidars[o], g.data_type, g.header[sel], g.points[sel], recv_ns[g.rows[sel]])
+
+    def _on_packets(
+        self, lidar: _Lidar, data_type: int, hdr: proto.Structured, pts: proto.Structured, recv_ns: I64
+    ) -> None:
+        cfg = self.config
+        with self._lock:
+            keep = np.array([lidar.points_seq.add(c) for c in hdr["udp_cnt"].tolist()], bool)
+            time_type = int(hdr["time_type"][-1])
+            lidar.stats.time_type = time_type
+            lidar.stats.unsynced = time_type == proto.TIME_TYPE_NO_SYNC
+        if not keep.all():
+            hdr, pts, recv_ns = hdr[keep], pts[keep], recv_ns[keep]
+        n_pk, dot_num = pts.shape
+        if n_pk == 0:
+            return
+        lidar.last_packet_wall = time.monotonic()
+        synced = hdr["time_type"] != proto.TIME_TYPE_NO_SYNC
+        pkt_ns = np.where(synced, hdr["timestamp"].astype(np.int64), recv_ns)
+        if lidar.newest_ns is not None and np.abs(pkt_ns - lidar.newest_ns).max() > TIME_JUMP_NS:
+            self._publish_open(lidar)  # sync gained or lost: the clocks differ, start framing afresh
+            lidar.published_key = None
+            lidar.newest_ns = None
+            with self._lock:
+                lidar.stats.time_jumps += 1
+        stamps = proto.point_times_ns(pkt_ns, hdr["time_interval"], hdr["dot_num"], dot_num)
+        xyz = to_metres(data_type, proto.native_xyz(data_type, pts), lidar.endpoint.extrinsic).astype(
+            np.float32
+        )
+        line = np.broadcast_to((np.arange(dot_num) % 4).astype(np.uint8), (n_pk, dot_num))
+        keys = pkt_ns // cfg.publish_interval_ns
+        late = 0
+        for key in np.unique(keys).tolist():
+            sel = keys == key
+            if lidar.published_key is not None and key <= lidar.published_key:
+                late += int(sel.sum())
+                continue
+            lidar.frames.setdefault(key, []).append(
+                _Chunk(
+                    stamps[sel].ravel(), xyz[sel].reshape(-1, 3), pts["reflectivity"][sel].ravel(),
+                    pts["tag"][sel].ravel(), line[sel].ravel(),
+                )
+            )  # fmt: skip
+        with self._lock:
+            lidar.stats.late += late
+            lidar.stats.packets += n_pk - late
+        newest = int(pkt_ns.max())
+        lidar.newest_ns = newest if lidar.newest_ns is None else max(lidar.newest_ns, newest)
+        ready = [
+            k
+            for k in lidar.frames
+            if (k + 1) * cfg.publish_interval_ns + cfg.reorder_slack_ns <= lidar.newest_ns
+        ]
+        for key in sorted(ready):
+            self._publish_sweep(lidar, key)
+
+    def _flush_idle(self) -> None:
+        now = time.monotonic()
+        for lidar in self._lidars.values():
+            if lidar.frames and now - lidar.last_packet_wall > self.config.idle_flush_s:
+                self._publish_open(lidar)
+
+    def _publish_open(self, lidar: _Lidar) -> None:
+        for key in sorted(lidar.frames):
+            self._publish_sweep(lidar, key)
+
+    def _publish_sweep(self, lidar: _Lidar, key: int) -> None:
+        chunks = lidar.frames.pop(key)
+        lidar.published_key = key if lidar.published_key is None else max(lidar.published_key, key)
+        stamps = np.concatenate([c.stamps_ns for c in chunks])
+        order = (
+            None if len(chunks) == 1 or (np.diff(stamps) >= 0).all() else np.argsort(stamps, kind="stable")
+        )
+        points = np.empty(len(stamps), POINT_DTYPE)
+
+        def take(a: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+            return a if order is None else a[order]
+
+        stamps = take(stamps)
+        timebase = int(stamps[0])
+        xyz = take(np.concatenate([c.xyz_m for c in chunks]))
+        points["offset_time"] = (stamps - timebase).astype(np.uint32)
+        points["x"], points["y"], points["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+        points["reflectivity"] = take(np.concatenate([c.reflectivity for c in chunks]))
+        points["tag"] = take(np.concatenate([c.tag for c in chunks]))
+        points["line"] = take(np.concatenate([c.line for c in chunks]))
+        ros = self.config.ros_version
+        if self.config.msg_format == "custom":
+            raw = messages.custom_msg(timebase, points, ros, lidar_id=lidar.lidar_id)
+            msgtype = CUSTOM_MSG_TYPE
+        else:
+            raw = messages.pointcloud2_msg(timebase, points, ros)
+            msgtype = POINTCLOUD2_TYPE
+        self._emit(lidar.topic, msgtype, timebase, raw)
+        with self._lock:
+            lidar.stats.sweeps += 1
+            lidar.stats.points += len(points)
+
+    def _emit(self, topic: str, msgtype: str, stamp_ns: int, raw: bytes) -> None:
+        with self._publish_lock:
+            try:
+                self._publish_fn(topic, msgtype, stamp_ns, raw)
+            except Exception:
+                log.exception("livox driver: publish callback failed for %s", topic)
+
+    # ------------------------------------------------------------------ shutdown
+
+    def _shutdown(self, standby: bool) -> None:
+        if standby:
+            for lidar in self._lidars.values():
+                try:
+                    self.set_params(lidar.ip, [(proto.KEY_WORK_MODE, proto.u8_value(proto.WORK_MODE_IDLE))])
+                except DriverError as err:
+                    log.warning("livox driver: could not set lidar %s to standby: %s", lidar.ip, err)
+        self._stop.set()
+        for t in self._threads:
+            t.join(timeout=5.0)
+        self._threads = []
+        for lidar in self._lidars.values():
+            self._publish_open(lidar)
+        self._close_sockets()
+        self._started = False
+
+    def _close_sockets(self) -> None:
+        for sock in self._socks.values():
+            with contextlib.suppress(OSError):
+                sock.close()
+        self._socks = {}
