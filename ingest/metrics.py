@@ -18,9 +18,11 @@ Accumulators keep float64 sums, so pooling is exact for means and shares:
 `add` returns one sample's metrics and folds the sample into the pool;
 `result` gives the pooled metrics (every scored pixel weighs the same, as in
 KITTI). Pooled quantiles come from a log-spaced histogram of errors
-(`HIST_BINS_PER_OCTAVE` bins per octave: the reported value is within 0.3 %
-of the exact quantile; errors below 2**-14 px count as exactly 0). Per-sample
-quantiles are exact (numpy's linear interpolation).
+(`HIST_BINS_PER_OCTAVE` bins per octave) that also sums the errors in each
+bin: the reported value is the mean error of the bin holding the nearest rank,
+within 0.3 % of the exact quantile and exact when that bin holds one value
+(errors below 2**-14 px share bin 0). Per-sample quantiles are exact (numpy's
+linear interpolation).
 """
 
 from __future__ import annotations
@@ -133,20 +135,14 @@ def _hist_index(err: F64) -> np.ndarray[Any, np.dtype[np.intp]]:
     return (k + 1).astype(np.intp)
 
 
-def _hist_value(index: int) -> float:
-    """Representative error of a histogram bin (0 for the zero bin, else its geometric centre)."""
-    if index == 0:
-        return 0.0
-    return float(2.0 ** (HIST_MIN_EXP + (index - 1 + 0.5) / HIST_BINS_PER_OCTAVE))
-
-
-def _hist_quantile(hist: np.ndarray[Any, np.dtype[np.int64]], q: float) -> float:
-    """Nearest-rank quantile (rank ceil(q n), at least 1) of the errors in `hist`."""
+def _hist_quantile(hist: np.ndarray[Any, np.dtype[np.int64]], sums: F64, q: float) -> float:
+    """Nearest-rank quantile (rank ceil(q n), at least 1): the mean error of the bin holding that rank."""
     n = int(hist.sum())
     if n == 0:
         return math.nan
     rank = max(1, math.ceil(q * n))
-    return _hist_value(int(np.searchsorted(np.cumsum(hist), rank)))
+    k = int(np.searchsorted(np.cumsum(hist), rank))
+    return float(sums[k] / hist[k])
 
 
 class StereoAccumulator:
@@ -160,6 +156,7 @@ class StereoAccumulator:
         self.sum_abs = 0.0
         self.bad = np.zeros(len(BAD_THRESHOLDS_PX), np.int64)
         self.hist = np.zeros(_N_LOG_BINS + 1, np.int64)
+        self.hist_sum = np.zeros(_N_LOG_BINS + 1, np.float64)
 
     def add(
         self, pred_px: np.ndarray[Any, Any], gt_px: np.ndarray[Any, Any], mask: Bool | None = None
@@ -174,7 +171,9 @@ class StereoAccumulator:
         self.n += n
         self.sum_abs += total
         self.bad += bad
-        self.hist += np.bincount(_hist_index(err), minlength=len(self.hist))
+        idx = _hist_index(err)
+        self.hist += np.bincount(idx, minlength=len(self.hist))
+        self.hist_sum += np.bincount(idx, weights=err, minlength=len(self.hist))
         if n == 0:
             return StereoMetrics(n_gt, 0, *[math.nan] * 6)
         median, p95 = np.percentile(err, [50.0, 95.0])
@@ -187,6 +186,7 @@ class StereoAccumulator:
         self.sum_abs += other.sum_abs
         self.bad += other.bad
         self.hist += other.hist
+        self.hist_sum += other.hist_sum
 
     def result(self) -> StereoMetrics:
         """Metrics of every pixel added so far (quantiles from the histogram, see the module doc)."""
@@ -195,8 +195,8 @@ class StereoAccumulator:
             self.n_gt,
             n,
             _nan_if_empty(n, self.sum_abs / max(n, 1)),
-            _hist_quantile(self.hist, 0.5),
-            _hist_quantile(self.hist, 0.95),
+            _hist_quantile(self.hist, self.hist_sum, 0.5),
+            _hist_quantile(self.hist, self.hist_sum, 0.95),
             *(_nan_if_empty(n, float(b) / max(n, 1)) for b in self.bad),
         )
 

@@ -263,6 +263,16 @@ def _register_inspect() -> None:
 _register_inspect()
 
 
+def _register_eval() -> None:
+    from sensorbox.cli_eval import eval_cmd, stats_cmd
+
+    app.command("eval")(eval_cmd)
+    app.command("stats")(stats_cmd)
+
+
+_register_eval()
+
+
 @app.callback()
 def _root() -> None:
     """SensorBox command line."""

@@ -126,3 +126,65 @@ def plot_sample(dataset_dir: Path, sid: str, out: Path) -> Path:
     fig.savefig(out, dpi=90)
     plt.close(fig)
     return out
+
+
+# ---- evaluation and dataset statistics (sensorbox eval / stats) ----------------------------
+
+import typing  # noqa: E402  (this section is appended; its types are only for the checker)
+
+
+def plot_heatmap(hm: Heatmap, path: str | Path, title: str) -> Path:
+    """A metric over FOV (rows) x baseline (columns), each cell annotated with its value."""
+    from ingest.evaluate import format_metric
+
+    fig, ax = plt.subplots(figsize=(1.6 * len(hm.baselines_mm) + 3.0, 1.0 * len(hm.fovs_deg) + 2.2))
+    percent = hm.metric in ("bad1", "bad2", "bad3", "delta1", "delta2", "delta3", "coverage")
+    shown = hm.values * (100.0 if percent else 1.0)
+    im = ax.imshow(np.ma.masked_invalid(shown), cmap="viridis", aspect="auto")
+    for i in range(len(hm.fovs_deg)):
+        for j in range(len(hm.baselines_mm)):
+            text = format_metric(hm.metric, float(hm.values[i, j]))
+            ax.text(j, i, text, ha="center", va="center", color="w", fontsize=10)
+    ax.set_xticks(range(len(hm.baselines_mm)), [f"{b:g} mm" for b in hm.baselines_mm])
+    ax.set_yticks(range(len(hm.fovs_deg)), [f"{f:g}°" for f in hm.fovs_deg])
+    ax.set_xlabel("baseline")
+    ax.set_ylabel("FOV")
+    fig.colorbar(im, ax=ax, label=f"{hm.metric}{' [%]' if percent else ''}")
+    ax.set_title(title)
+    fig.tight_layout()
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return out
+
+
+def plot_stats(stats: DatasetStats, path: str | Path) -> Path:
+    """Histograms of a dataset: depth distribution (pixels), GT density and mean local entropy (samples)."""
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.5))
+    shares = [0.0 if not np.isfinite(s) else 100.0 * s for s in stats.depth_shares]
+    axes[0].bar(stats.bins, shares, color="tab:blue")
+    axes[0].set_ylabel("valid GT pixels [%]")
+    axes[0].set_title("depth distribution")
+    density = [100.0 * s.density for s in stats.samples]
+    axes[1].hist(density, bins=min(30, max(5, len(density))), color="tab:green")
+    axes[1].set_xlabel("GT density [% of pixels]")
+    axes[1].set_ylabel("samples")
+    axes[1].set_title(f"GT density (mean {100.0 * stats.density_mean:.2f} %)")
+    entropy = [s.entropy_bits for s in stats.samples if np.isfinite(s.entropy_bits)]
+    axes[2].hist(entropy, bins=min(30, max(5, len(entropy))), color="tab:orange")
+    axes[2].set_xlabel("mean local entropy, 11x11 [bits]")
+    axes[2].set_ylabel("samples")
+    axes[2].set_title(f"texture (mean {stats.entropy_mean_bits:.3f} bits)")
+    fig.suptitle(f"{stats.dataset} ({stats.layout} layout, {len(stats.samples)} samples)")
+    fig.tight_layout()
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=100)
+    plt.close(fig)
+    return out
+
+
+if typing.TYPE_CHECKING:
+    from ingest.evaluate import Heatmap
+    from ingest.stats import DatasetStats
