@@ -293,13 +293,15 @@ def edge_band(
     steps between valid GT pixels are seen, so sparse GT finds fewer edges
     than dense GT does.
     """
-    g = np.where(valid_gt(gt), gt, np.nan).astype(np.float32)
-    ok = np.isfinite(g)
+    ok = valid_gt(gt)
     kernel = np.ones((3, 3), np.uint8)
-    hi = cv2.dilate(np.where(ok, g, 0.0).astype(np.float32), kernel)
-    lo = cv2.erode(np.where(ok, g, np.float32(np.inf)).astype(np.float32), kernel)
-    with np.errstate(invalid="ignore"):
-        step = (hi - lo > np.maximum(step_abs, step_rel * lo)) & np.isfinite(lo)
+    g = np.where(ok, gt, np.float32(0.0)).astype(np.float32, copy=False)
+    hi = cv2.dilate(g, kernel)  # largest valid value around (0: none)
+    np.copyto(g, np.float32(np.inf), where=~ok)
+    lo = cv2.erode(g, kernel)  # smallest valid value around (inf: none, so hi - lo = -inf: no step)
+    threshold = lo * np.float32(step_rel)
+    np.maximum(threshold, np.float32(step_abs), out=threshold)
+    step = hi - lo > threshold
     size = 2 * band_px + 1
     band = cv2.dilate(step.astype(np.uint8), np.ones((size, size), np.uint8)) > 0
     out: Bool = band & ok

@@ -111,19 +111,21 @@ def eval_cmd(
             keys.append(key)
     if heatmap is not None:
         keys += [k for k in ev.GROUP_KEYS if k not in keys]
+    masks = _parse_masks(mask or [])
+    regions = ("all", *(["edges"] if edges else []), *(name for name, _ in masks))
+    if region not in regions:
+        raise SensorboxError(f"--region {region!r}: expected one of {', '.join(regions)}")
     opts = ev.EvalOptions(
         task=task,
         by=tuple(keys),
         image_type=image_type,
         edges=edges,
-        masks=_parse_masks(mask or []),
+        masks=masks,
         align=align,  # type: ignore[arg-type]
     )
     with _progress("scoring") as bar:
         job = bar.add_task("eval", total=None)
         report = ev.evaluate(dataset, pred, opts, progress=lambda d, t: bar.update(job, completed=d, total=t))
-    if region not in report.regions:
-        raise SensorboxError(f"--region {region!r}: expected one of {', '.join(report.regions)}")
     n_gt = len(report.samples) + len(report.missing)
     _echo(f"# {task} on {dataset} ({report.layout} layout): {len(report.samples)} of {n_gt} samples scored")
     for r in report.regions:

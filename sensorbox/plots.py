@@ -141,10 +141,13 @@ def plot_heatmap(hm: Heatmap, path: str | Path, title: str) -> Path:
     percent = hm.metric in ("bad1", "bad2", "bad3", "delta1", "delta2", "delta3", "coverage")
     shown = hm.values * (100.0 if percent else 1.0)
     im = ax.imshow(np.ma.masked_invalid(shown), cmap="viridis", aspect="auto")
+    finite = shown[np.isfinite(shown)]
+    lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 0.0)
     for i in range(len(hm.fovs_deg)):
         for j in range(len(hm.baselines_mm)):
             text = format_metric(hm.metric, float(hm.values[i, j]))
-            ax.text(j, i, text, ha="center", va="center", color="w", fontsize=10)
+            light = bool(shown[i, j] > lo + 0.6 * (hi - lo))  # viridis is light at the top: dark text
+            ax.text(j, i, text, ha="center", va="center", color="k" if light else "w", fontsize=10)
     ax.set_xticks(range(len(hm.baselines_mm)), [f"{b:g} mm" for b in hm.baselines_mm])
     ax.set_yticks(range(len(hm.fovs_deg)), [f"{f:g}°" for f in hm.fovs_deg])
     ax.set_xlabel("baseline")

@@ -12,6 +12,7 @@ import numpy as np
 import typer
 from typer.testing import CliRunner
 
+from calibration.errors import SensorboxError
 from sensorbox.cli_eval import eval_cmd, stats_cmd
 from tests.ingest.test_evaluate import make_benchmark, write_predictions
 
@@ -82,6 +83,9 @@ def test_eval_tables_compare_heatmap_and_json(tmp_path: Path) -> None:
     assert res.exit_code == 0, res.output
     assert "| 65mm | 4 | 192 | 100.00 | 1.000 |" in res.output and "region: edges" not in res.output
     assert (pred / "eval_stereo.json").is_file()  # the default JSON place
+    res = runner.invoke(app, [*args, "--no-edges", "--region", "edges"])
+    assert isinstance(res.exception, SensorboxError)
+    assert str(res.exception) == "--region 'edges': expected one of all"
 
 
 def test_stats_writes_json_and_histograms(tmp_path: Path) -> None:
