@@ -16,12 +16,13 @@ markdown table with the target next to it:
    function process_sample calls directly (and write_sample's helpers) is
    wrapped with a timer for that pass, so the bottleneck is visible without
    copying the pipeline's steps; surface_normals is split into its KD-tree and
-   eigh parts on its captured input. Target: everything except image encoding
-   <= 60 ms per sample.
+   eigen-solve parts on its captured input (closed form vs LAPACK eigh).
+   Target: everything except image encoding <= 60 ms per sample.
 3. Encoders outside the pipeline on one sample's images (fisheye RGB, equirect
-   RGB, both uint16 GT images): cv2 PNG levels, strategies and filters, and
+   RGB, both uint16 GT images): SensorBox's PNG writer (ISA-L levels 0-3), cv2 PNG
+   levels, strategies and filters, and
    the other lossless cv2 writers of this build; median of `--repeats`.
-4. `ingest(...)` with `workers=2`, full PNG layout, PNG level 0/1/3/6: samples/s
+4. `ingest(...)` with `workers=2`, full PNG layout, ISA-L PNG level 0-3: samples/s
    end to end and after each worker's first sample (median of up to 3 runs
    each); target >= 5 samples/s on the 2-core machine.
 
@@ -43,6 +44,7 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -60,8 +62,10 @@ from calibration.rig import read_rig
 from calibration.warp import clear_map_cache
 from ingest.bags import open_bags
 from ingest.decode import decode
+from ingest.linalg3 import sym3_smallest
 from ingest.livox_msg import decode_custom_msg
 from ingest.pipeline import IngestConfig, _resolve_topics, ingest, plan, stream_jobs
+from ingest.png import LEVELS, encode_png
 from ingest.rostypes import CUSTOM_MSG_TYPE, typestore
 from ingest.sample import Geometry, SampleJob, SampleParams, process_sample
 from sensorbox.sim.run import SimConfig, simulate
@@ -71,7 +75,7 @@ T = TypeVar("T")
 Arr = np.ndarray[Any, Any]
 
 WORKERS = 2
-PNG_LEVELS = (0, 1, 3, 6)
+PNG_LEVELS = LEVELS  # ISA-L deflate levels of ingest.png
 DECODE_TARGET = 100.0  # x faster than rosbags
 STAGE_TARGET_MS = 60.0  # everything except image encoding, per sample
 THROUGHPUT_TARGET = 5.0  # samples/s with 2 workers on 2 cores
@@ -232,7 +236,7 @@ def instrument(calls: Calls, capture: tuple[str, ...] = ()) -> Iterator[None]:
                 calls.ms[k] = calls.ms.get(k, 0.0) + (time.perf_counter() - t0) * 1e3
                 calls.count[k] = calls.count.get(k, 0) + 1
                 if name in capture:
-                    calls.args.setdefault(name, args)
+                    calls.args.setdefault(name, (*args, kwargs))
 
         patches.append((owner, name, fn))
         setattr(owner, name, timed_fn)
@@ -291,17 +295,25 @@ def stage_times(jobs: list[SampleJob]) -> StageRun:
 
 
 def normals_split(args: tuple[Any, ...], runs: int) -> list[tuple[str, float]]:
-    """surface_normals' two big parts on its captured input: KD-tree k-NN and N 3x3 eigh."""
-    pts, k = np.asarray(args[0]), min(int(args[1]), len(args[0]))
-    _, idx = cKDTree(pts).query(pts, k=k)
+    """surface_normals' parts on its captured input: k-d tree k-NN, and the 3x3 eigen-solve.
+
+    The closed form SensorBox uses (sym3_smallest) is timed against LAPACK's
+    batched np.linalg.eigh on the same matrices.
+    """
+    pts, k, kwargs = np.asarray(args[0]), min(int(args[1]), len(args[0])), args[-1]
+    query = kwargs.get("query") if isinstance(kwargs, dict) else None
+    q = pts if query is None else pts[query]
+    _, idx = cKDTree(pts).query(q, k=k)
     nb = pts[idx]
     centred = nb - nb.mean(axis=1, keepdims=True)
     cov = np.einsum("nki,nkj->nij", centred, centred) / k
-    t_knn = median_seconds(lambda: cKDTree(pts).query(pts, k=k), runs) * 1e3
+    t_knn = median_seconds(lambda: cKDTree(pts, balanced_tree=False).query(q, k=k), runs) * 1e3
+    t_closed = median_seconds(lambda: sym3_smallest(cov), runs) * 1e3
     t_eigh = median_seconds(lambda: np.linalg.eigh(cov), runs) * 1e3
     return [
-        (f"  surface_normals > cKDTree build + query k={k} ({len(pts):,} pts)", t_knn),
-        ("  surface_normals > np.linalg.eigh of N 3x3", t_eigh),
+        (f"  surface_normals > cKDTree build ({len(pts):,} pts) + query k={k} ({len(q):,})", t_knn),
+        ("  surface_normals > closed-form 3x3 eigen (sym3_smallest)", t_closed),
+        (f"    (np.linalg.eigh on the same matrices, not used: {t_eigh / t_closed:.1f}x slower)", t_eigh),
     ]
 
 
@@ -329,8 +341,11 @@ class Encoder:
     ext: str
     params: tuple[int, ...]
     u16: bool = True  # can store uint16 losslessly
+    fn: Callable[[Arr], bytes] | None = None  # not cv2.imencode (SensorBox's own PNG writer)
 
     def encode(self, image: Arr) -> bytes:
+        if self.fn is not None:
+            return self.fn(image)
         ok, buf = cv2.imencode(self.ext, image, list(self.params))
         if not ok:
             raise cv2.error(f"{self.name}: imencode returned False")
@@ -341,6 +356,10 @@ def encoders() -> tuple[list[Encoder], list[str]]:
     """Encoders to compare, and notes on the ones this cv2 build cannot write."""
     png = cv2.IMWRITE_PNG_COMPRESSION
     cands = [
+        *(
+            Encoder(f"SensorBox PNG, ISA-L {lv}", ".png", (), fn=partial(encode_png, level=lv))
+            for lv in PNG_LEVELS
+        ),
         *(Encoder(f"PNG level {lv}", ".png", (png, lv)) for lv in (0, 1, 3, 6, 9)),
         Encoder("PNG 0 filter NONE", ".png", (png, 0, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_NONE)),
         Encoder(
@@ -625,7 +644,7 @@ def run_all(bag: Path, rig: Path, root: Path, repeats: int, source: str) -> None
         e2e = med([r.written / r.seconds for r in rs])
         steady = med([r.steady for r in rs])
         met = "met" if e2e >= THROUGHPUT_TARGET else "NOT met"
-        rows.append([f"PNG level {lv}", f"{med([r.written for r in rs]):.0f}",
+        rows.append([f"ISA-L PNG level {lv}", f"{med([r.written for r in rs]):.0f}",
                      f"{med([r.seconds for r in rs]):.1f}", f"{e2e:.2f}", f"{steady:.2f}",
                      f"{med([r.worker_ms for r in rs]):.0f}", f"{med([r.write_ms for r in rs]):.0f}",
                      f"{med([r.mb_per_sample for r in rs]):.1f}",

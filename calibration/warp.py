@@ -60,7 +60,7 @@ def build_maps(src: CameraModel, dst: CameraModel, R_src_dst: F64 | None = None)
         _CACHE.move_to_end(key)
         return hit
     rays_dst, ok_dst = dst.unproject(dst.pixel_grid())
-    rays_src = rays_dst @ R.T
+    rays_src = np.einsum("ij,...j->...i", R, rays_dst)  # not a tall BLAS matmul: threads fight the pool
     uv, ok_src = src.project(rays_src)
     valid = ok_dst & ok_src & src.in_image(uv)
     map_x = np.where(valid, uv[..., 0], INVALID_COORD).astype(np.float32)

@@ -182,6 +182,7 @@ def estimate_velocity(
     max_points: int = 12_000,
     tol_m_s: float = 1e-3,
     neighbours: int = 8,
+    significance: float = 4.0,
 ) -> VelocityEstimate | None:
     """Velocity that makes points measured at different times agree (rotation already compensated).
 
@@ -193,7 +194,9 @@ def estimate_velocity(
     until the update is below `tol_m_s` or a quarter of the fit's own standard
     error (further steps would only chase noise). One k-d tree query per
     iteration serves both the plane fits (8 nearest) and the pairing
-    (`neighbours` nearest).
+    (`neighbours` nearest). When the first fit (from v = 0) is below
+    `significance` standard errors the rig is taken as not translating and
+    that fit is returned as is: iterating on noise only makes it wander.
     None when the scene does not constrain all three directions.
     """
     from scipy.spatial import cKDTree
@@ -204,9 +207,9 @@ def estimate_velocity(
     step = max(1, len(pts_cam0) // max_points)  # a regular subsample keeps the fit deterministic
     p = np.asarray(pts_cam0, np.float64)[::step]
     dt = np.asarray(dt_s, np.float64)[::step]
-    for _ in range(iterations):
+    for it in range(iterations):
         q = p + dt[:, None] * v
-        dist, idx = cKDTree(q, balanced_tree=False).query(q, k=neighbours)
+        dist, idx = cKDTree(q, leafsize=32, balanced_tree=False).query(q, k=neighbours)
         local = normals_from_neighbours(q, q, idx[:, :8], max_flatness=0.02)
         normals, planar = local.normal, local.planar
         far_in_time = np.abs(dt[idx] - dt[:, None]) >= min_dt_s
@@ -231,6 +234,8 @@ def estimate_velocity(
         v = v + dv
         res = float(np.sqrt(np.mean(r[inl] ** 2)))
         weakest = float(res * np.sqrt(np.linalg.inv(H).diagonal().max()))
+        if it == 0 and np.linalg.norm(v) <= significance * weakest:
+            break
         if np.linalg.norm(dv) < max(tol_m_s, 0.25 * weakest):
             break
     return VelocityEstimate(v, int(inl.sum()), res, weakest)

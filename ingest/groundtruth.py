@@ -88,7 +88,7 @@ def surface_normals(pts: F64, k: int, max_flatness: float, query: Bool | None = 
     if len(pts) < 3 or n == 0:
         return Normals(np.zeros((n, 3)), np.zeros(n, bool))
     k = min(k, len(pts))
-    _, idx = cKDTree(pts, balanced_tree=False).query(q, k=k)
+    _, idx = cKDTree(pts, leafsize=32, balanced_tree=False).query(q, k=k)
     return normals_from_neighbours(pts, q, idx.reshape(n, k), max_flatness)
 
 
@@ -179,8 +179,8 @@ def equirect_disparity(
     Returns (disparity, range, unstable): pixels failing the stability mask
     have no disparity (their range is kept) and are counted in `unstable`.
     """
-    pts_rect = pts_cam0 @ R_rect_cam0.T
-    normals_rect = Normals(normals_cam0.normal @ R_rect_cam0.T, normals_cam0.planar)
+    pts_rect = np.einsum("ij,nj->ni", R_rect_cam0, pts_cam0)
+    normals_rect = Normals(np.einsum("ij,nj->ni", R_rect_cam0, normals_cam0.normal), normals_cam0.planar)
     splat = splat_to_pixels(eq, pts_rect, normals_rect, params)
     theta = np.arccos(np.clip(-splat.ray[:, 1], -1.0, 1.0))
     disp = depth_to_disparity(splat.range_m, theta, baseline_m, eq.height_full)

@@ -147,7 +147,9 @@ def process_sample(job: SampleJob) -> SampleResult:
     R_ci = gyro.relative(stamps, job.upper_stamp_ns) if gyro is not None else None
     velocity, source = job.velocity_cam0_mps, ("imu" if gyro is not None else "none")
     if velocity is None and prm.estimate_velocity:
-        est = estimate_velocity(apply_rotations(R_ci, pts) if R_ci is not None else pts, dt_s)
+        est = estimate_velocity(
+            apply_rotations(R_ci, pts) if R_ci is not None else pts, dt_s, significance=VELOCITY_SIGMAS
+        )
         # use it only when it is significant: a static rig must not be "compensated" with fit noise
         if est is not None and np.linalg.norm(est.velocity_cam0_mps) > VELOCITY_SIGMAS * est.weakest_m_s:
             velocity = est.velocity_cam0_mps
