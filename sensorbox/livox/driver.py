@@ -83,6 +83,8 @@ class LidarEndpoint:
 
     ip: str  # e.g. "192.168.1.12" or "127.0.0.2"
     extrinsic: Extrinsic | None = None  # roll, pitch, yaw deg; x, y, z mm (livox_ros_driver2 convention)
+    topic_ip: str | None = None  # IP named in the topics (default `ip`): an emulator on 127.0.0.12 can
+    # then publish the rig's /livox/lidar_192_168_1_12
 
 
 @dataclass(frozen=True)
@@ -226,19 +228,20 @@ class SeqTracker:
         self.resets = 0
         self._stale_run = 0
         self._lost_before = 0
+        self._offset = 0
 
     @property
     def lost(self) -> int:
         span = 0 if self.lowest is None else self.highest - self.lowest + 1
         return self._lost_before + span - self.unique
 
-    def add(self, cnt: int) -> bool:
-        """Record one udp_cnt; True when the packet is new (keep it), False for a duplicate/stale one."""
+    def add(self, cnt: int) -> int | None:
+        """Record one udp_cnt: its unwrapped sequence number when new (keep the packet), else None."""
         if self.lowest is None:
-            self.lowest = self.highest = cnt
-            self.seen = {cnt}
+            self.lowest = self.highest = self._offset + cnt
+            self.seen = {self.lowest}
             self.unique = 1
-            return True
+            return self.lowest
         d = ((cnt - self.highest + 0x8000) & 0xFFFF) - 0x8000
         seq = self.highest + d
         if d > 0:
@@ -249,31 +252,33 @@ class SeqTracker:
             if len(self.seen) > 2 * self.WINDOW:
                 floor = seq - self.WINDOW
                 self.seen = {s for s in self.seen if s > floor}
-            return True
+            return seq
         if seq <= self.highest - self.WINDOW:
             self.stale += 1
             self._stale_run += 1
-            if self._stale_run >= self.RESET_RUN:
-                self.stale -= 1  # this one starts the new count
-                self._lost_before = self.lost
-                self.resets += 1
-                self.lowest = None
-                self._stale_run = 0
-                return self.add(cnt)
-            return False
+            if self._stale_run < self.RESET_RUN:
+                return None
+            self.stale -= 1  # this one starts the new count
+            self._lost_before = self.lost
+            self.resets += 1
+            self.lowest = None
+            self._stale_run = 0
+            self._offset = (self.highest // 0x10000 + 1) * 0x10000  # keep sequence numbers increasing
+            return self.add(cnt)
         if seq in self.seen:
             self.duplicates += 1
-            return False
+            return None
         self.seen.add(seq)
         self.unique += 1
         self.reordered += 1
         self.lowest = min(self.lowest, seq)
-        return True
+        return seq
 
 
 @dataclass
 class _Chunk:
-    stamps_ns: I64
+    seq: I64  # unwrapped udp_cnt of each packet: the lidar's emission order
+    stamps_ns: I64  # (packets * dot_num,)
     xyz_m: np.ndarray[Any, np.dtype[np.float32]]  # (n, 3)
     reflectivity: np.ndarray[Any, np.dtype[np.uint8]]
     tag: np.ndarray[Any, np.dtype[np.uint8]]
@@ -294,8 +299,8 @@ class _Lidar:
         self.newest_ns: int | None = None
         self.last_packet_wall = 0.0
         self.lidar_id = int(endpoint.ip.split(".")[0])  # (uint8) inet_addr(ip): the first octet
-        self.topic = lidar_topic(endpoint.ip, cfg.multi_topic)
-        self.imu_topic = imu_topic(endpoint.ip, cfg.multi_topic)
+        self.topic = lidar_topic(endpoint.topic_ip or endpoint.ip, cfg.multi_topic)
+        self.imu_topic = imu_topic(endpoint.topic_ip or endpoint.ip, cfg.multi_topic)
         self.cmd_port = cfg.ports.lidar_cmd
 
     def malformed(self, reason: str, count: int = 1) -> None:
@@ -633,7 +638,7 @@ class Mid360Driver:
             log.debug("lidar %s: bad IMU datagram: %s", src[0], err)
             return
         with self._lock:
-            if not lidar.imu_seq.add(pkt.udp_cnt):
+            if lidar.imu_seq.add(pkt.udp_cnt) is None:  # duplicate
                 return
             lidar.stats.imu_packets += 1
         if not self.config.imu:
@@ -710,7 +715,9 @@ class Mid360Driver:
     ) -> None:
         cfg = self.config
         with self._lock:
-            keep = np.array([lidar.points_seq.add(c) for c in hdr["udp_cnt"].tolist()], bool)
+            seqs = [lidar.points_seq.add(c) for c in hdr["udp_cnt"].tolist()]
+            keep = np.array([q is not None for q in seqs], bool)
+            seq = np.array([q for q in seqs if q is not None], np.int64)
             time_type = int(hdr["time_type"][-1])
             lidar.stats.time_type = time_type
             lidar.stats.unsynced = time_type == proto.TIME_TYPE_NO_SYNC
@@ -742,7 +749,7 @@ class Mid360Driver:
                 continue
             lidar.frames.setdefault(key, []).append(
                 _Chunk(
-                    stamps[sel].ravel(), xyz[sel].reshape(-1, 3), pts["reflectivity"][sel].ravel(),
+                    seq[sel], stamps[sel].ravel(), xyz[sel].reshape(-1, 3), pts["reflectivity"][sel].ravel(),
                     pts["tag"][sel].ravel(), line[sel].ravel(),
                 )
             )  # fmt: skip
@@ -772,17 +779,21 @@ class Mid360Driver:
     def _publish_sweep(self, lidar: _Lidar, key: int) -> None:
         chunks = lidar.frames.pop(key)
         lidar.published_key = key if lidar.published_key is None else max(lidar.published_key, key)
+        # emission order (udp_cnt), which undoes reordering; with host-clock stamps packets received
+        # in a burst overlap in time, so sorting by stamp would interleave their points
+        seq = np.concatenate([c.seq for c in chunks])
+        order = None
+        if (np.diff(seq) < 0).any():
+            per_point = [np.repeat(c.seq, len(c.stamps_ns) // len(c.seq)) for c in chunks]
+            order = np.argsort(np.concatenate(per_point), kind="stable")
         stamps = np.concatenate([c.stamps_ns for c in chunks])
-        order = (
-            None if len(chunks) == 1 or (np.diff(stamps) >= 0).all() else np.argsort(stamps, kind="stable")
-        )
         points = np.empty(len(stamps), POINT_DTYPE)
 
         def take(a: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
             return a if order is None else a[order]
 
         stamps = take(stamps)
-        timebase = int(stamps[0])
+        timebase = int(stamps.min())  # the first point's time; min() guards host-clock jitter
         xyz = take(np.concatenate([c.xyz_m for c in chunks]))
         points["offset_time"] = (stamps - timebase).astype(np.uint32)
         points["x"], points["y"], points["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]

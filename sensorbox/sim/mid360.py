@@ -428,6 +428,8 @@ class Mid360Emulator:
         boot_ns: int | None = None
         while nxt is not None and not self._stop.is_set():
             sweep, nxt = nxt, next(sweeps, None)
+            if not self._wait_streaming():
+                return
             pts = sweep.points
             if len(pts) % POINTS_PER_PACKET:
                 raise SensorboxError(
@@ -463,9 +465,9 @@ class Mid360Emulator:
             for t_dev, kind, k in events:
                 if self._stop.is_set():
                     return
-                while not self._streaming():
+                if not self._streaming():
                     wall0 = None  # paused (standby): resume at the new wall time
-                    if self._stop.wait(0.02):
+                    if not self._wait_streaming():
                         return
                 if wall0 is None or dev0 is None:
                     wall0, dev0 = time.monotonic(), t_dev
@@ -485,6 +487,13 @@ class Mid360Emulator:
                 self.counters.reordered += 1
             self.counters.sweeps += 1
         self._done.set()
+
+    def _wait_streaming(self) -> bool:
+        """Block until the host configured the stream and set NORMAL; False when stopped meanwhile."""
+        while not self._streaming():
+            if self._stop.wait(0.02):
+                return False
+        return True
 
     def _send(self, raw: bytes, kind: str = "point") -> None:
         with contextlib.suppress(OSError):

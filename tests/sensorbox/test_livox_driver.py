@@ -1,0 +1,479 @@
+"""The Mid-360 driver against the emulator on UDP loopback: discovery, configuration bytes, a 10 s
+two-lidar capture equal to the simulator's scan, exact loss/duplicate/reorder/malformed counts,
+foreign traffic, unsynced stamps, data types 2/3, extrinsics and the other output formats.
+
+Emulators live on 127.0.0.x (Linux routes all of 127/8 to lo); each test uses its own block of
+ports so pytest-xdist workers never share one. Streams run faster than real time (`rate`).
+"""
+
+from __future__ import annotations
+
+import binascii
+import itertools
+import os
+import socket
+import struct
+import threading
+import time
+import zlib
+from collections.abc import Callable
+
+import numpy as np
+import pytest
+
+from ingest.decode import decode_imu, decode_pointcloud2
+from ingest.livox_msg import decode_custom_msg
+from ingest.rostypes import CUSTOM_MSG_TYPE, IMU_TYPE, POINTCLOUD2_TYPE
+from sensorbox.errors import DriverError
+from sensorbox.livox import DriverConfig, LidarEndpoint, Mid360Driver, Ports
+from sensorbox.livox import protocol as proto
+from sensorbox.sim.lidar import Sweep, simulate_sweep
+from sensorbox.sim.mid360 import Mid360Emulator, SimScan, SweepList, sim_emulators
+from sensorbox.sim.run import SimConfig, _setup
+
+HOST = "127.0.0.1"
+LOCAL_BROADCAST = "127.255.255.255"
+_blocks = itertools.count()
+
+
+def fresh_ports() -> Ports:
+    """A port block no other test (or xdist worker) uses; 20000+ stays below the ephemeral range."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw")
+    return Ports.block(20000 + 1000 * int(worker or 0) + 10 * next(_blocks))
+
+
+class Sink:
+    """The publish callback: keeps every (topic, msgtype, stamp, bytes)."""
+
+    def __init__(self) -> None:
+        self.msgs: list[tuple[str, str, int, bytes]] = []
+        self.lock = threading.Lock()
+
+    def __call__(self, topic: str, msgtype: str, stamp_ns: int, raw: bytes) -> None:
+        with self.lock:
+            self.msgs.append((topic, msgtype, stamp_ns, raw))
+
+    def on(self, topic: str) -> list[tuple[str, str, int, bytes]]:
+        return [m for m in self.msgs if m[0] == topic]
+
+
+def wait_quiet(driver: Mid360Driver, quiet_s: float = 0.3, timeout_s: float = 20.0) -> None:
+    """Until the driver's packet counters stop moving for `quiet_s`."""
+    last, since, end = None, time.monotonic(), time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        st = driver.stats()
+        now = tuple((s.packets, s.duplicates, s.malformed, s.imu_packets) for s in st.lidars.values())
+        if now != last:
+            last, since = now, time.monotonic()
+        elif time.monotonic() - since >= quiet_s:
+            return
+        time.sleep(0.05)
+
+
+def run_capture(
+    emulators: list[Mid360Emulator], cfg: DriverConfig, during: Callable[[], None] | None = None
+) -> tuple[Sink, Mid360Driver]:
+    sink = Sink()
+    driver = Mid360Driver(cfg, sink)
+    for emu in emulators:
+        emu.start()
+    try:
+        with driver:
+            if during is not None:
+                during()
+            for emu in emulators:
+                assert emu.wait_done(60.0), emu.ip
+            wait_quiet(driver)
+    finally:
+        for emu in emulators:
+            emu.stop()
+    return sink, driver
+
+
+def config(ports: Ports, *ips: str | LidarEndpoint, **kw: object) -> DriverConfig:
+    lidars = tuple(ip if isinstance(ip, LidarEndpoint) else LidarEndpoint(ip) for ip in ips)
+    return DriverConfig(HOST, lidars, ports=ports, discovery_address=LOCAL_BROADCAST, **kw)  # type: ignore[arg-type]
+
+
+@pytest.fixture(scope="module")
+def sim() -> tuple[list[SimScan], list[list[Sweep]]]:
+    """10 s of both reference-rig lidars walking outdoors (noise, dust tags and sky: zero points), simulated once."""
+    setup = _setup(SimConfig(scene="outdoor", trajectory="walk", duration_s=10.0, scale=0.1, seed=1))
+    scans = [SimScan(setup, k) for k in range(2)]
+    return scans, [list(s.sweeps()) for s in scans]
+
+
+def quantised_m(sweep_points: np.ndarray, data_type: int = 1) -> np.ndarray:
+    """What the driver must output for simulator points sent as data type 1 or 2 (float32 metres)."""
+    xyz = np.stack([sweep_points[n].astype(np.float64) for n in "xyz"], axis=-1)
+    scale = 1000.0 if data_type == 1 else 100.0
+    return (np.rint(xyz * scale) / scale).astype(np.float32)
+
+
+def xyz_of(points: np.ndarray) -> np.ndarray:
+    return np.stack([points["x"], points["y"], points["z"]], axis=-1)
+
+
+# --------------------------------------------------------------------------- discovery and configuration
+
+
+def test_discovery_finds_every_emulator():
+    ports = fresh_ports()
+    emus = [
+        Mid360Emulator(f"127.0.0.{k}", SweepList([]), serial=f"47MDL9A00100{k:02d}", ports=ports)
+        for k in (2, 3)
+    ]
+    for emu in emus:
+        emu.start()
+    try:
+        driver = Mid360Driver(config(ports, "127.0.0.2", "127.0.0.3"), Sink())
+        found = driver.discover(timeout_s=0.5)
+        assert found == [
+            proto.DeviceInfo("127.0.0.2", "47MDL9A0010002", 9, ports.lidar_cmd, 0),
+            proto.DeviceInfo("127.0.0.3", "47MDL9A0010003", 9, ports.lidar_cmd, 0),
+        ]
+        unicast = Mid360Driver(
+            DriverConfig(HOST, (LidarEndpoint("127.0.0.3"),), ports=ports, discovery_address="127.0.0.3"),
+            Sink(),
+        )
+        assert [d.ip for d in unicast.discover(timeout_s=0.3)] == ["127.0.0.3"]
+    finally:
+        for emu in emus:
+            emu.stop()
+    assert [e.counters.discovery_replies for e in emus] == [1, 2]
+
+
+def _hand_parse(raw: bytes) -> tuple[int, int, bytes]:
+    """(seq, cmd_id, payload) of a host REQ, every header field and both CRCs checked by hand."""
+    sof, ver, length, seq, cmd_id, cmd_type, sender = struct.unpack_from("<BBHIHBB", raw)
+    assert (sof, ver, length, cmd_type, sender) == (0xAA, 0, len(raw), 0, 0)
+    assert raw[12:18] == b"\0" * 6
+    crc16, crc32 = struct.unpack_from("<HI", raw, 18)
+    assert crc16 == binascii.crc_hqx(raw[:18], 0xFFFF)
+    assert crc32 == zlib.crc32(raw[24:])
+    return seq, cmd_id, raw[24:]
+
+
+def _hand_kv(payload: bytes) -> list[tuple[int, bytes]]:
+    count, rsvd = struct.unpack_from("<HH", payload)
+    assert rsvd == 0
+    items, pos = [], 4
+    for _ in range(count):
+        key, n = struct.unpack_from("<HH", payload, pos)
+        items.append((key, payload[pos + 4 : pos + 4 + n]))
+        pos += 4 + n
+    assert pos == len(payload)
+    return items
+
+
+def test_configuration_bytes_follow_the_protocol():
+    ports = fresh_ports()
+    extrinsic = (0.5, -1.25, 180.0, 11.0, -22.0, 33.0)
+    emu = Mid360Emulator("127.0.0.2", SweepList([]), ports=ports)
+    with emu:
+        driver = Mid360Driver(config(ports, LidarEndpoint("127.0.0.2", extrinsic)), Sink())
+        driver.start()
+        assert emu.work_mode == 0x01 and emu.data_type == 1
+        assert driver.query("127.0.0.2", [0x001A, 0x8000]) == {0x001A: b"\x01", 0x8000: b"47MDL9A0010012\0\0"}
+        driver.stop()
+        assert emu.work_mode == 0x02  # standby on stop
+    frames = [_hand_parse(raw) for raw in emu.counters.commands]
+    assert len({seq for seq, _, _ in frames}) == len(frames) == 8  # every command its own seq
+    assert [cmd for _, cmd, _ in frames] == [0x0100] * 6 + [0x0101, 0x0100]
+    assert frames[6][2] == struct.pack("<HHHH", 2, 0, 0x001A, 0x8000)
+    host = bytes([127, 0, 0, 1])
+    assert [_hand_kv(payload) for _, cmd, payload in frames if cmd == 0x0100] == [
+        [
+            (0x0005, host + struct.pack("<HH", ports.host_push, ports.lidar_push)),
+            (0x0006, host + struct.pack("<HH", ports.host_point, ports.lidar_point)),
+            (0x0007, host + struct.pack("<HH", ports.host_imu, ports.lidar_imu)),
+        ],
+        [(0x0000, b"\x01")],
+        [(0x0001, b"\x00")],
+        [(0x0012, struct.pack("<fffiii", 0.5, -1.25, 180.0, 11, -22, 33))],
+        [(0x001C, b"\x01")],
+        [(0x001A, b"\x01")],
+        [(0x001A, b"\x02")],
+    ]
+
+
+def test_a_silent_lidar_is_retried_then_named():
+    ports = fresh_ports()
+    listener = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    listener.bind(("127.0.0.7", ports.lidar_cmd))  # receives, never answers
+    listener.settimeout(0.5)
+    try:
+        driver = Mid360Driver(config(ports, "127.0.0.7", command_timeout_s=0.05, command_retries=2), Sink())
+        with pytest.raises(DriverError, match=r"lidar 127\.0\.0\.7: no ACK to command 0x0100 .* 3 tries"):
+            driver.start()
+        tries = [listener.recv(2048) for _ in range(3)]
+    finally:
+        listener.close()
+    assert tries[0] == tries[1] == tries[2]  # resent unchanged: same seq, so a late ACK still matches
+    assert driver.stats().lidars["127.0.0.7"].packets == 0
+
+
+def test_a_refused_key_names_the_lidar_the_key_and_the_ret_code():
+    ports = fresh_ports()
+    with Mid360Emulator("127.0.0.2", SweepList([]), ports=ports, fail_keys=frozenset({0x0001})):
+        driver = Mid360Driver(config(ports, "127.0.0.2"), Sink())
+        with pytest.raises(
+            DriverError, match=r"lidar 127\.0\.0\.2: .*0x0001.* ret_code 0x01 .*error_key 0x0001"
+        ):
+            driver.start()
+    # the failed start released its ports
+    for port in (ports.host_cmd, ports.host_push, ports.host_point, ports.host_imu):
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+            sock.bind((HOST, port))
+
+
+# --------------------------------------------------------------------------- the capture
+
+
+def test_ten_second_capture_of_two_lidars_equals_the_simulator(sim):
+    """Every point of 2 x 10 s (200 sweeps, ~4M points) with its exact time, plus every IMU sample."""
+    scans, sweeps = sim
+    ports = fresh_ports()
+    ips = ("127.0.0.12", "127.0.0.13")
+    emus = [
+        Mid360Emulator(ip, SweepList(sweeps[k], scans[k].imu), ports=ports, rate=3.0, seed=k)
+        for k, ip in enumerate(ips)
+    ]
+    endpoints = [LidarEndpoint(ip, topic_ip=f"192.168.1.{ip.rsplit('.', 1)[1]}") for ip in ips]
+    sink, driver = run_capture(emus, config(ports, *endpoints))
+    stats = driver.stats()
+    assert stats.foreign == 0
+    for k, ip in enumerate(ips):
+        s = stats.lidars[ip]
+        n_points = sum(len(sw.points) for sw in sweeps[k])
+        assert (s.lost, s.duplicates, s.reordered, s.late, s.malformed, s.imu_lost) == (0, 0, 0, 0, 0, 0)
+        assert s.unsynced is False and s.time_type == 1
+        assert s.packets * 96 == n_points == s.points == emus[k].counters.points_sent
+        assert s.sweeps == len(sweeps[k]) == 100
+        suffix = f"192_168_1_{ip.rsplit('.', 1)[1]}"
+        msgs = sink.on(f"/livox/lidar_{suffix}")
+        assert len(msgs) == 100 and all(m[1] == CUSTOM_MSG_TYPE for m in msgs)
+        for (_, _, stamp, raw), truth in zip(msgs, sweeps[k], strict=True):
+            got = decode_custom_msg(raw, 2)
+            assert stamp == got.stamp_ns == got.timebase_ns == truth.timebase_ns
+            assert got.lidar_id == 127 and got.frame_id == "livox_frame"
+            np.testing.assert_array_equal(got.points["offset_time"], truth.points["offset_time"])
+            np.testing.assert_array_equal(xyz_of(got.points), quantised_m(truth.points))
+            for name in ("reflectivity", "tag", "line"):
+                np.testing.assert_array_equal(got.points[name], truth.points[name])
+        # every 5 ms IMU sample the emulator sent, with the simulator's readings
+        imus = sink.on(f"/livox/imu_{suffix}")
+        assert len(imus) == emus[k].counters.imu_sent == s.imu_packets >= 1990
+        decoded = [decode_imu(m[3], 2) for m in imus]
+        stamps = np.array([d.stamp_ns for d in decoded])
+        assert (np.diff(stamps) == 5_000_000).all() and all(m[1] == IMU_TYPE for m in imus)
+        want = scans[k].imu(int(stamps[0]), int(stamps[-1]) + 1)
+        np.testing.assert_array_equal(want.stamps_ns, stamps)
+        np.testing.assert_array_equal(
+            np.array([d.gyro_rad_s for d in decoded]), want.gyro_rad_s.astype(np.float32)
+        )
+        np.testing.assert_array_equal(np.array([d.acc for d in decoded]), want.acc_g.astype(np.float32))
+    # both lidars' sweeps have dust tags and zero (no-return) points, as the real sensor
+    tags = np.concatenate([sw.points["tag"] for sw in sweeps[0]])
+    assert (tags == 0b0100).any() and (xyz_of(sweeps[0][0].points) == 0).all(axis=1).any()
+
+
+def test_loss_duplicates_reordering_and_malformed_packets_are_counted_exactly(sim):
+    _, sweeps = sim
+    items = sweeps[0][:20]
+    ports = fresh_ports()
+    emu = Mid360Emulator(
+        "127.0.0.2", SweepList(items), ports=ports, rate=4.0, seed=7,
+        loss=0.02, reorder=0.02, duplicate=0.02, malformed=0.02,
+    )  # fmt: skip
+    sink, driver = run_capture([emu], config(ports, "127.0.0.2"))
+    c, s = emu.counters, driver.stats().lidars["127.0.0.2"]
+    assert min(len(c.dropped), c.duplicated, c.reordered, c.malformed) >= 20  # the test exercises each
+    assert s.lost == len(c.dropped)
+    assert s.duplicates == c.duplicated
+    assert s.reordered == c.reordered
+    assert s.malformed == c.malformed and s.malformed_by_reason == c.malformed_by_kind
+    assert set(s.malformed_by_reason) == set(proto.REJECT_REASONS)  # every reject reason was exercised
+    assert s.late == 0 and driver.stats().foreign == 0
+    # the points are the simulator's minus the dropped packets, each in its own sweep, in time order
+    dropped = set(c.dropped)
+    first = 0
+    msgs = sink.on("/livox/lidar_127_0_0_2")
+    assert len(msgs) == len(items)
+    for (_, _, _, raw), truth in zip(msgs, items, strict=True):
+        n_pk = len(truth.points) // 96
+        keep = np.repeat([first + j not in dropped for j in range(n_pk)], 96)
+        first += n_pk
+        got = decode_custom_msg(raw, 2)
+        want = truth.points[keep]
+        assert got.timebase_ns == truth.timebase_ns + int(want["offset_time"][0])
+        np.testing.assert_array_equal(
+            got.point_stamps_ns, truth.timebase_ns + want["offset_time"].astype(np.int64)
+        )
+        np.testing.assert_array_equal(xyz_of(got.points), quantised_m(want))
+    assert s.points == sum(len(decode_custom_msg(m[3], 2).points) for m in msgs) == c.points_sent
+
+
+def test_traffic_from_other_addresses_is_ignored_and_garbage_never_kills_the_driver(sim):
+    _, sweeps = sim
+    ports = fresh_ports()
+    items = sweeps[1][:5]
+    body = proto.quantise_points(
+        1, np.ones((3, 96, 3)), np.zeros((3, 96), np.uint8), np.zeros((3, 96), np.uint8)
+    )
+    valid = proto.build_point_packets(
+        1, 1, np.array([1, 2, 3]) * 480_000 + items[0].timebase_ns, np.arange(3), body
+    )
+    rogue = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    rogue.bind(("127.0.0.9", 0))
+    rogue_port = rogue.getsockname()[1]
+    wrong_port = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    wrong_port.bind(("127.0.0.2", 0))  # the lidar's address, not its point port
+    wrong_port_port = wrong_port.getsockname()[1]
+    spoof = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    spoof.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    rng = np.random.default_rng(11)
+    garbage = [rng.integers(0, 256, int(n), dtype=np.uint8).tobytes() for n in rng.integers(0, 1500, 100)]
+
+    def meddle() -> None:
+        spoof.bind(("127.0.0.2", ports.lidar_point))  # the lidar's own source: garbage counts as malformed
+        for row in valid:
+            rogue.sendto(row.tobytes(), (HOST, ports.host_point))
+            wrong_port.sendto(row.tobytes(), (HOST, ports.host_point))
+        rogue.sendto(proto.build_imu_packet(1, 1, 0, np.zeros(3), np.zeros(3)), (HOST, ports.host_imu))
+        for g in garbage:
+            spoof.sendto(g, (HOST, ports.host_point))
+
+    emu = Mid360Emulator("127.0.0.2", SweepList(items), ports=ports, rate=2.0)
+    try:
+        sink, driver = run_capture([emu], config(ports, "127.0.0.2"), during=meddle)
+    finally:
+        for sock in (rogue, wrong_port, spoof):
+            sock.close()
+    st = driver.stats()
+    s = st.lidars["127.0.0.2"]
+    assert st.foreign == 7
+    assert st.foreign_sources == {f"127.0.0.9:{rogue_port}": 4, f"127.0.0.2:{wrong_port_port}": 3}
+    assert s.malformed == 100
+    assert s.points == sum(len(sw.points) for sw in items) and s.lost == 0
+    assert len(sink.on("/livox/lidar_127_0_0_2")) == 5
+
+
+# --------------------------------------------------------------------------- time, formats, data types
+
+
+def test_unsynced_stamps_come_from_the_host_clock(sim):
+    _, sweeps = sim
+    items = sweeps[0][:5]
+    ports = fresh_ports()
+    emu = Mid360Emulator("127.0.0.2", SweepList(items), ports=ports, rate=1.0, time_type=0)
+    t0 = time.time_ns()
+    sink, driver = run_capture([emu], config(ports, "127.0.0.2"))
+    t1 = time.time_ns()
+    s = driver.stats().lidars["127.0.0.2"]
+    assert s.unsynced is True and s.time_type == 0
+    msgs = [decode_custom_msg(m[3], 2) for m in sink.on("/livox/lidar_127_0_0_2")]
+    stamps = np.concatenate([m.point_stamps_ns for m in msgs])
+    assert len(stamps) == sum(len(sw.points) for sw in items) == s.points
+    assert t0 <= stamps.min() and stamps.max() <= t1  # host receive time, not the device clock
+    per_packet = stamps.reshape(-1, 96)
+    assert (np.diff(per_packet, axis=1) == 4947).all()
+    # sweeps cut on 100 ms of the host clock: one per 100 ms bin, in order
+    bins = [int(m.timebase_ns) // 100_000_000 for m in msgs]
+    assert bins == sorted(set(bins))
+    assert 5 <= len(msgs) <= 7  # 0.5 s of device time streamed at rate 1
+
+
+@pytest.mark.parametrize(
+    ("data_type", "msg_format", "ros", "multi_topic", "extrinsic"),
+    [
+        (2, "pointcloud2", 2, True, None),
+        (3, "custom", 1, False, None),
+        (1, "custom", 2, True, (180.0, 0.5, -30.0, 40.0, -50.0, 60.0)),
+    ],
+)
+def test_data_types_formats_and_extrinsics(sim, data_type, msg_format, ros, multi_topic, extrinsic):
+    _, sweeps = sim
+    items = sweeps[1][:3]
+    ports = fresh_ports()
+    emu = Mid360Emulator("127.0.0.3", SweepList(items), ports=ports, rate=2.0)
+    cfg = config(
+        ports, LidarEndpoint("127.0.0.3", extrinsic), data_type=data_type, msg_format=msg_format,
+        ros_version=ros, multi_topic=multi_topic, imu=False,
+    )  # fmt: skip
+    sink, driver = run_capture([emu], cfg)
+    assert emu.data_type == data_type and emu.counters.imu_sent == 0  # configured by the driver
+    topic = "/livox/lidar_127_0_0_3" if multi_topic else "/livox/lidar"
+    msgs = sink.on(topic)
+    assert len(msgs) == 3 and not sink.on("/livox/imu") and not sink.on("/livox/imu_127_0_0_3")
+    for (_, msgtype, stamp, raw), truth in zip(msgs, items, strict=True):
+        if msg_format == "pointcloud2":
+            assert msgtype == POINTCLOUD2_TYPE
+            cloud = decode_pointcloud2(raw, ros)
+            assert cloud.points.dtype.itemsize == 26 and cloud.stamp_ns == stamp == truth.timebase_ns
+            got_xyz, got_t = xyz_of(cloud.points), cloud.points["timestamp"]
+            want_t = (truth.timebase_ns + truth.points["offset_time"].astype(np.int64)).astype(np.float64)
+            np.testing.assert_array_equal(got_t, want_t)
+            np.testing.assert_array_equal(cloud.points["intensity"], truth.points["reflectivity"])
+        else:
+            assert msgtype == CUSTOM_MSG_TYPE
+            got = decode_custom_msg(raw, ros)
+            assert got.timebase_ns == stamp == truth.timebase_ns
+            np.testing.assert_array_equal(got.points["offset_time"], truth.points["offset_time"])
+            got_xyz = xyz_of(got.points)
+        xyz = np.stack([truth.points[n].astype(np.float64) for n in "xyz"], axis=-1)
+        if data_type == 2:
+            want = quantised_m(truth.points, 2)
+        elif data_type == 3:  # the lidar's integers, then the driver's trigonometry, computed here again
+            r_mm = np.rint(np.linalg.norm(xyz, axis=1) * 1000)
+            hit = r_mm > 0
+            theta = np.where(
+                hit,
+                np.rint(
+                    np.degrees(
+                        np.arccos(np.clip(xyz[:, 2] / np.where(hit, np.linalg.norm(xyz, axis=1), 1), -1, 1))
+                    )
+                    * 100
+                ),
+                0,
+            )
+            phi = np.where(
+                hit, np.rint((np.degrees(np.arctan2(xyz[:, 1], xyz[:, 0])) % 360) * 100) % 36000, 0
+            )
+            r, th, ph = r_mm / 1000.0, np.radians(theta / 100.0), np.radians(phi / 100.0)
+            want = np.stack([r * np.sin(th) * np.cos(ph), r * np.sin(th) * np.sin(ph), r * np.cos(th)], -1)
+            want = want.astype(np.float32)
+        else:  # p' = R p + t on the integer millimetres, then metres
+            roll, pitch, yaw = np.radians(extrinsic[:3])
+            Rx = np.array([[1, 0, 0], [0, np.cos(roll), -np.sin(roll)], [0, np.sin(roll), np.cos(roll)]])
+            Ry = np.array([[np.cos(pitch), 0, np.sin(pitch)], [0, 1, 0], [-np.sin(pitch), 0, np.cos(pitch)]])
+            Rz = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
+            mm = np.rint(xyz * 1000)
+            want = ((mm @ (Rz @ Ry @ Rx).T + np.array(extrinsic[3:])) / 1000.0).astype(np.float32)
+        np.testing.assert_allclose(got_xyz, want, rtol=0, atol=1e-5)
+        if extrinsic is None:  # and all of it within the data type's resolution of the simulator's points
+            assert np.abs(got_xyz - xyz).max() < {2: 0.0051, 3: 0.013}[data_type]
+    assert driver.stats().lidars["127.0.0.3"].malformed == 0
+
+
+def test_sim_emulators_stream_the_reference_rig_as_simulate_would():
+    """The launch convenience: one emulator per rig lidar, lazily simulated, on 127.0.0.<rig octet>."""
+    cfg = SimConfig(scene="indoor", duration_s=0.3, scale=0.1, seed=4, range_noise_m=0.0)
+    ports = fresh_ports()
+    emus = sim_emulators(cfg, ports=ports, rate=2.0)
+    assert [(e.ip, e.serial) for e in emus] == [
+        ("127.0.0.12", "47MDL9A0010012"),
+        ("127.0.0.13", "47MDL9A0010013"),
+    ]
+    endpoints = [LidarEndpoint(e.ip, topic_ip=f"192.168.1.{e.ip.rsplit('.', 1)[1]}") for e in emus]
+    sink, _ = run_capture(emus, config(ports, *endpoints))
+    setup = _setup(cfg)
+    for k, lidar in enumerate(setup.rig.lidars):
+        scan = SimScan(setup, k)
+        msgs = sink.on(lidar.topic)
+        assert len(msgs) == len(scan.windows()) == 3
+        for (_, _, stamp, raw), win in zip(msgs, scan.windows(), strict=True):
+            truth = simulate_sweep(setup.lidars[k], setup.scene, setup.texture, setup.traj, cfg.start_ns, win)
+            assert truth is not None and stamp == truth.timebase_ns
+            np.testing.assert_array_equal(xyz_of(decode_custom_msg(raw, 2).points), quantised_m(truth.points))
+        assert sink.on(setup.imus[k][0])  # the rig's IMU topic
