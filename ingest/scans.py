@@ -1,0 +1,278 @@
+"""Dense coloured terrestrial laser scans in: PLY and PCD (Open3D), E57 (pye57) and site manifests.
+
+A `Scan` holds float32 xyz in its own scan frame (the scanner at the origin,
+z up when levelled), uint8 RGB, an optional per-point mask (reflective or
+transparent surfaces, from a label field) and an optional mask cloud in the
+same frame, plus `T_world_scan` (p_world = T_world_scan @ p_scan). 20M points
+take 300 MB: readers keep float32/uint8 throughout and E57 files are read in
+chunks, so a scan never exists in float64.
+
+Inputs (`read_scans` takes any mix):
+- `site.yaml` manifest: ``scans: [{name, file, T_world_scan, mask?}]`` with
+  paths relative to the manifest (what `sensorbox.sim.tls` writes);
+- `.e57`: every scan in the file with its pose (``pose`` of each data3D);
+  cartesian or spherical coordinates, invalid-state points dropped;
+- `.pcd`: one scan, pose from the header's VIEWPOINT (tx ty tz qw qx qy qz);
+- `.ply`: one scan in its own frame (T_world_scan = identity).
+A label field (`mask_label`, default ``label``) marks masked points where it is
+non-zero.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from calibration.errors import SensorboxError
+from calibration.transforms import as_transform
+from calibration.types import F64, Bool
+
+F32 = np.ndarray[Any, np.dtype[np.float32]]
+U8 = np.ndarray[Any, np.dtype[np.uint8]]
+E57_CHUNK = 1_000_000
+SITE_VERSION = 1
+
+
+class ScanError(SensorboxError):
+    """A scan file or site manifest cannot be read or is inconsistent."""
+
+
+@dataclass(frozen=True, eq=False)
+class Scan:
+    """One scan: points in its scan frame (metres), colours, masks and pose."""
+
+    name: str
+    T_world_scan: F64
+    xyz: F32  # (N, 3)
+    rgb: U8  # (N, 3)
+    masked: Bool | None = None  # (N,) True = reflective/transparent surface
+    mask_xyz: F32 = field(default_factory=lambda: np.zeros((0, 3), np.float32))  # (M, 3) mask cloud
+    source: str = ""
+
+    def __post_init__(self) -> None:
+        n = len(self.xyz)
+        if self.xyz.shape != (n, 3) or self.rgb.shape != (n, 3):
+            raise ScanError(f"{self.source or self.name}: xyz {self.xyz.shape} and rgb {self.rgb.shape} "
+                            "must both be (N, 3)")  # fmt: skip
+        if self.masked is not None and self.masked.shape != (n,):
+            raise ScanError(f"{self.source or self.name}: mask of shape {self.masked.shape}, expected ({n},)")
+
+    @property
+    def origin_world(self) -> F64:
+        """The scanner centre in the world frame."""
+        out: F64 = self.T_world_scan[:3, 3].copy()
+        return out
+
+
+def read_scans(paths: Sequence[Path | str], mask_label: str | None = "label") -> list[Scan]:
+    """Every scan in ``paths`` (manifests, E57, PCD, PLY), in order."""
+    scans: list[Scan] = []
+    for p in map(Path, paths):
+        suffix = p.suffix.lower()
+        if not p.exists():
+            raise ScanError(f"{p}: no such scan file or site manifest")
+        if suffix in (".yaml", ".yml"):
+            scans += read_site(p, mask_label)
+        elif suffix == ".e57":
+            scans += read_e57(p)
+        elif suffix in (".ply", ".pcd"):
+            scans.append(read_cloud(p, None, mask_label))
+        else:
+            raise ScanError(f"{p}: unknown scan format {suffix!r}; expected .ply, .pcd, .e57 or a site .yaml")
+    return _unique_names(scans)
+
+
+def _unique_names(scans: list[Scan]) -> list[Scan]:
+    """Scans with distinct names: a repeated name (scan.ply in two folders) gets a suffix _2, _3, ..."""
+    seen: dict[str, int] = {}
+    out = []
+    for s in scans:
+        k = seen.get(s.name, 0) + 1
+        seen[s.name] = k
+        out.append(s if k == 1 else replace(s, name=f"{s.name}_{k}"))
+    return out
+
+
+def read_site(manifest: Path, mask_label: str | None = "label") -> list[Scan]:
+    """The scans of a site manifest (`site.yaml`)."""
+    try:
+        doc = yaml.safe_load(manifest.read_text())
+    except (OSError, yaml.YAMLError) as err:
+        raise ScanError(f"{manifest}: cannot read the site manifest: {err}") from err
+    if not isinstance(doc, dict) or doc.get("sensorbox_site") != SITE_VERSION:
+        raise ScanError(f"{manifest}: not a site manifest (expected 'sensorbox_site: {SITE_VERSION}')")
+    entries = doc.get("scans")
+    if not isinstance(entries, list) or not entries:
+        raise ScanError(f"{manifest}: 'scans' must be a non-empty list")
+    scans = []
+    for k, e in enumerate(entries):
+        if not isinstance(e, dict) or "file" not in e:
+            raise ScanError(f"{manifest}: scans[{k}] needs at least 'file'")
+        try:
+            T = as_transform(
+                e.get("T_world_scan", np.eye(4).tolist()), f"{manifest}: scans[{k}].T_world_scan"
+            )
+        except SensorboxError as err:
+            raise ScanError(str(err)) from err
+        scan = read_cloud(manifest.parent / str(e["file"]), T, mask_label, name=e.get("name"))
+        if e.get("mask"):
+            mask = read_cloud(manifest.parent / str(e["mask"]), T, None)
+            scan = Scan(scan.name, T, scan.xyz, scan.rgb, scan.masked, mask.xyz, scan.source)
+        scans.append(scan)
+    return scans
+
+
+def read_cloud(path: Path, T_world_scan: F64 | None, mask_label: str | None = "label",
+               name: str | None = None) -> Scan:  # fmt: skip
+    """One PLY/PCD scan through Open3D's tensor reader (float32 xyz, uint8 colours kept as stored)."""
+    import open3d as o3d
+
+    if not path.exists():
+        raise ScanError(f"{path}: no such point cloud")
+    pc = o3d.t.io.read_point_cloud(path)
+    if "positions" not in pc.point or len(pc.point.positions) == 0:
+        raise ScanError(f"{path}: no points (or not a PLY/PCD file Open3D can read)")
+    xyz = np.ascontiguousarray(pc.point.positions.numpy(), np.float32)
+    n = len(xyz)
+    if "colors" in pc.point:
+        c = pc.point.colors.numpy()
+        rgb = _to_u8(c, path)
+    else:
+        rgb = np.full((n, 3), 128, np.uint8)
+    masked = None
+    if mask_label and mask_label in pc.point:
+        masked = np.ascontiguousarray(pc.point[mask_label].numpy().reshape(n) != 0)
+    if T_world_scan is None:
+        T_world_scan = _pcd_viewpoint(path) if path.suffix.lower() == ".pcd" else np.eye(4)
+    finite = np.isfinite(xyz).all(axis=1) & (np.einsum("ij,ij->i", xyz, xyz) > 0.0)
+    if not finite.all():  # NaN / zero points are "no return" on most scanners: a counted drop
+        xyz, rgb = xyz[finite], rgb[finite]
+        masked = masked[finite] if masked is not None else None
+    return Scan(name or path.stem, np.asarray(T_world_scan, np.float64), xyz, rgb, masked, source=str(path))
+
+
+def _to_u8(c: np.ndarray[Any, Any], path: Path) -> U8:
+    if c.dtype == np.uint8:
+        return np.ascontiguousarray(c)
+    if c.dtype == np.uint16:
+        return (c >> 8).astype(np.uint8)
+    if np.issubdtype(c.dtype, np.floating):  # Open3D float colours are in [0, 1]
+        return np.clip(np.round(c * 255.0), 0, 255).astype(np.uint8)
+    raise ScanError(f"{path}: colours of type {c.dtype} are not supported (expected uint8, uint16 or float)")
+
+
+def _pcd_viewpoint(path: Path) -> F64:
+    """T_world_scan from a PCD header's VIEWPOINT line (identity when absent)."""
+    with path.open("rb") as f:
+        for raw in f:
+            line = raw.decode("ascii", "replace").strip()
+            if line.startswith("VIEWPOINT"):
+                vals = [float(v) for v in line.split()[1:]]
+                if len(vals) != 7 or not all(math.isfinite(v) for v in vals):
+                    raise ScanError(f"{path}: VIEWPOINT needs 7 numbers (tx ty tz qw qx qy qz), got {line!r}")
+                return _pose(vals[3:], vals[:3], f"{path}: VIEWPOINT")
+            if line.startswith("DATA"):
+                break
+    return np.eye(4)
+
+
+def _pose(q_wxyz: Sequence[float], t: Sequence[float], where: str) -> F64:
+    w, x, y, z = q_wxyz
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    if not n > 0.0:
+        raise ScanError(f"{where}: zero quaternion")
+    w, x, y, z = w / n, x / n, y / n, z / n
+    T = np.eye(4)
+    T[:3, :3] = [
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ]
+    T[:3, 3] = t
+    return T
+
+
+def read_e57(path: Path, chunk: int = E57_CHUNK) -> list[Scan]:
+    """Every scan of an E57 file with its pose, read ``chunk`` points at a time (float32 out)."""
+    try:
+        import pye57
+        from pye57 import libe57
+    except ImportError as err:  # pragma: no cover - a declared dependency
+        raise ScanError(f"{path}: reading E57 needs the 'pye57' package") from err
+    try:
+        e57 = pye57.E57(str(path))
+    except Exception as err:  # libE57Format raises its own exception types
+        raise ScanError(f"{path}: not a readable E57 file: {err}") from err
+    scans = []
+    try:
+        for i in range(e57.scan_count):
+            header = e57.get_header(i)
+            name = header["name"].value() if "name" in header.scan_fields else f"scan_{i:03d}"
+            T = _pose(header.rotation, header.translation, f"{path}: data3D[{i}].pose") if header.has_pose() \
+                else np.eye(4)  # fmt: skip
+            xyz, rgb = _read_e57_points(e57, libe57, header, chunk, f"{path}: data3D[{i}]")
+            scans.append(Scan(str(name), T, xyz, rgb, source=f"{path}#{i}"))
+    finally:
+        e57.close()
+    return scans
+
+
+def _read_e57_points(e57: Any, libe57: Any, header: Any, chunk: int, where: str) -> tuple[F32, U8]:
+    fields = set(header.point_fields)
+    cart = ("cartesianX", "cartesianY", "cartesianZ")
+    sph = ("sphericalRange", "sphericalAzimuth", "sphericalElevation")
+    coords = cart if set(cart) <= fields else sph if set(sph) <= fields else None
+    if coords is None:
+        raise ScanError(f"{where}: no cartesian or spherical coordinates (fields: {sorted(fields)})")
+    colours = ("colorRed", "colorGreen", "colorBlue")
+    has_rgb = set(colours) <= fields
+    invalid_field = "cartesianInvalidState" if coords is cart else "sphericalInvalidState"
+    names = [*coords, *(colours if has_rgb else ()), *((invalid_field,) if invalid_field in fields else ())]
+    n_total = int(header.point_count)
+    cap = max(1, min(chunk, n_total))
+    # float64 for coordinates and colours (any colour limits), int8 for the invalid state; libE57's
+    # binding misreads 64-bit integer buffers
+    bufs = {n: np.empty(cap, np.int8 if n == invalid_field else np.float64) for n in names}
+    vec = libe57.VectorSourceDestBuffer()
+    for n in names:
+        vec.append(libe57.SourceDestBuffer(e57.image_file, n, bufs[n], cap, True, True))
+    scale = 255.0 / _colour_max(header) if has_rgb else 1.0
+    xyz_parts, rgb_parts = [], []
+    reader = header.points.reader(vec)
+    try:
+        while True:
+            got = int(reader.read())
+            if got == 0:
+                break
+            b = {n: a[:got] for n, a in bufs.items()}
+            ok = b[invalid_field] == 0 if invalid_field in b else np.ones(got, bool)
+            if coords is cart:
+                p = np.stack([b[c][ok] for c in cart], axis=1)
+            else:
+                r, az, el = (b[c][ok] for c in sph)
+                ce = np.cos(el)
+                p = np.stack([r * ce * np.cos(az), r * ce * np.sin(az), r * np.sin(el)], axis=1)
+            xyz_parts.append(p.astype(np.float32))
+            if has_rgb:
+                c = np.stack([b[k][ok] for k in colours], axis=1) * scale
+                rgb_parts.append(np.clip(np.round(c), 0, 255).astype(np.uint8))
+    finally:
+        reader.close()
+    xyz = np.concatenate(xyz_parts) if xyz_parts else np.zeros((0, 3), np.float32)
+    if len(xyz) == 0:
+        raise ScanError(f"{where}: no valid points")
+    rgb = np.concatenate(rgb_parts) if has_rgb else np.full((len(xyz), 3), 128, np.uint8)
+    return xyz, rgb
+
+
+def _colour_max(header: Any) -> float:
+    try:
+        return float(header["colorLimits"]["colorRedMaximum"].value()) or 255.0
+    except Exception:  # colorLimits is optional in E57
+        return 255.0

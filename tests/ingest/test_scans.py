@@ -1,0 +1,149 @@
+"""Scan input: PLY/PCD through Open3D, E57 through pye57 (poses), site manifests, masks, bad input."""
+
+import numpy as np
+import open3d as o3d
+import pye57
+import pytest
+from scipy.spatial.transform import Rotation
+
+from ingest.scans import ScanError, read_e57, read_scans
+from sensorbox.sim.appearance import Texture
+from sensorbox.sim.scenes import build_scene
+from sensorbox.sim.tls import TlsParams, bundle_poses, simulate_scan, write_site
+
+
+@pytest.fixture(scope="module")
+def sim():
+    scene = build_scene("indoor", 3)
+    params = TlsParams(step_deg=2.0)
+    scans = [
+        simulate_scan(scene, Texture(3), T, params, f"s{k}")
+        for k, T in enumerate(bundle_poses([-2.0, 0.0, 1.4]))
+    ]
+    return scene, params, scans
+
+
+@pytest.mark.parametrize("fmt", ["ply", "pcd"])
+def test_site_round_trip(tmp_path, sim, fmt):
+    scene, params, scans = sim
+    manifest = write_site(tmp_path, scene, scans, fmt, params)
+    back = read_scans([manifest])
+    assert [b.name for b in back] == ["s0", "s1", "s2"]
+    for a, b in zip(scans, back, strict=True):
+        np.testing.assert_array_equal(b.xyz, a.xyz_scan)  # float32 on disk: bit exact
+        np.testing.assert_array_equal(b.rgb, a.rgb)
+        np.testing.assert_allclose(b.T_world_scan, a.T_world_scan, atol=1e-12)
+        np.testing.assert_array_equal(b.mask_xyz, a.mask_xyz_scan)
+        assert b.masked is None
+    assert len(back[0].mask_xyz) > 0  # the indoor glass pane is in view of the central scan
+
+
+def test_bare_pcd_carries_its_pose_and_bare_ply_is_its_own_frame(tmp_path, sim):
+    scene, params, scans = sim
+    write_site(tmp_path / "pcd", scene, scans[1:2], "pcd", params)
+    write_site(tmp_path / "ply", scene, scans[1:2], "ply", params)
+    pcd, ply = read_scans([tmp_path / "pcd" / "s1.pcd", tmp_path / "ply" / "s1.ply"])
+    assert (pcd.name, ply.name) == ("s1", "s1_2")  # same stem in two folders: made unique
+    np.testing.assert_allclose(pcd.T_world_scan, scans[1].T_world_scan, atol=1e-8)
+    np.testing.assert_array_equal(ply.T_world_scan, np.eye(4))
+    assert (pcd.name, pcd.source) == ("s1", str(tmp_path / "pcd" / "s1.pcd"))
+
+
+def _cloud(path, xyz, rgb=None, label=None):
+    pc = o3d.t.geometry.PointCloud()
+    pc.point.positions = o3d.core.Tensor.from_numpy(np.ascontiguousarray(xyz, np.float32))
+    if rgb is not None:
+        pc.point.colors = o3d.core.Tensor.from_numpy(np.ascontiguousarray(rgb, np.uint8))
+    if label is not None:
+        pc.point.label = o3d.core.Tensor.from_numpy(np.ascontiguousarray(label.reshape(-1, 1), np.uint8))
+    assert o3d.t.io.write_point_cloud(path, pc)
+
+
+def test_label_field_marks_points_and_invalid_points_are_dropped(tmp_path):
+    xyz = np.random.default_rng(0).normal(size=(100, 3)).astype(np.float32)
+    xyz[5] = np.nan
+    xyz[7] = 0.0
+    label = (np.arange(100) % 3 == 0).astype(np.uint8)
+    _cloud(tmp_path / "a.ply", xyz, np.full((100, 3), 7, np.uint8), label)
+    (scan,) = read_scans([tmp_path / "a.ply"])
+    keep = np.ones(100, bool)
+    keep[[5, 7]] = False
+    np.testing.assert_array_equal(scan.xyz, xyz[keep])
+    np.testing.assert_array_equal(scan.masked, label[keep] != 0)
+    (unlabelled,) = read_scans([tmp_path / "a.ply"], mask_label=None)
+    assert unlabelled.masked is None
+    _cloud(tmp_path / "b.ply", xyz[keep])  # no colours: mid grey
+    (grey,) = read_scans([tmp_path / "b.ply"])
+    assert (grey.rgb == 128).all()
+
+
+def _write_e57(path, scans):
+    with pye57.E57(str(path), mode="w") as e:
+        for name, xyz, rgb, q_wxyz, t in scans:
+            data = {
+                "cartesianX": xyz[:, 0].astype(np.float64),
+                "cartesianY": xyz[:, 1].astype(np.float64),
+                "cartesianZ": xyz[:, 2].astype(np.float64),
+                "colorRed": rgb[:, 0],
+                "colorGreen": rgb[:, 1],
+                "colorBlue": rgb[:, 2],
+            }
+            e.write_scan_raw(data, name=name, rotation=np.array(q_wxyz), translation=np.array(t))
+
+
+def test_e57_two_scans_with_poses(tmp_path):
+    rng = np.random.default_rng(4)
+    scans = []
+    for k in range(2):
+        xyz = rng.uniform(-5, 5, (2500, 3)).astype(np.float32)
+        rgb = rng.integers(0, 256, (2500, 3)).astype(np.uint8)
+        q = Rotation.from_euler("zyx", [30 * (k + 1), 5, -3], degrees=True).as_quat()  # x y z w
+        scans.append((f"station {k}", xyz, rgb, [q[3], q[0], q[1], q[2]], [1.0 + k, -2.0, 0.5 * k]))
+    path = tmp_path / "site.e57"
+    _write_e57(path, scans)
+    for chunk in (1000, 1_000_000):  # several reader calls or one
+        got = read_e57(path, chunk=chunk)
+        assert [g.name for g in got] == ["station 0", "station 1"]
+        for (_, xyz, rgb, _, _), g in zip(scans, got, strict=True):
+            np.testing.assert_array_equal(g.xyz, xyz)  # pye57 stores single precision
+            np.testing.assert_array_equal(g.rgb, rgb)
+    # poses: our T_world_scan applied to the local points equals pye57's own global transform
+    with pye57.E57(str(path)) as e:
+        for k, g in enumerate(read_scans([path])):
+            ref = e.read_scan(k, transform=True, ignore_missing_fields=True)
+            world = np.stack([ref["cartesianX"], ref["cartesianY"], ref["cartesianZ"]], 1)
+            mine = g.xyz.astype(np.float64) @ g.T_world_scan[:3, :3].T + g.T_world_scan[:3, 3]
+            np.testing.assert_allclose(mine, world, atol=1e-5)
+            np.testing.assert_allclose(g.T_world_scan[:3, 3], scans[k][4])
+
+
+def test_bad_inputs_name_the_file(tmp_path, sim):
+    with pytest.raises(ScanError, match="no such scan"):
+        read_scans([tmp_path / "missing.ply"])
+    (tmp_path / "x.las").write_bytes(b"LASF")
+    with pytest.raises(ScanError, match=r"x\.las.*unknown scan format"):
+        read_scans([tmp_path / "x.las"])
+    (tmp_path / "bad.yaml").write_text("scans: []\n")
+    with pytest.raises(ScanError, match=r"bad\.yaml.*not a site manifest"):
+        read_scans([tmp_path / "bad.yaml"])
+    scene, params, scans = sim
+    manifest = write_site(tmp_path / "site", scene, scans[:1], "ply", params)
+    text = manifest.read_text().replace("- - 1.0", "- - 2.0", 1)  # a scaled, non-rigid pose
+    manifest.write_text(text)
+    with pytest.raises(ScanError, match=r"scans\[0\]\.T_world_scan.*orthonormal"):
+        read_scans([manifest])
+    (tmp_path / "broken.e57").write_bytes(b"ASTM-E57" + b"\0" * 100)
+    with pytest.raises(ScanError, match=r"broken\.e57.*not a readable E57"):
+        read_scans([tmp_path / "broken.e57"])
+    (tmp_path / "empty.ply").write_text("ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\n"
+                                        "property float y\nproperty float z\nend_header\n")  # fmt: skip
+    with pytest.raises(ScanError, match=r"empty\.ply.*no points"):
+        read_scans([tmp_path / "empty.ply"])
+
+
+def test_pcd_viewpoint_must_have_seven_numbers(tmp_path):
+    _cloud(tmp_path / "v.pcd", np.ones((3, 3), np.float32))
+    data = (tmp_path / "v.pcd").read_bytes().replace(b"VIEWPOINT 0 0 0 1 0 0 0", b"VIEWPOINT 0 0 0 1")
+    (tmp_path / "v.pcd").write_bytes(data)
+    with pytest.raises(ScanError, match="VIEWPOINT needs 7 numbers"):
+        read_scans([tmp_path / "v.pcd"])
