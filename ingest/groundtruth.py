@@ -23,7 +23,7 @@ Steps, each a pure function:
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal
 
 import cv2
 import numpy as np
@@ -52,6 +52,8 @@ class GtParams:
     plane_min_cos: float = 0.2  # |n . ray| below this: grazing, keep the raw range
     stability_max_rel_error: float = 0.5
     stability_disp_error_px: float = 0.5
+    occlusion: bool = True  # False: no parallax filter (an ablation for `sensorbox bench`)
+    zbuffer: Literal["nearest", "farthest"] = "nearest"  # "farthest" keeps the wrong point (an ablation)
 
 
 @dataclass(frozen=True)
@@ -128,7 +130,7 @@ def splat_to_pixels(model: CameraModel, pts_model: F64, normals_model: Normals, 
     use_plane &= np.isfinite(r_plane) & (np.abs(r_plane - r_point) <= limit + 1e-9)
     r = np.where(use_plane, r_plane, r_point)
     flat = centres[:, 1].astype(np.int64) * model.width + centres[:, 0].astype(np.int64)
-    order = np.lexsort((r, flat))  # by pixel, nearest first
+    order = np.lexsort((r if params.zbuffer == "nearest" else -r, flat))  # by pixel, kept point first
     first = np.ones(len(order), bool)
     first[1:] = flat[order][1:] != flat[order][:-1]
     win = order[first]
@@ -147,6 +149,8 @@ def in_view(model: CameraModel, pts_model: F64) -> tuple[Bool, F64, F64]:
 def occlusion_filter(model: CameraModel, pts_model: F64, params: GtParams) -> Bool:
     """Keep mask: in view and not hidden behind nearer points (parallax bleed)."""
     ok, cols, rows = in_view(model, pts_model)
+    if not params.occlusion:
+        return ok
     r = np.linalg.norm(pts_model, axis=1)
     img = np.full((model.height, model.width), np.inf, np.float32)
     ci, ri = cols[ok].astype(np.int64), rows[ok].astype(np.int64)

@@ -14,6 +14,7 @@ Finished samples (their meta/<id>.json exists) are skipped on a rerun.
 from __future__ import annotations
 
 import json
+import multiprocessing
 import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import Executor, Future, ProcessPoolExecutor
@@ -330,7 +331,11 @@ def _executor(cfg: IngestConfig) -> tuple[Executor | None, Any]:
         client = Client(cfg.dask)  # type: ignore[no-untyped-call]
         return None, client
     if cfg.workers > 1:
-        return ProcessPoolExecutor(cfg.workers), None
+        # fork: workers inherit the warm remap maps (Geometry.warm_maps) instead of rebuilding them
+        fork = (
+            multiprocessing.get_context("fork") if "fork" in multiprocessing.get_all_start_methods() else None
+        )
+        return ProcessPoolExecutor(cfg.workers, mp_context=fork), None
     return None, None
 
 
@@ -353,6 +358,8 @@ def ingest(
         )
         prepare_dirs(cfg.out, cfg.sample.exr)
         _write_dataset_yaml(cfg, geometry, [Path(p) for p in bag_paths])
+        if not cfg.dask and summary.planned:
+            geometry.warm_maps()
         pool, client = _executor(cfg)
         pending: list[Future[SampleResult]] = []
         done = 0

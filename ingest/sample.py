@@ -9,15 +9,16 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
+import cv2
 import numpy as np
 
 from calibration.rectify import StereoRectification, rectify_rig
 from calibration.rig import Rig
 from calibration.spherical import Equirectangular
 from calibration.types import F64
-from calibration.warp import default_height_full, warp
+from calibration.warp import build_maps, default_height_full, warp
 from ingest.clouds import FilterCounts, compensate, estimate_velocity, filter_points, integrate_gyro
 from ingest.dataset import SampleFiles, write_sample
 from ingest.groundtruth import (
@@ -34,6 +35,7 @@ from ingest.groundtruth import (
 from ingest.linalg3 import apply_rotations
 
 I64 = np.ndarray[Any, np.dtype[np.int64]]
+INTERPOLATION = {"linear": cv2.INTER_LINEAR, "cubic": cv2.INTER_CUBIC, "nearest": cv2.INTER_NEAREST}
 VELOCITY_SIGMAS = 4.0  # an estimated velocity counts when its norm exceeds this many standard errors
 
 
@@ -53,6 +55,16 @@ class Geometry:
         h = height_full or default_height_full(model)
         valid = int(model.unproject(model.pixel_grid().reshape(-1, 2))[1].sum())
         return cls(rig, rectify_rig(rig), Equirectangular(h), px_per_rad(model), valid)
+
+    def warm_maps(self) -> None:
+        """Build both cameras' equirect remap maps into calibration.warp's cache now.
+
+        Called in the main process before the worker pool forks, the ~2 s of
+        map building is done once and shared copy-on-write by every worker
+        instead of repeated in each one's first sample.
+        """
+        build_maps(self.rig.upper.model, self.equirect, self.rect.R_cam0_rect)
+        build_maps(self.rig.lower.model, self.equirect, self.rect.R_cam1_rect)
 
 
 @dataclass(frozen=True)
@@ -80,10 +92,14 @@ class SampleParams:
 
     min_range_m: float = 0.3
     min_motion_px: float = 0.25
+    motion: Literal["full", "rotation", "off"] = (
+        "full"  # what compensation may use (ablations: rotation, off)
+    )
     estimate_velocity: bool = True  # constant-velocity translation from the sweep's self-consistency
     window_ns: int = 50_000_000  # +- LiDAR window around the frame time (set from IngestConfig)
     exr: bool = False
     png_level: int = 1
+    interpolation: Literal["linear", "cubic", "nearest"] = "linear"  # equirect warps of the images
     gt: GtParams = field(default_factory=GtParams)
 
 
@@ -144,9 +160,12 @@ def process_sample(job: SampleJob) -> SampleResult:
         counts = replace(counts, kept=counts.kept - int((~covered).sum()))
         pts, stamps = pts[covered], stamps[covered]
     dt_s = (stamps - job.upper_stamp_ns) / 1e9
-    R_ci = gyro.relative(stamps, job.upper_stamp_ns) if gyro is not None else None
-    velocity, source = job.velocity_cam0_mps, ("imu" if gyro is not None else "none")
-    if velocity is None and prm.estimate_velocity:
+    use_gyro = gyro is not None and prm.motion != "off"
+    R_ci = gyro.relative(stamps, job.upper_stamp_ns) if gyro is not None and use_gyro else None
+    velocity, source = job.velocity_cam0_mps, ("imu" if use_gyro else "none")
+    if prm.motion != "full":
+        velocity = None
+    elif velocity is None and prm.estimate_velocity:
         est = estimate_velocity(
             apply_rotations(R_ci, pts) if R_ci is not None else pts, dt_s, significance=VELOCITY_SIGMAS
         )
@@ -176,8 +195,9 @@ def process_sample(job: SampleJob) -> SampleResult:
     )
     t2 = time.perf_counter()
     ms["ground_truth"] = (t2 - t1) * 1e3
-    up, _ = warp(job.upper_bgr, model, geo.equirect, geo.rect.R_cam0_rect)
-    down, _ = warp(job.lower_bgr, geo.rig.lower.model, geo.equirect, geo.rect.R_cam1_rect)
+    interp = INTERPOLATION[prm.interpolation]
+    up, _ = warp(job.upper_bgr, model, geo.equirect, geo.rect.R_cam0_rect, interp)
+    down, _ = warp(job.lower_bgr, geo.rig.lower.model, geo.equirect, geo.rect.R_cam1_rect, interp)
     t3 = time.perf_counter()
     ms["images"] = (t3 - t2) * 1e3
     meta: dict[str, Any] = {

@@ -194,6 +194,9 @@ def ingest_cmd(
     min_range: Annotated[
         float, typer.Option(help="Drop LiDAR returns nearer than this (m): rig self-hits.")
     ] = 0.3,
+    motion: Annotated[
+        str, typer.Option(help="Motion compensation: full (IMU rotation + velocity), rotation, off.")
+    ] = "full",
     salvage: Annotated[
         bool, typer.Option("--salvage", help="Read every complete chunk of a truncated mcap.")
     ] = False,
@@ -204,6 +207,8 @@ def ingest_cmd(
     from ingest.pipeline import IngestConfig, ingest
     from ingest.sample import SampleParams
 
+    if motion not in ("full", "rotation", "off"):
+        raise SensorboxError(f"--motion {motion!r}: expected full, rotation or off")
     if workers < 1 or every < 1 or not 0 <= png_level <= 3:
         raise SensorboxError(
             f"--workers {workers} / --every {every} must be >= 1 and --png-level 0..3 ({png_level})"
@@ -211,7 +216,7 @@ def ingest_cmd(
     cfg = IngestConfig(
         rig=rig, out=out, workers=workers, every=every, lidar_window_ns=round(window_ms * 1e6),
         height_full=height_full, salvage=salvage, dask=dask,
-        sample=SampleParams(min_range_m=min_range, exr=exr, png_level=png_level),
+        sample=SampleParams(min_range_m=min_range, exr=exr, png_level=png_level, motion=motion),  # type: ignore[arg-type]
     )  # fmt: skip
     columns = (TextColumn("ingesting"), BarColumn(), MofNCompleteColumn(), TextColumn("samples"))
     with Progress(*columns, TimeRemainingColumn(), console=err_console, transient=True) as bar:
