@@ -426,6 +426,7 @@ class Mid360Emulator:
         imu_from: int | None = None
         wall0 = dev0 = None
         boot_ns: int | None = None
+        held: tuple[int, bytes] | None = None  # a reordered packet waits for the next one, across sweeps
         while nxt is not None and not self._stop.is_set():
             sweep, nxt = nxt, next(sweeps, None)
             if not self._wait_streaming():
@@ -461,7 +462,6 @@ class Mid360Emulator:
                 [(int(t), 0, k) for k, t in enumerate(imu.stamps_ns.tolist())]
                 + [(int(t), 1, k) for k, t in enumerate(pk_ns.tolist())]
             )
-            held: tuple[int, bytes] | None = None
             for t_dev, kind, k in events:
                 if self._stop.is_set():
                     return
@@ -482,10 +482,9 @@ class Mid360Emulator:
                 last = nxt is None and k == len(pk) - 1
                 held = self._send_point(index, datagrams[k].tobytes(), held, last, draws[k])
                 index += 1
-            if held is not None:
-                self._send(held[1])
-                self.counters.reordered += 1
             self.counters.sweeps += 1
+        if held is not None:  # unreachable: the last packet is never held and releases any held one
+            self._send(held[1])
         self._done.set()
 
     def _wait_streaming(self) -> bool:
