@@ -258,7 +258,7 @@ def main() -> None:
     ax.set_xscale("log")
     ax.set_xlabel("packets/s (log)")
     ax.invert_yaxis()
-    ax.legend(loc="lower right", fontsize=8)
+    ax.legend(loc="upper right", fontsize=8)
     ax.set_title("Mid-360 datagram decoding, one core")
     fig.tight_layout()
     args.out.parent.mkdir(parents=True, exist_ok=True)
