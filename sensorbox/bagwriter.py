@@ -11,6 +11,13 @@ every mcap reader), sqlite3 messages are zstd-compressed one by one (rosbag2's
 The bag is written under a hidden temporary name beside the target and renamed
 into place only when it was closed cleanly, so a crash or Ctrl-C never leaves a
 half-written bag at the requested path.
+
+`in_place=True` (the live recorder) instead writes at the target path from the
+start: a recording killed with SIGKILL or a power cut then leaves a rosbag2
+folder without metadata.yaml whose mcap holds every chunk written so far
+(`ingest --salvage` reads them), where the hidden name would hide it and the
+next run would delete it. `flush()` closes the open mcap chunk and hands the
+file's buffered bytes to the OS, which bounds what such a kill loses.
 """
 
 from __future__ import annotations
@@ -42,7 +49,7 @@ def bag_path(out: Path, fmt: BagFormat) -> Path:
 class BagWriter:
     """Context manager: `add(topic, msgtype)` then `write(topic, log_ns, raw)` in any topic order."""
 
-    def __init__(self, path: Path, fmt: BagFormat, compress: bool = True) -> None:
+    def __init__(self, path: Path, fmt: BagFormat, compress: bool = True, in_place: bool = False) -> None:
         if fmt not in FORMATS:
             raise SensorboxError(f"unknown bag format {fmt!r}; expected one of {', '.join(FORMATS)}")
         self.path = bag_path(Path(path), fmt)
@@ -52,15 +59,20 @@ class BagWriter:
         self.ros_version: Literal[1, 2] = 1 if fmt == "bag" else 2
         self._tmp_dir = self.path.parent / f".{self.path.name}.partial"
         self._compress = compress
+        self._in_place = in_place
         self._conns: dict[str, Any] = {}
         self.counts: dict[str, int] = {}
         self._writer: Writer1 | Writer2 | None = None
 
     def __enter__(self) -> Self:
-        if self._tmp_dir.exists():
-            shutil.rmtree(self._tmp_dir)  # debris of an earlier interrupted run
-        self._tmp_dir.mkdir(parents=True)
-        target = self._tmp_dir / self.path.name
+        if self._in_place:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            target = self.path
+        else:
+            if self._tmp_dir.exists():
+                shutil.rmtree(self._tmp_dir)  # debris of an earlier interrupted run
+            self._tmp_dir.mkdir(parents=True)
+            target = self._tmp_dir / self.path.name
         if self.fmt == "bag":
             w1 = Writer1(target)
             if self._compress:
@@ -88,9 +100,27 @@ class BagWriter:
         self._writer.write(self._conns[topic], int(log_ns), raw)
         self.counts[topic] += 1
 
+    def flush(self) -> None:
+        """mcap: close the open chunk (if it holds messages) and flush the file to the OS.
+
+        Everything written before a flush survives a SIGKILL of this process as
+        complete chunks. Other formats: no-op.
+        """
+        storage = getattr(self._writer, "storage", None) if self.fmt == "mcap" else None
+        if storage is None:
+            return
+        chunk = getattr(storage, "chunk", None)
+        if chunk is not None and chunk.msgs:
+            storage.close_chunk()
+        storage.bio.flush()
+
     def __exit__(
         self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
     ) -> None:
+        if self._in_place:  # keep what was recorded, even after an error: close it readable
+            if self._writer is not None:
+                self._writer.close()
+            return
         try:
             if self._writer is not None:
                 self._writer.close()
