@@ -14,6 +14,8 @@ scanners mostly do through clear glass). Where a ray crosses glass before its
 hit, the crossing point goes into the scan's mask cloud, which the benchmark
 renderer uses to write such pixels as invalid.
 
+`true_range` answers the exact range along every pixel ray of any camera
+model (and where glass lies in front), to score renderings of the scans.
 `write_site` stores the scans as PLY or PCD (scan frame, float32 xyz + uchar
 RGB; PCD files also carry the pose in their VIEWPOINT line) plus `site.yaml`
 (every scan's file, pose and mask cloud) and the truth: `scene.ply`,
@@ -32,8 +34,9 @@ import open3d as o3d
 import yaml
 from scipy.spatial.transform import Rotation
 
+from calibration.camera import CameraModel
 from calibration.errors import SensorboxError
-from calibration.types import F64
+from calibration.types import F64, Bool
 from sensorbox.sim.appearance import Texture, shade
 from sensorbox.sim.raycast import Hits, RayCaster, write_ply
 from sensorbox.sim.scenes import Scene
@@ -152,6 +155,27 @@ def bundle_poses(centre_world: F64 | list[float], spacing_m: float = 1.0) -> lis
         pose_at(c + np.array([-0.5 * spacing_m, spacing_m, 0.0]), 30.0),
         pose_at(c + np.array([-0.5 * spacing_m, -spacing_m, 0.0]), -30.0),
     ]
+
+
+def true_range(scene: Scene, model: CameraModel, T_world_cam: F64) -> tuple[F64, Bool]:
+    """Exact truth for a rendered view: range (m) along every pixel-centre ray, and glass in front.
+
+    Returns ((H, W) range to the opaque mesh, NaN where the ray has none or
+    hits nothing; (H, W) True where glass lies before that hit).
+    """
+    rays, ok = model.unproject(model.pixel_grid().reshape(-1, 2))
+    dirs = np.einsum("ij,nj->ni", T_world_cam[:3, :3], rays[ok])
+    origins = np.broadcast_to(T_world_cam[:3, 3], dirs.shape).copy()
+    hit = scene.caster.cast(origins, dirs).range_m
+    rng = np.full(len(rays), np.nan)
+    rng[ok] = np.where(np.isfinite(hit), hit, np.nan)
+    glass = np.zeros(len(rays), bool)
+    gv, gt = scene.transparent_mesh()
+    if len(gt):
+        g = RayCaster(gv, gt).cast(origins, dirs).range_m
+        glass[ok] = np.isfinite(g) & (g < np.where(np.isfinite(hit), hit, np.inf))
+    shape = (model.height, model.width)
+    return rng.reshape(shape), glass.reshape(shape)
 
 
 def _write_cloud(path: Path, xyz: F32, rgb: U8 | None, T_world_scan: F64 | None) -> None:
