@@ -1,0 +1,275 @@
+"""Benchmark layout from simulated scans: files, scene.yaml, disparity GT geometry, SGBM agreement, resume, CLI.
+
+One small run (FOV 120 and 195, baselines 120 and 300 mm, 320x200 images,
+full-sphere equirect of 640 rows) of a three-scan indoor site. Disparity GT is
+checked by geometry independent of its formula: the CENTER pixel's 3D point,
+seen by the partner camera, must land `disparity` pixels away along the
+epipolar line; and against OpenCV's SGBM on the rendered images.
+"""
+
+import subprocess
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+import OpenEXR
+import pytest
+import yaml
+
+from calibration import read_rig
+from calibration.pinhole import Pinhole
+from calibration.spherical import Cassini, Equirectangular
+from calibration.stereo import depth_to_disparity, rotate_for_stereo, unrotate_from_stereo
+from calibration.virtual import CroppedModel, virtual_ds
+from ingest.benchmark import BenchmarkConfig, BenchmarkError, run_benchmark
+from ingest.dataset import DISP_SCALE, read_png_u16
+from ingest.evaluate import discover_gt
+from ingest.metrics import edge_band
+from ingest.scans import read_scans
+from sensorbox.sim.appearance import Texture
+from sensorbox.sim.scenes import build_scene
+from sensorbox.sim.tls import TlsParams, bundle_poses, simulate_scan, true_range, write_site
+from tests.calibration.test_virtual import RIG
+
+ROOT = Path(__file__).resolve().parents[2]
+CFG = BenchmarkConfig(
+    fovs_deg=(120.0, 195.0),
+    baselines_mm=(120.0, 300.0),
+    width=320,
+    height=200,
+    height_full=640,
+    centers=("s0",),
+)
+
+
+@pytest.fixture(scope="module")
+def bench(tmp_path_factory):
+    root = tmp_path_factory.mktemp("bench")
+    scene = build_scene("indoor", 0)
+    tex = Texture(0)
+    params = TlsParams(step_deg=0.25)
+    sims = [
+        simulate_scan(scene, tex, T, params, f"s{k}") for k, T in enumerate(bundle_poses([-2.0, 0.0, 1.4]))
+    ]
+    manifest = write_site(root / "site", scene, sims, "ply", params)
+    scans = read_scans([manifest])
+    ref = read_rig(RIG).camera("cam0").model
+    summary = run_benchmark(scans, ref, root / "out", CFG)
+    doc = yaml.safe_load((root / "out" / "000_000_000" / "scene.yaml").read_text())
+    return {"root": root, "out": root / "out", "scene": scene, "scans": scans, "ref": ref, "summary": summary,
+            "doc": doc, "dir": root / "out" / "000_000_000"}  # fmt: skip
+
+
+def _img(path, flags=cv2.IMREAD_UNCHANGED) -> np.ndarray:
+    im = cv2.imread(str(path), flags)
+    assert im is not None, path
+    return np.asarray(im)
+
+
+def _exr(path):
+    with OpenEXR.File(str(path)) as f:
+        return np.asarray(f.channels()["Y"].pixels, np.float32)
+
+
+def _folder(b, fov, base, cam):
+    return b["dir"] / f"{fov}FOV" / f"{base}mm" / cam
+
+
+def test_layout_files_and_types(bench):
+    s = bench["summary"]
+    assert s.scenes == ["000_000_000"] and s.renders == 1 + 2 * 3 + 2 * (1 + 2 * 4)
+    for fov in (120, 195):
+        for base in (120, 300):
+            c = _folder(bench, fov, base, "CENTER")
+            images = {"fisheye", "pano", "pano_crop", "cassini_crop"} | (
+                {"pinhole", "pinhole_crop"} if fov == 120 else set()
+            )
+            assert {p.stem for p in c.glob("*.png")} == images
+            assert {p.stem for p in (c / "depth").glob("*.png")} == images
+            assert {p.stem for p in (c / "disparity").glob("*.png")} == images - {"fisheye"}
+            assert {p.name for p in (c / "depth").glob("*.exr")} == {f"{n}.exr" for n in images}
+            assert {p.stem for p in _folder(bench, fov, base, "DOWN").glob("*.png")} == {
+                "fisheye",
+                "pano",
+                "pano_crop",
+            }
+            right = {"fisheye", "cassini_crop"} | ({"pinhole", "pinhole_crop"} if fov == 120 else set())
+            assert {p.stem for p in _folder(bench, fov, base, "RIGHT").glob("*.png")} == right
+    c = _folder(bench, 120, 120, "CENTER")
+    img = _img(c / "fisheye.png")
+    depth = _img(c / "depth" / "fisheye.png")
+    assert img.shape == (200, 320, 3) and img.dtype == np.uint8
+    assert depth.shape == (200, 320) and depth.dtype == np.uint16
+    pano = _img(c / "pano.png", cv2.IMREAD_COLOR)
+    assert pano.shape == (640, 1280, 3)
+    crop = bench["doc"]["cameras"]["120FOV"]["pano_crop"]
+    r0, c0 = crop["row_offset"], crop["col_offset"]
+    window = pano[r0 : r0 + crop["height"], c0 : c0 + crop["width"]]
+    np.testing.assert_array_equal(
+        window, _img(c / "pano_crop.png", cv2.IMREAD_COLOR)
+    )  # pano = crop in the full sphere
+    assert pano.sum() == window.sum()  # nothing outside what the fisheye sees
+    # the same CENTER files in every baseline folder; EXR = PNG within the uint16 step
+    for name in ("fisheye", "pano_crop"):
+        a = _img(c / "depth" / f"{name}.png")
+        b = _img(_folder(bench, 120, 300, "CENTER") / "depth" / f"{name}.png")
+        np.testing.assert_array_equal(a, b)
+        exr = _exr(c / "depth" / f"{name}.exr")
+        assert np.abs(exr * 1000 - a).max() <= 0.5 and ((exr > 0) == (a > 0)).all()
+
+
+def test_scene_yaml_describes_every_camera(bench):
+    doc, ref = bench["doc"], bench["ref"]
+    assert doc["view"]["bundle"] == ["s0", "s1", "s2"] and doc["view"]["center_scan"] == "s0"
+    for fov in (120, 195):
+        fish = doc["cameras"][f"{fov}FOV"]["fisheye"]
+        m = virtual_ds(ref, fov, 320, 200)
+        assert (fish["fx"], fish["xi"], fish["alpha"]) == (m.fx, m.xi, m.alpha)
+        assert fish["nominal_fov_deg"] == fov and fish["true_fov_deg"]["horizontal"] > 90
+    assert "pinhole" in doc["cameras"]["120FOV"] and "pinhole" not in doc["cameras"]["195FOV"]
+    assert doc["T_center_partner"]["DOWN"]["300mm"][1][3] == 0.3
+    assert doc["T_center_partner"]["RIGHT"]["120mm"][0][3] == 0.12
+    st = doc["stats"]["120FOV/300mm/DOWN/fisheye"]
+    assert st["pixels_with_ray"] == 64000 and 0 <= st["hole_px"] < 0.01 * 64000
+    assert doc["stats"]["120FOV/CENTER/fisheye"]["masked_px"] > 0  # the glass pane
+    # the evaluation code finds this layout's ground truth
+    layout, gt = discover_gt(bench["out"], "stereo")
+    assert layout == "benchmark" and {g.view for g in gt} == {
+        "pano",
+        "pano_crop",
+        "cassini_crop",
+        "pinhole",
+        "pinhole_crop",
+    }
+
+
+def _rays(model, cols, rows):
+    rays, ok = model.unproject(np.stack([cols, rows], axis=1).astype(np.float64))
+    assert ok.all()
+    return rays
+
+
+def test_vertical_disparity_is_where_the_down_camera_sees_the_point(bench):
+    cam = bench["doc"]["cameras"]["120FOV"]["pano_crop"]
+    eq = Equirectangular(640).crop(cam["row_offset"], cam["col_offset"], cam["height"], cam["width"])
+    c = _folder(bench, 120, 300, "CENTER")
+    rng, disp = _exr(c / "depth" / "pano_crop.exr"), _exr(c / "disparity" / "pano_crop.exr")
+    rows, cols = np.nonzero(disp)
+    assert len(rows) > 0.8 * np.count_nonzero(rng)  # stability mask drops only the poles' neighbourhood
+    p = _rays(eq, cols, rows) * rng[rows, cols, None].astype(np.float64) - [0.0, 0.3, 0.0]  # in DOWN
+    uv, ok = eq.project(p)
+    assert ok.all()
+    np.testing.assert_allclose(uv[:, 0], cols, atol=1e-3)  # same column: columns are epipolar lines
+    np.testing.assert_allclose(uv[:, 1], rows - disp[rows, cols], atol=2e-3)
+    # and the GT equals the exact disparity of the mesh, away from depth edges
+    T = np.array(bench["doc"]["view"]["T_world_center"])
+    exact, _ = true_range(bench["scene"], eq, T)
+    d_exact = depth_to_disparity(
+        np.nan_to_num(exact), eq.theta_of_row(np.arange(eq.height, dtype=np.float64))[:, None], 0.3, 640
+    )
+    inner = (disp > 0) & ~edge_band(np.nan_to_num(exact).astype(np.float32), 3)
+    assert np.median(np.abs(disp - d_exact)[inner]) < 0.01
+
+
+def _bad3(gt, est):
+    ok = (gt > 0) & (est > 0)
+    return float((np.abs(gt - est)[ok] > 3.0).mean()), int(ok.sum())
+
+
+def test_sgbm_agrees_with_the_vertical_pair_gt(bench):
+    c, d = _folder(bench, 120, 120, "CENTER"), _folder(bench, 120, 120, "DOWN")
+    up, down = (_img(f / "pano_crop.png", cv2.IMREAD_GRAYSCALE) for f in (c, d))
+    gt = read_png_u16(c / "disparity" / "pano_crop.png", DISP_SCALE)
+    sgbm = cv2.StereoSGBM.create(
+        0, 64, 5, P1=8 * 25, P2=32 * 25, uniquenessRatio=10, mode=cv2.STEREO_SGBM_MODE_HH
+    )
+    est = unrotate_from_stereo(
+        sgbm.compute(rotate_for_stereo(up), rotate_for_stereo(down)).astype(np.float32) / 16
+    )
+    bad, n = _bad3(gt, est)
+    assert n > 0.5 * np.count_nonzero(gt) and bad < 0.08  # measured about 3 %
+    shifted, _ = _bad3(np.where(gt > 0, gt + 5.0, 0.0), est)
+    assert shifted > 0.8  # a GT 5 px off would be caught
+
+
+def test_horizontal_pinhole_pair(bench):
+    ph = bench["doc"]["cameras"]["120FOV"]["pinhole"]
+    model = Pinhole(ph["fx"], ph["fy"], ph["cx"], ph["cy"], ph["width"], ph["height"])
+    c, r = _folder(bench, 120, 300, "CENTER"), _folder(bench, 120, 300, "RIGHT")
+    z, disp = _exr(c / "depth" / "pinhole.exr"), _exr(c / "disparity" / "pinhole.exr")
+    rows, cols = np.nonzero(disp)
+    np.testing.assert_allclose(disp[rows, cols], model.fx * 0.3 / z[rows, cols], rtol=1e-6)  # f B / z
+    p = _rays(model, cols, rows)
+    p = p / p[:, 2:] * z[rows, cols, None] - [0.3, 0.0, 0.0]  # the point, in RIGHT
+    uv, _ = model.project(p)
+    np.testing.assert_allclose(uv[:, 0], cols - disp[rows, cols], atol=2e-3)
+    np.testing.assert_allclose(uv[:, 1], rows, atol=1e-6)
+    T = np.array(bench["doc"]["view"]["T_world_center"])
+    exact, _ = true_range(bench["scene"], model, T)
+    rays, _ = model.unproject(model.pixel_grid())
+    z_exact = np.nan_to_num(exact) * rays[..., 2]
+    inner = (disp > 0) & ~edge_band(z_exact.astype(np.float32), 3)
+    assert np.median(np.abs(disp - model.fx * 0.3 / np.where(z_exact > 0, z_exact, np.inf))[inner]) < 0.01
+    left, right = (_img(f / "pinhole.png", cv2.IMREAD_GRAYSCALE) for f in (c, r))
+    sgbm = cv2.StereoSGBM.create(
+        0, 96, 5, P1=8 * 25, P2=32 * 25, uniquenessRatio=10, mode=cv2.STEREO_SGBM_MODE_HH
+    )
+    bad, n = _bad3(disp, sgbm.compute(left, right).astype(np.float32) / 16)
+    assert n > 0.4 * len(rows) and bad < 0.08
+    crop = bench["doc"]["cameras"]["120FOV"]["pinhole_crop"]
+    dc = _exr(c / "disparity" / "pinhole_crop.exr")
+    r0, c0 = crop["row_offset"], crop["col_offset"]
+    np.testing.assert_array_equal(dc, disp[r0 : r0 + crop["height"], c0 : c0 + crop["width"]])
+
+
+def test_cassini_pair_disparity_runs_along_rows(bench):
+    cam = bench["doc"]["cameras"]["195FOV"]["cassini_crop"]
+    m = CroppedModel(
+        Cassini(cam["height_full"]), cam["col_offset"], cam["row_offset"], cam["width"], cam["height"]
+    )
+    c = _folder(bench, 195, 120, "CENTER")
+    rng, disp = _exr(c / "depth" / "cassini_crop.exr"), _exr(c / "disparity" / "cassini_crop.exr")
+    rows, cols = np.nonzero(disp)
+    assert len(rows) > 1000
+    p = _rays(m, cols, rows) * rng[rows, cols, None].astype(np.float64) - [0.12, 0.0, 0.0]  # in RIGHT
+    uv, _ = m.project(p)
+    np.testing.assert_allclose(uv[:, 0], cols - disp[rows, cols], atol=2e-3)
+    np.testing.assert_allclose(uv[:, 1], rows, atol=2e-3)
+
+
+def test_rerun_skips_finished_scenes_and_bad_setups_are_refused(bench):
+    stamp = (bench["dir"] / "scene.yaml").stat().st_mtime_ns
+    again = run_benchmark(bench["scans"], bench["ref"], bench["out"], CFG)
+    assert again.skipped == ["000_000_000"] and again.renders == 0
+    assert (bench["dir"] / "scene.yaml").stat().st_mtime_ns == stamp
+    with pytest.raises(BenchmarkError, match="Double Sphere"):
+        run_benchmark(bench["scans"], Pinhole(100, 100, 50, 50, 100, 100), bench["root"] / "x", CFG)
+    with pytest.raises(BenchmarkError, match=r"--center 'nope'.*s0, s1, s2"):
+        run_benchmark(bench["scans"], bench["ref"], bench["root"] / "x", replace(CFG, centers=("nope",)))
+    with pytest.raises(BenchmarkError, match="--fov"):
+        run_benchmark(bench["scans"], bench["ref"], bench["root"] / "x", replace(CFG, fovs_deg=(400.0,)))
+
+
+def _cli(*args):
+    return subprocess.run([sys.executable, "-m", "sensorbox.cli", *args], capture_output=True, text=True, cwd=ROOT,
+                          check=False)  # fmt: skip
+
+
+def test_cli_renders_and_summarises(bench, tmp_path):
+    res = _cli("render-benchmark", str(bench["root"] / "site" / "site.yaml"), "--rig", str(RIG), "--out",
+               str(tmp_path / "b"), "--size", "96x64", "--fov", "140", "--baseline", "65", "--center", "s1",
+               "--yaw", "90", "--height", "0.2", "--no-exr", "--workers", "1")  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    assert "000_001_000" in res.stdout and "140FOV" in res.stdout and "holes CENTER" in res.stdout
+    doc = yaml.safe_load((tmp_path / "b" / "000_001_000" / "scene.yaml").read_text())
+    assert doc["view"]["yaw_deg"] == 90.0 and doc["view"]["height_m"] == 0.2
+    T = np.array(doc["view"]["T_world_center"])
+    R_world_scan = bench["scans"][1].T_world_scan[:3, :3]
+    np.testing.assert_allclose(T[:3, 2], R_world_scan[:, 1], atol=1e-12)  # yaw 90: along the scan's +y
+    np.testing.assert_allclose(T[:3, 3], bench["scans"][1].origin_world + np.array([0, 0, 0.2]))
+    assert not list((tmp_path / "b").rglob("*.exr"))
+    bad = _cli("render-benchmark", str(bench["root"] / "site" / "site.yaml"), "--rig", str(RIG), "--out",
+               str(tmp_path / "c"), "--size", "96by64")  # fmt: skip
+    assert bad.returncode == 2 and bad.stderr.strip().startswith("error: --size '96by64'")
