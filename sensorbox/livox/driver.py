@@ -78,6 +78,7 @@ Extrinsic = tuple[float, float, float, float, float, float]
 SLOT = 2048  # receive slot per datagram: any datagram that fills it is oversized (real ones are <= 1380 B)
 BATCH = 256  # datagrams drained per wake-up of the point thread
 POLL_S = 0.05
+DATAGRAM_TRUESIZE = 3072  # kernel buffer bytes a 1380-byte datagram costs (skb overhead; conservative)
 TIME_JUMP_NS = 1_000_000_000  # a packet this far from the newest one restarts framing (sync gained/lost)
 
 
@@ -165,6 +166,8 @@ class DriverStats:
     lidars: dict[str, LidarStats]
     foreign: int = 0  # datagrams from addresses/ports that are no configured lidar's
     foreign_sources: dict[str, int] = field(default_factory=dict)  # "ip:port" -> datagrams
+    rcvbuf_bytes: int = 0  # the point socket's kernel buffer (SO_RCVBUF as granted)
+    kernel_drops: int = 0  # point datagrams the host kernel dropped (buffer full): part of `lost`
 
 
 def topic_suffix(ip: str) -> str:
@@ -326,6 +329,10 @@ _SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35) if sys.platform.startswi
 _MSG_TRUNC = int(getattr(socket, "MSG_TRUNC", 0))
 
 
+_SO_RXQ_OVFL = getattr(socket, "SO_RXQ_OVFL", 40) if sys.platform.startswith("linux") else None
+ANC_SIZE = 96  # room for both control messages
+
+
 def _arrival_ns(ancillary: list[tuple[int, int, bytes]]) -> int:
     """The kernel's receive time of a datagram (SO_TIMESTAMPNS), else the host clock now (ns)."""
     for level, kind, data in ancillary:
@@ -335,15 +342,24 @@ def _arrival_ns(ancillary: list[tuple[int, int, bytes]]) -> int:
     return time.time_ns()
 
 
+def _kernel_drops(ancillary: list[tuple[int, int, bytes]]) -> int:
+    """Datagrams the kernel dropped on this socket so far (SO_RXQ_OVFL; sent only once nonzero)."""
+    for level, kind, data in ancillary:
+        if level == socket.SOL_SOCKET and kind == _SO_RXQ_OVFL and len(data) >= 4:
+            return int(struct.unpack_from("I", data)[0])
+    return 0
+
+
 def _udp_socket(ip: str, port: int, *, rcvbuf: int = 0, broadcast: bool = False) -> socket.socket:
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     try:
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         if broadcast:
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
-        if _SO_TIMESTAMPNS is not None:
-            with contextlib.suppress(OSError):
-                sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)  # arrival time for unsynced stamps
+        for option in (_SO_TIMESTAMPNS, _SO_RXQ_OVFL):  # arrival times; kernel drop counts
+            if option is not None:
+                with contextlib.suppress(OSError):
+                    sock.setsockopt(socket.SOL_SOCKET, option, 1)
         if rcvbuf:
             force = getattr(socket, "SO_RCVBUFFORCE", None)
             try:
@@ -382,6 +398,8 @@ class Mid360Driver:
         self._stop = threading.Event()
         self._started = False
         self._devices: dict[str, DeviceInfo] = {}
+        self._rcvbuf = 0
+        self._kernel_drops = 0
 
     # ------------------------------------------------------------------ public API
 
@@ -435,6 +453,13 @@ class Mid360Driver:
             self._socks["push"] = _udp_socket(cfg.host_ip, ports.host_push)
             self._socks["imu"] = _udp_socket(cfg.host_ip, ports.host_imu, rcvbuf=1 << 20)
             self._socks["point"] = _udp_socket(cfg.host_ip, ports.host_point, rcvbuf=cfg.rcvbuf_bytes)
+            self._rcvbuf = self._socks["point"].getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
+            if self._rcvbuf < cfg.rcvbuf_bytes:
+                log.warning(
+                    "livox driver: point socket buffer is %d bytes, asked for %d; raise net.core.rmem_max "
+                    "(or grant CAP_NET_ADMIN) so bursts are not dropped by the kernel",
+                    self._rcvbuf, cfg.rcvbuf_bytes,
+                )  # fmt: skip
         except DriverError:
             self._close_sockets()
             raise
@@ -476,7 +501,9 @@ class Mid360Driver:
                 s.imu_lost = li.imu_seq.lost
                 s.counter_resets = li.points_seq.resets
                 lidars[ip] = s
-            return DriverStats(lidars, self._foreign, dict(self._foreign_sources))
+            return DriverStats(
+                lidars, self._foreign, dict(self._foreign_sources), self._rcvbuf, self._kernel_drops
+            )
 
     def set_params(self, ip: str, items: list[proto.KV]) -> None:
         """Send one 0x0100 with `items` to lidar `ip`; DriverError unless it ACKs with ret_code 0."""
@@ -599,7 +626,7 @@ class Mid360Driver:
                     sock: socket.socket = key.fileobj  # type: ignore[assignment]
                     while True:
                         try:
-                            raw, anc, _flags, src = sock.recvmsg(SLOT, 64)
+                            raw, anc, _flags, src = sock.recvmsg(SLOT, ANC_SIZE)
                         except (BlockingIOError, InterruptedError):
                             break
                         except OSError:
@@ -680,18 +707,20 @@ class Mid360Driver:
         sizes = np.zeros(BATCH, np.int64)
         recv_ns = np.zeros(BATCH, np.int64)
         backlog = False
+        capacity = max(8, self._rcvbuf // DATAGRAM_TRUESIZE)  # datagrams the kernel can queue
+        wait_s, last_drain = self.config.batch_wait_s, time.monotonic()
         try:
             while not self._stop.is_set():
                 if not sel.select(POLL_S):
                     self._flush_idle()
                     continue
-                if self.config.batch_wait_s > 0 and not backlog:
-                    time.sleep(self.config.batch_wait_s)
+                if wait_s > 0 and not backlog:
+                    time.sleep(wait_s)
                 srcs: list[tuple[str, int]] = []
                 n = 0
                 while n < BATCH:
                     try:
-                        size, anc, flags, src = sock.recvmsg_into([mv[n * SLOT : (n + 1) * SLOT]], 64)
+                        size, anc, flags, src = sock.recvmsg_into([mv[n * SLOT : (n + 1) * SLOT]], ANC_SIZE)
                     except (BlockingIOError, InterruptedError):
                         break
                     except OSError:
@@ -700,9 +729,17 @@ class Mid360Driver:
                         break
                     sizes[n] = SLOT if flags & _MSG_TRUNC else size
                     recv_ns[n] = _arrival_ns(anc)
+                    if anc and len(anc) > 1:
+                        self._kernel_drops = max(self._kernel_drops, _kernel_drops(anc))
                     srcs.append(src)
                     n += 1
                 backlog = n == BATCH
+                now = time.monotonic()
+                if n:
+                    # never let more than a quarter of the kernel buffer pile up while sleeping
+                    rate = n / max(now - last_drain, 1e-4)
+                    wait_s = min(self.config.batch_wait_s, capacity / 4 / rate)
+                last_drain = now
                 if n:
                     self._on_point_batch(buf, n, sizes[:n].copy(), recv_ns[:n].copy(), srcs)
                     self._flush_idle()
