@@ -416,12 +416,17 @@ class Mid360Driver:
             next_send = 0.0
             while (now := time.monotonic()) < end:
                 if now >= next_send:
-                    sock.sendto(req, (cfg.discovery_address, cfg.ports.discovery))
+                    try:
+                        sock.sendto(req, (cfg.discovery_address, cfg.ports.discovery))
+                    except OSError as err:
+                        raise DriverError(
+                            f"discovery: cannot send to {cfg.discovery_address}:{cfg.ports.discovery}: {err}"
+                        ) from err
                     next_send = now + 1.0
                 sock.settimeout(max(0.001, min(end, next_send) - now))
                 try:
                     raw, (src_ip, _port) = sock.recvfrom(SLOT)
-                except TimeoutError:
+                except OSError:  # timeout, or an ICMP error surfacing on the socket
                     continue
                 if src_ip == cfg.host_ip:
                     continue  # our own broadcast (the SDK drops these too)
@@ -580,7 +585,10 @@ class Mid360Driver:
         self._pending[(ip, seq)] = waiter
         try:
             for _ in range(cfg.command_retries + 1):
-                sock.sendto(raw, (ip, self._lidars[ip].cmd_port))
+                try:
+                    sock.sendto(raw, (ip, self._lidars[ip].cmd_port))
+                except OSError as err:
+                    raise DriverError(f"lidar {ip}: cannot send command {cmd_id:#06x}: {err}") from err
                 if waiter.event.wait(cfg.command_timeout_s):
                     assert waiter.frame is not None
                     if waiter.frame.cmd_id != cmd_id:
