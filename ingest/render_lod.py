@@ -81,33 +81,43 @@ def angular_spacing(xyz: F32, cells: tuple[int, int] = SPHERE_CELLS) -> F32:
 
 
 def build_index(scan: Scan, voxel_m: float = VOXEL_M) -> ScanIndex:
-    """Sort ``scan`` into voxel buckets in stratified order (one argsort of N int64 keys)."""
+    """Sort ``scan`` into voxel buckets, randomly ordered inside each (one argsort of N int64 keys).
+
+    The index holds sorted copies of the points and colours; the scan's own
+    arrays can be dropped afterwards.
+    """
     if not (math.isfinite(voxel_m) and voxel_m > 0.0):
         raise ScanError(f"LOD voxel size must be > 0 m, got {voxel_m!r}")
     xyz = scan.xyz
     if len(xyz) == 0:
         raise ScanError(f"{scan.source or scan.name}: the scan has no points")
     spacing = angular_spacing(xyz)
-    cell = np.floor(xyz / np.float32(voxel_m)).astype(np.int64)
-    lo = cell.min(axis=0)
-    span = cell.max(axis=0) - lo + 1
+    # voxel id per point, one axis at a time (int32 cells: a 20M-point scan needs no (N, 3) int64)
+    inv = np.float32(1.0 / voxel_m)
+    cells = [np.floor(xyz[:, k] * inv).astype(np.int32) for k in range(3)]
+    lo = np.array([int(c.min()) for c in cells])
+    span = np.array([int(c.max()) for c in cells]) - lo + 1
     bits = sum(math.ceil(math.log2(int(s) + 1)) for s in span)
     if bits + RANK_BITS > 62:
         raise ScanError(
             f"{scan.source or scan.name}: the scan spans {span.tolist()} voxels of {voxel_m} m; "
             "use a larger voxel size"
         )
-    cell -= lo
-    vid = (cell[:, 0] * int(span[1]) + cell[:, 1]) * int(span[2]) + cell[:, 2]
+    key = cells[0].astype(np.int64) - int(lo[0])
+    for k in (1, 2):
+        key *= int(span[k])
+        key += cells[k] - int(lo[k])
+    del cells
+    vid = key.copy()
     # a random rank inside each bucket: any prefix is a uniform subsample. (Spatially stratified
     # orders - bit-reversed Morton codes, sub-cell round robin - alias with the scanner's regular
     # grid and leave streaks of empty pixels at grazing angles.)
-    rank = np.random.default_rng(RANK_SEED).integers(0, 1 << RANK_BITS, len(xyz), dtype=np.int64)
-    key = (vid << RANK_BITS) | rank
-    del cell, rank
+    key <<= RANK_BITS
+    key |= np.random.default_rng(RANK_SEED).integers(0, 1 << RANK_BITS, len(xyz), dtype=np.int64)
     order = np.argsort(key)
+    del key
     vid_sorted = vid[order]
-    del key, vid
+    del vid
     starts = np.flatnonzero(np.r_[True, vid_sorted[1:] != vid_sorted[:-1]])
     vids = vid_sorted[starts]
     del vid_sorted
