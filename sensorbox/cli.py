@@ -278,6 +278,15 @@ def _register_eval() -> None:
 _register_eval()
 
 
+def _register_bench() -> None:
+    from sensorbox.cli_bench import bench_cmd
+
+    app.command("bench")(bench_cmd)
+
+
+_register_bench()
+
+
 def _register_render() -> None:
     from sensorbox.cli_render import render_benchmark_cmd
 
