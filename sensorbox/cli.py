@@ -287,6 +287,16 @@ def _register_bench() -> None:
 _register_bench()
 
 
+def _register_capture() -> None:
+    from sensorbox.cli_capture import capture_cmd, launch_cmd
+
+    app.command("launch")(launch_cmd)
+    app.command("capture")(capture_cmd)
+
+
+_register_capture()
+
+
 def _register_render() -> None:
     from sensorbox.cli_render import render_benchmark_cmd
 

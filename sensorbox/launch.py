@@ -497,8 +497,6 @@ class _Parser:
                     f"{where}: each entity is a mapping with one key (its type, e.g. `node:`), got {item!r}"
                 )
             kind, body = next(iter(item.items()))
-            if isinstance(body, dict):
-                where = _where(scope, body)
             handler = self.HANDLERS.get(kind)
             if handler is None:
                 raise LaunchError(

@@ -606,6 +606,11 @@ def build_node(spec: Any, bus: Bus, shutdown: Shutdown) -> Node:
     name = spec.name or spec.exec
     ctx = node_context(bus, shutdown, name, spec.namespace, spec.remaps)
     params = Params({**t.defaults, **spec.params}, spec.label)
-    node = t.factory(ctx, params)
+    try:
+        node = t.factory(ctx, params)
+    except GraphError:
+        raise
+    except SensorboxError as err:  # e.g. a RecorderError or DriverError about a parameter value
+        raise GraphError(f"{spec.label}: {err}") from err
     params.check()
     return node

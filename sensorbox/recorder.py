@@ -338,6 +338,7 @@ class Recorder:
         self._bag_index += 1
         bag = BagWriter(path, "mcap", compress=self.cfg.compress, in_place=True)
         bag.__enter__()
+        bag.flush()  # the mcap magic and header reach the file now: even an early kill leaves an mcap
         # topics seen before this split are declared again, so every bag is self-contained
         self._bag, self._bag_start_ns = bag, recv_ns
         self._bag_mcap = path / f"{path.name}.mcap"

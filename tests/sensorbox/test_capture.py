@@ -1,0 +1,176 @@
+"""Capture end to end: the emulated rig (launch/sim.launch.yaml) recorded and ingested into a dataset,
+`sensorbox capture` as the rig-file form of launch/sensorbox.launch.yaml, and the two commands' CLI."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+
+from calibration.errors import SensorboxError
+from ingest.bags import open_bags
+from ingest.decode import header_stamp_ns
+from ingest.pipeline import IngestConfig, ingest
+from sensorbox.capture import CaptureConfig, capture_plan
+from sensorbox.launch import parse_launch, run_launch
+from sensorbox.sim.lidar import PACKET_PERIOD_NS
+
+ROOT = Path(__file__).resolve().parents[2]
+REF = ROOT / "calibration" / "sensorbox.yaml"
+SIM_LAUNCH = ROOT / "launch" / "sim.launch.yaml"
+UPPER = "/zed_upper/zed_node/rgb/color/rect/image/compressed"
+LOWER = "/zed_lower/zed_node/rgb/color/rect/image/compressed"
+LIDARS = ("/livox/lidar_192_168_1_12", "/livox/lidar_192_168_1_13")
+IMUS = ("/livox/imu_192_168_1_12", "/livox/imu_192_168_1_13")
+_blocks = itertools.count()
+
+
+def fresh_port_base() -> int:
+    """A block of nine UDP ports no other test or xdist worker uses (the driver tests use 20000+)."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw")
+    return 30000 + 1000 * int(worker or 0) + 10 * next(_blocks)
+
+
+def run_cli(*args: str, timeout: float = 120) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "sensorbox.cli", *args], capture_output=True, text=True, cwd=ROOT,
+        check=False, timeout=timeout,
+    )  # fmt: skip
+
+
+def test_sim_launch_records_a_bag_that_ingests_into_a_dataset(tmp_path):
+    out = tmp_path / "bags"
+    args = {
+        "out": str(out),
+        "duration": "2.5",
+        "scale": "0.25",
+        "name": "sim",
+        "port_base": str(fresh_port_base()),
+    }
+    result = run_launch(parse_launch(SIM_LAUNCH, args), tick_s=0.1)
+    assert result.error is None and result.reason == "recorder: recorded 2.5 s"
+    snap = result.snapshot
+    assert snap.total_drops() == 0, snap.drops
+    assert snap.written == snap.published  # every message published was written
+    assert result.files == (out / "sim_000",)
+
+    with open_bags(out / "sim_000") as bags:
+        counts = {t: s.count for t, s in bags.topics().items()}
+        stamps = {t: [header_stamp_ns(m.raw, 2) for m in bags.messages([t])] for t in (UPPER, LOWER, *LIDARS)}
+    assert set(counts) == {UPPER, LOWER, *LIDARS, *IMUS}
+    # 2.5 s after the first message, plus what arrives while the nodes stop
+    assert counts[UPPER] == counts[LOWER] and 60 <= counts[UPPER] <= 120
+    assert np.median(np.diff(stamps[UPPER])) == pytest.approx(1e9 / 30, abs=1e6)  # 30 Hz frames
+    for topic in LIDARS:
+        assert 20 <= counts[topic] <= 40
+        # 10 Hz sweeps, none missing: timebase = the first packet of each 100 ms window
+        assert np.abs(np.diff(stamps[topic]) - 100_000_000).max() < PACKET_PERIOD_NS
+    for topic in IMUS:
+        assert 400 <= counts[topic] <= 800  # 200 Hz
+    dt = np.array(stamps[LOWER]) - np.array(stamps[UPPER])
+    assert np.abs(dt).max() < 2_000_000  # the simulator's 0.1 ms stereo offset +- 0.5 ms jitter each
+    # the emulators' scan and the cameras share the simulator's clock: sweeps span the frames
+    assert stamps[LIDARS[0]][0] < stamps[UPPER][len(stamps[UPPER]) // 2] < stamps[LIDARS[0]][-1]
+
+    rig = out / "rig.yaml"
+    assert rig.is_file()
+    ds = tmp_path / "dataset"
+    summary = ingest([out / "sim_000"], IngestConfig(rig=rig, out=ds, workers=1, every=20))
+    assert summary.pairs == counts[UPPER] and summary.written >= 2
+    ids = sorted(p.stem for p in (ds / "meta").glob("*.json"))
+    assert len(ids) == summary.written
+    for folder in ("left_fisheye", "right_fisheye", "equirect_up", "equirect_down_virt", "disp_equirect",
+                   "depth_fisheye"):  # fmt: skip
+        assert sorted(p.stem for p in (ds / folder).glob("*.png")) == ids, folder
+    depth = cv2.imread(str(ds / "depth_fisheye" / f"{ids[0]}.png"), cv2.IMREAD_UNCHANGED)
+    assert depth is not None
+    assert depth.dtype == np.uint16 and depth.shape == (300, 480)
+    valid = depth[depth > 0]
+    assert valid.size > 1000 and 300 <= np.median(valid) <= 20_000  # indoor ranges, mm
+    meta = json.loads((ds / "meta" / f"{ids[0]}.json").read_text())
+    assert meta["stamp_ns"] in stamps[UPPER]
+    assert yaml.safe_load((ds / "dataset.yaml").read_text())
+
+
+def test_capture_is_the_rig_file_form_of_the_real_launch_file():
+    launch = parse_launch(ROOT / "launch" / "sensorbox.launch.yaml")
+    direct = capture_plan(CaptureConfig(rig=REF, out=Path("bags"), split_size_mb=4096, min_free_mb=2048))
+    assert [(n.pkg, n.exec) for n in direct.nodes] == [(n.pkg, n.exec) for n in launch.nodes]
+    drv_l, cam_l, rec_l = launch.nodes
+    drv_d, cam_d, rec_d = direct.nodes
+    assert dict(drv_d.params) == dict(drv_l.params) and drv_d.remaps == drv_l.remaps == ()
+    assert cam_d.params["source"] == cam_l.params["source"] == "zed"
+    assert (cam_d.params["upper_topic"], cam_d.params["lower_topic"]) == (
+        "/zed_upper/zed_node/rgb/color/rect/image", "/zed_lower/zed_node/rgb/color/rect/image",
+    )  # fmt: skip
+    for key in ("out", "duration_s", "split_size_mb", "min_free_mb"):
+        assert rec_d.params[key] == rec_l.params[key], key
+
+
+def test_capture_emulated_remaps_loopback_lidars_to_the_rig_topics(tmp_path):
+    plan = capture_plan(CaptureConfig(rig=REF, out=tmp_path, emulate=True, port_base=31999))
+    emu_top, emu_bottom, driver, camera, _ = plan.nodes
+    assert (emu_top.params["ip"], emu_top.params["lidar"]) == ("127.0.0.12", "lidar_top")
+    assert (emu_bottom.params["ip"], emu_bottom.params["lidar"]) == ("127.0.0.13", "lidar_bottom")
+    assert driver.params["host_ip"] == "127.0.0.1" and driver.params["port_base"] == 31999
+    assert driver.params["lidar_ips"] == ["127.0.0.12", "127.0.0.13"]
+    assert set(driver.remaps) == {
+        ("/livox/lidar_127_0_0_12", LIDARS[0]), ("/livox/imu_127_0_0_12", IMUS[0]),
+        ("/livox/lidar_127_0_0_13", LIDARS[1]), ("/livox/imu_127_0_0_13", IMUS[1]),
+    }  # fmt: skip
+    assert camera.params["source"] == "sim" and camera.params["write_rig"] == str(tmp_path / "rig.yaml")
+
+
+def test_capture_needs_lidar_ips(tmp_path):
+    text = REF.read_text().replace("    ip: 192.168.1.13\n", "")
+    rig = tmp_path / "rig.yaml"
+    rig.write_text(text)
+    (tmp_path / "sensorbox-camchain.yaml").write_text((REF.parent / "sensorbox-camchain.yaml").read_text())
+    with pytest.raises(SensorboxError, match=r"lidars\.lidar_bottom: no 'ip'"):
+        capture_plan(CaptureConfig(rig=rig, out=tmp_path))
+
+
+def test_cli_launch_dry_run_show_args_and_errors():
+    res = run_cli("launch", str(SIM_LAUNCH), "--dry-run", "scale:=0.5")
+    assert res.returncode == 0, res.stderr
+    assert "- livox_lidar_publisher (livox_ros_driver2/livox_ros_driver2_node), namespace /" in res.stdout
+    assert "    remap /livox/lidar_127_0_0_12 -> /livox/lidar_192_168_1_12\n" in res.stdout
+    assert "    param scale = 0.5\n" in res.stdout
+    res = run_cli("launch", str(SIM_LAUNCH), "--show-args")
+    assert res.returncode == 0
+    assert (
+        "  duration:='0' (default '0')\n      seconds to record; 0 = until interrupted (Ctrl-C)\n"
+        in res.stdout
+    )
+    assert "  scene:='indoor' (default 'indoor', one of indoor, outdoor)\n" in res.stdout
+    res = run_cli("launch", str(SIM_LAUNCH), "scene:=moon")
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert res.returncode == 2 and len(lines) == 1
+    assert "scene:='moon' is not one of indoor, outdoor" in lines[0] and "sim.launch.yaml" in lines[0]
+    res = run_cli("capture", "--rig", str(REF), "--out", "x", "--camera", "usb")
+    assert res.returncode == 2 and "--camera 'usb': expected one of zed, opencv" in res.stderr
+    for args in (["launch", "--help"], ["capture", "--help"]):
+        res = run_cli(*args)
+        assert res.returncode == 0 and "Usage" in res.stdout
+
+
+def test_cli_capture_emulated_rig(tmp_path):
+    out = tmp_path / "cap"
+    res = run_cli(
+        "capture", "--rig", str(REF), "--out", str(out), "--emulate", "--duration", "1", "--scale", "0.25",
+        "--name", "c", "--port-base", str(fresh_port_base()),
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    flat = " ".join(res.stdout.split())
+    assert "stopped: recorder: recorded 1 s" in flat and f"Bag: {out / 'c_000'}" in flat
+    with open_bags(out / "c_000") as bags:
+        assert set(bags.topics()) == {UPPER, LOWER, *LIDARS, *IMUS}
+    assert "drops" in res.stderr  # the status line
