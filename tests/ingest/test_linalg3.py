@@ -13,7 +13,8 @@ def _covariances(rng: np.random.Generator, n: int) -> np.ndarray:
     scales[: n // 3, 0] *= 1e-6  # near-planar
     scales[n // 3 : n // 2, :2] *= 1e-5  # line-like: two small axes
     R = Rotation.random(n, random_state=1).as_matrix()
-    return np.einsum("nij,nj,nkj->nik", R, scales, R)
+    cov: np.ndarray = np.einsum("nij,nj,nkj->nik", R, scales, R)
+    return cov
 
 
 def test_eigenvalues_match_lapack():

@@ -30,7 +30,7 @@ def _chunks(data: bytes) -> list[tuple[bytes, bytes]]:
 
 
 RNG = np.random.default_rng(7)
-IMAGES = {
+IMAGES: dict[str, np.ndarray] = {
     "bgr": RNG.integers(0, 256, (37, 53, 3), dtype=np.uint8),
     "grey8": RNG.integers(0, 256, (20, 31), dtype=np.uint8),
     "u16": np.array([[0, 1, 255, 256], [257, 4095, 65534, 65535]], np.uint16),
