@@ -35,6 +35,7 @@ bench: setup
 	$(BIN)/python bench/bench_ingest.py
 	$(BIN)/python bench/bench_livox.py
 	$(BIN)/python bench/bench_render.py
+	$(BIN)/python bench/bench_capture.py
 
 # Regenerate the small simulated bags in tests/fixtures (deterministic: same bytes every time).
 fixtures: setup

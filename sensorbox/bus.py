@@ -130,11 +130,16 @@ class NodeStatus:
     drops: Mapping[str, int] = field(default_factory=dict)  # stage -> messages/frames/packets lost there
     written: Mapping[str, int] = field(default_factory=dict)  # recorders: messages written per topic
     files: tuple[Path, ...] = ()  # recorders: bags written or being written
+    rates_hz: Mapping[str, float] = field(default_factory=dict)  # recorders: mean rate written per topic
     error: str | None = None
 
 
 class Node(Protocol):
-    """A live node: `start()` returns once its threads run; `stop()` joins them."""
+    """A live node: `start()` returns once its threads run; `stop()` joins them.
+
+    A node may also have `graph_started()` (called once every node has started)
+    and a `done` property (sources: True once their stream ended).
+    """
 
     name: str
     priority: int
@@ -198,6 +203,7 @@ class GraphSnapshot:
     elapsed_s: float
     published: dict[str, int]  # per topic, on the bus
     written: dict[str, int]  # per topic, summed over recorders
+    rates_hz: dict[str, float]  # per topic, mean rate written (first recorder that has the topic)
     drops: dict[str, int]  # "node.stage" -> count
     nodes: dict[str, NodeStatus]
 
@@ -228,13 +234,16 @@ def snapshot(nodes: Sequence[Node], bus: Bus, elapsed_s: float) -> GraphSnapshot
         except Exception as err:  # a status bug must not stop a recording
             statuses[node.name] = NodeStatus(error=f"status() failed: {err}")
     written: dict[str, int] = {}
+    rates: dict[str, float] = {}
     drops: dict[str, int] = {}
     for name, st in statuses.items():
         for topic, n in st.written.items():
             written[topic] = written.get(topic, 0) + n
+        for topic, hz in st.rates_hz.items():
+            rates.setdefault(topic, hz)
         for stage, n in st.drops.items():
             drops[f"{name}.{stage}"] = n
-    return GraphSnapshot(elapsed_s, bus.counts(), written, drops, statuses)
+    return GraphSnapshot(elapsed_s, bus.counts(), written, rates, drops, statuses)
 
 
 def run_graph(
@@ -264,6 +273,10 @@ def run_graph(
             log.info("starting node %s", node.name)
             node.start()
             started.append(node)
+        for node in order:
+            hook = getattr(node, "graph_started", None)
+            if hook is not None:
+                hook()
         t0 = time.monotonic()
         while not shutdown.event.wait(tick_s):
             elapsed = time.monotonic() - t0

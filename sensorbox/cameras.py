@@ -15,9 +15,9 @@ counters `frames` and `dropped`):
   time, jitter and stereo offset as `sensorbox simulate` writes them). When one
   frame renders faster than half a period it is rendered live; otherwise a
   loop of frames (one for a static trajectory, whose frames are all identical)
-  is pre-rendered and replayed, stamps still advancing. A reader that falls
-  more than a period behind skips frames, counted as dropped (a real camera
-  drops them too).
+  is pre-rendered and replayed, stamps still advancing. Like a camera driver
+  with a ring of `buffer_frames` buffers (V4L2's default is 4), a reader that
+  falls further behind loses the oldest frames, counted as dropped.
 
 `StereoPairer` pairs the two cameras' frames by stamp (nearest within a
 tolerance, each frame used once, unpaired frames counted). The nodes
@@ -340,6 +340,7 @@ class SimCameraSource:
         *,
         prerender: Literal["auto", "always", "never"] = "auto",
         loop_frames: int = 30,
+        buffer_frames: int = 4,
         name: str | None = None,
     ) -> None:
         if cam not in (0, 1):
@@ -348,6 +349,7 @@ class SimCameraSource:
         self.cam = cam
         self.prerender = prerender
         self.loop_frames = max(1, int(loop_frames))
+        self.buffer_frames = max(1, int(buffer_frames))
         self.name = name or ("upper", "lower")[cam]
         self.frames = 0
         self.dropped = 0
@@ -381,8 +383,9 @@ class SimCameraSource:
         period_s = self.sim.period_ns / 1e9
         k = self._k
         late = time.monotonic() - (self._epoch + self.sim.sim_ns(k, self.cam) / 1e9)
-        if late > period_s:  # the reader fell behind: skip to the newest due frame
-            skip = int(late / period_s)
+        newer = int(late / period_s)  # frames produced since frame k
+        if newer >= self.buffer_frames:  # the ring overwrote the oldest: keep the newest buffer_frames
+            skip = newer - self.buffer_frames + 1
             self.dropped += skip
             k += skip
         due = self._epoch + self.sim.sim_ns(k, self.cam) / 1e9

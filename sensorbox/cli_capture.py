@@ -82,7 +82,8 @@ def _summary(result: GraphResult, title: str) -> None:
         table.add_column(col, justify="left" if col == "topic" else "right", overflow="fold")
     for topic in sorted(set(snap.published) | set(snap.written)):
         pub, wr = snap.published.get(topic, 0), snap.written.get(topic, 0)
-        table.add_row(topic, str(pub), str(wr), str(pub - wr), f"{wr / elapsed:.1f}")
+        rate = snap.rates_hz.get(topic, wr / elapsed)
+        table.add_row(topic, str(pub), str(wr), str(pub - wr), f"{rate:.1f}")
     console.print(table)
     drops = Table(title="Drops by stage (node.stage)")
     drops.add_column("stage")

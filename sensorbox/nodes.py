@@ -19,7 +19,7 @@
   camera): source (zed | opencv | sim), topic (~/rgb/color/rect/image), frame_id,
   image (jpeg | raw), jpeg_quality (90), fps (30); zed: serial, resolution
   (HD1200); opencv: device, width, height, fourcc, stamps, realtime; sim: camera
-  (upper | lower) + sim.
+  (upper | lower), buffer_frames (4) + sim.
 - `sensorbox/stereo_camera` (a pair by stamp): as camera, with upper_/lower_
   topic, frame_id, serial or device; pair_tolerance_ms (half a period).
 - `sensorbox/sim_camera`: stereo_camera with source sim.
@@ -222,7 +222,8 @@ class LivoxDriverNode:
 
     def status(self) -> NodeStatus:
         st = self.driver.stats()
-        counters: dict[str, float] = {"foreign": float(st.foreign)}
+        counters: dict[str, float] = {"foreign": float(st.foreign), "rcvbuf_bytes": float(st.rcvbuf_bytes),
+                                      "kernel_drops": float(st.kernel_drops)}  # fmt: skip  # part of udp_lost
         drops = {"udp_lost": 0, "udp_late": 0, "udp_malformed": 0, "imu_lost": 0}
         for ip, s in st.lidars.items():
             for key in ("sweeps", "points", "packets", "duplicates", "imu_packets"):
@@ -433,7 +434,8 @@ def _source(p: Params, kind: str, which: str, sim: Any, cam: int, name: str) -> 
             realtime=p.flag("realtime", False), name=name,
         )  # fmt: skip
     prerender = p.choice("prerender", ("auto", "always", "never"), "auto")
-    return SimCameraSource(sim, cam, prerender=prerender, loop_frames=p.integer("loop_frames", 30), name=name)  # type: ignore[arg-type]
+    loop, buffer = p.integer("loop_frames", 30), p.integer("buffer_frames", 4)
+    return SimCameraSource(sim, cam, prerender=prerender, loop_frames=loop, buffer_frames=buffer, name=name)  # type: ignore[arg-type]
 
 
 def _image_opts(p: Params) -> dict[str, Any]:
@@ -505,7 +507,7 @@ def recorder_node(ctx: NodeContext, p: Params) -> Node:
         min_free_bytes=round(p.number("min_free_mb", 1024.0) * MiB),
         compress=p.flag("compress", True), flush_s=p.number("flush_s", 1.0),
     )  # fmt: skip
-    rec = Recorder(cfg, ctx.name, ctx.shutdown)
+    rec = Recorder(cfg, ctx.name, ctx.shutdown, in_graph=True)
     rec.subscribe_to(ctx.bus, topics or None)
     return rec
 

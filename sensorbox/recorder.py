@@ -23,8 +23,10 @@ Stops: `stop()` (SIGINT/SIGTERM through the launch runner) drains the queues and
 closes the bag readable. Every `disk_check_s` the free space of OUT is checked;
 below `min_free_bytes` the recorder closes its bag, drops (and counts) what
 still arrives, and asks the graph to shut down, so the disk never fills. After
-`duration_s` of recording (counted from the first message, 0 = never) it asks
-the graph to shut down as well.
+`duration_s` of recording (0 = never) it asks the graph to shut down as well;
+with `in_graph=True` (the launch runner's recorder node) the time counts from
+when every node of the graph has started (`graph_started()`), so slow starters
+such as pre-rendering cameras are not cut short; alone, from the first message.
 
 Drop counters by stage: `queue` (queue full), `disk` (after the disk guard
 stopped recording), `write` (the writer refused a message, e.g. a type unknown
@@ -81,7 +83,7 @@ class RecorderConfig:
     topics: tuple[str, ...] = ()  # () = every topic on the bus
     split_bytes: int = 0  # start the next bag once the mcap file is this large
     split_s: float = 0.0  # start the next bag after this much receive time
-    duration_s: float = 0.0  # ask the graph to stop this long after the first message
+    duration_s: float = 0.0  # ask the graph to stop after recording this long
     queue_msgs: int = 256  # per topic
     queue_bytes: int = 512 * MiB  # per topic
     min_free_bytes: int = 1024 * MiB  # stop before the disk has less than this free
@@ -115,6 +117,13 @@ class TopicCounters:
     stopped_drops: int = 0
     queued_bytes: int = 0
     queue_peak: int = 0
+    first_ns: int = 0  # receive time of the first and last message written
+    last_ns: int = 0
+
+    def rate_hz(self) -> float:
+        """Mean rate written: (messages - 1) / (last - first receive time)."""
+        span = self.last_ns - self.first_ns
+        return (self.written - 1) * 1e9 / span if self.written > 1 and span > 0 else 0.0
 
 
 @dataclass
@@ -134,6 +143,7 @@ class Recorder:
         shutdown: Shutdown | None = None,
         disk_free: DiskFree = disk_free_bytes,
         clock_ns: Callable[[], int] = time.time_ns,
+        in_graph: bool = False,
     ) -> None:
         cfg.validate()
         self.cfg = cfg
@@ -160,6 +170,8 @@ class Recorder:
         self.disk_free = -1
         self.error: str | None = None
         self._first_write: float | None = None  # monotonic time of the first message written
+        self._graph_started: float | None = None
+        self._in_graph = in_graph
         self._duration_requested = False
 
     # ------------------------------------------------------------------ Node
@@ -190,8 +202,13 @@ class Recorder:
             self._thread.join()
             self._thread = None
 
+    def graph_started(self) -> None:
+        """Every node of the graph runs now: `duration_s` counts from here."""
+        self._graph_started = time.monotonic()
+
     def status(self) -> NodeStatus:
         with self._lock:
+            rates = {t: c.rate_hz() for t, c in self.topics.items()}
             topics = {t: (c.written, c.queue_drops, c.disk_drops, c.write_drops, c.stopped_drops, c.bytes)
                       for t, c in self.topics.items()}  # fmt: skip
             queued = sum(len(q) for q in self._queues.values())
@@ -208,7 +225,7 @@ class Recorder:
             "bags": float(len(self.files)),
         }
         return NodeStatus(
-            counters, drops, {t: v[0] for t, v in topics.items()}, tuple(self.files), self.error
+            counters, drops, {t: v[0] for t, v in topics.items()}, tuple(self.files), rates, self.error
         )
 
     # ------------------------------------------------------------------ input
@@ -316,6 +333,9 @@ class Recorder:
         bag.write(topic, recv_ns, raw)
         if self._first_write is None:
             self._first_write = time.monotonic()
+        if not c.written:
+            c.first_ns = recv_ns
+        c.last_ns = recv_ns
         c.written += 1
         c.bytes += len(raw)
 
@@ -377,7 +397,7 @@ class Recorder:
 
     def _check_duration(self, now: float) -> None:
         d = self.cfg.duration_s
-        first = self._first_write
+        first = self._graph_started if self._in_graph else self._first_write
         if d > 0 and first is not None and not self._duration_requested and now - first >= d:
             self._duration_requested = True
             if self._shutdown is not None:

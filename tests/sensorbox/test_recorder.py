@@ -22,7 +22,7 @@ from ingest.bags import BagError, open_bags
 from ingest.decode import header_stamp_ns
 from ingest.rostypes import IMU_TYPE, typestore
 from sensorbox import messages
-from sensorbox.bus import Bus, Shutdown
+from sensorbox.bus import Bus, NodeStatus, Shutdown, run_graph
 from sensorbox.recorder import Recorder, RecorderConfig, RecorderError
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -79,6 +79,7 @@ def test_round_trip_keeps_bytes_stamps_and_receive_order(tmp_path):
     assert [header_stamp_ns(m.raw, 2) for m in imu_msgs] == [5_000_000_000 + k for k in range(50)]
     st = rec.status()
     assert st.written == {"/imu": 50, "/chatter": 50} and sum(st.drops.values()) == 0
+    assert st.rates_hz == {"/imu": pytest.approx(5.0), "/chatter": pytest.approx(5.0)}  # every 200 ms
 
 
 def test_queue_overflow_is_counted_per_topic(tmp_path):
@@ -183,6 +184,30 @@ def test_duration_counts_from_the_first_message(tmp_path):
     assert sd.event.wait(2.0)
     assert 0.15 <= time.monotonic() - t0 < 1.5 and sd.reason == "recorder: recorded 0.2 s"
     rec.stop()
+
+
+def test_duration_counts_from_graph_start(tmp_path):
+    bus, sd = Bus(), Shutdown()
+    rec = Recorder(RecorderConfig(tmp_path, name="g", duration_s=0.3), shutdown=sd, in_graph=True)
+    rec.subscribe_to(bus)
+
+    class SlowSource:  # publishes at once, then takes 0.5 s more to start (a pre-rendering camera)
+        name, priority = "slow", 2
+
+        def start(self):
+            bus.publish("/chatter", STRING, 0, string_msg("early"))
+            time.sleep(0.5)
+
+        def stop(self):
+            pass
+
+        def status(self):
+            return NodeStatus()
+
+    t0 = time.monotonic()
+    res = run_graph([rec, SlowSource()], bus, sd, tick_s=0.01)
+    assert res.reason == "recorder: recorded 0.3 s"
+    assert time.monotonic() - t0 >= 0.8 and res.snapshot.elapsed_s >= 0.3
 
 
 def test_existing_bag_and_bad_config_are_errors(tmp_path):

@@ -1,0 +1,233 @@
+"""Capture soak: the emulated rig at full rate on loopback for 60 s, pinned to 2 cores.
+
+Runs launch/sim.launch.yaml in this process: two Mid-360 emulators (200k
+points/s each + 200 Hz IMU, 1380-byte UDP packets on 127.0.0.12/13), the
+SensorBox Livox driver, the simulator's two 1920x1200 cameras at 30 Hz encoded
+to jpeg (quality 90) in their reader threads, and the recorder writing zstd mcap
+to a temporary folder (deleted afterwards unless --keep).
+
+Prints markdown tables: per topic the messages sent (published on the bus),
+written, lost and the rate; the emulators' packets/points sent vs what the
+driver received; drops per stage; CPU (process, % of one core) and memory
+(peak RSS); the system load average, since other work on the same cores
+perturbs a soak. `--repeats N` repeats the run and reports medians. Writes a
+chart (rates over time, CPU and RSS over time, sent vs written) to
+out/bench/bench_capture.png or --out. Target: zero drops.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import statistics
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from itertools import pairwise
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import OUT_DIR
+
+from sensorbox.bus import GraphResult, GraphSnapshot
+from sensorbox.launch import parse_launch, run_launch
+
+ROOT = Path(__file__).resolve().parents[1]
+SIM_LAUNCH = ROOT / "launch" / "sim.launch.yaml"
+EXPECTED_HZ = {"lidar": 10.0, "imu": 200.0, "zed": 30.0}
+REPORTED_COUNTERS = ("sent", "points", "packets", "frames", "published", "encode_ms", "pairs")
+
+
+def rss_bytes() -> tuple[int, int]:
+    """(current, peak) resident set size of this process, bytes (Linux /proc)."""
+    cur = peak = 0
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            cur = int(line.split()[1]) * 1024
+        elif line.startswith("VmHWM:"):
+            peak = int(line.split()[1]) * 1024
+    return cur, peak
+
+
+@dataclass
+class Sample:
+    t_s: float
+    written: dict[str, int]
+    cpu_pct: float
+    rss: int
+
+
+@dataclass
+class Run:
+    result: GraphResult
+    samples: list[Sample] = field(default_factory=list)
+    wall_s: float = 0.0
+    cpu_s: float = 0.0
+    peak_rss: int = 0
+    load: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    bytes_on_disk: int = 0
+
+
+def soak(seconds: float, scale: float, port_base: int, out: Path) -> Run:
+    args = {"out": str(out), "duration": str(seconds), "scale": str(scale), "name": "soak",
+            "port_base": str(port_base), "image": "jpeg"}  # fmt: skip
+    plan = parse_launch(SIM_LAUNCH, args)
+    samples: list[Sample] = []
+    last = {"wall": time.monotonic(), "cpu": time.process_time()}
+
+    def tick(snap: GraphSnapshot) -> None:
+        now, cpu = time.monotonic(), time.process_time()
+        pct = 100.0 * (cpu - last["cpu"]) / max(now - last["wall"], 1e-9)
+        last["wall"], last["cpu"] = now, cpu
+        samples.append(Sample(snap.elapsed_s, dict(snap.written), pct, rss_bytes()[0]))
+        line = f"\r{snap.elapsed_s:5.1f} s  CPU {pct:5.0f} %  drops {snap.total_drops()}"
+        print(line, end="", file=sys.stderr)
+
+    t0, c0 = time.monotonic(), time.process_time()
+    result = run_launch(plan, on_tick=tick, tick_s=1.0)
+    print(file=sys.stderr)
+    wall, cpu = time.monotonic() - t0, time.process_time() - c0
+    run = Run(result, samples, wall, cpu, rss_bytes()[1], os.getloadavg())
+    run.bytes_on_disk = sum(f.stat().st_size for p in result.files for f in Path(p).rglob("*") if f.is_file())
+    return run
+
+
+def _group(topic: str) -> str:
+    for key in EXPECTED_HZ:
+        if key in topic:
+            return key
+    return "?"
+
+
+def report(runs: list[Run], seconds: float) -> str:
+    med = statistics.median
+    snaps = [r.result.snapshot for r in runs]
+    topics = sorted(set().union(*(s.published for s in snaps)))
+    lines = [
+        f"### Capture soak: {seconds:g} s, emulated rig, 2 x Mid-360 + 2 x 1920x1200 jpeg cameras"
+        f" ({len(runs)} run{'s' if len(runs) > 1 else ''}, medians)",
+        "",
+        "| topic | sent | written | lost | rate [Hz] | expected [Hz] |",
+        "|---|---:|---:|---:|---:|---:|",
+    ]
+    for t in topics:
+        sent = med([s.published.get(t, 0) for s in snaps])
+        wr = med([s.written.get(t, 0) for s in snaps])
+        rate = med([s.rates_hz.get(t, 0.0) for s in snaps])
+        expected = EXPECTED_HZ[_group(t)]
+        lines.append(f"| {t} | {sent:.0f} | {wr:.0f} | {sent - wr:.0f} | {rate:.1f} | {expected:.0f} |")
+    lines += ["", "| device / stage | value |", "|---|---:|"]
+    keys: list[str] = []
+    for s in snaps:
+        for node, st in s.nodes.items():
+            for k in st.counters:
+                if any(w in k for w in REPORTED_COUNTERS):
+                    name = f"{node}.{k}"
+                    if name not in keys:
+                        keys.append(name)
+    for name in keys:
+        node, k = name.split(".", 1)
+        vals = [s.nodes[node].counters.get(k, 0.0) for s in snaps if node in s.nodes]
+        lines.append(f"| {name} | {med(vals):.1f} |" if "ms" in k else f"| {name} | {med(vals):.0f} |")
+    lines += ["", "| drops by stage | count |", "|---|---:|"]
+    for stage in sorted(snaps[0].drops):
+        lines.append(f"| {stage} | {med([s.drops.get(stage, 0) for s in snaps]):.0f} |")
+    lines.append(f"| **total** | **{med([s.total_drops() for s in snaps]):.0f}** |")
+    cpu = med([100 * r.cpu_s / r.wall_s for r in runs])
+    peak = med([r.peak_rss for r in runs])
+    rss_rec = med([statistics.median([x.rss for x in r.samples[2:]] or [0]) for r in runs])
+    steady = med([statistics.median([x.cpu_pct for x in r.samples[2:]] or [0.0]) for r in runs])
+    lines += [
+        "", "| resource | value |", "|---|---:|",
+        f"| CPU, whole run incl. start-up (% of one core, 2 cores = 200 %) | {cpu:.0f} % |",
+        f"| CPU, recording (median of 1 s samples) | {steady:.0f} % |",
+        f"| peak RSS (start-up renders both cameras at full resolution) | {peak / 2**20:.0f} MiB |",
+        f"| RSS while recording (median of 1 s samples) | {rss_rec / 2**20:.0f} MiB |",
+        f"| written to disk | {med([r.bytes_on_disk for r in runs]) / 2**20:.0f} MiB"
+        f" ({med([r.bytes_on_disk / r.wall_s for r in runs]) / 2**20:.1f} MiB/s over the wall time) |",
+        f"| wall time (start-up + recording + stop) | {med([r.wall_s for r in runs]):.1f} s |",
+        f"| load average after the run (1/5/15 min) | {'/'.join(f'{v:.1f}' for v in runs[-1].load)} |",
+        f"| CPUs this process may use | {len(os.sched_getaffinity(0))} |",
+    ]  # fmt: skip
+    return "\n".join(lines)
+
+
+def chart(run: Run, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(17, 4.8))
+    s = run.samples
+    topics = sorted(run.result.snapshot.published)
+    ax = axes[0]
+    for t in topics:
+        rates = [
+            (b.written.get(t, 0) - a.written.get(t, 0)) / max(b.t_s - a.t_s, 1e-9) for a, b in pairwise(s)
+        ]
+        ax.plot([b.t_s for b in s[1:]], rates, label=t.replace("/rgb/color/rect/image/compressed", " jpeg"))
+    ax.set_yscale("log")
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("written [msg/s]")
+    ax.set_title("Rates written per topic")
+    ax.legend(fontsize=7)
+    ax = axes[1]
+    ax.plot([x.t_s for x in s], [x.cpu_pct for x in s], color="tab:red", label="CPU % (one core = 100)")
+    ax.axhline(200, color="tab:red", ls=":", lw=1)
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("CPU [%]")
+    ax2 = ax.twinx()
+    ax2.plot([x.t_s for x in s], [x.rss / 2**20 for x in s], color="tab:blue", label="RSS")
+    ax2.set_ylabel("RSS [MiB]")
+    ax.set_ylim(0, 210)
+    ax2.set_ylim(bottom=0)
+    ax.set_title("CPU and memory")
+    ax.legend(loc="lower left", fontsize=8)
+    ax2.legend(loc="lower right", fontsize=8)
+    ax = axes[2]
+    snap = run.result.snapshot
+    short = [t.split("/")[2] if t.startswith("/livox") else t.split("/")[1] for t in topics]
+    x = range(len(topics))
+    ax.bar([i - 0.2 for i in x], [snap.published.get(t, 0) for t in topics], 0.4, label="sent")
+    ax.bar([i + 0.2 for i in x], [snap.written.get(t, 0) for t in topics], 0.4, label="written")
+    ax.set_xticks(list(x), short, rotation=30, ha="right", fontsize=8)
+    ax.set_yscale("log")
+    ax.set_title(f"Sent vs written, drops {snap.total_drops()}")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--seconds", type=float, default=60.0, help="recording time per run")
+    ap.add_argument("--repeats", type=int, default=1, help="runs (the tables give medians)")
+    ap.add_argument("--scale", type=float, default=1.0, help="camera resolution scale (1.0 = 1920x1200)")
+    ap.add_argument("--cores", type=int, default=2, help="pin to this many CPUs (0 = do not pin)")
+    ap.add_argument("--port-base", type=int, default=46000, help="first of the nine UDP ports")
+    ap.add_argument("--out", type=Path, default=OUT_DIR / "bench_capture.png", help="chart path")
+    ap.add_argument("--keep", type=Path, default=None, help="keep the bags in this folder")
+    a = ap.parse_args()
+    if a.cores:
+        cpus = sorted(os.sched_getaffinity(0))[: a.cores]
+        os.sched_setaffinity(0, cpus)
+    runs = []
+    for k in range(a.repeats):
+        tmp = Path(tempfile.mkdtemp(prefix="bench_capture_", dir=a.keep.parent if a.keep else None))
+        try:
+            runs.append(soak(a.seconds, a.scale, a.port_base + 10 * k, tmp))
+        finally:
+            if a.keep:
+                shutil.copytree(tmp, a.keep / f"run{k}", dirs_exist_ok=True)
+            shutil.rmtree(tmp, ignore_errors=True)
+    print(report(runs, a.seconds))
+    chart(runs[-1], a.out)
+    print(f"\nchart: {a.out}")
+
+
+if __name__ == "__main__":
+    main()
