@@ -606,8 +606,8 @@ class CameraNode:
         if self.pairer is None:
             self._send(cam, frame, msgtype, raw)
             return
-        for upper, lower in self.pairer.push(cam, frame.stamp_ns, (frame, msgtype, raw)):
-            with self._publish_lock:  # upper then lower, pairs in order
+        with self._publish_lock:  # pairs leave in the order they formed: upper, lower, next pair
+            for upper, lower in self.pairer.push(cam, frame.stamp_ns, (frame, msgtype, raw)):
                 self._send(0, *upper)
                 self._send(1, *lower)
 
