@@ -39,7 +39,7 @@ from _common import OUT_DIR
 from calibration import DoubleSphere, read_rig
 from calibration.stereo import rotate_for_stereo, unrotate_from_stereo
 from calibration.virtual import R_up_cam, partner_pose, virtual_ds
-from ingest.benchmark import BenchmarkConfig, run_benchmark, single_threaded
+from ingest.benchmark import BenchmarkConfig, run_benchmark
 from ingest.dataset import DISP_SCALE, read_png_u16
 from ingest.metrics import edge_band
 from ingest.render import Rendering, RenderParams, pixel_geometry, render_view
@@ -111,7 +111,7 @@ def throughput(workers: int) -> float:
             _render_one(k)
     else:
         ctx = multiprocessing.get_context("fork")
-        with ProcessPoolExecutor(workers, mp_context=ctx, initializer=single_threaded) as pool:
+        with ProcessPoolExecutor(workers, mp_context=ctx) as pool:
             list(pool.map(_render_one, range(len(_VIEWS))))
     return len(_VIEWS) / (time.perf_counter() - t0)
 

@@ -45,7 +45,6 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 import yaml
 
@@ -360,11 +359,6 @@ def _pinhole_disparity(z_m: F32, focal_px: float) -> Callable[[float], F32]:
     return lambda b_mm: pinhole_depth_to_disparity(z_m, focal_px, b_mm / 1000.0).astype(np.float32)
 
 
-def single_threaded() -> None:
-    """Pool initializer: one OpenCV thread per worker process (the workers are the parallelism)."""
-    cv2.setNumThreads(1)
-
-
 def run_task(task: Task) -> tuple[Task, dict[str, int], int]:
     """Render one camera and write its files; returns (task, render counts, files written)."""
     s = _STATE
@@ -570,7 +564,8 @@ def run_benchmark(
         else:
             ctx = multiprocessing.get_context("fork") if "fork" in multiprocessing.get_all_start_methods() \
                 else None  # fmt: skip
-            with ProcessPoolExecutor(cfg.workers, mp_context=ctx, initializer=single_threaded) as pool:
+            # no cv2.setNumThreads in the children: reconfiguring a forked OpenCV pool deadlocks
+            with ProcessPoolExecutor(cfg.workers, mp_context=ctx) as pool:
                 pending: set[Future[tuple[Task, dict[str, int], int]]] = set()
                 queue = list(reversed(tasks))
                 while queue or pending:
