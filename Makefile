@@ -36,6 +36,8 @@ bench: setup
 	$(BIN)/python bench/bench_livox.py
 	$(BIN)/python bench/bench_render.py
 	$(BIN)/python bench/bench_capture.py
+	$(BIN)/python bench/bench_tradeoff.py
+	$(BIN)/python bench/bench_stability.py
 
 # Regenerate the small simulated bags in tests/fixtures (deterministic: same bytes every time).
 fixtures: setup

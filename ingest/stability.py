@@ -214,11 +214,35 @@ def extrinsic_range_error_m(angle_rad: float, lever_m: float) -> float:
     return abs(angle_rad) * lever_m
 
 
-def gt_gap_px(range_img: np.ndarray[Any, Any], valid_px: int | None = None) -> float:
-    """Mean spacing (px) between sparse GT pixels: sqrt(valid image pixels / GT pixels)."""
-    n = int(np.count_nonzero(np.isfinite(range_img) & (range_img > 0)))
-    total = range_img.size if valid_px is None else valid_px
-    return math.sqrt(total / max(n, 1))
+GAP_WINDOW_PX = 31  # the window in which `gt_gap_px` counts GT pixels
+RADIUS_STEP = 1.1  # radii are rounded up to a ladder of ratio 1.1: a few passes, never a smaller reach
+DIRECT_RADIUS_PX = 12  # discs up to this radius in one pass; larger ones grown from the previous rung
+
+
+def gt_gap_px(range_img: np.ndarray[Any, Any], window_px: int = GAP_WINDOW_PX) -> np.ndarray[Any, Any]:
+    """Local mean spacing (px) between sparse GT pixels: sqrt(window area / GT pixels in the window).
+
+    Far and peripheral regions are sparser than the image on average, so the
+    spacing is measured around each pixel (a `window_px` box, clipped at the
+    border; a window without GT gives the window size).
+    """
+    ok = (np.isfinite(range_img) & (range_img > 0)).astype(np.float32)
+    ones = np.ones_like(ok)
+    count = cv2.boxFilter(ok, -1, (window_px, window_px), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    area = cv2.boxFilter(ones, -1, (window_px, window_px), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    out: np.ndarray[Any, Any] = np.minimum(np.sqrt(area / np.maximum(count, 1.0)), float(window_px))
+    return out
+
+
+def _ladder(radius: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+    """Round radii (px, >= 0) up to 0, 1, 2, 3 and then steps of `RADIUS_STEP`."""
+    top = float(radius.max()) if radius.size else 0.0
+    steps = [0.0, 1.0, 2.0, 3.0]
+    while steps[-1] < top:
+        steps.append(float(math.ceil(steps[-1] * RADIUS_STEP)))
+    ladder = np.array(steps)
+    out: np.ndarray[Any, Any] = ladder[np.searchsorted(ladder, np.ceil(radius - 1e-9))]
+    return out
 
 
 def displacement_mask(
@@ -227,39 +251,58 @@ def displacement_mask(
     range_error_m: float,
     tau_abs_m: float = TAU_ABS_M,
     tau_rel: float = TAU_REL,
-    gap_px: float | None = None,
+    gap_px: float | np.ndarray[Any, Any] | None = None,
 ) -> Bool:
     """GT pixels whose value stays within max(`tau_abs_m`, `tau_rel` r) under the given displacement.
 
     `range_img` is a sparse range image (m; 0 or NaN = no GT), `displacement_px`
     the bound on how far any point may have moved in the image (a number or
     an image of per-pixel bounds, e.g. from `time_offset_displacement_px` of
-    the GT ranges), `range_error_m` the bound on its move along the ray. A
-    pixel is kept when every GT value within radius displacement + `gap_px`
-    (the sparse GT's mean spacing by default: a surface may hide between GT
-    points) differs from its own by at most the tolerance minus the range
-    error. The radius is rounded up to whole pixels and the neighbourhood is a
-    disc.
+    the GT ranges), `range_error_m` the bound on its move along the ray.
+
+    Why this suffices: the true surface point Y on a pixel's ray was moved to
+    Y' at most `displacement_px` away and at most `range_error_m` nearer or
+    farther, so |GT - truth| <= |GT(p) - GT(p')| + range error for a p' within
+    the displacement, as long as a GT sample represents Y'. A pixel is kept
+    when every GT value within radius displacement + `gap_px` (the local GT
+    spacing `gt_gap_px` by default: a surface may hide between GT samples)
+    differs from its own by at most the tolerance minus the range error.
+    Structures thinner than the GT spacing can still hide. Neighbourhoods are
+    discs whose radius is rounded up to a short ladder (one small pass per rung).
     """
     r = np.asarray(range_img, dtype=np.float32)
     ok = np.isfinite(r) & (r > 0)
-    gap = gt_gap_px(r) if gap_px is None else gap_px
+    gap = gt_gap_px(r) if gap_px is None else np.asarray(gap_px, dtype=np.float64)
     disp = np.broadcast_to(np.asarray(displacement_px, dtype=np.float64), r.shape)
-    with np.errstate(invalid="ignore"):
-        radius = np.where(ok, np.ceil(np.nan_to_num(disp, nan=np.inf, posinf=1e6) + gap), 0).astype(np.int64)
-    hi_src = np.where(ok, r, np.float32(0.0)).astype(np.float32)
-    lo_src = np.where(ok, r, np.float32(np.inf)).astype(np.float32)
+    reach = np.nan_to_num(disp, nan=1e6, posinf=1e6) + gap
+    radius = np.zeros(r.shape)
+    radius[ok] = _ladder(np.broadcast_to(reach, r.shape)[ok])
+    # up to DIRECT_RADIUS_PX one disc pass per rung; beyond, grow rung by rung: a disc of radius a
+    # dilated by one of radius b covers the disc of radius a + b (checked down to the pixel)
+    src_hi = np.where(ok, r, np.float32(0.0)).astype(np.float32)
+    src_lo = np.where(ok, r, np.float32(np.inf)).astype(np.float32)
+    hi_acc: np.ndarray[Any, Any] = src_hi
+    lo_acc: np.ndarray[Any, Any] = src_lo
     hi = np.zeros_like(r)
     lo = np.full_like(r, np.inf)
-    for rad in np.unique(radius[ok]):
-        if rad >= max(r.shape):  # the whole image is within reach
-            sel = ok & (radius == rad)
-            hi[sel], lo[sel] = hi_src[ok].max(), lo_src[ok].min()
-            continue
-        disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * int(rad) + 1, 2 * int(rad) + 1))
+    reached = 0
+    for rad in np.unique(radius[ok]).astype(int):
         sel = ok & (radius == rad)
-        hi[sel] = cv2.dilate(hi_src, disc)[sel]
-        lo[sel] = cv2.erode(lo_src, disc, borderType=cv2.BORDER_CONSTANT, borderValue=np.inf)[sel]
+        if rad >= max(r.shape):  # the whole image is within reach
+            hi[sel], lo[sel] = src_hi[ok].max(), src_lo[ok].min()
+            continue
+        step = rad if rad <= DIRECT_RADIUS_PX else rad - reached
+        base_hi, base_lo = (src_hi, src_lo) if rad <= DIRECT_RADIUS_PX else (hi_acc, lo_acc)
+        kernel: np.ndarray[Any, Any] = (
+            np.ones((3, 3), np.uint8)
+            if step == 1
+            else cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * step + 1, 2 * step + 1))
+        )
+        if step > 0:
+            hi_acc = cv2.dilate(base_hi, kernel)
+            lo_acc = cv2.erode(base_lo, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=np.inf)
+            reached = rad
+        hi[sel], lo[sel] = hi_acc[sel], lo_acc[sel]
     budget = np.maximum(tau_abs_m, tau_rel * r) - range_error_m
     with np.errstate(invalid="ignore"):
         out: Bool = ok & (hi - r <= budget) & (r - lo <= budget)

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import csv
 import io
+import itertools
 import math
 import shutil
 import statistics
@@ -93,10 +94,14 @@ class Alternative:
 
 ALTERNATIVES: tuple[Alternative, ...] = (
     Alternative("default", "default"),
+    Alternative("default, run again", "control"),  # A/A: how far timing noise alone moves a point
     Alternative("occlusion filter off", "occlusion", gt=(("occlusion", False),)),
     Alternative("occlusion window 1/3", "occlusion", gt=(("window_rad", 0.006), ("window_spacings", 0.67))),
     Alternative("occlusion window 2x", "occlusion", gt=(("window_rad", 0.036), ("window_spacings", 4.0))),
     Alternative("z-buffer order flipped", "occlusion", gt=(("zbuffer", "farthest"),)),
+    Alternative(
+        "filter off, z-buffer flipped", "occlusion", gt=(("occlusion", False), ("zbuffer", "farthest"))
+    ),
     Alternative("motion: rotation only", "motion", sample=(("motion", "rotation"),)),
     Alternative("motion compensation off", "motion", sample=(("motion", "off"),)),
     Alternative("equirect 0.5x", "resolution", height_scale=0.5),
@@ -162,16 +167,22 @@ class Measurement:
     bytes_written: int
     wall_s: float
     out: Path | None = None
+    groups: tuple[int, ...] = ()  # samples per bag when pooled over bags
 
     @property
     def samples(self) -> int:
         return len(self.sample_ms)
 
     def row(self) -> dict[str, Any]:
-        """Summary: median ms per sample (one worker) and its inverse, median of the per-sample
-        median errors, pixel-pooled outlier shares, bytes per sample, and the median of every stage."""
+        """Summary row: ms per sample and samples/s, median errors, outlier shares, size, stage medians.
+
+        Times: the median over samples (one worker); errors: the median of the
+        per-sample medians; pooled over bags, both are the mean of the bags'
+        medians (a bag's samples are alike, two bags' are not). Outlier shares
+        pool the pixels; kB per sample of the written images and GT.
+        """
         n = max(self.samples, 1)
-        ms = statistics.median(self.sample_ms) if self.sample_ms else math.nan
+        ms = self._median_over_bags(self.sample_ms)
         return {
             "alternative": self.alternative,
             "family": self.family,
@@ -180,13 +191,20 @@ class Measurement:
             "samples_per_s": 1000.0 / ms if ms > 0 else math.nan,
             "ms_per_sample": ms,
             "wall_samples_per_s": self.samples / self.wall_s if self.wall_s > 0 else math.nan,
-            "depth_median_mm": _median(self.depth_median_m) * 1e3,
+            "depth_median_mm": self._median_over_bags(self.depth_median_m) * 1e3,
             "depth_outlier_pct": 100.0 * sum(self.depth_outliers) / max(sum(self.depth_pixels), 1),
-            "disp_median_px": _median(self.disp_median_px),
+            "disp_median_px": self._median_over_bags(self.disp_median_px),
             "disp_over_1px_pct": 100.0 * sum(self.disp_over_1px) / max(sum(self.disp_pixels), 1),
             "kb_per_sample": self.bytes_written / n / 1024.0,
             **{f"{k}_ms": _median(v) for k, v in sorted(self.stage_ms.items())},
         }
+
+    def _median_over_bags(self, per_sample: Sequence[float]) -> float:
+        """Median over samples; pooled over bags, the mean of the bags' medians (each bag counts once)."""
+        if len(self.groups) < 2:
+            return _median(per_sample)
+        edges = np.cumsum((0, *self.groups)).tolist()
+        return float(np.mean([_median(per_sample[a:b]) for a, b in itertools.pairwise(edges)]))
 
     def with_repeats(self, repeats: Sequence[Measurement]) -> Measurement:
         """This measurement with each sample's (and stage's) time the median over itself and `repeats`.
@@ -230,6 +248,7 @@ def pool(measurements: Sequence[Measurement], bag: str = "all") -> list[Measurem
                 sum((m.depth_outliers for m in ms), ()), sum((m.disp_median_px for m in ms), ()),
                 sum((m.disp_pixels for m in ms), ()), sum((m.disp_over_1px for m in ms), ()),
                 sum(m.bytes_written for m in ms), sum(m.wall_s for m in ms),
+                groups=tuple(len(m.depth_median_m) for m in ms),
             )
         )  # fmt: skip
     return out
@@ -257,9 +276,9 @@ def measure(
     m = Measurement(
         alternative.name, alternative.family, bag.name, per_sample, stage_ms,
         tuple(s.depth_median_abs_m for s in scores), tuple(s.depth_pixels for s in scores),
-        tuple(s.depth_outlier_rate * s.depth_pixels for s in scores),
+        tuple(s.depth_outlier_rate * s.depth_pixels if s.depth_pixels else 0.0 for s in scores),
         tuple(s.disp_median_abs_px for s in scores), tuple(s.disp_pixels for s in scores),
-        tuple(s.disp_over_1px_rate * s.disp_pixels for s in scores), written, wall,
+        tuple(s.disp_over_1px_rate * s.disp_pixels if s.disp_pixels else 0.0 for s in scores), written, wall,
         cfg.out if keep else None,
     )  # fmt: skip
     if not keep:

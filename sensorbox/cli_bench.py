@@ -34,8 +34,8 @@ if TYPE_CHECKING:
 
 progress_console = Console(stderr=True)
 FAMILY_COLORS = {
-    "default": "black", "occlusion": "tab:red", "motion": "tab:blue", "resolution": "tab:green",
-    "interpolation": "tab:purple", "encoder": "tab:orange",
+    "default": "black", "control": "tab:gray", "occlusion": "tab:red", "motion": "tab:blue",
+    "resolution": "tab:green", "interpolation": "tab:purple", "encoder": "tab:orange",
 }  # fmt: skip
 
 
@@ -89,7 +89,8 @@ def run_bench(
     result = BenchResult(measurements, pooled)
     rows = [m.row() for m in measurements] + [m.row() for m in pooled]
     result.files.append(write_csv(out / "bench_tradeoff.csv", rows))
-    result.files.append(plot_tradeoff(pooled, out / "bench_tradeoff.png", _title(bags, truths)))
+    per_bag = [(bag.name, [m for m in measurements if m.bag == bag.name]) for bag in bags]
+    result.files.append(plot_tradeoff(per_bag, out / "bench_tradeoff.png", _title(bags, truths)))
     kept = [m for m in measurements if m.out is not None]
     if projection and kept:
         if progress is not None:
@@ -190,54 +191,66 @@ def projection_table(results: Sequence[ProjectionResult]) -> str:
     return "\n".join(lines)
 
 
-def plot_tradeoff(pooled: Sequence[Measurement], path: Path, subtitle: str = "") -> Path:
-    """Samples/s against median depth error and outlier share; the Pareto front as a step line."""
+def plot_tradeoff(
+    groups: Sequence[tuple[str, Sequence[Measurement]]], path: Path, subtitle: str = ""
+) -> Path:
+    """Per bag (a row each): samples/s against median depth error and outlier share, with the Pareto front."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
-    rows = [m.row() for m in pooled]
-    front_mm, front_out = fronts(pooled)
-    speed = [r["samples_per_s"] for r in rows]
-    fig, axes = plt.subplots(1, 3, figsize=(17, 6), constrained_layout=True, width_ratios=[1, 1, 0.42])
-    panels = (
-        ("depth_median_mm", "median |depth error| vs truth [mm]", front_mm),
-        ("depth_outlier_pct", "depth outliers, |e| > max(5 cm, 3 %) [%]", front_out),
+    n = len(groups)
+    fig, axes = plt.subplots(
+        n, 3, figsize=(17, 5 * n + 0.6), constrained_layout=True, width_ratios=[1, 1, 0.4], squeeze=False
     )
-    for ax, (key, label, front) in zip(axes[:2], panels, strict=True):
-        err = [r[key] for r in rows]
-        seen: set[str] = set()
-        for k, (r, s, e) in enumerate(zip(rows, speed, err, strict=True)):
-            fam = r["family"]
-            ax.scatter(s, e, s=60, color=FAMILY_COLORS.get(fam, "grey"), edgecolor="k", linewidth=0.5,
-                       zorder=3, label=None if fam in seen else fam)  # fmt: skip
-            seen.add(fam)
-            # numbers, not names: alternatives that tie on accuracy sit on one line
-            ax.annotate(str(k + 1), (s, e), textcoords="offset points", xytext=(4, 4 + 7 * (k % 3)),
-                        fontsize=8)  # fmt: skip
-        pts = sorted((s, e) for s, e, f in zip(speed, err, front, strict=True) if f)
-        if pts:
-            xs, ys = zip(*pts, strict=True)
-            ax.step(xs, ys, where="post", color="k", lw=1, ls="--", zorder=2, label="Pareto front")
-            ax.scatter(xs, ys, s=180, facecolor="none", edgecolor="k", lw=1.2, zorder=4)
-        positive = [e for e in err if e > 0 and math.isfinite(e)]
-        if positive and max(positive) / min(positive) > 20:
-            ax.set_yscale("log")
-        ax.set_xlabel("samples/s (one worker; median of per-sample stage times)")
-        ax.set_ylabel(label)
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=8, loc="best")
-    key_ax = axes[2]
-    key_ax.axis("off")
-    lines = [f"{k + 1:>2}  {r['alternative']}" for k, r in enumerate(rows)]
-    key_ax.text(0.0, 1.0, "\n".join(lines), va="top", ha="left", family="monospace", fontsize=9,
-                transform=key_ax.transAxes)  # fmt: skip
+    plain = FuncFormatter(lambda v, _: f"{v:g}")
+    for axrow, (bag, measurements) in zip(axes, groups, strict=True):
+        rows = [m.row() for m in measurements]
+        front_mm, front_out = fronts(measurements)
+        speed = [r["samples_per_s"] for r in rows]
+        panels = (
+            ("depth_median_mm", "median |depth error| vs truth [mm]", front_mm),
+            ("depth_outlier_pct", "outliers, |e| > max(5 cm, 3 %) [%]", front_out),
+        )
+        for ax, (key, label, front) in zip(axrow[:2], panels, strict=True):
+            err = [r[key] for r in rows]
+            seen: set[str] = set()
+            for k, (r, x, e) in enumerate(zip(rows, speed, err, strict=True)):
+                fam = r["family"]
+                ax.scatter(x, e, s=60, color=FAMILY_COLORS.get(fam, "grey"), edgecolor="k", linewidth=0.5,
+                           zorder=3, label=None if fam in seen else fam)  # fmt: skip
+                seen.add(fam)
+                # numbers, not names: alternatives that tie on accuracy sit on one line
+                ax.annotate(str(k + 1), (x, e), textcoords="offset points", xytext=(4, 4 + 7 * (k % 3)),
+                            fontsize=8)  # fmt: skip
+            pts = sorted((x, e) for x, e, f in zip(speed, err, front, strict=True) if f)
+            if pts:
+                xs, ys = zip(*pts, strict=True)
+                # the best error still reachable at this speed or faster: a staircase up and to the right
+                ax.step(xs, ys, where="pre", color="k", lw=1, ls="--", zorder=2, label="Pareto front")
+                ax.scatter(xs, ys, s=180, facecolor="none", edgecolor="k", lw=1.2, zorder=4)
+            positive = [e for e in err if e > 0 and math.isfinite(e)]
+            if positive and max(positive) / min(positive) > 20:
+                ax.set_yscale("log")
+                ax.yaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
+                ax.yaxis.set_major_formatter(plain)
+                ax.yaxis.set_minor_formatter(NullFormatter())
+            ax.set_xlabel("samples/s (one worker; median of per-sample stage times)")
+            ax.set_ylabel(label)
+            ax.set_title(bag, fontsize=10)
+            ax.grid(alpha=0.3, which="both")
+            ax.legend(fontsize=8, loc="best")
+        axrow[2].axis("off")
+    lines = [f"{k + 1:>2}  {m.alternative}" for k, m in enumerate(groups[0][1])]
+    axes[0][2].text(0.0, 1.0, "\n".join(lines), va="top", ha="left", family="monospace", fontsize=9,
+                    transform=axes[0][2].transAxes)  # fmt: skip
     fig.suptitle(
         f"Ingest alternatives: speed vs GT accuracy (better: right and down)\n{subtitle}", fontsize=11
     )
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=100)
     plt.close(fig)
     return path
 
@@ -250,7 +263,7 @@ def plot_projection(results: Sequence[ProjectionResult], path: Path) -> Path:
     import matplotlib.pyplot as plt
     import numpy as np
 
-    fig, axes = plt.subplots(len(results), 2, figsize=(15, 3.2 * len(results)), constrained_layout=True,
+    fig, axes = plt.subplots(len(results), 2, figsize=(14, 3.0 * len(results)), constrained_layout=True,
                              gridspec_kw={"width_ratios": [1, 1]})  # fmt: skip
     axes = np.atleast_2d(axes)
     cmap = plt.get_cmap("magma").with_extremes(bad="0.8")
@@ -264,7 +277,8 @@ def plot_projection(results: Sequence[ProjectionResult], path: Path) -> Path:
                                   for a in (image, err, stable))  # fmt: skip
         visible = np.any(image > 0, axis=(0, 2)) if image.ndim == 3 else np.ones(image.shape[1], bool)
         cols = slice(int(np.argmax(visible)), int(len(visible) - np.argmax(visible[::-1])))
-        row[0].imshow(image[:, cols, ::-1])
+        grey = image[:, cols] @ np.array([0.114, 0.587, 0.299]) if image.ndim == 3 else image[:, cols]
+        row[0].imshow(grey, cmap="gray", vmin=0, vmax=255)  # grey keeps the committed chart small
         r = res.row()
         row[0].set_title(f"{res.name}: {r['pixels']} px, EPE {r['epe_px']:.3f} px, "
                          f"bad-1 {r['bad1_pct']:.2f} %", fontsize=9)  # fmt: skip
@@ -277,7 +291,7 @@ def plot_projection(results: Sequence[ProjectionResult], path: Path) -> Path:
             ax.set_xticks([])
             ax.set_yticks([])
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=90)
+    fig.savefig(path, dpi=64)
     plt.close(fig)
     return path
 
@@ -309,10 +323,11 @@ def bench_cmd(
 ) -> None:
     """Speed vs accuracy of the ingest pipeline's alternatives on simulated bags with exact truth.
 
-    Alternatives: occlusion filter off / window sizes / z-buffer order flipped,
-    motion compensation off / rotation only, equirect resolution, image
-    interpolation, PNG level. Prints markdown tables, writes
-    bench_tradeoff.csv/.png (Pareto front) and bench_projection.csv/.png.
+    Alternatives: occlusion filter off / window sizes / z-buffer order
+    flipped, motion compensation off / rotation only, equirect resolution,
+    image interpolation, PNG level, and the default run again (an A/A control:
+    how far timing noise alone moves a point). Prints markdown tables and
+    writes bench_tradeoff.csv/.png (Pareto front) and bench_projection.csv/.png.
     """
     from ingest.tradeoff import ALTERNATIVES, QUICK, select
 

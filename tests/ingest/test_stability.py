@@ -333,3 +333,17 @@ def test_displacement_mask_rejects_everything_when_the_range_error_alone_is_too_
     step[5:15, 10:15] = 2.0
     keep = displacement_mask(step, 2.0, 0.0, gap_px=0.0)
     assert not keep[5:15, 8:12].any() and keep[5:15, 5:8].all() and keep[5:15, 12:15].all()
+
+
+def test_displacement_mask_reaches_the_whole_disc_and_little_more() -> None:
+    """One near GT pixel amid far ones: every far pixel within the reach sees it, none far beyond does."""
+    size, c = 161, 80
+    gt = np.full((size, size), 5.0, np.float32)
+    gt[c, c] = 1.0
+    dy, dx = np.mgrid[-c : size - c, -c : size - c]
+    dist = np.hypot(dx, dy)
+    for reach in (2.0, 7.5, 30.0, 61.0):
+        keep = displacement_mask(gt, reach, 0.0, gap_px=0.0)
+        assert not keep[c, c]
+        assert not keep[(dist <= reach)].any()  # the rounded-up ladder never falls short
+        assert keep[dist > 1.1 * reach + 2.5].all()  # and adds at most one rung and a pixel

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -109,6 +110,12 @@ def test_repeats_take_each_samples_median_and_pooling_concatenates() -> None:
         ("y", (5.0,), "all"),
     ]
     assert both[0].stage_ms["a"] == (1.0, 3.0, 4.0)
+    # pooled over bags, the median error is the mean of the bags' medians: a static bag's many
+    # samples must not hide a walk's larger error
+    a = replace(_m("x", (1.0,)), depth_median_m=(0.001,))
+    b = replace(_m("x", (2.0, 3.0)), depth_median_m=(0.010, 0.020))
+    row = pool([a, b])[0].row()
+    assert row["depth_median_mm"] == pytest.approx((1.0 + 15.0) / 2) and row["ms_per_sample"] == 1.75
 
 
 @pytest.fixture(scope="module")
