@@ -65,7 +65,9 @@ def test_rodrigues_and_angles_match_scipy():
 
 def test_gyro_track_relative_equals_scipy_slerp():
     rng = np.random.default_rng(3)
-    stamps = np.arange(0, 100_000_000, 5_000_000, dtype=np.int64) + 1_000_000_000  # exact as float64 for scipy
+    stamps = (
+        np.arange(0, 100_000_000, 5_000_000, dtype=np.int64) + 1_000_000_000
+    )  # exact as float64 for scipy
     gyro = rng.normal(scale=1.5, size=(len(stamps), 3))  # rad/s, a shaky hand
     R_cam0_imu = Rotation.from_euler("xyz", [10, -20, 30], degrees=True).as_matrix()
     track = integrate_gyro(stamps, gyro, R_cam0_imu)
