@@ -60,6 +60,7 @@ def write_atomic(path: Path, data: bytes) -> None:
     """Write `data` to `path` via a temporary file in the same folder and an atomic rename."""
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
+        os.fchmod(fd, 0o644)  # mkstemp makes 0600; a dataset must be readable by its users
         with os.fdopen(fd, "wb") as f:
             f.write(data)
         Path(tmp).replace(path)
