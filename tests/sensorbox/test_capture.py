@@ -178,3 +178,18 @@ def test_cli_capture_emulated_rig(tmp_path):
     with open_bags(out / "c_000") as bags:
         assert set(bags.topics()) == {UPPER, LOWER, *LIDARS, *IMUS}
     assert "drops" in res.stderr  # the status line
+
+
+def test_status_line_rates_drops_and_disk():
+    from sensorbox.bus import GraphSnapshot, NodeStatus
+    from sensorbox.cli_capture import status_line
+
+    imu, cam = "/livox/imu_192_168_1_12", UPPER
+    prev = GraphSnapshot(1.0, {imu: 200, cam: 30}, {imu: 200, cam: 30}, {}, {}, {})
+    rec = NodeStatus({"bytes_written": 3 * 2**20, "disk_free_bytes": 5 * 2**30})
+    now = GraphSnapshot(3.0, {imu: 600, cam: 92}, {imu: 600, cam: 90}, {}, {"rec.queue": 2, "drv.udp_lost": 0},
+                        {"rec": rec})  # fmt: skip
+    assert status_line(prev, now) == (
+        "   3.0 s  imu_192_168_1_12 200.0 | zed_upper 30.0 msg/s  drops queue 2  3.0 MiB written  5.0 GiB free"
+    )
+    assert status_line(None, GraphSnapshot(0.5, {}, {}, {}, {}, {})) == "   0.5 s  no messages yet  drops 0"
