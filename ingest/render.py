@@ -57,6 +57,7 @@ from ingest.render_lod import ScanIndex, select
 from ingest.scans import F32, U8
 
 I64 = np.ndarray[Any, np.dtype[np.int64]]
+I16 = np.ndarray[Any, np.dtype[np.int16]]
 RANGE_QUANTUM_M = 1e-4  # z-buffer key resolution
 _IDX_BITS = 28  # points per buffer per view < 2^28
 _Q_MAX = (1 << 25) - 1  # ranges up to 3.3 km
@@ -65,6 +66,10 @@ _Q_MAX = (1 << 25) - 1  # ranges up to 3.3 km
 _KEY_BASE = 0x3FF0_0000_0000_0000
 _EMPTY = 0x7FF0_0000_0000_0000
 PPR_STRIDE = 8  # coarse pixels-per-radian map: one node every 8 pixels
+# Oversampled corners of an image (a Cassini's or equirect's poles) get no more points per solid
+# angle than this many times the image's median resolution: there splats close the surface, and
+# a 195-degree Cassini window stays at ~2 points per pixel instead of drawing the whole scan.
+LOD_PPR_CAP = 2.0
 
 
 @dataclass(frozen=True)
@@ -103,10 +108,11 @@ class PixelGeometry:
     ppr_v: F32
     stride: int
     ppr_max: float
+    ppr_lod_cap: float  # level of detail stops adding points beyond this resolution (pixels per radian)
 
     @property
-    def coarse(self) -> tuple[F32, F32, int, float]:
-        return self.ppr_u, self.ppr_v, self.stride, self.ppr_max
+    def coarse(self) -> tuple[F32, F32, int, float, float]:
+        return self.ppr_u, self.ppr_v, self.stride, self.ppr_max, self.ppr_lod_cap
 
     @cached_property
     def ppr(self) -> F32:
@@ -134,7 +140,9 @@ def pixel_geometry(model: CameraModel) -> PixelGeometry:
     both = np.stack(maps)
     ppr_max = float(np.nanmax(both)) if np.isfinite(both).any() else 1.0
     ppr_u, ppr_v = (np.nan_to_num(m, nan=ppr_max).astype(np.float32) for m in maps)
-    return PixelGeometry(valid, ppr_u, ppr_v, s, ppr_max)
+    mean = np.sqrt(both[0] * both[1])
+    typical = float(np.nanmedian(mean)) if np.isfinite(mean).any() else ppr_max
+    return PixelGeometry(valid, ppr_u, ppr_v, s, ppr_max, LOD_PPR_CAP * typical)
 
 
 @dataclass(frozen=True, eq=False)
@@ -164,8 +172,8 @@ class _Points:
     u: F32
     v: F32
     r: F32
-    ku: I64
-    kv: I64
+    ku: I16
+    kv: I16
     rgb: U8
     masked: Bool
 
@@ -197,16 +205,33 @@ def _points_in_view(
     cu, cv = col_i // geo.stride, row_i // geo.stride
     K = params.max_splat_px
     # half-widths rounded to whole pixels: a spacing of 0.7 px already needs its neighbours covered
-    ku = np.minimum(K, (params.splat_scale * foot * geo.ppr_u[cv, cu] + 0.5).astype(np.int64))
-    kv = np.minimum(K, (params.splat_scale * foot * geo.ppr_v[cv, cu] + 0.5).astype(np.int64))
+    ku = np.minimum(K, params.splat_scale * foot * geo.ppr_u[cv, cu] + 0.5).astype(np.int16)
+    kv = np.minimum(K, params.splat_scale * foot * geo.ppr_v[cv, cu] + 0.5).astype(np.int16)
     return row_i * model.width + col_i, u[keep], v[keep], r_k, ku, kv, keep
 
 
+def _coarse_mask(mask: Bool, stride: int) -> Bool:
+    """Cells of ``stride`` x ``stride`` pixels holding any True pixel, grown by one cell."""
+    H, W = mask.shape
+    hp, wp = -(-H // stride) * stride, -(-W // stride) * stride
+    padded = np.zeros((hp, wp), bool)
+    padded[:H, :W] = mask
+    cells = np.asarray(padded.reshape(hp // stride, stride, wp // stride, stride).any(axis=(1, 3)), np.uint8)
+    out: Bool = cv2.dilate(cells, np.ones((3, 3), np.uint8)) > 0
+    return out
+
+
 def _gather(
-    sources: list[ScanIndex], model: CameraModel, geo: PixelGeometry, T_world_cam: F64, params: RenderParams
+    sources: list[ScanIndex],
+    model: CameraModel,
+    geo: PixelGeometry,
+    T_world_cam: F64,
+    params: RenderParams,
+    pixel_mask: Bool | None = None,
 ) -> tuple[_Points, _Points, dict[str, int]]:
     """Selected points of every scan, and every mask point, in the camera."""
     T_cam_world = invert(T_world_cam)
+    coarse = None if pixel_mask is None else _coarse_mask(pixel_mask, geo.stride)
     parts: list[tuple[Any, ...]] = []
     mask_parts: list[tuple[Any, ...]] = []
     stats = {"points_total": 0, "points_touched": 0, "points_in_image": 0}
@@ -214,7 +239,7 @@ def _gather(
         T_cam_scan = T_cam_world @ src.T_world_scan
         stats["points_total"] += src.n_points
         if params.frustum_culling:
-            sel = select(src, model, T_cam_scan, geo.coarse, params.points_per_px)
+            sel = select(src, model, T_cam_scan, geo.coarse, params.points_per_px, coarse)
             idx, sp = sel.idx, sel.spacing_rad
             xyz = src.xyz[idx]
         else:  # the naive baseline: every point, with its bucket's spacing
@@ -239,8 +264,8 @@ def _gather(
 
 def _concat(parts: list[tuple[Any, ...]]) -> _Points:
     if not parts:
-        f, i = np.zeros(0, np.float32), np.zeros(0, np.int64)
-        return _Points(i, f, f, f, i, i, np.zeros((0, 3), np.uint8), np.zeros(0, bool))
+        f, i, k = np.zeros(0, np.float32), np.zeros(0, np.int64), np.zeros(0, np.int16)
+        return _Points(i, f, f, f, k, k, np.zeros((0, 3), np.uint8), np.zeros(0, bool))
     if len(parts) == 1:
         return _Points(*parts[0])
     return _Points(*(np.concatenate([p[k] for p in parts]) for k in range(8)))
@@ -486,7 +511,7 @@ def render_view(
     H, W = model.height, model.width
     geo = pixel_geometry(model)
     ppr = geo.ppr
-    pts, mask_pts, stats = _gather(sources, model, geo, T_world_cam, params)
+    pts, mask_pts, stats = _gather(sources, model, geo, T_world_cam, params, pixel_mask)
     own_key, splat_key = _zbuffer(pts, H, W)
     own_ok, own_i = _winner(own_key)
     surface, splat_i = _winner(splat_key)

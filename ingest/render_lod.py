@@ -157,15 +157,19 @@ def select(
     index: ScanIndex,
     model: CameraModel,
     T_cam_scan: F64,
-    ppr: tuple[F32, F32, int, float],
+    ppr: tuple[F32, F32, int, float, float],
     points_per_px: float | None,
+    coarse_mask: Bool | None = None,
 ) -> Selection:
     """The points of ``index`` a view of ``model`` at ``T_cam_scan`` needs (``None`` density = all).
 
     ``ppr`` is the camera's coarse pixels-per-radian maps (along u, along v),
-    their stride and maximum (`ingest.render.pixel_geometry`).
+    their stride, maximum and the cap of the level of detail
+    (`ingest.render.PixelGeometry.coarse`). ``coarse_mask`` (one cell per
+    stride x stride pixels, already grown by a cell) drops voxels that land
+    only where the view draws nothing.
     """
-    ppr_u, ppr_v, stride, ppr_max = ppr
+    ppr_u, ppr_v, stride, ppr_max, ppr_cap = ppr
     R, t = T_cam_scan[:3, :3], T_cam_scan[:3, 3]
     c = index.voxel_centre.astype(np.float64)
     c_cam = np.einsum("ij,nj->ni", R, c) + t
@@ -181,6 +185,11 @@ def select(
             & (uv[:, 1] >= -0.5 - margin)
             & (uv[:, 1] <= model.height - 0.5 + margin)
         )
+    if coarse_mask is not None:  # small voxels whose centre cell is outside the drawn area
+        small = inside & (margin < stride)
+        cu = np.clip((np.nan_to_num(uv[:, 0]) + 0.5) // stride, 0, coarse_mask.shape[1] - 1).astype(np.int64)
+        cv = np.clip((np.nan_to_num(uv[:, 1]) + 0.5) // stride, 0, coarse_mask.shape[0] - 1).astype(np.int64)
+        inside &= ~small | coarse_mask[cv, cu]
     # a near voxel spans many pixels: its centre may miss the image while a corner is in it
     near = ang > NEAR_VOXEL_RAD
     centre_in = inside.copy()
@@ -202,7 +211,7 @@ def select(
         col = np.clip((u + 0.5) // stride, 0, ppr_u.shape[1] - 1).astype(np.int64)
         row = np.clip((v + 0.5) // stride, 0, ppr_u.shape[0] - 1).astype(np.int64)
         p = np.sqrt(ppr_u[row, col].astype(np.float64) * ppr_v[row, col])
-        p = np.where(centre_in[keep], p, ppr_max)
+        p = np.minimum(np.where(centre_in[keep], p, ppr_max), ppr_cap)
         r_scan = np.sqrt(np.einsum("ij,ij->i", c[keep], c[keep]))
         sp_px = sp * r_scan / np.maximum(r_cam[keep], 1e-9) * p
         frac = np.minimum(1.0, sp_px * sp_px * points_per_px)
