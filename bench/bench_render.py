@@ -296,7 +296,7 @@ def chart(
         )
         b.set_xticks(x, names, rotation=90, fontsize=6)
         b.set_ylabel("holes [% of pixels]")
-        b.set_title("holes: central scan alone (orange) vs bundle of three (green)")
+        b.set_title("holes: 1 scan (orange) vs bundle of 3 (green)")
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=120)
