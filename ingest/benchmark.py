@@ -558,12 +558,12 @@ def run_benchmark(
             progress(done, len(tasks))
 
     try:
-        if cfg.workers == 1 or len(tasks) <= 1:
+        # workers share the scans' index by fork; without fork (Windows) the run stays in this process
+        if cfg.workers == 1 or len(tasks) <= 1 or "fork" not in multiprocessing.get_all_start_methods():
             for t in tasks:
                 finished(*run_task(t))
         else:
-            ctx = multiprocessing.get_context("fork") if "fork" in multiprocessing.get_all_start_methods() \
-                else None  # fmt: skip
+            ctx = multiprocessing.get_context("fork")
             # no cv2.setNumThreads in the children: reconfiguring a forked OpenCV pool deadlocks
             with ProcessPoolExecutor(cfg.workers, mp_context=ctx) as pool:
                 pending: set[Future[tuple[Task, dict[str, int], int]]] = set()
