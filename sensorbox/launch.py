@@ -186,35 +186,26 @@ def _parse_subst(text: str, pos: int, where: str) -> tuple[_Sub, int]:
                 sub, i = _parse_subst(text, i, where)
                 arg.append(sub)
             elif text[i] in "'\"":
-                quote, i = text[i], i + 1
-                lit = ""
-                while True:
-                    if i >= len(text):
-                        raise LaunchError(f"{where}: unclosed quote in substitution {text!r}")
-                    if text[i] == quote:
-                        i += 1
-                        break
-                    if text.startswith("$(", i):
-                        if lit:
-                            arg.append(lit)
-                            lit = ""
-                        sub, i = _parse_subst(text, i, where)
-                        arg.append(sub)
-                    else:
-                        lit += text[i]
-                        i += 1
-                arg.append(lit)
+                quoted, i = _scan(text, i + 1, where, stop=text[i])
+                arg.extend(quoted or [""])
             else:
                 arg.append(text[i])
                 i += 1
         args.append(arg)
 
 
-def _parse_text(text: str, where: str) -> list[str | _Sub]:
+def _scan(text: str, i: int, where: str, stop: str | None) -> tuple[list[str | _Sub], int]:
+    """Literals and substitutions from text[i] up to the closing `stop` character (or the end)."""
     parts: list[str | _Sub] = []
-    i = 0
     lit = ""
-    while i < len(text):
+    while True:
+        if i >= len(text):
+            if stop is not None:
+                raise LaunchError(f"{where}: unclosed quote in substitution {text!r}")
+            break
+        if text[i] == stop:
+            i += 1
+            break
         if text.startswith("$(", i):
             if lit:
                 parts.append(lit)
@@ -226,7 +217,11 @@ def _parse_text(text: str, where: str) -> list[str | _Sub]:
             i += 1
     if lit:
         parts.append(lit)
-    return parts
+    return parts, i
+
+
+def _parse_text(text: str, where: str) -> list[str | _Sub]:
+    return _scan(text, 0, where, stop=None)[0]
 
 
 _BINOPS: dict[type, Callable[[Any, Any], Any]] = {
