@@ -9,6 +9,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.figure import Figure
 
 from calibration.report import RigReport
 from calibration.rig import Rig
@@ -18,6 +19,15 @@ from calibration.types import F64
 _R_VIEW_CAM0 = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 _COLORS = {"camera": "tab:blue", "lidar": "tab:red", "imu": "tab:green"}
 LIDAR_VFOV_DEG = (-7.0, 52.0)
+
+
+def _save(fig: Figure, path: str | Path, dpi: int) -> Path:
+    """Write a figure (creating its folder), close it, return the path."""
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=dpi)
+    plt.close(fig)
+    return out
 
 
 def _fov_rays_camera(rig: Rig, name: str, n: int = 181) -> tuple[F64, F64]:
@@ -87,11 +97,7 @@ def plot_rig(rig: Rig, report: RigReport, path: str | Path, cone_m: float = 0.15
     base = f", baseline {report.baseline_m * 1000:.1f} mm" if report.baseline_m else ""
     fig.suptitle(f"Rig '{report.name}'{base}  (axes: x red, y green, z blue; cones = FOV)")
     fig.tight_layout()
-    out = Path(path)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
-    return out
+    return _save(fig, path, dpi=110)
 
 
 def plot_sample(dataset_dir: Path, sid: str, out: Path) -> Path:
@@ -155,11 +161,7 @@ def plot_heatmap(hm: Heatmap, path: str | Path, title: str) -> Path:
     fig.colorbar(im, ax=ax, label=f"{hm.metric}{' [%]' if percent else ''}")
     ax.set_title(title)
     fig.tight_layout()
-    out = Path(path)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
-    return out
+    return _save(fig, path, dpi=110)
 
 
 def plot_stats(stats: DatasetStats, path: str | Path) -> Path:
@@ -181,11 +183,7 @@ def plot_stats(stats: DatasetStats, path: str | Path) -> Path:
     axes[2].set_title(f"texture (mean {stats.entropy_mean_bits:.3f} bits)")
     fig.suptitle(f"{stats.dataset} ({stats.layout} layout, {len(stats.samples)} samples)")
     fig.tight_layout()
-    out = Path(path)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=100)
-    plt.close(fig)
-    return out
+    return _save(fig, path, dpi=100)
 
 
 if typing.TYPE_CHECKING:
