@@ -58,10 +58,11 @@ def test_sim_launch_records_a_bag_that_ingests_into_a_dataset(tmp_path):
     result = run_launch(parse_launch(SIM_LAUNCH, args), tick_s=0.1)
     assert result.error is None and result.reason == "recorder: recorded 2.5 s"
     snap = result.snapshot
-    # zero drops is the soak bench's target (bench_capture.py); on a loaded 2-core CI runner a few
-    # camera frames may be dropped - they must be counted, and every other message written
+    # zero drops is the soak bench's target (bench_capture.py); on a loaded 2-core CI runner the
+    # simulated cameras may miss real-time frames - counted at their source, nowhere else
     lost = {k: v for k, v in snap.drops.items() if v}
-    assert snap.total_drops() <= 3, lost
+    assert all(k.endswith(".source") for k in lost), lost
+    assert snap.total_drops() <= 15, lost  # of ~75 frames per camera
     missing = sum(snap.published.values()) - sum(snap.written.values())
     assert 0 <= missing <= snap.total_drops(), (missing, lost)
     assert result.files == (out / "sim_000",)
