@@ -114,9 +114,10 @@ class CameraModel(ABC):
         params.setdefault("height", max(1, round(self.height * factor)))
         return replace(self, **params)  # type: ignore[type-var]
 
-    def pixel_grid(self) -> F64:
-        """Pixel centres of the whole image, shape (H, W, 2) as (u, v)."""
-        u, v = np.meshgrid(np.arange(self.width, dtype=np.float64), np.arange(self.height, dtype=np.float64))
+    def pixel_grid(self, row0: int = 0, row1: int | None = None) -> F64:
+        """Pixel centres of rows [row0, row1) (default: the whole image), shape (rows, W, 2) as (u, v)."""
+        rows = np.arange(row0, self.height if row1 is None else min(row1, self.height), dtype=np.float64)
+        u, v = np.meshgrid(np.arange(self.width, dtype=np.float64), rows)
         return np.stack([u, v], axis=-1)
 
     def params(self) -> dict[str, Any]:

@@ -23,6 +23,7 @@ from calibration.types import F64, Bool
 
 MAP_CACHE_SIZE = 8
 INVALID_COORD = -1000.0
+MAP_BLOCK_ROWS = 64  # rows of the target computed at once by build_maps
 """Map value of target pixels with no source: so far outside that every interpolation tap
 reads the constant border, so `cv2.remap` itself writes the fill value."""
 _CACHE: OrderedDict[tuple[Any, ...], RemapMaps] = OrderedDict()
@@ -59,12 +60,18 @@ def build_maps(src: CameraModel, dst: CameraModel, R_src_dst: F64 | None = None)
     if hit is not None:
         _CACHE.move_to_end(key)
         return hit
-    rays_dst, ok_dst = dst.unproject(dst.pixel_grid())
-    rays_src = np.einsum("ij,...j->...i", R, rays_dst)  # not a tall BLAS matmul: threads fight the pool
-    uv, ok_src = src.project(rays_src)
-    valid = ok_dst & ok_src & src.in_image(uv)
-    map_x = np.where(valid, uv[..., 0], INVALID_COORD).astype(np.float32)
-    map_y = np.where(valid, uv[..., 1], INVALID_COORD).astype(np.float32)
+    map_x = np.empty((dst.height, dst.width), np.float32)
+    map_y = np.empty((dst.height, dst.width), np.float32)
+    valid = np.empty((dst.height, dst.width), bool)
+    for r0 in range(0, dst.height, MAP_BLOCK_ROWS):  # blocks: temporaries stay in cache, not 200 MB each
+        r1 = min(r0 + MAP_BLOCK_ROWS, dst.height)
+        rays_dst, ok_dst = dst.unproject(dst.pixel_grid(r0, r1))
+        rays_src = np.einsum("ij,...j->...i", R, rays_dst)  # not a tall BLAS matmul: threads fight the pool
+        uv, ok_src = src.project(rays_src)
+        ok = ok_dst & ok_src & src.in_image(uv)
+        valid[r0:r1] = ok
+        map_x[r0:r1] = np.where(ok, uv[..., 0], INVALID_COORD)
+        map_y[r0:r1] = np.where(ok, uv[..., 1], INVALID_COORD)
     maps = RemapMaps(map_x, map_y, valid)
     _CACHE[key] = maps
     while len(_CACHE) > MAP_CACHE_SIZE:
