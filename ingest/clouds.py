@@ -20,8 +20,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from calibration.types import F64, Bool
-from ingest.groundtruth import normals_from_neighbours
-from ingest.linalg3 import apply_rotations, rotation_angle, rotvec_to_matrix
+from ingest.linalg3 import rotvec_to_matrix
+from ingest.planes import plane_normals
 
 I64 = np.ndarray[Any, np.dtype[np.int64]]
 U8 = np.ndarray[Any, np.dtype[np.uint8]]
@@ -76,6 +76,29 @@ class GyroTrack:
         out: Bool = (t_ns >= self.stamps_ns[0]) & (t_ns <= self.stamps_ns[-1])
         return out
 
+    def _steps(self) -> F64:
+        """Rotation vectors (K-1, 3) of R_k^T R_k+1: the track's steps."""
+        R = self.rotations
+        out: F64 = Rotation.from_matrix(np.einsum("kji,kjl->kil", R[:-1], R[1:])).as_rotvec()
+        return out
+
+    def _interval(self, t_ns: I64) -> tuple[I64, F64]:
+        """The track step k each time falls in (clamped to the track) and the fraction of it."""
+        tc = np.clip(np.asarray(t_ns, np.int64), self.stamps_ns[0], self.stamps_ns[-1])
+        k = np.clip(np.searchsorted(self.stamps_ns, tc, side="right") - 1, 0, len(self.stamps_ns) - 2)
+        t0, t1 = self.stamps_ns[k], self.stamps_ns[k + 1]
+        frac: F64 = (tc - t0).astype(np.float64) / (t1 - t0).astype(np.float64)
+        return k, frac
+
+    def orientation(self, t_ns: int, steps: F64 | None = None) -> F64:
+        """R_ref_cam0 (3, 3) at one time (clamped to the track)."""
+        if len(self.stamps_ns) == 1:
+            return np.asarray(self.rotations[0], np.float64)
+        steps = self._steps() if steps is None else steps
+        k, frac = self._interval(np.array([t_ns], np.int64))
+        out: F64 = self.rotations[k[0]] @ rotvec_to_matrix(steps[k] * frac[:, None])[0]
+        return out
+
     def relative(self, t_ns: I64, t_ref_ns: int) -> F64:
         """R_c_i (N, 3, 3): rotations taking cam0 at each t_i into cam0 at t_ref (clamped to the track).
 
@@ -87,21 +110,53 @@ class GyroTrack:
         R = self.rotations
         if len(self.stamps_ns) == 1:
             return np.broadcast_to(np.eye(3), (len(t), 3, 3)).copy()
-        steps = Rotation.from_matrix(np.einsum("kji,kjl->kil", R[:-1], R[1:])).as_rotvec()  # R_k^T R_k+1
-
-        def at(times: I64) -> tuple[np.ndarray[Any, Any], F64]:
-            tc = np.clip(times, self.stamps_ns[0], self.stamps_ns[-1])
-            k = np.clip(np.searchsorted(self.stamps_ns, tc, side="right") - 1, 0, len(R) - 2)
-            t0, t1 = self.stamps_ns[k], self.stamps_ns[k + 1]
-            frac = (tc - t0).astype(np.float64) / (t1 - t0).astype(np.float64)
-            return k, rotvec_to_matrix(steps[k] * frac[:, None])
-
-        k_ref, e_ref = at(np.array([t_ref_ns], np.int64))
-        R_ref = R[k_ref[0]] @ e_ref[0]
-        k, e = at(t)
+        steps = self._steps()
+        R_ref = self.orientation(t_ref_ns, steps)
+        k, frac = self._interval(t)
         M = np.einsum("ji,kjl->kil", R_ref, R)  # R_ref^T R_k for every track sample (few)
-        out: F64 = np.einsum("nij,njl->nil", M[k], e)
+        out: F64 = np.einsum("nij,njl->nil", M[k], rotvec_to_matrix(steps[k] * frac[:, None]))
         return out
+
+    def rotate(self, t_ns: I64, t_ref_ns: int, pts: F64) -> tuple[F64, F64]:
+        """Points measured in cam0 at t_i rotated into cam0 at t_ref (N, 3); each rotation's angle (N,) rad.
+
+        The same rotations as `relative` without forming them per point: the
+        points of one gyro interval k share R_ref^T R_k and the step axis, so
+        R_c_i p = R_ref^T R_k (p + a [s_k]p + b [s_k]^2 p) with per-point scalars
+        a = sin(f |s_k|) / |s_k| and b = (1 - cos(f |s_k|)) / |s_k|^2 (Rodrigues for
+        the fraction f of the step rotation vector s_k): three 3x3 products per
+        interval instead of a (N, 3, 3) stack.
+        """
+        t = np.asarray(t_ns, np.int64)
+        p = np.asarray(pts, np.float64)
+        if len(self.stamps_ns) == 1 or len(t) == 0:
+            return p.copy(), np.zeros(len(t))
+        R = self.rotations
+        steps = self._steps()
+        R_ref = self.orientation(t_ref_ns, steps)
+        k, frac = self._interval(t)
+        order = np.argsort(k, kind="stable")
+        starts = np.searchsorted(k[order], np.arange(len(R)))
+        out, angle = np.empty_like(p), np.empty(len(t))
+        for kk in np.unique(k):
+            sel = order[starts[kk] : starts[kk + 1]]
+            M = R_ref.T @ R[kk]
+            s = steps[kk]
+            S = np.array([[0.0, -s[2], s[1]], [s[2], 0.0, -s[0]], [-s[1], s[0], 0.0]])
+            theta = float(np.linalg.norm(s))
+            phi = frac[sel] * theta
+            if theta < 1e-4:  # series: a = f (1 - phi^2 / 6), b = f^2 (1/2 - phi^2 / 24)
+                a = frac[sel] * (1.0 - phi**2 / 6.0)
+                b = frac[sel] ** 2 * (0.5 - phi**2 / 24.0)
+            else:
+                a, b = np.sin(phi) / theta, (1.0 - np.cos(phi)) / theta**2
+            P = p[sel]
+            X = P @ S.T
+            out[sel] = (P + a[:, None] * X + b[:, None] * (X @ S.T)) @ M.T
+            MS = M @ S
+            cos = (np.trace(M) + a * np.trace(MS) + b * np.trace(MS @ S) - 1.0) / 2.0
+            angle[sel] = np.arccos(np.clip(cos, -1.0, 1.0))
+        return out, angle
 
 
 def integrate_gyro(stamps_ns: I64, gyro_imu_rad_s: F64, R_cam0_imu: F64) -> GyroTrack:
@@ -135,7 +190,7 @@ class MotionDecision:
 def compensate(
     pts_cam0: F64,
     dt_s: F64,
-    R_ci: F64 | None,
+    rotated: tuple[F64, F64] | None,
     velocity_cam0_mps: F64 | None,
     px_per_rad: float,
     min_motion_px: float = 0.25,
@@ -144,13 +199,14 @@ def compensate(
 ) -> tuple[F64, MotionDecision]:
     """Move cam0-frame points measured `dt_s` after the frame time to cam0 at the frame time.
 
-    `R_ci` (N, 3, 3) are the per-point rotations from the gyro, `velocity_cam0_mps` the
-    constant velocity. The predicted image motion is the largest rotation
-    angle times `px_per_rad` plus the translation over the largest |dt| seen
-    from `reference_range_m`; below `min_motion_px` the points stay as they are.
+    `rotated` is (the points rotated by the gyro, each rotation's angle in rad)
+    from `GyroTrack.rotate`, `velocity_cam0_mps` the constant velocity. The
+    predicted image motion is the largest rotation angle times `px_per_rad`
+    plus the translation over the largest |dt| seen from `reference_range_m`;
+    below `min_motion_px` the points stay as they are.
     """
     v = np.zeros(3) if velocity_cam0_mps is None else np.asarray(velocity_cam0_mps, np.float64)
-    angle = float(np.max(rotation_angle(R_ci))) if R_ci is not None and len(dt_s) else 0.0
+    angle = float(np.max(rotated[1])) if rotated is not None and len(dt_s) else 0.0
     speed = float(np.linalg.norm(v))
     span_s = float(np.abs(dt_s).max()) if len(dt_s) else 0.0
     motion_px = angle * px_per_rad + speed * span_s / reference_range_m * px_per_rad
@@ -159,7 +215,7 @@ def compensate(
     )
     if not decision.applied:
         return pts_cam0, decision
-    out = apply_rotations(R_ci, pts_cam0) if R_ci is not None else np.array(pts_cam0, np.float64)
+    out = rotated[0] if rotated is not None else np.array(pts_cam0, np.float64)
     return out + np.asarray(dt_s)[:, None] * v, decision
 
 
@@ -183,48 +239,62 @@ def estimate_velocity(
     tol_m_s: float = 1e-3,
     neighbours: int = 8,
     significance: float = 4.0,
+    min_cos: float = 0.95,
+    refit_m: float = 0.005,
 ) -> VelocityEstimate | None:
     """Velocity that makes points measured at different times agree (rotation already compensated).
 
     A point measured dt after the frame time moved by v * dt relative to where it
     would have been seen at the frame time, so q = p + v * dt puts every point in
-    cam0 at the frame time. Pairs of nearby points measured at least `min_dt_s`
-    apart must then lie on the same local plane: n . (q_i - q_j) = 0 is linear
-    in v, solved by iterated, trimmed least squares (an ICP on the sweep itself)
-    until the update is below `tol_m_s` or a quarter of the fit's own standard
-    error (further steps would only chase noise). One k-d tree query per
-    iteration serves both the plane fits (8 nearest) and the pairing
-    (`neighbours` nearest). When the first fit (from v = 0) is below
-    `significance` standard errors the rig is taken as not translating and
-    that fit is returned as is: iterating on noise only makes it wander.
-    None when the scene does not constrain all three directions.
+    cam0 at the frame time. The window is split at its median time into an
+    early and a late part, `min_dt_s` apart. Each late point is paired with its
+    nearest early point; both must lie on local planes (PCA of `neighbours`
+    nearest in their own part) whose normals agree to `min_cos`, so that pairs
+    across an edge are not used. n . (q_late - q_early) = 0 is linear in v,
+    solved by iterated, trimmed least squares (an ICP of the sweep against
+    itself) until the update is below `tol_m_s` or a quarter of the fit's own
+    standard error (further steps would only chase noise). Planes from one
+    part of the window are not smeared by the motion of the other; they are
+    refitted only when the velocity changed enough to move points of one part
+    against each other by more than `refit_m` (the first update, rarely a
+    later one). When the
+    first fit (from v = 0) is below `significance` standard errors, the rig is
+    taken as not translating and that fit is returned as is: iterating on noise
+    only makes it wander. None when the scene does not constrain all three
+    directions.
     """
     from scipy.spatial import cKDTree
 
     if len(pts_cam0) < 200:
         return None
-    v = np.zeros(3)
     step = max(1, len(pts_cam0) // max_points)  # a regular subsample keeps the fit deterministic
     p = np.asarray(pts_cam0, np.float64)[::step]
     dt = np.asarray(dt_s, np.float64)[::step]
+    split = float(np.median(dt))  # the median, not 0: a one-sided window (bag start/end) still splits
+    early, late = dt <= split - min_dt_s / 2, dt >= split + min_dt_s / 2
+    if early.sum() < 100 or late.sum() < 100:
+        return None
+    pe, dte, pl, dtl = p[early], dt[early], p[late], dt[late]
+    v = np.zeros(3)
+    span_s = max(float(np.ptp(dte)), float(np.ptp(dtl)))
+    fitted_at: F64 | None = None  # the velocity the planes were fitted at
     for it in range(iterations):
-        q = p + dt[:, None] * v
-        dist, idx = cKDTree(q, leafsize=32, balanced_tree=False).query(q, k=neighbours)
-        local = normals_from_neighbours(q, q, idx[:, :8], max_flatness=0.02)
-        normals, planar = local.normal, local.planar
-        far_in_time = np.abs(dt[idx] - dt[:, None]) >= min_dt_s
-        ok = far_in_time & (dist < max_gap_m)
-        first = np.argmax(ok, axis=1)
-        has = ok[np.arange(len(q)), first]
-        i = np.nonzero(has)[0]
-        j = idx[i, first[i]]
-        keep = planar[j]
-        i, j = i[keep], j[keep]
+        qe, ql = pe + dte[:, None] * v, pl + dtl[:, None] * v
+        if fitted_at is None or np.linalg.norm(v - fitted_at) * span_s > refit_m:
+            planes, own = plane_normals(qe, neighbours, 0.02), plane_normals(ql, neighbours, 0.02)
+            fitted_at = v
+        dist, j = cKDTree(qe, leafsize=32, balanced_tree=False).query(ql, k=1, distance_upper_bound=max_gap_m)
+        i = np.nonzero(np.isfinite(dist))[0]
+        j = j[i]
+        n = planes.normal[j]
+        # both ends on a plane, the same plane: a pair across a corner would pull v off
+        same = np.abs(np.einsum("ij,ij->i", n, own.normal[i])) >= min_cos
+        keep = planes.planar[j] & own.planar[i] & same
+        i, j, n = i[keep], j[keep], n[keep]
         if len(i) < 100:
             return None
-        n = normals[j]
-        r = np.einsum("ij,ij->i", n, q[i] - q[j])
-        A = n * (dt[i] - dt[j])[:, None]
+        r = np.einsum("ij,ij->i", n, ql[i] - qe[j])
+        A = n * (dtl[i] - dte[j])[:, None]
         cut = max(3.0 * 1.4826 * float(np.median(np.abs(r))), 0.1)  # never trim the informative pairs
         inl = np.abs(r) <= cut
         H = np.einsum("ni,nj->ij", A[inl], A[inl])

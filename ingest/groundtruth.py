@@ -1,7 +1,8 @@
 """Sparse ground truth from LiDAR points in cam0: fisheye range and rectified-equirect disparity.
 
 Steps, each a pure function:
-1. `surface_normals`: a local plane per point (PCA of its k nearest neighbours).
+1. `surface_normals`: a local plane per point (PCA of its k nearest neighbours,
+   `ingest.planes`).
 2. `occlusion_filter`: LiDAR-camera parallax lets a LiDAR see surfaces the camera
    cannot; such points land a few pixels beside a nearer foreground point. A
    point is dropped when a k x k window around its pixel (square splats of
@@ -27,13 +28,12 @@ from typing import Any, Literal
 
 import cv2
 import numpy as np
-from scipy.spatial import cKDTree
 
 from calibration.camera import CameraModel
 from calibration.spherical import Equirectangular
 from calibration.stereo import depth_to_disparity, disparity_stability_mask
 from calibration.types import F64, Bool
-from ingest.linalg3 import sym3_smallest
+from ingest.planes import Normals, plane_normals
 from ingest.sparse import SparseImage
 
 VALID_FRACTION_DS = 0.9  # share of a fisheye image with valid rays (point spacing estimate only)
@@ -56,42 +56,16 @@ class GtParams:
     zbuffer: Literal["nearest", "farthest"] = "nearest"  # "farthest" keeps the wrong point (an ablation)
 
 
-@dataclass(frozen=True)
-class Normals:
-    """Unit normals (N,3) and whether each neighbourhood was planar enough to trust."""
-
-    normal: F64
-    planar: Bool
-
-
-def normals_from_neighbours(pts: F64, q: F64, idx: np.ndarray[Any, Any], max_flatness: float) -> Normals:
-    """PCA normals of the neighbourhoods `pts[idx]` (N, k) of the points `q` (N, 3)."""
-    k = idx.shape[1]
-    nb = pts[idx]  # (N, k, 3)
-    centred = nb - nb.mean(axis=1, keepdims=True)
-    cov = np.einsum("nki,nkj->nij", centred, centred) / k
-    evals, normal = sym3_smallest(cov)  # ascending
-    flatness = evals[:, 0] / np.maximum(evals.sum(axis=1), 1e-30)
-    # the neighbourhood must be local: no wider than a tenth of the range (plus 5 cm)
-    spread = np.sqrt(np.maximum(evals[:, 2], 0.0))
-    local = spread < 0.1 * np.linalg.norm(q, axis=1) + 0.05
-    return Normals(normal, (flatness <= max_flatness) & local)
-
-
 def surface_normals(pts: F64, k: int, max_flatness: float, query: Bool | None = None) -> Normals:
     """PCA normal of each point's k-neighbourhood (the point included).
 
-    With `query` (a mask over `pts`) only those points get normals, still
-    fitted to neighbours among all points: the ground truth needs normals of
-    the points the camera sees, not of the whole 360 degree cloud.
+    With `query` (a mask over `pts`) only those points get normals, fitted to
+    neighbours among the queried points: the ground truth needs normals of the
+    points the camera sees, not of the whole 360 degree cloud. (A point at the
+    image border fits its plane to neighbours on the inner side only; on a
+    plane that is the same plane.)
     """
-    q = pts if query is None else pts[query]
-    n = len(q)
-    if len(pts) < 3 or n == 0:
-        return Normals(np.zeros((n, 3)), np.zeros(n, bool))
-    k = min(k, len(pts))
-    _, idx = cKDTree(pts, leafsize=32, balanced_tree=False).query(q, k=k)
-    return normals_from_neighbours(pts, q, idx.reshape(n, k), max_flatness)
+    return plane_normals(pts if query is None else pts[query], k, max_flatness)
 
 
 def px_per_rad(model: CameraModel) -> float:
@@ -111,9 +85,18 @@ class Splat:
     ray: F64  # unit pixel-centre ray in the model frame
 
 
-def splat_to_pixels(model: CameraModel, pts_model: F64, normals_model: Normals, params: GtParams) -> Splat:
-    """Nearest-pixel z-buffer of points given in the model's frame, ranges moved onto pixel-centre rays."""
-    ok, cols, rows = in_view(model, pts_model)
+View = tuple[Bool, F64, F64]
+"""`in_view`'s result: (in view, nearest pixel-centre columns, rows)."""
+
+
+def splat_to_pixels(
+    model: CameraModel, pts_model: F64, normals_model: Normals, params: GtParams, view: View | None = None
+) -> Splat:
+    """Nearest-pixel z-buffer of points given in the model's frame, ranges moved onto pixel-centre rays.
+
+    `view` is `in_view(model, pts_model)` when the caller has it already.
+    """
+    ok, cols, rows = in_view(model, pts_model) if view is None else view
     idx = np.nonzero(ok)[0]
     centres = np.stack([cols[idx], rows[idx]], axis=1)
     ray, ray_ok = model.unproject(centres)
@@ -137,7 +120,7 @@ def splat_to_pixels(model: CameraModel, pts_model: F64, normals_model: Normals, 
     return Splat(flat[win], idx[win], r[win], ray[win])
 
 
-def in_view(model: CameraModel, pts_model: F64) -> tuple[Bool, F64, F64]:
+def in_view(model: CameraModel, pts_model: F64) -> View:
     """Points whose nearest pixel centre lies in the image, and those centres' (cols, rows)."""
     uv, ok = model.project(pts_model)
     cols = np.floor(uv[:, 0] + 0.5)
@@ -146,9 +129,12 @@ def in_view(model: CameraModel, pts_model: F64) -> tuple[Bool, F64, F64]:
     return ok, cols, rows
 
 
-def occlusion_filter(model: CameraModel, pts_model: F64, params: GtParams) -> Bool:
-    """Keep mask: in view and not hidden behind nearer points (parallax bleed)."""
-    ok, cols, rows = in_view(model, pts_model)
+def occlusion_filter(model: CameraModel, pts_model: F64, params: GtParams, view: View | None = None) -> Bool:
+    """Keep mask: in view and not hidden behind nearer points (parallax bleed).
+
+    `view` is `in_view(model, pts_model)` when the caller has it already.
+    """
+    ok, cols, rows = in_view(model, pts_model) if view is None else view
     if not params.occlusion:
         return ok
     r = np.linalg.norm(pts_model, axis=1)

@@ -23,7 +23,6 @@ from ingest.clouds import FilterCounts, compensate, estimate_velocity, filter_po
 from ingest.dataset import SampleFiles, write_sample
 from ingest.groundtruth import (
     GtParams,
-    Normals,
     equirect_disparity,
     fisheye_range,
     in_view,
@@ -32,7 +31,7 @@ from ingest.groundtruth import (
     splat_to_pixels,
     surface_normals,
 )
-from ingest.linalg3 import apply_rotations
+from ingest.planes import Normals
 
 I64 = np.ndarray[Any, np.dtype[np.int64]]
 INTERPOLATION = {"linear": cv2.INTER_LINEAR, "cubic": cv2.INTER_CUBIC, "nearest": cv2.INTER_NEAREST}
@@ -63,8 +62,11 @@ class Geometry:
         map building is done once and shared copy-on-write by every worker
         instead of repeated in each one's first sample.
         """
-        build_maps(self.rig.upper.model, self.equirect, self.rect.R_cam0_rect)
-        build_maps(self.rig.lower.model, self.equirect, self.rect.R_cam1_rect)
+        from concurrent.futures import ThreadPoolExecutor
+
+        jobs = [(self.rig.upper.model, self.rect.R_cam0_rect), (self.rig.lower.model, self.rect.R_cam1_rect)]
+        with ThreadPoolExecutor(2) as pool:  # numpy releases the GIL in the array work
+            list(pool.map(lambda job: build_maps(job[0], self.equirect, job[1]), jobs))
 
 
 @dataclass(frozen=True)
@@ -161,20 +163,20 @@ def process_sample(job: SampleJob) -> SampleResult:
         pts, stamps = pts[covered], stamps[covered]
     dt_s = (stamps - job.upper_stamp_ns) / 1e9
     use_gyro = gyro is not None and prm.motion != "off"
-    R_ci = gyro.relative(stamps, job.upper_stamp_ns) if gyro is not None and use_gyro else None
+    rotated = gyro.rotate(stamps, job.upper_stamp_ns, pts) if gyro is not None and use_gyro else None
     velocity, source = job.velocity_cam0_mps, ("imu" if use_gyro else "none")
     if prm.motion != "full":
         velocity = None
     elif velocity is None and prm.estimate_velocity:
         est = estimate_velocity(
-            apply_rotations(R_ci, pts) if R_ci is not None else pts, dt_s, significance=VELOCITY_SIGMAS
+            rotated[0] if rotated is not None else pts, dt_s, significance=VELOCITY_SIGMAS
         )
         # use it only when it is significant: a static rig must not be "compensated" with fit noise
         if est is not None and np.linalg.norm(est.velocity_cam0_mps) > VELOCITY_SIGMAS * est.weakest_m_s:
             velocity = est.velocity_cam0_mps
     if velocity is not None:
         source += "+velocity"
-    pts, motion = compensate(pts, dt_s, R_ci, velocity, geo.px_per_rad, prm.min_motion_px, source=source)
+    pts, motion = compensate(pts, dt_s, rotated, velocity, geo.px_per_rad, prm.min_motion_px, source=source)
     half = prm.window_ns / 2e9
     if motion.applied and not (len(dt_s) and dt_s.min() <= -half and dt_s.max() >= half):
         # a one-sided window (bag start/end, a LiDAR gap) leaves the velocity poorly determined
@@ -182,12 +184,14 @@ def process_sample(job: SampleJob) -> SampleResult:
     t1 = time.perf_counter()
     ms["clouds"] = (t1 - t0) * 1e3
     model = geo.rig.upper.model
-    seen, _, _ = in_view(model, pts)
+    view = in_view(model, pts)
+    seen = view[0]
     normals = surface_normals(pts, prm.gt.plane_neighbours, prm.gt.plane_max_flatness, query=seen)
-    visible = occlusion_filter(model, pts, prm.gt)  # a subset of `seen`
+    visible = occlusion_filter(model, pts, prm.gt, view)  # a subset of `seen`
     in_seen = visible[seen]
     kept = Normals(normals.normal[in_seen], normals.planar[in_seen])
-    splat = splat_to_pixels(model, pts[visible], kept, prm.gt)
+    seen_cols_rows = (seen[visible], view[1][visible], view[2][visible])
+    splat = splat_to_pixels(model, pts[visible], kept, prm.gt, seen_cols_rows)
     range_img = fisheye_range(model, splat)
     R_rect_cam0 = geo.rect.R_cam0_rect.T
     disp_img, _, unstable = equirect_disparity(

@@ -83,3 +83,21 @@ def test_gyro_track_relative_equals_scipy_slerp():
     for k in range(len(stamps) - 1):
         R = R @ Rotation.from_rotvec(0.5 * (w[k] + w[k + 1]) * 0.005).as_matrix()
     np.testing.assert_allclose(track.rotations[-1], R, atol=1e-12)
+
+
+def test_gyro_track_rotate_equals_relative_applied():
+    """rotate() must give the points and angles of relative()'s matrices, incl. still and clamped times."""
+    rng = np.random.default_rng(4)
+    stamps = np.arange(0, 60_000_000, 5_000_000, dtype=np.int64) + 2_000_000_000
+    gyro = rng.normal(scale=1.0, size=(len(stamps), 3))
+    gyro[4:7] = 0.0  # a still stretch: the series branch of the step exponential
+    gyro[7] = 1e-7
+    track = integrate_gyro(stamps, gyro, np.eye(3))
+    t = rng.integers(stamps[0] - 2_000_000, stamps[-1] + 2_000_000, 3000)
+    t_ref = int(stamps[5] + 777_777)
+    pts = rng.normal(scale=10.0, size=(len(t), 3))
+    rotated, angle = track.rotate(t, t_ref, pts)
+    R = track.relative(t, t_ref)
+    np.testing.assert_allclose(rotated, apply_rotations(R, pts), atol=1e-11)
+    np.testing.assert_allclose(angle, rotation_angle(R), atol=1e-7)
+    assert angle.max() > 0.01  # the shaky parts really rotate

@@ -23,7 +23,6 @@ from calibration.stereo import disparity_stability_mask, rotate_for_stereo, unro
 from calibration.types import F64
 from ingest.groundtruth import (
     GtParams,
-    Normals,
     in_view,
     occlusion_filter,
     px_per_rad,
@@ -31,6 +30,7 @@ from ingest.groundtruth import (
     surface_normals,
 )
 from ingest.linalg3 import rotvec_to_matrix
+from ingest.planes import Normals
 from ingest.stability import (
     cubemap_seam_mask,
     cubemap_stereo_faces,
