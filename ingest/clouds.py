@@ -257,11 +257,10 @@ def estimate_velocity(
     part of the window are not smeared by the motion of the other; they are
     refitted only when the velocity changed enough to move points of one part
     against each other by more than `refit_m` (the first update, rarely a
-    later one). When the
-    first fit (from v = 0) is below `significance` standard errors, the rig is
-    taken as not translating and that fit is returned as is: iterating on noise
-    only makes it wander. None when the scene does not constrain all three
-    directions.
+    later one). When the first fit (from v = 0) is below `significance`
+    standard errors, the rig is taken as not translating and that fit is
+    returned as is: iterating on noise only makes it wander. None when the
+    scene does not constrain all three directions.
     """
     from scipy.spatial import cKDTree
 
