@@ -31,6 +31,7 @@ from ingest.groundtruth import (
     splat_to_pixels,
     surface_normals,
 )
+from ingest.heap import retain_freed_memory
 from ingest.planes import Normals
 
 I64 = np.ndarray[Any, np.dtype[np.int64]]
@@ -152,6 +153,7 @@ def _points_in_cam0(job: SampleJob) -> tuple[F64, I64, FilterCounts, dict[str, f
 
 def process_sample(job: SampleJob) -> SampleResult:
     """Clouds -> motion compensation -> GT (fisheye range, equirect disparity) -> images -> files."""
+    retain_freed_memory()  # once per process: big arrays reuse the pages of the previous sample's
     ms: dict[str, float] = {}
     t0 = time.perf_counter()
     geo, prm = job.geometry, job.params

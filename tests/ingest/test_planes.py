@@ -7,7 +7,14 @@ import pytest
 from scipy.spatial import cKDTree
 
 from ingest.clouds import estimate_velocity
-from ingest.planes import knn_covariances, neighbour_covariances, plane_normals
+from ingest.planes import (
+    extreme_eigenvalues,
+    knn_covariances,
+    knn_planes,
+    neighbour_covariances,
+    normals_from_covariances,
+    plane_normals,
+)
 
 
 def test_knn_covariances_equal_a_kdtree_query_with_numpy():
@@ -30,6 +37,36 @@ def test_plane_normals_of_a_tilted_plane_and_a_blob():
     assert normals.planar[:2000].all()
     assert normals.planar[2000:].mean() < 0.2  # 8 random points are flat by chance now and then (11 %)
     np.testing.assert_allclose(np.abs(normals.normal[:2000] @ n), 1.0, atol=1e-9)
+
+
+def test_extreme_eigenvalues_from_the_smallest_eigenvector_equal_lapack():
+    rng = np.random.default_rng(2)
+    a = rng.normal(size=(500, 3, 3)) * [1.0, 0.3, 0.01]  # from isotropic to nearly flat spreads
+    cov = np.einsum("nij,nkj->nik", a, a)
+    w, v = np.linalg.eigh(cov)
+    lam_min, lam_max = extreme_eigenvalues(cov, v[:, :, 0])
+    np.testing.assert_allclose(lam_min, w[:, 0], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(lam_max, w[:, 2], rtol=1e-10, atol=1e-12)
+
+
+def test_open3d_planes_equal_the_numpy_reference():
+    """knn_planes' normals and plane_normals' decisions equal sym3_smallest on the same covariances."""
+    rng = np.random.default_rng(3)
+    floor = np.c_[rng.uniform(-5, 5, (3000, 2)), np.full(3000, -1.5)] + rng.normal(
+        scale=0.005, size=(3000, 3)
+    )
+    wall = np.c_[rng.uniform(-5, 5, 2000), rng.uniform(-1.5, 2.0, 2000), np.full(2000, 6.0)]
+    clutter = rng.normal(scale=0.3, size=(1000, 3)) + np.array([1.0, 0.0, 3.0])
+    pts = np.concatenate([floor, wall, clutter])
+    cov, normal = knn_planes(pts, 8)
+    np.testing.assert_allclose(cov, knn_covariances(pts, 8), rtol=0, atol=1e-15)
+    ref = normals_from_covariances(cov, pts, 0.05)
+    w = np.linalg.eigvalsh(cov)
+    defined = (w[:, 1] - w[:, 0]) > 1e-3 * (w[:, 2] - w[:, 0])  # the smallest eigenvector is unique
+    np.testing.assert_allclose(np.abs(np.einsum("ij,ij->i", normal, ref.normal))[defined], 1.0, atol=1e-9)
+    fast = plane_normals(pts, 8, 0.05)
+    np.testing.assert_array_equal(fast.planar, ref.planar)
+    assert fast.planar[:5000].mean() > 0.99 and fast.planar[5000:].mean() < 0.2
 
 
 def test_plane_normals_of_fewer_than_three_points_are_never_planar():
