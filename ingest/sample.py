@@ -203,8 +203,10 @@ def process_sample(job: SampleJob) -> SampleResult:
     t2 = time.perf_counter()
     ms["ground_truth"] = (t2 - t1) * 1e3
     interp = INTERPOLATION[prm.interpolation]
-    up, _ = warp(job.upper_bgr, model, geo.equirect, geo.rect.R_cam0_rect, interp)
-    down, _ = warp(job.lower_bgr, geo.rig.lower.model, geo.equirect, geo.rect.R_cam1_rect, interp)
+    # reused per-thread buffers: both equirects are written out before this thread's next sample
+    up, _ = warp(job.upper_bgr, model, geo.equirect, geo.rect.R_cam0_rect, interp, reuse_output=True)
+    lower = geo.rig.lower.model
+    down, _ = warp(job.lower_bgr, lower, geo.equirect, geo.rect.R_cam1_rect, interp, reuse_output=True)
     t3 = time.perf_counter()
     ms["images"] = (t3 - t2) * 1e3
     meta: dict[str, Any] = {

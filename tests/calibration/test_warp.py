@@ -136,6 +136,26 @@ def test_invalid_pixels_get_exactly_the_fill(interp):
     assert (out[inner] == 200).all()
 
 
+@pytest.mark.parametrize("interp", [cv2.INTER_NEAREST, cv2.INTER_LINEAR, cv2.INTER_CUBIC])
+@pytest.mark.parametrize("channels", [1, 3])
+def test_span_warp_equals_one_remap_of_the_whole_target(interp, channels):
+    """Remapping only the spans, into a fresh or a reused buffer, gives cv2.remap's every pixel."""
+    rng = np.random.default_rng(4)
+    eq = Equirectangular(256)
+    maps = build_maps(FISHEYE, eq, R_CAM0_RECT)
+    assert sum((r1 - r0) * (c1 - c0) for r0, r1, c0, c1 in maps.spans) < 0.6 * maps.valid.size
+    shape = (FISHEYE.height, FISHEYE.width, channels)[: 2 if channels == 1 else 3]
+    for reuse in (False, True, True):  # the second reuse overwrites the first one's buffer
+        img = rng.integers(0, 256, shape, dtype=np.uint8)
+        whole = cv2.remap(
+            img, maps.map_x, maps.map_y, interp, borderMode=cv2.BORDER_CONSTANT, borderValue=(9, 9, 9, 9)
+        )
+        out, _ = warp(img, FISHEYE, eq, R_CAM0_RECT, interp, fill=9, reuse_output=reuse)
+        np.testing.assert_array_equal(out, whole)
+    again, _ = warp(img, FISHEYE, eq, R_CAM0_RECT, interp, fill=9, reuse_output=True)
+    assert again is out  # the thread's buffer, not a new array
+
+
 def test_nearest_samples_the_nearest_source_pixel():
     ids = np.arange(FISHEYE.height * FISHEYE.width, dtype=np.float32).reshape(FISHEYE.height, FISHEYE.width)
     eq = Equirectangular(256)
