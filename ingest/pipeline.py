@@ -49,8 +49,10 @@ from ingest.sample import (
     process_sample,
 )
 from ingest.sync import DEFAULT_LIDAR_WINDOW_NS, pair_stereo, select_samples
+from ingest.transport import ImageSlots, SlotImages, process_in_slot
 
 I64 = np.ndarray[Any, np.dtype[np.int64]]
+_NO_IMAGE = np.zeros((0, 0, 3), np.uint8)  # a job's image field when its image slot carries the pixels
 
 
 @dataclass(frozen=True)
@@ -325,19 +327,24 @@ def _write_dataset_yaml(cfg: IngestConfig, geometry: Geometry, bags: list[Path])
     write_rig(geometry.rig, rig_dir / "rig.yaml", camchain_name="camchain.yaml")
 
 
-def _executor(cfg: IngestConfig) -> tuple[Executor | None, Any]:
+def _executor(cfg: IngestConfig) -> tuple[Executor | None, Any, bool]:
+    """(local pool, Dask client, whether the pool forks): at most one of the first two."""
     if cfg.dask:
         from distributed import Client
 
         client = Client(cfg.dask)  # type: ignore[no-untyped-call]
-        return None, client
+        return None, client, False
     if cfg.workers > 1:
-        # fork: workers inherit the warm remap maps (Geometry.warm_maps) instead of rebuilding them
-        fork = (
-            multiprocessing.get_context("fork") if "fork" in multiprocessing.get_all_start_methods() else None
-        )
-        return ProcessPoolExecutor(cfg.workers, mp_context=fork), None
-    return None, None
+        # fork: workers inherit the warm remap maps (Geometry.warm_maps) and the image slots
+        fork = "fork" in multiprocessing.get_all_start_methods()
+        ctx = multiprocessing.get_context("fork") if fork else None
+        return ProcessPoolExecutor(cfg.workers, mp_context=ctx), None, fork
+    return None, None, False
+
+
+def _slot_bytes(rig: Rig) -> int:
+    """Bytes of one sample's two BGR uint8 images at the rig's sizes."""
+    return sum(cam.model.width * cam.model.height * 3 for cam in (rig.upper, rig.lower))
 
 
 def ingest(
@@ -362,15 +369,20 @@ def ingest(
         _write_dataset_yaml(cfg, geometry, [Path(p) for p in bag_paths])
         if not cfg.dask and summary.planned:
             geometry.warm_maps()
-        pool, client = _executor(cfg)
-        pending: list[Future[SampleResult]] = []
-        done = 0
         max_in_flight = max(2, 2 * cfg.workers)
+        pool, client, forks = _executor(cfg)
+        # created before the first submit forks the workers, so they inherit the mapping
+        slots = ImageSlots(max_in_flight + 1, _slot_bytes(rig)) if forks else None
+        pending: list[tuple[Future[SampleResult], SlotImages | None]] = []
+        done = 0
 
         def collect(block: bool) -> None:
             nonlocal done
-            while pending and (block or pending[0].done() or len(pending) >= max_in_flight):
-                summary.add(pending.pop(0).result())
+            while pending and (block or pending[0][0].done() or len(pending) >= max_in_flight):
+                fut, ref = pending.pop(0)
+                summary.add(fut.result())
+                if slots is not None:
+                    slots.release(ref)
                 done += 1
                 if progress:
                     progress(done, summary.planned)
@@ -394,17 +406,24 @@ def ingest(
                     if progress:
                         progress(done, summary.planned)
                     continue
+                ref = slots.put(item.upper_bgr, item.lower_bgr) if slots is not None else None
                 if client is not None:
                     fut = client.submit(process_sample, item, pure=False)
+                elif ref is not None:
+                    assert pool is not None
+                    bare = replace(item, upper_bgr=_NO_IMAGE, lower_bgr=_NO_IMAGE)  # the slot carries them
+                    fut = pool.submit(process_in_slot, bare, ref)
                 else:
                     assert pool is not None
                     fut = pool.submit(process_sample, item)
-                pending.append(fut)
+                pending.append((fut, ref))
                 collect(block=False)
             collect(block=True)
         finally:
             if pool is not None:
                 pool.shutdown(cancel_futures=True)
+            if slots is not None:
+                slots.close()
             if client is not None:
                 client.close()
     summary.seconds = time.perf_counter() - t_start

@@ -125,7 +125,15 @@ def test_rerun_resumes_and_output_is_deterministic(tmp_path: Path) -> None:
     assert first.written == 5 and first.resumed == 0
     ingest([INDOOR], IngestConfig(rig=_rig(INDOOR), out=b, workers=1, every=5))
     cmp = filecmp.dircmp(a, b)
-    for sub in ("depth_fisheye", "disp_equirect", "equirect_up", "equirect_down_virt", "meta"):
+    for sub in (
+        "depth_fisheye",
+        "disp_equirect",
+        "equirect_up",
+        "equirect_down_virt",
+        "left_fisheye",
+        "right_fisheye",
+        "meta",
+    ):
         match, mismatch, errs = filecmp.cmpfiles(
             a / sub, b / sub, sorted(p.name for p in (a / sub).iterdir()), False
         )
@@ -273,3 +281,19 @@ def test_exr_copies_hold_the_unquantised_values(tmp_path: Path) -> None:
         2 * doc["height_full"],
     ]
     assert np.allclose(np.array(doc["R_cam0_rect"]) @ np.array(doc["R_cam0_rect"]).T, np.eye(3))
+
+
+def test_pool_workers_get_their_images_through_the_shared_slots(tmp_path: Path, monkeypatch) -> None:
+    import ingest.pipeline as pipeline
+
+    used = []
+    put = pipeline.ImageSlots.put
+
+    def counting_put(self, upper, lower):  # type: ignore[no-untyped-def]
+        ref = put(self, upper, lower)
+        used.append(ref is not None)
+        return ref
+
+    monkeypatch.setattr(pipeline.ImageSlots, "put", counting_put)
+    summary = ingest([INDOOR], IngestConfig(rig=_rig(INDOOR), out=tmp_path / "ds", workers=2, every=10))
+    assert summary.written == len(used) > 0 and all(used)
