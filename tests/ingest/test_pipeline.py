@@ -284,16 +284,16 @@ def test_exr_copies_hold_the_unquantised_values(tmp_path: Path) -> None:
 
 
 def test_pool_workers_get_their_images_through_the_shared_slots(tmp_path: Path, monkeypatch) -> None:
-    import ingest.pipeline as pipeline
+    from ingest.transport import ImageSlots
 
     used = []
-    put = pipeline.ImageSlots.put
+    put = ImageSlots.put
 
-    def counting_put(self, upper, lower):  # type: ignore[no-untyped-def]
+    def counting_put(self, upper, lower):
         ref = put(self, upper, lower)
         used.append(ref is not None)
         return ref
 
-    monkeypatch.setattr(pipeline.ImageSlots, "put", counting_put)
+    monkeypatch.setattr(ImageSlots, "put", counting_put)
     summary = ingest([INDOOR], IngestConfig(rig=_rig(INDOOR), out=tmp_path / "ds", workers=2, every=10))
     assert summary.written == len(used) > 0 and all(used)
