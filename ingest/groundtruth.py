@@ -113,11 +113,24 @@ def splat_to_pixels(
     use_plane &= np.isfinite(r_plane) & (np.abs(r_plane - r_point) <= limit + 1e-9)
     r = np.where(use_plane, r_plane, r_point)
     flat = centres[:, 1].astype(np.int64) * model.width + centres[:, 0].astype(np.int64)
-    order = np.lexsort((r if params.zbuffer == "nearest" else -r, flat))  # by pixel, kept point first
+    order = np.argsort(_pixel_range_key(flat, r, params.zbuffer == "nearest"), kind="stable")
     first = np.ones(len(order), bool)
     first[1:] = flat[order][1:] != flat[order][:-1]
     win = order[first]
     return Splat(flat[win], idx[win], r[win], ray[win])
+
+
+def _pixel_range_key(flat: np.ndarray[Any, np.dtype[np.int64]], range_m: F64, nearest: bool) -> Any:
+    """One int64 per point that sorts by pixel, then by range (nearest or farthest first).
+
+    The range takes the low 32 bits, quantised over [0, max range] (steps of
+    ~1e-8 m at 40 m); one stable argsort of it is ~2x faster than
+    `np.lexsort((range, pixel))` and orders the same up to that step.
+    """
+    r = np.maximum(range_m, 0.0)
+    top = float(r.max()) if len(r) else 1.0
+    q = np.floor(r * ((2.0**32 - 1.0) / max(top, 1e-30))).astype(np.int64)
+    return (flat << 32) | (q if nearest else (2**32 - 1) - q)
 
 
 def in_view(model: CameraModel, pts_model: F64) -> View:
