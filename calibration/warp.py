@@ -109,6 +109,36 @@ def clear_map_cache() -> None:
     _CACHE.clear()
 
 
+def check_source(image: np.ndarray[Any, Any], src_model: CameraModel) -> None:
+    """Raise ValueError unless `image` has `src_model`'s size."""
+    if image.shape[:2] != (src_model.height, src_model.width):
+        raise ValueError(
+            f"warp: image is {image.shape[1]}x{image.shape[0]}, but the source model is "
+            f"{src_model.width}x{src_model.height}"
+        )
+
+
+def remap_spans(
+    image: np.ndarray[Any, Any],
+    maps: RemapMaps,
+    out: np.ndarray[Any, Any],
+    interpolation: int = cv2.INTER_LINEAR,
+    fill: float = 0.0,
+) -> None:
+    """`cv2.remap` of `image` into `out` (the maps' target size), over the maps' spans only.
+
+    `out` must already hold `fill` outside the spans, as a fresh `np.full`
+    or a `RemapMaps.scratch` buffer does. cv2 releases the GIL, so this may
+    run in a helper thread beside numpy work.
+    """
+    border = (fill, fill, fill, fill)
+    for r0, r1, c0, c1 in maps.spans:  # cv2 writes into the strided views in place
+        cv2.remap(
+            image, maps.map_x[r0:r1, c0:c1], maps.map_y[r0:r1, c0:c1], interpolation,
+            dst=out[r0:r1, c0:c1], borderMode=cv2.BORDER_CONSTANT, borderValue=border,
+        )  # fmt: skip
+
+
 def warp(
     image: np.ndarray[Any, Any],
     src_model: CameraModel,
@@ -128,20 +158,11 @@ def warp(
     ``reuse_output`` call: no 25 MB allocation and fill per equirect, for a
     caller that is done with the image before it warps the next one.
     """
-    if image.shape[:2] != (src_model.height, src_model.width):
-        raise ValueError(
-            f"warp: image is {image.shape[1]}x{image.shape[0]}, but the source model is "
-            f"{src_model.width}x{src_model.height}"
-        )
+    check_source(image, src_model)
     maps = build_maps(src_model, dst_model, R_src_dst)
     shape = (dst_model.height, dst_model.width, *image.shape[2:])
     out = maps.scratch(shape, image.dtype, fill) if reuse_output else np.full(shape, fill, image.dtype)
-    border = (fill, fill, fill, fill)
-    for r0, r1, c0, c1 in maps.spans:  # cv2 writes into the strided views in place
-        cv2.remap(
-            image, maps.map_x[r0:r1, c0:c1], maps.map_y[r0:r1, c0:c1], interpolation,
-            dst=out[r0:r1, c0:c1], borderMode=cv2.BORDER_CONSTANT, borderValue=border,
-        )  # fmt: skip
+    remap_spans(image, maps, out, interpolation, fill)
     return out, maps.valid
 
 

@@ -84,7 +84,8 @@ class IngestSummary:
     density: list[float] = field(default_factory=list)
     skew_ms: list[float] = field(default_factory=list)
     motion_applied: int = 0
-    stage_ms: dict[str, list[float]] = field(default_factory=dict)
+    stage_ms: dict[str, list[float]] = field(default_factory=dict)  # sequential: they add up per sample
+    overlapped_ms: dict[str, list[float]] = field(default_factory=dict)  # helper threads beside them
     seconds: float = 0.0
     out: Path | None = None
 
@@ -98,6 +99,8 @@ class IngestSummary:
         self.motion_applied += bool(result.meta["motion"]["applied"])
         for k, v in result.stage_ms.items():
             self.stage_ms.setdefault(k, []).append(v)
+        for k, v in result.overlapped_ms.items():
+            self.overlapped_ms.setdefault(k, []).append(v)
 
 
 @dataclass(frozen=True)

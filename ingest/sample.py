@@ -18,7 +18,8 @@ from calibration.rectify import StereoRectification, rectify_rig
 from calibration.rig import Rig
 from calibration.spherical import Equirectangular
 from calibration.types import F64
-from calibration.warp import build_maps, default_height_full, warp
+from calibration.warp import build_maps, check_source, default_height_full, remap_spans
+from ingest.background import Background
 from ingest.clouds import FilterCounts, compensate, estimate_velocity, filter_points, integrate_gyro
 from ingest.dataset import SampleFiles, write_sample
 from ingest.groundtruth import (
@@ -133,7 +134,8 @@ class SampleResult:
     written: bool
     reason: str
     meta: dict[str, Any]
-    stage_ms: dict[str, float]
+    stage_ms: dict[str, float]  # sequential stages of the calling thread: they add up to its wall time
+    overlapped_ms: dict[str, float] = field(default_factory=dict)  # helper-thread work beside them
 
 
 def _points_in_cam0(job: SampleJob) -> tuple[F64, I64, FilterCounts, dict[str, float]]:
@@ -151,9 +153,52 @@ def _points_in_cam0(job: SampleJob) -> tuple[F64, I64, FilterCounts, dict[str, f
     return np.concatenate(pts), np.concatenate(stamps), total, skew
 
 
+Equirects = tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]
+"""`equirect_up` and `equirect_down_virt` of one sample (BGR, the full-sphere equirect's size)."""
+
+
+def start_equirects(job: SampleJob) -> Background[Equirects]:
+    """Both images warped to cam0's rectified equirect, in a helper thread (see `ingest.background`).
+
+    The sizes are checked and the output buffers taken here, in the calling
+    thread: they are its reused per-thread buffers (`RemapMaps.scratch`, no
+    25 MB allocation and fill per image), valid until its next sample.
+    """
+    geo = job.geometry
+    interp = INTERPOLATION[job.params.interpolation]
+    work = []
+    for image, model, R in (
+        (job.upper_bgr, geo.rig.upper.model, geo.rect.R_cam0_rect),
+        (job.lower_bgr, geo.rig.lower.model, geo.rect.R_cam1_rect),
+    ):
+        check_source(image, model)
+        maps = build_maps(model, geo.equirect, R)
+        out = maps.scratch((geo.equirect.height, geo.equirect.width, *image.shape[2:]), image.dtype, 0.0)
+        work.append((image, maps, out))
+
+    def both() -> Equirects:
+        for image, maps, out in work:
+            remap_spans(image, maps, out, interp)
+        return work[0][2], work[1][2]
+
+    return Background(both, name=f"sensorbox-equirects-{job.sid}")
+
+
 def process_sample(job: SampleJob) -> SampleResult:
-    """Clouds -> motion compensation -> GT (fisheye range, equirect disparity) -> images -> files."""
+    """Clouds -> motion compensation -> GT (fisheye range, equirect disparity) -> images -> files.
+
+    The equirect warps run in a helper thread beside the clouds and GT
+    stages; stage "images" is only the wait for them at the end.
+    """
     retain_freed_memory()  # once per process: big arrays reuse the pages of the previous sample's
+    images = start_equirects(job)
+    try:
+        return _process(job, images)
+    finally:
+        images.wait()  # never return while the helper still writes into this thread's buffers
+
+
+def _process(job: SampleJob, images: Background[Equirects]) -> SampleResult:
     ms: dict[str, float] = {}
     t0 = time.perf_counter()
     geo, prm = job.geometry, job.params
@@ -202,11 +247,7 @@ def process_sample(job: SampleJob) -> SampleResult:
     )
     t2 = time.perf_counter()
     ms["ground_truth"] = (t2 - t1) * 1e3
-    interp = INTERPOLATION[prm.interpolation]
-    # reused per-thread buffers: both equirects are written out before this thread's next sample
-    up, _ = warp(job.upper_bgr, model, geo.equirect, geo.rect.R_cam0_rect, interp, reuse_output=True)
-    lower = geo.rig.lower.model
-    down, _ = warp(job.lower_bgr, lower, geo.equirect, geo.rect.R_cam1_rect, interp, reuse_output=True)
+    up, down = images.result()
     t3 = time.perf_counter()
     ms["images"] = (t3 - t2) * 1e3
     meta: dict[str, Any] = {
@@ -236,4 +277,4 @@ def process_sample(job: SampleJob) -> SampleResult:
     files = SampleFiles(job.upper_bgr, job.lower_bgr, up, down, disp_img, range_img, meta)
     drops = write_sample(job.out, job.sid, files, prm.exr, prm.png_level)
     ms["write"] = (time.perf_counter() - t3) * 1e3
-    return SampleResult(job.sid, True, "", {**meta, "dropped": drops}, ms)
+    return SampleResult(job.sid, True, "", {**meta, "dropped": drops}, ms, {"equirect warps": images.ms})

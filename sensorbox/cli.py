@@ -246,6 +246,10 @@ def ingest_cmd(
             ),
             ("motion compensation applied", f"{summary.motion_applied} / {summary.written}"),
             *((f"time: {k}", f"{np.mean(v):.0f} ms/sample") for k, v in summary.stage_ms.items()),
+            *(
+                (f"time: {k} (helper thread, beside clouds + GT)", f"{np.mean(v):.0f} ms/sample")
+                for k, v in summary.overlapped_ms.items()
+            ),
         ]
     for item, value in rows:
         table.add_row(item, value)
