@@ -1,0 +1,97 @@
+"""The helper thread of `ingest.background` and the sample's equirect warps that run in it."""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from calibration.errors import CalibrationError
+from calibration.rig import read_rig
+from calibration.warp import warp
+from ingest.background import Background
+from ingest.bags import open_bags
+from ingest.dataset import prepare_dirs
+from ingest.pipeline import IngestConfig, _resolve_topics, plan, stream_jobs
+from ingest.sample import Geometry, SampleJob, process_sample, start_equirects
+from tests.ingest.test_pipeline import INDOOR, _rig
+
+
+def test_result_is_the_helpers_return_value_computed_in_another_thread():
+    caller = threading.get_ident()
+    go = threading.Event()
+
+    def fn() -> tuple[int, bool]:
+        started = go.wait(10)  # the caller sets it after Background() returned: only another thread sees it
+        return threading.get_ident(), started
+
+    bg = Background(fn)
+    go.set()
+    ident, started = bg.result()
+    assert started and ident != caller
+    assert bg.ms > 0.0 and bg.result() == (ident, True)  # a second result() returns the same value
+
+
+def test_an_error_in_the_helper_is_raised_by_result_not_by_wait():
+    def fn() -> int:
+        raise KeyError("no such lidar: lidar9")
+
+    bg = Background(fn)
+    bg.wait()  # only waits
+    with pytest.raises(KeyError, match="lidar9"):
+        bg.result()
+
+
+def _jobs(tmp_path: Path, n: int) -> list[SampleJob]:
+    cfg = IngestConfig(rig=_rig(INDOOR), out=tmp_path / "ds", workers=1, every=10)
+    cfg = replace(cfg, sample=replace(cfg.sample, window_ns=cfg.lidar_window_ns))
+    geometry = Geometry.from_rig(read_rig(cfg.rig), cfg.height_full)
+    with open_bags([INDOOR]) as bags:
+        topics = _resolve_topics(geometry.rig, bags.topics(), str(INDOOR))
+        jobs = [j for j in stream_jobs(bags, topics, plan(bags, topics, cfg), cfg, geometry)]
+    out = [j for j in jobs if isinstance(j, SampleJob)][:n]
+    assert len(out) == n
+    prepare_dirs(cfg.out, exr=False)
+    return out
+
+
+def _helpers_alive() -> list[str]:
+    return [t.name for t in threading.enumerate() if t.name.startswith("sensorbox-equirects")]
+
+
+def test_equirects_equal_warp_and_reuse_the_calling_threads_buffers(tmp_path: Path):
+    a, b = _jobs(tmp_path, 2)
+    geo = a.geometry
+    first = start_equirects(a).result()
+    ref_up, _ = warp(a.upper_bgr, geo.rig.upper.model, geo.equirect, geo.rect.R_cam0_rect)
+    ref_down, _ = warp(a.lower_bgr, geo.rig.lower.model, geo.equirect, geo.rect.R_cam1_rect)
+    assert np.array_equal(first[0], ref_up) and np.array_equal(first[1], ref_down)
+    assert ref_up.any() and not np.array_equal(ref_up, ref_down)
+    second = start_equirects(b).result()  # this thread's buffers again, now holding b
+    assert second[0] is first[0] and second[1] is first[1]
+    assert np.array_equal(
+        second[0], warp(b.upper_bgr, geo.rig.upper.model, geo.equirect, geo.rect.R_cam0_rect)[0]
+    )
+    other: list[tuple[np.ndarray, np.ndarray]] = []
+    t = threading.Thread(target=lambda: other.append(start_equirects(a).result()))
+    t.start()
+    t.join()
+    assert other[0][0] is not first[0]  # another calling thread (Dask runs several) has its own
+
+
+def test_process_sample_waits_for_its_helper_also_when_a_stage_raises(tmp_path: Path):
+    (job,) = _jobs(tmp_path, 1)
+    ok = process_sample(job)
+    assert ok.written and ok.overlapped_ms["equirect warps"] > 0.0 and not _helpers_alive()
+    lp = job.lidars[0]
+    broken = replace(job, lidars=(replace(lp, name="lidar9"), *job.lidars[1:]))
+    with pytest.raises(CalibrationError, match="lidar9"):
+        process_sample(broken)
+    assert not _helpers_alive()
+    bad = replace(job, lower_bgr=job.lower_bgr[:-1])
+    with pytest.raises(ValueError, match="source model is"):
+        process_sample(bad)  # the size is checked in the calling thread, before the helper starts
+    assert not _helpers_alive()
