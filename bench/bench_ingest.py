@@ -39,13 +39,15 @@ Writes out/bench/bench_ingest.png (per-stage bars, encoder time vs size).
 `--bag PATH` reuses an existing simulated bag (rig from its truth folder).
 
 File writes depend on the machine more than anything else here. The script
-prints what writing fresh 3.5 MB files costs before it starts. On a VM whose
-guest memory the host backs lazily (Firecracker, some cloud VMs), the first
-touch of each guest page is a host fault: the page cache's fresh pages make
-file writes ~8x slower (5.4 vs 0.7 ms per file measured) until every page has
-been touched once, as on any long-running machine. `--prefault-gb N` touches
-N GB of memory first so that the numbers describe such a machine; the
-default measures the machine as it is.
+prints what writing fresh 3.5 MB files costs before each timed ingest part
+(2, 4, 5). On a VM whose guest memory the host backs lazily (Firecracker,
+some cloud VMs), the first touch of each guest page is a host fault: the page
+cache's fresh pages make file writes ~8x slower (5.4 vs 0.7 ms per file
+measured) until every page has been touched once, as on any long-running
+machine, and such a VM may take idle memory back after a while.
+`--prefault-gb N` touches N GB of memory before each of those parts so that
+the numbers describe a machine with backed memory; the default measures the
+machine as it is.
 """
 
 from __future__ import annotations
@@ -576,8 +578,6 @@ def main() -> None:
     )  # fmt: skip
     args = ap.parse_args()
     repeats = max(1, args.repeats)
-    if args.prefault_gb >= 1:
-        print(prefault(args.prefault_gb))
 
     with tempfile.TemporaryDirectory(prefix="bench_ingest_") as tmp:
         root = Path(tmp)
@@ -590,13 +590,20 @@ def main() -> None:
         else:
             bag, rig = args.bag, truth_dir(args.bag) / "rig.yaml"
             source = f"{bag}"
-        run_all(bag, rig, root, repeats, source)
+        run_all(bag, rig, root, repeats, source, args.prefault_gb)
 
 
-def run_all(bag: Path, rig: Path, root: Path, repeats: int, source: str) -> None:
+def run_all(bag: Path, rig: Path, root: Path, repeats: int, source: str, prefault_gb: float = 0.0) -> None:
     scratch = root / "scratch"
     dataset.prepare_dirs(scratch, False)
-    print(write_cost(scratch))
+
+    def memory_state() -> None:
+        """Before each timed ingest part: touch memory again if asked, say what a file write costs now."""
+        if prefault_gb >= 1:  # a lazily backed VM takes untouched memory back after a while
+            print(prefault(prefault_gb))
+        print(write_cost(scratch))
+
+    memory_state()
     loaded = load_jobs(bag, rig, scratch)
     jobs, geo = loaded.jobs, loaded.geometry
     n = len(jobs)
@@ -623,6 +630,8 @@ def run_all(bag: Path, rig: Path, root: Path, repeats: int, source: str) -> None
     print(f"\nspeed-up decode_custom_msg (+arrays) vs rosbags (+arrays): {ratio:.0f}x (target >= 100x)")
 
     # 2. stages
+    print()
+    memory_state()
     sr = stage_times(jobs)
     per = sr.stage_ms
     if not per:
@@ -736,6 +745,8 @@ def run_all(bag: Path, rig: Path, root: Path, repeats: int, source: str) -> None
         print(f"- {note}")
 
     # 4. ingest throughput
+    print()
+    memory_state()
     n_runs = min(repeats, MAX_INGEST_RUNS)
     runs_by_level: dict[int, list[IngestRun]] = {lv: [] for lv in PNG_LEVELS}
     for _ in range(n_runs):
@@ -760,6 +771,8 @@ def run_all(bag: Path, rig: Path, root: Path, repeats: int, source: str) -> None
           "stage_ms inside the 2 workers)")  # fmt: skip
 
     # 5. everything except encoding, end to end
+    print()
+    memory_state()
     free: list[IngestRun] = []
     with encoding_free():
         for _ in range(n_runs):

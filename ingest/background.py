@@ -5,7 +5,9 @@ its points, so they run while the calling thread does the numpy and Open3D
 point work: one worker then uses its second core for them (bench_ingest).
 A plain thread per call, not a pool: a thread pool created before a fork
 would be dead in the forked ingest workers, and starting a thread costs
-~0.1 ms against the ~14 ms it runs.
+~0.1 ms against the ~14 ms it runs. When every core already runs an ingest
+worker the helper only adds thread switches (~1-2 ms per sample measured),
+so the caller can ask for the same call inline.
 """
 
 from __future__ import annotations
@@ -26,13 +28,18 @@ class Background(Generic[T]):
     sample) call it so the helper never outlives the buffers it writes.
     """
 
-    def __init__(self, fn: Callable[[], T], name: str = "sensorbox-background") -> None:
+    def __init__(self, fn: Callable[[], T], name: str = "sensorbox-background", inline: bool = False) -> None:
+        """Start `fn`; with `inline` run it to the end here instead (no helper thread, same interface)."""
         self._fn = fn
         self._value: list[T] = []  # [return value] once fn returned
         self._error: BaseException | None = None
         self.ms = 0.0  # the helper's own wall time (ms), set when it finishes
-        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
-        self._thread.start()
+        self._thread: threading.Thread | None = None
+        if inline:
+            self._run()
+        else:
+            self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+            self._thread.start()
 
     def _run(self) -> None:
         t0 = time.perf_counter()
@@ -44,8 +51,9 @@ class Background(Generic[T]):
             self.ms = (time.perf_counter() - t0) * 1e3
 
     def wait(self) -> None:
-        """Block until the helper has finished (at once if it has)."""
-        self._thread.join()
+        """Block until the helper has finished (at once if it has or ran inline)."""
+        if self._thread is not None:
+            self._thread.join()
 
     def result(self) -> T:
         """Wait, then the helper's return value, or raise what it raised."""

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import multiprocessing
+import os
 import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import Executor, Future, ProcessPoolExecutor
@@ -300,7 +301,7 @@ def _fingerprint(cfg: IngestConfig, geometry: Geometry, bags: list[Path]) -> dic
             "lidar_window_ns": cfg.lidar_window_ns,
             "stereo_tolerance_ns": cfg.stereo_tolerance_ns,
             "every": cfg.every,
-            **{k: v for k, v in asdict(cfg.sample).items() if k != "gt"},
+            **{k: v for k, v in asdict(cfg.sample).items() if k not in ("gt", "overlap_images")},
             "gt": asdict(cfg.sample.gt),
         },
         "sources": [str(p) for p in bags],
@@ -374,6 +375,9 @@ def ingest(
             geometry.warm_maps()
         max_in_flight = max(2, 2 * cfg.workers)
         pool, client, forks = _executor(cfg)
+        if pool is not None and cfg.workers >= len(os.sched_getaffinity(0)):
+            # every core runs a worker: a helper thread per worker would only add thread switches
+            cfg = replace(cfg, sample=replace(cfg.sample, overlap_images=False))
         # created before the first submit forks the workers, so they inherit the mapping
         slots = ImageSlots(max_in_flight + 1, _slot_bytes(rig)) if forks else None
         pending: list[tuple[Future[SampleResult], SlotImages | None]] = []

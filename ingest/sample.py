@@ -105,6 +105,7 @@ class SampleParams:
     exr: bool = False
     png_level: int = 1
     interpolation: Literal["linear", "cubic", "nearest"] = "linear"  # equirect warps of the images
+    overlap_images: bool = True  # warps in a helper thread beside the point work (off: inline)
     gt: GtParams = field(default_factory=GtParams)
 
 
@@ -160,6 +161,8 @@ Equirects = tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]
 def start_equirects(job: SampleJob) -> Background[Equirects]:
     """Both images warped to cam0's rectified equirect, in a helper thread (see `ingest.background`).
 
+    Inline instead when `SampleParams.overlap_images` is off.
+
     The sizes are checked and the output buffers taken here, in the calling
     thread: they are its reused per-thread buffers (`RemapMaps.scratch`, no
     25 MB allocation and fill per image), valid until its next sample.
@@ -181,7 +184,7 @@ def start_equirects(job: SampleJob) -> Background[Equirects]:
             remap_spans(image, maps, out, interp)
         return work[0][2], work[1][2]
 
-    return Background(both, name=f"sensorbox-equirects-{job.sid}")
+    return Background(both, name=f"sensorbox-equirects-{job.sid}", inline=not job.params.overlap_images)
 
 
 def process_sample(job: SampleJob) -> SampleResult:
@@ -280,4 +283,5 @@ def _process(job: SampleJob, images: Background[Equirects], start_ms: float) -> 
     files = SampleFiles(job.upper_bgr, job.lower_bgr, up, down, disp_img, range_img, meta)
     drops = write_sample(job.out, job.sid, files, prm.exr, prm.png_level)
     ms["write"] = (time.perf_counter() - t3) * 1e3
-    return SampleResult(job.sid, True, "", {**meta, "dropped": drops}, ms, {"equirect warps": images.ms})
+    helper = {"equirect warps": images.ms} if prm.overlap_images else {}  # inline: inside stage "images"
+    return SampleResult(job.sid, True, "", {**meta, "dropped": drops}, ms, helper)

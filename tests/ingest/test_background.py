@@ -95,3 +95,30 @@ def test_process_sample_waits_for_its_helper_also_when_a_stage_raises(tmp_path: 
     with pytest.raises(ValueError, match="source model is"):
         process_sample(bad)  # the size is checked in the calling thread, before the helper starts
     assert not _helpers_alive()
+
+
+def test_inline_runs_in_the_calling_thread_with_the_same_interface():
+    bg = Background(threading.get_ident, inline=True)
+    assert bg.result() == threading.get_ident() and bg.ms > 0.0
+
+    def fn() -> int:
+        raise ValueError("bad image")
+
+    failed = Background(fn, inline=True)  # the error waits for result(), as from a thread
+    failed.wait()
+    with pytest.raises(ValueError, match="bad image"):
+        failed.result()
+
+
+def test_inline_warps_write_the_same_files_and_count_in_the_images_stage(tmp_path: Path):
+    (job,) = _jobs(tmp_path, 1)
+    job.geometry.warm_maps()  # neither call builds the maps
+    threaded = process_sample(job)
+    names = sorted(p.relative_to(job.out) for p in job.out.rglob("*.png"))
+    before = {n: (job.out / n).read_bytes() for n in names}
+    inline_job = replace(job, out=tmp_path / "inline", params=replace(job.params, overlap_images=False))
+    prepare_dirs(inline_job.out, exr=False)
+    inline = process_sample(inline_job)
+    assert inline.overlapped_ms == {} and "equirect warps" in threaded.overlapped_ms
+    assert inline.stage_ms["images"] > threaded.stage_ms["images"]  # the warps now run in the stage
+    assert len(names) == 6 and {n: (inline_job.out / n).read_bytes() for n in names} == before

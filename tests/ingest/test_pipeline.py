@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import errno
 import filecmp
+import os
 import shutil
 from pathlib import Path
 
@@ -297,3 +298,14 @@ def test_pool_workers_get_their_images_through_the_shared_slots(tmp_path: Path, 
     monkeypatch.setattr(ImageSlots, "put", counting_put)
     summary = ingest([INDOOR], IngestConfig(rig=_rig(INDOOR), out=tmp_path / "ds", workers=2, every=10))
     assert summary.written == len(used) > 0 and all(used)
+
+
+@pytest.mark.parametrize(("cores", "helper"), [(2, False), (8, True)])
+def test_workers_use_a_helper_thread_only_when_a_core_is_free(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, cores: int, helper: bool
+) -> None:
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(cores)))
+    summary = ingest([INDOOR], IngestConfig(rig=_rig(INDOOR), out=tmp_path / "ds", workers=2, every=20))
+    assert summary.written >= 2
+    assert bool(summary.overlapped_ms) is helper and "images" in summary.stage_ms
+    assert "overlap_images" not in yaml.safe_load((tmp_path / "ds" / "dataset.yaml").read_text())["params"]
