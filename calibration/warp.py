@@ -148,22 +148,20 @@ def warp(
     R_src_dst: F64 | None = None,
     interpolation: int = cv2.INTER_LINEAR,
     fill: float = 0.0,
-    reuse_output: bool = False,
 ) -> tuple[np.ndarray[Any, Any], Bool]:
     """Render ``dst_model``'s view from an image taken with ``src_model``.
 
     Returns ``(warped, valid)``: pixels with no valid source are set to
     ``fill`` and are False in ``valid``. ``interpolation`` is a cv2 flag
     (INTER_NEAREST for label/depth images, INTER_LINEAR or INTER_CUBIC for
-    colour). Only the maps' spans are remapped. With ``reuse_output`` the
-    result is this thread's buffer for this warp, overwritten by its next
-    ``reuse_output`` call: no 25 MB allocation and fill per equirect, for a
-    caller that is done with the image before it warps the next one.
+    colour). Only the maps' spans are remapped. A caller warping frame after
+    frame can skip the output's allocation and fill with `remap_spans` into
+    `RemapMaps.scratch` (as `ingest.sample.start_equirects` does).
     """
     check_source(image, src_model)
     maps = build_maps(src_model, dst_model, R_src_dst)
     shape = (dst_model.height, dst_model.width, *image.shape[2:])
-    out = maps.scratch(shape, image.dtype, fill) if reuse_output else np.full(shape, fill, image.dtype)
+    out = np.full(shape, fill, image.dtype)
     remap_spans(image, maps, out, interpolation, fill)
     return out, maps.valid
 

@@ -161,11 +161,10 @@ Equirects = tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]
 def start_equirects(job: SampleJob) -> Background[Equirects]:
     """Both images warped to cam0's rectified equirect, in a helper thread (see `ingest.background`).
 
-    Inline instead when `SampleParams.overlap_images` is off.
-
     The sizes are checked and the output buffers taken here, in the calling
     thread: they are its reused per-thread buffers (`RemapMaps.scratch`, no
-    25 MB allocation and fill per image), valid until its next sample.
+    25 MB allocation and fill per image), valid until its next sample. Inline
+    instead when `SampleParams.overlap_images` is off.
     """
     geo = job.geometry
     interp = INTERPOLATION[job.params.interpolation]
