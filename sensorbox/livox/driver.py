@@ -750,6 +750,7 @@ class Mid360Driver:
                 last_drain = now
                 if n:
                     self._on_point_batch(buf, n, sizes[:n].copy(), recv_ns[:n].copy(), srcs)
+                if not backlog:  # socket drained: a lidar's packets may wait behind a full batch
                     self._flush_idle()
         finally:
             sel.close()
