@@ -13,7 +13,7 @@ import pytest
 
 from calibration.errors import CalibrationError
 from calibration.rig import read_rig
-from calibration.warp import warp
+from calibration.warp import remap_spans, warp
 from ingest import sample
 from ingest.background import Background
 from ingest.bags import open_bags
@@ -119,7 +119,7 @@ def test_inline_warps_write_the_same_files_and_count_in_the_images_stage(
     (job,) = _jobs(tmp_path, 1)
     job.geometry.warm_maps()  # neither call builds the maps
     calls: list[tuple[int, float]] = []  # (thread, ms) of each remap
-    remap = sample.remap_spans
+    remap = remap_spans
 
     def timed_remap(*args: Any, **kwargs: Any) -> None:
         t0 = time.perf_counter()
