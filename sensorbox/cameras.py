@@ -410,7 +410,11 @@ class StereoPairer:
     frame waiting, the two oldest are paired if within tolerance; otherwise the
     older one can never pair (the other camera's later frames are later still)
     and is dropped as unpaired. At most `max_pending` frames wait per camera
-    (a silent partner ages the oldest out, also counted as unpaired).
+    (a silent partner ages the oldest out, also counted as unpaired). Frames
+    still waiting when the stream stops are counted apart (`at_stop`): the two
+    cameras' readers stop a frame apart, so one of them usually has a frame
+    whose partner was simply never read; that is the end of the recording,
+    not a drop.
     """
 
     def __init__(self, tolerance_ns: int, max_pending: int = 4) -> None:
@@ -419,6 +423,7 @@ class StereoPairer:
         self._pending: tuple[deque[tuple[int, Any]], deque[tuple[int, Any]]] = (deque(), deque())
         self.pairs = 0
         self.unpaired = [0, 0]
+        self.at_stop = [0, 0]  # frames still waiting for their partner at flush()
         self.max_abs_dt_ns = 0
         self._lock = threading.Lock()
 
@@ -447,10 +452,10 @@ class StereoPairer:
         return out
 
     def flush(self) -> None:
-        """Count every frame still waiting as unpaired (end of the stream)."""
+        """End of the stream: count the frames still waiting in `at_stop` and forget them."""
         with self._lock:
             for cam, q in enumerate(self._pending):
-                self.unpaired[cam] += len(q)
+                self.at_stop[cam] += len(q)
                 q.clear()
 
 
@@ -637,6 +642,7 @@ class CameraNode:
             drops["pair"] = sum(self.pairer.unpaired)
             counters["pairs"] = float(self.pairer.pairs)
             counters["pair_max_dt_ms"] = self.pairer.max_abs_dt_ns / 1e6
+            counters["unpaired_at_stop"] = float(sum(self.pairer.at_stop))
         return NodeStatus(counters, drops, error=self.error)
 
     @property

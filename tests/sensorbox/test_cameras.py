@@ -43,8 +43,9 @@ def test_pairer_pairs_nearest_and_counts_unpaired():
         out += p.push(cam, stamp, stamp)
     assert out == [(0, 1), (66, 67), (100, 99)]
     assert p.pairs == 3 and p.unpaired == [1, 0] and p.max_abs_dt_ns == 1
-    p.flush()  # 140 waited for an upper frame that never came
-    assert p.unpaired == [1, 1]
+    p.flush()  # 140 still waits for an upper frame: the stream stopped first, not a drop
+    assert p.unpaired == [1, 0] and p.at_stop == [0, 1]
+    assert p.push(0, 141, 141) == []  # forgotten: 141 does not pair with 140
 
 
 def test_pairer_ages_out_frames_of_a_silent_partner():
@@ -288,8 +289,9 @@ def test_stereo_node_publishes_pairs_only_as_jpeg():
     _, ref = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 95])
     np.testing.assert_array_equal(decoded.image, cv2.imdecode(ref, cv2.IMREAD_COLOR))  # quality 95 applied
     st = node.status()
-    assert st.drops == {"source": 0, "encode": 0, "pair": 2}  # upper 33 ms, lower 99 ms
+    assert st.drops == {"source": 0, "encode": 0, "pair": 1}  # upper 33 ms: lower 66.2 came next
     assert st.counters["pairs"] == 2 and st.counters["pair_max_dt_ms"] == pytest.approx(0.2)
+    assert st.counters["unpaired_at_stop"] == 1  # lower 99 ms, still waiting when the node stopped
 
 
 def test_camera_node_raw_images_keep_every_frame():
