@@ -152,6 +152,10 @@ class LidarStats:
     malformed_by_reason: dict[str, int] = field(default_factory=dict)
     imu_packets: int = 0
     imu_lost: int = 0
+    imu_duplicates: int = 0  # IMU datagrams whose udp_cnt was seen already (or too old to tell), dropped
+    point_datagrams: int = 0  # every datagram taken from this lidar's point port, whatever became of it
+    imu_datagrams: int = 0  # every datagram taken from this lidar's IMU port
+    stale: int = 0  # point packets whose udp_cnt was too old to tell from a duplicate, dropped
     sweeps: int = 0  # published
     unsynced: bool | None = None  # True while packets arrive with time_type 0 (host-clock stamps)
     time_type: int | None = None  # of the newest packet
@@ -159,6 +163,17 @@ class LidarStats:
     counter_resets: int = 0  # udp_cnt jumped far backwards (lidar restarted): counting restarted
     pushes: int = 0  # 0x0102 status pushes received
     work_state: int | None = None  # key 0x8006 of the newest push
+
+    def unaccounted_point_datagrams(self) -> int:
+        """point_datagrams minus every outcome (kept, duplicate, stale, late, malformed): 0 when the books balance."""
+        malformed = sum(n for r, n in self.malformed_by_reason.items() if r in proto.REJECT_REASONS)
+        return self.point_datagrams - (self.packets + self.duplicates + self.stale + self.late + malformed)
+
+    def unaccounted_imu_datagrams(self) -> int:
+        """imu_datagrams minus every outcome (kept, duplicate, malformed): 0 when the books balance."""
+        return self.imu_datagrams - (
+            self.imu_packets + self.imu_duplicates + self.malformed_by_reason.get("imu", 0)
+        )
 
 
 @dataclass
@@ -378,9 +393,14 @@ def _udp_socket(ip: str, port: int, *, rcvbuf: int = 0, broadcast: bool = False)
 class Mid360Driver:
     """Configure one or more Mid-360s and publish their sweeps and IMU samples."""
 
-    def __init__(self, config: DriverConfig, publish: Publish) -> None:
+    def __init__(
+        self, config: DriverConfig, publish: Publish, *, clock: Callable[[], float] = time.monotonic
+    ) -> None:
+        """`clock` (seconds) decides when a silent lidar's open sweeps are flushed (`idle_flush_s`);
+        tests pass a manual clock so that a stalled sender never looks like a silent lidar."""
         config.validate()
         self.config = config
+        self._clock = clock
         self._publish_fn = publish
         self._publish_lock = threading.Lock()
         self._lock = threading.Lock()  # guards the counters for stats()
@@ -403,8 +423,11 @@ class Mid360Driver:
 
     # ------------------------------------------------------------------ public API
 
-    def discover(self, timeout_s: float = 3.0) -> list[DeviceInfo]:
-        """Broadcast discovery every second for `timeout_s`; every lidar that answered (any IP)."""
+    def discover(self, timeout_s: float = 3.0, *, until_found: int = 0) -> list[DeviceInfo]:
+        """Broadcast discovery every second for `timeout_s`; every lidar that answered (any IP).
+
+        With `until_found` > 0 it returns as soon as that many lidars have answered.
+        """
         cfg = self.config
         sock = _udp_socket("", cfg.ports.discovery, broadcast=True)
         req = proto.build_control_frame(
@@ -440,6 +463,8 @@ class Mid360Driver:
                     continue
                 if info.ret_code == 0:
                     found[info.ip] = info
+                if 0 < until_found <= len(found):
+                    break
         finally:
             sock.close()
         self._devices.update(found)
@@ -503,12 +528,19 @@ class Mid360Driver:
                     li.points_seq.duplicates,
                     li.points_seq.reordered,
                 )
+                s.stale = li.points_seq.stale
                 s.imu_lost = li.imu_seq.lost
+                s.imu_duplicates = li.imu_seq.duplicates + li.imu_seq.stale
                 s.counter_resets = li.points_seq.resets
                 lidars[ip] = s
             return DriverStats(
                 lidars, self._foreign, dict(self._foreign_sources), self._rcvbuf, self._kernel_drops
             )
+
+    def received(self, ip: str) -> tuple[int, int]:
+        """(point, IMU) datagrams taken from lidar `ip`'s ports so far: a cheap read for flow control."""
+        stats = self._lidars[ip].stats
+        return stats.point_datagrams, stats.imu_datagrams
 
     def set_params(self, ip: str, items: list[proto.KV]) -> None:
         """Send one 0x0100 with `items` to lidar `ip`; DriverError unless it ACKs with ret_code 0."""
@@ -688,6 +720,8 @@ class Mid360Driver:
         if lidar is None:
             self._count_foreign(src)
             return
+        with self._lock:
+            lidar.stats.imu_datagrams += 1
         try:
             pkt = proto.decode_imu_packet(raw, self.config.check_crc)
         except ProtocolError as err:
@@ -774,6 +808,8 @@ class Mid360Driver:
             return
         groups, rejects = proto.decode_point_batch(buf, SLOT, sizes, self.config.check_crc)
         with self._lock:
+            for o, count in enumerate(np.bincount(owner[owner >= 0], minlength=len(lidars)).tolist()):
+                lidars[o].stats.point_datagrams += count
             for reason, rows in rejects.items():
                 for k in rows.tolist():
                     if owner[k] >= 0:
@@ -800,7 +836,7 @@ class Mid360Driver:
         n_pk, dot_num = pts.shape
         if n_pk == 0:
             return
-        lidar.last_packet_wall = time.monotonic()
+        lidar.last_packet_wall = self._clock()
         synced = hdr["time_type"] != proto.TIME_TYPE_NO_SYNC
         pkt_ns = np.where(synced, hdr["timestamp"].astype(np.int64), recv_ns)
         if lidar.newest_ns is not None and np.abs(pkt_ns - lidar.newest_ns).max() > TIME_JUMP_NS:
@@ -841,7 +877,7 @@ class Mid360Driver:
             self._publish_sweep(lidar, key)
 
     def _flush_idle(self) -> None:
-        now = time.monotonic()
+        now = self._clock()
         for lidar in self._lidars.values():
             if lidar.frames and now - lidar.last_packet_wall > self.config.idle_flush_s:
                 self._publish_open(lidar)

@@ -24,6 +24,12 @@ where all of 127/8 is local). Like the real unit (notes/livox.md):
   held back behind the next one), duplication, and extra malformed datagrams
   (cycling through short, bad length, bad version, bad data type, dot_num
   mismatch, bad CRC-32, oversized). `counters` records exactly what was done.
+- Flow control (for tests, not in the real unit): with `credit`, a function
+  that says how many datagrams the receiver has taken so far on the "point" or
+  "imu" stream, the emulator never has more than `window` datagrams of a
+  stream in flight. The kernel's receive buffer then never overflows however
+  busy the machine is, so a test can demand every datagram; the wall-clock
+  schedule (`rate`) still applies on top.
 """
 
 from __future__ import annotations
@@ -142,6 +148,8 @@ class EmulatorCounters:
     malformed: int = 0
     malformed_by_kind: dict[str, int] = field(default_factory=dict)
     imu_sent: int = 0
+    point_datagrams: int = 0  # every datagram that left the point port (malformed, duplicates included)
+    imu_datagrams: int = 0  # every datagram that left the IMU port
     sweeps: int = 0  # sweeps fully streamed
     pushes: int = 0
     discovery_replies: int = 0
@@ -183,6 +191,8 @@ class Mid360Emulator:
         fail_keys: frozenset[int] = frozenset(),
         listen_broadcast: bool = True,
         push_period_s: float = 1.0,
+        credit: Callable[[str], int] | None = None,
+        window: int = 64,
     ) -> None:
         if data_type not in proto.POINT_DTYPES:
             raise SensorboxError(f"Mid-360 emulator: data_type {data_type}, expected 1, 2 or 3")
@@ -190,6 +200,8 @@ class Mid360Emulator:
             raise SensorboxError(f"Mid-360 emulator: time_type {time_type}, expected 0, 1 or 2")
         if not rate > 0:
             raise SensorboxError(f"Mid-360 emulator: rate must be > 0, got {rate}")
+        if window < 1:
+            raise SensorboxError(f"Mid-360 emulator: window must be >= 1 datagram, got {window}")
         for name, p in (
             ("loss", loss),
             ("reorder", reorder),
@@ -209,6 +221,8 @@ class Mid360Emulator:
         self.fail_keys = fail_keys
         self.listen_broadcast = listen_broadcast
         self.push_period_s = push_period_s
+        self.credit = credit
+        self.window = window
         self.counters = EmulatorCounters()
         self.params: dict[int, bytes] = {
             proto.KEY_PCL_DATA_TYPE: proto.u8_value(data_type),
@@ -495,10 +509,26 @@ class Mid360Emulator:
         return True
 
     def _send(self, raw: bytes, kind: str = "point") -> None:
-        with contextlib.suppress(OSError):
-            host = self._hosts.get(kind)
-            if host is not None:
-                self._socks[kind].sendto(raw, host)
+        host = self._hosts.get(kind)
+        if host is None:
+            return
+        self._await_credit(kind)
+        try:
+            self._socks[kind].sendto(raw, host)
+        except OSError:
+            return
+        if kind == "point":
+            self.counters.point_datagrams += 1
+        elif kind == "imu":
+            self.counters.imu_datagrams += 1
+
+    def _await_credit(self, kind: str) -> None:
+        """With `credit`, wait until fewer than `window` datagrams of `kind` are in flight (or stop)."""
+        if self.credit is None or kind not in ("point", "imu"):
+            return
+        sent = self.counters.point_datagrams if kind == "point" else self.counters.imu_datagrams
+        while sent - self.credit(kind) >= self.window and not self._stop.is_set():
+            time.sleep(0.0005)
 
     def _send_imu(self, stamp: int, cnt: int, gyro: F64, acc: F64) -> None:
         if "imu" not in self._hosts:
@@ -576,3 +606,14 @@ def sim_emulators(
         opts = {"seed": cfg.seed * 100 + k, **options}
         out.append(Mid360Emulator(ip, SimScan(setup, k), serial=serial, **opts))
     return out
+
+
+def credit_from(received: Callable[[str], tuple[int, int]], ip: str) -> Callable[[str], int]:
+    """An emulator `credit` function from a receiver's (point, IMU) datagram counts for `ip`
+    (for example `Mid360Driver.received`)."""
+
+    def taken(kind: str) -> int:
+        point, imu = received(ip)
+        return point if kind == "point" else imu
+
+    return taken
