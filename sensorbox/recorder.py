@@ -144,7 +144,10 @@ class Recorder:
         disk_free: DiskFree = disk_free_bytes,
         clock_ns: Callable[[], int] = time.time_ns,
         in_graph: bool = False,
+        monotonic: Callable[[], float] = time.monotonic,
     ) -> None:
+        """`clock_ns` stamps each message's receive (log) time; `monotonic` (seconds) measures
+        `duration_s`. Tests pass their own clocks to make both deterministic."""
         cfg.validate()
         self.cfg = cfg
         self.name = name
@@ -152,6 +155,7 @@ class Recorder:
         self._shutdown = shutdown
         self._disk_free = disk_free
         self._clock_ns = clock_ns
+        self._monotonic = monotonic
         self._wanted = frozenset(cfg.topics) if cfg.topics else None
         self._lock = threading.Lock()
         self._wake = threading.Condition(self._lock)
@@ -173,6 +177,8 @@ class Recorder:
         self._graph_started: float | None = None
         self._in_graph = in_graph
         self._duration_requested = False
+        self._written_total = 0
+        self._flushed_total = 0  # messages in complete chunks flushed to the OS: they survive a SIGKILL
 
     # ------------------------------------------------------------------ Node
 
@@ -204,7 +210,7 @@ class Recorder:
 
     def graph_started(self) -> None:
         """Every node of the graph runs now: `duration_s` counts from here."""
-        self._graph_started = time.monotonic()
+        self._graph_started = self._monotonic()
 
     def status(self) -> NodeStatus:
         with self._lock:
@@ -223,6 +229,7 @@ class Recorder:
             "disk_free_bytes": float(self.disk_free),
             "queued": float(queued),
             "bags": float(len(self.files)),
+            "flushed_msgs": float(self._flushed_total),
         }
         return NodeStatus(
             counters, drops, {t: v[0] for t, v in topics.items()}, tuple(self.files), rates, self.error
@@ -289,11 +296,12 @@ class Recorder:
                 if now >= next_check:
                     next_check = now + self.cfg.disk_check_s
                     self._check_disk()
-                self._check_duration(now)
+                self._check_duration(self._monotonic())
                 if now >= next_flush:
                     next_flush = now + self.cfg.flush_s
                     if self._bag is not None:
                         self._bag.flush()
+                        self._flushed_total = self._written_total
                 if item is None and self._stopping:
                     with self._lock:
                         if not self._order:
@@ -332,12 +340,13 @@ class Recorder:
                 return
         bag.write(topic, recv_ns, raw)
         if self._first_write is None:
-            self._first_write = time.monotonic()
+            self._first_write = self._monotonic()
         if not c.written:
             c.first_ns = recv_ns
         c.last_ns = recv_ns
         c.written += 1
         c.bytes += len(raw)
+        self._written_total += 1
 
     def _should_split(self, recv_ns: int) -> bool:
         cfg = self.cfg
@@ -370,6 +379,7 @@ class Recorder:
         bag, self._bag, self._bag_mcap = self._bag, None, None
         if bag is not None:
             bag.__exit__(None, None, None)
+            self._flushed_total = self._written_total
 
     def _check_disk(self) -> None:
         try:

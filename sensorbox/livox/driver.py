@@ -165,7 +165,7 @@ class LidarStats:
     work_state: int | None = None  # key 0x8006 of the newest push
 
     def unaccounted_point_datagrams(self) -> int:
-        """point_datagrams minus every outcome (kept, duplicate, stale, late, malformed): 0 when the books balance."""
+        """point_datagrams minus every outcome (kept, duplicate, stale, late, malformed): 0 when balanced."""
         malformed = sum(n for r, n in self.malformed_by_reason.items() if r in proto.REJECT_REASONS)
         return self.point_datagrams - (self.packets + self.duplicates + self.stale + self.late + malformed)
 

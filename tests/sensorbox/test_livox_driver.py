@@ -32,6 +32,7 @@ from sensorbox.livox.driver import DriverStats, _udp_socket
 from sensorbox.sim.lidar import Sweep, simulate_sweep
 from sensorbox.sim.mid360 import Mid360Emulator, SimScan, SweepList, credit_from, sim_emulators
 from sensorbox.sim.run import SimConfig, _setup
+from tests.live import HANG_S, ManualClock, wait_for
 
 HOST = "127.0.0.1"
 LOCAL_BROADCAST = "127.255.255.255"
@@ -53,32 +54,11 @@ RATE = 3.0
 # Datagrams an emulator may have in flight per stream: a quarter of the receive buffer this host grants,
 # at 8 KiB per datagram (about three times what a 1380-byte datagram costs the kernel on loopback).
 WINDOW = max(4, _granted_rcvbuf() // 8192 // 4)
-HANG_S = 600.0  # waits end this late only when something hangs
 
 
-class ManualClock:
-    """The driver's idle-flush clock, moved only by the test: a stalled sender never looks silent."""
-
-    def __init__(self) -> None:
-        self.now_s = 0.0
-
-    def __call__(self) -> float:
-        return self.now_s
-
-    def advance(self, seconds: float) -> None:
-        self.now_s += seconds
-
-
-def wait_for(condition: Callable[[], bool], what: str, timeout_s: float = HANG_S) -> None:
-    """Poll until `condition()`; the timeout only catches a hang."""
-    end = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > end:
-            pytest.fail(f"still waiting after {timeout_s:.0f} s for {what}")
-        time.sleep(0.01)
-
-
-def settled(driver: Mid360Driver, emulators: list[Mid360Emulator], extra: dict[str, int] | None = None) -> bool:
+def settled(
+    driver: Mid360Driver, emulators: list[Mid360Emulator], extra: dict[str, int] | None = None
+) -> bool:
     """Every datagram each emulator sent (plus `extra` point datagrams from its address) was taken
     by the driver and has an outcome in its counters."""
     st = driver.stats()
@@ -385,7 +365,9 @@ def test_a_silent_lidars_last_sweep_is_published_before_stop(sim):
     ports = fresh_ports()
     sink, clock = Sink(), ManualClock()
     topic = "/livox/lidar_127_0_0_2"
-    driver = Mid360Driver(config(ports, "127.0.0.2", idle_flush_s=DriverConfig.idle_flush_s), sink, clock=clock)
+    driver = Mid360Driver(
+        config(ports, "127.0.0.2", idle_flush_s=DriverConfig.idle_flush_s), sink, clock=clock
+    )
     emu = Mid360Emulator("127.0.0.2", SweepList(items), ports=ports, rate=RATE, window=WINDOW)
     emu.credit = credit_from(driver.received, emu.ip)
     with emu, driver:
@@ -496,9 +478,11 @@ def test_a_full_kernel_buffer_is_counted_as_loss_and_as_kernel_drops(sim):
     with emu, driver:
         assert emu.wait_done(HANG_S)
         wait_for(
-            lambda: driver.received(ip)[0] + proc_udp_drops(HOST, ports.host_point)
-            == emu.counters.point_datagrams
-            and driver.stats().lidars[ip].unaccounted_point_datagrams() == 0,
+            lambda: (
+                driver.received(ip)[0] + proc_udp_drops(HOST, ports.host_point)
+                == emu.counters.point_datagrams
+                and driver.stats().lidars[ip].unaccounted_point_datagrams() == 0
+            ),
             "every datagram taken or dropped",
         )
         dropped = proc_udp_drops(HOST, ports.host_point)

@@ -12,7 +12,6 @@ import subprocess
 import sys
 import textwrap
 import threading
-import time
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +23,7 @@ from ingest.rostypes import IMU_TYPE, typestore
 from sensorbox import messages
 from sensorbox.bus import Bus, NodeStatus, Shutdown, run_graph
 from sensorbox.recorder import Recorder, RecorderConfig, RecorderError
+from tests.live import HANG_S, ManualClock, wait_for
 
 ROOT = Path(__file__).resolve().parents[2]
 STRING = "std_msgs/msg/String"
@@ -89,13 +89,13 @@ def test_queue_overflow_is_counted_per_topic(tmp_path):
 
     def blocked(*args):
         entered.set()
-        gate.wait(5.0)
+        gate.wait(HANG_S)
         write(*args)
 
     rec._write = blocked  # type: ignore[method-assign]  # the writer holds the first message until the test lets it go
     rec.start()
     results = [rec.enqueue("/a", STRING, 0, string_msg(str(k))) for k in range(1)]
-    assert entered.wait(2.0)
+    assert entered.wait(HANG_S)
     results += [rec.enqueue("/a", STRING, 0, string_msg(str(k))) for k in range(1, 10)]
     results += [rec.enqueue("/b", STRING, 0, string_msg("b"))]  # its own queue: not affected
     gate.set()
@@ -158,11 +158,9 @@ def test_disk_guard_closes_the_bag_and_stops(tmp_path):
     rec.start()
     for k in range(20):
         rec.enqueue("/chatter", STRING, 0, string_msg(f"m{k}"))
-    deadline = time.monotonic() + 5
-    while rec.status().written.get("/chatter", 0) < 20 and time.monotonic() < deadline:
-        time.sleep(0.01)
+    wait_for(lambda: rec.status().written.get("/chatter", 0) == 20, "20 messages written")
     free["bytes"] = 512 << 20  # the disk fills up
-    assert sd.event.wait(5.0)
+    assert sd.event.wait(HANG_S)
     assert "disk free 512 MiB below min_free 1024 MiB" in (sd.reason or "")
     for _ in range(5):
         assert not rec.enqueue("/chatter", STRING, 0, string_msg("late"))
@@ -175,28 +173,34 @@ def test_disk_guard_closes_the_bag_and_stops(tmp_path):
 
 
 def test_duration_counts_from_the_first_message(tmp_path):
-    sd = Shutdown()
-    rec = Recorder(RecorderConfig(tmp_path, name="t", duration_s=0.2), shutdown=sd)
+    sd, clock = Shutdown(), ManualClock(100.0)
+    rec = Recorder(RecorderConfig(tmp_path, name="t", duration_s=0.2), shutdown=sd, monotonic=clock)
     rec.start()
+    clock.advance(10.0)
     assert not sd.event.wait(0.3)  # nothing recorded yet: the clock has not started
     rec.enqueue("/chatter", STRING, 0, string_msg("x"))
-    t0 = time.monotonic()
-    assert sd.event.wait(2.0)
-    assert 0.15 <= time.monotonic() - t0 < 1.5 and sd.reason == "recorder: recorded 0.2 s"
+    wait_for(lambda: rec.status().written.get("/chatter", 0) == 1, "the first message written")
+    clock.advance(0.1)
+    assert not sd.event.wait(0.3)  # half of the duration
+    clock.advance(0.15)
+    assert sd.event.wait(HANG_S) and sd.reason == "recorder: recorded 0.2 s"
     rec.stop()
 
 
 def test_duration_counts_from_graph_start(tmp_path):
-    bus, sd = Bus(), Shutdown()
-    rec = Recorder(RecorderConfig(tmp_path, name="g", duration_s=0.3), shutdown=sd, in_graph=True)
+    bus, sd, clock = Bus(), Shutdown(), ManualClock(100.0)
+    cfg = RecorderConfig(tmp_path, name="g", duration_s=0.3)
+    rec = Recorder(cfg, shutdown=sd, in_graph=True, monotonic=clock)
     rec.subscribe_to(bus)
 
-    class SlowSource:  # publishes at once, then takes 0.5 s more to start (a pre-rendering camera)
+    class SlowSource:  # publishes at once, then takes 10 s more to start (a pre-rendering camera)
         name, priority = "slow", 2
 
         def start(self):
             bus.publish("/chatter", STRING, 0, string_msg("early"))
-            time.sleep(0.5)
+            wait_for(lambda: rec.status().written.get("/chatter", 0) == 1, "the early message written")
+            clock.advance(10.0)
+            assert not sd.event.wait(0.3)  # counted from the first message, the recording would end here
 
         def stop(self):
             pass
@@ -204,10 +208,10 @@ def test_duration_counts_from_graph_start(tmp_path):
         def status(self):
             return NodeStatus()
 
-    t0 = time.monotonic()
-    res = run_graph([rec, SlowSource()], bus, sd, tick_s=0.01)
-    assert res.reason == "recorder: recorded 0.3 s"
-    assert time.monotonic() - t0 >= 0.8 and res.snapshot.elapsed_s >= 0.3
+    # after every node started, the clock moves 0.1 s per tick of the graph
+    res = run_graph([rec, SlowSource()], bus, sd, tick_s=0.01, on_tick=lambda _snap: clock.advance(0.1))
+    assert res.reason == "recorder: recorded 0.3 s" and res.error is None
+    assert [m.raw for m in read_all(tmp_path / "g_000")] == [string_msg("early")]
 
 
 def test_existing_bag_and_bad_config_are_errors(tmp_path):
@@ -254,11 +258,9 @@ def test_sigint_sigterm_leave_a_readable_bag(tmp_path, sig):
         cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
     mcap = out / "sig_000" / "sig_000.mcap"
-    deadline = time.monotonic() + 30
-    while not (mcap.exists() and mcap.stat().st_size > 2000) and time.monotonic() < deadline:
-        time.sleep(0.05)
+    wait_for(lambda: mcap.exists() and mcap.stat().st_size > 2000, "the first chunk on disk")
     proc.send_signal(sig)
-    stdout, stderr = proc.communicate(timeout=30)
+    stdout, stderr = proc.communicate(timeout=HANG_S)
     assert proc.returncode == 0, stderr
     assert f"stopped: {signal.Signals(sig).name} received" in " ".join(stdout.split())  # title may wrap
     assert (out / "sig_000" / "metadata.yaml").is_file()
@@ -284,7 +286,9 @@ for k in range(n):
     rec.enqueue("/chatter", "std_msgs/msg/String", 0, string_msg(f"{k:06d}" + "x" * size))
 while rec.status().written.get("/chatter", 0) < n and not any(rec.status().drops.values()):
     time.sleep(0.01)
-time.sleep(3 * flush_s if flush_s < 1 else 0.2)
+if flush_s < 1:  # wait for the periodic flush to cover every message
+    while rec.status().counters["flushed_msgs"] < n:
+        time.sleep(0.01)
 print("written", rec.status().written.get("/chatter", 0), flush=True)
 time.sleep(60)
 """
@@ -304,7 +308,7 @@ def test_sigkill_loses_at_most_the_open_chunk(tmp_path, flush_s, exact):
         assert line.strip() == f"written {n}", proc.stderr.read() if proc.stderr else ""
     finally:
         proc.send_signal(signal.SIGKILL)
-        proc.wait(10)
+        proc.wait(HANG_S)
     bag = tmp_path / "k_000"
     assert not (bag / "metadata.yaml").exists()
     with pytest.raises(BagError, match="--salvage"):
