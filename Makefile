@@ -25,8 +25,11 @@ demo: setup
 	$(BIN)/sensorbox ingest $(DEMO_BAG) --rig $(DEMO_BAG).truth/rig.yaml --out $(DEMO_OUT)/widedepth
 	@echo "Demo output: $(DEMO_OUT)/widedepth (WideDepth layout, dataset.yaml) and $(DEMO_OUT)/rig.png"
 
+# The suite in two runs: everything else in parallel, then the live paths (sockets, threads on a
+# clock, subprocess timing: marker `realtime`) one at a time, so two of them never share the cores.
 test: setup
-	$(BIN)/python -m pytest -q -n 2 tests
+	$(BIN)/python -m pytest -q -n 2 -m "not realtime" tests
+	$(BIN)/python -m pytest -q -m realtime tests
 
 bench: setup
 	$(BIN)/python bench/bench_models.py

@@ -342,7 +342,9 @@ class SimCameraSource:
         loop_frames: int = 30,
         buffer_frames: int = 4,
         name: str | None = None,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
+        """`clock` (monotonic seconds) paces the frames; tests pass a manual one."""
         if cam not in (0, 1):
             raise DriverError(f"simulated camera index {cam}: expected 0 (upper) or 1 (lower)")
         self.sim = sim
@@ -357,6 +359,7 @@ class SimCameraSource:
         self.loop: list[U8] = []  # pre-rendered frames (empty: rendered live)
         self._epoch: float | None = None
         self._k = 0
+        self._clock = clock
 
     def open(self) -> None:
         t0 = time.perf_counter()
@@ -379,17 +382,17 @@ class SimCameraSource:
 
     def read(self, stop: threading.Event) -> Frame | None:
         if self._epoch is None:
-            self._epoch = time.monotonic()
+            self._epoch = self._clock()
         period_s = self.sim.period_ns / 1e9
         k = self._k
-        late = time.monotonic() - (self._epoch + self.sim.sim_ns(k, self.cam) / 1e9)
+        late = self._clock() - (self._epoch + self.sim.sim_ns(k, self.cam) / 1e9)
         newer = int(late / period_s)  # frames produced since frame k
         if newer >= self.buffer_frames:  # the ring overwrote the oldest: keep the newest buffer_frames
             skip = newer - self.buffer_frames + 1
             self.dropped += skip
             k += skip
         due = self._epoch + self.sim.sim_ns(k, self.cam) / 1e9
-        if stop.wait(max(0.0, due - time.monotonic())):
+        if stop.wait(max(0.0, due - self._clock())):
             return None
         img = self.loop[k % len(self.loop)] if self.loop else self.sim.render(k, self.cam)
         self._k = k + 1

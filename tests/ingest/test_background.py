@@ -21,6 +21,7 @@ from ingest.dataset import prepare_dirs
 from ingest.pipeline import IngestConfig, _resolve_topics, plan, stream_jobs
 from ingest.sample import Geometry, SampleJob, process_sample, start_equirects
 from tests.ingest.test_pipeline import INDOOR, _rig
+from tests.live import HANG_S
 
 
 def test_result_is_the_helpers_return_value_computed_in_another_thread():
@@ -28,7 +29,9 @@ def test_result_is_the_helpers_return_value_computed_in_another_thread():
     go = threading.Event()
 
     def fn() -> tuple[int, bool]:
-        started = go.wait(10)  # the caller sets it after Background() returned: only another thread sees it
+        started = go.wait(
+            HANG_S
+        )  # the caller sets it after Background() returned: only another thread sees it
         return threading.get_ident(), started
 
     bg = Background(fn)

@@ -21,6 +21,9 @@ from sensorbox.bus import (
     run_graph,
     stop_on_signals,
 )
+from tests.live import HANG_S
+
+pytestmark = pytest.mark.realtime  # threads on a clock, signals: run serially (make test)
 
 
 @pytest.mark.parametrize(
@@ -133,6 +136,6 @@ def test_signals_request_a_clean_shutdown(sig):
     before = signal.getsignal(sig)
     with stop_on_signals(sd):
         os.kill(os.getpid(), sig)
-        assert sd.event.wait(2.0)
+        assert sd.event.wait(HANG_S)
     assert sd.reason == f"{signal.Signals(sig).name} received"
     assert signal.getsignal(sig) is before

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import sys
 import threading
-import time
 import types
 from pathlib import Path
 
@@ -28,6 +27,7 @@ from sensorbox.cameras import (
 )
 from sensorbox.errors import DriverError
 from sensorbox.sim.fixtures import FIXTURES, fixture_bag
+from tests.live import ManualClock, wait_for
 
 UPPER = "/zed_upper/zed_node/rgb/color/rect/image"
 LOWER = "/zed_lower/zed_node/rgb/color/rect/image"
@@ -213,15 +213,17 @@ def test_sim_cameras_reproduce_the_simulators_frames_and_stamps():
             np.testing.assert_array_equal(sim.render(k, cam), frame.image)
 
 
+@pytest.mark.realtime
 def test_sim_camera_source_paces_and_counts_skipped_frames():
     sim = SimCameras(FIXTURES["indoor_static_mcap"])
-    src = SimCameraSource(sim, 1, prerender="always", buffer_frames=4)
+    clock = ManualClock(1000.0)
+    src = SimCameraSource(sim, 1, prerender="always", buffer_frames=4, clock=clock)
     src.open()
     assert len(src.loop) == 1  # static: every frame is the same image
-    src.start_clock(time.monotonic() - 1.0)  # one second behind: ~30 frames made, the last 4 kept
+    src.start_clock(clock() - 1.0)  # one second behind: frames 0..29 made, the ring keeps 26..29
     stop = threading.Event()
     first = src.read(stop)
-    assert first is not None and 25 <= src.dropped <= 28 and first.seq == src.dropped
+    assert first is not None and src.dropped == 26 and first.seq == 26
     second = src.read(stop)
     assert second is not None and second.seq == first.seq + 1
     assert [first.stamp_ns, second.stamp_ns] == [sim.stamp_ns(first.seq, 1), sim.stamp_ns(second.seq, 1)]
@@ -258,6 +260,7 @@ class ListSource:
         pass
 
 
+@pytest.mark.realtime
 def test_stereo_node_publishes_pairs_only_as_jpeg():
     rng = np.random.default_rng(0)
     img = cv2.GaussianBlur(rng.integers(0, 256, (60, 80, 3), dtype=np.uint8), (7, 7), 2).astype(np.uint8)
@@ -276,9 +279,7 @@ def test_stereo_node_publishes_pairs_only_as_jpeg():
         publish, image="jpeg", jpeg_quality=95, pair_tolerance_ns=16_000_000,
     )  # fmt: skip
     node.start()
-    deadline = time.monotonic() + 5
-    while not node.done and time.monotonic() < deadline:
-        time.sleep(0.01)
+    wait_for(lambda: node.done, "the sources to finish")
     node.stop()
     assert [(t, s) for t, _, s, _ in got] == [
         (UPPER + "/compressed", 0), (LOWER + "/compressed", 100_000),
@@ -294,15 +295,14 @@ def test_stereo_node_publishes_pairs_only_as_jpeg():
     assert st.counters["unpaired_at_stop"] == 1  # lower 99 ms, still waiting when the node stopped
 
 
+@pytest.mark.realtime
 def test_camera_node_raw_images_keep_every_frame():
     img = np.arange(6 * 8 * 3, dtype=np.uint8).reshape(6, 8, 3)
     got = []
     node = CameraNode("cam", [ListSource("c", [Frame(k, img, k) for k in range(3)])],
                       [CameraOutput("/cam/image", "f")], lambda *m: got.append(m), image="raw")  # fmt: skip
     node.start()
-    deadline = time.monotonic() + 5
-    while not node.done and time.monotonic() < deadline:
-        time.sleep(0.01)
+    wait_for(lambda: node.done, "the sources to finish")
     node.stop()
     assert [(t, s) for t, _, s, _ in got] == [("/cam/image", 0), ("/cam/image", 1), ("/cam/image", 2)]
     np.testing.assert_array_equal(decode_image(got[1][3]).image, img)

@@ -9,6 +9,7 @@ ports so pytest-xdist workers never share one. Streams run faster than real time
 from __future__ import annotations
 
 import binascii
+import functools
 import itertools
 import os
 import socket
@@ -33,6 +34,8 @@ from sensorbox.sim.lidar import Sweep, simulate_sweep
 from sensorbox.sim.mid360 import Mid360Emulator, SimScan, SweepList, credit_from, sim_emulators
 from sensorbox.sim.run import SimConfig, _setup
 from tests.live import HANG_S, ManualClock, wait_for
+
+pytestmark = pytest.mark.realtime  # UDP sockets and receive threads: run serially (make test)
 
 HOST = "127.0.0.1"
 LOCAL_BROADCAST = "127.255.255.255"
@@ -411,10 +414,13 @@ def test_traffic_from_other_addresses_is_ignored_and_garbage_never_kills_the_dri
             rogue.sendto(row.tobytes(), (HOST, ports.host_point))
             wrong_port.sendto(row.tobytes(), (HOST, ports.host_point))
         rogue.sendto(proto.build_imu_packet(1, 1, 0, np.zeros(3), np.zeros(3)), (HOST, ports.host_imu))
+        def malformed() -> int:
+            return driver.stats().lidars["127.0.0.2"].malformed
+
         for k in range(0, len(garbage), 10):  # ten at a time, each batch taken before the next is sent
             for g in garbage[k : k + 10]:
                 spoof.sendto(g, (HOST, ports.host_point))
-            wait_for(lambda k=k: driver.stats().lidars["127.0.0.2"].malformed >= k + 10, "the garbage")
+            wait_for(functools.partial(lambda n: malformed() >= n, k + 10), "the garbage")
         wait_for(lambda: driver.stats().foreign == 7, "the foreign datagrams")
 
     emu = Mid360Emulator("127.0.0.2", SweepList(items), ports=ports, rate=RATE)

@@ -25,6 +25,8 @@ from sensorbox.bus import Bus, NodeStatus, Shutdown, run_graph
 from sensorbox.recorder import Recorder, RecorderConfig, RecorderError
 from tests.live import HANG_S, ManualClock, wait_for
 
+pytestmark = pytest.mark.realtime  # writer threads, clocks, signals to subprocesses: run serially (make test)
+
 ROOT = Path(__file__).resolve().parents[2]
 STRING = "std_msgs/msg/String"
 IMAGE = "sensor_msgs/msg/CompressedImage"
