@@ -18,8 +18,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from ingest.pipeline import IngestConfig, ingest
-from ingest.sample import SampleParams
+from ingest.train.pipeline import IngestConfig, ingest
+from ingest.train.sample import SampleParams
 from sensorbox.sim.run import SimConfig, simulate
 from sensorbox.sim.score import SampleScore, score_dataset
 from sensorbox.sim.truth import Truth

@@ -31,8 +31,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import OUT_DIR
 
-from sensorbox.bus import GraphResult, GraphSnapshot
-from sensorbox.launch import parse_launch, run_launch
+from sensorbox.live.bus import GraphResult, GraphSnapshot
+from sensorbox.live.launch import parse_launch, run_launch
 
 ROOT = Path(__file__).resolve().parents[1]
 SIM_LAUNCH = ROOT / "launch" / "sim.launch.yaml"

@@ -77,20 +77,20 @@ from scipy.spatial import cKDTree
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import OUT_DIR, median_seconds
 
-import ingest.clouds as clouds_mod
-import ingest.dataset as dataset
-import ingest.sample as sample_mod
+import ingest.dataset.layout as dataset
+import ingest.train.clouds as clouds_mod
+import ingest.train.sample as sample_mod
+from calibration.linalg3 import sym3_smallest
 from calibration.rig import read_rig
 from calibration.warp import clear_map_cache
-from ingest.bags import open_bags
-from ingest.decode import decode
-from ingest.linalg3 import sym3_smallest
-from ingest.livox_msg import decode_custom_msg
-from ingest.pipeline import IngestConfig, _resolve_topics, ingest, plan, stream_jobs
-from ingest.planes import knn_covariances, neighbour_covariances
-from ingest.png import LEVELS, encode_png
-from ingest.rostypes import CUSTOM_MSG_TYPE, typestore
-from ingest.sample import Geometry, SampleJob, SampleParams, process_sample
+from ingest.bags.decode import decode
+from ingest.bags.livox_msg import decode_custom_msg
+from ingest.bags.reader import open_bags
+from ingest.bags.rostypes import CUSTOM_MSG_TYPE, typestore
+from ingest.dataset.png import LEVELS, encode_png
+from ingest.train.pipeline import IngestConfig, _resolve_topics, ingest, plan, stream_jobs
+from ingest.train.planes import knn_covariances, neighbour_covariances
+from ingest.train.sample import Geometry, SampleJob, SampleParams, process_sample
 from sensorbox.sim.run import SimConfig, simulate
 from sensorbox.sim.truth import truth_dir
 
@@ -98,7 +98,7 @@ T = TypeVar("T")
 Arr = np.ndarray[Any, Any]
 
 WORKERS = 2
-PNG_LEVELS = LEVELS  # ISA-L deflate levels of ingest.png
+PNG_LEVELS = LEVELS  # ISA-L deflate levels of ingest.dataset.png
 DECODE_TARGET = 100.0  # x faster than rosbags
 STAGE_TARGET_MS = 60.0  # everything except image encoding, per sample
 THROUGHPUT_TARGET = 5.0  # samples/s with 2 workers on 2 cores
@@ -238,7 +238,7 @@ def bench_decode(raw: bytes, runs: int) -> list[tuple[str, float]]:
         ("rosbags deserialize_cdr + xyz f64 + stamps", lambda: rosbags_arrays(raw)),
         ("decode_custom_msg only (structured view)", lambda: decode_custom_msg(raw)),
         ("decode_custom_msg + xyz f64 + stamps", lambda: ours_arrays(raw)),
-        ("ingest.decode.decode -> Sweep (xyz f32)", lambda: decode(CUSTOM_MSG_TYPE, raw)),
+        ("ingest.bags.decode.decode -> Sweep (xyz f32)", lambda: decode(CUSTOM_MSG_TYPE, raw)),
     ]
     return [(name, median_seconds(fn, runs)) for name, fn in calls]
 
@@ -262,9 +262,9 @@ class Calls:
 def instrument(calls: Calls, capture: tuple[str, ...] = ()) -> Iterator[None]:
     """Time what process_sample calls directly, and write_sample's encode / convert / write helpers.
 
-    Every function of `ingest.sample`'s namespace that comes from SensorBox is
+    Every function of `ingest.train.sample`'s namespace that comes from SensorBox is
     wrapped (so nested calls, e.g. filter_points inside _points_in_cam0, are in
-    their caller's time too), plus the GyroTrack methods and `ingest.dataset`'s
+    their caller's time too), plus the GyroTrack methods and `ingest.dataset.layout`'s
     encode_png (keyed by image kind), to_uint16 and write_atomic. Restored on exit.
     """
     patches: list[tuple[Any, str, Any]] = []
@@ -528,7 +528,7 @@ class IngestRun:
 
 @contextmanager
 def encoding_free() -> Iterator[None]:
-    """`ingest.dataset.encode_png` replaced by a cache: each image kind is encoded once, its bytes reused.
+    """`ingest.dataset.layout.encode_png` replaced by a cache: each image kind is encoded once, then reused.
 
     Set before `ingest` forks its workers, so they inherit it. Files keep their
     real sizes, so writing them still costs what it costs.

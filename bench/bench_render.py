@@ -39,12 +39,12 @@ from _common import OUT_DIR
 from calibration import DoubleSphere, read_rig
 from calibration.stereo import rotate_for_stereo, unrotate_from_stereo
 from calibration.virtual import R_up_cam, partner_pose, virtual_ds
-from ingest.benchmark import BenchmarkConfig, run_benchmark
-from ingest.dataset import DISP_SCALE, read_png_u16
-from ingest.metrics import edge_band
-from ingest.render import Rendering, RenderParams, pixel_geometry, render_view
-from ingest.render_lod import ScanIndex, build_index
-from ingest.scans import Scan, read_scans
+from ingest.dataset.layout import DISP_SCALE, read_png_u16
+from ingest.eval.metrics import edge_band
+from ingest.render.benchmark import BenchmarkConfig, run_benchmark
+from ingest.render.lod import ScanIndex, build_index
+from ingest.render.scans import Scan, read_scans
+from ingest.render.view import Rendering, RenderParams, pixel_geometry, render_view
 from sensorbox.sim.appearance import Texture
 from sensorbox.sim.scenes import build_scene
 from sensorbox.sim.tls import TlsParams, bundle_poses, pose_at, simulate_scan, true_range, write_site

@@ -30,7 +30,7 @@ from typing import Literal
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import OUT_DIR
 
-from sensorbox.bagwriter import BagFormat
+from sensorbox.live.bagwriter import BagFormat
 from sensorbox.sim.lidar import SWEEP_PERIOD_NS
 from sensorbox.sim.run import SimConfig, SimSummary, simulate
 

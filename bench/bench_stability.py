@@ -1,6 +1,6 @@
 """Stability maps: where each method of the pipeline stops being trustworthy (README charts).
 
-Writes into docs/ (or --out), one chart per region of `ingest.stability`, and
+Writes into docs/ (or --out), one chart per region of `sensorbox.analysis.stability`, and
 prints a table for each:
 
 1. stability_ds.png: the reference Double Sphere's radial/tangential resolution
@@ -43,12 +43,12 @@ from matplotlib.patches import Rectangle
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from calibration.fisheye import DoubleSphere
+from calibration.linalg3 import rotvec_to_matrix
 from calibration.rig import read_rig, write_rig
-from ingest.dataset import DEPTH_SCALE, read_png_u16
-from ingest.groundtruth import GtParams, px_per_rad
-from ingest.linalg3 import rotvec_to_matrix
-from ingest.pipeline import IngestConfig, ingest, load_meta
-from ingest.stability import (
+from ingest.dataset.layout import DEPTH_SCALE, read_png_u16
+from ingest.train.groundtruth import GtParams, px_per_rad
+from ingest.train.pipeline import IngestConfig, ingest, load_meta
+from sensorbox.analysis.stability import (
     disparity_range_error,
     displacement_mask,
     ds_radial_resolution,
@@ -60,7 +60,7 @@ from ingest.stability import (
     time_offset_displacement_px,
     time_offset_range_error_m,
 )
-from ingest.tradeoff import compare_projections, num_disparities_for
+from sensorbox.analysis.tradeoff import compare_projections, num_disparities_for
 from sensorbox.sim.run import REFERENCE_RIG, SimConfig, simulate
 from sensorbox.sim.truth import Truth
 

@@ -2,7 +2,7 @@
 
 Runs `sensorbox bench` as a library call on two simulated, noise-free bags with
 exact truth (indoor static room, outdoor walk; scale 0.5 = 960 x 600 fisheyes,
-0.5 s each), every alternative of `ingest.tradeoff.ALTERNATIVES`, three timing
+0.5 s each), every alternative of `sensorbox.analysis.tradeoff.ALTERNATIVES`, three timing
 rounds (each sample's time is the median of its rounds; rounds interleave the
 alternatives so a busy spell on a shared machine hits them alike). Prints the
 markdown tables and writes bench_tradeoff.csv/.png and bench_projection.csv/.png
@@ -19,8 +19,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from ingest.tradeoff import ALTERNATIVES
-from sensorbox.cli_bench import default_sims, projection_table, run_bench, tradeoff_table
+from sensorbox.analysis.tradeoff import ALTERNATIVES
+from sensorbox.cli.bench import default_sims, projection_table, run_bench, tradeoff_table
 from sensorbox.sim.run import simulate
 
 DOCS = Path(__file__).resolve().parents[1] / "docs"

@@ -5,7 +5,7 @@ exist, a bag that is truncated, unindexed or still being written, a topic that
 is not in it, a message type whose embedded definition SensorBox cannot trust.
 Its message names the file or topic at fault and what was expected (for a
 missing topic, the topics the bag does have). Malformed message *bytes* raise
-`ingest.livox_msg.MessageDecodeError` instead.
+`ingest.bags.livox_msg.MessageDecodeError` instead.
 """
 
 from __future__ import annotations

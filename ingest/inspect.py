@@ -3,7 +3,7 @@
 Public API:
 
 - `inspect_bags(paths, salvage=False, rig=None, progress=None) -> BagReport`:
-  reads every message once (through `ingest.bags.open_bags`) and returns
+  reads every message once (through `ingest.bags.reader.open_bags`) and returns
   frozen dataclasses, nothing printed.
 - `header_stamp_ns(raw, ros_version) -> int`: the `std_msgs/Header` stamp of
   any message whose first field is a header, read from the first 12 bytes
@@ -50,12 +50,12 @@ import numpy as np
 import yaml
 
 from calibration.rig import Rig
-from ingest.bags import BagSet, RawMessage, open_bags
-from ingest.decode import ImuSample, RosVersion, Sweep, decode, header_stamp_ns
+from ingest.bags.decode import ImuSample, RosVersion, Sweep, decode, header_stamp_ns
+from ingest.bags.livox_msg import MessageDecodeError
+from ingest.bags.reader import BagSet, RawMessage, open_bags
+from ingest.bags.rostypes import COMPRESSED_IMAGE_TYPE, IMAGE_TYPE, IMU_TYPE, LIVOX_PACKAGES, POINTCLOUD2_TYPE
+from ingest.bags.rostypes import typestore as sensorbox_typestore
 from ingest.errors import BagError
-from ingest.livox_msg import MessageDecodeError
-from ingest.rostypes import COMPRESSED_IMAGE_TYPE, IMAGE_TYPE, IMU_TYPE, LIVOX_PACKAGES, POINTCLOUD2_TYPE
-from ingest.rostypes import typestore as sensorbox_typestore
 
 __all__ = [
     "BagReport",

@@ -16,8 +16,8 @@ import numpy as np
 
 from calibration.errors import SensorboxError
 from calibration.types import F64
-from ingest.livox_msg import Points, encode_custom_msg
-from ingest.rostypes import (
+from ingest.bags.livox_msg import Points, encode_custom_msg
+from ingest.bags.rostypes import (
     COMPRESSED_IMAGE_TYPE,
     CUSTOM_MSG_TYPE,
     IMAGE_TYPE,

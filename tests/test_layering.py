@@ -1,4 +1,10 @@
-"""Imports flow one way: calibration <- ingest <- sensorbox (DESIGN.md section 1)."""
+"""Imports flow one way (DESIGN.md section 1), between the packages and between the rooms inside them.
+
+calibration <- ingest <- sensorbox. Inside ingest, train, render and eval share bags, dataset and
+runtime but never import each other; those shared rooms import none of the three. Inside sensorbox,
+live reaches the simulator only through the node registry (by name), and the CLI imports only
+public names.
+"""
 
 import ast
 from pathlib import Path
@@ -6,32 +12,89 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-FORBIDDEN = {"calibration": {"ingest", "sensorbox"}, "ingest": {"sensorbox"}}
+PACKAGES = ("calibration", "ingest", "sensorbox")
+# room -> rooms it must not import (dotted prefixes)
+FORBIDDEN = {
+    "calibration": {"ingest", "sensorbox"},
+    "ingest": {"sensorbox"},
+    "ingest.train": {"ingest.render", "ingest.eval", "ingest.inspect"},
+    "ingest.render": {"ingest.train", "ingest.eval", "ingest.inspect"},
+    "ingest.eval": {"ingest.train", "ingest.render", "ingest.inspect"},
+    "ingest.bags": {"ingest.train", "ingest.render", "ingest.eval", "ingest.dataset", "ingest.runtime"},
+    "ingest.dataset": {"ingest.train", "ingest.render", "ingest.eval", "ingest.runtime"},
+    "ingest.runtime": {"ingest.train", "ingest.render", "ingest.eval"},
+    "sensorbox.live": {"sensorbox.sim", "sensorbox.cli", "sensorbox.analysis"},
+    "sensorbox.livox": {"sensorbox.sim", "sensorbox.live", "sensorbox.cli", "sensorbox.analysis"},
+    "sensorbox.sim": {"sensorbox.cli", "sensorbox.analysis"},
+    "sensorbox.analysis": {"sensorbox.cli"},
+}
 
 
-def _imported_top_levels(path: Path) -> set[str]:
+def _module(path: Path) -> str:
+    parts = path.relative_to(ROOT).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _imports(path: Path) -> list[tuple[str, list[str]]]:
+    """(module, names imported from it) for every absolute import in the file."""
     tree = ast.parse(path.read_text(), filename=str(path))
-    names: set[str] = set()
+    out: list[tuple[str, list[str]]] = []
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
-            names |= {a.name.split(".")[0] for a in node.names}
+            out += [(a.name, []) for a in node.names]
         elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            names.add(node.module.split(".")[0])
-    return names
+            out.append((node.module, [a.name for a in node.names]))
+    return out
 
 
-@pytest.mark.parametrize("package", sorted(FORBIDDEN))
-def test_import_direction(package):
-    files = sorted((ROOT / package).rglob("*.py"))
-    assert files, f"no modules found in {package}/"
-    offenders = {
-        str(f.relative_to(ROOT)): sorted(_imported_top_levels(f) & FORBIDDEN[package]) for f in files
-    }
-    offenders = {k: v for k, v in offenders.items() if v}
-    assert offenders == {}, f"{package} must not import {sorted(FORBIDDEN[package])}"
+def _within(module: str, prefix: str) -> bool:
+    return module == prefix or module.startswith(prefix + ".")
+
+
+def _violations(room: str) -> dict[str, list[str]]:
+    files = sorted((ROOT / Path(*room.split("."))).rglob("*.py"))
+    if not files:
+        file = (ROOT / Path(*room.split("."))).with_suffix(".py")
+        files = [file] if file.is_file() else []
+    assert files, f"no modules found for {room}"
+    bad: dict[str, list[str]] = {}
+    for f in files:
+        hits = sorted({m for m, _ in _imports(f) for banned in FORBIDDEN[room] if _within(m, banned)})
+        if hits:
+            bad[str(f.relative_to(ROOT))] = hits
+    return bad
+
+
+@pytest.mark.parametrize("room", sorted(FORBIDDEN))
+def test_import_direction(room):
+    assert _violations(room) == {}, f"{room} must not import {sorted(FORBIDDEN[room])}"
+
+
+def test_no_module_imports_another_modules_private_names():
+    offenders = {}
+    for package in PACKAGES:
+        for f in sorted((ROOT / package).rglob("*.py")):
+            private = [
+                f"{m}.{n}" for m, names in _imports(f) if m.split(".")[0] in PACKAGES
+                for n in names if n.startswith("_") and not n.startswith("__")
+            ]  # fmt: skip
+            if private:
+                offenders[str(f.relative_to(ROOT))] = private
+    assert offenders == {}
+
+
+def test_the_cli_imports_only_public_names_of_the_library():
+    for f in sorted((ROOT / "sensorbox" / "cli").glob("*.py")):
+        for module, names in _imports(f):
+            assert not any(n.startswith("_") for n in names), (f.name, module, names)
 
 
 def test_checker_detects_a_violation(tmp_path):
     bad = tmp_path / "bad.py"
-    bad.write_text("from sensorbox.cli import app\nimport ingest.x\n")
-    assert _imported_top_levels(bad) == {"sensorbox", "ingest"}
+    bad.write_text("from sensorbox.cli.main import app\nimport ingest.x\nfrom ingest.render.view import _z\n")
+    assert _imports(bad) == [
+        ("sensorbox.cli.main", ["app"]),
+        ("ingest.x", []),
+        ("ingest.render.view", ["_z"]),
+    ]
+    assert _within("ingest.render.view", "ingest.render") and not _within("ingest.renderer", "ingest.render")

@@ -62,8 +62,8 @@ from typing import Any, Literal
 import numpy as np
 
 from calibration.types import F64
-from ingest.livox_msg import POINT_DTYPE
-from ingest.rostypes import CUSTOM_MSG_TYPE, IMU_TYPE, POINTCLOUD2_TYPE
+from ingest.bags.livox_msg import POINT_DTYPE
+from ingest.bags.rostypes import CUSTOM_MSG_TYPE, IMU_TYPE, POINTCLOUD2_TYPE
 from sensorbox import messages
 from sensorbox.errors import DriverError
 from sensorbox.livox import protocol as proto

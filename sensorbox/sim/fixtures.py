@@ -10,7 +10,7 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
-from sensorbox.bagwriter import bag_path
+from sensorbox.live.bagwriter import bag_path
 from sensorbox.sim.run import SimConfig, SimSummary, simulate
 from sensorbox.sim.truth import truth_dir
 

@@ -53,7 +53,7 @@ from calibration.types import F64
 from sensorbox.livox import protocol as proto
 from sensorbox.livox.protocol import I64, Ports
 from sensorbox.sim.lidar import POINTS_PER_PACKET, LidarSim, Sweep, simulate_sweep, sweep_windows
-from sensorbox.sim.run import SimConfig, _Setup, _setup
+from sensorbox.sim.run import SimConfig, SimSetup, setup_sim
 from sensorbox.sim.trajectory import imu_readings
 
 IMU_PERIOD_NS = 5_000_000  # 200 Hz
@@ -109,7 +109,7 @@ class SimScan:
     settings are not applied).
     """
 
-    def __init__(self, setup: _Setup, index: int) -> None:
+    def __init__(self, setup: SimSetup, index: int) -> None:
         self.setup = setup
         self.lidar: LidarSim = setup.lidars[index]
         self.T_cam0_imu = setup.imus[index][1]
@@ -597,7 +597,7 @@ def sim_emulators(
     127.0.0.13 for the reference rig); `options` go to every `Mid360Emulator`
     (ports, rate, time_type, impairments); serials end in the rig IP's last octet.
     """
-    setup = _setup(cfg)
+    setup = setup_sim(cfg)
     out = []
     for k, lidar in enumerate(setup.rig.lidars):
         last = (lidar.ip or f"0.0.0.{10 + k}").rsplit(".", 1)[-1]

@@ -24,9 +24,9 @@ import numpy as np
 from calibration.errors import SensorboxError
 from calibration.rig import Rig, read_rig
 from calibration.types import F64
-from ingest.rostypes import IMU_TYPE
+from ingest.bags.rostypes import IMU_TYPE
 from sensorbox import messages
-from sensorbox.bagwriter import FORMATS, BagFormat, BagWriter
+from sensorbox.live.bagwriter import FORMATS, BagFormat, BagWriter
 from sensorbox.messages import RosVersion
 from sensorbox.sim.appearance import Texture
 from sensorbox.sim.camera import CameraSim, render
@@ -139,7 +139,7 @@ def build_trajectory(cfg: SimConfig, start_world: F64) -> Trajectory:
 
 
 @dataclass(frozen=True)
-class _Setup:
+class SimSetup:
     """Everything a time window of the simulation needs, built once from the config."""
 
     cfg: SimConfig
@@ -178,7 +178,8 @@ class _Setup:
         return out
 
 
-def _setup(cfg: SimConfig) -> _Setup:
+def setup_sim(cfg: SimConfig) -> SimSetup:
+    """The scene, rig, trajectory and sensors of a simulated recording, built once from `cfg`."""
     cfg.validate()
     rig = scaled_rig(read_rig(cfg.rig), cfg.scale)
     if not rig.lidars:
@@ -195,7 +196,7 @@ def _setup(cfg: SimConfig) -> _Setup:
     ]  # fmt: skip
     pair = (rig.upper, rig.lower)
     suffix = "/compressed" if cfg.image == "jpeg" else ""
-    return _Setup(
+    return SimSetup(
         cfg, rig, scene, Texture(cfg.seed), build_trajectory(cfg, scene.start_world), lidars,
         [CameraSim(c.name, c.model, c.T_cam0_cam) for c in pair],
         [(c.topic or f"/{c.name}/image") + suffix for c in pair],
@@ -208,7 +209,7 @@ def _setup(cfg: SimConfig) -> _Setup:
 Message = tuple[int, str, bytes]  # (log_ns, topic, serialised bytes)
 
 
-def _camera_messages(s: _Setup, w0: int, w1: int, pool: ThreadPoolExecutor) -> list[Message]:
+def _camera_messages(s: SimSetup, w0: int, w1: int, pool: ThreadPoolExecutor) -> list[Message]:
     """Both cameras' frames whose nominal time lies in the sim-time window [w0, w1) ns."""
     cfg = s.cfg
     period_ns = 1e9 / cfg.camera_rate_hz
@@ -236,7 +237,7 @@ def _camera_messages(s: _Setup, w0: int, w1: int, pool: ThreadPoolExecutor) -> l
     return out
 
 
-def _lidar_messages(s: _Setup, w0: int, w1: int) -> list[Message]:
+def _lidar_messages(s: SimSetup, w0: int, w1: int) -> list[Message]:
     """Every sweep (of each LiDAR) whose 100 ms sensor-clock window starts in [w0, w1)."""
     encode = messages.custom_msg if s.cfg.lidar_msg == "custom" else messages.pointcloud2_msg
     out: list[Message] = []
@@ -250,7 +251,7 @@ def _lidar_messages(s: _Setup, w0: int, w1: int) -> list[Message]:
     return out
 
 
-def _imu_messages(s: _Setup, w0: int, w1: int) -> list[Message]:
+def _imu_messages(s: SimSetup, w0: int, w1: int) -> list[Message]:
     """Each LiDAR's IMU samples in [w0, w1), on that LiDAR's clock, with optional noise and bias."""
     cfg = s.cfg
     period = round(1e9 / cfg.imu_rate_hz)
@@ -277,7 +278,7 @@ def simulate(cfg: SimConfig, out: Path, progress: Callable[[float], None] | None
     `progress` is called with the simulated seconds done after every 100 ms window.
     """
     t_start = time.perf_counter()
-    s = _setup(cfg)
+    s = setup_sim(cfg)
     stage = {"cameras": 0.0, "lidars": 0.0, "imu": 0.0, "write": 0.0}
     queue: list[tuple[int, int, str, bytes]] = []
     order = itertools.count()  # tie-break equal log times by creation order: deterministic

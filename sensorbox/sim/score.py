@@ -17,8 +17,8 @@ import numpy as np
 import yaml
 
 from calibration.spherical import Equirectangular
-from ingest.dataset import DEPTH_SCALE, DISP_SCALE, read_png_u16
-from ingest.pipeline import load_meta
+from ingest.dataset.layout import DEPTH_SCALE, DISP_SCALE, read_png_u16
+from ingest.train.pipeline import load_meta
 from sensorbox.sim.truth import Truth
 
 

@@ -1,4 +1,4 @@
-"""The helper thread of `ingest.background` and the sample's equirect warps that run in it."""
+"""The helper thread of `ingest.runtime.background` and the sample's equirect warps that run in it."""
 
 from __future__ import annotations
 
@@ -14,12 +14,12 @@ import pytest
 from calibration.errors import CalibrationError
 from calibration.rig import read_rig
 from calibration.warp import remap_spans, warp
-from ingest import sample
-from ingest.background import Background
-from ingest.bags import open_bags
-from ingest.dataset import prepare_dirs
-from ingest.pipeline import IngestConfig, _resolve_topics, plan, stream_jobs
-from ingest.sample import Geometry, SampleJob, process_sample, start_equirects
+from ingest.bags.reader import open_bags
+from ingest.dataset.layout import prepare_dirs
+from ingest.runtime.background import Background
+from ingest.train import sample
+from ingest.train.pipeline import IngestConfig, _resolve_topics, plan, stream_jobs
+from ingest.train.sample import Geometry, SampleJob, process_sample, start_equirects
 from tests.ingest.test_pipeline import INDOOR, _rig
 from tests.live import HANG_S
 

@@ -12,9 +12,9 @@ from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
 
-from ingest.bags import BagError, RawMessage, TopicSummary, open_bags, salvage_mcap
-from ingest.decode import ImuSample, Sweep, decode
-from ingest.rostypes import IMU_TYPE, typestore
+from ingest.bags.decode import ImuSample, Sweep, decode
+from ingest.bags.reader import BagError, RawMessage, TopicSummary, open_bags, salvage_mcap
+from ingest.bags.rostypes import IMU_TYPE, typestore
 
 RNG = np.random.default_rng(11)
 T0 = 1_700_000_000_000_000_000
@@ -370,7 +370,7 @@ def test_truncated_mcap_fails_clearly_and_salvages_complete_chunks(blob_bag, tmp
     ):
         open_bags(cut)
 
-    with caplog.at_level(logging.INFO, logger="ingest.bags"):
+    with caplog.at_level(logging.INFO, logger="ingest.bags.reader"):
         salvaged = list(salvage_mcap(cut))
     assert 0 < len(salvaged) < N_BLOBS
     assert_blobs(salvaged)

@@ -23,11 +23,11 @@ from calibration.pinhole import Pinhole
 from calibration.spherical import Cassini, Equirectangular
 from calibration.stereo import depth_to_disparity, rotate_for_stereo, unrotate_from_stereo
 from calibration.virtual import CroppedModel, virtual_ds
-from ingest.benchmark import BenchmarkConfig, BenchmarkError, run_benchmark
-from ingest.dataset import DISP_SCALE, read_png_u16
-from ingest.evaluate import discover_gt
-from ingest.metrics import edge_band
-from ingest.scans import read_scans
+from ingest.dataset.layout import DISP_SCALE, read_png_u16
+from ingest.eval.evaluate import discover_gt
+from ingest.eval.metrics import edge_band
+from ingest.render.benchmark import BenchmarkConfig, BenchmarkError, run_benchmark
+from ingest.render.scans import read_scans
 from sensorbox.sim.appearance import Texture
 from sensorbox.sim.scenes import build_scene
 from sensorbox.sim.tls import TlsParams, bundle_poses, simulate_scan, true_range, write_site

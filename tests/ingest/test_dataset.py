@@ -2,7 +2,7 @@
 
 import stat
 
-from ingest.dataset import write_atomic
+from ingest.dataset.layout import write_atomic
 
 
 def test_written_files_are_readable_by_others_and_no_temporary_is_left(tmp_path):

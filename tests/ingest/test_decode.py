@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
-from ingest.decode import (
+from ingest.bags.decode import (
     DECODED_TYPES,
     Frame,
     ImuSample,
@@ -19,8 +19,8 @@ from ingest.decode import (
     decode_pointcloud2,
     sweep_from_pointcloud,
 )
-from ingest.livox_msg import MessageDecodeError
-from ingest.rostypes import (
+from ingest.bags.livox_msg import MessageDecodeError
+from ingest.bags.rostypes import (
     COMPRESSED_IMAGE_TYPE,
     IMAGE_TYPE,
     IMU_TYPE,

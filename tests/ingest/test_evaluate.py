@@ -1,4 +1,4 @@
-"""`ingest.evaluate` on a synthetic benchmark tree (exact expected numbers) and on a real ingested dataset."""
+"""`ingest.eval.evaluate` on a synthetic benchmark tree (exact expected numbers) and on a real ingested dataset."""
 
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from calibration.stereo import rotate_for_stereo, unrotate_from_stereo
-from ingest.dataset import encode_exr
-from ingest.evaluate import (
+from ingest.dataset.layout import encode_exr
+from ingest.eval.evaluate import (
     EvalError,
     EvalOptions,
     compare,
@@ -24,8 +24,8 @@ from ingest.evaluate import (
     markdown_table,
     write_report_json,
 )
-from ingest.pipeline import IngestConfig, ingest
-from ingest.sample import SampleParams
+from ingest.train.pipeline import IngestConfig, ingest
+from ingest.train.sample import SampleParams
 from sensorbox.sim.fixtures import FIXTURES_DIR
 from sensorbox.sim.truth import truth_dir
 

@@ -13,7 +13,7 @@ import platform
 import numpy as np
 import pytest
 
-from ingest.heap import retain_freed_memory
+from ingest.runtime.heap import retain_freed_memory
 
 
 class MallInfo2(ctypes.Structure):

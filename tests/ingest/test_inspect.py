@@ -11,7 +11,9 @@ from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
 
 from calibration.rig import Lidar, Rig, read_rig
-from ingest.bags import BagError, open_bags
+from ingest.bags.livox_msg import POINT_DTYPE, MessageDecodeError, encode_custom_msg
+from ingest.bags.reader import BagError, open_bags
+from ingest.bags.rostypes import IMAGE_TYPE, IMU_TYPE, typestore
 from ingest.inspect import (
     EL_RANGE_DEG,
     BagReport,
@@ -21,8 +23,6 @@ from ingest.inspect import (
     inspect_bags,
     pair_stereo,
 )
-from ingest.livox_msg import POINT_DTYPE, MessageDecodeError, encode_custom_msg
-from ingest.rostypes import IMAGE_TYPE, IMU_TYPE, typestore
 from sensorbox.sim.fixtures import FIXTURES, fixture_bag
 from sensorbox.sim.lidar import PACKET_PERIOD_NS, POINT_SPACING_NS, POINTS_PER_PACKET, SWEEP_PERIOD_NS
 from sensorbox.sim.run import CAMERA_LATENCY_NS, IMU_LATENCY_NS, LIDAR_LATENCY_NS

@@ -3,8 +3,8 @@
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from ingest.clouds import integrate_gyro
-from ingest.linalg3 import apply_rotations, rotation_angle, rotvec_to_matrix, sym3_eigvals, sym3_smallest
+from calibration.linalg3 import apply_rotations, rotation_angle, rotvec_to_matrix, sym3_eigvals, sym3_smallest
+from ingest.train.clouds import integrate_gyro
 
 
 def _covariances(rng: np.random.Generator, n: int) -> np.ndarray:

@@ -8,7 +8,7 @@ import warnings
 import numpy as np
 import pytest
 
-from ingest.metrics import (
+from ingest.eval.metrics import (
     DepthAccumulator,
     StereoAccumulator,
     depth_metrics,

@@ -14,12 +14,12 @@ import pytest
 import yaml
 
 from calibration.stereo import rotate_for_stereo
-from ingest.bags import open_bags
-from ingest.dataset import DEPTH_SCALE, DISP_SCALE, DatasetError, read_png_u16
+from ingest.bags.reader import open_bags
+from ingest.dataset.layout import DEPTH_SCALE, DISP_SCALE, DatasetError, read_png_u16
 from ingest.errors import BagError
-from ingest.pipeline import IngestConfig, ingest, load_meta
-from ingest.sample import SampleParams
-from sensorbox.bagwriter import BagWriter
+from ingest.train.pipeline import IngestConfig, ingest, load_meta
+from ingest.train.sample import SampleParams
+from sensorbox.live.bagwriter import BagWriter
 from sensorbox.sim.fixtures import FIXTURES_DIR
 from sensorbox.sim.run import SimConfig, simulate
 from sensorbox.sim.score import score_dataset
@@ -219,7 +219,7 @@ def test_lidar_that_stops_and_duplicated_or_reordered_frames(tmp_path: Path) -> 
 
 
 def test_nan_points_are_counted_not_fatal(tmp_path: Path) -> None:
-    from ingest.livox_msg import decode_custom_msg, encode_custom_msg
+    from ingest.bags.livox_msg import decode_custom_msg, encode_custom_msg
 
     def keep(topic: str, k: int, raw: bytes) -> list[bytes]:
         if "lidar" in topic:
@@ -285,17 +285,17 @@ def test_exr_copies_hold_the_unquantised_values(tmp_path: Path) -> None:
 
 
 def test_pool_workers_get_their_images_through_the_shared_slots(tmp_path: Path, monkeypatch) -> None:
-    from ingest.transport import ImageSlots
+    from ingest.runtime.transport import ArraySlots
 
     used = []
-    put = ImageSlots.put
+    put = ArraySlots.put
 
-    def counting_put(self, upper, lower):
-        ref = put(self, upper, lower)
+    def counting_put(self, arrays):
+        ref = put(self, arrays)
         used.append(ref is not None)
         return ref
 
-    monkeypatch.setattr(ImageSlots, "put", counting_put)
+    monkeypatch.setattr(ArraySlots, "put", counting_put)
     summary = ingest([INDOOR], IngestConfig(rig=_rig(INDOOR), out=tmp_path / "ds", workers=2, every=10))
     assert summary.written == len(used) > 0 and all(used)
 

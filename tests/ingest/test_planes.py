@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from ingest.clouds import estimate_velocity
-from ingest.planes import (
+from ingest.train.clouds import estimate_velocity
+from ingest.train.planes import (
     extreme_eigenvalues,
     knn_covariances,
     knn_planes,

@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
-from ingest.png import LEVELS, PngError, encode_png, filtered_rows
+from ingest.dataset.png import LEVELS, PngError, encode_png, filtered_rows
 
 
 def _decode(data: bytes) -> np.ndarray:

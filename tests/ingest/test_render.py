@@ -14,10 +14,10 @@ import pytest
 from calibration import CameraModel, read_rig
 from calibration.spherical import Cassini, Equirectangular, pinhole_for_fov
 from calibration.virtual import CroppedModel, R_up_cam, partner_pose, virtual_ds
-from ingest.metrics import edge_band
-from ingest.render import RenderParams, render_view
-from ingest.render_lod import build_index
-from ingest.scans import Scan
+from ingest.eval.metrics import edge_band
+from ingest.render.lod import build_index
+from ingest.render.scans import Scan
+from ingest.render.view import RenderParams, render_view
 from sensorbox.sim.appearance import Texture
 from sensorbox.sim.scenes import build_scene
 from sensorbox.sim.tls import TlsParams, bundle_poses, simulate_scan, true_range

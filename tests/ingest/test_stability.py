@@ -17,11 +17,12 @@ import numpy as np
 import pytest
 
 from calibration.fisheye import DoubleSphere
+from calibration.linalg3 import rotvec_to_matrix
 from calibration.rig import read_rig
 from calibration.spherical import Cubemap
 from calibration.stereo import disparity_stability_mask, rotate_for_stereo, unrotate_from_stereo
 from calibration.types import F64
-from ingest.groundtruth import (
+from ingest.train.groundtruth import (
     GtParams,
     in_view,
     occlusion_filter,
@@ -29,9 +30,8 @@ from ingest.groundtruth import (
     splat_to_pixels,
     surface_normals,
 )
-from ingest.linalg3 import rotvec_to_matrix
-from ingest.planes import Normals
-from ingest.stability import (
+from ingest.train.planes import Normals
+from sensorbox.analysis.stability import (
     cubemap_seam_mask,
     cubemap_stereo_faces,
     disparity_range_error,

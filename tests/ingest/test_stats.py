@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from ingest.stats import dataset_stats, depth_bin_counts, local_entropy
+from ingest.eval.stats import dataset_stats, depth_bin_counts, local_entropy
 from tests.ingest.test_evaluate import SHAPE, imread, make_benchmark
 
 

@@ -1,4 +1,4 @@
-"""ingest.tradeoff: Pareto front, alternatives as data, the runner on a fixture bag, equirect vs cubemap SGBM."""
+"""sensorbox.analysis.tradeoff: Pareto front, alternatives as data, the runner on a fixture bag, equirect vs cubemap SGBM."""
 
 from __future__ import annotations
 
@@ -14,8 +14,8 @@ import yaml
 from calibration.rectify import rectify_rig
 from calibration.stereo import depth_to_disparity
 from calibration.warp import covering_crop, default_height_full
-from ingest.pipeline import IngestConfig, load_meta
-from ingest.tradeoff import (
+from ingest.train.pipeline import IngestConfig, load_meta
+from sensorbox.analysis.tradeoff import (
     ALTERNATIVES,
     QUICK,
     Measurement,

@@ -8,7 +8,7 @@ import threading
 
 import pytest
 
-from sensorbox.bus import (
+from sensorbox.live.bus import (
     PRIORITY_DEVICE,
     PRIORITY_SINK,
     PRIORITY_SOURCE,

@@ -13,19 +13,18 @@ import cv2
 import numpy as np
 import pytest
 
-from ingest.bags import open_bags
-from ingest.decode import decode_compressed_image, decode_image
-from sensorbox.cameras import (
+from ingest.bags.decode import decode_compressed_image, decode_image
+from ingest.bags.reader import open_bags
+from sensorbox.errors import DriverError
+from sensorbox.live.cameras import (
     CameraNode,
     CameraOutput,
     Frame,
     OpenCVSource,
-    SimCameras,
-    SimCameraSource,
     StereoPairer,
     ZedSource,
 )
-from sensorbox.errors import DriverError
+from sensorbox.sim.camera_source import SimCameras, SimCameraSource
 from sensorbox.sim.fixtures import FIXTURES, fixture_bag
 from tests.live import ManualClock, wait_for
 

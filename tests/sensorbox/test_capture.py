@@ -16,12 +16,12 @@ import pytest
 import yaml
 
 from calibration.errors import SensorboxError
-from ingest.bags import open_bags
-from ingest.decode import header_stamp_ns
-from ingest.livox_msg import decode_custom_msg
-from ingest.pipeline import IngestConfig, ingest
-from sensorbox.capture import CaptureConfig, capture_plan
-from sensorbox.launch import parse_launch, run_launch
+from ingest.bags.decode import header_stamp_ns
+from ingest.bags.livox_msg import decode_custom_msg
+from ingest.bags.reader import open_bags
+from ingest.train.pipeline import IngestConfig, ingest
+from sensorbox.live.capture import CaptureConfig, capture_plan
+from sensorbox.live.launch import parse_launch, run_launch
 from tests.live import HANG_S
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -211,8 +211,8 @@ def test_cli_capture_emulated_rig(tmp_path):
 
 
 def test_status_line_rates_drops_and_disk():
-    from sensorbox.bus import GraphSnapshot, NodeStatus
-    from sensorbox.cli_capture import status_line
+    from sensorbox.cli.capture import status_line
+    from sensorbox.live.bus import GraphSnapshot, NodeStatus
 
     imu, cam = "/livox/imu_192_168_1_12", UPPER
     prev = GraphSnapshot(1.0, {imu: 200, cam: 30}, {imu: 200, cam: 30}, {}, {}, {})

@@ -10,9 +10,9 @@ import typer
 from typer.testing import CliRunner
 
 from calibration.errors import SensorboxError
-from ingest.tradeoff import QUICK
-from sensorbox.cli import app as main_app
-from sensorbox.cli_bench import bench_cmd
+from sensorbox.analysis.tradeoff import QUICK
+from sensorbox.cli.bench import bench_cmd
+from sensorbox.cli.main import app as main_app
 from sensorbox.sim.fixtures import FIXTURES_DIR
 
 app = typer.Typer(pretty_exceptions_enable=False, add_completion=False)

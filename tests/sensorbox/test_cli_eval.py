@@ -13,7 +13,7 @@ import typer
 from typer.testing import CliRunner
 
 from calibration.errors import SensorboxError
-from sensorbox.cli_eval import eval_cmd, stats_cmd
+from sensorbox.cli.eval import eval_cmd, stats_cmd
 from tests.ingest.test_evaluate import make_benchmark, write_predictions
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -8,8 +8,8 @@ import yaml
 from typer.testing import CliRunner
 
 from calibration.errors import SensorboxError
-from ingest.bags import BagError
-from sensorbox.cli_inspect import inspect_cmd
+from ingest.bags.reader import BagError
+from sensorbox.cli.inspect import inspect_cmd
 from sensorbox.sim.fixtures import fixture_bag
 
 app = typer.Typer(pretty_exceptions_enable=False, add_completion=False)

@@ -7,9 +7,16 @@ from pathlib import Path
 
 import pytest
 
-from sensorbox.bus import Bus, GraphError, Shutdown
-from sensorbox.launch import PACKAGE_ROOT, LaunchError, parse_cli_args, parse_launch, safe_eval, substitute
-from sensorbox.nodes import build_node
+from sensorbox.live.bus import Bus, GraphError, Shutdown
+from sensorbox.live.launch import (
+    PACKAGE_ROOT,
+    LaunchError,
+    parse_cli_args,
+    parse_launch,
+    safe_eval,
+    substitute,
+)
+from sensorbox.live.nodes import build_node
 
 ROOT = Path(__file__).resolve().parents[2]
 

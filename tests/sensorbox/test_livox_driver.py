@@ -23,16 +23,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ingest.decode import decode_imu, decode_pointcloud2
-from ingest.livox_msg import decode_custom_msg
-from ingest.rostypes import CUSTOM_MSG_TYPE, IMU_TYPE, POINTCLOUD2_TYPE
+from ingest.bags.decode import decode_imu, decode_pointcloud2
+from ingest.bags.livox_msg import decode_custom_msg
+from ingest.bags.rostypes import CUSTOM_MSG_TYPE, IMU_TYPE, POINTCLOUD2_TYPE
 from sensorbox.errors import DriverError
 from sensorbox.livox import DriverConfig, LidarEndpoint, Mid360Driver, Ports
 from sensorbox.livox import protocol as proto
 from sensorbox.livox.driver import DriverStats, _udp_socket
 from sensorbox.sim.lidar import Sweep, simulate_sweep
 from sensorbox.sim.mid360 import Mid360Emulator, SimScan, SweepList, credit_from, sim_emulators
-from sensorbox.sim.run import SimConfig, _setup
+from sensorbox.sim.run import SimConfig, setup_sim
 from tests.live import HANG_S, ManualClock, wait_for
 
 pytestmark = pytest.mark.realtime  # UDP sockets and receive threads: run serially (make test)
@@ -143,7 +143,7 @@ def config(ports: Ports, *ips: str | LidarEndpoint, **kw: object) -> DriverConfi
 @pytest.fixture(scope="module")
 def sim() -> tuple[list[SimScan], list[list[Sweep]]]:
     """10 s of both reference-rig lidars walking outdoors (noise, dust tags and sky: zero points), simulated once."""
-    setup = _setup(SimConfig(scene="outdoor", trajectory="walk", duration_s=10.0, scale=0.1, seed=1))
+    setup = setup_sim(SimConfig(scene="outdoor", trajectory="walk", duration_s=10.0, scale=0.1, seed=1))
     scans = [SimScan(setup, k) for k in range(2)]
     return scans, [list(s.sweeps()) for s in scans]
 
@@ -414,6 +414,7 @@ def test_traffic_from_other_addresses_is_ignored_and_garbage_never_kills_the_dri
             rogue.sendto(row.tobytes(), (HOST, ports.host_point))
             wrong_port.sendto(row.tobytes(), (HOST, ports.host_point))
         rogue.sendto(proto.build_imu_packet(1, 1, 0, np.zeros(3), np.zeros(3)), (HOST, ports.host_imu))
+
         def malformed() -> int:
             return driver.stats().lidars["127.0.0.2"].malformed
 
@@ -612,7 +613,7 @@ def test_sim_emulators_stream_the_reference_rig_as_simulate_would():
     ]
     endpoints = [LidarEndpoint(e.ip, topic_ip=f"192.168.1.{e.ip.rsplit('.', 1)[1]}") for e in emus]
     sink, _ = run_capture(emus, config(ports, *endpoints))
-    setup = _setup(cfg)
+    setup = setup_sim(cfg)
     for k, lidar in enumerate(setup.rig.lidars):
         scan = SimScan(setup, k)
         msgs = sink.on(lidar.topic)

@@ -1,6 +1,6 @@
 """The live recorder: round trip, queue overflow, splits, disk guard, and what SIGINT/SIGTERM/SIGKILL leave.
 
-Bags are read back with `ingest.bags.open_bags` (what `sensorbox ingest` uses), salvage included.
+Bags are read back with `ingest.bags.reader.open_bags` (what `sensorbox ingest` uses), salvage included.
 """
 
 from __future__ import annotations
@@ -17,12 +17,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ingest.bags import BagError, open_bags
-from ingest.decode import header_stamp_ns
-from ingest.rostypes import IMU_TYPE, typestore
+from ingest.bags.decode import header_stamp_ns
+from ingest.bags.reader import BagError, open_bags
+from ingest.bags.rostypes import IMU_TYPE, typestore
 from sensorbox import messages
-from sensorbox.bus import Bus, NodeStatus, Shutdown, run_graph
-from sensorbox.recorder import Recorder, RecorderConfig, RecorderError
+from sensorbox.live.bus import Bus, NodeStatus, Shutdown, run_graph
+from sensorbox.live.recorder import Recorder, RecorderConfig, RecorderError
 from tests.live import HANG_S, ManualClock, wait_for
 
 pytestmark = pytest.mark.realtime  # writer threads, clocks, signals to subprocesses: run serially (make test)
@@ -279,7 +279,7 @@ def test_sigint_sigterm_leave_a_readable_bag(tmp_path, sig):
 KILL_SCRIPT = """\
 import sys, time
 from pathlib import Path
-from sensorbox.recorder import Recorder, RecorderConfig
+from sensorbox.live.recorder import Recorder, RecorderConfig
 out, n, size, flush_s = Path(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]), float(sys.argv[4])
 rec = Recorder(RecorderConfig(out, name="k", flush_s=flush_s, queue_msgs=n))
 rec.start()

@@ -12,7 +12,7 @@ from rosbags.highlevel import AnyReader
 
 from calibration.rig import read_rig
 from calibration.transforms import invert
-from ingest.livox_msg import decode_custom_msg
+from ingest.bags.livox_msg import decode_custom_msg
 from sensorbox.messages import PC2_DTYPE
 from sensorbox.sim.appearance import Texture
 from sensorbox.sim.camera import CameraSim, render

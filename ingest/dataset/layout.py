@@ -1,0 +1,140 @@
+"""The WideDepth train layout on disk: atomic, resumable, deterministic writes.
+
+```
+OUT/
+  left_fisheye/000000.png        RGB, upper camera (cam0), as recorded
+  right_fisheye/000000.png       RGB, lower camera (cam1), as recorded
+  equirect_up/000000.png         RGB, cam0 in its rectified full-sphere equirect
+  equirect_down_virt/000000.png  RGB, cam1 rectified into cam0's rectified orientation
+  disp_equirect/000000.png       uint16, disparity x 100 (px of the full sphere), 0 = invalid
+  depth_fisheye/000000.png       uint16, range in mm along cam0's pixel rays, 0 = invalid
+  disp_equirect_exr/, depth_fisheye_exr/   float32 copies (--exr; channel "Y", m or px)
+  meta/000000.json               stamps, source bag, skews, motion decision, counts, density
+  dataset.yaml                   geometry, conventions, parameters, versions
+```
+
+Every file is written to a temporary name in its folder and renamed into
+place; `meta/<id>.json` is written last, so its presence marks a finished
+sample and a rerun skips it. Values that do not fit uint16 are dropped (0)
+and counted, never wrapped.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import OpenEXR
+
+from calibration.errors import SensorboxError
+from ingest.dataset.png import encode_png
+from ingest.dataset.sparse import SparseImage
+
+IMAGE_DIRS = ("left_fisheye", "right_fisheye", "equirect_up", "equirect_down_virt")
+GT_DIRS = ("disp_equirect", "depth_fisheye")
+EXR_DIRS = ("disp_equirect_exr", "depth_fisheye_exr")
+DISP_SCALE = 100.0  # uint16 = round(disp_px * 100)
+DEPTH_SCALE = 1000.0  # uint16 = round(range_m * 1000)
+ID_DIGITS = 6
+
+U8 = np.ndarray[Any, np.dtype[np.uint8]]
+F32 = np.ndarray[Any, np.dtype[np.float32]]
+
+
+class DatasetError(SensorboxError):
+    """The output folder cannot be written (disk full, permissions, a foreign dataset)."""
+
+
+def sample_id(index: int) -> str:
+    """Zero-padded numeric id shared by every folder."""
+    return f"{index:0{ID_DIGITS}d}"
+
+
+def write_atomic(path: Path, data: bytes) -> None:
+    """Write `data` to `path` via a temporary file in the same folder and an atomic rename."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        os.fchmod(fd, 0o644)  # mkstemp makes 0600; a dataset must be readable by its users
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        Path(tmp).replace(path)
+    except OSError as err:
+        Path(tmp).unlink(missing_ok=True)
+        raise DatasetError(f"cannot write {path}: {err.strerror or err}") from err
+
+
+def to_uint16(values: SparseImage, scale: float) -> tuple[np.ndarray[Any, np.dtype[np.uint16]], int]:
+    """round(values * scale) as a dense uint16 image; values that would not fit become 0 and are counted."""
+    out = np.zeros(values.shape, np.uint16)
+    scaled = np.round(values.value.astype(np.float64) * scale)
+    fits = np.isfinite(scaled) & (scaled >= 0) & (scaled <= np.iinfo(np.uint16).max)
+    out.reshape(-1)[values.pixel[fits]] = scaled[fits].astype(np.uint16)
+    return out, int((np.isfinite(scaled) & (scaled > np.iinfo(np.uint16).max)).sum())
+
+
+def encode_exr(values: F32) -> bytes:
+    """Single-channel ("Y") float32 EXR, ZIP-compressed."""
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "x.exr"
+        OpenEXR.File(header, {"Y": np.ascontiguousarray(values, np.float32)}).write(str(path))
+        return path.read_bytes()
+
+
+@dataclass(frozen=True)
+class SampleFiles:
+    """Everything one sample writes: BGR uint8 images and the sparse GT (float32, m or px)."""
+
+    left_fisheye: U8
+    right_fisheye: U8
+    equirect_up: U8
+    equirect_down_virt: U8
+    disp_px: SparseImage
+    range_m: SparseImage
+    meta: dict[str, Any]
+
+
+def prepare_dirs(out: Path, exr: bool) -> None:
+    """Create the layout's folders."""
+    try:
+        for name in (*IMAGE_DIRS, *GT_DIRS, "meta", *(EXR_DIRS if exr else ())):
+            (out / name).mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise DatasetError(f"cannot create the dataset folders in {out}: {err.strerror or err}") from err
+
+
+def is_done(out: Path, sid: str) -> bool:
+    """A sample is finished when its metadata exists (written last)."""
+    return (out / "meta" / f"{sid}.json").exists()
+
+
+def write_sample(out: Path, sid: str, files: SampleFiles, exr: bool, png_level: int = 1) -> dict[str, int]:
+    """Write one sample's files atomically, metadata last; returns the uint16 overflow drops."""
+    disp_u16, disp_drop = to_uint16(files.disp_px, DISP_SCALE)
+    depth_u16, depth_drop = to_uint16(files.range_m, DEPTH_SCALE)
+    for name in IMAGE_DIRS:
+        write_atomic(out / name / f"{sid}.png", encode_png(getattr(files, name), png_level))
+    write_atomic(out / "disp_equirect" / f"{sid}.png", encode_png(disp_u16, png_level))
+    write_atomic(out / "depth_fisheye" / f"{sid}.png", encode_png(depth_u16, png_level))
+    if exr:
+        write_atomic(out / "disp_equirect_exr" / f"{sid}.exr", encode_exr(files.disp_px.dense()))
+        write_atomic(out / "depth_fisheye_exr" / f"{sid}.exr", encode_exr(files.range_m.dense()))
+    drops = {"disp_over_uint16": disp_drop, "depth_over_uint16": depth_drop}
+    meta = {**files.meta, "id": sid, "dropped": drops}
+    write_atomic(out / "meta" / f"{sid}.json", (json.dumps(meta, indent=1, sort_keys=True) + "\n").encode())
+    return drops
+
+
+def read_png_u16(path: Path, scale: float) -> F32:
+    """Read a uint16 GT PNG back into float32 physical units (0 stays 0)."""
+    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if raw is None or raw.dtype != np.uint16:
+        raise DatasetError(f"{path}: not a 16-bit PNG")
+    out: F32 = raw.astype(np.float32) / np.float32(scale)
+    return out

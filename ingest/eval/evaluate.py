@@ -1,0 +1,594 @@
+"""Score depth / disparity predictions against a WideDepth dataset's ground truth.
+
+Two dataset layouts are recognised:
+
+- train (written by `sensorbox ingest`): `disp_equirect/<id>.png` (stereo GT,
+  uint16 px x 100) and `depth_fisheye/<id>.png` (mono / completion GT, uint16
+  mm); 0 = invalid.
+- benchmark (written by `sensorbox render-benchmark`):
+  `<scene>/<FOV>FOV/<B>mm/CENTER/disparity/<view>.png` (stereo) and
+  `.../CENTER/depth/<view>.png` (mono / completion), same encodings. The FOV
+  (degrees) and baseline (mm) are read from those path components; `--by
+  fov|baseline` groups by them.
+
+A prediction has the GT file's relative path and stem under the prediction
+folder, with extension `.png` (uint16, the GT's scale), `.exr` (float32, one
+channel or "Y") or `.npy` (float): metres for depth, px for disparity; 0,
+negative or non-finite = no prediction. Missing predictions are counted and
+listed, never fatal; a shape mismatch is an `EvalError` naming both files.
+
+Completion is scored exactly like mono (the sparse input is the caller's
+business). Regions: "all" valid GT; "edges" = GT pixels within a few px of a
+GT discontinuity (`ingest.eval.metrics.edge_band`); plus any mask folders given
+(PNG named like the GT, non-zero = inside).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import cv2
+import numpy as np
+
+from calibration.errors import SensorboxError
+from ingest.dataset.layout import DEPTH_SCALE, DISP_SCALE, DatasetError, read_png_u16, write_atomic
+from ingest.eval.metrics import (
+    HIGHER_IS_BETTER,
+    LOWER_IS_BETTER,
+    Accumulator,
+    DepthAccumulator,
+    StereoAccumulator,
+    edge_band,
+    median_scale,
+)
+
+Task = Literal["stereo", "mono", "completion"]
+Layout = Literal["train", "benchmark"]
+TASKS: tuple[Task, ...] = ("stereo", "mono", "completion")
+GROUP_KEYS = ("fov", "baseline")
+PRED_EXTS = (".png", ".exr", ".npy")
+F32 = np.ndarray[Any, np.dtype[np.float32]]
+
+BENCHMARK_GT = re.compile(
+    r"^(?P<scene>[^/]+)/(?P<fov>\d+(?:\.\d+)?)FOV/(?P<baseline>\d+(?:\.\d+)?)mm/CENTER/"
+    r"(?P<kind>depth|disparity)/(?P<view>[^/]+)\.png$"
+)
+"""A benchmark GT file, relative to the dataset root (posix separators)."""
+TRAIN_ID = re.compile(r"^\d+$")
+CONFIG_LABEL = re.compile(r"^(?P<value>\d+(?:\.\d+)?)(?P<unit>FOV|mm)$")
+
+STEREO_COLUMNS = ("epe_px", "median_px", "p95_px", "bad1", "bad2", "bad3")
+DEPTH_COLUMNS = ("abs_rel", "mae_m", "rmse_m", "delta1", "delta2", "delta3")
+EDGE_STEP = {"stereo": (0.25, 0.03), "depth": (0.05, 0.03)}  # (abs, rel) of `edge_band`, px or m
+
+
+class EvalError(SensorboxError):
+    """Ground truth or predictions cannot be found, read or matched."""
+
+
+@dataclass(frozen=True)
+class GtFile:
+    """One ground-truth map and where it sits in the dataset."""
+
+    rel: str  # posix path without extension: "disp_equirect/000001", "s1/120FOV/65mm/CENTER/depth/pano"
+    path: Path
+    scale: float  # uint16 value = physical value * scale
+    scene: str | None = None
+    fov_deg: float | None = None
+    baseline_mm: float | None = None
+    view: str | None = None
+
+
+def _is_stereo(task: str) -> bool:
+    return task == "stereo"
+
+
+def detect_layout(root: Path) -> Layout:
+    """'train' when the ingest folders exist, 'benchmark' when `<scene>/<FOV>FOV/<B>mm/CENTER` does."""
+    if not root.is_dir():
+        raise EvalError(f"{root}: no such dataset folder")
+    if (root / "disp_equirect").is_dir() or (root / "depth_fisheye").is_dir():
+        return "train"
+    if any(p.is_dir() for p in root.glob("*/*FOV/*mm/CENTER")):
+        return "benchmark"
+    raise EvalError(
+        f"{root}: neither the WideDepth train layout (disp_equirect/, depth_fisheye/) nor the "
+        "benchmark layout (<scene>/<FOV>FOV/<B>mm/CENTER/) is there"
+    )
+
+
+def discover_gt(root: Path, task: Task, image_type: str | None = None) -> tuple[Layout, list[GtFile]]:
+    """Every GT file of `task` under `root`: train by id, benchmark by scene, FOV, baseline (numeric), view.
+
+    `image_type` keeps only benchmark files of that view (e.g. "pano_crop").
+    """
+    if task not in TASKS:
+        raise EvalError(f"task {task!r}: expected one of {', '.join(TASKS)}")
+    layout = detect_layout(root)
+    scale = DISP_SCALE if _is_stereo(task) else DEPTH_SCALE
+    found: list[GtFile] = []
+    if layout == "train":
+        folder = "disp_equirect" if _is_stereo(task) else "depth_fisheye"
+        for p in sorted((root / folder).glob("*.png")):
+            if TRAIN_ID.match(p.stem):
+                found.append(GtFile(f"{folder}/{p.stem}", p, scale))
+    else:
+        kind = "disparity" if _is_stereo(task) else "depth"
+        for p in sorted(root.glob(f"*/*FOV/*mm/CENTER/{kind}/*.png")):
+            m = BENCHMARK_GT.match(p.relative_to(root).as_posix())
+            if m is None or (image_type is not None and m["view"] != image_type):
+                continue
+            rel = p.relative_to(root).with_suffix("").as_posix()
+            found.append(GtFile(rel, p, scale, m["scene"], float(m["fov"]), float(m["baseline"]), m["view"]))
+        found.sort(key=lambda g: (g.scene or "", g.fov_deg or 0.0, g.baseline_mm or 0.0, g.view or ""))
+    if not found:
+        what = "disp_equirect/*.png" if _is_stereo(task) else "depth_fisheye/*.png"
+        if layout == "benchmark":
+            kind = "disparity" if _is_stereo(task) else "depth"
+            what = f"<scene>/<FOV>FOV/<B>mm/CENTER/{kind}/{image_type or '<view>'}.png"
+        raise EvalError(f"{root}: no ground truth for task {task!r} ({what})")
+    return layout, found
+
+
+def find_prediction(pred_root: Path, gt: GtFile) -> Path | None:
+    """The prediction file for `gt` (same relative path and stem), or None; two candidates are an error."""
+    hits = [p for ext in PRED_EXTS if (p := pred_root / f"{gt.rel}{ext}").is_file()]
+    if len(hits) > 1:
+        raise EvalError(f"{', '.join(map(str, hits))}: several predictions for {gt.rel}; keep one")
+    return hits[0] if hits else None
+
+
+def read_gt(gt: GtFile) -> F32:
+    """A GT map in metres or px, NaN where invalid."""
+    try:
+        values = read_png_u16(gt.path, gt.scale)
+    except DatasetError as err:
+        raise EvalError(f"{gt.path}: ground truth must be a 16-bit single-channel PNG") from err
+    if values.ndim != 2:
+        raise EvalError(f"{gt.path}: ground truth must be single-channel, got shape {values.shape}")
+    out: F32 = np.where(values > 0, values, np.float32(np.nan)).astype(np.float32)
+    return out
+
+
+def _read_exr(path: Path) -> np.ndarray[Any, Any]:
+    import OpenEXR
+
+    try:
+        channels = OpenEXR.File(str(path)).channels()
+    except Exception as err:  # OpenEXR raises plain Exceptions for unreadable files
+        raise EvalError(f"{path}: cannot read the EXR file ({err})") from err
+    if "Y" in channels:
+        return np.asarray(channels["Y"].pixels)
+    if len(channels) == 1:
+        return np.asarray(next(iter(channels.values())).pixels)
+    raise EvalError(f"{path}: expected one channel (or 'Y'), found {sorted(channels)}")
+
+
+def read_prediction(path: Path, scale: float) -> F32:
+    """A prediction in metres or px (float32), NaN where there is none (0, negative, non-finite)."""
+    ext = path.suffix.lower()
+    if ext == ".png":
+        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if raw is None or raw.dtype != np.uint16 or raw.ndim != 2:
+            got = "unreadable" if raw is None else f"{raw.dtype} with shape {raw.shape}"
+            raise EvalError(f"{path}: expected a 16-bit single-channel PNG (value x {scale:g}), got {got}")
+        values = raw.astype(np.float32) / np.float32(scale)
+    elif ext == ".exr":
+        values = _read_exr(path)
+    elif ext == ".npy":
+        try:
+            values = np.load(path, allow_pickle=False)
+        except (OSError, ValueError) as err:
+            raise EvalError(f"{path}: cannot read the .npy file ({err})") from err
+        values = np.squeeze(values)
+        if not (np.issubdtype(values.dtype, np.floating) or np.issubdtype(values.dtype, np.integer)):
+            raise EvalError(f"{path}: expected a real-valued array, got dtype {values.dtype}")
+    else:
+        raise EvalError(f"{path}: predictions must be .png, .exr or .npy")
+    if values.ndim != 2:
+        raise EvalError(f"{path}: expected a single-channel 2-D map, got shape {values.shape}")
+    v = values.astype(np.float32)
+    with np.errstate(invalid="ignore"):
+        out: F32 = np.where(np.isfinite(v) & (v > 0), v, np.float32(np.nan))
+    return out
+
+
+def read_mask(mask_root: Path, gt: GtFile, shape: tuple[int, ...]) -> np.ndarray[Any, np.dtype[np.bool_]]:
+    """A region mask named like the GT (`<mask_root>/<rel>.png`), non-zero = inside."""
+    path = mask_root / f"{gt.rel}.png"
+    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if raw is None:
+        raise EvalError(f"{path}: missing or unreadable mask for {gt.rel}")
+    if raw.shape[:2] != shape:
+        raise EvalError(f"{path}: mask shape {raw.shape[:2]} but the GT {gt.path} is {shape}")
+    inside = np.asarray(raw) != 0
+    out: np.ndarray[Any, np.dtype[np.bool_]] = np.asarray(inside.any(axis=2) if inside.ndim == 3 else inside)
+    return out
+
+
+@dataclass(frozen=True)
+class EvalOptions:
+    """What to score and how to group it."""
+
+    task: Task
+    by: tuple[str, ...] = ()  # subset of GROUP_KEYS, in order
+    image_type: str | None = None  # benchmark view filter ("pano_crop", ...)
+    edges: bool = True
+    edge_band_px: int = 3
+    masks: tuple[tuple[str, Path], ...] = ()  # (region name, folder of mask PNGs)
+    align: Literal["none", "median"] = "none"  # depth only: per-sample median scaling
+
+
+@dataclass(frozen=True)
+class SampleRow:
+    """One scored sample: metrics per region (dicts of `Metrics.as_dict`)."""
+
+    rel: str
+    pred: str
+    scene: str | None
+    fov_deg: float | None
+    baseline_mm: float | None
+    view: str | None
+    scale: float  # median scale applied (1.0 unless align="median")
+    metrics: dict[str, dict[str, float | int]]
+
+
+@dataclass(frozen=True)
+class GroupRow:
+    """Pooled metrics of a group of samples (or of all of them)."""
+
+    label: str
+    fov_deg: float | None
+    baseline_mm: float | None
+    samples: int
+    metrics: dict[str, dict[str, float | int]]
+
+
+@dataclass(frozen=True)
+class EvalReport:
+    """Per-sample and pooled metrics, groups, and the predictions that were missing."""
+
+    dataset: Path
+    pred: Path
+    layout: Layout
+    options: EvalOptions
+    regions: tuple[str, ...]
+    samples: tuple[SampleRow, ...]
+    groups: tuple[GroupRow, ...]
+    overall: GroupRow
+    missing: tuple[str, ...]
+
+    @property
+    def columns(self) -> tuple[str, ...]:
+        return STEREO_COLUMNS if _is_stereo(self.options.task) else DEPTH_COLUMNS
+
+    def to_json(self) -> dict[str, Any]:
+        """A JSON-ready dict (NaN -> null)."""
+        opts = asdict(self.options)
+        opts["masks"] = {name: str(p) for name, p in self.options.masks}
+        doc = {
+            "dataset": str(self.dataset),
+            "pred": str(self.pred),
+            "layout": self.layout,
+            "options": opts,
+            "regions": list(self.regions),
+            "overall": asdict(self.overall),
+            "groups": [asdict(g) for g in self.groups],
+            "missing": list(self.missing),
+            "samples": [asdict(s) for s in self.samples],
+        }
+        return json_safe(doc)  # type: ignore[no-any-return]
+
+
+def json_safe(value: Any) -> Any:
+    """`value` with non-finite floats replaced by None (strict JSON has no NaN)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: json_safe(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [json_safe(v) for v in value]
+    return value
+
+
+def config_component(key: str, value: float | None) -> str:
+    """The path component of a grouping value: ('fov', 195) -> '195FOV', ('baseline', 65) -> '65mm'."""
+    return f"{value:g}FOV" if key == "fov" else f"{value:g}mm"
+
+
+def group_label(by: Sequence[str], fov_deg: float | None, baseline_mm: float | None) -> str:
+    """'195FOV/65mm' style label of a group; 'all' without keys."""
+    parts = [config_component(k, fov_deg if k == "fov" else baseline_mm) for k in by]
+    return "/".join(parts) or "all"
+
+
+@dataclass
+class _Pool:
+    fov_deg: float | None
+    baseline_mm: float | None
+    samples: int = 0
+    acc: dict[str, Accumulator] = field(default_factory=dict)
+
+
+def _new_acc(task: Task) -> Accumulator:
+    return StereoAccumulator() if _is_stereo(task) else DepthAccumulator()
+
+
+def _regions(opts: EvalOptions) -> tuple[str, ...]:
+    return ("all", *(["edges"] if opts.edges else []), *(name for name, _ in opts.masks))
+
+
+def _check_options(opts: EvalOptions, layout: Layout) -> None:
+    bad = [k for k in opts.by if k not in GROUP_KEYS]
+    if bad:
+        raise EvalError(f"--by {bad[0]!r}: expected one of {', '.join(GROUP_KEYS)}")
+    if opts.by and layout != "benchmark":
+        raise EvalError(
+            f"--by {'/'.join(opts.by)} needs the benchmark layout (<scene>/<FOV>FOV/<B>mm/...); "
+            "this dataset is the train layout"
+        )
+    names = [name for name, _ in opts.masks]
+    if len(set(names)) != len(names) or {"all", "edges"} & set(names):
+        raise EvalError(f"mask names {names}: must be unique and not 'all' or 'edges'")
+    if opts.align not in ("none", "median") or (opts.align == "median" and _is_stereo(opts.task)):
+        raise EvalError(f"align {opts.align!r}: 'none', or 'median' for depth tasks only")
+
+
+def evaluate(
+    dataset: Path,
+    pred: Path,
+    opts: EvalOptions,
+    progress: Callable[[int, int], None] | None = None,
+) -> EvalReport:
+    """Score every prediction under `pred` against the GT of `dataset`; `progress(done, total)`."""
+    layout, gts = discover_gt(dataset, opts.task, opts.image_type)
+    _check_options(opts, layout)
+    if not pred.is_dir():
+        raise EvalError(f"{pred}: no such prediction folder")
+    regions = _regions(opts)
+    stereo = _is_stereo(opts.task)
+    step_abs, step_rel = EDGE_STEP["stereo" if stereo else "depth"]
+    overall = _Pool(None, None)
+    pools: dict[tuple[float | None, ...], _Pool] = {}
+    rows: list[SampleRow] = []
+    missing: list[str] = []
+    for k, gt in enumerate(gts):
+        pred_path = find_prediction(pred, gt)
+        if pred_path is None:
+            missing.append(gt.rel)
+        else:
+            g = read_gt(gt)
+            p = read_prediction(pred_path, gt.scale)
+            if p.shape != g.shape:
+                raise EvalError(f"{pred_path}: prediction shape {p.shape} but the GT {gt.path} is {g.shape}")
+            scale = 1.0
+            if opts.align == "median":
+                scale = median_scale(p, g)
+                p = (p * np.float32(scale)).astype(np.float32)
+            masks: dict[str, np.ndarray[Any, Any] | None] = {"all": None}
+            if opts.edges:
+                masks["edges"] = edge_band(g, opts.edge_band_px, step_abs, step_rel)
+            for name, root in opts.masks:
+                masks[name] = read_mask(root, gt, g.shape)
+            key = tuple(gt.fov_deg if b == "fov" else gt.baseline_mm for b in opts.by)
+            if key not in pools:
+                pools[key] = _Pool(
+                    gt.fov_deg if "fov" in opts.by else None,
+                    gt.baseline_mm if "baseline" in opts.by else None,
+                )
+            pool = pools[key]
+            per_region: dict[str, dict[str, float | int]] = {}
+            for region in regions:
+                acc = _new_acc(opts.task)
+                per_region[region] = acc.add(p, g, masks[region]).as_dict()
+                for target in (pool, overall):
+                    target.acc.setdefault(region, _new_acc(opts.task)).merge(acc)  # type: ignore[arg-type]
+            pool.samples += 1
+            overall.samples += 1
+            rows.append(
+                SampleRow(
+                    gt.rel,
+                    pred_path.relative_to(pred).as_posix(),
+                    gt.scene,
+                    gt.fov_deg,
+                    gt.baseline_mm,
+                    gt.view,
+                    scale,
+                    per_region,
+                )
+            )
+        if progress:
+            progress(k + 1, len(gts))
+
+    def finish(label: str, pool: _Pool) -> GroupRow:
+        metrics = {
+            r: (pool.acc[r] if r in pool.acc else _new_acc(opts.task)).result().as_dict() for r in regions
+        }
+        return GroupRow(label, pool.fov_deg, pool.baseline_mm, pool.samples, metrics)
+
+    order = sorted(pools, key=lambda t: tuple(-math.inf if v is None else v for v in t))
+    groups = tuple(
+        finish(group_label(opts.by, pools[t].fov_deg, pools[t].baseline_mm), pools[t]) for t in order
+    )
+    return EvalReport(
+        dataset, pred, layout, opts, regions, tuple(rows), groups if opts.by else (), finish("all", overall),
+        tuple(missing),
+    )  # fmt: skip
+
+
+def write_report_json(report: EvalReport, path: Path) -> Path:
+    """Write the report as JSON (atomically)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_atomic(path, (json.dumps(report.to_json(), indent=1) + "\n").encode())
+    return path
+
+
+# ---- tables ---------------------------------------------------------------------------------
+
+_HEAD = {
+    "epe_px": "EPE [px]", "median_px": "median [px]", "p95_px": "p95 [px]",
+    "bad1": "bad-1 [%]", "bad2": "bad-2 [%]", "bad3": "bad-3 [%]",
+    "abs_rel": "AbsRel", "mae_m": "MAE [m]", "rmse_m": "RMSE [m]",
+    "delta1": "δ<1.25 [%]", "delta2": "δ<1.25² [%]", "delta3": "δ<1.25³ [%]",
+    "coverage": "coverage [%]",
+}  # fmt: skip
+_PERCENT = frozenset({"bad1", "bad2", "bad3", "delta1", "delta2", "delta3", "coverage"})
+
+
+def format_metric(name: str, value: float | int | None) -> str:
+    """A metric as the tables print it (shares in percent)."""
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "-"
+    if name in _PERCENT:
+        return f"{100.0 * value:.2f}"
+    if name in ("abs_rel", "mae_m", "rmse_m"):
+        return f"{value:.4f}"
+    return f"{value:.3f}"
+
+
+def _md(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    lines += ["| " + " | ".join(r) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def markdown_table(report: EvalReport, region: str = "all") -> str:
+    """Markdown table of one region: a row per group (when grouped) and the pooled total."""
+    cols = report.columns
+    header = ["group", "samples", "GT px", _HEAD["coverage"], *(_HEAD[c] for c in cols)]
+    rows = []
+    for g in (*report.groups, report.overall):
+        m = g.metrics[region]
+        rows.append(
+            [
+                g.label,
+                str(g.samples),
+                str(m["n_gt"]),
+                format_metric("coverage", m["coverage"]),
+                *(format_metric(c, m[c]) for c in cols),
+            ]
+        )
+    return _md(header, rows)
+
+
+@dataclass(frozen=True)
+class CompareRow:
+    """One metric of configuration A vs B; change = 100 (A - B) / |B|."""
+
+    other: str | None  # the other grouping key's value (e.g. '65mm') when grouped by both
+    metric: str
+    a: float
+    b: float
+    change_pct: float
+    better: str  # "A", "B", "=" or "-" (not comparable)
+
+
+def parse_config_label(label: str) -> tuple[str, float]:
+    """'195FOV' -> ('fov', 195.0); '65mm' -> ('baseline', 65.0)."""
+    m = CONFIG_LABEL.match(label.strip())
+    if m is None:
+        raise EvalError(f"configuration {label!r}: expected <FOV>FOV (e.g. 195FOV) or <B>mm (e.g. 65mm)")
+    return ("fov" if m["unit"] == "FOV" else "baseline"), float(m["value"])
+
+
+def compare(report: EvalReport, a: str, b: str, region: str = "all") -> list[CompareRow]:
+    """Percentage change of every metric between configurations `a` and `b` (e.g. '195FOV', '120FOV').
+
+    Both must name the same grouping key, which must be one of the report's
+    `by` keys; when the report is grouped by the other key too, A and B are
+    paired within each of its values.
+    """
+    key_a, va = parse_config_label(a)
+    key_b, vb = parse_config_label(b)
+    if key_a != key_b:
+        raise EvalError(f"--compare {a},{b}: both must be FOVs or both baselines")
+    if key_a not in report.options.by:
+        raise EvalError(f"--compare {a},{b}: the report is not grouped by {key_a}")
+    other = next((k for k in report.options.by if k != key_a), None)
+
+    def value(g: GroupRow, key: str) -> float | None:
+        return g.fov_deg if key == "fov" else g.baseline_mm
+
+    side: dict[tuple[float | None, float | None], GroupRow] = {}
+    for g in report.groups:
+        side[(value(g, key_a), value(g, other) if other else None)] = g
+    others = sorted({o for _, o in side}, key=lambda o: -math.inf if o is None else o)
+    rows: list[CompareRow] = []
+    for o in others:
+        ga, gb = side.get((va, o)), side.get((vb, o))
+        if ga is None or gb is None:
+            continue
+        label = config_component(other, o) if other else None
+        for metric in (*report.columns, "coverage"):
+            x, y = float(ga.metrics[region][metric]), float(gb.metrics[region][metric])
+            rows.append(CompareRow(label, metric, x, y, _change(x, y), _better(metric, x, y)))
+    if not rows:
+        have = ", ".join(g.label for g in report.groups) or "none"
+        raise EvalError(f"--compare {a},{b}: no group holds both (groups: {have})")
+    return rows
+
+
+def _change(a: float, b: float) -> float:
+    if not (math.isfinite(a) and math.isfinite(b)) or b == 0.0:
+        return 0.0 if a == b else math.nan
+    return 100.0 * (a - b) / abs(b)
+
+
+def _better(metric: str, a: float, b: float) -> str:
+    if not (math.isfinite(a) and math.isfinite(b)):
+        return "-"
+    if a == b:
+        return "="
+    lower_wins = metric in LOWER_IS_BETTER
+    assert lower_wins or metric in HIGHER_IS_BETTER
+    return "A" if (a < b) == lower_wins else "B"
+
+
+def markdown_compare(rows: Sequence[CompareRow], a: str, b: str) -> str:
+    """Markdown table of `compare` rows: A, B, change in %, which is better."""
+    grouped = any(r.other is not None for r in rows)
+    header = [*(["config"] if grouped else []), "metric", f"A = {a}", f"B = {b}", "change [%]", "better"]
+    body = [
+        [
+            *([r.other or ""] if grouped else []),
+            _HEAD[r.metric],
+            format_metric(r.metric, r.a),
+            format_metric(r.metric, r.b),
+            "-" if not math.isfinite(r.change_pct) else f"{r.change_pct:+.1f}",
+            r.better,
+        ]
+        for r in rows
+    ]
+    return _md(header, body)
+
+
+@dataclass(frozen=True)
+class Heatmap:
+    """A metric over FOV (rows) x baseline (columns); NaN where no sample had that configuration."""
+
+    metric: str
+    region: str
+    fovs_deg: tuple[float, ...]
+    baselines_mm: tuple[float, ...]
+    values: np.ndarray[Any, np.dtype[np.float64]]
+
+
+def heatmap(report: EvalReport, metric: str, region: str = "all") -> Heatmap:
+    """The grid of pooled `metric` per (FOV, baseline) group; needs `by` = fov and baseline."""
+    if set(report.options.by) != set(GROUP_KEYS):
+        raise EvalError("a heatmap needs the report grouped by fov and baseline")
+    if metric not in (*report.columns, "coverage"):
+        raise EvalError(f"metric {metric!r}: expected one of {', '.join((*report.columns, 'coverage'))}")
+    fovs = tuple(sorted({g.fov_deg for g in report.groups if g.fov_deg is not None}))
+    bases = tuple(sorted({g.baseline_mm for g in report.groups if g.baseline_mm is not None}))
+    grid = np.full((len(fovs), len(bases)), np.nan)
+    for g in report.groups:
+        assert g.fov_deg is not None and g.baseline_mm is not None
+        grid[fovs.index(g.fov_deg), bases.index(g.baseline_mm)] = float(g.metrics[region][metric])
+    return Heatmap(metric, region, fovs, bases, grid)

@@ -1,0 +1,565 @@
+"""Benchmark views from dense laser scans, written in the WideDepth benchmark layout.
+
+For every view (a scan centre of the site, a yaw and a height) the renderer
+(`ingest.render.view`) draws the scans of that centre's bundle (the central scan and
+its nearest neighbours, the paper's bundle of three) through virtual cameras:
+
+- CENTER: the reference camera, level at the scan centre (plus the view's
+  height), looking along the view's yaw;
+- DOWN: its vertical-stereo partner, the baseline below (+y of the camera);
+- RIGHT: its horizontal-stereo partner, the baseline to the right (+x).
+
+Layout (`<scene>` = `<site>_<centre scan>_<view>`, three digits each)::
+
+    <scene>/scene.yaml                      every camera, pose, parameter and count (written last)
+    <scene>/<FOV>FOV/<B>mm/CENTER/<image>.png
+    <scene>/<FOV>FOV/<B>mm/CENTER/depth/<image>.png      uint16 mm (range; z for pinhole), 0 = invalid
+    <scene>/<FOV>FOV/<B>mm/CENTER/disparity/<image>.png  uint16 px x 100, 0 = invalid
+    <scene>/<FOV>FOV/<B>mm/{DOWN,RIGHT}/<image>.png
+    (depth/ and disparity/ also hold float32 EXR copies, <image>.exr)
+
+Images: `fisheye` (the virtual DS lens of that FOV), `pano` (the full-sphere
+equirect, H_full x 2 H_full, showing what the fisheye sees), `pano_crop` (the
+smallest window of it holding that), `cassini_crop` (the transverse equirect,
+window likewise), `pinhole` (90 degrees wide, the fisheye's size) and
+`pinhole_crop` (its centre). Disparity: `pano`/`pano_crop` for the vertical
+pair CENTER-DOWN (DESIGN.md's angular formula, stability-masked);
+`pinhole`/`pinhole_crop` (f B / z) and `cassini_crop` (the angular formula
+with the latitude from -x) for the horizontal pair CENTER-RIGHT. The pinhole
+images go only to the FOV folders of `pinhole_fovs` (120, as in the WideDepth
+release), fisheye images of the partners to every folder.
+
+Work is one task per rendered camera; tasks run in a local process pool
+(forked, so the scans' level-of-detail index is shared, not copied). A scene
+whose scene.yaml exists is skipped on a rerun.
+"""
+
+from __future__ import annotations
+
+import math
+import multiprocessing
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from calibration.camera import CameraModel
+from calibration.errors import SensorboxError
+from calibration.fisheye import DoubleSphere
+from calibration.pinhole import Pinhole
+from calibration.spherical import Cassini, Equirectangular, pinhole_for_fov
+from calibration.stereo import depth_to_disparity, disparity_stability_mask, pinhole_depth_to_disparity
+from calibration.types import F64, Bool
+from calibration.virtual import (
+    CroppedModel,
+    R_up_cam,
+    VirtualFisheye,
+    crop_bounds,
+    partner_pose,
+    virtual_fisheye,
+)
+from calibration.warp import build_maps, covering_crop, default_height_full
+from ingest.dataset.layout import DEPTH_SCALE, DISP_SCALE, encode_exr, to_uint16, write_atomic
+from ingest.dataset.png import encode_png
+from ingest.dataset.sparse import SparseImage
+from ingest.render.lod import VOXEL_M, ScanIndex, build_index
+from ingest.render.scans import F32, Scan
+from ingest.render.view import RenderParams, pixel_geometry, render_view
+from ingest.runtime.executor import Executor
+
+FOVS_DEG = (120.0, 140.0, 165.0, 195.0)
+BASELINES_MM = (20.0, 65.0, 120.0, 200.0, 300.0)
+BENCHMARK_VERSION = 1
+
+
+class BenchmarkError(SensorboxError):
+    """A benchmark run cannot be set up or written."""
+
+
+@dataclass(frozen=True)
+class BenchmarkConfig:
+    """Everything a benchmark run depends on (degrees and millimetres at this edge, as in the layout)."""
+
+    fovs_deg: tuple[float, ...] = FOVS_DEG
+    baselines_mm: tuple[float, ...] = BASELINES_MM
+    width: int = 2048
+    height: int = 1152
+    yaws_deg: tuple[float, ...] = (0.0,)
+    heights_m: tuple[float, ...] = (0.0,)
+    pitch_deg: float = 0.0
+    centers: tuple[str, ...] = ()  # scan names used as view centres; empty = every scan
+    bundle: int = 3  # scans rendered per view: the centre and its nearest neighbours
+    pinhole_fov_deg: float = 90.0
+    pinhole_fovs: tuple[float, ...] = (120.0,)  # FOV folders that get the pinhole images
+    pinhole_crop: float = 0.5  # pinhole_crop = the central fraction of the pinhole image per axis
+    height_full: int | None = None  # rows of the full sphere; default: each fisheye's centre resolution
+    site_id: int = 0
+    voxel_m: float = VOXEL_M
+    stability_max_rel_error: float = 0.5  # disparity stability mask (calibration.stereo)
+    stability_disp_error_px: float = 0.5
+    exr: bool = True
+    png_level: int = 1
+    workers: int = 2
+    render: RenderParams = field(default_factory=RenderParams)
+
+    def validate(self) -> None:
+        if not self.fovs_deg or any(not 0.0 < f < 360.0 for f in self.fovs_deg):
+            raise BenchmarkError(f"--fov {list(self.fovs_deg)}: each FOV must be in (0, 360) degrees")
+        if not self.baselines_mm or any(not b > 0.0 for b in self.baselines_mm):
+            raise BenchmarkError(f"--baseline {list(self.baselines_mm)}: each baseline must be > 0 mm")
+        if self.width < 8 or self.height < 8:
+            raise BenchmarkError(f"image size {self.width}x{self.height}: both must be >= 8 px")
+        if self.bundle < 1 or self.workers < 1:
+            raise BenchmarkError(f"--bundle {self.bundle} and --workers {self.workers} must be >= 1")
+        if not 0.0 < self.pinhole_crop <= 1.0 or not 0.0 < self.pinhole_fov_deg < 180.0:
+            raise BenchmarkError("pinhole FOV must be in (0, 180) degrees and its crop fraction in (0, 1]")
+
+
+@dataclass(frozen=True)
+class FovCameras:
+    """The cameras of one FOV folder (all in the CENTER camera's frame; partners share it)."""
+
+    fisheye: VirtualFisheye
+    pano: Equirectangular  # the crop; its full sphere is pano.full()
+    pano_mask: Bool
+    cassini: CroppedModel  # window of Cassini(height_full)
+    cassini_mask: Bool
+    height_full: int  # rows of the full sphere (pano) = columns of the full Cassini
+
+
+@dataclass(frozen=True)
+class View:
+    """One benchmark scene: a centre scan, its bundle, yaw, height and the CENTER pose."""
+
+    scene: str
+    center: int
+    bundle: tuple[int, ...]
+    yaw_deg: float
+    height_m: float
+    T_world_center: F64
+
+
+@dataclass(frozen=True)
+class Task:
+    """One rendered camera: CENTER (baseline None) or a partner at one baseline."""
+
+    scene: str
+    camera: str  # CENTER | DOWN | RIGHT
+    product: str  # fisheye | pano | cassini | pinhole
+    fov_deg: float | None  # None for the pinhole (FOV-independent)
+    baseline_mm: float | None
+
+
+@dataclass
+class BenchmarkSummary:
+    """What a run did: scenes, renders, files and per-render counts."""
+
+    out: Path
+    scenes: list[str] = field(default_factory=list)
+    skipped: list[str] = field(default_factory=list)
+    renders: int = 0
+    files: int = 0
+    seconds: float = 0.0
+    index_seconds: float = 0.0
+    stats: dict[str, dict[str, dict[str, int]]] = field(default_factory=dict)  # scene -> render key -> counts
+
+
+def fov_label(fov: float) -> str:
+    return f"{fov:g}FOV"
+
+
+def baseline_label(b_mm: float) -> str:
+    return f"{b_mm:g}mm"
+
+
+def _window_mask(fisheye: CameraModel, full: CameraModel, factor: int = 8) -> tuple[int, int, int, int]:
+    """Window (col, row, width, height) of ``full`` holding every ray the fisheye sees.
+
+    Decided on a ``factor``-times coarser grid of ``full``'s pixels (their rays
+    projected into the fisheye), grown by one coarse pixel: robust to seams.
+    """
+    H, W = full.height, full.width
+    us = np.arange(0, W, factor, dtype=np.float64) + (factor - 1) / 2.0
+    vs = np.arange(0, H, factor, dtype=np.float64) + (factor - 1) / 2.0
+    grid = np.stack(np.meshgrid(us, vs), axis=-1)
+    rays, ok = full.unproject(grid)
+    uv, ok2 = fisheye.project(np.where(ok[..., None], rays, 0.0))
+    seen = ok & ok2 & fisheye.in_image(uv)
+    c0, r0, w, h = crop_bounds(seen, 1)
+    return (c0 * factor, r0 * factor, min(W - c0 * factor, w * factor), min(H - r0 * factor, h * factor))
+
+
+def fov_cameras(reference: DoubleSphere, fov_deg: float, cfg: BenchmarkConfig) -> FovCameras:
+    """The fisheye of ``fov_deg`` and the equirect/Cassini windows covering it."""
+    fish = virtual_fisheye(reference, fov_deg, cfg.width, cfg.height)
+    hf = cfg.height_full or default_height_full(fish.model)
+    pano = covering_crop(fish.model, np.eye(3), hf)
+    c0, r0, w, h = _window_mask(fish.model, Cassini(hf))
+    cas = CroppedModel(Cassini(hf), c0, r0, w, h)
+    return FovCameras(
+        fish, pano, build_maps(fish.model, pano).valid, cas, build_maps(fish.model, cas).valid, hf
+    )
+
+
+def pinhole_camera(cfg: BenchmarkConfig) -> tuple[Pinhole, tuple[int, int, int, int]]:
+    """The pinhole and its central crop window (col, row, width, height)."""
+    ph = pinhole_for_fov(math.radians(cfg.pinhole_fov_deg), cfg.width, cfg.height)
+    w = max(1, round(cfg.width * cfg.pinhole_crop))
+    h = max(1, round(cfg.height * cfg.pinhole_crop))
+    return ph, ((cfg.width - w) // 2, (cfg.height - h) // 2, w, h)
+
+
+def bundles(scans: list[Scan], size: int) -> list[tuple[int, ...]]:
+    """For each scan: itself and its ``size - 1`` nearest scans (by scanner position)."""
+    pos = np.array([s.origin_world for s in scans])
+    out = []
+    for k in range(len(scans)):
+        d = np.linalg.norm(pos - pos[k], axis=1)
+        d[k] = -1.0
+        out.append(tuple(int(i) for i in np.argsort(d, kind="stable")[: min(size, len(scans))]))
+    return out
+
+
+def plan_views(scans: list[Scan], cfg: BenchmarkConfig) -> list[View]:
+    """Every (centre, yaw, height) view; scene ids `<site>_<centre>_<view>`."""
+    names = [s.name for s in scans]
+    centers: list[int] = list(range(len(scans))) if not cfg.centers else []
+    for name in cfg.centers:
+        if name not in names:
+            raise BenchmarkError(f"--center {name!r}: no such scan (have: {', '.join(names)})")
+        centers.append(names.index(name))
+    groups = bundles(scans, cfg.bundle)
+    views = []
+    for c in centers:
+        k = 0
+        for height in cfg.heights_m:
+            for yaw in cfg.yaws_deg:
+                T_scan_cam = np.eye(4)
+                T_scan_cam[:3, :3] = R_up_cam(math.radians(yaw), math.radians(cfg.pitch_deg))
+                T_scan_cam[2, 3] = height
+                scene = f"{cfg.site_id:03d}_{c:03d}_{k:03d}"
+                views.append(View(scene, c, groups[c], yaw, height, scans[c].T_world_scan @ T_scan_cam))
+                k += 1
+    return views
+
+
+def plan_tasks(views: list[View], cfg: BenchmarkConfig) -> list[Task]:
+    """One task per rendered camera of every view."""
+    tasks = []
+    for v in views:
+        tasks.append(Task(v.scene, "CENTER", "pinhole", None, None))
+        for f in cfg.fovs_deg:
+            tasks += [Task(v.scene, "CENTER", p, f, None) for p in ("fisheye", "pano", "cassini")]
+        for b in cfg.baselines_mm:
+            tasks.append(Task(v.scene, "RIGHT", "pinhole", None, b))
+            for f in cfg.fovs_deg:
+                tasks += [Task(v.scene, "DOWN", p, f, b) for p in ("fisheye", "pano")]
+                tasks += [Task(v.scene, "RIGHT", p, f, b) for p in ("fisheye", "cassini")]
+    return tasks
+
+
+@dataclass
+class RenderState:
+    """What every render task of a run shares (the executor's `shared`: inherited by forked workers)."""
+
+    out: Path
+    cfg: BenchmarkConfig
+    indexes: list[ScanIndex]
+    views: dict[str, View]
+    fovs: dict[float, FovCameras]
+    pinhole: tuple[Pinhole, tuple[int, int, int, int]]
+
+
+class _Writer:
+    """Writes one task's files into every folder they belong to (encode once, write many)."""
+
+    def __init__(self, state: RenderState, task: Task) -> None:
+        self.state, self.task, self.files, self.dropped = state, task, 0, 0
+        cfg, t = state.cfg, task
+        fovs = [f for f in cfg.pinhole_fovs if f in cfg.fovs_deg] if t.fov_deg is None else [t.fov_deg]
+        bases = cfg.baselines_mm if t.baseline_mm is None else (t.baseline_mm,)
+        root = state.out / t.scene
+        # (folder, baseline) for every <FOV>FOV/<B>mm/<camera> this render belongs to
+        self.folders = [(root / fov_label(f) / baseline_label(b) / t.camera, b) for f in fovs for b in bases]
+
+    def image(self, name: str, bgr: np.ndarray[Any, Any]) -> None:
+        data = encode_png(bgr, self.state.cfg.png_level)
+        for folder, _ in self.folders:
+            self._write(folder / f"{name}.png", data)
+
+    def depth(self, name: str, values: F32) -> None:
+        """depth/<name>: one map for every baseline folder."""
+        png, exr = self._encode(values, DEPTH_SCALE)
+        for folder, _ in self.folders:
+            self._put(folder / "depth", name, png, exr)
+
+    def disparity(self, name: str, per_baseline: Callable[[float], F32]) -> None:
+        """disparity/<name>: ``per_baseline(b_mm)`` for each baseline folder."""
+        cache: dict[float, tuple[bytes, bytes | None]] = {}
+        for folder, b in self.folders:
+            if b not in cache:
+                cache[b] = self._encode(per_baseline(b), DISP_SCALE)
+            self._put(folder / "disparity", name, *cache[b])
+
+    def _encode(self, values: F32, scale: float) -> tuple[bytes, bytes | None]:
+        u16, dropped = to_uint16(SparseImage.from_dense(values), scale)
+        self.dropped += dropped
+        exr = encode_exr(values) if self.state.cfg.exr else None
+        return encode_png(u16, self.state.cfg.png_level), exr
+
+    def _put(self, folder: Path, name: str, png: bytes, exr: bytes | None) -> None:
+        self._write(folder / f"{name}.png", png)
+        if exr is not None:
+            self._write(folder / f"{name}.exr", exr)
+
+    def _write(self, path: Path, data: bytes) -> None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write_atomic(path, data)
+        self.files += 1
+
+
+def _pad_full(crop: Equirectangular, img: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+    full = np.zeros((crop.height_full, 2 * crop.height_full, *img.shape[2:]), img.dtype)
+    full[crop.row_offset : crop.row_offset + crop.height, crop.col_offset : crop.col_offset + crop.width] = (
+        img
+    )
+    return full
+
+
+def _angular_disparity(
+    range_m: F32, theta: F64, height_full: int, cfg: BenchmarkConfig
+) -> Callable[[float], F32]:
+    """Baseline (mm) -> angular disparity (px of the full sphere) of a range image, stability-masked.
+
+    ``theta`` is each pixel's latitude from the pole opposite the partner
+    (broadcast against the image).
+    """
+    r = range_m.astype(np.float64)
+    th = np.broadcast_to(theta, r.shape)
+
+    def disparity(b_mm: float) -> F32:
+        b = b_mm / 1000.0
+        d = depth_to_disparity(r, th, b, height_full)
+        stable = disparity_stability_mask(th, r, b, height_full, cfg.stability_max_rel_error,
+                                          cfg.stability_disp_error_px)  # fmt: skip
+        out: F32 = np.where(stable & (r > 0), d, 0.0).astype(np.float32)
+        return out
+
+    return disparity
+
+
+def _pinhole_disparity(z_m: F32, focal_px: float) -> Callable[[float], F32]:
+    """Baseline (mm) -> f B / z of a z-depth image (0 stays 0)."""
+    return lambda b_mm: pinhole_depth_to_disparity(z_m, focal_px, b_mm / 1000.0).astype(np.float32)
+
+
+def run_task(s: RenderState, task: Task) -> tuple[Task, dict[str, int], int]:
+    """Render one camera and write its files; returns (task, render counts, files written)."""
+    view = s.views[task.scene]
+    T = view.T_world_center if task.baseline_mm is None else \
+        partner_pose(view.T_world_center, task.camera, task.baseline_mm / 1000.0)  # fmt: skip
+    sources = [s.indexes[i] for i in view.bundle]
+    w = _Writer(s, task)
+    center = task.camera == "CENTER"
+    if task.product == "pinhole":
+        model, (c0, r0, cw, ch) = s.pinhole
+        rend = render_view(sources, model, T, s.cfg.render)
+        crop = (slice(r0, r0 + ch), slice(c0, c0 + cw))
+        w.image("pinhole", rend.bgr)
+        w.image("pinhole_crop", np.ascontiguousarray(rend.bgr[crop]))
+        if center:
+            rays, _ = model.unproject(model.pixel_grid())
+            z_full = (rend.range_m * rays[..., 2]).astype(np.float32)
+            for name, z in (("pinhole", z_full), ("pinhole_crop", np.ascontiguousarray(z_full[crop]))):
+                w.depth(name, z)
+                w.disparity(name, _pinhole_disparity(z, model.fx))
+    else:
+        assert task.fov_deg is not None
+        cams = s.fovs[task.fov_deg]
+        if task.product == "fisheye":
+            rend = render_view(sources, cams.fisheye.model, T, s.cfg.render)
+            w.image("fisheye", rend.bgr)
+            if center:
+                w.depth("fisheye", rend.range_m)
+        elif task.product == "pano":
+            eq = cams.pano
+            rend = render_view(sources, eq, T, s.cfg.render, pixel_mask=cams.pano_mask)
+            w.image("pano_crop", rend.bgr)
+            w.image("pano", _pad_full(eq, rend.bgr))
+            if center:
+                theta = eq.theta_of_row(np.arange(eq.height, dtype=np.float64))[:, None]
+                disp = _angular_disparity(rend.range_m, theta, eq.height_full, s.cfg)
+                w.depth("pano_crop", rend.range_m)
+                w.disparity("pano_crop", disp)
+                w.depth("pano", _pad_full(eq, rend.range_m))
+                w.disparity("pano", lambda b: _pad_full(eq, disp(b)))
+        elif task.product == "cassini":
+            cas, hf = cams.cassini, cams.height_full
+            rend = render_view(sources, cas, T, s.cfg.render, pixel_mask=cams.cassini_mask)
+            w.image("cassini_crop", rend.bgr)
+            if center:
+                cols = np.arange(cas.width, dtype=np.float64) + cas.col_offset
+                theta = ((cols + 0.5) * math.pi / hf)[None, :]  # latitude from -x: alpha + pi/2
+                w.depth("cassini_crop", rend.range_m)
+                w.disparity("cassini_crop", _angular_disparity(rend.range_m, theta, hf, s.cfg))
+        else:  # pragma: no cover - plan_tasks makes only these
+            raise BenchmarkError(f"unknown product {task.product!r}")
+    stats = dict(rend.stats)
+    stats["uint16_dropped"] = w.dropped
+    return task, stats, w.files
+
+
+def task_key(t: Task) -> str:
+    """'120FOV/65mm/DOWN/fisheye' style name of a render (CENTER: 'CENTER/...'; pinhole: no FOV)."""
+    parts = [] if t.fov_deg is None else [fov_label(t.fov_deg)]
+    parts += [] if t.baseline_mm is None else [baseline_label(t.baseline_mm)]
+    return "/".join([*parts, t.camera, t.product])
+
+
+def _scene_doc(
+    state: RenderState, view: View, scans: list[Scan], stats: dict[str, dict[str, int]]
+) -> dict[str, Any]:
+    cfg = state.cfg
+    ph, (c0, r0, cw, ch) = state.pinhole
+    cams: dict[str, Any] = {}
+    for f in cfg.fovs_deg:
+        fc = state.fovs[f]
+        eq, cas = fc.pano, fc.cassini
+        cams[fov_label(f)] = {
+            "fisheye": fc.fisheye.report(),
+            "pano": {"model": "equirect", "height_full": eq.height_full, "width": 2 * eq.height_full,
+                     "height": eq.height_full, "pole": "-y (up)", "content": "what the fisheye sees"},
+            "pano_crop": {"model": "equirect", "height_full": eq.height_full, "row_offset": eq.row_offset,
+                          "col_offset": eq.col_offset, "width": eq.width, "height": eq.height},
+            "cassini_crop": {"model": "cassini", "height_full": fc.height_full,
+                             "col_offset": cas.col_offset, "row_offset": cas.row_offset,
+                             "width": cas.width, "height": cas.height},
+            **({"pinhole": {"model": "pinhole", "fov_deg": cfg.pinhole_fov_deg, "fx": ph.fx, "fy": ph.fy,
+                            "cx": ph.cx, "cy": ph.cy, "width": ph.width, "height": ph.height},
+                "pinhole_crop": {"model": "pinhole", "fx": ph.fx, "fy": ph.fy, "cx": ph.cx - c0,
+                                 "cy": ph.cy - r0, "width": cw, "height": ch, "col_offset": c0,
+                                 "row_offset": r0}} if f in cfg.pinhole_fovs else {}),
+        }  # fmt: skip
+    T = view.T_world_center
+    partners = {
+        cam: {baseline_label(b): partner_pose(np.eye(4), cam, b / 1000.0).tolist() for b in cfg.baselines_mm}
+        for cam in ("DOWN", "RIGHT")
+    }
+    return {
+        "sensorbox_benchmark": BENCHMARK_VERSION,
+        "scene": view.scene,
+        "view": {
+            "center_scan": scans[view.center].name,
+            "bundle": [scans[i].name for i in view.bundle],
+            "yaw_deg": view.yaw_deg,
+            "pitch_deg": cfg.pitch_deg,
+            "height_m": view.height_m,
+            "T_world_center": np.round(T, 12).tolist(),
+        },
+        "scans": [
+            {
+                "name": scans[i].name,
+                "source": scans[i].source,
+                "points": len(scans[i].xyz),
+                "T_world_scan": np.round(scans[i].T_world_scan, 12).tolist(),
+            }
+            for i in view.bundle
+        ],
+        "T_center_partner": partners,
+        "conventions": {
+            "camera_frame": "x right, y down, z forward; metres",
+            "depth": "uint16 PNG, millimetres: range from the camera centre (fisheye, pano, cassini), "
+            "z for pinhole; EXR float32 metres; 0 = invalid",
+            "disparity": "uint16 PNG, px x 100, 0 = invalid; pano*: vertical pair CENTER-DOWN, "
+            "angular with the full sphere's pitch, latitude from -y; cassini_crop: horizontal "
+            "pair CENTER-RIGHT, angular, latitude from -x (alpha + pi/2); pinhole*: f B / z",
+            "stability_mask": {
+                "max_rel_error": cfg.stability_max_rel_error,
+                "disp_error_px": cfg.stability_disp_error_px,
+            },
+            "invalid_also": "reflective/transparent (mask) surfaces, ranges beyond clip_m, holes",
+        },
+        "cameras": cams,
+        "fovs_deg": list(cfg.fovs_deg),
+        "baselines_mm": list(cfg.baselines_mm),
+        "render": asdict(cfg.render),
+        "stats": stats,
+    }
+
+
+def run_benchmark(
+    scans: list[Scan],
+    reference: CameraModel,
+    out: Path,
+    cfg: BenchmarkConfig,
+    progress: Callable[[int, int], None] | None = None,
+) -> BenchmarkSummary:
+    """Render every view of the site into ``out`` (see the module doc); resumable per scene."""
+    cfg.validate()
+    if not isinstance(reference, DoubleSphere):
+        raise BenchmarkError(
+            f"the reference camera must be Double Sphere (the FOV laws), got {type(reference).__name__}"
+        )
+    if not scans:
+        raise BenchmarkError("no scans given")
+    t0 = time.perf_counter()
+    summary = BenchmarkSummary(out)
+    views = plan_views(scans, cfg)
+    todo = [v for v in views if not (out / v.scene / "scene.yaml").exists()]
+    summary.skipped = [v.scene for v in views if v not in todo]
+    used = sorted({i for v in todo for i in v.bundle})
+    indexes: list[ScanIndex] = [None] * len(scans)  # type: ignore[list-item]
+    for i in used:
+        indexes[i] = build_index(scans[i], cfg.voxel_m)
+    summary.index_seconds = time.perf_counter() - t0
+    fovs = {f: fov_cameras(reference, f, cfg) for f in cfg.fovs_deg}
+    ph = pinhole_camera(cfg)
+    for fc in fovs.values():  # warm the per-model caches before forking
+        for m in (fc.fisheye.model, fc.pano, fc.cassini):
+            pixel_geometry(m)
+    pixel_geometry(ph[0])
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise BenchmarkError(f"cannot create {out}: {err.strerror or err}") from err
+    state = RenderState(out, cfg, indexes, {v.scene: v for v in todo}, fovs, ph)
+    tasks = plan_tasks(todo, cfg)
+    stats: dict[str, dict[str, dict[str, int]]] = {v.scene: {} for v in todo}
+    remaining = {v.scene: sum(t.scene == v.scene for t in tasks) for v in todo}
+    done = 0
+
+    def finished(task: Task, st: dict[str, int], files: int) -> None:
+        nonlocal done
+        done += 1
+        summary.renders += 1
+        summary.files += files
+        stats[task.scene][task_key(task)] = st
+        remaining[task.scene] -= 1
+        if remaining[task.scene] == 0:  # scene.yaml last: it marks the scene finished
+            view = state.views[task.scene]
+            doc = _scene_doc(state, view, scans, dict(sorted(stats[task.scene].items())))
+            text = "# SensorBox benchmark scene (WideDepth layout)\n" + yaml.safe_dump(
+                doc, sort_keys=False, default_flow_style=None
+            )
+            write_atomic(out / task.scene / "scene.yaml", text.encode())
+            summary.files += 1
+            summary.scenes.append(task.scene)
+        if progress:
+            progress(done, len(tasks))
+
+    # workers share the scans' index by fork; without fork the run stays in this process (no copies)
+    # no cv2.setNumThreads in the workers: reconfiguring a forked OpenCV pool deadlocks
+    workers = cfg.workers if len(tasks) > 1 and "fork" in multiprocessing.get_all_start_methods() else 1
+    results = Executor(workers).run(run_task, tasks, shared=state)
+    try:
+        for result in results:
+            finished(*result)
+    finally:
+        results.close()
+    summary.stats = stats
+    summary.seconds = time.perf_counter() - t0
+    return summary

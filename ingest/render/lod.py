@@ -1,0 +1,226 @@
+"""Level of detail for dense scans: voxel buckets in stratified order, and per-view point selection.
+
+A view must touch only the points it needs: those inside its frustum, at a
+density matching its pixels. `build_index` sorts a scan once into voxel
+buckets (`voxel_m` cubes in the scan frame), in a random order inside each
+bucket, so any prefix of a bucket is a uniform subsample of it. `select` then
+keeps the voxels whose bounding sphere reaches the image and takes from each a
+prefix sized so the image receives about `points_per_px` points per pixel.
+
+Density needs the scanner's angular sampling: `angular_spacing` counts points
+per solid angle around the scanner in equal-area (cos polar x azimuth) cells;
+a point's metric spacing on its surface is then its cell's angular spacing
+times its range from its scanner, and seen from a camera at range r_c it
+spans spacing * r_scan / r_c radians (surface tilt ignored).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from calibration.camera import CameraModel
+from calibration.types import F64, Bool
+from ingest.render.scans import F32, U8, Scan, ScanError
+
+I64 = np.ndarray[Any, np.dtype[np.int64]]
+VOXEL_M = 0.25
+SPHERE_CELLS = (256, 512)  # equal-area cells in cos(polar) x azimuth: 0.5 deg at the equator
+RANK_BITS = 24
+RANK_SEED = 0x5CA9
+NEAR_VOXEL_RAD = 0.12  # voxels wider than this (angular radius) are culled by their corners too
+VERY_NEAR_VOXEL_RAD = 0.5  # ... and wider than this are always kept, uncut
+_CORNERS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], np.float64)
+
+
+@dataclass(frozen=True, eq=False)
+class ScanIndex:
+    """A scan sorted into LOD voxel buckets (all arrays in bucket order, scan frame)."""
+
+    name: str
+    T_world_scan: F64
+    xyz: F32  # (N, 3)
+    rgb: U8  # (N, 3)
+    masked: Bool | None  # (N,)
+    mask_xyz: F32  # (M, 3) mask cloud (unsorted, small)
+    mask_spacing_rad: F32  # (M,)
+    voxel_start: I64  # (V + 1,) bucket v holds points voxel_start[v]:voxel_start[v+1]
+    voxel_centre: F32  # (V, 3) cube centres
+    voxel_spacing_rad: F32  # (V,) the scanner's mean angular spacing over the bucket
+    voxel_m: float
+
+    @property
+    def n_points(self) -> int:
+        return len(self.xyz)
+
+    @property
+    def n_voxels(self) -> int:
+        return len(self.voxel_centre)
+
+
+def angular_spacing(xyz: F32, cells: tuple[int, int] = SPHERE_CELLS) -> F32:
+    """Angular spacing (rad) of the scanner's sampling at each point, from points per steradian.
+
+    Cells at the edge of what the scanner saw (sky line, tripod shadow) are
+    partly empty and report a wider spacing, which only makes splats larger.
+    """
+    n_u, n_az = cells
+    r = np.sqrt(np.einsum("ij,ij->i", xyz, xyz))
+    cu = np.clip(((xyz[:, 2] / np.maximum(r, 1e-12) + 1.0) * (n_u / 2.0)).astype(np.int32), 0, n_u - 1)
+    az = np.arctan2(xyz[:, 1], xyz[:, 0])
+    ca = np.clip(((az + math.pi) * (n_az / (2.0 * math.pi))).astype(np.int32), 0, n_az - 1)
+    cell = cu * n_az + ca
+    counts = np.bincount(cell, minlength=n_u * n_az)
+    cell_sr = 4.0 * math.pi / (n_u * n_az)
+    spacing = np.sqrt(cell_sr / np.maximum(counts, 1)).astype(np.float32)
+    out: F32 = spacing[cell]
+    return out
+
+
+def build_index(scan: Scan, voxel_m: float = VOXEL_M) -> ScanIndex:
+    """Sort ``scan`` into voxel buckets, randomly ordered inside each (one argsort of N int64 keys).
+
+    The index holds sorted copies of the points and colours; the scan's own
+    arrays can be dropped afterwards.
+    """
+    if not (math.isfinite(voxel_m) and voxel_m > 0.0):
+        raise ScanError(f"LOD voxel size must be > 0 m, got {voxel_m!r}")
+    xyz = scan.xyz
+    if len(xyz) == 0:
+        raise ScanError(f"{scan.source or scan.name}: the scan has no points")
+    spacing = angular_spacing(xyz)
+    # voxel id per point, one axis at a time (int32 cells: a 20M-point scan needs no (N, 3) int64)
+    inv = np.float32(1.0 / voxel_m)
+    cells = [np.floor(xyz[:, k] * inv).astype(np.int32) for k in range(3)]
+    lo = np.array([int(c.min()) for c in cells])
+    span = np.array([int(c.max()) for c in cells]) - lo + 1
+    bits = sum(math.ceil(math.log2(int(s) + 1)) for s in span)
+    if bits + RANK_BITS > 62:
+        raise ScanError(
+            f"{scan.source or scan.name}: the scan spans {span.tolist()} voxels of {voxel_m} m; "
+            "use a larger voxel size"
+        )
+    key = cells[0].astype(np.int64) - int(lo[0])
+    for k in (1, 2):
+        key *= int(span[k])
+        key += cells[k] - int(lo[k])
+    del cells
+    vid = key.copy()
+    # a random rank inside each bucket: any prefix is a uniform subsample. (Spatially stratified
+    # orders - bit-reversed Morton codes, sub-cell round robin - alias with the scanner's regular
+    # grid and leave streaks of empty pixels at grazing angles.)
+    key <<= RANK_BITS
+    key |= np.random.default_rng(RANK_SEED).integers(0, 1 << RANK_BITS, len(xyz), dtype=np.int64)
+    order = np.argsort(key)
+    del key
+    vid_sorted = vid[order]
+    del vid
+    starts = np.flatnonzero(np.r_[True, vid_sorted[1:] != vid_sorted[:-1]])
+    vids = vid_sorted[starts]
+    del vid_sorted
+    voxel_start = np.r_[starts, len(order)].astype(np.int64)
+    iz = vids % span[2]
+    iy = (vids // span[2]) % span[1]
+    ix = vids // (span[2] * span[1])
+    centre = ((np.stack([ix, iy, iz], axis=1) + lo).astype(np.float64) + 0.5) * voxel_m
+    sp_sorted = spacing[order]
+    mean_sp = np.add.reduceat(sp_sorted.astype(np.float64), starts) / np.diff(voxel_start)
+    mask_sp = angular_spacing(scan.mask_xyz) if len(scan.mask_xyz) else np.zeros(0, np.float32)
+    return ScanIndex(
+        name=scan.name,
+        T_world_scan=scan.T_world_scan,
+        xyz=np.ascontiguousarray(xyz[order]),
+        rgb=np.ascontiguousarray(scan.rgb[order]),
+        masked=None if scan.masked is None else scan.masked[order],
+        mask_xyz=scan.mask_xyz,
+        mask_spacing_rad=mask_sp,
+        voxel_start=voxel_start,
+        voxel_centre=centre.astype(np.float32),
+        voxel_spacing_rad=mean_sp.astype(np.float32),
+        voxel_m=float(voxel_m),
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class Selection:
+    """Points of one scan chosen for a view: indices into the index arrays and their spacing."""
+
+    idx: I64
+    spacing_rad: F32  # effective angular spacing at the scanner after thinning
+    voxels_kept: int
+
+
+def select(
+    index: ScanIndex,
+    model: CameraModel,
+    T_cam_scan: F64,
+    ppr: tuple[F32, F32, int, float, float],
+    points_per_px: float | None,
+    coarse_mask: Bool | None = None,
+) -> Selection:
+    """The points of ``index`` a view of ``model`` at ``T_cam_scan`` needs (``None`` density = all).
+
+    ``ppr`` is the camera's coarse pixels-per-radian maps (along u, along v),
+    their stride, maximum and the cap of the level of detail
+    (`ingest.render.view.PixelGeometry.coarse`). ``coarse_mask`` (one cell per
+    stride x stride pixels, already grown by a cell) drops voxels that land
+    only where the view draws nothing.
+    """
+    ppr_u, ppr_v, stride, ppr_max, ppr_cap = ppr
+    R, t = T_cam_scan[:3, :3], T_cam_scan[:3, 3]
+    c = index.voxel_centre.astype(np.float64)
+    c_cam = np.einsum("ij,nj->ni", R, c) + t
+    r_cam = np.sqrt(np.einsum("ij,ij->i", c_cam, c_cam))
+    ang = 0.5 * math.sqrt(3.0) * index.voxel_m / np.maximum(r_cam, 1e-9)
+    uv, ok = model.project(c_cam)
+    margin = ang * ppr_max + 1.0
+    with np.errstate(invalid="ignore"):
+        inside = (
+            ok
+            & (uv[:, 0] >= -0.5 - margin)
+            & (uv[:, 0] <= model.width - 0.5 + margin)
+            & (uv[:, 1] >= -0.5 - margin)
+            & (uv[:, 1] <= model.height - 0.5 + margin)
+        )
+    if coarse_mask is not None:  # small voxels whose centre cell is outside the drawn area
+        small = inside & (margin < stride)
+        cu = np.clip((np.nan_to_num(uv[:, 0]) + 0.5) // stride, 0, coarse_mask.shape[1] - 1).astype(np.int64)
+        cv = np.clip((np.nan_to_num(uv[:, 1]) + 0.5) // stride, 0, coarse_mask.shape[0] - 1).astype(np.int64)
+        inside &= ~small | coarse_mask[cv, cu]
+    # a near voxel spans many pixels: its centre may miss the image while a corner is in it
+    near = ang > NEAR_VOXEL_RAD
+    centre_in = inside.copy()
+    probe = np.flatnonzero(near & ~inside)
+    if probe.size:
+        corners = c[probe, None, :] + 0.5 * index.voxel_m * _CORNERS[None, :, :]
+        cuv, cok = model.project(np.einsum("ij,nkj->nki", R, corners) + t)
+        with np.errstate(invalid="ignore"):
+            hit = cok & (cuv[..., 0] >= -1.5) & (cuv[..., 0] <= model.width + 0.5)
+            hit &= (cuv[..., 1] >= -1.5) & (cuv[..., 1] <= model.height + 0.5)
+        inside[probe] = hit.any(axis=1) | (ang[probe] > VERY_NEAR_VOXEL_RAD)
+    keep = np.flatnonzero(inside)
+    counts = np.diff(index.voxel_start)[keep]
+    sp = index.voxel_spacing_rad[keep].astype(np.float64)
+    take = counts
+    if points_per_px is not None:
+        u = np.where(centre_in[keep], uv[keep, 0], 0.0)
+        v = np.where(centre_in[keep], uv[keep, 1], 0.0)
+        col = np.clip((u + 0.5) // stride, 0, ppr_u.shape[1] - 1).astype(np.int64)
+        row = np.clip((v + 0.5) // stride, 0, ppr_u.shape[0] - 1).astype(np.int64)
+        p = np.sqrt(ppr_u[row, col].astype(np.float64) * ppr_v[row, col])
+        p = np.minimum(np.where(centre_in[keep], p, ppr_max), ppr_cap)
+        r_scan = np.sqrt(np.einsum("ij,ij->i", c[keep], c[keep]))
+        sp_px = sp * r_scan / np.maximum(r_cam[keep], 1e-9) * p
+        frac = np.minimum(1.0, sp_px * sp_px * points_per_px)
+        frac = np.where(ang[keep] > VERY_NEAR_VOXEL_RAD, 1.0, frac)
+        take = np.maximum(1, np.ceil(frac * counts)).astype(np.int64)
+        sp = sp * np.sqrt(counts / take)
+    starts = index.voxel_start[keep]
+    total = int(take.sum())
+    # indices of the first take[k] points of each kept bucket, without a Python loop
+    offs = np.repeat(starts - np.r_[0, np.cumsum(take)[:-1]], take)
+    idx = np.arange(total, dtype=np.int64) + offs
+    return Selection(idx, np.repeat(sp.astype(np.float32), take), len(keep))

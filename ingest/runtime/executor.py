@@ -1,0 +1,178 @@
+"""One executor for the independent jobs of train (samples) and render (views): inline, a fork pool, or Dask.
+
+- Backend: a Dask cluster when an address is given; a pool of forked worker
+  processes when `workers` > 1 and the platform forks (workers inherit this
+  process's memory: remap maps, scan indexes); otherwise inline, in this process.
+- `shared`: what every job needs and no job should carry. A forked worker
+  inherits it, a Dask worker receives it once (scattered to every worker),
+  inline calls get it as it is. `fn(shared, job)` does one job.
+- `worker_init` runs once in every worker process before its first job, and
+  once in this process when running inline: process-wide settings (allocator,
+  thread counts) belong there, not in a job.
+- `handoff` moves a job's large arrays (camera images) through one shared
+  anonymous mapping instead of the task pipe (fork pool only): `take(job)`
+  splits a job into a light job and its arrays, `give(job, arrays)` joins them
+  again in the worker. A slot is reused once its job's result came back; a job
+  whose arrays do not fit, or that finds no free slot, goes the ordinary way.
+- `run(jobs)` keeps at most `max_in_flight` jobs submitted and yields the
+  results in submission order; it pulls the next job only when there is room,
+  so a generator of jobs streams.
+
+One `run` at a time per process: the shared state of a fork pool is this
+module's, inherited by the children it forks.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+from collections import deque
+from collections.abc import Callable, Generator, Iterable
+from concurrent.futures import Future, ProcessPoolExecutor
+from dataclasses import dataclass
+from typing import Any, Generic, Literal, TypeVar
+
+import numpy as np
+
+from ingest.runtime.transport import ArraySlots, SlotRef, slot_views
+
+J = TypeVar("J")
+R = TypeVar("R")
+Arrays = tuple[np.ndarray[Any, Any], ...]
+Backend = Literal["inline", "fork", "spawn", "dask"]
+
+_WORKER: dict[str, Any] = {}  # "shared", "fn", "give": set before the pool forks, inherited by its workers
+
+
+def usable_cpus() -> int:
+    """CPUs this process may run on (its affinity mask on Linux, else the machine's count)."""
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1
+
+
+@dataclass(frozen=True)
+class Handoff(Generic[J]):
+    """How a job's large arrays leave it (`take`, in this process) and come back (`give`, in a worker)."""
+
+    take: Callable[[J], tuple[J, Arrays]]
+    give: Callable[[J, Arrays], J]
+    slot_bytes: int
+
+
+def _forked_call(job: Any, ref: SlotRef | None) -> Any:
+    """One job in a forked worker: shared state and the job function come from the parent's memory."""
+    if ref is not None:
+        job = _WORKER["give"](job, slot_views(ref))
+    return _WORKER["fn"](_WORKER["shared"], job)
+
+
+def _init_worker(worker_init: Callable[[], object] | None) -> None:
+    if worker_init is not None:
+        worker_init()
+
+
+class Executor:
+    """Run `fn(shared, job)` over many jobs on the chosen backend (see the module docstring)."""
+
+    def __init__(
+        self,
+        workers: int = 1,
+        *,
+        dask: str | None = None,
+        worker_init: Callable[[], object] | None = None,
+        max_in_flight: int | None = None,
+    ) -> None:
+        self.workers = max(1, int(workers))
+        self.dask = dask
+        self.worker_init = worker_init
+        self.max_in_flight = max_in_flight or max(2, 2 * self.workers)
+        forks = "fork" in multiprocessing.get_all_start_methods()
+        self.backend: Backend = (
+            "dask" if dask else "inline" if self.workers == 1 else "fork" if forks else "spawn"
+        )
+
+    @property
+    def every_core_busy(self) -> bool:
+        """Whether local workers already occupy every usable CPU (helper threads would only add switches)."""
+        return self.backend in ("fork", "spawn") and self.workers >= usable_cpus()
+
+    def run(
+        self,
+        fn: Callable[[Any, J], R],
+        jobs: Iterable[J],
+        *,
+        shared: Any = None,
+        handoff: Handoff[J] | None = None,
+    ) -> Generator[R, None, None]:
+        """Results of `fn(shared, job)` for every job, in the jobs' order."""
+        if self.backend == "inline":
+            _init_worker(self.worker_init)
+            for job in jobs:
+                yield fn(shared, job)
+        elif self.backend == "dask":
+            yield from self._run_dask(fn, jobs, shared)
+        else:
+            yield from self._run_pool(fn, jobs, shared, handoff)
+
+    def _run_pool(
+        self, fn: Callable[[Any, J], R], jobs: Iterable[J], shared: Any, handoff: Handoff[J] | None
+    ) -> Generator[R, None, None]:
+        fork = self.backend == "fork"
+        slots = ArraySlots(self.max_in_flight + 1, handoff.slot_bytes) if fork and handoff else None
+        _WORKER.update(shared=shared, fn=fn, give=handoff.give if handoff else None)
+        ctx = multiprocessing.get_context("fork" if fork else "spawn")
+        pool = ProcessPoolExecutor(
+            self.workers, mp_context=ctx, initializer=_init_worker, initargs=(self.worker_init,)
+        )
+        pending: deque[tuple[Future[R], SlotRef | None]] = deque()
+        try:
+            for job in jobs:
+                ref = None
+                if slots is not None and handoff is not None:
+                    light, arrays = handoff.take(job)
+                    ref = slots.put(arrays)
+                    if ref is not None:
+                        job = light
+                if fork:
+                    pending.append((pool.submit(_forked_call, job, ref), ref))
+                else:  # spawned workers inherit nothing: the function and shared state travel with the job
+                    pending.append((pool.submit(fn, shared, job), None))
+                while pending and (len(pending) >= self.max_in_flight or pending[0][0].done()):
+                    yield self._collect(pending, slots)
+            while pending:
+                yield self._collect(pending, slots)
+        finally:
+            pool.shutdown(cancel_futures=True)
+            _WORKER.clear()
+            if slots is not None:
+                slots.close()
+
+    @staticmethod
+    def _collect(pending: deque[tuple[Future[R], SlotRef | None]], slots: ArraySlots | None) -> R:
+        fut, ref = pending.popleft()
+        try:
+            return fut.result()
+        finally:
+            if slots is not None:
+                slots.release(ref)
+
+    def _run_dask(
+        self, fn: Callable[[Any, J], R], jobs: Iterable[J], shared: Any
+    ) -> Generator[R, None, None]:
+        from distributed import Client
+
+        client = Client(self.dask)  # type: ignore[no-untyped-call]
+        try:
+            if self.worker_init is not None:
+                client.run(self.worker_init)
+            shared_ref = client.scatter(shared, broadcast=True) if shared is not None else None  # type: ignore[no-untyped-call]
+            pending: deque[Any] = deque()
+            for job in jobs:
+                pending.append(client.submit(fn, shared_ref, job, pure=False))
+                while pending and (len(pending) >= self.max_in_flight or pending[0].done()):
+                    yield pending.popleft().result()
+            while pending:
+                yield pending.popleft().result()
+        finally:
+            client.close()  # type: ignore[no-untyped-call]

@@ -1,0 +1,310 @@
+"""LiDAR points into cam0 at a camera frame time: filters, extrinsics, motion compensation.
+
+A point measured at t_i maps into cam0 at the frame time t_c as
+
+    p_c = R_c_i (T_cam0_lidar p_lidar) + v_c (t_i - t_c)
+
+where R_c_i = R_world_cam0(t_c)^T R_world_cam0(t_i) comes from integrating the
+gyro (rotation) and v_c is a constant velocity in cam0 at t_c (translation).
+Compensation is applied only when the motion over the window would move a
+point by more than `min_motion_px` pixels ("model no more than a scene needs");
+the decision and the measured motion are returned for the sample's metadata.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from calibration.linalg3 import rotvec_to_matrix
+from calibration.types import F64, Bool
+from ingest.train.planes import plane_normals
+
+I64 = np.ndarray[Any, np.dtype[np.int64]]
+U8 = np.ndarray[Any, np.dtype[np.uint8]]
+NOISE_TAG_BITS = 0b0011_1100
+"""Livox tag fields rain/fog/dust (bits 2-3) and other (bits 4-5): non-zero means a doubtful echo."""
+
+
+@dataclass(frozen=True)
+class FilterCounts:
+    """How many points each filter removed (in this order), and how many remained."""
+
+    total: int = 0
+    zero: int = 0
+    non_finite: int = 0
+    too_close: int = 0
+    noise_tag: int = 0
+    kept: int = 0
+
+    def __add__(self, other: FilterCounts) -> FilterCounts:
+        return FilterCounts(*(a + b for a, b in zip(self.astuple(), other.astuple(), strict=True)))
+
+    def astuple(self) -> tuple[int, ...]:
+        return (self.total, self.zero, self.non_finite, self.too_close, self.noise_tag, self.kept)
+
+
+def filter_points(xyz_m: F64, tag: U8 | None, min_range_m: float) -> tuple[Bool, FilterCounts]:
+    """Keep mask for points that are real returns: non-zero, finite, >= min range, no noise tag."""
+    xyz = np.asarray(xyz_m, np.float64)
+    finite = np.isfinite(xyz).all(axis=1)
+    zero = finite & ~xyz.any(axis=1)
+    with np.errstate(invalid="ignore"):
+        r = np.linalg.norm(xyz, axis=1)
+    close = finite & ~zero & (r < min_range_m)
+    tagged = np.zeros(len(xyz), bool) if tag is None else (np.asarray(tag) & NOISE_TAG_BITS) != 0
+    tagged &= finite & ~zero & ~close
+    keep = finite & ~zero & ~close & ~tagged
+    counts = FilterCounts(
+        len(xyz), int(zero.sum()), int((~finite).sum()), int(close.sum()), int(tagged.sum()), int(keep.sum())
+    )
+    return keep, counts
+
+
+@dataclass(frozen=True)
+class GyroTrack:
+    """cam0 orientation relative to its first sample, integrated from gyro readings."""
+
+    stamps_ns: I64
+    rotations: F64  # (K, 3, 3) R_ref_cam0(t_k)
+
+    def covers(self, t_ns: I64) -> Bool:
+        """Which times lie inside the integrated span (outside it rotations are unknown)."""
+        out: Bool = (t_ns >= self.stamps_ns[0]) & (t_ns <= self.stamps_ns[-1])
+        return out
+
+    def _steps(self) -> F64:
+        """Rotation vectors (K-1, 3) of R_k^T R_k+1: the track's steps."""
+        R = self.rotations
+        out: F64 = Rotation.from_matrix(np.einsum("kji,kjl->kil", R[:-1], R[1:])).as_rotvec()
+        return out
+
+    def _interval(self, t_ns: I64) -> tuple[I64, F64]:
+        """The track step k each time falls in (clamped to the track) and the fraction of it."""
+        tc = np.clip(np.asarray(t_ns, np.int64), self.stamps_ns[0], self.stamps_ns[-1])
+        k = np.clip(np.searchsorted(self.stamps_ns, tc, side="right") - 1, 0, len(self.stamps_ns) - 2)
+        t0, t1 = self.stamps_ns[k], self.stamps_ns[k + 1]
+        frac: F64 = (tc - t0).astype(np.float64) / (t1 - t0).astype(np.float64)
+        return k, frac
+
+    def orientation(self, t_ns: int, steps: F64 | None = None) -> F64:
+        """R_ref_cam0 (3, 3) at one time (clamped to the track)."""
+        if len(self.stamps_ns) == 1:
+            return np.asarray(self.rotations[0], np.float64)
+        steps = self._steps() if steps is None else steps
+        k, frac = self._interval(np.array([t_ns], np.int64))
+        out: F64 = self.rotations[k[0]] @ rotvec_to_matrix(steps[k] * frac[:, None])[0]
+        return out
+
+    def relative(self, t_ns: I64, t_ref_ns: int) -> F64:
+        """R_c_i (N, 3, 3): rotations taking cam0 at each t_i into cam0 at t_ref (clamped to the track).
+
+        Spherical-linear interpolation between the integrated samples, as
+        scipy's Slerp defines it (R_k exp(a log(R_k^T R_k+1))), in closed form:
+        one Rodrigues exponential per point instead of Rotation objects.
+        """
+        t = np.asarray(t_ns, np.int64)
+        R = self.rotations
+        if len(self.stamps_ns) == 1:
+            return np.broadcast_to(np.eye(3), (len(t), 3, 3)).copy()
+        steps = self._steps()
+        R_ref = self.orientation(t_ref_ns, steps)
+        k, frac = self._interval(t)
+        M = np.einsum("ji,kjl->kil", R_ref, R)  # R_ref^T R_k for every track sample (few)
+        out: F64 = np.einsum("nij,njl->nil", M[k], rotvec_to_matrix(steps[k] * frac[:, None]))
+        return out
+
+    def rotate(self, t_ns: I64, t_ref_ns: int, pts: F64) -> tuple[F64, F64]:
+        """Points measured in cam0 at t_i rotated into cam0 at t_ref (N, 3); each rotation's angle (N,) rad.
+
+        The same rotations as `relative` without forming them per point: the
+        points of one gyro interval k share R_ref^T R_k and the step axis, so
+        R_c_i p = R_ref^T R_k (p + a [s_k]p + b [s_k]^2 p) with per-point scalars
+        a = sin(f |s_k|) / |s_k| and b = (1 - cos(f |s_k|)) / |s_k|^2 (Rodrigues for
+        the fraction f of the step rotation vector s_k): three 3x3 products per
+        interval instead of a (N, 3, 3) stack.
+        """
+        t = np.asarray(t_ns, np.int64)
+        p = np.asarray(pts, np.float64)
+        if len(self.stamps_ns) == 1 or len(t) == 0:
+            return p.copy(), np.zeros(len(t))
+        R = self.rotations
+        steps = self._steps()
+        R_ref = self.orientation(t_ref_ns, steps)
+        k, frac = self._interval(t)
+        order = np.argsort(k, kind="stable")
+        starts = np.searchsorted(k[order], np.arange(len(R)))
+        out, angle = np.empty_like(p), np.empty(len(t))
+        for kk in np.unique(k):
+            sel = order[starts[kk] : starts[kk + 1]]
+            M = R_ref.T @ R[kk]
+            s = steps[kk]
+            S = np.array([[0.0, -s[2], s[1]], [s[2], 0.0, -s[0]], [-s[1], s[0], 0.0]])
+            theta = float(np.linalg.norm(s))
+            phi = frac[sel] * theta
+            if theta < 1e-4:  # series: a = f (1 - phi^2 / 6), b = f^2 (1/2 - phi^2 / 24)
+                a = frac[sel] * (1.0 - phi**2 / 6.0)
+                b = frac[sel] ** 2 * (0.5 - phi**2 / 24.0)
+            else:
+                a, b = np.sin(phi) / theta, (1.0 - np.cos(phi)) / theta**2
+            P = p[sel]
+            X = P @ S.T
+            out[sel] = (P + a[:, None] * X + b[:, None] * (X @ S.T)) @ M.T
+            MS = M @ S
+            cos = (np.trace(M) + a * np.trace(MS) + b * np.trace(MS @ S) - 1.0) / 2.0
+            angle[sel] = np.arccos(np.clip(cos, -1.0, 1.0))
+        return out, angle
+
+
+def integrate_gyro(stamps_ns: I64, gyro_imu_rad_s: F64, R_cam0_imu: F64) -> GyroTrack:
+    """Integrate body rates (rad/s, IMU frame) into cam0 orientations with the midpoint rule."""
+    order = np.argsort(stamps_ns, kind="stable")
+    t = np.asarray(stamps_ns, np.int64)[order]
+    keep = np.concatenate([[True], np.diff(t) > 0])  # duplicated stamps add nothing
+    t = t[keep]
+    w = (np.asarray(gyro_imu_rad_s, np.float64)[order][keep]) @ np.asarray(R_cam0_imu).T
+    dt = np.diff(t) / 1e9
+    step_mats = rotvec_to_matrix(0.5 * (w[1:] + w[:-1]) * dt[:, None])
+    mats = np.empty((len(t), 3, 3))
+    mats[0] = np.eye(3)
+    for k in range(len(dt)):
+        mats[k + 1] = mats[k] @ step_mats[k]
+    return GyroTrack(t, mats)
+
+
+@dataclass(frozen=True)
+class MotionDecision:
+    """What the compensation step measured and decided for one sample."""
+
+    applied: bool
+    max_rotation_deg: float
+    speed_mps: float
+    motion_px: float  # predicted worst-case image motion of an uncompensated point
+    source: str  # "imu", "imu+velocity", "none"
+    velocity_cam0_mps: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+
+
+def compensate(
+    pts_cam0: F64,
+    dt_s: F64,
+    rotated: tuple[F64, F64] | None,
+    velocity_cam0_mps: F64 | None,
+    px_per_rad: float,
+    min_motion_px: float = 0.25,
+    reference_range_m: float = 2.0,
+    source: str = "none",
+) -> tuple[F64, MotionDecision]:
+    """Move cam0-frame points measured `dt_s` after the frame time to cam0 at the frame time.
+
+    `rotated` is (the points rotated by the gyro, each rotation's angle in rad)
+    from `GyroTrack.rotate`, `velocity_cam0_mps` the constant velocity. The
+    predicted image motion is the largest rotation angle times `px_per_rad`
+    plus the translation over the largest |dt| seen from `reference_range_m`;
+    below `min_motion_px` the points stay as they are.
+    """
+    v = np.zeros(3) if velocity_cam0_mps is None else np.asarray(velocity_cam0_mps, np.float64)
+    angle = float(np.max(rotated[1])) if rotated is not None and len(dt_s) else 0.0
+    speed = float(np.linalg.norm(v))
+    span_s = float(np.abs(dt_s).max()) if len(dt_s) else 0.0
+    motion_px = angle * px_per_rad + speed * span_s / reference_range_m * px_per_rad
+    decision = MotionDecision(
+        motion_px > min_motion_px, float(np.degrees(angle)), speed, motion_px, source, v.tolist()
+    )
+    if not decision.applied:
+        return pts_cam0, decision
+    out = rotated[0] if rotated is not None else np.array(pts_cam0, np.float64)
+    return out + np.asarray(dt_s)[:, None] * v, decision
+
+
+@dataclass(frozen=True)
+class VelocityEstimate:
+    """Constant velocity of cam0 (m/s, cam0 frame at the frame time) and how well it was determined."""
+
+    velocity_cam0_mps: F64
+    pairs: int
+    residual_m: float  # RMS point-to-plane residual after the fit
+    weakest_m_s: float  # 1-sigma of the worst-determined direction (from the normal equations)
+
+
+def estimate_velocity(
+    pts_cam0: F64,
+    dt_s: F64,
+    iterations: int = 5,
+    min_dt_s: float = 0.02,
+    max_gap_m: float = 0.2,
+    max_points: int = 12_000,
+    tol_m_s: float = 1e-3,
+    neighbours: int = 8,
+    significance: float = 4.0,
+    min_cos: float = 0.95,
+    refit_m: float = 0.005,
+) -> VelocityEstimate | None:
+    """Velocity that makes points measured at different times agree (rotation already compensated).
+
+    A point measured dt after the frame time moved by v * dt relative to where it
+    would have been seen at the frame time, so q = p + v * dt puts every point in
+    cam0 at the frame time. The window is split at its median time into an
+    early and a late part, `min_dt_s` apart. Each late point is paired with its
+    nearest early point; both must lie on local planes (PCA of `neighbours`
+    nearest in their own part) whose normals agree to `min_cos`, so that pairs
+    across an edge are not used. n . (q_late - q_early) = 0 is linear in v,
+    solved by iterated, trimmed least squares (an ICP of the sweep against
+    itself) until the update is below `tol_m_s` or a quarter of the fit's own
+    standard error (further steps would only chase noise). Planes from one
+    part of the window are not smeared by the motion of the other; they are
+    refitted only when the velocity changed enough to move points of one part
+    against each other by more than `refit_m` (the first update, rarely a
+    later one). When the first fit (from v = 0) is below `significance`
+    standard errors, the rig is taken as not translating and that fit is
+    returned as is: iterating on noise only makes it wander. None when the
+    scene does not constrain all three directions.
+    """
+    from scipy.spatial import cKDTree
+
+    if len(pts_cam0) < 200:
+        return None
+    step = max(1, len(pts_cam0) // max_points)  # a regular subsample keeps the fit deterministic
+    p = np.asarray(pts_cam0, np.float64)[::step]
+    dt = np.asarray(dt_s, np.float64)[::step]
+    split = float(np.median(dt))  # the median, not 0: a one-sided window (bag start/end) still splits
+    early, late = dt <= split - min_dt_s / 2, dt >= split + min_dt_s / 2
+    if early.sum() < 100 or late.sum() < 100:
+        return None
+    pe, dte, pl, dtl = p[early], dt[early], p[late], dt[late]
+    v = np.zeros(3)
+    span_s = max(float(np.ptp(dte)), float(np.ptp(dtl)))
+    fitted_at: F64 | None = None  # the velocity the planes were fitted at
+    for it in range(iterations):
+        qe, ql = pe + dte[:, None] * v, pl + dtl[:, None] * v
+        if fitted_at is None or np.linalg.norm(v - fitted_at) * span_s > refit_m:
+            planes, own = plane_normals(qe, neighbours, 0.02), plane_normals(ql, neighbours, 0.02)
+            fitted_at = v
+        dist, j = cKDTree(qe, leafsize=32, balanced_tree=False).query(ql, k=1, distance_upper_bound=max_gap_m)
+        i = np.nonzero(np.isfinite(dist))[0]
+        j = j[i]
+        n = planes.normal[j]
+        # both ends on a plane, the same plane: a pair across a corner would pull v off
+        same = np.abs(np.einsum("ij,ij->i", n, own.normal[i])) >= min_cos
+        keep = planes.planar[j] & own.planar[i] & same
+        i, j, n = i[keep], j[keep], n[keep]
+        if len(i) < 100:
+            return None
+        r = np.einsum("ij,ij->i", n, ql[i] - qe[j])
+        A = n * (dtl[i] - dte[j])[:, None]
+        cut = max(3.0 * 1.4826 * float(np.median(np.abs(r))), 0.1)  # never trim the informative pairs
+        inl = np.abs(r) <= cut
+        H = np.einsum("ni,nj->ij", A[inl], A[inl])
+        if np.linalg.cond(H) > 1e6:
+            return None
+        dv = np.linalg.solve(H, -np.einsum("ni,n->i", A[inl], r[inl]))
+        v = v + dv
+        res = float(np.sqrt(np.mean(r[inl] ** 2)))
+        weakest = float(res * np.sqrt(np.linalg.inv(H).diagonal().max()))
+        if it == 0 and np.linalg.norm(v) <= significance * weakest:
+            break
+        if np.linalg.norm(dv) < max(tol_m_s, 0.25 * weakest):
+            break
+    return VelocityEstimate(v, int(inl.sum()), res, weakest)

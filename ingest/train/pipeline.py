@@ -1,0 +1,398 @@
+"""Offline ingest: recorded bags -> WideDepth training set (the product's main job).
+
+Recipe:
+1. Plan (one cheap pass): camera header stamps (no pixels decoded) and each
+   LiDAR sweep's time span; pair the stereo frames, pick the samples.
+2. Stream (second pass, log-time order): decode only the planned images, keep
+   a sliding buffer of sweeps and the IMU; a sample is handed to a worker as
+   soon as every sweep overlapping its +-window has arrived.
+3. Each worker runs `ingest.train.sample.process_sample` (clouds -> GT -> images ->
+   files); a local process pool by default, or a Dask cluster.
+Finished samples (their meta/<id>.json exists) are skipped on a rerun.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from calibration.rig import Rig, read_rig
+from ingest.bags.decode import Frame, ImuSample, Sweep, decode, header_stamp_ns
+from ingest.bags.reader import BagSet, open_bags
+from ingest.dataset.layout import (
+    DEPTH_SCALE,
+    DISP_SCALE,
+    DatasetError,
+    is_done,
+    prepare_dirs,
+    sample_id,
+    write_atomic,
+)
+from ingest.errors import BagError
+from ingest.runtime.executor import Executor, Handoff
+from ingest.runtime.heap import retain_freed_memory
+from ingest.train.sample import (
+    Geometry,
+    ImuWindow,
+    LidarPoints,
+    SampleJob,
+    SampleParams,
+    SampleResult,
+    give_images,
+    run_sample,
+    take_images,
+)
+from ingest.train.sync import DEFAULT_LIDAR_WINDOW_NS, pair_stereo, select_samples
+
+I64 = np.ndarray[Any, np.dtype[np.int64]]
+
+
+@dataclass(frozen=True)
+class IngestConfig:
+    """Settings of one ingest run (times in ns)."""
+
+    rig: Path
+    out: Path
+    workers: int = 2
+    every: int = 1
+    lidar_window_ns: int = DEFAULT_LIDAR_WINDOW_NS
+    stereo_tolerance_ns: int | None = None  # default: half the median camera period
+    height_full: int | None = None
+    salvage: bool = False
+    dask: str | None = None
+    sample: SampleParams = field(default_factory=SampleParams)
+
+
+@dataclass
+class IngestSummary:
+    """What an ingest run did, for the CLI's summary table."""
+
+    written: int = 0
+    resumed: int = 0
+    skipped: dict[str, int] = field(default_factory=dict)
+    frames: int = 0
+    pairs: int = 0
+    planned: int = 0
+    density: list[float] = field(default_factory=list)
+    skew_ms: list[float] = field(default_factory=list)
+    motion_applied: int = 0
+    stage_ms: dict[str, list[float]] = field(default_factory=dict)  # sequential: they add up per sample
+    overlapped_ms: dict[str, list[float]] = field(default_factory=dict)  # helper threads beside them
+    seconds: float = 0.0
+    out: Path | None = None
+
+    def add(self, result: SampleResult) -> None:
+        if not result.written:
+            self.skipped[result.reason] = self.skipped.get(result.reason, 0) + 1
+            return
+        self.written += 1
+        self.density.append(float(result.meta["gt"]["density"]))
+        self.skew_ms.extend(float(v) for v in result.meta["lidar_skew_ms"].values())
+        self.motion_applied += bool(result.meta["motion"]["applied"])
+        for k, v in result.stage_ms.items():
+            self.stage_ms.setdefault(k, []).append(v)
+        for k, v in result.overlapped_ms.items():
+            self.overlapped_ms.setdefault(k, []).append(v)
+
+
+@dataclass(frozen=True)
+class Topics:
+    """The bag topics of the rig's sensors (images may be raw or `/compressed`)."""
+
+    upper: str
+    lower: str
+    lidars: dict[str, str]  # topic -> rig lidar name
+    imu: str | None
+    R_cam0_imu: Any
+
+
+def _resolve_topics(rig: Rig, bag_topics: dict[str, Any], where: str) -> Topics:
+    def find(topic: str | None, what: str) -> str:
+        for cand in (topic, f"{topic}/compressed"):
+            if cand in bag_topics:
+                return cand
+        listing = "\n  ".join(sorted(bag_topics))
+        raise BagError(f"{where}: no topic {topic!r} for {what} (from the rig); the bag has:\n  {listing}")
+
+    upper = find(rig.upper.topic, "the upper camera")
+    lower = find(rig.lower.topic, "the lower camera")
+    lidars = {find(li.topic, f"lidar {li.name}"): li.name for li in rig.lidars}
+    imu = next((i for i in rig.imus if i.topic in bag_topics), None)
+    return Topics(upper, lower, lidars, imu.topic if imu else None, imu.T_cam0_imu[:3, :3] if imu else None)
+
+
+@dataclass(frozen=True)
+class Plan:
+    """The samples of a run: their upper/lower stamps and the sweeps each needs."""
+
+    upper_ns: I64
+    lower_ns: I64
+    spans: dict[str, list[tuple[int, int]]]  # per lidar topic: (first, last) point stamp per sweep
+    frames: int
+    pairs: int
+
+
+def plan(bags: BagSet, topics: Topics, cfg: IngestConfig) -> Plan:
+    """First pass: stamps and sweep spans only; pairs and samples on header stamps."""
+    stamps: dict[str, list[int]] = {topics.upper: [], topics.lower: []}
+    spans: dict[str, list[tuple[int, int]]] = {t: [] for t in topics.lidars}
+    for msg in bags.messages(topics=[*stamps, *spans]):
+        if msg.topic in stamps:
+            stamps[msg.topic].append(header_stamp_ns(msg.raw, msg.ros_version))
+            continue
+        sweep = decode(msg.msgtype, msg.raw, msg.ros_version)
+        assert isinstance(sweep, Sweep)
+        if len(sweep.stamps_ns):
+            spans[msg.topic].append((int(sweep.stamps_ns.min()), int(sweep.stamps_ns.max())))
+    up = np.unique(np.array(stamps[topics.upper], np.int64))  # duplicated stamps count once
+    lo = np.unique(np.array(stamps[topics.lower], np.int64))
+    if len(up) < 2:
+        raise BagError(f"{bags.paths[0]}: {len(up)} frame(s) on {topics.upper}; need at least 2")
+    tol = cfg.stereo_tolerance_ns or int(np.median(np.diff(up)) // 2)
+    pairs = pair_stereo(up, lo, tol)
+    all_spans = [s for v in spans.values() for s in v]
+    chosen = select_samples(up[pairs.upper], all_spans, cfg.lidar_window_ns, cfg.every)
+    return Plan(up[pairs.upper][chosen], lo[pairs.lower][chosen], spans, len(up), len(pairs.upper))
+
+
+def _lidar_window(sweeps: list[Sweep], name: str, t_c: int, w: int) -> LidarPoints:
+    parts = [(s, (s.stamps_ns >= t_c - w) & (s.stamps_ns <= t_c + w)) for s in sweeps]
+    xyz = np.concatenate([s.xyz_m[m] for s, m in parts]) if parts else np.zeros((0, 3), np.float32)
+    st = np.concatenate([s.stamps_ns[m] for s, m in parts]) if parts else np.zeros(0, np.int64)
+    tags = [s.tag[m] for s, m in parts if s.tag is not None]
+    tag = np.concatenate(tags) if tags and len(tags) == len(parts) else None
+    return LidarPoints(name, xyz, st, tag)
+
+
+def _check_size(frame: Frame, camera: Any, topic: str) -> None:
+    h, w = frame.image.shape[:2]
+    if (w, h) != (camera.model.width, camera.model.height):
+        raise BagError(
+            f"{topic}: images are {w}x{h} but the rig's {camera.name} is "
+            f"{camera.model.width}x{camera.model.height}; wrong rig file for this bag?"
+        )
+
+
+def stream_jobs(
+    bags: BagSet, topics: Topics, the_plan: Plan, cfg: IngestConfig, geometry: Geometry
+) -> Iterator[SampleJob | tuple[str, str]]:
+    """Second pass: yield a SampleJob per planned sample (or (sid, "done") when already written)."""
+    w = cfg.lidar_window_ns
+    index = {int(t): k for k, t in enumerate(the_plan.upper_ns)}
+    lower_index = {int(t): k for k, t in enumerate(the_plan.lower_ns)}
+    frames: dict[int, dict[str, Frame]] = {}
+    sweeps: dict[str, list[Sweep]] = {t: [] for t in topics.lidars}
+    need = {
+        k: {
+            t: sum(1 for a, b in the_plan.spans[t] if b >= int(tc) - w and a <= int(tc) + w)
+            for t in topics.lidars
+        }
+        for k, tc in enumerate(the_plan.upper_ns)
+    }
+    imu_t: list[int] = []
+    imu_g: list[Any] = []
+    next_k = 0
+    sids = [sample_id(k) for k in range(len(the_plan.upper_ns))]
+    done = {sid for sid in sids if is_done(cfg.out, sid)}  # finished by an earlier run (one stat each)
+    source = ",".join(p.name for p in bags.paths)
+
+    def ready(k: int) -> bool:
+        tc = int(the_plan.upper_ns[k])
+        have = {
+            t: sum(1 for s in v if s.stamps_ns[-1] >= tc - w and s.stamps_ns[0] <= tc + w)
+            for t, v in sweeps.items()
+        }
+        return len(frames.get(k, {})) == 2 and all(have[t] >= n for t, n in need[k].items())
+
+    def job(k: int) -> SampleJob:
+        tc = int(the_plan.upper_ns[k])
+        lidars = tuple(_lidar_window(sweeps[t], name, tc, w) for t, name in topics.lidars.items())
+        imu = None
+        if imu_t and topics.R_cam0_imu is not None:
+            t = np.array(imu_t, np.int64)
+            sel = (t >= tc - w - 20_000_000) & (t <= tc + w + 20_000_000)
+            imu = ImuWindow(t[sel], np.array(imu_g)[sel], topics.R_cam0_imu)
+        f = frames.pop(k)
+        return SampleJob(
+            cfg.out, sids[k], source, tc, int(the_plan.lower_ns[k]), f["upper"].image, f["lower"].image,
+            lidars, imu, None, geometry, cfg.sample,
+        )  # fmt: skip
+
+    wanted = [topics.upper, topics.lower, *topics.lidars, *([topics.imu] if topics.imu else [])]
+    for msg in bags.messages(topics=wanted):
+        if msg.topic in (topics.upper, topics.lower):
+            stamp = header_stamp_ns(msg.raw, msg.ros_version)
+            side = "upper" if msg.topic == topics.upper else "lower"
+            k = (index if side == "upper" else lower_index).get(stamp)
+            if k is None or k < next_k:
+                continue
+            if sids[k] in done:
+                frames.setdefault(k, {})
+                continue
+            frame = decode(msg.msgtype, msg.raw, msg.ros_version)
+            assert isinstance(frame, Frame)
+            _check_size(frame, geometry.rig.upper if side == "upper" else geometry.rig.lower, msg.topic)
+            frames.setdefault(k, {})[side] = frame
+        elif msg.topic == topics.imu:
+            sample = decode(msg.msgtype, msg.raw, msg.ros_version)
+            assert isinstance(sample, ImuSample)
+            imu_t.append(sample.stamp_ns)
+            imu_g.append(sample.gyro_rad_s)
+        else:
+            sweep = decode(msg.msgtype, msg.raw, msg.ros_version)
+            assert isinstance(sweep, Sweep)
+            if len(sweep.stamps_ns):
+                sweeps[msg.topic].append(sweep)
+        while next_k < len(sids) and (sids[next_k] in done or ready(next_k)):
+            if sids[next_k] in done:
+                frames.pop(next_k, None)
+                yield (sids[next_k], "done")
+            else:
+                yield job(next_k)
+            next_k += 1
+            if next_k < len(sids):  # forget sweeps no later sample can use
+                horizon = int(the_plan.upper_ns[next_k]) - w
+                for t in sweeps:
+                    sweeps[t] = [s for s in sweeps[t] if s.stamps_ns[-1] >= horizon]
+    for k in range(next_k, len(sids)):  # the bag ended: whatever is complete still goes
+        if sids[k] in done:
+            yield (sids[k], "done")
+        elif len(frames.get(k, {})) == 2:
+            yield job(k)
+        else:
+            yield (sids[k], "missing image")
+
+
+def _fingerprint(cfg: IngestConfig, geometry: Geometry, bags: list[Path]) -> dict[str, Any]:
+    from importlib.metadata import version
+
+    import cv2
+
+    rig = geometry.rig
+    return {
+        "format": "widedepth-train",
+        "sensorbox_version": version("sensorbox"),
+        "rig": {"name": rig.name, "source": str(rig.source) if rig.source else None},
+        "R_cam0_rect": geometry.rect.R_cam0_rect.tolist(),
+        "R_cam1_rect": geometry.rect.R_cam1_rect.tolist(),
+        "baseline_m": geometry.rect.baseline_m,
+        "height_full": geometry.equirect.height_full,
+        "equirect_size": [geometry.equirect.height, geometry.equirect.width],
+        "crop_offset": [geometry.equirect.row_offset, geometry.equirect.col_offset],
+        "fisheye_size": [rig.upper.model.height, rig.upper.model.width],
+        "conventions": {
+            "depth_fisheye": f"uint16 PNG; range from cam0's centre, m = value / {DEPTH_SCALE:g}; 0 invalid",
+            "disp_equirect": f"uint16 PNG; disparity, px (full sphere) = value / {DISP_SCALE:g}; 0 invalid",
+            "disparity": "angular vertical stereo, reference = upper camera (DESIGN.md section 3)",
+            "equirect": "row j: theta = (j + 0.5) pi / height_full from up (-y_rect); "
+            "col i: phi = (i + 0.5) pi / height_full - pi from +z_rect towards +x_rect",
+            "time": "int64 ns header stamps (meta stamp_ns = upper camera mid-exposure)",
+        },
+        "params": {
+            "lidar_window_ns": cfg.lidar_window_ns,
+            "stereo_tolerance_ns": cfg.stereo_tolerance_ns,
+            "every": cfg.every,
+            **{k: v for k, v in asdict(cfg.sample).items() if k not in ("gt", "overlap_images")},
+            "gt": asdict(cfg.sample.gt),
+        },
+        "sources": [str(p) for p in bags],
+        "versions": {"numpy": np.__version__, "opencv": cv2.__version__, "rosbags": version("rosbags")},
+    }
+
+
+def _write_dataset_yaml(cfg: IngestConfig, geometry: Geometry, bags: list[Path]) -> None:
+    doc = _fingerprint(cfg, geometry, bags)
+    path = cfg.out / "dataset.yaml"
+    if path.exists():
+        old = yaml.safe_load(path.read_text()) or {}
+        for key in ("R_cam0_rect", "height_full", "baseline_m", "params", "fisheye_size"):
+            if old.get(key) != doc[key]:
+                raise DatasetError(
+                    f"{path}: an existing dataset was made with a different {key!r}; "
+                    "choose a new --out or delete it"
+                )
+    write_atomic(
+        path,
+        ("# WideDepth training set written by SensorBox\n" + yaml.safe_dump(doc, sort_keys=False)).encode(),
+    )
+    rig_dir = cfg.out / "rig"
+    rig_dir.mkdir(exist_ok=True)
+    from calibration.rig import write_rig
+
+    write_rig(geometry.rig, rig_dir / "rig.yaml", camchain_name="camchain.yaml")
+
+
+def _slot_bytes(rig: Rig) -> int:
+    """Bytes of one sample's two BGR uint8 images at the rig's sizes."""
+    return sum(cam.model.width * cam.model.height * 3 for cam in (rig.upper, rig.lower))
+
+
+def ingest(
+    bag_paths: list[Path], cfg: IngestConfig, progress: Callable[[int, int], None] | None = None
+) -> IngestSummary:
+    """Run the whole job; `progress(done, total)` after each sample."""
+    t_start = time.perf_counter()
+    retain_freed_memory()  # chunks and images: ~20 MB per sample pass through this process too
+    cfg = replace(cfg, sample=replace(cfg.sample, window_ns=cfg.lidar_window_ns))
+    rig = read_rig(cfg.rig)
+    geometry = Geometry.from_rig(rig, cfg.height_full)
+    summary = IngestSummary(out=cfg.out)
+    with open_bags(bag_paths, salvage=cfg.salvage) as bags:
+        topics = _resolve_topics(rig, bags.topics(), ", ".join(str(p) for p in bag_paths))
+        the_plan = plan(bags, topics, cfg)
+        summary.frames, summary.pairs, summary.planned = (
+            the_plan.frames,
+            the_plan.pairs,
+            len(the_plan.upper_ns),
+        )
+        prepare_dirs(cfg.out, cfg.sample.exr)
+        _write_dataset_yaml(cfg, geometry, [Path(p) for p in bag_paths])
+        if not cfg.dask and summary.planned:
+            geometry.warm_maps()
+        executor = Executor(cfg.workers, dask=cfg.dask, worker_init=retain_freed_memory)
+        if executor.every_core_busy:
+            # every core runs a worker: a helper thread per worker would only add thread switches
+            cfg = replace(cfg, sample=replace(cfg.sample, overlap_images=False))
+        done = 0
+
+        def tick() -> None:
+            nonlocal done
+            done += 1
+            if progress:
+                progress(done, summary.planned)
+
+        def jobs() -> Iterator[SampleJob]:
+            """The jobs to run; resumed and skipped samples are counted here, in stream order."""
+            for item in stream_jobs(bags, topics, the_plan, cfg, geometry):
+                if not isinstance(item, tuple):
+                    yield item
+                    continue
+                if item[1] == "done":
+                    summary.resumed += 1
+                else:
+                    summary.skipped[item[1]] = summary.skipped.get(item[1], 0) + 1
+                tick()
+
+        handoff = Handoff(take_images, give_images, _slot_bytes(rig))
+        results = executor.run(run_sample, jobs(), handoff=handoff)
+        try:
+            for result in results:
+                summary.add(result)
+                tick()
+        finally:
+            results.close()
+    summary.seconds = time.perf_counter() - t_start
+    return summary
+
+
+def load_meta(out: Path, sid: str) -> dict[str, Any]:
+    """The metadata of one written sample."""
+    data: dict[str, Any] = json.loads((out / "meta" / f"{sid}.json").read_text())
+    return data

@@ -1,0 +1,303 @@
+"""The per-sample function: one stereo pair + LiDAR points -> WideDepth files on disk.
+
+`process_sample` is pure apart from writing its own files, takes only
+picklable inputs and is what the local process pool or a Dask cluster runs.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Literal
+
+import cv2
+import numpy as np
+
+from calibration.rectify import StereoRectification, rectify_rig
+from calibration.rig import Rig
+from calibration.spherical import Equirectangular
+from calibration.types import F64
+from calibration.warp import build_maps, check_source, default_height_full, remap_spans
+from ingest.dataset.layout import SampleFiles, write_sample
+from ingest.runtime.background import Background
+from ingest.train.clouds import FilterCounts, compensate, estimate_velocity, filter_points, integrate_gyro
+from ingest.train.groundtruth import (
+    GtParams,
+    equirect_disparity,
+    fisheye_range,
+    in_view,
+    occlusion_filter,
+    px_per_rad,
+    splat_to_pixels,
+    surface_normals,
+)
+from ingest.train.planes import Normals
+
+I64 = np.ndarray[Any, np.dtype[np.int64]]
+INTERPOLATION = {"linear": cv2.INTER_LINEAR, "cubic": cv2.INTER_CUBIC, "nearest": cv2.INTER_NEAREST}
+VELOCITY_SIGMAS = 4.0  # an estimated velocity counts when its norm exceeds this many standard errors
+
+
+@dataclass(frozen=True)
+class Geometry:
+    """Rig-derived geometry shared by every sample (built once)."""
+
+    rig: Rig
+    rect: StereoRectification
+    equirect: Equirectangular  # full sphere in cam0's rectified frame
+    px_per_rad: float
+    fisheye_valid_px: int  # pixels of cam0 with a valid ray: the denominator of GT density
+
+    @classmethod
+    def from_rig(cls, rig: Rig, height_full: int | None = None) -> Geometry:
+        model = rig.upper.model
+        h = height_full or default_height_full(model)
+        valid = int(model.unproject(model.pixel_grid().reshape(-1, 2))[1].sum())
+        return cls(rig, rectify_rig(rig), Equirectangular(h), px_per_rad(model), valid)
+
+    def warm_maps(self) -> None:
+        """Build both cameras' equirect remap maps into calibration.warp's cache now.
+
+        Called in the main process before the worker pool forks, the map
+        building (~0.9 s for the reference rig, the two maps in two threads) is
+        done once and shared copy-on-write by every worker instead of repeated
+        in each one's first sample.
+        """
+        from concurrent.futures import ThreadPoolExecutor
+
+        jobs = [(self.rig.upper.model, self.rect.R_cam0_rect), (self.rig.lower.model, self.rect.R_cam1_rect)]
+        with ThreadPoolExecutor(2) as pool:  # numpy releases the GIL in the array work
+            list(pool.map(lambda job: build_maps(job[0], self.equirect, job[1]), jobs))
+
+
+@dataclass(frozen=True)
+class LidarPoints:
+    """Raw points of one LiDAR around a frame time: sensor frame (m), absolute stamps, Livox tags."""
+
+    name: str
+    xyz_m: np.ndarray[Any, Any]
+    stamps_ns: I64
+    tag: np.ndarray[Any, Any] | None
+
+
+@dataclass(frozen=True)
+class ImuWindow:
+    """Gyro readings (rad/s, IMU frame) around a frame time, and the IMU's pose in cam0."""
+
+    stamps_ns: I64
+    gyro_rad_s: F64
+    R_cam0_imu: F64
+
+
+@dataclass(frozen=True)
+class SampleParams:
+    """Per-run settings every sample needs (all plain values)."""
+
+    min_range_m: float = 0.3
+    min_motion_px: float = 0.25
+    motion: Literal["full", "rotation", "off"] = (
+        "full"  # what compensation may use (ablations: rotation, off)
+    )
+    estimate_velocity: bool = True  # constant-velocity translation from the sweep's self-consistency
+    window_ns: int = 50_000_000  # +- LiDAR window around the frame time (set from IngestConfig)
+    exr: bool = False
+    png_level: int = 1
+    interpolation: Literal["linear", "cubic", "nearest"] = "linear"  # equirect warps of the images
+    overlap_images: bool = True  # warps in a helper thread beside the point work (off: inline)
+    gt: GtParams = field(default_factory=GtParams)
+
+
+@dataclass(frozen=True)
+class SampleJob:
+    """Everything `process_sample` needs for one sample."""
+
+    out: Path
+    sid: str
+    source: str
+    upper_stamp_ns: int
+    lower_stamp_ns: int
+    upper_bgr: np.ndarray[Any, Any]
+    lower_bgr: np.ndarray[Any, Any]
+    lidars: tuple[LidarPoints, ...]
+    imu: ImuWindow | None
+    velocity_cam0_mps: F64 | None
+    geometry: Geometry
+    params: SampleParams
+
+
+_NO_IMAGE = np.zeros((0, 0, 3), np.uint8)  # a job's image field while its images travel apart
+
+
+def take_images(job: SampleJob) -> tuple[SampleJob, tuple[np.ndarray[Any, Any], ...]]:
+    """The job without its two camera images, and the images (for the executor's shared slots)."""
+    return replace(job, upper_bgr=_NO_IMAGE, lower_bgr=_NO_IMAGE), (job.upper_bgr, job.lower_bgr)
+
+
+def give_images(job: SampleJob, images: tuple[np.ndarray[Any, Any], ...]) -> SampleJob:
+    """`take_images` undone in the worker."""
+    upper, lower = images
+    return replace(job, upper_bgr=upper, lower_bgr=lower)
+
+
+def run_sample(_shared: object, job: SampleJob) -> SampleResult:
+    """`process_sample` as an executor job (samples carry everything they need: nothing is shared)."""
+    return process_sample(job)
+
+
+@dataclass(frozen=True)
+class SampleResult:
+    """What happened to one sample: counts for the summary, milliseconds per stage."""
+
+    sid: str
+    written: bool
+    reason: str
+    meta: dict[str, Any]
+    stage_ms: dict[str, float]  # sequential stages of the calling thread: they add up to its wall time
+    overlapped_ms: dict[str, float] = field(default_factory=dict)  # helper-thread work beside them
+
+
+def _points_in_cam0(job: SampleJob) -> tuple[F64, I64, FilterCounts, dict[str, float]]:
+    """Filtered points of every LiDAR in cam0 (at their own times), their stamps, counts, skews."""
+    pts, stamps, total, skew = [], [], FilterCounts(), {}
+    for lp in job.lidars:
+        keep, counts = filter_points(lp.xyz_m, lp.tag, job.params.min_range_m)
+        T = job.geometry.rig.lidar(lp.name).T_cam0_lidar
+        xyz = np.asarray(lp.xyz_m, np.float64)[keep]
+        pts.append(np.einsum("ij,nj->ni", T[:3, :3], xyz) + T[:3, 3])
+        stamps.append(lp.stamps_ns[keep])
+        total = total + counts
+        dt = (lp.stamps_ns[keep] - job.upper_stamp_ns) / 1e6
+        skew[lp.name] = float(np.abs(dt).max()) if len(dt) else 0.0
+    return np.concatenate(pts), np.concatenate(stamps), total, skew
+
+
+Equirects = tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]
+"""`equirect_up` and `equirect_down_virt` of one sample (BGR, the full-sphere equirect's size)."""
+
+
+def start_equirects(job: SampleJob) -> Background[Equirects]:
+    """Both images warped to cam0's rectified equirect, in a helper thread (see `ingest.runtime.background`).
+
+    The sizes are checked and the output buffers taken here, in the calling
+    thread: they are its reused per-thread buffers (`RemapMaps.scratch`, no
+    25 MB allocation and fill per image), valid until its next sample. Inline
+    instead when `SampleParams.overlap_images` is off.
+    """
+    geo = job.geometry
+    interp = INTERPOLATION[job.params.interpolation]
+    work = []
+    for image, model, R in (
+        (job.upper_bgr, geo.rig.upper.model, geo.rect.R_cam0_rect),
+        (job.lower_bgr, geo.rig.lower.model, geo.rect.R_cam1_rect),
+    ):
+        check_source(image, model)
+        maps = build_maps(model, geo.equirect, R)
+        out = maps.scratch((geo.equirect.height, geo.equirect.width, *image.shape[2:]), image.dtype, 0.0)
+        work.append((image, maps, out))
+
+    def both() -> Equirects:
+        for image, maps, out in work:
+            remap_spans(image, maps, out, interp)
+        return work[0][2], work[1][2]
+
+    return Background(both, name=f"sensorbox-equirects-{job.sid}", inline=not job.params.overlap_images)
+
+
+def process_sample(job: SampleJob) -> SampleResult:
+    """Clouds -> motion compensation -> GT (fisheye range, equirect disparity) -> images -> files.
+
+    The equirect warps run in a helper thread beside the clouds and GT
+    stages; stage "images" is what the calling thread spends on them: starting
+    them (building the remap maps, once per process) and waiting at the end.
+    """
+    t0 = time.perf_counter()
+    images = start_equirects(job)
+    try:
+        return _process(job, images, (time.perf_counter() - t0) * 1e3)
+    finally:
+        images.wait()  # never return while the helper still writes into this thread's buffers
+
+
+def _process(job: SampleJob, images: Background[Equirects], start_ms: float) -> SampleResult:
+    """`process_sample`'s stages, with its warps under way in `images` (starting them took `start_ms`)."""
+    ms: dict[str, float] = {}
+    t0 = time.perf_counter()
+    geo, prm = job.geometry, job.params
+    pts, stamps, counts, skew_ms = _points_in_cam0(job)
+    gyro = None
+    if job.imu is not None and len(job.imu.stamps_ns) >= 2:
+        gyro = integrate_gyro(job.imu.stamps_ns, job.imu.gyro_rad_s, job.imu.R_cam0_imu)
+        covered = gyro.covers(stamps)  # rotations outside the IMU's span are unknown: drop those points
+        counts = replace(counts, kept=counts.kept - int((~covered).sum()))
+        pts, stamps = pts[covered], stamps[covered]
+    dt_s = (stamps - job.upper_stamp_ns) / 1e9
+    use_gyro = gyro is not None and prm.motion != "off"
+    rotated = gyro.rotate(stamps, job.upper_stamp_ns, pts) if gyro is not None and use_gyro else None
+    velocity, source = job.velocity_cam0_mps, ("imu" if use_gyro else "none")
+    if prm.motion != "full":
+        velocity = None
+    elif velocity is None and prm.estimate_velocity:
+        est = estimate_velocity(
+            rotated[0] if rotated is not None else pts, dt_s, significance=VELOCITY_SIGMAS
+        )
+        # use it only when it is significant: a static rig must not be "compensated" with fit noise
+        if est is not None and np.linalg.norm(est.velocity_cam0_mps) > VELOCITY_SIGMAS * est.weakest_m_s:
+            velocity = est.velocity_cam0_mps
+    if velocity is not None:
+        source += "+velocity"
+    pts, motion = compensate(pts, dt_s, rotated, velocity, geo.px_per_rad, prm.min_motion_px, source=source)
+    half = prm.window_ns / 2e9
+    if motion.applied and not (len(dt_s) and dt_s.min() <= -half and dt_s.max() >= half):
+        # a one-sided window (bag start/end, a LiDAR gap) leaves the velocity poorly determined
+        return SampleResult(job.sid, False, "moving, LiDAR window one-sided (bag start/end or gap)", {}, {})
+    t1 = time.perf_counter()
+    ms["clouds"] = (t1 - t0) * 1e3
+    model = geo.rig.upper.model
+    view = in_view(model, pts)
+    seen = view[0]
+    normals = surface_normals(pts, prm.gt.plane_neighbours, prm.gt.plane_max_flatness, query=seen)
+    visible = occlusion_filter(model, pts, prm.gt, view)  # a subset of `seen`
+    in_seen = visible[seen]
+    kept = Normals(normals.normal[in_seen], normals.planar[in_seen])
+    seen_cols_rows = (seen[visible], view[1][visible], view[2][visible])
+    splat = splat_to_pixels(model, pts[visible], kept, prm.gt, seen_cols_rows)
+    range_img = fisheye_range(model, splat)
+    R_rect_cam0 = geo.rect.R_cam0_rect.T
+    disp_img, _, unstable = equirect_disparity(
+        geo.equirect, R_rect_cam0, pts[visible], kept, geo.rect.baseline_m, prm.gt
+    )
+    t2 = time.perf_counter()
+    ms["ground_truth"] = (t2 - t1) * 1e3
+    up, down = images.result()
+    t3 = time.perf_counter()
+    ms["images"] = start_ms + (t3 - t2) * 1e3
+    meta: dict[str, Any] = {
+        "stamp_ns": job.upper_stamp_ns,
+        "lower_stamp_ns": job.lower_stamp_ns,
+        "stereo_dt_ms": (job.lower_stamp_ns - job.upper_stamp_ns) / 1e6,
+        "source_bag": job.source,
+        "lidar_skew_ms": skew_ms,
+        "motion": {
+            "applied": motion.applied, "source": motion.source, "max_rotation_deg": motion.max_rotation_deg,
+            "speed_mps": motion.speed_mps, "predicted_motion_px": motion.motion_px,
+            "velocity_cam0_mps": motion.velocity_cam0_mps,
+        },
+        "points": {
+            "total": counts.total, "zero": counts.zero, "non_finite": counts.non_finite,
+            "too_close": counts.too_close, "noise_tag": counts.noise_tag, "kept": counts.kept,
+            "out_of_view": int(len(seen) - seen.sum()),
+            "occluded": int(seen.sum() - visible.sum()),
+        },
+        "gt": {
+            "depth_pixels": range_img.count,
+            "disp_pixels": disp_img.count,
+            "disp_unstable": unstable,
+            "density": range_img.count / geo.fisheye_valid_px,
+        },
+    }  # fmt: skip
+    files = SampleFiles(job.upper_bgr, job.lower_bgr, up, down, disp_img, range_img, meta)
+    drops = write_sample(job.out, job.sid, files, prm.exr, prm.png_level)
+    ms["write"] = (time.perf_counter() - t3) * 1e3
+    helper = {"equirect warps": images.ms} if prm.overlap_images else {}  # inline: inside stage "images"
+    return SampleResult(job.sid, True, "", {**meta, "dropped": drops}, ms, helper)

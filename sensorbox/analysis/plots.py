@@ -1,0 +1,191 @@
+"""Matplotlib figures for people to look at (rig layout)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+from matplotlib.figure import Figure
+
+from calibration.report import RigReport
+from calibration.rig import Rig
+from calibration.types import F64
+
+# Plot frame: cam0 rotated so that x = forward, y = left, z = up (a familiar robot view).
+_R_VIEW_CAM0 = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+_COLORS = {"camera": "tab:blue", "lidar": "tab:red", "imu": "tab:green"}
+LIDAR_VFOV_DEG = (-7.0, 52.0)
+
+
+def _save(fig: Figure, path: str | Path, dpi: int) -> Path:
+    """Write a figure (creating its folder), close it, return the path."""
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=dpi)
+    plt.close(fig)
+    return out
+
+
+def _fov_rays_camera(rig: Rig, name: str, n: int = 181) -> tuple[F64, F64]:
+    """Border rays of a camera's central row and column, in cam0 (unit)."""
+    cam = rig.camera(name)
+    m = cam.model
+    cx = float(getattr(m, "cx", (m.width - 1) / 2))
+    cy = float(getattr(m, "cy", (m.height - 1) / 2))
+    row = np.stack([np.linspace(-0.5, m.width - 0.5, n), np.full(n, cy)], axis=-1)
+    col = np.stack([np.full(n, cx), np.linspace(-0.5, m.height - 0.5, n)], axis=-1)
+    R = cam.T_cam0_cam[:3, :3]
+    out = []
+    for uv in (row, col):
+        rays, valid = m.unproject(uv)
+        out.append(rays[valid] @ R.T)
+    return out[0], out[1]
+
+
+def plot_rig(rig: Rig, report: RigReport, path: str | Path, cone_m: float = 0.15) -> Path:
+    """Draw the rig from the top and the side: frames with axes, camera and LiDAR FOV cones."""
+    fig, axes = plt.subplots(1, 2, figsize=(13, 6.5))
+    views = [("Top view (x forward, y left)", 0, 1), ("Side view (x forward, z up)", 0, 2)]
+    for ax, (title, i, j) in zip(axes, views, strict=True):
+        for fr in report.frames:
+            p = _R_VIEW_CAM0 @ fr.position_m
+            R = _R_VIEW_CAM0 @ fr.T_cam0_sensor[:3, :3]
+            color = _COLORS.get(fr.kind, "k")
+            ax.plot(p[i], p[j], "o", color=color, ms=6)
+            for axis, c in zip(range(3), ("r", "g", "b"), strict=True):
+                a = R[:, axis] * 0.04
+                ax.annotate(
+                    "",
+                    (p[i] + a[i], p[j] + a[j]),
+                    (p[i], p[j]),
+                    arrowprops={"arrowstyle": "->", "color": c, "lw": 1.2},
+                )
+            ax.annotate(
+                fr.name,
+                (p[i], p[j]),
+                textcoords="offset points",
+                xytext=(6, -12),
+                fontsize=8,
+                color=color,
+            )
+            if fr.kind == "camera":
+                h_rays, v_rays = _fov_rays_camera(rig, fr.name)
+                rays = h_rays if j == 1 else v_rays
+                pts = (_R_VIEW_CAM0 @ rays.T).T * cone_m + p
+                ax.fill(
+                    np.r_[p[i], pts[:, i], p[i]],
+                    np.r_[p[j], pts[:, j], p[j]],
+                    color=color,
+                    alpha=0.12,
+                )
+            if fr.kind == "lidar" and j == 2:
+                for el in LIDAR_VFOV_DEG:
+                    for az in (0.0, np.pi):
+                        e = np.radians(el)
+                        d_l = np.array([np.cos(e) * np.cos(az), np.cos(e) * np.sin(az), np.sin(e)])
+                        d = R @ d_l * cone_m * 1.5
+                        ax.plot([p[i], p[i] + d[i]], [p[j], p[j] + d[j]], color=color, lw=0.8, alpha=0.6)
+        ax.set_title(title)
+        ax.set_aspect("equal")
+        ax.grid(alpha=0.3)
+        ax.set_xlabel("forward [m]")
+        ax.set_ylabel("left [m]" if j == 1 else "up [m]")
+    base = f", baseline {report.baseline_m * 1000:.1f} mm" if report.baseline_m else ""
+    fig.suptitle(f"Rig '{report.name}'{base}  (axes: x red, y green, z blue; cones = FOV)")
+    fig.tight_layout()
+    return _save(fig, path, dpi=110)
+
+
+def plot_sample(dataset_dir: Path, sid: str, out: Path) -> Path:
+    """Preview of one written sample: fisheye with its range GT, the rectified pair with disparity GT."""
+    import cv2
+
+    from ingest.dataset.layout import DEPTH_SCALE, DISP_SCALE, read_png_u16
+
+    def rgb(folder: str) -> np.ndarray:
+        img = cv2.imread(str(dataset_dir / folder / f"{sid}.png"))
+        return np.asarray(img)[..., ::-1]
+
+    depth = read_png_u16(dataset_dir / "depth_fisheye" / f"{sid}.png", DEPTH_SCALE)
+    disp = read_png_u16(dataset_dir / "disp_equirect" / f"{sid}.png", DISP_SCALE)
+    fig, axes = plt.subplots(2, 2, figsize=(14, 9), constrained_layout=True)
+    panels = [
+        (axes[0, 0], rgb("left_fisheye"), depth, "left_fisheye + depth_fisheye (range, m)"),
+        (axes[0, 1], rgb("right_fisheye"), None, "right_fisheye"),
+        (axes[1, 0], rgb("equirect_up"), disp, "equirect_up + disp_equirect (px)"),
+        (axes[1, 1], rgb("equirect_down_virt"), None, "equirect_down_virt"),
+    ]
+    for ax, image, gt, title in panels:
+        ax.imshow(image)
+        if gt is not None:
+            rows, cols = np.nonzero(gt)
+            dot = float(np.clip(3e5 / gt.size, 0.3, 3.0))  # visible on small and large images alike
+            sc = ax.scatter(cols, rows, c=gt[rows, cols], s=dot, cmap="turbo", linewidths=0)
+            fig.colorbar(sc, ax=ax, shrink=0.7)
+        ax.set_title(f"{title} [{sid}]")
+        ax.set_axis_off()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=90)
+    plt.close(fig)
+    return out
+
+
+# ---- evaluation and dataset statistics (sensorbox eval / stats) ----------------------------
+
+import typing  # noqa: E402  (this section is appended; its types are only for the checker)
+
+
+def plot_heatmap(hm: Heatmap, path: str | Path, title: str) -> Path:
+    """A metric over FOV (rows) x baseline (columns), each cell annotated with its value."""
+    from ingest.eval.evaluate import format_metric
+
+    fig, ax = plt.subplots(figsize=(1.6 * len(hm.baselines_mm) + 3.0, 1.0 * len(hm.fovs_deg) + 2.2))
+    percent = hm.metric in ("bad1", "bad2", "bad3", "delta1", "delta2", "delta3", "coverage")
+    shown = hm.values * (100.0 if percent else 1.0)
+    im = ax.imshow(np.ma.masked_invalid(shown), cmap="viridis", aspect="auto")
+    finite = shown[np.isfinite(shown)]
+    lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 0.0)
+    for i in range(len(hm.fovs_deg)):
+        for j in range(len(hm.baselines_mm)):
+            text = format_metric(hm.metric, float(hm.values[i, j]))
+            light = bool(shown[i, j] > lo + 0.6 * (hi - lo))  # viridis is light at the top: dark text
+            ax.text(j, i, text, ha="center", va="center", color="k" if light else "w", fontsize=10)
+    ax.set_xticks(range(len(hm.baselines_mm)), [f"{b:g} mm" for b in hm.baselines_mm])
+    ax.set_yticks(range(len(hm.fovs_deg)), [f"{f:g}°" for f in hm.fovs_deg])
+    ax.set_xlabel("baseline")
+    ax.set_ylabel("FOV")
+    fig.colorbar(im, ax=ax, label=f"{hm.metric}{' [%]' if percent else ''}")
+    ax.set_title(title)
+    fig.tight_layout()
+    return _save(fig, path, dpi=110)
+
+
+def plot_stats(stats: DatasetStats, path: str | Path) -> Path:
+    """Histograms of a dataset: depth distribution (pixels), GT density and mean local entropy (samples)."""
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.5))
+    shares = [0.0 if not np.isfinite(s) else 100.0 * s for s in stats.depth_shares]
+    axes[0].bar(stats.bins, shares, color="tab:blue")
+    axes[0].set_ylabel("valid GT pixels [%]")
+    axes[0].set_title("depth distribution")
+    density = [100.0 * s.density for s in stats.samples]
+    axes[1].hist(density, bins=min(30, max(5, len(density))), color="tab:green")
+    axes[1].set_xlabel("GT density [% of pixels]")
+    axes[1].set_ylabel("samples")
+    axes[1].set_title(f"GT density (mean {100.0 * stats.density_mean:.2f} %)")
+    entropy = [s.entropy_bits for s in stats.samples if np.isfinite(s.entropy_bits)]
+    axes[2].hist(entropy, bins=min(30, max(5, len(entropy))), color="tab:orange")
+    axes[2].set_xlabel("mean local entropy, 11x11 [bits]")
+    axes[2].set_ylabel("samples")
+    axes[2].set_title(f"texture (mean {stats.entropy_mean_bits:.3f} bits)")
+    fig.suptitle(f"{stats.dataset} ({stats.layout} layout, {len(stats.samples)} samples)")
+    fig.tight_layout()
+    return _save(fig, path, dpi=100)
+
+
+if typing.TYPE_CHECKING:
+    from ingest.eval.evaluate import Heatmap
+    from ingest.eval.stats import DatasetStats

@@ -1,0 +1,3 @@
+from sensorbox.cli.main import main
+
+main()

@@ -1,0 +1,241 @@
+"""`sensorbox launch FILE [name:=value ...]` and `sensorbox capture --rig RIG --out DIR`.
+
+Both run a node graph (drivers, cameras, emulators, recorder) in this process
+until Ctrl-C / SIGTERM, a duration, the recorder's disk guard or an error; a
+live status line on stderr shows per-topic rates, drops and free disk space,
+and a summary table follows. `sensorbox.cli` registers the command functions.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.console import Console
+from rich.live import Live
+from rich.logging import RichHandler
+from rich.markup import escape
+from rich.table import Table
+from rich.text import Text
+
+from calibration.errors import SensorboxError
+from sensorbox.live.bus import GraphResult, GraphSnapshot, Shutdown, stop_on_signals
+
+console = Console(width=None if sys.stdout.isatty() else 140)
+err_console = Console(stderr=True, width=None if sys.stderr.isatty() else 200)
+PLAIN_STATUS_EVERY_S = 10.0  # without a terminal, one status line this often
+
+
+def _human(n: float) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
+        if abs(n) < 1024 or unit == "TiB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024
+    return f"{n:.1f} TiB"
+
+
+def topic_labels(topics: list[str]) -> dict[str, str]:
+    """Short unique labels: `/zed_upper/.../image/compressed` -> zed_upper, `/livox/imu_1_2` -> imu_1_2."""
+    out: dict[str, str] = {}
+    for t in topics:
+        parts = [p for p in t.strip("/").split("/") if p and p != "compressed"] or ["/"]
+        out[t] = parts[-1] if parts[0] == "livox" else parts[0]
+    counts: dict[str, int] = {}
+    for label in out.values():
+        counts[label] = counts.get(label, 0) + 1
+    return {t: (label if counts[label] == 1 else t) for t, label in out.items()}
+
+
+def status_line(prev: GraphSnapshot | None, now: GraphSnapshot) -> str:
+    """One line: elapsed time, written messages/s per topic, drops by stage, bytes written, disk free."""
+    topics = sorted(set(now.published) | set(now.written))
+    labels = topic_labels(topics)
+    dt = now.elapsed_s - prev.elapsed_s if prev is not None else now.elapsed_s
+    rates = []
+    for t in topics:
+        before = prev.written.get(t, 0) if prev is not None else 0
+        rate = (now.written.get(t, 0) - before) / dt if dt > 0 else 0.0
+        rates.append(f"{labels[t]} {rate:.1f}")
+    drops = {k: v for k, v in now.drops.items() if v}
+    drop_text = ", ".join(f"{k.split('.', 1)[-1]} {v}" for k, v in sorted(drops.items())) or "0"
+    written = now.counter("bytes_written")
+    free = now.counter("disk_free_bytes")
+    parts = [f"{now.elapsed_s:6.1f} s", " | ".join(rates) + " msg/s" if rates else "no messages yet",
+             f"drops {drop_text}"]  # fmt: skip
+    if written is not None:
+        parts.append(f"{_human(written)} written")
+    if free is not None and free >= 0:
+        parts.append(f"{_human(free)} free")
+    return "  ".join(parts)
+
+
+def _summary(result: GraphResult, title: str) -> None:
+    snap = result.snapshot
+    elapsed = max(snap.elapsed_s, 1e-9)
+    table = Table(title=f"{title}: {snap.elapsed_s:.1f} s, stopped: {escape(result.reason)}")
+    for col in ("topic", "published", "written", "lost", "rate [Hz]"):
+        table.add_column(col, justify="left" if col == "topic" else "right", overflow="fold")
+    for topic in sorted(set(snap.published) | set(snap.written)):
+        pub, wr = snap.published.get(topic, 0), snap.written.get(topic, 0)
+        rate = snap.rates_hz.get(topic, wr / elapsed)
+        table.add_row(topic, str(pub), str(wr), str(pub - wr), f"{rate:.1f}")
+    console.print(table)
+    drops = Table(title="Drops by stage (node.stage)")
+    drops.add_column("stage")
+    drops.add_column("count", justify="right")
+    for stage, n in sorted(snap.drops.items()):
+        drops.add_row(stage, str(n))
+    if snap.drops:
+        console.print(drops)
+    for path in result.files:
+        size = (
+            sum(f.stat().st_size for f in Path(path).rglob("*") if f.is_file()) if Path(path).exists() else 0
+        )
+        console.print(f"Bag: {path} ({_human(size)})", highlight=False)
+    errors = [f"{name}: {st.error}" for name, st in snap.nodes.items() if st.error]
+    for line in errors:
+        err_console.print(f"[red]{escape(line)}[/red]")
+
+
+def _setup_logging(verbose: bool) -> None:
+    handler = RichHandler(console=err_console, show_path=False, show_time=False)
+    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, handlers=[handler], force=True)
+
+
+def _run_live(run: Callable[[Shutdown, Callable[[GraphSnapshot], None]], GraphResult]) -> GraphResult:
+    """Run a graph with SIGINT/SIGTERM as a clean stop and a status line on stderr."""
+    shutdown = Shutdown()
+    state: dict[str, GraphSnapshot | float | None] = {"prev": None, "printed": 0.0}
+    tty = err_console.is_terminal
+
+    with stop_on_signals(shutdown):
+        if tty:
+            with Live(
+                Text("starting nodes ..."), console=err_console, refresh_per_second=4, transient=True
+            ) as live:
+
+                def tick(snap: GraphSnapshot) -> None:
+                    prev = state["prev"]
+                    live.update(Text(status_line(prev if isinstance(prev, GraphSnapshot) else None, snap)))
+                    state["prev"] = snap
+
+                return run(shutdown, tick)
+
+        def plain(snap: GraphSnapshot) -> None:
+            printed = state["printed"]
+            if isinstance(printed, float) and time.monotonic() - printed >= PLAIN_STATUS_EVERY_S:
+                prev = state["prev"]
+                err_console.print(
+                    status_line(prev if isinstance(prev, GraphSnapshot) else None, snap), highlight=False
+                )
+                state["prev"], state["printed"] = snap, time.monotonic()
+
+        return run(shutdown, plain)
+
+
+def _finish(result: GraphResult, title: str) -> None:
+    _summary(result, title)
+    if result.error:
+        raise SensorboxError(result.error)
+
+
+def launch_cmd(
+    file: Annotated[
+        Path, typer.Argument(help="Launch file (ROS 2 YAML launch syntax), e.g. launch/sim.launch.yaml.")
+    ],
+    args: Annotated[
+        list[str] | None, typer.Argument(help="Launch arguments NAME:=VALUE, e.g. out:=bags duration:=10.")
+    ] = None,
+    show_args: Annotated[
+        bool, typer.Option("--show-args", "-s", help="List the file's arguments and exit.")
+    ] = False,
+    dry_run: Annotated[
+        bool, typer.Option("--dry-run", help="Print the nodes it would start, with parameters, and exit.")
+    ] = False,
+    verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log what each node does.")] = False,
+) -> None:
+    """Start the nodes a launch file names (drivers, cameras, emulators, recorder) until Ctrl-C."""
+    from sensorbox.live.launch import parse_cli_args, parse_launch, run_launch
+
+    _setup_logging(verbose)
+    plan = parse_launch(file, parse_cli_args(args or []))
+    if show_args:
+        console.print(f"Arguments of {file} (pass NAME:=VALUE):", highlight=False)
+        for arg in plan.arguments:
+            default = "required" if arg.default is None else f"default {arg.default!r}"
+            choices = f", one of {', '.join(arg.choices)}" if arg.choices else ""
+            value = plan.configurations.get(arg.name, "")
+            console.print(f"  {arg.name}:={value!r} ({default}{choices})", highlight=False, soft_wrap=True)
+            if arg.description:
+                console.print(f"      {arg.description}", highlight=False, soft_wrap=True)
+        return
+    if dry_run:
+        console.print(f"Nodes of {file}:", highlight=False)
+        for n in plan.nodes:
+            console.print(
+                f"- {n.name or n.exec} ({n.pkg}/{n.exec}), namespace {n.namespace}, {n.where}",
+                highlight=False,
+            )
+            for key, value in n.params.items():
+                console.print(f"    param {key} = {value!r}", highlight=False, soft_wrap=True)
+            for a, b in n.remaps:
+                console.print(f"    remap {a} -> {b}", highlight=False, soft_wrap=True)
+        for message in plan.messages:
+            console.print(message, highlight=False)
+        return
+    for message in plan.messages:
+        err_console.print(message, highlight=False)
+    result = _run_live(lambda sd, tick: run_launch(plan, shutdown=sd, on_tick=tick))
+    _finish(result, str(file))
+
+
+def capture_cmd(
+    rig: Annotated[Path, typer.Option(help="Rig file: lidar IPs and topics, camera topics.")],
+    out: Annotated[Path, typer.Option(help="Folder the bags go to (NAME_000, NAME_001, ...).")],
+    camera: Annotated[str, typer.Option(help="zed (ZED SDK) | opencv (V4L2).")] = "zed",
+    upper: Annotated[str, typer.Option(help="Upper camera: ZED serial or V4L2 device.")] = "",
+    lower: Annotated[str, typer.Option(help="Lower camera: ZED serial or V4L2 device.")] = "",
+    host_ip: Annotated[
+        str, typer.Option(help="This computer's address on the lidar network.")
+    ] = "192.168.1.5",
+    image: Annotated[str, typer.Option(help="jpeg (CompressedImage) | raw (Image bgra8).")] = "jpeg",
+    jpeg_quality: Annotated[int, typer.Option(help="JPEG quality 1-100.")] = 90,
+    lidar_msg: Annotated[str, typer.Option(help="custom (livox CustomMsg) | pointcloud2.")] = "custom",
+    duration: Annotated[float, typer.Option(help="Seconds to record (0 = until Ctrl-C).")] = 0.0,
+    split_size: Annotated[
+        float, typer.Option(help="Start a new bag at this size, MiB (0 = never).")
+    ] = 4096.0,
+    min_free: Annotated[
+        float, typer.Option(help="Stop before the disk has less than this free, MiB.")
+    ] = 2048.0,
+    name: Annotated[str, typer.Option(help="Bag name prefix (default capture_<time>).")] = "",
+    emulate: Annotated[
+        bool, typer.Option("--emulate", help="No hardware: emulated Mid-360s on loopback, simulated cameras.")
+    ] = False,
+    port_base: Annotated[int, typer.Option(help="First of the nine Livox UDP ports.")] = 56000,
+    scale: Annotated[float, typer.Option(help="--emulate: camera resolution scale.")] = 1.0,
+    verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log what each node does.")] = False,
+) -> None:
+    """Record the rig (both Mid-360s, both cameras) into mcap bags; the rig file's form of
+    launch/sensorbox.launch.yaml."""
+    from sensorbox.live.capture import CaptureConfig, capture
+
+    choices = {"--camera": (camera, ("zed", "opencv")), "--image": (image, ("jpeg", "raw")),
+               "--lidar-msg": (lidar_msg, ("custom", "pointcloud2"))}  # fmt: skip
+    for flag, (value, known) in choices.items():
+        if value not in known:
+            raise SensorboxError(f"{flag} {value!r}: expected one of {', '.join(known)}")
+    _setup_logging(verbose)
+    cfg = CaptureConfig(
+        rig=rig, out=out, name=name, host_ip=host_ip, camera=camera, upper=upper, lower=lower,  # type: ignore[arg-type]
+        image=image, jpeg_quality=jpeg_quality, xfer_format=1 if lidar_msg == "custom" else 0,  # type: ignore[arg-type]
+        duration_s=duration, split_size_mb=split_size, min_free_mb=min_free, emulate=emulate,
+        port_base=port_base, scale=scale,
+    )  # fmt: skip
+    result = _run_live(lambda sd, tick: capture(cfg, shutdown=sd, on_tick=tick))
+    _finish(result, f"capture {out}")

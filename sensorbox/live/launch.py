@@ -1,0 +1,746 @@
+"""A parser of ROS 2 YAML launch files and the runner of what they describe.
+
+The syntax is launch_yaml's (ros2/launch, launch_ros): a top-level `launch:`
+list of entities, each a one-key mapping:
+
+- `arg` (name, default, description, choices): a launch argument; `name:=value`
+  on the command line (or an include's `arg`) wins over `default`; an argument
+  without either is an error.
+- `let` (name, value): sets a launch configuration.
+- `node` (pkg, exec, name, namespace, param, remap, output): one SensorBox node.
+  `param` entries are `{name, value}` (nested `{name, param: [...]}` gives
+  dotted names) or `{from: FILE}` (a ROS 2 parameter file with
+  `ros__parameters`); values keep their YAML type, and strings, after
+  substitution, are read as YAML scalars (`"5"` -> 5) as launch_ros does.
+  `remap` entries are `{from, to}`.
+- `include` (file, arg): another launch file, relative to the including one
+  unless absolute; it sees the current configurations plus its `arg` values.
+- `group` (a list of entities, or {scoped, forwarding, keep, children}):
+  `let`, namespaces and remaps set inside a scoped group (the default) end with it.
+- `push_ros_namespace` (namespace), `set_remap` (from, to): for the rest of the
+  enclosing group; `log` (message).
+- Every entity takes `if` / `unless` (true/false/1/0 after substitution).
+
+Substitutions in any string: `$(var NAME)`, `$(env NAME [DEFAULT])`,
+`$(optenv NAME [DEFAULT])`, `$(eval EXPR)` (arithmetic, comparison and boolean
+Python expressions, no names but `math.*`, min/max/abs/round/int/float/str),
+`$(find-pkg-share sensorbox)` (the repository root), `$(dirname)`,
+`$(filename)`, `$(not X)`, `$(and X Y)`, `$(or X Y)`, `$(equals A B)`,
+`$(not-equals A B)`; they nest, and arguments may be quoted.
+
+Differences from ROS 2, on purpose: an included file's `let`s do not leak into
+the including file (ROS 2 scopes them only inside a group); an unknown key, a
+command-line argument no `arg` declares, an unknown substitution or node type is
+an error naming the file and line, never silently ignored.
+
+Nodes: `pkg`/`exec` name a SensorBox node type (`sensorbox.live.nodes.NODE_TYPES`;
+the real driver packages `livox_ros_driver2` and `zed_wrapper` are aliases); see
+`sensorbox.live.nodes` for their parameters. `run_launch` builds and runs them in one
+process (`sensorbox.live.bus.run_graph`).
+"""
+
+from __future__ import annotations
+
+import ast
+import math
+import operator
+import os
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, ClassVar
+
+import yaml
+
+from calibration.errors import SensorboxError
+from sensorbox.live.bus import Bus, GraphResult, GraphSnapshot, Shutdown, run_graph
+
+PACKAGE_ROOT = Path(__file__).resolve().parents[2]
+"""`$(find-pkg-share sensorbox)`: the folder holding launch/ and calibration/."""
+
+TRUE_WORDS, FALSE_WORDS = ("true", "1"), ("false", "0")
+
+
+class LaunchError(SensorboxError):
+    """A launch file or argument is malformed; the message names the file, line and key."""
+
+
+# ---------------------------------------------------------------- YAML with line numbers
+
+
+class _Map(dict[str, Any]):
+    """A YAML mapping that remembers its line (1-based)."""
+
+    line = 0
+
+
+class _Loader(yaml.SafeLoader):
+    pass
+
+
+def _construct_map(loader: _Loader, node: yaml.MappingNode) -> _Map:
+    out = _Map()
+    out.line = node.start_mark.line + 1
+    loader.flatten_mapping(node)
+    for key_node, value_node in node.value:
+        key = loader.construct_object(key_node, deep=True)
+        if not isinstance(key, str):
+            raise LaunchError(f"line {key_node.start_mark.line + 1}: keys must be strings, got {key!r}")
+        if key in out:
+            raise LaunchError(f"line {key_node.start_mark.line + 1}: key {key!r} given twice")
+        out[key] = loader.construct_object(value_node, deep=True)
+    return out
+
+
+_Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_map)
+
+
+def _load_yaml(path: Path) -> Any:
+    try:
+        text = path.read_text()
+    except FileNotFoundError as err:
+        raise LaunchError(f"{path}: launch file not found") from err
+    except OSError as err:
+        raise LaunchError(f"{path}: cannot read launch file: {err}") from err
+    try:
+        return yaml.load(text, Loader=_Loader)  # a SafeLoader: no arbitrary objects
+    except LaunchError as err:
+        raise LaunchError(f"{path}:{err}") from err
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        where = f"{path}:{mark.line + 1}" if mark is not None else str(path)
+        raise LaunchError(f"{where}: malformed YAML: {getattr(err, 'problem', err)}") from err
+
+
+# ---------------------------------------------------------------- results
+
+
+@dataclass(frozen=True)
+class LaunchArgument:
+    """A declared `arg`: its name, default (None = required), description, allowed values."""
+
+    name: str
+    default: str | None
+    description: str
+    choices: tuple[str, ...]
+    file: Path
+
+
+@dataclass(frozen=True)
+class NodeSpec:
+    """One `node` entity, fully substituted: what `sensorbox.live.nodes.build_node` needs."""
+
+    pkg: str
+    exec: str
+    name: str | None
+    namespace: str
+    params: Mapping[str, Any]
+    remaps: tuple[tuple[str, str], ...]
+    where: str  # "file:line", for error messages
+
+    @property
+    def label(self) -> str:
+        return f"node {self.name or self.exec!r} ({self.pkg}/{self.exec}) at {self.where}"
+
+
+@dataclass
+class LaunchPlan:
+    """What a launch file describes once parsed: nodes to start, arguments, final configurations."""
+
+    file: Path
+    nodes: list[NodeSpec] = field(default_factory=list)
+    arguments: list[LaunchArgument] = field(default_factory=list)
+    configurations: dict[str, str] = field(default_factory=dict)
+    messages: list[str] = field(default_factory=list)  # `log` entities
+
+
+# ---------------------------------------------------------------- substitutions
+
+
+@dataclass
+class _Sub:
+    name: str
+    args: list[list[str | _Sub]]
+
+
+def _parse_subst(text: str, pos: int, where: str) -> tuple[_Sub, int]:
+    """Parse `$(name args...)` starting at text[pos] == '$'; return it and the index after ')'."""
+    i = pos + 2
+    start = i
+    while i < len(text) and not text[i].isspace() and text[i] != ")":
+        i += 1
+    name = text[start:i]
+    if not name:
+        raise LaunchError(f"{where}: empty substitution '$()' in {text!r}")
+    args: list[list[str | _Sub]] = []
+    while True:
+        while i < len(text) and text[i].isspace():
+            i += 1
+        if i >= len(text):
+            raise LaunchError(f"{where}: unclosed substitution '$({name}' in {text!r}")
+        if text[i] == ")":
+            return _Sub(name, args), i + 1
+        arg: list[str | _Sub] = []
+        while i < len(text) and not text[i].isspace() and text[i] != ")":
+            if text.startswith("$(", i):
+                sub, i = _parse_subst(text, i, where)
+                arg.append(sub)
+            elif text[i] in "'\"":
+                quoted, i = _scan(text, i + 1, where, stop=text[i])
+                arg.extend(quoted or [""])
+            else:
+                arg.append(text[i])
+                i += 1
+        args.append(arg)
+
+
+def _scan(text: str, i: int, where: str, stop: str | None) -> tuple[list[str | _Sub], int]:
+    """Literals and substitutions from text[i] up to the closing `stop` character (or the end)."""
+    parts: list[str | _Sub] = []
+    lit = ""
+    while True:
+        if i >= len(text):
+            if stop is not None:
+                raise LaunchError(f"{where}: unclosed quote in substitution {text!r}")
+            break
+        if text[i] == stop:
+            i += 1
+            break
+        if text.startswith("$(", i):
+            if lit:
+                parts.append(lit)
+                lit = ""
+            sub, i = _parse_subst(text, i, where)
+            parts.append(sub)
+        else:
+            lit += text[i]
+            i += 1
+    if lit:
+        parts.append(lit)
+    return parts, i
+
+
+def _parse_text(text: str, where: str) -> list[str | _Sub]:
+    return _scan(text, 0, where, stop=None)[0]
+
+
+_BINOPS: dict[type, Callable[[Any, Any], Any]] = {
+    ast.Add: operator.add, ast.Sub: operator.sub, ast.Mult: operator.mul, ast.Div: operator.truediv,
+    ast.FloorDiv: operator.floordiv, ast.Mod: operator.mod, ast.Pow: operator.pow,
+}  # fmt: skip
+_CMPOPS: dict[type, Callable[[Any, Any], Any]] = {
+    ast.Eq: operator.eq, ast.NotEq: operator.ne, ast.Lt: operator.lt, ast.LtE: operator.le,
+    ast.Gt: operator.gt, ast.GtE: operator.ge,
+}  # fmt: skip
+_FUNCS: dict[str, Callable[..., Any]] = {
+    "min": min, "max": max, "abs": abs, "round": round, "int": int, "float": float, "str": str,
+}  # fmt: skip
+
+
+def safe_eval(expr: str) -> Any:
+    """Evaluate a small Python expression: literals, arithmetic, comparisons, `and/or/not`,
+    `a if c else b`, `math.NAME`, and min/max/abs/round/int/float/str calls."""
+
+    def ev(node: ast.AST) -> Any:
+        if isinstance(node, ast.Expression):
+            return ev(node.body)
+        if isinstance(node, ast.Constant) and isinstance(node.value, int | float | str | bool):
+            return node.value
+        if isinstance(node, ast.BinOp) and type(node.op) in _BINOPS:
+            return _BINOPS[type(node.op)](ev(node.left), ev(node.right))
+        if isinstance(node, ast.UnaryOp):
+            v = ev(node.operand)
+            if isinstance(node.op, ast.USub):
+                return -v
+            if isinstance(node.op, ast.UAdd):
+                return +v
+            if isinstance(node.op, ast.Not):
+                return not v
+        if isinstance(node, ast.BoolOp):
+            values = [ev(v) for v in node.values]
+            return all(values) if isinstance(node.op, ast.And) else any(values)
+        if isinstance(node, ast.Compare) and all(type(o) in _CMPOPS for o in node.ops):
+            left = ev(node.left)
+            for op, comp in zip(node.ops, node.comparators, strict=True):
+                right = ev(comp)
+                if not _CMPOPS[type(op)](left, right):
+                    return False
+                left = right
+            return True
+        if isinstance(node, ast.IfExp):
+            return ev(node.body) if ev(node.test) else ev(node.orelse)
+        if (
+            isinstance(node, ast.Attribute)
+            and isinstance(node.value, ast.Name)
+            and node.value.id == "math"
+            and not node.attr.startswith("_")
+            and hasattr(math, node.attr)
+        ):
+            return getattr(math, node.attr)
+        if isinstance(node, ast.Name) and node.id in ("True", "False"):
+            return node.id == "True"
+        if isinstance(node, ast.Call) and not node.keywords:
+            func = node.func
+            fn = None
+            if isinstance(func, ast.Name) and func.id in _FUNCS:
+                fn = _FUNCS[func.id]
+            elif isinstance(func, ast.Attribute):
+                fn = ev(func)
+            if callable(fn):
+                return fn(*(ev(a) for a in node.args))
+        raise ValueError(f"unsupported expression element {ast.dump(node)[:60]}")
+
+    return ev(ast.parse(expr.strip(), mode="eval"))
+
+
+def _bool_word(value: str, where: str, what: str) -> bool:
+    v = value.strip().lower()
+    if v in TRUE_WORDS:
+        return True
+    if v in FALSE_WORDS:
+        return False
+    raise LaunchError(f"{where}: {what} {value!r} is not a boolean; expected true, false, 1 or 0")
+
+
+@dataclass
+class _Scope:
+    """Launch configurations, the pushed ROS namespace and remaps in effect, the current file."""
+
+    file: Path
+    configs: dict[str, str]
+    namespace: str = "/"
+    remaps: list[tuple[str, str]] = field(default_factory=list)
+
+    def child(self, keep_configs: bool = True) -> _Scope:
+        return _Scope(
+            self.file, dict(self.configs) if keep_configs else {}, self.namespace, list(self.remaps)
+        )
+
+
+KNOWN_SUBSTITUTIONS = (
+    "var", "env", "optenv", "eval", "find-pkg-share", "dirname", "filename",
+    "not", "and", "or", "equals", "not-equals",
+)  # fmt: skip
+
+
+def _evaluate(parts: Sequence[str | _Sub], scope: _Scope, where: str) -> str:
+    return "".join(p if isinstance(p, str) else _apply(p, scope, where) for p in parts)
+
+
+def _apply(sub: _Sub, scope: _Scope, where: str) -> str:
+    args = [_evaluate(a, scope, where) for a in sub.args]
+
+    def need(lo: int, hi: int) -> None:
+        if not lo <= len(args) <= hi:
+            want = str(lo) if lo == hi else f"{lo}..{hi}"
+            raise LaunchError(f"{where}: $({sub.name} ...) takes {want} argument(s), got {len(args)}")
+
+    name = sub.name
+    if name == "var":
+        need(1, 1)
+        if args[0] not in scope.configs:
+            known = ", ".join(sorted(scope.configs)) or "none"
+            raise LaunchError(
+                f"{where}: $(var {args[0]}): no launch configuration {args[0]!r}"
+                f" (declare it with `arg` or `let`; known here: {known})"
+            )
+        return scope.configs[args[0]]
+    if name in ("env", "optenv"):
+        need(1, 2)
+        if args[0] in os.environ:
+            return os.environ[args[0]]
+        if len(args) == 2:
+            return args[1]
+        if name == "optenv":
+            return ""
+        raise LaunchError(f"{where}: $(env {args[0]}): environment variable {args[0]!r} is not set")
+    if name == "eval":
+        expr = " ".join(args)
+        try:
+            value = safe_eval(expr)
+        except Exception as err:
+            raise LaunchError(f"{where}: $(eval {expr!r}) failed: {err}") from err
+        return str(value)
+    if name == "find-pkg-share":
+        need(1, 1)
+        if args[0] != "sensorbox":
+            raise LaunchError(
+                f"{where}: $(find-pkg-share {args[0]}): SensorBox knows only the package 'sensorbox'"
+                " (its repository root); give a path instead"
+            )
+        return str(PACKAGE_ROOT)
+    if name == "dirname":
+        need(0, 0)
+        return str(scope.file.parent)
+    if name == "filename":
+        need(0, 0)
+        return str(scope.file)
+    if name == "not":
+        need(1, 1)
+        return str(not _bool_word(args[0], where, "$(not) argument")).lower()
+    if name in ("and", "or"):
+        need(2, 64)
+        values = [_bool_word(a, where, f"$({name}) argument") for a in args]
+        return str(all(values) if name == "and" else any(values)).lower()
+    if name in ("equals", "not-equals"):
+        need(2, 2)
+        same = args[0] == args[1]
+        return str(same if name == "equals" else not same).lower()
+    raise LaunchError(f"{where}: unknown substitution $({name} ...); known: {', '.join(KNOWN_SUBSTITUTIONS)}")
+
+
+def substitute(text: str, configs: Mapping[str, str], file: Path = Path("<string>")) -> str:
+    """Expand every substitution in `text` with launch configurations `configs`."""
+    where = str(file)
+    return _evaluate(_parse_text(text, where), _Scope(file, dict(configs)), where)
+
+
+# ---------------------------------------------------------------- entities
+
+
+def _where(scope: _Scope, item: Any) -> str:
+    line = getattr(item, "line", 0)
+    return f"{scope.file}:{line}" if line else str(scope.file)
+
+
+def _text(value: Any, scope: _Scope, where: str, key: str) -> str:
+    if isinstance(value, bool):
+        return str(value).lower()
+    if isinstance(value, int | float):
+        return str(value)
+    if not isinstance(value, str):
+        raise LaunchError(f"{where}: {key!r} must be a string, got {type(value).__name__} {value!r}")
+    return _evaluate(_parse_text(value, where), scope, where)
+
+
+def _typed(text: str) -> Any:
+    """A substituted parameter string read as a YAML scalar ("5" -> 5, "true" -> True), else itself."""
+    try:
+        value = yaml.safe_load(text)
+    except yaml.YAMLError:
+        return text
+    if isinstance(value, bool | int | float) or (
+        isinstance(value, list) and all(isinstance(v, bool | int | float | str) for v in value)
+    ):
+        return value
+    return text
+
+
+def _fields(entity: str, body: Any, where: str, allowed: Sequence[str], required: Sequence[str] = ()) -> _Map:
+    if not isinstance(body, dict):
+        raise LaunchError(f"{where}: `{entity}` expects a mapping of keys, got {type(body).__name__}")
+    unknown = sorted(set(body) - set(allowed) - {"if", "unless"})
+    if unknown:
+        raise LaunchError(
+            f"{where}: `{entity}` has unknown key(s) {', '.join(unknown)}; allowed: {', '.join(allowed)}"
+        )
+    for key in required:
+        if key not in body:
+            raise LaunchError(f"{where}: `{entity}` is missing its {key!r} key")
+    out = _Map(body)
+    out.line = getattr(body, "line", 0)
+    return out
+
+
+def _condition(body: Any, scope: _Scope, where: str) -> bool:
+    """False when the entity's `if` is false or its `unless` is true."""
+    if not isinstance(body, dict):
+        return True
+    if "if" in body and "unless" in body:
+        raise LaunchError(f"{where}: an entity takes `if` or `unless`, not both")
+    for key, want in (("if", True), ("unless", False)):
+        if key in body:
+            value = body[key]
+            flag = (
+                value if isinstance(value, bool) else _bool_word(_text(value, scope, where, key), where, key)
+            )
+            return flag == want
+    return True
+
+
+class _Parser:
+    def __init__(self, plan: LaunchPlan) -> None:
+        self.plan = plan
+        self.stack: list[Path] = []
+
+    def file(self, path: Path, scope: _Scope) -> None:
+        path = path.resolve()
+        if path in self.stack:
+            chain = " -> ".join(str(p) for p in [*self.stack, path])
+            raise LaunchError(f"launch files include each other in a cycle: {chain}")
+        doc = _load_yaml(path)
+        if not isinstance(doc, dict) or set(doc) != {"launch"}:
+            keys = ", ".join(map(str, doc)) if isinstance(doc, dict) else type(doc).__name__
+            raise LaunchError(f"{path}: expected a single top-level key `launch:` (a list), got {keys}")
+        entities = doc["launch"]
+        if entities is None:
+            entities = []
+        if not isinstance(entities, list):
+            raise LaunchError(f"{path}: `launch:` must be a list of entities, got {type(entities).__name__}")
+        self.stack.append(path)
+        scope.file = path
+        try:
+            self.entities(entities, scope)
+        finally:
+            self.stack.pop()
+
+    def entities(self, items: list[Any], scope: _Scope) -> None:
+        for item in items:
+            where = _where(scope, item)
+            if not isinstance(item, dict) or len(item) != 1:
+                raise LaunchError(
+                    f"{where}: each entity is a mapping with one key (its type, e.g. `node:`), got {item!r}"
+                )
+            kind, body = next(iter(item.items()))
+            handler = self.HANDLERS.get(kind)
+            if handler is None:
+                raise LaunchError(
+                    f"{where}: unknown entity `{kind}`; known: {', '.join(sorted(set(self.HANDLERS)))}"
+                )
+            if not _condition(body, scope, where):
+                continue
+            handler(self, body, scope, where)
+
+    # ---- entities
+
+    def arg(self, body: Any, scope: _Scope, where: str) -> None:
+        f = _fields("arg", body, where, ("name", "default", "description", "choices", "choice"), ("name",))
+        name = _text(f["name"], scope, where, "name")
+        choices: list[str] = []
+        for key in ("choices", "choice"):
+            raw = f.get(key) or []
+            if not isinstance(raw, list):
+                raise LaunchError(f"{where}: arg {name!r}: {key!r} must be a list")
+            for c in raw:
+                choices.append(
+                    _text(c["value"] if isinstance(c, dict) and "value" in c else c, scope, where, key)
+                )
+        default = None if f.get("default") is None else _text(f["default"], scope, where, "default")
+        description = str(f.get("description", ""))
+        self.plan.arguments.append(LaunchArgument(name, default, description, tuple(choices), scope.file))
+        if name not in scope.configs:
+            if default is None:
+                raise LaunchError(
+                    f"{where}: launch argument {name!r} is required ({description or 'no description'});"
+                    f" pass {name}:=VALUE"
+                )
+            scope.configs[name] = default
+        if choices and scope.configs[name] not in choices:
+            raise LaunchError(
+                f"{where}: launch argument {name}:={scope.configs[name]!r} is not one of {', '.join(choices)}"
+            )
+
+    def let(self, body: Any, scope: _Scope, where: str) -> None:
+        f = _fields("let", body, where, ("name", "value"), ("name", "value"))
+        scope.configs[_text(f["name"], scope, where, "name")] = _text(f["value"], scope, where, "value")
+
+    def log(self, body: Any, scope: _Scope, where: str) -> None:
+        f = _fields("log", body, where, ("message",), ("message",))
+        self.plan.messages.append(_text(f["message"], scope, where, "message"))
+
+    def push_ros_namespace(self, body: Any, scope: _Scope, where: str) -> None:
+        f = _fields("push_ros_namespace", body, where, ("namespace",), ("namespace",))
+        ns = _text(f["namespace"], scope, where, "namespace")
+        scope.namespace = ns if ns.startswith("/") else _join_ns(scope.namespace, ns)
+
+    def set_remap(self, body: Any, scope: _Scope, where: str) -> None:
+        f = _fields("set_remap", body, where, ("from", "to"), ("from", "to"))
+        scope.remaps.append((_text(f["from"], scope, where, "from"), _text(f["to"], scope, where, "to")))
+
+    def group(self, body: Any, scope: _Scope, where: str) -> None:
+        if isinstance(body, list):
+            self.entities(body, scope.child())
+            return
+        f = _fields("group", body, where, ("scoped", "forwarding", "keep", "children"), ("children",))
+        scoped = self._flag(f, "scoped", True, scope, where)
+        forwarding = self._flag(f, "forwarding", True, scope, where)
+        children = f["children"]
+        if not isinstance(children, list):
+            raise LaunchError(f"{where}: group `children` must be a list of entities")
+        if not scoped:
+            self.entities(children, scope)
+            return
+        inner = scope.child(keep_configs=forwarding)
+        for k in f.get("keep") or []:
+            kf = _fields("keep", k, where, ("name", "value"), ("name", "value"))
+            inner.configs[_text(kf["name"], scope, where, "name")] = _text(kf["value"], scope, where, "value")
+        self.entities(children, inner)
+
+    def include(self, body: Any, scope: _Scope, where: str) -> None:
+        if isinstance(body, str):
+            body = _Map(file=body)
+        f = _fields("include", body, where, ("file", "arg"), ("file",))
+        target = Path(_text(f["file"], scope, where, "file"))
+        if not target.is_absolute():
+            target = scope.file.parent / target
+        if not target.exists():
+            raise LaunchError(f"{where}: included launch file {target} not found")
+        inner = scope.child()
+        for a in f.get("arg") or []:
+            af = _fields("include arg", a, where, ("name", "value"), ("name", "value"))
+            inner.configs[_text(af["name"], scope, where, "name")] = _text(af["value"], scope, where, "value")
+        self.file(target, inner)
+
+    def node(self, body: Any, scope: _Scope, where: str) -> None:
+        allowed = ("pkg", "exec", "name", "namespace", "param", "remap", "output", "exec_name")
+        f = _fields("node", body, where, allowed, ("exec",))
+        pkg = _text(f.get("pkg", "sensorbox"), scope, where, "pkg")
+        exe = _text(f["exec"], scope, where, "exec")
+        from sensorbox.live.nodes import known_node_types, node_type
+
+        if node_type(pkg, exe) is None:
+            raise LaunchError(
+                f"{where}: unknown node type pkg {pkg!r} exec {exe!r}; known: {', '.join(known_node_types())}"
+            )
+        name = _text(f["name"], scope, where, "name") if "name" in f else None
+        ns = _text(f.get("namespace", ""), scope, where, "namespace")
+        namespace = ns if ns.startswith("/") else _join_ns(scope.namespace, ns)
+        params: dict[str, Any] = {}
+        for entry in f.get("param") or []:
+            self._param(entry, "", params, scope, where, name or exe, namespace)
+        remaps = list(scope.remaps)
+        for entry in f.get("remap") or []:
+            rf = _fields("remap", entry, where, ("from", "to"), ("from", "to"))
+            remaps.append((_text(rf["from"], scope, where, "from"), _text(rf["to"], scope, where, "to")))
+        self.plan.nodes.append(NodeSpec(pkg, exe, name, namespace, params, tuple(remaps), where))
+
+    def _param(
+        self, entry: Any, prefix: str, out: dict[str, Any], scope: _Scope, where: str, node: str, ns: str
+    ) -> None:
+        if isinstance(entry, dict) and "from" in entry:
+            f = _fields("param", entry, where, ("from",))
+            path = Path(_text(f["from"], scope, where, "from"))
+            out.update(_param_file(path if path.is_absolute() else scope.file.parent / path, node, ns, where))
+            return
+        f = _fields("param", entry, where, ("name", "value", "param", "type"), ("name",))
+        name = prefix + _text(f["name"], scope, where, "name")
+        if ("value" in f) == ("param" in f):
+            raise LaunchError(f"{where}: param {name!r} needs exactly one of `value` or nested `param`")
+        if "param" in f:
+            for sub in f["param"] or []:
+                self._param(sub, name + ".", out, scope, where, node, ns)
+            return
+        kind = f.get("type")
+        out[name] = _param_value(f["value"], scope, where, name, kind)
+
+    @staticmethod
+    def _flag(f: _Map, key: str, default: bool, scope: _Scope, where: str) -> bool:
+        if key not in f:
+            return default
+        value = f[key]
+        return value if isinstance(value, bool) else _bool_word(_text(value, scope, where, key), where, key)
+
+    HANDLERS: ClassVar[dict[str, Callable[[_Parser, Any, _Scope, str], None]]] = {
+        "arg": arg, "let": let, "log": log, "node": node, "include": include, "group": group,
+        "push_ros_namespace": push_ros_namespace, "push-ros-namespace": push_ros_namespace,
+        "set_remap": set_remap, "set-remap": set_remap,
+    }  # fmt: skip
+
+
+def _join_ns(base: str, ns: str) -> str:
+    parts = [p for p in (base + "/" + ns).split("/") if p]
+    return "/" + "/".join(parts)
+
+
+def _param_value(value: Any, scope: _Scope, where: str, name: str, kind: Any) -> Any:
+    if isinstance(value, list):
+        return [_param_value(v, scope, where, name, kind) for v in value]
+    if isinstance(value, bool | int | float) and kind is None:
+        return value
+    if value is None:
+        raise LaunchError(f"{where}: param {name!r} has no value")
+    text = _text(value, scope, where, name)
+    if kind is None:
+        return _typed(text)
+    casts: dict[str, Callable[[str], Any]] = {
+        "str": str,
+        "int": int,
+        "float": float,
+        "bool": lambda t: _bool_word(t, where, f"param {name!r}"),
+    }
+    if kind not in casts:
+        raise LaunchError(f"{where}: param {name!r}: type {kind!r}; expected one of {', '.join(casts)}")
+    try:
+        return casts[kind](text)
+    except ValueError as err:
+        raise LaunchError(f"{where}: param {name!r}: {text!r} is not a {kind}") from err
+
+
+def _param_file(path: Path, node: str, ns: str, where: str) -> dict[str, Any]:
+    """`ros__parameters` for `node` (or `/**`) in a ROS 2 parameter file, nested keys dotted."""
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except FileNotFoundError as err:
+        raise LaunchError(f"{where}: parameter file {path} not found") from err
+    except yaml.YAMLError as err:
+        raise LaunchError(f"{where}: parameter file {path}: malformed YAML: {err}") from err
+    if not isinstance(doc, dict):
+        raise LaunchError(f"{where}: parameter file {path}: expected a mapping of node names")
+    fqn = _join_ns(ns, node)
+    out: dict[str, Any] = {}
+    for key in ("/**", node, fqn, fqn.lstrip("/")):
+        block = doc.get(key)
+        if isinstance(block, dict):
+            params = block.get("ros__parameters")
+            if not isinstance(params, dict):
+                raise LaunchError(f"{where}: parameter file {path}: {key!r} has no `ros__parameters` mapping")
+            out.update(_flatten(params))
+    return out
+
+
+def _flatten(d: Mapping[str, Any], prefix: str = "") -> Iterator[tuple[str, Any]]:
+    for k, v in d.items():
+        if isinstance(v, dict):
+            yield from _flatten(v, f"{prefix}{k}.")
+        else:
+            yield f"{prefix}{k}", v
+
+
+# ---------------------------------------------------------------- public API
+
+
+def parse_cli_args(items: Sequence[str]) -> dict[str, str]:
+    """`["out:=bags", "duration:=5"]` -> {"out": "bags", "duration": "5"}."""
+    out: dict[str, str] = {}
+    for item in items:
+        name, sep, value = item.partition(":=")
+        if not sep or not name or any(c.isspace() for c in name):
+            raise LaunchError(f"launch argument {item!r}: expected NAME:=VALUE, e.g. duration:=10")
+        out[name] = value
+    return out
+
+
+def parse_launch(path: str | Path, args: Mapping[str, str] | None = None) -> LaunchPlan:
+    """Parse a launch file with command-line arguments `args` into the nodes it starts."""
+    path = Path(path)
+    args = dict(args or {})
+    plan = LaunchPlan(path)
+    scope = _Scope(path, dict(args))
+    _Parser(plan).file(path, scope)
+    declared = {a.name for a in plan.arguments}
+    extra = sorted(set(args) - declared)
+    if extra:
+        known = ", ".join(sorted(declared)) or "none"
+        raise LaunchError(
+            f"{path}: launch argument(s) {', '.join(extra)} not declared; its arguments: {known}"
+        )
+    plan.configurations = scope.configs
+    return plan
+
+
+def run_launch(
+    plan: LaunchPlan,
+    *,
+    shutdown: Shutdown | None = None,
+    on_tick: Callable[[GraphSnapshot], None] | None = None,
+    tick_s: float = 0.5,
+) -> GraphResult:
+    """Build the plan's nodes in one process and run them until shutdown (see `bus.run_graph`)."""
+    from sensorbox.live.nodes import build_node
+
+    bus = Bus()
+    shutdown = shutdown or Shutdown()
+    nodes = [build_node(spec, bus, shutdown) for spec in plan.nodes]
+    if not nodes:
+        raise LaunchError(f"{plan.file}: the launch file starts no node")
+    return run_graph(nodes, bus, shutdown, on_tick=on_tick, tick_s=tick_s)

@@ -1,0 +1,488 @@
+"""SensorBox node types: what a launch file's `pkg`/`exec` start, and their parameters.
+
+- `sensorbox/recorder` (`recorder.Recorder`): out (bags), name (capture_<time>),
+  topics ([] = all), split_size_mb (0 = off), split_duration_s (0), duration_s
+  (0 = until stopped), queue_size (256 per topic), queue_mb (512 per topic),
+  min_free_mb (1024), compress (true), flush_s (1.0).
+- `sensorbox/livox_driver`, alias `livox_ros_driver2/livox_ros_driver2_node`
+  (`LivoxDriverNode` over `livox.Mid360Driver`): host_ip and lidar_ips, or
+  user_config_path (livox_ros_driver2's MID360 JSON: host IP, ports, lidar IPs,
+  extrinsics); xfer_format (1 = CustomMsg, 0 = PointCloud2), multi_topic (1),
+  publish_freq (10.0 Hz), frame_id (livox_frame), data_type (1), imu (true),
+  port_base (56000: the Livox ports; else a block of nine from it), discovery_s
+  (0 = skip discovery).
+- `sensorbox/mid360_emulator` (`EmulatorNode`): ip (127.0.0.x), lidar (rig
+  LiDAR name, lidar_top), port_base, loop_s (1.0; 0 = simulate live), time_type
+  (1 = PTP), data_type (1), loss/reorder/duplicate/malformed (0), rate (1.0),
+  range_noise_m (0.02), listen_broadcast (false), + sim.
+- `sensorbox/camera`, alias `zed_wrapper/zed_wrapper` (`cameras.CameraNode`, one
+  camera): source (zed | opencv | sim), topic (~/rgb/color/rect/image), frame_id,
+  image (jpeg | raw), jpeg_quality (90), fps (30); zed: serial, resolution
+  (HD1200); opencv: device, width, height, fourcc, stamps, realtime; sim: camera
+  (upper | lower), buffer_frames (4) + sim.
+- `sensorbox/stereo_camera` (a pair by stamp): as camera, with upper_/lower_
+  topic, frame_id, serial or device; pair_tolerance_ms (half a period).
+- `sensorbox/sim_camera`: stereo_camera with source sim.
+- `sensorbox/talker` (`TalkerNode`, demo_nodes' talker): topic (chatter),
+  rate_hz (10), count (0 = forever), payload_bytes (0).
+
+"sim" parameters: scene (indoor), trajectory (static), seed (0), rig (reference
+rig), scale (1.0), supersample (1); cameras also prerender (auto | always |
+never), loop_frames (30), write_rig ("" = no; a path gets the rig at render
+resolution, rig file + camchain).
+
+The Livox driver publishes relative topics (`livox/lidar_<ip>`, as
+livox_ros_driver2 does), so a node namespace applies; remap them to the rig's
+topics when the lidar IPs differ (emulated lidars on 127.0.0.x).
+"""
+
+from __future__ import annotations
+
+import importlib
+import itertools
+import json
+import logging
+import threading
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from calibration.errors import SensorboxError
+from sensorbox.live.bus import (
+    PRIORITY_SOURCE,
+    Bus,
+    GraphError,
+    Node,
+    NodeContext,
+    NodeStatus,
+    Publish,
+    Shutdown,
+    node_context,
+)
+
+log = logging.getLogger(__name__)
+
+MiB = 1 << 20
+REFERENCE_RIG = Path(__file__).resolve().parents[2] / "calibration" / "sensorbox.yaml"
+ZED_IMAGE_TOPIC = "~/rgb/color/rect/image"
+
+
+# ---------------------------------------------------------------- parameters
+
+
+class Params:
+    """A node's parameters, read with type checks; `check()` rejects the ones nobody read."""
+
+    def __init__(self, values: Mapping[str, Any], where: str) -> None:
+        self._values = dict(values)
+        self._asked: set[str] = set()
+        self.where = where
+
+    def _err(self, key: str, value: Any, want: str) -> GraphError:
+        return GraphError(f"{self.where}: parameter {key!r} = {value!r}: expected {want}")
+
+    def has(self, key: str) -> bool:
+        self._asked.add(key)
+        return key in self._values
+
+    def raw(self, key: str, default: Any) -> Any:
+        self._asked.add(key)
+        return self._values.get(key, default)
+
+    def text(self, key: str, default: str) -> str:
+        v = self.raw(key, default)
+        if isinstance(v, bool) or not isinstance(v, str | int | float):
+            raise self._err(key, v, "a string")
+        return str(v)
+
+    def number(self, key: str, default: float) -> float:
+        v = self.raw(key, default)
+        if isinstance(v, bool) or not isinstance(v, int | float):
+            raise self._err(key, v, "a number")
+        return float(v)
+
+    def integer(self, key: str, default: int) -> int:
+        v = self.raw(key, default)
+        if isinstance(v, bool) or not isinstance(v, int):
+            raise self._err(key, v, "an integer")
+        return v
+
+    def flag(self, key: str, default: bool) -> bool:
+        v = self.raw(key, default)
+        if isinstance(v, bool):
+            return v
+        if isinstance(v, int) and v in (0, 1):
+            return bool(v)
+        raise self._err(key, v, "true/false (or 1/0)")
+
+    def texts(self, key: str, default: Sequence[str]) -> list[str]:
+        v = self.raw(key, list(default))
+        if isinstance(v, str):
+            v = [s for s in v.replace(",", " ").split() if s]
+        if not isinstance(v, list) or not all(isinstance(s, str | int | float) for s in v):
+            raise self._err(key, v, "a list of strings")
+        return [str(s) for s in v]
+
+    def choice(self, key: str, choices: Sequence[str], default: str) -> str:
+        v = self.text(key, default)
+        if v not in choices:
+            raise self._err(key, v, f"one of {', '.join(choices)}")
+        return v
+
+    def check(self) -> None:
+        unused = sorted(set(self._values) - self._asked)
+        if unused:
+            raise GraphError(
+                f"{self.where}: parameter(s) {', '.join(unused)} not used by this node (with these"
+                f" settings); it reads: {', '.join(sorted(self._asked))}"
+            )
+
+
+# ---------------------------------------------------------------- Livox driver
+
+
+def read_livox_json(path: Path) -> dict[str, Any]:
+    """host_ip, ports (dict of Ports fields), lidars [(ip, extrinsic | None)] and data_type from a
+    livox_ros_driver2 user config (MID360_config.json)."""
+    try:
+        doc = json.loads(Path(path).read_text())
+    except FileNotFoundError as err:
+        raise GraphError(f"{path}: Livox user config not found") from err
+    except json.JSONDecodeError as err:
+        raise GraphError(f"{path}: line {err.lineno}: malformed JSON: {err.msg}") from err
+    try:
+        mid = doc["MID360"]
+        host, dev = mid["host_net_info"], mid["lidar_net_info"]
+        ips = {host[k] for k in ("cmd_data_ip", "push_msg_ip", "point_data_ip", "imu_data_ip")}
+        if len(ips) != 1:
+            raise GraphError(f"{path}: MID360.host_net_info: SensorBox needs one host IP, got {sorted(ips)}")
+        ports = {
+            "lidar_cmd": dev["cmd_data_port"], "lidar_push": dev["push_msg_port"],
+            "lidar_point": dev["point_data_port"], "lidar_imu": dev["imu_data_port"],
+            "host_cmd": host["cmd_data_port"], "host_push": host["push_msg_port"],
+            "host_point": host["point_data_port"], "host_imu": host["imu_data_port"],
+        }  # fmt: skip
+        lidars = []
+        types = set()
+        for k, cfg in enumerate(doc["lidar_configs"]):
+            ext = cfg.get("extrinsic_parameter")
+            extrinsic = (
+                None
+                if ext is None
+                else tuple(float(ext[key]) for key in ("roll", "pitch", "yaw", "x", "y", "z"))
+            )
+            if extrinsic is not None and not any(extrinsic):
+                extrinsic = None  # identity: nothing to apply
+            lidars.append((str(cfg["ip"]), extrinsic))
+            types.add(int(cfg.get("pcl_data_type", 1)))
+            if int(cfg.get("pattern_mode", 0)) != 0:
+                raise GraphError(
+                    f"{path}: lidar_configs[{k}].pattern_mode: only 0 (non-repetitive) is supported"
+                )
+    except (KeyError, TypeError, ValueError) as err:
+        raise GraphError(f"{path}: not a livox_ros_driver2 MID360 config: missing or bad {err}") from err
+    if len(types) != 1:
+        raise GraphError(f"{path}: lidar_configs use different pcl_data_type values {sorted(types)}")
+    return {"host_ip": next(iter(ips)), "ports": ports, "lidars": lidars, "data_type": types.pop()}
+
+
+class LivoxDriverNode:
+    """`sensorbox.livox.Mid360Driver` as a node (priority: source)."""
+
+    priority = PRIORITY_SOURCE
+
+    def __init__(self, name: str, config: Any, publish: Publish, discovery_s: float = 0.0) -> None:
+        from sensorbox.livox import Mid360Driver
+
+        self.name = name
+        self.config = config
+        self.discovery_s = discovery_s
+        self.discovered: list[Any] = []
+
+        def relative(topic: str, msgtype: str, stamp_ns: int, raw: bytes) -> None:
+            publish(topic.lstrip("/"), msgtype, stamp_ns, raw)  # livox_ros_driver2's names are relative
+
+        self.driver = Mid360Driver(config, relative)
+
+    def start(self) -> None:
+        if self.discovery_s > 0:
+            self.discovered = self.driver.discover(self.discovery_s)
+            found = {d.ip for d in self.discovered}
+            missing = [li.ip for li in self.config.lidars if li.ip not in found]
+            if missing:
+                log.warning("%s: lidar(s) %s did not answer discovery", self.name, ", ".join(missing))
+        self.driver.start()
+
+    def stop(self) -> None:
+        self.driver.stop()
+
+    def status(self) -> NodeStatus:
+        st = self.driver.stats()
+        counters: dict[str, float] = {"foreign": float(st.foreign), "rcvbuf_bytes": float(st.rcvbuf_bytes),
+                                      "kernel_drops": float(st.kernel_drops)}  # fmt: skip  # part of udp_lost
+        drops = {"udp_lost": 0, "udp_late": 0, "udp_malformed": 0, "imu_lost": 0}
+        for ip, s in st.lidars.items():
+            for key in ("sweeps", "points", "packets", "duplicates", "imu_packets"):
+                counters[f"{ip}.{key}"] = float(getattr(s, key))
+            drops["udp_lost"] += s.lost
+            drops["udp_late"] += s.late
+            drops["udp_malformed"] += s.malformed
+            drops["imu_lost"] += s.imu_lost
+        return NodeStatus(counters, drops)
+
+
+def livox_driver_node(ctx: NodeContext, p: Params) -> Node:
+    from sensorbox.livox import DriverConfig, LidarEndpoint, Ports
+
+    fmt = {0: "pointcloud2", 1: "custom"}.get(p.integer("xfer_format", 1))
+    if fmt is None:
+        raise GraphError(f"{p.where}: xfer_format: 0 (PointCloud2) or 1 (CustomMsg); 2 is ROS 1 only")
+    frame_id = p.text("frame_id", "livox_frame")
+    if frame_id != "livox_frame":
+        raise GraphError(f"{p.where}: frame_id {frame_id!r}: the driver publishes 'livox_frame' only")
+    freq = p.number("publish_freq", 10.0)
+    freq = min(100.0, max(0.5, freq))  # livox_ros_driver2 clamps it the same way
+    base = p.integer("port_base", 56000)
+    ports = Ports.block(base) if base != 56000 else Ports()
+    data_type = p.integer("data_type", 1)
+    host_ip = p.text("host_ip", "")
+    lidars: list[Any] = [LidarEndpoint(ip) for ip in p.texts("lidar_ips", [])]
+    config_path = p.text("user_config_path", "")
+    if config_path:
+        cfg = read_livox_json(Path(config_path))
+        host_ip = host_ip or cfg["host_ip"]
+        if not lidars:
+            lidars = [LidarEndpoint(ip, ext) for ip, ext in cfg["lidars"]]
+        if base == 56000:
+            ports = Ports(**{**ports.__dict__, **cfg["ports"]})
+        if not p.has("data_type"):
+            data_type = cfg["data_type"]
+    if not host_ip or not lidars:
+        raise GraphError(
+            f"{p.where}: give host_ip and lidar_ips, or user_config_path (livox_ros_driver2 JSON)"
+        )
+    config = DriverConfig(
+        host_ip=host_ip, lidars=tuple(lidars), msg_format=fmt,  # type: ignore[arg-type]
+        publish_interval_ns=round(1e9 / freq), multi_topic=p.flag("multi_topic", True),
+        imu=p.flag("imu", True), data_type=data_type, ports=ports,
+    )  # fmt: skip
+    config.validate()
+    return LivoxDriverNode(ctx.name, config, ctx.publish, p.number("discovery_s", 0.0))
+
+
+# ---------------------------------------------------------------- cameras
+
+
+def _source(p: Params, kind: str, which: str, sim: Any, cam: int, name: str) -> Any:
+    from sensorbox.live.cameras import OpenCVSource, ZedSource
+
+    pre = f"{which}_" if which else ""
+    if kind == "zed":
+        serial = p.integer(pre + "serial", 0)
+        return ZedSource(serial or None, p.text("resolution", "HD1200"), int(p.number("fps", 30.0)), name)
+    if kind == "opencv":
+        device = p.text(pre + "device", str(cam))
+        stamps = p.choice("stamps", ("auto", "host", "file"), "auto")
+        return OpenCVSource(
+            device, width=p.integer("width", 0), height=p.integer("height", 0), fps=p.number("fps", 0.0),
+            fourcc=p.text("fourcc", "MJPG"), stamps=None if stamps == "auto" else stamps,  # type: ignore[arg-type]
+            realtime=p.flag("realtime", False), name=name,
+        )  # fmt: skip
+    return _sim("sim_camera_source")(p, sim, cam, name)
+
+
+def _image_opts(p: Params) -> dict[str, Any]:
+    return {
+        "image": p.choice("image", ("jpeg", "raw"), "jpeg"),
+        "jpeg_quality": p.integer("jpeg_quality", 90),
+    }
+
+
+def camera_node(ctx: NodeContext, p: Params) -> Node:
+    from sensorbox.live.cameras import CameraNode, CameraOutput
+
+    kind = p.choice("source", ("zed", "opencv", "sim"), "zed")
+    sim = None
+    cam = 0
+    if kind == "sim":
+        sim = _sim("sim_cameras")(p)
+        cam = {"upper": 0, "lower": 1, "0": 0, "1": 1}.get(p.text("camera", "upper"), -1)
+        if cam < 0:
+            raise GraphError(f"{p.where}: camera: expected upper or lower")
+    source = _source(p, kind, "", sim, cam, ctx.name)
+    default_topic = sim.topic(cam) if sim is not None else ZED_IMAGE_TOPIC
+    out = CameraOutput(
+        ctx.resolve(p.text("topic", default_topic)), p.text("frame_id", f"{ctx.name}_optical_frame")
+    )
+    return CameraNode(ctx.name, [source], [out], ctx.bus.publish, ctx.shutdown, **_image_opts(p))
+
+
+def stereo_camera_node(ctx: NodeContext, p: Params, source: str | None = None) -> Node:
+    from calibration.rig import read_rig
+    from sensorbox.live.cameras import CameraNode, CameraOutput
+
+    kind = source or p.choice("source", ("zed", "opencv", "sim"), "zed")
+    sim = _sim("sim_cameras")(p) if kind == "sim" else None
+    if sim is not None:
+        defaults = [sim.topic(0), sim.topic(1)]
+    else:
+        rig = read_rig(REFERENCE_RIG)
+        defaults = [rig.upper.topic or "/zed_upper/image", rig.lower.topic or "/zed_lower/image"]
+    sources, outputs = [], []
+    for cam, which in enumerate(("upper", "lower")):
+        sources.append(_source(p, kind, which, sim, cam, which))
+        topic = ctx.resolve(p.text(f"{which}_topic", defaults[cam]))
+        outputs.append(CameraOutput(topic, p.text(f"{which}_frame_id", f"cam{cam}_optical_frame")))
+    fps = p.number("fps", 30.0)
+    tol_ms = p.number("pair_tolerance_ms", 500.0 / fps)
+    return CameraNode(
+        ctx.name, sources, outputs, ctx.bus.publish, ctx.shutdown, pair_tolerance_ns=round(tol_ms * 1e6),
+        **_image_opts(p),
+    )  # fmt: skip
+
+
+# ---------------------------------------------------------------- recorder and talker
+
+
+def recorder_node(ctx: NodeContext, p: Params) -> Node:
+    from sensorbox.live.recorder import Recorder, RecorderConfig
+
+    topics = tuple(ctx.resolve(t) for t in p.texts("topics", []))
+    cfg = RecorderConfig(
+        out=Path(p.text("out", "bags")), name=p.text("name", ""), topics=topics,
+        split_bytes=round(p.number("split_size_mb", 0.0) * MiB), split_s=p.number("split_duration_s", 0.0),
+        duration_s=p.number("duration_s", 0.0), queue_msgs=p.integer("queue_size", 256),
+        queue_bytes=round(p.number("queue_mb", 512.0) * MiB),
+        min_free_bytes=round(p.number("min_free_mb", 1024.0) * MiB),
+        compress=p.flag("compress", True), flush_s=p.number("flush_s", 1.0),
+    )  # fmt: skip
+    rec = Recorder(cfg, ctx.name, ctx.shutdown, in_graph=True)
+    rec.subscribe_to(ctx.bus, topics or None)
+    return rec
+
+
+class TalkerNode:
+    """demo_nodes' talker: `std_msgs/String` "Hello World: N" at `rate_hz` (tests, examples)."""
+
+    priority = PRIORITY_SOURCE
+
+    def __init__(self, name: str, publish: Publish, topic: str, rate_hz: float, count: int, payload: int):
+        if rate_hz <= 0:
+            raise GraphError(f"talker {name}: rate_hz must be > 0, got {rate_hz}")
+        self.name, self._publish, self.topic = name, publish, topic
+        self.rate_hz, self.count, self.payload = rate_hz, count, payload
+        self.sent = 0
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, name=self.name, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        from ingest.bags.rostypes import typestore
+
+        ts = typestore(2)
+        t0 = time.monotonic()
+        for k in itertools.count():
+            if self.count and k >= self.count:
+                return
+            if self._stop.wait(max(0.0, t0 + k / self.rate_hz - time.monotonic())):
+                return
+            text = f"Hello World: {k}" + "." * self.payload
+            raw = bytes(ts.serialize_cdr(ts.types["std_msgs/msg/String"](data=text), "std_msgs/msg/String"))
+            self._publish(self.topic, "std_msgs/msg/String", time.time_ns(), raw)
+            self.sent += 1
+
+    @property
+    def done(self) -> bool:
+        return bool(self.count) and self.sent >= self.count
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+
+    def status(self) -> NodeStatus:
+        return NodeStatus({"sent": float(self.sent)})
+
+
+def talker_node(ctx: NodeContext, p: Params) -> Node:
+    return TalkerNode(
+        ctx.name, ctx.publish, p.text("topic", "chatter"), p.number("rate_hz", 10.0), p.integer("count", 0),
+        p.integer("payload_bytes", 0),
+    )  # fmt: skip
+
+
+# ---------------------------------------------------------------- the registry
+
+
+SIM_NODES = "sensorbox.sim.nodes"
+"""Where the simulator's node factories live: live code reaches the simulator only by this name."""
+
+
+def _sim(attr: str) -> Any:
+    """A factory of the simulator's nodes, imported on first use."""
+    return getattr(importlib.import_module(SIM_NODES), attr)
+
+
+Factory = Callable[[NodeContext, "Params"], Node]
+
+
+@dataclass(frozen=True)
+class NodeType:
+    """A launch file's `pkg`/`exec`: its factory, or the name of one in the simulator's nodes."""
+
+    pkg: str
+    exec: str
+    factory: Factory | str
+    summary: str
+    defaults: Mapping[str, Any] = field(default_factory=dict)
+
+    def make(self, ctx: NodeContext, params: Params) -> Node:
+        factory = _sim(self.factory) if isinstance(self.factory, str) else self.factory
+        node: Node = factory(ctx, params)
+        return node
+
+
+NODE_TYPES: tuple[NodeType, ...] = (
+    NodeType("sensorbox", "recorder", recorder_node, "bounded queues into ROS 2 mcap bags"),
+    NodeType("sensorbox", "livox_driver", livox_driver_node, "Livox Mid-360 UDP driver (no SDK)"),
+    NodeType("livox_ros_driver2", "livox_ros_driver2_node", livox_driver_node, "= sensorbox/livox_driver"),
+    NodeType("sensorbox", "mid360_emulator", "mid360_emulator_node", "emulated Mid-360 on loopback"),
+    NodeType("sensorbox", "camera", camera_node, "one camera: ZED X One, OpenCV/V4L2 or simulated"),
+    NodeType("zed_wrapper", "zed_wrapper", camera_node, "alias of sensorbox/camera (ZED)"),
+    NodeType("sensorbox", "stereo_camera", stereo_camera_node, "upper+lower cameras paired by stamp"),
+    NodeType("sensorbox", "sim_camera", "sim_camera_node", "the simulator's stereo pair at 30 Hz"),
+    NodeType("sensorbox", "talker", talker_node, "std_msgs/String at a rate (demo_nodes' talker)"),
+)  # fmt: skip
+
+
+def node_type(pkg: str, exe: str) -> NodeType | None:
+    return next((t for t in NODE_TYPES if t.pkg == pkg and t.exec == exe), None)
+
+
+def known_node_types() -> list[str]:
+    return [f"{t.pkg}/{t.exec}" for t in NODE_TYPES]
+
+
+def build_node(spec: Any, bus: Bus, shutdown: Shutdown) -> Node:
+    """The node a `launch.NodeSpec` describes, constructed (not started)."""
+    t = node_type(spec.pkg, spec.exec)
+    if t is None:
+        raise GraphError(
+            f"{spec.where}: unknown node type {spec.pkg}/{spec.exec}; known: {', '.join(known_node_types())}"
+        )
+    name = spec.name or spec.exec
+    ctx = node_context(bus, shutdown, name, spec.namespace, spec.remaps)
+    params = Params({**t.defaults, **spec.params}, spec.label)
+    try:
+        node = t.make(ctx, params)
+    except GraphError:
+        raise
+    except SensorboxError as err:  # e.g. a RecorderError or DriverError about a parameter value
+        raise GraphError(f"{spec.label}: {err}") from err
+    params.check()
+    return node

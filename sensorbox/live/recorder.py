@@ -1,0 +1,414 @@
+"""The live recorder: bounded per-topic queues into ROS 2 mcap bags, split by size or duration.
+
+Where it writes, deliberately: each bag is a rosbag2 folder `OUT/<name>_<NNN>/`
+written in place (`BagWriter(in_place=True)`), not under a hidden temporary
+name. While it records, the folder holds `<name>_<NNN>.mcap` and no
+metadata.yaml; closing writes the mcap summary and metadata.yaml. A recorder
+killed with SIGKILL (or a power cut) therefore leaves a folder that `ingest
+--salvage` reads chunk by chunk: every chunk written so far survives and only
+the open chunk is lost. The open chunk is closed and flushed at least every
+`flush_s` seconds (and whenever it passes 1 MiB, rosbags' chunk size), so a kill
+loses at most about `flush_s` seconds or 1 MiB of messages, plus what sat in
+the queues.
+
+Per message: the bus calls `enqueue` in the publisher's thread; it appends to
+that topic's queue under one lock and stamps the log time (host receive time,
+ns), or drops the message and counts it when the topic's queue is full
+(`queue_msgs` messages or `queue_bytes` bytes), so one flooding topic cannot
+starve the others nor grow memory without bound. One writer thread drains all
+queues in receive order into the bag: embedded message definitions
+(`add_connection(typestore=...)`), zstd chunks, rosbag2 metadata version 8.
+
+Stops: `stop()` (SIGINT/SIGTERM through the launch runner) drains the queues and
+closes the bag readable. Every `disk_check_s` the free space of OUT is checked;
+below `min_free_bytes` the recorder closes its bag, drops (and counts) what
+still arrives, and asks the graph to shut down, so the disk never fills. After
+`duration_s` of recording (0 = never) it asks the graph to shut down as well;
+with `in_graph=True` (the launch runner's recorder node) the time counts from
+when every node of the graph has started (`graph_started()`), so slow starters
+such as pre-rendering cameras are not cut short; alone, from the first message.
+
+Drop counters by stage: `queue` (queue full), `disk` (after the disk guard
+stopped recording), `write` (the writer refused a message, e.g. a type unknown
+to the typestore), `stopped` (arrived after stop()).
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+import shutil
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Collection
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+from calibration.errors import SensorboxError
+from sensorbox.live.bagwriter import BagWriter
+from sensorbox.live.bus import PRIORITY_SINK, NodeStatus, Shutdown
+
+log = logging.getLogger(__name__)
+
+MiB = 1 << 20
+DiskFree = Callable[[Path], int]
+
+
+class RecorderError(SensorboxError):
+    """The recorder's configuration or output folder is unusable."""
+
+
+def disk_free_bytes(path: Path) -> int:
+    """Free bytes on the file system holding `path` (its nearest existing parent)."""
+    p = Path(path).absolute()
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    return shutil.disk_usage(p).free
+
+
+def default_bag_name() -> str:
+    """`capture_YYYYmmdd-HHMMSS`, local time (bags of one run are `<name>_000`, `<name>_001`, ...)."""
+    return datetime.now().strftime("capture_%Y%m%d-%H%M%S")
+
+
+@dataclass(frozen=True)
+class RecorderConfig:
+    """Where and how to record; sizes in bytes, times in seconds (0 = off)."""
+
+    out: Path
+    name: str = ""  # bag folder prefix; "" = capture_<local time>
+    topics: tuple[str, ...] = ()  # () = every topic on the bus
+    split_bytes: int = 0  # start the next bag once the mcap file is this large
+    split_s: float = 0.0  # start the next bag after this much receive time
+    duration_s: float = 0.0  # ask the graph to stop after recording this long
+    queue_msgs: int = 256  # per topic
+    queue_bytes: int = 512 * MiB  # per topic
+    min_free_bytes: int = 1024 * MiB  # stop before the disk has less than this free
+    compress: bool = True  # zstd mcap chunks
+    flush_s: float = 1.0  # close and flush the open chunk at least this often
+    disk_check_s: float = 1.0
+
+    def validate(self) -> None:
+        if self.name and not re.fullmatch(r"[A-Za-z0-9_.+-]+", self.name):
+            raise RecorderError(f"recorder name {self.name!r}: use letters, digits and _ . + - only")
+        for key in ("split_bytes", "split_s", "duration_s", "min_free_bytes", "flush_s"):
+            if getattr(self, key) < 0:
+                raise RecorderError(f"recorder {key} must be >= 0, got {getattr(self, key)}")
+        if self.queue_msgs < 1 or self.queue_bytes < 1:
+            raise RecorderError(
+                f"recorder queue_msgs ({self.queue_msgs}) and queue_bytes ({self.queue_bytes}) must be >= 1"
+            )
+        if self.disk_check_s <= 0:
+            raise RecorderError(f"recorder disk_check_s must be > 0, got {self.disk_check_s}")
+
+
+@dataclass
+class TopicCounters:
+    msgtype: str
+    received: int = 0  # handed to enqueue
+    written: int = 0
+    bytes: int = 0  # serialised bytes written
+    queue_drops: int = 0
+    disk_drops: int = 0
+    write_drops: int = 0
+    stopped_drops: int = 0
+    queued_bytes: int = 0
+    queue_peak: int = 0
+    first_ns: int = 0  # receive time of the first and last message written
+    last_ns: int = 0
+
+    def rate_hz(self) -> float:
+        """Mean rate written: (messages - 1) / (last - first receive time)."""
+        span = self.last_ns - self.first_ns
+        return (self.written - 1) * 1e9 / span if self.written > 1 and span > 0 else 0.0
+
+
+@dataclass
+class _Pending:
+    msgs: deque[tuple[int, int, str, str, bytes]] = field(default_factory=deque)  # (seq, recv_ns, ...)
+
+
+class Recorder:
+    """Record bus messages into mcap bags (see the module docstring). A `Node` (priority: sink)."""
+
+    priority = PRIORITY_SINK
+
+    def __init__(
+        self,
+        cfg: RecorderConfig,
+        name: str = "recorder",
+        shutdown: Shutdown | None = None,
+        disk_free: DiskFree = disk_free_bytes,
+        clock_ns: Callable[[], int] = time.time_ns,
+        in_graph: bool = False,
+        monotonic: Callable[[], float] = time.monotonic,
+    ) -> None:
+        """`clock_ns` stamps each message's receive (log) time; `monotonic` (seconds) measures
+        `duration_s`. Tests pass their own clocks to make both deterministic."""
+        cfg.validate()
+        self.cfg = cfg
+        self.name = name
+        self.bag_name = cfg.name or default_bag_name()
+        self._shutdown = shutdown
+        self._disk_free = disk_free
+        self._clock_ns = clock_ns
+        self._monotonic = monotonic
+        self._wanted = frozenset(cfg.topics) if cfg.topics else None
+        self._lock = threading.Lock()
+        self._wake = threading.Condition(self._lock)
+        self._queues: dict[str, deque[tuple[int, str, bytes]]] = {}
+        self._order: deque[str] = deque()  # topic of every queued message, in receive order
+        self.topics: dict[str, TopicCounters] = {}
+        self._stopping = False
+        self._accepting = False
+        self._thread: threading.Thread | None = None
+        self._bag: BagWriter | None = None
+        self._bag_index = 0
+        self._bag_start_ns = 0
+        self._bag_mcap: Path | None = None
+        self.files: list[Path] = []
+        self.disk_full = False
+        self.disk_free = -1
+        self.error: str | None = None
+        self._first_write: float | None = None  # monotonic time of the first message written
+        self._graph_started: float | None = None
+        self._in_graph = in_graph
+        self._duration_requested = False
+        self._written_total = 0
+        self._flushed_total = 0  # messages in complete chunks flushed to the OS: they survive a SIGKILL
+
+    # ------------------------------------------------------------------ Node
+
+    def start(self) -> None:
+        first = self._bag_dir(0)
+        if first.exists():
+            raise RecorderError(f"{first} exists already; choose another recorder name or out folder")
+        self.cfg.out.mkdir(parents=True, exist_ok=True)
+        self._check_disk()
+        if self.disk_full:
+            raise RecorderError(
+                f"{self.cfg.out}: only {self.disk_free / MiB:.0f} MiB free, below the recorder's "
+                f"min_free_bytes {self.cfg.min_free_bytes / MiB:.0f} MiB; free space or lower min_free"
+            )
+        with self._lock:
+            self._accepting = True
+        self._thread = threading.Thread(target=self._run, name=f"{self.name}-writer", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        """Drain the queues, close the bag (readable), join the writer."""
+        with self._lock:
+            self._accepting = False
+            self._stopping = True
+            self._wake.notify()
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
+
+    def graph_started(self) -> None:
+        """Every node of the graph runs now: `duration_s` counts from here."""
+        self._graph_started = self._monotonic()
+
+    def status(self) -> NodeStatus:
+        with self._lock:
+            rates = {t: c.rate_hz() for t, c in self.topics.items()}
+            topics = {t: (c.written, c.queue_drops, c.disk_drops, c.write_drops, c.stopped_drops, c.bytes)
+                      for t, c in self.topics.items()}  # fmt: skip
+            queued = sum(len(q) for q in self._queues.values())
+        drops = {
+            "queue": sum(v[1] for v in topics.values()),
+            "disk": sum(v[2] for v in topics.values()),
+            "write": sum(v[3] for v in topics.values()),
+            "stopped": sum(v[4] for v in topics.values()),
+        }
+        counters = {
+            "bytes_written": float(sum(v[5] for v in topics.values())),
+            "disk_free_bytes": float(self.disk_free),
+            "queued": float(queued),
+            "bags": float(len(self.files)),
+            "flushed_msgs": float(self._flushed_total),
+        }
+        return NodeStatus(
+            counters, drops, {t: v[0] for t, v in topics.items()}, tuple(self.files), rates, self.error
+        )
+
+    # ------------------------------------------------------------------ input
+
+    def enqueue(self, topic: str, msgtype: str, stamp_ns: int, raw: bytes) -> bool:
+        """Queue one message (called by the bus in the publisher's thread); False if it was dropped."""
+        del stamp_ns  # the bag's log time is the receive time; header stamps stay inside `raw`
+        if self._wanted is not None and topic not in self._wanted:
+            return False
+        cfg = self.cfg
+        with self._lock:
+            c = self.topics.get(topic)
+            if c is None:
+                c = self.topics[topic] = TopicCounters(msgtype)
+            c.received += 1
+            if not self._accepting:
+                if self.disk_full:
+                    c.disk_drops += 1
+                else:
+                    c.stopped_drops += 1
+                return False
+            q = self._queues.get(topic)
+            if q is None:
+                q = self._queues[topic] = deque()
+            if len(q) >= cfg.queue_msgs or c.queued_bytes + len(raw) > cfg.queue_bytes:
+                c.queue_drops += 1
+                return False
+            q.append((self._clock_ns(), msgtype, raw))
+            c.queued_bytes += len(raw)
+            c.queue_peak = max(c.queue_peak, len(q))
+            self._order.append(topic)
+            self._wake.notify()
+        return True
+
+    def subscribe_to(self, bus: Any, topics: Collection[str] | None = None) -> None:
+        """Subscribe `enqueue` to a `sensorbox.live.bus.Bus` (every topic unless the config names some)."""
+        bus.subscribe(self.enqueue, topics if topics is not None else (self.cfg.topics or None))
+
+    # ------------------------------------------------------------------ writer thread
+
+    def _next(self, timeout_s: float) -> tuple[str, int, str, bytes] | None:
+        """The oldest queued message (all topics, receive order), waiting up to `timeout_s`."""
+        with self._lock:
+            if not self._order and not self._stopping:
+                self._wake.wait(timeout_s)
+            if not self._order:
+                return None
+            topic = self._order.popleft()
+            recv_ns, msgtype, raw = self._queues[topic].popleft()
+            self.topics[topic].queued_bytes -= len(raw)
+            return topic, recv_ns, msgtype, raw
+
+    def _run(self) -> None:
+        next_check = next_flush = time.monotonic()
+        try:
+            while True:
+                item = self._next(0.05)
+                if item is not None:
+                    self._write(*item)
+                now = time.monotonic()
+                if now >= next_check:
+                    next_check = now + self.cfg.disk_check_s
+                    self._check_disk()
+                self._check_duration(self._monotonic())
+                if now >= next_flush:
+                    next_flush = now + self.cfg.flush_s
+                    if self._bag is not None:
+                        self._bag.flush()
+                        self._flushed_total = self._written_total
+                if item is None and self._stopping:
+                    with self._lock:
+                        if not self._order:
+                            break
+        except Exception as err:
+            self.error = f"recorder {self.name!r}: {type(err).__name__}: {err}"
+            log.exception("recorder writer failed")
+            with self._lock:
+                self._accepting = False
+            if self._shutdown is not None:
+                self._shutdown.request(self.error, error=True)
+        finally:
+            self._close_bag()
+
+    def _write(self, topic: str, recv_ns: int, msgtype: str, raw: bytes) -> None:
+        c = self.topics[topic]
+        if self.disk_full:
+            c.disk_drops += 1
+            return
+        if c.msgtype != msgtype:
+            c.write_drops += 1
+            log.warning("%s: %s arrived with type %s, recording %s", self.name, topic, msgtype, c.msgtype)
+            return
+        bag = self._bag
+        if bag is not None and self._should_split(recv_ns):
+            self._close_bag()
+            bag = None
+        if bag is None:
+            bag = self._open_bag(recv_ns)
+        if topic not in bag.counts:
+            try:
+                bag.add(topic, msgtype)
+            except Exception as err:  # rosbags: type unknown to the typestore
+                c.write_drops += 1
+                log.error("%s: cannot record %s (%s): %s", self.name, topic, msgtype, err)
+                return
+        bag.write(topic, recv_ns, raw)
+        if self._first_write is None:
+            self._first_write = self._monotonic()
+        if not c.written:
+            c.first_ns = recv_ns
+        c.last_ns = recv_ns
+        c.written += 1
+        c.bytes += len(raw)
+        self._written_total += 1
+
+    def _should_split(self, recv_ns: int) -> bool:
+        cfg = self.cfg
+        if cfg.split_s > 0 and recv_ns - self._bag_start_ns >= cfg.split_s * 1e9:
+            return True
+        if cfg.split_bytes > 0 and self._bag_mcap is not None:
+            try:
+                return self._bag_mcap.stat().st_size >= cfg.split_bytes
+            except OSError:
+                return False
+        return False
+
+    def _bag_dir(self, index: int) -> Path:
+        return self.cfg.out / f"{self.bag_name}_{index:03d}"
+
+    def _open_bag(self, recv_ns: int) -> BagWriter:
+        path = self._bag_dir(self._bag_index)
+        self._bag_index += 1
+        bag = BagWriter(path, "mcap", compress=self.cfg.compress, in_place=True)
+        bag.__enter__()
+        bag.flush()  # the mcap magic and header reach the file now: even an early kill leaves an mcap
+        # topics seen before this split are declared again, so every bag is self-contained
+        self._bag, self._bag_start_ns = bag, recv_ns
+        self._bag_mcap = path / f"{path.name}.mcap"
+        self.files.append(path)
+        log.info("%s: recording into %s", self.name, path)
+        return bag
+
+    def _close_bag(self) -> None:
+        bag, self._bag, self._bag_mcap = self._bag, None, None
+        if bag is not None:
+            bag.__exit__(None, None, None)
+            self._flushed_total = self._written_total
+
+    def _check_disk(self) -> None:
+        try:
+            self.disk_free = int(self._disk_free(self.cfg.out))
+        except OSError as err:
+            log.warning("%s: cannot read free space of %s: %s", self.name, self.cfg.out, err)
+            return
+        if self.disk_free < self.cfg.min_free_bytes and not self.disk_full:
+            self.disk_full = True
+            with self._lock:
+                self._accepting = False
+                for topic, q in self._queues.items():
+                    self.topics[topic].disk_drops += len(q)
+                    self.topics[topic].queued_bytes = 0
+                    q.clear()
+                self._order.clear()
+            self._close_bag()
+            reason = (
+                f"{self.name}: disk free {self.disk_free / MiB:.0f} MiB below min_free "
+                f"{self.cfg.min_free_bytes / MiB:.0f} MiB; recording stopped, bag closed"
+            )
+            log.warning(reason)
+            if self._shutdown is not None:
+                self._shutdown.request(reason)
+
+    def _check_duration(self, now: float) -> None:
+        d = self.cfg.duration_s
+        first = self._graph_started if self._in_graph else self._first_write
+        if d > 0 and first is not None and not self._duration_requested and now - first >= d:
+            self._duration_requested = True
+            if self._shutdown is not None:
+                self._shutdown.request(f"{self.name}: recorded {d:g} s")

@@ -1,0 +1,157 @@
+"""The simulator's nodes for launch files: Mid-360 emulators and the simulated stereo camera.
+
+The live node registry (`sensorbox.live.nodes.NODE_TYPES`) names these
+factories; their parameters are documented there.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Iterator
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from calibration.errors import SensorboxError
+from sensorbox.live.bus import PRIORITY_DEVICE, GraphError, Node, NodeContext, NodeStatus
+from sensorbox.live.nodes import REFERENCE_RIG, Params, stereo_camera_node
+from sensorbox.sim.camera_source import SimCameras, SimCameraSource
+from sensorbox.sim.lidar import SWEEP_PERIOD_NS, Sweep
+from sensorbox.sim.mid360 import IMU_PERIOD_NS, ImuSamples, Mid360Emulator, SimScan
+from sensorbox.sim.run import SimConfig, setup_sim
+from sensorbox.sim.trajectory import imu_readings
+
+
+def _sim_config(p: Params, **fixed: Any) -> Any:
+    cfg = SimConfig(
+        scene=p.text("scene", "indoor"), trajectory=p.text("trajectory", "static"), seed=p.integer("seed", 0),
+        rig=Path(p.text("rig", str(REFERENCE_RIG))), scale=p.number("scale", 1.0),
+        supersample=p.integer("supersample", 1), **fixed,
+    )  # fmt: skip
+    cfg.validate()
+    return cfg
+
+
+class LoopedScan:
+    """A simulated LiDAR's first `loop_s` seconds of sweeps, replayed forever with advancing stamps.
+
+    The simulator casts about 0.75 s of CPU per 1 s of one Mid-360's scan, too
+    slow to stream two live on a 2-core box; looping is exact for a static
+    trajectory (a moving one jumps back at every loop seam). IMU readings come
+    from the trajectory at the looped time.
+    """
+
+    def __init__(self, scan: Any, loop_s: float) -> None:
+        self.scan = scan
+        self.items = list(scan.sweeps())
+        if not self.items:
+            raise SensorboxError(f"emulator loop of {loop_s} s holds no sweep")
+        self.loop_ns = len(scan.windows()) * SWEEP_PERIOD_NS
+        self.base_ns = int(scan.setup.cfg.start_ns) + int(scan.lidar.clock_offset_ns)
+
+    def sweeps(self) -> Iterator[Any]:
+        for k in itertools.count():
+            for sw in self.items:
+                yield Sweep(sw.timebase_ns + k * self.loop_ns, sw.points)
+
+    def imu(self, start_ns: int, end_ns: int) -> Any:
+        first = self.base_ns + int(self.scan.lidar.first_packet_ns)
+        k0 = -(-(start_ns - first) // IMU_PERIOD_NS)
+        k1 = -(-(end_ns - first) // IMU_PERIOD_NS)
+        stamps = first + np.arange(max(k0, 0), max(k0, k1, 0), dtype=np.int64) * IMU_PERIOD_NS
+        if len(stamps) == 0:
+            return ImuSamples(stamps, np.zeros((0, 3)), np.zeros((0, 3)))
+        t_sim = (stamps - self.base_ns) % self.loop_ns
+        gyro, acc = imu_readings(self.scan.setup.traj, t_sim / 1e9, self.scan.T_cam0_imu)
+        return ImuSamples(stamps, gyro, acc)
+
+
+class EmulatorNode:
+    """One emulated Mid-360 (`sensorbox.sim.mid360.Mid360Emulator`) on loopback (priority: device)."""
+
+    priority = PRIORITY_DEVICE
+
+    def __init__(self, name: str, sim_cfg: Any, lidar: str, ip: str, loop_s: float, options: dict[str, Any]):
+        self.name = name
+        self.sim_cfg = sim_cfg
+        self.lidar = lidar
+        self.ip = ip
+        self.loop_s = loop_s
+        self.options = options
+        self.emulator: Any = None
+
+    def start(self) -> None:
+        cfg = replace(self.sim_cfg, duration_s=self.loop_s if self.loop_s > 0 else 1e7)
+        setup = setup_sim(cfg)
+        names = [li.name for li in setup.rig.lidars]
+        if self.lidar not in names:
+            raise GraphError(
+                f"emulator {self.name}: rig has no lidar {self.lidar!r}; it has {', '.join(names)}"
+            )
+        index = names.index(self.lidar)
+        scan = SimScan(setup, index)
+        source = LoopedScan(scan, self.loop_s) if self.loop_s > 0 else scan
+        last = (setup.rig.lidars[index].ip or "0.0.0.0").rsplit(".", 1)[-1]
+        self.emulator = Mid360Emulator(
+            self.ip,
+            source,
+            serial=f"47MDL9A00100{int(last) % 100:02d}",
+            seed=cfg.seed * 100 + index,
+            **self.options,
+        )
+        self.emulator.start()
+
+    def stop(self) -> None:
+        if self.emulator is not None:
+            self.emulator.stop()
+
+    def status(self) -> NodeStatus:
+        if self.emulator is None:
+            return NodeStatus()
+        c = self.emulator.counters
+        counters = {"packets_sent": c.packets_sent, "points_sent": c.points_sent, "imu_sent": c.imu_sent,
+                    "sweeps_sent": c.sweeps}  # fmt: skip
+        return NodeStatus({k: float(v) for k, v in counters.items()})
+
+
+def mid360_emulator_node(ctx: NodeContext, p: Params) -> Node:
+    from sensorbox.livox import Ports
+
+    ip = p.text("ip", "")
+    if not ip.startswith("127."):
+        raise GraphError(f"{p.where}: ip {ip!r}: an emulated lidar needs a loopback address 127.0.0.x")
+    base = p.integer("port_base", 56000)
+    options = {
+        "ports": Ports.block(base) if base != 56000 else Ports(),
+        "time_type": p.integer("time_type", 1), "data_type": p.integer("data_type", 1),
+        "loss": p.number("loss", 0.0), "reorder": p.number("reorder", 0.0),
+        "duplicate": p.number("duplicate", 0.0), "malformed": p.number("malformed", 0.0),
+        "rate": p.number("rate", 1.0), "listen_broadcast": p.flag("listen_broadcast", False),
+    }  # fmt: skip
+    noise = p.number("range_noise_m", 0.02)
+    sim = _sim_config(p, range_noise_m=noise)
+    loop_s = p.number("loop_s", 1.0)
+    if loop_s < 0:
+        raise GraphError(f"{p.where}: loop_s must be >= 0 (0 = simulate live), got {loop_s}")
+    return EmulatorNode(ctx.name, sim, p.text("lidar", "lidar_top"), ip, loop_s, options)
+
+
+def sim_cameras(p: Params) -> Any:
+    sim = SimCameras(_sim_config(p, camera_rate_hz=p.number("fps", 30.0)))
+    rig_out = p.text("write_rig", "")
+    if rig_out:
+        sim.write_rig(Path(rig_out))
+    return sim
+
+
+def sim_camera_source(p: Params, sim: SimCameras, cam: int, name: str) -> SimCameraSource:
+    """One of the simulated pair as a camera source (the `sim` source of the camera nodes)."""
+    prerender = p.choice("prerender", ("auto", "always", "never"), "auto")
+    loop, buffer = p.integer("loop_frames", 30), p.integer("buffer_frames", 4)
+    return SimCameraSource(sim, cam, prerender=prerender, loop_frames=loop, buffer_frames=buffer, name=name)  # type: ignore[arg-type]
+
+
+def sim_camera_node(ctx: NodeContext, p: Params) -> Node:
+    return stereo_camera_node(ctx, p, source="sim")
