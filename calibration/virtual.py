@@ -31,7 +31,7 @@ import numpy as np
 from calibration.camera import CameraModel, FieldOfView, field_of_view
 from calibration.errors import CalibrationError
 from calibration.fisheye import DoubleSphere
-from calibration.types import F64, Bool
+from calibration.types import F32, F64, Bool
 
 FOV_M = 0.2
 """m of the FOV laws (xi and alpha)."""
@@ -161,9 +161,6 @@ def crop_bounds(mask: Bool, margin_px: int = 1) -> tuple[int, int, int, int]:
     r0, r1 = max(0, int(rows[0]) - margin_px), min(mask.shape[0], int(rows[-1]) + 1 + margin_px)
     c0, c1 = max(0, int(cols[0]) - margin_px), min(mask.shape[1], int(cols[-1]) + 1 + margin_px)
     return c0, r0, c1 - c0, r1 - r0
-
-
-F32 = np.ndarray[Any, np.dtype[np.float32]]
 
 
 def project_f32(model: CameraModel, x: F32, y: F32, z: F32) -> tuple[F32, F32, Bool]:

@@ -51,11 +51,10 @@ import yaml
 
 from calibration.rig import Rig
 from ingest.bags.decode import ImuSample, RosVersion, Sweep, decode, header_stamp_ns
-from ingest.bags.livox_msg import MessageDecodeError
 from ingest.bags.reader import BagSet, RawMessage, open_bags
 from ingest.bags.rostypes import COMPRESSED_IMAGE_TYPE, IMAGE_TYPE, IMU_TYPE, LIVOX_PACKAGES, POINTCLOUD2_TYPE
 from ingest.bags.rostypes import typestore as sensorbox_typestore
-from ingest.errors import BagError
+from ingest.errors import BagError, MessageDecodeError
 
 __all__ = [
     "BagReport",

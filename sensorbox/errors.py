@@ -1,4 +1,4 @@
-"""Errors of the live box (drivers, recorder); the tree's root lives in `calibration`."""
+"""Errors of the box (drivers, protocol, graphs, launch files, recorder); the root is in `calibration`."""
 
 from calibration.errors import CalibrationError, SensorboxError
 
@@ -7,4 +7,28 @@ class DriverError(SensorboxError):
     """A live device (LiDAR, camera) misbehaved or could not be reached."""
 
 
-__all__ = ["CalibrationError", "DriverError", "SensorboxError"]
+class ProtocolError(DriverError):
+    """A datagram does not follow the Mid-360 protocol (bad CRC, length, field value)."""
+
+
+class GraphError(SensorboxError):
+    """A node graph could not be built, started or run (names the node and what failed)."""
+
+
+class LaunchError(SensorboxError):
+    """A launch file or argument is malformed; the message names the file, line and key."""
+
+
+class RecorderError(SensorboxError):
+    """The recorder's configuration or output folder is unusable."""
+
+
+__all__ = [
+    "CalibrationError",
+    "DriverError",
+    "GraphError",
+    "LaunchError",
+    "ProtocolError",
+    "RecorderError",
+    "SensorboxError",
+]

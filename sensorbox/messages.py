@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 
 from calibration.errors import SensorboxError
-from calibration.types import F64
+from calibration.types import F64, U8
 from ingest.bags.livox_msg import Points, encode_custom_msg
 from ingest.bags.rostypes import (
     COMPRESSED_IMAGE_TYPE,
@@ -27,7 +27,6 @@ from ingest.bags.rostypes import (
 )
 
 RosVersion = Literal[1, 2]
-U8 = np.ndarray[Any, np.dtype[np.uint8]]
 LIVOX_FRAME = "livox_frame"
 PC2_FIELDS = (
     ("x", 0, 7), ("y", 4, 7), ("z", 8, 7), ("intensity", 12, 7),

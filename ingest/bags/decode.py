@@ -34,7 +34,7 @@ from typing import Any, Literal
 import cv2
 import numpy as np
 
-from ingest.bags.livox_msg import CustomMsg, MessageDecodeError, decode_custom_msg
+from ingest.bags.livox_msg import CustomMsg, decode_custom_msg
 from ingest.bags.rostypes import (
     COMPRESSED_IMAGE_TYPE,
     IMAGE_TYPE,
@@ -43,6 +43,7 @@ from ingest.bags.rostypes import (
     POINTCLOUD2_TYPE,
     typestore,
 )
+from ingest.errors import MessageDecodeError
 
 RosVersion = Literal[1, 2]
 Array = np.ndarray[Any, np.dtype[Any]]

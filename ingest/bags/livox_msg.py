@@ -23,7 +23,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from calibration.errors import SensorboxError
+from ingest.errors import MessageDecodeError
 
 POINT_FIELDS: list[tuple[str, str]] = [
     ("offset_time", "<u4"),
@@ -46,10 +46,6 @@ CDR_POINT_DTYPE = np.dtype(
 )
 
 Points = np.ndarray[Any, np.dtype[np.void]]
-
-
-class MessageDecodeError(SensorboxError):
-    """A message's bytes do not match the layout its type promises."""
 
 
 @dataclass(frozen=True)

@@ -32,9 +32,10 @@ import cv2
 import numpy as np
 import OpenEXR
 
-from calibration.errors import SensorboxError
+from calibration.types import F32, U8
 from ingest.dataset.png import encode_png
 from ingest.dataset.sparse import SparseImage
+from ingest.errors import DatasetError
 
 IMAGE_DIRS = ("left_fisheye", "right_fisheye", "equirect_up", "equirect_down_virt")
 GT_DIRS = ("disp_equirect", "depth_fisheye")
@@ -42,13 +43,6 @@ EXR_DIRS = ("disp_equirect_exr", "depth_fisheye_exr")
 DISP_SCALE = 100.0  # uint16 = round(disp_px * 100)
 DEPTH_SCALE = 1000.0  # uint16 = round(range_m * 1000)
 ID_DIGITS = 6
-
-U8 = np.ndarray[Any, np.dtype[np.uint8]]
-F32 = np.ndarray[Any, np.dtype[np.float32]]
-
-
-class DatasetError(SensorboxError):
-    """The output folder cannot be written (disk full, permissions, a foreign dataset)."""
 
 
 def sample_id(index: int) -> str:

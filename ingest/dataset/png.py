@@ -23,16 +23,12 @@ import cv2
 import numpy as np
 from isal import isal_zlib
 
-from calibration.errors import SensorboxError
+from ingest.errors import PngError
 
 SIGNATURE = b"\x89PNG\r\n\x1a\n"
 LEVELS = (0, 1, 2, 3)  # ISA-L deflate levels: 0 fastest, 3 smallest
 RowFilter = Literal["none", "sub"]
 _FILTER_BYTE = {"none": 0, "sub": 1}
-
-
-class PngError(SensorboxError):
-    """An array PNG cannot hold as given (shape, dtype) or a bad encoder setting."""
 
 
 def _chunk(kind: bytes, data: bytes | memoryview) -> bytes:

@@ -12,8 +12,7 @@ from typing import Any
 
 import numpy as np
 
-I64 = np.ndarray[Any, np.dtype[np.int64]]
-F32 = np.ndarray[Any, np.dtype[np.float32]]
+from calibration.types import F32, I64
 
 
 @dataclass(frozen=True)

@@ -36,8 +36,9 @@ from typing import Any, Literal
 import cv2
 import numpy as np
 
-from calibration.errors import SensorboxError
-from ingest.dataset.layout import DEPTH_SCALE, DISP_SCALE, DatasetError, read_png_u16, write_atomic
+from calibration.types import F32
+from ingest.dataset.layout import DEPTH_SCALE, DISP_SCALE, read_png_u16, write_atomic
+from ingest.errors import DatasetError, EvalError
 from ingest.eval.metrics import (
     HIGHER_IS_BETTER,
     LOWER_IS_BETTER,
@@ -53,7 +54,6 @@ Layout = Literal["train", "benchmark"]
 TASKS: tuple[Task, ...] = ("stereo", "mono", "completion")
 GROUP_KEYS = ("fov", "baseline")
 PRED_EXTS = (".png", ".exr", ".npy")
-F32 = np.ndarray[Any, np.dtype[np.float32]]
 
 BENCHMARK_GT = re.compile(
     r"^(?P<scene>[^/]+)/(?P<fov>\d+(?:\.\d+)?)FOV/(?P<baseline>\d+(?:\.\d+)?)mm/CENTER/"
@@ -66,10 +66,6 @@ CONFIG_LABEL = re.compile(r"^(?P<value>\d+(?:\.\d+)?)(?P<unit>FOV|mm)$")
 STEREO_COLUMNS = ("epe_px", "median_px", "p95_px", "bad1", "bad2", "bad3")
 DEPTH_COLUMNS = ("abs_rel", "mae_m", "rmse_m", "delta1", "delta2", "delta3")
 EDGE_STEP = {"stereo": (0.25, 0.03), "depth": (0.05, 0.03)}  # (abs, rel) of `edge_band`, px or m
-
-
-class EvalError(SensorboxError):
-    """Ground truth or predictions cannot be found, read or matched."""
 
 
 @dataclass(frozen=True)

@@ -26,15 +26,13 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ingest.eval.evaluate import EvalError, GtFile, Layout, discover_gt, json_safe, read_gt
+from calibration.types import F32, U8
+from ingest.errors import EvalError
+from ingest.eval.evaluate import GtFile, Layout, discover_gt, json_safe, read_gt
 
 DEPTH_EDGES_M = (0.0, 1.0, 2.0, 5.0, 10.0, math.inf)
 DEPTH_BIN_LABELS = ("0-1 m", "1-2 m", "2-5 m", "5-10 m", "10+ m")
 ENTROPY_WINDOW = 11
-
-U8 = np.ndarray[Any, np.dtype[np.uint8]]
-F32 = np.ndarray[Any, np.dtype[np.float32]]
-F64 = np.ndarray[Any, np.dtype[np.float64]]
 
 
 def depth_bin_counts(depth_m: np.ndarray[Any, Any]) -> np.ndarray[Any, np.dtype[np.int64]]:

@@ -48,12 +48,11 @@ import numpy as np
 import yaml
 
 from calibration.camera import CameraModel
-from calibration.errors import SensorboxError
 from calibration.fisheye import DoubleSphere
 from calibration.pinhole import Pinhole
 from calibration.spherical import Cassini, Equirectangular, pinhole_for_fov
 from calibration.stereo import depth_to_disparity, disparity_stability_mask, pinhole_depth_to_disparity
-from calibration.types import F64, Bool
+from calibration.types import F32, F64, Bool
 from calibration.virtual import (
     CroppedModel,
     R_up_cam,
@@ -66,18 +65,15 @@ from calibration.warp import build_maps, covering_crop, default_height_full
 from ingest.dataset.layout import DEPTH_SCALE, DISP_SCALE, encode_exr, to_uint16, write_atomic
 from ingest.dataset.png import encode_png
 from ingest.dataset.sparse import SparseImage
+from ingest.errors import BenchmarkError
 from ingest.render.lod import VOXEL_M, ScanIndex, build_index
-from ingest.render.scans import F32, Scan
+from ingest.render.scans import Scan
 from ingest.render.view import RenderParams, pixel_geometry, render_view
 from ingest.runtime.executor import Executor
 
 FOVS_DEG = (120.0, 140.0, 165.0, 195.0)
 BASELINES_MM = (20.0, 65.0, 120.0, 200.0, 300.0)
 BENCHMARK_VERSION = 1
-
-
-class BenchmarkError(SensorboxError):
-    """A benchmark run cannot be set up or written."""
 
 
 @dataclass(frozen=True)

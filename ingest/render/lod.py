@@ -18,15 +18,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
 from calibration.camera import CameraModel
-from calibration.types import F64, Bool
-from ingest.render.scans import F32, U8, Scan, ScanError
+from calibration.types import F32, F64, I64, U8, Bool
+from ingest.errors import ScanError
+from ingest.render.scans import Scan
 
-I64 = np.ndarray[Any, np.dtype[np.int64]]
 VOXEL_M = 0.25
 SPHERE_CELLS = (256, 512)  # equal-area cells in cos(polar) x azimuth: 0.5 deg at the equator
 RANK_BITS = 24

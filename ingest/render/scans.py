@@ -31,16 +31,11 @@ import yaml
 
 from calibration.errors import SensorboxError
 from calibration.transforms import as_transform
-from calibration.types import F64, Bool
+from calibration.types import F32, F64, U8, Bool
+from ingest.errors import ScanError
 
-F32 = np.ndarray[Any, np.dtype[np.float32]]
-U8 = np.ndarray[Any, np.dtype[np.uint8]]
 E57_CHUNK = 1_000_000
 SITE_VERSION = 1
-
-
-class ScanError(SensorboxError):
-    """A scan file or site manifest cannot be read or is inconsistent."""
 
 
 @dataclass(frozen=True, eq=False)

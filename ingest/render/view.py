@@ -51,12 +51,10 @@ import numpy as np
 
 from calibration.camera import CameraModel
 from calibration.transforms import invert
-from calibration.types import F64, Bool
+from calibration.types import F32, F64, I64, U8, Bool
 from calibration.virtual import project_f32
 from ingest.render.lod import ScanIndex, select
-from ingest.render.scans import F32, U8
 
-I64 = np.ndarray[Any, np.dtype[np.int64]]
 I16 = np.ndarray[Any, np.dtype[np.int16]]
 RANGE_QUANTUM_M = 1e-4  # z-buffer key resolution
 _IDX_BITS = 28  # points per buffer per view < 2^28

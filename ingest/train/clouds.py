@@ -14,17 +14,14 @@ the decision and the measured motion are returned for the sample's metadata.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from calibration.linalg3 import rotvec_to_matrix
-from calibration.types import F64, Bool
+from calibration.types import F64, I64, U8, Bool
 from ingest.train.planes import plane_normals
 
-I64 = np.ndarray[Any, np.dtype[np.int64]]
-U8 = np.ndarray[Any, np.dtype[np.uint8]]
 NOISE_TAG_BITS = 0b0011_1100
 """Livox tag fields rain/fog/dust (bits 2-3) and other (bits 4-5): non-zero means a doubtful echo."""
 

@@ -24,18 +24,18 @@ import numpy as np
 import yaml
 
 from calibration.rig import Rig, read_rig
+from calibration.types import I64
 from ingest.bags.decode import Frame, ImuSample, Sweep, decode, header_stamp_ns
 from ingest.bags.reader import BagSet, open_bags
 from ingest.dataset.layout import (
     DEPTH_SCALE,
     DISP_SCALE,
-    DatasetError,
     is_done,
     prepare_dirs,
     sample_id,
     write_atomic,
 )
-from ingest.errors import BagError
+from ingest.errors import BagError, DatasetError
 from ingest.runtime.executor import Executor, Handoff
 from ingest.runtime.heap import retain_freed_memory
 from ingest.train.sample import (
@@ -50,8 +50,6 @@ from ingest.train.sample import (
     take_images,
 )
 from ingest.train.sync import DEFAULT_LIDAR_WINDOW_NS, pair_stereo, select_samples
-
-I64 = np.ndarray[Any, np.dtype[np.int64]]
 
 
 @dataclass(frozen=True)

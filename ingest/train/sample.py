@@ -17,7 +17,7 @@ import numpy as np
 from calibration.rectify import StereoRectification, rectify_rig
 from calibration.rig import Rig
 from calibration.spherical import Equirectangular
-from calibration.types import F64
+from calibration.types import F64, I64
 from calibration.warp import build_maps, check_source, default_height_full, remap_spans
 from ingest.dataset.layout import SampleFiles, write_sample
 from ingest.runtime.background import Background
@@ -34,7 +34,6 @@ from ingest.train.groundtruth import (
 )
 from ingest.train.planes import Normals
 
-I64 = np.ndarray[Any, np.dtype[np.int64]]
 INTERPOLATION = {"linear": cv2.INTER_LINEAR, "cubic": cv2.INTER_CUBIC, "nearest": cv2.INTER_NEAREST}
 VELOCITY_SIGMAS = 4.0  # an estimated velocity counts when its norm exceeds this many standard errors
 

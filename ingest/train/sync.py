@@ -7,11 +7,11 @@ latency (18 ms for ZED images, a whole sweep for Livox messages).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
-I64 = np.ndarray[Any, np.dtype[np.int64]]
+from calibration.types import I64
+
 DEFAULT_LIDAR_WINDOW_NS = 50_000_000
 
 

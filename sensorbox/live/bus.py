@@ -31,7 +31,7 @@ from pathlib import Path
 from types import FrameType
 from typing import Protocol
 
-from calibration.errors import SensorboxError
+from sensorbox.errors import GraphError
 
 log = logging.getLogger(__name__)
 
@@ -40,10 +40,6 @@ Publish = Callable[[str, str, int, bytes], None]
 Subscriber = Callable[[str, str, int, bytes], None]
 
 PRIORITY_SINK, PRIORITY_DEVICE, PRIORITY_SOURCE = 0, 1, 2
-
-
-class GraphError(SensorboxError):
-    """A node graph could not be built, started or run (names the node and what failed)."""
 
 
 # ---------------------------------------------------------------- names

@@ -38,6 +38,7 @@ from typing import Any, Literal, Protocol
 import cv2
 import numpy as np
 
+from calibration.types import U8
 from ingest.bags.rostypes import COMPRESSED_IMAGE_TYPE, IMAGE_TYPE
 from sensorbox import messages
 from sensorbox.errors import DriverError
@@ -45,7 +46,6 @@ from sensorbox.live.bus import PRIORITY_SOURCE, NodeStatus, Publish, Shutdown
 
 log = logging.getLogger(__name__)
 
-U8 = np.ndarray[Any, np.dtype[np.uint8]]
 ImageFormat = Literal["raw", "jpeg"]
 PERIOD_30HZ_NS = 1_000_000_000 / 30.0
 

@@ -52,17 +52,13 @@ from typing import Any, ClassVar
 
 import yaml
 
-from calibration.errors import SensorboxError
+from sensorbox.errors import LaunchError
 from sensorbox.live.bus import Bus, GraphResult, GraphSnapshot, Shutdown, run_graph
 
 PACKAGE_ROOT = Path(__file__).resolve().parents[2]
 """`$(find-pkg-share sensorbox)`: the folder holding launch/ and calibration/."""
 
 TRUE_WORDS, FALSE_WORDS = ("true", "1"), ("false", "0")
-
-
-class LaunchError(SensorboxError):
-    """A launch file or argument is malformed; the message names the file, line and key."""
 
 
 # ---------------------------------------------------------------- YAML with line numbers

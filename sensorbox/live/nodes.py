@@ -50,10 +50,10 @@ from pathlib import Path
 from typing import Any
 
 from calibration.errors import SensorboxError
+from sensorbox.errors import GraphError
 from sensorbox.live.bus import (
     PRIORITY_SOURCE,
     Bus,
-    GraphError,
     Node,
     NodeContext,
     NodeStatus,

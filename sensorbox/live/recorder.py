@@ -47,7 +47,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from calibration.errors import SensorboxError
+from sensorbox.errors import RecorderError
 from sensorbox.live.bagwriter import BagWriter
 from sensorbox.live.bus import PRIORITY_SINK, NodeStatus, Shutdown
 
@@ -55,10 +55,6 @@ log = logging.getLogger(__name__)
 
 MiB = 1 << 20
 DiskFree = Callable[[Path], int]
-
-
-class RecorderError(SensorboxError):
-    """The recorder's configuration or output folder is unusable."""
 
 
 def disk_free_bytes(path: Path) -> int:

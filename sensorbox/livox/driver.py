@@ -61,13 +61,13 @@ from typing import Any, Literal
 
 import numpy as np
 
-from calibration.types import F64
+from calibration.types import F64, I64, Structured
 from ingest.bags.livox_msg import POINT_DTYPE
 from ingest.bags.rostypes import CUSTOM_MSG_TYPE, IMU_TYPE, POINTCLOUD2_TYPE
 from sensorbox import messages
-from sensorbox.errors import DriverError
+from sensorbox.errors import DriverError, ProtocolError
 from sensorbox.livox import protocol as proto
-from sensorbox.livox.protocol import I64, DeviceInfo, Ports, ProtocolError
+from sensorbox.livox.protocol import DeviceInfo, Ports
 
 log = logging.getLogger(__name__)
 
@@ -821,7 +821,7 @@ class Mid360Driver:
                 self._on_packets(lidars[o], g.data_type, g.header[sel], g.points[sel], recv_ns[g.rows[sel]])
 
     def _on_packets(
-        self, lidar: _Lidar, data_type: int, hdr: proto.Structured, pts: proto.Structured, recv_ns: I64
+        self, lidar: _Lidar, data_type: int, hdr: Structured, pts: Structured, recv_ns: I64
     ) -> None:
         cfg = self.config
         with self._lock:

@@ -27,21 +27,11 @@ import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cache
-from typing import Any
 
 import numpy as np
 
-from calibration.types import F64
-from sensorbox.errors import DriverError
-
-I64 = np.ndarray[Any, np.dtype[np.int64]]
-U8 = np.ndarray[Any, np.dtype[np.uint8]]
-Structured = np.ndarray[Any, np.dtype[np.void]]
-
-
-class ProtocolError(DriverError):
-    """A datagram does not follow the Mid-360 protocol (bad CRC, length, field value)."""
-
+from calibration.types import F64, I64, U8, Structured
+from sensorbox.errors import ProtocolError
 
 # ----------------------------------------------------------------------------- ports
 

@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from calibration.types import F64
-from sensorbox.sim.raycast import I64, Hits
+from calibration.types import F64, I64
+from sensorbox.sim.raycast import Hits
 from sensorbox.sim.scenes import Scene
 
 N_GRATINGS = 16

@@ -11,16 +11,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import Any
 
 import numpy as np
 
 from calibration.camera import CameraModel
-from calibration.types import F64, Bool
+from calibration.types import F64, U8, Bool
 from sensorbox.sim.appearance import Texture, shade
 from sensorbox.sim.scenes import Scene
-
-U8 = np.ndarray[Any, np.dtype[np.uint8]]
 
 
 @dataclass(frozen=True)

@@ -24,8 +24,9 @@ from typing import Any, Literal
 import numpy as np
 
 from calibration.rig import write_rig
+from calibration.types import U8
 from sensorbox.errors import DriverError
-from sensorbox.live.cameras import U8, Frame
+from sensorbox.live.cameras import Frame
 from sensorbox.sim.camera import render
 from sensorbox.sim.run import setup_sim
 

@@ -29,10 +29,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calibration.types import F64
+from calibration.types import F64, I64
 from ingest.bags.livox_msg import POINT_DTYPE, Points
 from sensorbox.sim.appearance import Texture, reflectivity
-from sensorbox.sim.raycast import I64
 from sensorbox.sim.scenes import Scene
 from sensorbox.sim.trajectory import Trajectory
 

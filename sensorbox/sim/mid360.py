@@ -49,9 +49,10 @@ from typing import Any, Protocol
 import numpy as np
 
 from calibration.errors import SensorboxError
-from calibration.types import F64
+from calibration.types import F64, I64
+from sensorbox.errors import ProtocolError
 from sensorbox.livox import protocol as proto
-from sensorbox.livox.protocol import I64, Ports
+from sensorbox.livox.protocol import Ports
 from sensorbox.sim.lidar import POINTS_PER_PACKET, LidarSim, Sweep, simulate_sweep, sweep_windows
 from sensorbox.sim.run import SimConfig, SimSetup, setup_sim
 from sensorbox.sim.trajectory import imu_readings
@@ -337,7 +338,7 @@ class Mid360Emulator:
     def _on_discovery(self, raw: bytes) -> None:
         try:
             frame = proto.parse_control_frame(raw)
-        except proto.ProtocolError:
+        except ProtocolError:
             return
         if frame.cmd_id != proto.CMD_DISCOVERY or frame.cmd_type != proto.REQ:
             return  # e.g. another device's ACK seen by the wildcard listener
@@ -354,7 +355,7 @@ class Mid360Emulator:
         self.counters.commands.append(bytes(raw))
         try:
             frame = proto.parse_control_frame(raw)
-        except proto.ProtocolError:
+        except ProtocolError:
             return  # the real unit ignores frames whose CRCs do not check
         if frame.cmd_type != proto.REQ:
             return
@@ -388,7 +389,7 @@ class Mid360Emulator:
     def _set_params(self, payload: bytes) -> bytes:
         try:
             items = proto.decode_kv_list(payload)
-        except proto.ProtocolError:
+        except ProtocolError:
             return proto.encode_set_ack(0x01, 0)
         with self._lock:
             for key, value in items:
@@ -405,7 +406,7 @@ class Mid360Emulator:
     def _query(self, payload: bytes) -> bytes:
         try:
             keys = proto.decode_query(payload)
-        except proto.ProtocolError:
+        except ProtocolError:
             return proto.encode_query_ack(0x01, [])
         with self._lock:
             missing = [k for k in keys if k not in self.params]

@@ -15,7 +15,8 @@ from typing import Any
 import numpy as np
 
 from calibration.errors import SensorboxError
-from sensorbox.live.bus import PRIORITY_DEVICE, GraphError, Node, NodeContext, NodeStatus
+from sensorbox.errors import GraphError
+from sensorbox.live.bus import PRIORITY_DEVICE, Node, NodeContext, NodeStatus
 from sensorbox.live.nodes import REFERENCE_RIG, Params, stereo_camera_node
 from sensorbox.sim.camera_source import SimCameras, SimCameraSource
 from sensorbox.sim.lidar import SWEEP_PERIOD_NS, Sweep

@@ -8,15 +8,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import open3d as o3d
 
 from calibration.errors import SensorboxError
-from calibration.types import F64
-
-I64 = np.ndarray[Any, np.dtype[np.int64]]
+from calibration.types import F64, I64
 
 
 @dataclass(frozen=True)

@@ -36,13 +36,11 @@ from scipy.spatial.transform import Rotation
 
 from calibration.camera import CameraModel
 from calibration.errors import SensorboxError
-from calibration.types import F64, Bool
+from calibration.types import F32, F64, U8, Bool
 from sensorbox.sim.appearance import Texture, shade
 from sensorbox.sim.raycast import Hits, RayCaster, write_ply
 from sensorbox.sim.scenes import Scene
 
-F32 = np.ndarray[Any, np.dtype[np.float32]]
-U8 = np.ndarray[Any, np.dtype[np.uint8]]
 SITE_VERSION = 1
 
 

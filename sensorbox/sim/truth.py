@@ -28,8 +28,8 @@ from calibration.rectify import StereoRectification, rectify_rig
 from calibration.rig import Rig, read_rig, write_rig
 from calibration.spherical import Equirectangular
 from calibration.stereo import depth_to_disparity
-from calibration.types import F64
-from sensorbox.sim.raycast import I64, RayCaster, write_ply
+from calibration.types import F64, I64
+from sensorbox.sim.raycast import RayCaster, write_ply
 from sensorbox.sim.scenes import Scene
 from sensorbox.sim.trajectory import Trajectory, trajectory_from_params
 

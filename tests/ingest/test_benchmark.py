@@ -24,9 +24,10 @@ from calibration.spherical import Cassini, Equirectangular
 from calibration.stereo import depth_to_disparity, rotate_for_stereo, unrotate_from_stereo
 from calibration.virtual import CroppedModel, virtual_ds
 from ingest.dataset.layout import DISP_SCALE, read_png_u16
+from ingest.errors import BenchmarkError
 from ingest.eval.evaluate import discover_gt
 from ingest.eval.metrics import edge_band
-from ingest.render.benchmark import BenchmarkConfig, BenchmarkError, run_benchmark
+from ingest.render.benchmark import BenchmarkConfig, run_benchmark
 from ingest.render.scans import read_scans
 from sensorbox.sim.appearance import Texture
 from sensorbox.sim.scenes import build_scene

@@ -19,7 +19,6 @@ from ingest.bags.decode import (
     decode_pointcloud2,
     sweep_from_pointcloud,
 )
-from ingest.bags.livox_msg import MessageDecodeError
 from ingest.bags.rostypes import (
     COMPRESSED_IMAGE_TYPE,
     IMAGE_TYPE,
@@ -27,6 +26,7 @@ from ingest.bags.rostypes import (
     POINTCLOUD2_TYPE,
     typestore,
 )
+from ingest.errors import MessageDecodeError
 
 RNG = np.random.default_rng(7)
 STAMP_NS = 1_700_000_000_000_000_000 + 123_456_789

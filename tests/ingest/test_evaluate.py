@@ -13,8 +13,8 @@ import pytest
 
 from calibration.stereo import rotate_for_stereo, unrotate_from_stereo
 from ingest.dataset.layout import encode_exr
+from ingest.errors import EvalError
 from ingest.eval.evaluate import (
-    EvalError,
     EvalOptions,
     compare,
     discover_gt,

@@ -11,9 +11,10 @@ from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
 
 from calibration.rig import Lidar, Rig, read_rig
-from ingest.bags.livox_msg import POINT_DTYPE, MessageDecodeError, encode_custom_msg
+from ingest.bags.livox_msg import POINT_DTYPE, encode_custom_msg
 from ingest.bags.reader import BagError, open_bags
 from ingest.bags.rostypes import IMAGE_TYPE, IMU_TYPE, typestore
+from ingest.errors import MessageDecodeError
 from ingest.inspect import (
     EL_RANGE_DEG,
     BagReport,

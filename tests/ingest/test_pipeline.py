@@ -15,8 +15,8 @@ import yaml
 
 from calibration.stereo import rotate_for_stereo
 from ingest.bags.reader import open_bags
-from ingest.dataset.layout import DEPTH_SCALE, DISP_SCALE, DatasetError, read_png_u16
-from ingest.errors import BagError
+from ingest.dataset.layout import DEPTH_SCALE, DISP_SCALE, read_png_u16
+from ingest.errors import BagError, DatasetError
 from ingest.train.pipeline import IngestConfig, ingest, load_meta
 from ingest.train.sample import SampleParams
 from sensorbox.live.bagwriter import BagWriter

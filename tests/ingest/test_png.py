@@ -7,7 +7,8 @@ import cv2
 import numpy as np
 import pytest
 
-from ingest.dataset.png import LEVELS, PngError, encode_png, filtered_rows
+from ingest.dataset.png import LEVELS, encode_png, filtered_rows
+from ingest.errors import PngError
 
 
 def _decode(data: bytes) -> np.ndarray:

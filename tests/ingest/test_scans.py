@@ -6,7 +6,8 @@ import pye57
 import pytest
 from scipy.spatial.transform import Rotation
 
-from ingest.render.scans import ScanError, read_e57, read_scans
+from ingest.errors import ScanError
+from ingest.render.scans import read_e57, read_scans
 from sensorbox.sim.appearance import Texture
 from sensorbox.sim.scenes import build_scene
 from sensorbox.sim.tls import TlsParams, bundle_poses, simulate_scan, write_site

@@ -8,12 +8,12 @@ import threading
 
 import pytest
 
+from sensorbox.errors import GraphError
 from sensorbox.live.bus import (
     PRIORITY_DEVICE,
     PRIORITY_SINK,
     PRIORITY_SOURCE,
     Bus,
-    GraphError,
     NodeStatus,
     Shutdown,
     node_context,

@@ -7,10 +7,10 @@ from pathlib import Path
 
 import pytest
 
-from sensorbox.live.bus import Bus, GraphError, Shutdown
+from sensorbox.errors import GraphError, LaunchError
+from sensorbox.live.bus import Bus, Shutdown
 from sensorbox.live.launch import (
     PACKAGE_ROOT,
-    LaunchError,
     parse_cli_args,
     parse_launch,
     safe_eval,

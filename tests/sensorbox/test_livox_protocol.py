@@ -9,9 +9,10 @@ import zlib
 import numpy as np
 import pytest
 
+from sensorbox.errors import ProtocolError
 from sensorbox.livox import protocol as proto
 from sensorbox.livox.driver import SeqTracker, extrinsic_rotation, to_metres
-from sensorbox.livox.protocol import ControlFrame, ProtocolError
+from sensorbox.livox.protocol import ControlFrame
 
 # --------------------------------------------------------------------------- CRCs
 

@@ -21,8 +21,9 @@ from ingest.bags.decode import header_stamp_ns
 from ingest.bags.reader import BagError, open_bags
 from ingest.bags.rostypes import IMU_TYPE, typestore
 from sensorbox import messages
+from sensorbox.errors import RecorderError
 from sensorbox.live.bus import Bus, NodeStatus, Shutdown, run_graph
-from sensorbox.live.recorder import Recorder, RecorderConfig, RecorderError
+from sensorbox.live.recorder import Recorder, RecorderConfig
 from tests.live import HANG_S, ManualClock, wait_for
 
 pytestmark = pytest.mark.realtime  # writer threads, clocks, signals to subprocesses: run serially (make test)
