@@ -44,7 +44,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from calibration.fisheye import DoubleSphere
 from calibration.linalg3 import rotvec_to_matrix
-from calibration.rig import read_rig, write_rig
+from calibration.rig import REFERENCE_RIG, read_rig, write_rig
 from ingest.dataset.layout import DEPTH_SCALE, read_png_u16
 from ingest.train.groundtruth import GtParams, px_per_rad
 from ingest.train.pipeline import IngestConfig, ingest, load_meta
@@ -61,7 +61,7 @@ from sensorbox.analysis.stability import (
     time_offset_range_error_m,
 )
 from sensorbox.analysis.tradeoff import compare_projections, num_disparities_for
-from sensorbox.sim.run import REFERENCE_RIG, SimConfig, simulate
+from sensorbox.sim.run import SimConfig, simulate
 from sensorbox.sim.truth import Truth
 
 DOCS = Path(__file__).resolve().parents[1] / "docs"

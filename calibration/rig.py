@@ -27,6 +27,7 @@ the LiDAR into a base frame, placed in cam0 by ``T_cam0_base``.
 
 from __future__ import annotations
 
+import importlib.resources
 import json
 import math
 from collections.abc import Mapping
@@ -49,6 +50,9 @@ from calibration.kalibr import (
 )
 from calibration.transforms import as_transform, invert, livox_extrinsic_to_transform
 from calibration.types import F64
+
+REFERENCE_RIG = Path(str(importlib.resources.files("calibration") / "sensorbox.yaml"))
+"""The reference SensorBox rig shipped with the package (DESIGN.md section 3), with its camchain beside it."""
 
 RIG_VERSION = 1
 ROLES = ("upper", "lower")

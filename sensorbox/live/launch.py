@@ -24,7 +24,7 @@ list of entities, each a one-key mapping:
 Substitutions in any string: `$(var NAME)`, `$(env NAME [DEFAULT])`,
 `$(optenv NAME [DEFAULT])`, `$(eval EXPR)` (arithmetic, comparison and boolean
 Python expressions, no names but `math.*`, min/max/abs/round/int/float/str),
-`$(find-pkg-share sensorbox)` (the repository root), `$(dirname)`,
+`$(find-pkg-share sensorbox)` (the package's share folder: launch/, calibration/), `$(dirname)`,
 `$(filename)`, `$(not X)`, `$(and X Y)`, `$(or X Y)`, `$(equals A B)`,
 `$(not-equals A B)`; they nest, and arguments may be quoted.
 
@@ -42,6 +42,7 @@ process (`sensorbox.live.bus.run_graph`).
 from __future__ import annotations
 
 import ast
+import importlib.resources
 import math
 import operator
 import os
@@ -55,8 +56,11 @@ import yaml
 from sensorbox.errors import LaunchError
 from sensorbox.live.bus import Bus, GraphResult, GraphSnapshot, Shutdown, run_graph
 
-PACKAGE_ROOT = Path(__file__).resolve().parents[2]
-"""`$(find-pkg-share sensorbox)`: the folder holding launch/ and calibration/."""
+
+def package_share() -> Path:
+    """`$(find-pkg-share sensorbox)`: the package's share folder (launch/, calibration/)."""
+    return Path(str(importlib.resources.files("sensorbox") / "share"))
+
 
 TRUE_WORDS, FALSE_WORDS = ("true", "1"), ("false", "0")
 
@@ -362,9 +366,9 @@ def _apply(sub: _Sub, scope: _Scope, where: str) -> str:
         if args[0] != "sensorbox":
             raise LaunchError(
                 f"{where}: $(find-pkg-share {args[0]}): SensorBox knows only the package 'sensorbox'"
-                " (its repository root); give a path instead"
+                " (its share folder); give a path instead"
             )
-        return str(PACKAGE_ROOT)
+        return str(package_share())
     if name == "dirname":
         need(0, 0)
         return str(scope.file.parent)

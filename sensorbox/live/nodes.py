@@ -65,7 +65,6 @@ from sensorbox.live.bus import (
 log = logging.getLogger(__name__)
 
 MiB = 1 << 20
-REFERENCE_RIG = Path(__file__).resolve().parents[2] / "calibration" / "sensorbox.yaml"
 ZED_IMAGE_TOPIC = "~/rgb/color/rect/image"
 
 
@@ -320,7 +319,7 @@ def camera_node(ctx: NodeContext, p: Params) -> Node:
 
 
 def stereo_camera_node(ctx: NodeContext, p: Params, source: str | None = None) -> Node:
-    from calibration.rig import read_rig
+    from calibration.rig import REFERENCE_RIG, read_rig
     from sensorbox.live.cameras import CameraNode, CameraOutput
 
     kind = source or p.choice("source", ("zed", "opencv", "sim"), "zed")

@@ -14,7 +14,8 @@ from sensorbox.live.bagwriter import bag_path
 from sensorbox.sim.run import SimConfig, SimSummary, simulate
 from sensorbox.sim.truth import truth_dir
 
-FIXTURES_DIR = Path(__file__).resolve().parents[2] / "tests" / "fixtures"
+FIXTURES_DIR = Path("tests") / "fixtures"
+"""The fixtures, relative to the checkout root (`make fixtures` runs there; tests pass their own root)."""
 FIXTURES: dict[str, SimConfig] = {
     "indoor_static_mcap": SimConfig(
         scene="indoor", trajectory="static", duration_s=0.7, format="mcap", lidar_msg="custom",
@@ -56,7 +57,7 @@ def main() -> None:
     for name in FIXTURES:
         summary = make_fixture(name)
         total = summary.size_bytes + sum(f.stat().st_size for f in summary.truth.iterdir())
-        print(f"{fixture_bag(name).relative_to(FIXTURES_DIR.parent.parent)}: {total / 1e6:.2f} MB with truth")
+        print(f"{fixture_bag(name)}: {total / 1e6:.2f} MB with truth")
 
 
 if __name__ == "__main__":

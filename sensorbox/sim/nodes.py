@@ -15,9 +15,10 @@ from typing import Any
 import numpy as np
 
 from calibration.errors import SensorboxError
+from calibration.rig import REFERENCE_RIG
 from sensorbox.errors import GraphError
 from sensorbox.live.bus import PRIORITY_DEVICE, Node, NodeContext, NodeStatus
-from sensorbox.live.nodes import REFERENCE_RIG, Params, stereo_camera_node
+from sensorbox.live.nodes import Params, stereo_camera_node
 from sensorbox.sim.camera_source import SimCameras, SimCameraSource
 from sensorbox.sim.lidar import SWEEP_PERIOD_NS, Sweep
 from sensorbox.sim.mid360 import IMU_PERIOD_NS, ImuSamples, Mid360Emulator, SimScan

@@ -22,7 +22,7 @@ from typing import Any, Literal
 import numpy as np
 
 from calibration.errors import SensorboxError
-from calibration.rig import Rig, read_rig
+from calibration.rig import REFERENCE_RIG, Rig, read_rig
 from calibration.types import F64
 from ingest.bags.rostypes import IMU_TYPE
 from sensorbox import messages
@@ -35,7 +35,6 @@ from sensorbox.sim.scenes import SCENES, Scene, build_scene
 from sensorbox.sim.trajectory import TRAJECTORIES, Trajectory, TumSpline, imu_readings, static, walk
 from sensorbox.sim.truth import truth_dir, write_truth
 
-REFERENCE_RIG = Path(__file__).resolve().parents[2] / "calibration" / "sensorbox.yaml"
 CAMERA_LATENCY_NS = 18_000_000
 LIDAR_LATENCY_NS = 2_000_000  # after the sweep's end
 IMU_LATENCY_NS = 1_000_000

@@ -26,8 +26,8 @@ from ingest.eval.evaluate import (
 )
 from ingest.train.pipeline import IngestConfig, ingest
 from ingest.train.sample import SampleParams
-from sensorbox.sim.fixtures import FIXTURES_DIR
 from sensorbox.sim.truth import truth_dir
+from tests.paths import FIXTURES_DIR
 
 SCENES = ("001_057_000", "002_010_000")
 FOVS = (120, 195)

@@ -7,10 +7,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from calibration.rig import read_rig
+from calibration.rig import REFERENCE_RIG, read_rig
 from ingest.train.groundtruth import GtParams, in_view, splat_to_pixels
 from ingest.train.planes import Normals
-from sensorbox.sim.run import REFERENCE_RIG
 
 MODEL = read_rig(REFERENCE_RIG).upper.model.scaled(0.125)  # 240 x 150: many points per pixel
 

@@ -27,6 +27,7 @@ from ingest.inspect import (
 from sensorbox.sim.fixtures import FIXTURES, fixture_bag
 from sensorbox.sim.lidar import PACKET_PERIOD_NS, POINT_SPACING_NS, POINTS_PER_PACKET, SWEEP_PERIOD_NS
 from sensorbox.sim.run import CAMERA_LATENCY_NS, IMU_LATENCY_NS, LIDAR_LATENCY_NS
+from tests.paths import FIXTURES_DIR
 
 ROOT = Path(__file__).resolve().parents[2]
 REF_RIG = ROOT / "calibration" / "sensorbox.yaml"
@@ -37,7 +38,7 @@ IMUS = ("/livox/imu_192_168_1_12", "/livox/imu_192_168_1_13")
 
 
 def sim_params(name):
-    bag = fixture_bag(name)
+    bag = fixture_bag(name, FIXTURES_DIR)
     return yaml.safe_load((bag.parent / f"{bag.name}.truth" / "sim.yaml").read_text())
 
 
@@ -58,7 +59,7 @@ def problems_of(report: BagReport) -> tuple[RigProblem, ...]:
 
 @pytest.fixture(scope="module", params=NAMES)
 def fixture_report(request):
-    return request.param, inspect_bags(fixture_bag(request.param))
+    return request.param, inspect_bags(fixture_bag(request.param, FIXTURES_DIR))
 
 
 # ---------------------------------------------------------------- fixtures: per topic
@@ -66,7 +67,7 @@ def fixture_report(request):
 
 def test_counts_are_what_the_bag_holds(fixture_report):
     name, report = fixture_report
-    with open_bags([fixture_bag(name)]) as bag:
+    with open_bags([fixture_bag(name, FIXTURES_DIR)]) as bag:
         held = {t: s.count for t, s in bag.topics().items()}
     assert {t.topic: t.count for t in report.topics} == held
     expected = dict.fromkeys(cam_topics(name), 21) | dict.fromkeys(LIDARS, 7) | dict.fromkeys(IMUS, 140)
@@ -107,7 +108,7 @@ def test_log_offsets_match_the_simulated_latencies(fixture_report):
 
 
 def test_second_lidar_clock_offset_shows_in_its_imu_offset():
-    report = inspect_bags(fixture_bag("outdoor_walk_mcap"))
+    report = inspect_bags(fixture_bag("outdoor_walk_mcap", FIXTURES_DIR))
     assert sim_params("outdoor_walk_mcap")["lidar_clock_offset_ns"] == 1_500_000
     top, bottom = (report.topic(t).log_offset_median_ms for t in IMUS)
     assert top is not None and bottom is not None
@@ -117,7 +118,7 @@ def test_second_lidar_clock_offset_shows_in_its_imu_offset():
 
 @pytest.mark.parametrize("name", NAMES)
 def test_header_stamps_read_from_bytes_equal_rosbags_deserialisation(name):
-    with open_bags([fixture_bag(name)]) as bag:
+    with open_bags([fixture_bag(name, FIXTURES_DIR)]) as bag:
         ts = typestore(bag.ros_version)
         for n, msg in enumerate(bag.messages()):  # noqa: B007 (n counts the messages)
             full: Any = (
@@ -199,7 +200,11 @@ def test_lidar_sweeps_have_the_mid360_timing_and_field_of_view(fixture_report):
 def test_suggested_mapping_reproduces_the_fixture_rig(fixture_report):
     name, report = fixture_report
     rig = yaml.safe_load(
-        (fixture_bag(name).parent / f"{fixture_bag(name).name}.truth" / "rig.yaml").read_text()
+        (
+            fixture_bag(name, FIXTURES_DIR).parent
+            / f"{fixture_bag(name, FIXTURES_DIR).name}.truth"
+            / "rig.yaml"
+        ).read_text()
     )
     got = yaml.safe_load(report.mapping.yaml())
     up, low = cam_topics(name)
@@ -210,13 +215,15 @@ def test_suggested_mapping_reproduces_the_fixture_rig(fixture_report):
 
 
 def test_rig_check_on_fixtures():
-    raw_rig = read_rig(fixture_bag("outdoor_walk_mcap").parent / "outdoor_walk_mcap.truth" / "rig.yaml")
-    report = inspect_bags(fixture_bag("outdoor_walk_mcap"), rig=raw_rig)
+    raw_rig = read_rig(
+        fixture_bag("outdoor_walk_mcap", FIXTURES_DIR).parent / "outdoor_walk_mcap.truth" / "rig.yaml"
+    )
+    report = inspect_bags(fixture_bag("outdoor_walk_mcap", FIXTURES_DIR), rig=raw_rig)
     assert report.rig_problems == ()
     assert report.stereo is not None and report.stereo.source == "rig"
 
     # the rig names raw image topics; the jpeg fixtures carry image_transport's /compressed ones
-    bag = fixture_bag("indoor_static_mcap")
+    bag = fixture_bag("indoor_static_mcap", FIXTURES_DIR)
     report = inspect_bags(bag, rig=read_rig(bag.parent / "indoor_static_mcap.truth" / "rig.yaml"))
     assert [(p.sensor, p.topic) for p in problems_of(report)] == [
         ("camera cam0 (upper)", CAMS[0]),
@@ -455,7 +462,7 @@ def test_progress_reports_every_message(faulty):
 
 
 def test_truncated_mcap_needs_salvage(tmp_path):
-    src = fixture_bag("outdoor_walk_mcap") / "outdoor_walk_mcap.mcap"
+    src = fixture_bag("outdoor_walk_mcap", FIXTURES_DIR) / "outdoor_walk_mcap.mcap"
     cut = tmp_path / "cut.mcap"
     data = src.read_bytes()
     cut.write_bytes(data[: len(data) * 2 // 3])

@@ -20,10 +20,10 @@ from ingest.errors import BagError, DatasetError
 from ingest.train.pipeline import IngestConfig, ingest, load_meta
 from ingest.train.sample import SampleParams
 from sensorbox.live.bagwriter import BagWriter
-from sensorbox.sim.fixtures import FIXTURES_DIR
 from sensorbox.sim.run import SimConfig, simulate
 from sensorbox.sim.score import score_dataset
 from sensorbox.sim.truth import Truth, truth_dir
+from tests.paths import FIXTURES_DIR
 
 INDOOR = FIXTURES_DIR / "indoor_static_mcap"
 
@@ -174,7 +174,7 @@ def test_missing_topic_lists_the_bag_topics(tmp_path: Path) -> None:
 
 def test_rig_that_does_not_match_the_bag(tmp_path: Path) -> None:
     # the reference rig is full resolution; the fixture images are 480x300
-    from sensorbox.sim.run import REFERENCE_RIG
+    from calibration.rig import REFERENCE_RIG
 
     with pytest.raises(BagError, match=r"images are 480x300 but the rig's cam0 is 1920x1200"):
         ingest([INDOOR], IngestConfig(rig=REFERENCE_RIG, out=tmp_path / "ds", workers=1))

@@ -18,7 +18,7 @@ import pytest
 
 from calibration.fisheye import DoubleSphere
 from calibration.linalg3 import rotvec_to_matrix
-from calibration.rig import read_rig
+from calibration.rig import REFERENCE_RIG, read_rig
 from calibration.spherical import Cubemap
 from calibration.stereo import disparity_stability_mask, rotate_for_stereo, unrotate_from_stereo
 from calibration.types import F64
@@ -45,7 +45,6 @@ from sensorbox.analysis.stability import (
     time_offset_displacement_px,
     time_offset_range_error_m,
 )
-from sensorbox.sim.run import REFERENCE_RIG
 
 _UPPER = read_rig(REFERENCE_RIG).upper.model
 assert isinstance(_UPPER, DoubleSphere)

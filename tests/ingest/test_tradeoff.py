@@ -28,9 +28,9 @@ from sensorbox.analysis.tradeoff import (
     select,
     write_csv,
 )
-from sensorbox.sim.fixtures import FIXTURES_DIR
 from sensorbox.sim.score import score_dataset
 from sensorbox.sim.truth import Truth, truth_dir
+from tests.paths import FIXTURES_DIR
 
 BAG = FIXTURES_DIR / "indoor_static_mcap"
 RIG = truth_dir(BAG) / "rig.yaml"

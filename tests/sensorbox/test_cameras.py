@@ -27,6 +27,7 @@ from sensorbox.live.cameras import (
 from sensorbox.sim.camera_source import SimCameras, SimCameraSource
 from sensorbox.sim.fixtures import FIXTURES, fixture_bag
 from tests.live import ManualClock, wait_for
+from tests.paths import FIXTURES_DIR
 
 UPPER = "/zed_upper/zed_node/rgb/color/rect/image"
 LOWER = "/zed_lower/zed_node/rgb/color/rect/image"
@@ -202,7 +203,7 @@ def test_zed_source_against_the_sdk_api(monkeypatch):
 def test_sim_cameras_reproduce_the_simulators_frames_and_stamps():
     cfg = FIXTURES["outdoor_walk_mcap"]  # raw bgra8 images of a walk: poses change every frame
     sim = SimCameras(cfg)
-    with open_bags(fixture_bag("outdoor_walk_mcap")) as bags:
+    with open_bags(fixture_bag("outdoor_walk_mcap", FIXTURES_DIR)) as bags:
         msgs = {t: [m for m in bags.messages([t])][:3] for t in (UPPER, LOWER)}
     for cam, topic in enumerate((UPPER, LOWER)):
         assert sim.topic(cam) == topic

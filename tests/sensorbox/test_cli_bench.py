@@ -13,7 +13,7 @@ from calibration.errors import SensorboxError
 from sensorbox.analysis.tradeoff import QUICK
 from sensorbox.cli.bench import bench_cmd
 from sensorbox.cli.main import app as main_app
-from sensorbox.sim.fixtures import FIXTURES_DIR
+from tests.paths import FIXTURES_DIR
 
 app = typer.Typer(pretty_exceptions_enable=False, add_completion=False)
 app.command("bench")(bench_cmd)
@@ -28,7 +28,7 @@ runner = CliRunner()
 BAG = FIXTURES_DIR / "indoor_static_mcap"
 
 
-def test_quick_bench_on_a_fixture_bag(tmp_path: Path) -> None:
+def test_quick_bench_on_a_fixture_bag(tmp_path: Path, FIXTURES_DIR) -> None:
     out = tmp_path / "bench"
     res = runner.invoke(app, ["bench", "--bag", str(BAG), "--quick", "--every", "7", "--out", str(out)])
     assert res.exit_code == 0, res.output

@@ -11,6 +11,7 @@ from calibration.errors import SensorboxError
 from ingest.bags.reader import BagError
 from sensorbox.cli.inspect import inspect_cmd
 from sensorbox.sim.fixtures import fixture_bag
+from tests.paths import FIXTURES_DIR
 
 app = typer.Typer(pretty_exceptions_enable=False, add_completion=False)
 app.command("inspect")(inspect_cmd)
@@ -39,7 +40,7 @@ def mapping_yaml(stdout: str) -> Any:
 
 
 def test_inspect_prints_topics_timing_and_mapping():
-    res = runner.invoke(app, ["inspect", str(fixture_bag("outdoor_walk_mcap"))])
+    res = runner.invoke(app, ["inspect", str(fixture_bag("outdoor_walk_mcap", FIXTURES_DIR))])
     assert res.exit_code == 0, res.output
     out = res.stdout
     assert "ROS 2, 336 messages" in out
@@ -68,7 +69,7 @@ def test_inspect_prints_topics_timing_and_mapping():
 
 
 def test_inspect_with_rig_reports_missing_topics():
-    bag = fixture_bag("indoor_walk_db3")
+    bag = fixture_bag("indoor_walk_db3", FIXTURES_DIR)
     rig = bag.parent / "indoor_walk_db3.truth" / "rig.yaml"
     res = runner.invoke(app, ["inspect", str(bag), "--rig", str(rig)])
     assert res.exit_code == 0, res.output
@@ -79,7 +80,7 @@ def test_inspect_with_rig_reports_missing_topics():
 
 
 def test_inspect_matching_rig_says_so():
-    bag = fixture_bag("outdoor_walk_mcap")
+    bag = fixture_bag("outdoor_walk_mcap", FIXTURES_DIR)
     rig = bag.parent / "outdoor_walk_mcap.truth" / "rig.yaml"
     res = runner.invoke(app, ["inspect", str(bag), "--rig", str(rig)])
     assert res.exit_code == 0, res.output

@@ -10,7 +10,7 @@ import pytest
 from sensorbox.errors import GraphError, LaunchError
 from sensorbox.live.bus import Bus, Shutdown
 from sensorbox.live.launch import (
-    PACKAGE_ROOT,
+    package_share,
     parse_cli_args,
     parse_launch,
     safe_eval,
@@ -117,7 +117,7 @@ def test_substitutions(tmp_path, monkeypatch):
         "$(eval 'math.floor(math.pi * 100) / 100')": "3.14",
         "$(eval \"'$(var b)' if $(var n) > 2 else 'no'\")": "bee",
         "$(not $(var yes)) $(and true 1) $(or false 0) $(equals a a) $(not-equals a a)": "false true false true false",
-        "$(find-pkg-share sensorbox)/launch": f"{PACKAGE_ROOT}/launch",
+        "$(find-pkg-share sensorbox)/launch": f"{package_share()}/launch",
         "$(dirname)/rig.yaml": f"{tmp_path}/rig.yaml",
         "no substitution (here)": "no substitution (here)",
     }

@@ -10,14 +10,14 @@ import numpy as np
 import pytest
 from rosbags.highlevel import AnyReader
 
-from calibration.rig import read_rig
+from calibration.rig import REFERENCE_RIG, read_rig
 from calibration.transforms import invert
 from ingest.bags.livox_msg import decode_custom_msg
 from sensorbox.messages import PC2_DTYPE
 from sensorbox.sim.appearance import Texture
 from sensorbox.sim.camera import CameraSim, render
 from sensorbox.sim.lidar import POINT_SPACING_NS, POINTS_PER_PACKET
-from sensorbox.sim.run import CAMERA_LATENCY_NS, IMU_LATENCY_NS, REFERENCE_RIG, SimConfig, simulate
+from sensorbox.sim.run import CAMERA_LATENCY_NS, IMU_LATENCY_NS, SimConfig, simulate
 from sensorbox.sim.scenes import build_scene
 from sensorbox.sim.trajectory import (
     GRAVITY_MPS2,
