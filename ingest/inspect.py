@@ -18,9 +18,9 @@ What is measured (all times from header stamps unless said otherwise):
   before on the topic) and out-of-order stamps (earlier than the previous
   message's, in log-time order); log time minus stamp (median, min, max, ms;
   positive = the message was recorded after its stamp).
-- Stereo (`StereoReport`): upper/lower frames paired as mutual nearest
-  neighbours by stamp within half the upper camera's median period; signed
-  dt = lower - upper.
+- Stereo (`StereoReport`): upper/lower frames paired by ingest's rule
+  (`ingest.train.sync.pair_stereo`: nearest by stamp, each frame once) within
+  half the upper camera's median period; signed dt = lower - upper.
 - LiDAR (`LidarCoverage`): per sweep the point count, the fraction of (0,0,0)
   no-return points, the spread of per-point stamps (ms), and the fraction of
   1x1 degree azimuth/elevation cells over 360 x [-7, 52] deg (the Mid-360's
@@ -55,6 +55,7 @@ from ingest.bags.reader import BagSet, RawMessage, open_bags
 from ingest.bags.rostypes import COMPRESSED_IMAGE_TYPE, IMAGE_TYPE, IMU_TYPE, LIVOX_PACKAGES, POINTCLOUD2_TYPE
 from ingest.bags.rostypes import typestore as sensorbox_typestore
 from ingest.errors import BagError, MessageDecodeError
+from ingest.train.sync import median_period_ns, pair_stereo, pair_tolerance_ns
 
 __all__ = [
     "BagReport",
@@ -463,48 +464,19 @@ def _lidar_coverage(topic: str, acc: _SweepAcc) -> LidarCoverage:
     )
 
 
-def pair_stereo(
-    upper_ns: np.ndarray[Any, Any], lower_ns: np.ndarray[Any, Any], tolerance_ns: float
-) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
-    """Indices (i_upper, i_lower) of frames that are each other's nearest stamp within `tolerance_ns`.
-
-    Both inputs must be sorted ascending (ns). Each frame is used at most once.
-    """
-    if len(upper_ns) == 0 or len(lower_ns) == 0:
-        empty = np.zeros(0, np.int64)
-        return empty, empty
-    up_to_low = _nearest(upper_ns, lower_ns)
-    low_to_up = _nearest(lower_ns, upper_ns)
-    i = np.arange(len(upper_ns))
-    mutual = low_to_up[up_to_low] == i
-    close = np.abs(lower_ns[up_to_low] - upper_ns) <= tolerance_ns
-    keep = mutual & close
-    return i[keep], up_to_low[keep]
-
-
-def _nearest(query: np.ndarray[Any, Any], ref: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
-    """Index into sorted `ref` of the element nearest to each of `query` (ties: the earlier)."""
-    j = np.clip(np.searchsorted(ref, query), 1, max(len(ref) - 1, 1))
-    if len(ref) == 1:
-        return np.zeros(len(query), np.int64)
-    before = ref[j - 1]
-    after = ref[j]
-    return np.where(np.abs(query - before) <= np.abs(after - query), j - 1, j).astype(np.int64)
-
-
 def _stereo(upper: str, lower: str, source: str, topics: dict[str, _TopicAcc]) -> StereoReport:
-    """Pair the two camera topics; tolerance = half the upper camera's median period."""
+    """Pair the two camera topics with ingest's rule (`ingest.train.sync.pair_stereo`), half a period."""
     up = np.unique(np.frombuffer(topics[upper].stamps, np.int64))
     low = np.unique(np.frombuffer(topics[lower].stamps, np.int64))
-    ref = up if len(up) >= 2 else low
-    period = float(np.median(np.diff(ref))) if len(ref) >= 2 else 0.0
-    iu, il = pair_stereo(up, low, period / 2)
-    dt = (low[il] - up[iu]).astype(np.float64)
+    tolerance_ns = pair_tolerance_ns(median_period_ns(up if len(up) >= 2 else low))
+    pairs = pair_stereo(up, low, tolerance_ns)
+    iu, il = pairs.upper, pairs.lower
+    dt = pairs.dt_ns.astype(np.float64)
     return StereoReport(
         upper_topic=upper,
         lower_topic=lower,
         source=source,
-        tolerance_ms=_ms(period / 2),
+        tolerance_ms=_ms(tolerance_ns),
         pairs=len(iu),
         unpaired_upper=len(up) - len(iu),
         unpaired_lower=len(low) - len(il),

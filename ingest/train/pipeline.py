@@ -49,7 +49,13 @@ from ingest.train.sample import (
     run_sample,
     take_images,
 )
-from ingest.train.sync import DEFAULT_LIDAR_WINDOW_NS, pair_stereo, select_samples
+from ingest.train.sync import (
+    DEFAULT_LIDAR_WINDOW_NS,
+    median_period_ns,
+    pair_stereo,
+    pair_tolerance_ns,
+    select_samples,
+)
 
 
 @dataclass(frozen=True)
@@ -153,7 +159,7 @@ def plan(bags: BagSet, topics: Topics, cfg: IngestConfig) -> Plan:
     lo = np.unique(np.array(stamps[topics.lower], np.int64))
     if len(up) < 2:
         raise BagError(f"{bags.paths[0]}: {len(up)} frame(s) on {topics.upper}; need at least 2")
-    tol = cfg.stereo_tolerance_ns or int(np.median(np.diff(up)) // 2)
+    tol = cfg.stereo_tolerance_ns or pair_tolerance_ns(median_period_ns(up))
     pairs = pair_stereo(up, lo, tol)
     all_spans = [s for v in spans.values() for s in v]
     chosen = select_samples(up[pairs.upper], all_spans, cfg.lidar_window_ns, cfg.every)

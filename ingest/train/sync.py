@@ -26,11 +26,29 @@ class StereoPairs:
     dropped_lower: int
 
 
+def pair_tolerance_ns(period_ns: float) -> int:
+    """The stereo pairing tolerance of cameras running at `period_ns`: half a frame period.
+
+    Within it a frame of a steady camera has at most one candidate partner, so
+    pairing in arrival order (the live node) and pairing a whole recording
+    (`pair_stereo`) give the same pairs.
+    """
+    return int(period_ns // 2)
+
+
+def median_period_ns(stamps_ns: I64) -> float:
+    """Median interval of sorted frame stamps (ns); 0 with fewer than two frames."""
+    return float(np.median(np.diff(stamps_ns))) if len(stamps_ns) >= 2 else 0.0
+
+
 def pair_stereo(upper_ns: I64, lower_ns: I64, tolerance_ns: int) -> StereoPairs:
     """Match each upper frame to the nearest lower frame within `tolerance_ns`, each used once.
 
-    Greedy by increasing |dt|, so a duplicated or jittered frame never steals a
-    better partner's match; unmatched frames on either side are counted drops.
+    The one stereo pairing rule of SensorBox: `inspect` and `ingest` use it on a
+    whole recording, the live camera node (`sensorbox.live.cameras.StereoPairer`)
+    applies it as frames arrive. Greedy by increasing |dt|, so a duplicated or
+    jittered frame never steals a better partner's match; unmatched frames on
+    either side are counted drops.
     """
     up = np.asarray(upper_ns, np.int64)
     lo = np.asarray(lower_ns, np.int64)

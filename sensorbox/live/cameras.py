@@ -279,7 +279,7 @@ class OpenCVSource:
 
 
 class StereoPairer:
-    """Pair upper/lower frames by stamp: nearest within `tolerance_ns`, each frame used once.
+    """Pair upper/lower frames by stamp as they arrive: ingest's rule (`ingest.train.sync.pair_stereo`).
 
     Frames of each camera must arrive in stamp order. When both cameras have a
     frame waiting, the two oldest are paired if within tolerance; otherwise the

@@ -50,6 +50,7 @@ from pathlib import Path
 from typing import Any
 
 from calibration.errors import SensorboxError
+from ingest.train.sync import pair_tolerance_ns
 from sensorbox.errors import GraphError
 from sensorbox.live.bus import (
     PRIORITY_SOURCE,
@@ -335,7 +336,7 @@ def stereo_camera_node(ctx: NodeContext, p: Params, source: str | None = None) -
         topic = ctx.resolve(p.text(f"{which}_topic", defaults[cam]))
         outputs.append(CameraOutput(topic, p.text(f"{which}_frame_id", f"cam{cam}_optical_frame")))
     fps = p.number("fps", 30.0)
-    tol_ms = p.number("pair_tolerance_ms", 500.0 / fps)
+    tol_ms = p.number("pair_tolerance_ms", pair_tolerance_ns(1e9 / fps) / 1e6)
     return CameraNode(
         ctx.name, sources, outputs, ctx.bus.publish, ctx.shutdown, pair_tolerance_ns=round(tol_ms * 1e6),
         **_image_opts(p),

@@ -22,7 +22,6 @@ from ingest.inspect import (
     StereoReport,
     header_stamp_ns,
     inspect_bags,
-    pair_stereo,
 )
 from sensorbox.sim.fixtures import FIXTURES, fixture_bag
 from sensorbox.sim.lidar import PACKET_PERIOD_NS, POINT_SPACING_NS, POINTS_PER_PACKET, SWEEP_PERIOD_NS
@@ -477,12 +476,3 @@ def test_truncated_mcap_needs_salvage(tmp_path):
 def test_missing_bag_is_a_bag_error(tmp_path):
     with pytest.raises(BagError, match="no such file"):
         inspect_bags(tmp_path / "nothing.mcap")
-
-
-def test_pair_stereo_is_one_to_one():
-    up = np.array([0, 100, 200, 300])
-    low = np.array([2, 98, 105, 299, 460])  # 98 and 105 both near 100: only the nearer pairs
-    iu, il = pair_stereo(up, low, 40)
-    assert iu.tolist() == [0, 1, 3] and il.tolist() == [0, 1, 3]
-    assert [len(x) for x in pair_stereo(up, np.array([], np.int64), 40)] == [0, 0]
-    assert pair_stereo(np.array([5]), np.array([7]), 1)[0].tolist() == []

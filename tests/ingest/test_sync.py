@@ -1,0 +1,51 @@
+"""The one stereo pairing rule: `pair_stereo` on a recording, `StereoPairer` as frames arrive."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from ingest.train.sync import median_period_ns, pair_stereo, pair_tolerance_ns
+from sensorbox.live.cameras import StereoPairer
+
+
+def test_pair_stereo_is_one_to_one():
+    up = np.array([0, 100, 200, 300])
+    low = np.array([2, 98, 105, 299, 460])  # 98 and 105 both near 100: only the nearer pairs
+    pairs = pair_stereo(up, low, 40)
+    assert pairs.upper.tolist() == [0, 1, 3] and pairs.lower.tolist() == [0, 1, 3]
+    assert pairs.dt_ns.tolist() == [2, -2, -1] and (pairs.dropped_upper, pairs.dropped_lower) == (1, 2)
+    assert len(pair_stereo(up, np.array([], np.int64), 40).upper) == 0
+    assert pair_stereo(np.array([5]), np.array([7]), 1).upper.tolist() == []
+
+
+def test_the_tolerance_is_half_a_period():
+    stamps = np.arange(10, dtype=np.int64) * 33_333_333
+    assert (
+        median_period_ns(stamps) == 33_333_333 and pair_tolerance_ns(median_period_ns(stamps)) == 16_666_666
+    )
+    assert median_period_ns(stamps[:1]) == 0.0
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_the_live_pairer_pairs_as_the_recording_rule_does(seed):
+    """Jittered 30 Hz cameras with missing frames: pairing as frames arrive = pairing the whole recording."""
+    rng = np.random.default_rng(seed)
+    period = 33_333_333
+    tol = pair_tolerance_ns(period)
+    base = np.arange(300, dtype=np.int64) * period
+    up = base + rng.integers(-3_000_000, 3_000_000, len(base))
+    low = base + 100_000 + rng.integers(-3_000_000, 3_000_000, len(base))
+    up = np.sort(up[rng.random(len(up)) > 0.05])  # ~5 % of frames missing on each camera
+    low = np.sort(low[rng.random(len(low)) > 0.05])
+    want = pair_stereo(up, low, tol)
+    live = StereoPairer(tol)
+    got: list[tuple[int, int]] = []
+    events = sorted([(int(t), 0) for t in up] + [(int(t), 1) for t in low])  # arrival in stamp order
+    for stamp, cam in events:
+        got += live.push(cam, stamp, stamp)
+    live.flush()
+    assert got == list(zip(up[want.upper].tolist(), low[want.lower].tolist(), strict=True))
+    assert live.pairs == len(want.upper)
+    assert live.unpaired[0] + live.at_stop[0] == want.dropped_upper
+    assert live.unpaired[1] + live.at_stop[1] == want.dropped_lower
