@@ -46,8 +46,9 @@ from calibration.fisheye import DoubleSphere
 from calibration.linalg3 import rotvec_to_matrix
 from calibration.rig import REFERENCE_RIG, read_rig, write_rig
 from ingest.dataset.layout import DEPTH_SCALE, read_png_u16
+from ingest.dataset.meta import SampleMeta, read_meta
 from ingest.train.groundtruth import GtParams, px_per_rad
-from ingest.train.pipeline import IngestConfig, ingest, load_meta
+from ingest.train.pipeline import IngestConfig, ingest
 from sensorbox.analysis.stability import (
     disparity_range_error,
     displacement_mask,
@@ -230,7 +231,7 @@ def cubemap_chart(out: Path, bag: Path, dataset: Path) -> str:
 
     truth = Truth.load(bag)
     sid = sorted(p.stem for p in (dataset / "meta").glob("*.json"))[0]
-    stamp = int(load_meta(dataset, sid)["stamp_ns"])
+    stamp = read_meta(dataset, sid).stamp_ns
     upper = cv2.imread(str(dataset / "left_fisheye" / f"{sid}.png"))
     lower = cv2.imread(str(dataset / "right_fisheye" / f"{sid}.png"))
     assert upper is not None and lower is not None
@@ -318,7 +319,7 @@ class _Tally:
         }
 
 
-MaskFn = Callable[[np.ndarray[Any, Any], dict[str, Any]], np.ndarray[Any, Any]]
+MaskFn = Callable[[np.ndarray[Any, Any], SampleMeta], np.ndarray[Any, Any]]
 
 
 def _score_offsets(dataset: Path, truth: Truth, cases: list[tuple[float, MaskFn]]) -> list[dict[str, float]]:
@@ -327,12 +328,12 @@ def _score_offsets(dataset: Path, truth: Truth, cases: list[tuple[float, MaskFn]
     tallies = [_Tally() for _ in cases]
     for meta_path in sorted((dataset / "meta").glob("*.json")):
         sid = meta_path.stem
-        meta = load_meta(dataset, sid)
+        meta = read_meta(dataset, sid)
         depth = read_png_u16(dataset / "depth_fisheye" / f"{sid}.png", DEPTH_SCALE)
         rows, cols = np.nonzero(depth)
         pixels = np.stack([cols, rows], 1).astype(np.float64)
         for (dt, make_mask), t in zip(cases, tallies, strict=True):
-            exact = truth.range_at(model, pixels, int(meta["stamp_ns"]) - round(dt * 1e6))
+            exact = truth.range_at(model, pixels, meta.stamp_ns - round(dt * 1e6))
             e = depth[rows, cols] - exact
             ok = np.isfinite(e)
             bad = ok & (np.abs(e) > np.maximum(0.05, 0.03 * np.nan_to_num(exact)))
@@ -386,11 +387,11 @@ def time_offset_chart(out: Path, bag: Path, dataset: Path) -> str:
     ppr = px_per_rad(truth.rig.upper.model)
 
     def mask_for(dt_s: float) -> MaskFn:
-        def make(depth: np.ndarray[Any, Any], meta: dict[str, Any]) -> np.ndarray[Any, Any]:
-            motion = meta["motion"]
-            span_s = max(meta["lidar_skew_ms"].values()) / 1e3
-            omega = math.radians(motion["max_rotation_deg"]) / max(span_s, 1e-3)
-            speed = float(motion["speed_mps"])
+        def make(depth: np.ndarray[Any, Any], meta: SampleMeta) -> np.ndarray[Any, Any]:
+            motion = meta.motion
+            span_s = max(meta.lidar_skew_ms.values()) / 1e3
+            omega = math.radians(motion.max_rotation_deg) / max(span_s, 1e-3)
+            speed = motion.speed_mps
             disp = time_offset_displacement_px(dt_s, omega, speed, np.where(depth > 0, depth, 1.0), ppr)
             return displacement_mask(depth, disp, time_offset_range_error_m(dt_s, speed))
 
@@ -431,7 +432,7 @@ def extrinsic_chart(out: Path, bag: Path, work: Path) -> str:
         ingest([bag], IngestConfig(rig=rig, out=folder / "ds", workers=2, every=2))
         a = math.radians(angle)
 
-        def make(depth: np.ndarray[Any, Any], meta: dict[str, Any], a: float = a) -> np.ndarray[Any, Any]:
+        def make(depth: np.ndarray[Any, Any], meta: SampleMeta, a: float = a) -> np.ndarray[Any, Any]:
             disp = extrinsic_displacement_px(a, np.where(depth > 0, depth, 1.0), lever, ppr)
             return displacement_mask(depth, disp, extrinsic_range_error_m(a, lever))
 

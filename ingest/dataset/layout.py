@@ -21,7 +21,6 @@ and counted, never wrapped.
 
 from __future__ import annotations
 
-import json
 import os
 import tempfile
 from dataclasses import dataclass
@@ -33,6 +32,7 @@ import numpy as np
 import OpenEXR
 
 from calibration.types import F32, U8
+from ingest.dataset.meta import SampleMeta
 from ingest.dataset.png import encode_png
 from ingest.dataset.sparse import SparseImage
 from ingest.errors import DatasetError
@@ -91,7 +91,7 @@ class SampleFiles:
     equirect_down_virt: U8
     disp_px: SparseImage
     range_m: SparseImage
-    meta: dict[str, Any]
+    meta: SampleMeta
 
 
 def prepare_dirs(out: Path, exr: bool) -> None:
@@ -120,8 +120,7 @@ def write_sample(out: Path, sid: str, files: SampleFiles, exr: bool, png_level: 
         write_atomic(out / "disp_equirect_exr" / f"{sid}.exr", encode_exr(files.disp_px.dense()))
         write_atomic(out / "depth_fisheye_exr" / f"{sid}.exr", encode_exr(files.range_m.dense()))
     drops = {"disp_over_uint16": disp_drop, "depth_over_uint16": depth_drop}
-    meta = {**files.meta, "id": sid, "dropped": drops}
-    write_atomic(out / "meta" / f"{sid}.json", (json.dumps(meta, indent=1, sort_keys=True) + "\n").encode())
+    write_atomic(out / "meta" / f"{sid}.json", files.meta.written(sid, drops).to_json().encode())
     return drops
 
 

@@ -13,7 +13,6 @@ Finished samples (their meta/<id>.json exists) are skipped on a rerun.
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field, replace
@@ -97,9 +96,11 @@ class IngestSummary:
             self.skipped[result.reason] = self.skipped.get(result.reason, 0) + 1
             return
         self.written += 1
-        self.density.append(float(result.meta["gt"]["density"]))
-        self.skew_ms.extend(float(v) for v in result.meta["lidar_skew_ms"].values())
-        self.motion_applied += bool(result.meta["motion"]["applied"])
+        meta = result.meta
+        assert meta is not None  # written samples carry their metadata
+        self.density.append(meta.gt.density)
+        self.skew_ms.extend(meta.lidar_skew_ms.values())
+        self.motion_applied += meta.motion.applied
         for k, v in result.stage_ms.items():
             self.stage_ms.setdefault(k, []).append(v)
         for k, v in result.overlapped_ms.items():
@@ -394,9 +395,3 @@ def ingest(
             results.close()
     summary.seconds = time.perf_counter() - t_start
     return summary
-
-
-def load_meta(out: Path, sid: str) -> dict[str, Any]:
-    """The metadata of one written sample."""
-    data: dict[str, Any] = json.loads((out / "meta" / f"{sid}.json").read_text())
-    return data

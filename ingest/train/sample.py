@@ -20,6 +20,7 @@ from calibration.spherical import Equirectangular
 from calibration.types import F64, I64
 from calibration.warp import build_maps, check_source, default_height_full, remap_spans
 from ingest.dataset.layout import SampleFiles, write_sample
+from ingest.dataset.meta import GtMeta, MotionMeta, PointMeta, SampleMeta
 from ingest.runtime.background import Background
 from ingest.train.clouds import FilterCounts, compensate, estimate_velocity, filter_points, integrate_gyro
 from ingest.train.groundtruth import (
@@ -151,7 +152,7 @@ class SampleResult:
     sid: str
     written: bool
     reason: str
-    meta: dict[str, Any]
+    meta: SampleMeta | None  # None when the sample was skipped
     stage_ms: dict[str, float]  # sequential stages of the calling thread: they add up to its wall time
     overlapped_ms: dict[str, float] = field(default_factory=dict)  # helper-thread work beside them
 
@@ -249,7 +250,7 @@ def _process(job: SampleJob, images: Background[Equirects], start_ms: float) -> 
     half = prm.window_ns / 2e9
     if motion.applied and not (len(dt_s) and dt_s.min() <= -half and dt_s.max() >= half):
         # a one-sided window (bag start/end, a LiDAR gap) leaves the velocity poorly determined
-        return SampleResult(job.sid, False, "moving, LiDAR window one-sided (bag start/end or gap)", {}, {})
+        return SampleResult(job.sid, False, "moving, LiDAR window one-sided (bag start/end or gap)", None, {})
     t1 = time.perf_counter()
     ms["clouds"] = (t1 - t0) * 1e3
     model = geo.rig.upper.model
@@ -271,32 +272,27 @@ def _process(job: SampleJob, images: Background[Equirects], start_ms: float) -> 
     up, down = images.result()
     t3 = time.perf_counter()
     ms["images"] = start_ms + (t3 - t2) * 1e3
-    meta: dict[str, Any] = {
-        "stamp_ns": job.upper_stamp_ns,
-        "lower_stamp_ns": job.lower_stamp_ns,
-        "stereo_dt_ms": (job.lower_stamp_ns - job.upper_stamp_ns) / 1e6,
-        "source_bag": job.source,
-        "lidar_skew_ms": skew_ms,
-        "motion": {
-            "applied": motion.applied, "source": motion.source, "max_rotation_deg": motion.max_rotation_deg,
-            "speed_mps": motion.speed_mps, "predicted_motion_px": motion.motion_px,
-            "velocity_cam0_mps": motion.velocity_cam0_mps,
-        },
-        "points": {
-            "total": counts.total, "zero": counts.zero, "non_finite": counts.non_finite,
-            "too_close": counts.too_close, "noise_tag": counts.noise_tag, "kept": counts.kept,
-            "out_of_view": int(len(seen) - seen.sum()),
-            "occluded": int(seen.sum() - visible.sum()),
-        },
-        "gt": {
-            "depth_pixels": range_img.count,
-            "disp_pixels": disp_img.count,
-            "disp_unstable": unstable,
-            "density": range_img.count / geo.fisheye_valid_px,
-        },
-    }  # fmt: skip
+    meta = SampleMeta(
+        stamp_ns=job.upper_stamp_ns, lower_stamp_ns=job.lower_stamp_ns,
+        stereo_dt_ms=(job.lower_stamp_ns - job.upper_stamp_ns) / 1e6, source_bag=job.source,
+        lidar_skew_ms=skew_ms,
+        motion=MotionMeta(
+            applied=motion.applied, source=motion.source, max_rotation_deg=motion.max_rotation_deg,
+            speed_mps=motion.speed_mps, predicted_motion_px=motion.motion_px,
+            velocity_cam0_mps=motion.velocity_cam0_mps,
+        ),
+        points=PointMeta(
+            total=counts.total, zero=counts.zero, non_finite=counts.non_finite, too_close=counts.too_close,
+            noise_tag=counts.noise_tag, kept=counts.kept, out_of_view=int(len(seen) - seen.sum()),
+            occluded=int(seen.sum() - visible.sum()),
+        ),
+        gt=GtMeta(
+            depth_pixels=range_img.count, disp_pixels=disp_img.count, disp_unstable=unstable,
+            density=range_img.count / geo.fisheye_valid_px,
+        ),
+    )  # fmt: skip
     files = SampleFiles(job.upper_bgr, job.lower_bgr, up, down, disp_img, range_img, meta)
     drops = write_sample(job.out, job.sid, files, prm.exr, prm.png_level)
     ms["write"] = (time.perf_counter() - t3) * 1e3
     helper = {"equirect warps": images.ms} if prm.overlap_images else {}  # inline: inside stage "images"
-    return SampleResult(job.sid, True, "", {**meta, "dropped": drops}, ms, helper)
+    return SampleResult(job.sid, True, "", meta.written(job.sid, drops), ms, helper)

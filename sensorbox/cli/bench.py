@@ -117,14 +117,14 @@ def project(dataset: Path, truth: Any) -> tuple[list[ProjectionResult], str]:
     import numpy as np
     import yaml
 
-    from ingest.train.pipeline import load_meta
+    from ingest.dataset.meta import read_meta
     from sensorbox.analysis.tradeoff import compare_projections
 
     sids = sorted(p.stem for p in (dataset / "meta").glob("*.json"))
     if not sids:
         raise SensorboxError(f"{dataset}: no samples were written, nothing to compare projections on")
     sid = sids[len(sids) // 2]
-    stamp = int(load_meta(dataset, sid)["stamp_ns"])
+    stamp = read_meta(dataset, sid).stamp_ns
     upper = cv2.imread(str(dataset / "left_fisheye" / f"{sid}.png"))
     lower = cv2.imread(str(dataset / "right_fisheye" / f"{sid}.png"))
     if upper is None or lower is None:

@@ -18,7 +18,7 @@ import yaml
 
 from calibration.spherical import Equirectangular
 from ingest.dataset.layout import DEPTH_SCALE, DISP_SCALE, read_png_u16
-from ingest.train.pipeline import load_meta
+from ingest.dataset.meta import read_meta
 from sensorbox.sim.truth import Truth
 
 
@@ -53,8 +53,7 @@ def _edge_band(truth: Truth, stamp_ns: int, band_px: int) -> np.ndarray:
 
 def score_sample(out: Path, truth: Truth, sid: str, band_px: int = 3) -> SampleScore:
     """Depth and disparity accuracy of sample `sid` of the dataset at `out`."""
-    meta = load_meta(out, sid)
-    stamp = int(meta["stamp_ns"])
+    stamp = read_meta(out, sid).stamp_ns
     model = truth.rig.upper.model
     depth = read_png_u16(out / "depth_fisheye" / f"{sid}.png", DEPTH_SCALE)
     rows, cols = np.nonzero(depth)

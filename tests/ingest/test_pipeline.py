@@ -16,8 +16,9 @@ import yaml
 from calibration.stereo import rotate_for_stereo
 from ingest.bags.reader import open_bags
 from ingest.dataset.layout import DEPTH_SCALE, DISP_SCALE, read_png_u16
+from ingest.dataset.meta import read_meta
 from ingest.errors import BagError, DatasetError
-from ingest.train.pipeline import IngestConfig, ingest, load_meta
+from ingest.train.pipeline import IngestConfig, ingest
 from ingest.train.sample import SampleParams
 from sensorbox.live.bagwriter import BagWriter
 from sensorbox.sim.run import SimConfig, simulate
@@ -69,8 +70,8 @@ def test_walk_outdoor_with_motion_compensation(tmp_path: Path) -> None:
         for score in score_dataset(out, truth):
             medians.setdefault(name, []).append(score.depth_median_abs_m)
             if name == "on":
-                motion = load_meta(out, score.sid)["motion"]
-                assert motion["applied"] and motion["speed_mps"] == pytest.approx(1.24, abs=0.1)
+                motion = read_meta(out, score.sid).motion
+                assert motion.applied and motion.speed_mps == pytest.approx(1.24, abs=0.1)
                 assert score.depth_outlier_rate <= 0.005, score
                 assert score.disp_median_abs_px <= 0.05 and score.disp_over_1px_rate <= 0.005, score
     assert max(medians["on"]) <= 0.002
@@ -85,8 +86,8 @@ def test_range_noise_of_2cm_gives_median_error_below_15mm(tmp_path: Path) -> Non
     for score in score_dataset(out, truth):
         assert 0.008 < score.depth_median_abs_m <= 0.015, score
         assert abs(score.depth_bias_m) < 0.003, score  # no bias
-    meta = load_meta(out, "000000")
-    assert meta["points"]["noise_tag"] > 0  # the simulator's dust echoes were dropped by their tag
+    meta = read_meta(out, "000000")
+    assert meta.points.noise_tag > 0  # the simulator's dust echoes were dropped by their tag
 
 
 def _sgbm(up: np.ndarray, down: np.ndarray) -> np.ndarray:
@@ -213,9 +214,9 @@ def test_lidar_that_stops_and_duplicated_or_reordered_frames(tmp_path: Path) -> 
     out = tmp_path / "ds"
     summary = ingest([bag], IngestConfig(rig=_rig(bag), out=out, workers=1))
     assert summary.frames == 21 and summary.pairs == 21 and summary.written == 21
-    early, late = load_meta(out, "000001"), load_meta(out, "000020")
-    assert set(early["lidar_skew_ms"]) == {"lidar_top", "lidar_bottom"}
-    assert late["points"]["total"] < 0.75 * early["points"]["total"]  # only the top LiDAR left
+    early, late = read_meta(out, "000001"), read_meta(out, "000020")
+    assert set(early.lidar_skew_ms) == {"lidar_top", "lidar_bottom"}
+    assert late.points.total < 0.75 * early.points.total  # only the top LiDAR left
 
 
 def test_nan_points_are_counted_not_fatal(tmp_path: Path) -> None:
@@ -233,8 +234,8 @@ def test_nan_points_are_counted_not_fatal(tmp_path: Path) -> None:
     shutil.copytree(truth_dir(INDOOR), truth_dir(bag))
     out = tmp_path / "ds"
     ingest([bag], IngestConfig(rig=_rig(bag), out=out, workers=1, every=10))
-    meta = load_meta(out, "000000")
-    assert meta["points"]["non_finite"] == pytest.approx(meta["points"]["total"] / 50, rel=0.05)
+    meta = read_meta(out, "000000")
+    assert meta.points.non_finite == pytest.approx(meta.points.total / 50, rel=0.05)
 
 
 def test_disk_full_is_a_clear_error_and_leaves_no_partial_file(

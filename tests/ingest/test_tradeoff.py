@@ -14,7 +14,8 @@ import yaml
 from calibration.rectify import rectify_rig
 from calibration.stereo import depth_to_disparity
 from calibration.warp import covering_crop, default_height_full
-from ingest.train.pipeline import IngestConfig, load_meta
+from ingest.dataset.meta import read_meta
+from ingest.train.pipeline import IngestConfig
 from sensorbox.analysis.tradeoff import (
     ALTERNATIVES,
     QUICK,
@@ -160,7 +161,7 @@ def test_equirect_vs_cubemap_on_a_fixture_sample(runs: list[Measurement]) -> Non
     out = runs[0].out
     assert out is not None
     sid = "000001"
-    stamp = int(load_meta(out, sid)["stamp_ns"])
+    stamp = read_meta(out, sid).stamp_ns
     upper = cv2.imread(str(out / "left_fisheye" / f"{sid}.png"))
     lower = cv2.imread(str(out / "right_fisheye" / f"{sid}.png"))
     assert upper is not None and lower is not None

@@ -28,7 +28,7 @@ runner = CliRunner()
 BAG = FIXTURES_DIR / "indoor_static_mcap"
 
 
-def test_quick_bench_on_a_fixture_bag(tmp_path: Path, FIXTURES_DIR) -> None:
+def test_quick_bench_on_a_fixture_bag(tmp_path: Path) -> None:
     out = tmp_path / "bench"
     res = runner.invoke(app, ["bench", "--bag", str(BAG), "--quick", "--every", "7", "--out", str(out)])
     assert res.exit_code == 0, res.output

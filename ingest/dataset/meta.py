@@ -1,0 +1,94 @@
+"""Per-sample metadata (`meta/<id>.json`): typed here, plain JSON on disk.
+
+The JSON keeps the release layout's nesting (stamps, source bag, per-LiDAR
+skew, motion decision, point counts, GT counts and density, uint16 drops); the
+dataclasses give every reader the same names and types instead of string keys.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+from ingest.errors import DatasetError
+
+
+@dataclass(frozen=True)
+class MotionMeta:
+    """The motion-compensation decision: applied or not, from what, and why (m/s, deg, px)."""
+
+    applied: bool
+    source: str  # "imu", "imu+velocity", "none", ...
+    max_rotation_deg: float
+    speed_mps: float
+    predicted_motion_px: float  # worst-case image motion of an uncompensated point
+    velocity_cam0_mps: list[float] | None
+
+
+@dataclass(frozen=True)
+class PointMeta:
+    """LiDAR points of the sample's window: what each filter removed and what remained."""
+
+    total: int
+    zero: int
+    non_finite: int
+    too_close: int
+    noise_tag: int
+    kept: int
+    out_of_view: int
+    occluded: int
+
+
+@dataclass(frozen=True)
+class GtMeta:
+    """Ground-truth pixels: fisheye range, equirect disparity, unstable (pole) pixels, density (0..1)."""
+
+    depth_pixels: int
+    disp_pixels: int
+    disp_unstable: int
+    density: float  # GT pixels / valid fisheye pixels
+
+
+@dataclass(frozen=True)
+class SampleMeta:
+    """One written sample; `id` and `dropped` (values too large for uint16, per image) come with the write."""
+
+    stamp_ns: int  # upper camera header stamp: the sample's time
+    lower_stamp_ns: int
+    stereo_dt_ms: float
+    source_bag: str
+    lidar_skew_ms: dict[str, float]  # per LiDAR topic: how far its points spread around the frame time
+    motion: MotionMeta
+    points: PointMeta
+    gt: GtMeta
+    id: str = ""
+    dropped: dict[str, int] = field(default_factory=dict)
+
+    def written(self, sid: str, dropped: dict[str, int]) -> SampleMeta:
+        return replace(self, id=sid, dropped=dict(dropped))
+
+    def to_json(self) -> str:
+        return json.dumps(asdict(self), indent=1, sort_keys=True) + "\n"
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> SampleMeta:
+        return cls(
+            stamp_ns=int(d["stamp_ns"]), lower_stamp_ns=int(d["lower_stamp_ns"]),
+            stereo_dt_ms=float(d["stereo_dt_ms"]), source_bag=str(d["source_bag"]),
+            lidar_skew_ms={str(k): float(v) for k, v in d["lidar_skew_ms"].items()},
+            motion=MotionMeta(**d["motion"]), points=PointMeta(**d["points"]), gt=GtMeta(**d["gt"]),
+            id=str(d.get("id", "")), dropped={str(k): int(v) for k, v in d.get("dropped", {}).items()},
+        )  # fmt: skip
+
+
+def read_meta(out: Path, sid: str) -> SampleMeta:
+    """The metadata of written sample `sid` in dataset folder `out`."""
+    path = out / "meta" / f"{sid}.json"
+    try:
+        return SampleMeta.from_dict(json.loads(path.read_text()))
+    except OSError as err:
+        raise DatasetError(f"{path}: cannot read: {err.strerror or err}") from err
+    except (ValueError, KeyError, TypeError) as err:
+        raise DatasetError(f"{path}: not SensorBox sample metadata ({type(err).__name__}: {err})") from err
