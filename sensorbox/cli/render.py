@@ -1,152 +1,88 @@
 """`sensorbox render-benchmark SCAN... --rig RIG --out DIR`: benchmark views from dense laser scans.
 
-A plain typer command function registered by `sensorbox.cli`. It parses, reads
-the scans (`ingest.render.scans.read_scans`) and the reference DS camera (cam0 of the
-rig), calls `ingest.render.benchmark.run_benchmark` with a progress bar and prints a
+Parses the options into an `ingest.render.request.BenchmarkRequest`, calls
+`ingest.render.benchmark.run_benchmark` with a progress bar and prints a
 summary table. Errors are `SensorboxError`s, left to the main CLI.
 """
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated
 
 import typer
-from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
-from calibration.errors import SensorboxError
+from sensorbox.cli.common import console, progress_bar
 
-console = Console(width=None if sys.stdout.isatty() else 140)
-progress_console = Console(stderr=True)
+if TYPE_CHECKING:
+    from ingest.render.benchmark import BenchmarkConfig, BenchmarkSummary
 
-
-def _size(text: str) -> tuple[int, int]:
-    w, sep, h = text.lower().partition("x")
-    if not sep or not w.isdigit() or not h.isdigit():
-        raise SensorboxError(f"--size {text!r}: expected WIDTHxHEIGHT, e.g. 2048x1152")
-    return int(w), int(h)
-
-
-def _to_scan(pts_world: Any, T_world_scan: Any) -> Any:
-    """World points into a scan's frame (float32)."""
-    return ((pts_world - T_world_scan[:3, 3]) @ T_world_scan[:3, :3]).astype("float32")
+ScansArg = Annotated[
+    list[Path],
+    typer.Argument(help="Scans: site.yaml manifests, .e57 (with poses), .pcd (VIEWPOINT pose), .ply."),
+]
+RigOpt = Annotated[Path, typer.Option(help="Rig file; its cam0 is the reference Double Sphere calibration.")]
+OutOpt = Annotated[Path, typer.Option(help="Output folder (WideDepth benchmark layout); reruns resume.")]
+FovOpt = Annotated[
+    list[float] | None,
+    typer.Option("--fov", help="Fisheye FOVs in degrees (repeat; default 120 140 165 195)."),
+]
+BaselineOpt = Annotated[
+    list[float] | None,
+    typer.Option("--baseline", help="Stereo baselines in mm (repeat; default 20 65 120 200 300)."),
+]
+YawOpt = Annotated[list[float] | None, typer.Option("--yaw", help="View yaw(s) in degrees (repeat).")]
+HeightOpt = Annotated[
+    list[float] | None, typer.Option("--height", help="View height(s) above the scan centre, m (repeat).")
+]
+PitchOpt = Annotated[float, typer.Option(help="View pitch in degrees (up > 0).")]
+CenterOpt = Annotated[
+    list[str] | None, typer.Option("--center", help="Scan name(s) to put views at (default: every scan).")
+]
+SizeOpt = Annotated[str, typer.Option(help="Fisheye and pinhole image size WIDTHxHEIGHT.")]
+BundleOpt = Annotated[int, typer.Option(help="Scans per view: the centre and its nearest neighbours.")]
+WorkersOpt = Annotated[int, typer.Option(help="Local worker processes (views rendered in parallel).")]
+ClipOpt = Annotated[
+    float | None, typer.Option(help="Ranges beyond this (m) are invalid, e.g. outdoors through windows.")
+]
+ClipModeOpt = Annotated[
+    str, typer.Option(help="invalid (0 in depth, colour kept) | drop (those points are not drawn).")
+]
+MaskOpt = Annotated[
+    list[Path] | None,
+    typer.Option("--mask", help="Mask cloud (world frame) of reflective/transparent surfaces (repeat)."),
+]
+MaskLabelOpt = Annotated[
+    str, typer.Option(help="Per-point field marking masked points (non-zero); '' for none.")
+]
+PointsPerPxOpt = Annotated[float, typer.Option(help="Level of detail: points drawn per pixel.")]
+HeightFullOpt = Annotated[
+    int | None, typer.Option(help="Rows of the full-sphere equirect (default: from each fisheye).")
+]
+PinholeOpt = Annotated[
+    list[float] | None, typer.Option("--pinhole-in", help="FOV folders with pinhole images (default 120).")
+]
+SiteOpt = Annotated[int, typer.Option(help="Site number, the first part of the scene ids.")]
+ExrOpt = Annotated[bool, typer.Option("--exr/--no-exr", help="Also write float32 EXR copies of the GT.")]
+PngLevelOpt = Annotated[int, typer.Option(help="PNG deflate level 0-3 (speed vs size).")]
 
 
 def _pct(part: float, whole: float) -> str:
     return "-" if whole <= 0 else f"{100.0 * part / whole:.2f} %"
 
 
-def render_benchmark_cmd(
-    scans: Annotated[
-        list[Path],
-        typer.Argument(help="Scans: site.yaml manifests, .e57 (with poses), .pcd (VIEWPOINT pose), .ply."),
-    ],
-    rig: Annotated[Path, typer.Option(help="Rig file; its cam0 is the reference Double Sphere calibration.")],
-    out: Annotated[Path, typer.Option(help="Output folder (WideDepth benchmark layout); reruns resume.")],
-    fov: Annotated[
-        list[float] | None,
-        typer.Option("--fov", help="Fisheye FOVs in degrees (repeat; default 120 140 165 195)."),
-    ] = None,
-    baseline: Annotated[
-        list[float] | None,
-        typer.Option("--baseline", help="Stereo baselines in mm (repeat; default 20 65 120 200 300)."),
-    ] = None,
-    yaw: Annotated[list[float] | None, typer.Option("--yaw", help="View yaw(s) in degrees (repeat).")] = None,
-    height: Annotated[
-        list[float] | None, typer.Option("--height", help="View height(s) above the scan centre, m (repeat).")
-    ] = None,
-    pitch: Annotated[float, typer.Option(help="View pitch in degrees (up > 0).")] = 0.0,
-    center: Annotated[
-        list[str] | None, typer.Option("--center", help="Scan name(s) to put views at (default: every scan).")
-    ] = None,
-    size: Annotated[str, typer.Option(help="Fisheye and pinhole image size WIDTHxHEIGHT.")] = "2048x1152",
-    bundle: Annotated[int, typer.Option(help="Scans per view: the centre and its nearest neighbours.")] = 3,
-    workers: Annotated[int, typer.Option(help="Local worker processes (views rendered in parallel).")] = 2,
-    clip: Annotated[
-        float | None, typer.Option(help="Ranges beyond this (m) are invalid, e.g. outdoors through windows.")
-    ] = None,
-    clip_mode: Annotated[
-        str, typer.Option(help="invalid (0 in depth, colour kept) | drop (those points are not drawn).")
-    ] = "invalid",
-    mask: Annotated[
-        list[Path] | None,
-        typer.Option("--mask", help="Mask cloud (world frame) of reflective/transparent surfaces (repeat)."),
-    ] = None,
-    mask_label: Annotated[
-        str, typer.Option(help="Per-point field marking masked points (non-zero); '' for none.")
-    ] = "label",
-    points_per_px: Annotated[float, typer.Option(help="Level of detail: points drawn per pixel.")] = 2.0,
-    height_full: Annotated[
-        int | None, typer.Option(help="Rows of the full-sphere equirect (default: from each fisheye).")
-    ] = None,
-    pinhole_fov: Annotated[
-        list[float] | None,
-        typer.Option("--pinhole-in", help="FOV folders with pinhole images (default 120)."),
-    ] = None,
-    site_id: Annotated[int, typer.Option(help="Site number, the first part of the scene ids.")] = 0,
-    exr: Annotated[
-        bool, typer.Option("--exr/--no-exr", help="Also write float32 EXR copies of the GT.")
-    ] = True,
-    png_level: Annotated[int, typer.Option(help="PNG deflate level 0-3 (speed vs size).")] = 1,
-) -> None:
-    """Render benchmark views (virtual fisheye, pano, Cassini and pinhole cameras, DOWN/RIGHT stereo
-    partners) from dense laser scans into the WideDepth benchmark layout."""
-    from dataclasses import replace
+def summary_table(summary: BenchmarkSummary, cfg: BenchmarkConfig, out: Path) -> Table:
+    """Per scene and FOV: valid fisheye pixels, holes (CENTER, worst partner), masked, clipped."""
+    from ingest.render.benchmark import fov_label
 
-    import numpy as np
-
-    from calibration.rig import read_rig
-    from ingest.render.benchmark import BASELINES_MM, FOVS_DEG, BenchmarkConfig, fov_label, run_benchmark
-    from ingest.render.scans import read_cloud, read_scans
-    from ingest.render.view import RenderParams
-
-    if clip_mode not in ("invalid", "drop"):
-        raise SensorboxError(f"--clip-mode {clip_mode!r}: expected invalid or drop")
-    if not 0 <= png_level <= 3:
-        raise SensorboxError(f"--png-level {png_level}: expected 0..3")
-    if not points_per_px > 0:
-        raise SensorboxError(f"--points-per-px {points_per_px}: must be > 0")
-    width, height_px = _size(size)
-    reference = read_rig(rig).camera("cam0").model
-    site = read_scans(scans, mask_label or None)
-    for m in mask or []:  # a world-frame mask cloud joins every scan, in that scan's frame
-        world = read_cloud(m, np.eye(4), None).xyz.astype(np.float64)
-        site = [
-            replace(s, mask_xyz=np.concatenate([s.mask_xyz, _to_scan(world, s.T_world_scan)])) for s in site
-        ]
-    cfg = BenchmarkConfig(
-        fovs_deg=tuple(fov or FOVS_DEG), baselines_mm=tuple(baseline or BASELINES_MM), width=width,
-        height=height_px, yaws_deg=tuple(yaw or (0.0,)), heights_m=tuple(height or (0.0,)), pitch_deg=pitch,
-        centers=tuple(center or ()), bundle=bundle, pinhole_fovs=tuple(pinhole_fov or (120.0,)),
-        height_full=height_full, site_id=site_id, exr=exr, png_level=png_level, workers=workers,
-        render=RenderParams(points_per_px=points_per_px, clip_m=clip, clip_mode=clip_mode),  # type: ignore[arg-type]
-    )  # fmt: skip
-    total = sum(len(s.xyz) for s in site)
-    what = f"{len(site)} scans, {total / 1e6:.1f} M points; reference camera {type(reference).__name__}"
-    console.print(what, highlight=False)
-    columns = (TextColumn("rendering"), BarColumn(), MofNCompleteColumn(), TextColumn("views"))
-    with Progress(*columns, TimeRemainingColumn(), console=progress_console, transient=True) as bar:
-        task = bar.add_task("render", total=None)
-        summary = run_benchmark(
-            site, reference, out, cfg, progress=lambda done, n: bar.update(task, completed=done, total=n)
-        )
     title = (
         f"{out}: {len(summary.scenes)} scenes, {summary.renders} views in {summary.seconds:.1f} s "
         f"(LOD index {summary.index_seconds:.1f} s), {summary.files} files"
     )
     table = Table(title=title)
-    for col in (
-        "scene",
-        "FOV",
-        "fisheye valid",
-        "holes CENTER",
-        "holes DOWN/RIGHT (max)",
-        "masked",
-        "clipped",
-    ):
+    columns = ("scene", "FOV", "fisheye valid", "holes CENTER", "holes DOWN/RIGHT (max)", "masked", "clipped")
+    for col in columns:
         table.add_column(col, justify="left" if col == "scene" else "right")
     for scene, st in summary.stats.items():
         for f in cfg.fovs_deg:
@@ -160,11 +96,35 @@ def render_benchmark_cmd(
                 scene, lab, _pct(c.get("valid_px", 0), rays), _pct(c.get("hole_px", 0), rays),
                 f"{100 * worst:.2f} %", _pct(c.get("masked_px", 0), rays), _pct(c.get("clipped_px", 0), rays),
             )  # fmt: skip
-    console.print(table)
+    return table
+
+
+def render_benchmark_cmd(
+    scans: ScansArg, rig: RigOpt, out: OutOpt, fov: FovOpt = None, baseline: BaselineOpt = None,
+    yaw: YawOpt = None, height: HeightOpt = None, pitch: PitchOpt = 0.0, center: CenterOpt = None,
+    size: SizeOpt = "2048x1152", bundle: BundleOpt = 3, workers: WorkersOpt = 2, clip: ClipOpt = None,
+    clip_mode: ClipModeOpt = "invalid", mask: MaskOpt = None, mask_label: MaskLabelOpt = "label",
+    points_per_px: PointsPerPxOpt = 2.0, height_full: HeightFullOpt = None, pinhole_fov: PinholeOpt = None,
+    site_id: SiteOpt = 0, exr: ExrOpt = True, png_level: PngLevelOpt = 1,
+) -> None:  # fmt: skip
+    """Render benchmark views (virtual fisheye, pano, Cassini and pinhole cameras, DOWN/RIGHT stereo
+    partners) from dense laser scans into the WideDepth benchmark layout."""
+    from ingest.render.benchmark import run_benchmark
+    from ingest.render.request import BenchmarkRequest, prepare
+
+    request = BenchmarkRequest(
+        scans, rig, out, fovs_deg=fov, baselines_mm=baseline, yaws_deg=yaw, heights_m=height, pitch_deg=pitch,
+        centers=center, size=size, bundle=bundle, workers=workers, clip_m=clip, clip_mode=clip_mode,
+        masks=mask,
+        mask_label=mask_label, points_per_px=points_per_px, height_full=height_full, pinhole_fovs=pinhole_fov,
+        site_id=site_id, exr=exr, png_level=png_level,
+    )  # fmt: skip
+    site, reference, cfg = prepare(request)
+    points = sum(len(s.xyz) for s in site) / 1e6
+    console.print(f"{len(site)} scans, {points:.1f} M points; reference camera {type(reference).__name__}")
+    with progress_bar("rendering", "views") as update:
+        summary = run_benchmark(site, reference, out, cfg, progress=update)
+    console.print(summary_table(summary, cfg, out))
     if summary.skipped:
-        console.print(
-            f"Already done (scene.yaml present, skipped): {', '.join(summary.skipped)}", highlight=False
-        )
-    console.print(
-        f"Benchmark: {out} (each <scene>/scene.yaml lists cameras, poses and counts)", highlight=False
-    )
+        console.print(f"Already done (scene.yaml present, skipped): {', '.join(summary.skipped)}")
+    console.print(f"Benchmark: {out} (each <scene>/scene.yaml lists cameras, poses and counts)")

@@ -1,0 +1,25 @@
+"""What every command shares: the consoles and a progress bar on stderr."""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+console = Console(width=None if sys.stdout.isatty() else 140, highlight=False)
+err_console = Console(stderr=True, width=None if sys.stderr.isatty() else 200)
+
+Update = Callable[[int, int], None]
+"""progress(done, total): the library's progress callback."""
+
+
+@contextmanager
+def progress_bar(verb: str, unit: str) -> Iterator[Update]:
+    """A transient progress bar on stderr ("VERB [bar] done/total UNIT, time left"); yields the callback."""
+    columns = (TextColumn(verb), BarColumn(), MofNCompleteColumn(), TextColumn(unit), TimeRemainingColumn())
+    with Progress(*columns, console=err_console, transient=True) as bar:
+        task = bar.add_task(verb, total=None)
+        yield lambda done, total: bar.update(task, completed=done, total=total)
