@@ -10,15 +10,18 @@ from __future__ import annotations
 
 import json
 import math
-import sys
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-from calibration.errors import SensorboxError
+from sensorbox.cli.common import progress_bar
+
+if TYPE_CHECKING:
+    from ingest.eval.evaluate import EvalReport
+    from ingest.eval.request import EvalRequest
+    from ingest.eval.stats import DatasetStats
 
 progress_console = Console(stderr=True)
 MISSING_LISTED = 20  # missing predictions printed by name; the JSON lists all
@@ -28,134 +31,124 @@ def _echo(text: str = "") -> None:
     typer.echo(text)
 
 
-def _progress(what: str) -> Progress:
-    columns = (TextColumn(what), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
-    return Progress(*columns, console=progress_console, transient=True, disable=not sys.stderr.isatty())
+DatasetOpt = Annotated[
+    Path, typer.Option("--dataset", help="Dataset root: WideDepth train layout or benchmark layout.")
+]
+PredOpt = Annotated[
+    Path,
+    typer.Option(
+        "--pred", help="Predictions: the GT's relative path and stem, as .png (uint16), .exr or .npy."
+    ),
+]
+TaskOpt = Annotated[str, typer.Option("--task", help="stereo (disparity) | mono | completion (depth).")]
+ByOpt = Annotated[
+    list[str] | None, typer.Option("--by", help="Group by fov | baseline (repeat for both; benchmark).")
+]
+CompareOpt = Annotated[
+    str | None,
+    typer.Option("--compare", help="A,B: percentage change of A vs B, e.g. 195FOV,120FOV or 200mm,65mm."),
+]
+HeatmapOpt = Annotated[
+    Path | None, typer.Option("--heatmap", help="Write a PNG of --metric over FOV x baseline.")
+]
+MetricOpt = Annotated[
+    str | None, typer.Option(help="Metric of the heatmap (default epe_px for stereo, abs_rel for depth).")
+]
+RegionOpt = Annotated[str, typer.Option(help="Region of --compare and --heatmap: all | edges | a mask.")]
+JsonOpt = Annotated[
+    Path | None, typer.Option("--json", help="JSON report (default: <pred>/eval_<task>.json).")
+]
+ImageTypeOpt = Annotated[
+    str | None, typer.Option(help="Benchmark view to score only (fisheye, pano, pano_crop, ...).")
+]
+MaskOpt = Annotated[
+    list[str] | None,
+    typer.Option(help="Extra region NAME=DIR: PNG masks named like the GT, non-zero inside (repeatable)."),
+]
+EdgesOpt = Annotated[
+    bool, typer.Option("--edges/--no-edges", help="Also score the band of 3 px around GT edges.")
+]
+AlignOpt = Annotated[
+    str, typer.Option(help="Depth only: none | median (per-sample median scaling of relative depth).")
+]
 
 
-def _parse_masks(items: list[str]) -> tuple[tuple[str, Path], ...]:
-    out = []
-    for item in items:
-        name, sep, folder = item.partition("=")
-        if not sep or not name or not folder:
-            raise SensorboxError(f"--mask {item!r}: expected NAME=DIR (e.g. stable=out/stability)")
-        out.append((name, Path(folder)))
-    return tuple(out)
+def _print_report(report: EvalReport, task: str, dataset: Path) -> None:
+    """One markdown table per region, then the samples that had no prediction."""
+    from ingest.eval.evaluate import markdown_table
+
+    n_gt = len(report.samples) + len(report.missing)
+    _echo(f"# {task} on {dataset} ({report.layout} layout): {len(report.samples)} of {n_gt} samples scored")
+    for r in report.regions:
+        _echo(f"\n## region: {r}\n")
+        _echo(markdown_table(report, r))
+    if report.missing:
+        _echo(f"\nMissing predictions: {len(report.missing)} of {n_gt} (not scored):")
+        for rel in report.missing[:MISSING_LISTED]:
+            _echo(f"  {rel}")
+        if len(report.missing) > MISSING_LISTED:
+            _echo(f"  ... and {len(report.missing) - MISSING_LISTED} more (all in the JSON)")
+
+
+def _print_extras(
+    report: EvalReport, req: EvalRequest, heatmap: Path | None, metric: str | None, task: str, pred: Path
+) -> None:
+    """The --compare table and the --heatmap chart, when asked for."""
+    from ingest.eval import evaluate as ev
+
+    if req.pair is not None:
+        a, b = req.pair
+        _echo(f"\n## {a} vs {b} (region {req.region}; change = (A - B) / |B|)\n")
+        _echo(ev.markdown_compare(ev.compare(report, a, b, req.region), a, b))
+    if heatmap is not None:
+        from sensorbox.analysis.plots import plot_heatmap
+
+        name = metric or report.columns[0]
+        grid = ev.heatmap(report, name, req.region)
+        path = plot_heatmap(grid, heatmap, f"{task}: {name} ({req.region}), {pred.name}")
+        _echo(f"\nHeatmap of {name} over FOV x baseline: {path}")
 
 
 def eval_cmd(
-    dataset: Annotated[
-        Path, typer.Option("--dataset", help="Dataset root: WideDepth train layout or benchmark layout.")
-    ],
-    pred: Annotated[
-        Path,
-        typer.Option(
-            "--pred", help="Predictions: the GT's relative path and stem, as .png (uint16), .exr or .npy."
-        ),
-    ],
-    task: Annotated[str, typer.Option("--task", help="stereo (disparity) | mono | completion (depth).")],
-    by: Annotated[
-        list[str] | None, typer.Option("--by", help="Group by fov | baseline (repeat for both; benchmark).")
-    ] = None,
-    compare: Annotated[
-        str | None,
-        typer.Option("--compare", help="A,B: percentage change of A vs B, e.g. 195FOV,120FOV or 200mm,65mm."),
-    ] = None,
-    heatmap: Annotated[
-        Path | None, typer.Option("--heatmap", help="Write a PNG of --metric over FOV x baseline.")
-    ] = None,
-    metric: Annotated[
-        str | None, typer.Option(help="Metric of the heatmap (default epe_px for stereo, abs_rel for depth).")
-    ] = None,
-    region: Annotated[
-        str, typer.Option(help="Region of --compare and --heatmap: all | edges | a mask.")
-    ] = "all",
-    json_out: Annotated[
-        Path | None, typer.Option("--json", help="JSON report (default: <pred>/eval_<task>.json).")
-    ] = None,
-    image_type: Annotated[
-        str | None, typer.Option(help="Benchmark view to score only (fisheye, pano, pano_crop, ...).")
-    ] = None,
-    mask: Annotated[
-        list[str] | None,
-        typer.Option(
-            help="Extra region NAME=DIR: PNG masks named like the GT, non-zero inside (repeatable)."
-        ),
-    ] = None,
-    edges: Annotated[
-        bool, typer.Option("--edges/--no-edges", help="Also score the band of 3 px around GT edges.")
-    ] = True,
-    align: Annotated[
-        str, typer.Option(help="Depth only: none | median (per-sample median scaling of relative depth).")
-    ] = "none",
-) -> None:
+    dataset: DatasetOpt, pred: PredOpt, task: TaskOpt, by: ByOpt = None, compare: CompareOpt = None,
+    heatmap: HeatmapOpt = None, metric: MetricOpt = None, region: RegionOpt = "all", json_out: JsonOpt = None,
+    image_type: ImageTypeOpt = None, mask: MaskOpt = None, edges: EdgesOpt = True, align: AlignOpt = "none",
+) -> None:  # fmt: skip
     """Score depth or disparity predictions against a dataset's GT: markdown tables, JSON, heatmap.
 
     Metrics are over valid GT only (coverage = share of it with a prediction);
     stereo: EPE, median, p95, bad-1/2/3 (px); depth: AbsRel, MAE, RMSE,
     delta < 1.25^k. Totals pool every pixel.
     """
-    from ingest.eval import evaluate as ev
+    from ingest.eval.evaluate import evaluate, write_report_json
+    from ingest.eval.request import eval_request
 
-    if task not in ev.TASKS:
-        raise SensorboxError(f"--task {task!r}: expected one of {', '.join(ev.TASKS)}")
-    keys = list(dict.fromkeys(by or []))
-    pair: tuple[str, str] | None = None
-    if compare is not None:
-        a, sep, b = compare.partition(",")
-        if not sep:
-            raise SensorboxError(f"--compare {compare!r}: expected A,B (e.g. 195FOV,120FOV)")
-        pair = (a.strip(), b.strip())
-        key = ev.parse_config_label(pair[0])[0]
-        if key not in keys:
-            keys.append(key)
-    if heatmap is not None:
-        keys += [k for k in ev.GROUP_KEYS if k not in keys]
-    masks = _parse_masks(mask or [])
-    regions = ("all", *(["edges"] if edges else []), *(name for name, _ in masks))
-    if region not in regions:
-        raise SensorboxError(f"--region {region!r}: expected one of {', '.join(regions)}")
-    opts = ev.EvalOptions(
-        task=task,
-        by=tuple(keys),
-        image_type=image_type,
-        edges=edges,
-        masks=masks,
-        align=align,  # type: ignore[arg-type]
+    req = eval_request(
+        task, by or [], compare, heatmap is not None, mask or [], region, image_type, edges, align
     )
-    with _progress("scoring") as bar:
-        job = bar.add_task("eval", total=None)
-        report = ev.evaluate(dataset, pred, opts, progress=lambda d, t: bar.update(job, completed=d, total=t))
-    n_gt = len(report.samples) + len(report.missing)
-    _echo(f"# {task} on {dataset} ({report.layout} layout): {len(report.samples)} of {n_gt} samples scored")
-    for r in report.regions:
-        _echo()
-        _echo(f"## region: {r}")
-        _echo()
-        _echo(ev.markdown_table(report, r))
-    if report.missing:
-        _echo()
-        _echo(f"Missing predictions: {len(report.missing)} of {n_gt} (not scored):")
-        for rel in report.missing[:MISSING_LISTED]:
-            _echo(f"  {rel}")
-        if len(report.missing) > MISSING_LISTED:
-            _echo(f"  ... and {len(report.missing) - MISSING_LISTED} more (all in the JSON)")
-    if pair is not None:
-        rows = ev.compare(report, pair[0], pair[1], region)
-        _echo()
-        _echo(f"## {pair[0]} vs {pair[1]} (region {region}; change = (A - B) / |B|)")
-        _echo()
-        _echo(ev.markdown_compare(rows, pair[0], pair[1]))
-    if heatmap is not None:
-        from sensorbox.analysis.plots import plot_heatmap
-
-        name = metric or report.columns[0]
-        grid = ev.heatmap(report, name, region)
-        title = f"{task}: {name} ({region}), {pred.name}"
-        _echo()
-        _echo(f"Heatmap of {name} over FOV x baseline: {plot_heatmap(grid, heatmap, title)}")
-    out = ev.write_report_json(report, json_out or pred / f"eval_{task}.json")
+    with progress_bar("scoring", "samples") as update:
+        report = evaluate(dataset, pred, req.options, progress=update)
+    _print_report(report, task, dataset)
+    _print_extras(report, req, heatmap, metric, task, pred)
+    out = write_report_json(report, json_out or pred / f"eval_{task}.json")
     _echo(f"JSON report: {out}")
+
+
+def _print_stats(stats: DatasetStats, dataset: Path) -> None:
+    """The depth histogram, GT density and entropy as markdown tables."""
+    _echo(f"# {dataset} ({stats.layout} layout): {len(stats.samples)} depth maps\n")
+    _echo("| depth | " + " | ".join(stats.bins) + " |")
+    _echo("|---|" + "---|" * len(stats.bins))
+    _echo("| valid GT pixels | " + " | ".join(str(c) for c in stats.depth_counts) + " |")
+    shares = ("-" if math.isnan(s) else f"{100.0 * s:.2f}" for s in stats.depth_shares)
+    _echo("| share [%] | " + " | ".join(shares) + " |\n")
+    entropy = "-" if math.isnan(stats.entropy_mean_bits) else f"{stats.entropy_mean_bits:.3f}"
+    _echo("| GT density [%] (mean of samples) | mean local entropy 11x11 [bits] |")
+    _echo("|---|---|")
+    _echo(f"| {100.0 * stats.density_mean:.3f} | {entropy} |")
+    if stats.missing_images:
+        listed = ", ".join(stats.missing_images[:MISSING_LISTED])
+        _echo(f"\nNo image for {len(stats.missing_images)} depth map(s), entropy left out: {listed}")
 
 
 def stats_cmd(
@@ -179,29 +172,11 @@ def stats_cmd(
     from ingest.eval.stats import dataset_stats
     from sensorbox.analysis.plots import plot_stats
 
-    with _progress("describing") as bar:
-        job = bar.add_task("stats", total=None)
-        stats = dataset_stats(
-            dataset, image_type, progress=lambda d, t: bar.update(job, completed=d, total=t)
-        )
+    with progress_bar("describing", "samples") as update:
+        stats = dataset_stats(dataset, image_type, progress=update)
     folder = out or dataset
     folder.mkdir(parents=True, exist_ok=True)
-    _echo(f"# {dataset} ({stats.layout} layout): {len(stats.samples)} depth maps")
-    _echo()
-    _echo("| depth | " + " | ".join(stats.bins) + " |")
-    _echo("|---|" + "---|" * len(stats.bins))
-    _echo("| valid GT pixels | " + " | ".join(str(c) for c in stats.depth_counts) + " |")
-    shares = ("-" if math.isnan(s) else f"{100.0 * s:.2f}" for s in stats.depth_shares)
-    _echo("| share [%] | " + " | ".join(shares) + " |")
-    _echo()
-    entropy = "-" if math.isnan(stats.entropy_mean_bits) else f"{stats.entropy_mean_bits:.3f}"
-    _echo("| GT density [%] (mean of samples) | mean local entropy 11x11 [bits] |")
-    _echo("|---|---|")
-    _echo(f"| {100.0 * stats.density_mean:.3f} | {entropy} |")
-    if stats.missing_images:
-        _echo()
-        listed = ", ".join(stats.missing_images[:MISSING_LISTED])
-        _echo(f"No image for {len(stats.missing_images)} depth map(s), entropy left out: {listed}")
+    _print_stats(stats, dataset)
     doc = json.dumps(stats.to_json(), indent=1) + "\n"
     write_atomic(folder / "stats.json", doc.encode())
     png = plot_stats(stats, folder / "stats.png")
