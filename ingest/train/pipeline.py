@@ -72,6 +72,16 @@ class IngestConfig:
     dask: str | None = None
     sample: SampleParams = field(default_factory=SampleParams)
 
+    def validate(self) -> None:
+        """Values a run cannot start with, named as the CLI options that set them."""
+        if self.sample.motion not in ("full", "rotation", "off"):
+            raise DatasetError(f"--motion {self.sample.motion!r}: expected full, rotation or off")
+        if self.workers < 1 or self.every < 1 or not 0 <= self.sample.png_level <= 3:
+            raise DatasetError(
+                f"--workers {self.workers} / --every {self.every} must be >= 1 and --png-level 0..3 "
+                f"({self.sample.png_level})"
+            )
+
 
 @dataclass
 class IngestSummary:
@@ -344,6 +354,7 @@ def ingest(
 ) -> IngestSummary:
     """Run the whole job; `progress(done, total)` after each sample."""
     t_start = time.perf_counter()
+    cfg.validate()
     retain_freed_memory()  # chunks and images: ~20 MB per sample pass through this process too
     cfg = replace(cfg, sample=replace(cfg.sample, window_ns=cfg.lidar_window_ns))
     rig = read_rig(cfg.rig)

@@ -171,96 +171,13 @@ def simulate_cmd(
     console.print(f"Truth (scene mesh, trajectory, rig, parameters): {summary.truth}", highlight=False)
 
 
-@app.command("ingest")
-def ingest_cmd(
-    bags: Annotated[
-        list[Path], typer.Argument(help="Bags: ROS 1 .bag, ROS 2 .mcap/.db3 files or rosbag2 folders.")
-    ],
-    rig: Annotated[Path, typer.Option(help="Rig file (cameras, LiDARs, IMUs and their topics).")],
-    out: Annotated[Path, typer.Option(help="Output folder (WideDepth train layout); reruns resume.")],
-    workers: Annotated[int, typer.Option(help="Local worker processes (1 = in this process).")] = 2,
-    dask: Annotated[
-        str | None, typer.Option(help="dask.distributed scheduler address, e.g. tcp://host:8786.")
-    ] = None,
-    every: Annotated[int, typer.Option(help="Keep every N-th eligible frame.")] = 1,
-    window_ms: Annotated[
-        float, typer.Option(help="LiDAR points within +- this of the frame time (ms).")
-    ] = 50.0,
-    exr: Annotated[bool, typer.Option("--exr", help="Also write float32 EXR copies of the GT.")] = False,
-    png_level: Annotated[int, typer.Option(help="PNG deflate level 0-3 (ISA-L; 0 fastest, 3 smallest).")] = 1,
-    height_full: Annotated[
-        int | None, typer.Option(help="Rows of the full-sphere equirect (default from cam0).")
-    ] = None,
-    min_range: Annotated[
-        float, typer.Option(help="Drop LiDAR returns nearer than this (m): rig self-hits.")
-    ] = 0.3,
-    motion: Annotated[
-        str, typer.Option(help="Motion compensation: full (IMU rotation + velocity), rotation, off.")
-    ] = "full",
-    salvage: Annotated[
-        bool, typer.Option("--salvage", help="Read every complete chunk of a truncated mcap.")
-    ] = False,
-) -> None:
-    """Turn recorded bags into the WideDepth training set (rectified equirect pairs + sparse GT)."""
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+def _register_ingest() -> None:
+    from sensorbox.cli.ingest import ingest_cmd
 
-    from ingest.train.pipeline import IngestConfig, ingest
-    from ingest.train.sample import SampleParams
+    app.command("ingest")(ingest_cmd)
 
-    if motion not in ("full", "rotation", "off"):
-        raise SensorboxError(f"--motion {motion!r}: expected full, rotation or off")
-    if workers < 1 or every < 1 or not 0 <= png_level <= 3:
-        raise SensorboxError(
-            f"--workers {workers} / --every {every} must be >= 1 and --png-level 0..3 ({png_level})"
-        )
-    cfg = IngestConfig(
-        rig=rig, out=out, workers=workers, every=every, lidar_window_ns=round(window_ms * 1e6),
-        height_full=height_full, salvage=salvage, dask=dask,
-        sample=SampleParams(min_range_m=min_range, exr=exr, png_level=png_level, motion=motion),  # type: ignore[arg-type]
-    )  # fmt: skip
-    columns = (TextColumn("ingesting"), BarColumn(), MofNCompleteColumn(), TextColumn("samples"))
-    with Progress(*columns, TimeRemainingColumn(), console=err_console, transient=True) as bar:
-        task = bar.add_task("ingest", total=None)
-        summary = ingest(
-            bags, cfg, progress=lambda done, total: bar.update(task, completed=done, total=total)
-        )
-    table = Table(title=f"{out}: {summary.written} samples written in {summary.seconds:.1f} s")
-    table.add_column("item")
-    table.add_column("value", justify="right")
-    rows = [
-        (
-            "upper frames / stereo pairs / planned samples",
-            f"{summary.frames} / {summary.pairs} / {summary.planned}",
-        ),
-        ("written / already done (resumed)", f"{summary.written} / {summary.resumed}"),
-        *((f"skipped: {reason}", str(n)) for reason, n in summary.skipped.items()),
-    ]
-    if summary.density:
-        import numpy as np
 
-        rows += [
-            ("GT density (fisheye, median)", f"{np.median(summary.density) * 100:.2f} %"),
-            (
-                "LiDAR skew |t_point - t_frame| max (median of samples)",
-                f"{np.median(summary.skew_ms):.1f} ms",
-            ),
-            ("motion compensation applied", f"{summary.motion_applied} / {summary.written}"),
-            *((f"time: {k}", f"{np.mean(v):.0f} ms/sample") for k, v in summary.stage_ms.items()),
-            *(
-                (f"time: {k} (helper thread, beside clouds + GT)", f"{np.mean(v):.0f} ms/sample")
-                for k, v in summary.overlapped_ms.items()
-            ),
-        ]
-    for item, value in rows:
-        table.add_row(item, value)
-    console.print(table)
-    metas = sorted((out / "meta").glob("*.json"))
-    if metas:
-        from sensorbox.analysis.plots import plot_sample
-
-        preview = plot_sample(out, metas[len(metas) // 2].stem, out / "preview.png")
-        console.print(f"Preview of sample {metas[len(metas) // 2].stem}: {preview}", highlight=False)
-    console.print(f"Dataset: {out} (dataset.yaml describes it)", highlight=False)
+_register_ingest()
 
 
 def _register_inspect() -> None:
