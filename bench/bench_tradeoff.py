@@ -19,8 +19,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from sensorbox.analysis.bench import default_sims, projection_table, run_bench, tradeoff_table
 from sensorbox.analysis.tradeoff import ALTERNATIVES
-from sensorbox.cli.bench import default_sims, projection_table, run_bench, tradeoff_table
 from sensorbox.sim.run import simulate
 
 DOCS = Path(__file__).resolve().parents[1] / "docs"

@@ -13,7 +13,7 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 from rich.console import Console
@@ -25,6 +25,9 @@ from rich.text import Text
 
 from calibration.errors import SensorboxError
 from sensorbox.live.bus import GraphResult, GraphSnapshot, Shutdown, stop_on_signals
+
+if TYPE_CHECKING:
+    from sensorbox.live.launch import LaunchPlan
 
 console = Console(width=None if sys.stdout.isatty() else 140)
 err_console = Console(stderr=True, width=None if sys.stderr.isatty() else 200)
@@ -144,49 +147,57 @@ def _finish(result: GraphResult, title: str) -> None:
         raise SensorboxError(result.error)
 
 
+FileArg = Annotated[
+    Path, typer.Argument(help="Launch file (ROS 2 YAML launch syntax), e.g. launch/sim.launch.yaml.")
+]
+ArgsArg = Annotated[
+    list[str] | None, typer.Argument(help="Launch arguments NAME:=VALUE, e.g. out:=bags duration:=10.")
+]
+ShowArgsOpt = Annotated[bool, typer.Option("--show-args", "-s", help="List the file's arguments and exit.")]
+DryRunOpt = Annotated[
+    bool, typer.Option("--dry-run", help="Print the nodes it would start, with parameters, and exit.")
+]
+VerboseOpt = Annotated[bool, typer.Option("--verbose", "-v", help="Log what each node does.")]
+
+
+def _print_arguments(plan: LaunchPlan, file: Path) -> None:
+    """Each declared argument with its value, default, choices and description."""
+    console.print(f"Arguments of {file} (pass NAME:=VALUE):", highlight=False)
+    for arg in plan.arguments:
+        default = "required" if arg.default is None else f"default {arg.default!r}"
+        choices = f", one of {', '.join(arg.choices)}" if arg.choices else ""
+        value = plan.configurations.get(arg.name, "")
+        console.print(f"  {arg.name}:={value!r} ({default}{choices})", highlight=False, soft_wrap=True)
+        if arg.description:
+            console.print(f"      {arg.description}", highlight=False, soft_wrap=True)
+
+
+def _print_nodes(plan: LaunchPlan, file: Path) -> None:
+    """Each node the file would start, with its parameters and remaps."""
+    console.print(f"Nodes of {file}:", highlight=False)
+    for n in plan.nodes:
+        console.print(
+            f"- {n.name or n.exec} ({n.pkg}/{n.exec}), namespace {n.namespace}, {n.where}", highlight=False
+        )
+        for key, value in n.params.items():
+            console.print(f"    param {key} = {value!r}", highlight=False, soft_wrap=True)
+        for a, b in n.remaps:
+            console.print(f"    remap {a} -> {b}", highlight=False, soft_wrap=True)
+    for message in plan.messages:
+        console.print(message, highlight=False)
+
+
 def launch_cmd(
-    file: Annotated[
-        Path, typer.Argument(help="Launch file (ROS 2 YAML launch syntax), e.g. launch/sim.launch.yaml.")
-    ],
-    args: Annotated[
-        list[str] | None, typer.Argument(help="Launch arguments NAME:=VALUE, e.g. out:=bags duration:=10.")
-    ] = None,
-    show_args: Annotated[
-        bool, typer.Option("--show-args", "-s", help="List the file's arguments and exit.")
-    ] = False,
-    dry_run: Annotated[
-        bool, typer.Option("--dry-run", help="Print the nodes it would start, with parameters, and exit.")
-    ] = False,
-    verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log what each node does.")] = False,
-) -> None:
+    file: FileArg, args: ArgsArg = None, show_args: ShowArgsOpt = False, dry_run: DryRunOpt = False,
+    verbose: VerboseOpt = False,
+) -> None:  # fmt: skip
     """Start the nodes a launch file names (drivers, cameras, emulators, recorder) until Ctrl-C."""
     from sensorbox.live.launch import parse_cli_args, parse_launch, run_launch
 
     _setup_logging(verbose)
     plan = parse_launch(file, parse_cli_args(args or []))
-    if show_args:
-        console.print(f"Arguments of {file} (pass NAME:=VALUE):", highlight=False)
-        for arg in plan.arguments:
-            default = "required" if arg.default is None else f"default {arg.default!r}"
-            choices = f", one of {', '.join(arg.choices)}" if arg.choices else ""
-            value = plan.configurations.get(arg.name, "")
-            console.print(f"  {arg.name}:={value!r} ({default}{choices})", highlight=False, soft_wrap=True)
-            if arg.description:
-                console.print(f"      {arg.description}", highlight=False, soft_wrap=True)
-        return
-    if dry_run:
-        console.print(f"Nodes of {file}:", highlight=False)
-        for n in plan.nodes:
-            console.print(
-                f"- {n.name or n.exec} ({n.pkg}/{n.exec}), namespace {n.namespace}, {n.where}",
-                highlight=False,
-            )
-            for key, value in n.params.items():
-                console.print(f"    param {key} = {value!r}", highlight=False, soft_wrap=True)
-            for a, b in n.remaps:
-                console.print(f"    remap {a} -> {b}", highlight=False, soft_wrap=True)
-        for message in plan.messages:
-            console.print(message, highlight=False)
+    if show_args or dry_run:
+        (_print_arguments if show_args else _print_nodes)(plan, file)
         return
     for message in plan.messages:
         err_console.print(message, highlight=False)
@@ -194,42 +205,45 @@ def launch_cmd(
     _finish(result, str(file))
 
 
+RigOpt = Annotated[Path, typer.Option(help="Rig file: lidar IPs and topics, camera topics.")]
+OutOpt = Annotated[Path, typer.Option(help="Folder the bags go to (NAME_000, NAME_001, ...).")]
+CameraOpt = Annotated[str, typer.Option(help="zed (ZED SDK) | opencv (V4L2).")]
+UpperOpt = Annotated[str, typer.Option(help="Upper camera: ZED serial or V4L2 device.")]
+LowerOpt = Annotated[str, typer.Option(help="Lower camera: ZED serial or V4L2 device.")]
+HostIpOpt = Annotated[str, typer.Option(help="This computer's address on the lidar network.")]
+ImageOpt = Annotated[str, typer.Option(help="jpeg (CompressedImage) | raw (Image bgra8).")]
+JpegQualityOpt = Annotated[int, typer.Option(help="JPEG quality 1-100.")]
+LidarMsgOpt = Annotated[str, typer.Option(help="custom (livox CustomMsg) | pointcloud2.")]
+DurationOpt = Annotated[float, typer.Option(help="Seconds to record (0 = until Ctrl-C).")]
+SplitSizeOpt = Annotated[float, typer.Option(help="Start a new bag at this size, MiB (0 = never).")]
+MinFreeOpt = Annotated[float, typer.Option(help="Stop before the disk has less than this free, MiB.")]
+NameOpt = Annotated[str, typer.Option(help="Bag name prefix (default capture_<time>).")]
+EmulateOpt = Annotated[
+    bool, typer.Option("--emulate", help="No hardware: emulated Mid-360s on loopback, simulated cameras.")
+]
+PortBaseOpt = Annotated[int, typer.Option(help="First of the nine Livox UDP ports.")]
+ScaleOpt = Annotated[float, typer.Option(help="--emulate: camera resolution scale.")]
+
+
+def _check_choice(flag: str, value: str, known: tuple[str, ...]) -> None:
+    if value not in known:
+        raise SensorboxError(f"{flag} {value!r}: expected one of {', '.join(known)}")
+
+
 def capture_cmd(
-    rig: Annotated[Path, typer.Option(help="Rig file: lidar IPs and topics, camera topics.")],
-    out: Annotated[Path, typer.Option(help="Folder the bags go to (NAME_000, NAME_001, ...).")],
-    camera: Annotated[str, typer.Option(help="zed (ZED SDK) | opencv (V4L2).")] = "zed",
-    upper: Annotated[str, typer.Option(help="Upper camera: ZED serial or V4L2 device.")] = "",
-    lower: Annotated[str, typer.Option(help="Lower camera: ZED serial or V4L2 device.")] = "",
-    host_ip: Annotated[
-        str, typer.Option(help="This computer's address on the lidar network.")
-    ] = "192.168.1.5",
-    image: Annotated[str, typer.Option(help="jpeg (CompressedImage) | raw (Image bgra8).")] = "jpeg",
-    jpeg_quality: Annotated[int, typer.Option(help="JPEG quality 1-100.")] = 90,
-    lidar_msg: Annotated[str, typer.Option(help="custom (livox CustomMsg) | pointcloud2.")] = "custom",
-    duration: Annotated[float, typer.Option(help="Seconds to record (0 = until Ctrl-C).")] = 0.0,
-    split_size: Annotated[
-        float, typer.Option(help="Start a new bag at this size, MiB (0 = never).")
-    ] = 4096.0,
-    min_free: Annotated[
-        float, typer.Option(help="Stop before the disk has less than this free, MiB.")
-    ] = 2048.0,
-    name: Annotated[str, typer.Option(help="Bag name prefix (default capture_<time>).")] = "",
-    emulate: Annotated[
-        bool, typer.Option("--emulate", help="No hardware: emulated Mid-360s on loopback, simulated cameras.")
-    ] = False,
-    port_base: Annotated[int, typer.Option(help="First of the nine Livox UDP ports.")] = 56000,
-    scale: Annotated[float, typer.Option(help="--emulate: camera resolution scale.")] = 1.0,
-    verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log what each node does.")] = False,
-) -> None:
+    rig: RigOpt, out: OutOpt, camera: CameraOpt = "zed", upper: UpperOpt = "", lower: LowerOpt = "",
+    host_ip: HostIpOpt = "192.168.1.5", image: ImageOpt = "jpeg", jpeg_quality: JpegQualityOpt = 90,
+    lidar_msg: LidarMsgOpt = "custom", duration: DurationOpt = 0.0, split_size: SplitSizeOpt = 4096.0,
+    min_free: MinFreeOpt = 2048.0, name: NameOpt = "", emulate: EmulateOpt = False,
+    port_base: PortBaseOpt = 56000, scale: ScaleOpt = 1.0, verbose: VerboseOpt = False,
+) -> None:  # fmt: skip
     """Record the rig (both Mid-360s, both cameras) into mcap bags; the rig file's form of
     launch/sensorbox.launch.yaml."""
     from sensorbox.live.capture import CaptureConfig, capture
 
-    choices = {"--camera": (camera, ("zed", "opencv")), "--image": (image, ("jpeg", "raw")),
-               "--lidar-msg": (lidar_msg, ("custom", "pointcloud2"))}  # fmt: skip
-    for flag, (value, known) in choices.items():
-        if value not in known:
-            raise SensorboxError(f"{flag} {value!r}: expected one of {', '.join(known)}")
+    _check_choice("--camera", camera, ("zed", "opencv"))
+    _check_choice("--image", image, ("jpeg", "raw"))
+    _check_choice("--lidar-msg", lidar_msg, ("custom", "pointcloud2"))
     _setup_logging(verbose)
     cfg = CaptureConfig(
         rig=rig, out=out, name=name, host_ip=host_ip, camera=camera, upper=upper, lower=lower,  # type: ignore[arg-type]
