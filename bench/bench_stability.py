@@ -49,6 +49,7 @@ from ingest.dataset.layout import DEPTH_SCALE, read_png_u16
 from ingest.dataset.meta import SampleMeta, read_meta
 from ingest.train.groundtruth import GtParams, px_per_rad
 from ingest.train.pipeline import IngestConfig, ingest
+from sensorbox.analysis.projection import compare_projections, num_disparities_for
 from sensorbox.analysis.stability import (
     disparity_range_error,
     displacement_mask,
@@ -61,7 +62,6 @@ from sensorbox.analysis.stability import (
     time_offset_displacement_px,
     time_offset_range_error_m,
 )
-from sensorbox.analysis.tradeoff import compare_projections, num_disparities_for
 from sensorbox.sim.run import SimConfig, simulate
 from sensorbox.sim.truth import Truth
 

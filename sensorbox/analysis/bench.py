@@ -23,7 +23,8 @@ from typing import TYPE_CHECKING, Any
 from calibration.errors import SensorboxError
 
 if TYPE_CHECKING:
-    from sensorbox.analysis.tradeoff import Alternative, Measurement, ProjectionResult
+    from sensorbox.analysis.projection import ProjectionResult
+    from sensorbox.analysis.tradeoff import Alternative, Measurement
     from sensorbox.sim.run import SimConfig
 
 FAMILY_COLORS = {
@@ -111,7 +112,7 @@ def project(dataset: Path, truth: Any) -> tuple[list[ProjectionResult], str]:
     import yaml
 
     from ingest.dataset.meta import read_meta
-    from sensorbox.analysis.tradeoff import compare_projections
+    from sensorbox.analysis.projection import compare_projections
 
     sids = sorted(p.stem for p in (dataset / "meta").glob("*.json"))
     if not sids:

@@ -276,7 +276,7 @@ def livox_driver_node(ctx: NodeContext, p: Params) -> Node:
 
 
 def _source(p: Params, kind: str, which: str, sim: Any, cam: int, name: str) -> Any:
-    from sensorbox.live.cameras import OpenCVSource, ZedSource
+    from sensorbox.live.sources import OpenCVSource, ZedSource
 
     pre = f"{which}_" if which else ""
     if kind == "zed":

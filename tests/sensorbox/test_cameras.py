@@ -16,14 +16,8 @@ import pytest
 from ingest.bags.decode import decode_compressed_image, decode_image
 from ingest.bags.reader import open_bags
 from sensorbox.errors import DriverError
-from sensorbox.live.cameras import (
-    CameraNode,
-    CameraOutput,
-    Frame,
-    OpenCVSource,
-    StereoPairer,
-    ZedSource,
-)
+from sensorbox.live.cameras import CameraNode, CameraOutput, Frame, StereoPairer
+from sensorbox.live.sources import OpenCVSource, ZedSource
 from sensorbox.sim.camera_source import SimCameras, SimCameraSource
 from sensorbox.sim.fixtures import FIXTURES, fixture_bag
 from tests.live import ManualClock, wait_for
