@@ -13,7 +13,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ingest.errors import EvalError
-from ingest.eval.evaluate import GROUP_KEYS, TASKS, EvalOptions, parse_config_label
+from ingest.eval.evaluate import GROUP_KEYS, TASKS, EvalOptions
+from ingest.eval.report import parse_config_label
 
 
 @dataclass(frozen=True)

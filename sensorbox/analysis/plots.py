@@ -141,7 +141,7 @@ import typing  # noqa: E402  (this section is appended; its types are only for t
 
 def plot_heatmap(hm: Heatmap, path: str | Path, title: str) -> Path:
     """A metric over FOV (rows) x baseline (columns), each cell annotated with its value."""
-    from ingest.eval.evaluate import format_metric
+    from ingest.eval.report import format_metric
 
     fig, ax = plt.subplots(figsize=(1.6 * len(hm.baselines_mm) + 3.0, 1.0 * len(hm.fovs_deg) + 2.2))
     percent = hm.metric in ("bad1", "bad2", "bad3", "delta1", "delta2", "delta3", "coverage")
@@ -187,5 +187,5 @@ def plot_stats(stats: DatasetStats, path: str | Path) -> Path:
 
 
 if typing.TYPE_CHECKING:
-    from ingest.eval.evaluate import Heatmap
+    from ingest.eval.report import Heatmap
     from ingest.eval.stats import DatasetStats

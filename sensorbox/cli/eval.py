@@ -75,7 +75,7 @@ AlignOpt = Annotated[
 
 def _print_report(report: EvalReport, task: str, dataset: Path) -> None:
     """One markdown table per region, then the samples that had no prediction."""
-    from ingest.eval.evaluate import markdown_table
+    from ingest.eval.report import markdown_table
 
     n_gt = len(report.samples) + len(report.missing)
     _echo(f"# {task} on {dataset} ({report.layout} layout): {len(report.samples)} of {n_gt} samples scored")
@@ -94,17 +94,17 @@ def _print_extras(
     report: EvalReport, req: EvalRequest, heatmap: Path | None, metric: str | None, task: str, pred: Path
 ) -> None:
     """The --compare table and the --heatmap chart, when asked for."""
-    from ingest.eval import evaluate as ev
+    from ingest.eval import report as rp
 
     if req.pair is not None:
         a, b = req.pair
         _echo(f"\n## {a} vs {b} (region {req.region}; change = (A - B) / |B|)\n")
-        _echo(ev.markdown_compare(ev.compare(report, a, b, req.region), a, b))
+        _echo(rp.markdown_compare(rp.compare(report, a, b, req.region), a, b))
     if heatmap is not None:
         from sensorbox.analysis.plots import plot_heatmap
 
         name = metric or report.columns[0]
-        grid = ev.heatmap(report, name, req.region)
+        grid = rp.heatmap(report, name, req.region)
         path = plot_heatmap(grid, heatmap, f"{task}: {name} ({req.region}), {pred.name}")
         _echo(f"\nHeatmap of {name} over FOV x baseline: {path}")
 

@@ -14,16 +14,8 @@ import pytest
 from calibration.stereo import rotate_for_stereo, unrotate_from_stereo
 from ingest.dataset.layout import encode_exr
 from ingest.errors import EvalError
-from ingest.eval.evaluate import (
-    EvalOptions,
-    compare,
-    discover_gt,
-    evaluate,
-    heatmap,
-    markdown_compare,
-    markdown_table,
-    write_report_json,
-)
+from ingest.eval.evaluate import EvalOptions, discover_gt, evaluate, write_report_json
+from ingest.eval.report import compare, heatmap, markdown_compare, markdown_table
 from ingest.train.pipeline import IngestConfig, ingest
 from ingest.train.sample import SampleParams
 from sensorbox.sim.truth import truth_dir
