@@ -41,8 +41,9 @@ from calibration.stereo import rotate_for_stereo, unrotate_from_stereo
 from calibration.virtual import R_up_cam, partner_pose, virtual_ds
 from ingest.dataset.layout import DISP_SCALE, read_png_u16
 from ingest.eval.metrics import edge_band
-from ingest.render.benchmark import BenchmarkConfig, run_benchmark
+from ingest.render.benchmark import run_benchmark
 from ingest.render.lod import ScanIndex, build_index
+from ingest.render.plan import BenchmarkConfig
 from ingest.render.scans import Scan, read_scans
 from ingest.render.view import Rendering, RenderParams, pixel_geometry, render_view
 from sensorbox.sim.appearance import Texture

@@ -50,104 +50,35 @@ import yaml
 from calibration.camera import CameraModel
 from calibration.fisheye import DoubleSphere
 from calibration.pinhole import Pinhole
-from calibration.spherical import Cassini, Equirectangular, pinhole_for_fov
+from calibration.spherical import Equirectangular
 from calibration.stereo import depth_to_disparity, disparity_stability_mask, pinhole_depth_to_disparity
-from calibration.types import F32, F64, Bool
+from calibration.types import F32, F64
 from calibration.virtual import (
-    CroppedModel,
-    R_up_cam,
-    VirtualFisheye,
-    crop_bounds,
     partner_pose,
-    virtual_fisheye,
 )
-from calibration.warp import build_maps, covering_crop, default_height_full
 from ingest.dataset.layout import DEPTH_SCALE, DISP_SCALE, encode_exr, to_uint16, write_atomic
 from ingest.dataset.png import encode_png
 from ingest.dataset.sparse import SparseImage
 from ingest.errors import BenchmarkError
-from ingest.render.lod import VOXEL_M, ScanIndex, build_index
+from ingest.render.lod import ScanIndex, build_index
+from ingest.render.plan import (
+    BenchmarkConfig,
+    FovCameras,
+    Task,
+    View,
+    baseline_label,
+    fov_cameras,
+    fov_label,
+    pinhole_camera,
+    plan_tasks,
+    plan_views,
+    task_key,
+)
 from ingest.render.scans import Scan
-from ingest.render.view import RenderParams, pixel_geometry, render_view
+from ingest.render.view import pixel_geometry, render_view
 from ingest.runtime.executor import Executor
 
-FOVS_DEG = (120.0, 140.0, 165.0, 195.0)
-BASELINES_MM = (20.0, 65.0, 120.0, 200.0, 300.0)
 BENCHMARK_VERSION = 1
-
-
-@dataclass(frozen=True)
-class BenchmarkConfig:
-    """Everything a benchmark run depends on (degrees and millimetres at this edge, as in the layout)."""
-
-    fovs_deg: tuple[float, ...] = FOVS_DEG
-    baselines_mm: tuple[float, ...] = BASELINES_MM
-    width: int = 2048
-    height: int = 1152
-    yaws_deg: tuple[float, ...] = (0.0,)
-    heights_m: tuple[float, ...] = (0.0,)
-    pitch_deg: float = 0.0
-    centers: tuple[str, ...] = ()  # scan names used as view centres; empty = every scan
-    bundle: int = 3  # scans rendered per view: the centre and its nearest neighbours
-    pinhole_fov_deg: float = 90.0
-    pinhole_fovs: tuple[float, ...] = (120.0,)  # FOV folders that get the pinhole images
-    pinhole_crop: float = 0.5  # pinhole_crop = the central fraction of the pinhole image per axis
-    height_full: int | None = None  # rows of the full sphere; default: each fisheye's centre resolution
-    site_id: int = 0
-    voxel_m: float = VOXEL_M
-    stability_max_rel_error: float = 0.5  # disparity stability mask (calibration.stereo)
-    stability_disp_error_px: float = 0.5
-    exr: bool = True
-    png_level: int = 1
-    workers: int = 2
-    render: RenderParams = field(default_factory=RenderParams)
-
-    def validate(self) -> None:
-        if not self.fovs_deg or any(not 0.0 < f < 360.0 for f in self.fovs_deg):
-            raise BenchmarkError(f"--fov {list(self.fovs_deg)}: each FOV must be in (0, 360) degrees")
-        if not self.baselines_mm or any(not b > 0.0 for b in self.baselines_mm):
-            raise BenchmarkError(f"--baseline {list(self.baselines_mm)}: each baseline must be > 0 mm")
-        if self.width < 8 or self.height < 8:
-            raise BenchmarkError(f"image size {self.width}x{self.height}: both must be >= 8 px")
-        if self.bundle < 1 or self.workers < 1:
-            raise BenchmarkError(f"--bundle {self.bundle} and --workers {self.workers} must be >= 1")
-        if not 0.0 < self.pinhole_crop <= 1.0 or not 0.0 < self.pinhole_fov_deg < 180.0:
-            raise BenchmarkError("pinhole FOV must be in (0, 180) degrees and its crop fraction in (0, 1]")
-
-
-@dataclass(frozen=True)
-class FovCameras:
-    """The cameras of one FOV folder (all in the CENTER camera's frame; partners share it)."""
-
-    fisheye: VirtualFisheye
-    pano: Equirectangular  # the crop; its full sphere is pano.full()
-    pano_mask: Bool
-    cassini: CroppedModel  # window of Cassini(height_full)
-    cassini_mask: Bool
-    height_full: int  # rows of the full sphere (pano) = columns of the full Cassini
-
-
-@dataclass(frozen=True)
-class View:
-    """One benchmark scene: a centre scan, its bundle, yaw, height and the CENTER pose."""
-
-    scene: str
-    center: int
-    bundle: tuple[int, ...]
-    yaw_deg: float
-    height_m: float
-    T_world_center: F64
-
-
-@dataclass(frozen=True)
-class Task:
-    """One rendered camera: CENTER (baseline None) or a partner at one baseline."""
-
-    scene: str
-    camera: str  # CENTER | DOWN | RIGHT
-    product: str  # fisheye | pano | cassini | pinhole
-    fov_deg: float | None  # None for the pinhole (FOV-independent)
-    baseline_mm: float | None
 
 
 @dataclass
@@ -162,100 +93,6 @@ class BenchmarkSummary:
     seconds: float = 0.0
     index_seconds: float = 0.0
     stats: dict[str, dict[str, dict[str, int]]] = field(default_factory=dict)  # scene -> render key -> counts
-
-
-def fov_label(fov: float) -> str:
-    return f"{fov:g}FOV"
-
-
-def baseline_label(b_mm: float) -> str:
-    return f"{b_mm:g}mm"
-
-
-def _window_mask(fisheye: CameraModel, full: CameraModel, factor: int = 8) -> tuple[int, int, int, int]:
-    """Window (col, row, width, height) of ``full`` holding every ray the fisheye sees.
-
-    Decided on a ``factor``-times coarser grid of ``full``'s pixels (their rays
-    projected into the fisheye), grown by one coarse pixel: robust to seams.
-    """
-    H, W = full.height, full.width
-    us = np.arange(0, W, factor, dtype=np.float64) + (factor - 1) / 2.0
-    vs = np.arange(0, H, factor, dtype=np.float64) + (factor - 1) / 2.0
-    grid = np.stack(np.meshgrid(us, vs), axis=-1)
-    rays, ok = full.unproject(grid)
-    uv, ok2 = fisheye.project(np.where(ok[..., None], rays, 0.0))
-    seen = ok & ok2 & fisheye.in_image(uv)
-    c0, r0, w, h = crop_bounds(seen, 1)
-    return (c0 * factor, r0 * factor, min(W - c0 * factor, w * factor), min(H - r0 * factor, h * factor))
-
-
-def fov_cameras(reference: DoubleSphere, fov_deg: float, cfg: BenchmarkConfig) -> FovCameras:
-    """The fisheye of ``fov_deg`` and the equirect/Cassini windows covering it."""
-    fish = virtual_fisheye(reference, fov_deg, cfg.width, cfg.height)
-    hf = cfg.height_full or default_height_full(fish.model)
-    pano = covering_crop(fish.model, np.eye(3), hf)
-    c0, r0, w, h = _window_mask(fish.model, Cassini(hf))
-    cas = CroppedModel(Cassini(hf), c0, r0, w, h)
-    return FovCameras(
-        fish, pano, build_maps(fish.model, pano).valid, cas, build_maps(fish.model, cas).valid, hf
-    )
-
-
-def pinhole_camera(cfg: BenchmarkConfig) -> tuple[Pinhole, tuple[int, int, int, int]]:
-    """The pinhole and its central crop window (col, row, width, height)."""
-    ph = pinhole_for_fov(math.radians(cfg.pinhole_fov_deg), cfg.width, cfg.height)
-    w = max(1, round(cfg.width * cfg.pinhole_crop))
-    h = max(1, round(cfg.height * cfg.pinhole_crop))
-    return ph, ((cfg.width - w) // 2, (cfg.height - h) // 2, w, h)
-
-
-def bundles(scans: list[Scan], size: int) -> list[tuple[int, ...]]:
-    """For each scan: itself and its ``size - 1`` nearest scans (by scanner position)."""
-    pos = np.array([s.origin_world for s in scans])
-    out = []
-    for k in range(len(scans)):
-        d = np.linalg.norm(pos - pos[k], axis=1)
-        d[k] = -1.0
-        out.append(tuple(int(i) for i in np.argsort(d, kind="stable")[: min(size, len(scans))]))
-    return out
-
-
-def plan_views(scans: list[Scan], cfg: BenchmarkConfig) -> list[View]:
-    """Every (centre, yaw, height) view; scene ids `<site>_<centre>_<view>`."""
-    names = [s.name for s in scans]
-    centers: list[int] = list(range(len(scans))) if not cfg.centers else []
-    for name in cfg.centers:
-        if name not in names:
-            raise BenchmarkError(f"--center {name!r}: no such scan (have: {', '.join(names)})")
-        centers.append(names.index(name))
-    groups = bundles(scans, cfg.bundle)
-    views = []
-    for c in centers:
-        k = 0
-        for height in cfg.heights_m:
-            for yaw in cfg.yaws_deg:
-                T_scan_cam = np.eye(4)
-                T_scan_cam[:3, :3] = R_up_cam(math.radians(yaw), math.radians(cfg.pitch_deg))
-                T_scan_cam[2, 3] = height
-                scene = f"{cfg.site_id:03d}_{c:03d}_{k:03d}"
-                views.append(View(scene, c, groups[c], yaw, height, scans[c].T_world_scan @ T_scan_cam))
-                k += 1
-    return views
-
-
-def plan_tasks(views: list[View], cfg: BenchmarkConfig) -> list[Task]:
-    """One task per rendered camera of every view."""
-    tasks = []
-    for v in views:
-        tasks.append(Task(v.scene, "CENTER", "pinhole", None, None))
-        for f in cfg.fovs_deg:
-            tasks += [Task(v.scene, "CENTER", p, f, None) for p in ("fisheye", "pano", "cassini")]
-        for b in cfg.baselines_mm:
-            tasks.append(Task(v.scene, "RIGHT", "pinhole", None, b))
-            for f in cfg.fovs_deg:
-                tasks += [Task(v.scene, "DOWN", p, f, b) for p in ("fisheye", "pano")]
-                tasks += [Task(v.scene, "RIGHT", p, f, b) for p in ("fisheye", "cassini")]
-    return tasks
 
 
 @dataclass
@@ -407,13 +244,6 @@ def run_task(s: RenderState, task: Task) -> tuple[Task, dict[str, int], int]:
     stats = dict(rend.stats)
     stats["uint16_dropped"] = w.dropped
     return task, stats, w.files
-
-
-def task_key(t: Task) -> str:
-    """'120FOV/65mm/DOWN/fisheye' style name of a render (CENTER: 'CENTER/...'; pinhole: no FOV)."""
-    parts = [] if t.fov_deg is None else [fov_label(t.fov_deg)]
-    parts += [] if t.baseline_mm is None else [baseline_label(t.baseline_mm)]
-    return "/".join([*parts, t.camera, t.product])
 
 
 def _scene_doc(

@@ -18,7 +18,7 @@ from calibration.camera import CameraModel
 from calibration.rig import read_rig
 from calibration.types import F32, F64
 from ingest.errors import BenchmarkError
-from ingest.render.benchmark import BASELINES_MM, FOVS_DEG, BenchmarkConfig
+from ingest.render.plan import BASELINES_MM, FOVS_DEG, BenchmarkConfig
 from ingest.render.scans import Scan, read_cloud, read_scans
 from ingest.render.view import RenderParams
 

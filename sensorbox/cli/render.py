@@ -16,7 +16,8 @@ from rich.table import Table
 from sensorbox.cli.common import console, progress_bar
 
 if TYPE_CHECKING:
-    from ingest.render.benchmark import BenchmarkConfig, BenchmarkSummary
+    from ingest.render.benchmark import BenchmarkSummary
+    from ingest.render.plan import BenchmarkConfig
 
 ScansArg = Annotated[
     list[Path],
@@ -74,7 +75,7 @@ def _pct(part: float, whole: float) -> str:
 
 def summary_table(summary: BenchmarkSummary, cfg: BenchmarkConfig, out: Path) -> Table:
     """Per scene and FOV: valid fisheye pixels, holes (CENTER, worst partner), masked, clipped."""
-    from ingest.render.benchmark import fov_label
+    from ingest.render.plan import fov_label
 
     title = (
         f"{out}: {len(summary.scenes)} scenes, {summary.renders} views in {summary.seconds:.1f} s "

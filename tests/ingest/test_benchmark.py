@@ -27,7 +27,8 @@ from ingest.dataset.layout import DISP_SCALE, read_png_u16
 from ingest.errors import BenchmarkError
 from ingest.eval.evaluate import discover_gt
 from ingest.eval.metrics import edge_band
-from ingest.render.benchmark import BenchmarkConfig, run_benchmark
+from ingest.render.benchmark import run_benchmark
+from ingest.render.plan import BenchmarkConfig
 from ingest.render.scans import read_scans
 from sensorbox.sim.appearance import Texture
 from sensorbox.sim.scenes import build_scene
