@@ -45,7 +45,8 @@ from ingest.render.benchmark import run_benchmark
 from ingest.render.lod import ScanIndex, build_index
 from ingest.render.plan import BenchmarkConfig
 from ingest.render.scans import Scan, read_scans
-from ingest.render.view import Rendering, RenderParams, pixel_geometry, render_view
+from ingest.render.view import Rendering, pixel_geometry, render_view
+from ingest.render.visibility import RenderParams
 from sensorbox.sim.appearance import Texture
 from sensorbox.sim.scenes import build_scene
 from sensorbox.sim.tls import TlsParams, bundle_poses, pose_at, simulate_scan, true_range, write_site

@@ -24,7 +24,7 @@ from calibration.warp import build_maps, covering_crop, default_height_full
 from ingest.errors import BenchmarkError
 from ingest.render.lod import VOXEL_M
 from ingest.render.scans import Scan
-from ingest.render.view import RenderParams
+from ingest.render.visibility import RenderParams
 
 FOVS_DEG = (120.0, 140.0, 165.0, 195.0)
 

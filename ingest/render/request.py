@@ -20,7 +20,7 @@ from calibration.types import F32, F64
 from ingest.errors import BenchmarkError
 from ingest.render.plan import BASELINES_MM, FOVS_DEG, BenchmarkConfig
 from ingest.render.scans import Scan, read_cloud, read_scans
-from ingest.render.view import RenderParams
+from ingest.render.visibility import RenderParams
 
 
 @dataclass(frozen=True)

@@ -17,7 +17,8 @@ from calibration.virtual import CroppedModel, R_up_cam, partner_pose, virtual_ds
 from ingest.eval.metrics import edge_band
 from ingest.render.lod import build_index
 from ingest.render.scans import Scan
-from ingest.render.view import RenderParams, render_view
+from ingest.render.view import render_view
+from ingest.render.visibility import RenderParams
 from sensorbox.sim.appearance import Texture
 from sensorbox.sim.scenes import build_scene
 from sensorbox.sim.tls import TlsParams, bundle_poses, simulate_scan, true_range

@@ -1,0 +1,312 @@
+"""The renderer's visibility machinery, shared by benchmark views and dense ground truth.
+
+A z-buffer on range over point footprints (splats), the two-sided occlusion
+test that rejects points seen through a nearer surface, a local plane fit of
+range over the pixel grid, same-surface averaging and moving each value onto
+its pixel-centre ray, and gap filling along that plane (see `ingest.render.view`)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import cv2
+import numpy as np
+
+from calibration.types import F32, I64, U8, Bool
+
+I16 = np.ndarray[Any, np.dtype[np.int16]]
+
+
+RANGE_QUANTUM_M = 1e-4  # z-buffer key resolution
+
+
+IDX_BITS = 28  # points per buffer per view < 2^28
+
+
+Q_MAX = (1 << 25) - 1  # ranges up to 3.3 km
+
+
+# Keys sit above the bit pattern of 1.0 so, viewed as float64, they are normal positive numbers
+# ordered like the integers; the empty key is the pattern of +inf.
+KEY_BASE = 0x3FF0_0000_0000_0000
+
+
+EMPTY_KEY = 0x7FF0_0000_0000_0000
+
+
+@dataclass(frozen=True)
+class RenderParams:
+    """Renderer settings (metres, pixels)."""
+
+    points_per_px: float | None = 2.0  # LOD density target; None = every point in the frustum
+    splat_scale: float = 1.5  # footprint half-width = scale x point spacing in the image (random points)
+    max_splat_px: int = 6
+    near_m: float = 0.05  # points nearer to the camera centre are ignored
+    tau_m: float = 0.01  # same-surface tolerance, see `tolerance`
+    tau_rel: float = 0.01
+    max_incidence_deg: float = 80.0
+    clip_m: float | None = None
+    clip_mode: Literal["invalid", "drop"] = "invalid"
+    fill_passes: int = 3
+    average_samples: bool = True  # mean of a pixel's same-surface samples, not just the nearest
+    frustum_culling: bool = True  # False: project every point of every scan (the naive baseline)
+
+    def tolerance(self, range_m: Any, dist_px: Any, ppr: Any) -> Any:
+        """Largest range difference (m) between two samples of one surface ``dist_px`` apart.
+
+        tau_m + range * (tau_rel + tan(max_incidence) * dist_px / ppr): the
+        slope term admits surfaces up to `max_incidence_deg` from the view ray.
+        """
+        slope = math.tan(math.radians(self.max_incidence_deg))
+        return self.tau_m + range_m * (self.tau_rel + slope * dist_px / ppr)
+
+
+@dataclass(frozen=True, eq=False)
+class ViewPoints:
+    """Points in the image: flat pixel, sub-pixel position, range, footprint half-widths, colour, mask."""
+
+    pix: I64
+    u: F32
+    v: F32
+    r: F32
+    ku: I16
+    kv: I16
+    rgb: U8
+    masked: Bool
+
+
+def concat_points(parts: list[tuple[Any, ...]]) -> ViewPoints:
+    if not parts:
+        f, i, k = np.zeros(0, np.float32), np.zeros(0, np.int64), np.zeros(0, np.int16)
+        return ViewPoints(i, f, f, f, k, k, np.zeros((0, 3), np.uint8), np.zeros(0, bool))
+    if len(parts) == 1:
+        return ViewPoints(*parts[0])
+    return ViewPoints(*(np.concatenate([p[k] for p in parts]) for k in range(8)))
+
+
+def zbuffer(pts: ViewPoints, H: int, W: int) -> tuple[I64, I64]:
+    """(own, splat) int64 key images, flat (H*W,); `EMPTY_KEY` where no point.
+
+    key = BASE + (round(range / RANGE_QUANTUM_M) << 28) + point index: the
+    minimum key is the nearest point, and the key names it.
+    """
+    P = H * W
+    own = np.full(P, EMPTY_KEY, np.int64)
+    splat = np.full(P, EMPTY_KEY, np.int64)
+    n = len(pts.pix)
+    if n == 0:
+        return own, splat
+    if n >= 1 << IDX_BITS:
+        raise ValueError(f"a view can z-buffer at most 2^{IDX_BITS} points, got {n}")
+    q = np.minimum(np.round(pts.r / np.float32(RANGE_QUANTUM_M)).astype(np.int64), Q_MAX)
+    key = KEY_BASE + (q << IDX_BITS) + np.arange(n, dtype=np.int64)
+    K = int(max(pts.ku.max(), pts.kv.max())) + 1
+    cls = pts.ku * K + pts.kv
+    order = np.argsort(cls, kind="stable")
+    bounds = np.r_[0, np.cumsum(np.bincount(cls, minlength=K * K))]
+    layer = np.empty(P, np.int64)
+    for c in np.flatnonzero(np.diff(bounds)):
+        sel = order[bounds[c] : bounds[c + 1]]
+        pix = pts.pix[sel]
+        layer.fill(EMPTY_KEY)
+        np.minimum.at(layer, pix, key[sel])
+        np.minimum(own, layer, out=own)
+        ku, kv = divmod(int(c), K)
+        if ku == 0 and kv == 0:
+            np.minimum(splat, layer, out=splat)
+            continue
+        # erode only the window holding this group's points (plus the kernel)
+        rows = pix // W
+        cols = pix - rows * W
+        r0, r1 = max(0, int(rows.min()) - kv), min(H, int(rows.max()) + kv + 1)
+        c0, c1 = max(0, int(cols.min()) - ku), min(W, int(cols.max()) + ku + 1)
+        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * ku + 1, 2 * kv + 1))
+        win = layer.view(np.float64).reshape(H, W)[r0:r1, c0:c1]
+        eroded = cv2.erode(win, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=np.inf)
+        target = splat.reshape(H, W)[r0:r1, c0:c1]
+        np.minimum(target, eroded.view(np.int64), out=target)
+    return own, splat
+
+
+def winner(key: I64) -> tuple[Bool, I64]:
+    """(has a point, index of the point) per pixel of a key image."""
+    return key != EMPTY_KEY, key & ((1 << IDX_BITS) - 1)
+
+
+def pad(img: np.ndarray[Any, Any], k: int, fill: Any) -> np.ndarray[Any, Any]:
+    return np.pad(img, k, mode="constant", constant_values=fill)
+
+
+def padded_index(flat: I64, W: int, k: int) -> I64:
+    row, col = np.divmod(flat, W)
+    out: I64 = (row + k) * (W + 2 * k) + col + k
+    return out
+
+
+AXES = ((0, 1), (1, 0), (1, 1), (1, -1))  # 4 axes through a pixel (drow, dcol)
+
+
+NB8 = ((0, 1), (0, -1), (1, 0), (-1, 0), (1, 1), (-1, -1), (1, -1), (-1, 1))  # opposite pairs adjacent
+
+
+def leaks(r_own: F32, candidates: I64, thr: F32, K: int) -> Bool:
+    """For flat pixels ``candidates``: own points nearer than ``thr`` on two opposite sides within K px."""
+    W = r_own.shape[1]
+    rp = pad(r_own, K, np.inf).reshape(-1)
+    Wp = W + 2 * K
+    pc = padded_index(candidates, W, K)
+    out = np.zeros(len(candidates), bool)
+    for dr, dc in AXES:
+        a = np.zeros(len(candidates), bool)
+        b = np.zeros(len(candidates), bool)
+        for t in range(1, K + 1):
+            off = t * (dr * Wp + dc)
+            a |= rp[pc + off] < thr
+            b |= rp[pc - off] < thr
+        out |= a & b
+    return out
+
+
+def solve_gradient(a11: Any, a12: Any, a22: Any, b1: Any, b2: Any) -> tuple[Any, Any, Any]:
+    """2x2 least squares per pixel; one axis alone where only it is determined. Returns (gu, gv, solved)."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        det = a11 * a22 - a12 * a12
+        full = det > 0.25
+        inv = np.where(full, 1.0 / np.where(full, det, 1.0), 0.0)
+        gu = (a22 * b1 - a12 * b2) * inv
+        gv = (a11 * b2 - a12 * b1) * inv
+        only_u = ~full & (a11 > 0.25)
+        only_v = ~full & (a22 > 0.25)
+        gu = np.where(only_u, b1 / np.where(only_u, a11, 1.0), gu)
+        gv = np.where(only_v, b2 / np.where(only_v, a22, 1.0), gv)
+    return gu, gv, full
+
+
+def fit_gradient(R: F32, U: F32, V: F32, ppr: F32, params: RenderParams) -> tuple[F32, F32]:
+    """Range gradient (m per pixel along u, v) from each pixel's neighbours on the same surface.
+
+    R holds each pixel's own point range (NaN where none) at sub-pixel offset
+    (U, V) from the pixel centre. Least squares over the 4-neighbours within
+    the same-surface tolerance; where those do not determine both components
+    (sparse points), the diagonal neighbours join. 0 where nothing does.
+    """
+    H, W = R.shape
+    Rp, Up, Vp = pad(R, 1, np.nan), pad(U, 1, 0.0), pad(V, 1, 0.0)
+    acc = [np.zeros((H, W), np.float32) for _ in range(5)]  # a11, a12, a22, b1, b2
+    # same-surface gate: a generous bound on the neighbour distance (offsets are within +-0.5 px)
+    slope = (params.tolerance(1.0, 1.0, ppr) - params.tau_m).astype(np.float32)  # per metre and pixel
+    gate = params.tau_m + R * slope * np.float32(1.6)
+    with np.errstate(invalid="ignore"):
+        for dr, dc in NB8[:4]:
+            win = (slice(1 + dr, H + 1 + dr), slice(1 + dc, W + 1 + dc))
+            dR = Rp[win] - R
+            ok = np.abs(dR) <= gate
+            du = (dc + Up[win] - U) * ok
+            dv = (dr + Vp[win] - V) * ok
+            dR = np.where(ok, dR, np.float32(0.0))
+            for a, term in zip(acc, (du * du, du * dv, dv * dv, du * dR, dv * dR), strict=True):
+                a += term
+    gu, gv, full = solve_gradient(*acc)
+    weak = np.flatnonzero(~full & np.isfinite(R))
+    if weak.size:  # add the diagonal neighbours, for these pixels only
+        pw = padded_index(weak, W, 1)
+        Rf, Uf, Vf = Rp.reshape(-1), Up.reshape(-1), Vp.reshape(-1)
+        r0, u0, v0 = Rf[pw], Uf[pw], Vf[pw]
+        sub = [a.reshape(-1)[weak].astype(np.float64) for a in acc]
+        g = params.tau_m + r0 * slope.reshape(-1)[weak] * 2.2
+        with np.errstate(invalid="ignore"):
+            for dr, dc in NB8[4:]:
+                q = pw + dr * (W + 2) + dc
+                dR = Rf[q] - r0
+                ok = np.abs(dR) <= g
+                du, dv, dR = (dc + Uf[q] - u0) * ok, (dr + Vf[q] - v0) * ok, np.where(ok, dR, 0.0)
+                for a, term in zip(sub, (du * du, du * dv, dv * dv, du * dR, dv * dR), strict=True):
+                    a += term
+        wu, wv, _ = solve_gradient(*sub)
+        gu.reshape(-1)[weak] = wu
+        gv.reshape(-1)[weak] = wv
+    return gu.astype(np.float32), gv.astype(np.float32)
+
+
+def average_surface(pts: ViewPoints, value: F32, own_ok: Bool, R: F32, gu: F32, gv: F32, ppr: F32,
+             params: RenderParams) -> F32:  # fmt: skip
+    """Mean of every same-surface point in each pixel, each moved to the pixel centre along the gradient.
+
+    With range noise this removes the nearest-point bias and divides the
+    noise by the square root of the points per pixel.
+    """
+    H, W = value.shape
+    flat = own_ok.reshape(-1)[pts.pix]
+    idx = np.flatnonzero(flat)
+    pix = pts.pix[idx]
+    ref = R.reshape(-1)[pix]
+    r = pts.r[idx]
+    same = r <= ref + params.tolerance(ref, 1.0, ppr.reshape(-1)[pix])
+    pix, r, idx = pix[same], r[same], idx[same]
+    row, col = np.divmod(pix, W)
+    corrected = r - gu.reshape(-1)[pix] * (pts.u[idx] - col) - gv.reshape(-1)[pix] * (pts.v[idx] - row)
+    sums = np.bincount(pix, corrected, minlength=H * W)
+    counts = np.bincount(pix, minlength=H * W)
+    got = counts > 0
+    out: F32 = np.where(got, sums / np.maximum(counts, 1), value.reshape(-1)).astype(np.float32)
+    return out.reshape(H, W)
+
+
+def fill_gaps(value: F32, has: Bool, gu: F32, gv: F32, need: I64, ppr: F32,
+          params: RenderParams) -> tuple[F32, Bool]:  # fmt: skip
+    """Give the flat pixels ``need`` the planar prediction of their 8-neighbours, passes outwards.
+
+    Each valued neighbour predicts value + gradient * offset. Predictions
+    within the tolerance of the nearest one form the near group; it wins
+    where it surrounds the pixel (an opposite pair) or nothing else is there,
+    else the far group does: a gap inside a surface takes that surface, a
+    pixel beside a silhouette keeps its background. Returns the new value
+    image and which pixels of ``need`` got one.
+    """
+    H, W = value.shape
+    Wp = W + 2
+    vp = pad(np.where(has, value, np.nan), 1, np.nan).reshape(-1)
+    gup, gvp = pad(gu, 1, 0.0).reshape(-1), pad(gv, 1, 0.0).reshape(-1)
+    pn = padded_index(need, W, 1)
+    got_all = np.zeros(len(need), bool)
+    todo = np.arange(len(need))
+    offs = np.array([dr * Wp + dc for dr, dc in NB8])
+    drs = np.array([dr for dr, _ in NB8], np.float32)[:, None]
+    dcs = np.array([dc for _, dc in NB8], np.float32)[:, None]
+    weight = np.array([1.0] * 4 + [1.0 / math.sqrt(2.0)] * 4, np.float32)[:, None]
+    ppr_n = ppr.reshape(-1)[need]
+    for _ in range(params.fill_passes):
+        if todo.size == 0:
+            break
+        nb = pn[todo][None, :] + offs[:, None]  # (8, n)
+        gnu, gnv = gup[nb], gvp[nb]
+        pred = vp[nb] - gnu * dcs - gnv * drs
+        fin = np.isfinite(pred)
+        nearest = np.min(np.where(fin, pred, np.inf), axis=0)
+        tol = params.tolerance(nearest, 1.5, ppr_n[todo])
+        with np.errstate(invalid="ignore"):
+            in_near = fin & (pred <= nearest + tol)
+            in_far = fin & ~in_near
+            pairs = (in_near[0::2] & in_near[1::2]).any(axis=0)
+            use_far = ~pairs & in_far.any(axis=0)
+            if use_far.any():
+                far = np.min(np.where(in_far, pred, np.inf), axis=0)
+                in_far &= pred <= far + params.tolerance(far, 1.5, ppr_n[todo])
+        w = weight * np.where(use_far, in_far, in_near)
+        wsum = w.sum(axis=0)
+        got = wsum > 0
+        safe = np.where(got, wsum, 1.0)
+        new_v = (w * np.nan_to_num(pred)).sum(axis=0) / safe
+        new_gu = (w * gnu).sum(axis=0) / safe
+        new_gv = (w * gnv).sum(axis=0) / safe
+        # write after the pass: every prediction of a pass reads the previous pass
+        done = todo[got]
+        vp[pn[done]] = new_v[got]
+        gup[pn[done]] = new_gu[got]
+        gvp[pn[done]] = new_gv[got]
+        got_all[done] = True
+        todo = todo[~got]
+    out: F32 = vp.reshape(H + 2, W + 2)[1:-1, 1:-1].astype(np.float32)
+    return out, got_all
