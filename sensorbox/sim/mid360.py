@@ -38,123 +38,24 @@ import contextlib
 import itertools
 import selectors
 import socket
-import struct
 import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Callable
 from types import TracebackType
-from typing import Any, Protocol
 
 import numpy as np
 
 from calibration.errors import SensorboxError
-from calibration.types import F64, I64
+from calibration.types import F64
 from sensorbox.errors import ProtocolError
 from sensorbox.livox import protocol as proto
 from sensorbox.livox.protocol import Ports
-from sensorbox.sim.lidar import POINTS_PER_PACKET, LidarSim, Sweep, simulate_sweep, sweep_windows
-from sensorbox.sim.run import SimConfig, SimSetup, setup_sim
-from sensorbox.sim.trajectory import imu_readings
+from sensorbox.sim.impairments import MALFORMED_KINDS, EmulatorCounters, malformed_datagram
+from sensorbox.sim.lidar import POINTS_PER_PACKET
+from sensorbox.sim.scan_source import ScanSource
 
-IMU_PERIOD_NS = 5_000_000  # 200 Hz
 POWER_ON_LEAD_NS = 5_000_000_000
 _HOST_KEYS = {proto.KEY_STATE_HOST: "push", proto.KEY_POINT_HOST: "point", proto.KEY_IMU_HOST: "imu"}
-MALFORMED_KINDS = ("short", "length", "version", "data_type", "dot_num", "crc32", "oversized")
-"""Injected in this order; each is the driver's reject reason of the same name."""
-
-
-@dataclass(frozen=True)
-class ImuSamples:
-    """IMU readings on the device clock: gyro in rad/s, acceleration in g (gravity included)."""
-
-    stamps_ns: I64
-    gyro_rad_s: F64  # (N, 3)
-    acc_g: F64  # (N, 3)
-
-
-class ScanSource(Protocol):
-    """What an emulator streams: sweeps in time order, and the IMU over any device-time window."""
-
-    def sweeps(self) -> Iterator[Sweep]: ...
-
-    def imu(self, start_ns: int, end_ns: int) -> ImuSamples: ...
-
-
-@dataclass(frozen=True)
-class SweepList:
-    """A fixed list of sweeps (e.g. simulated ahead); IMU from `imu_fn`, else at rest reading +1 g on z."""
-
-    items: Sequence[Sweep]
-    imu_fn: Callable[[int, int], ImuSamples] | None = None
-    imu_phase_ns: int = 0
-
-    def sweeps(self) -> Iterator[Sweep]:
-        return iter(self.items)
-
-    def imu(self, start_ns: int, end_ns: int) -> ImuSamples:
-        if self.imu_fn is not None:
-            return self.imu_fn(start_ns, end_ns)
-        k0 = -(-(start_ns - self.imu_phase_ns) // IMU_PERIOD_NS)
-        k1 = -(-(end_ns - self.imu_phase_ns) // IMU_PERIOD_NS)
-        stamps = self.imu_phase_ns + np.arange(k0, max(k0, k1), dtype=np.int64) * IMU_PERIOD_NS
-        acc = np.zeros((len(stamps), 3))
-        acc[:, 2] = 1.0
-        return ImuSamples(stamps, np.zeros((len(stamps), 3)), acc)
-
-
-class SimScan:
-    """One simulated rig LiDAR, swept lazily: the same sweeps and IMU readings `simulate` writes.
-
-    IMU readings are the noise-free ones of the simulator (bag IMU noise/bias
-    settings are not applied).
-    """
-
-    def __init__(self, setup: SimSetup, index: int) -> None:
-        self.setup = setup
-        self.lidar: LidarSim = setup.lidars[index]
-        self.T_cam0_imu = setup.imus[index][1]
-
-    def windows(self) -> list[tuple[int, int]]:
-        return sweep_windows(self.lidar, self.setup.cfg.start_ns, self.setup.duration_ns)
-
-    def sweeps(self) -> Iterator[Sweep]:
-        s = self.setup
-        for win in self.windows():
-            sweep = simulate_sweep(self.lidar, s.scene, s.texture, s.traj, s.cfg.start_ns, win)
-            if sweep is not None:
-                yield sweep
-
-    def imu(self, start_ns: int, end_ns: int) -> ImuSamples:
-        base = self.setup.cfg.start_ns + self.lidar.clock_offset_ns  # device ns at sim time 0
-        first = self.lidar.first_packet_ns
-        k0 = max(0, -(-(start_ns - base - first) // IMU_PERIOD_NS))
-        k1 = -(-(end_ns - base - first) // IMU_PERIOD_NS)
-        t_sim = first + np.arange(k0, max(k0, k1), dtype=np.int64) * IMU_PERIOD_NS
-        if len(t_sim) == 0:
-            return ImuSamples(t_sim, np.zeros((0, 3)), np.zeros((0, 3)))
-        gyro, acc = imu_readings(self.setup.traj, t_sim / 1e9, self.T_cam0_imu)
-        return ImuSamples(base + t_sim, gyro, acc)
-
-
-@dataclass
-class EmulatorCounters:
-    """What the emulator did, for exact comparison with the driver's counters."""
-
-    packets_sent: int = 0  # point datagrams sent, duplicates included, malformed ones not
-    points_sent: int = 0  # points in distinct point packets sent
-    dropped: list[int] = field(default_factory=list)  # stream index of every point packet lost on purpose
-    duplicated: int = 0
-    reordered: int = 0
-    malformed: int = 0
-    malformed_by_kind: dict[str, int] = field(default_factory=dict)
-    imu_sent: int = 0
-    point_datagrams: int = 0  # every datagram that left the point port (malformed, duplicates included)
-    imu_datagrams: int = 0  # every datagram that left the IMU port
-    sweeps: int = 0  # sweeps fully streamed
-    pushes: int = 0
-    discovery_replies: int = 0
-    commands: list[bytes] = field(default_factory=list)  # every datagram received on the command port
 
 
 def _socket(ip: str, port: int) -> socket.socket:
@@ -568,45 +469,7 @@ class Mid360Emulator:
         kind = next(self._malformed_kind)
         self.counters.malformed += 1
         self.counters.malformed_by_kind[kind] = self.counters.malformed_by_kind.get(kind, 0) + 1
-        b = bytearray(raw)
-        if kind == "short":
-            return bytes(b[:20])
-        if kind == "length":
-            struct.pack_into("<H", b, 1, len(b) + 1)
-        elif kind == "version":
-            b[0] = 1
-        elif kind == "data_type":
-            b[10] = 9
-        elif kind == "dot_num":
-            b = b[: -proto.POINT_DTYPES[b[10]].itemsize]
-            struct.pack_into("<H", b, 1, len(b))
-        elif kind == "crc32":
-            b[-1] ^= 0xFF
-        elif kind == "oversized":
-            return bytes(b) * 3
-        return bytes(b)
-
-
-def sim_emulators(
-    cfg: SimConfig,
-    ips: Sequence[str] | None = None,
-    **options: Any,
-) -> list[Mid360Emulator]:
-    """One emulator per rig LiDAR of the simulated recording `cfg` (scene, trajectory, rig), not started.
-
-    `ips` default to 127.0.0.<last octet of the rig's IP> (127.0.0.12 and
-    127.0.0.13 for the reference rig); `options` go to every `Mid360Emulator`
-    (ports, rate, time_type, impairments); serials end in the rig IP's last octet.
-    """
-    setup = setup_sim(cfg)
-    out = []
-    for k, lidar in enumerate(setup.rig.lidars):
-        last = (lidar.ip or f"0.0.0.{10 + k}").rsplit(".", 1)[-1]
-        ip = ips[k] if ips is not None else f"127.0.0.{last}"
-        serial = f"47MDL9A00100{int(last):02d}"
-        opts = {"seed": cfg.seed * 100 + k, **options}
-        out.append(Mid360Emulator(ip, SimScan(setup, k), serial=serial, **opts))
-    return out
+        return malformed_datagram(raw, kind)
 
 
 def credit_from(received: Callable[[str], tuple[int, int]], ip: str) -> Callable[[str], int]:

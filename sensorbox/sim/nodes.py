@@ -7,7 +7,7 @@ factories; their parameters are documented there.
 from __future__ import annotations
 
 import itertools
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -21,8 +21,9 @@ from sensorbox.live.bus import PRIORITY_DEVICE, Node, NodeContext, NodeStatus
 from sensorbox.live.nodes import Params, stereo_camera_node
 from sensorbox.sim.camera_source import SimCameras, SimCameraSource
 from sensorbox.sim.lidar import SWEEP_PERIOD_NS, Sweep
-from sensorbox.sim.mid360 import IMU_PERIOD_NS, ImuSamples, Mid360Emulator, SimScan
+from sensorbox.sim.mid360 import Mid360Emulator
 from sensorbox.sim.run import SimConfig, setup_sim
+from sensorbox.sim.scan_source import IMU_PERIOD_NS, ImuSamples, SimScan
 from sensorbox.sim.trajectory import imu_readings
 
 
@@ -157,3 +158,25 @@ def sim_camera_source(p: Params, sim: SimCameras, cam: int, name: str) -> SimCam
 
 def sim_camera_node(ctx: NodeContext, p: Params) -> Node:
     return stereo_camera_node(ctx, p, source="sim")
+
+
+def sim_emulators(
+    cfg: SimConfig,
+    ips: Sequence[str] | None = None,
+    **options: Any,
+) -> list[Mid360Emulator]:
+    """One emulator per rig LiDAR of the simulated recording `cfg` (scene, trajectory, rig), not started.
+
+    `ips` default to 127.0.0.<last octet of the rig's IP> (127.0.0.12 and
+    127.0.0.13 for the reference rig); `options` go to every `Mid360Emulator`
+    (ports, rate, time_type, impairments); serials end in the rig IP's last octet.
+    """
+    setup = setup_sim(cfg)
+    out = []
+    for k, lidar in enumerate(setup.rig.lidars):
+        last = (lidar.ip or f"0.0.0.{10 + k}").rsplit(".", 1)[-1]
+        ip = ips[k] if ips is not None else f"127.0.0.{last}"
+        serial = f"47MDL9A00100{int(last):02d}"
+        opts = {"seed": cfg.seed * 100 + k, **options}
+        out.append(Mid360Emulator(ip, SimScan(setup, k), serial=serial, **opts))
+    return out

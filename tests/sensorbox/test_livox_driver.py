@@ -31,8 +31,10 @@ from sensorbox.livox import DriverConfig, LidarEndpoint, Mid360Driver, Ports
 from sensorbox.livox import protocol as proto
 from sensorbox.livox.driver import DriverStats, _udp_socket
 from sensorbox.sim.lidar import Sweep, simulate_sweep
-from sensorbox.sim.mid360 import Mid360Emulator, SimScan, SweepList, credit_from, sim_emulators
+from sensorbox.sim.mid360 import Mid360Emulator, credit_from
+from sensorbox.sim.nodes import sim_emulators
 from sensorbox.sim.run import SimConfig, setup_sim
+from sensorbox.sim.scan_source import SimScan, SweepList
 from tests.live import HANG_S, ManualClock, wait_for
 
 pytestmark = pytest.mark.realtime  # UDP sockets and receive threads: run serially (make test)
