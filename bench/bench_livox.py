@@ -7,7 +7,7 @@ the CRC-32 as the driver does:
 - `struct loop`: per packet `struct.unpack_from` of the header, then one
   `struct.unpack_from` per point (what a naive Python driver does);
 - `numpy per packet`: `np.frombuffer` of one datagram on structured dtypes;
-- `numpy batch`: `protocol.decode_point_batch` over 256 datagrams in fixed slots
+- `numpy batch`: `packets.decode_point_batch` over 256 datagrams in fixed slots
   of one receive buffer (the driver's path), plus unit conversion and times;
 - `driver path`: the driver's whole per-batch work without sockets: routing by
   source, validation, udp_cnt accounting, framing into 100 ms sweeps and
@@ -35,8 +35,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import OUT_DIR, median_seconds
 
-from sensorbox.livox import DriverConfig, LidarEndpoint, Mid360Driver, Ports
-from sensorbox.livox import protocol as proto
+from sensorbox.livox import DriverConfig, LidarEndpoint, Mid360Driver, Ports, packets
 from sensorbox.livox.driver import BATCH, SLOT, to_metres
 
 PACKETS_PER_S = 1e9 / 480_000  # one Mid-360: a 96-point packet every 480 us
@@ -45,12 +44,12 @@ N_PACKETS = 2048
 
 def make_datagrams(n: int, seed: int = 0) -> list[bytes]:
     rng = np.random.default_rng(seed)
-    pts = np.zeros((n, 96), proto.POINT_DTYPES[1])
+    pts = np.zeros((n, 96), packets.POINT_DTYPES[1])
     for name in ("x", "y", "z"):
         pts[name] = rng.integers(-40_000, 40_000, (n, 96))
     pts["reflectivity"] = rng.integers(0, 256, (n, 96))
     stamps = 1_700_000_000_000_000_000 + np.arange(n, dtype=np.int64) * 480_000
-    rows = proto.build_point_packets(1, 1, stamps, np.arange(n), pts)
+    rows = packets.build_point_packets(1, 1, stamps, np.arange(n), pts)
     return [row.tobytes() for row in rows]
 
 
@@ -76,16 +75,16 @@ def decode_struct_loop(datagrams: list[bytes]) -> int:
 
 def decode_numpy_per_packet(datagrams: list[bytes]) -> int:
     n = 0
-    pdt = proto.POINT_DTYPES[1]
+    pdt = packets.POINT_DTYPES[1]
     for raw in datagrams:
-        h = np.frombuffer(raw, proto.HEADER_DTYPE, count=1)[0]
+        h = np.frombuffer(raw, packets.HEADER_DTYPE, count=1)[0]
         if h["version"] != 0 or h["length"] != len(raw) or h["data_type"] != 1:
             continue
         if zlib.crc32(memoryview(raw)[28:]) != h["crc32"]:
             continue
         pts = np.frombuffer(raw, pdt, count=int(h["dot_num"]), offset=36)
-        xyz = to_metres(1, proto.native_xyz(1, pts)).astype(np.float32)
-        proto.point_times_ns(
+        xyz = to_metres(1, packets.native_xyz(1, pts)).astype(np.float32)
+        packets.point_times_ns(
             np.array([h["timestamp"]], np.int64), np.array([h["time_interval"]]), np.array([h["dot_num"]]), 96
         )
         n += len(xyz)
@@ -106,11 +105,11 @@ def slot_batches(datagrams: list[bytes]) -> list[tuple[bytearray, np.ndarray]]:
 def decode_numpy_batch(batches: list[tuple[bytearray, np.ndarray]]) -> int:
     n = 0
     for buf, sizes in batches:
-        groups, _ = proto.decode_point_batch(buf, SLOT, sizes)
+        groups, _ = packets.decode_point_batch(buf, SLOT, sizes)
         for g in groups:
-            xyz = to_metres(g.data_type, proto.native_xyz(g.data_type, g.points)).astype(np.float32)
+            xyz = to_metres(g.data_type, packets.native_xyz(g.data_type, g.points)).astype(np.float32)
             h = g.header
-            proto.point_times_ns(h["timestamp"].astype(np.int64), h["time_interval"], h["dot_num"], 96)
+            packets.point_times_ns(h["timestamp"].astype(np.int64), h["time_interval"], h["dot_num"], 96)
             n += xyz.shape[0] * xyz.shape[1]
     return n
 
@@ -135,7 +134,7 @@ class DriverReplay:
         # udp_cnt and time continue (CRCs rewritten) so nothing counts as a duplicate
         for buf, sizes in self.batches:
             k = self.sent + np.arange(len(sizes))
-            hdr = np.ndarray((len(sizes),), proto.header_dtype(SLOT), buf, 0)
+            hdr = np.ndarray((len(sizes),), packets.header_dtype(SLOT), buf, 0)
             hdr["udp_cnt"] = k & 0xFFFF
             hdr["timestamp"] = 1_700_000_000_000_000_000 + k * 480_000
             mv = memoryview(buf)

@@ -7,6 +7,7 @@ this checkout there is not picked up). The commands run from a folder outside th
 
 from __future__ import annotations
 
+import shutil
 import subprocess
 import sys
 import sysconfig
@@ -21,10 +22,21 @@ def _run(*args: str | Path, cwd: Path) -> subprocess.CompletedProcess[str]:
     return res
 
 
+def _source_copy(dst: Path) -> Path:
+    """What a wheel is built from (packages, pyproject, README), so the build leaves this checkout alone."""
+    ignore = shutil.ignore_patterns("__pycache__", "*.pyc")
+    for name in ("calibration", "ingest", "sensorbox"):
+        shutil.copytree(ROOT / name, dst / name, symlinks=True, ignore=ignore)
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy2(ROOT / name, dst / name)
+    return dst
+
+
 def test_an_installed_wheel_runs_launch_and_calib_check_outside_the_checkout(tmp_path):
     wheels, venv, elsewhere = tmp_path / "wheels", tmp_path / "venv", tmp_path / "elsewhere"
     elsewhere.mkdir()
-    _run(sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "-w", wheels, ROOT, cwd=elsewhere)
+    source = _source_copy(tmp_path / "source")
+    _run(sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "-w", wheels, source, cwd=elsewhere)
     _run(sys.executable, "-m", "venv", venv, cwd=elsewhere)
     python = venv / "bin" / "python"
     site = Path(_run(python, "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])", cwd=elsewhere)

@@ -15,7 +15,7 @@ What it does, in the order livox_ros_driver2 + Livox-SDK2 do it (notes/livox.md)
    naming its IP.
 3. Point datagrams are received in batches (the thread wakes, waits
    `batch_wait_s`, then drains the socket) into fixed-size slots of one buffer
-   and decoded with numpy (protocol.decode_point_batch): no Python per point.
+   and decoded with numpy (packets.decode_point_batch): no Python per point.
    Only the configured lidars' (IP, port) are accepted; anything else is counted
    as foreign. Malformed, short or oversized datagrams are counted by reason and
    dropped. udp_cnt is unwrapped (16 bits) per lidar to count lost, duplicate
@@ -66,6 +66,7 @@ from ingest.bags.livox_msg import POINT_DTYPE
 from ingest.bags.rostypes import CUSTOM_MSG_TYPE, IMU_TYPE, POINTCLOUD2_TYPE
 from sensorbox import messages
 from sensorbox.errors import DriverError, ProtocolError
+from sensorbox.livox import packets
 from sensorbox.livox import protocol as proto
 from sensorbox.livox.protocol import DeviceInfo, Ports
 
@@ -103,7 +104,7 @@ class DriverConfig:
     publish_interval_ns: int = 100_000_000
     multi_topic: bool = True  # /livox/lidar_192_168_1_12 instead of /livox/lidar
     imu: bool = True
-    data_type: int = proto.DATA_TYPE_CARTESIAN_HIGH
+    data_type: int = packets.DATA_TYPE_CARTESIAN_HIGH
     ports: Ports = field(default_factory=Ports)
     discovery_address: str = "255.255.255.255"
     command_timeout_s: float = 0.5  # per try
@@ -124,7 +125,7 @@ class DriverConfig:
             raise DriverError(f"DriverConfig.lidars lists an IP twice: {ips}")
         if self.host_ip in ips:
             raise DriverError(f"host_ip {self.host_ip} equals a lidar IP (the SDK drops such datagrams)")
-        if self.data_type not in proto.POINT_DTYPES:
+        if self.data_type not in packets.POINT_DTYPES:
             raise DriverError(f"data_type {self.data_type}: expected 1 (mm), 2 (10 mm) or 3 (spherical)")
         if not 10_000_000 <= self.publish_interval_ns <= 2_000_000_000:
             raise DriverError(
@@ -166,7 +167,7 @@ class LidarStats:
 
     def unaccounted_point_datagrams(self) -> int:
         """point_datagrams minus every outcome (kept, duplicate, stale, late, malformed): 0 when balanced."""
-        malformed = sum(n for r, n in self.malformed_by_reason.items() if r in proto.REJECT_REASONS)
+        malformed = sum(n for r, n in self.malformed_by_reason.items() if r in packets.REJECT_REASONS)
         return self.point_datagrams - (self.packets + self.duplicates + self.stale + self.late + malformed)
 
     def unaccounted_imu_datagrams(self) -> int:
@@ -215,9 +216,9 @@ def to_metres(data_type: int, xyz_native: F64, extrinsic: Extrinsic | None = Non
     if extrinsic is not None:
         R = extrinsic_rotation(*extrinsic[:3])
         t_mm = np.asarray(extrinsic[3:], np.float64)
-        if data_type == proto.DATA_TYPE_CARTESIAN_LOW:
+        if data_type == packets.DATA_TYPE_CARTESIAN_LOW:
             t = np.trunc(np.round(t_mm) / 10.0)  # the driver's integer division to 10 mm
-        elif data_type == proto.DATA_TYPE_SPHERICAL:
+        elif data_type == packets.DATA_TYPE_SPHERICAL:
             t = t_mm / 1000.0
         else:
             t = t_mm
@@ -225,7 +226,7 @@ def to_metres(data_type: int, xyz_native: F64, extrinsic: Extrinsic | None = Non
         xyz_native = np.stack(
             [R[i, 0] * x + R[i, 1] * y + R[i, 2] * z + t[i] for i in range(3)], axis=-1
         )  # component arithmetic: no tall BLAS matmul on the hot path
-    out: F64 = xyz_native / proto.UNIT_DIVISOR[data_type]
+    out: F64 = xyz_native / packets.UNIT_DIVISOR[data_type]
     return out
 
 
@@ -723,7 +724,7 @@ class Mid360Driver:
         with self._lock:
             lidar.stats.imu_datagrams += 1
         try:
-            pkt = proto.decode_imu_packet(raw, self.config.check_crc)
+            pkt = packets.decode_imu_packet(raw, self.config.check_crc)
         except ProtocolError as err:
             with self._lock:
                 lidar.malformed("imu")
@@ -735,7 +736,7 @@ class Mid360Driver:
             lidar.stats.imu_packets += 1
         if not self.config.imu:
             return
-        stamp = pkt.timestamp_ns if pkt.time_type != proto.TIME_TYPE_NO_SYNC else now_ns
+        stamp = pkt.timestamp_ns if pkt.time_type != packets.TIME_TYPE_NO_SYNC else now_ns
         raw_msg = messages.imu_msg(stamp, pkt.gyro_rad_s, pkt.acc_g, self.config.ros_version)
         self._emit(lidar.imu_topic, IMU_TYPE, stamp, raw_msg)
 
@@ -806,7 +807,7 @@ class Mid360Driver:
                 owner[k] = index[id(lidar)]
         if (owner < 0).all():
             return
-        groups, rejects = proto.decode_point_batch(buf, SLOT, sizes, self.config.check_crc)
+        groups, rejects = packets.decode_point_batch(buf, SLOT, sizes, self.config.check_crc)
         with self._lock:
             for o, count in enumerate(np.bincount(owner[owner >= 0], minlength=len(lidars)).tolist()):
                 lidars[o].stats.point_datagrams += count
@@ -830,14 +831,14 @@ class Mid360Driver:
             seq = np.array([q for q in seqs if q is not None], np.int64)
             time_type = int(hdr["time_type"][-1])
             lidar.stats.time_type = time_type
-            lidar.stats.unsynced = time_type == proto.TIME_TYPE_NO_SYNC
+            lidar.stats.unsynced = time_type == packets.TIME_TYPE_NO_SYNC
         if not keep.all():
             hdr, pts, recv_ns = hdr[keep], pts[keep], recv_ns[keep]
         n_pk, dot_num = pts.shape
         if n_pk == 0:
             return
         lidar.last_packet_wall = self._clock()
-        synced = hdr["time_type"] != proto.TIME_TYPE_NO_SYNC
+        synced = hdr["time_type"] != packets.TIME_TYPE_NO_SYNC
         pkt_ns = np.where(synced, hdr["timestamp"].astype(np.int64), recv_ns)
         if lidar.newest_ns is not None and np.abs(pkt_ns - lidar.newest_ns).max() > TIME_JUMP_NS:
             self._publish_open(lidar)  # sync gained or lost: the clocks differ, start framing afresh
@@ -845,8 +846,8 @@ class Mid360Driver:
             lidar.newest_ns = None
             with self._lock:
                 lidar.stats.time_jumps += 1
-        stamps = proto.point_times_ns(pkt_ns, hdr["time_interval"], hdr["dot_num"], dot_num)
-        xyz = to_metres(data_type, proto.native_xyz(data_type, pts), lidar.endpoint.extrinsic).astype(
+        stamps = packets.point_times_ns(pkt_ns, hdr["time_interval"], hdr["dot_num"], dot_num)
+        xyz = to_metres(data_type, packets.native_xyz(data_type, pts), lidar.endpoint.extrinsic).astype(
             np.float32
         )
         line = np.broadcast_to((np.arange(dot_num) % 4).astype(np.uint8), (n_pk, dot_num))

@@ -6,7 +6,7 @@ from __future__ import annotations
 import struct
 from dataclasses import dataclass, field
 
-from sensorbox.livox import protocol as proto
+from sensorbox.livox import packets
 
 MALFORMED_KINDS = ("short", "length", "version", "data_type", "dot_num", "crc32", "oversized")
 """Injected in this order; each is the driver's reject reason of the same name."""
@@ -44,7 +44,7 @@ def malformed_datagram(raw: bytes, kind: str) -> bytes:
     elif kind == "data_type":
         b[10] = 9
     elif kind == "dot_num":
-        b = b[: -proto.POINT_DTYPES[b[10]].itemsize]
+        b = b[: -packets.POINT_DTYPES[b[10]].itemsize]
         struct.pack_into("<H", b, 1, len(b))
     elif kind == "crc32":
         b[-1] ^= 0xFF

@@ -48,6 +48,7 @@ import numpy as np
 from calibration.errors import SensorboxError
 from calibration.types import F64
 from sensorbox.errors import ProtocolError
+from sensorbox.livox import packets
 from sensorbox.livox import protocol as proto
 from sensorbox.livox.protocol import Ports
 from sensorbox.sim.impairments import MALFORMED_KINDS, EmulatorCounters, malformed_datagram
@@ -81,8 +82,8 @@ class Mid360Emulator:
         *,
         serial: str = "47MDL9A0010012",
         ports: Ports | None = None,
-        data_type: int = proto.DATA_TYPE_CARTESIAN_HIGH,
-        time_type: int = proto.TIME_TYPE_PTP,
+        data_type: int = packets.DATA_TYPE_CARTESIAN_HIGH,
+        time_type: int = packets.TIME_TYPE_PTP,
         loss: float = 0.0,
         reorder: float = 0.0,
         duplicate: float = 0.0,
@@ -96,9 +97,9 @@ class Mid360Emulator:
         credit: Callable[[str], int] | None = None,
         window: int = 64,
     ) -> None:
-        if data_type not in proto.POINT_DTYPES:
+        if data_type not in packets.POINT_DTYPES:
             raise SensorboxError(f"Mid-360 emulator: data_type {data_type}, expected 1, 2 or 3")
-        if time_type not in (proto.TIME_TYPE_NO_SYNC, proto.TIME_TYPE_PTP, proto.TIME_TYPE_GPS):
+        if time_type not in (packets.TIME_TYPE_NO_SYNC, packets.TIME_TYPE_PTP, packets.TIME_TYPE_GPS):
             raise SensorboxError(f"Mid-360 emulator: time_type {time_type}, expected 0, 1 or 2")
         if not rate > 0:
             raise SensorboxError(f"Mid-360 emulator: rate must be > 0, got {rate}")
@@ -358,17 +359,17 @@ class Mid360Emulator:
             if boot_ns is None:
                 boot_ns = int(pk_ns[0]) - POWER_ON_LEAD_NS
             clock_ns = (
-                0 if self.time_type != proto.TIME_TYPE_NO_SYNC else boot_ns
+                0 if self.time_type != packets.TIME_TYPE_NO_SYNC else boot_ns
             )  # device stamp = t - clock_ns
             xyz = np.stack([pk["x"], pk["y"], pk["z"]], axis=-1).astype(np.float64)
-            body = proto.quantise_points(self.data_type, xyz, pk["reflectivity"], pk["tag"])
+            body = packets.quantise_points(self.data_type, xyz, pk["reflectivity"], pk["tag"])
             cnts = (udp_cnt + np.arange(len(pk), dtype=np.int64)) & 0xFFFF
             udp_cnt = (udp_cnt + len(pk)) & 0xFFFF
-            datagrams = proto.build_point_packets(
+            datagrams = packets.build_point_packets(
                 self.data_type, self.time_type, pk_ns - clock_ns, cnts, body
             )
             end_ns = (
-                int(pk_ns[-1]) + proto.MID360_TIME_INTERVAL * 100 // POINTS_PER_PACKET * POINTS_PER_PACKET
+                int(pk_ns[-1]) + packets.MID360_TIME_INTERVAL * 100 // POINTS_PER_PACKET * POINTS_PER_PACKET
             )
             imu = self.source.imu(int(pk_ns[0]) if imu_from is None else imu_from, end_ns)
             imu_from = end_ns
@@ -435,7 +436,7 @@ class Mid360Emulator:
     def _send_imu(self, stamp: int, cnt: int, gyro: F64, acc: F64) -> None:
         if "imu" not in self._hosts:
             return
-        self._send(proto.build_imu_packet(self.time_type, stamp, cnt, gyro, acc), "imu")
+        self._send(packets.build_imu_packet(self.time_type, stamp, cnt, gyro, acc), "imu")
         self.counters.imu_sent += 1
 
     def _send_point(

@@ -27,7 +27,7 @@ from ingest.bags.decode import decode_imu, decode_pointcloud2
 from ingest.bags.livox_msg import decode_custom_msg
 from ingest.bags.rostypes import CUSTOM_MSG_TYPE, IMU_TYPE, POINTCLOUD2_TYPE
 from sensorbox.errors import DriverError
-from sensorbox.livox import DriverConfig, LidarEndpoint, Mid360Driver, Ports
+from sensorbox.livox import DriverConfig, LidarEndpoint, Mid360Driver, Ports, packets
 from sensorbox.livox import protocol as proto
 from sensorbox.livox.driver import DriverStats, _udp_socket
 from sensorbox.sim.lidar import Sweep, simulate_sweep
@@ -342,7 +342,7 @@ def test_loss_duplicates_reordering_and_malformed_packets_are_counted_exactly(si
     assert s.duplicates == c.duplicated
     assert s.reordered == c.reordered
     assert s.malformed == c.malformed and s.malformed_by_reason == c.malformed_by_kind
-    assert set(s.malformed_by_reason) == set(proto.REJECT_REASONS)  # every reject reason was exercised
+    assert set(s.malformed_by_reason) == set(packets.REJECT_REASONS)  # every reject reason was exercised
     assert s.late == 0 and driver.stats().foreign == 0
     # the points are the simulator's minus the dropped packets, each in its own sweep, in time order
     dropped = set(c.dropped)
@@ -393,10 +393,10 @@ def test_traffic_from_other_addresses_is_ignored_and_garbage_never_kills_the_dri
     _, sweeps = sim
     ports = fresh_ports()
     items = sweeps[1][:5]
-    body = proto.quantise_points(
+    body = packets.quantise_points(
         1, np.ones((3, 96, 3)), np.zeros((3, 96), np.uint8), np.zeros((3, 96), np.uint8)
     )
-    valid = proto.build_point_packets(
+    valid = packets.build_point_packets(
         1, 1, np.array([1, 2, 3]) * 480_000 + items[0].timebase_ns, np.arange(3), body
     )
     rogue = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -415,7 +415,7 @@ def test_traffic_from_other_addresses_is_ignored_and_garbage_never_kills_the_dri
         for row in valid:
             rogue.sendto(row.tobytes(), (HOST, ports.host_point))
             wrong_port.sendto(row.tobytes(), (HOST, ports.host_point))
-        rogue.sendto(proto.build_imu_packet(1, 1, 0, np.zeros(3), np.zeros(3)), (HOST, ports.host_imu))
+        rogue.sendto(packets.build_imu_packet(1, 1, 0, np.zeros(3), np.zeros(3)), (HOST, ports.host_imu))
 
         def malformed() -> int:
             return driver.stats().lidars["127.0.0.2"].malformed

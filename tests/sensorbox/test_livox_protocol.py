@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from sensorbox.errors import ProtocolError
+from sensorbox.livox import packets
 from sensorbox.livox import protocol as proto
 from sensorbox.livox.driver import SeqTracker, extrinsic_rotation, to_metres
 from sensorbox.livox.protocol import ControlFrame
@@ -137,13 +138,13 @@ def _hand_packet(
 
 def test_point_packet_builder_matches_hand_built_bytes():
     rng = np.random.default_rng(2)
-    pts = np.zeros((2, 96), proto.POINT_DTYPES[1])
+    pts = np.zeros((2, 96), packets.POINT_DTYPES[1])
     for name in ("x", "y", "z"):
         pts[name] = rng.integers(-70_000, 70_000, (2, 96))
     pts["reflectivity"] = rng.integers(0, 256, (2, 96))
     pts["tag"] = rng.integers(0, 256, (2, 96))
     stamps = np.array([1_700_000_000_000_480_000, 1_700_000_000_000_960_000])
-    built = proto.build_point_packets(1, 1, stamps, np.array([65535, 65536]), pts)
+    built = packets.build_point_packets(1, 1, stamps, np.array([65535, 65536]), pts)
     assert built.shape == (2, 1380)
     for k in range(2):
         raw = b"".join(
@@ -154,23 +155,23 @@ def test_point_packet_builder_matches_hand_built_bytes():
 
 
 def test_imu_packet_bytes_and_decode():
-    raw = proto.build_imu_packet(1, 123_456_789, 7, np.array([0.1, -0.2, 0.3]), np.array([0.0, 0.0, 1.0]))
+    raw = packets.build_imu_packet(1, 123_456_789, 7, np.array([0.1, -0.2, 0.3]), np.array([0.0, 0.0, 1.0]))
     assert len(raw) == 60
     body = struct.pack("<Q6f", 123_456_789, 0.1, -0.2, 0.3, 0.0, 0.0, 1.0)
     assert raw[:24] == struct.pack("<BHHHHBBB12s", 0, 60, 0, 1, 7, 0, 0, 1, b"")
     assert raw[24:] == struct.pack("<I", zlib.crc32(body)) + body
-    pkt = proto.decode_imu_packet(raw)
+    pkt = packets.decode_imu_packet(raw)
     assert (pkt.udp_cnt, pkt.time_type, pkt.timestamp_ns) == (7, 1, 123_456_789)
     np.testing.assert_array_equal(pkt.gyro_rad_s, np.array([0.1, -0.2, 0.3], np.float32))
     np.testing.assert_array_equal(pkt.acc_g, [0.0, 0.0, 1.0])
     for bad in (raw[:59], raw[:10] + b"\x01" + raw[11:], raw[:-1] + b"\x00"):
         with pytest.raises(ProtocolError):
-            proto.decode_imu_packet(bad)
+            packets.decode_imu_packet(bad)
 
 
 def test_point_times_follow_the_driver_rule():
     """4750 * 100 // 96 = 4947 ns (integer division by dot_num, not dot_num - 1)."""
-    t = proto.point_times_ns(np.array([1000, 2000]), np.array([4750, 100]), np.array([96, 3]), 96)
+    t = packets.point_times_ns(np.array([1000, 2000]), np.array([4750, 100]), np.array([96, 3]), 96)
     assert t[0, 1] - t[0, 0] == 4947
     assert t[0, 95] == 1000 + 95 * 4947
     assert t[1, 2] == 2000 + 2 * (10_000 // 3)
@@ -197,10 +198,10 @@ def test_decode_batch_groups_data_types_and_names_each_reject():
         "dot_num": p1[:5] + struct.pack("<H", 95) + p1[7:],
         "crc32": p1[:-1] + b"\xff",
     }
-    imu = proto.build_imu_packet(1, 1, 1, np.zeros(3), np.zeros(3))
+    imu = packets.build_imu_packet(1, 1, 1, np.zeros(3), np.zeros(3))
     datagrams = [p1, *bad.values(), p2, p3, imu]
     buf, sizes = _slots(datagrams)
-    groups, rejects = proto.decode_point_batch(buf, 2048, sizes)
+    groups, rejects = packets.decode_point_batch(buf, 2048, sizes)
     assert {r: rows.tolist() for r, rows in rejects.items()} == {
         "short": [1], "oversized": [2], "version": [3], "length": [4], "data_type": [5, 10], "dot_num": [6],
         "crc32": [7],
@@ -210,15 +211,15 @@ def test_decode_batch_groups_data_types_and_names_each_reject():
     g1 = by_type[1]
     assert g1.rows.tolist() == [0] and g1.points.shape == (1, 96)
     assert g1.header["timestamp"][0] == 5_000 and g1.header["udp_cnt"][0] == 1
-    np.testing.assert_array_equal(proto.native_xyz(1, g1.points)[0, 5], [1000, -2000, 3000])
-    np.testing.assert_allclose(to_metres(1, proto.native_xyz(1, g1.points))[0, 0], [1.0, -2.0, 3.0])
-    np.testing.assert_allclose(to_metres(2, proto.native_xyz(2, by_type[2].points))[0, 0], [1.0, -2.0, 3.0])
+    np.testing.assert_array_equal(packets.native_xyz(1, g1.points)[0, 5], [1000, -2000, 3000])
+    np.testing.assert_allclose(to_metres(1, packets.native_xyz(1, g1.points))[0, 0], [1.0, -2.0, 3.0])
+    np.testing.assert_allclose(to_metres(2, packets.native_xyz(2, by_type[2].points))[0, 0], [1.0, -2.0, 3.0])
     # spherical: r = 5 m, theta 90 deg (horizon), phi 45 deg
-    xyz = to_metres(3, proto.native_xyz(3, by_type[3].points))[0, 0]
+    xyz = to_metres(3, packets.native_xyz(3, by_type[3].points))[0, 0]
     np.testing.assert_allclose(xyz, [5 / np.sqrt(2), 5 / np.sqrt(2), 0.0], atol=1e-12)
     assert by_type[3].points["reflectivity"][0, 0] == 30 and g1.points["tag"][0, 0] == 0b0100
     # without the CRC check the bit-flipped packet is accepted
-    _, rejects = proto.decode_point_batch(buf, 2048, sizes, check_crc=False)
+    _, rejects = packets.decode_point_batch(buf, 2048, sizes, check_crc=False)
     assert "crc32" not in rejects
 
 
@@ -229,7 +230,7 @@ def test_decode_batch_never_raises_on_garbage():
     good = _hand_packet(1, b"\0" * 14 * 96, 96, 0, 0)
     datagrams += [good[:36] + rng.integers(0, 256, 1344, dtype=np.uint8).tobytes() for _ in range(20)]
     buf, sizes = _slots(datagrams)
-    groups, rejects = proto.decode_point_batch(buf, 2048, sizes)
+    groups, rejects = packets.decode_point_batch(buf, 2048, sizes)
     n_ok = sum(len(g.rows) for g in groups)
     assert n_ok + sum(len(r) for r in rejects.values()) == len(datagrams)
     assert n_ok == 0  # random bytes never pass the CRC
@@ -240,8 +241,8 @@ def test_quantise_then_decode_is_within_one_unit(data_type):
     rng = np.random.default_rng(4)
     xyz = rng.uniform(-60, 60, (500, 3))
     xyz[:10] = 0.0  # no-return points stay all zero
-    q = proto.quantise_points(data_type, xyz, np.zeros(500, np.uint8), np.zeros(500, np.uint8))
-    back = to_metres(data_type, proto.native_xyz(data_type, q))
+    q = packets.quantise_points(data_type, xyz, np.zeros(500, np.uint8), np.zeros(500, np.uint8))
+    back = to_metres(data_type, packets.native_xyz(data_type, q))
     assert (back[:10] == 0).all()
     r = np.linalg.norm(xyz, axis=1)
     tol = {1: 0.5e-3 * np.sqrt(3), 2: 5e-3 * np.sqrt(3), 3: 0.5e-3 + r * np.radians(0.01)}[data_type]
