@@ -36,7 +36,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import OUT_DIR, median_seconds
 
 from sensorbox.livox import DriverConfig, LidarEndpoint, Mid360Driver, Ports, packets
-from sensorbox.livox.driver import BATCH, SLOT, to_metres
+from sensorbox.livox.driver import BATCH, SLOT
+from sensorbox.livox.tracking import to_metres
 
 PACKETS_PER_S = 1e9 / 480_000  # one Mid-360: a 96-point packet every 480 us
 N_PACKETS = 2048

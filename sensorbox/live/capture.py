@@ -62,7 +62,7 @@ def _ips(rig: Rig, cfg: CaptureConfig) -> list[tuple[str, str]]:
 
 def capture_plan(cfg: CaptureConfig) -> LaunchPlan:
     """The nodes `sensorbox capture` starts, as a launch plan (what the launch file would give)."""
-    from sensorbox.livox.driver import imu_topic, lidar_topic, topic_suffix
+    from sensorbox.livox.config import imu_topic, lidar_topic, topic_suffix
 
     rig = read_rig(cfg.rig)
     if not rig.lidars:

@@ -55,26 +55,34 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from types import TracebackType
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 
-from calibration.types import F64, I64, Structured
+from calibration.types import I64, Structured
 from ingest.bags.livox_msg import POINT_DTYPE
 from ingest.bags.rostypes import CUSTOM_MSG_TYPE, IMU_TYPE, POINTCLOUD2_TYPE
 from sensorbox import messages
 from sensorbox.errors import DriverError, ProtocolError
 from sensorbox.livox import packets
 from sensorbox.livox import protocol as proto
-from sensorbox.livox.protocol import DeviceInfo, Ports
+from sensorbox.livox.config import (
+    DriverConfig,
+    DriverStats,
+    LidarEndpoint,
+    LidarStats,
+    imu_topic,
+    lidar_topic,
+)
+from sensorbox.livox.protocol import DeviceInfo
+from sensorbox.livox.tracking import SeqTracker, to_metres
 
 log = logging.getLogger(__name__)
 
 Publish = Callable[[str, str, int, bytes], None]
 """(topic, msgtype, stamp_ns, serialised bytes) -> None."""
-Extrinsic = tuple[float, float, float, float, float, float]
 
 SLOT = 2048  # receive slot per datagram: any datagram that fills it is oversized (real ones are <= 1380 B)
 BATCH = 256  # datagrams drained per wake-up of the point thread
@@ -83,222 +91,7 @@ DATAGRAM_TRUESIZE = 3072  # kernel buffer bytes a 1380-byte datagram costs (skb 
 TIME_JUMP_NS = 1_000_000_000  # a packet this far from the newest one restarts framing (sync gained/lost)
 
 
-@dataclass(frozen=True)
-class LidarEndpoint:
-    """One Mid-360 to configure and listen to."""
-
-    ip: str  # e.g. "192.168.1.12" or "127.0.0.2"
-    extrinsic: Extrinsic | None = None  # roll, pitch, yaw deg; x, y, z mm (livox_ros_driver2 convention)
-    topic_ip: str | None = None  # IP named in the topics (default `ip`): an emulator on 127.0.0.12 can
-    # then publish the rig's /livox/lidar_192_168_1_12
-
-
-@dataclass(frozen=True)
-class DriverConfig:
-    """Everything the driver needs; the defaults are livox_ros_driver2's (msg_MID360 launch)."""
-
-    host_ip: str  # the address the driver binds and announces to the lidars
-    lidars: tuple[LidarEndpoint, ...]
-    msg_format: Literal["custom", "pointcloud2"] = "custom"
-    ros_version: Literal[1, 2] = 2
-    publish_interval_ns: int = 100_000_000
-    multi_topic: bool = True  # /livox/lidar_192_168_1_12 instead of /livox/lidar
-    imu: bool = True
-    data_type: int = packets.DATA_TYPE_CARTESIAN_HIGH
-    ports: Ports = field(default_factory=Ports)
-    discovery_address: str = "255.255.255.255"
-    command_timeout_s: float = 0.5  # per try
-    command_retries: int = 3  # tries after the first
-    reorder_slack_ns: int = 2_000_000  # how long past a sweep's end late packets may still join it
-    idle_flush_s: float = 0.25  # publish open sweeps of a lidar silent this long
-    rcvbuf_bytes: int = 8 << 20
-    batch_wait_s: float = 0.02  # after a datagram wakes the point thread, let more arrive: one numpy
-    # batch per 20 ms instead of one per packet (bench_livox: 7 % instead of 37 % of a core for two
-    # real-time Mid-360s); unsynced stamps still use each datagram's kernel arrival time
-    check_crc: bool = True  # verify the data packets' CRC-32 (the SDK does not)
-
-    def validate(self) -> None:
-        if not self.lidars:
-            raise DriverError("DriverConfig.lidars is empty: name at least one lidar IP")
-        ips = [li.ip for li in self.lidars]
-        if len(set(ips)) != len(ips):
-            raise DriverError(f"DriverConfig.lidars lists an IP twice: {ips}")
-        if self.host_ip in ips:
-            raise DriverError(f"host_ip {self.host_ip} equals a lidar IP (the SDK drops such datagrams)")
-        if self.data_type not in packets.POINT_DTYPES:
-            raise DriverError(f"data_type {self.data_type}: expected 1 (mm), 2 (10 mm) or 3 (spherical)")
-        if not 10_000_000 <= self.publish_interval_ns <= 2_000_000_000:
-            raise DriverError(
-                f"publish_interval_ns {self.publish_interval_ns}: expected 10 ms..2 s "
-                "(publish_freq 0.5..100 Hz)"
-            )
-        if self.msg_format not in ("custom", "pointcloud2"):
-            raise DriverError(f"msg_format {self.msg_format!r}: expected 'custom' or 'pointcloud2'")
-        if self.ros_version not in (1, 2):
-            raise DriverError(f"ros_version {self.ros_version}: expected 1 or 2")
-
-
-@dataclass
-class LidarStats:
-    """Counters of one lidar since `start()`; packets/points count what was kept and published."""
-
-    ip: str
-    packets: int = 0  # valid point packets kept (not duplicates, not late)
-    points: int = 0  # points in published sweeps
-    lost: int = 0  # point packets missing by udp_cnt
-    duplicates: int = 0  # dropped repeats of an udp_cnt already seen
-    reordered: int = 0  # packets that arrived after a later udp_cnt (kept)
-    late: int = 0  # packets whose sweep was already published (dropped)
-    malformed: int = 0  # from this lidar's point/IMU ports, dropped
-    malformed_by_reason: dict[str, int] = field(default_factory=dict)
-    imu_packets: int = 0
-    imu_lost: int = 0
-    imu_duplicates: int = 0  # IMU datagrams whose udp_cnt was seen already (or too old to tell), dropped
-    point_datagrams: int = 0  # every datagram taken from this lidar's point port, whatever became of it
-    imu_datagrams: int = 0  # every datagram taken from this lidar's IMU port
-    stale: int = 0  # point packets whose udp_cnt was too old to tell from a duplicate, dropped
-    sweeps: int = 0  # published
-    unsynced: bool | None = None  # True while packets arrive with time_type 0 (host-clock stamps)
-    time_type: int | None = None  # of the newest packet
-    time_jumps: int = 0  # framing restarts after a jump of the packet clock
-    counter_resets: int = 0  # udp_cnt jumped far backwards (lidar restarted): counting restarted
-    pushes: int = 0  # 0x0102 status pushes received
-    work_state: int | None = None  # key 0x8006 of the newest push
-
-    def unaccounted_point_datagrams(self) -> int:
-        """point_datagrams minus every outcome (kept, duplicate, stale, late, malformed): 0 when balanced."""
-        malformed = sum(n for r, n in self.malformed_by_reason.items() if r in packets.REJECT_REASONS)
-        return self.point_datagrams - (self.packets + self.duplicates + self.stale + self.late + malformed)
-
-    def unaccounted_imu_datagrams(self) -> int:
-        """imu_datagrams minus every outcome (kept, duplicate, malformed): 0 when the books balance."""
-        return self.imu_datagrams - (
-            self.imu_packets + self.imu_duplicates + self.malformed_by_reason.get("imu", 0)
-        )
-
-
-@dataclass
-class DriverStats:
-    lidars: dict[str, LidarStats]
-    foreign: int = 0  # datagrams from addresses/ports that are no configured lidar's
-    foreign_sources: dict[str, int] = field(default_factory=dict)  # "ip:port" -> datagrams
-    rcvbuf_bytes: int = 0  # the point socket's kernel buffer (SO_RCVBUF as granted)
-    kernel_drops: int = 0  # point datagrams the host kernel dropped (buffer full): part of `lost`
-
-
-def topic_suffix(ip: str) -> str:
-    return ip.replace(".", "_")
-
-
-def lidar_topic(ip: str, multi_topic: bool) -> str:
-    return f"/livox/lidar_{topic_suffix(ip)}" if multi_topic else "/livox/lidar"
-
-
-def imu_topic(ip: str, multi_topic: bool) -> str:
-    return f"/livox/imu_{topic_suffix(ip)}" if multi_topic else "/livox/imu"
-
-
-def extrinsic_rotation(roll_deg: float, pitch_deg: float, yaw_deg: float) -> F64:
-    """R = Rz(yaw) Ry(pitch) Rx(roll) (livox_ros_driver2), angles in degrees."""
-    r, p, y = np.radians([roll_deg, pitch_deg, yaw_deg])
-    cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
-    return np.array(
-        [
-            [cp * cy, sr * sp * cy - cr * sy, cr * sp * cy + sr * sy],
-            [cp * sy, sr * sp * sy + cr * cy, cr * sp * sy - sr * cy],
-            [-sp, sr * cp, cr * cp],
-        ]
-    )
-
-
-def to_metres(data_type: int, xyz_native: F64, extrinsic: Extrinsic | None = None) -> F64:
-    """Native coordinates (..., 3) -> metres, applying p' = R p + t in the native unit first."""
-    if extrinsic is not None:
-        R = extrinsic_rotation(*extrinsic[:3])
-        t_mm = np.asarray(extrinsic[3:], np.float64)
-        if data_type == packets.DATA_TYPE_CARTESIAN_LOW:
-            t = np.trunc(np.round(t_mm) / 10.0)  # the driver's integer division to 10 mm
-        elif data_type == packets.DATA_TYPE_SPHERICAL:
-            t = t_mm / 1000.0
-        else:
-            t = t_mm
-        x, y, z = xyz_native[..., 0], xyz_native[..., 1], xyz_native[..., 2]
-        xyz_native = np.stack(
-            [R[i, 0] * x + R[i, 1] * y + R[i, 2] * z + t[i] for i in range(3)], axis=-1
-        )  # component arithmetic: no tall BLAS matmul on the hot path
-    out: F64 = xyz_native / packets.UNIT_DIVISOR[data_type]
-    return out
-
-
-class SeqTracker:
-    """Unwraps a 16-bit udp_cnt and counts lost, duplicate and reordered packets exactly.
-
-    lost = (highest - lowest + 1) - unique packets seen, so a reordered packet
-    first counts as lost and then fills its gap. Counters within `WINDOW` of the
-    newest are remembered; an older one cannot be told apart from a duplicate and
-    is dropped as stale; a run of `RESET_RUN` stale ones means the lidar restarted
-    its counter, and counting restarts (the loss so far is kept).
-    """
-
-    WINDOW = 4096
-    RESET_RUN = 16
-
-    def __init__(self) -> None:
-        self.lowest: int | None = None
-        self.highest = 0
-        self.seen: set[int] = set()
-        self.unique = 0
-        self.duplicates = 0
-        self.reordered = 0
-        self.stale = 0
-        self.resets = 0
-        self._stale_run = 0
-        self._lost_before = 0
-        self._offset = 0
-
-    @property
-    def lost(self) -> int:
-        span = 0 if self.lowest is None else self.highest - self.lowest + 1
-        return self._lost_before + span - self.unique
-
-    def add(self, cnt: int) -> int | None:
-        """Record one udp_cnt: its unwrapped sequence number when new (keep the packet), else None."""
-        if self.lowest is None:
-            self.lowest = self.highest = self._offset + cnt
-            self.seen = {self.lowest}
-            self.unique = 1
-            return self.lowest
-        d = ((cnt - self.highest + 0x8000) & 0xFFFF) - 0x8000
-        seq = self.highest + d
-        if d > 0:
-            self.highest = seq
-            self._stale_run = 0
-            self.seen.add(seq)
-            self.unique += 1
-            if len(self.seen) > 2 * self.WINDOW:
-                floor = seq - self.WINDOW
-                self.seen = {s for s in self.seen if s > floor}
-            return seq
-        if seq <= self.highest - self.WINDOW:
-            self.stale += 1
-            self._stale_run += 1
-            if self._stale_run < self.RESET_RUN:
-                return None
-            self.stale -= 1  # this one starts the new count
-            self._lost_before = self.lost
-            self.resets += 1
-            self.lowest = None
-            self._stale_run = 0
-            self._offset = (self.highest // 0x10000 + 1) * 0x10000  # keep sequence numbers increasing
-            return self.add(cnt)
-        if seq in self.seen:
-            self.duplicates += 1
-            return None
-        self.seen.add(seq)
-        self.unique += 1
-        self.reordered += 1
-        self.lowest = min(self.lowest, seq)
-        return seq
+# then publish the rig's /livox/lidar_192_168_1_12
 
 
 @dataclass

@@ -29,7 +29,8 @@ from ingest.bags.rostypes import CUSTOM_MSG_TYPE, IMU_TYPE, POINTCLOUD2_TYPE
 from sensorbox.errors import DriverError
 from sensorbox.livox import DriverConfig, LidarEndpoint, Mid360Driver, Ports, packets
 from sensorbox.livox import protocol as proto
-from sensorbox.livox.driver import DriverStats, _udp_socket
+from sensorbox.livox.config import DriverStats
+from sensorbox.livox.driver import _udp_socket
 from sensorbox.sim.lidar import Sweep, simulate_sweep
 from sensorbox.sim.mid360 import Mid360Emulator, credit_from
 from sensorbox.sim.nodes import sim_emulators

@@ -12,8 +12,8 @@ import pytest
 from sensorbox.errors import ProtocolError
 from sensorbox.livox import packets
 from sensorbox.livox import protocol as proto
-from sensorbox.livox.driver import SeqTracker, extrinsic_rotation, to_metres
 from sensorbox.livox.protocol import ControlFrame
+from sensorbox.livox.tracking import SeqTracker, extrinsic_rotation, to_metres
 
 # --------------------------------------------------------------------------- CRCs
 
