@@ -18,7 +18,8 @@ from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
-from ingest.inspect import BagReport, LidarCoverage, StereoReport, TopicStats, inspect_bags
+from ingest.bag_report import BagReport, LidarCoverage, StereoReport, TopicStats
+from ingest.inspect import inspect_bags
 
 # Piped output (CI logs, `| tee`) gets a readable width instead of rich's 80 columns.
 console = Console(width=None if sys.stdout.isatty() else 140)

@@ -307,6 +307,3 @@ def decode_discovery_ack(payload: bytes) -> DeviceInfo:
     ret, dev_type, sn, ip, port = DISCOVERY_ACK.unpack(payload)
     serial = sn.split(b"\0", 1)[0].decode(errors="replace")
     return DeviceInfo(str(ipaddress.IPv4Address(ip)), serial, dev_type, port, ret)
-
-
-# ----------------------------------------------------------------------------- data packets

@@ -11,18 +11,12 @@ from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
 
 from calibration.rig import Lidar, Rig, read_rig
+from ingest.bag_report import BagReport, RigProblem, StereoReport
 from ingest.bags.livox_msg import POINT_DTYPE, encode_custom_msg
 from ingest.bags.reader import BagError, open_bags
 from ingest.bags.rostypes import IMAGE_TYPE, IMU_TYPE, typestore
 from ingest.errors import MessageDecodeError
-from ingest.inspect import (
-    EL_RANGE_DEG,
-    BagReport,
-    RigProblem,
-    StereoReport,
-    header_stamp_ns,
-    inspect_bags,
-)
+from ingest.inspect import EL_RANGE_DEG, header_stamp_ns, inspect_bags
 from sensorbox.sim.fixtures import FIXTURES, fixture_bag
 from sensorbox.sim.lidar import PACKET_PERIOD_NS, POINT_SPACING_NS, POINTS_PER_PACKET, SWEEP_PERIOD_NS
 from sensorbox.sim.run import CAMERA_LATENCY_NS, IMU_LATENCY_NS, LIDAR_LATENCY_NS
