@@ -24,7 +24,7 @@ list of entities, each a one-key mapping:
 Substitutions in any string: `$(var NAME)`, `$(env NAME [DEFAULT])`,
 `$(optenv NAME [DEFAULT])`, `$(eval EXPR)` (arithmetic, comparison and boolean
 Python expressions, no names but `math.*`, min/max/abs/round/int/float/str),
-`$(find-pkg-share sensorbox)` (the package's share folder: launch/, calibration/), `$(dirname)`,
+`$(find-pkg-share sensorbox)` (`substitutions.package_share`), `$(dirname)`,
 `$(filename)`, `$(not X)`, `$(and X Y)`, `$(or X Y)`, `$(equals A B)`,
 `$(not-equals A B)`; they nest, and arguments may be quoted.
 
@@ -41,11 +41,6 @@ process (`sensorbox.live.bus.run_graph`).
 
 from __future__ import annotations
 
-import ast
-import importlib.resources
-import math
-import operator
-import os
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -55,15 +50,7 @@ import yaml
 
 from sensorbox.errors import LaunchError
 from sensorbox.live.bus import Bus, GraphResult, GraphSnapshot, Shutdown, run_graph
-
-
-def package_share() -> Path:
-    """`$(find-pkg-share sensorbox)`: the package's share folder (launch/, calibration/)."""
-    return Path(str(importlib.resources.files("sensorbox") / "share"))
-
-
-TRUE_WORDS, FALSE_WORDS = ("true", "1"), ("false", "0")
-
+from sensorbox.live.substitutions import Scope, bool_word, evaluate_parts, parse_substitutions
 
 # ---------------------------------------------------------------- YAML with line numbers
 
@@ -157,260 +144,22 @@ class LaunchPlan:
 # ---------------------------------------------------------------- substitutions
 
 
-@dataclass
-class _Sub:
-    name: str
-    args: list[list[str | _Sub]]
-
-
-def _parse_subst(text: str, pos: int, where: str) -> tuple[_Sub, int]:
-    """Parse `$(name args...)` starting at text[pos] == '$'; return it and the index after ')'."""
-    i = pos + 2
-    start = i
-    while i < len(text) and not text[i].isspace() and text[i] != ")":
-        i += 1
-    name = text[start:i]
-    if not name:
-        raise LaunchError(f"{where}: empty substitution '$()' in {text!r}")
-    args: list[list[str | _Sub]] = []
-    while True:
-        while i < len(text) and text[i].isspace():
-            i += 1
-        if i >= len(text):
-            raise LaunchError(f"{where}: unclosed substitution '$({name}' in {text!r}")
-        if text[i] == ")":
-            return _Sub(name, args), i + 1
-        arg: list[str | _Sub] = []
-        while i < len(text) and not text[i].isspace() and text[i] != ")":
-            if text.startswith("$(", i):
-                sub, i = _parse_subst(text, i, where)
-                arg.append(sub)
-            elif text[i] in "'\"":
-                quoted, i = _scan(text, i + 1, where, stop=text[i])
-                arg.extend(quoted or [""])
-            else:
-                arg.append(text[i])
-                i += 1
-        args.append(arg)
-
-
-def _scan(text: str, i: int, where: str, stop: str | None) -> tuple[list[str | _Sub], int]:
-    """Literals and substitutions from text[i] up to the closing `stop` character (or the end)."""
-    parts: list[str | _Sub] = []
-    lit = ""
-    while True:
-        if i >= len(text):
-            if stop is not None:
-                raise LaunchError(f"{where}: unclosed quote in substitution {text!r}")
-            break
-        if text[i] == stop:
-            i += 1
-            break
-        if text.startswith("$(", i):
-            if lit:
-                parts.append(lit)
-                lit = ""
-            sub, i = _parse_subst(text, i, where)
-            parts.append(sub)
-        else:
-            lit += text[i]
-            i += 1
-    if lit:
-        parts.append(lit)
-    return parts, i
-
-
-def _parse_text(text: str, where: str) -> list[str | _Sub]:
-    return _scan(text, 0, where, stop=None)[0]
-
-
-_BINOPS: dict[type, Callable[[Any, Any], Any]] = {
-    ast.Add: operator.add, ast.Sub: operator.sub, ast.Mult: operator.mul, ast.Div: operator.truediv,
-    ast.FloorDiv: operator.floordiv, ast.Mod: operator.mod, ast.Pow: operator.pow,
-}  # fmt: skip
-_CMPOPS: dict[type, Callable[[Any, Any], Any]] = {
-    ast.Eq: operator.eq, ast.NotEq: operator.ne, ast.Lt: operator.lt, ast.LtE: operator.le,
-    ast.Gt: operator.gt, ast.GtE: operator.ge,
-}  # fmt: skip
-_FUNCS: dict[str, Callable[..., Any]] = {
-    "min": min, "max": max, "abs": abs, "round": round, "int": int, "float": float, "str": str,
-}  # fmt: skip
-
-
-def safe_eval(expr: str) -> Any:
-    """Evaluate a small Python expression: literals, arithmetic, comparisons, `and/or/not`,
-    `a if c else b`, `math.NAME`, and min/max/abs/round/int/float/str calls."""
-
-    def ev(node: ast.AST) -> Any:
-        if isinstance(node, ast.Expression):
-            return ev(node.body)
-        if isinstance(node, ast.Constant) and isinstance(node.value, int | float | str | bool):
-            return node.value
-        if isinstance(node, ast.BinOp) and type(node.op) in _BINOPS:
-            return _BINOPS[type(node.op)](ev(node.left), ev(node.right))
-        if isinstance(node, ast.UnaryOp):
-            v = ev(node.operand)
-            if isinstance(node.op, ast.USub):
-                return -v
-            if isinstance(node.op, ast.UAdd):
-                return +v
-            if isinstance(node.op, ast.Not):
-                return not v
-        if isinstance(node, ast.BoolOp):
-            values = [ev(v) for v in node.values]
-            return all(values) if isinstance(node.op, ast.And) else any(values)
-        if isinstance(node, ast.Compare) and all(type(o) in _CMPOPS for o in node.ops):
-            left = ev(node.left)
-            for op, comp in zip(node.ops, node.comparators, strict=True):
-                right = ev(comp)
-                if not _CMPOPS[type(op)](left, right):
-                    return False
-                left = right
-            return True
-        if isinstance(node, ast.IfExp):
-            return ev(node.body) if ev(node.test) else ev(node.orelse)
-        if (
-            isinstance(node, ast.Attribute)
-            and isinstance(node.value, ast.Name)
-            and node.value.id == "math"
-            and not node.attr.startswith("_")
-            and hasattr(math, node.attr)
-        ):
-            return getattr(math, node.attr)
-        if isinstance(node, ast.Name) and node.id in ("True", "False"):
-            return node.id == "True"
-        if isinstance(node, ast.Call) and not node.keywords:
-            func = node.func
-            fn = None
-            if isinstance(func, ast.Name) and func.id in _FUNCS:
-                fn = _FUNCS[func.id]
-            elif isinstance(func, ast.Attribute):
-                fn = ev(func)
-            if callable(fn):
-                return fn(*(ev(a) for a in node.args))
-        raise ValueError(f"unsupported expression element {ast.dump(node)[:60]}")
-
-    return ev(ast.parse(expr.strip(), mode="eval"))
-
-
-def _bool_word(value: str, where: str, what: str) -> bool:
-    v = value.strip().lower()
-    if v in TRUE_WORDS:
-        return True
-    if v in FALSE_WORDS:
-        return False
-    raise LaunchError(f"{where}: {what} {value!r} is not a boolean; expected true, false, 1 or 0")
-
-
-@dataclass
-class _Scope:
-    """Launch configurations, the pushed ROS namespace and remaps in effect, the current file."""
-
-    file: Path
-    configs: dict[str, str]
-    namespace: str = "/"
-    remaps: list[tuple[str, str]] = field(default_factory=list)
-
-    def child(self, keep_configs: bool = True) -> _Scope:
-        return _Scope(
-            self.file, dict(self.configs) if keep_configs else {}, self.namespace, list(self.remaps)
-        )
-
-
-KNOWN_SUBSTITUTIONS = (
-    "var", "env", "optenv", "eval", "find-pkg-share", "dirname", "filename",
-    "not", "and", "or", "equals", "not-equals",
-)  # fmt: skip
-
-
-def _evaluate(parts: Sequence[str | _Sub], scope: _Scope, where: str) -> str:
-    return "".join(p if isinstance(p, str) else _apply(p, scope, where) for p in parts)
-
-
-def _apply(sub: _Sub, scope: _Scope, where: str) -> str:
-    args = [_evaluate(a, scope, where) for a in sub.args]
-
-    def need(lo: int, hi: int) -> None:
-        if not lo <= len(args) <= hi:
-            want = str(lo) if lo == hi else f"{lo}..{hi}"
-            raise LaunchError(f"{where}: $({sub.name} ...) takes {want} argument(s), got {len(args)}")
-
-    name = sub.name
-    if name == "var":
-        need(1, 1)
-        if args[0] not in scope.configs:
-            known = ", ".join(sorted(scope.configs)) or "none"
-            raise LaunchError(
-                f"{where}: $(var {args[0]}): no launch configuration {args[0]!r}"
-                f" (declare it with `arg` or `let`; known here: {known})"
-            )
-        return scope.configs[args[0]]
-    if name in ("env", "optenv"):
-        need(1, 2)
-        if args[0] in os.environ:
-            return os.environ[args[0]]
-        if len(args) == 2:
-            return args[1]
-        if name == "optenv":
-            return ""
-        raise LaunchError(f"{where}: $(env {args[0]}): environment variable {args[0]!r} is not set")
-    if name == "eval":
-        expr = " ".join(args)
-        try:
-            value = safe_eval(expr)
-        except Exception as err:
-            raise LaunchError(f"{where}: $(eval {expr!r}) failed: {err}") from err
-        return str(value)
-    if name == "find-pkg-share":
-        need(1, 1)
-        if args[0] != "sensorbox":
-            raise LaunchError(
-                f"{where}: $(find-pkg-share {args[0]}): SensorBox knows only the package 'sensorbox'"
-                " (its share folder); give a path instead"
-            )
-        return str(package_share())
-    if name == "dirname":
-        need(0, 0)
-        return str(scope.file.parent)
-    if name == "filename":
-        need(0, 0)
-        return str(scope.file)
-    if name == "not":
-        need(1, 1)
-        return str(not _bool_word(args[0], where, "$(not) argument")).lower()
-    if name in ("and", "or"):
-        need(2, 64)
-        values = [_bool_word(a, where, f"$({name}) argument") for a in args]
-        return str(all(values) if name == "and" else any(values)).lower()
-    if name in ("equals", "not-equals"):
-        need(2, 2)
-        same = args[0] == args[1]
-        return str(same if name == "equals" else not same).lower()
-    raise LaunchError(f"{where}: unknown substitution $({name} ...); known: {', '.join(KNOWN_SUBSTITUTIONS)}")
-
-
-def substitute(text: str, configs: Mapping[str, str], file: Path = Path("<string>")) -> str:
-    """Expand every substitution in `text` with launch configurations `configs`."""
-    where = str(file)
-    return _evaluate(_parse_text(text, where), _Scope(file, dict(configs)), where)
-
-
 # ---------------------------------------------------------------- entities
 
 
-def _where(scope: _Scope, item: Any) -> str:
+def _where(scope: Scope, item: Any) -> str:
     line = getattr(item, "line", 0)
     return f"{scope.file}:{line}" if line else str(scope.file)
 
 
-def _text(value: Any, scope: _Scope, where: str, key: str) -> str:
+def _text(value: Any, scope: Scope, where: str, key: str) -> str:
     if isinstance(value, bool):
         return str(value).lower()
     if isinstance(value, int | float):
         return str(value)
     if not isinstance(value, str):
         raise LaunchError(f"{where}: {key!r} must be a string, got {type(value).__name__} {value!r}")
-    return _evaluate(_parse_text(value, where), scope, where)
+    return evaluate_parts(parse_substitutions(value, where), scope, where)
 
 
 def _typed(text: str) -> Any:
@@ -442,7 +191,7 @@ def _fields(entity: str, body: Any, where: str, allowed: Sequence[str], required
     return out
 
 
-def _condition(body: Any, scope: _Scope, where: str) -> bool:
+def _condition(body: Any, scope: Scope, where: str) -> bool:
     """False when the entity's `if` is false or its `unless` is true."""
     if not isinstance(body, dict):
         return True
@@ -452,7 +201,7 @@ def _condition(body: Any, scope: _Scope, where: str) -> bool:
         if key in body:
             value = body[key]
             flag = (
-                value if isinstance(value, bool) else _bool_word(_text(value, scope, where, key), where, key)
+                value if isinstance(value, bool) else bool_word(_text(value, scope, where, key), where, key)
             )
             return flag == want
     return True
@@ -463,7 +212,7 @@ class _Parser:
         self.plan = plan
         self.stack: list[Path] = []
 
-    def file(self, path: Path, scope: _Scope) -> None:
+    def file(self, path: Path, scope: Scope) -> None:
         path = path.resolve()
         if path in self.stack:
             chain = " -> ".join(str(p) for p in [*self.stack, path])
@@ -484,7 +233,7 @@ class _Parser:
         finally:
             self.stack.pop()
 
-    def entities(self, items: list[Any], scope: _Scope) -> None:
+    def entities(self, items: list[Any], scope: Scope) -> None:
         for item in items:
             where = _where(scope, item)
             if not isinstance(item, dict) or len(item) != 1:
@@ -503,7 +252,7 @@ class _Parser:
 
     # ---- entities
 
-    def arg(self, body: Any, scope: _Scope, where: str) -> None:
+    def arg(self, body: Any, scope: Scope, where: str) -> None:
         f = _fields("arg", body, where, ("name", "default", "description", "choices", "choice"), ("name",))
         name = _text(f["name"], scope, where, "name")
         choices: list[str] = []
@@ -530,24 +279,24 @@ class _Parser:
                 f"{where}: launch argument {name}:={scope.configs[name]!r} is not one of {', '.join(choices)}"
             )
 
-    def let(self, body: Any, scope: _Scope, where: str) -> None:
+    def let(self, body: Any, scope: Scope, where: str) -> None:
         f = _fields("let", body, where, ("name", "value"), ("name", "value"))
         scope.configs[_text(f["name"], scope, where, "name")] = _text(f["value"], scope, where, "value")
 
-    def log(self, body: Any, scope: _Scope, where: str) -> None:
+    def log(self, body: Any, scope: Scope, where: str) -> None:
         f = _fields("log", body, where, ("message",), ("message",))
         self.plan.messages.append(_text(f["message"], scope, where, "message"))
 
-    def push_ros_namespace(self, body: Any, scope: _Scope, where: str) -> None:
+    def push_ros_namespace(self, body: Any, scope: Scope, where: str) -> None:
         f = _fields("push_ros_namespace", body, where, ("namespace",), ("namespace",))
         ns = _text(f["namespace"], scope, where, "namespace")
         scope.namespace = ns if ns.startswith("/") else _join_ns(scope.namespace, ns)
 
-    def set_remap(self, body: Any, scope: _Scope, where: str) -> None:
+    def set_remap(self, body: Any, scope: Scope, where: str) -> None:
         f = _fields("set_remap", body, where, ("from", "to"), ("from", "to"))
         scope.remaps.append((_text(f["from"], scope, where, "from"), _text(f["to"], scope, where, "to")))
 
-    def group(self, body: Any, scope: _Scope, where: str) -> None:
+    def group(self, body: Any, scope: Scope, where: str) -> None:
         if isinstance(body, list):
             self.entities(body, scope.child())
             return
@@ -566,7 +315,7 @@ class _Parser:
             inner.configs[_text(kf["name"], scope, where, "name")] = _text(kf["value"], scope, where, "value")
         self.entities(children, inner)
 
-    def include(self, body: Any, scope: _Scope, where: str) -> None:
+    def include(self, body: Any, scope: Scope, where: str) -> None:
         if isinstance(body, str):
             body = _Map(file=body)
         f = _fields("include", body, where, ("file", "arg"), ("file",))
@@ -581,7 +330,7 @@ class _Parser:
             inner.configs[_text(af["name"], scope, where, "name")] = _text(af["value"], scope, where, "value")
         self.file(target, inner)
 
-    def node(self, body: Any, scope: _Scope, where: str) -> None:
+    def node(self, body: Any, scope: Scope, where: str) -> None:
         allowed = ("pkg", "exec", "name", "namespace", "param", "remap", "output", "exec_name")
         f = _fields("node", body, where, allowed, ("exec",))
         pkg = _text(f.get("pkg", "sensorbox"), scope, where, "pkg")
@@ -605,7 +354,7 @@ class _Parser:
         self.plan.nodes.append(NodeSpec(pkg, exe, name, namespace, params, tuple(remaps), where))
 
     def _param(
-        self, entry: Any, prefix: str, out: dict[str, Any], scope: _Scope, where: str, node: str, ns: str
+        self, entry: Any, prefix: str, out: dict[str, Any], scope: Scope, where: str, node: str, ns: str
     ) -> None:
         if isinstance(entry, dict) and "from" in entry:
             f = _fields("param", entry, where, ("from",))
@@ -624,13 +373,13 @@ class _Parser:
         out[name] = _param_value(f["value"], scope, where, name, kind)
 
     @staticmethod
-    def _flag(f: _Map, key: str, default: bool, scope: _Scope, where: str) -> bool:
+    def _flag(f: _Map, key: str, default: bool, scope: Scope, where: str) -> bool:
         if key not in f:
             return default
         value = f[key]
-        return value if isinstance(value, bool) else _bool_word(_text(value, scope, where, key), where, key)
+        return value if isinstance(value, bool) else bool_word(_text(value, scope, where, key), where, key)
 
-    HANDLERS: ClassVar[dict[str, Callable[[_Parser, Any, _Scope, str], None]]] = {
+    HANDLERS: ClassVar[dict[str, Callable[[_Parser, Any, Scope, str], None]]] = {
         "arg": arg, "let": let, "log": log, "node": node, "include": include, "group": group,
         "push_ros_namespace": push_ros_namespace, "push-ros-namespace": push_ros_namespace,
         "set_remap": set_remap, "set-remap": set_remap,
@@ -642,7 +391,7 @@ def _join_ns(base: str, ns: str) -> str:
     return "/" + "/".join(parts)
 
 
-def _param_value(value: Any, scope: _Scope, where: str, name: str, kind: Any) -> Any:
+def _param_value(value: Any, scope: Scope, where: str, name: str, kind: Any) -> Any:
     if isinstance(value, list):
         return [_param_value(v, scope, where, name, kind) for v in value]
     if isinstance(value, bool | int | float) and kind is None:
@@ -656,7 +405,7 @@ def _param_value(value: Any, scope: _Scope, where: str, name: str, kind: Any) ->
         "str": str,
         "int": int,
         "float": float,
-        "bool": lambda t: _bool_word(t, where, f"param {name!r}"),
+        "bool": lambda t: bool_word(t, where, f"param {name!r}"),
     }
     if kind not in casts:
         raise LaunchError(f"{where}: param {name!r}: type {kind!r}; expected one of {', '.join(casts)}")
@@ -715,7 +464,7 @@ def parse_launch(path: str | Path, args: Mapping[str, str] | None = None) -> Lau
     path = Path(path)
     args = dict(args or {})
     plan = LaunchPlan(path)
-    scope = _Scope(path, dict(args))
+    scope = Scope(path, dict(args))
     _Parser(plan).file(path, scope)
     declared = {a.name for a in plan.arguments}
     extra = sorted(set(args) - declared)

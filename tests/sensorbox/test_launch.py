@@ -9,14 +9,9 @@ import pytest
 
 from sensorbox.errors import GraphError, LaunchError
 from sensorbox.live.bus import Bus, Shutdown
-from sensorbox.live.launch import (
-    package_share,
-    parse_cli_args,
-    parse_launch,
-    safe_eval,
-    substitute,
-)
+from sensorbox.live.launch import parse_cli_args, parse_launch
 from sensorbox.live.nodes import build_node
+from sensorbox.live.substitutions import package_share, safe_eval, substitute
 
 ROOT = Path(__file__).resolve().parents[2]
 
