@@ -20,6 +20,7 @@ class LidarEndpoint:
     ip: str  # e.g. "192.168.1.12" or "127.0.0.2"
     extrinsic: Extrinsic | None = None  # roll, pitch, yaw deg; x, y, z mm (livox_ros_driver2 convention)
     topic_ip: str | None = None  # IP named in the topics (default `ip`): an emulator on 127.0.0.12 can
+    # then publish the rig's /livox/lidar_192_168_1_12
 
 
 @dataclass(frozen=True)

@@ -2,9 +2,7 @@
 
 What it does, in the order livox_ros_driver2 + Livox-SDK2 do it (notes/livox.md):
 
-1. `discover()` broadcasts an empty 0x0000 REQ on the discovery port and
-   collects the lidars' ACKs (serial, IP, command port), dropping datagrams whose
-   source is the host itself, as the SDK does.
+1. `discover()` (`sensorbox.livox.discovery`) collects the lidars' answers.
 2. `start()` binds the host's command, push, point and IMU ports (large
    SO_RCVBUF), starts the receive threads, then configures each lidar with
    0x0100 commands: keys 0x0005/6/7 (push, point and IMU host addresses),
@@ -24,19 +22,15 @@ What it does, in the order livox_ros_driver2 + Livox-SDK2 do it (notes/livox.md)
    host clock at reception (the kernel's SO_TIMESTAMPNS arrival time on Linux;
    the lidar is then flagged unsynced); point i adds
    i * (time_interval * 100 // dot_num) ns.
-5. Sweeps: a packet belongs to the sweep floor(packet time / publish interval),
-   so synced sweeps are aligned to multiples of 100 ms of device time (unsynced:
-   of the host clock). A sweep is published once a packet `reorder_slack_ns`
-   past its end has arrived (late reordered packets still make it), when the
-   stream goes idle, or on `stop()`. Points are sorted by time; header.stamp =
-   timebase = the first point's time. livox_ros_driver2 instead cuts after the
-   packet whose last point passes the ms boundary (and skips a cut when that
-   packet is lost); cutting on the packet's first point is what the simulator's
-   sweeps do, so emulated captures compare 1:1.
-6. Optional extrinsic (roll, pitch, yaw deg; x, y, z mm): p' = R p + t with
-   R = Rz(yaw) Ry(pitch) Rx(roll), applied in the data type's native unit
-   before the division to metres (t // 10 for data type 2, t / 1000 for
-   spherical), as livox_ros_driver2 does. IMU samples are published unrotated.
+5. Sweeps (`sensorbox.livox.sweeps`): a packet belongs to the sweep
+   floor(packet time / publish interval), aligned to multiples of 100 ms of
+   device time (unsynced: of the host clock); livox_ros_driver2 instead cuts
+   after the packet whose last point passes the ms boundary. Cutting on the
+   packet's first point is what the simulator's sweeps do, so emulated
+   captures compare 1:1.
+6. Optional extrinsic (roll, pitch, yaw deg; x, y, z mm) applied as
+   livox_ros_driver2 does (`sensorbox.livox.tracking.to_metres`); IMU samples
+   are published unrotated.
 7. Output: livox_ros_driver2 `CustomMsg` or `PointCloud2` per sweep and
    `sensor_msgs/Imu` per IMU packet (acceleration in g), serialised by
    sensorbox.messages, handed to `publish(topic, msgtype, stamp_ns, raw)`.
@@ -50,20 +44,15 @@ import itertools
 import logging
 import selectors
 import socket
-import struct
-import sys
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, replace
 from types import TracebackType
-from typing import Any
 
 import numpy as np
 
-from calibration.types import I64, Structured
-from ingest.bags.livox_msg import POINT_DTYPE
-from ingest.bags.rostypes import CUSTOM_MSG_TYPE, IMU_TYPE, POINTCLOUD2_TYPE
+from calibration.types import I64
+from ingest.bags.rostypes import IMU_TYPE
 from sensorbox import messages
 from sensorbox.errors import DriverError, ProtocolError
 from sensorbox.livox import packets
@@ -71,13 +60,12 @@ from sensorbox.livox import protocol as proto
 from sensorbox.livox.config import (
     DriverConfig,
     DriverStats,
-    LidarEndpoint,
-    LidarStats,
-    imu_topic,
-    lidar_topic,
 )
+from sensorbox.livox.discovery import discover
 from sensorbox.livox.protocol import DeviceInfo
-from sensorbox.livox.tracking import SeqTracker, to_metres
+from sensorbox.livox.sockets import ANC_SIZE, MSG_TRUNC, arrival_ns, kernel_drops_so_far, udp_socket
+from sensorbox.livox.sweeps import SweepAssembler
+from sensorbox.livox.tracking import LidarState
 
 log = logging.getLogger(__name__)
 
@@ -88,100 +76,12 @@ SLOT = 2048  # receive slot per datagram: any datagram that fills it is oversize
 BATCH = 256  # datagrams drained per wake-up of the point thread
 POLL_S = 0.05
 DATAGRAM_TRUESIZE = 3072  # kernel buffer bytes a 1380-byte datagram costs (skb overhead; conservative)
-TIME_JUMP_NS = 1_000_000_000  # a packet this far from the newest one restarts framing (sync gained/lost)
-
-
-# then publish the rig's /livox/lidar_192_168_1_12
-
-
-@dataclass
-class _Chunk:
-    seq: I64  # unwrapped udp_cnt of each packet: the lidar's emission order
-    stamps_ns: I64  # (packets * dot_num,)
-    xyz_m: np.ndarray[Any, np.dtype[np.float32]]  # (n, 3)
-    reflectivity: np.ndarray[Any, np.dtype[np.uint8]]
-    tag: np.ndarray[Any, np.dtype[np.uint8]]
-    line: np.ndarray[Any, np.dtype[np.uint8]]
-
-
-class _Lidar:
-    """Per-lidar receive state: sequence trackers, open sweeps, counters."""
-
-    def __init__(self, endpoint: LidarEndpoint, cfg: DriverConfig) -> None:
-        self.endpoint = endpoint
-        self.ip = endpoint.ip
-        self.stats = LidarStats(endpoint.ip)
-        self.points_seq = SeqTracker()
-        self.imu_seq = SeqTracker()
-        self.frames: dict[int, list[_Chunk]] = {}
-        self.published_key: int | None = None
-        self.newest_ns: int | None = None
-        self.last_packet_wall = 0.0
-        self.lidar_id = int(endpoint.ip.split(".")[0])  # (uint8) inet_addr(ip): the first octet
-        self.topic = lidar_topic(endpoint.topic_ip or endpoint.ip, cfg.multi_topic)
-        self.imu_topic = imu_topic(endpoint.topic_ip or endpoint.ip, cfg.multi_topic)
-        self.cmd_port = cfg.ports.lidar_cmd
-
-    def malformed(self, reason: str, count: int = 1) -> None:
-        self.stats.malformed += count
-        by = self.stats.malformed_by_reason
-        by[reason] = by.get(reason, 0) + count
 
 
 class _Waiter:
     def __init__(self) -> None:
         self.event = threading.Event()
         self.frame: proto.ControlFrame | None = None
-
-
-_SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35) if sys.platform.startswith("linux") else None
-_MSG_TRUNC = int(getattr(socket, "MSG_TRUNC", 0))
-
-
-_SO_RXQ_OVFL = getattr(socket, "SO_RXQ_OVFL", 40) if sys.platform.startswith("linux") else None
-ANC_SIZE = 96  # room for both control messages
-
-
-def _arrival_ns(ancillary: list[tuple[int, int, bytes]]) -> int:
-    """The kernel's receive time of a datagram (SO_TIMESTAMPNS), else the host clock now (ns)."""
-    for level, kind, data in ancillary:
-        if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS and len(data) >= 16:
-            sec, nsec = struct.unpack_from("qq", data)
-            return int(sec * 1_000_000_000 + nsec)
-    return time.time_ns()
-
-
-def _kernel_drops(ancillary: list[tuple[int, int, bytes]]) -> int:
-    """Datagrams the kernel dropped on this socket so far (SO_RXQ_OVFL; sent only once nonzero)."""
-    for level, kind, data in ancillary:
-        if level == socket.SOL_SOCKET and kind == _SO_RXQ_OVFL and len(data) >= 4:
-            return int(struct.unpack_from("I", data)[0])
-    return 0
-
-
-def _udp_socket(ip: str, port: int, *, rcvbuf: int = 0, broadcast: bool = False) -> socket.socket:
-    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    try:
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        if broadcast:
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
-        for option in (_SO_TIMESTAMPNS, _SO_RXQ_OVFL):  # arrival times; kernel drop counts
-            if option is not None:
-                with contextlib.suppress(OSError):
-                    sock.setsockopt(socket.SOL_SOCKET, option, 1)
-        if rcvbuf:
-            force = getattr(socket, "SO_RCVBUFFORCE", None)
-            try:
-                if force is None:
-                    raise PermissionError
-                sock.setsockopt(socket.SOL_SOCKET, force, rcvbuf)  # beyond rmem_max when privileged
-            except PermissionError:
-                sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
-        sock.bind((ip, port))
-    except OSError as err:
-        sock.close()
-        raise DriverError(f"cannot bind UDP {ip}:{port}: {err}") from err
-    return sock
 
 
 class Mid360Driver:
@@ -198,7 +98,8 @@ class Mid360Driver:
         self._publish_fn = publish
         self._publish_lock = threading.Lock()
         self._lock = threading.Lock()  # guards the counters for stats()
-        self._lidars = {li.ip: _Lidar(li, config) for li in config.lidars}
+        self._sweeps = SweepAssembler(config, self._lock, clock, self._emit)
+        self._lidars = {li.ip: LidarState(li, config) for li in config.lidars}
         ports = config.ports
         self._by_point_src = {(li.ip, ports.lidar_point): li for li in self._lidars.values()}
         self._by_imu_src = {(li.ip, ports.lidar_imu): li for li in self._lidars.values()}
@@ -222,50 +123,12 @@ class Mid360Driver:
 
         With `until_found` > 0 it returns as soon as that many lidars have answered.
         """
-        cfg = self.config
-        sock = _udp_socket("", cfg.ports.discovery, broadcast=True)
-        req = proto.build_control_frame(
-            proto.ControlFrame(proto.CMD_DISCOVERY, proto.REQ, proto.SENDER_HOST, next(self._seq) & 0xFFFF)
-        )
-        found: dict[str, DeviceInfo] = {}
-        try:
-            end = time.monotonic() + timeout_s
-            next_send = 0.0
-            while (now := time.monotonic()) < end:
-                if now >= next_send:
-                    try:
-                        sock.sendto(req, (cfg.discovery_address, cfg.ports.discovery))
-                    except OSError as err:
-                        raise DriverError(
-                            f"discovery: cannot send to {cfg.discovery_address}:{cfg.ports.discovery}: {err}"
-                        ) from err
-                    next_send = now + 1.0
-                sock.settimeout(max(0.001, min(end, next_send) - now))
-                try:
-                    raw, (src_ip, _port) = sock.recvfrom(SLOT)
-                except OSError:  # timeout, or an ICMP error surfacing on the socket
-                    continue
-                if src_ip == cfg.host_ip:
-                    continue  # our own broadcast (the SDK drops these too)
-                try:
-                    frame = proto.parse_control_frame(raw)
-                    if frame.cmd_id != proto.CMD_DISCOVERY or frame.cmd_type != proto.ACK:
-                        continue
-                    info = proto.decode_discovery_ack(frame.payload)
-                except ProtocolError as err:
-                    log.debug("discovery: dropped datagram from %s: %s", src_ip, err)
-                    continue
-                if info.ret_code == 0:
-                    found[info.ip] = info
-                if 0 < until_found <= len(found):
-                    break
-        finally:
-            sock.close()
-        self._devices.update(found)
-        for info in found.values():
+        found = discover(self.config, next(self._seq) & 0xFFFF, timeout_s, until_found)
+        self._devices.update((info.ip, info) for info in found)
+        for info in found:
             if info.ip in self._lidars:
                 self._lidars[info.ip].cmd_port = info.cmd_port
-        return sorted(found.values(), key=lambda d: tuple(int(o) for o in d.ip.split(".")))
+        return found
 
     def start(self) -> None:
         """Bind the host ports, start the receive threads and configure every lidar."""
@@ -273,10 +136,10 @@ class Mid360Driver:
             return
         cfg, ports = self.config, self.config.ports
         try:
-            self._socks["cmd"] = _udp_socket(cfg.host_ip, ports.host_cmd)
-            self._socks["push"] = _udp_socket(cfg.host_ip, ports.host_push)
-            self._socks["imu"] = _udp_socket(cfg.host_ip, ports.host_imu, rcvbuf=1 << 20)
-            self._socks["point"] = _udp_socket(cfg.host_ip, ports.host_point, rcvbuf=cfg.rcvbuf_bytes)
+            self._socks["cmd"] = udp_socket(cfg.host_ip, ports.host_cmd)
+            self._socks["push"] = udp_socket(cfg.host_ip, ports.host_push)
+            self._socks["imu"] = udp_socket(cfg.host_ip, ports.host_imu, rcvbuf=1 << 20)
+            self._socks["point"] = udp_socket(cfg.host_ip, ports.host_point, rcvbuf=cfg.rcvbuf_bytes)
             self._rcvbuf = self._socks["point"].getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
             if self._rcvbuf < cfg.rcvbuf_bytes:
                 log.warning(
@@ -314,19 +177,7 @@ class Mid360Driver:
     def stats(self) -> DriverStats:
         """A snapshot of every counter (safe to call from any thread)."""
         with self._lock:
-            lidars = {}
-            for ip, li in self._lidars.items():
-                s = replace(li.stats, malformed_by_reason=dict(li.stats.malformed_by_reason))
-                s.lost, s.duplicates, s.reordered = (
-                    li.points_seq.lost,
-                    li.points_seq.duplicates,
-                    li.points_seq.reordered,
-                )
-                s.stale = li.points_seq.stale
-                s.imu_lost = li.imu_seq.lost
-                s.imu_duplicates = li.imu_seq.duplicates + li.imu_seq.stale
-                s.counter_resets = li.points_seq.resets
-                lidars[ip] = s
+            lidars = {ip: li.snapshot() for ip, li in self._lidars.items()}
             return DriverStats(
                 lidars, self._foreign, dict(self._foreign_sources), self._rcvbuf, self._kernel_drops
             )
@@ -374,7 +225,7 @@ class Mid360Driver:
 
     # ------------------------------------------------------------------ configuration
 
-    def _configure(self, lidar: _Lidar) -> None:
+    def _configure(self, lidar: LidarState) -> None:
         cfg, ports = self.config, self.config.ports
         host = cfg.host_ip
         self.set_params(
@@ -467,7 +318,7 @@ class Mid360Driver:
                             if self._stop.is_set():
                                 return
                             break  # e.g. ICMP port unreachable surfaced on a UDP socket
-                        key.data(raw, src, _arrival_ns(anc))
+                        key.data(raw, src, arrival_ns(anc))
         finally:
             sel.close()
 
@@ -548,7 +399,7 @@ class Mid360Driver:
         try:
             while not self._stop.is_set():
                 if not sel.select(POLL_S):
-                    self._flush_idle()
+                    self._sweeps.flush_idle(self._lidars.values())
                     continue
                 if wait_s > 0 and not backlog:
                     time.sleep(wait_s)
@@ -563,10 +414,10 @@ class Mid360Driver:
                         if self._stop.is_set():
                             return
                         break
-                    sizes[n] = SLOT if flags & _MSG_TRUNC else size
-                    recv_ns[n] = _arrival_ns(anc)
+                    sizes[n] = SLOT if flags & MSG_TRUNC else size
+                    recv_ns[n] = arrival_ns(anc)
                     if anc and len(anc) > 1:
-                        self._kernel_drops = max(self._kernel_drops, _kernel_drops(anc))
+                        self._kernel_drops = max(self._kernel_drops, kernel_drops_so_far(anc))
                     srcs.append(src)
                     n += 1
                 backlog = n == BATCH
@@ -579,7 +430,7 @@ class Mid360Driver:
                 if n:
                     self._on_point_batch(buf, n, sizes[:n].copy(), recv_ns[:n].copy(), srcs)
                 if not backlog:  # socket drained: a lidar's packets may wait behind a full batch
-                    self._flush_idle()
+                    self._sweeps.flush_idle(self._lidars.values())
         finally:
             sel.close()
 
@@ -612,109 +463,7 @@ class Mid360Driver:
             owners = owner[g.rows]
             for o in np.unique(owners[owners >= 0]).tolist():
                 sel = owners == o
-                self._on_packets(lidars[o], g.data_type, g.header[sel], g.points[sel], recv_ns[g.rows[sel]])
-
-    def _on_packets(
-        self, lidar: _Lidar, data_type: int, hdr: Structured, pts: Structured, recv_ns: I64
-    ) -> None:
-        cfg = self.config
-        with self._lock:
-            seqs = [lidar.points_seq.add(c) for c in hdr["udp_cnt"].tolist()]
-            keep = np.array([q is not None for q in seqs], bool)
-            seq = np.array([q for q in seqs if q is not None], np.int64)
-            time_type = int(hdr["time_type"][-1])
-            lidar.stats.time_type = time_type
-            lidar.stats.unsynced = time_type == packets.TIME_TYPE_NO_SYNC
-        if not keep.all():
-            hdr, pts, recv_ns = hdr[keep], pts[keep], recv_ns[keep]
-        n_pk, dot_num = pts.shape
-        if n_pk == 0:
-            return
-        lidar.last_packet_wall = self._clock()
-        synced = hdr["time_type"] != packets.TIME_TYPE_NO_SYNC
-        pkt_ns = np.where(synced, hdr["timestamp"].astype(np.int64), recv_ns)
-        if lidar.newest_ns is not None and np.abs(pkt_ns - lidar.newest_ns).max() > TIME_JUMP_NS:
-            self._publish_open(lidar)  # sync gained or lost: the clocks differ, start framing afresh
-            lidar.published_key = None
-            lidar.newest_ns = None
-            with self._lock:
-                lidar.stats.time_jumps += 1
-        stamps = packets.point_times_ns(pkt_ns, hdr["time_interval"], hdr["dot_num"], dot_num)
-        xyz = to_metres(data_type, packets.native_xyz(data_type, pts), lidar.endpoint.extrinsic).astype(
-            np.float32
-        )
-        line = np.broadcast_to((np.arange(dot_num) % 4).astype(np.uint8), (n_pk, dot_num))
-        keys = pkt_ns // cfg.publish_interval_ns
-        late = 0
-        for key in np.unique(keys).tolist():
-            sel = keys == key
-            if lidar.published_key is not None and key <= lidar.published_key:
-                late += int(sel.sum())
-                continue
-            lidar.frames.setdefault(key, []).append(
-                _Chunk(
-                    seq[sel], stamps[sel].ravel(), xyz[sel].reshape(-1, 3), pts["reflectivity"][sel].ravel(),
-                    pts["tag"][sel].ravel(), line[sel].ravel(),
-                )
-            )  # fmt: skip
-        with self._lock:
-            lidar.stats.late += late
-            lidar.stats.packets += n_pk - late
-        newest = int(pkt_ns.max())
-        lidar.newest_ns = newest if lidar.newest_ns is None else max(lidar.newest_ns, newest)
-        ready = [
-            k
-            for k in lidar.frames
-            if (k + 1) * cfg.publish_interval_ns + cfg.reorder_slack_ns <= lidar.newest_ns
-        ]
-        for key in sorted(ready):
-            self._publish_sweep(lidar, key)
-
-    def _flush_idle(self) -> None:
-        now = self._clock()
-        for lidar in self._lidars.values():
-            if lidar.frames and now - lidar.last_packet_wall > self.config.idle_flush_s:
-                self._publish_open(lidar)
-
-    def _publish_open(self, lidar: _Lidar) -> None:
-        for key in sorted(lidar.frames):
-            self._publish_sweep(lidar, key)
-
-    def _publish_sweep(self, lidar: _Lidar, key: int) -> None:
-        chunks = lidar.frames.pop(key)
-        lidar.published_key = key if lidar.published_key is None else max(lidar.published_key, key)
-        # emission order (udp_cnt), which undoes reordering; with host-clock stamps packets received
-        # in a burst overlap in time, so sorting by stamp would interleave their points
-        seq = np.concatenate([c.seq for c in chunks])
-        order = None
-        if (np.diff(seq) < 0).any():
-            per_point = [np.repeat(c.seq, len(c.stamps_ns) // len(c.seq)) for c in chunks]
-            order = np.argsort(np.concatenate(per_point), kind="stable")
-        stamps = np.concatenate([c.stamps_ns for c in chunks])
-        points = np.empty(len(stamps), POINT_DTYPE)
-
-        def take(a: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
-            return a if order is None else a[order]
-
-        stamps = take(stamps)
-        timebase = int(stamps.min())  # the first point's time; min() guards host-clock jitter
-        xyz = take(np.concatenate([c.xyz_m for c in chunks]))
-        points["offset_time"] = (stamps - timebase).astype(np.uint32)
-        points["x"], points["y"], points["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
-        points["reflectivity"] = take(np.concatenate([c.reflectivity for c in chunks]))
-        points["tag"] = take(np.concatenate([c.tag for c in chunks]))
-        points["line"] = take(np.concatenate([c.line for c in chunks]))
-        ros = self.config.ros_version
-        if self.config.msg_format == "custom":
-            raw = messages.custom_msg(timebase, points, ros, lidar_id=lidar.lidar_id)
-            msgtype = CUSTOM_MSG_TYPE
-        else:
-            raw = messages.pointcloud2_msg(timebase, points, ros)
-            msgtype = POINTCLOUD2_TYPE
-        self._emit(lidar.topic, msgtype, timebase, raw)
-        with self._lock:
-            lidar.stats.sweeps += 1
-            lidar.stats.points += len(points)
+                self._sweeps.add(lidars[o], g.data_type, g.header[sel], g.points[sel], recv_ns[g.rows[sel]])
 
     def _emit(self, topic: str, msgtype: str, stamp_ns: int, raw: bytes) -> None:
         with self._publish_lock:
@@ -737,7 +486,7 @@ class Mid360Driver:
             t.join(timeout=5.0)
         self._threads = []
         for lidar in self._lidars.values():
-            self._publish_open(lidar)
+            self._sweeps.publish_open(lidar)
         self._close_sockets()
         self._started = False
 

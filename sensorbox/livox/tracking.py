@@ -1,15 +1,16 @@
-"""Per-lidar bookkeeping of the driver: udp_cnt unwrapped with lost, duplicate, reordered and stale
-packets counted exactly; native-unit points turned into metres with the optional extrinsic."""
+"""Per-lidar bookkeeping of the driver: its receive state, udp_cnt unwrapped with lost, duplicate,
+reordered and stale packets counted exactly, and native-unit points turned into metres."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass, replace
+from typing import Any
+
 import numpy as np
 
-from calibration.types import F64
+from calibration.types import F64, I64
 from sensorbox.livox import packets
-from sensorbox.livox.config import (
-    Extrinsic,
-)
+from sensorbox.livox.config import DriverConfig, Extrinsic, LidarEndpoint, LidarStats, imu_topic, lidar_topic
 
 
 def extrinsic_rotation(roll_deg: float, pitch_deg: float, yaw_deg: float) -> F64:
@@ -26,7 +27,12 @@ def extrinsic_rotation(roll_deg: float, pitch_deg: float, yaw_deg: float) -> F64
 
 
 def to_metres(data_type: int, xyz_native: F64, extrinsic: Extrinsic | None = None) -> F64:
-    """Native coordinates (..., 3) -> metres, applying p' = R p + t in the native unit first."""
+    """Native coordinates (..., 3) -> metres, applying p' = R p + t in the native unit first.
+
+    The extrinsic is (roll, pitch, yaw deg; x, y, z mm), R = Rz(yaw) Ry(pitch)
+    Rx(roll), t // 10 for data type 2 and t / 1000 for spherical points, as
+    livox_ros_driver2 does.
+    """
     if extrinsic is not None:
         R = extrinsic_rotation(*extrinsic[:3])
         t_mm = np.asarray(extrinsic[3:], np.float64)
@@ -113,3 +119,48 @@ class SeqTracker:
         self.reordered += 1
         self.lowest = min(self.lowest, seq)
         return seq
+
+
+@dataclass
+class Chunk:
+    """Consecutive packets of one lidar that fall into one sweep, decoded."""
+
+    seq: I64  # unwrapped udp_cnt of each packet: the lidar's emission order
+    stamps_ns: I64  # (packets * dot_num,)
+    xyz_m: np.ndarray[Any, np.dtype[np.float32]]  # (n, 3)
+    reflectivity: np.ndarray[Any, np.dtype[np.uint8]]
+    tag: np.ndarray[Any, np.dtype[np.uint8]]
+    line: np.ndarray[Any, np.dtype[np.uint8]]
+
+
+class LidarState:
+    """Per-lidar receive state: sequence trackers, open sweeps, counters."""
+
+    def __init__(self, endpoint: LidarEndpoint, cfg: DriverConfig) -> None:
+        self.endpoint = endpoint
+        self.ip = endpoint.ip
+        self.stats = LidarStats(endpoint.ip)
+        self.points_seq = SeqTracker()
+        self.imu_seq = SeqTracker()
+        self.frames: dict[int, list[Chunk]] = {}
+        self.published_key: int | None = None
+        self.newest_ns: int | None = None
+        self.last_packet_wall = 0.0
+        self.lidar_id = int(endpoint.ip.split(".")[0])  # (uint8) inet_addr(ip): the first octet
+        self.topic = lidar_topic(endpoint.topic_ip or endpoint.ip, cfg.multi_topic)
+        self.imu_topic = imu_topic(endpoint.topic_ip or endpoint.ip, cfg.multi_topic)
+        self.cmd_port = cfg.ports.lidar_cmd
+
+    def snapshot(self) -> LidarStats:
+        """A copy of the counters with the sequence trackers' counts filled in (call under the lock)."""
+        p, i = self.points_seq, self.imu_seq
+        return replace(
+            self.stats, malformed_by_reason=dict(self.stats.malformed_by_reason), lost=p.lost,
+            duplicates=p.duplicates, reordered=p.reordered, stale=p.stale, counter_resets=p.resets,
+            imu_lost=i.lost, imu_duplicates=i.duplicates + i.stale,
+        )  # fmt: skip
+
+    def malformed(self, reason: str, count: int = 1) -> None:
+        self.stats.malformed += count
+        by = self.stats.malformed_by_reason
+        by[reason] = by.get(reason, 0) + count

@@ -30,7 +30,7 @@ from sensorbox.errors import DriverError
 from sensorbox.livox import DriverConfig, LidarEndpoint, Mid360Driver, Ports, packets
 from sensorbox.livox import protocol as proto
 from sensorbox.livox.config import DriverStats
-from sensorbox.livox.driver import _udp_socket
+from sensorbox.livox.sockets import udp_socket
 from sensorbox.sim.lidar import Sweep, simulate_sweep
 from sensorbox.sim.mid360 import Mid360Emulator, credit_from
 from sensorbox.sim.nodes import sim_emulators
@@ -47,7 +47,7 @@ _blocks = itertools.count()
 
 def _granted_rcvbuf() -> int:
     """The point-socket buffer this host grants the driver (8 MiB as root or with a raised rmem_max)."""
-    sock = _udp_socket(HOST, 0, rcvbuf=DriverConfig.rcvbuf_bytes)
+    sock = udp_socket(HOST, 0, rcvbuf=DriverConfig.rcvbuf_bytes)
     try:
         return int(sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF))
     finally:
