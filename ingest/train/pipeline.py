@@ -195,6 +195,26 @@ def _check_size(frame: Frame, camera: Any, topic: str) -> None:
         )
 
 
+def _sweeps_needed(the_plan: Plan, topics: Topics, w: int) -> dict[int, dict[str, int]]:
+    """Per planned sample, per LiDAR topic: how many sweeps overlap its +-w window (from the plan pass)."""
+    return {
+        k: {
+            t: sum(1 for a, b in the_plan.spans[t] if b >= int(tc) - w and a <= int(tc) + w)
+            for t in topics.lidars
+        }
+        for k, tc in enumerate(the_plan.upper_ns)
+    }
+
+
+def _imu_window(imu_t: list[int], imu_g: list[Any], tc: int, w: int, R_cam0_imu: Any) -> ImuWindow | None:
+    """The gyro readings within the sample's window (+ 20 ms each side), or None without an IMU."""
+    if not imu_t or R_cam0_imu is None:
+        return None
+    t = np.array(imu_t, np.int64)
+    sel = (t >= tc - w - 20_000_000) & (t <= tc + w + 20_000_000)
+    return ImuWindow(t[sel], np.array(imu_g)[sel], R_cam0_imu)
+
+
 def stream_jobs(
     bags: BagSet, topics: Topics, the_plan: Plan, cfg: IngestConfig, geometry: Geometry
 ) -> Iterator[SampleJob | tuple[str, str]]:
@@ -204,13 +224,7 @@ def stream_jobs(
     lower_index = {int(t): k for k, t in enumerate(the_plan.lower_ns)}
     frames: dict[int, dict[str, Frame]] = {}
     sweeps: dict[str, list[Sweep]] = {t: [] for t in topics.lidars}
-    need = {
-        k: {
-            t: sum(1 for a, b in the_plan.spans[t] if b >= int(tc) - w and a <= int(tc) + w)
-            for t in topics.lidars
-        }
-        for k, tc in enumerate(the_plan.upper_ns)
-    }
+    need = _sweeps_needed(the_plan, topics, w)
     imu_t: list[int] = []
     imu_g: list[Any] = []
     next_k = 0
@@ -229,11 +243,7 @@ def stream_jobs(
     def job(k: int) -> SampleJob:
         tc = int(the_plan.upper_ns[k])
         lidars = tuple(_lidar_window(sweeps[t], name, tc, w) for t, name in topics.lidars.items())
-        imu = None
-        if imu_t and topics.R_cam0_imu is not None:
-            t = np.array(imu_t, np.int64)
-            sel = (t >= tc - w - 20_000_000) & (t <= tc + w + 20_000_000)
-            imu = ImuWindow(t[sel], np.array(imu_g)[sel], topics.R_cam0_imu)
+        imu = _imu_window(imu_t, imu_g, tc, w, topics.R_cam0_imu)
         f = frames.pop(k)
         return SampleJob(
             cfg.out, sids[k], source, tc, int(the_plan.lower_ns[k]), f["upper"].image, f["lower"].image,
