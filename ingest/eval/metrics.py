@@ -54,17 +54,11 @@ def _nan_if_empty(n: int, value: float) -> float:
 
 
 @dataclass(frozen=True)
-class StereoMetrics:
-    """Disparity errors (px) over `n` scored pixels of `n_gt` valid-GT pixels; bad-k are shares 0..1."""
+class _Scored:
+    """`n` scored pixels of `n_gt` valid-GT pixels."""
 
     n_gt: int
     n: int
-    epe_px: float
-    median_px: float
-    p95_px: float
-    bad1: float
-    bad2: float
-    bad3: float
 
     @property
     def coverage(self) -> float:
@@ -76,25 +70,27 @@ class StereoMetrics:
 
 
 @dataclass(frozen=True)
-class DepthMetrics:
+class StereoMetrics(_Scored):
+    """Disparity errors (px) over `n` scored pixels of `n_gt` valid-GT pixels; bad-k are shares 0..1."""
+
+    epe_px: float
+    median_px: float
+    p95_px: float
+    bad1: float
+    bad2: float
+    bad3: float
+
+
+@dataclass(frozen=True)
+class DepthMetrics(_Scored):
     """Depth errors (m) over `n` scored pixels of `n_gt` valid-GT pixels; delta_k are shares 0..1."""
 
-    n_gt: int
-    n: int
     abs_rel: float
     mae_m: float
     rmse_m: float
     delta1: float
     delta2: float
     delta3: float
-
-    @property
-    def coverage(self) -> float:
-        """Scored / valid-GT pixels (NaN without valid GT)."""
-        return self.n / self.n_gt if self.n_gt else math.nan
-
-    def as_dict(self) -> dict[str, float | int]:
-        return {**asdict(self), "coverage": self.coverage}
 
 
 Metrics = StereoMetrics | DepthMetrics
