@@ -45,6 +45,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from calibration.fisheye import DoubleSphere
 from calibration.linalg3 import rotvec_to_matrix
 from calibration.rig import REFERENCE_RIG, read_rig, write_rig
+from calibration.types import F64
 from ingest.dataset.layout import DEPTH_SCALE, read_png_u16
 from ingest.dataset.meta import SampleMeta, read_meta
 from ingest.train.groundtruth import GtParams, px_per_rad
@@ -88,15 +89,8 @@ def _save(fig: Any, path: Path) -> Path:
 # -- 1. Double Sphere ---------------------------------------------------------------------
 
 
-def ds_chart(out: Path) -> str:
-    model = read_rig(REFERENCE_RIG).upper.model
-    assert isinstance(model, DoubleSphere)
-    limit, stable = ds_validity_limit_rad(model), ds_stable_angle_rad(model, DS_MIN_RATIO)
-    theta = np.radians(np.linspace(0.0, math.degrees(limit) + 1.2, 800))
-    radial = ds_radial_resolution(model, theta)
-    uv, _ = model.project(np.stack([np.sin(theta), np.zeros_like(theta), np.cos(theta)], 1))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        tangential = np.where(theta > 0, (uv[:, 0] - model.cx) / np.sin(theta), radial[0])
+def _ds_edges_deg(model: DoubleSphere) -> dict[str, float]:
+    """Largest angle off the axis (deg) on each kind of image edge."""
     edges = {
         "left/right edge": [[-0.5, model.cy], [model.width - 0.5, model.cy]],
         "top/bottom edge": [[model.cx, -0.5], [model.cx, model.height - 0.5]],
@@ -106,10 +100,11 @@ def ds_chart(out: Path) -> str:
     for name, px in edges.items():
         rays, ok = model.unproject(np.array(px))
         edge_deg[name] = float(np.degrees(np.arccos(rays[ok, 2])).max()) if ok.any() else math.nan
-    grid = model.pixel_grid()
-    rays, ok = model.unproject(grid)
-    mask = ds_stability_mask(model, grid, DS_MIN_RATIO)
-    # the whole image circle (beyond the sensor), every 4th pixel
+    return edge_deg
+
+
+def _ds_image_circle(model: DoubleSphere, centre_px_per_rad: float) -> tuple[F64, F64, F64, F64]:
+    """Over the whole image circle (beyond the sensor), every 4th pixel: (u, v, radial / centre, mask)."""
     R = (
         model.fx / math.sqrt(2 * model.alpha - 1)
         if model.alpha > 0.5
@@ -119,11 +114,25 @@ def ds_chart(out: Path) -> str:
     vs = np.arange(model.cy - R - 20, model.cy + R + 20, 4.0)
     wide = np.stack(np.meshgrid(us, vs), axis=-1)
     wide_rays, wide_ok = model.unproject(wide)
-    ratio = np.where(
-        wide_ok, ds_radial_resolution(model, np.arccos(np.nan_to_num(wide_rays[..., 2], nan=1.0))), np.nan
-    )
-    ratio /= float(radial[0])
-    wide_mask = ds_stability_mask(model, wide, DS_MIN_RATIO)
+    theta = np.arccos(np.nan_to_num(wide_rays[..., 2], nan=1.0))
+    ratio = np.where(wide_ok, ds_radial_resolution(model, theta), np.nan) / centre_px_per_rad
+    return us, vs, ratio, ds_stability_mask(model, wide, DS_MIN_RATIO).astype(float)
+
+
+def ds_chart(out: Path) -> str:
+    model = read_rig(REFERENCE_RIG).upper.model
+    assert isinstance(model, DoubleSphere)
+    limit, stable = ds_validity_limit_rad(model), ds_stable_angle_rad(model, DS_MIN_RATIO)
+    theta = np.radians(np.linspace(0.0, math.degrees(limit) + 1.2, 800))
+    radial = ds_radial_resolution(model, theta)
+    uv, _ = model.project(np.stack([np.sin(theta), np.zeros_like(theta), np.cos(theta)], 1))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        tangential = np.where(theta > 0, (uv[:, 0] - model.cx) / np.sin(theta), radial[0])
+    edge_deg = _ds_edges_deg(model)
+    grid = model.pixel_grid()
+    _, ok = model.unproject(grid)
+    mask = ds_stability_mask(model, grid, DS_MIN_RATIO)
+    us, vs, ratio, wide_mask = _ds_image_circle(model, float(radial[0]))
     fig, ax = plt.subplots(1, 2, figsize=(15, 5.2), constrained_layout=True, width_ratios=[1.1, 1])
     ax[0].plot(np.degrees(theta), radial, label="radial dr/dtheta")
     ax[0].plot(np.degrees(theta), tangential, label="tangential r/sin(theta)")
@@ -143,7 +152,7 @@ def ds_chart(out: Path) -> str:
     ax[0].set_title(f"Reference DS lens (xi {model.xi:.3f}, alpha {model.alpha:.3f}, f {model.fx:.0f} px)")
     extent = (us[0], us[-1], vs[-1], vs[0])
     shown = ax[1].imshow(ratio, vmin=0.0, vmax=1.0, cmap="viridis", extent=extent)
-    ax[1].contour(us, vs, wide_mask.astype(float), [0.5], colors="tab:red", linewidths=1.5)
+    ax[1].contour(us, vs, wide_mask, [0.5], colors="tab:red", linewidths=1.5)
     ax[1].add_patch(Rectangle((-0.5, -0.5), model.width, model.height, fill=False, ec="white", lw=1.5))
     ax[1].set_title(
         f"radial resolution / centre's over the whole image circle;\nwhite: the {model.width}x"
