@@ -593,26 +593,8 @@ def main() -> None:
         run_all(bag, rig, root, repeats, source, args.prefault_gb)
 
 
-def run_all(bag: Path, rig: Path, root: Path, repeats: int, source: str, prefault_gb: float = 0.0) -> None:
-    scratch = root / "scratch"
-    dataset.prepare_dirs(scratch, False)
-
-    def memory_state() -> None:
-        """Before each timed ingest part: touch memory again if asked, say what a file write costs now."""
-        if prefault_gb >= 1:  # a lazily backed VM takes untouched memory back after a while
-            print(prefault(prefault_gb))
-        print(write_cost(scratch))
-
-    memory_state()
-    loaded = load_jobs(bag, rig, scratch)
-    jobs, geo = loaded.jobs, loaded.geometry
-    n = len(jobs)
-    cam = geo.rig.upper.model
-    print(f"\ninput: {source}; {n} samples; fisheye {cam.width}x{cam.height}, "
-          f"equirect {geo.equirect.width}x{geo.equirect.height}; cv2 {cv2.__version__}, "
-          f"cv2 threads = {cv2.getNumThreads()}; {os.cpu_count()} CPUs, {load()}")  # fmt: skip
-
-    # 1. decode
+def part_decode(bag: Path, repeats: int) -> None:
+    """## 1: CustomMsg decoders on one real sweep, against rosbags + numpy."""
     raw = pick_sweep(bag)
     npts = len(decode_custom_msg(raw).points)
     runs = 20 * repeats
@@ -629,9 +611,22 @@ def run_all(bag: Path, rig: Path, root: Path, repeats: int, source: str, prefaul
     ratio = base / dec[3][1]
     print(f"\nspeed-up decode_custom_msg (+arrays) vs rosbags (+arrays): {ratio:.0f}x (target >= 100x)")
 
-    # 2. stages
-    print()
-    memory_state()
+
+@dataclass
+class StagePart:
+    """What part 2 measured, for the parts and the chart after it."""
+
+    sr: StageRun
+    stage_rows: list[tuple[str, float]]
+    no_png: list[float]
+
+
+def _call_sum(c: Calls, part: str) -> float:
+    return sum(v for k, v in c.ms.items() if part in k)
+
+
+def part_stages(jobs: list[SampleJob]) -> StagePart:
+    """## 2: per-stage ms per sample in this process (one worker), PNG encoding split out."""
     sr = stage_times(jobs)
     per = sr.stage_ms
     if not per:
@@ -639,12 +634,9 @@ def run_all(bag: Path, rig: Path, root: Path, repeats: int, source: str, prefaul
     written = len(per)
     stages = list(per[0])
 
-    def call_sum(c: Calls, part: str) -> float:
-        return sum(v for k, v in c.ms.items() if part in k)
-
-    png = [call_sum(c, "encode_png") for c in sr.calls]
-    u16 = [call_sum(c, "to_uint16") for c in sr.calls]
-    files = [call_sum(c, "write_atomic") for c in sr.calls]
+    png = [_call_sum(c, "encode_png") for c in sr.calls]
+    u16 = [_call_sum(c, "to_uint16") for c in sr.calls]
+    files = [_call_sum(c, "write_atomic") for c in sr.calls]
     total = [sum(p.values()) for p in per]
     no_png = [t - e for t, e in zip(total, png, strict=True)]
     skipped = f"; skipped: {sr.skipped}" if sr.skipped else ""
@@ -676,6 +668,13 @@ def run_all(bag: Path, rig: Path, root: Path, repeats: int, source: str, prefaul
     )
     table(["stage", "ms / sample", "target"], rows)
 
+    return StagePart(sr, stage_rows, no_png)
+
+
+def part_calls(loaded: Jobs, sr: StageRun, repeats: int) -> list[str]:
+    """## 2, continued: the calls inside process_sample and the main process's share; the call names."""
+    jobs, n = loaded.jobs, len(loaded.jobs)
+    written = len(sr.stage_ms)
     names = list(dict.fromkeys(k for c in sr.calls for k in c.ms))
     npts_sample = med([float(sum(len(lp.xyz_m) for lp in j.lidars)) for j in jobs])
     print(f"\n### Calls inside process_sample (ms per sample incl. nested calls, median over {written} "
@@ -698,11 +697,11 @@ def run_all(bag: Path, rig: Path, root: Path, repeats: int, source: str, prefaul
         [f"main process: pickle SampleJob ({job_mb:.1f} MB)", "1", f"{t_pickle:.1f}"],
     ]
     table(["call", "calls / sample", "ms / sample"], rows)
-    if "write_sample" not in sr.captured.args:
-        raise SystemExit("the middle sample was not written; no images for the encoder comparison")
-    images = SampleImages.from_write_args(sr.captured.args["write_sample"])
+    return names
 
-    # 3. encoders
+
+def part_encoders(images: SampleImages, repeats: int) -> dict[str, tuple[float, float]]:
+    """## 3: every encoder on one sample's images; (ms, MB) per sample for each."""
     encs, notes = encoders()
     imgs = {
         f"equirect RGB {images.equirect.shape[1]}x{images.equirect.shape[0]}": images.equirect,
@@ -744,10 +743,11 @@ def run_all(bag: Path, rig: Path, root: Path, repeats: int, source: str, prefaul
     for note in notes:
         print(f"- {note}")
 
-    # 4. ingest throughput
-    print()
-    memory_state()
-    n_runs = min(repeats, MAX_INGEST_RUNS)
+    return per_enc
+
+
+def part_throughput(bag: Path, rig: Path, root: Path, n: int, n_runs: int) -> None:
+    """## 4: ingest with WORKERS workers, full PNG layout, at each PNG level."""
     runs_by_level: dict[int, list[IngestRun]] = {lv: [] for lv in PNG_LEVELS}
     for _ in range(n_runs):
         for lv in PNG_LEVELS:
@@ -770,9 +770,9 @@ def run_all(bag: Path, rig: Path, root: Path, repeats: int, source: str, prefaul
     print("(samples/s = written / IngestSummary.seconds, startup included; worker ms = sum of the median "
           "stage_ms inside the 2 workers)")  # fmt: skip
 
-    # 5. everything except encoding, end to end
-    print()
-    memory_state()
+
+def part_encoding_free(bag: Path, rig: Path, root: Path, n_runs: int) -> None:
+    """## 5: ingest with WORKERS workers and encoding taken out, end to end and steady."""
     free: list[IngestRun] = []
     with encoding_free():
         for _ in range(n_runs):
@@ -790,9 +790,45 @@ def run_all(bag: Path, rig: Path, root: Path, repeats: int, source: str, prefaul
     ])  # fmt: skip
     print(f"\n{load()}")
 
+
+def run_all(bag: Path, rig: Path, root: Path, repeats: int, source: str, prefault_gb: float = 0.0) -> None:
+    scratch = root / "scratch"
+    dataset.prepare_dirs(scratch, False)
+
+    def memory_state() -> None:
+        """Before each timed ingest part: touch memory again if asked, say what a file write costs now."""
+        if prefault_gb >= 1:  # a lazily backed VM takes untouched memory back after a while
+            print(prefault(prefault_gb))
+        print(write_cost(scratch))
+
+    memory_state()
+    loaded = load_jobs(bag, rig, scratch)
+    jobs, geo = loaded.jobs, loaded.geometry
+    n = len(jobs)
+    cam = geo.rig.upper.model
+    print(f"\ninput: {source}; {n} samples; fisheye {cam.width}x{cam.height}, "
+          f"equirect {geo.equirect.width}x{geo.equirect.height}; cv2 {cv2.__version__}, "
+          f"cv2 threads = {cv2.getNumThreads()}; {os.cpu_count()} CPUs, {load()}")  # fmt: skip
+
+    part_decode(bag, repeats)
+    print()
+    memory_state()
+    stage = part_stages(jobs)
+    names = part_calls(loaded, stage.sr, repeats)
+    if "write_sample" not in stage.sr.captured.args:
+        raise SystemExit("the middle sample was not written; no images for the encoder comparison")
+    per_enc = part_encoders(SampleImages.from_write_args(stage.sr.captured.args["write_sample"]), repeats)
+    n_runs = min(repeats, MAX_INGEST_RUNS)
+    print()
+    memory_state()
+    part_throughput(bag, rig, root, n, n_runs)
+    print()
+    memory_state()
+    part_encoding_free(bag, rig, root, n_runs)
+    sr = stage.sr
     top = sorted(((k, med([c.ms.get(k, 0.0) for c in sr.calls])) for k in names if k != "write_sample"),
                  key=lambda kv: -kv[1])[:10]  # fmt: skip
-    chart(stage_rows, med(no_png), top, per_enc)
+    chart(stage.stage_rows, med(stage.no_png), top, per_enc)
 
 
 def chart(
