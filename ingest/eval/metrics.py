@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Self
 
 import cv2
 import numpy as np
@@ -141,7 +141,16 @@ def _hist_quantile(hist: np.ndarray[Any, np.dtype[np.int64]], sums: F64, q: floa
     return float(sums[k] / hist[k])
 
 
-class StereoAccumulator:
+class _Pooling:
+    """An accumulator of counts and sums: pooling two is adding every counter."""
+
+    def merge(self, other: Self) -> None:
+        """Pool another accumulator's pixels into this one."""
+        for name, value in vars(other).items():
+            setattr(self, name, getattr(self, name) + value)
+
+
+class StereoAccumulator(_Pooling):
     """Pools disparity errors over samples; `add` also returns the sample's own metrics."""
 
     kind: ClassVar[str] = "stereo"
@@ -175,15 +184,6 @@ class StereoAccumulator:
         median, p95 = np.percentile(err, [50.0, 95.0])
         return StereoMetrics(n_gt, n, total / n, float(median), float(p95), *(bad / n).tolist())
 
-    def merge(self, other: StereoAccumulator) -> None:
-        """Pool another accumulator's pixels into this one."""
-        self.n_gt += other.n_gt
-        self.n += other.n
-        self.sum_abs += other.sum_abs
-        self.bad += other.bad
-        self.hist += other.hist
-        self.hist_sum += other.hist_sum
-
     def result(self) -> StereoMetrics:
         """Metrics of every pixel added so far (quantiles from the histogram, see the module doc)."""
         n = self.n
@@ -197,7 +197,7 @@ class StereoAccumulator:
         )
 
 
-class DepthAccumulator:
+class DepthAccumulator(_Pooling):
     """Pools depth errors over samples; `add` also returns the sample's own metrics."""
 
     kind: ClassVar[str] = "depth"
@@ -227,15 +227,6 @@ class DepthAccumulator:
         self.sum_sq += sums[2]
         self.delta += delta
         return _depth_metrics(n_gt, n, *sums, delta)
-
-    def merge(self, other: DepthAccumulator) -> None:
-        """Pool another accumulator's pixels into this one."""
-        self.n_gt += other.n_gt
-        self.n += other.n
-        self.sum_rel += other.sum_rel
-        self.sum_abs += other.sum_abs
-        self.sum_sq += other.sum_sq
-        self.delta += other.delta
 
     def result(self) -> DepthMetrics:
         """Metrics of every pixel added so far."""
