@@ -9,14 +9,12 @@ and a summary table follows. `sensorbox.cli` registers the command functions.
 from __future__ import annotations
 
 import logging
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
 import typer
-from rich.console import Console
 from rich.live import Live
 from rich.logging import RichHandler
 from rich.markup import escape
@@ -24,22 +22,13 @@ from rich.table import Table
 from rich.text import Text
 
 from calibration.errors import SensorboxError
+from sensorbox.cli.common import console, err_console, human_bytes
 from sensorbox.live.bus import GraphResult, GraphSnapshot, Shutdown, stop_on_signals
 
 if TYPE_CHECKING:
     from sensorbox.live.launch import LaunchPlan
 
-console = Console(width=None if sys.stdout.isatty() else 140)
-err_console = Console(stderr=True, width=None if sys.stderr.isatty() else 200)
 PLAIN_STATUS_EVERY_S = 10.0  # without a terminal, one status line this often
-
-
-def _human(n: float) -> str:
-    for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
-        if abs(n) < 1024 or unit == "TiB":
-            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
-        n /= 1024
-    return f"{n:.1f} TiB"
 
 
 def topic_labels(topics: list[str]) -> dict[str, str]:
@@ -71,9 +60,9 @@ def status_line(prev: GraphSnapshot | None, now: GraphSnapshot) -> str:
     parts = [f"{now.elapsed_s:6.1f} s", " | ".join(rates) + " msg/s" if rates else "no messages yet",
              f"drops {drop_text}"]  # fmt: skip
     if written is not None:
-        parts.append(f"{_human(written)} written")
+        parts.append(f"{human_bytes(written)} written")
     if free is not None and free >= 0:
-        parts.append(f"{_human(free)} free")
+        parts.append(f"{human_bytes(free)} free")
     return "  ".join(parts)
 
 
@@ -99,7 +88,7 @@ def _summary(result: GraphResult, title: str) -> None:
         size = (
             sum(f.stat().st_size for f in Path(path).rglob("*") if f.is_file()) if Path(path).exists() else 0
         )
-        console.print(f"Bag: {path} ({_human(size)})", highlight=False)
+        console.print(f"Bag: {path} ({human_bytes(size)})", highlight=False)
     errors = [f"{name}: {st.error}" for name, st in snap.nodes.items() if st.error]
     for line in errors:
         err_console.print(f"[red]{escape(line)}[/red]")

@@ -1,4 +1,4 @@
-"""What every command shares: the consoles and a progress bar on stderr."""
+"""What every command shares: the consoles, a progress bar on stderr, byte counts for people."""
 
 from __future__ import annotations
 
@@ -23,3 +23,12 @@ def progress_bar(verb: str, unit: str) -> Iterator[Update]:
     with Progress(*columns, console=err_console, transient=True) as bar:
         task = bar.add_task(verb, total=None)
         yield lambda done, total: bar.update(task, completed=done, total=total)
+
+
+def human_bytes(n: float) -> str:
+    """1536 -> '1.5 KiB' (binary units, B to TiB)."""
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
+        if abs(n) < 1024 or unit == "TiB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024
+    return f"{n:.1f} TiB"

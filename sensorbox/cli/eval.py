@@ -14,7 +14,6 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
 import typer
-from rich.console import Console
 
 from sensorbox.cli.common import progress_bar
 
@@ -23,7 +22,6 @@ if TYPE_CHECKING:
     from ingest.eval.request import EvalRequest
     from ingest.eval.stats import DatasetStats
 
-progress_console = Console(stderr=True)
 MISSING_LISTED = 20  # missing predictions printed by name; the JSON lists all
 
 

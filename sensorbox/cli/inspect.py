@@ -8,22 +8,16 @@ main CLI to turn into one line and exit code 2.
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 from typing import Annotated
 
 import typer
-from rich.console import Console
 from rich.markup import escape
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
 from ingest.bag_report import BagReport, LidarCoverage, StereoReport, TopicStats
 from ingest.inspect import inspect_bags
-
-# Piped output (CI logs, `| tee`) gets a readable width instead of rich's 80 columns.
-console = Console(width=None if sys.stdout.isatty() else 140)
-progress_console = Console(stderr=True)
+from sensorbox.cli.common import console, progress_bar
 
 
 def _num(value: float | None, fmt: str = ".3f") -> str:
@@ -176,13 +170,6 @@ def inspect_cmd(
     from calibration.rig import read_rig
 
     rig_obj = read_rig(rig) if rig is not None else None
-    columns = (TextColumn("reading"), BarColumn(), MofNCompleteColumn(), TextColumn("messages"))
-    with Progress(*columns, TimeRemainingColumn(), console=progress_console, transient=True) as bar:
-        task = bar.add_task("read", total=None)
-        report = inspect_bags(
-            bags,
-            salvage=salvage,
-            rig=rig_obj,
-            progress=lambda done, total: bar.update(task, completed=done, total=total),
-        )
+    with progress_bar("reading", "messages") as update:
+        report = inspect_bags(bags, salvage=salvage, rig=rig_obj, progress=update)
     _print_report(report, rig)

@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 from rich.table import Table
 
-from sensorbox.cli.common import console, err_console
+from sensorbox.cli.common import console, err_console, human_bytes
 
 if TYPE_CHECKING:
     from sensorbox.sim.run import SimSummary
@@ -30,17 +30,9 @@ LidarOffsetOpt = Annotated[float, typer.Option(help="Clock offset of the second 
 SupersampleOpt = Annotated[int, typer.Option(help="Rays per pixel per axis (anti-aliasing).")]
 
 
-def _human_bytes(n: float) -> str:
-    for unit in ("B", "KB", "MB", "GB"):
-        if n < 1024 or unit == "GB":
-            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
-        n /= 1024
-    return f"{n} B"
-
-
 def summary_table(summary: SimSummary, duration_s: float) -> Table:
     """Messages and rate per topic of the written bag."""
-    table = Table(title=f"{summary.bag} ({_human_bytes(summary.size_bytes)}, {summary.seconds:.1f} s)")
+    table = Table(title=f"{summary.bag} ({human_bytes(summary.size_bytes)}, {summary.seconds:.1f} s)")
     for col in ("topic", "messages", "rate [Hz]"):
         table.add_column(col, justify="left" if col == "topic" else "right")
     for topic, n in summary.counts.items():
