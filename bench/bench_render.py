@@ -40,7 +40,7 @@ from calibration import DoubleSphere, read_rig
 from calibration.stereo import rotate_for_stereo, unrotate_from_stereo
 from calibration.virtual import R_up_cam, partner_pose, virtual_ds
 from ingest.dataset.layout import DISP_SCALE, read_png_u16
-from ingest.eval.metrics import edge_band
+from ingest.eval.metrics import score_range
 from ingest.render.benchmark import run_benchmark
 from ingest.render.lod import ScanIndex, build_index
 from ingest.render.plan import BenchmarkConfig
@@ -179,16 +179,12 @@ def speed(args: argparse.Namespace) -> list[tuple[str, float, str]]:
 
 
 def _score(rend: Rendering, exact: np.ndarray) -> dict[str, float]:
-    ok = (rend.range_m > 0) & np.isfinite(exact)
-    e = rend.range_m.astype(np.float64) - exact
-    ex0 = np.nan_to_num(exact, nan=0.0).astype(np.float32)
-    inner = ok & ~edge_band(ex0, 3)
-    leak = ok & (e > np.maximum(0.05, 0.03 * exact))
+    score = score_range(rend.range_m, exact)
     return {
-        "median_mm": float(np.median(np.abs(e[inner]))) * 1e3,
-        "p90_mm": float(np.percentile(np.abs(e[inner]), 90)) * 1e3,
-        "leak_pct": 100.0 * float(leak.sum() / ok.sum()),
-        "leak_off_sil_pct": 100.0 * float((leak & ~edge_band(ex0, 1)).sum() / ok.sum()),
+        "median_mm": score.median_mm,
+        "p90_mm": score.p90_mm,
+        "leak_pct": 100.0 * score.leak,
+        "leak_off_sil_pct": 100.0 * score.leak_off_silhouette,
         "holes": float(rend.holes.sum()),
         "holes_pct": 100.0 * float(rend.holes.sum() / rend.rays.sum()),
     }

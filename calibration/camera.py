@@ -13,7 +13,7 @@ from __future__ import annotations
 import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, fields, replace
-from typing import Any, Self
+from typing import Any, ClassVar, Self
 
 import numpy as np
 
@@ -216,20 +216,63 @@ def require_size(width: int, height: int, model: str) -> None:
             raise CalibrationError(f"{model}: {name} must be a positive integer, got {value!r}")
 
 
-def focal_scaled_params(model: Any, factor: float) -> dict[str, Any]:
-    """fx, fy, cx, cy of a model on an image resized by ``factor`` (pixel-centre convention)."""
-    return {
-        "fx": model.fx * factor,
-        "fy": model.fy * factor,
-        "cx": (model.cx + 0.5) * factor - 0.5,
-        "cy": (model.cy + 0.5) * factor - 0.5,
-    }
+class FocalModel(CameraModel):
+    """A model whose pixels are an affine map of normalised coordinates.
 
+    ``u = fx * mx + cx``, ``v = fy * my + cy``: subclasses implement the lens
+    part (`_project_normalised`, `_unproject_normalised`) and list the
+    parameters that must be finite (`FINITE`) or positive (`POSITIVE`);
+    `_check_params` adds any range a model needs beyond that.
+    """
 
-def check_focal(model: Any, name: str) -> None:
-    """Validate fx, fy > 0, finite cx, cy and a positive integer size; raise `CalibrationError`."""
-    for key in ("fx", "fy"):
-        require_positive(key, getattr(model, key), name)
-    for key in ("cx", "cy"):
-        require_finite(key, getattr(model, key), name)
-    require_size(model.width, model.height, name)
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    FINITE: ClassVar[tuple[str, ...]] = ()
+    POSITIVE: ClassVar[tuple[str, ...]] = ()
+
+    def __post_init__(self) -> None:
+        name = type(self).__name__
+        for key in ("fx", "fy"):
+            require_positive(key, getattr(self, key), name)
+        for key in ("cx", "cy"):
+            require_finite(key, getattr(self, key), name)
+        require_size(self.width, self.height, name)
+        for key in self.FINITE:
+            require_finite(key, getattr(self, key), name)
+        for key in self.POSITIVE:
+            require_positive(key, getattr(self, key), name)
+        self._check_params()
+
+    def _check_params(self) -> None:
+        """Model-specific parameter ranges; raise `CalibrationError`."""
+
+    def _require_unit_interval(self, key: str) -> None:
+        value = getattr(self, key)
+        if not 0.0 <= value < 1.0:
+            raise CalibrationError(f"{type(self).__name__}: {key} must be in [0, 1), got {value!r}")
+
+    @abstractmethod
+    def _project_normalised(self, x: F64, y: F64, z: F64) -> tuple[F64, F64, Bool]:
+        """Points to normalised image coordinates (mx, my) and validity."""
+
+    @abstractmethod
+    def _unproject_normalised(self, mx: F64, my: F64) -> tuple[F64, F64, F64, Bool]:
+        """Normalised image coordinates to (x, y, z) rays, not necessarily unit, and validity."""
+
+    def _project(self, x: F64, y: F64, z: F64) -> tuple[F64, F64, Bool]:
+        mx, my, valid = self._project_normalised(x, y, z)
+        return self.fx * mx + self.cx, self.fy * my + self.cy, valid
+
+    def _unproject(self, u: F64, v: F64) -> tuple[F64, F64, F64, Bool]:
+        return self._unproject_normalised((u - self.cx) / self.fx, (v - self.cy) / self.fy)
+
+    def _scaled_params(self, factor: float) -> dict[str, Any]:
+        """fx, fy, cx, cy on an image resized by ``factor`` (pixel-centre convention)."""
+        return {
+            "fx": self.fx * factor,
+            "fy": self.fy * factor,
+            "cx": (self.cx + 0.5) * factor - 0.5,
+            "cy": (self.cy + 0.5) * factor - 0.5,
+        }

@@ -11,18 +11,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from functools import cached_property
-from typing import Any
 
 import numpy as np
 
-from calibration.camera import (
-    CameraModel,
-    check_focal,
-    focal_scaled_params,
-    require_finite,
-    require_positive,
-)
-from calibration.errors import CalibrationError
+from calibration.camera import FocalModel
 from calibration.types import F64, Bool
 
 KB_TOL = 1e-13
@@ -36,7 +28,7 @@ def _alpha_w1(alpha: float) -> float:
 
 
 @dataclass(frozen=True)
-class DoubleSphere(CameraModel):
+class DoubleSphere(FocalModel):
     """Double Sphere model: fx, fy, cx, cy in pixels; xi and alpha unitless.
 
     Projection is valid where z > -w2 * |p|; unprojection where
@@ -52,12 +44,10 @@ class DoubleSphere(CameraModel):
     width: int
     height: int
 
-    def __post_init__(self) -> None:
-        check_focal(self, "DoubleSphere")
-        require_finite("xi", self.xi, "DoubleSphere")
-        require_finite("alpha", self.alpha, "DoubleSphere")
-        if not 0.0 <= self.alpha < 1.0:
-            raise CalibrationError(f"DoubleSphere: alpha must be in [0, 1), got {self.alpha!r}")
+    FINITE = ("xi", "alpha")
+
+    def _check_params(self) -> None:
+        self._require_unit_interval("alpha")
 
     @cached_property
     def w2(self) -> float:
@@ -65,26 +55,21 @@ class DoubleSphere(CameraModel):
         w1 = _alpha_w1(self.alpha)
         return (w1 + self.xi) / math.sqrt(2.0 * w1 * self.xi + self.xi * self.xi + 1.0)
 
-    def _project(self, x: F64, y: F64, z: F64) -> tuple[F64, F64, Bool]:
+    def _project_normalised(self, x: F64, y: F64, z: F64) -> tuple[F64, F64, Bool]:
         d1 = np.sqrt(x * x + y * y + z * z)
         k = self.xi * d1 + z
         d2 = np.sqrt(x * x + y * y + k * k)
         n = self.alpha * d2 + (1.0 - self.alpha) * k
         valid = (z > -self.w2 * d1) & (n > 0.0)
-        return self.fx * x / n + self.cx, self.fy * y / n + self.cy, valid
+        return x / n, y / n, valid
 
-    def _unproject(self, u: F64, v: F64) -> tuple[F64, F64, F64, Bool]:
+    def _unproject_normalised(self, mx: F64, my: F64) -> tuple[F64, F64, F64, Bool]:
         a, xi = self.alpha, self.xi
-        mx = (u - self.cx) / self.fx
-        my = (v - self.cy) / self.fy
         r2 = mx * mx + my * my
         valid = np.ones_like(r2, dtype=bool) if a <= 0.5 else r2 <= 1.0 / (2.0 * a - 1.0)
         mz = (1.0 - a * a * r2) / (a * np.sqrt(1.0 - (2.0 * a - 1.0) * r2) + 1.0 - a)
         s = (mz * xi + np.sqrt(mz * mz + (1.0 - xi * xi) * r2)) / (mz * mz + r2)
         return s * mx, s * my, s * mz - xi, valid
-
-    def _scaled_params(self, factor: float) -> dict[str, Any]:
-        return focal_scaled_params(self, factor)
 
 
 def _eucm_project(x: F64, y: F64, z: F64, alpha: float, beta: float) -> tuple[F64, F64, Bool]:
@@ -106,7 +91,7 @@ def _eucm_unproject(mx: F64, my: F64, alpha: float, beta: float) -> tuple[F64, F
 
 
 @dataclass(frozen=True)
-class ExtendedUnified(CameraModel):
+class ExtendedUnified(FocalModel):
     """Extended Unified Camera Model (EUCM): alpha in [0, 1], beta > 0."""
 
     fx: float
@@ -118,26 +103,21 @@ class ExtendedUnified(CameraModel):
     width: int
     height: int
 
-    def __post_init__(self) -> None:
-        check_focal(self, "ExtendedUnified")
-        require_finite("alpha", self.alpha, "ExtendedUnified")
-        require_positive("beta", self.beta, "ExtendedUnified")
-        if not 0.0 <= self.alpha < 1.0:
-            raise CalibrationError(f"ExtendedUnified: alpha must be in [0, 1), got {self.alpha!r}")
+    FINITE = ("alpha",)
+    POSITIVE = ("beta",)
 
-    def _project(self, x: F64, y: F64, z: F64) -> tuple[F64, F64, Bool]:
-        mx, my, valid = _eucm_project(x, y, z, self.alpha, self.beta)
-        return self.fx * mx + self.cx, self.fy * my + self.cy, valid
+    def _check_params(self) -> None:
+        self._require_unit_interval("alpha")
 
-    def _unproject(self, u: F64, v: F64) -> tuple[F64, F64, F64, Bool]:
-        return _eucm_unproject((u - self.cx) / self.fx, (v - self.cy) / self.fy, self.alpha, self.beta)
+    def _project_normalised(self, x: F64, y: F64, z: F64) -> tuple[F64, F64, Bool]:
+        return _eucm_project(x, y, z, self.alpha, self.beta)
 
-    def _scaled_params(self, factor: float) -> dict[str, Any]:
-        return focal_scaled_params(self, factor)
+    def _unproject_normalised(self, mx: F64, my: F64) -> tuple[F64, F64, F64, Bool]:
+        return _eucm_unproject(mx, my, self.alpha, self.beta)
 
 
 @dataclass(frozen=True)
-class Unified(CameraModel):
+class Unified(FocalModel):
     """Unified Camera Model (UCM) in the alpha form: u = fx x / (alpha |p| + (1-alpha) z) + cx.
 
     Equal to Mei/omni with xi = alpha/(1-alpha) and gamma = f/(1-alpha).
@@ -151,25 +131,20 @@ class Unified(CameraModel):
     width: int
     height: int
 
-    def __post_init__(self) -> None:
-        check_focal(self, "Unified")
-        require_finite("alpha", self.alpha, "Unified")
-        if not 0.0 <= self.alpha < 1.0:
-            raise CalibrationError(f"Unified: alpha must be in [0, 1), got {self.alpha!r}")
+    FINITE = ("alpha",)
 
-    def _project(self, x: F64, y: F64, z: F64) -> tuple[F64, F64, Bool]:
-        mx, my, valid = _eucm_project(x, y, z, self.alpha, 1.0)
-        return self.fx * mx + self.cx, self.fy * my + self.cy, valid
+    def _check_params(self) -> None:
+        self._require_unit_interval("alpha")
 
-    def _unproject(self, u: F64, v: F64) -> tuple[F64, F64, F64, Bool]:
-        return _eucm_unproject((u - self.cx) / self.fx, (v - self.cy) / self.fy, self.alpha, 1.0)
+    def _project_normalised(self, x: F64, y: F64, z: F64) -> tuple[F64, F64, Bool]:
+        return _eucm_project(x, y, z, self.alpha, 1.0)
 
-    def _scaled_params(self, factor: float) -> dict[str, Any]:
-        return focal_scaled_params(self, factor)
+    def _unproject_normalised(self, mx: F64, my: F64) -> tuple[F64, F64, F64, Bool]:
+        return _eucm_unproject(mx, my, self.alpha, 1.0)
 
 
 @dataclass(frozen=True)
-class KannalaBrandt(CameraModel):
+class KannalaBrandt(FocalModel):
     """Kannala-Brandt / equidistant fisheye with four coefficients (OpenCV fisheye).
 
     theta_d = theta (1 + k1 theta^2 + k2 theta^4 + k3 theta^6 + k4 theta^8) with
@@ -189,10 +164,7 @@ class KannalaBrandt(CameraModel):
     width: int
     height: int
 
-    def __post_init__(self) -> None:
-        check_focal(self, "KannalaBrandt")
-        for name in ("k1", "k2", "k3", "k4"):
-            require_finite(name, getattr(self, name), "KannalaBrandt")
+    FINITE = ("k1", "k2", "k3", "k4")
 
     def _poly(self, theta: F64) -> F64:
         t2 = theta * theta
@@ -218,17 +190,15 @@ class KannalaBrandt(CameraModel):
                 hi = mid
         return lo
 
-    def _project(self, x: F64, y: F64, z: F64) -> tuple[F64, F64, Bool]:
+    def _project_normalised(self, x: F64, y: F64, z: F64) -> tuple[F64, F64, Bool]:
         r = np.hypot(x, y)
         theta = np.arctan2(r, z)
         rd = self._poly(theta)
         scale = np.where(r > 0.0, rd / r, 0.0)
         valid = (theta < self.theta_max) & ((r > 0.0) | (z > 0.0))
-        return self.fx * x * scale + self.cx, self.fy * y * scale + self.cy, valid
+        return x * scale, y * scale, valid
 
-    def _unproject(self, u: F64, v: F64) -> tuple[F64, F64, F64, Bool]:
-        mx = (u - self.cx) / self.fx
-        my = (v - self.cy) / self.fy
+    def _unproject_normalised(self, mx: F64, my: F64) -> tuple[F64, F64, F64, Bool]:
         rd = np.hypot(mx, my)
         rd_max = float(self._poly(np.array([self.theta_max]))[0])
         valid = rd < rd_max
@@ -241,6 +211,3 @@ class KannalaBrandt(CameraModel):
         valid &= np.abs(self._poly(theta) - rd) < KB_TOL * np.maximum(1.0, rd) * 10.0
         s = np.where(rd > 0.0, np.sin(theta) / rd, 0.0)
         return mx * s, my * s, np.cos(theta), valid
-
-    def _scaled_params(self, factor: float) -> dict[str, Any]:
-        return focal_scaled_params(self, factor)

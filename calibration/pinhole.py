@@ -3,18 +3,17 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
-from calibration.camera import CameraModel, check_focal, focal_scaled_params, require_finite
+from calibration.camera import FocalModel
 from calibration.distortion import Distortion, Fov, RadTan
 from calibration.errors import CalibrationError
 from calibration.types import F64, Bool
 
 
 @dataclass(frozen=True)
-class Pinhole(CameraModel):
+class Pinhole(FocalModel):
     """Pinhole camera, optionally with radtan or fov distortion. Valid for z > 0."""
 
     fx: float
@@ -25,8 +24,7 @@ class Pinhole(CameraModel):
     height: int
     distortion: Distortion | None = None
 
-    def __post_init__(self) -> None:
-        check_focal(self, "Pinhole")
+    def _check_params(self) -> None:
         if self.distortion is not None and not isinstance(self.distortion, RadTan | Fov):
             raise CalibrationError(f"Pinhole: unsupported distortion {self.distortion!r}")
 
@@ -35,26 +33,21 @@ class Pinhole(CameraModel):
         """3x3 intrinsic matrix."""
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 
-    def _project(self, x: F64, y: F64, z: F64) -> tuple[F64, F64, Bool]:
+    def _project_normalised(self, x: F64, y: F64, z: F64) -> tuple[F64, F64, Bool]:
         mx, my = x / z, y / z
         if self.distortion is not None:
             mx, my = self.distortion.distort(mx, my)
-        return self.fx * mx + self.cx, self.fy * my + self.cy, z > 0.0
+        return mx, my, z > 0.0
 
-    def _unproject(self, u: F64, v: F64) -> tuple[F64, F64, F64, Bool]:
-        mx = (u - self.cx) / self.fx
-        my = (v - self.cy) / self.fy
+    def _unproject_normalised(self, mx: F64, my: F64) -> tuple[F64, F64, F64, Bool]:
         valid = np.ones_like(mx, dtype=bool)
         if self.distortion is not None:
             mx, my, valid = self.distortion.undistort(mx, my)
         return mx, my, np.ones_like(mx), valid
 
-    def _scaled_params(self, factor: float) -> dict[str, Any]:
-        return focal_scaled_params(self, factor)
-
 
 @dataclass(frozen=True)
-class Omni(CameraModel):
+class Omni(FocalModel):
     """Mei unified omnidirectional model (Kalibr ``omni``, cv2.omnidir), optional radtan.
 
     u = fx * distort(x / (z + xi |p|)) + cx. Projection valid where
@@ -70,9 +63,9 @@ class Omni(CameraModel):
     height: int
     distortion: RadTan | None = None
 
-    def __post_init__(self) -> None:
-        check_focal(self, "Omni")
-        require_finite("xi", self.xi, "Omni")
+    FINITE = ("xi",)
+
+    def _check_params(self) -> None:
         if self.xi < 0.0:
             raise CalibrationError(f"Omni: xi must be >= 0, got {self.xi!r}")
         if self.distortion is not None and not isinstance(self.distortion, RadTan):
@@ -82,18 +75,16 @@ class Omni(CameraModel):
     def _w(self) -> float:
         return self.xi if self.xi <= 1.0 else 1.0 / self.xi
 
-    def _project(self, x: F64, y: F64, z: F64) -> tuple[F64, F64, Bool]:
+    def _project_normalised(self, x: F64, y: F64, z: F64) -> tuple[F64, F64, Bool]:
         d = np.sqrt(x * x + y * y + z * z)
         den = z + self.xi * d
         mx, my = x / den, y / den
         if self.distortion is not None:
             mx, my = self.distortion.distort(mx, my)
         valid = (z > -self._w * d) & (den > 0.0)
-        return self.fx * mx + self.cx, self.fy * my + self.cy, valid
+        return mx, my, valid
 
-    def _unproject(self, u: F64, v: F64) -> tuple[F64, F64, F64, Bool]:
-        mx = (u - self.cx) / self.fx
-        my = (v - self.cy) / self.fy
+    def _unproject_normalised(self, mx: F64, my: F64) -> tuple[F64, F64, F64, Bool]:
         valid = np.ones_like(mx, dtype=bool)
         if self.distortion is not None:
             mx, my, valid = self.distortion.undistort(mx, my)
@@ -104,6 +95,3 @@ class Omni(CameraModel):
         x, y, z = f * mx, f * my, f - self.xi
         valid &= z > -self._w * np.sqrt(x * x + y * y + z * z)
         return x, y, z, valid
-
-    def _scaled_params(self, factor: float) -> dict[str, Any]:
-        return focal_scaled_params(self, factor)

@@ -293,3 +293,41 @@ def edge_band(
     band = cv2.dilate(step.astype(np.uint8), np.ones((size, size), np.uint8)) > 0
     out: Bool = band & ok
     return out
+
+
+@dataclass(frozen=True)
+class RangeScore:
+    """A range map scored against exact range (both in metres, 0/NaN = none).
+
+    `median_mm`, `p90_mm` and `bias_mm` are over pixels beyond `band_px` of a
+    depth edge of the truth; `leak` is the share of valid pixels farther than
+    truth by more than max(5 cm, 3 %) (background seen through foreground), and
+    `leak_off_silhouette` the same beyond 1 px of an edge.
+    """
+
+    median_mm: float
+    p90_mm: float
+    bias_mm: float
+    leak: float
+    leak_off_silhouette: float
+    valid: int
+
+
+def score_range(range_m: np.ndarray[Any, Any], exact_m: np.ndarray[Any, Any], band_px: int = 3) -> RangeScore:
+    """Score `range_m` against `exact_m` (same shape), see `RangeScore`."""
+    ok = (range_m > 0) & np.isfinite(exact_m)
+    err_m = range_m.astype(np.float64) - exact_m
+    exact0 = np.nan_to_num(exact_m, nan=0.0).astype(np.float32)
+    inner = ok & ~edge_band(exact0, band_px)
+    leak = ok & (err_m > np.maximum(0.05, 0.03 * exact_m))
+    n_ok = max(int(ok.sum()), 1)
+    with np.errstate(all="ignore"):
+        abs_inner = np.abs(err_m[inner]) if inner.any() else np.array([np.nan])
+        return RangeScore(
+            median_mm=float(np.median(abs_inner)) * 1e3,
+            p90_mm=float(np.percentile(abs_inner, 90)) * 1e3,
+            bias_mm=float(np.median(err_m[inner])) * 1e3 if inner.any() else math.nan,
+            leak=float(leak.sum()) / n_ok,
+            leak_off_silhouette=float((leak & ~edge_band(exact0, 1)).sum()) / n_ok,
+            valid=int(ok.sum()),
+        )

@@ -6,7 +6,7 @@ Metrics: median |error| away from depth edges (3 px band), "leaks" = pixels
 showing something farther than the true first surface by > max(5 cm, 3 %).
 """
 
-from dataclasses import replace
+from dataclasses import asdict, replace
 
 import numpy as np
 import pytest
@@ -14,7 +14,7 @@ import pytest
 from calibration import CameraModel, read_rig
 from calibration.spherical import Cassini, Equirectangular, pinhole_for_fov
 from calibration.virtual import CroppedModel, R_up_cam, partner_pose, virtual_ds
-from ingest.eval.metrics import edge_band
+from ingest.eval.metrics import score_range
 from ingest.render.lod import build_index
 from ingest.render.scans import Scan
 from ingest.render.view import render_view
@@ -57,20 +57,7 @@ def site():
 
 def _score(rend, truth):
     exact, _ = truth
-    ok = (rend.range_m > 0) & np.isfinite(exact)
-    e = rend.range_m.astype(np.float64) - exact
-    ex0 = np.nan_to_num(exact, nan=0.0).astype(np.float32)
-    inner = ok & ~edge_band(ex0, 3)
-    leak = ok & (e > np.maximum(0.05, 0.03 * exact))
-    return {
-        "median_mm": float(np.median(np.abs(e[inner]))) * 1e3,
-        "p90_mm": float(np.percentile(np.abs(e[inner]), 90)) * 1e3,
-        "bias_mm": float(np.median(e[inner])) * 1e3,
-        "leak": float(leak.sum() / ok.sum()),
-        "leak_off_silhouette": float((leak & ~edge_band(ex0, 1)).sum() / ok.sum()),
-        "holes": int(rend.holes.sum()),
-        "valid": int(ok.sum()),
-    }
+    return {**asdict(score_range(rend.range_m, exact)), "holes": int(rend.holes.sum())}
 
 
 @pytest.mark.parametrize("fov", [120, 195])
