@@ -41,12 +41,13 @@ from calibration.stereo import rotate_for_stereo, unrotate_from_stereo
 from calibration.virtual import R_up_cam, partner_pose, virtual_ds
 from ingest.dataset.layout import DISP_SCALE, read_png_u16
 from ingest.eval.metrics import score_range
+from ingest.raster.lod import ScanIndex, build_index
+from ingest.raster.scan import Scan
+from ingest.raster.view import Rendering, pixel_geometry, render_view
+from ingest.raster.visibility import RenderParams
 from ingest.render.benchmark import run_benchmark
-from ingest.render.lod import ScanIndex, build_index
 from ingest.render.plan import BenchmarkConfig
-from ingest.render.scans import Scan, read_scans
-from ingest.render.view import Rendering, pixel_geometry, render_view
-from ingest.render.visibility import RenderParams
+from ingest.render.scans import read_scans
 from sensorbox.sim.appearance import Texture
 from sensorbox.sim.scenes import build_scene
 from sensorbox.sim.tls import TlsParams, bundle_poses, pose_at, simulate_scan, true_range, write_site

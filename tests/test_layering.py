@@ -1,7 +1,8 @@
 """Imports flow one way (DESIGN.md section 1), between the packages and between the rooms inside them.
 
-calibration <- ingest <- sensorbox. Inside ingest, train, render and eval share bags, dataset and
-runtime but never import each other; those shared rooms import none of the three. Inside sensorbox,
+calibration <- ingest <- sensorbox. Inside ingest, train, render and eval share bags, dataset,
+raster (the point renderer) and runtime but never import each other; those shared rooms import
+none of the three. Inside sensorbox,
 live reaches the simulator only through the node registry (by name), and the CLI imports only
 public names.
 """
@@ -23,6 +24,7 @@ FORBIDDEN = {
     "ingest.bags": {"ingest.train", "ingest.render", "ingest.eval", "ingest.dataset", "ingest.runtime"},
     "ingest.dataset": {"ingest.train", "ingest.render", "ingest.eval", "ingest.runtime"},
     "ingest.runtime": {"ingest.train", "ingest.render", "ingest.eval"},
+    "ingest.raster": {"ingest.train", "ingest.render", "ingest.eval", "ingest.inspect", "ingest.runtime"},
     "sensorbox.live": {"sensorbox.sim", "sensorbox.cli", "sensorbox.analysis"},
     "sensorbox.livox": {"sensorbox.sim", "sensorbox.live", "sensorbox.cli", "sensorbox.analysis"},
     "sensorbox.sim": {"sensorbox.cli", "sensorbox.analysis"},

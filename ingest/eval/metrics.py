@@ -31,10 +31,10 @@ import math
 from dataclasses import asdict, dataclass
 from typing import Any, ClassVar, Self
 
-import cv2
 import numpy as np
 
 from calibration.types import F64, Bool
+from ingest.raster.edges import edge_band, valid_gt
 
 BAD_THRESHOLDS_PX = (1.0, 2.0, 3.0)
 DELTA_BASE = 1.25
@@ -100,13 +100,6 @@ def _check_shapes(pred: np.ndarray[Any, Any], gt: np.ndarray[Any, Any], mask: Bo
     if pred.shape != gt.shape or (mask is not None and mask.shape != gt.shape):
         shapes = f"pred {pred.shape}, gt {gt.shape}" + ("" if mask is None else f", mask {mask.shape}")
         raise ValueError(f"metric inputs differ in shape: {shapes}")
-
-
-def valid_gt(gt: np.ndarray[Any, Any], mask: Bool | None = None) -> Bool:
-    """GT pixels that count: finite, > 0 and inside `mask`."""
-    with np.errstate(invalid="ignore"):
-        ok: Bool = np.isfinite(gt) & (gt > 0)
-    return ok & mask if mask is not None else ok
 
 
 def _scored(
@@ -267,32 +260,6 @@ def median_scale(pred: np.ndarray[Any, Any], gt: np.ndarray[Any, Any], mask: Boo
     if len(p) == 0:
         return 1.0
     return float(np.median(g) / np.median(p))
-
-
-def edge_band(
-    gt: np.ndarray[Any, Any], band_px: int = 3, step_abs: float = 0.05, step_rel: float = 0.03
-) -> Bool:
-    """Valid-GT pixels within `band_px` of a discontinuity of the GT map itself.
-
-    A discontinuity is a 3x3 neighbourhood whose valid values differ by more
-    than max(`step_abs`, `step_rel` * their minimum) (in the map's unit: 5 cm /
-    3 % suit depth in metres; for disparity use e.g. 0.25 px / 3 %). Only
-    steps between valid GT pixels are seen, so sparse GT finds fewer edges
-    than dense GT does.
-    """
-    ok = valid_gt(gt)
-    kernel = np.ones((3, 3), np.uint8)
-    g = np.where(ok, gt, np.float32(0.0)).astype(np.float32, copy=False)
-    hi = cv2.dilate(g, kernel)  # largest valid value around (0: none)
-    np.copyto(g, np.float32(np.inf), where=~ok)
-    lo = cv2.erode(g, kernel)  # smallest valid value around (inf: none, so hi - lo = -inf: no step)
-    threshold = lo * np.float32(step_rel)
-    np.maximum(threshold, np.float32(step_abs), out=threshold)
-    step = hi - lo > threshold
-    size = 2 * band_px + 1
-    band = cv2.dilate(step.astype(np.uint8), np.ones((size, size), np.uint8)) > 0
-    out: Bool = band & ok
-    return out
 
 
 @dataclass(frozen=True)

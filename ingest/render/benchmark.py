@@ -1,7 +1,7 @@
 """Benchmark views from dense laser scans, written in the WideDepth benchmark layout.
 
 For every view (a scan centre of the site, a yaw and a height) the renderer
-(`ingest.render.view`) draws the scans of that centre's bundle (the central scan and
+(`ingest.raster.view`) draws the scans of that centre's bundle (the central scan and
 its nearest neighbours, the paper's bundle of three) through virtual cameras:
 
 - CENTER: the reference camera, level at the scan centre (plus the view's
@@ -60,7 +60,9 @@ from ingest.dataset.layout import DEPTH_SCALE, DISP_SCALE, encode_exr, to_uint16
 from ingest.dataset.png import encode_png
 from ingest.dataset.sparse import SparseImage
 from ingest.errors import BenchmarkError
-from ingest.render.lod import ScanIndex, build_index
+from ingest.raster.lod import ScanIndex, build_index
+from ingest.raster.scan import Scan
+from ingest.raster.view import pixel_geometry, render_view
 from ingest.render.plan import (
     BenchmarkConfig,
     FovCameras,
@@ -74,8 +76,6 @@ from ingest.render.plan import (
     plan_views,
     task_key,
 )
-from ingest.render.scans import Scan
-from ingest.render.view import pixel_geometry, render_view
 from ingest.runtime.executor import Executor
 
 BENCHMARK_VERSION = 1

@@ -22,9 +22,9 @@ from calibration.virtual import (
 )
 from calibration.warp import build_maps, covering_crop, default_height_full
 from ingest.errors import BenchmarkError
-from ingest.render.lod import VOXEL_M
-from ingest.render.scans import Scan
-from ingest.render.visibility import RenderParams
+from ingest.raster.lod import VOXEL_M
+from ingest.raster.scan import Scan
+from ingest.raster.visibility import RenderParams
 
 FOVS_DEG = (120.0, 140.0, 165.0, 195.0)
 

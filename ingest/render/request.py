@@ -18,9 +18,10 @@ from calibration.camera import CameraModel
 from calibration.rig import read_rig
 from calibration.types import F32, F64
 from ingest.errors import BenchmarkError
+from ingest.raster.scan import Scan
+from ingest.raster.visibility import RenderParams
 from ingest.render.plan import BASELINES_MM, FOVS_DEG, BenchmarkConfig
-from ingest.render.scans import Scan, read_cloud, read_scans
-from ingest.render.visibility import RenderParams
+from ingest.render.scans import read_cloud, read_scans
 
 
 @dataclass(frozen=True)

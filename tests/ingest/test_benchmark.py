@@ -26,7 +26,7 @@ from calibration.virtual import CroppedModel, virtual_ds
 from ingest.dataset.layout import DISP_SCALE, read_png_u16
 from ingest.errors import BenchmarkError
 from ingest.eval.evaluate import discover_gt
-from ingest.eval.metrics import edge_band
+from ingest.raster.edges import edge_band
 from ingest.render.benchmark import run_benchmark
 from ingest.render.plan import BenchmarkConfig
 from ingest.render.scans import read_scans

@@ -15,10 +15,10 @@ from calibration import CameraModel, read_rig
 from calibration.spherical import Cassini, Equirectangular, pinhole_for_fov
 from calibration.virtual import CroppedModel, R_up_cam, partner_pose, virtual_ds
 from ingest.eval.metrics import score_range
-from ingest.render.lod import build_index
-from ingest.render.scans import Scan
-from ingest.render.view import render_view
-from ingest.render.visibility import RenderParams
+from ingest.raster.lod import build_index
+from ingest.raster.scan import Scan
+from ingest.raster.view import render_view
+from ingest.raster.visibility import RenderParams
 from sensorbox.sim.appearance import Texture
 from sensorbox.sim.scenes import build_scene
 from sensorbox.sim.tls import TlsParams, bundle_poses, simulate_scan, true_range

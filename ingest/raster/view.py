@@ -4,7 +4,7 @@ Recipe for one camera (any `CameraModel`: fisheye, equirect, Cassini, pinhole,
 crops) at `T_world_cam`:
 
 1. Select: every scan of the bundle gives the points the view needs
-   (`ingest.render.lod.select`: frustum culling of voxel buckets and a prefix
+   (`ingest.raster.lod.select`: frustum culling of voxel buckets and a prefix
    per bucket for about `points_per_px` points per pixel).
 2. Project: points into the camera (float32), range from the camera centre,
    and each point's footprint in pixels along u and v: its spacing on the
@@ -29,7 +29,8 @@ crops) at `T_world_cam`:
    (least squares on their sub-pixel offsets); every same-surface point in the
    pixel is moved to the centre along it and averaged (noise). Pixels with a
    surface but no own point take the planar prediction of their neighbours
-   (a few passes outwards), else the splat's raw range.
+   (a few passes outwards), else the splat's raw range (or stay invalid:
+   `RenderParams.raw_fallback` off, as ground truth wants).
 6. Masks: mask points (a label) and mask clouds render into their own splat
    buffer; pixels whose mask surface is not behind the rendered one are
    invalid. Ranges beyond `clip_m` are invalid (`clip_mode="invalid"`, colour
@@ -52,8 +53,8 @@ from calibration.camera import CameraModel
 from calibration.transforms import invert
 from calibration.types import F32, F64, I64, U8, Bool
 from calibration.virtual import project_f32
-from ingest.render.lod import ScanIndex, select
-from ingest.render.visibility import (
+from ingest.raster.lod import ScanIndex, select
+from ingest.raster.visibility import (
     RenderParams,
     ViewPoints,
     average_surface,
@@ -311,7 +312,7 @@ def render_view(
     need = np.flatnonzero(surface & ~own_ok)
     value, got = fill_gaps(value, own2, gu, gv, need, ppr, params)
     raw_px = need[~got]  # a surface but no own point and no neighbour: the splat's nearest range
-    value.reshape(-1)[raw_px] = r_splat[raw_px]
+    value.reshape(-1)[raw_px] = r_splat[raw_px] if params.raw_fallback else np.float32(np.nan)
 
     # masks and clipping
     rays = geo.valid if pixel_mask is None else geo.valid & pixel_mask

@@ -24,7 +24,7 @@ import numpy as np
 from calibration.camera import CameraModel
 from calibration.types import F32, F64, I64, U8, Bool
 from ingest.errors import ScanError
-from ingest.render.scans import Scan
+from ingest.raster.scan import Scan
 
 VOXEL_M = 0.25
 SPHERE_CELLS = (256, 512)  # equal-area cells in cos(polar) x azimuth: 0.5 deg at the equator
@@ -164,7 +164,7 @@ def select(
 
     ``ppr`` is the camera's coarse pixels-per-radian maps (along u, along v),
     their stride, maximum and the cap of the level of detail
-    (`ingest.render.view.PixelGeometry.coarse`). ``coarse_mask`` (one cell per
+    (`ingest.raster.view.PixelGeometry.coarse`). ``coarse_mask`` (one cell per
     stride x stride pixels, already grown by a cell) drops voxels that land
     only where the view draws nothing.
     """

@@ -3,7 +3,7 @@
 A z-buffer on range over point footprints (splats), the two-sided occlusion
 test that rejects points seen through a nearer surface, a local plane fit of
 range over the pixel grid, same-surface averaging and moving each value onto
-its pixel-centre ray, and gap filling along that plane (see `ingest.render.view`)."""
+its pixel-centre ray, and gap filling along that plane (see `ingest.raster.view`)."""
 
 from __future__ import annotations
 
@@ -52,6 +52,7 @@ class RenderParams:
     fill_passes: int = 3
     average_samples: bool = True  # mean of a pixel's same-surface samples, not just the nearest
     frustum_culling: bool = True  # False: project every point of every scan (the naive baseline)
+    raw_fallback: bool = True  # a surface pixel with no own point and no planar fill takes the splat's range
 
     def tolerance(self, range_m: Any, dist_px: Any, ppr: Any) -> Any:
         """Largest range difference (m) between two samples of one surface ``dist_px`` apart.

@@ -1,0 +1,397 @@
+"""LiDAR-inertial odometry: the rig's trajectory over a whole recording, every point at its own time.
+
+The trajectory is a chain of knots (T_world_cam0 every `knot_ns`, 50 ms by
+default) joined by the gyro: between knots k and k+1 the orientation is
+
+    R(t) = R_k G_k^T G(t) Exp(f Log(E_k)),  f = (t - t_k) / (t_k+1 - t_k)
+
+where G is the integrated gyro (`ingest.train.clouds.GyroTrack`, G_k its
+value at t_k) and E_k the gyro's mismatch with the next knot, spread evenly
+over the interval (without an IMU G is constant and this is the slerp of the
+two knots). Position is linear between knots: 50 ms keeps the chord error of
+a handheld rig (bob ~3 m/s^2) under 1 mm.
+
+Registration is continuous-time point-to-plane ICP against a local map
+(CT-ICP's idea with the gyro supplying the rotation's shape): each 100 ms
+chunk of both LiDARs' points is deskewed with the chain, and the chunk's two
+new knots (6 DoF each; the knot at its start is fixed by the previous chunk)
+are solved by Gauss-Newton on the point-to-plane residuals, each point's
+Jacobian weighted by its position between the knots. The registered chunk
+then joins the map: world-frame points on a `map_voxel_m` grid, each with the
+PCA normal of its neighbourhood, forgotten after `map_horizon_s`.
+
+The world frame is cam0 at the first knot. Every knot keeps the RMS residual
+of its solve, written next to the trajectory so a user sees where it is weak.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from calibration.linalg3 import rotvec_to_matrix
+from calibration.types import F64, I64, Bool
+from ingest.train.clouds import GyroTrack, estimate_velocity
+from ingest.train.planes import neighbour_covariances, normals_from_covariances
+
+
+@dataclass(frozen=True)
+class OdometryParams:
+    """Odometry settings (metres, nanoseconds)."""
+
+    knot_ns: int = 50_000_000
+    knots_per_chunk: int = 2
+    source_voxel_m: float = 0.2  # one point per voxel of a chunk takes part in the fit
+    max_source_points: int = 4000
+    map_voxel_m: float = 0.1
+    map_horizon_s: float = 2.0
+    map_neighbours: int = 10
+    map_max_flatness: float = 0.05
+    max_correspondence_m: float = 0.5
+    iterations: int = 15
+    tol_m: float = 5e-5  # stop when no knot moves by more than this (rotation: this at 1 m)
+    min_range_m: float = 0.3
+
+
+@dataclass(frozen=True)
+class RigTrajectory:
+    """T_world_cam0 at knots, joined by the gyro (see the module doc); world = cam0 at the first knot."""
+
+    stamps_ns: I64  # (K,)
+    R_world_cam0: F64  # (K, 3, 3)
+    p_world_cam0: F64  # (K, 3)
+    residual_m: F64  # (K,) RMS point-to-plane residual of the solve that placed each knot (0: the first)
+    gyro: GyroShape | None = None
+
+    def _segment(self, t_ns: I64) -> tuple[I64, F64]:
+        t = np.clip(np.asarray(t_ns, np.int64), self.stamps_ns[0], self.stamps_ns[-1])
+        k = np.clip(np.searchsorted(self.stamps_ns, t, side="right") - 1, 0, len(self.stamps_ns) - 2)
+        f: F64 = (t - self.stamps_ns[k]) / (self.stamps_ns[k + 1] - self.stamps_ns[k]).astype(np.float64)
+        return k, f
+
+    def covers(self, t_ns: I64) -> Bool:
+        """Times inside the knots' span (outside it the pose is clamped, so unknown)."""
+        out: Bool = (t_ns >= self.stamps_ns[0]) & (t_ns <= self.stamps_ns[-1])
+        return out
+
+    def pose(self, t_ns: I64) -> tuple[F64, F64]:
+        """(R_world_cam0 (N, 3, 3), p_world_cam0 (N, 3)) at times `t_ns` (clamped to the knots)."""
+        t = np.atleast_1d(np.asarray(t_ns, np.int64))
+        if len(self.stamps_ns) == 1:
+            return np.broadcast_to(self.R_world_cam0[0], (len(t), 3, 3)).copy(), np.tile(
+                self.p_world_cam0[0], (len(t), 1)
+            )
+        k, f = self._segment(t)
+        return _chain_rotation(self, k, f, t), self.p_world_cam0[k] + f[:, None] * (
+            self.p_world_cam0[k + 1] - self.p_world_cam0[k]
+        )
+
+    def to_frame(self, pts_cam0: F64, t_ns: I64, t_ref_ns: int) -> F64:
+        """Points measured in cam0 at their times `t_ns` (N, 3), expressed in cam0 at `t_ref_ns`."""
+        R, p = self.pose(t_ns)
+        R_ref, p_ref = self.pose(np.array([t_ref_ns]))
+        world = np.einsum("nij,nj->ni", R, pts_cam0) + p
+        out: F64 = (world - p_ref[0]) @ R_ref[0]
+        return out
+
+    def write_tum(self, path: Path) -> None:
+        """`t_sec tx ty tz qx qy qz qw` per knot (T_world_cam0), with the residual as a comment header."""
+        q = Rotation.from_matrix(self.R_world_cam0).as_quat()
+        lines = ["# T_world_cam0 (world = cam0 at the first knot): t_sec tx ty tz qx qy qz qw"]
+        for k, t in enumerate(self.stamps_ns):
+            sec, nsec = divmod(int(t), 1_000_000_000)
+            lines.append(f"{sec}.{nsec:09d} " + " ".join(f"{v:.9f}" for v in (*self.p_world_cam0[k], *q[k])))
+        tmp = path.with_name(path.name + ".partial")
+        tmp.write_text("\n".join(lines) + "\n")
+        tmp.replace(path)
+
+
+def _chain_rotation(traj: RigTrajectory, k: I64, f: F64, t: I64) -> F64:
+    """R(t) of the module doc for times `t` in segments `k` at fractions `f`."""
+    if traj.gyro is None:
+        rel = np.broadcast_to(np.eye(3), (len(t), 3, 3))
+    else:
+        rel = traj.gyro.between(traj.stamps_ns[k], t)
+    # the gyro's mismatch with the next knot, once per segment
+    seg, inv = np.unique(k, return_inverse=True)
+    if traj.gyro is None:
+        shape_next = np.broadcast_to(np.eye(3), (len(seg), 3, 3))
+    else:
+        shape_next = traj.gyro.between(traj.stamps_ns[seg], traj.stamps_ns[seg + 1])
+    E = np.matmul(
+        np.swapaxes(np.matmul(traj.R_world_cam0[seg], shape_next), 1, 2), traj.R_world_cam0[seg + 1]
+    )
+    err = Rotation.from_matrix(E).as_rotvec()[inv]
+    out: F64 = np.matmul(np.matmul(traj.R_world_cam0[k], rel), rotvec_to_matrix(err * f[:, None]))
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class GyroShape:
+    """The integrated gyro G(t) as knots and steps, precomputed once for fast interpolation."""
+
+    stamps_ns: I64
+    G: F64  # (K, 3, 3) orientation relative to the first sample
+    steps: F64  # (K-1, 3) rotation vectors of G_k^T G_k+1
+
+    @classmethod
+    def from_track(cls, gyro: GyroTrack) -> GyroShape:
+        R = gyro.rotations
+        steps = Rotation.from_matrix(np.matmul(np.swapaxes(R[:-1], 1, 2), R[1:])).as_rotvec()
+        return cls(gyro.stamps_ns, R, steps)
+
+    def at(self, t_ns: I64) -> F64:
+        """G(t) (N, 3, 3), clamped to the track."""
+        t = np.clip(np.atleast_1d(np.asarray(t_ns, np.int64)), self.stamps_ns[0], self.stamps_ns[-1])
+        if len(self.stamps_ns) == 1:
+            return np.broadcast_to(self.G[0], (len(t), 3, 3)).copy()
+        k = np.clip(np.searchsorted(self.stamps_ns, t, side="right") - 1, 0, len(self.stamps_ns) - 2)
+        f = (t - self.stamps_ns[k]) / (self.stamps_ns[k + 1] - self.stamps_ns[k]).astype(np.float64)
+        out: F64 = np.matmul(self.G[k], rotvec_to_matrix(self.steps[k] * f[:, None]))
+        return out
+
+    def between(self, t0_ns: I64, t1_ns: I64) -> F64:
+        """G(t0)^T G(t1) per pair (N, 3, 3): the gyro's rotation from cam0 at t0 to cam0 at t1."""
+        G0 = self.at(np.broadcast_to(np.asarray(t0_ns, np.int64), np.shape(np.atleast_1d(t1_ns))))
+        out: F64 = np.matmul(np.swapaxes(G0, 1, 2), self.at(t1_ns))
+        return out
+
+
+def voxel_subsample(pts: F64, voxel_m: float) -> I64:
+    """Index of the first point in each occupied `voxel_m` cube (in input order)."""
+    if len(pts) == 0:
+        return np.zeros(0, np.int64)
+    _, first = np.unique(_voxel_keys(pts, voxel_m), return_index=True)
+    out: I64 = np.sort(first)
+    return out
+
+
+@dataclass
+class LocalMap:
+    """World-frame points on a voxel grid with normals, each remembering when it joined."""
+
+    params: OdometryParams
+    xyz: F64 = field(default_factory=lambda: np.zeros((0, 3)))
+    normal: F64 = field(default_factory=lambda: np.zeros((0, 3)))
+    planar: Bool = field(default_factory=lambda: np.zeros(0, bool))
+    added_ns: I64 = field(default_factory=lambda: np.zeros(0, np.int64))
+    tree: cKDTree | None = None
+
+    def add(self, pts_world: F64, t_ns: int, origin_world: F64) -> None:
+        """A registered chunk joins (one point per free voxel); points older than the horizon leave.
+
+        New points get the PCA normal of their neighbours in the whole map;
+        "planar" is judged at their range from `origin_world` (the rig).
+        """
+        prm = self.params
+        keep = self.added_ns >= t_ns - int(prm.map_horizon_s * 1e9)
+        old = self.xyz[keep]
+        cand = pts_world[voxel_subsample(pts_world, prm.map_voxel_m)]
+        old_keys = np.sort(_voxel_keys(old, prm.map_voxel_m))
+        cand_keys = _voxel_keys(cand, prm.map_voxel_m)
+        at = np.minimum(np.searchsorted(old_keys, cand_keys), max(len(old_keys) - 1, 0))
+        taken = old_keys[at] == cand_keys if len(old_keys) else np.zeros(len(cand), bool)
+        new = cand[~taken]
+        xyz = np.concatenate([old, new])
+        tree = cKDTree(xyz, leafsize=16, balanced_tree=False)
+        k = min(prm.map_neighbours, len(xyz))
+        normal, planar = self.normal[keep], self.planar[keep]
+        if len(new) and k >= 3:
+            _, idx = tree.query(new, k=k)
+            fit = normals_from_covariances(
+                neighbour_covariances(xyz, idx), new - origin_world, prm.map_max_flatness
+            )
+            normal, planar = np.concatenate([normal, fit.normal]), np.concatenate([planar, fit.planar])
+        else:
+            normal, planar = (
+                np.concatenate([normal, np.zeros((len(new), 3))]),
+                np.concatenate([planar, np.zeros(len(new), bool)]),
+            )
+        self.xyz, self.normal, self.planar, self.tree = xyz, normal, planar, tree
+        self.added_ns = np.concatenate([self.added_ns[keep], np.full(len(new), t_ns, np.int64)])
+
+
+def _voxel_keys(pts: F64, voxel_m: float) -> I64:
+    """One int64 per voxel (21 bits per axis: +-100 km at 0.1 m)."""
+    c = np.floor(pts / voxel_m).astype(np.int64) + (1 << 20)
+    out: I64 = (c[:, 0] << 42) | (c[:, 1] << 21) | c[:, 2]
+    return out
+
+
+@dataclass
+class _Chain:
+    """Knots placed so far (lists, appended chunk by chunk)."""
+
+    stamps: list[int]
+    R: list[F64]
+    p: list[F64]
+    residual: list[float]
+
+    def trajectory(self, gyro: GyroShape | None) -> RigTrajectory:
+        return RigTrajectory(
+            np.array(self.stamps, np.int64), np.array(self.R), np.array(self.p), np.array(self.residual), gyro
+        )
+
+
+def _skew_cross(a: F64, n: F64) -> F64:
+    out: F64 = np.cross(a, n)
+    return out
+
+
+def _solve_chunk(
+    chain: _Chain,
+    knots_ns: list[int],
+    R_guess: list[F64],
+    p_guess: list[F64],
+    pts_cam0: F64,
+    t_ns: I64,
+    the_map: LocalMap,
+    gyro: GyroShape | None,
+    prm: OdometryParams,
+) -> tuple[list[F64], list[F64], float]:
+    """Gauss-Newton on the new knots of one chunk (the first knot of `knots_ns` is fixed)."""
+    assert the_map.tree is not None
+    n_new = len(knots_ns) - 1
+    R_new, p_new = [r.copy() for r in R_guess], [p.copy() for p in p_guess]
+    k_seg = np.clip(np.searchsorted(np.array(knots_ns), t_ns, side="right") - 1, 0, n_new - 1)
+    residual = math.nan
+    for _ in range(prm.iterations):
+        traj = RigTrajectory(np.array(knots_ns, np.int64), np.array([chain.R[-1], *R_new]),
+                             np.array([chain.p[-1], *p_new]), np.zeros(len(knots_ns)), gyro)  # fmt: skip
+        R_t, p_t = traj.pose(t_ns)
+        a = np.einsum("nij,nj->ni", R_t, pts_cam0)
+        world = a + p_t
+        dist, j = the_map.tree.query(world, k=1, distance_upper_bound=prm.max_correspondence_m)
+        ok = np.isfinite(dist)
+        ok[ok] &= the_map.planar[j[ok]]
+        idx = np.flatnonzero(ok)
+        if len(idx) < 50:
+            break
+        n = the_map.normal[j[idx]]
+        r = np.einsum("ij,ij->i", n, world[idx] - the_map.xyz[j[idx]])
+        scale = max(1.4826 * float(np.median(np.abs(r))), 0.005)
+        w = 1.0 / (1.0 + (r / scale) ** 2)  # Cauchy-like weights: gross outliers (movers, wrong matches) fade
+        _, f = traj._segment(t_ns[idx])
+        ks = k_seg[idx]
+        J = np.zeros((len(idx), 6 * n_new))
+        rot, pos = _skew_cross(a[idx], n), n
+        for s in range(n_new):  # knot s+1 is unknown s; segment s uses knots s (1-f) and s+1 (f)
+            weight = np.where(ks == s, f, 0.0) + np.where(ks == s + 1, 1.0 - f, 0.0)
+            J[:, 6 * s : 6 * s + 3] = rot * weight[:, None]
+            J[:, 6 * s + 3 : 6 * s + 6] = pos * weight[:, None]
+        H = J.T @ (J * w[:, None]) + 1e-9 * np.eye(6 * n_new)
+        dx = np.linalg.solve(H, -(J.T @ (w * r)))
+        for s in range(n_new):
+            R_new[s] = rotvec_to_matrix(dx[6 * s : 6 * s + 3][None])[0] @ R_new[s]
+            p_new[s] = p_new[s] + dx[6 * s + 3 : 6 * s + 6]
+        residual = float(np.sqrt(np.average(r**2, weights=w)))
+        if np.abs(dx).max() < prm.tol_m:
+            break
+    return R_new, p_new, residual
+
+
+def estimate_trajectory(
+    chunks: Iterable[tuple[F64, I64]], gyro_track: GyroTrack | None, params: OdometryParams | None = None
+) -> RigTrajectory:
+    """The rig's trajectory from time-ordered chunks of (points in cam0 at their own times, stamps).
+
+    Chunks may have any length; they are regrouped into `knot_ns` x
+    `knots_per_chunk` solves. Points must already be filtered (no zeros, no
+    noise tags, no points on the rig).
+    """
+    prm = params or OdometryParams()
+    gyro = (
+        GyroShape.from_track(gyro_track) if gyro_track is not None and len(gyro_track.stamps_ns) > 1 else None
+    )
+    span = prm.knot_ns * prm.knots_per_chunk
+    buf_p: list[F64] = []
+    buf_t: list[I64] = []
+    chain: _Chain | None = None
+    the_map = LocalMap(prm)
+    for pts, t in chunks:
+        if len(t) == 0:
+            continue
+        buf_p.append(np.asarray(pts, np.float64))
+        buf_t.append(np.asarray(t, np.int64))
+        P, T = np.concatenate(buf_p), np.concatenate(buf_t)
+        if chain is None:
+            if T.max() - T.min() < 2 * span:
+                buf_p, buf_t = [P], [T]
+                continue
+            chain, rest = _start(P, T, the_map, gyro, prm)
+            buf_p, buf_t = [P[rest]], [T[rest]]
+            continue
+        while len(T) and T.max() >= chain.stamps[-1] + span:
+            end = chain.stamps[-1] + span
+            mine = end > T
+            _register_chunk(chain, P[mine], T[mine], the_map, gyro, prm)
+            P, T = P[~mine], T[~mine]
+        buf_p, buf_t = [P], [T]
+    if chain is None:
+        raise ValueError("odometry: less than 200 ms of LiDAR points")
+    return chain.trajectory(gyro)
+
+
+def _start(
+    P: F64, T: I64, the_map: LocalMap, gyro: GyroShape | None, prm: OdometryParams
+) -> tuple[_Chain, Bool]:
+    """The first knots and map, from the first two chunks deskewed with the gyro and a fitted velocity."""
+    span = prm.knot_ns * prm.knots_per_chunk
+    t0 = int(T.min())
+    first = t0 + 2 * span > T
+    p, t = P[first], T[first]
+    t_mid = t0 + span
+    p_rot = np.einsum("nij,nj->ni", gyro.between(np.array([t_mid]), t), p) if gyro is not None else p
+    dt = (t - t_mid) / 1e9
+    est = estimate_velocity(p_rot, dt)
+    v = est.velocity_cam0_mps if est is not None else np.zeros(3)
+    stamps = [t0 + i * prm.knot_ns for i in range(2 * prm.knots_per_chunk + 1)]
+    # knots in the frame of cam0 at t0: rotation from the gyro, position from the constant velocity
+    R_mid = gyro.between(np.array([t0]), np.array([t_mid]))[0] if gyro is not None else np.eye(3)
+    v_world = R_mid @ v
+    Rs = [(gyro.between(np.array([t0]), np.array([s]))[0] if gyro is not None else np.eye(3)) for s in stamps]
+    ps = [v_world * (s - t0) / 1e9 for s in stamps]
+    chain = _Chain(stamps, Rs, ps, [0.0] * len(stamps))
+    sel = voxel_subsample(p, prm.map_voxel_m)
+    R_t, p_t = chain.trajectory(gyro).pose(t[sel])
+    the_map.add(np.einsum("nij,nj->ni", R_t, p[sel]) + p_t, stamps[-1], ps[-1])
+    return chain, ~first
+
+
+def _register_chunk(
+    chain: _Chain, P: F64, T: I64, the_map: LocalMap, gyro: GyroShape | None, prm: OdometryParams
+) -> None:
+    """Solve the next chunk's knots, append them, and add the chunk to the map."""
+    t_last = chain.stamps[-1]
+    knots = [t_last + i * prm.knot_ns for i in range(prm.knots_per_chunk + 1)]
+    # prediction: the gyro's rotation and the last chunk's velocity
+    span_s = (chain.stamps[-1] - chain.stamps[-1 - prm.knots_per_chunk]) / 1e9
+    v = (chain.p[-1] - chain.p[-1 - prm.knots_per_chunk]) / span_s
+    R_guess, p_guess = [], []
+    for s in knots[1:]:
+        if gyro is not None:
+            R_guess.append(chain.R[-1] @ gyro.between(np.array([t_last]), np.array([s]))[0])
+        else:
+            R_guess.append(chain.R[-1].copy())
+        p_guess.append(chain.p[-1] + v * (s - t_last) / 1e9)
+    src = voxel_subsample(P, prm.source_voxel_m)
+    if len(src) > prm.max_source_points:
+        src = src[np.linspace(0, len(src) - 1, prm.max_source_points).astype(np.int64)]
+    if len(src) >= 50:
+        R_new, p_new, res = _solve_chunk(chain, knots, R_guess, p_guess, P[src], T[src], the_map, gyro, prm)
+    else:  # a LiDAR gap: carry the prediction
+        R_new, p_new, res = R_guess, p_guess, math.nan
+    chain.stamps.extend(knots[1:])
+    chain.R.extend(R_new)
+    chain.p.extend(p_new)
+    chain.residual.extend([res] * len(R_new))
+    dense = voxel_subsample(P, prm.map_voxel_m)  # in cam0: the deskew moves points far less than a voxel
+    if len(dense):
+        R_t, p_t = chain.trajectory(gyro).pose(T[dense])
+        the_map.add(np.einsum("nij,nj->ni", R_t, P[dense]) + p_t, knots[-1], chain.p[-1])
