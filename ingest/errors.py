@@ -40,3 +40,7 @@ class DatasetError(SensorboxError):
 
 class PngError(SensorboxError):
     """An array PNG cannot hold as given (shape, dtype) or a bad encoder setting."""
+
+
+class OdometryError(SensorboxError):
+    """The rig's trajectory cannot be estimated (too few LiDAR points, no overlap)."""

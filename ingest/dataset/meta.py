@@ -49,6 +49,12 @@ class GtMeta:
     disp_pixels: int
     disp_unstable: int
     density: float  # GT pixels / valid fisheye pixels
+    method: str = "sparse"  # sparse: the frame's own sweeps; dense: all, placed by the trajectory
+    window_ms: float = 50.0  # +- LiDAR window around the frame time
+    decision: str = ""  # why this method (--gt auto), or "asked" (--gt sparse|dense)
+    accumulated_points: int = 0  # dense: points placed into cam0 at the frame time
+    removed_moving: int = 0  # dense: points removed because another sweep saw through them
+    trajectory_residual_mm: float | None = None  # dense: worst knot RMS point-to-plane residual in it
 
 
 @dataclass(frozen=True)

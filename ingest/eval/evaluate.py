@@ -43,9 +43,9 @@ from ingest.eval.metrics import (
     Accumulator,
     DepthAccumulator,
     StereoAccumulator,
-    edge_band,
     median_scale,
 )
+from ingest.raster.edges import edge_band
 
 Task = Literal["stereo", "mono", "completion"]
 Layout = Literal["train", "benchmark"]

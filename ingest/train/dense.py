@@ -14,9 +14,9 @@ splat range: `RenderParams.raw_fallback` off).
 Depth (fisheye range) and disparity (cam0's rectified equirect, DESIGN.md's
 formula and stability mask) are rendered from the same points.
 
-Moving objects: a point is kept only where no sweep of the window saw
-through it (`free_space_filter`): a mover's earlier positions are free space
-once it has left, so its stale points are removed and counted.
+Moving objects: a point is kept only where the frame's own sweeps do not
+see through it (`free_space_filter`): a mover's earlier positions are free
+space once it has left, so its stale points are removed and counted.
 """
 
 from __future__ import annotations
@@ -36,6 +36,7 @@ from ingest.raster.lod import build_index
 from ingest.raster.scan import Scan
 from ingest.raster.view import Rendering, render_view
 from ingest.raster.visibility import RenderParams
+from ingest.train.planes import Normals, plane_normals
 
 
 @dataclass(frozen=True)
@@ -44,11 +45,17 @@ class DenseParams:
 
     window_ns: int = 500_000_000  # +- around the frame time
     render: RenderParams = field(
-        default_factory=lambda: RenderParams(points_per_px=None, raw_fallback=False, fill_passes=2)
+        default_factory=lambda: RenderParams(points_per_px=None, raw_fallback=False, fill_passes=0)
     )
+    plane_neighbours: int = 10
+    plane_max_flatness: float = 0.02
+    plane_min_cos: float = 0.2
+    surfel_px: int = 1  # each planar point also gives values on the rays of pixels this close
     edge_px: int = 1  # GT pixels this close to a range step or to empty sky are dropped
-    free_space: bool = True  # remove points a later or earlier sweep saw through (movers)
-    free_cell_deg: float = 0.5  # angular cell of the free-space test (LiDAR frame)
+    free_space: bool = True  # remove points the frame's own sweeps saw through (movers)
+    free_cell_deg: float = 1.0  # angular cell of the free-space test (around each LiDAR)
+    free_slice_ns: int = 25_000_000  # one LiDAR's points over this long share one origin
+    free_reference_ns: int = 50_000_000  # slices within this of the frame time are its own
     free_margin_m: float = 0.1  # a ray must pass a point by this much (plus 3 % of range) to clear it
     stability_max_rel_error: float = 0.5
     stability_disp_error_px: float = 0.5
@@ -63,6 +70,42 @@ class DenseGt:
     unstable: int  # equirect pixels with range but failing the stability mask
     points: int  # accumulated points rendered
     stats: dict[str, int]
+
+
+def snap_to_pixel_rays(model: CameraModel, pts: F64, normals: Normals, radius_px: int, min_cos: float) -> F64:
+    """Points moved onto pixel-centre rays along their own local planes (all in the model's frame).
+
+    Each point with a planar neighbourhood gives one point on the ray of every
+    pixel centre within `radius_px` of its projection (the ray meets the
+    point's plane there), as long as that spot lies within the point's own
+    neighbourhood in the image (a surfel of `radius_px` pixels). Rays grazing
+    the plane (|n . ray| < `min_cos`) give nothing; non-planar points stay as
+    they are. Values on pixel-centre rays need no range gradient in the
+    renderer: they are exact on planes.
+    """
+    uv, ok = model.project(pts)
+    ok &= np.isfinite(uv).all(axis=1)
+    idx = np.flatnonzero(ok & normals.planar)
+    rest = pts[~(ok & normals.planar)]
+    base = np.floor(uv[idx] + 0.5)
+    out = [rest]
+    for du in range(-radius_px, radius_px + 1):
+        for dv in range(-radius_px, radius_px + 1):
+            centre = base + np.array([du, dv], np.float64)
+            inside = (
+                (centre[:, 0] >= 0)
+                & (centre[:, 0] < model.width)
+                & (centre[:, 1] >= 0)
+                & (centre[:, 1] < model.height)
+            )
+            ray, ray_ok = model.unproject(centre)
+            n = normals.normal[idx]
+            cos = np.einsum("ij,ij->i", n, ray)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                r = np.einsum("ij,ij->i", n, pts[idx]) / cos
+            good = inside & ray_ok & (np.abs(cos) >= min_cos) & np.isfinite(r) & (r > 0)
+            out.append(ray[good] * r[good, None])
+    return np.concatenate(out)
 
 
 def render_points(model: CameraModel, pts_cam: F64, T_world_cam: F64, params: RenderParams) -> Rendering:
@@ -111,10 +154,14 @@ def dense_ground_truth(
             0,
             {},
         )
-    fish = render_points(model, pts_cam0, np.eye(4), params.render)
-    T_cam0_rect = np.eye(4)
-    T_cam0_rect[:3, :3] = R_cam0_rect
-    rect = render_points(eq, pts_cam0, T_cam0_rect, params.render)
+    normals = plane_normals(pts_cam0, params.plane_neighbours, params.plane_max_flatness)
+    fish_pts = snap_to_pixel_rays(model, pts_cam0, normals, params.surfel_px, params.plane_min_cos)
+    fish = render_points(model, fish_pts, np.eye(4), params.render)
+    # the rectified frame: p_rect = R_cam0_rect^T p_cam0
+    pts_rect = pts_cam0 @ R_cam0_rect
+    normals_rect = Normals(normals.normal @ R_cam0_rect, normals.planar)
+    rect_pts = snap_to_pixel_rays(eq, pts_rect, normals_rect, params.surfel_px, params.plane_min_cos)
+    rect = render_points(eq, rect_pts, np.eye(4), params.render)
     fish_ok = away_from_edges(fish, params.edge_px)
     pix = np.flatnonzero(fish_ok)
     range_img = SparseImage(fish.range_m.shape, pix, fish.range_m.reshape(-1)[pix])
@@ -132,30 +179,36 @@ def dense_ground_truth(
     return DenseGt(range_img, disp_img, int((~stable).sum()), len(pts_cam0), stats)
 
 
-def free_space_filter(pts_world: F64, origins_world: F64, sweep_id: I64, params: DenseParams) -> Bool:
-    """Keep mask: points no other sweep saw through (a mover's earlier positions are cleared).
+def free_space_filter(
+    pts: F64, slice_id: I64, references: list[tuple[int, F64]], params: DenseParams
+) -> Bool:
+    """Keep mask: points that no reference slice saw through (a mover's earlier positions are cleared).
 
-    Each sweep's points, seen from their LiDAR's origin (`origins_world`, one
-    row per sweep), give the farthest return per `free_cell_deg` cell of
-    direction. A point of another sweep whose direction from that origin falls
-    in a cell, and which lies nearer than every return of that cell by more
-    than `free_margin_m` + 3 % of its range, sat where that sweep saw empty
-    space: it is removed. Cells use the nearest return, so the test clears a
-    point only where the whole cell was seen beyond it (edges stay).
+    `slice_id` names each point's slice (one LiDAR, a few tens of ms);
+    `references` are (slice id, that LiDAR's origin at the slice's time), all
+    in the same frame as `pts`: the frame's own slices. Each reference's
+    points give the nearest return per `free_cell_deg` cell of direction from
+    its origin. A point of another slice whose direction falls in a cell and
+    that lies nearer than the cell's nearest return by more than
+    `free_margin_m` + 3 % of its range sat where the reference saw empty
+    space, so it is removed. Cells with no return say nothing, and the
+    nearest return (not the farthest) makes the test clear a point only
+    where the whole cell was seen beyond it, so static edges stay.
     """
-    keep = np.ones(len(pts_world), bool)
+    keep = np.ones(len(pts), bool)
     cells_per_rad = 1.0 / np.radians(params.free_cell_deg)
     n_az = int(np.ceil(2 * np.pi * cells_per_rad))
     n_el = int(np.ceil(np.pi * cells_per_rad))
-    for s in np.unique(sweep_id):
-        own = sweep_id == s
-        d = pts_world[own] - origins_world[s]
-        nearest = _nearest_per_cell(d, cells_per_rad, n_az, n_el)
+    for sid, origin in references:
+        own = slice_id == sid
+        if not own.any():
+            continue
+        nearest = _nearest_per_cell(pts[own] - origin, cells_per_rad, n_az, n_el)
         other = np.flatnonzero(~own & keep)
-        q = pts_world[other] - origins_world[s]
-        cell, rng = _cells(q, cells_per_rad, n_az, n_el)
+        cell, rng = _cells(pts[other] - origin, cells_per_rad, n_az, n_el)
         seen = nearest[cell]
-        cleared = np.isfinite(seen) & (seen > rng + params.free_margin_m + 0.03 * rng)
+        with np.errstate(invalid="ignore"):
+            cleared = seen > rng + params.free_margin_m + 0.03 * rng
         keep[other[cleared]] = False
     return keep
 

@@ -37,6 +37,7 @@ from scipy.spatial.transform import Rotation
 
 from calibration.linalg3 import rotvec_to_matrix
 from calibration.types import F64, I64, Bool
+from ingest.errors import OdometryError
 from ingest.train.clouds import GyroTrack, estimate_velocity
 from ingest.train.planes import neighbour_covariances, normals_from_covariances
 
@@ -91,6 +92,14 @@ class RigTrajectory:
         return _chain_rotation(self, k, f, t), self.p_world_cam0[k] + f[:, None] * (
             self.p_world_cam0[k + 1] - self.p_world_cam0[k]
         )
+
+    def speed_mps(self, t_ns: int) -> float:
+        """Speed of cam0 (m/s) over the knot interval holding `t_ns`."""
+        if len(self.stamps_ns) < 2:
+            return 0.0
+        k, _ = self._segment(np.array([t_ns]))
+        step = self.p_world_cam0[k[0] + 1] - self.p_world_cam0[k[0]]
+        return float(np.linalg.norm(step) / ((self.stamps_ns[k[0] + 1] - self.stamps_ns[k[0]]) / 1e9))
 
     def to_frame(self, pts_cam0: F64, t_ns: I64, t_ref_ns: int) -> F64:
         """Points measured in cam0 at their times `t_ns` (N, 3), expressed in cam0 at `t_ref_ns`."""
@@ -296,46 +305,70 @@ def _solve_chunk(
     return R_new, p_new, residual
 
 
+class Odometry:
+    """Incremental odometry: `add` points as they are read, `advance` when they are complete up to a time.
+
+    Points must already be filtered (no zeros, no noise tags, no points on
+    the rig) and given in cam0 at their own times.
+    """
+
+    def __init__(self, gyro_track: GyroTrack | None, params: OdometryParams | None = None) -> None:
+        self.params = params or OdometryParams()
+        ok = gyro_track is not None and len(gyro_track.stamps_ns) > 1
+        self.gyro = GyroShape.from_track(gyro_track) if ok and gyro_track is not None else None
+        self._pts: list[F64] = []
+        self._t: list[I64] = []
+        self._chain: _Chain | None = None
+        self._map = LocalMap(self.params)
+
+    @property
+    def span_ns(self) -> int:
+        return self.params.knot_ns * self.params.knots_per_chunk
+
+    def add(self, pts_cam0: F64, stamps_ns: I64) -> None:
+        if len(stamps_ns):
+            self._pts.append(np.asarray(pts_cam0, np.float64))
+            self._t.append(np.asarray(stamps_ns, np.int64))
+
+    def advance(self, complete_ns: int) -> None:
+        """Register every chunk that ends at or before `complete_ns` (no earlier point will come)."""
+        if not self._t:
+            return
+        P, T = np.concatenate(self._pts), np.concatenate(self._t)
+        if self._chain is None:
+            if complete_ns - int(T.min()) < 2 * self.span_ns:
+                self._pts, self._t = [P], [T]
+                return
+            self._chain, rest = _start(P, T, self._map, self.gyro, self.params)
+            P, T = P[rest], T[rest]
+        while self._chain.stamps[-1] + self.span_ns <= complete_ns:
+            mine = self._chain.stamps[-1] + self.span_ns > T
+            _register_chunk(self._chain, P[mine], T[mine], self._map, self.gyro, self.params)
+            P, T = P[~mine], T[~mine]
+        self._pts, self._t = [P], [T]
+
+    def result(self) -> RigTrajectory:
+        """The knots so far (after registering every whole chunk); `OdometryError` below 200 ms of points."""
+        if self._t and self._chain is not None:
+            end = int(np.concatenate(self._t).max())
+            self.advance(end - (end - self._chain.stamps[-1]) % self.span_ns)
+        elif self._t:
+            self.advance(int(np.concatenate(self._t).max()))
+        if self._chain is None:
+            raise OdometryError(f"odometry: less than {2 * self.span_ns / 1e6:.0f} ms of LiDAR points")
+        return self._chain.trajectory(self.gyro)
+
+
 def estimate_trajectory(
     chunks: Iterable[tuple[F64, I64]], gyro_track: GyroTrack | None, params: OdometryParams | None = None
 ) -> RigTrajectory:
-    """The rig's trajectory from time-ordered chunks of (points in cam0 at their own times, stamps).
-
-    Chunks may have any length; they are regrouped into `knot_ns` x
-    `knots_per_chunk` solves. Points must already be filtered (no zeros, no
-    noise tags, no points on the rig).
-    """
-    prm = params or OdometryParams()
-    gyro = (
-        GyroShape.from_track(gyro_track) if gyro_track is not None and len(gyro_track.stamps_ns) > 1 else None
-    )
-    span = prm.knot_ns * prm.knots_per_chunk
-    buf_p: list[F64] = []
-    buf_t: list[I64] = []
-    chain: _Chain | None = None
-    the_map = LocalMap(prm)
+    """The rig's trajectory from time-ordered chunks of (points in cam0 at their own times, stamps)."""
+    odo = Odometry(gyro_track, params)
     for pts, t in chunks:
-        if len(t) == 0:
-            continue
-        buf_p.append(np.asarray(pts, np.float64))
-        buf_t.append(np.asarray(t, np.int64))
-        P, T = np.concatenate(buf_p), np.concatenate(buf_t)
-        if chain is None:
-            if T.max() - T.min() < 2 * span:
-                buf_p, buf_t = [P], [T]
-                continue
-            chain, rest = _start(P, T, the_map, gyro, prm)
-            buf_p, buf_t = [P[rest]], [T[rest]]
-            continue
-        while len(T) and T.max() >= chain.stamps[-1] + span:
-            end = chain.stamps[-1] + span
-            mine = end > T
-            _register_chunk(chain, P[mine], T[mine], the_map, gyro, prm)
-            P, T = P[~mine], T[~mine]
-        buf_p, buf_t = [P], [T]
-    if chain is None:
-        raise ValueError("odometry: less than 200 ms of LiDAR points")
-    return chain.trajectory(gyro)
+        odo.add(pts, t)
+        if len(t):
+            odo.advance(int(t.max()))
+    return odo.result()
 
 
 def _start(

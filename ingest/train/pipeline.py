@@ -34,9 +34,10 @@ from ingest.dataset.layout import (
     sample_id,
     write_atomic,
 )
-from ingest.errors import BagError, DatasetError
+from ingest.errors import BagError, DatasetError, OdometryError
 from ingest.runtime.executor import Executor, Handoff
 from ingest.runtime.heap import retain_freed_memory
+from ingest.train.odometry import RigTrajectory
 from ingest.train.sample import (
     Geometry,
     ImuWindow,
@@ -55,6 +56,7 @@ from ingest.train.sync import (
     pair_tolerance_ns,
     select_samples,
 )
+from ingest.train.trajectory import TrajectorySummary, choose_method, run_trajectory_pass
 
 
 @dataclass(frozen=True)
@@ -70,10 +72,15 @@ class IngestConfig:
     height_full: int | None = None
     salvage: bool = False
     dask: str | None = None
+    gt: str = "auto"  # sparse | dense | auto (see ingest.train.trajectory.choose_method)
     sample: SampleParams = field(default_factory=SampleParams)
 
     def validate(self) -> None:
         """Values a run cannot start with, named as the CLI options that set them."""
+        if self.gt not in ("sparse", "dense", "auto"):
+            raise DatasetError(f"--gt {self.gt!r}: expected sparse, dense or auto")
+        if not self.sample.dense.window_ns > 0:
+            raise DatasetError(f"--gt-window-ms must be > 0, got {self.sample.dense.window_ns / 1e6:g}")
         if self.sample.motion not in ("full", "rotation", "off"):
             raise DatasetError(f"--motion {self.sample.motion!r}: expected full, rotation or off")
         if self.workers < 1 or self.every < 1 or not 0 <= self.sample.png_level <= 3:
@@ -100,6 +107,9 @@ class IngestSummary:
     overlapped_ms: dict[str, list[float]] = field(default_factory=dict)  # helper threads beside them
     seconds: float = 0.0
     out: Path | None = None
+    method: str = "sparse"
+    decision: str = ""
+    trajectory: TrajectorySummary | None = None
 
     def add(self, result: SampleResult) -> None:
         if not result.written:
@@ -216,7 +226,12 @@ def _imu_window(imu_t: list[int], imu_g: list[Any], tc: int, w: int, R_cam0_imu:
 
 
 def stream_jobs(
-    bags: BagSet, topics: Topics, the_plan: Plan, cfg: IngestConfig, geometry: Geometry
+    bags: BagSet,
+    topics: Topics,
+    the_plan: Plan,
+    cfg: IngestConfig,
+    geometry: Geometry,
+    trajectory: RigTrajectory | None = None,
 ) -> Iterator[SampleJob | tuple[str, str]]:
     """Second pass: yield a SampleJob per planned sample (or (sid, "done") when already written)."""
     w = cfg.lidar_window_ns
@@ -247,7 +262,7 @@ def stream_jobs(
         f = frames.pop(k)
         return SampleJob(
             cfg.out, sids[k], source, tc, int(the_plan.lower_ns[k]), f["upper"].image, f["lower"].image,
-            lidars, imu, None, geometry, cfg.sample,
+            lidars, imu, None, geometry, cfg.sample, trajectory,
         )  # fmt: skip
 
     wanted = [topics.upper, topics.lower, *topics.lidars, *([topics.imu] if topics.imu else [])]
@@ -332,8 +347,14 @@ def _fingerprint(cfg: IngestConfig, geometry: Geometry, bags: list[Path]) -> dic
     }
 
 
-def _write_dataset_yaml(cfg: IngestConfig, geometry: Geometry, bags: list[Path]) -> None:
+def _write_dataset_yaml(cfg: IngestConfig, geometry: Geometry, bags: list[Path], run: IngestSummary) -> None:
     doc = _fingerprint(cfg, geometry, bags)
+    doc["ground_truth"] = {
+        "method": run.method,
+        "decision": run.decision,
+        "window_ms": cfg.lidar_window_ns / 1e6,
+        "trajectory": run.trajectory.as_dict() if run.trajectory else None,
+    }
     path = cfg.out / "dataset.yaml"
     if path.exists():
         old = yaml.safe_load(path.read_text()) or {}
@@ -354,6 +375,32 @@ def _write_dataset_yaml(cfg: IngestConfig, geometry: Geometry, bags: list[Path])
     write_rig(geometry.rig, rig_dir / "rig.yaml", camchain_name="camchain.yaml")
 
 
+def _gt_method(
+    bags: BagSet, topics: Topics, rig: Rig, cfg: IngestConfig, summary: IngestSummary
+) -> tuple[IngestConfig, RigTrajectory | None]:
+    """Run the trajectory pass when --gt dense/auto needs it, decide the method, set the window.
+
+    Dense GT streams every sweep within its window (`--gt-window-ms`); the
+    trajectory goes to `trajectories/<first bag>.tum` in the output.
+    """
+    traj, tsum, failure = None, None, ""
+    if cfg.gt in ("dense", "auto"):
+        out_file = cfg.out / "trajectories" / f"{Path(bags.paths[0]).name}.tum"
+        try:
+            traj, tsum = run_trajectory_pass(
+                bags, topics.lidars, (topics.imu, topics.R_cam0_imu), rig, cfg.sample.min_range_m, out_file
+            )
+        except OdometryError as err:
+            if cfg.gt == "dense":
+                raise
+            failure = str(err)
+    method, decision = choose_method(cfg.gt, tsum, failure)
+    summary.method, summary.decision, summary.trajectory = method, decision, tsum
+    sample = replace(cfg.sample, method=method, decision=decision)  # type: ignore[arg-type]
+    window = cfg.sample.dense.window_ns if method == "dense" else cfg.lidar_window_ns
+    return replace(cfg, sample=sample, lidar_window_ns=window), traj if method == "dense" else None
+
+
 def _slot_bytes(rig: Rig) -> int:
     """Bytes of one sample's two BGR uint8 images at the rig's sizes."""
     return sum(cam.model.width * cam.model.height * 3 for cam in (rig.upper, rig.lower))
@@ -372,6 +419,7 @@ def ingest(
     summary = IngestSummary(out=cfg.out)
     with open_bags(bag_paths, salvage=cfg.salvage) as bags:
         topics = _resolve_topics(rig, bags.topics(), ", ".join(str(p) for p in bag_paths))
+        cfg, traj = _gt_method(bags, topics, rig, cfg, summary)
         the_plan = plan(bags, topics, cfg)
         summary.frames, summary.pairs, summary.planned = (
             the_plan.frames,
@@ -379,7 +427,7 @@ def ingest(
             len(the_plan.upper_ns),
         )
         prepare_dirs(cfg.out, cfg.sample.exr)
-        _write_dataset_yaml(cfg, geometry, [Path(p) for p in bag_paths])
+        _write_dataset_yaml(cfg, geometry, [Path(p) for p in bag_paths], summary)
         if not cfg.dask and summary.planned:
             geometry.warm_maps()
         executor = Executor(cfg.workers, dask=cfg.dask, worker_init=retain_freed_memory)
@@ -396,7 +444,7 @@ def ingest(
 
         def jobs() -> Iterator[SampleJob]:
             """The jobs to run; resumed and skipped samples are counted here, in stream order."""
-            for item in stream_jobs(bags, topics, the_plan, cfg, geometry):
+            for item in stream_jobs(bags, topics, the_plan, cfg, geometry, traj):
                 if not isinstance(item, tuple):
                     yield item
                     continue

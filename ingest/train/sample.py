@@ -21,8 +21,10 @@ from calibration.types import F64, I64
 from calibration.warp import build_maps, check_source, default_height_full, remap_spans
 from ingest.dataset.layout import SampleFiles, write_sample
 from ingest.dataset.meta import GtMeta, MotionMeta, PointMeta, SampleMeta
+from ingest.dataset.sparse import SparseImage
 from ingest.runtime.background import Background
 from ingest.train.clouds import FilterCounts, compensate, estimate_velocity, filter_points, integrate_gyro
+from ingest.train.dense import DenseParams, dense_ground_truth, free_space_filter
 from ingest.train.groundtruth import (
     GtParams,
     equirect_disparity,
@@ -33,6 +35,7 @@ from ingest.train.groundtruth import (
     splat_to_pixels,
     surface_normals,
 )
+from ingest.train.odometry import RigTrajectory
 from ingest.train.planes import Normals
 
 INTERPOLATION = {"linear": cv2.INTER_LINEAR, "cubic": cv2.INTER_CUBIC, "nearest": cv2.INTER_NEAREST}
@@ -106,6 +109,9 @@ class SampleParams:
     interpolation: Literal["linear", "cubic", "nearest"] = "linear"  # equirect warps of the images
     overlap_images: bool = True  # warps in a helper thread beside the point work (off: inline)
     gt: GtParams = field(default_factory=GtParams)
+    method: Literal["sparse", "dense"] = "sparse"  # the run's GT method (--gt auto is decided before)
+    decision: str = "asked"  # why `method` (written to every sample's meta)
+    dense: DenseParams = field(default_factory=DenseParams)
 
 
 @dataclass(frozen=True)
@@ -124,6 +130,7 @@ class SampleJob:
     velocity_cam0_mps: F64 | None
     geometry: Geometry
     params: SampleParams
+    trajectory: RigTrajectory | None = None  # the recording's (dense GT)
 
 
 _NO_IMAGE = np.zeros((0, 0, 3), np.uint8)  # a job's image field while its images travel apart
@@ -159,17 +166,24 @@ class SampleResult:
 
 def _points_in_cam0(job: SampleJob) -> tuple[F64, I64, FilterCounts, dict[str, float]]:
     """Filtered points of every LiDAR in cam0 (at their own times), their stamps, counts, skews."""
-    pts, stamps, total, skew = [], [], FilterCounts(), {}
-    for lp in job.lidars:
+    pts, stamps, _, total, skew = _points_by_lidar(job)
+    return pts, stamps, total, skew
+
+
+def _points_by_lidar(job: SampleJob) -> tuple[F64, I64, I64, FilterCounts, dict[str, float]]:
+    """`_points_in_cam0` and the index (into `job.lidars`) of each point's LiDAR."""
+    pts, stamps, which, total, skew = [], [], [], FilterCounts(), {}
+    for i, lp in enumerate(job.lidars):
         keep, counts = filter_points(lp.xyz_m, lp.tag, job.params.min_range_m)
         T = job.geometry.rig.lidar(lp.name).T_cam0_lidar
         xyz = np.asarray(lp.xyz_m, np.float64)[keep]
         pts.append(np.einsum("ij,nj->ni", T[:3, :3], xyz) + T[:3, 3])
         stamps.append(lp.stamps_ns[keep])
+        which.append(np.full(int(keep.sum()), i, np.int64))
         total = total + counts
         dt = (lp.stamps_ns[keep] - job.upper_stamp_ns) / 1e6
         skew[lp.name] = float(np.abs(dt).max()) if len(dt) else 0.0
-    return np.concatenate(pts), np.concatenate(stamps), total, skew
+    return np.concatenate(pts), np.concatenate(stamps), np.concatenate(which), total, skew
 
 
 Equirects = tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]
@@ -221,6 +235,8 @@ def process_sample(job: SampleJob) -> SampleResult:
 
 def _process(job: SampleJob, images: Background[Equirects], start_ms: float) -> SampleResult:
     """`process_sample`'s stages, with its warps under way in `images` (starting them took `start_ms`)."""
+    if job.params.method == "dense":
+        return _process_dense(job, images, start_ms)
     ms: dict[str, float] = {}
     t0 = time.perf_counter()
     geo, prm = job.geometry, job.params
@@ -267,11 +283,7 @@ def _process(job: SampleJob, images: Background[Equirects], start_ms: float) -> 
     disp_img, _, unstable = equirect_disparity(
         geo.equirect, R_rect_cam0, pts[visible], kept, geo.rect.baseline_m, prm.gt
     )
-    t2 = time.perf_counter()
-    ms["ground_truth"] = (t2 - t1) * 1e3
-    up, down = images.result()
-    t3 = time.perf_counter()
-    ms["images"] = start_ms + (t3 - t2) * 1e3
+    ms["ground_truth"] = (time.perf_counter() - t1) * 1e3
     meta = SampleMeta(
         stamp_ns=job.upper_stamp_ns, lower_stamp_ns=job.lower_stamp_ns,
         stereo_dt_ms=(job.lower_stamp_ns - job.upper_stamp_ns) / 1e6, source_bag=job.source,
@@ -288,11 +300,99 @@ def _process(job: SampleJob, images: Background[Equirects], start_ms: float) -> 
         ),
         gt=GtMeta(
             depth_pixels=range_img.count, disp_pixels=disp_img.count, disp_unstable=unstable,
-            density=range_img.count / geo.fisheye_valid_px,
+            density=range_img.count / geo.fisheye_valid_px, window_ms=prm.window_ns / 1e6,
+            decision=prm.decision,
         ),
     )  # fmt: skip
-    files = SampleFiles(job.upper_bgr, job.lower_bgr, up, down, disp_img, range_img, meta)
-    drops = write_sample(job.out, job.sid, files, prm.exr, prm.png_level)
+    return _finish(job, images, start_ms, ms, (range_img, disp_img), meta)
+
+
+def _finish(
+    job: SampleJob,
+    images: Background[Equirects],
+    start_ms: float,
+    ms: dict[str, float],
+    gt: tuple[SparseImage, SparseImage],
+    meta: SampleMeta,
+) -> SampleResult:
+    """Wait for the warps, write the sample's files, and time both."""
+    t2 = time.perf_counter()
+    up, down = images.result()
+    t3 = time.perf_counter()
+    ms["images"] = start_ms + (t3 - t2) * 1e3
+    files = SampleFiles(job.upper_bgr, job.lower_bgr, up, down, gt[1], gt[0], meta)
+    drops = write_sample(job.out, job.sid, files, job.params.exr, job.params.png_level)
     ms["write"] = (time.perf_counter() - t3) * 1e3
-    helper = {"equirect warps": images.ms} if prm.overlap_images else {}  # inline: inside stage "images"
+    helper = {"equirect warps": images.ms} if job.params.overlap_images else {}
     return SampleResult(job.sid, True, "", meta.written(job.sid, drops), ms, helper)
+
+
+def _process_dense(job: SampleJob, images: Background[Equirects], start_ms: float) -> SampleResult:
+    """Dense GT: every point of the window placed by the trajectory, movers removed, rendered."""
+    ms: dict[str, float] = {}
+    t0 = time.perf_counter()
+    geo, prm, traj = job.geometry, job.params, job.trajectory
+    if traj is None:
+        return SampleResult(job.sid, False, "dense GT without a trajectory", None, {})
+    pts, stamps, which, counts, skew_ms = _points_by_lidar(job)
+    tc = job.upper_stamp_ns
+    covered = traj.covers(stamps)
+    if not (traj.covers(np.array([tc]))[0] and covered.any()):
+        return SampleResult(job.sid, False, "outside the trajectory", None, {})
+    pts, stamps, which = pts[covered], stamps[covered], which[covered]
+    placed = traj.to_frame(pts, stamps, tc)
+    removed = 0
+    if prm.dense.free_space:
+        keep = free_space_filter(placed, *_slices(job, traj, stamps, which), prm.dense)
+        removed = int((~keep).sum())
+        placed = placed[keep]
+    t1 = time.perf_counter()
+    ms["clouds"] = (t1 - t0) * 1e3
+    rect = geo.rect
+    dense = dense_ground_truth(
+        geo.rig.upper.model, geo.equirect, rect.R_cam0_rect, rect.baseline_m, placed, prm.dense
+    )
+    ms["ground_truth"] = (time.perf_counter() - t1) * 1e3
+    in_window = (traj.stamps_ns >= tc - prm.dense.window_ns) & (traj.stamps_ns <= tc + prm.dense.window_ns)
+    residual = traj.residual_m[in_window]
+    residual = residual[np.isfinite(residual)]
+    meta = SampleMeta(
+        stamp_ns=tc, lower_stamp_ns=job.lower_stamp_ns, stereo_dt_ms=(job.lower_stamp_ns - tc) / 1e6,
+        source_bag=job.source, lidar_skew_ms=skew_ms,
+        motion=MotionMeta(
+            applied=True, source="trajectory", max_rotation_deg=0.0, speed_mps=traj.speed_mps(tc),
+            predicted_motion_px=0.0, velocity_cam0_mps=None,
+        ),
+        points=PointMeta(
+            total=counts.total, zero=counts.zero, non_finite=counts.non_finite, too_close=counts.too_close,
+            noise_tag=counts.noise_tag, kept=int(covered.sum()), out_of_view=0, occluded=0,
+        ),
+        gt=GtMeta(
+            depth_pixels=dense.range_img.count, disp_pixels=dense.disp_img.count,
+            disp_unstable=dense.unstable, density=dense.range_img.count / geo.fisheye_valid_px,
+            method="dense", window_ms=prm.dense.window_ns / 1e6, decision=prm.decision,
+            accumulated_points=len(placed), removed_moving=removed,
+            trajectory_residual_mm=float(residual.max() * 1e3) if len(residual) else None,
+        ),
+    )  # fmt: skip
+    return _finish(job, images, start_ms, ms, (dense.range_img, dense.disp_img), meta)
+
+
+def _slices(
+    job: SampleJob, traj: RigTrajectory, stamps: I64, which: I64
+) -> tuple[I64, list[tuple[int, F64]]]:
+    """Slice id per point (LiDAR x `free_slice_ns`) and the frame's own slices with their LiDAR origins.
+
+    Origins are in cam0 at the frame time, where `traj.to_frame` put the points.
+    """
+    prm, tc = job.params.dense, job.upper_stamp_ns
+    k = (stamps - tc) // prm.free_slice_ns
+    n_lidars = max(len(job.lidars), 1)
+    slice_id = k * n_lidars + which
+    refs = []
+    for sid in np.unique(slice_id[np.abs(stamps - tc) <= prm.free_reference_ns]):
+        lidar = job.lidars[int(sid % n_lidars)].name
+        t_mid = tc + int(sid // n_lidars) * prm.free_slice_ns + prm.free_slice_ns // 2
+        origin_cam0 = job.geometry.rig.lidar(lidar).T_cam0_lidar[:3, 3][None, :]
+        refs.append((int(sid), traj.to_frame(origin_cam0, np.array([t_mid]), tc)[0]))
+    return slice_id, refs

@@ -27,7 +27,18 @@ DaskOpt = Annotated[
     str | None, typer.Option(help="dask.distributed scheduler address, e.g. tcp://host:8786.")
 ]
 EveryOpt = Annotated[int, typer.Option(help="Keep every N-th eligible frame.")]
-WindowOpt = Annotated[float, typer.Option(help="LiDAR points within +- this of the frame time (ms).")]
+WindowOpt = Annotated[
+    float, typer.Option(help="Sparse GT: LiDAR points within +- this of the frame time (ms).")
+]
+GtOpt = Annotated[
+    str,
+    typer.Option(
+        help="Ground truth: sparse (the frame's own sweeps), dense (every sweep of --gt-window-ms placed by "
+        "the recording's LiDAR-inertial trajectory, movers removed) or auto (dense when the trajectory is "
+        "sound, else sparse; the decision goes to dataset.yaml and every meta file)."
+    ),
+]
+GtWindowOpt = Annotated[float, typer.Option(help="Dense GT: sweeps within +- this of the frame time (ms).")]
 ExrOpt = Annotated[bool, typer.Option("--exr", help="Also write float32 EXR copies of the GT.")]
 PngLevelOpt = Annotated[int, typer.Option(help="PNG deflate level 0-3 (ISA-L; 0 fastest, 3 smallest).")]
 HeightFullOpt = Annotated[
@@ -53,8 +64,16 @@ def summary_table(summary: IngestSummary, out: Path) -> Table:
             f"{summary.frames} / {summary.pairs} / {summary.planned}",
         ),
         ("written / already done (resumed)", f"{summary.written} / {summary.resumed}"),
+        ("ground truth", f"{summary.method} ({summary.decision})"),
         *((f"skipped: {reason}", str(n)) for reason, n in summary.skipped.items()),
     ]
+    if summary.trajectory is not None:
+        t = summary.trajectory
+        residual = f"{t.residual_median_mm:.2f} / {t.residual_p95_mm:.2f} mm"
+        rows.append(
+            ("trajectory (knots, residual median / p95, time)", f"{t.knots}, {residual}, {t.seconds:.1f} s")
+        )
+        rows.append(("trajectory file (TUM, T_world_cam0)", t.file))
     if summary.density:
         rows += [
             ("GT density (fisheye, median)", f"{np.median(summary.density) * 100:.2f} %"),
@@ -78,17 +97,19 @@ def ingest_cmd(
     bags: BagsArg, rig: RigOpt, out: OutOpt, workers: WorkersOpt = 2, dask: DaskOpt = None,
     every: EveryOpt = 1, window_ms: WindowOpt = 50.0, exr: ExrOpt = False, png_level: PngLevelOpt = 1,
     height_full: HeightFullOpt = None, min_range: MinRangeOpt = 0.3, motion: MotionOpt = "full",
-    salvage: SalvageOpt = False,
+    salvage: SalvageOpt = False, gt: GtOpt = "auto", gt_window_ms: GtWindowOpt = 500.0,
 ) -> None:  # fmt: skip
-    """Turn recorded bags into the WideDepth training set (rectified equirect pairs + sparse GT)."""
+    """Turn recorded bags into the WideDepth training set (rectified equirect pairs + depth/disparity GT)."""
+    from ingest.train.dense import DenseParams
     from ingest.train.pipeline import IngestConfig, ingest
     from ingest.train.sample import SampleParams
     from sensorbox.analysis.plots import plot_sample
 
-    sample = SampleParams(min_range_m=min_range, exr=exr, png_level=png_level, motion=motion)  # type: ignore[arg-type]
+    dense = DenseParams(window_ns=round(gt_window_ms * 1e6))
+    sample = SampleParams(min_range_m=min_range, exr=exr, png_level=png_level, motion=motion, dense=dense)  # type: ignore[arg-type]
     cfg = IngestConfig(
         rig=rig, out=out, workers=workers, every=every, lidar_window_ns=round(window_ms * 1e6),
-        height_full=height_full, salvage=salvage, dask=dask, sample=sample,
+        height_full=height_full, salvage=salvage, dask=dask, gt=gt, sample=sample,
     )  # fmt: skip
     with progress_bar("ingesting", "samples") as update:
         summary = ingest(bags, cfg, progress=update)

@@ -1,0 +1,145 @@
+"""The trajectory pass: one read of a recording's LiDARs and IMU, the odometry, and its file.
+
+`read_gyro` collects the IMU's angular rates (small: 200 Hz); `trajectory_pass`
+streams every sweep of every LiDAR, filters it as the samples do
+(`ingest.train.clouds.filter_points`), puts it in cam0 with the rig's
+extrinsics and feeds `ingest.train.odometry.Odometry`. Sweeps of several
+LiDARs interleave in the bag; the odometry registers a chunk only once every
+LiDAR has delivered points past its end.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from calibration.rig import Rig
+from calibration.types import F64
+from ingest.bags.decode import ImuSample, Sweep, decode
+from ingest.bags.reader import BagSet
+from ingest.train.clouds import GyroTrack, filter_points, integrate_gyro
+from ingest.train.odometry import Odometry, OdometryParams, RigTrajectory
+
+
+@dataclass(frozen=True)
+class TrajectorySummary:
+    """What the trajectory pass measured (for meta, dataset.yaml and the CLI)."""
+
+    knots: int
+    span_s: float
+    residual_median_mm: float
+    residual_p95_mm: float
+    gaps: int  # knots carried by prediction (no LiDAR points)
+    seconds: float
+    file: str
+
+    def as_dict(self) -> dict[str, Any]:
+        return dict(self.__dict__)
+
+
+def read_gyro(bags: BagSet, imu_topic: str | None, R_cam0_imu: F64 | None) -> GyroTrack | None:
+    """The integrated gyro of the rig's IMU, or None without one."""
+    if imu_topic is None or R_cam0_imu is None:
+        return None
+    stamps, rates = [], []
+    for msg in bags.messages(topics=[imu_topic]):
+        sample = decode(msg.msgtype, msg.raw, msg.ros_version)
+        assert isinstance(sample, ImuSample)
+        stamps.append(sample.stamp_ns)
+        rates.append(sample.gyro_rad_s)
+    if len(stamps) < 2:
+        return None
+    return integrate_gyro(np.array(stamps, np.int64), np.array(rates), R_cam0_imu)
+
+
+def trajectory_pass(
+    bags: BagSet,
+    lidar_topics: dict[str, str],
+    rig: Rig,
+    gyro: GyroTrack | None,
+    min_range_m: float,
+    params: OdometryParams | None = None,
+    progress: Callable[[float], None] | None = None,
+) -> RigTrajectory:
+    """Odometry over every sweep of `lidar_topics` (topic -> rig lidar name); `progress(seconds read)`."""
+    odo = Odometry(gyro, params)
+    last = {topic: -(2**62) for topic in lidar_topics}
+    first_ns: int | None = None
+    for msg in bags.messages(topics=list(lidar_topics)):
+        sweep = decode(msg.msgtype, msg.raw, msg.ros_version)
+        assert isinstance(sweep, Sweep)
+        if not len(sweep.stamps_ns):
+            continue
+        keep, _ = filter_points(sweep.xyz_m, sweep.tag, min_range_m)
+        T = rig.lidar(lidar_topics[msg.topic]).T_cam0_lidar
+        xyz = np.asarray(sweep.xyz_m, np.float64)[keep]
+        odo.add(xyz @ T[:3, :3].T + T[:3, 3], sweep.stamps_ns[keep])
+        last[msg.topic] = max(last[msg.topic], int(sweep.stamps_ns.max()))
+        odo.advance(min(last.values()))
+        first_ns = int(sweep.stamps_ns.min()) if first_ns is None else first_ns
+        if progress is not None:
+            progress((last[msg.topic] - first_ns) / 1e9)
+    return odo.result()
+
+
+def summarize(traj: RigTrajectory, seconds: float, file: Path) -> TrajectorySummary:
+    res = traj.residual_m[1:]
+    ok = res[np.isfinite(res)]
+    return TrajectorySummary(
+        knots=len(traj.stamps_ns),
+        span_s=float((traj.stamps_ns[-1] - traj.stamps_ns[0]) / 1e9),
+        residual_median_mm=float(np.median(ok) * 1e3) if len(ok) else float("nan"),
+        residual_p95_mm=float(np.percentile(ok, 95) * 1e3) if len(ok) else float("nan"),
+        gaps=int((~np.isfinite(res)).sum()),
+        seconds=seconds,
+        file=file.as_posix(),
+    )
+
+
+def run_trajectory_pass(
+    bags: BagSet,
+    lidar_topics: dict[str, str],
+    imu: tuple[str | None, F64 | None],
+    rig: Rig,
+    min_range_m: float,
+    out_file: Path,
+    params: OdometryParams | None = None,
+) -> tuple[RigTrajectory, TrajectorySummary]:
+    """Gyro, odometry and `out_file` (TUM, T_world_cam0), with the summary of the run."""
+    t0 = time.perf_counter()
+    gyro = read_gyro(bags, *imu)
+    traj = trajectory_pass(bags, lidar_topics, rig, gyro, min_range_m, params)
+    out_file.parent.mkdir(parents=True, exist_ok=True)
+    traj.write_tum(out_file)
+    return traj, summarize(traj, time.perf_counter() - t0, out_file)
+
+
+AUTO_MAX_RESIDUAL_MM = 30.0
+"""--gt auto uses dense GT when the trajectory's median knot residual is below this (mm)."""
+
+
+def choose_method(asked: str, summary: TrajectorySummary | None, failure: str = "") -> tuple[str, str]:
+    """(method, decision) for `--gt asked`: sparse/dense as asked; auto from the trajectory's quality.
+
+    auto takes dense GT when the odometry placed every knot (no LiDAR gap
+    carried by prediction alone) with a median residual below
+    `AUTO_MAX_RESIDUAL_MM`; otherwise sparse GT, which needs no trajectory.
+    """
+    if asked != "auto":
+        return asked, "asked"
+    if summary is None:
+        return "sparse", f"auto: no trajectory ({failure})"
+    if summary.gaps:
+        return "sparse", f"auto: trajectory has {summary.gaps} knots without LiDAR points"
+    if not summary.residual_median_mm <= AUTO_MAX_RESIDUAL_MM:
+        median = summary.residual_median_mm
+        return "sparse", f"auto: trajectory residual median {median:.1f} mm > {AUTO_MAX_RESIDUAL_MM:g} mm"
+    return (
+        "dense",
+        f"auto: trajectory residual median {summary.residual_median_mm:.2f} mm, {summary.knots} knots",
+    )
