@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -58,6 +58,7 @@ class OdometryParams:
     iterations: int = 15
     tol_m: float = 5e-5  # stop when no knot moves by more than this (rotation: this at 1 m)
     min_range_m: float = 0.3
+    refine_start_s: float = 1.0  # then the start's knots are solved again against the map built since
 
 
 @dataclass(frozen=True)
@@ -248,31 +249,28 @@ class _Chain:
         )
 
 
-def _skew_cross(a: F64, n: F64) -> F64:
-    out: F64 = np.cross(a, n)
-    return out
-
-
-def _solve_chunk(
-    chain: _Chain,
+def _solve_knots(
     knots_ns: list[int],
-    R_guess: list[F64],
-    p_guess: list[F64],
+    R_init: list[F64],
+    p_init: list[F64],
+    free: list[int],
     pts_cam0: F64,
     t_ns: I64,
     the_map: LocalMap,
     gyro: GyroShape | None,
     prm: OdometryParams,
 ) -> tuple[list[F64], list[F64], float]:
-    """Gauss-Newton on the new knots of one chunk (the first knot of `knots_ns` is fixed)."""
+    """Gauss-Newton on the knots `free` (indices into `knots_ns`; the others stay) against the map.
+
+    Returns every knot (fixed ones as given) and the weighted RMS residual (m).
+    """
     assert the_map.tree is not None
-    n_new = len(knots_ns) - 1
-    R_new, p_new = [r.copy() for r in R_guess], [p.copy() for p in p_guess]
-    k_seg = np.clip(np.searchsorted(np.array(knots_ns), t_ns, side="right") - 1, 0, n_new - 1)
+    R, p = [r.copy() for r in R_init], [q.copy() for q in p_init]
+    n_free = len(free)
+    stamps = np.array(knots_ns, np.int64)
     residual = math.nan
     for _ in range(prm.iterations):
-        traj = RigTrajectory(np.array(knots_ns, np.int64), np.array([chain.R[-1], *R_new]),
-                             np.array([chain.p[-1], *p_new]), np.zeros(len(knots_ns)), gyro)  # fmt: skip
+        traj = RigTrajectory(stamps, np.array(R), np.array(p), np.zeros(len(knots_ns)), gyro)
         R_t, p_t = traj.pose(t_ns)
         a = np.einsum("nij,nj->ni", R_t, pts_cam0)
         world = a + p_t
@@ -285,24 +283,23 @@ def _solve_chunk(
         n = the_map.normal[j[idx]]
         r = np.einsum("ij,ij->i", n, world[idx] - the_map.xyz[j[idx]])
         scale = max(1.4826 * float(np.median(np.abs(r))), 0.005)
-        w = 1.0 / (1.0 + (r / scale) ** 2)  # Cauchy-like weights: gross outliers (movers, wrong matches) fade
-        _, f = traj._segment(t_ns[idx])
-        ks = k_seg[idx]
-        J = np.zeros((len(idx), 6 * n_new))
-        rot, pos = _skew_cross(a[idx], n), n
-        for s in range(n_new):  # knot s+1 is unknown s; segment s uses knots s (1-f) and s+1 (f)
-            weight = np.where(ks == s, f, 0.0) + np.where(ks == s + 1, 1.0 - f, 0.0)
-            J[:, 6 * s : 6 * s + 3] = rot * weight[:, None]
-            J[:, 6 * s + 3 : 6 * s + 6] = pos * weight[:, None]
-        H = J.T @ (J * w[:, None]) + 1e-9 * np.eye(6 * n_new)
+        w = 1.0 / (1.0 + (r / scale) ** 2)  # Cauchy weights: gross outliers (movers, wrong matches) fade
+        seg, f = traj._segment(t_ns[idx])
+        J = np.zeros((len(idx), 6 * n_free))
+        rot, pos = np.cross(a[idx], n), n
+        for u, k in enumerate(free):  # knot k ends segment k-1 (weight f) and starts segment k (1-f)
+            weight = np.where(seg == k - 1, f, 0.0) + np.where(seg == k, 1.0 - f, 0.0)
+            J[:, 6 * u : 6 * u + 3] = rot * weight[:, None]
+            J[:, 6 * u + 3 : 6 * u + 6] = pos * weight[:, None]
+        H = J.T @ (J * w[:, None]) + 1e-9 * np.eye(6 * n_free)
         dx = np.linalg.solve(H, -(J.T @ (w * r)))
-        for s in range(n_new):
-            R_new[s] = rotvec_to_matrix(dx[6 * s : 6 * s + 3][None])[0] @ R_new[s]
-            p_new[s] = p_new[s] + dx[6 * s + 3 : 6 * s + 6]
+        for u, k in enumerate(free):
+            R[k] = rotvec_to_matrix(dx[6 * u : 6 * u + 3][None])[0] @ R[k]
+            p[k] = p[k] + dx[6 * u + 3 : 6 * u + 6]
         residual = float(np.sqrt(np.average(r**2, weights=w)))
         if np.abs(dx).max() < prm.tol_m:
             break
-    return R_new, p_new, residual
+    return R, p, residual
 
 
 class Odometry:
@@ -320,6 +317,7 @@ class Odometry:
         self._t: list[I64] = []
         self._chain: _Chain | None = None
         self._map = LocalMap(self.params)
+        self._early: list[tuple[F64, I64]] | None = None  # map points of the chunks before the refinement
 
     @property
     def span_ns(self) -> int:
@@ -334,23 +332,33 @@ class Odometry:
         """Register every chunk that ends at or before `complete_ns` (no earlier point will come)."""
         if not self._t:
             return
+        if self.gyro is not None:  # no knot past the IMU: its rotation there would be a guess
+            complete_ns = min(complete_ns, int(self.gyro.stamps_ns[-1]))
         P, T = np.concatenate(self._pts), np.concatenate(self._t)
         if self._chain is None:
             if complete_ns - int(T.min()) < 2 * self.span_ns:
                 self._pts, self._t = [P], [T]
                 return
             self._chain, rest = _start(P, T, self._map, self.gyro, self.params)
+            sub = voxel_subsample(P[~rest], self.params.map_voxel_m)
+            self._early = [(P[~rest][sub], T[~rest][sub])]
             P, T = P[rest], T[rest]
         while self._chain.stamps[-1] + self.span_ns <= complete_ns:
             mine = self._chain.stamps[-1] + self.span_ns > T
-            _register_chunk(self._chain, P[mine], T[mine], self._map, self.gyro, self.params)
+            kept = _register_chunk(self._chain, P[mine], T[mine], self._map, self.gyro, self.params)
             P, T = P[~mine], T[~mine]
+            if self._early is not None:
+                self._early.append(kept)
+                if self._chain.stamps[-1] - self._chain.stamps[0] >= self.params.refine_start_s * 1e9:
+                    _refine_start(self._chain, self._early, self._map, self.gyro, self.params)
+                    self._early = None
         self._pts, self._t = [P], [T]
 
     def result(self) -> RigTrajectory:
         """The knots so far (after registering every whole chunk); `OdometryError` below 200 ms of points."""
         if self._t and self._chain is not None:
             end = int(np.concatenate(self._t).max())
+
             self.advance(end - (end - self._chain.stamps[-1]) % self.span_ns)
         elif self._t:
             self.advance(int(np.concatenate(self._t).max()))
@@ -399,8 +407,8 @@ def _start(
 
 def _register_chunk(
     chain: _Chain, P: F64, T: I64, the_map: LocalMap, gyro: GyroShape | None, prm: OdometryParams
-) -> None:
-    """Solve the next chunk's knots, append them, and add the chunk to the map."""
+) -> tuple[F64, I64]:
+    """Solve the next chunk's knots, append them, add the chunk to the map; its map points (cam0, stamps)."""
     t_last = chain.stamps[-1]
     knots = [t_last + i * prm.knot_ns for i in range(prm.knots_per_chunk + 1)]
     # prediction: the gyro's rotation and the last chunk's velocity
@@ -417,7 +425,18 @@ def _register_chunk(
     if len(src) > prm.max_source_points:
         src = src[np.linspace(0, len(src) - 1, prm.max_source_points).astype(np.int64)]
     if len(src) >= 50:
-        R_new, p_new, res = _solve_chunk(chain, knots, R_guess, p_guess, P[src], T[src], the_map, gyro, prm)
+        R_all, p_all, res = _solve_knots(
+            knots,
+            [chain.R[-1], *R_guess],
+            [chain.p[-1], *p_guess],
+            list(range(1, len(knots))),
+            P[src],
+            T[src],
+            the_map,
+            gyro,
+            prm,
+        )
+        R_new, p_new = R_all[1:], p_all[1:]
     else:  # a LiDAR gap: carry the prediction
         R_new, p_new, res = R_guess, p_guess, math.nan
     chain.stamps.extend(knots[1:])
@@ -428,3 +447,47 @@ def _register_chunk(
     if len(dense):
         R_t, p_t = chain.trajectory(gyro).pose(T[dense])
         the_map.add(np.einsum("nij,nj->ni", R_t, P[dense]) + p_t, knots[-1], chain.p[-1])
+    return P[dense], T[dense]
+
+
+def _refine_start(
+    chain: _Chain,
+    early: list[tuple[F64, I64]],
+    the_map: LocalMap,
+    gyro: GyroShape | None,
+    prm: OdometryParams,
+) -> None:
+    """Solve the start's knots again against the map of the chunks after it, then re-anchor and re-map.
+
+    The start's knots come from a constant-velocity guess (there is no map
+    yet), which a handheld rig's bob (~3 m/s^2) breaks by centimetres; the
+    chunks after it were registered to that map, so they agree with each
+    other but not with it. The start is registered again, every knot but its
+    last free, against a map of the later chunks; the chain is then moved
+    rigidly so that its first knot is again the world origin, and the live map
+    is rebuilt from the early chunks with the new knots.
+    """
+    n_start = 3 * prm.knots_per_chunk  # knots 0 .. n_start: the start and the first chunk fixed to it
+    P = np.concatenate([e[0] for e in early])
+    T = np.concatenate([e[1] for e in early])
+    start = chain.stamps[n_start] > T
+    traj = chain.trajectory(gyro)
+    R_t, p_t = traj.pose(T[~start])
+    later = LocalMap(replace(prm, map_horizon_s=1e6))
+    later.add(np.einsum("nij,nj->ni", R_t, P[~start]) + p_t, chain.stamps[-1], chain.p[-1])
+    src = voxel_subsample(P[start], prm.source_voxel_m)
+    R, p, res = _solve_knots(
+        chain.stamps[: n_start + 1], chain.R[: n_start + 1], chain.p[: n_start + 1], list(range(n_start)),
+        P[start][src], T[start][src], later, gyro, prm,
+    )  # fmt: skip
+    chain.R[:n_start], chain.p[:n_start] = R[:n_start], p[:n_start]
+    chain.residual[1:n_start] = [res] * (n_start - 1)
+    R0, p0 = chain.R[0].copy(), chain.p[0].copy()
+    chain.R = [R0.T @ r for r in chain.R]
+    chain.p = [R0.T @ (q - p0) for q in chain.p]
+    traj = chain.trajectory(gyro)
+    R_t, p_t = traj.pose(T)
+    fresh = LocalMap(prm)
+    fresh.add(np.einsum("nij,nj->ni", R_t, P) + p_t, chain.stamps[-1], chain.p[-1])
+    the_map.xyz, the_map.normal, the_map.planar = fresh.xyz, fresh.normal, fresh.planar
+    the_map.added_ns, the_map.tree = fresh.added_ns, fresh.tree
