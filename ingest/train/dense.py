@@ -36,6 +36,7 @@ from ingest.raster.lod import build_index
 from ingest.raster.scan import Scan
 from ingest.raster.view import Rendering, render_view
 from ingest.raster.visibility import RenderParams
+from ingest.train.groundtruth import px_per_rad
 from ingest.train.planes import Normals, plane_normals
 
 
@@ -54,8 +55,9 @@ class DenseParams:
     edge_px: int = 1  # GT pixels this close to a range step or to empty sky are dropped
     free_space: bool = True  # remove points the frame's own sweeps saw through (movers)
     free_cell_deg: float = 1.0  # angular cell of the free-space test (around each LiDAR)
+    mover_margin_rad: float = 0.035  # GT this close (2 deg) to a removed point's direction is dropped
     free_slice_ns: int = 25_000_000  # one LiDAR's points over this long share one origin
-    free_reference_ns: int = 50_000_000  # slices within this of the frame time are its own
+    free_reference_ns: int = 0  # only slices this near the frame time test the others (0: every slice)
     free_margin_m: float = 0.1  # a ray must pass a point by this much (plus 3 % of range) to clear it
     stability_max_rel_error: float = 0.5
     stability_disp_error_px: float = 0.5
@@ -78,32 +80,36 @@ def snap_to_pixel_rays(model: CameraModel, pts: F64, normals: Normals, radius_px
     Each point with a planar neighbourhood gives one point on the ray of every
     pixel centre within `radius_px` of its projection (the ray meets the
     point's plane there), as long as that spot lies within the point's own
-    neighbourhood in the image (a surfel of `radius_px` pixels). Rays grazing
+    neighbourhood in the image (a surfel of `radius_px` pixels) and the pixel
+    holds a point or lies in a gap closed between points. Rays grazing
     the plane (|n . ray| < `min_cos`) give nothing; non-planar points stay as
     they are. Values on pixel-centre rays need no range gradient in the
     renderer: they are exact on planes.
     """
     uv, ok = model.project(pts)
     ok &= np.isfinite(uv).all(axis=1)
+    pix = np.floor(np.nan_to_num(uv) + 0.5).astype(np.int64)
+    ok &= (pix[:, 0] >= 0) & (pix[:, 0] < model.width) & (pix[:, 1] >= 0) & (pix[:, 1] < model.height)
+    # pixels a surfel may fill: those holding a point, and the gaps closed between them (never beyond
+    # the outline of the points, so a silhouette against the sky does not grow)
+    occupied = np.zeros((model.height, model.width), np.uint8)
+    occupied[pix[ok, 1], pix[ok, 0]] = 1
+    size = 2 * radius_px + 1
+    allowed = cv2.morphologyEx(occupied, cv2.MORPH_CLOSE, np.ones((size, size), np.uint8)) > 0
     idx = np.flatnonzero(ok & normals.planar)
-    rest = pts[~(ok & normals.planar)]
-    base = np.floor(uv[idx] + 0.5)
-    out = [rest]
+    out = [pts[~(ok & normals.planar)]]
+    n = normals.normal[idx]
     for du in range(-radius_px, radius_px + 1):
         for dv in range(-radius_px, radius_px + 1):
-            centre = base + np.array([du, dv], np.float64)
-            inside = (
-                (centre[:, 0] >= 0)
-                & (centre[:, 0] < model.width)
-                & (centre[:, 1] >= 0)
-                & (centre[:, 1] < model.height)
-            )
-            ray, ray_ok = model.unproject(centre)
-            n = normals.normal[idx]
-            cos = np.einsum("ij,ij->i", n, ray)
+            col, row = pix[idx, 0] + du, pix[idx, 1] + dv
+            inside = (col >= 0) & (col < model.width) & (row >= 0) & (row < model.height)
+            inside[inside] &= allowed[row[inside], col[inside]]
+            sel = idx[inside]
+            ray, ray_ok = model.unproject(np.stack([col[inside], row[inside]], axis=1).astype(np.float64))
+            cos = np.einsum("ij,ij->i", n[inside], ray)
             with np.errstate(divide="ignore", invalid="ignore"):
-                r = np.einsum("ij,ij->i", n, pts[idx]) / cos
-            good = inside & ray_ok & (np.abs(cos) >= min_cos) & np.isfinite(r) & (r > 0)
+                r = np.einsum("ij,ij->i", n[inside], pts[sel]) / cos
+            good = ray_ok & (np.abs(cos) >= min_cos) & np.isfinite(r) & (r > 0)
             out.append(ray[good] * r[good, None])
     return np.concatenate(out)
 
@@ -136,6 +142,38 @@ def away_from_edges(rend: Rendering, edge_px: int) -> Bool:
     return flat
 
 
+def near_movers(model: CameraModel, moving_pts: F64, radius_rad: float) -> Bool:
+    """(H, W) pixels within `radius_rad` of view of any point the free-space test removed.
+
+    A removed point is a mover's earlier (or later) position; where the mover
+    is at the frame time the LiDAR may not have looked (below its field of
+    view, say), and the background accumulated there would show through it.
+    Ground truth near a mover's path is therefore dropped.
+    """
+    mask = np.zeros((model.height, model.width), np.uint8)
+    if len(moving_pts) == 0 or radius_rad <= 0:
+        return mask > 0
+    uv, ok = model.project(moving_pts)
+    pix = np.floor(np.nan_to_num(uv[ok]) + 0.5).astype(np.int64)
+    inside = (pix[:, 0] >= 0) & (pix[:, 0] < model.width) & (pix[:, 1] >= 0) & (pix[:, 1] < model.height)
+    mask[pix[inside, 1], pix[inside, 0]] = 1
+    k = 2 * max(1, round(radius_rad * px_per_rad(model))) + 1
+    out: Bool = cv2.dilate(mask, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))) > 0
+    return out
+
+
+def _view_gt(
+    model: CameraModel, pts: F64, normals: Normals, moving: F64, params: DenseParams
+) -> tuple[Rendering, I64]:
+    """Render one view from points in its frame; the flat pixels whose value is ground truth."""
+    snapped = snap_to_pixel_rays(model, pts, normals, params.surfel_px, params.plane_min_cos)
+    rend = render_points(model, snapped, np.eye(4), params.render)
+    keep = away_from_edges(rend, params.edge_px) & ~near_movers(
+        model, moving, params.mover_margin_rad
+    ).reshape(-1)
+    return rend, np.flatnonzero(keep)
+
+
 def dense_ground_truth(
     model: CameraModel,
     eq: Equirectangular,
@@ -143,29 +181,28 @@ def dense_ground_truth(
     baseline_m: float,
     pts_cam0: F64,
     params: DenseParams,
+    moving_cam0: F64 | None = None,
 ) -> DenseGt:
-    """Fisheye range and equirect disparity of points already placed in cam0 at the frame time."""
+    """Fisheye range and equirect disparity of points already placed in cam0 at the frame time.
+
+    `moving_cam0` are the points the free-space test removed (see `near_movers`).
+    """
+    moving = np.zeros((0, 3)) if moving_cam0 is None else moving_cam0
     if len(pts_cam0) == 0:
-        empty = SparseImage((model.height, model.width), np.zeros(0, np.int64), np.zeros(0, np.float32))
+        nothing = np.zeros(0, np.int64), np.zeros(0, np.float32)
         return DenseGt(
-            empty,
-            SparseImage((eq.height, eq.width), np.zeros(0, np.int64), np.zeros(0, np.float32)),
+            SparseImage((model.height, model.width), *nothing),
+            SparseImage((eq.height, eq.width), *nothing),
             0,
             0,
             {},
         )
     normals = plane_normals(pts_cam0, params.plane_neighbours, params.plane_max_flatness)
-    fish_pts = snap_to_pixel_rays(model, pts_cam0, normals, params.surfel_px, params.plane_min_cos)
-    fish = render_points(model, fish_pts, np.eye(4), params.render)
-    # the rectified frame: p_rect = R_cam0_rect^T p_cam0
-    pts_rect = pts_cam0 @ R_cam0_rect
-    normals_rect = Normals(normals.normal @ R_cam0_rect, normals.planar)
-    rect_pts = snap_to_pixel_rays(eq, pts_rect, normals_rect, params.surfel_px, params.plane_min_cos)
-    rect = render_points(eq, rect_pts, np.eye(4), params.render)
-    fish_ok = away_from_edges(fish, params.edge_px)
-    pix = np.flatnonzero(fish_ok)
+    fish, pix = _view_gt(model, pts_cam0, normals, moving, params)
     range_img = SparseImage(fish.range_m.shape, pix, fish.range_m.reshape(-1)[pix])
-    epix = np.flatnonzero(away_from_edges(rect, params.edge_px))
+    # the rectified frame: p_rect = R_cam0_rect^T p_cam0
+    normals_rect = Normals(normals.normal @ R_cam0_rect, normals.planar)
+    rect, epix = _view_gt(eq, pts_cam0 @ R_cam0_rect, normals_rect, moving @ R_cam0_rect, params)
     r = rect.range_m.reshape(-1)[epix].astype(np.float64)
     rows = (epix // eq.width).astype(np.float64)
     rays, _ = eq.unproject(np.stack([(epix % eq.width).astype(np.float64), rows], axis=1))

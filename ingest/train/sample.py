@@ -341,16 +341,15 @@ def _process_dense(job: SampleJob, images: Background[Equirects], start_ms: floa
         return SampleResult(job.sid, False, "outside the trajectory", None, {})
     pts, stamps, which = pts[covered], stamps[covered], which[covered]
     placed = traj.to_frame(pts, stamps, tc)
-    removed = 0
+    moving = np.zeros((0, 3))
     if prm.dense.free_space:
         keep = free_space_filter(placed, *_slices(job, traj, stamps, which), prm.dense)
-        removed = int((~keep).sum())
-        placed = placed[keep]
+        moving, placed = placed[~keep], placed[keep]
     t1 = time.perf_counter()
     ms["clouds"] = (t1 - t0) * 1e3
     rect = geo.rect
     dense = dense_ground_truth(
-        geo.rig.upper.model, geo.equirect, rect.R_cam0_rect, rect.baseline_m, placed, prm.dense
+        geo.rig.upper.model, geo.equirect, rect.R_cam0_rect, rect.baseline_m, placed, prm.dense, moving
     )
     ms["ground_truth"] = (time.perf_counter() - t1) * 1e3
     in_window = (traj.stamps_ns >= tc - prm.dense.window_ns) & (traj.stamps_ns <= tc + prm.dense.window_ns)
@@ -371,7 +370,7 @@ def _process_dense(job: SampleJob, images: Background[Equirects], start_ms: floa
             depth_pixels=dense.range_img.count, disp_pixels=dense.disp_img.count,
             disp_unstable=dense.unstable, density=dense.range_img.count / geo.fisheye_valid_px,
             method="dense", window_ms=prm.dense.window_ns / 1e6, decision=prm.decision,
-            accumulated_points=len(placed), removed_moving=removed,
+            accumulated_points=len(placed), removed_moving=len(moving),
             trajectory_residual_mm=float(residual.max() * 1e3) if len(residual) else None,
         ),
     )  # fmt: skip
@@ -390,7 +389,10 @@ def _slices(
     n_lidars = max(len(job.lidars), 1)
     slice_id = k * n_lidars + which
     refs = []
-    for sid in np.unique(slice_id[np.abs(stamps - tc) <= prm.free_reference_ns]):
+    own = (
+        np.abs(stamps - tc) <= prm.free_reference_ns if prm.free_reference_ns else np.ones(len(stamps), bool)
+    )
+    for sid in np.unique(slice_id[own]):
         lidar = job.lidars[int(sid % n_lidars)].name
         t_mid = tc + int(sid // n_lidars) * prm.free_slice_ns + prm.free_slice_ns // 2
         origin_cam0 = job.geometry.rig.lidar(lidar).T_cam0_lidar[:3, 3][None, :]

@@ -28,6 +28,9 @@ ScaleOpt = Annotated[float, typer.Option(help="Image resolution scale (0.25 -> 4
 RangeNoiseOpt = Annotated[float, typer.Option(help="LiDAR range noise, 1-sigma metres (0 = exact).")]
 LidarOffsetOpt = Annotated[float, typer.Option(help="Clock offset of the second LiDAR (ms).")]
 SupersampleOpt = Annotated[int, typer.Option(help="Rays per pixel per axis (anti-aliasing).")]
+MoversOpt = Annotated[
+    bool, typer.Option("--movers", help="Add people walking, a swinging door and (outdoor) a passing car.")
+]
 
 
 def summary_table(summary: SimSummary, duration_s: float) -> Table:
@@ -45,7 +48,7 @@ def simulate_cmd(
     duration: DurationOpt = 1.0, seed: SeedOpt = 0, fmt: FormatOpt = "mcap",
     lidar_msg: LidarMsgOpt = "custom", image: ImageOpt = "raw", scale: ScaleOpt = 1.0,
     range_noise: RangeNoiseOpt = 0.02,
-    lidar_offset_ms: LidarOffsetOpt = 0.0, supersample: SupersampleOpt = 1,
+    lidar_offset_ms: LidarOffsetOpt = 0.0, supersample: SupersampleOpt = 1, movers: MoversOpt = False,
 ) -> None:  # fmt: skip
     """Simulate the SensorBox in a procedural scene: write a bag plus its exact truth (<bag>.truth/)."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
@@ -55,7 +58,7 @@ def simulate_cmd(
     cfg = SimConfig(
         scene=scene, trajectory=trajectory, tum=tum, duration_s=duration, seed=seed, format=fmt,  # type: ignore[arg-type]
         lidar_msg=lidar_msg, image=image, scale=scale, range_noise_m=range_noise,  # type: ignore[arg-type]
-        lidar_clock_offset_ns=round(lidar_offset_ms * 1e6), supersample=supersample,
+        lidar_clock_offset_ns=round(lidar_offset_ms * 1e6), supersample=supersample, movers=movers,
     )  # fmt: skip
     columns = (TextColumn("simulating"), BarColumn(), TextColumn("{task.completed:.1f}/{task.total:.1f} s"))
     with Progress(*columns, TimeRemainingColumn(), console=err_console, transient=True) as bar:

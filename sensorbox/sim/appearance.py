@@ -55,7 +55,7 @@ def shade(scene: Scene, texture: Texture, origins_world: F64, dirs_world: F64, h
         return out
     p = origins_world[hit] + dirs_world[hit] * hits.range_m[hit, None]
     obj_index = scene.triangle_object[hits.triangle[hit]]
-    objects = scene.opaque_objects
+    objects = scene.shading_objects
     albedo = np.empty((len(p), 3))
     base = np.array([o.color_bgr for o in objects])[obj_index]
     albedo[:] = base * (0.3 + 0.7 * texture(p))[:, None]
@@ -71,7 +71,7 @@ def shade(scene: Scene, texture: Texture, origins_world: F64, dirs_world: F64, h
 
 def reflectivity(scene: Scene, texture: Texture, points_world: F64, triangles: I64) -> F64:
     """Livox-like reflectivity 0..255 from the albedo's luminance at each hit point."""
-    objects = scene.opaque_objects
+    objects = scene.shading_objects
     base = np.array([o.color_bgr for o in objects])[scene.triangle_object[triangles]]
     lum = base @ np.array([0.114, 0.587, 0.299]) * (0.3 + 0.7 * texture(points_world))
     out: F64 = np.clip(lum * 255.0, 0, 255)

@@ -41,8 +41,10 @@ def _rays(model: CameraModel, supersample: int) -> tuple[F64, Bool]:
     return rays, ok
 
 
-def render(cam: CameraSim, scene: Scene, texture: Texture, T_world_cam0: F64, supersample: int = 1) -> U8:
-    """BGR uint8 image (H, W, 3) seen by `cam` when cam0 is at `T_world_cam0` (4x4)."""
+def render(
+    cam: CameraSim, scene: Scene, texture: Texture, T_world_cam0: F64, supersample: int = 1, t_s: float = 0.0
+) -> U8:
+    """BGR uint8 image (H, W, 3) seen by `cam` when cam0 is at `T_world_cam0` (4x4), movers at `t_s`."""
     rays, ok = _rays(cam.model, supersample)
     T_world_cam = T_world_cam0 @ cam.T_cam0_cam
     # einsum, not @: a tall (N,3)x(3,3) BLAS call can spin up OpenBLAS threads that fight the
@@ -50,7 +52,7 @@ def render(cam: CameraSim, scene: Scene, texture: Texture, T_world_cam0: F64, su
     dirs = np.einsum("ij,kj->ik", rays[ok], T_world_cam[:3, :3])
     origins = np.broadcast_to(T_world_cam[:3, 3], dirs.shape)
     colour = np.zeros((len(rays), 3))
-    colour[ok] = shade(scene, texture, origins, dirs, scene.caster.cast(np.ascontiguousarray(origins), dirs))
+    colour[ok] = shade(scene, texture, origins, dirs, scene.cast(np.ascontiguousarray(origins), dirs, t_s))
     h, w, s2 = cam.model.height, cam.model.width, supersample * supersample
     mean = colour.reshape(h, w, s2, 3).mean(axis=2)
     image: U8 = np.clip(np.round(mean * 255.0), 0, 255).astype(np.uint8)

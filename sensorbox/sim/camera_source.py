@@ -54,8 +54,9 @@ class SimCameras:
 
     def render(self, k: int, cam: int) -> U8:
         s = self.setup
-        pose = s.traj.T_world_cam0(np.array([self.sim_ns(k, cam) / 1e9]))[0]
-        return render(s.cams[cam], s.scene, s.texture, pose, self.cfg.supersample)
+        t_s = self.sim_ns(k, cam) / 1e9
+        pose = s.traj.T_world_cam0(np.array([t_s]))[0]
+        return render(s.cams[cam], s.scene, s.texture, pose, self.cfg.supersample, t_s)
 
     def topic(self, cam: int) -> str:
         return self.setup.cam_topics[cam]

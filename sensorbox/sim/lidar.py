@@ -114,7 +114,7 @@ def simulate_sweep(
     R_wl = R_wc @ R_cl
     origins = p_wc + R_wc @ t_cl
     dirs_world = np.einsum("nij,nj->ni", R_wl, dirs_lidar)
-    hits = scene.caster.cast(origins, dirs_world)
+    hits = scene.cast(origins, dirs_world, t_s)
 
     rng = np.random.default_rng([lidar.seed, int(window[0] // SWEEP_PERIOD_NS) + 1_000_000])
     range_m = hits.range_m.copy()

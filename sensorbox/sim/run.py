@@ -31,6 +31,7 @@ from sensorbox.messages import RosVersion
 from sensorbox.sim.appearance import Texture
 from sensorbox.sim.camera import CameraSim, render
 from sensorbox.sim.lidar import SWEEP_PERIOD_NS, LidarSim, simulate_sweep, sweep_windows
+from sensorbox.sim.movers import default_movers
 from sensorbox.sim.scenes import SCENES, Scene, build_scene
 from sensorbox.sim.trajectory import TRAJECTORIES, Trajectory, TumSpline, imu_readings, static, walk
 from sensorbox.sim.truth import truth_dir, write_truth
@@ -69,6 +70,7 @@ class SimConfig:
     acc_bias_g: float = 0.0
     start_ns: int = 1_700_000_000_000_000_000
     compress: bool = True
+    movers: bool = False  # people, a door and (outdoor) a car moving through the scene
     rig: Path = field(default=REFERENCE_RIG)
 
     def validate(self) -> None:
@@ -184,6 +186,8 @@ def setup_sim(cfg: SimConfig) -> SimSetup:
     if not rig.lidars:
         raise SensorboxError(f"{cfg.rig}: the rig has no lidars to simulate")
     scene = build_scene(cfg.scene, cfg.seed)
+    if cfg.movers:
+        scene.movers = default_movers(cfg.scene, scene.start_world)
     rng = np.random.default_rng([cfg.seed, 0xC0FFEE])
     lidars = [
         LidarSim(
@@ -222,7 +226,10 @@ def _camera_messages(s: SimSetup, w0: int, w1: int, pool: ThreadPoolExecutor) ->
         t_ns = [round(nominal + c * cfg.stereo_offset_ns + jitter[c]) for c in range(2)]
         poses = s.traj.T_world_cam0(np.array(t_ns) / 1e9)
         # numpy sines and Embree both release the GIL: the two cameras render in parallel
-        jobs = [pool.submit(render, s.cams[c], s.scene, s.texture, poses[c], cfg.supersample) for c in (0, 1)]
+        jobs = [
+            pool.submit(render, s.cams[c], s.scene, s.texture, poses[c], cfg.supersample, t_ns[c] / 1e9)
+            for c in (0, 1)
+        ]
         images = [job.result() for job in jobs]
         for c, img in enumerate(images):
             stamp = cfg.start_ns + t_ns[c]

@@ -22,7 +22,8 @@ import numpy as np
 from calibration.errors import SensorboxError
 from calibration.types import F64
 from sensorbox.sim.meshes import Mesh, box, cylinder, grid, merge, quad, sphere
-from sensorbox.sim.raycast import RayCaster
+from sensorbox.sim.movers import Mover, MovingCaster
+from sensorbox.sim.raycast import Hits, RayCaster
 
 SCENES = ("indoor", "outdoor")
 
@@ -81,7 +82,9 @@ class Scene:
     objects: list[SceneObject]
     start_world: F64  # where trajectories begin (cam0 centre), metres
     sky: bool  # outdoor scenes are open: rays can miss everything
+    movers: list[Mover] = field(default_factory=list)
     _caster: RayCaster | None = field(default=None, repr=False)
+    _moving: MovingCaster | None = field(default=None, repr=False)
     _tri_object: np.ndarray[Any, np.dtype[np.int64]] | None = field(default=None, repr=False)
 
     def opaque_mesh(self) -> Mesh:
@@ -97,17 +100,33 @@ class Scene:
             self._caster = RayCaster(*self.opaque_mesh())
         return self._caster
 
+    def cast(self, origins_world: F64, dirs_world: F64, t_s: F64 | float = 0.0) -> Hits:
+        """Rays at times `t_s` (s since the start; one per ray or one for all) against everything opaque.
+
+        Triangle ids index `triangle_object`: the static mesh's, then each mover's.
+        """
+        if not self.movers:
+            return self.caster.cast(origins_world, dirs_world)
+        if self._moving is None:
+            self._moving = MovingCaster(self.caster, self.movers)
+        return self._moving.cast(origins_world, dirs_world, t_s)
+
     @property
     def triangle_object(self) -> np.ndarray[Any, np.dtype[np.int64]]:
-        """Index into `opaque_objects` for each triangle of `opaque_mesh`."""
+        """Index into `shading_objects` for each triangle id `cast` returns."""
         if self._tri_object is None:
-            ids = [np.full(len(o.mesh[1]), k) for k, o in enumerate(self.opaque_objects)]
+            ids = [np.full(len(o.mesh[1]), k) for k, o in enumerate(self.shading_objects)]
             self._tri_object = np.concatenate(ids).astype(np.int64)
         return self._tri_object
 
     @property
     def opaque_objects(self) -> list[SceneObject]:
         return [o for o in self.objects if not o.transparent]
+
+    @property
+    def shading_objects(self) -> list[SceneObject]:
+        """The opaque objects, then the movers (body-frame meshes), in `cast`'s triangle order."""
+        return self.opaque_objects + [SceneObject(m.name, m.mesh, m.color_bgr) for m in self.movers]
 
     @property
     def checkerboards(self) -> list[Checkerboard]:

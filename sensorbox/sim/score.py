@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -36,6 +37,8 @@ class SampleScore:
     disp_pixels: int
     disp_median_abs_px: float
     disp_over_1px_rate: float
+    depth_no_surface_rate: float = 0.0  # share of GT pixels whose ray hits nothing (sky)
+    mover_trail_rate: float = 0.0  # share of GT pixels showing a mover where it was, not where it is
 
 
 def _edge_band(truth: Truth, stamp_ns: int, band_px: int) -> np.ndarray:
@@ -51,8 +54,14 @@ def _edge_band(truth: Truth, stamp_ns: int, band_px: int) -> np.ndarray:
     return band
 
 
-def score_sample(out: Path, truth: Truth, sid: str, band_px: int = 3) -> SampleScore:
-    """Depth and disparity accuracy of sample `sid` of the dataset at `out`."""
+def score_sample(
+    out: Path, truth: Truth, sid: str, band_px: int = 3, trail_window_ns: int = 500_000_000
+) -> SampleScore:
+    """Depth and disparity accuracy of sample `sid` of the dataset at `out`.
+
+    With movers, `mover_trail_rate` looks for their earlier (and later)
+    positions within +-`trail_window_ns` of the sample's stamp.
+    """
     stamp = read_meta(out, sid).stamp_ns
     model = truth.rig.upper.model
     depth = read_png_u16(out / "depth_fisheye" / f"{sid}.png", DEPTH_SCALE)
@@ -68,11 +77,30 @@ def score_sample(out: Path, truth: Truth, sid: str, band_px: int = 3) -> SampleS
     r2, c2 = np.nonzero(disp)
     ed = disp[r2, c2] - truth.disparity_at(eq, np.stack([c2, r2], 1).astype(float), stamp)
     ed = ed[np.isfinite(ed)]
+    trail = _mover_trail(truth, model, rows, cols, depth[rows, cols], exact, stamp, trail_window_ns)
     return SampleScore(
         sid, int(ok.sum()), float(np.median(np.abs(e[ok]))), float(np.median(e[ok])), float(outlier.mean()),
         float(band.mean()), float(outlier[band].mean()) if band.any() else 0.0,
         len(ed), float(np.median(np.abs(ed))), float((np.abs(ed) > 1.0).mean()),
+        float((~ok).mean()) if len(ok) else 0.0, float(trail.mean()) if len(trail) else 0.0,
     )  # fmt: skip
+
+
+def _mover_trail(
+    truth: Truth, model: Any, rows: Any, cols: Any, gt_m: Any, exact_m: Any, stamp: int, window_ns: int
+) -> np.ndarray:
+    """GT pixels that are wrong now but match a mover's surface at some time of the window (10 ms steps)."""
+    wrong = ~(np.abs(gt_m - exact_m) <= np.maximum(0.05, 0.03 * np.nan_to_num(exact_m, nan=np.inf)))
+    trail = np.zeros(len(gt_m), bool)
+    if not truth.movers or not wrong.any():
+        return trail
+    idx = np.flatnonzero(wrong)
+    rays, _ = model.unproject(np.stack([cols[idx], rows[idx]], 1).astype(float))
+    for t in range(stamp - window_ns, stamp + window_ns + 1, 10_000_000):
+        r = truth.mover_range_along(rays, stamp, t)
+        with np.errstate(invalid="ignore"):
+            trail[idx] |= np.abs(gt_m[idx] - r) <= np.maximum(0.05, 0.03 * r)
+    return trail
 
 
 def score_dataset(out: Path, truth: Truth) -> list[SampleScore]:

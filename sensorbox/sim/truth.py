@@ -5,16 +5,19 @@
 - `transparent.ply`: surfaces both LiDARs and cameras see through (glass);
 - `trajectory.tum`: T_world_cam0 at 1 kHz, `t_sec tx ty tz qx qy qz qw`;
 - `rig.yaml` + `camchain.yaml`: the exact rig at the rendered resolution;
-- `sim.yaml`: every parameter, the seed and the closed-form trajectory.
+- `sim.yaml`: every parameter, the seed and the closed-form trajectory;
+- with `--movers`: `movers.yaml` (each mover's closed-form path) and
+  `mover_<name>.ply` (its body-frame mesh).
 
 `Truth.load()` rebuilds the analytic trajectory from sim.yaml (the TUM file is
-for other tools), so queries are exact at any time, not interpolated.
+for other tools) and the movers' paths, so queries are exact at any time, not
+interpolated: a ray at a stamp meets every mover where it is at that stamp.
 """
 
 from __future__ import annotations
 
 import shutil
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -29,6 +32,7 @@ from calibration.rig import Rig, read_rig, write_rig
 from calibration.spherical import Equirectangular
 from calibration.stereo import depth_to_disparity
 from calibration.types import F64, I64
+from sensorbox.sim.movers import Mover, MovingCaster, read_movers, write_movers
 from sensorbox.sim.raycast import RayCaster, write_ply
 from sensorbox.sim.scenes import Scene
 from sensorbox.sim.trajectory import Trajectory, trajectory_from_params
@@ -60,6 +64,8 @@ def write_truth(
             sec, nsec = divmod(start_ns + int(t_ns[k]), 1_000_000_000)
             f.write(f"{sec}.{nsec:09d} " + " ".join(f"{v:.9f}" for v in (*T[k, :3, 3], *q[k])) + "\n")
     write_rig(rig, out / "rig.yaml", camchain_name="camchain.yaml")
+    if scene.movers:
+        write_movers(out, scene.movers)
     if tum_source is not None:
         shutil.copyfile(tum_source, out / str(sim_params["trajectory"]["tum"]))
     (out / "sim.yaml").write_text(
@@ -77,6 +83,17 @@ class Truth:
     rig: Rig
     mesh: RayCaster
     trajectory: Trajectory
+    movers: list[Mover] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self._moving = MovingCaster(self.mesh, self.movers) if self.movers else None
+
+    def cast(self, origins_world: F64, dirs_world: F64, stamp_ns: int) -> F64:
+        """Range (m) of rays at header stamp `stamp_ns` against the scene and its movers; inf on a miss."""
+        t_s = (stamp_ns - self.start_ns) / 1e9
+        if self._moving is None:
+            return self.mesh.cast(origins_world, dirs_world).range_m
+        return self._moving.cast(origins_world, dirs_world, t_s).range_m
 
     @classmethod
     def load(cls, path: Path) -> Truth:
@@ -88,7 +105,8 @@ class Truth:
             raise SensorboxError(f"{path}: no simulator truth here (expected sim.yaml in {p})")
         params = yaml.safe_load((p / "sim.yaml").read_text())
         traj = trajectory_from_params(params["trajectory"], p)
-        return cls(p, params, read_rig(p / "rig.yaml"), RayCaster.from_ply(p / "scene.ply"), traj)
+        mesh = RayCaster.from_ply(p / "scene.ply")
+        return cls(p, params, read_rig(p / "rig.yaml"), mesh, traj, read_movers(p))
 
     @property
     def start_ns(self) -> int:
@@ -99,12 +117,27 @@ class Truth:
         t = (np.atleast_1d(np.asarray(stamps_ns, np.int64)) - self.start_ns) / 1e9
         return self.trajectory.T_world_cam0(t)
 
+    def mover_range_along(self, rays_cam0: F64, stamp_ns: int, mover_stamp_ns: int) -> F64:
+        """Range (m) along rays from cam0 at `stamp_ns` to the movers where they were at `mover_stamp_ns`.
+
+        NaN where no mover is hit (and everywhere without movers).
+        """
+        if self._moving is None:
+            return np.full(len(rays_cam0), np.nan)
+        T = self.T_world_cam0(np.array([stamp_ns]))[0]
+        dirs = np.asarray(rays_cam0, np.float64) @ T[:3, :3].T
+        origins = np.broadcast_to(T[:3, 3], dirs.shape).copy()
+        t_s = (mover_stamp_ns - self.start_ns) / 1e9
+        r = self._moving.cast(origins, dirs, t_s, static=False).range_m
+        out: F64 = np.where(np.isfinite(r), r, np.nan)
+        return out
+
     def range_along(self, rays_cam0: F64, stamp_ns: int) -> F64:
         """Exact range (m) from cam0's centre along unit rays given in cam0; NaN where nothing is hit."""
         T = self.T_world_cam0(np.array([stamp_ns]))[0]
         dirs = np.asarray(rays_cam0, np.float64) @ T[:3, :3].T
-        hits = self.mesh.cast(np.broadcast_to(T[:3, 3], dirs.shape).copy(), dirs)
-        out: F64 = np.where(np.isfinite(hits.range_m), hits.range_m, np.nan)
+        range_m = self.cast(np.broadcast_to(T[:3, 3], dirs.shape).copy(), dirs, stamp_ns)
+        out: F64 = np.where(np.isfinite(range_m), range_m, np.nan)
         return out
 
     def range_at(

@@ -1,0 +1,100 @@
+"""Odometry pieces against closed-form answers: the knot chain, its gyro shape, TUM output, failures."""
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from calibration.linalg3 import rotvec_to_matrix
+from ingest.errors import OdometryError
+from ingest.train.clouds import integrate_gyro
+from ingest.train.odometry import GyroShape, Odometry, RigTrajectory, voxel_subsample
+from ingest.train.trajectory import AUTO_MAX_RESIDUAL_MM, TrajectorySummary, choose_method
+
+
+def _constant_rate_gyro(rate_rad_s, seconds=1.0, hz=200):
+    t = np.arange(int(seconds * hz) + 1, dtype=np.int64) * (1_000_000_000 // hz)
+    return integrate_gyro(t, np.tile(rate_rad_s, (len(t), 1)), np.eye(3))
+
+
+def test_gyro_shape_matches_the_integrated_track():
+    track = _constant_rate_gyro([0.3, -0.2, 0.5])
+    shape = GyroShape.from_track(track)
+    t = np.array([0, 12_345_678, 500_000_000, 987_654_321], np.int64)
+    want = track.relative(t, 0)  # G(0)^T G(t) = rotation of cam0 from 0 to t
+    np.testing.assert_allclose(shape.between(np.zeros(4, np.int64), t), want, atol=1e-12)
+    # constant rate: the rotation is exp(w t) exactly
+    np.testing.assert_allclose(shape.at(t[2:3])[0], rotvec_to_matrix(np.array([[0.15, -0.1, 0.25]]))[0], atol=1e-9)
+
+
+def test_chain_is_exact_at_knots_and_linear_in_position_between():
+    stamps = np.array([0, 50_000_000, 100_000_000], np.int64)
+    R = Rotation.from_rotvec([[0, 0, 0], [0, 0, 0.1], [0, 0, 0.2]]).as_matrix()
+    p = np.array([[0.0, 0, 0], [0.05, 0, 0], [0.1, 0.02, 0]])
+    traj = RigTrajectory(stamps, R, p, np.zeros(3))
+    Rk, pk = traj.pose(stamps)
+    np.testing.assert_allclose(Rk, R, atol=1e-12)
+    np.testing.assert_allclose(pk, p, atol=1e-12)
+    Rm, pm = traj.pose(np.array([75_000_000]))
+    np.testing.assert_allclose(pm[0], [0.075, 0.01, 0.0], atol=1e-12)
+    np.testing.assert_allclose(Rotation.from_matrix(Rm[0]).as_rotvec(), [0, 0, 0.15], atol=1e-12)  # slerp
+
+
+def test_chain_follows_the_gyro_between_knots():
+    """Knots placed on a constant-rate rotation: the gyro's shape makes every time between them exact."""
+    track = _constant_rate_gyro([0.0, 0.0, 2.0])  # 2 rad/s yaw: 0.1 rad per 50 ms knot
+    stamps = np.arange(0, 500_000_001, 50_000_000, dtype=np.int64)
+    R = rotvec_to_matrix(np.outer(stamps / 1e9, [0.0, 0.0, 2.0]))
+    traj = RigTrajectory(stamps, R, np.zeros((len(stamps), 3)), np.zeros(len(stamps)), GyroShape.from_track(track))
+    t = np.array([13_000_000, 233_333_333, 499_000_000], np.int64)
+    np.testing.assert_allclose(traj.pose(t)[0], rotvec_to_matrix(np.outer(t / 1e9, [0, 0, 2.0])), atol=1e-9)
+
+
+def test_to_frame_round_trip():
+    stamps = np.array([0, 100_000_000], np.int64)
+    R = Rotation.from_rotvec([[0, 0, 0], [0.1, -0.2, 0.3]]).as_matrix()
+    traj = RigTrajectory(stamps, R, np.array([[0.0, 0, 0], [0.3, -0.1, 0.05]]), np.zeros(2))
+    pts = np.random.default_rng(0).normal(size=(20, 3)) * 5
+    t = np.full(20, 30_000_000, np.int64)
+    there = traj.to_frame(pts, t, 80_000_000)
+    back = traj.to_frame(there, np.full(20, 80_000_000, np.int64), 30_000_000)
+    np.testing.assert_allclose(back, pts, atol=1e-12)
+
+
+def test_tum_file_holds_every_knot(tmp_path):
+    stamps = np.array([1_700_000_000_000_000_000, 1_700_000_000_050_000_000], np.int64)
+    R = Rotation.from_rotvec([[0, 0, 0], [0, 0, 0.1]]).as_matrix()
+    traj = RigTrajectory(stamps, R, np.array([[0.0, 0, 0], [0.06, 0, 0]]), np.array([0.0, 0.001]))
+    traj.write_tum(tmp_path / "t.tum")
+    rows = [line.split() for line in (tmp_path / "t.tum").read_text().splitlines() if not line.startswith("#")]
+    assert [r[0] for r in rows] == ["1700000000.000000000", "1700000000.050000000"]
+    np.testing.assert_allclose([float(v) for v in rows[1][1:]], [0.06, 0, 0, *Rotation.from_matrix(R[1]).as_quat()])
+    assert not (tmp_path / "t.tum.partial").exists()
+
+
+def test_voxel_subsample_keeps_one_point_per_voxel_in_order():
+    pts = np.array([[0.01, 0, 0], [0.02, 0, 0], [0.31, 0, 0], [-0.01, 0, 0]])
+    assert voxel_subsample(pts, 0.1).tolist() == [0, 2, 3]
+
+
+def test_too_little_lidar_is_an_odometry_error():
+    odo = Odometry(None)
+    odo.add(np.random.default_rng(1).normal(size=(500, 3)) * 5, np.linspace(0, 100_000_000, 500).astype(np.int64))
+    with pytest.raises(OdometryError, match="less than 200 ms"):
+        odo.result()
+
+
+def _summary(median_mm, gaps=0):
+    return TrajectorySummary(knots=40, span_s=2.0, residual_median_mm=median_mm, residual_p95_mm=median_mm * 2,
+                             gaps=gaps, seconds=1.0, file="t.tum")  # fmt: skip
+
+
+def test_auto_chooses_dense_only_with_a_sound_trajectory():
+    assert choose_method("sparse", _summary(1.0)) == ("sparse", "asked")
+    assert choose_method("dense", None) == ("dense", "asked")
+    assert choose_method("auto", _summary(1.0))[0] == "dense"
+    method, why = choose_method("auto", _summary(AUTO_MAX_RESIDUAL_MM * 2))
+    assert method == "sparse" and "residual" in why
+    method, why = choose_method("auto", _summary(1.0, gaps=3))
+    assert method == "sparse" and "3 knots" in why
+    method, why = choose_method("auto", None, "odometry: less than 200 ms of LiDAR points")
+    assert method == "sparse" and "200 ms" in why
