@@ -28,7 +28,7 @@ demo: setup
 # The suite in two runs: everything else in parallel, then the live paths (sockets, threads on a
 # clock, subprocess timing: marker `realtime`) one at a time, so two of them never share the cores.
 test: setup
-	$(BIN)/python -m pytest -q -n 2 -m "not realtime" tests
+	$(BIN)/python -m pytest -q -n 2 --dist loadgroup -m "not realtime" tests
 	$(BIN)/python -m pytest -q -m realtime tests
 
 bench: setup

@@ -56,7 +56,8 @@ class DenseParams:
     free_space: bool = True  # remove points the frame's own sweeps saw through (movers)
     free_cell_deg: float = 1.0  # angular cell of the free-space test (around each LiDAR)
     mover_margin_rad: float = 0.035  # GT this close (2 deg) to a removed point's direction is dropped
-    free_slice_ns: int = 25_000_000  # one LiDAR's points over this long share one origin
+    free_voxel_m: float = 0.05  # points are tested a voxel at a time
+    free_slice_ns: int = 50_000_000  # one LiDAR's points over this long share one origin
     free_reference_ns: int = 0  # only slices this near the frame time test the others (0: every slice)
     free_margin_m: float = 0.1  # a ray must pass a point by this much (plus 3 % of range) to clear it
     stability_max_rel_error: float = 0.5
@@ -230,24 +231,37 @@ def free_space_filter(
     `free_margin_m` + 3 % of its range sat where the reference saw empty
     space, so it is removed. Cells with no return say nothing, and the
     nearest return (not the farthest) makes the test clear a point only
-    where the whole cell was seen beyond it, so static edges stay.
+    where the whole cell was seen beyond it, so static edges stay. The test
+    runs per `free_voxel_m` voxel (its first point stands for it; a voxel the
+    reference itself hit is occupied), well inside the margin.
     """
-    keep = np.ones(len(pts), bool)
     cells_per_rad = 1.0 / np.radians(params.free_cell_deg)
     n_az = int(np.ceil(2 * np.pi * cells_per_rad))
     n_el = int(np.ceil(np.pi * cells_per_rad))
-    for sid, origin in references:
-        own = slice_id == sid
-        if not own.any():
+    # the test runs on voxels (one representative point each), far fewer than points
+    cell = np.floor(pts / params.free_voxel_m).astype(np.int64)
+    key = (cell[:, 0] << 42) ^ (cell[:, 1] << 21) ^ cell[:, 2]
+    _, rep, voxel = np.unique(key, return_index=True, return_inverse=True)
+    keep_voxel = np.ones(len(rep), bool)
+    order = np.argsort(slice_id, kind="stable")
+    bounds = np.searchsorted(
+        slice_id[order], [sid for sid, _ in references] + [sid + 1 for sid, _ in references]
+    )
+    n_ref = len(references)
+    for r, (_, origin) in enumerate(references):
+        own = order[bounds[r] : bounds[n_ref + r]]
+        if not len(own):
             continue
         nearest = _nearest_per_cell(pts[own] - origin, cells_per_rad, n_az, n_el)
-        other = np.flatnonzero(~own & keep)
-        cell, rng = _cells(pts[other] - origin, cells_per_rad, n_az, n_el)
-        seen = nearest[cell]
+        test = keep_voxel.copy()
+        test[voxel[own]] = False  # voxels this slice hit itself are occupied for it
+        cand = np.flatnonzero(test)
+        c, rng = _cells(pts[rep[cand]] - origin, cells_per_rad, n_az, n_el)
         with np.errstate(invalid="ignore"):
-            cleared = seen > rng + params.free_margin_m + 0.03 * rng
-        keep[other[cleared]] = False
-    return keep
+            cleared = nearest[c] > rng + params.free_margin_m + 0.03 * rng
+        keep_voxel[cand[cleared]] = False
+    out: Bool = keep_voxel[voxel]
+    return out
 
 
 def _cells(d: F64, cells_per_rad: float, n_az: int, n_el: int) -> tuple[I64, F64]:

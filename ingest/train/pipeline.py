@@ -72,7 +72,7 @@ class IngestConfig:
     height_full: int | None = None
     salvage: bool = False
     dask: str | None = None
-    gt: str = "auto"  # sparse | dense | auto (see ingest.train.trajectory.choose_method)
+    gt: str = "sparse"  # sparse | dense | auto (see ingest.train.trajectory.choose_method)
     sample: SampleParams = field(default_factory=SampleParams)
 
     def validate(self) -> None:

@@ -97,7 +97,7 @@ def ingest_cmd(
     bags: BagsArg, rig: RigOpt, out: OutOpt, workers: WorkersOpt = 2, dask: DaskOpt = None,
     every: EveryOpt = 1, window_ms: WindowOpt = 50.0, exr: ExrOpt = False, png_level: PngLevelOpt = 1,
     height_full: HeightFullOpt = None, min_range: MinRangeOpt = 0.3, motion: MotionOpt = "full",
-    salvage: SalvageOpt = False, gt: GtOpt = "auto", gt_window_ms: GtWindowOpt = 500.0,
+    salvage: SalvageOpt = False, gt: GtOpt = "sparse", gt_window_ms: GtWindowOpt = 500.0,
 ) -> None:  # fmt: skip
     """Turn recorded bags into the WideDepth training set (rectified equirect pairs + depth/disparity GT)."""
     from ingest.train.dense import DenseParams

@@ -12,10 +12,10 @@ from ingest.eval.metrics import (
     DepthAccumulator,
     StereoAccumulator,
     depth_metrics,
-    edge_band,
     median_scale,
     stereo_metrics,
 )
+from ingest.raster.edges import edge_band
 
 NAN = np.nan
 

@@ -23,7 +23,9 @@ def test_gyro_shape_matches_the_integrated_track():
     want = track.relative(t, 0)  # G(0)^T G(t) = rotation of cam0 from 0 to t
     np.testing.assert_allclose(shape.between(np.zeros(4, np.int64), t), want, atol=1e-12)
     # constant rate: the rotation is exp(w t) exactly
-    np.testing.assert_allclose(shape.at(t[2:3])[0], rotvec_to_matrix(np.array([[0.15, -0.1, 0.25]]))[0], atol=1e-9)
+    np.testing.assert_allclose(
+        shape.at(t[2:3])[0], rotvec_to_matrix(np.array([[0.15, -0.1, 0.25]]))[0], atol=1e-9
+    )
 
 
 def test_chain_is_exact_at_knots_and_linear_in_position_between():
@@ -44,7 +46,9 @@ def test_chain_follows_the_gyro_between_knots():
     track = _constant_rate_gyro([0.0, 0.0, 2.0])  # 2 rad/s yaw: 0.1 rad per 50 ms knot
     stamps = np.arange(0, 500_000_001, 50_000_000, dtype=np.int64)
     R = rotvec_to_matrix(np.outer(stamps / 1e9, [0.0, 0.0, 2.0]))
-    traj = RigTrajectory(stamps, R, np.zeros((len(stamps), 3)), np.zeros(len(stamps)), GyroShape.from_track(track))
+    traj = RigTrajectory(
+        stamps, R, np.zeros((len(stamps), 3)), np.zeros(len(stamps)), GyroShape.from_track(track)
+    )
     t = np.array([13_000_000, 233_333_333, 499_000_000], np.int64)
     np.testing.assert_allclose(traj.pose(t)[0], rotvec_to_matrix(np.outer(t / 1e9, [0, 0, 2.0])), atol=1e-9)
 
@@ -65,9 +69,13 @@ def test_tum_file_holds_every_knot(tmp_path):
     R = Rotation.from_rotvec([[0, 0, 0], [0, 0, 0.1]]).as_matrix()
     traj = RigTrajectory(stamps, R, np.array([[0.0, 0, 0], [0.06, 0, 0]]), np.array([0.0, 0.001]))
     traj.write_tum(tmp_path / "t.tum")
-    rows = [line.split() for line in (tmp_path / "t.tum").read_text().splitlines() if not line.startswith("#")]
+    rows = [
+        line.split() for line in (tmp_path / "t.tum").read_text().splitlines() if not line.startswith("#")
+    ]
     assert [r[0] for r in rows] == ["1700000000.000000000", "1700000000.050000000"]
-    np.testing.assert_allclose([float(v) for v in rows[1][1:]], [0.06, 0, 0, *Rotation.from_matrix(R[1]).as_quat()])
+    np.testing.assert_allclose(
+        [float(v) for v in rows[1][1:]], [0.06, 0, 0, *Rotation.from_matrix(R[1]).as_quat()]
+    )
     assert not (tmp_path / "t.tum.partial").exists()
 
 
@@ -78,7 +86,9 @@ def test_voxel_subsample_keeps_one_point_per_voxel_in_order():
 
 def test_too_little_lidar_is_an_odometry_error():
     odo = Odometry(None)
-    odo.add(np.random.default_rng(1).normal(size=(500, 3)) * 5, np.linspace(0, 100_000_000, 500).astype(np.int64))
+    odo.add(
+        np.random.default_rng(1).normal(size=(500, 3)) * 5, np.linspace(0, 100_000_000, 500).astype(np.int64)
+    )
     with pytest.raises(OdometryError, match="less than 200 ms"):
         odo.result()
 

@@ -1,0 +1,145 @@
+"""Dense ground truth against the simulator's exact truth: a handheld outdoor walk with movers.
+
+One recording (2.4 s, people crossing and oncoming, a swinging door, a car;
+noise-free ranges, 240x150 images) is ingested once with `--gt auto`; the
+tests score its trajectory and every sample against the truth, at a reduced
+resolution that fits CI (bench/bench_dense.py measures full resolution).
+"""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from scipy.spatial.transform import Rotation
+
+from ingest.dataset.meta import read_meta
+from ingest.train.dense import DenseParams, dense_ground_truth, free_space_filter, snap_to_pixel_rays
+from ingest.train.pipeline import IngestConfig, ingest
+from ingest.train.planes import Normals
+from ingest.train.sample import SampleParams
+from sensorbox.sim.run import SimConfig, simulate
+from sensorbox.sim.score import score_dataset
+from sensorbox.sim.truth import Truth
+
+pytestmark = pytest.mark.xdist_group("dense")
+
+
+@pytest.fixture(scope="module")
+def walk(tmp_path_factory):
+    root = tmp_path_factory.mktemp("dense")
+    cfg = SimConfig(
+        scene="outdoor", trajectory="walk", duration_s=2.2, scale=0.125, range_noise_m=0.0, image="jpeg",
+        movers=True, seed=7,
+    )  # fmt: skip
+    bag = simulate(cfg, root / "walk").bag
+    truth = Truth.load(bag)
+    out = root / "train"
+    summary = ingest(
+        [bag], IngestConfig(rig=truth.path / "rig.yaml", out=out, workers=1, every=16, gt="auto")
+    )
+    return {"bag": bag, "truth": truth, "out": out, "summary": summary}
+
+
+def _read_tum(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    rows = np.array(
+        [[float(v) for v in line.split()] for line in path.read_text().splitlines() if line[0] != "#"]
+    )
+    T = np.tile(np.eye(4), (len(rows), 1, 1))
+    T[:, :3, :3] = Rotation.from_quat(rows[:, 4:]).as_matrix()
+    T[:, :3, 3] = rows[:, 1:4]
+    stamps = np.array([line.split()[0] for line in path.read_text().splitlines() if line[0] != "#"])
+    ns = np.array([int(s.replace(".", "")) for s in stamps], np.int64)
+    return ns, T
+
+
+def test_auto_chose_dense_and_said_why(walk):
+    s = walk["summary"]
+    assert s.method == "dense" and s.decision.startswith("auto: trajectory residual")
+    doc = yaml.safe_load((walk["out"] / "dataset.yaml").read_text())
+    assert doc["ground_truth"]["method"] == "dense" and doc["ground_truth"]["window_ms"] == 500.0
+    assert doc["ground_truth"]["trajectory"]["file"].endswith("trajectories/walk.tum")
+    meta = read_meta(walk["out"], "000002")
+    assert meta.gt.method == "dense" and meta.gt.decision == s.decision and meta.gt.window_ms == 500.0
+    assert meta.gt.accumulated_points > 100_000 and meta.gt.trajectory_residual_mm is not None
+
+
+def test_trajectory_matches_the_truth_to_a_centimetre(walk):
+    """<= 1 cm and 0.1 deg at every knot (the issue's 20 s target; bench_dense measures 20 s)."""
+    stamps, T_est = _read_tum(walk["out"] / "trajectories" / "walk.tum")
+    T_true = walk["truth"].T_world_cam0(stamps)
+    T_true = np.linalg.inv(T_true[0]) @ T_true  # the estimate's world is cam0 at its first knot
+    pos_err = np.linalg.norm(T_est[:, :3, 3] - T_true[:, :3, 3], axis=1)
+    rel = np.einsum("nji,njk->nik", T_true[:, :3, :3], T_est[:, :3, :3])
+    rot_err_deg = np.degrees(np.linalg.norm(Rotation.from_matrix(rel).as_rotvec(), axis=1))
+    assert len(stamps) >= 40
+    assert pos_err.max() <= 0.01 and rot_err_deg.max() <= 0.1
+
+
+def test_dense_gt_is_exact_where_it_is_and_dense(walk):
+    scores = score_dataset(walk["out"], walk["truth"])
+    assert len(scores) == walk["summary"].written >= 4
+    for s in scores:
+        meta = read_meta(walk["out"], s.sid)
+        assert meta.gt.density >= 0.10, s.sid
+        assert s.depth_median_abs_m <= 0.002 and s.depth_outlier_rate <= 0.005, s
+        assert s.disp_median_abs_px <= 0.05 and s.disp_over_1px_rate <= 0.005, s
+        assert s.depth_no_surface_rate <= 0.005, s  # no GT on the sky beside silhouettes
+        assert s.mover_trail_rate <= 0.001, s  # no GT on a mover's earlier positions
+
+
+def test_without_the_free_space_test_movers_leave_trails(walk):
+    """The same samples with the free-space test off: GT appears on the movers' earlier positions."""
+    on = score_dataset(walk["out"], walk["truth"])
+    out2 = walk["out"].parent / "no_free_space"
+    params = SampleParams(dense=DenseParams(free_space=False))
+    cfg = IngestConfig(
+        rig=walk["truth"].path / "rig.yaml", out=out2, workers=1, every=16, gt="dense", sample=params
+    )
+    ingest([walk["bag"]], cfg)
+    off = score_dataset(out2, walk["truth"])
+    assert [s.sid for s in off] == [s.sid for s in on]
+    assert all(read_meta(out2, s.sid).gt.removed_moving == 0 for s in off)
+    worst_off = max(s.mover_trail_rate for s in off)
+    assert worst_off > 0.005 and worst_off > 20 * max(max(s.mover_trail_rate for s in on), 1e-4)
+
+
+def test_free_space_filter_clears_what_a_reference_saw_through():
+    """A wall at 5 m seen by the reference; a stale point 3 m out in front of it goes, one behind stays."""
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(20_000, 3))
+    d[:, 0] = np.abs(d[:, 0]) + 2.0
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    wall = d * (5.0 / d[:, 0])[:, None]  # the plane x = 5
+    probe = np.array([[3.0, 0.1, 0.05], [6.0, 0.12, 0.06], [3.0, 0.0, 30.0]])  # before, behind, unseen
+    pts = np.concatenate([wall, probe])
+    slice_id = np.r_[np.zeros(len(wall), np.int64), np.ones(3, np.int64)]
+    keep = free_space_filter(pts, slice_id, [(0, np.zeros(3))], DenseParams())
+    assert keep[-3:].tolist() == [False, True, True]
+    assert keep[: len(wall)].all()
+
+
+def test_snapped_points_lie_on_pixel_rays_and_on_the_plane():
+    from calibration.fisheye import DoubleSphere
+
+    model = DoubleSphere(120.0, 120.0, 160.0, 100.0, -0.2, 0.6, 320, 200)
+    rng = np.random.default_rng(1)
+    xy = rng.uniform(-1.5, 1.5, size=(3000, 2))
+    n = np.array([0.2, -0.1, 1.0]) / np.linalg.norm([0.2, -0.1, 1.0])
+    pts = np.c_[xy, (3.0 - xy @ n[:2]) / n[2]]  # the plane n . p = 3
+    normals = Normals(np.tile(n, (len(pts), 1)), np.ones(len(pts), bool))
+    snapped = snap_to_pixel_rays(model, pts, normals, 1, 0.2)
+    assert len(snapped) > 3 * len(pts)
+    np.testing.assert_allclose(snapped @ n, 3.0, atol=1e-9)
+    uv, ok = model.project(snapped)
+    assert ok.all()
+    np.testing.assert_allclose(uv, np.round(uv), atol=1e-6)  # on pixel centres
+
+
+def test_no_points_no_gt():
+    from calibration.fisheye import DoubleSphere
+    from calibration.spherical import Equirectangular
+
+    model = DoubleSphere(120.0, 120.0, 160.0, 100.0, -0.2, 0.6, 320, 200)
+    gt = dense_ground_truth(model, Equirectangular(64), np.eye(3), 0.1, np.zeros((0, 3)), DenseParams())
+    assert gt.range_img.count == 0 and gt.disp_img.count == 0
