@@ -52,6 +52,7 @@ class DenseParams:
     plane_max_flatness: float = 0.02
     plane_min_cos: float = 0.2
     surfel_px: int = 1  # each planar point also gives values on the rays of pixels this close
+    outline_px: int = 7  # ... inside the points' outline: gaps up to this wide closed
     edge_px: int = 1  # GT pixels this close to a range step or to empty sky are dropped
     free_space: bool = True  # remove points the frame's own sweeps saw through (movers)
     free_cell_deg: float = 1.0  # angular cell of the free-space test (around each LiDAR)
@@ -75,14 +76,18 @@ class DenseGt:
     stats: dict[str, int]
 
 
-def snap_to_pixel_rays(model: CameraModel, pts: F64, normals: Normals, radius_px: int, min_cos: float) -> F64:
+def snap_to_pixel_rays(
+    model: CameraModel, pts: F64, normals: Normals, radius_px: int, min_cos: float, close_px: int = 7
+) -> F64:
     """Points moved onto pixel-centre rays along their own local planes (all in the model's frame).
 
     Each point with a planar neighbourhood gives one point on the ray of every
     pixel centre within `radius_px` of its projection (the ray meets the
     point's plane there), as long as that spot lies within the point's own
     neighbourhood in the image (a surfel of `radius_px` pixels) and the pixel
-    holds a point or lies in a gap closed between points. Rays grazing
+    holds a point or lies in a gap between points that a `close_px` square
+    closes (so a surfel never reaches past the outline of the points, into
+    the sky beside a silhouette). Rays grazing
     the plane (|n . ray| < `min_cos`) give nothing; non-planar points stay as
     they are. Values on pixel-centre rays need no range gradient in the
     renderer: they are exact on planes.
@@ -95,8 +100,10 @@ def snap_to_pixel_rays(model: CameraModel, pts: F64, normals: Normals, radius_px
     # the outline of the points, so a silhouette against the sky does not grow)
     occupied = np.zeros((model.height, model.width), np.uint8)
     occupied[pix[ok, 1], pix[ok, 0]] = 1
-    size = 2 * radius_px + 1
-    allowed = cv2.morphologyEx(occupied, cv2.MORPH_CLOSE, np.ones((size, size), np.uint8)) > 0
+    reach = 2 * radius_px + 1
+    near = cv2.dilate(occupied, np.ones((reach, reach), np.uint8))
+    closed = cv2.morphologyEx(occupied, cv2.MORPH_CLOSE, np.ones((close_px, close_px), np.uint8))
+    allowed = (closed > 0) & (near > 0)
     idx = np.flatnonzero(ok & normals.planar)
     out = [pts[~(ok & normals.planar)]]
     n = normals.normal[idx]
@@ -167,7 +174,9 @@ def _view_gt(
     model: CameraModel, pts: F64, normals: Normals, moving: F64, params: DenseParams
 ) -> tuple[Rendering, I64]:
     """Render one view from points in its frame; the flat pixels whose value is ground truth."""
-    snapped = snap_to_pixel_rays(model, pts, normals, params.surfel_px, params.plane_min_cos)
+    snapped = snap_to_pixel_rays(
+        model, pts, normals, params.surfel_px, params.plane_min_cos, params.outline_px
+    )
     rend = render_points(model, snapped, np.eye(4), params.render)
     keep = away_from_edges(rend, params.edge_px) & ~near_movers(
         model, moving, params.mover_margin_rad
