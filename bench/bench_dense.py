@@ -1,257 +1,34 @@
-"""Dense vs sparse ground truth at full resolution against the simulator's exact truth.
+"""Dense vs sparse ground truth at full resolution: `sensorbox.analysis.dense_study` as a table and a chart.
 
-Scenes (simulated once, noise-free unless said): the static room, a 20 s
-handheld outdoor walk, the walk with movers (people, a door, a car), and the
-walk with 2 cm range noise. Bags are simulated with small images (the GT needs
-only the LiDARs and IMU); every sample is computed and scored with the
-reference rig's full-resolution upper camera (1920x1200) and its equirect.
-
-Methods x windows (+- around the frame time):
-- constant velocity: today's sparse GT (gyro rotation + a velocity fitted to
-  the window's own points), +-50/100/200 ms;
-- odometry: the recording's trajectory places every sweep of the window,
-  free-space test off, +-200/500/1000 ms;
-- odometry + movers filter: the same with the free-space test (the default),
-  +-200/500/1000 ms.
-
-Prints a table (density, range median, outliers, disparity median and > 1 px,
-mover trail, seconds per sample) per scene, the trajectory's error over the
-20 s walk and its time per second of data, and writes
-out/bench/dense.png (density vs range error, Pareto front per scene).
+Prints a markdown row per scene and method as it is measured, then the
+trajectory's error over the walk, and writes out/bench/dense.png (density vs
+range error with each scene's Pareto front).
 """
 
 from __future__ import annotations
 
 import argparse
-import statistics
 import sys
-import time
-from dataclasses import dataclass, replace
 from pathlib import Path
-
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
-import numpy as np
-from scipy.spatial.transform import Rotation
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import OUT_DIR
 
-from calibration.rig import REFERENCE_RIG, read_rig
-from ingest.bags.decode import ImuSample, Sweep, decode
-from ingest.bags.reader import open_bags
-from ingest.dataset.layout import prepare_dirs
-from ingest.train.dense import DenseParams
-from ingest.train.odometry import RigTrajectory
-from ingest.train.sample import Geometry, ImuWindow, LidarPoints, SampleJob, SampleParams, process_sample
-from ingest.train.trajectory import run_trajectory_pass
-from sensorbox.sim.run import SimConfig, simulate
-from sensorbox.sim.score import score_sample
-from sensorbox.sim.truth import Truth
-
-MS = 1_000_000
-
-
-@dataclass(frozen=True)
-class Method:
-    name: str
-    window_ms: int
-
-    @property
-    def label(self) -> str:
-        return f"{self.name} +-{self.window_ms} ms"
-
-    def params(self) -> SampleParams:
-        w = self.window_ns
-        if self.name == "constant velocity":
-            return SampleParams(window_ns=w, method="sparse", overlap_images=False)
-        free = self.name.endswith("movers filter")
-        return SampleParams(
-            method="dense", dense=DenseParams(window_ns=w, free_space=free), overlap_images=False
-        )
-
-    @property
-    def window_ns(self) -> int:
-        return self.window_ms * MS
-
-
-METHODS = [
-    *(Method("constant velocity", w) for w in (50, 100, 200)),
-    *(Method("odometry", w) for w in (200, 500, 1000)),
-    *(Method("odometry + movers filter", w) for w in (200, 500, 1000)),
-]
-
-
-@dataclass
-class Recording:
-    """A simulated bag read into memory: sweeps per LiDAR, gyro, the truth and the trajectory."""
-
-    name: str
-    bag: Path
-    truth: Truth
-    sweeps: dict[str, list[Sweep]]
-    imu_t: np.ndarray
-    imu_g: np.ndarray
-    trajectory: RigTrajectory
-    trajectory_s: float
-
-
-def record(name: str, cfg: SimConfig, root: Path) -> Recording:
-    bag = simulate(cfg, root / name).bag
-    truth = Truth.load(bag)
-    rig = truth.rig
-    topics = {li.topic: li.name for li in rig.lidars}
-    sweeps: dict[str, list[Sweep]] = {n: [] for n in topics.values()}
-    imu_t, imu_g = [], []
-    with open_bags([bag]) as bags:
-        for msg in bags.messages(topics=[*topics, rig.imus[0].topic]):
-            item = decode(msg.msgtype, msg.raw, msg.ros_version)
-            if isinstance(item, ImuSample):
-                imu_t.append(item.stamp_ns)
-                imu_g.append(item.gyro_rad_s)
-            elif isinstance(item, Sweep) and len(item.stamps_ns):
-                sweeps[topics[msg.topic]].append(item)
-        t0 = time.perf_counter()
-        traj, _ = run_trajectory_pass(
-            bags, topics, (rig.imus[0].topic, rig.imus[0].T_cam0_imu[:3, :3]), rig, 0.3, root / f"{name}.tum"
-        )
-        seconds = time.perf_counter() - t0
-    return Recording(name, bag, truth, sweeps, np.array(imu_t), np.array(imu_g), traj, seconds)
-
-
-def job(rec: Recording, geo: Geometry, tc: int, method: Method, out: Path, sid: str) -> SampleJob:
-    w = method.window_ns
-    lidars = []
-    for name, sweeps in rec.sweeps.items():
-        parts = [(s, (s.stamps_ns >= tc - w) & (s.stamps_ns <= tc + w)) for s in sweeps]
-        parts = [(s, m) for s, m in parts if m.any()]
-        xyz = np.concatenate([s.xyz_m[m] for s, m in parts])
-        stamps = np.concatenate([s.stamps_ns[m] for s, m in parts])
-        tags = [s.tag[m] for s, m in parts if s.tag is not None]
-        lidars.append(
-            LidarPoints(name, xyz, stamps, np.concatenate(tags) if len(tags) == len(parts) else None)
-        )
-    sel = (rec.imu_t >= tc - w - 20 * MS) & (rec.imu_t <= tc + w + 20 * MS)
-    imu = ImuWindow(rec.imu_t[sel], rec.imu_g[sel], rec.truth.rig.imus[0].T_cam0_imu[:3, :3])
-    up = np.zeros((geo.rig.upper.model.height, geo.rig.upper.model.width, 3), np.uint8)
-    lo = np.zeros((geo.rig.lower.model.height, geo.rig.lower.model.width, 3), np.uint8)
-    return SampleJob(
-        out, sid, rec.name, tc, tc, up, lo, tuple(lidars), imu, None, geo, method.params(), rec.trajectory
-    )
-
-
-def evaluate(rec: Recording, geo: Geometry, method: Method, stamps: list[int], out: Path) -> dict[str, float]:
-    """Mean scores over the samples, and seconds per sample."""
-    prepare_dirs(out, False)
-    (out / "dataset.yaml").write_text(f"height_full: {geo.equirect.height_full}\n")
-    truth = replace(rec.truth, rig=geo.rig)
-    rows, secs = [], []
-    for k, tc in enumerate(stamps):
-        t0 = time.perf_counter()
-        res = process_sample(job(rec, geo, tc, method, out, f"{k:06d}"))
-        secs.append(time.perf_counter() - t0)
-        if not res.written:
-            continue
-        s = score_sample(out, truth, res.sid, trail_window_ns=method.window_ns)
-        assert res.meta is not None
-        wrong = s.depth_outlier_rate + s.depth_no_surface_rate  # GT on the sky counts as an outlier
-        rows.append((res.meta.gt.density, s.depth_median_abs_m * 1e3, wrong, s.disp_median_abs_px,
-                     s.disp_over_1px_rate, s.mover_trail_rate))  # fmt: skip
-    a = np.array(rows)
-    keys = ("density", "median_mm", "outliers", "disp_median_px", "disp_over_1px", "trail")
-    return {
-        **{k: float(np.mean(a[:, i])) for i, k in enumerate(keys)},
-        "s_per_sample": statistics.median(secs),
-    }
-
-
-def trajectory_error(rec: Recording) -> tuple[float, float]:
-    """Max position (m) and rotation (deg) error at every knot, world = cam0 at the first knot."""
-    traj = rec.trajectory
-    T = rec.truth.T_world_cam0(traj.stamps_ns)
-    T = np.linalg.inv(T[0]) @ T
-    pos = np.linalg.norm(T[:, :3, 3] - traj.p_world_cam0, axis=1)
-    rel = np.einsum("nji,njk->nik", T[:, :3, :3], traj.R_world_cam0)
-    rot = np.degrees(np.linalg.norm(Rotation.from_matrix(rel).as_rotvec(), axis=1))
-    return float(pos.max()), float(rot.max())
-
-
-def chart(results: dict[str, dict[str, dict[str, float]]], path: Path) -> None:
-    fig, axes = plt.subplots(1, len(results), figsize=(5.2 * len(results), 4.6), squeeze=False)
-    colors = {
-        "constant velocity": "tab:gray",
-        "odometry": "tab:blue",
-        "odometry + movers filter": "tab:green",
-    }
-    for ax, (scene, rows) in zip(axes[0], results.items(), strict=True):
-        pts = []
-        for m in METHODS:
-            r = rows.get(m.label)
-            if r is None:
-                continue
-            ax.scatter(100 * r["density"], r["median_mm"], color=colors[m.name], s=30 + m.window_ms / 10)
-            ax.annotate(f"{m.window_ms}", (100 * r["density"], r["median_mm"]), fontsize=7, xytext=(3, 3),
-                        textcoords="offset points")  # fmt: skip
-            pts.append((100 * r["density"], r["median_mm"]))
-        front = sorted(p for p in pts if not any(q[0] >= p[0] and q[1] <= p[1] and q != p for q in pts))
-        ax.plot(*zip(*front, strict=True), "k--", lw=0.8, label="Pareto front")
-        ax.axhline(2.0, color="r", lw=0.6, ls=":", label="target 2 mm")
-        ax.set(
-            title=scene,
-            xlabel="GT density, % of fisheye pixels",
-            ylabel="range median error, mm",
-            yscale="log",
-        )
-        for name, c in colors.items():
-            ax.scatter([], [], color=c, label=name)
-        ax.legend(fontsize=7)
-    fig.suptitle("Dense GT: density vs accuracy (full resolution; labels: +- window ms)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
+from sensorbox.analysis.dense_study import dense_chart, format_row, run_dense_study, table_header
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--samples", type=int, default=5, help="samples per scene and method")
+    ap.add_argument("--samples", type=int, default=3, help="samples per scene and method")
     ap.add_argument("--walk-s", type=float, default=20.0, help="length of the walk (trajectory error)")
     ap.add_argument("--out", type=Path, default=OUT_DIR / "dense")
     args = ap.parse_args()
-    args.out.mkdir(parents=True, exist_ok=True)
-    geo = Geometry.from_rig(read_rig(REFERENCE_RIG))
-    base = SimConfig(scale=0.125, image="jpeg", range_noise_m=0.0, dust_fraction=0.0, seed=11)
-    scenes = {
-        "static room": replace(base, scene="indoor", trajectory="static", duration_s=3.0),
-        "outdoor walk": replace(base, scene="outdoor", trajectory="walk", duration_s=args.walk_s),
-        "walk with movers": replace(base, scene="outdoor", trajectory="walk", duration_s=4.0, movers=True),
-        "walk, 2 cm noise": replace(
-            base, scene="outdoor", trajectory="walk", duration_s=4.0, range_noise_m=0.02
-        ),
-    }
-    results: dict[str, dict[str, dict[str, float]]] = {}
-    print("| scene | method | density | range median [mm] | outliers | disp median [px] | disp > 1 px | "
-          "mover trail | s/sample |\n|---|---|---|---|---|---|---|---|---|")  # fmt: skip
-    for scene, cfg in scenes.items():
-        rec = record(scene.replace(" ", "_").replace(",", ""), cfg, args.out)
-        t0, t1 = int(rec.trajectory.stamps_ns[0]), int(rec.trajectory.stamps_ns[-1])
-        stamps = np.linspace(t0 + 1_100 * MS, t1 - 1_100 * MS, args.samples).astype(np.int64).tolist()
-        if scene == "outdoor walk":
-            pos, rot = trajectory_error(rec)
-            span = (t1 - t0) / 1e9
-            rate = rec.trajectory_s / span
-            print(f"trajectory over {span:.1f} s: max {pos * 1e3:.2f} mm, {rot:.4f} deg; "
-                  f"{rec.trajectory_s:.1f} s to compute ({rate:.2f} s per s of data)")  # fmt: skip
-        methods = METHODS if "noise" not in scene else [m for m in METHODS if m.window_ms in (50, 500)]
-        results[scene] = {}
-        for m in methods:
-            results[scene][m.label] = evaluate(rec, geo, m, stamps, args.out / "samples")
-            r = results[scene][m.label]
-            print(f"| {scene} | {m.label} | {100 * r['density']:.1f} % | {r['median_mm']:.2f} | "
-                  f"{100 * r['outliers']:.2f} % | {r['disp_median_px']:.3f} | "
-                  f"{100 * r['disp_over_1px']:.2f} % | "
-                  f"{100 * r['trail']:.3f} % | {r['s_per_sample']:.1f} |", flush=True)  # fmt: skip
-    chart(results, OUT_DIR / "dense.png")
+    print(table_header())
+    result = run_dense_study(
+        args.out, args.samples, args.walk_s, lambda *row: print(format_row(*row), flush=True)
+    )
+    print(result.trajectory_line())
+    dense_chart(result.rows, OUT_DIR / "dense.png")
     print(f"chart: {OUT_DIR / 'dense.png'}")
 
 

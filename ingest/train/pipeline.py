@@ -226,13 +226,9 @@ def _imu_window(imu_t: list[int], imu_g: list[Any], tc: int, w: int, R_cam0_imu:
 
 
 def stream_jobs(
-    bags: BagSet,
-    topics: Topics,
-    the_plan: Plan,
-    cfg: IngestConfig,
-    geometry: Geometry,
+    bags: BagSet, topics: Topics, the_plan: Plan, cfg: IngestConfig, geometry: Geometry,
     trajectory: RigTrajectory | None = None,
-) -> Iterator[SampleJob | tuple[str, str]]:
+) -> Iterator[SampleJob | tuple[str, str]]:  # fmt: skip
     """Second pass: yield a SampleJob per planned sample (or (sid, "done") when already written)."""
     w = cfg.lidar_window_ns
     index = {int(t): k for k, t in enumerate(the_plan.upper_ns)}

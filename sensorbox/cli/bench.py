@@ -32,6 +32,14 @@ OnlyOpt = Annotated[
 ProjectionOpt = Annotated[
     bool, typer.Option("--projection/--no-projection", help="Also compare equirect vs cubemap SGBM.")
 ]
+DenseOpt = Annotated[
+    bool,
+    typer.Option(
+        "--dense",
+        help="Instead: dense vs sparse GT at full resolution (density x accuracy x window, movers, noise; "
+        "bench/bench_dense.py); about 30 minutes on 2 cores.",
+    ),
+]
 RepeatsOpt = Annotated[
     int, typer.Option(help="Timing rounds (each sample's time is the median; accuracy from the first).")
 ]
@@ -40,7 +48,7 @@ RepeatsOpt = Annotated[
 def bench_cmd(
     out: OutOpt = Path("out/bench"), bag: BagOpt = None, quick: QuickOpt = False, scale: ScaleOpt = None,
     duration: DurationOpt = 0.5, every: EveryOpt = None, only: OnlyOpt = None,
-    projection: ProjectionOpt = True, repeats: RepeatsOpt = 1,
+    projection: ProjectionOpt = True, repeats: RepeatsOpt = 1, dense: DenseOpt = False,
 ) -> None:  # fmt: skip
     """Speed vs accuracy of the ingest pipeline's alternatives on simulated bags with exact truth.
 
@@ -52,6 +60,8 @@ def bench_cmd(
     """
     from sensorbox.analysis.bench import bench_bags, bench_report, bench_settings, run_bench
 
+    if dense:
+        return dense_study(out)
     alternatives, step = bench_settings(only or [], quick, every, repeats, duration)
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
     bar = Progress(*columns, console=err_console, transient=True)
@@ -65,3 +75,16 @@ def bench_cmd(
         bar.reset(job, total=len(alternatives) * len(bags) * repeats + int(projection))
         result = run_bench(bags, out, alternatives, Path(tmp) / "work", step, projection, repeats, on_step)
     typer.echo(bench_report(result, bags))
+
+
+def dense_study(out: Path) -> None:
+    """`sensorbox bench --dense`: the dense-GT study's table as it is measured, the trajectory, the chart."""
+    from sensorbox.analysis.dense_study import dense_chart, format_row, run_dense_study, table_header
+
+    typer.echo(table_header())
+    with tempfile.TemporaryDirectory(prefix="sensorbox-dense-") as tmp:
+        result = run_dense_study(Path(tmp), on_row=lambda *row: typer.echo(format_row(*row)))
+    typer.echo(result.trajectory_line())
+    out.mkdir(parents=True, exist_ok=True)
+    dense_chart(result.rows, out / "dense.png")
+    typer.echo(f"chart: {out / 'dense.png'}")
