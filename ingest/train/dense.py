@@ -46,7 +46,9 @@ class DenseParams:
 
     window_ns: int = 500_000_000  # +- around the frame time
     render: RenderParams = field(
-        default_factory=lambda: RenderParams(points_per_px=None, raw_fallback=False, fill_passes=0)
+        default_factory=lambda: RenderParams(
+            points_per_px=None, raw_fallback=False, fill_passes=0, fit_gradient=False
+        )
     )
     plane_neighbours: int = 10
     plane_max_flatness: float = 0.02

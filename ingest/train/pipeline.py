@@ -149,7 +149,9 @@ def _resolve_topics(rig: Rig, bag_topics: dict[str, Any], where: str) -> Topics:
     upper = find(rig.upper.topic, "the upper camera")
     lower = find(rig.lower.topic, "the lower camera")
     lidars = {find(li.topic, f"lidar {li.name}"): li.name for li in rig.lidars}
-    imu = next((i for i in rig.imus if i.topic in bag_topics), None)
+    for i in rig.imus:  # every IMU the rig names must be there: a silent fallback skews the motion model
+        find(i.topic, f"imu {i.name}")
+    imu = rig.imus[0] if rig.imus else None
     return Topics(upper, lower, lidars, imu.topic if imu else None, imu.T_cam0_imu[:3, :3] if imu else None)
 
 

@@ -173,6 +173,16 @@ def test_missing_topic_lists_the_bag_topics(tmp_path: Path) -> None:
         ingest([INDOOR], IngestConfig(rig=tmp_path / "rig.yaml", out=tmp_path / "ds", workers=1))
 
 
+def test_an_imu_the_rig_names_must_be_in_the_bag(tmp_path: Path) -> None:
+    """No silent fallback to motion compensation without the IMU (issue 20, class 3)."""
+    rig_text = _rig(INDOOR).read_text().replace("/livox/imu_192_168_1_12", "/livox/imu_10_0_0_9")
+    (tmp_path / "rig.yaml").write_text(rig_text)
+    shutil.copy(truth_dir(INDOOR) / "camchain.yaml", tmp_path / "camchain.yaml")
+    with pytest.raises(BagError, match=r"no topic '/livox/imu_10_0_0_9' for imu .* \(from the rig\)"):
+        ingest([INDOOR], IngestConfig(rig=tmp_path / "rig.yaml", out=tmp_path / "ds", workers=1))
+    assert not (tmp_path / "ds").exists()
+
+
 def test_rig_that_does_not_match_the_bag(tmp_path: Path) -> None:
     # the reference rig is full resolution; the fixture images are 480x300
     from calibration.rig import REFERENCE_RIG
