@@ -8,7 +8,8 @@
   inline calls get it as it is. `fn(shared, job)` does one job.
 - `worker_init` runs once in every worker process before its first job, and
   once in this process when running inline: process-wide settings (allocator,
-  thread counts) belong there, not in a job.
+  thread counts) belong there, not in a job. Pool workers also end with this
+  process (`ingest.runtime.lifetime`), even when it is SIGKILLed.
 - `handoff` moves a job's large arrays (camera images) through one shared
   anonymous mapping instead of the task pipe (fork pool only): `take(job)`
   splits a job into a light job and its arrays, `give(job, arrays)` joins them
@@ -34,6 +35,7 @@ from typing import Any, Generic, Literal, TypeVar
 
 import numpy as np
 
+from ingest.runtime.lifetime import die_with_parent
 from ingest.runtime.transport import ArraySlots, SlotRef, slot_views
 
 J = TypeVar("J")
@@ -67,7 +69,9 @@ def _forked_call(job: Any, ref: SlotRef | None) -> Any:
     return _WORKER["fn"](_WORKER["shared"], job)
 
 
-def _init_worker(worker_init: Callable[[], object] | None) -> None:
+def _init_worker(worker_init: Callable[[], object] | None, parent_pid: int | None = None) -> None:
+    if parent_pid is not None:
+        die_with_parent(parent_pid)
     if worker_init is not None:
         worker_init()
 
@@ -123,7 +127,7 @@ class Executor:
         _WORKER.update(shared=shared, fn=fn, give=handoff.give if handoff else None)
         ctx = multiprocessing.get_context("fork" if fork else "spawn")
         pool = ProcessPoolExecutor(
-            self.workers, mp_context=ctx, initializer=_init_worker, initargs=(self.worker_init,)
+            self.workers, mp_context=ctx, initializer=_init_worker, initargs=(self.worker_init, os.getpid())
         )
         pending: deque[tuple[Future[R], SlotRef | None]] = deque()
         try:

@@ -1,0 +1,58 @@
+"""Pool workers end with their parent, even when it is SIGKILLed (issue 20, class 8)."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from tests.live import wait_for
+from tests.paths import ROOT
+
+pytestmark = [
+    pytest.mark.realtime,
+    pytest.mark.skipif(not sys.platform.startswith("linux"), reason="prctl(PR_SET_PDEATHSIG) is Linux's"),
+]
+
+PARENT = """
+import time
+from ingest.runtime.executor import Executor
+
+def job(_shared, k):
+    time.sleep(3600)
+
+for _ in Executor(2).run(job, range(4)):
+    pass
+"""
+
+
+def _children(pid: int) -> list[int]:
+    out: list[int] = []
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        try:
+            out += [int(c) for c in (task / "children").read_text().split()]
+        except OSError:
+            pass
+    return out
+
+
+def _running(pid: int) -> bool:
+    """The process exists and is not a zombie waiting to be reaped."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def test_pool_workers_die_when_their_parent_is_killed(tmp_path):
+    script = tmp_path / "parent.py"
+    script.write_text(PARENT)
+    parent = subprocess.Popen([sys.executable, str(script)], cwd=ROOT)
+    try:
+        wait_for(lambda: len(_children(parent.pid)) >= 2, "two pool workers started")
+        workers = _children(parent.pid)
+        assert all(_running(w) for w in workers)
+    finally:
+        parent.kill()
+        parent.wait()
+    wait_for(lambda: not any(_running(w) for w in workers), "the workers ended with their parent")
