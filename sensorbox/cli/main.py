@@ -1,6 +1,10 @@
 """The ``sensorbox`` command line: one module per command, each parses, calls one library function, prints.
 
-Every `SensorboxError` becomes one readable line on stderr and exit code 2.
+Every `SensorboxError` (a user mistake: a file, key, topic or value named)
+becomes one plain line on stderr and exit code 2; an OSError that reaches the
+top (disk full, permissions, a missing folder) one line naming the path and
+exit code 3. Messages are printed as text, never as rich markup, so paths and
+values with brackets arrive as they are.
 """
 
 from __future__ import annotations
@@ -8,6 +12,7 @@ from __future__ import annotations
 import sys
 
 import typer
+from rich.text import Text
 
 from calibration.errors import SensorboxError
 from sensorbox.cli.bench import bench_cmd
@@ -50,8 +55,16 @@ def main() -> None:
     try:
         app()
     except SensorboxError as err:
-        err_console.print(f"[bold red]error:[/bold red] {err}", highlight=False, soft_wrap=True)
+        _error(str(err))
         sys.exit(2)
+    except OSError as err:
+        where = f"{err.filename}: " if err.filename else ""
+        _error(f"{where}{err.strerror or err}")
+        sys.exit(3)
+
+
+def _error(message: str) -> None:
+    err_console.print(Text.assemble(("error:", "bold red"), " ", message), highlight=False, soft_wrap=True)
 
 
 if __name__ == "__main__":

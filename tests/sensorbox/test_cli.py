@@ -43,3 +43,20 @@ def test_help_texts():
     for args in ([], ["calib"], ["calib", "check"]):
         res = run(*args, "--help")
         assert res.returncode == 0 and "Usage" in res.stdout
+
+
+def test_errors_print_brackets_as_they_are(tmp_path):
+    """A path with [v2] in it is named as it is, not eaten as markup (issue 20, class 5)."""
+    rig = tmp_path / "rig[v2].yaml"
+    rig.write_text("cameras: [/b]\n")
+    res = run("calib", "check", str(rig))
+    assert res.returncode == 2, res.stderr
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: ") and "rig[v2].yaml" in lines[0], res.stderr
+
+
+def test_os_errors_on_the_output_side_are_one_line_and_exit_3(tmp_path):
+    res = run("calib", "check", str(REF), "--plot", "/proc/sensorbox-nothere/rig.png")
+    assert res.returncode == 3, res.stderr
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert lines == ["error: /proc/sensorbox-nothere: No such file or directory"], res.stderr
