@@ -305,10 +305,8 @@ def render_view(
     V = np.where(own2, v_all[own_i].reshape(H, W) - rows, np.float32(0.0))
 
     # values on the pixel-centre rays: own points moved along the fitted gradient, then gaps filled
-    if params.fit_gradient:
-        gu, gv = fit_gradient(R, U, V, ppr, params)
-    else:
-        gu = gv = np.zeros((H, W), np.float32)
+    flat = np.zeros((H, W), np.float32)  # points on pixel-centre rays need no gradient
+    gu, gv = fit_gradient(R, U, V, ppr, params) if params.fit_gradient else (flat, flat)
     value = (R - gu * U - gv * V).astype(np.float32)
     if params.average_samples and n:
         value = average_surface(pts, value, own2, R, gu, gv, ppr, params)

@@ -37,6 +37,7 @@ from ingest.dataset.layout import (
 from ingest.errors import BagError, DatasetError, OdometryError
 from ingest.runtime.executor import Executor, Handoff
 from ingest.runtime.heap import retain_freed_memory
+from ingest.train.dense import DenseParams
 from ingest.train.odometry import RigTrajectory
 from ingest.train.sample import (
     Geometry,
@@ -56,7 +57,7 @@ from ingest.train.sync import (
     pair_tolerance_ns,
     select_samples,
 )
-from ingest.train.trajectory import TrajectorySummary, choose_method, run_trajectory_pass
+from ingest.train.trajectory import STATIC_WINDOW_NS, TrajectorySummary, choose_method, run_trajectory_pass
 
 
 @dataclass(frozen=True)
@@ -393,9 +394,14 @@ def _gt_method(
                 raise
             failure = str(err)
     method, decision = choose_method(cfg.gt, tsum, failure)
+    dense = cfg.sample.dense
+    default_window = dense.window_ns == DenseParams().window_ns  # not the user's choice
+    if cfg.gt == "auto" and method == "dense" and tsum is not None and tsum.static and default_window:
+        dense = replace(dense, window_ns=STATIC_WINDOW_NS)
+        decision += f"; rig static: window +-{STATIC_WINDOW_NS / 1e6:.0f} ms"
     summary.method, summary.decision, summary.trajectory = method, decision, tsum
-    sample = replace(cfg.sample, method=method, decision=decision)  # type: ignore[arg-type]
-    window = cfg.sample.dense.window_ns if method == "dense" else cfg.lidar_window_ns
+    sample = replace(cfg.sample, method=method, decision=decision, dense=dense)  # type: ignore[arg-type]
+    window = dense.window_ns if method == "dense" else cfg.lidar_window_ns
     return replace(cfg, sample=sample, lidar_window_ns=window), traj if method == "dense" else None
 
 

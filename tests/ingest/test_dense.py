@@ -143,3 +143,15 @@ def test_no_points_no_gt():
     model = DoubleSphere(120.0, 120.0, 160.0, 100.0, -0.2, 0.6, 320, 200)
     gt = dense_ground_truth(model, Equirectangular(64), np.eye(3), 0.1, np.zeros((0, 3)), DenseParams())
     assert gt.range_img.count == 0 and gt.disp_img.count == 0
+
+
+def test_auto_widens_the_window_for_a_static_rig(tmp_path):
+    from sensorbox.sim.fixtures import fixture_bag
+    from tests.paths import FIXTURES_DIR
+
+    bag = fixture_bag("indoor_static_mcap", FIXTURES_DIR)
+    rig = Truth.load(bag).path / "rig.yaml"
+    summary = ingest([bag], IngestConfig(rig=rig, out=tmp_path, workers=1, every=10, gt="auto"))
+    assert summary.method == "dense" and summary.decision.endswith("rig static: window +-1000 ms")
+    assert summary.trajectory is not None and summary.trajectory.static
+    assert read_meta(tmp_path, "000000").gt.window_ms == 1000.0

@@ -108,3 +108,18 @@ def test_auto_chooses_dense_only_with_a_sound_trajectory():
     assert method == "sparse" and "3 knots" in why
     method, why = choose_method("auto", None, "odometry: less than 200 ms of LiDAR points")
     assert method == "sparse" and "200 ms" in why
+
+
+def test_summary_measures_speed_and_turn_rate(tmp_path):
+    from ingest.train.trajectory import summarize
+
+    stamps = np.arange(0, 500_000_001, 50_000_000, dtype=np.int64)
+    R = rotvec_to_matrix(np.outer(stamps / 1e9, [0.0, 0.0, np.radians(30.0)]))  # 30 deg/s yaw
+    p = np.outer(stamps / 1e9, [1.2, 0.0, 0.0])  # 1.2 m/s
+    s = summarize(RigTrajectory(stamps, R, p, np.full(len(stamps), 0.002)), 1.0, tmp_path / "t.tum")
+    assert s.max_speed_mps == pytest.approx(1.2) and s.max_rate_deg_s == pytest.approx(30.0)
+    assert s.residual_median_mm == pytest.approx(2.0) and not s.static
+    still = summarize(
+        RigTrajectory(stamps, np.tile(np.eye(3), (len(stamps), 1, 1)), 0 * p, 0 * stamps), 1.0, tmp_path
+    )
+    assert still.static
