@@ -120,6 +120,8 @@ def test_summary_measures_speed_and_turn_rate(tmp_path):
     assert s.max_speed_mps == pytest.approx(1.2) and s.max_rate_deg_s == pytest.approx(30.0)
     assert s.residual_median_mm == pytest.approx(2.0) and not s.static
     still = summarize(
-        RigTrajectory(stamps, np.tile(np.eye(3), (len(stamps), 1, 1)), 0 * p, 0 * stamps), 1.0, tmp_path
+        RigTrajectory(stamps, np.tile(np.eye(3), (len(stamps), 1, 1)), 0 * p, np.zeros(len(stamps))),
+        1.0,
+        tmp_path,
     )
     assert still.static
