@@ -22,7 +22,7 @@ from rich.table import Table
 from rich.text import Text
 
 from calibration.errors import SensorboxError
-from sensorbox.cli.common import console, err_console, human_bytes
+from sensorbox.cli.common import LidarMsgOpt, console, err_console, human_bytes
 from sensorbox.live.bus import GraphResult, GraphSnapshot, Shutdown, stop_on_signals
 
 if TYPE_CHECKING:
@@ -202,7 +202,6 @@ LowerOpt = Annotated[str, typer.Option(help="Lower camera: ZED serial or V4L2 de
 HostIpOpt = Annotated[str, typer.Option(help="This computer's address on the lidar network.")]
 ImageOpt = Annotated[str, typer.Option(help="jpeg (CompressedImage) | raw (Image bgra8).")]
 JpegQualityOpt = Annotated[int, typer.Option(help="JPEG quality 1-100.")]
-LidarMsgOpt = Annotated[str, typer.Option(help="custom (livox CustomMsg) | pointcloud2.")]
 DurationOpt = Annotated[float, typer.Option(help="Seconds to record (0 = until Ctrl-C).")]
 SplitSizeOpt = Annotated[float, typer.Option(help="Start a new bag at this size, MiB (0 = never).")]
 MinFreeOpt = Annotated[float, typer.Option(help="Stop before the disk has less than this free, MiB.")]

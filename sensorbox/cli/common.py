@@ -5,12 +5,17 @@ from __future__ import annotations
 import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from typing import Annotated
 
+import typer
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
 console = Console(width=None if sys.stdout.isatty() else 140, highlight=False)
 err_console = Console(stderr=True, width=None if sys.stderr.isatty() else 200)
+
+LidarMsgOpt = Annotated[str, typer.Option(help="custom (livox CustomMsg) | pointcloud2.")]
+"""The LiDAR message type of a written bag (simulate, capture)."""
 
 Update = Callable[[int, int], None]
 """progress(done, total): the library's progress callback."""

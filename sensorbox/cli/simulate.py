@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 from rich.table import Table
 
-from sensorbox.cli.common import console, err_console, human_bytes
+from sensorbox.cli.common import LidarMsgOpt, console, err_console, human_bytes
 
 if TYPE_CHECKING:
     from sensorbox.sim.run import SimSummary
@@ -22,7 +22,6 @@ TumOpt = Annotated[Path | None, typer.Option(help="TUM file of T_world_cam0 for 
 DurationOpt = Annotated[float, typer.Option(help="Seconds to simulate.")]
 SeedOpt = Annotated[int, typer.Option(help="Seed of the scene layout, texture, pattern phases and noise.")]
 FormatOpt = Annotated[str, typer.Option("--format", help="mcap | db3 (ROS 2 sqlite3) | bag (ROS 1).")]
-LidarMsgOpt = Annotated[str, typer.Option(help="custom (livox CustomMsg) | pointcloud2.")]
 ImageOpt = Annotated[str, typer.Option(help="raw (Image bgra8) | jpeg (CompressedImage).")]
 ScaleOpt = Annotated[float, typer.Option(help="Image resolution scale (0.25 -> 480x300).")]
 RangeNoiseOpt = Annotated[float, typer.Option(help="LiDAR range noise, 1-sigma metres (0 = exact).")]
