@@ -1,9 +1,15 @@
 """The driver's UDP sockets: a large receive buffer, and the kernel's arrival time (SO_TIMESTAMPNS)
-and drop count (SO_RXQ_OVFL) read from each datagram's ancillary data (Linux)."""
+and drop count (SO_RXQ_OVFL) read from each datagram's ancillary data (Linux).
+
+Data and command sockets own their port (no SO_REUSEADDR): a second driver on
+the same ports is a clear error instead of a second reader silently taking a
+share of each LiDAR's datagrams. Only the broadcast discovery socket shares
+its port."""
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import socket
 import struct
 import sys
@@ -43,8 +49,8 @@ def kernel_drops_so_far(ancillary: list[tuple[int, int, bytes]]) -> int:
 def udp_socket(ip: str, port: int, *, rcvbuf: int = 0, broadcast: bool = False) -> socket.socket:
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     try:
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        if broadcast:
+        if broadcast:  # discovery shares its port with whatever else listens for the broadcast
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
         for option in (_SO_TIMESTAMPNS, _SO_RXQ_OVFL):  # arrival times; kernel drop counts
             if option is not None:
@@ -61,5 +67,10 @@ def udp_socket(ip: str, port: int, *, rcvbuf: int = 0, broadcast: bool = False) 
         sock.bind((ip, port))
     except OSError as err:
         sock.close()
-        raise DriverError(f"cannot bind UDP {ip}:{port}: {err}") from err
+        hint = (
+            " (another driver - sensorbox launch or capture - is using it?)"
+            if err.errno == errno.EADDRINUSE
+            else ""
+        )
+        raise DriverError(f"cannot bind UDP {ip}:{port}: {err.strerror or err}{hint}") from err
     return sock

@@ -626,3 +626,18 @@ def test_sim_emulators_stream_the_reference_rig_as_simulate_would():
             assert truth is not None and stamp == truth.timebase_ns
             np.testing.assert_array_equal(xyz_of(decode_custom_msg(raw, 2).points), quantised_m(truth.points))
         assert sink.on(setup.imus[k][0])  # the rig's IMU topic
+
+
+def test_a_data_port_taken_by_another_driver_is_a_clear_error() -> None:
+    """No SO_REUSEADDR on data/command ports: a second driver cannot silently share a stream (issue 20, 7)."""
+    from sensorbox.livox.sockets import udp_socket
+
+    first = udp_socket("127.0.0.1", 0)
+    port = first.getsockname()[1]
+    try:
+        with pytest.raises(
+            DriverError, match=rf"cannot bind UDP 127.0.0.1:{port}: Address already in use \(another"
+        ):
+            udp_socket("127.0.0.1", port)
+    finally:
+        first.close()
