@@ -15,29 +15,26 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from calibration.rig import Rig, read_rig
 from calibration.types import I64
 from ingest.bags.decode import Frame, ImuSample, Sweep, decode, header_stamp_ns
 from ingest.bags.reader import BagSet, open_bags
 from ingest.dataset.layout import (
-    DEPTH_SCALE,
-    DISP_SCALE,
     is_done,
     prepare_dirs,
     sample_id,
-    write_atomic,
 )
 from ingest.errors import BagError, DatasetError, OdometryError
 from ingest.runtime.executor import Executor, Handoff
 from ingest.runtime.heap import retain_freed_memory
 from ingest.train.dense import DenseParams
+from ingest.train.describe import write_dataset_yaml
 from ingest.train.odometry import RigTrajectory
 from ingest.train.sample import (
     Geometry,
@@ -230,7 +227,7 @@ def _imu_window(imu_t: list[int], imu_g: list[Any], tc: int, w: int, R_cam0_imu:
 
 def stream_jobs(
     bags: BagSet, topics: Topics, the_plan: Plan, cfg: IngestConfig, geometry: Geometry,
-    trajectory: RigTrajectory | None = None,
+    trajectory: RigTrajectory | None = None, first_id: int = 0,
 ) -> Iterator[SampleJob | tuple[str, str]]:  # fmt: skip
     """Second pass: yield a SampleJob per planned sample (or (sid, "done") when already written)."""
     w = cfg.lidar_window_ns
@@ -242,7 +239,7 @@ def stream_jobs(
     imu_t: list[int] = []
     imu_g: list[Any] = []
     next_k = 0
-    sids = [sample_id(k) for k in range(len(the_plan.upper_ns))]
+    sids = [sample_id(first_id + k) for k in range(len(the_plan.upper_ns))]
     done = {sid for sid in sids if is_done(cfg.out, sid)}  # finished by an earlier run (one stat each)
     source = ",".join(p.name for p in bags.paths)
 
@@ -309,71 +306,6 @@ def stream_jobs(
             yield (sids[k], "missing image")
 
 
-def _fingerprint(cfg: IngestConfig, geometry: Geometry, bags: list[Path]) -> dict[str, Any]:
-    from importlib.metadata import version
-
-    import cv2
-
-    rig = geometry.rig
-    return {
-        "format": "widedepth-train",
-        "sensorbox_version": version("sensorbox"),
-        "rig": {"name": rig.name, "source": str(rig.source) if rig.source else None},
-        "R_cam0_rect": geometry.rect.R_cam0_rect.tolist(),
-        "R_cam1_rect": geometry.rect.R_cam1_rect.tolist(),
-        "baseline_m": geometry.rect.baseline_m,
-        "height_full": geometry.equirect.height_full,
-        "equirect_size": [geometry.equirect.height, geometry.equirect.width],
-        "crop_offset": [geometry.equirect.row_offset, geometry.equirect.col_offset],
-        "fisheye_size": [rig.upper.model.height, rig.upper.model.width],
-        "conventions": {
-            "depth_fisheye": f"uint16 PNG; range from cam0's centre, m = value / {DEPTH_SCALE:g}; 0 invalid",
-            "disp_equirect": f"uint16 PNG; disparity, px (full sphere) = value / {DISP_SCALE:g}; 0 invalid",
-            "disparity": "angular vertical stereo, reference = upper camera (DESIGN.md section 3)",
-            "equirect": "row j: theta = (j + 0.5) pi / height_full from up (-y_rect); "
-            "col i: phi = (i + 0.5) pi / height_full - pi from +z_rect towards +x_rect",
-            "time": "int64 ns header stamps (meta stamp_ns = upper camera mid-exposure)",
-        },
-        "params": {
-            "lidar_window_ns": cfg.lidar_window_ns,
-            "stereo_tolerance_ns": cfg.stereo_tolerance_ns,
-            "every": cfg.every,
-            **{k: v for k, v in asdict(cfg.sample).items() if k not in ("gt", "overlap_images")},
-            "gt": asdict(cfg.sample.gt),
-        },
-        "sources": [str(p) for p in bags],
-        "versions": {"numpy": np.__version__, "opencv": cv2.__version__, "rosbags": version("rosbags")},
-    }
-
-
-def _write_dataset_yaml(cfg: IngestConfig, geometry: Geometry, bags: list[Path], run: IngestSummary) -> None:
-    doc = _fingerprint(cfg, geometry, bags)
-    doc["ground_truth"] = {
-        "method": run.method,
-        "decision": run.decision,
-        "window_ms": cfg.lidar_window_ns / 1e6,
-        "trajectory": run.trajectory.as_dict() if run.trajectory else None,
-    }
-    path = cfg.out / "dataset.yaml"
-    if path.exists():
-        old = yaml.safe_load(path.read_text()) or {}
-        for key in ("R_cam0_rect", "height_full", "baseline_m", "params", "fisheye_size"):
-            if old.get(key) != doc[key]:
-                raise DatasetError(
-                    f"{path}: an existing dataset was made with a different {key!r}; "
-                    "choose a new --out or delete it"
-                )
-    write_atomic(
-        path,
-        ("# WideDepth training set written by SensorBox\n" + yaml.safe_dump(doc, sort_keys=False)).encode(),
-    )
-    rig_dir = cfg.out / "rig"
-    rig_dir.mkdir(exist_ok=True)
-    from calibration.rig import write_rig
-
-    write_rig(geometry.rig, rig_dir / "rig.yaml", camchain_name="camchain.yaml")
-
-
 def _gt_method(
     bags: BagSet, topics: Topics, rig: Rig, cfg: IngestConfig, summary: IngestSummary
 ) -> tuple[IngestConfig, RigTrajectory | None]:
@@ -423,6 +355,7 @@ def ingest(
     summary = IngestSummary(out=cfg.out)
     with open_bags(bag_paths, salvage=cfg.salvage) as bags:
         topics = _resolve_topics(rig, bags.topics(), ", ".join(str(p) for p in bag_paths))
+        asked = cfg
         cfg, traj = _gt_method(bags, topics, rig, cfg, summary)
         the_plan = plan(bags, topics, cfg)
         summary.frames, summary.pairs, summary.planned = (
@@ -431,7 +364,7 @@ def ingest(
             len(the_plan.upper_ns),
         )
         prepare_dirs(cfg.out, cfg.sample.exr)
-        _write_dataset_yaml(cfg, geometry, [Path(p) for p in bag_paths], summary)
+        first_id = write_dataset_yaml(asked, cfg, geometry, [Path(p) for p in bag_paths], summary)
         if not cfg.dask and summary.planned:
             geometry.warm_maps()
         executor = Executor(cfg.workers, dask=cfg.dask, worker_init=retain_freed_memory)
@@ -448,7 +381,7 @@ def ingest(
 
         def jobs() -> Iterator[SampleJob]:
             """The jobs to run; resumed and skipped samples are counted here, in stream order."""
-            for item in stream_jobs(bags, topics, the_plan, cfg, geometry, traj):
+            for item in stream_jobs(bags, topics, the_plan, cfg, geometry, traj, first_id):
                 if not isinstance(item, tuple):
                     yield item
                     continue

@@ -57,8 +57,13 @@ def test_auto_chose_dense_and_said_why(walk):
     s = walk["summary"]
     assert s.method == "dense" and s.decision.startswith("auto: trajectory residual")
     doc = yaml.safe_load((walk["out"] / "dataset.yaml").read_text())
-    assert doc["ground_truth"]["method"] == "dense" and doc["ground_truth"]["window_ms"] == 500.0
-    assert doc["ground_truth"]["trajectory"]["file"].endswith("trajectories/walk.tum")
+    (source,) = doc["sources"]
+    assert source["bags"] == ["walk"] and source["first_id"] == 0 and source["samples"] == s.planned
+    gt = source["ground_truth"]
+    assert gt["method"] == "dense" and gt["window_ms"] == 500.0 and gt["decision"] == s.decision
+    assert (
+        gt["trajectory"]["file"].endswith("trajectories/walk.tum") and doc["params"]["ground_truth"] == "auto"
+    )
     meta = read_meta(walk["out"], "000002")
     assert meta.gt.method == "dense" and meta.gt.decision == s.decision and meta.gt.window_ms == 500.0
     assert meta.gt.accumulated_points > 100_000 and meta.gt.trajectory_residual_mm is not None

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import errno
 import filecmp
+import json
 import os
 import shutil
 from pathlib import Path
@@ -147,6 +148,33 @@ def test_rerun_resumes_and_output_is_deterministic(tmp_path: Path) -> None:
     again = ingest([INDOOR], cfg)
     assert (again.written, again.resumed) == (1, 4)
     assert filecmp.cmp(a / "meta" / "000002.json", b / "meta" / "000002.json", shallow=False)
+
+
+def test_a_second_recording_is_appended_and_each_resumes_its_own_ids(tmp_path: Path) -> None:
+    """Sample ids are keyed by recording (issue 20, class 1): a second bag no longer 'resumes' the first's."""
+    walk = FIXTURES_DIR / "indoor_walk_db3"
+    out = tmp_path / "ds"
+    first = ingest([INDOOR], IngestConfig(rig=_rig(INDOOR), out=out, workers=1, every=10))
+    second = ingest([walk], IngestConfig(rig=_rig(INDOOR), out=out, workers=1, every=10))
+    assert (first.written, second.resumed) == (first.planned, 0)
+    assert second.written + sum(second.skipped.values()) == second.planned
+    doc = yaml.safe_load((out / "dataset.yaml").read_text())
+    assert [(s["bags"], s["first_id"], s["samples"]) for s in doc["sources"]] == [
+        (["indoor_static_mcap"], 0, first.planned),
+        (["indoor_walk_db3"], first.planned, second.planned),
+    ]
+    metas = sorted((out / "meta").glob("*.json"))
+    assert len(metas) == first.written + second.written
+    assert {json.loads(m.read_text())["source_bag"] for m in metas} == {
+        "indoor_static_mcap",
+        "indoor_walk_db3",
+    }
+    again = ingest([walk], IngestConfig(rig=_rig(INDOOR), out=out, workers=1, every=10))
+    assert (again.written, again.resumed, again.skipped) == (0, second.written, second.skipped)
+    with pytest.raises(
+        DatasetError, match=r"dataset.yaml: an existing dataset was made with a different 'params'"
+    ):
+        ingest([walk], IngestConfig(rig=_rig(INDOOR), out=out, workers=1, every=5))
 
 
 def test_dask_local_cluster_writes_the_same_files(tmp_path: Path) -> None:

@@ -1,0 +1,126 @@
+"""`dataset.yaml`: what a training set holds and how it was made, one entry per source recording.
+
+The fingerprint (rectification, sizes, conventions, the configuration as
+asked, versions) must match for a rerun or a second recording to write into
+the same folder. `sources` lists every recording with its sample-id range and
+the ground truth chosen for it (method, decision, window, trajectory).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import yaml
+
+from ingest.dataset.layout import DEPTH_SCALE, DISP_SCALE, write_atomic
+from ingest.errors import DatasetError
+from ingest.train.sample import Geometry
+
+if TYPE_CHECKING:
+    from ingest.train.pipeline import IngestConfig, IngestSummary
+
+PER_SOURCE = ("gt", "overlap_images", "method", "decision", "window_ns")
+"""SampleParams fields resolved per recording (dataset.yaml keeps them with each source), not config."""
+
+
+def _fingerprint(cfg: IngestConfig, geometry: Geometry, bags: list[Path]) -> dict[str, Any]:
+    from importlib.metadata import version
+
+    import cv2
+
+    rig = geometry.rig
+    return {
+        "format": "widedepth-train",
+        "sensorbox_version": version("sensorbox"),
+        "rig": {"name": rig.name, "source": str(rig.source) if rig.source else None},
+        "R_cam0_rect": geometry.rect.R_cam0_rect.tolist(),
+        "R_cam1_rect": geometry.rect.R_cam1_rect.tolist(),
+        "baseline_m": geometry.rect.baseline_m,
+        "height_full": geometry.equirect.height_full,
+        "equirect_size": [geometry.equirect.height, geometry.equirect.width],
+        "crop_offset": [geometry.equirect.row_offset, geometry.equirect.col_offset],
+        "fisheye_size": [rig.upper.model.height, rig.upper.model.width],
+        "conventions": {
+            "depth_fisheye": f"uint16 PNG; range from cam0's centre, m = value / {DEPTH_SCALE:g}; 0 invalid",
+            "disp_equirect": f"uint16 PNG; disparity, px (full sphere) = value / {DISP_SCALE:g}; 0 invalid",
+            "disparity": "angular vertical stereo, reference = upper camera (DESIGN.md section 3)",
+            "equirect": "row j: theta = (j + 0.5) pi / height_full from up (-y_rect); "
+            "col i: phi = (i + 0.5) pi / height_full - pi from +z_rect towards +x_rect",
+            "time": "int64 ns header stamps (meta stamp_ns = upper camera mid-exposure)",
+        },
+        "params": {
+            "lidar_window_ns": cfg.lidar_window_ns,
+            "stereo_tolerance_ns": cfg.stereo_tolerance_ns,
+            "every": cfg.every,
+            "ground_truth": cfg.gt,
+            **{k: v for k, v in asdict(cfg.sample).items() if k not in PER_SOURCE},
+            "gt": asdict(cfg.sample.gt),
+        },
+        "versions": {"numpy": np.__version__, "opencv": cv2.__version__, "rosbags": version("rosbags")},
+    }
+
+
+def write_dataset_yaml(
+    asked: IngestConfig, cfg: IngestConfig, geometry: Geometry, bags: list[Path], run: IngestSummary
+) -> int:
+    """dataset.yaml with this recording among its sources; the first sample id of this recording.
+
+    `asked` is the configuration as given (it must match the dataset's),
+    `cfg` as resolved for this recording (its GT method and window).
+    Sample ids are keyed by recording: a recording ingested before keeps its
+    id range (a rerun resumes it), a new one is appended after the last.
+    """
+    doc = _fingerprint(asked, geometry, bags)
+    path = cfg.out / "dataset.yaml"
+    old: dict[str, Any] = {}
+    if path.exists():
+        old = _read_dataset_yaml(path)
+        for key in ("R_cam0_rect", "height_full", "baseline_m", "params", "fisheye_size"):
+            if old.get(key) != doc[key]:
+                raise DatasetError(
+                    f"{path}: an existing dataset was made with a different {key!r}; "
+                    "choose a new --out or delete it"
+                )
+    sources: list[dict[str, Any]] = list(old.get("sources") or [])
+    names = [p.name for p in bags]
+    mine = next((s for s in sources if s.get("bags") == names), None)
+    if mine is not None and mine.get("samples") != run.planned:
+        raise DatasetError(
+            f"{path}: {', '.join(names)} was ingested here before with {mine.get('samples')} planned "
+            f"samples, now {run.planned}; choose a new --out or delete it"
+        )
+    if mine is None:
+        first = max((int(s["first_id"]) + int(s["samples"]) for s in sources), default=0)
+        mine = {"bags": names, "first_id": first, "samples": run.planned}
+        sources.append(mine)
+    mine["paths"] = [str(p) for p in bags]
+    mine["ground_truth"] = {
+        "method": run.method,
+        "decision": run.decision,
+        "window_ms": cfg.lidar_window_ns / 1e6,
+        "trajectory": run.trajectory.as_dict() if run.trajectory else None,
+    }
+    doc["sources"] = sources
+    write_atomic(
+        path,
+        ("# WideDepth training set written by SensorBox\n" + yaml.safe_dump(doc, sort_keys=False)).encode(),
+    )
+    rig_dir = cfg.out / "rig"
+    rig_dir.mkdir(exist_ok=True)
+    from calibration.rig import write_rig
+
+    write_rig(geometry.rig, rig_dir / "rig.yaml", camchain_name="camchain.yaml")
+    return int(mine["first_id"])
+
+
+def _read_dataset_yaml(path: Path) -> dict[str, Any]:
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError) as err:
+        raise DatasetError(f"{path}: cannot read the existing dataset description: {err}") from err
+    if not isinstance(doc, dict):
+        raise DatasetError(f"{path}: not a SensorBox dataset description (expected a mapping)")
+    return doc
