@@ -52,6 +52,7 @@ class OdometryParams:
     max_source_points: int = 4000
     map_voxel_m: float = 0.1
     map_horizon_s: float = 2.0
+    map_range_m: float = 30.0  # the map keeps what lies this close to the rig (far voxels hold few points)
     map_neighbours: int = 10
     map_max_flatness: float = 0.05
     max_correspondence_m: float = 0.5
@@ -82,17 +83,27 @@ class RigTrajectory:
         out: Bool = (t_ns >= self.stamps_ns[0]) & (t_ns <= self.stamps_ns[-1])
         return out
 
-    def pose(self, t_ns: I64) -> tuple[F64, F64]:
-        """(R_world_cam0 (N, 3, 3), p_world_cam0 (N, 3)) at times `t_ns` (clamped to the knots)."""
+    def pose(self, t_ns: I64, rel: F64 | None = None) -> tuple[F64, F64]:
+        """(R_world_cam0 (N, 3, 3), p_world_cam0 (N, 3)) at times `t_ns` (clamped to the knots).
+
+        `rel` is `gyro_shape(t_ns)` when the caller has it: it depends on the
+        knots' times only, not on their poses, so a solver computes it once.
+        """
         t = np.atleast_1d(np.asarray(t_ns, np.int64))
         if len(self.stamps_ns) == 1:
-            return np.broadcast_to(self.R_world_cam0[0], (len(t), 3, 3)).copy(), np.tile(
-                self.p_world_cam0[0], (len(t), 1)
-            )
+            R0 = np.broadcast_to(self.R_world_cam0[0], (len(t), 3, 3)).copy()
+            return R0, np.tile(self.p_world_cam0[0], (len(t), 1))
         k, f = self._segment(t)
-        return _chain_rotation(self, k, f, t), self.p_world_cam0[k] + f[:, None] * (
-            self.p_world_cam0[k + 1] - self.p_world_cam0[k]
-        )
+        p = self.p_world_cam0[k] + f[:, None] * (self.p_world_cam0[k + 1] - self.p_world_cam0[k])
+        return _chain_rotation(self, k, f, self.gyro_shape(t) if rel is None else rel), p
+
+    def gyro_shape(self, t_ns: I64) -> F64:
+        """G(t_k)^T G(t) (N, 3, 3): the gyro's turn from the knot before each time to it (identity: none)."""
+        t = np.atleast_1d(np.asarray(t_ns, np.int64))
+        if self.gyro is None or len(self.stamps_ns) == 1:
+            return np.broadcast_to(np.eye(3), (len(t), 3, 3))
+        k, _ = self._segment(t)
+        return self.gyro.between(self.stamps_ns[k], np.clip(t, self.stamps_ns[0], self.stamps_ns[-1]))
 
     def speed_mps(self, t_ns: int) -> float:
         """Speed of cam0 (m/s) over the knot interval holding `t_ns`."""
@@ -122,12 +133,8 @@ class RigTrajectory:
         tmp.replace(path)
 
 
-def _chain_rotation(traj: RigTrajectory, k: I64, f: F64, t: I64) -> F64:
-    """R(t) of the module doc for times `t` in segments `k` at fractions `f`."""
-    if traj.gyro is None:
-        rel = np.broadcast_to(np.eye(3), (len(t), 3, 3))
-    else:
-        rel = traj.gyro.between(traj.stamps_ns[k], t)
+def _chain_rotation(traj: RigTrajectory, k: I64, f: F64, rel: F64) -> F64:
+    """R(t) of the module doc in segments `k` at fractions `f`, the gyro's shape `rel` given."""
     # the gyro's mismatch with the next knot, once per segment
     seg, inv = np.unique(k, return_inverse=True)
     if traj.gyro is None:
@@ -201,8 +208,10 @@ class LocalMap:
         """
         prm = self.params
         keep = self.added_ns >= t_ns - int(prm.map_horizon_s * 1e9)
+        keep &= np.einsum("ij,ij->i", self.xyz - origin_world, self.xyz - origin_world) <= prm.map_range_m**2
         old = self.xyz[keep]
-        cand = pts_world[voxel_subsample(pts_world, prm.map_voxel_m)]
+        near = np.einsum("ij,ij->i", pts_world - origin_world, pts_world - origin_world) <= prm.map_range_m**2
+        cand = pts_world[near][voxel_subsample(pts_world[near], prm.map_voxel_m)]
         old_keys = np.sort(_voxel_keys(old, prm.map_voxel_m))
         cand_keys = _voxel_keys(cand, prm.map_voxel_m)
         at = np.minimum(np.searchsorted(old_keys, cand_keys), max(len(old_keys) - 1, 0))
@@ -269,9 +278,10 @@ def _solve_knots(
     n_free = len(free)
     stamps = np.array(knots_ns, np.int64)
     residual = math.nan
+    rel = RigTrajectory(stamps, np.array(R), np.array(p), np.zeros(len(knots_ns)), gyro).gyro_shape(t_ns)
     for _ in range(prm.iterations):
         traj = RigTrajectory(stamps, np.array(R), np.array(p), np.zeros(len(knots_ns)), gyro)
-        R_t, p_t = traj.pose(t_ns)
+        R_t, p_t = traj.pose(t_ns, rel)
         a = np.einsum("nij,nj->ni", R_t, pts_cam0)
         world = a + p_t
         dist, j = the_map.tree.query(world, k=1, distance_upper_bound=prm.max_correspondence_m)
