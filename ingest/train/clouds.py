@@ -156,6 +156,37 @@ class GyroTrack:
         return out, angle
 
 
+@dataclass(frozen=True, eq=False)
+class GyroShape:
+    """The integrated gyro G(t) as knots and steps, precomputed once for fast interpolation."""
+
+    stamps_ns: I64
+    G: F64  # (K, 3, 3) orientation relative to the first sample
+    steps: F64  # (K-1, 3) rotation vectors of G_k^T G_k+1
+
+    @classmethod
+    def from_track(cls, gyro: GyroTrack) -> GyroShape:
+        R = gyro.rotations
+        steps = Rotation.from_matrix(np.matmul(np.swapaxes(R[:-1], 1, 2), R[1:])).as_rotvec()
+        return cls(gyro.stamps_ns, R, steps)
+
+    def at(self, t_ns: I64) -> F64:
+        """G(t) (N, 3, 3), clamped to the track."""
+        t = np.clip(np.atleast_1d(np.asarray(t_ns, np.int64)), self.stamps_ns[0], self.stamps_ns[-1])
+        if len(self.stamps_ns) == 1:
+            return np.broadcast_to(self.G[0], (len(t), 3, 3)).copy()
+        k = np.clip(np.searchsorted(self.stamps_ns, t, side="right") - 1, 0, len(self.stamps_ns) - 2)
+        f = (t - self.stamps_ns[k]) / (self.stamps_ns[k + 1] - self.stamps_ns[k]).astype(np.float64)
+        out: F64 = np.matmul(self.G[k], rotvec_to_matrix(self.steps[k] * f[:, None]))
+        return out
+
+    def between(self, t0_ns: I64, t1_ns: I64) -> F64:
+        """G(t0)^T G(t1) per pair (N, 3, 3): the gyro's rotation from cam0 at t0 to cam0 at t1."""
+        G0 = self.at(np.broadcast_to(np.asarray(t0_ns, np.int64), np.shape(np.atleast_1d(t1_ns))))
+        out: F64 = np.matmul(np.swapaxes(G0, 1, 2), self.at(t1_ns))
+        return out
+
+
 def integrate_gyro(stamps_ns: I64, gyro_imu_rad_s: F64, R_cam0_imu: F64) -> GyroTrack:
     """Integrate body rates (rad/s, IMU frame) into cam0 orientations with the midpoint rule."""
     order = np.argsort(stamps_ns, kind="stable")

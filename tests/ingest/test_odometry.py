@@ -6,8 +6,8 @@ from scipy.spatial.transform import Rotation
 
 from calibration.linalg3 import rotvec_to_matrix
 from ingest.errors import OdometryError
-from ingest.train.clouds import integrate_gyro
-from ingest.train.odometry import GyroShape, Odometry, RigTrajectory, voxel_subsample
+from ingest.train.clouds import GyroShape, integrate_gyro
+from ingest.train.odometry import Odometry, RigTrajectory, voxel_subsample
 from ingest.train.trajectory import AUTO_MAX_RESIDUAL_MM, TrajectorySummary, choose_method
 
 
