@@ -39,6 +39,7 @@ class PointMeta:
     kept: int
     out_of_view: int
     occluded: int
+    silent_lidars: list[str] = field(default_factory=list)  # rig LiDARs with no point in the window
 
 
 @dataclass(frozen=True)

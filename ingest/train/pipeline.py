@@ -95,6 +95,7 @@ class IngestSummary:
     written: int = 0
     resumed: int = 0
     skipped: dict[str, int] = field(default_factory=dict)
+    flagged: dict[str, int] = field(default_factory=dict)  # written, with a warning in their meta
     frames: int = 0
     pairs: int = 0
     planned: int = 0
@@ -118,6 +119,9 @@ class IngestSummary:
         assert meta is not None  # written samples carry their metadata
         self.density.append(meta.gt.density)
         self.skew_ms.extend(meta.lidar_skew_ms.values())
+        for name in meta.points.silent_lidars:
+            key = f"{name} silent in the window"
+            self.flagged[key] = self.flagged.get(key, 0) + 1
         self.motion_applied += meta.motion.applied
         for k, v in result.stage_ms.items():
             self.stage_ms.setdefault(k, []).append(v)
@@ -176,6 +180,9 @@ def plan(bags: BagSet, topics: Topics, cfg: IngestConfig) -> Plan:
         assert isinstance(sweep, Sweep)
         if len(sweep.stamps_ns):
             spans[msg.topic].append((int(sweep.stamps_ns.min()), int(sweep.stamps_ns.max())))
+    for topic, name in topics.lidars.items():
+        if not spans[topic]:
+            raise BagError(f"{bags.paths[0]}: no points on {topic} (the rig's lidar {name}) in the whole bag")
     up = np.unique(np.array(stamps[topics.upper], np.int64))  # duplicated stamps count once
     lo = np.unique(np.array(stamps[topics.lower], np.int64))
     if len(up) < 2:

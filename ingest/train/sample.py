@@ -164,6 +164,11 @@ class SampleResult:
     overlapped_ms: dict[str, float] = field(default_factory=dict)  # helper-thread work beside them
 
 
+def _silent(job: SampleJob) -> list[str]:
+    """The rig's LiDARs that gave no point in the sample's window (a sensor that stopped)."""
+    return [lp.name for lp in job.lidars if len(lp.stamps_ns) == 0]
+
+
 def _points_in_cam0(job: SampleJob) -> tuple[F64, I64, FilterCounts, dict[str, float]]:
     """Filtered points of every LiDAR in cam0 (at their own times), their stamps, counts, skews."""
     pts, stamps, _, total, skew = _points_by_lidar(job)
@@ -296,7 +301,7 @@ def _process(job: SampleJob, images: Background[Equirects], start_ms: float) -> 
         points=PointMeta(
             total=counts.total, zero=counts.zero, non_finite=counts.non_finite, too_close=counts.too_close,
             noise_tag=counts.noise_tag, kept=counts.kept, out_of_view=int(len(seen) - seen.sum()),
-            occluded=int(seen.sum() - visible.sum()),
+            occluded=int(seen.sum() - visible.sum()), silent_lidars=_silent(job),
         ),
         gt=GtMeta(
             depth_pixels=range_img.count, disp_pixels=disp_img.count, disp_unstable=unstable,
@@ -365,6 +370,7 @@ def _process_dense(job: SampleJob, images: Background[Equirects], start_ms: floa
         points=PointMeta(
             total=counts.total, zero=counts.zero, non_finite=counts.non_finite, too_close=counts.too_close,
             noise_tag=counts.noise_tag, kept=int(covered.sum()), out_of_view=0, occluded=0,
+            silent_lidars=_silent(job),
         ),
         gt=GtMeta(
             depth_pixels=dense.range_img.count, disp_pixels=dense.disp_img.count,

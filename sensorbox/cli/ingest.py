@@ -66,6 +66,7 @@ def summary_table(summary: IngestSummary, out: Path) -> Table:
         ("written / already done (resumed)", f"{summary.written} / {summary.resumed}"),
         ("ground truth", f"{summary.method} ({summary.decision})"),
         *((f"skipped: {reason}", str(n)) for reason, n in summary.skipped.items()),
+        *((f"written, flagged in meta: {what}", str(n)) for what, n in summary.flagged.items()),
     ]
     if summary.trajectory is not None:
         t = summary.trajectory

@@ -255,6 +255,20 @@ def test_lidar_that_stops_and_duplicated_or_reordered_frames(tmp_path: Path) -> 
     early, late = read_meta(out, "000001"), read_meta(out, "000020")
     assert set(early.lidar_skew_ms) == {"lidar_top", "lidar_bottom"}
     assert late.points.total < 0.75 * early.points.total  # only the top LiDAR left
+    assert early.points.silent_lidars == [] and late.points.silent_lidars == ["lidar_bottom"]
+    silent = sum(read_meta(out, f"{k:06d}").points.silent_lidars == ["lidar_bottom"] for k in range(21))
+    assert summary.flagged == {"lidar_bottom silent in the window": silent} and silent >= 10
+
+
+def test_a_lidar_with_no_message_at_all_is_an_error(tmp_path: Path) -> None:
+    bag = _rewrite(
+        INDOOR, tmp_path / "no_bottom", lambda topic, k, raw: [] if topic.endswith("1_13") else [raw]
+    )
+    shutil.copytree(truth_dir(INDOOR), truth_dir(bag))
+    with pytest.raises(
+        BagError, match=r"no points on /livox/lidar_192_168_1_13 \(the rig's lidar lidar_bottom\)"
+    ):
+        ingest([bag], IngestConfig(rig=_rig(bag), out=tmp_path / "ds", workers=1))
 
 
 def test_nan_points_are_counted_not_fatal(tmp_path: Path) -> None:
