@@ -41,6 +41,7 @@ bench: setup
 	$(BIN)/python bench/bench_capture.py
 	$(BIN)/python bench/bench_tradeoff.py
 	$(BIN)/python bench/bench_stability.py
+	$(BIN)/python bench/bench_dense.py
 
 # Regenerate the small simulated bags in tests/fixtures (deterministic: same bytes every time).
 fixtures: setup
