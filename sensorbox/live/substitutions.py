@@ -94,9 +94,29 @@ def parse_substitutions(text: str, where: str) -> list[str | Substitution]:
     return _scan(text, 0, where, stop=None)[0]
 
 
+MAX_INT_BITS = 4096  # $(eval) integers stay below this size ...
+MAX_STR_LEN = 100_000  # ... and strings below this length, so no expression can take the time or memory
+
+
+def _bounded_pow(a: Any, b: Any) -> Any:
+    big = isinstance(a, int) and isinstance(b, int) and abs(a) > 1 and abs(a).bit_length() * b > MAX_INT_BITS
+    if big:
+        raise ValueError(f"{a} ** {b} is too large (more than {MAX_INT_BITS} bits)")
+    return operator.pow(a, b)
+
+
+def _bounded_mul(a: Any, b: Any) -> Any:
+    if isinstance(a, int) and isinstance(b, int) and abs(a).bit_length() + abs(b).bit_length() > MAX_INT_BITS:
+        raise ValueError(f"a product of more than {MAX_INT_BITS} bits")
+    text, times = (a, b) if isinstance(a, str) else (b, a)
+    if isinstance(text, str) and isinstance(times, int) and len(text) * times > MAX_STR_LEN:
+        raise ValueError(f"a string of more than {MAX_STR_LEN} characters")
+    return operator.mul(a, b)
+
+
 _BINOPS: dict[type, Callable[[Any, Any], Any]] = {
-    ast.Add: operator.add, ast.Sub: operator.sub, ast.Mult: operator.mul, ast.Div: operator.truediv,
-    ast.FloorDiv: operator.floordiv, ast.Mod: operator.mod, ast.Pow: operator.pow,
+    ast.Add: operator.add, ast.Sub: operator.sub, ast.Mult: _bounded_mul, ast.Div: operator.truediv,
+    ast.FloorDiv: operator.floordiv, ast.Mod: operator.mod, ast.Pow: _bounded_pow,
 }  # fmt: skip
 
 
@@ -113,7 +133,11 @@ _FUNCS: dict[str, Callable[..., Any]] = {
 
 def safe_eval(expr: str) -> Any:
     """Evaluate a small Python expression: literals, arithmetic, comparisons, `and/or/not`,
-    `a if c else b`, `math.NAME`, and min/max/abs/round/int/float/str calls."""
+    `a if c else b`, `math.NAME`, and min/max/abs/round/int/float/str calls.
+
+    Bounded: integers past `MAX_INT_BITS` and strings past `MAX_STR_LEN` are
+    refused before they are built (`9**9**9` would otherwise run for hours).
+    """
 
     def ev(node: ast.AST) -> Any:
         if isinstance(node, ast.Expression):

@@ -146,6 +146,18 @@ def test_safe_eval():
     for bad in ("open('x')", "(1).__class__", "x + 1", "[1, 2]"):
         with pytest.raises(ValueError, match="unsupported"):
             safe_eval(bad)
+    assert safe_eval("2 ** 100") == 2**100 and safe_eval("'ab' * 3") == "ababab"
+
+
+def test_eval_refuses_what_would_not_end():
+    """$(eval 9**9**9) used to hang even with --dry-run (issue 20, class 10)."""
+    for bad, what in (
+        ("9**9**9", "too large"),
+        ("'x' * 10**9", "characters"),
+        ("(10**1000) * (10**1000)", "bits"),
+    ):
+        with pytest.raises(ValueError, match=what):
+            safe_eval(bad)
 
 
 def test_parameters_types_nesting_and_files(tmp_path):
