@@ -178,7 +178,7 @@ def read_prediction(path: Path, scale: float) -> F32:
     elif ext == ".npy":
         try:
             values = np.load(path, allow_pickle=False)
-        except (OSError, ValueError) as err:
+        except (OSError, ValueError, EOFError) as err:  # an empty file: EOFError, which click reads as Ctrl-D
             raise EvalError(f"{path}: cannot read the .npy file ({err})") from err
         values = np.squeeze(values)
         if not (np.issubdtype(values.dtype, np.floating) or np.issubdtype(values.dtype, np.integer)):

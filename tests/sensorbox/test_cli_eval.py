@@ -121,6 +121,9 @@ def test_errors_are_one_line_and_exit_2(tmp_path: Path) -> None:
     assert f"{npy}: prediction shape (3, 3) but the GT" in lines[0] and "is (6, 10)" in lines[0]
     res = _run("eval", "--dataset", str(bench), "--pred", str(pred), "--task", "depth")
     assert res.returncode == 2 and "--task 'depth': expected one of stereo, mono, completion" in res.stderr
+    npy.write_bytes(b"")  # an empty prediction file printed only "Aborted!" (issue 20, class 10)
+    res = _run("eval", "--dataset", str(bench), "--pred", str(pred), "--task", "stereo")
+    assert res.returncode == 2 and f"error: {npy}: cannot read the .npy file" in res.stderr, res.stderr
     for cmd in ("eval", "stats"):
         res = _run(cmd, "--help")
         assert res.returncode == 0 and "Usage" in res.stdout
