@@ -193,21 +193,24 @@ def test_dask_local_cluster_writes_the_same_files(tmp_path: Path) -> None:
             assert filecmp.cmp(f, out / sub / f.name, shallow=False)
 
 
-def test_missing_topic_lists_the_bag_topics(tmp_path: Path) -> None:
-    rig_text = _rig(INDOOR).read_text().replace("/livox/lidar_192_168_1_13", "/livox/lidar_10_0_0_9")
-    (tmp_path / "rig.yaml").write_text(rig_text)
+def _rig_renaming(tmp_path: Path, topic: str, new: str) -> Path:
+    """The fixture's rig with one topic renamed (so the bag lacks it), written into `tmp_path`."""
+    (tmp_path / "rig.yaml").write_text(_rig(INDOOR).read_text().replace(topic, new))
     shutil.copy(truth_dir(INDOOR) / "camchain.yaml", tmp_path / "camchain.yaml")
+    return tmp_path / "rig.yaml"
+
+
+def test_missing_topic_lists_the_bag_topics(tmp_path: Path) -> None:
+    rig = _rig_renaming(tmp_path, "/livox/lidar_192_168_1_13", "/livox/lidar_10_0_0_9")
     with pytest.raises(BagError, match=r"lidar_10_0_0_9.*\n.*/livox/imu_192_168_1_12"):
-        ingest([INDOOR], IngestConfig(rig=tmp_path / "rig.yaml", out=tmp_path / "ds", workers=1))
+        ingest([INDOOR], IngestConfig(rig=rig, out=tmp_path / "ds", workers=1))
 
 
 def test_an_imu_the_rig_names_must_be_in_the_bag(tmp_path: Path) -> None:
     """No silent fallback to motion compensation without the IMU (issue 20, class 3)."""
-    rig_text = _rig(INDOOR).read_text().replace("/livox/imu_192_168_1_12", "/livox/imu_10_0_0_9")
-    (tmp_path / "rig.yaml").write_text(rig_text)
-    shutil.copy(truth_dir(INDOOR) / "camchain.yaml", tmp_path / "camchain.yaml")
+    rig = _rig_renaming(tmp_path, "/livox/imu_192_168_1_12", "/livox/imu_10_0_0_9")
     with pytest.raises(BagError, match=r"no topic '/livox/imu_10_0_0_9' for imu .* \(from the rig\)"):
-        ingest([INDOOR], IngestConfig(rig=tmp_path / "rig.yaml", out=tmp_path / "ds", workers=1))
+        ingest([INDOOR], IngestConfig(rig=rig, out=tmp_path / "ds", workers=1))
     assert not (tmp_path / "ds").exists()
 
 
