@@ -55,9 +55,9 @@ from rosbags.rosbag2.storage_mcap import decompress as decompress_mcap_chunk
 from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_typestore
 
 from calibration.errors import SensorboxError
-from ingest.bags.decode import DECODED_TYPES, RosVersion
+from ingest.bags.decode import DECODED_TYPES, Frame, ImuSample, RosVersion, Sweep, decode, header_stamp_ns
 from ingest.bags.rostypes import typestore
-from ingest.errors import BagError
+from ingest.errors import BagError, MessageDecodeError
 
 __all__ = ["BagError", "BagSet", "RawMessage", "TopicSummary", "open_bags", "salvage_mcap"]
 
@@ -75,6 +75,25 @@ class RawMessage(NamedTuple):
     log_ns: int
     raw: bytes
     ros_version: RosVersion
+
+    def decoded(self, where: str) -> Sweep | Frame | ImuSample:
+        """`ingest.bags.decode.decode` of this message; a failure names `where`, the topic and log time."""
+        try:
+            return decode(self.msgtype, self.raw, self.ros_version)
+        except MessageDecodeError as err:
+            raise MessageDecodeError(f"{where}: {self.topic} at log time {self.log_time}: {err}") from err
+
+    def stamp(self, where: str) -> int:
+        """The message's header stamp (ns); a failure names `where`, topic and log time."""
+        try:
+            return header_stamp_ns(self.raw, self.ros_version)
+        except MessageDecodeError as err:
+            raise MessageDecodeError(f"{where}: {self.topic} at log time {self.log_time}: {err}") from err
+
+    @property
+    def log_time(self) -> str:
+        sec, nsec = divmod(self.log_ns, 1_000_000_000)
+        return f"{sec}.{nsec:09d} s"
 
 
 @dataclass(frozen=True)
@@ -395,6 +414,11 @@ class BagSet:
         """MCAP files read by salvage rather than by rosbags."""
         self._reader = reader
         self._salvage_index: dict[Path, dict[_Channel, int]] = {}
+
+    @property
+    def label(self) -> str:
+        """The bags' paths, for messages."""
+        return ", ".join(str(p) for p in self.paths)
 
     def __enter__(self) -> BagSet:
         return self

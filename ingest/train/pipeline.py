@@ -23,7 +23,7 @@ import numpy as np
 
 from calibration.rig import Rig, read_rig
 from calibration.types import I64
-from ingest.bags.decode import Frame, ImuSample, Sweep, decode, header_stamp_ns
+from ingest.bags.decode import Frame, ImuSample, Sweep
 from ingest.bags.reader import BagSet, open_bags
 from ingest.dataset.layout import (
     is_done,
@@ -170,13 +170,14 @@ class Plan:
 
 def plan(bags: BagSet, topics: Topics, cfg: IngestConfig) -> Plan:
     """First pass: stamps and sweep spans only; pairs and samples on header stamps."""
+    where = bags.label
     stamps: dict[str, list[int]] = {topics.upper: [], topics.lower: []}
     spans: dict[str, list[tuple[int, int]]] = {t: [] for t in topics.lidars}
     for msg in bags.messages(topics=[*stamps, *spans]):
         if msg.topic in stamps:
-            stamps[msg.topic].append(header_stamp_ns(msg.raw, msg.ros_version))
+            stamps[msg.topic].append(msg.stamp(where))
             continue
-        sweep = decode(msg.msgtype, msg.raw, msg.ros_version)
+        sweep = msg.decoded(where)
         assert isinstance(sweep, Sweep)
         if len(sweep.stamps_ns):
             spans[msg.topic].append((int(sweep.stamps_ns.min()), int(sweep.stamps_ns.max())))
@@ -237,6 +238,7 @@ def stream_jobs(
     trajectory: RigTrajectory | None = None, first_id: int = 0,
 ) -> Iterator[SampleJob | tuple[str, str]]:  # fmt: skip
     """Second pass: yield a SampleJob per planned sample (or (sid, "done") when already written)."""
+    where = bags.label
     w = cfg.lidar_window_ns
     index = {int(t): k for k, t in enumerate(the_plan.upper_ns)}
     lower_index = {int(t): k for k, t in enumerate(the_plan.lower_ns)}
@@ -271,7 +273,7 @@ def stream_jobs(
     wanted = [topics.upper, topics.lower, *topics.lidars, *([topics.imu] if topics.imu else [])]
     for msg in bags.messages(topics=wanted):
         if msg.topic in (topics.upper, topics.lower):
-            stamp = header_stamp_ns(msg.raw, msg.ros_version)
+            stamp = msg.stamp(where)
             side = "upper" if msg.topic == topics.upper else "lower"
             k = (index if side == "upper" else lower_index).get(stamp)
             if k is None or k < next_k:
@@ -279,17 +281,17 @@ def stream_jobs(
             if sids[k] in done:
                 frames.setdefault(k, {})
                 continue
-            frame = decode(msg.msgtype, msg.raw, msg.ros_version)
+            frame = msg.decoded(where)
             assert isinstance(frame, Frame)
             _check_size(frame, geometry.rig.upper if side == "upper" else geometry.rig.lower, msg.topic)
             frames.setdefault(k, {})[side] = frame
         elif msg.topic == topics.imu:
-            sample = decode(msg.msgtype, msg.raw, msg.ros_version)
+            sample = msg.decoded(where)
             assert isinstance(sample, ImuSample)
             imu_t.append(sample.stamp_ns)
             imu_g.append(sample.gyro_rad_s)
         else:
-            sweep = decode(msg.msgtype, msg.raw, msg.ros_version)
+            sweep = msg.decoded(where)
             assert isinstance(sweep, Sweep)
             if len(sweep.stamps_ns):
                 sweeps[msg.topic].append(sweep)

@@ -20,7 +20,7 @@ import numpy as np
 
 from calibration.rig import Rig
 from calibration.types import F64
-from ingest.bags.decode import ImuSample, Sweep, decode
+from ingest.bags.decode import ImuSample, Sweep
 from ingest.bags.reader import BagSet
 from ingest.train.clouds import GyroTrack, filter_points, integrate_gyro
 from ingest.train.odometry import Odometry, OdometryParams, RigTrajectory
@@ -53,9 +53,10 @@ def read_gyro(bags: BagSet, imu_topic: str | None, R_cam0_imu: F64 | None) -> Gy
     """The integrated gyro of the rig's IMU, or None without one."""
     if imu_topic is None or R_cam0_imu is None:
         return None
+    where = bags.label
     stamps, rates = [], []
     for msg in bags.messages(topics=[imu_topic]):
-        sample = decode(msg.msgtype, msg.raw, msg.ros_version)
+        sample = msg.decoded(where)
         assert isinstance(sample, ImuSample)
         stamps.append(sample.stamp_ns)
         rates.append(sample.gyro_rad_s)
@@ -75,10 +76,11 @@ def trajectory_pass(
 ) -> RigTrajectory:
     """Odometry over every sweep of `lidar_topics` (topic -> rig lidar name); `progress(seconds read)`."""
     odo = Odometry(gyro, params)
+    where = bags.label
     last = {topic: -(2**62) for topic in lidar_topics}
     first_ns: int | None = None
     for msg in bags.messages(topics=list(lidar_topics)):
-        sweep = decode(msg.msgtype, msg.raw, msg.ros_version)
+        sweep = msg.decoded(where)
         assert isinstance(sweep, Sweep)
         if not len(sweep.stamps_ns):
             continue

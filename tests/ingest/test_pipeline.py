@@ -18,7 +18,7 @@ from calibration.stereo import rotate_for_stereo
 from ingest.bags.reader import open_bags
 from ingest.dataset.layout import DEPTH_SCALE, DISP_SCALE, read_png_u16
 from ingest.dataset.meta import read_meta
-from ingest.errors import BagError, DatasetError
+from ingest.errors import BagError, DatasetError, MessageDecodeError
 from ingest.train.pipeline import IngestConfig, ingest
 from ingest.train.sample import SampleParams
 from sensorbox.live.bagwriter import BagWriter
@@ -261,6 +261,20 @@ def test_lidar_that_stops_and_duplicated_or_reordered_frames(tmp_path: Path) -> 
     assert early.points.silent_lidars == [] and late.points.silent_lidars == ["lidar_bottom"]
     silent = sum(read_meta(out, f"{k:06d}").points.silent_lidars == ["lidar_bottom"] for k in range(21))
     assert summary.flagged == {"lidar_bottom silent in the window": silent} and silent >= 10
+
+
+def test_an_undecodable_message_names_bag_topic_and_time(tmp_path: Path) -> None:
+    """A CustomMsg cut short used to abort with a message naming no bag, topic or time (issue 20, class 4)."""
+
+    def keep(topic: str, k: int, raw: bytes) -> list[bytes]:
+        return [raw[: len(raw) // 2]] if topic.endswith("lidar_192_168_1_12") and k == 2 else [raw]
+
+    bag = _rewrite(INDOOR, tmp_path / "cut", keep)
+    shutil.copytree(truth_dir(INDOOR), truth_dir(bag))
+    with pytest.raises(
+        MessageDecodeError, match=rf"{bag}: /livox/lidar_192_168_1_12 at log time \d+\.\d{{9}} s: "
+    ):
+        ingest([bag], IngestConfig(rig=_rig(bag), out=tmp_path / "ds", workers=1))
 
 
 def test_a_lidar_with_no_message_at_all_is_an_error(tmp_path: Path) -> None:
