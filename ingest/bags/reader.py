@@ -41,7 +41,7 @@ from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
 from types import TracebackType
-from typing import Any, NamedTuple
+from typing import Any
 
 from mcap.exceptions import EndOfFile, McapError
 from mcap.records import Channel as McapChannel
@@ -55,9 +55,10 @@ from rosbags.rosbag2.storage_mcap import decompress as decompress_mcap_chunk
 from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_typestore
 
 from calibration.errors import SensorboxError
-from ingest.bags.decode import DECODED_TYPES, Frame, ImuSample, RosVersion, Sweep, decode, header_stamp_ns
+from ingest.bags.decode import DECODED_TYPES, RosVersion
+from ingest.bags.message import RawMessage
 from ingest.bags.rostypes import typestore
-from ingest.errors import BagError, MessageDecodeError
+from ingest.errors import BagError
 
 __all__ = ["BagError", "BagSet", "RawMessage", "TopicSummary", "open_bags", "salvage_mcap"]
 
@@ -65,35 +66,6 @@ log = logging.getLogger(__name__)
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 SALVAGE_HINT = "rerun with --salvage to read its complete chunks"
-
-
-class RawMessage(NamedTuple):
-    """One stored message: topic, type (`pkg/msg/Type`), log time (ns), bytes, ROS version."""
-
-    topic: str
-    msgtype: str
-    log_ns: int
-    raw: bytes
-    ros_version: RosVersion
-
-    def decoded(self, where: str) -> Sweep | Frame | ImuSample:
-        """`ingest.bags.decode.decode` of this message; a failure names `where`, the topic and log time."""
-        try:
-            return decode(self.msgtype, self.raw, self.ros_version)
-        except MessageDecodeError as err:
-            raise MessageDecodeError(f"{where}: {self.topic} at log time {self.log_time}: {err}") from err
-
-    def stamp(self, where: str) -> int:
-        """The message's header stamp (ns); a failure names `where`, topic and log time."""
-        try:
-            return header_stamp_ns(self.raw, self.ros_version)
-        except MessageDecodeError as err:
-            raise MessageDecodeError(f"{where}: {self.topic} at log time {self.log_time}: {err}") from err
-
-    @property
-    def log_time(self) -> str:
-        sec, nsec = divmod(self.log_ns, 1_000_000_000)
-        return f"{sec}.{nsec:09d} s"
 
 
 @dataclass(frozen=True)

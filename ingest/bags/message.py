@@ -1,0 +1,37 @@
+"""One stored message as read from a bag, and its decoding with the bag, topic and time named on failure."""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+from ingest.bags.decode import Frame, ImuSample, RosVersion, Sweep, decode, header_stamp_ns
+from ingest.errors import MessageDecodeError
+
+
+class RawMessage(NamedTuple):
+    """One stored message: topic, type (`pkg/msg/Type`), log time (ns), bytes, ROS version."""
+
+    topic: str
+    msgtype: str
+    log_ns: int
+    raw: bytes
+    ros_version: RosVersion
+
+    def decoded(self, where: str) -> Sweep | Frame | ImuSample:
+        """`ingest.bags.decode.decode` of this message; a failure names `where`, the topic and log time."""
+        try:
+            return decode(self.msgtype, self.raw, self.ros_version)
+        except MessageDecodeError as err:
+            raise MessageDecodeError(f"{where}: {self.topic} at log time {self.log_time}: {err}") from err
+
+    def stamp(self, where: str) -> int:
+        """The message's header stamp (ns); a failure names `where`, topic and log time."""
+        try:
+            return header_stamp_ns(self.raw, self.ros_version)
+        except MessageDecodeError as err:
+            raise MessageDecodeError(f"{where}: {self.topic} at log time {self.log_time}: {err}") from err
+
+    @property
+    def log_time(self) -> str:
+        sec, nsec = divmod(self.log_ns, 1_000_000_000)
+        return f"{sec}.{nsec:09d} s"
