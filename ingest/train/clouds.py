@@ -14,6 +14,7 @@ the decision and the measured motion are returned for the sample's metadata.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -73,8 +74,9 @@ class GyroTrack:
         out: Bool = (t_ns >= self.stamps_ns[0]) & (t_ns <= self.stamps_ns[-1])
         return out
 
-    def _steps(self) -> F64:
-        """Rotation vectors (K-1, 3) of R_k^T R_k+1: the track's steps."""
+    @cached_property
+    def steps(self) -> F64:
+        """Rotation vectors (K-1, 3) of R_k^T R_k+1: the track's steps (computed once)."""
         R = self.rotations
         out: F64 = Rotation.from_matrix(np.einsum("kji,kjl->kil", R[:-1], R[1:])).as_rotvec()
         return out
@@ -87,13 +89,24 @@ class GyroTrack:
         frac: F64 = (tc - t0).astype(np.float64) / (t1 - t0).astype(np.float64)
         return k, frac
 
-    def orientation(self, t_ns: int, steps: F64 | None = None) -> F64:
+    def orientation(self, t_ns: int) -> F64:
         """R_ref_cam0 (3, 3) at one time (clamped to the track)."""
+        out: F64 = self.at(np.array([t_ns], np.int64))[0]
+        return out
+
+    def at(self, t_ns: I64) -> F64:
+        """R_ref_cam0 (N, 3, 3) at times `t_ns` (clamped to the track)."""
+        t = np.atleast_1d(np.asarray(t_ns, np.int64))
         if len(self.stamps_ns) == 1:
-            return np.asarray(self.rotations[0], np.float64)
-        steps = self._steps() if steps is None else steps
-        k, frac = self._interval(np.array([t_ns], np.int64))
-        out: F64 = self.rotations[k[0]] @ rotvec_to_matrix(steps[k] * frac[:, None])[0]
+            return np.broadcast_to(np.asarray(self.rotations[0], np.float64), (len(t), 3, 3)).copy()
+        k, frac = self._interval(t)
+        out: F64 = np.matmul(self.rotations[k], rotvec_to_matrix(self.steps[k] * frac[:, None]))
+        return out
+
+    def between(self, t0_ns: I64, t1_ns: I64) -> F64:
+        """R(t0)^T R(t1) per pair (N, 3, 3): the rotation of cam0 from t0 to t1 (`t0_ns` may be one time)."""
+        G0 = self.at(np.broadcast_to(np.asarray(t0_ns, np.int64), np.shape(np.atleast_1d(t1_ns))))
+        out: F64 = np.matmul(np.swapaxes(G0, 1, 2), self.at(t1_ns))
         return out
 
     def relative(self, t_ns: I64, t_ref_ns: int) -> F64:
@@ -107,8 +120,8 @@ class GyroTrack:
         R = self.rotations
         if len(self.stamps_ns) == 1:
             return np.broadcast_to(np.eye(3), (len(t), 3, 3)).copy()
-        steps = self._steps()
-        R_ref = self.orientation(t_ref_ns, steps)
+        steps = self.steps
+        R_ref = self.orientation(t_ref_ns)
         k, frac = self._interval(t)
         M = np.einsum("ji,kjl->kil", R_ref, R)  # R_ref^T R_k for every track sample (few)
         out: F64 = np.einsum("nij,njl->nil", M[k], rotvec_to_matrix(steps[k] * frac[:, None]))
@@ -129,8 +142,8 @@ class GyroTrack:
         if len(self.stamps_ns) == 1 or len(t) == 0:
             return p.copy(), np.zeros(len(t))
         R = self.rotations
-        steps = self._steps()
-        R_ref = self.orientation(t_ref_ns, steps)
+        steps = self.steps
+        R_ref = self.orientation(t_ref_ns)
         k, frac = self._interval(t)
         order = np.argsort(k, kind="stable")
         starts = np.searchsorted(k[order], np.arange(len(R)))
@@ -154,37 +167,6 @@ class GyroTrack:
             cos = (np.trace(M) + a * np.trace(MS) + b * np.trace(MS @ S) - 1.0) / 2.0
             angle[sel] = np.arccos(np.clip(cos, -1.0, 1.0))
         return out, angle
-
-
-@dataclass(frozen=True, eq=False)
-class GyroShape:
-    """The integrated gyro G(t) as knots and steps, precomputed once for fast interpolation."""
-
-    stamps_ns: I64
-    G: F64  # (K, 3, 3) orientation relative to the first sample
-    steps: F64  # (K-1, 3) rotation vectors of G_k^T G_k+1
-
-    @classmethod
-    def from_track(cls, gyro: GyroTrack) -> GyroShape:
-        R = gyro.rotations
-        steps = Rotation.from_matrix(np.matmul(np.swapaxes(R[:-1], 1, 2), R[1:])).as_rotvec()
-        return cls(gyro.stamps_ns, R, steps)
-
-    def at(self, t_ns: I64) -> F64:
-        """G(t) (N, 3, 3), clamped to the track."""
-        t = np.clip(np.atleast_1d(np.asarray(t_ns, np.int64)), self.stamps_ns[0], self.stamps_ns[-1])
-        if len(self.stamps_ns) == 1:
-            return np.broadcast_to(self.G[0], (len(t), 3, 3)).copy()
-        k = np.clip(np.searchsorted(self.stamps_ns, t, side="right") - 1, 0, len(self.stamps_ns) - 2)
-        f = (t - self.stamps_ns[k]) / (self.stamps_ns[k + 1] - self.stamps_ns[k]).astype(np.float64)
-        out: F64 = np.matmul(self.G[k], rotvec_to_matrix(self.steps[k] * f[:, None]))
-        return out
-
-    def between(self, t0_ns: I64, t1_ns: I64) -> F64:
-        """G(t0)^T G(t1) per pair (N, 3, 3): the gyro's rotation from cam0 at t0 to cam0 at t1."""
-        G0 = self.at(np.broadcast_to(np.asarray(t0_ns, np.int64), np.shape(np.atleast_1d(t1_ns))))
-        out: F64 = np.matmul(np.swapaxes(G0, 1, 2), self.at(t1_ns))
-        return out
 
 
 def integrate_gyro(stamps_ns: I64, gyro_imu_rad_s: F64, R_cam0_imu: F64) -> GyroTrack:

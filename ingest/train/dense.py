@@ -69,13 +69,11 @@ class DenseParams:
 
 @dataclass(frozen=True)
 class DenseGt:
-    """One sample's dense GT and what went into it."""
+    """One sample's dense GT."""
 
     range_img: SparseImage  # fisheye range (m) along pixel rays
     disp_img: SparseImage  # equirect disparity (px of the full sphere)
     unstable: int  # equirect pixels with range but failing the stability mask
-    points: int  # accumulated points rendered
-    stats: dict[str, int]
 
 
 def snap_to_pixel_rays(
@@ -206,8 +204,6 @@ def dense_ground_truth(
             SparseImage((model.height, model.width), *nothing),
             SparseImage((eq.height, eq.width), *nothing),
             0,
-            0,
-            {},
         )
     normals = plane_normals(pts_cam0, params.plane_neighbours, params.plane_max_flatness)
     fish, pix = _view_gt(model, pts_cam0, normals, moving, params)
@@ -224,8 +220,7 @@ def dense_ground_truth(
         theta, r, baseline_m, eq.height_full, params.stability_max_rel_error, params.stability_disp_error_px
     )
     disp_img = SparseImage((eq.height, eq.width), epix[stable], disp[stable].astype(np.float32))
-    stats = {f"fisheye_{k}": v for k, v in fish.stats.items()}
-    return DenseGt(range_img, disp_img, int((~stable).sum()), len(pts_cam0), stats)
+    return DenseGt(range_img, disp_img, int((~stable).sum()))
 
 
 def free_space_filter(

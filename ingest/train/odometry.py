@@ -5,7 +5,7 @@ default) joined by the gyro: between knots k and k+1 the orientation is
 
     R(t) = R_k G_k^T G(t) Exp(f Log(E_k)),  f = (t - t_k) / (t_k+1 - t_k)
 
-where G is the integrated gyro (`ingest.train.clouds.GyroShape`, G_k its
+where G is the integrated gyro (`ingest.train.clouds.GyroTrack`, G_k its
 value at t_k) and E_k the gyro's mismatch with the next knot, spread evenly
 over the interval (without an IMU G is constant and this is the slerp of the
 two knots). Position is linear between knots: 50 ms keeps the chord error of
@@ -38,7 +38,7 @@ from scipy.spatial.transform import Rotation
 from calibration.linalg3 import rotvec_to_matrix
 from calibration.types import F64, I64, Bool
 from ingest.errors import OdometryError
-from ingest.train.clouds import GyroShape, GyroTrack, estimate_velocity
+from ingest.train.clouds import GyroTrack, estimate_velocity
 from ingest.train.planes import neighbour_covariances, normals_from_covariances
 
 
@@ -58,7 +58,6 @@ class OdometryParams:
     max_correspondence_m: float = 0.5
     iterations: int = 15
     tol_m: float = 5e-5  # stop when no knot moves by more than this (rotation: this at 1 m)
-    min_range_m: float = 0.3
     refine_start_s: float = 1.0  # then the start's knots are solved again against the map built since
 
 
@@ -70,7 +69,7 @@ class RigTrajectory:
     R_world_cam0: F64  # (K, 3, 3)
     p_world_cam0: F64  # (K, 3)
     residual_m: F64  # (K,) RMS point-to-plane residual of the solve that placed each knot (0: the first)
-    gyro: GyroShape | None = None
+    gyro: GyroTrack | None = None
 
     def _segment(self, t_ns: I64) -> tuple[I64, F64]:
         t = np.clip(np.asarray(t_ns, np.int64), self.stamps_ns[0], self.stamps_ns[-1])
@@ -221,7 +220,7 @@ class _Chain:
     p: list[F64]
     residual: list[float]
 
-    def trajectory(self, gyro: GyroShape | None) -> RigTrajectory:
+    def trajectory(self, gyro: GyroTrack | None) -> RigTrajectory:
         return RigTrajectory(
             np.array(self.stamps, np.int64), np.array(self.R), np.array(self.p), np.array(self.residual), gyro
         )
@@ -235,7 +234,7 @@ def _solve_knots(
     pts_cam0: F64,
     t_ns: I64,
     the_map: LocalMap,
-    gyro: GyroShape | None,
+    gyro: GyroTrack | None,
     prm: OdometryParams,
 ) -> tuple[list[F64], list[F64], float]:
     """Gauss-Newton on the knots `free` (indices into `knots_ns`; the others stay) against the map.
@@ -291,7 +290,7 @@ class Odometry:
     def __init__(self, gyro_track: GyroTrack | None, params: OdometryParams | None = None) -> None:
         self.params = params or OdometryParams()
         ok = gyro_track is not None and len(gyro_track.stamps_ns) > 1
-        self.gyro = GyroShape.from_track(gyro_track) if ok and gyro_track is not None else None
+        self.gyro = gyro_track if ok else None
         self._pts: list[F64] = []
         self._t: list[I64] = []
         self._chain: _Chain | None = None
@@ -359,7 +358,7 @@ def estimate_trajectory(
 
 
 def _start(
-    P: F64, T: I64, the_map: LocalMap, gyro: GyroShape | None, prm: OdometryParams
+    P: F64, T: I64, the_map: LocalMap, gyro: GyroTrack | None, prm: OdometryParams
 ) -> tuple[_Chain, Bool]:
     """The first knots and map, from the first two chunks deskewed with the gyro and a fitted velocity."""
     span = prm.knot_ns * prm.knots_per_chunk
@@ -385,7 +384,7 @@ def _start(
 
 
 def _register_chunk(
-    chain: _Chain, P: F64, T: I64, the_map: LocalMap, gyro: GyroShape | None, prm: OdometryParams
+    chain: _Chain, P: F64, T: I64, the_map: LocalMap, gyro: GyroTrack | None, prm: OdometryParams
 ) -> tuple[F64, I64]:
     """Solve the next chunk's knots, append them, add the chunk to the map; its map points (cam0, stamps)."""
     t_last = chain.stamps[-1]
@@ -433,7 +432,7 @@ def _refine_start(
     chain: _Chain,
     early: list[tuple[F64, I64]],
     the_map: LocalMap,
-    gyro: GyroShape | None,
+    gyro: GyroTrack | None,
     prm: OdometryParams,
 ) -> None:
     """Solve the start's knots again against the map of the chunks after it, then re-anchor and re-map.

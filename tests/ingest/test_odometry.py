@@ -6,7 +6,7 @@ from scipy.spatial.transform import Rotation
 
 from calibration.linalg3 import rotvec_to_matrix
 from ingest.errors import OdometryError
-from ingest.train.clouds import GyroShape, integrate_gyro
+from ingest.train.clouds import integrate_gyro
 from ingest.train.odometry import Odometry, RigTrajectory, voxel_subsample
 from ingest.train.trajectory import AUTO_MAX_RESIDUAL_MM, TrajectorySummary, choose_method
 
@@ -16,15 +16,14 @@ def _constant_rate_gyro(rate_rad_s, seconds=1.0, hz=200):
     return integrate_gyro(t, np.tile(rate_rad_s, (len(t), 1)), np.eye(3))
 
 
-def test_gyro_shape_matches_the_integrated_track():
+def test_gyro_between_matches_the_integrated_track():
     track = _constant_rate_gyro([0.3, -0.2, 0.5])
-    shape = GyroShape.from_track(track)
     t = np.array([0, 12_345_678, 500_000_000, 987_654_321], np.int64)
     want = track.relative(t, 0)  # G(0)^T G(t) = rotation of cam0 from 0 to t
-    np.testing.assert_allclose(shape.between(np.zeros(4, np.int64), t), want, atol=1e-12)
+    np.testing.assert_allclose(track.between(np.zeros(4, np.int64), t), want, atol=1e-12)
     # constant rate: the rotation is exp(w t) exactly
     np.testing.assert_allclose(
-        shape.at(t[2:3])[0], rotvec_to_matrix(np.array([[0.15, -0.1, 0.25]]))[0], atol=1e-9
+        track.at(t[2:3])[0], rotvec_to_matrix(np.array([[0.15, -0.1, 0.25]]))[0], atol=1e-9
     )
 
 
@@ -46,9 +45,7 @@ def test_chain_follows_the_gyro_between_knots():
     track = _constant_rate_gyro([0.0, 0.0, 2.0])  # 2 rad/s yaw: 0.1 rad per 50 ms knot
     stamps = np.arange(0, 500_000_001, 50_000_000, dtype=np.int64)
     R = rotvec_to_matrix(np.outer(stamps / 1e9, [0.0, 0.0, 2.0]))
-    traj = RigTrajectory(
-        stamps, R, np.zeros((len(stamps), 3)), np.zeros(len(stamps)), GyroShape.from_track(track)
-    )
+    traj = RigTrajectory(stamps, R, np.zeros((len(stamps), 3)), np.zeros(len(stamps)), track)
     t = np.array([13_000_000, 233_333_333, 499_000_000], np.int64)
     np.testing.assert_allclose(traj.pose(t)[0], rotvec_to_matrix(np.outer(t / 1e9, [0, 0, 2.0])), atol=1e-9)
 
