@@ -11,13 +11,11 @@ crops) at `T_world_cam`:
    surface (scanner angular spacing times its range from its own scanner)
    over its range from the camera, times the camera's local pixels per radian.
 3. Z-buffer: a point's key packs its range (0.1 mm steps) above its index in
-   one int64, so a per-pixel minimum (`np.minimum.at`) yields both the nearest
+   one int64, so a per-pixel minimum yields both the nearest
    range and which point it is. Two buffers: "own", the nearest point inside
    each pixel, and "splat", the nearest point whose footprint covers it.
-   Splats are image-space: points are grouped by footprint half-widths
-   (ku, kv) and each group's buffer is eroded (min filter, cv2.erode on the
-   keys viewed as float64, which orders positive keys the same) by an ellipse
-   of that size: one erode per group instead of one write per covered pixel.
+   Splats are image-space ellipses of half-widths (ku, kv), written by a
+   compiled loop over the points (`ingest.raster.kernels`).
 4. Occlusion: an own point is background leaking through a gap of a nearer
    surface when a splat covering it is nearer by more than the same-surface
    tolerance (`RenderParams.tolerance`) and nearer own points lie on two
