@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 from numba import njit
 
-from calibration.types import I64
+from calibration.types import F32, F64, I64, Bool
 
 I32 = np.ndarray[tuple[int], np.dtype[np.int32]]
 
@@ -75,3 +75,49 @@ def zbuffer_keys(
     k_max = int(max(ku.max(), kv.max())) if len(ku) else 0
     start, drow, dcol = ellipse_offsets(k_max)
     _zbuffer(pix, key, ku, kv, k_max + 1, start, drow, dcol, H, W, own, splat)
+
+
+@njit(cache=True, nogil=True)
+def _snap(pts, normal, cols, rows, allowed, rays, ray_ok, radius, min_cos, out):  # type: ignore[no-untyped-def]  # pragma: no cover
+    H, W = allowed.shape
+    n_out = 0
+    for i in range(pts.shape[0]):
+        px, py, pz = pts[i, 0], pts[i, 1], pts[i, 2]
+        nx, ny, nz = normal[i, 0], normal[i, 1], normal[i, 2]
+        d = nx * px + ny * py + nz * pz
+        for du in range(-radius, radius + 1):
+            for dv in range(-radius, radius + 1):
+                c = cols[i] + du
+                r = rows[i] + dv
+                if c < 0 or c >= W or r < 0 or r >= H or not allowed[r, c] or not ray_ok[r, c]:
+                    continue
+                rx, ry, rz = rays[r, c, 0], rays[r, c, 1], rays[r, c, 2]
+                cos = nx * rx + ny * ry + nz * rz
+                if abs(cos) < min_cos:
+                    continue
+                t = d / cos
+                if not (t > 0.0 and t < np.inf):
+                    continue
+                out[n_out, 0] = rx * t
+                out[n_out, 1] = ry * t
+                out[n_out, 2] = rz * t
+                n_out += 1
+    return n_out
+
+
+def snap_planar(
+    pts: F64, normal: F64, cols: I64, rows: I64, allowed: Bool, rays: F32, ray_ok: Bool, radius: int,
+    min_cos: float,
+) -> F64:  # fmt: skip
+    """Points where the pixel-centre rays around each point's pixel meet its plane (model frame, m).
+
+    For every point and every pixel within `radius` of (cols, rows) that is
+    `allowed` and has a ray (`rays`, (H, W, 3) unit vectors), the point
+    t * ray with n . (t * ray) = n . p, unless the ray grazes the plane
+    (|n . ray| < `min_cos`) or meets it behind the camera.
+    """
+    side = 2 * radius + 1
+    out = np.empty((len(pts) * side * side, 3), np.float64)
+    n_out = _snap(pts, normal, cols, rows, allowed, rays, ray_ok, radius, min_cos, out)
+    kept: F64 = out[:n_out]
+    return kept

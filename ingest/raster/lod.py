@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from calibration.camera import CameraModel
@@ -27,6 +28,7 @@ from ingest.errors import ScanError
 from ingest.raster.scan import Scan
 
 VOXEL_M = 0.25
+POINT_SPACING_SMOOTH = 5  # `point_index`: counts averaged over 5 x 5 cells (no bucket mean)
 SPHERE_CELLS = (256, 512)  # equal-area cells in cos(polar) x azimuth: 0.5 deg at the equator
 RANK_BITS = 24
 RANK_SEED = 0x5CA9
@@ -60,11 +62,13 @@ class ScanIndex:
         return len(self.voxel_centre)
 
 
-def angular_spacing(xyz: F32, cells: tuple[int, int] = SPHERE_CELLS) -> F32:
+def angular_spacing(xyz: F32, cells: tuple[int, int] = SPHERE_CELLS, smooth: int = 1) -> F32:
     """Angular spacing (rad) of the scanner's sampling at each point, from points per steradian.
 
     Cells at the edge of what the scanner saw (sky line, tripod shadow) are
     partly empty and report a wider spacing, which only makes splats larger.
+    `smooth` > 1 averages the counts over that many cells square first
+    (occupied cells only), for points that get no other averaging.
     """
     n_u, n_az = cells
     r = np.sqrt(np.einsum("ij,ij->i", xyz, xyz))
@@ -72,7 +76,14 @@ def angular_spacing(xyz: F32, cells: tuple[int, int] = SPHERE_CELLS) -> F32:
     az = np.arctan2(xyz[:, 1], xyz[:, 0])
     ca = np.clip(((az + math.pi) * (n_az / (2.0 * math.pi))).astype(np.int32), 0, n_az - 1)
     cell = cu * n_az + ca
-    counts = np.bincount(cell, minlength=n_u * n_az)
+    counts = np.bincount(cell, minlength=n_u * n_az).astype(np.float64)
+    if smooth > 1:
+        grid = counts.reshape(n_u, n_az)
+        occupied = (grid > 0).astype(np.float64)
+        size = (smooth, smooth)
+        mean = cv2.blur(grid, size, borderType=cv2.BORDER_REPLICATE)
+        share = cv2.blur(occupied, size, borderType=cv2.BORDER_REPLICATE)
+        counts = np.where(grid > 0, mean / np.maximum(share, 1e-9), 0.0).reshape(-1)
     cell_sr = 4.0 * math.pi / (n_u * n_az)
     spacing = np.sqrt(cell_sr / np.maximum(counts, 1)).astype(np.float32)
     out: F32 = spacing[cell]
@@ -140,6 +151,32 @@ def build_index(scan: Scan, voxel_m: float = VOXEL_M) -> ScanIndex:
         voxel_centre=centre.astype(np.float32),
         voxel_spacing_rad=mean_sp.astype(np.float32),
         voxel_m=float(voxel_m),
+    )
+
+
+def point_index(scan: Scan) -> ScanIndex:
+    """An index without buckets: every point its own voxel, in the scan's order (no sort).
+
+    For views that draw every point (`RenderParams.frustum_culling` off, as
+    dense ground truth does, whose cloud was gathered for this one view):
+    each point keeps its own angular spacing instead of its bucket's mean.
+    """
+    if len(scan.xyz) == 0:
+        raise ScanError(f"{scan.source or scan.name}: the scan has no points")
+    n = len(scan.xyz)
+    mask_sp = angular_spacing(scan.mask_xyz) if len(scan.mask_xyz) else np.zeros(0, np.float32)
+    return ScanIndex(
+        name=scan.name,
+        T_world_scan=scan.T_world_scan,
+        xyz=scan.xyz,
+        rgb=scan.rgb,
+        masked=scan.masked,
+        mask_xyz=scan.mask_xyz,
+        mask_spacing_rad=mask_sp,
+        voxel_start=np.arange(n + 1, dtype=np.int64),
+        voxel_centre=scan.xyz,
+        voxel_spacing_rad=angular_spacing(scan.xyz, smooth=POINT_SPACING_SMOOTH),
+        voxel_m=0.0,
     )
 
 

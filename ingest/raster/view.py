@@ -95,6 +95,13 @@ class PixelGeometry:
         return np.ascontiguousarray(out)
 
 
+@lru_cache(maxsize=2)
+def pixel_rays(model: CameraModel) -> tuple[F32, Bool]:
+    """Cached per model (few: a ray grid is 12 bytes per pixel): unit ray of every pixel centre, valid."""
+    rays, valid = model.unproject(model.pixel_grid())
+    return np.ascontiguousarray(np.nan_to_num(rays), np.float32), np.ascontiguousarray(valid)
+
+
 @lru_cache(maxsize=24)
 def pixel_geometry(model: CameraModel) -> PixelGeometry:
     """Cached per (hashable) model: ray validity of every pixel and local angular resolution."""

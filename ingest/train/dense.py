@@ -32,9 +32,10 @@ from calibration.stereo import depth_to_disparity, disparity_stability_mask
 from calibration.types import F64, I64, Bool
 from ingest.dataset.sparse import SparseImage
 from ingest.raster.edges import edge_band
-from ingest.raster.lod import build_index
+from ingest.raster.kernels import snap_planar
+from ingest.raster.lod import point_index
 from ingest.raster.scan import Scan
-from ingest.raster.view import Rendering, render_view
+from ingest.raster.view import Rendering, pixel_rays, render_view
 from ingest.raster.visibility import RenderParams
 from ingest.train.groundtruth import px_per_rad
 from ingest.train.planes import Normals, plane_normals
@@ -47,7 +48,11 @@ class DenseParams:
     window_ns: int = 500_000_000  # +- around the frame time
     render: RenderParams = field(
         default_factory=lambda: RenderParams(
-            points_per_px=None, raw_fallback=False, fill_passes=0, fit_gradient=False
+            points_per_px=None,
+            frustum_culling=False,
+            raw_fallback=False,
+            fill_passes=0,
+            fit_gradient=False,
         )
     )
     plane_neighbours: int = 10
@@ -104,29 +109,21 @@ def snap_to_pixel_rays(
     near = cv2.dilate(occupied, np.ones((reach, reach), np.uint8))
     closed = cv2.morphologyEx(occupied, cv2.MORPH_CLOSE, np.ones((close_px, close_px), np.uint8))
     allowed = (closed > 0) & (near > 0)
-    idx = np.flatnonzero(ok & normals.planar)
-    out = [pts[~(ok & normals.planar)]]
-    n = normals.normal[idx]
-    for du in range(-radius_px, radius_px + 1):
-        for dv in range(-radius_px, radius_px + 1):
-            col, row = pix[idx, 0] + du, pix[idx, 1] + dv
-            inside = (col >= 0) & (col < model.width) & (row >= 0) & (row < model.height)
-            inside[inside] &= allowed[row[inside], col[inside]]
-            sel = idx[inside]
-            ray, ray_ok = model.unproject(np.stack([col[inside], row[inside]], axis=1).astype(np.float64))
-            cos = np.einsum("ij,ij->i", n[inside], ray)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                r = np.einsum("ij,ij->i", n[inside], pts[sel]) / cos
-            good = ray_ok & (np.abs(cos) >= min_cos) & np.isfinite(r) & (r > 0)
-            out.append(ray[good] * r[good, None])
-    return np.concatenate(out)
+    snap = ok & normals.planar
+    idx = np.flatnonzero(snap)
+    rays, ray_ok = pixel_rays(model)
+    snapped = snap_planar(
+        np.ascontiguousarray(pts[idx]), np.ascontiguousarray(normals.normal[idx]), pix[idx, 0], pix[idx, 1],
+        allowed, rays, ray_ok, radius_px, min_cos,
+    )  # fmt: skip
+    return np.concatenate([pts[~snap], snapped])
 
 
 def render_points(model: CameraModel, pts_cam: F64, T_world_cam: F64, params: RenderParams) -> Rendering:
     """Render points given in a frame "world" (here: cam0 at the frame time) into `model` at `T_world_cam`."""
     xyz = np.ascontiguousarray(pts_cam, np.float32)
     scan = Scan("accumulated", np.eye(4), xyz, np.zeros((len(xyz), 3), np.uint8))
-    return render_view([build_index(scan)], model, T_world_cam, params)
+    return render_view([point_index(scan)], model, T_world_cam, params)
 
 
 def away_from_edges(rend: Rendering, edge_px: int) -> Bool:
