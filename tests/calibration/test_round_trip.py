@@ -22,15 +22,18 @@ from calibration import (
     RadTan,
     Unified,
     field_of_view,
+    read_rig,
 )
 from calibration.camera import CameraModel
+from calibration.rig import REFERENCE_RIG
 from calibration.spherical import Cassini, Cubemap, Equirectangular
 
 ISSUE_CAM0 = DoubleSphere(480.1, 479.9, 962.4, 597.9, -0.19, 0.594, 1920, 1200)
 ISSUE_CAM1 = DoubleSphere(483.0, 482.9, 957.3, 603.2, -0.185, 0.5955, 1920, 1200)
 
-# Realistic wide lenses, at a quarter of 1920x1200 to keep the sweep fast; each
-# has pixels past its model's domain so that the boundary is exercised.
+# Realistic wide lenses, at a quarter of 1920x1200 to keep the sweep fast; most
+# have pixels past their model's domain so that the boundary is exercised. The
+# reference rig's cameras (the simulator's), also at a quarter size, close the list.
 QUARTER_MODELS = {
     "ds_xi_negative": DoubleSphere(87.5, 87.4, 240.3, 150.1, -0.2, 0.57, 480, 300),
     "ds_xi_positive": DoubleSphere(75.0, 75.0, 240.0, 150.0, 0.3, 0.6, 480, 300),
@@ -45,6 +48,7 @@ QUARTER_MODELS = {
     "equirectangular_crop": Equirectangular(300, width=200, height=120, row_offset=40, col_offset=250),
     "cassini": Cassini(150),
     "cubemap": Cubemap(64),
+    **{f"reference_{c.name}": c.model.scaled(0.25) for c in read_rig(REFERENCE_RIG).cameras},
 }
 
 
