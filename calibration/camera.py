@@ -120,6 +120,15 @@ class CameraModel(ABC):
         u, v = np.meshgrid(np.arange(self.width, dtype=np.float64), rows)
         return np.stack([u, v], axis=-1)
 
+    @property
+    def max_off_axis_rad(self) -> float:
+        """Largest angle from the optical axis (+z) the model can project, radians.
+
+        Rays at or beyond it are refused by `project`, so no true field of view
+        can exceed twice this angle. pi for models without such a limit.
+        """
+        return math.pi
+
     def params(self) -> dict[str, Any]:
         """All parameters as a plain dict (for reports and serialisation)."""
         return {f.name: getattr(self, f.name) for f in fields(self)}  # type: ignore[arg-type]
@@ -132,16 +141,37 @@ class FieldOfView:
     Each value is the sum of the largest off-axis angles on the two sides of
     the principal point along the central row (horizontal), central column
     (vertical) and the image diagonals (diagonal), so it exceeds pi for lenses
-    that see behind the image plane.
+    that see behind the image plane. ``limit_rad`` is the model's own bound,
+    twice `CameraModel.max_off_axis_rad`; none of the three exceeds it.
     """
 
     horizontal_rad: float
     vertical_rad: float
     diagonal_rad: float
+    limit_rad: float
 
 
 def _off_axis(rays: F64) -> F64:
     return np.arctan2(np.hypot(rays[..., 0], rays[..., 1]), rays[..., 2])
+
+
+ROUND_TRIP_TOL_PX = 1e-3
+"""How far project(unproject(uv)) may land from uv for a pixel to count as seeing its ray."""
+
+
+def round_trip_rays(model: CameraModel, pixels: ArrayLike) -> tuple[F64, Bool]:
+    """Unproject ``pixels`` (..., 2) and keep only rays that project back onto their pixel.
+
+    The models' own validity already guarantees this; the FOV report checks it
+    again so that it can never count a ray the model would refuse to project.
+    """
+    uv = np.asarray(pixels, dtype=np.float64)
+    rays, valid = model.unproject(uv)
+    back, back_ok = model.project(np.where(valid[..., None], rays, 0.0))
+    miss_px = np.hypot(back[..., 0] - uv[..., 0], back[..., 1] - uv[..., 1])
+    with np.errstate(invalid="ignore"):
+        valid &= back_ok & (miss_px < ROUND_TRIP_TOL_PX)
+    return rays, valid
 
 
 def _max_angle_along(model: CameraModel, start: F64, end: F64, samples: int) -> float:
@@ -152,7 +182,7 @@ def _max_angle_along(model: CameraModel, start: F64, end: F64, samples: int) -> 
     there, so a sampled value would understate the FOV by a degree or more.
     """
     t = np.linspace(0.0, 1.0, samples)
-    rays, valid = model.unproject(start[None, :] * (1.0 - t[:, None]) + end[None, :] * t[:, None])
+    rays, valid = round_trip_rays(model, start[None, :] * (1.0 - t[:, None]) + end[None, :] * t[:, None])
     if not np.any(valid):
         return 0.0
     best = float(np.max(_off_axis(rays[valid])))
@@ -161,7 +191,7 @@ def _max_angle_along(model: CameraModel, start: F64, end: F64, samples: int) -> 
         lo, hi = float(t[last]), float(t[last + 1])
         for _ in range(60):
             mid = 0.5 * (lo + hi)
-            ray, ok = model.unproject(start * (1.0 - mid) + end * mid)
+            ray, ok = round_trip_rays(model, start * (1.0 - mid) + end * mid)
             if ok:
                 lo = mid
                 best = max(best, float(_off_axis(ray)))
@@ -194,7 +224,7 @@ def field_of_view(model: CameraModel, samples: int = 4001) -> FieldOfView:
         return _max_angle_along(model, c, end, samples)
 
     diag = max(side(corners[0]) + side(corners[1]), side(corners[2]) + side(corners[3]))
-    return FieldOfView(side(left) + side(right), side(top) + side(bottom), diag)
+    return FieldOfView(side(left) + side(right), side(top) + side(bottom), diag, 2.0 * model.max_off_axis_rad)
 
 
 def require_positive(name: str, value: float, model: str) -> None:

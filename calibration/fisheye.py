@@ -1,7 +1,10 @@
 """Wide-angle camera models: Double Sphere, (Extended) Unified and Kannala-Brandt.
 
 Formulas follow the Double Sphere paper (Usenko et al., 3DV 2018) and
-basalt-headers; validity conditions match Kalibr's (see notes/cameras.md).
+basalt-headers; projection validity matches Kalibr's (see notes/cameras.md).
+Unprojection is valid only where the ray it gives is one `project` accepts, so
+every valid pixel projects back onto itself (Kalibr's DS/EUCM unprojection
+bound alone, the alpha circle, lets rays past the projection limit through).
 All are closed form except Kannala-Brandt unprojection, which solves the
 polynomial by Newton's method to `KB_TOL` radians.
 """
@@ -31,8 +34,10 @@ def _alpha_w1(alpha: float) -> float:
 class DoubleSphere(FocalModel):
     """Double Sphere model: fx, fy, cx, cy in pixels; xi and alpha unitless.
 
-    Projection is valid where z > -w2 * |p|; unprojection where
-    r^2 <= 1/(2 alpha - 1) when alpha > 0.5. The FOV may exceed 180 degrees.
+    Projection is valid where z > -w2 * |p|; unprojection where r^2 <= 1/(2 alpha - 1)
+    when alpha > 0.5 and the ray it gives satisfies the projection test. With
+    xi != 0 the second condition is the tighter one near the image circle.
+    The FOV may exceed 180 degrees but never 2 acos(-w2).
     """
 
     fx: float
@@ -55,6 +60,11 @@ class DoubleSphere(FocalModel):
         w1 = _alpha_w1(self.alpha)
         return (w1 + self.xi) / math.sqrt(2.0 * w1 * self.xi + self.xi * self.xi + 1.0)
 
+    @property
+    def max_off_axis_rad(self) -> float:
+        """acos(-w2): the angle from the axis where projection stops being valid."""
+        return math.acos(min(1.0, max(-1.0, -self.w2)))
+
     def _project_normalised(self, x: F64, y: F64, z: F64) -> tuple[F64, F64, Bool]:
         d1 = np.sqrt(x * x + y * y + z * z)
         k = self.xi * d1 + z
@@ -69,7 +79,13 @@ class DoubleSphere(FocalModel):
         valid = np.ones_like(r2, dtype=bool) if a <= 0.5 else r2 <= 1.0 / (2.0 * a - 1.0)
         mz = (1.0 - a * a * r2) / (a * np.sqrt(1.0 - (2.0 * a - 1.0) * r2) + 1.0 - a)
         s = (mz * xi + np.sqrt(mz * mz + (1.0 - xi * xi) * r2)) / (mz * mz + r2)
-        return s * mx, s * my, s * mz - xi, valid
+        x, y, z = s * mx, s * my, s * mz - xi
+        # The image circle above is where the formula is defined; the pixel is valid only if its
+        # ray is inside the projection's domain too. With xi != 0 the projection of the limit
+        # ray z = -w2 |p| lies inside that circle, and the ring between them unprojects to rays
+        # beyond the limit (the fold) that `project` refuses.
+        valid &= z > -self.w2 * np.sqrt(x * x + y * y + z * z)
+        return x, y, z, valid
 
 
 def _eucm_project(x: F64, y: F64, z: F64, alpha: float, beta: float) -> tuple[F64, F64, Bool]:
@@ -77,6 +93,19 @@ def _eucm_project(x: F64, y: F64, z: F64, alpha: float, beta: float) -> tuple[F6
     n = alpha * d + (1.0 - alpha) * z
     valid = (z > -_alpha_w1(alpha) * d) & (n > 0.0)
     return x / n, y / n, valid
+
+
+def _eucm_max_off_axis(alpha: float, beta: float) -> float:
+    """Angle from the axis where z = -w1 d with d = sqrt(beta (x^2 + y^2) + z^2), radians.
+
+    On a unit ray at angle theta: cos(theta) = -w1 sqrt(beta sin^2 + cos^2), solved for theta.
+    """
+    w1 = _alpha_w1(alpha)
+    if w1 == 0.0:
+        return math.pi / 2.0
+    # cos^2 = w1^2 (beta (1 - cos^2) + cos^2)  ->  cos^2 = w1^2 beta / (1 - w1^2 + w1^2 beta)
+    cos2 = w1 * w1 * beta / (1.0 - w1 * w1 + w1 * w1 * beta)
+    return math.acos(-math.sqrt(min(1.0, cos2)))
 
 
 def _eucm_unproject(mx: F64, my: F64, alpha: float, beta: float) -> tuple[F64, F64, F64, Bool]:
@@ -87,6 +116,8 @@ def _eucm_unproject(mx: F64, my: F64, alpha: float, beta: float) -> tuple[F64, F
     mz = (1.0 - beta * alpha * alpha * r2) / (
         alpha * np.sqrt(1.0 - (2.0 * alpha - 1.0) * beta * r2) + 1.0 - alpha
     )
+    # Pixels on the circle itself unproject to the limit ray, which `_eucm_project` refuses.
+    valid &= mz > -_alpha_w1(alpha) * np.sqrt(beta * r2 + mz * mz)
     return mx, my, mz, valid
 
 
@@ -108,6 +139,11 @@ class ExtendedUnified(FocalModel):
 
     def _check_params(self) -> None:
         self._require_unit_interval("alpha")
+
+    @property
+    def max_off_axis_rad(self) -> float:
+        """The angle from the axis where projection stops being valid."""
+        return _eucm_max_off_axis(self.alpha, self.beta)
 
     def _project_normalised(self, x: F64, y: F64, z: F64) -> tuple[F64, F64, Bool]:
         return _eucm_project(x, y, z, self.alpha, self.beta)
@@ -135,6 +171,11 @@ class Unified(FocalModel):
 
     def _check_params(self) -> None:
         self._require_unit_interval("alpha")
+
+    @property
+    def max_off_axis_rad(self) -> float:
+        """As for EUCM: projection stops at z = -w1 |p|."""
+        return _eucm_max_off_axis(self.alpha, 1.0)
 
     def _project_normalised(self, x: F64, y: F64, z: F64) -> tuple[F64, F64, Bool]:
         return _eucm_project(x, y, z, self.alpha, 1.0)
@@ -189,6 +230,11 @@ class KannalaBrandt(FocalModel):
             else:
                 hi = mid
         return lo
+
+    @property
+    def max_off_axis_rad(self) -> float:
+        """`theta_max`."""
+        return self.theta_max
 
     def _project_normalised(self, x: F64, y: F64, z: F64) -> tuple[F64, F64, Bool]:
         r = np.hypot(x, y)

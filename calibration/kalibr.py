@@ -14,11 +14,25 @@ ds         [xi, alpha, fu, fv, pu, pv]    none
 ``pinhole`` + ``equidistant`` is read as `KannalaBrandt`. ``T_cn_cnm1`` of cam n
 maps cam n-1 into cam n; it is chained into ``T_cam_cam0``. Focal lengths and
 principal points must be floats (Kalibr rejects ints), resolutions ints.
+
+What real files need beyond Kalibr's own reader:
+
+- OpenCV's dialect (``%YAML:1.0`` header, ``!!opencv-matrix`` nodes), as written
+  by OpenVINS and others (`calibration.opencv_yaml`).
+- camchain-imucam files whose cam n has ``T_cam_imu`` but no ``T_cn_cnm1``:
+  ``T_cn_cnm1 = T_cn_imu @ inv(T_cnm1_imu)``. When a camera has both, they must
+  agree within `EXTRINSIC_TOL_DEG` and `EXTRINSIC_TOL_M`. OpenVINS's
+  ``T_imu_cam`` (the inverse) is read as well.
+- 4x4 matrices written as 16 numbers, row-major.
+- Top-level keys other than cam0, cam1, ... are ignored with a logged warning
+  that names them.
 """
 
 from __future__ import annotations
 
+import logging
 import math
+import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,8 +45,9 @@ from calibration.camera import CameraModel
 from calibration.distortion import Fov, RadTan
 from calibration.errors import CalibrationError
 from calibration.fisheye import DoubleSphere, ExtendedUnified, KannalaBrandt, Unified
+from calibration.opencv_yaml import load_opencv_yaml
 from calibration.pinhole import Omni, Pinhole
-from calibration.transforms import as_transform
+from calibration.transforms import as_transform, invert
 from calibration.types import F64
 
 _INTRINSIC_NAMES: dict[str, list[str]] = {
@@ -48,14 +63,23 @@ _DISTORTIONS: dict[str, dict[str, int]] = {
     "ds": {"none": 0},
 }
 _FLOAT_ONLY = {"fu", "fv", "pu", "pv"}
+_CAMERA_KEY = re.compile(r"cam(?:0|[1-9][0-9]*)")
+
+EXTRINSIC_TOL_DEG = 0.05
+"""Largest rotation (degrees) between a given ``T_cn_cnm1`` and the one ``T_cam_imu`` implies."""
+EXTRINSIC_TOL_M = 0.001
+"""Largest translation difference (metres) between a given ``T_cn_cnm1`` and the one ``T_cam_imu`` implies."""
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True, eq=False)
 class KalibrCamera:
     """One ``camN`` block of a camchain.
 
-    ``T_cn_cnm1`` is kept exactly as read (None for cam0) so a write-read round
-    trip is exact; ``T_cam_cam0`` is the chained transform p_camN = T p_cam0.
+    ``T_cn_cnm1`` is kept exactly as read, or derived from ``T_cam_imu`` when the
+    file has none (None for cam0), so a write-read round trip is exact;
+    ``T_cam_cam0`` is the chained transform p_camN = T p_cam0.
     """
 
     name: str
@@ -164,7 +188,7 @@ def load_yaml(path: Path, what: str) -> Any:
     except OSError as err:
         raise CalibrationError(f"{path}: cannot read {what} file: {err.strerror}") from err
     try:
-        return yaml.safe_load(text)
+        return load_opencv_yaml(text)
     except yaml.YAMLError as err:
         mark = getattr(err, "problem_mark", None)
         where = f" line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
@@ -225,6 +249,11 @@ def _parse_camera(name: str, block: object, where: str) -> dict[str, Any]:
         out["T_cn_cnm1"] = as_transform(block["T_cn_cnm1"], f"{where}.T_cn_cnm1")
     if "T_cam_imu" in block:
         out["T_cam_imu"] = as_transform(block["T_cam_imu"], f"{where}.T_cam_imu")
+    if "T_imu_cam" in block:  # OpenVINS writes the inverse
+        T_cam_imu = invert(as_transform(block["T_imu_cam"], f"{where}.T_imu_cam"))
+        if "T_cam_imu" in out:
+            _require_agreement(out["T_cam_imu"], T_cam_imu, f"{where}: T_cam_imu and inv(T_imu_cam)")
+        out["T_cam_imu"] = T_cam_imu
     if "timeshift_cam_imu" in block:
         ts = block["timeshift_cam_imu"]
         if not isinstance(ts, int | float) or isinstance(ts, bool) or not math.isfinite(ts):
@@ -242,16 +271,59 @@ def _parse_camera(name: str, block: object, where: str) -> dict[str, Any]:
     return out
 
 
+def _require_agreement(given: F64, implied: F64, what: str) -> None:
+    """Raise unless two transforms agree within `EXTRINSIC_TOL_DEG` and `EXTRINSIC_TOL_M`."""
+    R_diff = given[:3, :3] @ implied[:3, :3].T
+    angle_deg = math.degrees(math.acos(float(np.clip((np.trace(R_diff) - 1.0) / 2.0, -1.0, 1.0))))
+    shift_m = float(np.linalg.norm(given[:3, 3] - implied[:3, 3]))
+    if angle_deg > EXTRINSIC_TOL_DEG or shift_m > EXTRINSIC_TOL_M:
+        raise CalibrationError(
+            f"{what} disagree: rotation differs by {angle_deg:.4f} deg, translation by "
+            f"{shift_m * 1000:.3f} mm (tolerance {EXTRINSIC_TOL_DEG} deg, {EXTRINSIC_TOL_M * 1000:g} mm)"
+        )
+
+
+def _camera_names(data: Mapping[Any, Any], source: str) -> list[str]:
+    """cam0, cam1, ... in order; other top-level keys are logged and ignored."""
+    cams = [k for k in data if isinstance(k, str) and _CAMERA_KEY.fullmatch(k)]
+    others = [str(k) for k in data if k not in cams]
+    if not cams:
+        raise CalibrationError(
+            f"{source}: expected a Kalibr camchain (keys cam0, cam1, ...), got keys {', '.join(others)}"
+        )
+    names = [f"cam{i}" for i in range(len(cams))]
+    if sorted(cams) != sorted(names):
+        raise CalibrationError(f"{source}: expected camera keys {', '.join(names)}, got {', '.join(cams)}")
+    if others:
+        log.warning("%s: ignoring top-level keys %s (not cameras cam0, cam1, ...)", source, ", ".join(others))
+    return names
+
+
+def _T_cn_cnm1(parsed: dict[str, Any], prev: dict[str, Any], name: str, prev_name: str, where: str) -> F64:
+    """cam n's ``T_cn_cnm1`` as given, or from both cameras' ``T_cam_imu``; checked when both exist."""
+    given: F64 | None = parsed.get("T_cn_cnm1")
+    if "T_cam_imu" not in parsed or "T_cam_imu" not in prev:
+        if given is None:
+            raise CalibrationError(
+                f"{where}: missing key 'T_cn_cnm1' (or T_cam_imu in both {prev_name} and {name} to derive it)"
+            )
+        return given
+    implied: F64 = parsed["T_cam_imu"] @ invert(prev["T_cam_imu"])
+    if given is None:
+        return implied
+    _require_agreement(
+        given, implied, f"{where}: T_cn_cnm1 and T_{name}_imu @ inv(T_{prev_name}_imu) (from T_cam_imu)"
+    )
+    return given
+
+
 def parse_kalibr_camchain(data: object, source: str) -> CameraChain:
     """Build a `CameraChain` from an already loaded YAML document."""
     if not isinstance(data, Mapping) or not data:
         raise CalibrationError(f"{source}: expected a Kalibr camchain (keys cam0, cam1, ...)")
-    names = [f"cam{i}" for i in range(len(data))]
-    if sorted(data, key=str) != sorted(names):
-        raise CalibrationError(
-            f"{source}: expected camera keys {', '.join(names)}, got {', '.join(map(str, data))}"
-        )
+    names = _camera_names(data, source)
     cameras: list[KalibrCamera] = []
+    prev: dict[str, Any] = {}
     T_prev_cam0 = np.eye(4)
     for i, name in enumerate(names):
         parsed = _parse_camera(name, data[name], f"{source}: {name}")
@@ -259,11 +331,10 @@ def parse_kalibr_camchain(data: object, source: str) -> CameraChain:
             parsed.pop("T_cn_cnm1", None)
             T_cam_cam0 = np.eye(4)
         else:
-            if "T_cn_cnm1" not in parsed:
-                raise CalibrationError(f"{source}: {name}: missing key 'T_cn_cnm1'")
+            parsed["T_cn_cnm1"] = _T_cn_cnm1(parsed, prev, name, names[i - 1], f"{source}: {name}")
             T_cam_cam0 = parsed["T_cn_cnm1"] @ T_prev_cam0
         cameras.append(KalibrCamera(name=name, T_cam_cam0=T_cam_cam0, **parsed))
-        T_prev_cam0 = T_cam_cam0
+        T_prev_cam0, prev = T_cam_cam0, parsed
     return CameraChain(tuple(cameras))
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -27,6 +28,11 @@ class Pinhole(FocalModel):
     def _check_params(self) -> None:
         if self.distortion is not None and not isinstance(self.distortion, RadTan | Fov):
             raise CalibrationError(f"Pinhole: unsupported distortion {self.distortion!r}")
+
+    @property
+    def max_off_axis_rad(self) -> float:
+        """pi/2: only points in front of the image plane project."""
+        return math.pi / 2.0
 
     @property
     def K(self) -> F64:
@@ -74,6 +80,11 @@ class Omni(FocalModel):
     @property
     def _w(self) -> float:
         return self.xi if self.xi <= 1.0 else 1.0 / self.xi
+
+    @property
+    def max_off_axis_rad(self) -> float:
+        """acos(-w): the angle from the axis where projection stops being valid."""
+        return math.acos(-self._w)
 
     def _project_normalised(self, x: F64, y: F64, z: F64) -> tuple[F64, F64, Bool]:
         d = np.sqrt(x * x + y * y + z * z)

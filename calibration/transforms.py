@@ -21,21 +21,31 @@ ORTHONORMAL_TOL = 1e-6
 def as_transform(value: object, what: str) -> F64:
     """Validate ``value`` as a 4x4 rigid transform and return it as float64.
 
-    ``what`` names the source (file, camera, key) for the error message.
-    Raises `CalibrationError` if the shape is not 4x4, an entry is not a
-    finite number, the bottom row is not [0, 0, 0, 1], or the rotation block
-    is not orthonormal with determinant +1 (tolerance `ORTHONORMAL_TOL`).
+    ``value`` is four rows of four numbers, or 16 numbers in row-major order
+    (as OpenCV and several calibration tools write them). ``what`` names the
+    source (file, camera, key) for the error message. Raises `CalibrationError`
+    if the shape is neither, an entry is not a finite number, the bottom row is
+    not [0, 0, 0, 1], or the rotation block is not orthonormal with determinant
+    +1 (tolerance `ORTHONORMAL_TOL`).
     """
     try:
         T = np.array(value, dtype=np.float64)
     except (TypeError, ValueError) as err:
         raise CalibrationError(f"{what}: expected a 4x4 list of numbers, got {value!r}") from err
+    flat = T.shape == (16,)
+    if flat:
+        T = T.reshape(4, 4)
     if T.shape != (4, 4):
-        raise CalibrationError(f"{what}: expected a 4x4 matrix, got shape {T.shape}")
+        raise CalibrationError(
+            f"{what}: expected a 4x4 matrix (or 16 numbers, row-major), got shape {T.shape}"
+        )
     if not np.all(np.isfinite(T)):
         raise CalibrationError(f"{what}: matrix has non-finite entries")
     if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=1e-12, rtol=0.0):
-        raise CalibrationError(f"{what}: bottom row must be [0, 0, 0, 1], got {T[3].tolist()}")
+        hint = ""
+        if flat and np.allclose(T[:, 3], [0.0, 0.0, 0.0, 1.0], atol=1e-12, rtol=0.0):
+            hint = " (these 16 numbers look column-major; expected row-major)"
+        raise CalibrationError(f"{what}: bottom row must be [0, 0, 0, 1], got {T[3].tolist()}{hint}")
     R = T[:3, :3]
     ortho_err = float(np.max(np.abs(R.T @ R - np.eye(3))))
     if ortho_err > ORTHONORMAL_TOL:

@@ -148,6 +148,11 @@ class CroppedModel(CameraModel):
     def _unproject(self, u: F64, v: F64) -> tuple[F64, F64, F64, Bool]:
         return self.base._unproject(u + self.col_offset, v + self.row_offset)
 
+    @property
+    def max_off_axis_rad(self) -> float:
+        """The base model's."""
+        return self.base.max_off_axis_rad
+
     def _scaled_params(self, factor: float) -> dict[str, Any]:
         raise CalibrationError("CroppedModel: scale the base model and crop again instead")
 

@@ -48,9 +48,9 @@ def _direction(v: object) -> str:
 
 
 def cameras_table(report: RigReport, path: Path) -> Table:
-    """Each camera's role, model, size and true horizontal, vertical and diagonal FOV."""
+    """Each camera's role, model, size, true horizontal, vertical and diagonal FOV and the model's limit."""
     cams = Table(title=f"Cameras of '{report.name}' ({path})")
-    for col in ("camera", "role", "model", "size", "HFOV", "VFOV", "DFOV"):
+    for col in ("camera", "role", "model", "size", "HFOV", "VFOV", "DFOV", "model limit"):
         cams.add_column(col)
     for c in report.cameras:
         fov = c.fov
@@ -59,7 +59,10 @@ def cameras_table(report: RigReport, path: Path) -> Table:
             c.role or "-",
             c.model,
             f"{c.params['width']}x{c.params['height']}",
-            *(f"{math.degrees(a):.1f}°" for a in (fov.horizontal_rad, fov.vertical_rad, fov.diagonal_rad)),
+            *(
+                f"{math.degrees(a):.1f}°"
+                for a in (fov.horizontal_rad, fov.vertical_rad, fov.diagonal_rad, fov.limit_rad)
+            ),
         )
     return cams
 

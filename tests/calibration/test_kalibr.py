@@ -45,13 +45,14 @@ MODELS = {
 
 
 def make_chain(models):
-    cams, T_prev = [], np.eye(4)
+    """A chain as Kalibr writes it: every T_cam_imu = T_cam_cam0 @ T_cam0_imu, consistent with T_cn_cnm1."""
+    cams, T_prev, T_cam0_imu = [], np.eye(4), random_pose()
     for i, m in enumerate(models):
         T_cn_cnm1 = None if i == 0 else random_pose()
         T = np.eye(4) if T_cn_cnm1 is None else T_cn_cnm1 @ T_prev
         cams.append(
             KalibrCamera(
-                f"cam{i}", m, T, T_cn_cnm1=T_cn_cnm1, T_cam_imu=random_pose(),
+                f"cam{i}", m, T, T_cn_cnm1=T_cn_cnm1, T_cam_imu=T @ T_cam0_imu,
                 timeshift_cam_imu=rand(-0.01, 0.01), rostopic=f"/cam{i}/image_raw",
                 cam_overlaps=tuple(j for j in range(len(models)) if j != i),
             )
@@ -187,8 +188,8 @@ def write_bad(tmp_path, cam0=None, cam1=None, text=None):
         ({"cam0": {"resolution": [1920.0, 1200]}}, r"cam0\.resolution: expected \[width, height\] positive ints"),
         ({"cam0": {"intrinsics": "abc"}}, r"cam0\.intrinsics .*: expected a list of numbers, got 'abc'"),
         ({"cam1": {"T_cn_cnm1": [[1.0, 0.1, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}}, r"cam1\.T_cn_cnm1: rotation is not orthonormal"),
-        ({"cam1": {"T_cn_cnm1": [[1.0, 0, 0], [0, 1, 0], [0, 0, 1]]}}, r"cam1\.T_cn_cnm1: expected a 4x4 matrix, got shape \(3, 3\)"),
-        ({"cam1": {}}, r"cam1: missing key 'T_cn_cnm1'"),
+        ({"cam1": {"T_cn_cnm1": [[1.0, 0, 0], [0, 1, 0], [0, 0, 1]]}}, r"cam1\.T_cn_cnm1: expected a 4x4 matrix \(or 16 numbers, row-major\), got shape \(3, 3\)"),
+        ({"cam1": {}}, r"cam1: missing key 'T_cn_cnm1' \(or T_cam_imu in both cam0 and cam1 to derive it\)"),
         ({"text": "cam0: {}\ncam2: {}\n"}, r"expected camera keys cam0, cam1, got cam0, cam2"),
         ({"text": "- just\n- a list\n"}, r"expected a Kalibr camchain \(keys cam0, cam1, \.\.\.\)"),
     ],

@@ -104,12 +104,20 @@ def test_ds_validity_limits_tumvi():
     uv, valid = TUMVI_CAM0.project(np.stack([inside, outside]))
     assert valid.tolist() == [True, False]
     assert np.isfinite(uv[0]).all() and np.isnan(uv[1]).all()
-    r_max = 1.0 / math.sqrt(2 * TUMVI_CAM0.alpha - 1)
-    assert r_max == pytest.approx(2.317, abs=1e-3)
-    px = TUMVI_CAM0.cx + np.array([(r_max - 1e-6) * TUMVI_CAM0.fx, (r_max + 1e-6) * TUMVI_CAM0.fx])
-    rays, valid = TUMVI_CAM0.unproject(np.stack([px, np.full(2, TUMVI_CAM0.cy)], axis=-1))
-    assert valid.tolist() == [True, False]
-    assert np.isnan(rays[1]).all()
+    # The alpha circle r^2 <= 1/(2 alpha - 1) bounds the formula; with xi < 0 the limit ray
+    # lands inside it (r = 2.31681 < 2.31723) and the ring between unprojects past the limit.
+    r_circle = 1.0 / math.sqrt(2 * TUMVI_CAM0.alpha - 1)
+    assert r_circle == pytest.approx(2.31723, abs=1e-5)
+    at_limit = np.array([math.sin(limit - 1e-12), 0.0, math.cos(limit - 1e-12)])
+    r_fold = (TUMVI_CAM0.project(at_limit)[0][0] - TUMVI_CAM0.cx) / TUMVI_CAM0.fx
+    assert r_fold == pytest.approx(2.31681, abs=1e-5)
+    r = np.array([r_fold - 1e-6, r_fold + 1e-6, 0.5 * (r_fold + r_circle), r_circle - 1e-9, r_circle + 1e-6])
+    px = np.stack([TUMVI_CAM0.cx + r * TUMVI_CAM0.fx, np.full(r.size, TUMVI_CAM0.cy)], axis=-1)
+    rays, valid = TUMVI_CAM0.unproject(px)
+    assert valid.tolist() == [True, False, False, False, False]
+    assert np.isnan(rays[1:]).all()
+    back, ok = TUMVI_CAM0.project(rays[0])
+    assert ok and np.abs(back - px[0]).max() < 1e-9
 
 
 def test_ds_beyond_90_degrees_round_trip():
@@ -305,12 +313,15 @@ def test_field_of_view_of_reference_lens():
     assert ok.all()
     off_axis = np.arctan2(np.hypot(rays[:, 0], rays[:, 1]), rays[:, 2])
     assert fov.diagonal_rad == pytest.approx(max(off_axis[:2].sum(), off_axis[2:].sum()), abs=2e-3)
-    # a lens whose image circle is smaller than the sensor stops at the circle
+    # a lens whose image is smaller than the sensor stops where projection stops: with xi < 0
+    # that is the ray z = -w2 |p|, which lands inside the alpha circle r^2 = 1/(2 alpha - 1)
     small_circle = DoubleSphere(250.0, 250.0, 959.5, 599.5, -0.18, 0.59, 1920, 1200)
-    limit = small_circle.unproject(np.array([[959.5 + 250.0 * (1 / math.sqrt(0.18) - 1e-9), 599.5]]))[0]
-    assert field_of_view(small_circle).horizontal_rad == pytest.approx(
-        2 * math.atan2(limit[0, 0], limit[0, 2]), abs=2e-3
-    )
+    edge = small_circle.max_off_axis_rad - 1e-9
+    (u_edge, _), _ = small_circle.project(np.array([math.sin(edge), 0.0, math.cos(edge)]))
+    assert (u_edge - 959.5) / 250.0 < 1 / math.sqrt(0.18)
+    fov = field_of_view(small_circle)
+    assert fov.horizontal_rad == pytest.approx(fov.limit_rad, abs=1e-6)
+    assert fov.limit_rad == pytest.approx(2 * math.acos(-small_circle.w2), abs=1e-12)
 
 
 @pytest.mark.parametrize(

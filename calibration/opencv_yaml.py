@@ -1,0 +1,78 @@
+"""OpenCV's YAML dialect (``cv::FileStorage``): the ``%YAML:1.0`` header and ``!!opencv-matrix`` nodes.
+
+OpenCV starts its files with ``%YAML:1.0``, a directive YAML itself does not
+allow (YAML writes ``%YAML 1.1``), and stores matrices as tagged mappings::
+
+    T_cam_imu: !!opencv-matrix
+       rows: 4
+       cols: 4
+       dt: d
+       data: [ 16 numbers, row-major ]
+
+Kalibr camchains written by OpenVINS and other OpenCV-based tools carry the
+header and sometimes such matrices; PyYAML refuses both. `load_opencv_yaml`
+reads them: the header line is blanked (so line numbers in later errors stay
+right) and a matrix becomes nested lists of rows, or a flat list when it has
+one row or one column (a vector such as intrinsics or distortion coefficients).
+"""
+
+from __future__ import annotations
+
+import re
+from typing import Any
+
+import yaml
+
+_OPENCV_DIRECTIVE = re.compile(r"\A(?:\ufeff)?%YAML:\d+\.\d+[ \t]*(?=\r?\n|\Z)")
+_FLOAT_DT = frozenset("fdh")  # float32, float64, float16
+_INT_DT = frozenset("ucwsi")  # uint8, int8, uint16, int16, int32
+OPENCV_MATRIX_TAG = "tag:yaml.org,2002:opencv-matrix"
+
+
+def strip_opencv_directive(text: str) -> str:
+    """Blank out a leading ``%YAML:1.0`` line, keeping the line count."""
+    return _OPENCV_DIRECTIVE.sub("", text, count=1)
+
+
+class OpenCvSafeLoader(yaml.SafeLoader):
+    """`yaml.SafeLoader` that also constructs ``!!opencv-matrix`` nodes (see the module doc)."""
+
+
+def _matrix_error(node: yaml.Node, problem: str) -> yaml.constructor.ConstructorError:
+    return yaml.constructor.ConstructorError(None, None, f"!!opencv-matrix: {problem}", node.start_mark)
+
+
+def _construct_opencv_matrix(loader: yaml.SafeLoader, node: yaml.Node) -> list[Any]:
+    """Rows as nested lists (floats for dt f/d/h, ints for integer dt); a vector as one flat list."""
+    if not isinstance(node, yaml.MappingNode):
+        raise _matrix_error(node, "expected a mapping with rows, cols, dt and data")
+    fields = loader.construct_mapping(node, deep=True)
+    missing = [k for k in ("rows", "cols", "dt", "data") if k not in fields]
+    if missing:
+        raise _matrix_error(node, f"missing {', '.join(missing)}")
+    rows, cols, dt, data = fields["rows"], fields["cols"], fields["dt"], fields["data"]
+    if not all(isinstance(n, int) and not isinstance(n, bool) and n > 0 for n in (rows, cols)):
+        raise _matrix_error(node, f"rows and cols must be positive integers, got {rows!r} and {cols!r}")
+    if not isinstance(dt, str) or dt not in _FLOAT_DT | _INT_DT:
+        known = "".join(sorted(_FLOAT_DT | _INT_DT))
+        raise _matrix_error(node, f"dt must be one single-channel type letter of {known!r}, got {dt!r}")
+    if not isinstance(data, list) or not all(
+        isinstance(v, int | float) and not isinstance(v, bool) for v in data
+    ):
+        raise _matrix_error(node, "data must be a list of numbers")
+    if len(data) != rows * cols:
+        raise _matrix_error(node, f"data has {len(data)} numbers, expected rows x cols = {rows * cols}")
+    if dt in _INT_DT and not all(isinstance(v, int) for v in data):
+        raise _matrix_error(node, f"dt {dt!r} is an integer type but data holds non-integers")
+    values = [float(v) for v in data] if dt in _FLOAT_DT else list(data)
+    if rows == 1 or cols == 1:
+        return values
+    return [values[r * cols : (r + 1) * cols] for r in range(rows)]
+
+
+OpenCvSafeLoader.add_constructor(OPENCV_MATRIX_TAG, _construct_opencv_matrix)
+
+
+def load_opencv_yaml(text: str) -> Any:
+    """Parse YAML text that may be in OpenCV's dialect; raises `yaml.YAMLError` like `yaml.safe_load`."""
+    return yaml.load(strip_opencv_directive(text), Loader=OpenCvSafeLoader)
