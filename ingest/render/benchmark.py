@@ -15,7 +15,8 @@ Layout (`<scene>` = `<site>_<centre scan>_<view>`, three digits each)::
     <scene>/<FOV>FOV/<B>mm/CENTER/<image>.png
     <scene>/<FOV>FOV/<B>mm/CENTER/depth/<image>.png      uint16 mm (range; z for pinhole), 0 = invalid
     <scene>/<FOV>FOV/<B>mm/CENTER/disparity/<image>.png  uint16 px x 100, 0 = invalid
-    <scene>/<FOV>FOV/<B>mm/{DOWN,RIGHT}/<image>.png
+    <scene>/<FOV>FOV/<B>mm/DOWN/{fisheye,pano,pano_crop,pinhole,pinhole_crop}.png
+    <scene>/<FOV>FOV/<B>mm/RIGHT/{fisheye,cassini_crop,pano,pano_crop,pinhole,pinhole_crop}.png
     (depth/ and disparity/ also hold float32 EXR copies, <image>.exr)
 
 Images: `fisheye` (the virtual DS lens of that FOV), `pano` (the full-sphere
@@ -24,10 +25,17 @@ smallest window of it holding that), `cassini_crop` (the transverse equirect,
 window likewise), `pinhole` (90 degrees wide, the fisheye's size) and
 `pinhole_crop` (its centre). Disparity: `pano`/`pano_crop` for the vertical
 pair CENTER-DOWN (DESIGN.md's angular formula, stability-masked);
-`pinhole`/`pinhole_crop` (f B / z) and `cassini_crop` (the angular formula
-with the latitude from -x) for the horizontal pair CENTER-RIGHT. The pinhole
-images go only to the FOV folders of `pinhole_fovs` (120, as in the WideDepth
-release), fisheye images of the partners to every folder.
+`pinhole`/`pinhole_crop` (f B / z, the same for the vertical pinhole pair
+CENTER-DOWN and the horizontal one CENTER-RIGHT: fx = fy) and `cassini_crop`
+(the angular formula with the latitude from -x) for the horizontal pair. Both
+partners get every image type, so each (image type, partner) pair the
+WideDepth release loader reads has its images; `RIGHT/pano*` are exact images
+of the RIGHT camera in CENTER's orientation, but a horizontal baseline has no
+per-pixel disparity along an equirect's columns: that pair's exact disparity
+is `cassini_crop`'s, and a loader that pairs `RIGHT/pano*` with
+`disparity/pano*` gets the vertical pair's. The pinhole images go only to the
+FOV folders of `pinhole_fovs` (120, as in the WideDepth release), the other
+images to every folder.
 
 Work is one task per rendered camera; tasks run in a local process pool
 (forked, so the scans' level-of-detail index is shared, not copied). A scene
@@ -79,6 +87,19 @@ from ingest.render.plan import (
 from ingest.runtime.executor import Executor
 
 BENCHMARK_VERSION = 1
+# which disparity map belongs to which stereo pair (scene.yaml's conventions.pairs)
+PAIRS_DOC = {
+    "vertical CENTER-DOWN": {
+        "pano, pano_crop": "exact: disparity/pano, disparity/pano_crop (along columns)",
+        "pinhole, pinhole_crop": "exact: disparity/pinhole* (f B / z, along columns)",
+    },
+    "horizontal CENTER-RIGHT": {
+        "cassini_crop": "exact: disparity/cassini_crop (along rows)",
+        "pinhole, pinhole_crop": "exact: disparity/pinhole* (f B / z, along rows)",
+        "pano, pano_crop": "images exact (RIGHT in CENTER's orientation); their exact disparity is "
+        "given in cassini_crop: disparity/pano* is the vertical pair's, not this pair's",
+    },
+}
 
 
 @dataclass
@@ -302,7 +323,9 @@ def _scene_doc(
             "z for pinhole; EXR float32 metres; 0 = invalid",
             "disparity": "uint16 PNG, px x 100, 0 = invalid; pano*: vertical pair CENTER-DOWN, "
             "angular with the full sphere's pitch, latitude from -y; cassini_crop: horizontal "
-            "pair CENTER-RIGHT, angular, latitude from -x (alpha + pi/2); pinhole*: f B / z",
+            "pair CENTER-RIGHT, angular, latitude from -x (alpha + pi/2); pinhole*: f B / z, "
+            "both pairs (fx = fy)",
+            "pairs": PAIRS_DOC,
             "stability_mask": {
                 "max_rel_error": cfg.stability_max_rel_error,
                 "disp_error_px": cfg.stability_disp_error_px,

@@ -185,18 +185,27 @@ def plan_views(scans: list[Scan], cfg: BenchmarkConfig) -> list[View]:
     return views
 
 
+# What each camera renders. Both partners get the pinhole and the pano, so every (image type,
+# partner) pair of the WideDepth release loader has its images: DOWN/pinhole* is the vertical
+# pinhole pair (f B / z serves it too); RIGHT/pano* is exact as images, but the horizontal pair's
+# exact disparity is cassini_crop's (disparity/pano* is the vertical pair's)
+PRODUCTS = {
+    "CENTER": ("fisheye", "pano", "cassini"),
+    "DOWN": ("fisheye", "pano"),
+    "RIGHT": ("fisheye", "cassini", "pano"),
+}
+
+
 def plan_tasks(views: list[View], cfg: BenchmarkConfig) -> list[Task]:
-    """One task per rendered camera of every view."""
+    """One task per rendered camera of every view (pinholes are FOV-independent: one per camera)."""
     tasks = []
     for v in views:
         tasks.append(Task(v.scene, "CENTER", "pinhole", None, None))
-        for f in cfg.fovs_deg:
-            tasks += [Task(v.scene, "CENTER", p, f, None) for p in ("fisheye", "pano", "cassini")]
+        tasks += [Task(v.scene, "CENTER", p, f, None) for f in cfg.fovs_deg for p in PRODUCTS["CENTER"]]
         for b in cfg.baselines_mm:
-            tasks.append(Task(v.scene, "RIGHT", "pinhole", None, b))
-            for f in cfg.fovs_deg:
-                tasks += [Task(v.scene, "DOWN", p, f, b) for p in ("fisheye", "pano")]
-                tasks += [Task(v.scene, "RIGHT", p, f, b) for p in ("fisheye", "cassini")]
+            for cam in ("DOWN", "RIGHT"):
+                tasks.append(Task(v.scene, cam, "pinhole", None, b))
+                tasks += [Task(v.scene, cam, p, f, b) for f in cfg.fovs_deg for p in PRODUCTS[cam]]
     return tasks
 
 

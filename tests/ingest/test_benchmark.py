@@ -23,6 +23,7 @@ from calibration.pinhole import Pinhole
 from calibration.spherical import Cassini, Equirectangular
 from calibration.stereo import depth_to_disparity, rotate_for_stereo, unrotate_from_stereo
 from calibration.virtual import CroppedModel, virtual_ds
+from calibration.warp import warp
 from ingest.dataset.layout import DISP_SCALE, read_png_u16
 from ingest.errors import BenchmarkError
 from ingest.eval.evaluate import discover_gt
@@ -81,7 +82,8 @@ def _folder(b, fov, base, cam):
 
 def test_layout_files_and_types(bench):
     s = bench["summary"]
-    assert s.scenes == ["000_000_000"] and s.renders == 1 + 2 * 3 + 2 * (1 + 2 * 4)
+    # CENTER: pinhole + 3 per FOV; per baseline: DOWN pinhole + 2 per FOV, RIGHT pinhole + 3 per FOV
+    assert s.scenes == ["000_000_000"] and s.renders == 1 + 2 * 3 + 2 * (1 + 2 * 2 + 1 + 2 * 3)
     for fov in (120, 195):
         for base in (120, 300):
             c = _folder(bench, fov, base, "CENTER")
@@ -92,12 +94,10 @@ def test_layout_files_and_types(bench):
             assert {p.stem for p in (c / "depth").glob("*.png")} == images
             assert {p.stem for p in (c / "disparity").glob("*.png")} == images - {"fisheye"}
             assert {p.name for p in (c / "depth").glob("*.exr")} == {f"{n}.exr" for n in images}
-            assert {p.stem for p in _folder(bench, fov, base, "DOWN").glob("*.png")} == {
-                "fisheye",
-                "pano",
-                "pano_crop",
-            }
-            right = {"fisheye", "cassini_crop"} | ({"pinhole", "pinhole_crop"} if fov == 120 else set())
+            pinholes = {"pinhole", "pinhole_crop"} if fov == 120 else set()
+            down = {"fisheye", "pano", "pano_crop"} | pinholes
+            assert {p.stem for p in _folder(bench, fov, base, "DOWN").glob("*.png")} == down
+            right = {"fisheye", "cassini_crop", "pano", "pano_crop"} | pinholes
             assert {p.stem for p in _folder(bench, fov, base, "RIGHT").glob("*.png")} == right
     c = _folder(bench, 120, 120, "CENTER")
     img = _img(c / "fisheye.png")
@@ -224,6 +224,69 @@ def test_horizontal_pinhole_pair(bench):
     dc = _exr(c / "disparity" / "pinhole_crop.exr")
     r0, c0 = crop["row_offset"], crop["col_offset"]
     np.testing.assert_array_equal(dc, disp[r0 : r0 + crop["height"], c0 : c0 + crop["width"]])
+
+
+# The WideDepth release loader's stereo configurations: per FOV folder and baseline, every image
+# type with each partner (DOWN: vertical pair, RIGHT: horizontal pair), pinholes in 120FOV only;
+# its tasks (mono/stereo x depth/disparity) read at most these four files of a configuration
+RELEASE_FILES = ("CENTER/{i}.png", "{p}/{i}.png", "CENTER/depth/{i}.png", "CENTER/disparity/{i}.png")
+
+
+def _release_configs(fovs, baselines):
+    for fov in fovs:
+        images = ("pano", "pano_crop", *(("pinhole", "pinhole_crop") if fov == 120 else ()))
+        for base in baselines:
+            yield from ((fov, base, i, p) for i in images for p in ("DOWN", "RIGHT"))
+
+
+def test_every_release_configuration_has_aligned_files(bench):
+    configs = list(_release_configs((120, 195), (120, 300)))
+    assert len(configs) == 2 * (8 + 4)  # 120FOV: 8 per baseline, 195FOV: 4
+    for fov, base, image, partner in configs:
+        folder = bench["dir"] / f"{fov}FOV" / f"{base}mm"
+        shapes = {_img(folder / f.format(i=image, p=partner)).shape[:2] for f in RELEASE_FILES}
+        assert len(shapes) == 1, (fov, base, image, partner, shapes)
+
+
+def test_vertical_pinhole_pair_shares_f_b_over_z(bench):
+    c, d = _folder(bench, 120, 300, "CENTER"), _folder(bench, 120, 300, "DOWN")
+    gt = _exr(c / "disparity" / "pinhole.exr")
+    up, down = (_img(f / "pinhole.png", cv2.IMREAD_GRAYSCALE) for f in (c, d))
+    sgbm = cv2.StereoSGBM.create(
+        0, 96, 5, P1=8 * 25, P2=32 * 25, uniquenessRatio=10, mode=cv2.STEREO_SGBM_MODE_HH
+    )
+    est = unrotate_from_stereo(
+        sgbm.compute(rotate_for_stereo(up), rotate_for_stereo(down)).astype(np.float32) / 16
+    )
+    bad, n = _bad3(gt, est)
+    assert n > 0.4 * np.count_nonzero(gt) and bad < 0.08
+    shifted, _ = _bad3(np.where(gt > 0, gt + 5.0, 0.0), est)
+    assert shifted > 0.8
+
+
+def test_right_pano_is_the_right_camera_in_center_orientation(bench):
+    """RIGHT/pano warped to the Cassini window equals RIGHT/cassini_crop (another render of that camera)."""
+    cam = bench["doc"]["cameras"]["120FOV"]["cassini_crop"]
+    cas = CroppedModel(
+        Cassini(cam["height_full"]), cam["col_offset"], cam["row_offset"], cam["width"], cam["height"]
+    )
+    eq = Equirectangular(cam["height_full"])
+
+    def diff(pano_cam, cassini_cam):
+        pano = _img(_folder(bench, 120, 300, pano_cam) / "pano.png", cv2.IMREAD_GRAYSCALE)
+        cassini = _img(_folder(bench, 120, 300, cassini_cam) / "cassini_crop.png", cv2.IMREAD_GRAYSCALE)
+        warped, ok = warp(pano, eq, cas, np.eye(3))
+        ok &= (warped > 0) & (cassini > 0)
+        return float(np.median(np.abs(warped.astype(float) - cassini)[ok]))
+
+    # resampling a textured render costs a few grey levels (CENTER's own pair gives the floor); the
+    # CENTER pano 300 mm away is far off
+    floor, same, other = diff("CENTER", "CENTER"), diff("RIGHT", "RIGHT"), diff("CENTER", "RIGHT")
+    assert same <= 1.5 * floor and other > 5.0 * same, (floor, same, other)
+    assert (_folder(bench, 120, 300, "RIGHT") / "pano_crop.png").exists()
+    assert (
+        "cassini_crop" in bench["doc"]["conventions"]["pairs"]["horizontal CENTER-RIGHT"]["pano, pano_crop"]
+    )
 
 
 def test_cassini_pair_disparity_runs_along_rows(bench):
