@@ -84,9 +84,11 @@ from ingest.render.plan import (
     plan_views,
     task_key,
 )
+from ingest.render.scans import frame_hint
 from ingest.runtime.executor import Executor
 
 BENCHMARK_VERSION = 1
+EMPTY_RENDER_FRACTION = 0.01  # a render drawing a surface in fewer of its pixels with a ray is empty
 # which disparity map belongs to which stereo pair (scene.yaml's conventions.pairs)
 PAIRS_DOC = {
     "vertical CENTER-DOWN": {
@@ -114,6 +116,8 @@ class BenchmarkSummary:
     seconds: float = 0.0
     index_seconds: float = 0.0
     stats: dict[str, dict[str, dict[str, int]]] = field(default_factory=dict)  # scene -> render key -> counts
+    empty: dict[str, list[str]] = field(default_factory=dict)  # scene -> renders showing (almost) nothing
+    warnings: list[str] = field(default_factory=list)  # one line per scene with empty renders
 
 
 @dataclass
@@ -267,6 +271,19 @@ def run_task(s: RenderState, task: Task) -> tuple[Task, dict[str, int], int]:
     return task, stats, w.files
 
 
+def empty_renders(stats: dict[str, dict[str, int]]) -> list[str]:
+    """Render keys of a scene drawing a surface in under EMPTY_RENDER_FRACTION of their pixels with a ray."""
+    return [k for k, st in stats.items() if st["surface_px"] < EMPTY_RENDER_FRACTION * st["pixels_with_ray"]]
+
+
+def _empty_warning(scene: str, empty: list[str], stats: dict[str, dict[str, int]], scan: Scan) -> str:
+    worst = min(empty, key=lambda k: stats[k]["surface_px"] / max(stats[k]["pixels_with_ray"], 1))
+    pct = 100.0 * stats[worst]["surface_px"] / max(stats[worst]["pixels_with_ray"], 1)
+    limit = f"under {100 * EMPTY_RENDER_FRACTION:g} % of pixels drawn; {worst}: {pct:.2f} %"
+    what = f"{len(empty)} of {len(stats)} renders show (almost) nothing ({limit})"
+    return f"{scene}: {what}; {frame_hint(scan)}"
+
+
 def _scene_doc(
     state: RenderState, view: View, scans: list[Scan], stats: dict[str, dict[str, int]]
 ) -> dict[str, Any]:
@@ -391,6 +408,11 @@ def run_benchmark(
         if remaining[task.scene] == 0:  # scene.yaml last: it marks the scene finished
             view = state.views[task.scene]
             doc = _scene_doc(state, view, scans, dict(sorted(stats[task.scene].items())))
+            empty = empty_renders(stats[task.scene])
+            if empty:
+                summary.empty[task.scene] = empty
+                doc["warnings"] = [_empty_warning(task.scene, empty, stats[task.scene], scans[view.center])]
+                summary.warnings += doc["warnings"]
             text = "# SensorBox benchmark scene (WideDepth layout)\n" + yaml.safe_dump(
                 doc, sort_keys=False, default_flow_style=None
             )

@@ -126,6 +126,12 @@ def render_benchmark_cmd(
     with progress_bar("rendering", "views") as update:
         summary = run_benchmark(site, reference, out, cfg, progress=update)
     console.print(summary_table(summary, cfg, out))
+    for line in summary.warnings:
+        console.print(f"[yellow]warning:[/] {line}", highlight=False)
+    if summary.empty:
+        n = sum(len(keys) for keys in summary.empty.values())
+        scenes = len(summary.empty)
+        console.print(f"Renders showing (almost) nothing: {n} in {scenes} scenes (scene.yaml: warnings)")
     if summary.skipped:
         console.print(f"Already done (scene.yaml present, skipped): {', '.join(summary.skipped)}")
     console.print(f"Benchmark: {out} (each <scene>/scene.yaml lists cameras, poses and counts)")

@@ -28,6 +28,7 @@ from ingest.dataset.layout import DISP_SCALE, read_png_u16
 from ingest.errors import BenchmarkError
 from ingest.eval.evaluate import discover_gt
 from ingest.raster.edges import edge_band
+from ingest.raster.scan import Scan
 from ingest.render.benchmark import run_benchmark
 from ingest.render.plan import BenchmarkConfig
 from ingest.render.scans import read_scans
@@ -338,3 +339,31 @@ def test_cli_renders_and_summarises(bench, tmp_path):
     bad = _cli("render-benchmark", str(bench["root"] / "site" / "site.yaml"), "--rig", str(RIG), "--out",
                str(tmp_path / "c"), "--size", "96by64")  # fmt: skip
     assert bad.returncode == 2 and bad.stderr.strip().startswith("error: --size '96by64'")
+
+
+def _ground_scan(up_axis: int) -> Scan:
+    """An outdoor scan of flat ground 1.6 m below the scanner, 40 m across; ``up_axis`` 1: y-up, 2: z-up."""
+    g = np.arange(-20.0, 20.0, 0.2)
+    a, b = (c.ravel() for c in np.meshgrid(g, g))
+    xyz = np.zeros((len(a), 3), np.float32)
+    xyz[:, 0], xyz[:, 3 - up_axis], xyz[:, up_axis] = a, b, -1.6
+    rgb = np.random.default_rng(0).integers(0, 256, (len(a), 3)).astype(np.uint8)
+    return Scan("ground", np.eye(4), xyz, rgb, source="ground.ply")
+
+
+def test_a_y_up_scan_renders_nothing_and_says_why(tmp_path):
+    cfg = BenchmarkConfig(fovs_deg=(120.0,), baselines_mm=(65.0,), width=48, height=32, height_full=64,
+                          yaws_deg=(90.0,), workers=1, exr=False)  # fmt: skip
+    ref = read_rig(RIG).camera("cam0").model
+    z_up = run_benchmark([_ground_scan(2)], ref, tmp_path / "z", cfg)  # looks along +y: ground below
+    assert not z_up.warnings and not z_up.empty
+    y_up = run_benchmark([_ground_scan(1)], ref, tmp_path / "y", cfg)  # "along +y" is the sky
+    stats = y_up.stats["000_000_000"]
+    assert sorted(y_up.empty["000_000_000"]) == sorted(stats) and all(
+        s["surface_px"] == 0 for s in stats.values()
+    )
+    (line,) = y_up.warnings
+    assert line.startswith(f"000_000_000: {len(stats)} of {len(stats)} renders show (almost) nothing")
+    assert "likely frame not z-up (the smallest extent is along y" in line and "scan ground" in line
+    doc = yaml.safe_load((tmp_path / "y" / "000_000_000" / "scene.yaml").read_text())
+    assert doc["warnings"] == [line]
