@@ -373,16 +373,17 @@ def run_benchmark(
     if not scans:
         raise BenchmarkError("no scans given")
     t0 = time.perf_counter()
+    fovs = {f: fov_cameras(reference, f, cfg) for f in cfg.fovs_deg}  # first: refuses an equirect too big
     summary = BenchmarkSummary(out)
     views = plan_views(scans, cfg)
     todo = [v for v in views if not (out / v.scene / "scene.yaml").exists()]
     summary.skipped = [v.scene for v in views if v not in todo]
     used = sorted({i for v in todo for i in v.bundle})
     indexes: list[ScanIndex] = [None] * len(scans)  # type: ignore[list-item]
+    t_index = time.perf_counter()
     for i in used:
         indexes[i] = build_index(scans[i], cfg.voxel_m)
-    summary.index_seconds = time.perf_counter() - t0
-    fovs = {f: fov_cameras(reference, f, cfg) for f in cfg.fovs_deg}
+    summary.index_seconds = time.perf_counter() - t_index
     ph = pinhole_camera(cfg)
     for fc in fovs.values():  # warm the per-model caches before forking
         for m in (fc.fisheye.model, fc.pano, fc.cassini):

@@ -20,7 +20,7 @@ from calibration.virtual import (
     crop_bounds,
     virtual_fisheye,
 )
-from calibration.warp import build_maps, covering_crop, default_height_full
+from calibration.warp import build_maps, check_height_full, covering_crop, default_height_full
 from ingest.errors import BenchmarkError
 from ingest.raster.lod import VOXEL_M
 from ingest.raster.scan import Scan
@@ -134,7 +134,7 @@ def _window_mask(fisheye: CameraModel, full: CameraModel, factor: int = 8) -> tu
 def fov_cameras(reference: DoubleSphere, fov_deg: float, cfg: BenchmarkConfig) -> FovCameras:
     """The fisheye of ``fov_deg`` and the equirect/Cassini windows covering it."""
     fish = virtual_fisheye(reference, fov_deg, cfg.width, cfg.height)
-    hf = cfg.height_full or default_height_full(fish.model)
+    hf = check_height_full(cfg.height_full or default_height_full(fish.model))
     pano = covering_crop(fish.model, np.eye(3), hf)
     c0, r0, w, h = _window_mask(fish.model, Cassini(hf))
     cas = CroppedModel(Cassini(hf), c0, r0, w, h)

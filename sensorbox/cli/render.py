@@ -59,7 +59,11 @@ MaskLabelOpt = Annotated[
 ]
 PointsPerPxOpt = Annotated[float, typer.Option(help="Level of detail: points drawn per pixel.")]
 HeightFullOpt = Annotated[
-    int | None, typer.Option(help="Rows of the full-sphere equirect (default: from each fisheye).")
+    int | None,
+    typer.Option(
+        help="Rows of the full-sphere equirect (default: each fisheye's centre "
+        "resolution, the sphere at most 16x its pixels)."
+    ),
 ]
 PinholeOpt = Annotated[
     list[float] | None, typer.Option("--pinhole-in", help="FOV folders with pinhole images (default 120).")

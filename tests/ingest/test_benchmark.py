@@ -19,6 +19,7 @@ import pytest
 import yaml
 
 from calibration import read_rig
+from calibration.errors import CalibrationError
 from calibration.pinhole import Pinhole
 from calibration.spherical import Cassini, Equirectangular
 from calibration.stereo import depth_to_disparity, rotate_for_stereo, unrotate_from_stereo
@@ -367,3 +368,16 @@ def test_a_y_up_scan_renders_nothing_and_says_why(tmp_path):
     assert "likely frame not z-up (the smallest extent is along y" in line and "scan ground" in line
     doc = yaml.safe_load((tmp_path / "y" / "000_000_000" / "scene.yaml").read_text())
     assert doc["warnings"] == [line]
+
+
+def test_an_equirect_beyond_memory_is_refused_before_any_work(tmp_path):
+    """--height-full 100000 (a 1.8 TB sphere): one line suggesting a smaller --height-full, in both commands."""
+    from ingest.train.sample import Geometry
+
+    pattern = r"^--height-full 100000: .* needs about 1800\.0 GB, .* pass --height-full \d+ or less$"
+    with pytest.raises(CalibrationError, match=pattern):
+        Geometry.from_rig(read_rig(RIG), 100_000)
+    with pytest.raises(CalibrationError, match=pattern):
+        run_benchmark([_ground_scan(2)], read_rig(RIG).camera("cam0").model, tmp_path / "b",
+                      replace(CFG, height_full=100_000, centers=()))  # fmt: skip
+    assert not (tmp_path / "b").exists()
