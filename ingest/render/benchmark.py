@@ -15,7 +15,8 @@ Layout (`<scene>` = `<site>_<centre scan>_<view>`, three digits each)::
     <scene>/<FOV>FOV/<B>mm/CENTER/<image>.png
     <scene>/<FOV>FOV/<B>mm/CENTER/depth/<image>.png      uint16 mm (range; z for pinhole), 0 = invalid
     <scene>/<FOV>FOV/<B>mm/CENTER/disparity/<image>.png  uint16 px x 100, 0 = invalid
-    <scene>/<FOV>FOV/<B>mm/{DOWN,RIGHT}/<image>.png
+    <scene>/<FOV>FOV/<B>mm/DOWN/{fisheye,pano,pano_crop,pinhole,pinhole_crop}.png
+    <scene>/<FOV>FOV/<B>mm/RIGHT/{fisheye,cassini_crop,pano,pano_crop,pinhole,pinhole_crop}.png
     (depth/ and disparity/ also hold float32 EXR copies, <image>.exr)
 
 Images: `fisheye` (the virtual DS lens of that FOV), `pano` (the full-sphere
@@ -24,10 +25,17 @@ smallest window of it holding that), `cassini_crop` (the transverse equirect,
 window likewise), `pinhole` (90 degrees wide, the fisheye's size) and
 `pinhole_crop` (its centre). Disparity: `pano`/`pano_crop` for the vertical
 pair CENTER-DOWN (DESIGN.md's angular formula, stability-masked);
-`pinhole`/`pinhole_crop` (f B / z) and `cassini_crop` (the angular formula
-with the latitude from -x) for the horizontal pair CENTER-RIGHT. The pinhole
-images go only to the FOV folders of `pinhole_fovs` (120, as in the WideDepth
-release), fisheye images of the partners to every folder.
+`pinhole`/`pinhole_crop` (f B / z, the same for the vertical pinhole pair
+CENTER-DOWN and the horizontal one CENTER-RIGHT: fx = fy) and `cassini_crop`
+(the angular formula with the latitude from -x) for the horizontal pair. Both
+partners get every image type, so each (image type, partner) pair the
+WideDepth release loader reads has its images; `RIGHT/pano*` are exact images
+of the RIGHT camera in CENTER's orientation, but a horizontal baseline has no
+per-pixel disparity along an equirect's columns: that pair's exact disparity
+is `cassini_crop`'s, and a loader that pairs `RIGHT/pano*` with
+`disparity/pano*` gets the vertical pair's. The pinhole images go only to the
+FOV folders of `pinhole_fovs` (120, as in the WideDepth release), the other
+images to every folder.
 
 Work is one task per rendered camera; tasks run in a local process pool
 (forked, so the scans' level-of-detail index is shared, not copied). A scene
@@ -76,9 +84,24 @@ from ingest.render.plan import (
     plan_views,
     task_key,
 )
+from ingest.render.scans import frame_hint
 from ingest.runtime.executor import Executor
 
 BENCHMARK_VERSION = 1
+EMPTY_RENDER_FRACTION = 0.01  # a render drawing a surface in fewer of its pixels with a ray is empty
+# which disparity map belongs to which stereo pair (scene.yaml's conventions.pairs)
+PAIRS_DOC = {
+    "vertical CENTER-DOWN": {
+        "pano, pano_crop": "exact: disparity/pano, disparity/pano_crop (along columns)",
+        "pinhole, pinhole_crop": "exact: disparity/pinhole* (f B / z, along columns)",
+    },
+    "horizontal CENTER-RIGHT": {
+        "cassini_crop": "exact: disparity/cassini_crop (along rows)",
+        "pinhole, pinhole_crop": "exact: disparity/pinhole* (f B / z, along rows)",
+        "pano, pano_crop": "images exact (RIGHT in CENTER's orientation); their exact disparity is "
+        "given in cassini_crop: disparity/pano* is the vertical pair's, not this pair's",
+    },
+}
 
 
 @dataclass
@@ -93,6 +116,8 @@ class BenchmarkSummary:
     seconds: float = 0.0
     index_seconds: float = 0.0
     stats: dict[str, dict[str, dict[str, int]]] = field(default_factory=dict)  # scene -> render key -> counts
+    empty: dict[str, list[str]] = field(default_factory=dict)  # scene -> renders showing (almost) nothing
+    warnings: list[str] = field(default_factory=list)  # one line per scene with empty renders
 
 
 @dataclass
@@ -246,6 +271,19 @@ def run_task(s: RenderState, task: Task) -> tuple[Task, dict[str, int], int]:
     return task, stats, w.files
 
 
+def empty_renders(stats: dict[str, dict[str, int]]) -> list[str]:
+    """Render keys of a scene drawing a surface in under EMPTY_RENDER_FRACTION of their pixels with a ray."""
+    return [k for k, st in stats.items() if st["surface_px"] < EMPTY_RENDER_FRACTION * st["pixels_with_ray"]]
+
+
+def _empty_warning(scene: str, empty: list[str], stats: dict[str, dict[str, int]], scan: Scan) -> str:
+    worst = min(empty, key=lambda k: stats[k]["surface_px"] / max(stats[k]["pixels_with_ray"], 1))
+    pct = 100.0 * stats[worst]["surface_px"] / max(stats[worst]["pixels_with_ray"], 1)
+    limit = f"under {100 * EMPTY_RENDER_FRACTION:g} % of pixels drawn; {worst}: {pct:.2f} %"
+    what = f"{len(empty)} of {len(stats)} renders show (almost) nothing ({limit})"
+    return f"{scene}: {what}; {frame_hint(scan)}"
+
+
 def _scene_doc(
     state: RenderState, view: View, scans: list[Scan], stats: dict[str, dict[str, int]]
 ) -> dict[str, Any]:
@@ -302,7 +340,9 @@ def _scene_doc(
             "z for pinhole; EXR float32 metres; 0 = invalid",
             "disparity": "uint16 PNG, px x 100, 0 = invalid; pano*: vertical pair CENTER-DOWN, "
             "angular with the full sphere's pitch, latitude from -y; cassini_crop: horizontal "
-            "pair CENTER-RIGHT, angular, latitude from -x (alpha + pi/2); pinhole*: f B / z",
+            "pair CENTER-RIGHT, angular, latitude from -x (alpha + pi/2); pinhole*: f B / z, "
+            "both pairs (fx = fy)",
+            "pairs": PAIRS_DOC,
             "stability_mask": {
                 "max_rel_error": cfg.stability_max_rel_error,
                 "disp_error_px": cfg.stability_disp_error_px,
@@ -333,16 +373,17 @@ def run_benchmark(
     if not scans:
         raise BenchmarkError("no scans given")
     t0 = time.perf_counter()
+    fovs = {f: fov_cameras(reference, f, cfg) for f in cfg.fovs_deg}  # first: refuses an equirect too big
     summary = BenchmarkSummary(out)
     views = plan_views(scans, cfg)
     todo = [v for v in views if not (out / v.scene / "scene.yaml").exists()]
     summary.skipped = [v.scene for v in views if v not in todo]
     used = sorted({i for v in todo for i in v.bundle})
     indexes: list[ScanIndex] = [None] * len(scans)  # type: ignore[list-item]
+    t_index = time.perf_counter()
     for i in used:
         indexes[i] = build_index(scans[i], cfg.voxel_m)
-    summary.index_seconds = time.perf_counter() - t0
-    fovs = {f: fov_cameras(reference, f, cfg) for f in cfg.fovs_deg}
+    summary.index_seconds = time.perf_counter() - t_index
     ph = pinhole_camera(cfg)
     for fc in fovs.values():  # warm the per-model caches before forking
         for m in (fc.fisheye.model, fc.pano, fc.cassini):
@@ -368,6 +409,11 @@ def run_benchmark(
         if remaining[task.scene] == 0:  # scene.yaml last: it marks the scene finished
             view = state.views[task.scene]
             doc = _scene_doc(state, view, scans, dict(sorted(stats[task.scene].items())))
+            empty = empty_renders(stats[task.scene])
+            if empty:
+                summary.empty[task.scene] = empty
+                doc["warnings"] = [_empty_warning(task.scene, empty, stats[task.scene], scans[view.center])]
+                summary.warnings += doc["warnings"]
             text = "# SensorBox benchmark scene (WideDepth layout)\n" + yaml.safe_dump(
                 doc, sort_keys=False, default_flow_style=None
             )

@@ -20,7 +20,7 @@ from calibration.virtual import (
     crop_bounds,
     virtual_fisheye,
 )
-from calibration.warp import build_maps, covering_crop, default_height_full
+from calibration.warp import build_maps, check_height_full, covering_crop, default_height_full
 from ingest.errors import BenchmarkError
 from ingest.raster.lod import VOXEL_M
 from ingest.raster.scan import Scan
@@ -134,7 +134,7 @@ def _window_mask(fisheye: CameraModel, full: CameraModel, factor: int = 8) -> tu
 def fov_cameras(reference: DoubleSphere, fov_deg: float, cfg: BenchmarkConfig) -> FovCameras:
     """The fisheye of ``fov_deg`` and the equirect/Cassini windows covering it."""
     fish = virtual_fisheye(reference, fov_deg, cfg.width, cfg.height)
-    hf = cfg.height_full or default_height_full(fish.model)
+    hf = check_height_full(cfg.height_full or default_height_full(fish.model))
     pano = covering_crop(fish.model, np.eye(3), hf)
     c0, r0, w, h = _window_mask(fish.model, Cassini(hf))
     cas = CroppedModel(Cassini(hf), c0, r0, w, h)
@@ -185,18 +185,27 @@ def plan_views(scans: list[Scan], cfg: BenchmarkConfig) -> list[View]:
     return views
 
 
+# What each camera renders. Both partners get the pinhole and the pano, so every (image type,
+# partner) pair of the WideDepth release loader has its images: DOWN/pinhole* is the vertical
+# pinhole pair (f B / z serves it too); RIGHT/pano* is exact as images, but the horizontal pair's
+# exact disparity is cassini_crop's (disparity/pano* is the vertical pair's)
+PRODUCTS = {
+    "CENTER": ("fisheye", "pano", "cassini"),
+    "DOWN": ("fisheye", "pano"),
+    "RIGHT": ("fisheye", "cassini", "pano"),
+}
+
+
 def plan_tasks(views: list[View], cfg: BenchmarkConfig) -> list[Task]:
-    """One task per rendered camera of every view."""
+    """One task per rendered camera of every view (pinholes are FOV-independent: one per camera)."""
     tasks = []
     for v in views:
         tasks.append(Task(v.scene, "CENTER", "pinhole", None, None))
-        for f in cfg.fovs_deg:
-            tasks += [Task(v.scene, "CENTER", p, f, None) for p in ("fisheye", "pano", "cassini")]
+        tasks += [Task(v.scene, "CENTER", p, f, None) for f in cfg.fovs_deg for p in PRODUCTS["CENTER"]]
         for b in cfg.baselines_mm:
-            tasks.append(Task(v.scene, "RIGHT", "pinhole", None, b))
-            for f in cfg.fovs_deg:
-                tasks += [Task(v.scene, "DOWN", p, f, b) for p in ("fisheye", "pano")]
-                tasks += [Task(v.scene, "RIGHT", p, f, b) for p in ("fisheye", "cassini")]
+            for cam in ("DOWN", "RIGHT"):
+                tasks.append(Task(v.scene, cam, "pinhole", None, b))
+                tasks += [Task(v.scene, cam, p, f, b) for f in cfg.fovs_deg for p in PRODUCTS[cam]]
     return tasks
 
 

@@ -21,6 +21,7 @@ non-zero.
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
@@ -104,7 +105,13 @@ def read_cloud(path: Path, T_world_scan: F64 | None, mask_label: str | None = "l
 
     if not path.exists():
         raise ScanError(f"{path}: no such point cloud")
-    pc = o3d.t.io.read_point_cloud(path)
+    short = _short_file(path)
+    if short:  # Open3D zero-fills a short PLY
+        raise ScanError(f"{path}: truncated: {short}")
+    try:
+        pc = o3d.t.io.read_point_cloud(path)
+    except RuntimeError as err:  # Open3D raises for some malformed headers, warns for others
+        raise ScanError(f"{path}: Open3D cannot read it: {_open3d_message(err)}") from err
     if "positions" not in pc.point or len(pc.point.positions) == 0:
         raise ScanError(f"{path}: no points (or not a PLY/PCD file Open3D can read)")
     xyz = np.ascontiguousarray(pc.point.positions.numpy(), np.float32)
@@ -124,6 +131,76 @@ def read_cloud(path: Path, T_world_scan: F64 | None, mask_label: str | None = "l
         xyz, rgb = xyz[finite], rgb[finite]
         masked = masked[finite] if masked is not None else None
     return Scan(name or path.stem, np.asarray(T_world_scan, np.float64), xyz, rgb, masked, source=str(path))
+
+
+def _open3d_message(err: RuntimeError) -> str:
+    """Open3D's error text without its colour codes and C++ source location."""
+    text = re.sub(r"\x1b\[[0-9;]*m", "", str(err)).strip()
+    return re.sub(r"^\[Open3D Error\] \(.*?\) \S+:\d+: ", "", text)
+
+
+PLY_SIZES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2,
+             "uint16": 2, "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4,
+             "double": 8, "float64": 8}  # fmt: skip
+
+
+def _short_file(path: Path) -> str | None:
+    """What is missing from a PLY/PCD whose header promises more data than the file holds, else None.
+
+    Binary files: bytes (PLY with fixed-size rows only, uncompressed PCD);
+    ASCII files: lines. Other layouts are left to Open3D.
+    """
+    header: list[list[str]] = []
+    with path.open("rb") as f:
+        while raw := f.readline(4096):
+            header.append(raw.decode("ascii", "replace").split() or [""])
+            if header[-1][0] not in ("end_header", "DATA"):
+                continue
+            rows = _pcd_row_bytes(header) if path.suffix.lower() == ".pcd" else _ply_row_bytes(header)
+            if rows is None:
+                return None
+            if rows[1] == 0:  # ASCII: one line per point
+                lines = sum(chunk.count(b"\n") for chunk in iter(lambda: f.read(1 << 24), b""))
+                short = lines < rows[0]
+                return f"its header declares {rows[0]} points, the file has {lines} lines" if short else None
+            need, have = f.tell() + rows[0] * rows[1], path.stat().st_size
+            return f"its header promises {need} bytes, the file has {have}" if have < need else None
+    return None
+
+
+def _ply_row_bytes(header: list[list[str]]) -> tuple[int, int] | None:
+    """(rows, bytes per row) of a PLY whose one non-empty element has scalar properties (0: ASCII)."""
+    formats = [w[1] for w in header if w[0] == "format" and len(w) > 1]
+    if formats not in (["ascii"], ["binary_little_endian"], ["binary_big_endian"]):
+        return None
+    rows, row_bytes, count = 0, 0, 0
+    for w in header:
+        if w[0] == "element":
+            if len(w) != 3 or not w[2].isdigit() or (rows and int(w[2])):
+                return None  # a second element with data is not worth modelling
+            count = int(w[2])
+            rows = rows or count
+        elif w[0] == "property" and count:
+            if len(w) != 3 or w[1] not in PLY_SIZES:
+                return None  # a list property: rows of varying size
+            row_bytes += PLY_SIZES[w[1]]
+    return rows, 0 if formats == ["ascii"] else row_bytes
+
+
+def _pcd_row_bytes(header: list[list[str]]) -> tuple[int, int] | None:
+    """(rows, bytes per row) of an uncompressed PCD (0 bytes: ASCII, a line per row)."""
+    fields = {w[0]: w[1:] for w in header}
+    sizes, counts, points = fields.get("SIZE", []), fields.get("COUNT", []), fields.get("POINTS", [])
+    data = fields.get("DATA")
+    if (
+        data not in (["binary"], ["ascii"])
+        or len(points) != 1
+        or not all(v.isdigit() for v in (*sizes, *counts, *points))
+    ):
+        return None
+    counts = counts or ["1"] * len(sizes)
+    row_bytes = sum(int(a) * int(b) for a, b in zip(sizes, counts, strict=False))
+    return int(points[0]), 0 if data == ["ascii"] else row_bytes
 
 
 def _to_u8(c: np.ndarray[Any, Any], path: Path) -> U8:
@@ -179,14 +256,21 @@ def read_e57(path: Path, chunk: int = E57_CHUNK) -> list[Scan]:
     except Exception as err:  # libE57Format raises its own exception types
         raise ScanError(f"{path}: not a readable E57 file: {err}") from err
     scans = []
+    where = f"{path}: the header"
     try:
         for i in range(e57.scan_count):
+            where = f"{path}: data3D[{i}]"
             header = e57.get_header(i)
             name = header["name"].value() if "name" in header.scan_fields else f"scan_{i:03d}"
-            T = _pose(header.rotation, header.translation, f"{path}: data3D[{i}].pose") if header.has_pose() \
-                else np.eye(4)  # fmt: skip
-            xyz, rgb = _read_e57_points(e57, libe57, header, chunk, f"{path}: data3D[{i}]")
+            T = (
+                _pose(header.rotation, header.translation, f"{where}.pose")
+                if header.has_pose()
+                else np.eye(4)
+            )
+            xyz, rgb = _read_e57_points(e57, libe57, header, chunk, where)
             scans.append(Scan(str(name), T, xyz, rgb, source=f"{path}#{i}"))
+    except libe57.E57Exception as err:  # corrupt records, bad sections: libE57Format's own exception
+        raise ScanError(f"{where}: libE57 cannot read it: {err}") from err
     finally:
         e57.close()
     return scans
@@ -245,3 +329,29 @@ def _colour_max(header: Any) -> float:
         return float(header["colorLimits"]["colorRedMaximum"].value()) or 255.0
     except Exception:  # colorLimits is optional in E57
         return 255.0
+
+
+def frame_hint(scan: Scan, samples: int = 100_000) -> str:
+    """Why views at a scan's centre may show nothing: its scale and up axis as its points suggest.
+
+    The renderer puts cameras at the scanner origin, level in the scan frame
+    (z up, metres). A median range far beyond a building's (hundreds of m)
+    suggests millimetres or points in a world frame; a smallest extent (2-98 %
+    of the points) along x or y rather than z, a frame that is not z-up (most
+    sites are wider than they are tall).
+    """
+    xyz = scan.xyz[:: max(1, len(scan.xyz) // samples)].astype(np.float64)
+    median_m = float(np.median(np.linalg.norm(xyz, axis=1))) if len(xyz) else 0.0
+    extent = np.percentile(xyz, 98, axis=0) - np.percentile(xyz, 2, axis=0) if len(xyz) else np.zeros(3)
+    sizes = f"extent x {extent[0]:.3g} y {extent[1]:.3g} z {extent[2]:.3g} m, median range {median_m:.3g} m"
+    hints = []
+    if median_m > 300.0:
+        hints.append("wrong scale (millimetres?) or points in a world frame rather than the scanner's")
+    elif 0.0 < median_m < 0.05:
+        hints.append("wrong scale (kilometres?)")
+    smallest = int(np.argmin(extent))
+    if smallest != 2:
+        hints.append(f"frame not z-up (the smallest extent is along {'xy'[smallest]}; a levelled scan "
+                     "has z up: set its T_world_scan in a site.yaml)")  # fmt: skip
+    cause = "; ".join(hints) or "the view may be outside the scanned space (check --height, --yaw)"
+    return f"scan {scan.name} ({sizes}): likely {cause}"

@@ -18,7 +18,7 @@ from calibration.rectify import StereoRectification, rectify_rig
 from calibration.rig import Rig
 from calibration.spherical import Equirectangular
 from calibration.types import F64, I64
-from calibration.warp import build_maps, check_source, default_height_full, remap_spans
+from calibration.warp import build_maps, check_height_full, check_source, default_height_full, remap_spans
 from ingest.dataset.layout import SampleFiles, write_sample
 from ingest.dataset.meta import GtMeta, MotionMeta, PointMeta, SampleMeta
 from ingest.dataset.sparse import SparseImage
@@ -55,7 +55,7 @@ class Geometry:
     @classmethod
     def from_rig(cls, rig: Rig, height_full: int | None = None) -> Geometry:
         model = rig.upper.model
-        h = height_full or default_height_full(model)
+        h = check_height_full(height_full or default_height_full(model))
         valid = int(model.unproject(model.pixel_grid().reshape(-1, 2))[1].sum())
         return cls(rig, rectify_rig(rig), Equirectangular(h), px_per_rad(model), valid)
 

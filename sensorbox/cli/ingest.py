@@ -42,7 +42,11 @@ GtWindowOpt = Annotated[float, typer.Option(help="Dense GT: sweeps within +- thi
 ExrOpt = Annotated[bool, typer.Option("--exr", help="Also write float32 EXR copies of the GT.")]
 PngLevelOpt = Annotated[int, typer.Option(help="PNG deflate level 0-3 (ISA-L; 0 fastest, 3 smallest).")]
 HeightFullOpt = Annotated[
-    int | None, typer.Option(help="Rows of the full-sphere equirect (default from cam0).")
+    int | None,
+    typer.Option(
+        help="Rows of the full-sphere equirect (default from cam0's centre resolution, "
+        "the sphere at most 16x its pixels)."
+    ),
 ]
 MinRangeOpt = Annotated[float, typer.Option(help="Drop LiDAR returns nearer than this (m): rig self-hits.")]
 MotionOpt = Annotated[

@@ -59,7 +59,11 @@ MaskLabelOpt = Annotated[
 ]
 PointsPerPxOpt = Annotated[float, typer.Option(help="Level of detail: points drawn per pixel.")]
 HeightFullOpt = Annotated[
-    int | None, typer.Option(help="Rows of the full-sphere equirect (default: from each fisheye).")
+    int | None,
+    typer.Option(
+        help="Rows of the full-sphere equirect (default: each fisheye's centre "
+        "resolution, the sphere at most 16x its pixels)."
+    ),
 ]
 PinholeOpt = Annotated[
     list[float] | None, typer.Option("--pinhole-in", help="FOV folders with pinhole images (default 120).")
@@ -126,6 +130,12 @@ def render_benchmark_cmd(
     with progress_bar("rendering", "views") as update:
         summary = run_benchmark(site, reference, out, cfg, progress=update)
     console.print(summary_table(summary, cfg, out))
+    for line in summary.warnings:
+        console.print(f"[yellow]warning:[/] {line}", highlight=False)
+    if summary.empty:
+        n = sum(len(keys) for keys in summary.empty.values())
+        scenes = len(summary.empty)
+        console.print(f"Renders showing (almost) nothing: {n} in {scenes} scenes (scene.yaml: warnings)")
     if summary.skipped:
         console.print(f"Already done (scene.yaml present, skipped): {', '.join(summary.skipped)}")
     console.print(f"Benchmark: {out} (each <scene>/scene.yaml lists cameras, poses and counts)")

@@ -7,9 +7,20 @@ import numpy as np
 import pytest
 
 from calibration import DoubleSphere, read_rig
+from calibration.errors import CalibrationError
 from calibration.rectify import rectify_rig
 from calibration.spherical import Cassini, Cubemap, Equirectangular, pinhole_for_fov
-from calibration.warp import RemapMaps, build_maps, covering_crop, default_height_full, remap_spans, warp
+from calibration.warp import (
+    SPHERE_BYTES_PER_PX,
+    SPHERE_PX_PER_CAMERA_PX,
+    RemapMaps,
+    build_maps,
+    check_height_full,
+    covering_crop,
+    default_height_full,
+    remap_spans,
+    warp,
+)
 
 REF_RIG = read_rig(
     __import__("pathlib").Path(__file__).resolve().parents[2] / "calibration" / "sensorbox.yaml"
@@ -205,3 +216,19 @@ def test_backward_looking_fisheye_crop_keeps_full_width():
     R_back = np.diag([-1.0, 1.0, -1.0])  # rotation by pi about y: looks along -z of the equirect
     crop = covering_crop(ds, R_back, 512)
     assert crop.col_offset == 0 and crop.width == 1024
+
+
+def test_default_height_full_is_held_by_the_camera_pixels_and_a_budget_refuses_more():
+    narrow = pinhole_for_fov(math.radians(54.0), 1920, 1200)  # f 1884 px: 6144 rows at its centre pitch
+    h = default_height_full(narrow)
+    assert h == 4096 and 2 * h * h <= SPHERE_PX_PER_CAMERA_PX * 1920 * 1200 < 2 * (h + 256) ** 2
+    wide = pinhole_for_fov(math.radians(90.0), 1920, 1200)
+    assert default_height_full(wide) == 3072  # the centre pitch (960 px/rad), under the bound
+    assert check_height_full(2048, budget_bytes=2 * 2048**2 * SPHERE_BYTES_PER_PX) == 2048
+    with pytest.raises(CalibrationError) as err:
+        check_height_full(5888, budget_bytes=4 * 10**9)
+    assert str(err.value) == (
+        "--height-full 5888: a full-sphere equirect of 5888 x 11776 needs about 6.2 GB, over the budget of "
+        "4.0 GB (half this machine's memory); pass --height-full 4608 or less"
+    )
+    assert check_height_full(4608, budget_bytes=4 * 10**9) == 4608  # the suggestion fits

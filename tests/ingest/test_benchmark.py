@@ -19,14 +19,17 @@ import pytest
 import yaml
 
 from calibration import read_rig
+from calibration.errors import CalibrationError
 from calibration.pinhole import Pinhole
 from calibration.spherical import Cassini, Equirectangular
 from calibration.stereo import depth_to_disparity, rotate_for_stereo, unrotate_from_stereo
 from calibration.virtual import CroppedModel, virtual_ds
+from calibration.warp import warp
 from ingest.dataset.layout import DISP_SCALE, read_png_u16
 from ingest.errors import BenchmarkError
 from ingest.eval.evaluate import discover_gt
 from ingest.raster.edges import edge_band
+from ingest.raster.scan import Scan
 from ingest.render.benchmark import run_benchmark
 from ingest.render.plan import BenchmarkConfig
 from ingest.render.scans import read_scans
@@ -81,7 +84,8 @@ def _folder(b, fov, base, cam):
 
 def test_layout_files_and_types(bench):
     s = bench["summary"]
-    assert s.scenes == ["000_000_000"] and s.renders == 1 + 2 * 3 + 2 * (1 + 2 * 4)
+    # CENTER: pinhole + 3 per FOV; per baseline: DOWN pinhole + 2 per FOV, RIGHT pinhole + 3 per FOV
+    assert s.scenes == ["000_000_000"] and s.renders == 1 + 2 * 3 + 2 * (1 + 2 * 2 + 1 + 2 * 3)
     for fov in (120, 195):
         for base in (120, 300):
             c = _folder(bench, fov, base, "CENTER")
@@ -92,12 +96,10 @@ def test_layout_files_and_types(bench):
             assert {p.stem for p in (c / "depth").glob("*.png")} == images
             assert {p.stem for p in (c / "disparity").glob("*.png")} == images - {"fisheye"}
             assert {p.name for p in (c / "depth").glob("*.exr")} == {f"{n}.exr" for n in images}
-            assert {p.stem for p in _folder(bench, fov, base, "DOWN").glob("*.png")} == {
-                "fisheye",
-                "pano",
-                "pano_crop",
-            }
-            right = {"fisheye", "cassini_crop"} | ({"pinhole", "pinhole_crop"} if fov == 120 else set())
+            pinholes = {"pinhole", "pinhole_crop"} if fov == 120 else set()
+            down = {"fisheye", "pano", "pano_crop"} | pinholes
+            assert {p.stem for p in _folder(bench, fov, base, "DOWN").glob("*.png")} == down
+            right = {"fisheye", "cassini_crop", "pano", "pano_crop"} | pinholes
             assert {p.stem for p in _folder(bench, fov, base, "RIGHT").glob("*.png")} == right
     c = _folder(bench, 120, 120, "CENTER")
     img = _img(c / "fisheye.png")
@@ -226,6 +228,69 @@ def test_horizontal_pinhole_pair(bench):
     np.testing.assert_array_equal(dc, disp[r0 : r0 + crop["height"], c0 : c0 + crop["width"]])
 
 
+# The WideDepth release loader's stereo configurations: per FOV folder and baseline, every image
+# type with each partner (DOWN: vertical pair, RIGHT: horizontal pair), pinholes in 120FOV only;
+# its tasks (mono/stereo x depth/disparity) read at most these four files of a configuration
+RELEASE_FILES = ("CENTER/{i}.png", "{p}/{i}.png", "CENTER/depth/{i}.png", "CENTER/disparity/{i}.png")
+
+
+def _release_configs(fovs, baselines):
+    for fov in fovs:
+        images = ("pano", "pano_crop", *(("pinhole", "pinhole_crop") if fov == 120 else ()))
+        for base in baselines:
+            yield from ((fov, base, i, p) for i in images for p in ("DOWN", "RIGHT"))
+
+
+def test_every_release_configuration_has_aligned_files(bench):
+    configs = list(_release_configs((120, 195), (120, 300)))
+    assert len(configs) == 2 * (8 + 4)  # 120FOV: 8 per baseline, 195FOV: 4
+    for fov, base, image, partner in configs:
+        folder = bench["dir"] / f"{fov}FOV" / f"{base}mm"
+        shapes = {_img(folder / f.format(i=image, p=partner)).shape[:2] for f in RELEASE_FILES}
+        assert len(shapes) == 1, (fov, base, image, partner, shapes)
+
+
+def test_vertical_pinhole_pair_shares_f_b_over_z(bench):
+    c, d = _folder(bench, 120, 300, "CENTER"), _folder(bench, 120, 300, "DOWN")
+    gt = _exr(c / "disparity" / "pinhole.exr")
+    up, down = (_img(f / "pinhole.png", cv2.IMREAD_GRAYSCALE) for f in (c, d))
+    sgbm = cv2.StereoSGBM.create(
+        0, 96, 5, P1=8 * 25, P2=32 * 25, uniquenessRatio=10, mode=cv2.STEREO_SGBM_MODE_HH
+    )
+    est = unrotate_from_stereo(
+        sgbm.compute(rotate_for_stereo(up), rotate_for_stereo(down)).astype(np.float32) / 16
+    )
+    bad, n = _bad3(gt, est)
+    assert n > 0.4 * np.count_nonzero(gt) and bad < 0.08
+    shifted, _ = _bad3(np.where(gt > 0, gt + 5.0, 0.0), est)
+    assert shifted > 0.8
+
+
+def test_right_pano_is_the_right_camera_in_center_orientation(bench):
+    """RIGHT/pano warped to the Cassini window equals RIGHT/cassini_crop (another render of that camera)."""
+    cam = bench["doc"]["cameras"]["120FOV"]["cassini_crop"]
+    cas = CroppedModel(
+        Cassini(cam["height_full"]), cam["col_offset"], cam["row_offset"], cam["width"], cam["height"]
+    )
+    eq = Equirectangular(cam["height_full"])
+
+    def diff(pano_cam, cassini_cam):
+        pano = _img(_folder(bench, 120, 300, pano_cam) / "pano.png", cv2.IMREAD_GRAYSCALE)
+        cassini = _img(_folder(bench, 120, 300, cassini_cam) / "cassini_crop.png", cv2.IMREAD_GRAYSCALE)
+        warped, ok = warp(pano, eq, cas, np.eye(3))
+        ok &= (warped > 0) & (cassini > 0)
+        return float(np.median(np.abs(warped.astype(float) - cassini)[ok]))
+
+    # resampling a textured render costs a few grey levels (CENTER's own pair gives the floor); the
+    # CENTER pano 300 mm away is far off
+    floor, same, other = diff("CENTER", "CENTER"), diff("RIGHT", "RIGHT"), diff("CENTER", "RIGHT")
+    assert same <= 1.5 * floor and other > 5.0 * same, (floor, same, other)
+    assert (_folder(bench, 120, 300, "RIGHT") / "pano_crop.png").exists()
+    assert (
+        "cassini_crop" in bench["doc"]["conventions"]["pairs"]["horizontal CENTER-RIGHT"]["pano, pano_crop"]
+    )
+
+
 def test_cassini_pair_disparity_runs_along_rows(bench):
     cam = bench["doc"]["cameras"]["195FOV"]["cassini_crop"]
     m = CroppedModel(
@@ -275,3 +340,44 @@ def test_cli_renders_and_summarises(bench, tmp_path):
     bad = _cli("render-benchmark", str(bench["root"] / "site" / "site.yaml"), "--rig", str(RIG), "--out",
                str(tmp_path / "c"), "--size", "96by64")  # fmt: skip
     assert bad.returncode == 2 and bad.stderr.strip().startswith("error: --size '96by64'")
+
+
+def _ground_scan(up_axis: int) -> Scan:
+    """An outdoor scan of flat ground 1.6 m below the scanner, 40 m across; ``up_axis`` 1: y-up, 2: z-up."""
+    g = np.arange(-20.0, 20.0, 0.2)
+    a, b = (c.ravel() for c in np.meshgrid(g, g))
+    xyz = np.zeros((len(a), 3), np.float32)
+    xyz[:, 0], xyz[:, 3 - up_axis], xyz[:, up_axis] = a, b, -1.6
+    rgb = np.random.default_rng(0).integers(0, 256, (len(a), 3)).astype(np.uint8)
+    return Scan("ground", np.eye(4), xyz, rgb, source="ground.ply")
+
+
+def test_a_y_up_scan_renders_nothing_and_says_why(tmp_path):
+    cfg = BenchmarkConfig(fovs_deg=(120.0,), baselines_mm=(65.0,), width=48, height=32, height_full=64,
+                          yaws_deg=(90.0,), workers=1, exr=False)  # fmt: skip
+    ref = read_rig(RIG).camera("cam0").model
+    z_up = run_benchmark([_ground_scan(2)], ref, tmp_path / "z", cfg)  # looks along +y: ground below
+    assert not z_up.warnings and not z_up.empty
+    y_up = run_benchmark([_ground_scan(1)], ref, tmp_path / "y", cfg)  # "along +y" is the sky
+    stats = y_up.stats["000_000_000"]
+    assert sorted(y_up.empty["000_000_000"]) == sorted(stats) and all(
+        s["surface_px"] == 0 for s in stats.values()
+    )
+    (line,) = y_up.warnings
+    assert line.startswith(f"000_000_000: {len(stats)} of {len(stats)} renders show (almost) nothing")
+    assert "likely frame not z-up (the smallest extent is along y" in line and "scan ground" in line
+    doc = yaml.safe_load((tmp_path / "y" / "000_000_000" / "scene.yaml").read_text())
+    assert doc["warnings"] == [line]
+
+
+def test_an_equirect_beyond_memory_is_refused_before_any_work(tmp_path):
+    """--height-full 100000 (a 1.8 TB sphere): one line suggesting a smaller --height-full, in both commands."""
+    from ingest.train.sample import Geometry
+
+    pattern = r"^--height-full 100000: .* needs about 1800\.0 GB, .* pass --height-full \d+ or less$"
+    with pytest.raises(CalibrationError, match=pattern):
+        Geometry.from_rig(read_rig(RIG), 100_000)
+    with pytest.raises(CalibrationError, match=pattern):
+        run_benchmark([_ground_scan(2)], read_rig(RIG).camera("cam0").model, tmp_path / "b",
+                      replace(CFG, height_full=100_000, centers=()))  # fmt: skip
+    assert not (tmp_path / "b").exists()

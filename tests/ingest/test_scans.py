@@ -1,5 +1,8 @@
 """Scan input: PLY/PCD through Open3D, E57 through pye57 (poses), site manifests, masks, bad input."""
 
+import re
+import struct
+
 import numpy as np
 import open3d as o3d
 import pye57
@@ -148,3 +151,51 @@ def test_pcd_viewpoint_must_have_seven_numbers(tmp_path):
     (tmp_path / "v.pcd").write_bytes(data)
     with pytest.raises(ScanError, match="VIEWPOINT needs 7 numbers"):
         read_scans([tmp_path / "v.pcd"])
+
+
+def _crc32c(data: bytes) -> int:
+    crc = 0xFFFFFFFF
+    for byte in data:
+        crc ^= byte
+        for _ in range(8):
+            crc = (crc >> 1) ^ (0x82F63B78 & -(crc & 1))
+    return crc ^ 0xFFFFFFFF
+
+
+def test_e57_with_invalid_zero_record_data_is_a_scan_error(tmp_path):
+    """A well-formed E57 (valid page checksums) whose points section starts with zeros."""
+    xyz = np.random.default_rng(1).uniform(-3, 3, (40, 3)).astype(np.float32)
+    _write_e57(tmp_path / "ok.e57", [("st", xyz, np.full((40, 3), 9, np.uint8), [1, 0, 0, 0], [0, 0, 0])])
+    data = bytearray((tmp_path / "ok.e57").read_bytes())
+    offset = int(re.search(rb'<points type="CompressedVector" fileOffset="(\d+)"', data).group(1))
+    data[offset : offset + 32] = bytes(32)  # the binary section's header: id, lengths, offsets
+    for page in range(0, len(data), 1024):  # E57 pages: 1020 bytes + big-endian CRC-32C
+        data[page + 1020 : page + 1024] = struct.pack(">I", _crc32c(bytes(data[page : page + 1020])))
+    (tmp_path / "zero.e57").write_bytes(data)
+    with pytest.raises(ScanError, match=r"zero\.e57: data3D\[0\]: libE57 cannot read it: .*ErrorInternal"):
+        read_scans([tmp_path / "zero.e57"])
+    assert len(read_scans([tmp_path / "ok.e57"])[0].xyz) == 40  # the same file intact reads
+
+
+def test_open3d_failures_name_the_file(tmp_path):
+    _cloud(tmp_path / "t.ply", np.ones((100, 3), np.float32))
+    _cloud(tmp_path / "t.pcd", np.ones((100, 3), np.float32))
+    for name in ("t.ply", "t.pcd"):
+        data = (tmp_path / name).read_bytes()
+        (tmp_path / f"short_{name}").write_bytes(data[: len(data) - 600])
+        # Open3D zero-fills a short PLY (the zeros would be dropped as no-returns): caught by the size
+        with pytest.raises(ScanError, match=rf"short_{name}: truncated: its header promises \d+ bytes"):
+            read_scans([tmp_path / f"short_{name}"])
+    (tmp_path / "a.ply").write_bytes(b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\n"
+                                     b"property float y\nproperty float z\nend_header\n1 2 3\n4 5 6\n")  # fmt: skip
+    with pytest.raises(
+        ScanError, match=r"a\.ply: truncated: its header declares 3 points, the file has 2 lines"
+    ):
+        read_scans([tmp_path / "a.ply"])
+    # a face element keeps the size check out of it: Open3D's own error, without colours or C++ paths
+    (tmp_path / "l.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 99999999999\n"
+                                     b"property float x\nelement face 1\nproperty list uchar int vertex_indices\n"
+                                     b"end_header\n")  # fmt: skip
+    with pytest.raises(ScanError, match=r"l\.ply: Open3D cannot read it: Total size of property x") as err:
+        read_scans([tmp_path / "l.ply"])
+    assert "\x1b" not in str(err.value) and ".cpp" not in str(err.value)
