@@ -62,7 +62,9 @@ class SalvageReport:
     end: str = "read to the end of the file"
     """How the read ended: at the footer, at the end of the file, or where a cut record began."""
     has_magic: bool = True
-    """False when the file does not start with the MCAP magic."""
+    """False when the file neither starts nor ends with the MCAP magic."""
+    intact_records: int = 0
+    """Schema, channel and message records and chunks read whole (0 and no magic: not MCAP)."""
 
     @property
     def intact(self) -> bool:
@@ -94,6 +96,17 @@ def _frame(buf: memoryview, pos: int) -> tuple[int, memoryview] | None:
     if not _opcode_allowed(opcode) or length > len(buf) - pos - _HEADER:
         return None
     return opcode, buf[pos + _HEADER : pos + _HEADER + length]
+
+
+def _damaged_at(buf: memoryview, pos: int) -> bool:
+    """True when the bytes at `pos` are neither a record, nor the end, nor a record cut by the end.
+
+    The record before such bytes may be damaged too (its framing held, its
+    content need not), so it is not trusted.
+    """
+    if pos >= len(buf) or _frame(buf, pos) is not None or pos + _HEADER > len(buf):
+        return False
+    return not _opcode_allowed(buf[pos])  # an allowed opcode whose length runs past the end: a cut
 
 
 def _string(body: memoryview, pos: int) -> tuple[str, int]:
@@ -173,6 +186,9 @@ def _inner(buf: memoryview, state: _State, report: SalvageReport) -> Iterator[tu
             return
         opcode, body = frame
         pos += _HEADER + len(body)
+        if _damaged_at(buf, pos):
+            report.skipped_records += 1
+            continue
         got = _record(opcode, body, state, report)
         if got is not None:
             yield got
@@ -194,19 +210,43 @@ def _record(
                 report.skipped_records += 1
                 return None
             report.messages += 1
+            report.intact_records += 1
             return channel, int(log_ns), bytes(body[22:])
+        else:
+            return None
+        report.intact_records += 1
     except (struct.error, ValueError):  # UnicodeDecodeError is a ValueError
         report.skipped_records += 1
     return None
+
+
+def _summary_channels(buf: memoryview, state: _State) -> None:
+    """Schemas and channels from the summary section, when the file ends with an intact footer.
+
+    Lets messages be read whose channel record sat in a damaged part of the data section.
+    """
+    footer = len(buf) - len(MCAP_MAGIC) - _HEADER - 20
+    if footer <= len(MCAP_MAGIC) or bytes(buf[-len(MCAP_MAGIC) :]) != MCAP_MAGIC:
+        return
+    frame = _frame(buf, footer)
+    if frame is None or frame[0] != FOOTER or len(frame[1]) != 20:
+        return
+    (pos,) = struct.unpack_from("<Q", frame[1], 0)
+    scratch = SalvageReport()
+    while 0 < pos < footer and (frame := _frame(buf, pos)) is not None:
+        if frame[0] in (SCHEMA, CHANNEL):
+            _record(frame[0], frame[1], state, scratch)
+        pos += _HEADER + len(frame[1])
 
 
 def _walk(
     buf: memoryview, data: mmap.mmap, report: SalvageReport
 ) -> Iterator[tuple[McapChannel, int, bytes]]:
     state = _State()
+    _summary_channels(buf, state)
     pos = len(MCAP_MAGIC) if bytes(buf[: len(MCAP_MAGIC)]) == MCAP_MAGIC else 0
     if pos == 0:
-        report.has_magic = False
+        report.has_magic = bytes(buf[-len(MCAP_MAGIC) :]) == MCAP_MAGIC
     while pos < len(buf):
         frame = _frame(buf, pos)
         if frame is not None and frame[0] == CHUNK:
@@ -215,10 +255,13 @@ def _walk(
             except Exception:  # rosbags' decompressors raise several types on bad data
                 report.skipped_records += 1
             else:
+                report.intact_records += 1
                 yield from _inner(records, state, report)
         elif frame is not None and frame[0] == FOOTER:
             report.end = "read to the footer"
             return
+        elif frame is not None and _damaged_at(buf, pos + _HEADER + len(frame[1])):
+            report.skipped_records += 1
         elif frame is not None:
             got = _record(frame[0], frame[1], state, report)
             if got is not None:

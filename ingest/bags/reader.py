@@ -23,14 +23,16 @@ Public API:
 
 Trust in message layouts: a topic whose embedded definition cannot be parsed
 (rosbag2 records service-event topics with the raw `.srv` text) is set aside
-in every format with a warning naming it (`BagSet.unparsable`); the rest of
+in every format with a warning naming it (`BagSet.skipped`); the rest of
 the bag reads, and asking for that topic by name raises `BagError`. A
 connection whose embedded definition is empty
 (rosbag2 writes those when it cannot find a type; rosbags would then decode an
 empty struct without complaint) is accepted only when SensorBox's typestore
 knows the type, which is what `ingest.bags.decode` uses; otherwise `BagError`.
 For the types `ingest.bags.decode` reads with numpy, an embedded definition that
-differs from SensorBox's (different hash) is refused the same way.
+differs from SensorBox's (different hash) is refused the same way. In
+salvaged MCAP files, where damage can garble a channel record, every such
+refused topic is set aside like an unparsable one rather than stopping the read.
 
 Every failure to open or read a bag raises `BagError` naming the path, with a
 hint for the common cases (truncated MCAP: rerun with --salvage; unindexed
@@ -52,7 +54,7 @@ from rosbags.interfaces import MessageDefinition, MessageDefinitionFormat
 
 from calibration.errors import SensorboxError
 from ingest.bags.decode import RosVersion
-from ingest.bags.definitions import TolerantAnyReader, check_definition, definition_problem
+from ingest.bags.definitions import TolerantAnyReader, check_definition
 from ingest.bags.mcap_records import MCAP_MAGIC, McapChannel, SalvageReport, mcap_messages
 from ingest.bags.message import RawMessage
 from ingest.bags.rostypes import typestore
@@ -107,17 +109,10 @@ def _mcap_messages(path: Path, quiet: bool = False) -> Iterator[tuple[_Channel, 
     report = SalvageReport()
     for mc, log_ns, data in mcap_messages(path, report):
         yield _channel(mc), log_ns, data
-    if not report.has_magic and not report.messages:
-        raise BagError(f"{path}: not an MCAP file (no MCAP magic at its start and no intact chunk)")
+    if not report.has_magic and not report.intact_records:
+        raise BagError(f"{path}: not an MCAP file (no MCAP magic at its start and no intact record)")
     level = logging.INFO if report.intact or quiet else logging.WARNING
     log.log(level, "%s: %s", path, report.summary())
-
-
-def _unparsable(channel: _Channel) -> str | None:
-    """Why a channel's schema cannot be parsed (None: it can, or SensorBox cannot decode it anyway)."""
-    if channel.ros_version is None or not channel.msgtype:
-        return None
-    return definition_problem(channel.msgtype, channel.msgdef, channel.ros_version)
 
 
 def salvage_mcap(path: str | Path, topics: Collection[str] | None = None) -> Iterator[RawMessage]:
@@ -125,10 +120,11 @@ def salvage_mcap(path: str | Path, topics: Collection[str] | None = None) -> Ite
 
     Walks the file record by record (`ingest.bags.mcap_records`); what is cut
     or damaged is skipped and logged, never raised. A complete file yields all
-    its messages. `topics` limits the output (None: all). A topic whose schema
-    cannot be parsed is skipped with a warning naming it. Raises `BagError`
-    for a missing or non-MCAP file and, when reached, for a topic whose type
-    cannot be decoded safely (see the module docstring).
+    its messages. `topics` limits the output (None: all). With `topics=None`
+    a topic that cannot be decoded safely (schema unparsable or missing,
+    foreign encoding, see the module docstring) is skipped with a warning
+    naming it; asked for by name it raises `BagError` when reached, as does a
+    missing or non-MCAP file.
     """
     path = Path(path)
     if not path.is_file():
@@ -138,31 +134,36 @@ def salvage_mcap(path: str | Path, topics: Collection[str] | None = None) -> Ite
 
 
 def _salvage(path: Path, wanted: set[str] | None, quiet: bool = False) -> Iterator[RawMessage]:
-    checked: dict[_Channel, bool] = {}
+    usable: dict[_Channel, bool] = {}
     for channel, log_ns, data in _mcap_messages(path, quiet):
         if wanted is not None and channel.topic not in wanted:
             continue
-        if channel not in checked:
-            problem = _unparsable(channel)
-            if problem is not None:
-                log.warning("%s: skipping topic %r: %s", path, channel.topic, problem)
-            else:
-                _check_salvaged(path, channel)
-            checked[channel] = problem is None
-        if checked[channel]:
-            assert channel.ros_version is not None  # _check_salvaged
+        if channel not in usable:
+            problem = _channel_problem(path, channel)
+            if problem is not None and wanted is not None:
+                raise BagError(problem)
+            if problem is not None and not quiet:
+                log.warning("%s; skipping that topic, the others are read", problem)
+            usable[channel] = problem is None
+        if usable[channel]:
+            assert channel.ros_version is not None  # _channel_problem
             yield RawMessage(channel.topic, channel.msgtype, log_ns, data, channel.ros_version)
 
 
-def _check_salvaged(path: Path, channel: _Channel) -> None:
+def _channel_problem(path: Path, channel: _Channel) -> str | None:
+    """Why a salvaged channel's messages cannot be decoded safely (a `BagError` text), or None."""
     if channel.ros_version is None:
-        raise BagError(
+        return (
             f"{path}: topic {channel.topic!r} uses message encoding {channel.encoding!r};"
             " expected 'cdr' (ROS 2) or 'ros1'"
         )
     if not channel.msgtype:
-        raise BagError(f"{path}: topic {channel.topic!r} has no schema, so its message type is unknown")
-    check_definition(str(path), channel.topic, channel.msgtype, channel.msgdef, channel.ros_version)
+        return f"{path}: topic {channel.topic!r} has no schema, so its message type is unknown"
+    try:
+        check_definition(str(path), channel.topic, channel.msgtype, channel.msgdef, channel.ros_version)
+    except BagError as err:
+        return str(err)
+    return None
 
 
 def _mcap_is_complete(path: Path) -> bool:
@@ -304,20 +305,22 @@ class BagSet:
         """MCAP files read record by record (`salvage_mcap`) rather than by rosbags."""
         self._reader = reader
         self._salvage_index: dict[Path, dict[_Channel, int]] = {}
-        self.unparsable: dict[str, str] = {}
-        """Topics set aside because their embedded definition cannot be parsed -> why (one line)."""
+        self.skipped: dict[str, str] = {}
+        """Topics left out when reading all topics -> why (one line): an embedded definition
+        that cannot be parsed, or, in salvaged files, any reason a topic cannot be decoded safely."""
         if reader is not None:
             for conn, problem in reader.unparsable:
-                self._set_aside(str(getattr(conn.owner, "path", self._where)), conn.topic, problem)
+                where = str(getattr(conn.owner, "path", self._where))
+                self._skip(conn.topic, f"{where}: topic {conn.topic!r}: {problem}")
         for path in self.salvaged:
             for channel in self._index(path):
-                if (reason := _unparsable(channel)) is not None:
-                    self._set_aside(str(path), channel.topic, reason)
+                if (reason := _channel_problem(path, channel)) is not None:
+                    self._skip(channel.topic, reason)
 
-    def _set_aside(self, where: str, topic: str, problem: str) -> None:
-        if topic not in self.unparsable:
-            log.warning("%s: skipping topic %r: %s; the other topics are read", where, topic, problem)
-        self.unparsable[topic] = f"{where}: topic {topic!r} is skipped: {problem}"
+    def _skip(self, topic: str, reason: str) -> None:
+        if topic not in self.skipped:
+            log.warning("%s; skipping that topic, the others are read", reason)
+            self.skipped[topic] = reason
 
     @property
     def label(self) -> str:
@@ -377,17 +380,17 @@ class BagSet:
         """Lazy iterator over the raw messages of `topics` (None: all), merged by log time.
 
         `start_ns`/`stop_ns` bound the log time (stop exclusive). All topics
-        leaves out those in `unparsable`. Topics that are not in the bags,
+        leaves out those in `skipped`. Topics that are not in the bags,
         and topics whose type cannot be decoded safely (asked for by name,
-        unparsable ones too), raise `BagError` here, before any message is read.
+        skipped ones too), raise `BagError` here, before any message is read.
         """
         names = self.topics()
-        wanted = set(names) - set(self.unparsable) if topics is None else set(topics)
+        wanted = set(names) - set(self.skipped) if topics is None else set(topics)
         for topic in sorted(wanted):
             if topic not in names:
                 raise self._missing_topic(topic)
-            if topic in self.unparsable:
-                raise BagError(self.unparsable[topic])
+            if topic in self.skipped:
+                raise BagError(f"{self.skipped[topic]}; that topic is skipped")
         sources: list[Iterator[RawMessage]] = []
         if self._reader is not None:
             conns = [c for c in self._reader.connections if c.topic in wanted]
@@ -396,10 +399,7 @@ class BagSet:
                 check_definition(where, conn.topic, conn.msgtype, conn.msgdef, self.ros_version)
             if conns:
                 sources.append(self._read(conns, start_ns, stop_ns))
-        for path in self.salvaged:
-            for channel in self._index(path):
-                if channel.topic in wanted:
-                    _check_salvaged(path, channel)
+        for path in self.salvaged:  # skipped topics are not in `wanted`
             sources.append(_time_window(_salvage(path, wanted, quiet=True), start_ns, stop_ns))
         if len(sources) == 1:
             return sources[0]
