@@ -84,7 +84,7 @@ def _lidar_table(lidars: tuple[LidarCoverage, ...]) -> Table:
     table = Table(title="LiDAR sweeps (sensor frame; medians over sweeps)")
     for col in (
         "topic", "sweeps", "points", "zero points", "duration [ms]", "1°x1° coverage of 360 x [-7, 52]°",
-        "elevation [°]",
+        "elevation [°]", "point time",
     ):  # fmt: skip
         table.add_column(escape(col), justify="left" if col == "topic" else "right", overflow="fold")
     for li in lidars:
@@ -104,6 +104,7 @@ def _lidar_table(lidars: tuple[LidarCoverage, ...]) -> Table:
             _num(li.duration_ms_median, ".2f"),
             cover,
             el,
+            escape(li.time_layout or "-"),
         )
     return table
 
