@@ -70,7 +70,9 @@ class LidarCoverage:
     `coverage` is the fraction of the 1x1 degree cells of 360 deg x
     `EL_RANGE_DEG` hit by one sweep's non-zero points; `zero_fraction` the
     share of all points that are (0, 0, 0) or not finite; `elevation_*_deg`
-    the extremes of non-zero points over all sweeps.
+    the extremes of non-zero points over all sweeps. `time_layout` says where
+    the per-point times came from (`Sweep.time_layout`; several joined by
+    " | " if they changed; None without a decoded sweep).
     """
 
     topic: str
@@ -82,6 +84,7 @@ class LidarCoverage:
     elevation_min_deg: float | None
     elevation_max_deg: float | None
     undecodable: int = 0
+    time_layout: str | None = None
 
 
 @dataclass(frozen=True)

@@ -24,7 +24,10 @@ What is measured (all times from header stamps unless said otherwise):
 - LiDAR (`LidarCoverage`): per sweep the point count, the fraction of (0,0,0)
   no-return points, the spread of per-point stamps (ms), and the fraction of
   1x1 degree azimuth/elevation cells over 360 x [-7, 52] deg (the Mid-360's
-  field of view, sensor frame) hit by its non-zero points; medians over sweeps.
+  field of view, sensor frame) hit by its non-zero points; medians over sweeps;
+  and where the per-point times come from (field, type, unit, base, driver:
+  `ingest.bags.point_time`). A sweep whose point times fit no known layout
+  counts as undecodable, with the error naming the field and its values.
 - `TopicMapping`: image topics named upper/top/left or lower/bottom/right
   become cam0 (upper) and cam1 (lower); LiDARs (PointCloud2, Livox CustomMsg)
   and IMUs are paired by the livox_ros_driver2 multi_topic names
@@ -139,6 +142,7 @@ class _SweepAcc:
     el_min: float = np.inf
     el_max: float = -np.inf
     undecodable: int = 0
+    time_layouts: dict[str, None] = field(default_factory=dict)  # insertion-ordered set
 
 
 @dataclass
@@ -174,6 +178,7 @@ def _add_sweep(acc: _SweepAcc, sweep: Sweep) -> None:
     stamps = sweep.stamps_ns
     acc.durations_ms.append(float(stamps.max() - stamps.min()) / 1e6 if len(stamps) else 0.0)
     acc.coverage.append(hit / (N_AZ * N_EL))
+    acc.time_layouts[sweep.time_layout] = None
     if len(el):
         acc.el_min = min(acc.el_min, float(el.min()))
         acc.el_max = max(acc.el_max, float(el.max()))
@@ -282,6 +287,7 @@ def _lidar_coverage(topic: str, acc: _SweepAcc) -> LidarCoverage:
     """Medians over the sweeps of one LiDAR topic."""
     if not acc.points:
         return LidarCoverage(topic, 0, None, None, None, None, None, None, acc.undecodable)
+    layouts = " | ".join(acc.time_layouts)
     total = sum(acc.points)
     return LidarCoverage(
         topic=topic,
@@ -293,6 +299,7 @@ def _lidar_coverage(topic: str, acc: _SweepAcc) -> LidarCoverage:
         elevation_min_deg=acc.el_min if np.isfinite(acc.el_min) else None,
         elevation_max_deg=acc.el_max if np.isfinite(acc.el_max) else None,
         undecodable=acc.undecodable,
+        time_layout=layouts or None,
     )
 
 

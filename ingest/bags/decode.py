@@ -35,6 +35,7 @@ import cv2
 import numpy as np
 
 from ingest.bags.livox_msg import CustomMsg, decode_custom_msg
+from ingest.bags.point_time import point_times_ns
 from ingest.bags.rostypes import (
     COMPRESSED_IMAGE_TYPE,
     IMAGE_TYPE,
@@ -78,7 +79,9 @@ class Sweep:
     (N,) int64. `reflectivity` is the driver's per-point return strength as
     stored (uint8 for Livox CustomMsg, the `reflectivity` or else `intensity`
     field of a PointCloud2); `tag` and `line` are uint8 Livox fields. Each of
-    those three is None when the message has no such field.
+    those three is None when the message has no such field. `time_layout`
+    says where the point times came from (e.g. "time float32 s from the
+    header stamp (Velodyne)"; `NO_POINT_TIME` when the message has none).
     """
 
     stamp_ns: int
@@ -88,6 +91,7 @@ class Sweep:
     reflectivity: Array | None = None
     tag: Array | None = None
     line: Array | None = None
+    time_layout: str = ""
 
 
 @dataclass(frozen=True)
@@ -244,19 +248,18 @@ def _field(points: np.ndarray[Any, np.dtype[np.void]], name: str) -> Array | Non
     return np.ascontiguousarray(column, dtype=column.dtype.newbyteorder("="))
 
 
-MAX_POINT_TIME_OFFSET_NS = 60_000_000_000
-"""A float64 `timestamp` field further than this from the header stamp is not absolute ns."""
+NO_POINT_TIME = "none: every point at the header stamp"
+CUSTOM_MSG_TIME = "timebase + offset_time uint32 ns (Livox CustomMsg)"
 
 
 def sweep_from_pointcloud(cloud: PointCloud) -> Sweep:
     """Points of a PointCloud2 as a `Sweep`.
 
     Needs x, y, z fields (float32 stay float32, anything else becomes float64).
-    Point times come from a float64 `timestamp` field holding absolute ns (the
-    livox_ros_driver2 PointXYZRTLT layout); without that field every point gets
-    the header stamp. A `timestamp` field of another type, or whose values are
-    not within `MAX_POINT_TIME_OFFSET_NS` of the header stamp (e.g. seconds),
-    raises rather than guessing.
+    Point times come from the driver's time field, its unit and base read off
+    the values against the header stamp (`ingest.bags.point_time`: Livox,
+    Velodyne, Ouster, Hesai, RoboSense); without one every point gets the
+    header stamp. A time field that fits no layout raises `MessageDecodeError`.
     """
     pts = cloud.points
     names = pts.dtype.names or ()
@@ -270,31 +273,19 @@ def sweep_from_pointcloud(cloud: PointCloud) -> Sweep:
     xyz = np.empty((len(pts), 3), np.float32 if all_f4 else np.float64)
     for i, n in enumerate("xyz"):
         xyz[:, i] = pts[n]
-    if "timestamp" in names:
-        ts_type = fields["timestamp"][0]
-        if ts_type.kind != "f" or ts_type.itemsize != 8 or ts_type.shape:
-            raise MessageDecodeError(
-                f"PointCloud2 field 'timestamp' is {ts_type}; expected float64 absolute ns"
-            )
-        ts = pts["timestamp"].astype(np.float64)
-        if len(ts):
-            lo, hi = float(np.min(ts)), float(np.max(ts))
-            if (
-                not (np.isfinite(lo) and np.isfinite(hi))
-                or max(abs(lo - cloud.stamp_ns), abs(hi - cloud.stamp_ns)) > MAX_POINT_TIME_OFFSET_NS
-            ):
-                raise MessageDecodeError(
-                    f"PointCloud2 'timestamp' values {lo:.6g}..{hi:.6g} are not absolute ns near the"
-                    f" header stamp {cloud.stamp_ns} ns"
-                )
-        stamps = ts.astype(np.int64)
-    else:
-        stamps = np.full(len(pts), cloud.stamp_ns, np.int64)
+    stamps, layout = point_times_ns(pts, cloud.stamp_ns)
     reflectivity = _field(pts, "reflectivity")
     if reflectivity is None:
         reflectivity = _field(pts, "intensity")
     return Sweep(
-        cloud.stamp_ns, cloud.frame_id, xyz, stamps, reflectivity, _field(pts, "tag"), _field(pts, "line")
+        cloud.stamp_ns,
+        cloud.frame_id,
+        xyz,
+        stamps,
+        reflectivity,
+        _field(pts, "tag"),
+        _field(pts, "line"),
+        str(layout) if layout is not None else NO_POINT_TIME,
     )
 
 
@@ -312,6 +303,7 @@ def sweep_from_custom_msg(msg: CustomMsg) -> Sweep:
         np.ascontiguousarray(pts["reflectivity"]),
         np.ascontiguousarray(pts["tag"]),
         np.ascontiguousarray(pts["line"]),
+        CUSTOM_MSG_TIME,
     )
 
 

@@ -6,25 +6,33 @@ Public API:
   files, or ROS 2 `.mcap`/`.db3` files and rosbag2 directories (not mixed),
   read through rosbags' `AnyReader` with the SensorBox typestore
   (`ingest.bags.rostypes.typestore`) as the fallback for bags without embedded
-  definitions. With `salvage=True`, MCAP files that are truncated or still
-  being written (and rosbag2 directories holding them or lacking
-  metadata.yaml) are read with `salvage_mcap` instead of failing.
+  definitions. With `salvage=True`, every MCAP file (also those of rosbag2
+  directories, whose metadata.yaml may then be missing) is read record by
+  record with `salvage_mcap`, so a cut end, damaged bytes or a missing
+  summary lose only what they hit.
 - `BagSet.topics() -> dict[str, TopicSummary]`: type and message count per topic.
 - `BagSet.messages(topics=None, start_ns=None, stop_ns=None) -> Iterator[RawMessage]`:
   lazy, merged in log-time order; `stop_ns` is exclusive.
 - `BagSet.close()`, or use the `BagSet` as a context manager.
-- `salvage_mcap(path, topics=None) -> Iterator[RawMessage]`: every message of
-  every complete chunk of a truncated or unclosed MCAP file, in file order.
+- `salvage_mcap(path, topics=None) -> Iterator[RawMessage]`: every intact
+  message of a truncated, unclosed or damaged MCAP file, in file order
+  (`ingest.bags.mcap_records`); what was lost is logged, never raised.
 - `RawMessage(topic, msgtype, log_ns, raw, ros_version)`: `log_ns` is the bag's
   receive time, *not* the header stamp sync must use; decode `raw` with
   `ingest.bags.decode.decode(msgtype, raw, ros_version)`.
 
-Trust in message layouts: a connection whose embedded definition is empty
+Trust in message layouts: a topic whose embedded definition cannot be parsed
+(rosbag2 records service-event topics with the raw `.srv` text) is set aside
+in every format with a warning naming it (`BagSet.skipped`); the rest of
+the bag reads, and asking for that topic by name raises `BagError`. A
+connection whose embedded definition is empty
 (rosbag2 writes those when it cannot find a type; rosbags would then decode an
 empty struct without complaint) is accepted only when SensorBox's typestore
 knows the type, which is what `ingest.bags.decode` uses; otherwise `BagError`.
 For the types `ingest.bags.decode` reads with numpy, an embedded definition that
-differs from SensorBox's (different hash) is refused the same way.
+differs from SensorBox's (different hash) is refused the same way. In
+salvaged MCAP files, where damage can garble a channel record, every such
+refused topic is set aside like an unparsable one rather than stopping the read.
 
 Every failure to open or read a bag raises `BagError` naming the path, with a
 hint for the common cases (truncated MCAP: rerun with --salvage; unindexed
@@ -33,7 +41,6 @@ ROS 1 bag: rosbag reindex).
 
 from __future__ import annotations
 
-import dataclasses
 import heapq
 import logging
 from collections.abc import Collection, Iterable, Iterator, Sequence
@@ -43,19 +50,12 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any
 
-from mcap.exceptions import EndOfFile, McapError
-from mcap.records import Channel as McapChannel
-from mcap.records import Chunk as McapChunk
-from mcap.records import Message as McapMessage
-from mcap.records import Schema as McapSchema
-from mcap.stream_reader import StreamReader, breakup_chunk
-from rosbags.highlevel import AnyReader
 from rosbags.interfaces import MessageDefinition, MessageDefinitionFormat
-from rosbags.rosbag2.storage_mcap import decompress as decompress_mcap_chunk
-from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_typestore
 
 from calibration.errors import SensorboxError
-from ingest.bags.decode import DECODED_TYPES, RosVersion
+from ingest.bags.decode import RosVersion
+from ingest.bags.definitions import TolerantAnyReader, check_definition
+from ingest.bags.mcap_records import MCAP_MAGIC, McapChannel, SalvageReport, mcap_messages
 from ingest.bags.message import RawMessage
 from ingest.bags.rostypes import typestore
 from ingest.errors import BagError
@@ -64,7 +64,6 @@ __all__ = ["BagError", "BagSet", "RawMessage", "TopicSummary", "open_bags", "sal
 
 log = logging.getLogger(__name__)
 
-MCAP_MAGIC = b"\x89MCAP0\r\n"
 SALVAGE_HINT = "rerun with --salvage to read its complete chunks"
 
 
@@ -74,59 +73,6 @@ class TopicSummary:
 
     msgtype: str
     count: int
-
-
-# ---------------------------------------------------------------- definitions
-
-
-@cache
-def _our_hash(msgtype: str, ros_version: RosVersion) -> str:
-    """RIHS01 (ROS 2) or MD5 (ROS 1) of SensorBox's own definition of `msgtype`."""
-    store = typestore(ros_version)
-    return store.hash_rihs01(msgtype) if ros_version == 2 else store.generate_msgdef(msgtype)[1]
-
-
-@cache
-def _embedded_hash(msgtype: str, msgdef: MessageDefinition, ros_version: RosVersion) -> str:
-    """The same hash of a bag's embedded definition (parsed like AnyReader does)."""
-    store = get_typestore(Stores.EMPTY)
-    if msgdef.format == MessageDefinitionFormat.IDL:
-        sep = "=" * 80 + "\n"
-        if msgdef.data.startswith(f"{sep}IDL: "):
-            for part in msgdef.data.split(sep)[1:]:
-                store.register(get_types_from_idl(part.split("\n", 1)[1]))
-        else:
-            store.register(get_types_from_idl(msgdef.data))
-    else:
-        store.register(get_types_from_msg(msgdef.data, msgtype))
-    return store.hash_rihs01(msgtype) if ros_version == 2 else store.generate_msgdef(msgtype)[1]
-
-
-def _check_definition(
-    where: str, topic: str, msgtype: str, msgdef: MessageDefinition, ros_version: RosVersion
-) -> None:
-    """Raise `BagError` unless the messages of `topic` can be decoded without guessing."""
-    if not msgdef.data.strip():
-        if msgtype not in typestore(ros_version).types:
-            raise BagError(
-                f"{where}: topic {topic!r} has no embedded message definition for type {msgtype!r}"
-                " and SensorBox does not know that type; refusing to guess its layout"
-            )
-        return  # decoded with SensorBox's typestore
-    if msgtype not in DECODED_TYPES:
-        return
-    try:
-        theirs = _embedded_hash(msgtype, msgdef, ros_version)
-    except Exception as err:  # rosbags' parsers raise several types on bad text
-        raise BagError(
-            f"{where}: topic {topic!r}: the embedded definition of {msgtype} cannot be parsed: {err}"
-        ) from err
-    ours = _our_hash(msgtype, ros_version)
-    if theirs != ours:
-        raise BagError(
-            f"{where}: topic {topic!r}: the bag's definition of {msgtype} differs from the one"
-            f" SensorBox decodes ({theirs} != {ours}); refusing to decode it"
-        )
 
 
 # ---------------------------------------------------------------- salvage
@@ -150,79 +96,35 @@ _SCHEMA_FORMATS = {
 _ENCODING_VERSIONS: dict[str, RosVersion] = {"cdr": 2, "ros1": 1}
 
 
-def _chunk_records(chunk: McapChunk) -> list[Any]:
-    """Records inside one chunk, decompressed (zstd, lz4) and size/CRC-checked by rosbags."""
-    data = decompress_mcap_chunk(
-        chunk.data, chunk.compression, chunk.uncompressed_size, chunk.uncompressed_crc
-    )
-    return list(breakup_chunk(dataclasses.replace(chunk, compression="", data=data)))
+@cache
+def _channel(mc: McapChannel) -> _Channel:
+    fmt = _SCHEMA_FORMATS.get(mc.schema_encoding, MessageDefinitionFormat.NONE)
+    msgdef = MessageDefinition(fmt, mc.schema_data if mc.schema_name else "")
+    version = _ENCODING_VERSIONS.get(mc.message_encoding)
+    return _Channel(mc.topic, mc.schema_name, msgdef, version, mc.message_encoding)
 
 
-def _mcap_messages(path: Path) -> Iterator[tuple[_Channel, int, bytes]]:
-    """(channel, log_ns, data) of every complete message record in an MCAP file."""
-    schemas: dict[int, McapSchema] = {}
-    channels: dict[int, _Channel] = {}
-    count = skipped = 0
-    stopped = "end of file"
-    with path.open("rb") as f:
-        if f.read(8) != MCAP_MAGIC:
-            raise BagError(f"{path}: not an MCAP file (no MCAP magic at its start)")
-        f.seek(0)
-        # a record cut short by the end of the file raises EndOfFile before it is yielded
-        records = StreamReader(f, emit_chunks=True).records
-        while True:
-            try:
-                record = next(records)
-            except StopIteration:
-                break
-            except (EndOfFile, McapError, ValueError, OSError, EOFError) as err:
-                stopped = f"stopped at byte {f.tell()}: {type(err).__name__} {err}".strip()
-                break
-            inner: Iterable[Any] = (record,)
-            if isinstance(record, McapChunk):
-                try:
-                    inner = _chunk_records(record)
-                except Exception as err:  # corrupt chunk: skip it, keep reading the next ones
-                    skipped += 1
-                    log.warning("%s: skipping an unreadable chunk: %s", path, err)
-                    continue
-            for rec in inner:
-                if isinstance(rec, McapSchema):
-                    schemas[rec.id] = rec
-                elif isinstance(rec, McapChannel):
-                    schema = schemas.get(rec.schema_id)
-                    msgdef = MessageDefinition(MessageDefinitionFormat.NONE, "")
-                    if schema is not None:
-                        fmt = _SCHEMA_FORMATS.get(schema.encoding, MessageDefinitionFormat.NONE)
-                        msgdef = MessageDefinition(fmt, schema.data.decode(errors="replace"))
-                    channels[rec.id] = _Channel(
-                        rec.topic,
-                        schema.name if schema is not None else "",
-                        msgdef,
-                        _ENCODING_VERSIONS.get(rec.message_encoding),
-                        rec.message_encoding,
-                    )
-                elif isinstance(rec, McapMessage):
-                    channel = channels.get(rec.channel_id)
-                    if channel is None:
-                        skipped += 1
-                        continue
-                    count += 1
-                    yield channel, rec.log_time, rec.data
-    level = logging.INFO if not skipped and stopped == "end of file" else logging.WARNING
-    log.log(
-        level, "%s: salvaged %d messages (%d unreadable records skipped); %s", path, count, skipped, stopped
-    )
+def _mcap_messages(path: Path, quiet: bool = False) -> Iterator[tuple[_Channel, int, bytes]]:
+    """(channel, log_ns, data) of every intact message record of an MCAP file; logs what was lost."""
+    report = SalvageReport()
+    for mc, log_ns, data in mcap_messages(path, report):
+        yield _channel(mc), log_ns, data
+    if not report.has_magic and not report.intact_records:
+        raise BagError(f"{path}: not an MCAP file (no MCAP magic at its start and no intact record)")
+    level = logging.INFO if report.intact or quiet else logging.WARNING
+    log.log(level, "%s: %s", path, report.summary())
 
 
 def salvage_mcap(path: str | Path, topics: Collection[str] | None = None) -> Iterator[RawMessage]:
-    """Messages of every complete chunk of a truncated or unclosed MCAP file, in file order.
+    """Messages of every intact record of a truncated, unclosed or damaged MCAP file, in file order.
 
-    Reads records with `mcap`'s `StreamReader` until the file ends or a record
-    is cut short; a chunk that fails to decompress or its CRC is skipped. A
-    complete file yields all its messages. `topics` limits the output (None: all).
-    Raises `BagError` for a missing or non-MCAP file and, when reached, for a
-    topic whose type cannot be decoded safely (see the module docstring).
+    Walks the file record by record (`ingest.bags.mcap_records`); what is cut
+    or damaged is skipped and logged, never raised. A complete file yields all
+    its messages. `topics` limits the output (None: all). With `topics=None`
+    a topic that cannot be decoded safely (schema unparsable or missing,
+    foreign encoding, see the module docstring) is skipped with a warning
+    naming it; asked for by name it raises `BagError` when reached, as does a
+    missing or non-MCAP file.
     """
     path = Path(path)
     if not path.is_file():
@@ -231,27 +133,37 @@ def salvage_mcap(path: str | Path, topics: Collection[str] | None = None) -> Ite
     return _salvage(path, wanted)
 
 
-def _salvage(path: Path, wanted: set[str] | None) -> Iterator[RawMessage]:
-    checked: set[_Channel] = set()
-    for channel, log_ns, data in _mcap_messages(path):
+def _salvage(path: Path, wanted: set[str] | None, quiet: bool = False) -> Iterator[RawMessage]:
+    usable: dict[_Channel, bool] = {}
+    for channel, log_ns, data in _mcap_messages(path, quiet):
         if wanted is not None and channel.topic not in wanted:
             continue
-        if channel not in checked:
-            _check_salvaged(path, channel)
-            checked.add(channel)
-        assert channel.ros_version is not None  # _check_salvaged
-        yield RawMessage(channel.topic, channel.msgtype, log_ns, data, channel.ros_version)
+        if channel not in usable:
+            problem = _channel_problem(path, channel)
+            if problem is not None and wanted is not None:
+                raise BagError(problem)
+            if problem is not None and not quiet:
+                log.warning("%s; skipping that topic, the others are read", problem)
+            usable[channel] = problem is None
+        if usable[channel]:
+            assert channel.ros_version is not None  # _channel_problem
+            yield RawMessage(channel.topic, channel.msgtype, log_ns, data, channel.ros_version)
 
 
-def _check_salvaged(path: Path, channel: _Channel) -> None:
+def _channel_problem(path: Path, channel: _Channel) -> str | None:
+    """Why a salvaged channel's messages cannot be decoded safely (a `BagError` text), or None."""
     if channel.ros_version is None:
-        raise BagError(
+        return (
             f"{path}: topic {channel.topic!r} uses message encoding {channel.encoding!r};"
             " expected 'cdr' (ROS 2) or 'ros1'"
         )
     if not channel.msgtype:
-        raise BagError(f"{path}: topic {channel.topic!r} has no schema, so its message type is unknown")
-    _check_definition(str(path), channel.topic, channel.msgtype, channel.msgdef, channel.ros_version)
+        return f"{path}: topic {channel.topic!r} has no schema, so its message type is unknown"
+    try:
+        check_definition(str(path), channel.topic, channel.msgtype, channel.msgdef, channel.ros_version)
+    except BagError as err:
+        return str(err)
+    return None
 
 
 def _mcap_is_complete(path: Path) -> bool:
@@ -267,13 +179,10 @@ def _mcap_is_complete(path: Path) -> bool:
 
 
 def _salvage_targets(path: Path) -> list[Path]:
-    """MCAP files of `path` that only salvage can read (empty when AnyReader can)."""
+    """The MCAP files of `path` (a file or a rosbag2 directory); `--salvage` walks them record by record."""
     if path.is_file():
-        return [path] if path.suffix == ".mcap" and not _mcap_is_complete(path) else []
-    mcaps = sorted(path.glob("*.mcap"))
-    if mcaps and (not (path / "metadata.yaml").exists() or not all(map(_mcap_is_complete, mcaps))):
-        return mcaps
-    return []
+        return [path] if path.suffix == ".mcap" else []
+    return sorted(path.glob("*.mcap"))
 
 
 # ---------------------------------------------------------------- opening
@@ -330,17 +239,17 @@ def _explain(path: Path, err: BaseException) -> str:
     return f"{path}: cannot read bag: {type(err).__name__}: {text}"
 
 
-def _open_reader(paths: list[Path], ros_version: RosVersion) -> AnyReader:
-    """An open AnyReader over `paths`, or `BagError` naming the path that fails."""
+def _open_reader(paths: list[Path], ros_version: RosVersion) -> TolerantAnyReader:
+    """An open reader over `paths`, or `BagError` naming the path that fails."""
     try:
-        reader = AnyReader(paths, default_typestore=typestore(ros_version))
+        reader = TolerantAnyReader(paths, default_typestore=typestore(ros_version))
         reader.open()
     except Exception as err:  # rosbags raises its own errors, OSError, KeyError, ...
         if len(paths) == 1:
             raise BagError(_explain(paths[0], err)) from err
         for path in paths:  # which one is it?
             try:
-                with AnyReader([path], default_typestore=typestore(ros_version)):
+                with TolerantAnyReader([path], default_typestore=typestore(ros_version)):
                     pass
             except Exception as single:
                 raise BagError(_explain(path, single)) from err
@@ -352,8 +261,9 @@ def _open_reader(paths: list[Path], ros_version: RosVersion) -> AnyReader:
 def open_bags(paths: str | Path | Sequence[str | Path], salvage: bool = False) -> BagSet:
     """Open one or several bags of one ROS version for reading (see the module docstring).
 
-    `salvage=True` reads truncated or unclosed MCAP files chunk by chunk
-    instead of raising. Raises `BagError` naming the path at fault.
+    `salvage=True` reads every MCAP file record by record (`salvage_mcap`),
+    skipping what is cut or damaged instead of raising. Raises `BagError`
+    naming the path at fault.
     """
     items = [paths] if isinstance(paths, str | Path) else list(paths)
     if not items:
@@ -367,7 +277,12 @@ def open_bags(paths: str | Path | Sequence[str | Path], salvage: bool = False) -
         salvaged = [m for p in bag_paths for m in targets[p]]
         direct = [p for p in bag_paths if not targets[p]]
     reader = _open_reader(direct, ros_version) if direct else None
-    return BagSet(tuple(bag_paths), ros_version, reader, salvaged)
+    try:
+        return BagSet(tuple(bag_paths), ros_version, reader, salvaged)
+    except BaseException:
+        if reader is not None:
+            reader.close()
+        raise
 
 
 # ---------------------------------------------------------------- the bag set
@@ -377,15 +292,35 @@ class BagSet:
     """Open bags of one ROS version; create with `open_bags`."""
 
     def __init__(
-        self, paths: tuple[Path, ...], ros_version: RosVersion, reader: AnyReader | None, salvaged: list[Path]
+        self,
+        paths: tuple[Path, ...],
+        ros_version: RosVersion,
+        reader: TolerantAnyReader | None,
+        salvaged: list[Path],
     ) -> None:
         self.paths = paths
         """The paths given to `open_bags`."""
         self.ros_version: RosVersion = ros_version
         self.salvaged: tuple[Path, ...] = tuple(salvaged)
-        """MCAP files read by salvage rather than by rosbags."""
+        """MCAP files read record by record (`salvage_mcap`) rather than by rosbags."""
         self._reader = reader
         self._salvage_index: dict[Path, dict[_Channel, int]] = {}
+        self.skipped: dict[str, str] = {}
+        """Topics left out when reading all topics -> why (one line): an embedded definition
+        that cannot be parsed, or, in salvaged files, any reason a topic cannot be decoded safely."""
+        if reader is not None:
+            for conn, problem in reader.unparsable:
+                where = str(getattr(conn.owner, "path", self._where))
+                self._skip(conn.topic, f"{where}: topic {conn.topic!r}: {problem}")
+        for path in self.salvaged:
+            for channel in self._index(path):
+                if (reason := _channel_problem(path, channel)) is not None:
+                    self._skip(channel.topic, reason)
+
+    def _skip(self, topic: str, reason: str) -> None:
+        if topic not in self.skipped:
+            log.warning("%s; skipping that topic, the others are read", reason)
+            self.skipped[topic] = reason
 
     @property
     def label(self) -> str:
@@ -413,7 +348,7 @@ class BagSet:
         """Message count per channel of a salvaged file (one full read, cached)."""
         if path not in self._salvage_index:
             counts: dict[_Channel, int] = {}
-            for channel, _, _ in _mcap_messages(path):
+            for channel, _, _ in _mcap_messages(path):  # logs what salvage lost, once
                 counts[channel] = counts.get(channel, 0) + 1
             self._salvage_index[path] = counts
         return self._salvage_index[path]
@@ -444,28 +379,28 @@ class BagSet:
     ) -> Iterator[RawMessage]:
         """Lazy iterator over the raw messages of `topics` (None: all), merged by log time.
 
-        `start_ns`/`stop_ns` bound the log time (stop exclusive). Topics that
-        are not in the bags, and topics whose type cannot be decoded safely,
-        raise `BagError` here, before any message is read.
+        `start_ns`/`stop_ns` bound the log time (stop exclusive). All topics
+        leaves out those in `skipped`. Topics that are not in the bags,
+        and topics whose type cannot be decoded safely (asked for by name,
+        skipped ones too), raise `BagError` here, before any message is read.
         """
         names = self.topics()
-        wanted = set(names) if topics is None else set(topics)
+        wanted = set(names) - set(self.skipped) if topics is None else set(topics)
         for topic in sorted(wanted):
             if topic not in names:
                 raise self._missing_topic(topic)
+            if topic in self.skipped:
+                raise BagError(f"{self.skipped[topic]}; that topic is skipped")
         sources: list[Iterator[RawMessage]] = []
         if self._reader is not None:
             conns = [c for c in self._reader.connections if c.topic in wanted]
             for conn in conns:
                 where = str(getattr(conn.owner, "path", self._where))
-                _check_definition(where, conn.topic, conn.msgtype, conn.msgdef, self.ros_version)
+                check_definition(where, conn.topic, conn.msgtype, conn.msgdef, self.ros_version)
             if conns:
                 sources.append(self._read(conns, start_ns, stop_ns))
-        for path in self.salvaged:
-            for channel in self._index(path):
-                if channel.topic in wanted:
-                    _check_salvaged(path, channel)
-            sources.append(_time_window(_salvage(path, wanted), start_ns, stop_ns))
+        for path in self.salvaged:  # skipped topics are not in `wanted`
+            sources.append(_time_window(_salvage(path, wanted, quiet=True), start_ns, stop_ns))
         if len(sources) == 1:
             return sources[0]
         return heapq.merge(*sources, key=lambda m: m.log_ns)

@@ -52,7 +52,13 @@ MinRangeOpt = Annotated[float, typer.Option(help="Drop LiDAR returns nearer than
 MotionOpt = Annotated[
     str, typer.Option(help="Motion compensation: full (IMU rotation + velocity), rotation, off.")
 ]
-SalvageOpt = Annotated[bool, typer.Option("--salvage", help="Read every complete chunk of a truncated mcap.")]
+SalvageOpt = Annotated[
+    bool,
+    typer.Option(
+        "--salvage",
+        help="Read mcap files record by record: keep what a truncated or damaged file still holds.",
+    ),
+]
 
 
 def summary_table(summary: IngestSummary, out: Path) -> Table:

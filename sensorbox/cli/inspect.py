@@ -84,7 +84,7 @@ def _lidar_table(lidars: tuple[LidarCoverage, ...]) -> Table:
     table = Table(title="LiDAR sweeps (sensor frame; medians over sweeps)")
     for col in (
         "topic", "sweeps", "points", "zero points", "duration [ms]", "1°x1° coverage of 360 x [-7, 52]°",
-        "elevation [°]",
+        "elevation [°]", "point time",
     ):  # fmt: skip
         table.add_column(escape(col), justify="left" if col == "topic" else "right", overflow="fold")
     for li in lidars:
@@ -104,6 +104,7 @@ def _lidar_table(lidars: tuple[LidarCoverage, ...]) -> Table:
             _num(li.duration_ms_median, ".2f"),
             cover,
             el,
+            escape(li.time_layout or "-"),
         )
     return table
 
@@ -130,7 +131,9 @@ def _print_report(report: BagReport, rig_path: Path | None) -> None:
     head = f"{', '.join(map(str, report.paths))}: {ros}, {report.message_count} messages"
     console.print(f"[bold]{head}[/bold], {report.duration_s:.2f} s of log time", highlight=False)
     if report.salvaged:
-        console.print(f"salvaged (truncated MCAP): {', '.join(map(str, report.salvaged))}", highlight=False)
+        console.print(
+            f"read record by record (--salvage): {', '.join(map(str, report.salvaged))}", highlight=False
+        )
     console.print(_topics_table(report))
     if report.stereo is not None:
         console.print(_stereo_table(report.stereo))
@@ -159,7 +162,11 @@ def inspect_cmd(
         typer.Option("--rig", help="Rig file (or Kalibr camchain): check its topics and pair its cameras."),
     ] = None,
     salvage: Annotated[
-        bool, typer.Option("--salvage", help="Read the complete chunks of truncated or unclosed MCAP files.")
+        bool,
+        typer.Option(
+            "--salvage",
+            help="Read MCAP files record by record: keep what truncated or damaged files still hold.",
+        ),
     ] = False,
 ) -> None:
     """Topics, types, counts, rates, gaps, stamp vs log-time offsets, stereo pairing, LiDAR coverage.

@@ -309,13 +309,15 @@ def test_empty_definition_of_an_unknown_type_is_refused(tmp_path):
         ):
             bags.messages(["/thing"])
     with pytest.raises(BagError, match="topic '/thing' has no embedded message definition"):
-        list(salvage_mcap(path))
+        list(salvage_mcap(path, ["/thing"]))
+    assert list(salvage_mcap(path)) == []  # all topics: skipped with a warning
 
 
 def test_schemaless_channel_is_refused_by_salvage(tmp_path):
     path = mcap_with_schema(tmp_path / "s.mcap", "", b"", [b"\x00\x01\x00\x00"], topic="/raw", schema=False)
     with pytest.raises(BagError, match="topic '/raw' has no schema"):
-        list(salvage_mcap(path))
+        list(salvage_mcap(path, ["/raw"]))
+    assert list(salvage_mcap(path)) == []
 
 
 def test_foreign_definition_of_a_decoded_type_is_refused(tmp_path):
@@ -331,7 +333,9 @@ def test_foreign_definition_of_a_decoded_type_is_refused(tmp_path):
     ):
         bags.messages()
     with pytest.raises(BagError, match="differs from the one SensorBox decodes"):
-        list(salvage_mcap(path))
+        list(salvage_mcap(path, ["/imu"]))
+    with open_bags(path, salvage=True) as bags:
+        assert list(bags.messages()) == [] and list(bags.skipped) == ["/imu"]
 
 
 # ---------------------------------------------------------------- truncated, unclosed, unindexed
@@ -384,9 +388,10 @@ def test_truncated_mcap_fails_clearly_and_salvages_complete_chunks(blob_bag, tmp
 
 
 def test_complete_mcap_salvages_everything(blob_bag):
-    assert_blobs(list(salvage_mcap(next(blob_bag.glob("*.mcap")))))
+    mcap = next(blob_bag.glob("*.mcap"))
+    assert_blobs(list(salvage_mcap(mcap)))
     with open_bags(blob_bag, salvage=True) as bags:
-        assert bags.salvaged == ()  # intact bags go through rosbags
+        assert bags.salvaged == (mcap,)  # --salvage walks every MCAP, so damage anywhere is skipped
         assert_blobs(list(bags.messages()))
 
 

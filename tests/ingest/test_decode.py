@@ -230,27 +230,6 @@ def test_pointcloud2_without_xyz_is_not_a_sweep():
         sweep_of(POINTCLOUD2_TYPE, raw, 2)
 
 
-@pytest.mark.parametrize(
-    ("ts_type", "value", "message"),
-    [
-        (F64, 1_700_000_000.5, "not absolute ns"),  # seconds, as some other drivers store it
-        (F32, 0.001, "'timestamp' is float32; expected float64"),
-    ],
-)
-def test_point_timestamp_that_is_not_absolute_ns_is_refused(ts_type, value, message):
-    fmt = "<fffd" if ts_type == F64 else "<ffff"
-    raw = cloud_raw(
-        2,
-        [("x", 0, F32), ("y", 4, F32), ("z", 8, F32), ("timestamp", 12, ts_type)],
-        struct.calcsize(fmt),
-        struct.pack(fmt, 1, 2, 3, value),
-        1,
-        1,
-    )
-    with pytest.raises(MessageDecodeError, match=message):
-        sweep_of(POINTCLOUD2_TYPE, raw, 2)
-
-
 # ---------------------------------------------------------------- Image
 
 H, W, PAD = 5, 7, 5
