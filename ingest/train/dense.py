@@ -22,6 +22,7 @@ space once it has left, so its stale points are removed and counted.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -39,6 +40,8 @@ from ingest.raster.view import Rendering, pixel_rays, render_view
 from ingest.raster.visibility import RenderParams
 from ingest.train.groundtruth import px_per_rad
 from ingest.train.planes import Normals, plane_normals
+
+VIEW_MARGIN_PX = 16  # dense GT draws the points and equirect rays this near cam0's image too
 
 
 @dataclass(frozen=True)
@@ -193,8 +196,13 @@ def dense_ground_truth(
     """Fisheye range and equirect disparity of points already placed in cam0 at the frame time.
 
     `moving_cam0` are the points the free-space test removed (see `near_movers`).
+    Only what cam0 sees is rendered: points outside its view (plus a margin
+    of `VIEW_MARGIN_PX`) cannot occlude rays inside it, and the equirect is
+    rendered over the window of the sphere cam0 covers (`cam0_window`), as the
+    sparse GT's disparity comes from cam0's visible points too.
     """
     moving = np.zeros((0, 3)) if moving_cam0 is None else moving_cam0
+    pts_cam0 = pts_cam0[near_view(model, pts_cam0, VIEW_MARGIN_PX)]
     if len(pts_cam0) == 0:
         nothing = np.zeros(0, np.int64), np.zeros(0, np.float32)
         return DenseGt(
@@ -206,11 +214,17 @@ def dense_ground_truth(
     fish, pix = _view_gt(model, pts_cam0, normals, moving, params)
     range_img = SparseImage(fish.range_m.shape, pix, fish.range_m.reshape(-1)[pix])
     # the rectified frame: p_rect = R_cam0_rect^T p_cam0
+    win = cam0_window(model, eq, R_cam0_rect)
     normals_rect = Normals(normals.normal @ R_cam0_rect, normals.planar)
-    rect, epix = _view_gt(eq, pts_cam0 @ R_cam0_rect, normals_rect, moving @ R_cam0_rect, params)
-    r = rect.range_m.reshape(-1)[epix].astype(np.float64)
-    rows = (epix // eq.width).astype(np.float64)
-    rays, _ = eq.unproject(np.stack([(epix % eq.width).astype(np.float64), rows], axis=1))
+    rect, wpix = _view_gt(win, pts_cam0 @ R_cam0_rect, normals_rect, moving @ R_cam0_rect, params)
+    r = rect.range_m.reshape(-1)[wpix].astype(np.float64)
+    rows, cols = np.divmod(wpix, win.width)
+    rows += win.row_offset - eq.row_offset
+    cols += win.col_offset - eq.col_offset
+    inside = (rows >= 0) & (rows < eq.height) & (cols >= 0) & (cols < eq.width)
+    rows, cols, r = rows[inside], cols[inside], r[inside]
+    epix = rows * eq.width + cols
+    rays, _ = eq.unproject(np.stack([cols, rows], axis=1).astype(np.float64))
     theta = np.arccos(np.clip(-rays[:, 1], -1.0, 1.0))
     disp = depth_to_disparity(r, theta, baseline_m, eq.height_full)
     stable = disparity_stability_mask(
@@ -218,6 +232,35 @@ def dense_ground_truth(
     )
     disp_img = SparseImage((eq.height, eq.width), epix[stable], disp[stable].astype(np.float32))
     return DenseGt(range_img, disp_img, int((~stable).sum()))
+
+
+def near_view(model: CameraModel, pts: F64, margin_px: float) -> Bool:
+    """Points projecting into the image or within `margin_px` of its border."""
+    uv, ok = model.project(pts)
+    with np.errstate(invalid="ignore"):
+        ok &= (uv[:, 0] >= -margin_px) & (uv[:, 0] <= model.width - 1 + margin_px)
+        ok &= (uv[:, 1] >= -margin_px) & (uv[:, 1] <= model.height - 1 + margin_px)
+    return ok
+
+
+@lru_cache(maxsize=4)
+def _cam0_window_cached(model: CameraModel, eq: Equirectangular, R_bytes: bytes) -> Equirectangular:
+    R_cam0_rect = np.frombuffer(R_bytes).reshape(3, 3)
+    rays, ok = pixel_rays(model)
+    full = eq.full()
+    uv, good = full.project(rays[ok].astype(np.float64) @ R_cam0_rect)
+    uv = uv[good]
+    m = VIEW_MARGIN_PX
+    c0 = max(0, int(np.floor(uv[:, 0].min())) - m)
+    c1 = min(full.width, int(np.ceil(uv[:, 0].max())) + m + 1)
+    r0 = max(0, int(np.floor(uv[:, 1].min())) - m)
+    r1 = min(full.height, int(np.ceil(uv[:, 1].max())) + m + 1)
+    return full.crop(r0, c0, r1 - r0, c1 - c0)
+
+
+def cam0_window(model: CameraModel, eq: Equirectangular, R_cam0_rect: F64) -> Equirectangular:
+    """The crop of `eq`'s full sphere holding every ray of `model` (plus `VIEW_MARGIN_PX`), cached."""
+    return _cam0_window_cached(model, eq, np.ascontiguousarray(R_cam0_rect, np.float64).tobytes())
 
 
 def free_space_filter(
