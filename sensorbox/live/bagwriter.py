@@ -7,7 +7,7 @@ without registering types. rosbag2 bags use metadata version 8, which Humble's
 With `compress` (the default) mcap chunks are zstd-compressed (transparent to
 every mcap reader), sqlite3 messages are zstd-compressed one by one (rosbag2's
 `--compression-mode message`), and ROS 1 chunks use lz4 in the frame form ROS 1's
-own `rosbag` (roslz4) reads, see `roslz4_compress`.
+own `rosbag` (roslz4) reads. mcap chunks carry their CRC-32 (sensorbox/live/interop.py).
 
 The bag is written under a hidden temporary name beside the target and renamed
 into place only when it was closed cleanly, so a crash or Ctrl-C never leaves a
@@ -28,7 +28,6 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any, Literal, Self
 
-import lz4.frame
 from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
@@ -36,6 +35,7 @@ from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
 
 from calibration.errors import SensorboxError
 from ingest.bags.rostypes import typestore
+from sensorbox.live.interop import Ros1Writer, Ros2Writer
 
 BagFormat = Literal["mcap", "db3", "bag"]
 FORMATS: tuple[BagFormat, ...] = ("mcap", "db3", "bag")
@@ -46,39 +46,6 @@ def bag_path(out: Path, fmt: BagFormat) -> Path:
     if fmt == "bag":
         return out if out.suffix == ".bag" else out.with_name(out.name + ".bag")
     return out
-
-
-def roslz4_compress(chunk: bytes) -> bytes:
-    """LZ4-frame-compress a ROS 1 bag chunk so that ROS 1's `rosbag` decompresses it.
-
-    ROS 1 reads lz4 chunks with roslz4, which accepts only part of the LZ4 frame
-    format: independent blocks, a content checksum, no content size field, no
-    block checksums, no dictionary. rosbags' own lz4 writer uses python-lz4's
-    defaults (linked blocks, a content size, no content checksum), which roslz4
-    rejects with "malformed data to decompress". These settings give the frame
-    header roslz4's own writer produces (1 MiB blocks); every LZ4 frame reader,
-    rosbags' included, reads it too.
-    """
-    return bytes(
-        lz4.frame.compress(
-            chunk,
-            compression_level=0,
-            block_size=lz4.frame.BLOCKSIZE_MAX1MB,
-            block_linked=False,
-            content_checksum=True,
-            block_checksum=False,
-            store_size=False,
-        )
-    )
-
-
-class _Ros1Writer(Writer1):
-    """rosbags' ROS 1 writer whose lz4 chunks ROS 1's `rosbag` reads (`roslz4_compress`)."""
-
-    def set_compression(self, fmt: Writer1.CompressionFormat) -> None:
-        super().set_compression(fmt)
-        if fmt == Writer1.CompressionFormat.LZ4:
-            self.compressor = roslz4_compress
 
 
 class BagWriter:
@@ -109,13 +76,13 @@ class BagWriter:
             self._tmp_dir.mkdir(parents=True)
             target = self._tmp_dir / self.path.name
         if self.fmt == "bag":
-            w1 = _Ros1Writer(target)
+            w1 = Ros1Writer(target)
             if self._compress:
                 w1.set_compression(Writer1.CompressionFormat.LZ4)
             self._writer = w1
         else:
             plugin = StoragePlugin.MCAP if self.fmt == "mcap" else StoragePlugin.SQLITE3
-            w2 = Writer2(target, version=8, storage_plugin=plugin)
+            w2 = Ros2Writer(target, version=8, storage_plugin=plugin)
             if self._compress:
                 mode = CompressionMode.STORAGE if self.fmt == "mcap" else CompressionMode.MESSAGE
                 w2.set_compression(mode, CompressionFormat.ZSTD)
