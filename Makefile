@@ -27,7 +27,9 @@ demo: setup
 
 # The suite in two runs: everything else in parallel, then the live paths (sockets, threads on a
 # clock, subprocess timing: marker `realtime`) one at a time, so two of them never share the cores.
+# ROS 1's own rosbag (Debian's python3-rosbag) reads and writes bags in the interop tests.
 test: setup
+	@bash tools/ensure_ros1.sh
 	$(BIN)/python -m pytest -q -n 2 --dist loadgroup -m "not realtime" tests
 	$(BIN)/python -m pytest -q -m realtime tests
 

@@ -6,7 +6,8 @@ without registering types. rosbag2 bags use metadata version 8, which Humble's
 `ros2 bag` still parses (version 9's QoS format breaks it, notes/rosbags.md).
 With `compress` (the default) mcap chunks are zstd-compressed (transparent to
 every mcap reader), sqlite3 messages are zstd-compressed one by one (rosbag2's
-`--compression-mode message`), and ROS 1 chunks use lz4.
+`--compression-mode message`), and ROS 1 chunks use lz4 in the frame form ROS 1's
+own `rosbag` (roslz4) reads. mcap chunks carry their CRC-32 (sensorbox/live/interop.py).
 
 The bag is written under a hidden temporary name beside the target and renamed
 into place only when it was closed cleanly, so a crash or Ctrl-C never leaves a
@@ -34,6 +35,7 @@ from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
 
 from calibration.errors import SensorboxError
 from ingest.bags.rostypes import typestore
+from sensorbox.live.interop import Ros1Writer, Ros2Writer
 
 BagFormat = Literal["mcap", "db3", "bag"]
 FORMATS: tuple[BagFormat, ...] = ("mcap", "db3", "bag")
@@ -74,13 +76,13 @@ class BagWriter:
             self._tmp_dir.mkdir(parents=True)
             target = self._tmp_dir / self.path.name
         if self.fmt == "bag":
-            w1 = Writer1(target)
+            w1 = Ros1Writer(target)
             if self._compress:
                 w1.set_compression(Writer1.CompressionFormat.LZ4)
             self._writer = w1
         else:
             plugin = StoragePlugin.MCAP if self.fmt == "mcap" else StoragePlugin.SQLITE3
-            w2 = Writer2(target, version=8, storage_plugin=plugin)
+            w2 = Ros2Writer(target, version=8, storage_plugin=plugin)
             if self._compress:
                 mode = CompressionMode.STORAGE if self.fmt == "mcap" else CompressionMode.MESSAGE
                 w2.set_compression(mode, CompressionFormat.ZSTD)
