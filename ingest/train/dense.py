@@ -21,6 +21,7 @@ space once it has left, so its stale points are removed and counted.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from functools import lru_cache
 
@@ -33,7 +34,7 @@ from calibration.stereo import depth_to_disparity, disparity_stability_mask
 from calibration.types import F64, I64, Bool
 from ingest.dataset.sparse import SparseImage
 from ingest.raster.edges import edge_band
-from ingest.raster.kernels import snap_planar
+from ingest.raster.kernels import free_space_voxels, snap_planar
 from ingest.raster.lod import point_index
 from ingest.raster.scan import Scan
 from ingest.raster.view import Rendering, pixel_rays, render_view
@@ -41,6 +42,7 @@ from ingest.raster.visibility import RenderParams
 from ingest.train.groundtruth import px_per_rad
 from ingest.train.planes import Normals, plane_normals
 
+FREE_MARGIN_REL = 0.03  # free-space test: a ray must pass a point by free_margin_m + 3 % of its range
 VIEW_MARGIN_PX = 16  # dense GT draws the points and equirect rays this near cam0's image too
 
 
@@ -281,47 +283,20 @@ def free_space_filter(
     runs per `free_voxel_m` voxel (its first point stands for it; a voxel the
     reference itself hit is occupied), well inside the margin.
     """
-    cells_per_rad = 1.0 / np.radians(params.free_cell_deg)
-    n_az = int(np.ceil(2 * np.pi * cells_per_rad))
-    n_el = int(np.ceil(np.pi * cells_per_rad))
     # the test runs on voxels (one representative point each), far fewer than points
     cell = np.floor(pts / params.free_voxel_m).astype(np.int64)
     key = (cell[:, 0] << 42) ^ (cell[:, 1] << 21) ^ cell[:, 2]
     _, rep, voxel = np.unique(key, return_index=True, return_inverse=True)
-    keep_voxel = np.ones(len(rep), bool)
     order = np.argsort(slice_id, kind="stable")
-    bounds = np.searchsorted(
-        slice_id[order], [sid for sid, _ in references] + [sid + 1 for sid, _ in references]
-    )
-    n_ref = len(references)
-    for r, (_, origin) in enumerate(references):
-        own = order[bounds[r] : bounds[n_ref + r]]
-        if not len(own):
-            continue
-        nearest = _nearest_per_cell(pts[own] - origin, cells_per_rad, n_az, n_el)
-        test = keep_voxel.copy()
-        test[voxel[own]] = False  # voxels this slice hit itself are occupied for it
-        cand = np.flatnonzero(test)
-        c, rng = _cells(pts[rep[cand]] - origin, cells_per_rad, n_az, n_el)
-        with np.errstate(invalid="ignore"):
-            cleared = nearest[c] > rng + params.free_margin_m + 0.03 * rng
-        keep_voxel[cand[cleared]] = False
+    sids = np.array([sid for sid, _ in references], np.int64)
+    lo = np.searchsorted(slice_id[order], sids)
+    hi = np.searchsorted(slice_id[order], sids + 1)
+    own = np.concatenate([order[a:b] for a, b in zip(lo, hi, strict=True)] + [np.zeros(0, np.int64)])
+    own_start = np.r_[0, np.cumsum(hi - lo)].astype(np.int64)
+    origins = np.array([o for _, o in references], np.float64).reshape(-1, 3)
+    keep_voxel = free_space_voxels(
+        np.ascontiguousarray(pts, np.float64), voxel.astype(np.int64), rep.astype(np.int64), own,
+        own_start, origins, math.radians(params.free_cell_deg), params.free_margin_m, FREE_MARGIN_REL,
+    )  # fmt: skip
     out: Bool = keep_voxel[voxel]
-    return out
-
-
-def _cells(d: F64, cells_per_rad: float, n_az: int, n_el: int) -> tuple[I64, F64]:
-    rng = np.sqrt(np.einsum("ij,ij->i", d, d))
-    az = np.arctan2(d[:, 1], d[:, 0]) + np.pi
-    el = np.arccos(np.clip(d[:, 2] / np.maximum(rng, 1e-12), -1.0, 1.0))
-    ia = np.minimum((az * cells_per_rad).astype(np.int64), n_az - 1)
-    ie = np.minimum((el * cells_per_rad).astype(np.int64), n_el - 1)
-    return ie * n_az + ia, rng
-
-
-def _nearest_per_cell(d: F64, cells_per_rad: float, n_az: int, n_el: int) -> F64:
-    cell, rng = _cells(d, cells_per_rad, n_az, n_el)
-    out = np.full(n_az * n_el, np.inf)
-    np.minimum.at(out, cell, rng)
-    out[np.isinf(out)] = np.nan
     return out

@@ -160,3 +160,26 @@ def test_auto_widens_the_window_for_a_static_rig(tmp_path):
     assert summary.method == "dense" and summary.decision.endswith("rig static: window +-1000 ms")
     assert summary.trajectory is not None and summary.trajectory.static
     assert read_meta(tmp_path, "000000").gt.window_ms == 1000.0
+
+
+def test_free_space_clears_exactly_the_voxels_a_reference_saw_through():
+    # a reference at the origin sees a wall at 10 m along +x; a stale point at 5 m in front of the wall
+    # (another slice) is cleared, one behind the wall (12 m) and one beside it (no return there) stay
+    from ingest.train.dense import DenseParams, free_space_filter
+
+    ys, zs = np.meshgrid(np.linspace(-1, 1, 41), np.linspace(-1, 1, 41))
+    wall = np.c_[np.full(ys.size, 10.0), ys.ravel(), zs.ravel()]
+    stale = np.array([[5.0, 0.0, 0.0], [12.0, 0.2, 0.1], [0.0, 5.0, 0.0]])
+    pts = np.concatenate([wall, stale])
+    slice_id = np.r_[np.zeros(len(wall), np.int64), np.ones(3, np.int64)]
+    keep = free_space_filter(pts, slice_id, [(0, np.zeros(3))], DenseParams())
+    assert keep[: len(wall)].all()
+    assert keep[len(wall) :].tolist() == [False, True, True]
+    # a return beyond the wall (12 m, as the stale slice has) says the wall's voxels in its cell were
+    # seen through: as a reference it clears exactly those
+    keep2 = free_space_filter(pts, slice_id, [(1, np.zeros(3))], DenseParams())
+    wall_cleared = ~keep2[: len(wall)]
+    assert 0 < wall_cleared.sum() <= 16 and keep2[len(wall) :].all()  # one 1-degree cell: 17 cm at 10 m
+    d = wall[wall_cleared] / np.linalg.norm(wall[wall_cleared], axis=1)[:, None]
+    toward = stale[1] / np.linalg.norm(stale[1])
+    assert np.degrees(np.arccos(d @ toward)).max() < 2.0  # within a cell or two of its direction
