@@ -63,12 +63,13 @@ class CameraModel(ABC):
         """
         P = np.asarray(points, dtype=np.float64)
         _check_shape(P, 3, f"{type(self).__name__}.project")
+        from calibration.kernels import finish_projection  # numba: loaded with the first projection
+
         flat = P.reshape(-1, 3)
+        x, y, z = flat[:, 0], flat[:, 1], flat[:, 2]
         with np.errstate(all="ignore"):
-            u, v, valid = self._project(flat[:, 0], flat[:, 1], flat[:, 2])
-            valid = valid & np.isfinite(u) & np.isfinite(v) & np.all(np.isfinite(flat), axis=1)
-        uv = np.stack([u, v], axis=-1)
-        uv[~valid] = np.nan
+            u, v, valid = self._project(x, y, z)
+        uv, valid = finish_projection(u, v, valid, x, y, z)
         return uv.reshape(*P.shape[:-1], 2), valid.reshape(P.shape[:-1])
 
     def unproject(self, pixels: ArrayLike) -> tuple[F64, Bool]:
@@ -293,7 +294,11 @@ class FocalModel(CameraModel):
 
     def _project(self, x: F64, y: F64, z: F64) -> tuple[F64, F64, Bool]:
         mx, my, valid = self._project_normalised(x, y, z)
-        return self.fx * mx + self.cx, self.fy * my + self.cy, valid
+        u = mx * self.fx  # the model's own fresh arrays: scaled and shifted in place, one temporary each
+        u += self.cx
+        v = my * self.fy
+        v += self.cy
+        return u, v, valid
 
     def _unproject(self, u: F64, v: F64) -> tuple[F64, F64, F64, Bool]:
         return self._unproject_normalised((u - self.cx) / self.fx, (v - self.cy) / self.fy)

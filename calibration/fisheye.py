@@ -66,12 +66,25 @@ class DoubleSphere(FocalModel):
         return math.acos(min(1.0, max(-1.0, -self.w2)))
 
     def _project_normalised(self, x: F64, y: F64, z: F64) -> tuple[F64, F64, Bool]:
-        d1 = np.sqrt(x * x + y * y + z * z)
-        k = self.xi * d1 + z
-        d2 = np.sqrt(x * x + y * y + k * k)
-        n = self.alpha * d2 + (1.0 - self.alpha) * k
-        valid = (z > -self.w2 * d1) & (n > 0.0)
-        return x / n, y / n, valid
+        # in place where possible: fresh temporaries of a million points cost more than the arithmetic
+        r2 = x * x
+        r2 += y * y
+        d1 = z * z
+        d1 += r2
+        np.sqrt(d1, out=d1)
+        k = d1 * self.xi
+        k += z
+        n = k * k
+        n += r2
+        np.sqrt(n, out=n)
+        n *= self.alpha
+        k *= 1.0 - self.alpha
+        n += k
+        d1 *= -self.w2
+        valid = z > d1
+        valid &= n > 0.0
+        np.divide(1.0, n, out=n)
+        return x * n, y * n, valid
 
     def _unproject_normalised(self, mx: F64, my: F64) -> tuple[F64, F64, F64, Bool]:
         a, xi = self.alpha, self.xi
@@ -89,10 +102,18 @@ class DoubleSphere(FocalModel):
 
 
 def _eucm_project(x: F64, y: F64, z: F64, alpha: float, beta: float) -> tuple[F64, F64, Bool]:
-    d = np.sqrt(beta * (x * x + y * y) + z * z)
-    n = alpha * d + (1.0 - alpha) * z
-    valid = (z > -_alpha_w1(alpha) * d) & (n > 0.0)
-    return x / n, y / n, valid
+    d = x * x  # in place where possible (see DoubleSphere)
+    d += y * y
+    d *= beta
+    d += z * z
+    np.sqrt(d, out=d)
+    n = z * (1.0 - alpha)
+    n += alpha * d
+    d *= -_alpha_w1(alpha)
+    valid = z > d
+    valid &= n > 0.0
+    np.divide(1.0, n, out=n)
+    return x * n, y * n, valid
 
 
 def _eucm_max_off_axis(alpha: float, beta: float) -> float:
