@@ -22,6 +22,7 @@ density against range error with each scene's Pareto front.
 
 from __future__ import annotations
 
+import shutil
 import statistics
 import time
 from collections.abc import Callable
@@ -91,6 +92,10 @@ class Recording:
 
 
 def record(name: str, cfg: SimConfig, root: Path) -> Recording:
+    """Simulate the scene afresh (a previous run's recording under `root` is replaced) and read it."""
+    for old in (root / name, root / f"{name}.truth"):
+        if old.is_dir():
+            shutil.rmtree(old)
     bag = simulate(cfg, root / name).bag
     truth = Truth.load(bag)
     rig = truth.rig
