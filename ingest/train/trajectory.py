@@ -22,6 +22,7 @@ from calibration.rig import Rig
 from calibration.types import F64
 from ingest.bags.decode import ImuSample, Sweep
 from ingest.bags.reader import BagSet
+from ingest.errors import OutputError
 from ingest.train.clouds import GyroTrack, filter_points, integrate_gyro
 from ingest.train.odometry import Odometry, OdometryParams, RigTrajectory
 
@@ -130,7 +131,10 @@ def run_trajectory_pass(
     t0 = time.perf_counter()
     gyro = read_gyro(bags, *imu)
     traj = trajectory_pass(bags, lidar_topics, rig, gyro, min_range_m, params)
-    out_file.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        out_file.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise OutputError(f"cannot create {out_file.parent}: {err.strerror or err}") from err
     traj.write_tum(out_file)
     return traj, summarize(traj, time.perf_counter() - t0, out_file)
 
