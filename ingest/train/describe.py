@@ -24,6 +24,7 @@ from ingest.train.sample import Geometry
 if TYPE_CHECKING:
     from ingest.train.pipeline import IngestConfig, IngestSummary
 
+HEADER = "# WideDepth training set written by SensorBox\n"
 PER_SOURCE = ("gt", "overlap_images", "method", "decision", "window_ns")
 """SampleParams fields resolved per recording (dataset.yaml keeps them with each source), not config."""
 
@@ -105,10 +106,11 @@ def write_dataset_yaml(
         "window_ms": cfg.lidar_window_ns / 1e6,
         "trajectory": run.trajectory.as_dict() if run.trajectory else None,
     }
+    mine["undecodable_messages"] = dict(run.undecodable)  # per topic, skipped under --max-bad
     doc["sources"] = sources
     write_atomic(
         path,
-        ("# WideDepth training set written by SensorBox\n" + yaml.safe_dump(doc, sort_keys=False)).encode(),
+        (HEADER + yaml.safe_dump(doc, sort_keys=False)).encode(),
     )
     copy_rig(geometry, cfg.out / "rig")
     return int(mine["first_id"])
@@ -138,6 +140,22 @@ def copy_rig(geometry: Geometry, rig_dir: Path) -> None:
     finally:
         if staging is not None:
             shutil.rmtree(staging, ignore_errors=True)
+
+
+def record_undecodable(out: Path, bags: list[Path], counts: dict[str, int]) -> None:
+    """Set `undecodable_messages` (per topic) of the recording `bags` in `out/dataset.yaml`.
+
+    The stream pass finds the undecodable images only after the description
+    was written (the plan pass reads no pixels), so the count is set again
+    at the end of the run.
+    """
+    path = out / "dataset.yaml"
+    doc = _read_dataset_yaml(path)
+    names = [p.name for p in bags]
+    for source in doc.get("sources") or []:
+        if source.get("bags") == names:
+            source["undecodable_messages"] = dict(counts)
+    write_atomic(path, (HEADER + yaml.safe_dump(doc, sort_keys=False)).encode())
 
 
 def _read_dataset_yaml(path: Path) -> dict[str, Any]:
