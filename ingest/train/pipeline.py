@@ -251,15 +251,34 @@ def _imu_window(imu_t: list[int], imu_g: list[Any], tc: int, w: int, R_cam0_imu:
     return ImuWindow(t[sel], np.array(imu_g)[sel], R_cam0_imu)
 
 
+def _thin_lidars(
+    rates: LidarRates, topics: Topics, lidars: tuple[LidarPoints, ...], t_ns: int, w: int
+) -> tuple[str, ...]:
+    """The LiDARs whose window holds far fewer points than their rate promises (lidar_rate's rule)."""
+    return tuple(
+        lp.name
+        for topic, lp in zip(topics.lidars, lidars, strict=True)
+        if rates.is_thin(topic, len(lp.stamps_ns), t_ns, w)
+    )
+
+
+def _file_reading(
+    topic: str, decoded: Sweep | Frame | ImuSample | None, imu_t: list[int], imu_g: list[Any],
+    sweeps: dict[str, list[Sweep]],
+) -> None:  # fmt: skip
+    """Keep an IMU reading or a LiDAR sweep (with points) for the samples; None was skipped as undecodable."""
+    if isinstance(decoded, ImuSample):
+        imu_t.append(decoded.stamp_ns)
+        imu_g.append(decoded.gyro_rad_s)
+    elif isinstance(decoded, Sweep) and len(decoded.stamps_ns):
+        sweeps[topic].append(decoded)
+
+
 def stream_jobs(
     bags: BagSet, topics: Topics, the_plan: Plan, cfg: IngestConfig, geometry: Geometry,
     trajectory: RigTrajectory | None = None, first_id: int = 0, bad: BadMessages | None = None,
 ) -> Iterator[SampleJob | tuple[str, str]]:  # fmt: skip
-    """Second pass: yield a SampleJob per planned sample (or (sid, "done") when already written).
-
-    A sample whose camera image is undecodable (and skipped under `bad`'s
-    limit) is yielded as (sid, UNDECODABLE_IMAGE) as soon as it is its turn.
-    """
+    """Second pass: a SampleJob per planned sample, or (sid, why): "done" before, UNDECODABLE_IMAGE, ..."""
     where = bags.label
     bad = bad or BadMessages()
     broken: set[int] = set()  # samples with an undecodable image
@@ -284,14 +303,14 @@ def stream_jobs(
         }
         return len(frames.get(k, {})) == 2 and all(have[t] >= n for t, n in need[k].items())
 
+    def status(k: int) -> str:
+        """Why sample k yields no job ("done" by an earlier run, an undecodable image), or ""."""
+        return "done" if sids[k] in done else UNDECODABLE_IMAGE if k in broken else ""
+
     def job(k: int) -> SampleJob:
         tc = int(the_plan.upper_ns[k])
         lidars = tuple(_lidar_window(sweeps[t], name, tc, w) for t, name in topics.lidars.items())
-        thin = tuple(
-            lp.name
-            for t, lp in zip(topics.lidars, lidars, strict=True)
-            if the_plan.rates.is_thin(t, len(lp.stamps_ns), tc, w)
-        )
+        thin = _thin_lidars(the_plan.rates, topics, lidars, tc, w)
         imu = _imu_window(imu_t, imu_g, tc, w, topics.R_cam0_imu)
         f = frames.pop(k)
         return SampleJob(
@@ -317,40 +336,21 @@ def stream_jobs(
             assert isinstance(frame, Frame)
             _check_size(frame, geometry.rig.upper if side == "upper" else geometry.rig.lower, msg.topic)
             frames.setdefault(k, {})[side] = frame
-        elif msg.topic == topics.imu:
-            sample = bad.decoded(msg, where)
-            assert sample is None or isinstance(sample, ImuSample)
-            if sample is not None:
-                imu_t.append(sample.stamp_ns)
-                imu_g.append(sample.gyro_rad_s)
         else:
-            sweep = bad.decoded(msg, where)
-            assert sweep is None or isinstance(sweep, Sweep)
-            if sweep is not None and len(sweep.stamps_ns):
-                sweeps[msg.topic].append(sweep)
-        while next_k < len(sids) and (sids[next_k] in done or next_k in broken or ready(next_k)):
-            if sids[next_k] in done:
+            _file_reading(msg.topic, bad.decoded(msg, where), imu_t, imu_g, sweeps)
+        while next_k < len(sids) and (status(next_k) or ready(next_k)):
+            why = status(next_k)
+            if why:
                 frames.pop(next_k, None)
-                yield (sids[next_k], "done")
-            elif next_k in broken:
-                frames.pop(next_k, None)
-                yield (sids[next_k], UNDECODABLE_IMAGE)
-            else:
-                yield job(next_k)
+            yield (sids[next_k], why) if why else job(next_k)
             next_k += 1
             if next_k < len(sids):  # forget sweeps no later sample can use
                 horizon = int(the_plan.upper_ns[next_k]) - w
                 for t in sweeps:
                     sweeps[t] = [s for s in sweeps[t] if s.stamps_ns[-1] >= horizon]
     for k in range(next_k, len(sids)):  # the bag ended: whatever is complete still goes
-        if sids[k] in done:
-            yield (sids[k], "done")
-        elif k in broken:
-            yield (sids[k], UNDECODABLE_IMAGE)
-        elif len(frames.get(k, {})) == 2:
-            yield job(k)
-        else:
-            yield (sids[k], "missing image")
+        why = status(k) or ("" if len(frames.get(k, {})) == 2 else "missing image")
+        yield (sids[k], why) if why else job(k)
 
 
 def _gt_method(
