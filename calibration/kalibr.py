@@ -187,6 +187,11 @@ def load_yaml(path: Path, what: str) -> Any:
         raise CalibrationError(f"{path}: {what} file not found") from err
     except OSError as err:
         raise CalibrationError(f"{path}: cannot read {what} file: {err.strerror}") from err
+    except UnicodeDecodeError as err:
+        raise CalibrationError(
+            f"{path}: not a YAML {what} file "
+            f"(byte {err.start} is {err.object[err.start]:#04x}, not UTF-8 text)"
+        ) from err
     try:
         return load_opencv_yaml(text)
     except yaml.YAMLError as err:

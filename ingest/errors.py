@@ -38,6 +38,14 @@ class DatasetError(SensorboxError):
     """The output folder cannot be written (disk full, permissions, a foreign dataset)."""
 
 
+class OutputError(DatasetError):
+    """The operating system refused a write (disk full, read-only or missing folder, permissions).
+
+    The message names the file or folder; the CLI exits 3 for it, as for an
+    OSError that reaches the top unwrapped.
+    """
+
+
 class PngError(SensorboxError):
     """An array PNG cannot hold as given (shape, dtype) or a bad encoder setting."""
 

@@ -35,7 +35,7 @@ from calibration.types import F32, U8
 from ingest.dataset.meta import SampleMeta
 from ingest.dataset.png import encode_png
 from ingest.dataset.sparse import SparseImage
-from ingest.errors import DatasetError
+from ingest.errors import DatasetError, OutputError
 
 IMAGE_DIRS = ("left_fisheye", "right_fisheye", "equirect_up", "equirect_down_virt")
 GT_DIRS = ("disp_equirect", "depth_fisheye")
@@ -51,16 +51,23 @@ def sample_id(index: int) -> str:
 
 
 def write_atomic(path: Path, data: bytes) -> None:
-    """Write `data` to `path` via a temporary file in the same folder and an atomic rename."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    """Write `data` to `path` via a temporary file in the same folder and an atomic rename.
+
+    Any failure (a read-only or missing folder, a full disk, `path` a folder)
+    is an `OutputError` naming `path`, and leaves neither `path` changed nor
+    the temporary file behind.
+    """
+    tmp: str | None = None
     try:
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
         os.fchmod(fd, 0o644)  # mkstemp makes 0600; a dataset must be readable by its users
         with os.fdopen(fd, "wb") as f:
             f.write(data)
         Path(tmp).replace(path)
     except OSError as err:
-        Path(tmp).unlink(missing_ok=True)
-        raise DatasetError(f"cannot write {path}: {err.strerror or err}") from err
+        if tmp is not None:
+            Path(tmp).unlink(missing_ok=True)
+        raise OutputError(f"cannot write {path}: {err.strerror or err}") from err
 
 
 def to_uint16(values: SparseImage, scale: float) -> tuple[np.ndarray[Any, np.dtype[np.uint16]], int]:
@@ -100,7 +107,7 @@ def prepare_dirs(out: Path, exr: bool) -> None:
         for name in (*IMAGE_DIRS, *GT_DIRS, "meta", *(EXR_DIRS if exr else ())):
             (out / name).mkdir(parents=True, exist_ok=True)
     except OSError as err:
-        raise DatasetError(f"cannot create the dataset folders in {out}: {err.strerror or err}") from err
+        raise OutputError(f"cannot create the dataset folders in {out}: {err.strerror or err}") from err
 
 
 def is_done(out: Path, sid: str) -> bool:

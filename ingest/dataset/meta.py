@@ -40,6 +40,7 @@ class PointMeta:
     out_of_view: int
     occluded: int
     silent_lidars: list[str] = field(default_factory=list)  # rig LiDARs with no point in the window
+    thin_lidars: list[str] = field(default_factory=list)  # far fewer than their rate: ingest.train.lidar_rate
 
 
 @dataclass(frozen=True)

@@ -8,6 +8,8 @@ the ground truth chosen for it (method, decision, window, trajectory).
 
 from __future__ import annotations
 
+import shutil
+import tempfile
 from dataclasses import asdict
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -16,12 +18,13 @@ import numpy as np
 import yaml
 
 from ingest.dataset.layout import DEPTH_SCALE, DISP_SCALE, write_atomic
-from ingest.errors import DatasetError
+from ingest.errors import DatasetError, OutputError
 from ingest.train.sample import Geometry
 
 if TYPE_CHECKING:
     from ingest.train.pipeline import IngestConfig, IngestSummary
 
+HEADER = "# WideDepth training set written by SensorBox\n"
 PER_SOURCE = ("gt", "overlap_images", "method", "decision", "window_ns")
 """SampleParams fields resolved per recording (dataset.yaml keeps them with each source), not config."""
 
@@ -103,23 +106,62 @@ def write_dataset_yaml(
         "window_ms": cfg.lidar_window_ns / 1e6,
         "trajectory": run.trajectory.as_dict() if run.trajectory else None,
     }
+    mine["undecodable_messages"] = dict(run.undecodable)  # per topic, skipped under --max-bad
     doc["sources"] = sources
     write_atomic(
         path,
-        ("# WideDepth training set written by SensorBox\n" + yaml.safe_dump(doc, sort_keys=False)).encode(),
+        (HEADER + yaml.safe_dump(doc, sort_keys=False)).encode(),
     )
-    rig_dir = cfg.out / "rig"
-    rig_dir.mkdir(exist_ok=True)
+    copy_rig(geometry, cfg.out / "rig")
+    return int(mine["first_id"])
+
+
+def copy_rig(geometry: Geometry, rig_dir: Path) -> None:
+    """`rig_dir/rig.yaml` and `rig_dir/camchain.yaml`, each whole or not at all.
+
+    Both are written into a staging folder beside `rig_dir` and renamed into
+    place, so a full disk or a read-only folder leaves no empty or cut file;
+    the error names the file it could not write.
+    """
     from calibration.rig import write_rig
 
-    write_rig(geometry.rig, rig_dir / "rig.yaml", camchain_name="camchain.yaml")
-    return int(mine["first_id"])
+    staging: Path | None = None
+    target = rig_dir  # what the error names: the folder while staging, then each file
+    try:
+        rig_dir.mkdir(exist_ok=True)
+        staging = Path(tempfile.mkdtemp(dir=rig_dir.parent, prefix=".rig.", suffix=".tmp"))
+        write_rig(geometry.rig, staging / "rig.yaml", camchain_name="camchain.yaml")
+        for name in ("camchain.yaml", "rig.yaml"):
+            target = rig_dir / name
+            (staging / name).chmod(0o644)
+            (staging / name).replace(target)
+    except OSError as err:
+        raise OutputError(f"cannot write {target}: {err.strerror or err}") from err
+    finally:
+        if staging is not None:
+            shutil.rmtree(staging, ignore_errors=True)
+
+
+def record_undecodable(out: Path, bags: list[Path], counts: dict[str, int]) -> None:
+    """Set `undecodable_messages` (per topic) of the recording `bags` in `out/dataset.yaml`.
+
+    The stream pass finds the undecodable images only after the description
+    was written (the plan pass reads no pixels), so the count is set again
+    at the end of the run.
+    """
+    path = out / "dataset.yaml"
+    doc = _read_dataset_yaml(path)
+    names = [p.name for p in bags]
+    for source in doc.get("sources") or []:
+        if source.get("bags") == names:
+            source["undecodable_messages"] = dict(counts)
+    write_atomic(path, (HEADER + yaml.safe_dump(doc, sort_keys=False)).encode())
 
 
 def _read_dataset_yaml(path: Path) -> dict[str, Any]:
     try:
         doc = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError) as err:
+    except (OSError, ValueError, yaml.YAMLError) as err:  # ValueError: not UTF-8 text
         raise DatasetError(f"{path}: cannot read the existing dataset description: {err}") from err
     if not isinstance(doc, dict):
         raise DatasetError(f"{path}: not a SensorBox dataset description (expected a mapping)")

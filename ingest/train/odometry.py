@@ -37,6 +37,7 @@ from scipy.spatial.transform import Rotation
 
 from calibration.linalg3 import rotvec_to_matrix
 from calibration.types import F64, I64, Bool
+from ingest.dataset.layout import write_atomic
 from ingest.errors import OdometryError
 from ingest.train.clouds import GyroTrack, estimate_velocity
 from ingest.train.planes import neighbour_covariances, normals_from_covariances
@@ -154,9 +155,7 @@ class RigTrajectory:
         for k, t in enumerate(self.stamps_ns):
             sec, nsec = divmod(int(t), 1_000_000_000)
             lines.append(f"{sec}.{nsec:09d} " + " ".join(f"{v:.9f}" for v in (*self.p_world_cam0[k], *q[k])))
-        tmp = path.with_name(path.name + ".partial")
-        tmp.write_text("\n".join(lines) + "\n")
-        tmp.replace(path)
+        write_atomic(path, ("\n".join(lines) + "\n").encode())
 
 
 def _chain_rotation(traj: RigTrajectory, k: I64, f: F64, rel: F64) -> F64:

@@ -33,8 +33,10 @@ from ingest.dataset.layout import (
 from ingest.errors import BagError, DatasetError, OdometryError
 from ingest.runtime.executor import Executor, Handoff
 from ingest.runtime.heap import retain_freed_memory
+from ingest.train.bad_messages import BadMessages
 from ingest.train.dense import DenseParams
-from ingest.train.describe import write_dataset_yaml
+from ingest.train.describe import record_undecodable, write_dataset_yaml
+from ingest.train.lidar_rate import THIN_FRACTION, LidarRates
 from ingest.train.odometry import RigTrajectory
 from ingest.train.sample import (
     Geometry,
@@ -56,6 +58,9 @@ from ingest.train.sync import (
 )
 from ingest.train.trajectory import STATIC_WINDOW_NS, TrajectorySummary, choose_method, run_trajectory_pass
 
+UNDECODABLE_IMAGE = "undecodable image (--max-bad)"
+"""Why a sample was skipped when one of its camera images could not be decoded."""
+
 
 @dataclass(frozen=True)
 class IngestConfig:
@@ -71,6 +76,7 @@ class IngestConfig:
     salvage: bool = False
     dask: str | None = None
     gt: str = "sparse"  # sparse | dense | auto (see ingest.train.trajectory.choose_method)
+    max_bad: int = 0  # undecodable messages skipped and counted before the run stops (bad_messages)
     sample: SampleParams = field(default_factory=SampleParams)
 
     def validate(self) -> None:
@@ -81,6 +87,8 @@ class IngestConfig:
             raise DatasetError(f"--gt-window-ms must be > 0, got {self.sample.dense.window_ns / 1e6:g}")
         if self.sample.motion not in ("full", "rotation", "off"):
             raise DatasetError(f"--motion {self.sample.motion!r}: expected full, rotation or off")
+        if self.max_bad < 0:
+            raise DatasetError(f"--max-bad must be >= 0, got {self.max_bad}")
         if self.workers < 1 or self.every < 1 or not 0 <= self.sample.png_level <= 3:
             raise DatasetError(
                 f"--workers {self.workers} / --every {self.every} must be >= 1 and --png-level 0..3 "
@@ -96,6 +104,7 @@ class IngestSummary:
     resumed: int = 0
     skipped: dict[str, int] = field(default_factory=dict)
     flagged: dict[str, int] = field(default_factory=dict)  # written, with a warning in their meta
+    undecodable: dict[str, int] = field(default_factory=dict)  # per topic: messages skipped (--max-bad)
     frames: int = 0
     pairs: int = 0
     planned: int = 0
@@ -121,6 +130,9 @@ class IngestSummary:
         self.skew_ms.extend(meta.lidar_skew_ms.values())
         for name in meta.points.silent_lidars:
             key = f"{name} silent in the window"
+            self.flagged[key] = self.flagged.get(key, 0) + 1
+        for name in meta.points.thin_lidars:
+            key = f"{name} thin in the window (< {THIN_FRACTION:.0%} of its rate)"
             self.flagged[key] = self.flagged.get(key, 0) + 1
         self.motion_applied += meta.motion.applied
         for k, v in result.stage_ms.items():
@@ -166,21 +178,27 @@ class Plan:
     spans: dict[str, list[tuple[int, int]]]  # per lidar topic: (first, last) point stamp per sweep
     frames: int
     pairs: int
+    rates: LidarRates = field(default_factory=LidarRates)  # each LiDAR's point rate (thin windows)
 
 
-def plan(bags: BagSet, topics: Topics, cfg: IngestConfig) -> Plan:
+def plan(bags: BagSet, topics: Topics, cfg: IngestConfig, bad: BadMessages | None = None) -> Plan:
     """First pass: stamps and sweep spans only; pairs and samples on header stamps."""
     where = bags.label
+    bad = bad or BadMessages()
     stamps: dict[str, list[int]] = {topics.upper: [], topics.lower: []}
     spans: dict[str, list[tuple[int, int]]] = {t: [] for t in topics.lidars}
+    rates = LidarRates()
     for msg in bags.messages(topics=[*stamps, *spans]):
         if msg.topic in stamps:
-            stamps[msg.topic].append(msg.stamp(where))
+            stamp = bad.stamp(msg, where)
+            if stamp is not None:
+                stamps[msg.topic].append(stamp)
             continue
-        sweep = msg.decoded(where)
-        assert isinstance(sweep, Sweep)
-        if len(sweep.stamps_ns):
+        sweep = bad.decoded(msg, where)
+        assert sweep is None or isinstance(sweep, Sweep)
+        if sweep is not None and len(sweep.stamps_ns):
             spans[msg.topic].append((int(sweep.stamps_ns.min()), int(sweep.stamps_ns.max())))
+            rates.add(msg.topic, sweep.stamps_ns)
     for topic, name in topics.lidars.items():
         if not spans[topic]:
             raise BagError(f"{bags.paths[0]}: no points on {topic} (the rig's lidar {name}) in the whole bag")
@@ -192,7 +210,7 @@ def plan(bags: BagSet, topics: Topics, cfg: IngestConfig) -> Plan:
     pairs = pair_stereo(up, lo, tol)
     all_spans = [s for v in spans.values() for s in v]
     chosen = select_samples(up[pairs.upper], all_spans, cfg.lidar_window_ns, cfg.every)
-    return Plan(up[pairs.upper][chosen], lo[pairs.lower][chosen], spans, len(up), len(pairs.upper))
+    return Plan(up[pairs.upper][chosen], lo[pairs.lower][chosen], spans, len(up), len(pairs.upper), rates)
 
 
 def _lidar_window(sweeps: list[Sweep], name: str, t_c: int, w: int) -> LidarPoints:
@@ -233,12 +251,37 @@ def _imu_window(imu_t: list[int], imu_g: list[Any], tc: int, w: int, R_cam0_imu:
     return ImuWindow(t[sel], np.array(imu_g)[sel], R_cam0_imu)
 
 
+def _thin_lidars(
+    rates: LidarRates, topics: Topics, lidars: tuple[LidarPoints, ...], t_ns: int, w: int
+) -> tuple[str, ...]:
+    """The LiDARs whose window holds far fewer points than their rate promises (lidar_rate's rule)."""
+    return tuple(
+        lp.name
+        for topic, lp in zip(topics.lidars, lidars, strict=True)
+        if rates.is_thin(topic, len(lp.stamps_ns), t_ns, w)
+    )
+
+
+def _file_reading(
+    topic: str, decoded: Sweep | Frame | ImuSample | None, imu_t: list[int], imu_g: list[Any],
+    sweeps: dict[str, list[Sweep]],
+) -> None:  # fmt: skip
+    """Keep an IMU reading or a LiDAR sweep (with points) for the samples; None was skipped as undecodable."""
+    if isinstance(decoded, ImuSample):
+        imu_t.append(decoded.stamp_ns)
+        imu_g.append(decoded.gyro_rad_s)
+    elif isinstance(decoded, Sweep) and len(decoded.stamps_ns):
+        sweeps[topic].append(decoded)
+
+
 def stream_jobs(
     bags: BagSet, topics: Topics, the_plan: Plan, cfg: IngestConfig, geometry: Geometry,
-    trajectory: RigTrajectory | None = None, first_id: int = 0,
+    trajectory: RigTrajectory | None = None, first_id: int = 0, bad: BadMessages | None = None,
 ) -> Iterator[SampleJob | tuple[str, str]]:  # fmt: skip
-    """Second pass: yield a SampleJob per planned sample (or (sid, "done") when already written)."""
+    """Second pass: a SampleJob per planned sample, or (sid, why): "done" before, UNDECODABLE_IMAGE, ..."""
     where = bags.label
+    bad = bad or BadMessages()
+    broken: set[int] = set()  # samples with an undecodable image
     w = cfg.lidar_window_ns
     index = {int(t): k for k, t in enumerate(the_plan.upper_ns)}
     lower_index = {int(t): k for k, t in enumerate(the_plan.lower_ns)}
@@ -260,63 +303,58 @@ def stream_jobs(
         }
         return len(frames.get(k, {})) == 2 and all(have[t] >= n for t, n in need[k].items())
 
+    def status(k: int) -> str:
+        """Why sample k yields no job ("done" by an earlier run, an undecodable image), or ""."""
+        return "done" if sids[k] in done else UNDECODABLE_IMAGE if k in broken else ""
+
     def job(k: int) -> SampleJob:
         tc = int(the_plan.upper_ns[k])
         lidars = tuple(_lidar_window(sweeps[t], name, tc, w) for t, name in topics.lidars.items())
+        thin = _thin_lidars(the_plan.rates, topics, lidars, tc, w)
         imu = _imu_window(imu_t, imu_g, tc, w, topics.R_cam0_imu)
         f = frames.pop(k)
         return SampleJob(
             cfg.out, sids[k], source, tc, int(the_plan.lower_ns[k]), f["upper"].image, f["lower"].image,
-            lidars, imu, None, geometry, cfg.sample, trajectory,
+            lidars, imu, None, geometry, cfg.sample, trajectory, thin,
         )  # fmt: skip
 
     wanted = [topics.upper, topics.lower, *topics.lidars, *([topics.imu] if topics.imu else [])]
     for msg in bags.messages(topics=wanted):
         if msg.topic in (topics.upper, topics.lower):
-            stamp = msg.stamp(where)
+            stamp = bad.stamp(msg, where)
             side = "upper" if msg.topic == topics.upper else "lower"
-            k = (index if side == "upper" else lower_index).get(stamp)
+            k = None if stamp is None else (index if side == "upper" else lower_index).get(stamp)
             if k is None or k < next_k:
                 continue
             if sids[k] in done:
                 frames.setdefault(k, {})
                 continue
-            frame = msg.decoded(where)
+            frame = bad.decoded(msg, where)
+            if frame is None:
+                broken.add(k)
+                continue
             assert isinstance(frame, Frame)
             _check_size(frame, geometry.rig.upper if side == "upper" else geometry.rig.lower, msg.topic)
             frames.setdefault(k, {})[side] = frame
-        elif msg.topic == topics.imu:
-            sample = msg.decoded(where)
-            assert isinstance(sample, ImuSample)
-            imu_t.append(sample.stamp_ns)
-            imu_g.append(sample.gyro_rad_s)
         else:
-            sweep = msg.decoded(where)
-            assert isinstance(sweep, Sweep)
-            if len(sweep.stamps_ns):
-                sweeps[msg.topic].append(sweep)
-        while next_k < len(sids) and (sids[next_k] in done or ready(next_k)):
-            if sids[next_k] in done:
+            _file_reading(msg.topic, bad.decoded(msg, where), imu_t, imu_g, sweeps)
+        while next_k < len(sids) and (status(next_k) or ready(next_k)):
+            why = status(next_k)
+            if why:
                 frames.pop(next_k, None)
-                yield (sids[next_k], "done")
-            else:
-                yield job(next_k)
+            yield (sids[next_k], why) if why else job(next_k)
             next_k += 1
             if next_k < len(sids):  # forget sweeps no later sample can use
                 horizon = int(the_plan.upper_ns[next_k]) - w
                 for t in sweeps:
                     sweeps[t] = [s for s in sweeps[t] if s.stamps_ns[-1] >= horizon]
     for k in range(next_k, len(sids)):  # the bag ended: whatever is complete still goes
-        if sids[k] in done:
-            yield (sids[k], "done")
-        elif len(frames.get(k, {})) == 2:
-            yield job(k)
-        else:
-            yield (sids[k], "missing image")
+        why = status(k) or ("" if len(frames.get(k, {})) == 2 else "missing image")
+        yield (sids[k], why) if why else job(k)
 
 
 def _gt_method(
-    bags: BagSet, topics: Topics, rig: Rig, cfg: IngestConfig, summary: IngestSummary
+    bags: BagSet, topics: Topics, rig: Rig, cfg: IngestConfig, summary: IngestSummary, bad: BadMessages
 ) -> tuple[IngestConfig, RigTrajectory | None]:
     """Run the trajectory pass when --gt dense/auto needs it, decide the method, set the window.
 
@@ -328,7 +366,13 @@ def _gt_method(
         out_file = cfg.out / "trajectories" / f"{Path(bags.paths[0]).name}.tum"
         try:
             traj, tsum = run_trajectory_pass(
-                bags, topics.lidars, (topics.imu, topics.R_cam0_imu), rig, cfg.sample.min_range_m, out_file
+                bags,
+                topics.lidars,
+                (topics.imu, topics.R_cam0_imu),
+                rig,
+                cfg.sample.min_range_m,
+                out_file,
+                bad=bad,
             )
         except OdometryError as err:
             if cfg.gt == "dense":
@@ -352,9 +396,12 @@ def _slot_bytes(rig: Rig) -> int:
 
 
 def ingest(
-    bag_paths: list[Path], cfg: IngestConfig, progress: Callable[[int, int], None] | None = None
+    bag_paths: list[Path],
+    cfg: IngestConfig,
+    progress: Callable[[int, int], None] | None = None,
+    warn: Callable[[str], None] | None = None,
 ) -> IngestSummary:
-    """Run the whole job; `progress(done, total)` after each sample."""
+    """Run the whole job; `progress(done, total)` after each sample, `warn(line)` per skipped message."""
     t_start = time.perf_counter()
     cfg.validate()
     retain_freed_memory()  # chunks and images: ~20 MB per sample pass through this process too
@@ -362,11 +409,13 @@ def ingest(
     rig = read_rig(cfg.rig)
     geometry = Geometry.from_rig(rig, cfg.height_full)
     summary = IngestSummary(out=cfg.out)
+    bad = BadMessages(cfg.max_bad, warn)
     with open_bags(bag_paths, salvage=cfg.salvage) as bags:
         topics = _resolve_topics(rig, bags.topics(), ", ".join(str(p) for p in bag_paths))
         asked = cfg
-        cfg, traj = _gt_method(bags, topics, rig, cfg, summary)
-        the_plan = plan(bags, topics, cfg)
+        cfg, traj = _gt_method(bags, topics, rig, cfg, summary, bad)
+        the_plan = plan(bags, topics, cfg, bad)
+        summary.undecodable = bad.by_topic()
         summary.frames, summary.pairs, summary.planned = (
             the_plan.frames,
             the_plan.pairs,
@@ -390,7 +439,7 @@ def ingest(
 
         def jobs() -> Iterator[SampleJob]:
             """The jobs to run; resumed and skipped samples are counted here, in stream order."""
-            for item in stream_jobs(bags, topics, the_plan, cfg, geometry, traj, first_id):
+            for item in stream_jobs(bags, topics, the_plan, cfg, geometry, traj, first_id, bad):
                 if not isinstance(item, tuple):
                     yield item
                     continue
@@ -408,5 +457,8 @@ def ingest(
                 tick()
         finally:
             results.close()
+    if bad.by_topic() != summary.undecodable:  # the stream pass found more (images): update dataset.yaml
+        summary.undecodable = bad.by_topic()
+        record_undecodable(cfg.out, [Path(p) for p in bag_paths], summary.undecodable)
     summary.seconds = time.perf_counter() - t_start
     return summary

@@ -131,6 +131,7 @@ class SampleJob:
     geometry: Geometry
     params: SampleParams
     trajectory: RigTrajectory | None = None  # the recording's (dense GT)
+    thin_lidars: tuple[str, ...] = ()  # LiDARs with far fewer points than their rate (lidar_rate)
 
 
 _NO_IMAGE = np.zeros((0, 0, 3), np.uint8)  # a job's image field while its images travel apart
@@ -325,6 +326,7 @@ def _finish(
     up, down = images.result()
     t3 = time.perf_counter()
     ms["images"] = start_ms + (t3 - t2) * 1e3
+    meta = replace(meta, points=replace(meta.points, thin_lidars=list(job.thin_lidars)))
     files = SampleFiles(job.upper_bgr, job.lower_bgr, up, down, gt[1], gt[0], meta)
     drops = write_sample(job.out, job.sid, files, job.params.exr, job.params.png_level)
     ms["write"] = (time.perf_counter() - t3) * 1e3

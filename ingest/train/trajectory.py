@@ -22,6 +22,8 @@ from calibration.rig import Rig
 from calibration.types import F64
 from ingest.bags.decode import ImuSample, Sweep
 from ingest.bags.reader import BagSet
+from ingest.errors import OutputError
+from ingest.train.bad_messages import BadMessages
 from ingest.train.clouds import GyroTrack, filter_points, integrate_gyro
 from ingest.train.odometry import Odometry, OdometryParams, RigTrajectory
 
@@ -49,14 +51,19 @@ class TrajectorySummary:
         return dict(self.__dict__)
 
 
-def read_gyro(bags: BagSet, imu_topic: str | None, R_cam0_imu: F64 | None) -> GyroTrack | None:
-    """The integrated gyro of the rig's IMU, or None without one."""
+def read_gyro(
+    bags: BagSet, imu_topic: str | None, R_cam0_imu: F64 | None, bad: BadMessages | None = None
+) -> GyroTrack | None:
+    """The integrated gyro of the rig's IMU, or None without one (undecodable readings: see `bad`)."""
+    bad = bad or BadMessages()
     if imu_topic is None or R_cam0_imu is None:
         return None
     where = bags.label
     stamps, rates = [], []
     for msg in bags.messages(topics=[imu_topic]):
-        sample = msg.decoded(where)
+        sample = bad.decoded(msg, where)
+        if sample is None:
+            continue
         assert isinstance(sample, ImuSample)
         stamps.append(sample.stamp_ns)
         rates.append(sample.gyro_rad_s)
@@ -73,16 +80,18 @@ def trajectory_pass(
     min_range_m: float,
     params: OdometryParams | None = None,
     progress: Callable[[float], None] | None = None,
+    bad: BadMessages | None = None,
 ) -> RigTrajectory:
     """Odometry over every sweep of `lidar_topics` (topic -> rig lidar name); `progress(seconds read)`."""
+    bad = bad or BadMessages()
     odo = Odometry(gyro, params)
     where = bags.label
     last = {topic: -(2**62) for topic in lidar_topics}
     first_ns: int | None = None
     for msg in bags.messages(topics=list(lidar_topics)):
-        sweep = msg.decoded(where)
-        assert isinstance(sweep, Sweep)
-        if not len(sweep.stamps_ns):
+        sweep = bad.decoded(msg, where)
+        assert sweep is None or isinstance(sweep, Sweep)
+        if sweep is None or not len(sweep.stamps_ns):
             continue
         keep, _ = filter_points(sweep.xyz_m, sweep.tag, min_range_m)
         T = rig.lidar(lidar_topics[msg.topic]).T_cam0_lidar
@@ -125,12 +134,16 @@ def run_trajectory_pass(
     min_range_m: float,
     out_file: Path,
     params: OdometryParams | None = None,
+    bad: BadMessages | None = None,
 ) -> tuple[RigTrajectory, TrajectorySummary]:
     """Gyro, odometry and `out_file` (TUM, T_world_cam0), with the summary of the run."""
     t0 = time.perf_counter()
-    gyro = read_gyro(bags, *imu)
-    traj = trajectory_pass(bags, lidar_topics, rig, gyro, min_range_m, params)
-    out_file.parent.mkdir(parents=True, exist_ok=True)
+    gyro = read_gyro(bags, *imu, bad=bad)
+    traj = trajectory_pass(bags, lidar_topics, rig, gyro, min_range_m, params, bad=bad)
+    try:
+        out_file.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise OutputError(f"cannot create {out_file.parent}: {err.strerror or err}") from err
     traj.write_tum(out_file)
     return traj, summarize(traj, time.perf_counter() - t0, out_file)
 

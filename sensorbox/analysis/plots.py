@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import matplotlib
@@ -14,6 +15,8 @@ from matplotlib.figure import Figure
 from calibration.report import RigReport
 from calibration.rig import Rig
 from calibration.types import F64
+from ingest.dataset.layout import write_atomic
+from ingest.errors import DatasetError
 
 # Plot frame: cam0 rotated so that x = forward, y = left, z = up (a familiar robot view).
 _R_VIEW_CAM0 = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
@@ -22,11 +25,25 @@ LIDAR_VFOV_DEG = (-7.0, 52.0)
 
 
 def _save(fig: Figure, path: str | Path, dpi: int) -> Path:
-    """Write a figure (creating its folder), close it, return the path."""
+    """Write a figure (creating its folder), close it, return the path.
+
+    The format is the file's suffix (PNG when it has none, never a suffix
+    added behind the user's back); the figure is rendered in memory and
+    written atomically, so a full disk, a read-only folder or a folder given
+    as `path` is one `OutputError` naming `path` and leaves no partial file.
+    """
     out = Path(path)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=dpi)
-    plt.close(fig)
+    try:
+        fmt = out.suffix.lstrip(".").lower() or "png"
+        if fmt not in fig.canvas.get_supported_filetypes():
+            known = ", ".join(sorted(fig.canvas.get_supported_filetypes()))
+            raise DatasetError(f"{out}: cannot draw a .{fmt} file; give a name ending in one of {known}")
+        buf = io.BytesIO()
+        fig.savefig(buf, format=fmt, dpi=dpi)
+    finally:
+        plt.close(fig)
+    out.parent.mkdir(parents=True, exist_ok=True)  # an OSError here names the folder (CLI: exit 3)
+    write_atomic(out, buf.getvalue())
     return out
 
 
@@ -128,10 +145,7 @@ def plot_sample(dataset_dir: Path, sid: str, out: Path) -> Path:
             fig.colorbar(sc, ax=ax, shrink=0.7)
         ax.set_title(f"{title} [{sid}]")
         ax.set_axis_off()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=90)
-    plt.close(fig)
-    return out
+    return _save(fig, out, dpi=90)
 
 
 # ---- evaluation and dataset statistics (sensorbox eval / stats) ----------------------------

@@ -232,6 +232,8 @@ def capture_cmd(
     _check_choice("--camera", camera, ("zed", "opencv"))
     _check_choice("--image", image, ("jpeg", "raw"))
     _check_choice("--lidar-msg", lidar_msg, ("custom", "pointcloud2"))
+    if not 1 <= port_base <= 65535 - 8:
+        raise SensorboxError(f"--port-base {port_base}: expected 1..65527 (the first of nine UDP ports)")
     _setup_logging(verbose)
     cfg = CaptureConfig(
         rig=rig, out=out, name=name, host_ip=host_ip, camera=camera, upper=upper, lower=lower,  # type: ignore[arg-type]

@@ -167,12 +167,15 @@ def stats_cmd(
     histograms as stats.png.
     """
     from ingest.dataset.layout import write_atomic
+    from ingest.errors import DatasetError
     from ingest.eval.stats import dataset_stats
     from sensorbox.analysis.plots import plot_stats
 
+    folder = out or dataset
+    if folder.exists() and not folder.is_dir():
+        raise DatasetError(f"--out {folder}: is a file; give a folder for stats.json and stats.png")
     with progress_bar("describing", "samples") as update:
         stats = dataset_stats(dataset, image_type, progress=update)
-    folder = out or dataset
     folder.mkdir(parents=True, exist_ok=True)
     _print_stats(stats, dataset)
     doc = json.dumps(stats.to_json(), indent=1) + "\n"

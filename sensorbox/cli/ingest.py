@@ -11,8 +11,9 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 from rich.table import Table
+from rich.text import Text
 
-from sensorbox.cli.common import console, progress_bar
+from sensorbox.cli.common import console, err_console, progress_bar
 
 if TYPE_CHECKING:
     from ingest.train.pipeline import IngestSummary
@@ -52,6 +53,13 @@ MinRangeOpt = Annotated[float, typer.Option(help="Drop LiDAR returns nearer than
 MotionOpt = Annotated[
     str, typer.Option(help="Motion compensation: full (IMU rotation + velocity), rotation, off.")
 ]
+MaxBadOpt = Annotated[
+    int,
+    typer.Option(
+        help="Skip and count up to N undecodable messages (a warning names each one's bag, topic and time); "
+        "one more stops the run (exit code 2). The count goes to the summary and dataset.yaml."
+    ),
+]
 SalvageOpt = Annotated[
     bool,
     typer.Option(
@@ -77,6 +85,7 @@ def summary_table(summary: IngestSummary, out: Path) -> Table:
         ("ground truth", f"{summary.method} ({summary.decision})"),
         *((f"skipped: {reason}", str(n)) for reason, n in summary.skipped.items()),
         *((f"written, flagged in meta: {what}", str(n)) for what, n in summary.flagged.items()),
+        *((f"undecodable messages skipped: {topic}", str(n)) for topic, n in summary.undecodable.items()),
     ]
     if summary.trajectory is not None:
         t = summary.trajectory
@@ -104,11 +113,17 @@ def summary_table(summary: IngestSummary, out: Path) -> Table:
     return table
 
 
+def _warn(line: str) -> None:
+    """One plain warning line on stderr (above the progress bar)."""
+    err_console.print(Text.assemble(("warning:", "bold yellow"), " ", line), highlight=False, soft_wrap=True)
+
+
 def ingest_cmd(
     bags: BagsArg, rig: RigOpt, out: OutOpt, workers: WorkersOpt = 2, dask: DaskOpt = None,
     every: EveryOpt = 1, window_ms: WindowOpt = 50.0, exr: ExrOpt = False, png_level: PngLevelOpt = 1,
     height_full: HeightFullOpt = None, min_range: MinRangeOpt = 0.3, motion: MotionOpt = "full",
     salvage: SalvageOpt = False, gt: GtOpt = "sparse", gt_window_ms: GtWindowOpt = 500.0,
+    max_bad: MaxBadOpt = 0,
 ) -> None:  # fmt: skip
     """Turn recorded bags into the WideDepth training set (rectified equirect pairs + depth/disparity GT)."""
     from ingest.train.dense import DenseParams
@@ -120,10 +135,10 @@ def ingest_cmd(
     sample = SampleParams(min_range_m=min_range, exr=exr, png_level=png_level, motion=motion, dense=dense)  # type: ignore[arg-type]
     cfg = IngestConfig(
         rig=rig, out=out, workers=workers, every=every, lidar_window_ns=round(window_ms * 1e6),
-        height_full=height_full, salvage=salvage, dask=dask, gt=gt, sample=sample,
+        height_full=height_full, salvage=salvage, dask=dask, gt=gt, max_bad=max_bad, sample=sample,
     )  # fmt: skip
     with progress_bar("ingesting", "samples") as update:
-        summary = ingest(bags, cfg, progress=update)
+        summary = ingest(bags, cfg, progress=update, warn=_warn)
     console.print(summary_table(summary, out))
     metas = sorted((out / "meta").glob("*.json"))
     if metas:

@@ -1,9 +1,10 @@
 """The ``sensorbox`` command line: one module per command, each parses, calls one library function, prints.
 
 Every `SensorboxError` (a user mistake: a file, key, topic or value named)
-becomes one plain line on stderr and exit code 2; an OSError that reaches the
-top (disk full, permissions, a missing folder) one line naming the path and
-exit code 3. Messages are printed as text, never as rich markup, so paths and
+becomes one plain line on stderr and exit code 2; a write the operating
+system refused (disk full, permissions, a missing folder), as an
+`ingest.errors.OutputError` or an OSError that reaches the top, one line
+naming the path and exit code 3. Messages are printed as text, never as rich markup, so paths and
 values with brackets arrive as they are.
 """
 
@@ -15,6 +16,7 @@ import typer
 from rich.text import Text
 
 from calibration.errors import SensorboxError
+from ingest.errors import OutputError
 from sensorbox.cli.bench import bench_cmd
 from sensorbox.cli.calib import calib_check
 from sensorbox.cli.capture import capture_cmd, launch_cmd
@@ -54,6 +56,9 @@ def main() -> None:
     """Console-script entry point: run the app, mapping SensorboxError to exit code 2."""
     try:
         app()
+    except OutputError as err:  # the operating system refused a write: as an OSError, named
+        _error(str(err))
+        sys.exit(3)
     except SensorboxError as err:
         _error(str(err))
         sys.exit(2)

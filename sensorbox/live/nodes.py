@@ -109,6 +109,13 @@ class Params:
             raise self._err(key, v, "an integer")
         return v
 
+    def port_base(self) -> int:
+        """`port_base`: the first of nine consecutive UDP ports, so 1..65527 (56000 = Livox's own)."""
+        v = self.integer("port_base", 56000)
+        if not 1 <= v <= 65535 - 8:
+            raise self._err("port_base", v, "1..65527 (the first of nine UDP ports, each <= 65535)")
+        return v
+
     def flag(self, key: str, default: bool) -> bool:
         v = self.raw(key, default)
         if isinstance(v, bool):
@@ -244,7 +251,7 @@ def livox_driver_node(ctx: NodeContext, p: Params) -> Node:
         raise GraphError(f"{p.where}: frame_id {frame_id!r}: the driver publishes 'livox_frame' only")
     freq = p.number("publish_freq", 10.0)
     freq = min(100.0, max(0.5, freq))  # livox_ros_driver2 clamps it the same way
-    base = p.integer("port_base", 56000)
+    base = p.port_base()
     ports = Ports.block(base) if base != 56000 else Ports()
     data_type = p.integer("data_type", 1)
     host_ip = p.text("host_ip", "")

@@ -125,7 +125,7 @@ def mid360_emulator_node(ctx: NodeContext, p: Params) -> Node:
     ip = p.text("ip", "")
     if not ip.startswith("127."):
         raise GraphError(f"{p.where}: ip {ip!r}: an emulated lidar needs a loopback address 127.0.0.x")
-    base = p.integer("port_base", 56000)
+    base = p.port_base()
     options = {
         "ports": Ports.block(base) if base != 56000 else Ports(),
         "time_type": p.integer("time_type", 1), "data_type": p.integer("data_type", 1),

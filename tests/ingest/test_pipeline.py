@@ -260,7 +260,12 @@ def test_lidar_that_stops_and_duplicated_or_reordered_frames(tmp_path: Path) -> 
     assert late.points.total < 0.75 * early.points.total  # only the top LiDAR left
     assert early.points.silent_lidars == [] and late.points.silent_lidars == ["lidar_bottom"]
     silent = sum(read_meta(out, f"{k:06d}").points.silent_lidars == ["lidar_bottom"] for k in range(21))
-    assert summary.flagged == {"lidar_bottom silent in the window": silent} and silent >= 10
+    thin = sum(read_meta(out, f"{k:06d}").points.thin_lidars == ["lidar_bottom"] for k in range(21))
+    assert summary.flagged == {
+        "lidar_bottom silent in the window": silent,
+        "lidar_bottom thin in the window (< 50% of its rate)": thin,
+    }
+    assert silent >= 10 and thin == 2  # the two frames whose window the bottom LiDAR's end cuts
 
 
 def test_an_undecodable_message_names_bag_topic_and_time(tmp_path: Path) -> None:
@@ -315,7 +320,7 @@ def test_disk_full_is_a_clear_error_and_leaves_no_partial_file(
 
     def full_disk(self: Path, target: Path) -> Path:
         calls["n"] += 1
-        if calls["n"] > 9:
+        if calls["n"] > 11:  # dataset.yaml, rig/camchain.yaml, rig/rig.yaml, sample 0's 7 files, 1 more
             raise OSError(errno.ENOSPC, "No space left on device")
         return real(self, target)
 

@@ -1,0 +1,24 @@
+"""Run `sensorbox ...` in this process as a user would: exit code, stdout and stderr lines."""
+
+from __future__ import annotations
+
+import sys
+
+import pytest
+
+from sensorbox.cli.main import main
+
+
+def sensorbox(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str, list[str]]:
+    """(exit code, stdout, the non-blank stderr lines) of `sensorbox ARGS`."""
+    argv = sys.argv
+    sys.argv = ["sensorbox", *args]
+    try:
+        main()
+        code = 0
+    except SystemExit as done:
+        code = int(done.code or 0)
+    finally:
+        sys.argv = argv
+    out, err = capsys.readouterr()
+    return code, out, [line for line in err.splitlines() if line.strip()]
