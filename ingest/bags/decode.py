@@ -29,6 +29,7 @@ from __future__ import annotations
 import struct
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any, Literal
 
 import cv2
@@ -92,6 +93,13 @@ class Sweep:
     tag: Array | None = None
     line: Array | None = None
     time_layout: str = ""
+
+    @cached_property
+    def span_ns(self) -> tuple[int, int]:
+        """(earliest, latest) point time; a driver need not write its points in time order."""
+        if len(self.stamps_ns) == 0:
+            return self.stamp_ns, self.stamp_ns
+        return int(self.stamps_ns.min()), int(self.stamps_ns.max())
 
 
 @dataclass(frozen=True)

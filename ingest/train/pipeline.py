@@ -298,7 +298,7 @@ def stream_jobs(
     def ready(k: int) -> bool:
         tc = int(the_plan.upper_ns[k])
         have = {
-            t: sum(1 for s in v if s.stamps_ns[-1] >= tc - w and s.stamps_ns[0] <= tc + w)
+            t: sum(1 for s in v if s.span_ns[1] >= tc - w and s.span_ns[0] <= tc + w)
             for t, v in sweeps.items()
         }
         return len(frames.get(k, {})) == 2 and all(have[t] >= n for t, n in need[k].items())
@@ -347,7 +347,7 @@ def stream_jobs(
             if next_k < len(sids):  # forget sweeps no later sample can use
                 horizon = int(the_plan.upper_ns[next_k]) - w
                 for t in sweeps:
-                    sweeps[t] = [s for s in sweeps[t] if s.stamps_ns[-1] >= horizon]
+                    sweeps[t] = [s for s in sweeps[t] if s.span_ns[1] >= horizon]
     for k in range(next_k, len(sids)):  # the bag ended: whatever is complete still goes
         why = status(k) or ("" if len(frames.get(k, {})) == 2 else "missing image")
         yield (sids[k], why) if why else job(k)

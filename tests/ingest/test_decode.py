@@ -459,3 +459,11 @@ def test_dispatch_accepts_ros1_style_names_and_refuses_unknown_types():
         decode("std_msgs/msg/String", b"", 2)
     with pytest.raises(ValueError, match="ros_version must be 1 or 2"):
         decode(IMAGE_TYPE, b"", 3)  # type: ignore[arg-type]
+
+
+def test_a_sweeps_span_is_its_earliest_and_latest_point_whatever_their_order():
+    from ingest.bags.decode import Sweep
+
+    sweep = Sweep(100, "lidar", np.zeros((3, 3)), np.array([150, 90, 120], np.int64))
+    assert sweep.span_ns == (90, 150)
+    assert Sweep(100, "lidar", np.zeros((0, 3)), np.zeros(0, np.int64)).span_ns == (100, 100)
