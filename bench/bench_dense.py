@@ -12,7 +12,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import OUT_DIR
+from _common import OUT_DIR, machine_line
 
 from sensorbox.analysis.dense_study import dense_chart, format_row, run_dense_study, table_header
 
@@ -23,6 +23,7 @@ def main() -> None:
     ap.add_argument("--walk-s", type=float, default=20.0, help="length of the walk (trajectory error)")
     ap.add_argument("--out", type=Path, default=OUT_DIR / "dense")
     args = ap.parse_args()
+    print(machine_line())
     print(table_header())
     result = run_dense_study(
         args.out, args.samples, args.walk_s, lambda *row: print(format_row(*row), flush=True)
