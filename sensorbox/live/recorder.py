@@ -88,7 +88,7 @@ class RecorderConfig:
     split_bytes: int = 0  # start the next bag once the mcap file is this large
     split_s: float = 0.0  # start the next bag after this much receive time
     duration_s: float = 0.0  # ask the graph to stop after recording this long
-    queue_msgs: int = 256  # per topic
+    queue_msgs: int = 4096  # per topic: 20 s of a 200 Hz IMU while the writer is starved
     queue_bytes: int = 512 * MiB  # per topic
     min_free_bytes: int = 1024 * MiB  # stop before the disk has less than this free
     compress: bool = True  # zstd mcap chunks
