@@ -12,12 +12,15 @@ driver received; drops per stage; CPU (process, % of one core) and memory
 (peak RSS); the system load average, since other work on the same cores
 perturbs a soak. `--repeats N` repeats the run and reports medians. Writes a
 chart (rates over time, CPU and RSS over time, sent vs written) to
-out/bench/bench_capture.png or --out. Target: zero drops.
+out/bench/bench_capture.png or --out. `--hogs N` runs N CPU-bound processes on the
+same cores (contention). Target: zero drops; at least zero LiDAR datagrams lost
+with `--hogs 2` on 2 cores.
 """
 
 from __future__ import annotations
 
 import argparse
+import multiprocessing
 import os
 import shutil
 import statistics
@@ -37,7 +40,8 @@ from sensorbox.live.launch import parse_launch, run_launch
 ROOT = Path(__file__).resolve().parents[1]
 SIM_LAUNCH = ROOT / "launch" / "sim.launch.yaml"
 EXPECTED_HZ = {"lidar": 10.0, "imu": 200.0, "zed": 30.0}
-REPORTED_COUNTERS = ("sent", "points", "packets", "frames", "published", "encode_ms", "pairs")
+REPORTED_COUNTERS = ("sent", "points", "packets", "frames", "published", "encode_ms", "pairs", "rcvbuf",
+                     "kernel_drops", "nice", "jumps")  # fmt: skip
 
 
 def rss_bytes() -> tuple[int, int]:
@@ -68,6 +72,24 @@ class Run:
     peak_rss: int = 0
     load: tuple[float, float, float] = (0.0, 0.0, 0.0)
     bytes_on_disk: int = 0
+
+
+def hog() -> None:
+    """A CPU-bound process (pure Python arithmetic) that never sleeps: the contention beside the rig."""
+    x = 0
+    while True:
+        x = (x * 1103515245 + 12345) & 0x7FFFFFFF
+
+
+def start_hogs(n: int) -> list[multiprocessing.process.BaseProcess]:
+    """`n` CPU-bound processes on this process's CPUs (they inherit its affinity)."""
+    ctx = multiprocessing.get_context("spawn")
+    procs: list[multiprocessing.process.BaseProcess] = [
+        ctx.Process(target=hog, name=f"hog{k}", daemon=True) for k in range(n)
+    ]
+    for p in procs:
+        p.start()
+    return procs
 
 
 def soak(seconds: float, scale: float, port_base: int, out: Path) -> Run:
@@ -101,13 +123,18 @@ def _group(topic: str) -> str:
     return "?"
 
 
-def report(runs: list[Run], seconds: float) -> str:
+def report(runs: list[Run], seconds: float, hogs: int = 0) -> str:
     med = statistics.median
     snaps = [r.result.snapshot for r in runs]
     topics = sorted(set().union(*(s.published for s in snaps)))
     lines = [
         f"### Capture soak: {seconds:g} s, emulated rig, 2 x Mid-360 + 2 x 1920x1200 jpeg cameras"
-        f" ({len(runs)} run{'s' if len(runs) > 1 else ''}, medians)",
+        f" ({len(runs)} run{'s' if len(runs) > 1 else ''}, medians)"
+        + (
+            f", {hogs} CPU-bound process{'es' if hogs > 1 else ''} beside it on the same cores"
+            if hogs
+            else ""
+        ),
         "",
         "| topic | sent | written | lost | rate [Hz] | expected [Hz] |",
         "|---|---:|---:|---:|---:|---:|",
@@ -209,22 +236,28 @@ def main() -> None:
     ap.add_argument("--scale", type=float, default=1.0, help="camera resolution scale (1.0 = 1920x1200)")
     ap.add_argument("--cores", type=int, default=2, help="pin to this many CPUs (0 = do not pin)")
     ap.add_argument("--port-base", type=int, default=46000, help="first of the nine UDP ports")
+    ap.add_argument("--hogs", type=int, default=0, help="CPU-bound processes to run beside the rig")
     ap.add_argument("--out", type=Path, default=OUT_DIR / "bench_capture.png", help="chart path")
     ap.add_argument("--keep", type=Path, default=None, help="keep the bags in this folder")
     a = ap.parse_args()
     if a.cores:
         cpus = sorted(os.sched_getaffinity(0))[: a.cores]
         os.sched_setaffinity(0, cpus)
+    hogs = start_hogs(a.hogs)
     runs = []
-    for k in range(a.repeats):
-        tmp = Path(tempfile.mkdtemp(prefix="bench_capture_", dir=a.keep.parent if a.keep else None))
-        try:
-            runs.append(soak(a.seconds, a.scale, a.port_base + 10 * k, tmp))
-        finally:
-            if a.keep:
-                shutil.copytree(tmp, a.keep / f"run{k}", dirs_exist_ok=True)
-            shutil.rmtree(tmp, ignore_errors=True)
-    print(report(runs, a.seconds))
+    try:
+        for k in range(a.repeats):
+            tmp = Path(tempfile.mkdtemp(prefix="bench_capture_", dir=a.keep.parent if a.keep else None))
+            try:
+                runs.append(soak(a.seconds, a.scale, a.port_base + 10 * k, tmp))
+            finally:
+                if a.keep:
+                    shutil.copytree(tmp, a.keep / f"run{k}", dirs_exist_ok=True)
+                shutil.rmtree(tmp, ignore_errors=True)
+    finally:
+        for p in hogs:
+            p.kill()
+    print(report(runs, a.seconds, a.hogs))
     chart(runs[-1], a.out)
     print(f"\nchart: {a.out}")
 

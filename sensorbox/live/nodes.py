@@ -2,7 +2,7 @@
 
 - `sensorbox/recorder` (`recorder.Recorder`): out (bags), name (capture_<time>),
   topics ([] = all), split_size_mb (0 = off), split_duration_s (0), duration_s
-  (0 = until stopped), queue_size (256 per topic), queue_mb (512 per topic),
+  (0 = until stopped), queue_size (4096 per topic), queue_mb (512 per topic),
   min_free_mb (1024), compress (true), flush_s (1.0).
 - `sensorbox/livox_driver`, alias `livox_ros_driver2/livox_ros_driver2_node`
   (`LivoxDriverNode` over `livox.Mid360Driver`): host_ip and lidar_ips, or
@@ -10,7 +10,8 @@
   extrinsics); xfer_format (1 = CustomMsg, 0 = PointCloud2), multi_topic (1),
   publish_freq (10.0 Hz), frame_id (livox_frame), data_type (1), imu (true),
   port_base (56000: the Livox ports; else a block of nine from it), discovery_s
-  (0 = skip discovery).
+  (0 = skip discovery), process (true: the driver runs in its own process, which
+  camera encoding and the recorder cannot starve; false: in the graph's process).
 - `sensorbox/mid360_emulator` (`EmulatorNode`): ip (127.0.0.x), lidar (rig
   LiDAR name, lidar_top), port_base, loop_s (1.0; 0 = simulate live), time_type
   (1 = PTP), data_type (1), loss/reorder/duplicate/malformed (0), rate (1.0),
@@ -62,6 +63,7 @@ from sensorbox.live.bus import (
     Shutdown,
     node_context,
 )
+from sensorbox.live.livox_node import LivoxDriverNode
 
 log = logging.getLogger(__name__)
 
@@ -195,51 +197,6 @@ def read_livox_json(path: Path) -> dict[str, Any]:
     return {"host_ip": next(iter(ips)), "ports": ports, "lidars": lidars, "data_type": types.pop()}
 
 
-class LivoxDriverNode:
-    """`sensorbox.livox.Mid360Driver` as a node (priority: source)."""
-
-    priority = PRIORITY_SOURCE
-
-    def __init__(self, name: str, config: Any, publish: Publish, discovery_s: float = 0.0) -> None:
-        from sensorbox.livox import Mid360Driver
-
-        self.name = name
-        self.config = config
-        self.discovery_s = discovery_s
-        self.discovered: list[Any] = []
-
-        def relative(topic: str, msgtype: str, stamp_ns: int, raw: bytes) -> None:
-            publish(topic.lstrip("/"), msgtype, stamp_ns, raw)  # livox_ros_driver2's names are relative
-
-        self.driver = Mid360Driver(config, relative)
-
-    def start(self) -> None:
-        if self.discovery_s > 0:
-            self.discovered = self.driver.discover(self.discovery_s)
-            found = {d.ip for d in self.discovered}
-            missing = [li.ip for li in self.config.lidars if li.ip not in found]
-            if missing:
-                log.warning("%s: lidar(s) %s did not answer discovery", self.name, ", ".join(missing))
-        self.driver.start()
-
-    def stop(self) -> None:
-        self.driver.stop()
-
-    def status(self) -> NodeStatus:
-        st = self.driver.stats()
-        counters: dict[str, float] = {"foreign": float(st.foreign), "rcvbuf_bytes": float(st.rcvbuf_bytes),
-                                      "kernel_drops": float(st.kernel_drops)}  # fmt: skip  # part of udp_lost
-        drops = {"udp_lost": 0, "udp_late": 0, "udp_malformed": 0, "imu_lost": 0}
-        for ip, s in st.lidars.items():
-            for key in ("sweeps", "points", "packets", "duplicates", "imu_packets"):
-                counters[f"{ip}.{key}"] = float(getattr(s, key))
-            drops["udp_lost"] += s.lost
-            drops["udp_late"] += s.late
-            drops["udp_malformed"] += s.malformed
-            drops["imu_lost"] += s.imu_lost
-        return NodeStatus(counters, drops)
-
-
 def livox_driver_node(ctx: NodeContext, p: Params) -> Node:
     from sensorbox.livox import DriverConfig, LidarEndpoint, Ports
 
@@ -276,7 +233,9 @@ def livox_driver_node(ctx: NodeContext, p: Params) -> Node:
         imu=p.flag("imu", True), data_type=data_type, ports=ports,
     )  # fmt: skip
     config.validate()
-    return LivoxDriverNode(ctx.name, config, ctx.publish, p.number("discovery_s", 0.0))
+    return LivoxDriverNode(
+        ctx.name, config, ctx.publish, p.number("discovery_s", 0.0), p.flag("process", True)
+    )
 
 
 # ---------------------------------------------------------------- cameras
@@ -360,7 +319,7 @@ def recorder_node(ctx: NodeContext, p: Params) -> Node:
     cfg = RecorderConfig(
         out=Path(p.text("out", "bags")), name=p.text("name", ""), topics=topics,
         split_bytes=round(p.number("split_size_mb", 0.0) * MiB), split_s=p.number("split_duration_s", 0.0),
-        duration_s=p.number("duration_s", 0.0), queue_msgs=p.integer("queue_size", 256),
+        duration_s=p.number("duration_s", 0.0), queue_msgs=p.integer("queue_size", 4096),
         queue_bytes=round(p.number("queue_mb", 512.0) * MiB),
         min_free_bytes=round(p.number("min_free_mb", 1024.0) * MiB),
         compress=p.flag("compress", True), flush_s=p.number("flush_s", 1.0),

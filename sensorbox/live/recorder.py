@@ -28,9 +28,17 @@ with `in_graph=True` (the launch runner's recorder node) the time counts from
 when every node of the graph has started (`graph_started()`), so slow starters
 such as pre-rendering cameras are not cut short; alone, from the first message.
 
-Drop counters by stage: `queue` (queue full), `disk` (after the disk guard
-stopped recording), `write` (the writer refused a message, e.g. a type unknown
-to the typestore), `stopped` (arrived after stop()).
+A full disk between two checks (or a quota, or another writer filling it)
+makes a write fail: the messages the bag could not take (those of its open
+chunk) are moved from written to dropped, the bag is cut back to its last
+complete chunk and closed, one line names the bag and the error, and the graph
+is asked to shut down with that line as its error. `written` therefore always
+counts what a reader finds in the bags.
+
+Drop counters by stage: `queue` (queue full), `disk` (disk full: after the disk
+guard stopped recording, or refused by a full disk), `write` (the writer refused
+a message, e.g. a type unknown to the typestore, or an I/O error other than a
+full disk), `stopped` (arrived after stop()).
 """
 
 from __future__ import annotations
@@ -48,7 +56,7 @@ from pathlib import Path
 from typing import Any
 
 from sensorbox.errors import RecorderError
-from sensorbox.live.bagwriter import BagWriter
+from sensorbox.live.bagwriter import NO_SPACE, BagWriteError, BagWriter
 from sensorbox.live.bus import PRIORITY_SINK, NodeStatus, Shutdown
 
 log = logging.getLogger(__name__)
@@ -80,7 +88,7 @@ class RecorderConfig:
     split_bytes: int = 0  # start the next bag once the mcap file is this large
     split_s: float = 0.0  # start the next bag after this much receive time
     duration_s: float = 0.0  # ask the graph to stop after recording this long
-    queue_msgs: int = 256  # per topic
+    queue_msgs: int = 4096  # per topic: 20 s of a 200 Hz IMU while the writer is starved
     queue_bytes: int = 512 * MiB  # per topic
     min_free_bytes: int = 1024 * MiB  # stop before the disk has less than this free
     compress: bool = True  # zstd mcap chunks
@@ -167,6 +175,7 @@ class Recorder:
         self._bag_mcap: Path | None = None
         self.files: list[Path] = []
         self.disk_full = False
+        self._halted = False  # recording stopped for good (disk full, a failed write)
         self.disk_free = -1
         self.error: str | None = None
         self._first_write: float | None = None  # monotonic time of the first message written
@@ -296,8 +305,11 @@ class Recorder:
                 if now >= next_flush:
                     next_flush = now + self.cfg.flush_s
                     if self._bag is not None:
-                        self._bag.flush()
-                        self._flushed_total = self._written_total
+                        try:
+                            self._bag.flush()
+                            self._flushed_total = self._written_total
+                        except BagWriteError as err:
+                            self._write_failed(err)
                 if item is None and self._stopping:
                     with self._lock:
                         if not self._order:
@@ -314,8 +326,11 @@ class Recorder:
 
     def _write(self, topic: str, recv_ns: int, msgtype: str, raw: bytes) -> None:
         c = self.topics[topic]
-        if self.disk_full:
-            c.disk_drops += 1
+        if self._halted:
+            if self.disk_full:
+                c.disk_drops += 1
+            else:
+                c.write_drops += 1
             return
         if c.msgtype != msgtype:
             c.write_drops += 1
@@ -326,7 +341,14 @@ class Recorder:
             self._close_bag()
             bag = None
         if bag is None:
-            bag = self._open_bag(recv_ns)
+            try:
+                bag = self._open_bag(recv_ns)
+            except BagWriteError as err:
+                err.lost[topic] = (err.lost.get(topic, (0, 0))[0] + 1, 0)  # this message, never counted
+                c.written += 1
+                self._written_total += 1
+                self._write_failed(err)
+                return
         if topic not in bag.counts:
             try:
                 bag.add(topic, msgtype)
@@ -334,15 +356,38 @@ class Recorder:
                 c.write_drops += 1
                 log.error("%s: cannot record %s (%s): %s", self.name, topic, msgtype, err)
                 return
-        bag.write(topic, recv_ns, raw)
         if self._first_write is None:
             self._first_write = self._monotonic()
         if not c.written:
             c.first_ns = recv_ns
         c.last_ns = recv_ns
-        c.written += 1
+        c.written += 1  # taken back by _uncount if the bag refuses it
         c.bytes += len(raw)
         self._written_total += 1
+        try:
+            bag.write(topic, recv_ns, raw)
+        except BagWriteError as err:
+            self._write_failed(err)
+
+    def _write_failed(self, err: BagWriteError) -> None:
+        """The bag refused bytes (disk full): what it lost becomes dropped, recording stops, the bag
+        is closed (cut back to its last complete chunk), and the graph is asked to shut down."""
+        self._uncount(err)
+        self.error = f"{self.name}: {err}"
+        log.error("%s; recording stopped", self.error)
+        self._stop_recording(f"{self.error}; recording stopped", error=True, no_space=err.no_space)
+
+    def _uncount(self, err: BagWriteError) -> None:
+        """Messages counted as written that the bag does not hold: dropped at the disk (or write) stage."""
+        for topic, (n, size) in err.lost.items():
+            c = self.topics[topic]
+            c.written -= n
+            c.bytes -= size
+            self._written_total -= n
+            if err.no_space:
+                c.disk_drops += n
+            else:
+                c.write_drops += n
 
     def _should_split(self, recv_ns: int) -> bool:
         cfg = self.cfg
@@ -362,20 +407,31 @@ class Recorder:
         path = self._bag_dir(self._bag_index)
         self._bag_index += 1
         bag = BagWriter(path, "mcap", compress=self.cfg.compress, in_place=True)
-        bag.__enter__()
-        bag.flush()  # the mcap magic and header reach the file now: even an early kill leaves an mcap
+        try:
+            bag.__enter__()
+        except OSError as err:
+            raise BagWriteError(
+                f"{path}: cannot create the bag: {err.strerror or err}", {}, err.errno in NO_SPACE
+            ) from None
         # topics seen before this split are declared again, so every bag is self-contained
         self._bag, self._bag_start_ns = bag, recv_ns
         self._bag_mcap = path / f"{path.name}.mcap"
         self.files.append(path)
+        bag.flush()  # the mcap magic and header reach the file now: even an early kill leaves an mcap
         log.info("%s: recording into %s", self.name, path)
         return bag
 
     def _close_bag(self) -> None:
         bag, self._bag, self._bag_mcap = self._bag, None, None
-        if bag is not None:
+        if bag is None:
+            return
+        try:
             bag.__exit__(None, None, None)
-            self._flushed_total = self._written_total
+        except BagWriteError as err:  # no room left for the summary: the complete chunks stay
+            self._uncount(err)
+            self.error = self.error or f"{self.name}: {err}"
+            log.error("%s: %s", self.name, err)
+        self._flushed_total = self._written_total
 
     def _check_disk(self) -> None:
         try:
@@ -384,22 +440,32 @@ class Recorder:
             log.warning("%s: cannot read free space of %s: %s", self.name, self.cfg.out, err)
             return
         if self.disk_free < self.cfg.min_free_bytes and not self.disk_full:
-            self.disk_full = True
-            with self._lock:
-                self._accepting = False
-                for topic, q in self._queues.items():
-                    self.topics[topic].disk_drops += len(q)
-                    self.topics[topic].queued_bytes = 0
-                    q.clear()
-                self._order.clear()
-            self._close_bag()
             reason = (
                 f"{self.name}: disk free {self.disk_free / MiB:.0f} MiB below min_free "
                 f"{self.cfg.min_free_bytes / MiB:.0f} MiB; recording stopped, bag closed"
             )
             log.warning(reason)
-            if self._shutdown is not None:
-                self._shutdown.request(reason)
+            self._stop_recording(reason)
+
+    def _stop_recording(self, reason: str, error: bool = False, no_space: bool = True) -> None:
+        """Refuse what arrives from now on, drop (and count) what is queued, close the bag, and
+        ask the graph to shut down."""
+        self.disk_full = self.disk_full or no_space
+        self._halted = True
+        with self._lock:
+            self._accepting = False
+            for topic, q in self._queues.items():
+                c = self.topics[topic]
+                if no_space:
+                    c.disk_drops += len(q)
+                else:
+                    c.write_drops += len(q)
+                c.queued_bytes = 0
+                q.clear()
+            self._order.clear()
+        self._close_bag()
+        if self._shutdown is not None:
+            self._shutdown.request(reason, error=error)
 
     def _check_duration(self, now: float) -> None:
         d = self.cfg.duration_s

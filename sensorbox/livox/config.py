@@ -83,22 +83,22 @@ class LidarStats:
     malformed_by_reason: dict[str, int] = field(default_factory=dict)
     imu_packets: int = 0
     imu_lost: int = 0
-    imu_duplicates: int = 0  # IMU datagrams whose udp_cnt was seen already (or too old to tell), dropped
+    imu_duplicates: int = 0  # IMU datagrams whose udp_cnt was seen already, dropped
     point_datagrams: int = 0  # every datagram taken from this lidar's point port, whatever became of it
     imu_datagrams: int = 0  # every datagram taken from this lidar's IMU port
-    stale: int = 0  # point packets whose udp_cnt was too old to tell from a duplicate, dropped
     sweeps: int = 0  # published
     unsynced: bool | None = None  # True while packets arrive with time_type 0 (host-clock stamps)
     time_type: int | None = None  # of the newest packet
-    time_jumps: int = 0  # framing restarts after a jump of the packet clock
-    counter_resets: int = 0  # udp_cnt jumped far backwards (lidar restarted): counting restarted
+    time_jumps: int = 0  # the packet clock leapt against the arrival clock (> 1 s): framing restarted
+    counter_jumps: int = 0  # udp_cnt leapt where no real gap could be: counted here, not as lost (kept)
+    imu_counter_jumps: int = 0  # the same on the IMU port
     pushes: int = 0  # 0x0102 status pushes received
     work_state: int | None = None  # key 0x8006 of the newest push
 
     def unaccounted_point_datagrams(self) -> int:
-        """point_datagrams minus every outcome (kept, duplicate, stale, late, malformed): 0 when balanced."""
+        """point_datagrams minus every outcome (kept, duplicate, late, malformed): 0 when balanced."""
         malformed = sum(n for r, n in self.malformed_by_reason.items() if r in packets.REJECT_REASONS)
-        return self.point_datagrams - (self.packets + self.duplicates + self.stale + self.late + malformed)
+        return self.point_datagrams - (self.packets + self.duplicates + self.late + malformed)
 
     def unaccounted_imu_datagrams(self) -> int:
         """imu_datagrams minus every outcome (kept, duplicate, malformed): 0 when the books balance."""

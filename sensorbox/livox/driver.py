@@ -17,7 +17,9 @@ What it does, in the order livox_ros_driver2 + Livox-SDK2 do it (notes/livox.md)
    Only the configured lidars' (IP, port) are accepted; anything else is counted
    as foreign. Malformed, short or oversized datagrams are counted by reason and
    dropped. udp_cnt is unwrapped (16 bits) per lidar to count lost, duplicate
-   (dropped) and reordered packets.
+   (dropped) and reordered packets; a counter leap no real gap explains (more
+   packets than the elapsed time allows) is a counted jump, not loss
+   (`sensorbox.livox.tracking.SeqTracker`).
 4. Point time: packet timestamp when time_type is 1/2 (PTP/GPS), otherwise the
    host clock at reception (the kernel's SO_TIMESTAMPNS arrival time on Linux;
    the lidar is then flagged unsynced); point i adds
@@ -374,13 +376,13 @@ class Mid360Driver:
                 lidar.malformed("imu")
             log.debug("lidar %s: bad IMU datagram: %s", src[0], err)
             return
+        stamp = pkt.timestamp_ns if pkt.time_type != packets.TIME_TYPE_NO_SYNC else now_ns
         with self._lock:
-            if lidar.imu_seq.add(pkt.udp_cnt) is None:  # duplicate
+            if lidar.imu_seq.add(pkt.udp_cnt, stamp, now_ns) is None:  # duplicate
                 return
             lidar.stats.imu_packets += 1
         if not self.config.imu:
             return
-        stamp = pkt.timestamp_ns if pkt.time_type != packets.TIME_TYPE_NO_SYNC else now_ns
         raw_msg = messages.imu_msg(stamp, pkt.gyro_rad_s, pkt.acc_g, self.config.ros_version)
         self._emit(lidar.imu_topic, IMU_TYPE, stamp, raw_msg)
 

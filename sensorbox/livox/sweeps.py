@@ -10,6 +10,7 @@ point's time.
 
 from __future__ import annotations
 
+import itertools
 import threading
 from collections.abc import Callable, Iterable
 from typing import Any
@@ -24,7 +25,6 @@ from sensorbox.livox import packets
 from sensorbox.livox.config import DriverConfig
 from sensorbox.livox.tracking import Chunk, LidarState, to_metres
 
-TIME_JUMP_NS = 1_000_000_000  # a packet this far from the newest one restarts framing (sync gained/lost)
 Emit = Callable[[str, str, int, bytes], None]
 
 
@@ -40,28 +40,42 @@ class SweepAssembler:
         self._emit = emit
 
     def add(self, lidar: LidarState, data_type: int, hdr: Structured, pts: Structured, recv_ns: I64) -> None:
-        cfg = self.config
+        """Packets of one lidar in arrival order: counted, cut where the packet clock jumps, framed."""
+        synced = hdr["time_type"] != packets.TIME_TYPE_NO_SYNC
+        pkt_ns = np.where(synced, hdr["timestamp"].astype(np.int64), recv_ns)
         with self._lock:
-            seqs = [lidar.points_seq.add(c) for c in hdr["udp_cnt"].tolist()]
+            tracker, seqs, leapt = lidar.points_seq, [], []
+            for c, t, w in zip(hdr["udp_cnt"].tolist(), pkt_ns.tolist(), recv_ns.tolist(), strict=True):
+                seqs.append(tracker.add(c, t, w))
+                leapt.append(tracker.last_leapt)
             keep = np.array([q is not None for q in seqs], bool)
             seq = np.array([q for q in seqs if q is not None], np.int64)
             time_type = int(hdr["time_type"][-1])
             lidar.stats.time_type = time_type
             lidar.stats.unsynced = time_type == packets.TIME_TYPE_NO_SYNC
         if not keep.all():
-            hdr, pts, recv_ns = hdr[keep], pts[keep], recv_ns[keep]
-        n_pk, dot_num = pts.shape
-        if n_pk == 0:
+            hdr, pts, pkt_ns = hdr[keep], pts[keep], pkt_ns[keep]
+        if len(pts) == 0:
             return
         lidar.last_packet_wall = self._clock()
-        synced = hdr["time_type"] != packets.TIME_TYPE_NO_SYNC
-        pkt_ns = np.where(synced, hdr["timestamp"].astype(np.int64), recv_ns)
-        if lidar.newest_ns is not None and np.abs(pkt_ns - lidar.newest_ns).max() > TIME_JUMP_NS:
-            self.publish_open(lidar)  # sync gained or lost: the clocks differ, start framing afresh
-            lidar.published_key = None
-            lidar.newest_ns = None
-            with self._lock:
-                lidar.stats.time_jumps += 1
+        # where the packet clock leapt (SeqTracker: sync gained or lost, a bad sync source, a stray
+        # datagram) framing restarts; nothing is dropped
+        cuts = np.flatnonzero(np.array(leapt, bool)[keep]).tolist()
+        for a, b in itertools.pairwise([0, *[c for c in cuts if c > 0], len(pts)]):
+            if a in cuts:
+                self.publish_open(lidar)
+                lidar.published_key = None
+                lidar.newest_ns = None
+                with self._lock:
+                    lidar.stats.time_jumps += 1
+            self._frame(lidar, data_type, hdr[a:b], pts[a:b], seq[a:b], pkt_ns[a:b])
+
+    def _frame(
+        self, lidar: LidarState, data_type: int, hdr: Structured, pts: Structured, seq: I64, pkt_ns: I64
+    ) -> None:
+        """Decode packets of one clock into their sweeps; publish the sweeps now complete."""
+        cfg = self.config
+        n_pk, dot_num = pts.shape
         stamps = packets.point_times_ns(pkt_ns, hdr["time_interval"], hdr["dot_num"], dot_num)
         xyz = to_metres(data_type, packets.native_xyz(data_type, pts), lidar.endpoint.extrinsic).astype(
             np.float32

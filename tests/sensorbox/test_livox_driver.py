@@ -641,3 +641,84 @@ def test_a_data_port_taken_by_another_driver_is_a_clear_error() -> None:
             udp_socket("127.0.0.1", port)
     finally:
         first.close()
+
+
+def test_a_spoofed_counter_or_clock_jump_is_a_counted_anomaly_not_loss(sim):
+    """Issue 20, class 7: two datagrams from the lidar's own address and port, mid-sweep, between
+    packets N-1 and N: one with udp_cnt 27,546 ahead and its clock 1000 s ahead, one with udp_cnt
+    20,000 behind and a clock that fits the stream. Both are kept and counted as jumps; nothing is
+    counted lost or late, no real packet is dropped, and every real point is published once, in order."""
+    _, sweeps = sim
+    items = sweeps[0][:8]
+    ports = fresh_ports()
+    ip, topic = "127.0.0.2", "/livox/lidar_127_0_0_2"
+    truth = np.concatenate([sw.points for sw in items])
+    packet_ns = np.concatenate([sw.timebase_ns + sw.points["offset_time"].astype(np.int64) for sw in items])[
+        ::96
+    ]
+    n = sum(len(sw.points) // 96 for sw in items[:3]) + 50  # mid-sweep
+    marker = 0b1100_0000  # tag bits 6-7 (reserved): the simulator never sets them
+    body = packets.quantise_points(
+        1, np.full((2, 96, 3), 1.5), np.zeros((2, 96), np.uint8), np.full((2, 96), marker, np.uint8)
+    )
+    t_prev, cnt_prev = int(packet_ns[n - 1]), n - 1
+    spoofed = packets.build_point_packets(
+        1, packets.TIME_TYPE_PTP, np.array([t_prev + 1000 * 10**9, t_prev + 240_000]),
+        np.array([cnt_prev + 27_546, cnt_prev - 20_000]) & 0xFFFF, body,
+    )  # fmt: skip
+    released = threading.Event()
+    spoof = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    spoof.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+
+    def meddle(driver: Mid360Driver) -> None:
+        wait_for(lambda: driver.received(ip)[0] == n, f"the first {n} packets")
+        spoof.bind((ip, ports.lidar_point))
+        for row in spoofed:
+            spoof.sendto(row.tobytes(), (HOST, ports.host_point))
+        wait_for(lambda: driver.received(ip)[0] == n + 2, "the spoofed datagrams")
+        released.set()
+
+    emu = Mid360Emulator(ip, SweepList(items), ports=ports, rate=RATE, window=WINDOW)
+    point_credit = None
+
+    def credit(kind: str) -> int:
+        """Flow control that holds point packet N until both spoofed datagrams were taken."""
+        assert point_credit is not None
+        if kind == "point" and emu.counters.point_datagrams >= n and not released.is_set():
+            return -(10**9)
+        return point_credit(kind)
+
+    emu.credit = credit
+    cfg = config(ports, ip)
+    try:
+        sink = Sink()
+        driver = Mid360Driver(cfg, sink, clock=ManualClock())
+        point_credit = credit_from(driver.received, ip)
+        emu.start()
+        try:
+            with driver:
+                meddle(driver)
+                assert emu.wait_done(HANG_S)
+                wait_for(lambda: settled(driver, [emu], {ip: 2}), "the driver to take every datagram")
+        finally:
+            emu.stop()
+    finally:
+        spoof.close()
+    s = driver.stats().lidars[ip]
+    assert (s.lost, s.late, s.duplicates, s.malformed) == (0, 0, 0, 0)
+    assert (s.counter_jumps, s.time_jumps) == (3, 2)  # ahead, back (to the 2nd), ahead again; clock out, back
+    assert s.packets == len(truth) // 96 + 2 and s.unaccounted_point_datagrams() == 0
+    got = [decode_custom_msg(m[3], 2) for m in sink.on(topic)]
+    # the real sweep cut open by the jump is published in two parts; the jumped-ahead datagram alone
+    assert len(got) == len(items) + 2
+    ahead = [g for g in got if g.timebase_ns == t_prev + 1000 * 10**9]
+    assert len(ahead) == 1 and (ahead[0].points["tag"] == marker).all() and len(ahead[0].points) == 96
+    points = np.concatenate([g.points for g in got])
+    stamps = np.concatenate([g.point_stamps_ns for g in got])
+    real = points["tag"] != marker
+    assert (~real).sum() == 192
+    np.testing.assert_array_equal(xyz_of(points[real]), quantised_m(truth))
+    np.testing.assert_array_equal(
+        stamps[real],
+        np.concatenate([sw.timebase_ns + sw.points["offset_time"].astype(np.int64) for sw in items]),
+    )

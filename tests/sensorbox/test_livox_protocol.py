@@ -292,5 +292,36 @@ def test_seq_tracker_reorder_and_duplicates():
 
 def test_seq_tracker_restarts_after_a_counter_reset():
     t = _track([*range(30_000, 30_100), *range(0, 50)])
-    assert t.resets == 1 and t.lost == 0
-    assert t.stale == SeqTracker.RESET_RUN - 1
+    assert (t.jumps, t.lost, t.duplicates, t.unique) == (1, 0, 0, 150)  # every packet kept
+
+
+def test_seq_tracker_tells_a_counter_jump_from_loss_by_the_time_that_passed():
+    """480 us between packets: 27,546 missing counters 480 us later is a jump (kept, not lost). The
+    packet clock decides: a gap it covers is loss, even when the packets arrived in a burst; a gap it
+    does not cover is a counter jump, and a packet clock that leapt against the arrival clock as well
+    is a time jump (`last_leapt`). Past half the counter range a gap is unwrapped."""
+    t = SeqTracker()
+    for k in range(10):
+        t.add(k, 480_000 * k, 480_000 * k + 7)
+    t.add(9 + 27_546, 480_000 * 10, 480_000 * 10 + 7)  # a spoofed or corrupted counter
+    t.add(10, 480_000 * 11, 480_000 * 11 + 7)  # the stream goes on: a jump back
+    assert (t.jumps, t.lost, t.unique, t.highest - t.lowest) == (2, 0, 12, 11)
+    for clocks, jumps, lost, leapt in (
+        ((13_222_080_000, 13_222_080_000 + 7), 0, 27_546, False),  # 13.2 s without packets
+        ((13_222_080_000, 480_000), 0, 27_546, False),  # the same gap in a burst (a sender catching up)
+        ((480_000, 13_222_080_000), 1, 0, False),  # the packet clock saw 480 us pass: the counter leapt
+        ((1000 * 10**9, 480_000), 1, 0, True),  # both leapt
+    ):
+        t = SeqTracker()
+        t.add(0, 0, 0)
+        t.add(27_547, *clocks)
+        assert (t.jumps, t.lost, t.last_leapt) == (jumps, lost, leapt), clocks
+    t = SeqTracker()
+    t.add(0, 0, 7)
+    t.add(1, 1000 * 10**9, 480_007)  # the packet clock alone leapt: a time jump, no counter jump
+    assert (t.jumps, t.lost, t.last_leapt) == (0, 0, True)
+    t = SeqTracker()
+    t.add(0, 0, 7)
+    t.add(40_000 & 0xFFFF, 480_000 * 40_000, 480_000 * 40_000 + 7)  # 19.2 s: past half the counter range
+    t.add((40_000 + 65_536 + 5) & 0xFFFF, 480_000 * (40_005 + 65_536), 480_000 * (40_005 + 65_536) + 7)
+    assert (t.jumps, t.lost, t.highest) == (0, 39_999 + 65_536 + 4, 40_005 + 65_536)

@@ -5,8 +5,11 @@ Bags are read back with `ingest.bags.reader.open_bags` (what `sensorbox ingest` 
 
 from __future__ import annotations
 
+import errno
+import io
 import itertools
 import math
+import os
 import signal
 import subprocess
 import sys
@@ -326,3 +329,73 @@ def test_sigkill_loses_at_most_the_open_chunk(tmp_path, flush_s, exact):
         assert len(got) == n
     else:
         assert n - per_chunk <= len(got) < n
+
+
+class SmallDisk:
+    """A file system of `capacity` bytes for the bag's mcap files: a write past it writes what fits and
+    fails with ENOSPC, as a full disk does. `sticky`: once full it stays full (another writer takes
+    whatever is freed), so not even the summary fits after the bag is cut back."""
+
+    def __init__(self, capacity: int, sticky: bool) -> None:
+        self.capacity, self.sticky, self.full = capacity, sticky, False
+
+    def open(self, path: Path, mode: str) -> io.BufferedWriter:
+        disk = self
+
+        class Raw(io.FileIO):
+            def write(self, b) -> int:  # type: ignore[override]
+                room = 0 if disk.full and disk.sticky else disk.capacity - os.fstat(self.fileno()).st_size
+                if room <= 0 and len(b):
+                    disk.full = True
+                    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+                return super().write(bytes(b)[:room])
+
+        return io.BufferedWriter(Raw(str(path), mode.replace("b", "")))
+
+
+@pytest.mark.parametrize("sticky", [False, True], ids=["summary-fits", "stays-full"])
+def test_a_disk_that_fills_between_checks_loses_nothing_silently(tmp_path, monkeypatch, caplog, sticky):
+    """Issue 20, class 9: the disk fills between two free-space checks. `written` is exactly what the
+    bag holds, the rest is dropped at stage "disk", one error line (no traceback) names the bag, the
+    graph is asked to stop, and the bag is closed readable (cut back to its last complete chunk)."""
+    disk = SmallDisk(capacity=int(2.5 * (1 << 20)), sticky=sticky)
+    real_open = Path.open
+
+    def open_(self: Path, mode: str = "r", *args, **kw):
+        writes = self.suffix == ".mcap" and any(c in mode for c in "xwa+")
+        return disk.open(self, mode) if writes else real_open(self, mode, *args, **kw)
+
+    monkeypatch.setattr(Path, "open", open_)
+    sd = Shutdown()
+    rec = Recorder(RecorderConfig(tmp_path, name="full"), shutdown=sd, disk_free=lambda _p: 100 << 30)
+    rec.start()
+    sent = []
+    for k in range(200):  # 4 MB of incompressible images (chunks of 1 MiB) and small strings
+        for topic, msgtype, raw in (
+            ("/img", IMAGE, blob_msg(k, 20_000)),
+            ("/chatter", STRING, string_msg(f"m{k}")),
+        ):
+            if rec.enqueue(topic, msgtype, 0, raw):  # refused (and counted) once recording stopped
+                sent.append((topic, raw))
+    assert sd.event.wait(HANG_S)
+    rec.stop()
+    st = rec.status()
+    bag = tmp_path / "full_000"
+    got = read_all(bag, salvage=sticky)
+    assert [(m.topic, m.raw) for m in got] == sent[: len(got)]  # what it holds is a prefix of what came
+    assert st.written == {t: sum(m.topic == t for m in got) for t in ("/img", "/chatter")}
+    assert 0 < len(got) < 400 and st.drops["disk"] == 400 - len(got)  # queued, in flight and refused
+    assert {t: c.received for t, c in rec.topics.items()} == {"/img": 200, "/chatter": 200}
+    assert st.counters["bytes_written"] == sum(len(m.raw) for m in got)
+    errors = [r for r in caplog.records if r.levelname == "ERROR"]
+    assert all(r.exc_info is None for r in caplog.records)  # no traceback
+    assert f"{bag}" in errors[0].getMessage() and "No space left on device" in errors[0].getMessage()
+    assert sd.error is not None and "No space left on device" in sd.error
+    if sticky:  # no room for the summary: the complete chunks stay, nothing else
+        assert len(errors) == 2 and "--salvage" in errors[1].getMessage()
+        assert sorted(p.name for p in bag.iterdir()) == ["full_000.mcap"]
+        with pytest.raises(BagError):
+            read_all(bag)
+    else:
+        assert len(errors) == 1
+        assert sorted(p.name for p in bag.iterdir()) == ["full_000.mcap", "metadata.yaml"]
