@@ -3,7 +3,9 @@
 The fingerprint (rectification, sizes, conventions, the configuration as
 asked, versions) must match for a rerun or a second recording to write into
 the same folder. `sources` lists every recording with its sample-id range and
-the ground truth chosen for it (method, decision, window, trajectory).
+the ground truth chosen for it (method, decision, window, trajectory) and,
+when `--salvage` skipped corrupt chunks, the messages lost per topic and one
+line per chunk (`lost_in_corrupt_chunks`).
 """
 
 from __future__ import annotations
@@ -103,6 +105,10 @@ def write_dataset_yaml(
         "window_ms": cfg.lidar_window_ns / 1e6,
         "trajectory": run.trajectory.as_dict() if run.trajectory else None,
     }
+    if run.lost_chunks:
+        mine["lost_in_corrupt_chunks"] = {"messages": run.lost, "chunks": run.lost_chunks}
+    else:
+        mine.pop("lost_in_corrupt_chunks", None)
     doc["sources"] = sources
     write_atomic(
         path,
