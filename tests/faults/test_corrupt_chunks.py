@@ -14,6 +14,7 @@ import json
 import shutil
 import sys
 from collections import Counter
+from itertools import pairwise
 from pathlib import Path
 
 import pytest
@@ -126,7 +127,7 @@ def test_ros1_corrupt_chunk_is_named_or_skipped_and_counted(tmp_path: Path) -> N
         topics = {c.id: c.topic for c in reader.connections}
         infos = sorted(reader.chunk_infos, key=lambda i: i.pos)
         everything = [(c.topic, t, bytes(raw)) for c, t, raw in reader.messages()]
-    nxt = {a.pos: b.pos for a, b in zip(infos, infos[1:], strict=False)}
+    nxt = {a.pos: b.pos for a, b in pairwise(infos)}
     hit_infos = [i for i in infos if i.pos < hit[1] and hit[0] < nxt.get(i.pos, 1 << 62)]
     assert len(hit_infos) == 1
     info = hit_infos[0]
