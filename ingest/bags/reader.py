@@ -13,6 +13,8 @@ Public API:
 - `BagSet.topics() -> dict[str, TopicSummary]`: type and message count per topic.
 - `BagSet.messages(topics=None, start_ns=None, stop_ns=None) -> Iterator[RawMessage]`:
   lazy, merged in log-time order; `stop_ns` is exclusive.
+- `BagSet.lost_chunks`, `BagSet.lost_counts()`: corrupt chunks skipped
+  (salvage) and their messages per topic (`ingest.bags.chunks`).
 - `BagSet.close()`, or use the `BagSet` as a context manager.
 - `salvage_mcap(path, topics=None) -> Iterator[RawMessage]`: every intact
   message of a truncated, unclosed or damaged MCAP file, in file order
@@ -36,7 +38,10 @@ refused topic is set aside like an unparsable one rather than stopping the read.
 
 Every failure to open or read a bag raises `BagError` naming the path, with a
 hint for the common cases (truncated MCAP: rerun with --salvage; unindexed
-ROS 1 bag: rosbag reindex).
+ROS 1 bag: rosbag reindex). A corrupt chunk (failed CRC or decompression)
+raises `CorruptChunkError` naming the file, the chunk's log-time range and its
+messages per topic; with `salvage=True` it is skipped, logged once and listed
+in `lost_chunks` (`ingest.bags.chunks` says what each format lets us check).
 """
 
 from __future__ import annotations
