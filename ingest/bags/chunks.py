@@ -138,7 +138,7 @@ class ChunkGuard:
 class CheckedMcapReader(McapReader):
     """rosbags' MCAP storage whose indexed reads report a corrupt chunk to `guard` instead of aborting."""
 
-    guard: ChunkGuard = ChunkGuard()
+    guard: ChunkGuard = ChunkGuard()  # raises; `guard_readers` gives each reader the run's guard
 
     def _lost(self, chunk: ChunkInfo, err: BaseException) -> LostChunk:
         counts: dict[str, int] = {}
@@ -194,7 +194,7 @@ class CheckedMcapReader(McapReader):
 class CheckedRos1Reader(Ros1Reader):
     """rosbags' ROS 1 reader that reports a chunk that fails to decompress to `guard` and skips it."""
 
-    guard: ChunkGuard = ChunkGuard()
+    guard: ChunkGuard = ChunkGuard()  # raises; `guard_readers` gives each reader the run's guard
 
     def _lost(self, pos: int, err: BaseException) -> LostChunk:
         info = next(i for i in self.chunk_infos if i.pos == pos)
