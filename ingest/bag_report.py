@@ -9,6 +9,7 @@ from typing import Any
 
 import yaml
 
+from ingest.bags.chunks import LostChunk
 from ingest.bags.decode import RosVersion
 from ingest.errors import BagError
 
@@ -42,6 +43,8 @@ class TopicStats:
     log_offset_max_ms: float | None = None
     undecodable: int = 0
     error: str | None = None
+    lost: int = 0
+    """Messages in corrupt chunks skipped by `--salvage` (`BagReport.lost_chunks`), not in `count`."""
 
 
 @dataclass(frozen=True)
@@ -162,6 +165,8 @@ class BagReport:
     mapping: TopicMapping
     rig_problems: tuple[RigProblem, ...] | None = None
     """None when no rig was given; empty when the rig matches the bags."""
+    lost_chunks: tuple[LostChunk, ...] = ()
+    """Corrupt chunks skipped (`--salvage`; without it a corrupt chunk is an error)."""
 
     @property
     def duration_s(self) -> float:

@@ -34,6 +34,10 @@ What is measured (all times from header stamps unless said otherwise):
   `lidar_<ip>`/`imu_<ip>`; a LiDAR whose IMU's mean specific force (the
   reaction to gravity) points along +z is named `lidar_top` (upright), along
   -z `lidar_bottom` (mounted upside down); otherwise LiDARs are named by IP.
+- Corrupt chunks (a CRC mismatch, data that does not decompress): an error
+  naming the bag, the chunk's log-time range and its messages per topic;
+  with `salvage` they are skipped, listed (`BagReport.lost_chunks`) and their
+  messages counted per topic (`TopicStats.lost`).
 - With a rig: its camera, LiDAR and IMU topics missing from the bags or of
   the wrong message type (`RigProblem`).
 """
@@ -367,8 +371,10 @@ def inspect_bags(
     complete chunks. With `rig`, the stereo pair is the rig's upper/lower
     cameras and `rig_problems` lists its topics the bags lack or carry with
     the wrong type. `progress(done, total)` is called while reading.
-    Raises `BagError` when a bag cannot be opened or read; a topic whose type
-    cannot be decoded safely is reported (`TopicStats.error`), not read.
+    Raises `BagError` when a bag cannot be opened or read (`CorruptChunkError`
+    at a corrupt chunk unless `salvage`, which skips it and reports it in
+    `lost_chunks` and `TopicStats.lost`); a topic whose type cannot be decoded
+    safely is reported (`TopicStats.error`), not read.
     """
     path_list = [Path(paths)] if isinstance(paths, str | Path) else [Path(p) for p in paths]
     with open_bags(path_list, salvage=salvage) as bag:
@@ -381,11 +387,11 @@ def inspect_bags(
         total = sum(summary[t].count for t in readable)
         if readable:
             _read(bag, readable, sweeps, imus, total, progress)
-        salvaged = bag.salvaged
+        salvaged, lost_chunks, lost = bag.salvaged, bag.lost_chunks, bag.lost_counts()
     for topic, acc in accs.items():
         if topic not in readable:
             acc.count = summary[topic].count  # refused: the bag's own count
-    stats = tuple(_topic_stats(t, a) for t, a in accs.items())
+    stats = tuple(dataclasses.replace(_topic_stats(t, a), lost=lost.get(t, 0)) for t, a in accs.items())
     types = {t.topic: t.msgtype for t in stats}
     mapping = suggest_mapping(stats, _imu_up_z(imus))
     pair = stereo_topics(rig, mapping, types)
@@ -403,4 +409,5 @@ def inspect_bags(
         lidars=tuple(_lidar_coverage(t, a) for t, a in sweeps.items()),
         mapping=mapping,
         rig_problems=check_rig(rig, types) if rig is not None else None,
+        lost_chunks=lost_chunks,
     )

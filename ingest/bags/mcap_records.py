@@ -13,8 +13,12 @@ has an opcode the MCAP specification does not allow (0x00, 0x10..0x7F) or a
 body that does not parse is damage: the walk skips ahead to the next
 intact Chunk record (found by its layout: known compression, byte lengths
 that add up, and its CRC when the writer set one) and goes on from there.
-A chunk that fails to decompress or its CRC is skipped. Files without
-chunks cannot be resynchronised, so damage in one ends the read there.
+A chunk that fails to decompress or its CRC is skipped and reported
+(`SalvageReport.lost_chunks`) with its log-time range (its own header, or the
+summary's chunk index) and its message count per topic (the chunk index, or
+the Message Index records that follow it); so is every chunk the intact
+summary's index names whose records were not read. Files without chunks
+cannot be resynchronised, so damage in one ends the read there.
 Nothing here raises for damage; `report` says what was lost.
 """
 
@@ -29,9 +33,11 @@ from pathlib import Path
 
 from rosbags.rosbag2.storage_mcap import decompress as decompress_chunk
 
+from ingest.bags.chunks import LostChunk
+
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 
-FOOTER, SCHEMA, CHANNEL, MESSAGE, CHUNK = 0x02, 0x03, 0x04, 0x05, 0x06
+FOOTER, SCHEMA, CHANNEL, MESSAGE, CHUNK, MESSAGE_INDEX, CHUNK_INDEX = 0x02, 0x03, 0x04, 0x05, 0x06, 0x07, 0x08
 COMPRESSIONS = ("", "zstd", "lz4")
 MAX_CHUNK_BYTES = 1 << 30
 """A chunk header claiming more uncompressed bytes than this is damaged (real chunks are MiBs)."""
@@ -65,6 +71,10 @@ class SalvageReport:
     """False when the file neither starts nor ends with the MCAP magic."""
     intact_records: int = 0
     """Schema, channel and message records and chunks read whole (0 and no magic: not MCAP)."""
+    lost_chunks: list[LostChunk] = field(default_factory=list)
+    """Chunks whose messages were lost (failed CRC/decompression, or inside a damaged byte range
+    when the summary's chunk index names them), with their time range and counts when known;
+    filled when the read has gone through the whole file."""
 
     @property
     def intact(self) -> bool:
@@ -152,9 +162,27 @@ def _resync(buf: memoryview, data: mmap.mmap, pos: int) -> int | None:
 
 
 @dataclass
+class _ChunkEntry:
+    """What is known of one chunk without its records: log-time range (ns) and messages per channel."""
+
+    start_ns: int | None
+    end_ns: int | None
+    counts: dict[int, int] = field(default_factory=dict)
+
+
+@dataclass
 class _State:
     schemas: dict[int, tuple[str, str, str]] = field(default_factory=dict)
     channels: dict[int, McapChannel] = field(default_factory=dict)
+    index: dict[int, _ChunkEntry] = field(default_factory=dict)
+    """The summary's chunk index, by chunk offset (empty without an intact summary)."""
+    read: set[int] = field(default_factory=set)
+    """Offsets of the chunks whose records were read."""
+    failed: dict[int, tuple[_ChunkEntry, str]] = field(default_factory=dict)
+    """Chunks that failed (CRC, decompression): what their header and message indexes say, and why."""
+    last_chunk: int = -1
+    first_ns: int | None = None
+    """The earliest log time seen, for times relative to the bag start."""
 
 
 def _add_schema(state: _State, body: memoryview) -> None:
@@ -211,6 +239,7 @@ def _record(
                 return None
             report.messages += 1
             report.intact_records += 1
+            state.first_ns = log_ns if state.first_ns is None else min(state.first_ns, log_ns)
             return channel, int(log_ns), bytes(body[22:])
         else:
             return None
@@ -220,10 +249,62 @@ def _record(
     return None
 
 
-def _summary_channels(buf: memoryview, state: _State) -> None:
-    """Schemas and channels from the summary section, when the file ends with an intact footer.
+def _add_chunk_index(state: _State, body: memoryview) -> None:
+    """A Chunk Index record: the chunk's time range, and its messages per channel.
 
-    Lets messages be read whose channel record sat in a damaged part of the data section.
+    The count comes from the byte length of each channel's Message Index
+    record (opcode, length, channel id, array length: 15 bytes, then 16 per
+    message), the distance between successive offsets.
+    """
+    start, end, offset, length, n = struct.unpack_from("<QQQQI", body, 0)
+    pairs = sorted((o, c) for c, o in struct.iter_unpack("<HQ", body[36 : 36 + n]))
+    (index_length,) = struct.unpack_from("<Q", body, 36 + n)
+    stops = [o for o, _ in pairs[1:]] + [offset + length + index_length]
+    counts = {c: (stop - o - 15) // 16 for (o, c), stop in zip(pairs, stops, strict=True)}
+    state.index[offset] = _ChunkEntry(start, end, {c: k for c, k in counts.items() if k > 0})
+
+
+def _chunk_failed(state: _State, pos: int, body: memoryview, err: Exception) -> None:
+    """Note a chunk whose records cannot be read; its header's time range when that parses."""
+    times = struct.unpack_from("<QQ", body, 0) if len(body) >= 16 else (None, None)
+    text = " ".join(str(err).split()).rstrip(".")
+    state.failed[pos] = (_ChunkEntry(*times), f"{type(err).__name__}: {text}" if text else type(err).__name__)
+
+
+def _note_message_index(state: _State, body: memoryview) -> None:
+    """A Message Index record after a failed chunk: how many messages of one channel it held."""
+    if state.last_chunk in state.failed and len(body) >= 6:
+        channel_id, n = struct.unpack_from("<HI", body, 0)
+        state.failed[state.last_chunk][0].counts[channel_id] = n // 16
+
+
+def _lost_chunks(path: Path, state: _State, report: SalvageReport) -> list[LostChunk]:
+    """Every chunk whose messages were not read: failed ones, and those the chunk index names that
+    lay in damaged bytes or after where the read stopped."""
+    lost = dict(state.failed)
+    for off, entry in state.index.items():
+        if off not in state.read and off not in lost:
+            where = [f"inside damaged bytes {a}..{b}" for a, b in report.damaged if a <= off < b]
+            lost[off] = (entry, where[0] if where else "not reached: " + report.end)
+    starts = [e.start_ns for e, _ in lost.values() if e.start_ns is not None]
+    first = min([*starts, *([state.first_ns] if state.first_ns is not None else [])], default=None)
+    out = []
+    for off, (entry, reason) in sorted(lost.items()):
+        known = state.index.get(off, entry)
+        counts: dict[str, int] = {}
+        for cid, n in known.counts.items():
+            topic = state.channels[cid].topic if cid in state.channels else f"channel {cid}"
+            counts[topic] = counts.get(topic, 0) + n
+        out.append(LostChunk(path, off, known.start_ns, known.end_ns, counts, reason, first))
+    return out
+
+
+def _summary_channels(buf: memoryview, state: _State) -> None:
+    """Schemas, channels and the chunk index from the summary section, when the file ends with an
+    intact footer.
+
+    Lets messages be read whose channel record sat in a damaged part of the
+    data section, and names the chunks that damage made unreadable.
     """
     footer = len(buf) - len(MCAP_MAGIC) - _HEADER - 20
     if footer <= len(MCAP_MAGIC) or bytes(buf[-len(MCAP_MAGIC) :]) != MCAP_MAGIC:
@@ -236,13 +317,15 @@ def _summary_channels(buf: memoryview, state: _State) -> None:
     while 0 < pos < footer and (frame := _frame(buf, pos)) is not None:
         if frame[0] in (SCHEMA, CHANNEL):
             _record(frame[0], frame[1], state, scratch)
+        elif frame[0] == CHUNK_INDEX:
+            with suppress(struct.error, ValueError):
+                _add_chunk_index(state, frame[1])
         pos += _HEADER + len(frame[1])
 
 
 def _walk(
-    buf: memoryview, data: mmap.mmap, report: SalvageReport
+    buf: memoryview, data: mmap.mmap, report: SalvageReport, state: _State
 ) -> Iterator[tuple[McapChannel, int, bytes]]:
-    state = _State()
     _summary_channels(buf, state)
     pos = len(MCAP_MAGIC) if bytes(buf[: len(MCAP_MAGIC)]) == MCAP_MAGIC else 0
     if pos == 0:
@@ -250,18 +333,23 @@ def _walk(
     while pos < len(buf):
         frame = _frame(buf, pos)
         if frame is not None and frame[0] == CHUNK:
+            state.last_chunk = pos
             try:
                 records = _chunk_records(frame[1])
-            except Exception:  # rosbags' decompressors raise several types on bad data
+            except Exception as err:  # rosbags' decompressors raise several types on bad data
                 report.skipped_records += 1
+                _chunk_failed(state, pos, frame[1], err)
             else:
                 report.intact_records += 1
+                state.read.add(pos)
                 yield from _inner(records, state, report)
         elif frame is not None and frame[0] == FOOTER:
             report.end = "read to the footer"
             return
         elif frame is not None and _damaged_at(buf, pos + _HEADER + len(frame[1])):
             report.skipped_records += 1
+        elif frame is not None and frame[0] == MESSAGE_INDEX:
+            _note_message_index(state, frame[1])
         elif frame is not None:
             got = _record(frame[0], frame[1], state, report)
             if got is not None:
@@ -292,8 +380,10 @@ def mcap_messages(path: Path, report: SalvageReport) -> Iterator[tuple[McapChann
             return
         data = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
     buf = memoryview(data)
+    state = _State()
     try:
-        yield from _walk(buf, data, report)
+        yield from _walk(buf, data, report, state)
+        report.lost_chunks = _lost_chunks(path, state, report)
     finally:
         buf.release()
         with suppress(BufferError):  # a caller's traceback may still pin a view; then GC closes it

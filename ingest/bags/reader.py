@@ -13,6 +13,8 @@ Public API:
 - `BagSet.topics() -> dict[str, TopicSummary]`: type and message count per topic.
 - `BagSet.messages(topics=None, start_ns=None, stop_ns=None) -> Iterator[RawMessage]`:
   lazy, merged in log-time order; `stop_ns` is exclusive.
+- `BagSet.lost_chunks`, `BagSet.lost_counts()`: corrupt chunks skipped
+  (salvage) and their messages per topic (`ingest.bags.chunks`).
 - `BagSet.close()`, or use the `BagSet` as a context manager.
 - `salvage_mcap(path, topics=None) -> Iterator[RawMessage]`: every intact
   message of a truncated, unclosed or damaged MCAP file, in file order
@@ -36,7 +38,10 @@ refused topic is set aside like an unparsable one rather than stopping the read.
 
 Every failure to open or read a bag raises `BagError` naming the path, with a
 hint for the common cases (truncated MCAP: rerun with --salvage; unindexed
-ROS 1 bag: rosbag reindex).
+ROS 1 bag: rosbag reindex). A corrupt chunk (failed CRC or decompression)
+raises `CorruptChunkError` naming the file, the chunk's log-time range and its
+messages per topic; with `salvage=True` it is skipped, logged once and listed
+in `lost_chunks` (`ingest.bags.chunks` says what each format lets us check).
 """
 
 from __future__ import annotations
@@ -53,6 +58,7 @@ from typing import Any
 from rosbags.interfaces import MessageDefinition, MessageDefinitionFormat
 
 from calibration.errors import SensorboxError
+from ingest.bags.chunks import ChunkGuard, CorruptChunkError, LostChunk, guard_readers
 from ingest.bags.decode import RosVersion
 from ingest.bags.definitions import TolerantAnyReader, check_definition
 from ingest.bags.mcap_records import MCAP_MAGIC, McapChannel, SalvageReport, mcap_messages
@@ -60,7 +66,16 @@ from ingest.bags.message import RawMessage
 from ingest.bags.rostypes import typestore
 from ingest.errors import BagError
 
-__all__ = ["BagError", "BagSet", "RawMessage", "TopicSummary", "open_bags", "salvage_mcap"]
+__all__ = [
+    "BagError",
+    "BagSet",
+    "CorruptChunkError",
+    "LostChunk",
+    "RawMessage",
+    "TopicSummary",
+    "open_bags",
+    "salvage_mcap",
+]
 
 log = logging.getLogger(__name__)
 
@@ -104,8 +119,13 @@ def _channel(mc: McapChannel) -> _Channel:
     return _Channel(mc.topic, mc.schema_name, msgdef, version, mc.message_encoding)
 
 
-def _mcap_messages(path: Path, quiet: bool = False) -> Iterator[tuple[_Channel, int, bytes]]:
-    """(channel, log_ns, data) of every intact message record of an MCAP file; logs what was lost."""
+def _mcap_messages(
+    path: Path, quiet: bool = False, lost: list[LostChunk] | None = None
+) -> Iterator[tuple[_Channel, int, bytes]]:
+    """(channel, log_ns, data) of every intact message record of an MCAP file; logs what was lost.
+
+    The chunks it lost are appended to `lost` and logged, one line each, once the file is read.
+    """
     report = SalvageReport()
     for mc, log_ns, data in mcap_messages(path, report):
         yield _channel(mc), log_ns, data
@@ -113,6 +133,14 @@ def _mcap_messages(path: Path, quiet: bool = False) -> Iterator[tuple[_Channel, 
         raise BagError(f"{path}: not an MCAP file (no MCAP magic at its start and no intact record)")
     level = logging.INFO if report.intact or quiet else logging.WARNING
     log.log(level, "%s: %s", path, report.summary())
+    for chunk in report.lost_chunks:
+        log.log(
+            logging.INFO if quiet else logging.WARNING,
+            "%s; its messages are counted as lost",
+            chunk.describe(),
+        )
+    if lost is not None:
+        lost.extend(report.lost_chunks)
 
 
 def salvage_mcap(path: str | Path, topics: Collection[str] | None = None) -> Iterator[RawMessage]:
@@ -239,10 +267,11 @@ def _explain(path: Path, err: BaseException) -> str:
     return f"{path}: cannot read bag: {type(err).__name__}: {text}"
 
 
-def _open_reader(paths: list[Path], ros_version: RosVersion) -> TolerantAnyReader:
-    """An open reader over `paths`, or `BagError` naming the path that fails."""
+def _open_reader(paths: list[Path], ros_version: RosVersion, guard: ChunkGuard) -> TolerantAnyReader:
+    """An open reader over `paths` checking chunk by chunk, or `BagError` naming the path that fails."""
     try:
         reader = TolerantAnyReader(paths, default_typestore=typestore(ros_version))
+        reader.readers = guard_readers(reader.readers, guard)
         reader.open()
     except Exception as err:  # rosbags raises its own errors, OSError, KeyError, ...
         if len(paths) == 1:
@@ -262,8 +291,9 @@ def open_bags(paths: str | Path | Sequence[str | Path], salvage: bool = False) -
     """Open one or several bags of one ROS version for reading (see the module docstring).
 
     `salvage=True` reads every MCAP file record by record (`salvage_mcap`),
-    skipping what is cut or damaged instead of raising. Raises `BagError`
-    naming the path at fault.
+    skipping what is cut or damaged instead of raising, and skips the corrupt
+    chunks of the other bags (`BagSet.lost_chunks`). Raises `BagError`
+    naming the path at fault (`CorruptChunkError` at a corrupt chunk).
     """
     items = [paths] if isinstance(paths, str | Path) else list(paths)
     if not items:
@@ -276,9 +306,10 @@ def open_bags(paths: str | Path | Sequence[str | Path], salvage: bool = False) -
         targets = {p: _salvage_targets(p) for p in bag_paths}
         salvaged = [m for p in bag_paths for m in targets[p]]
         direct = [p for p in bag_paths if not targets[p]]
-    reader = _open_reader(direct, ros_version) if direct else None
+    guard = ChunkGuard(skip=salvage)
+    reader = _open_reader(direct, ros_version, guard) if direct else None
     try:
-        return BagSet(tuple(bag_paths), ros_version, reader, salvaged)
+        return BagSet(tuple(bag_paths), ros_version, reader, salvaged, guard)
     except BaseException:
         if reader is not None:
             reader.close()
@@ -297,6 +328,7 @@ class BagSet:
         ros_version: RosVersion,
         reader: TolerantAnyReader | None,
         salvaged: list[Path],
+        guard: ChunkGuard | None = None,
     ) -> None:
         self.paths = paths
         """The paths given to `open_bags`."""
@@ -304,7 +336,9 @@ class BagSet:
         self.salvaged: tuple[Path, ...] = tuple(salvaged)
         """MCAP files read record by record (`salvage_mcap`) rather than by rosbags."""
         self._reader = reader
+        self._guard = guard or ChunkGuard()
         self._salvage_index: dict[Path, dict[_Channel, int]] = {}
+        self._salvage_lost: list[LostChunk] = []
         self.skipped: dict[str, str] = {}
         """Topics left out when reading all topics -> why (one line): an embedded definition
         that cannot be parsed, or, in salvaged files, any reason a topic cannot be decoded safely."""
@@ -348,10 +382,29 @@ class BagSet:
         """Message count per channel of a salvaged file (one full read, cached)."""
         if path not in self._salvage_index:
             counts: dict[_Channel, int] = {}
-            for channel, _, _ in _mcap_messages(path):  # logs what salvage lost, once
+            for channel, _, _ in _mcap_messages(path, lost=self._salvage_lost):  # logs what it lost, once
                 counts[channel] = counts.get(channel, 0) + 1
             self._salvage_index[path] = counts
         return self._salvage_index[path]
+
+    @property
+    def lost_chunks(self) -> tuple[LostChunk, ...]:
+        """Corrupt chunks skipped so far (`salvage=True`), by file and offset.
+
+        Those of salvaged MCAP files are all known once the bags are open;
+        those of bags read by rosbags are found while reading, so the list
+        is complete only after every topic has been read once.
+        """
+        found = [*self._salvage_lost, *self._guard.lost.values()]
+        return tuple(sorted(found, key=lambda c: (str(c.path), c.offset)))
+
+    def lost_counts(self) -> dict[str, int]:
+        """Messages per topic lost in `lost_chunks` (as far as their indexes tell), sorted by topic."""
+        counts: dict[str, int] = {}
+        for chunk in self.lost_chunks:
+            for topic, n in chunk.counts.items():
+                counts[topic] = counts.get(topic, 0) + n
+        return dict(sorted(counts.items()))
 
     def topics(self) -> dict[str, TopicSummary]:
         """Message type and count of every topic, sorted by name."""

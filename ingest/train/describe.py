@@ -3,7 +3,9 @@
 The fingerprint (rectification, sizes, conventions, the configuration as
 asked, versions) must match for a rerun or a second recording to write into
 the same folder. `sources` lists every recording with its sample-id range and
-the ground truth chosen for it (method, decision, window, trajectory).
+the ground truth chosen for it (method, decision, window, trajectory) and,
+when `--salvage` skipped corrupt chunks, the messages lost per topic and one
+line per chunk (`lost_in_corrupt_chunks`).
 """
 
 from __future__ import annotations
@@ -107,6 +109,10 @@ def write_dataset_yaml(
         "trajectory": run.trajectory.as_dict() if run.trajectory else None,
     }
     mine["undecodable_messages"] = dict(run.undecodable)  # per topic, skipped under --max-bad
+    if run.lost_chunks:
+        mine["lost_in_corrupt_chunks"] = {"messages": run.lost, "chunks": run.lost_chunks}
+    else:
+        mine.pop("lost_in_corrupt_chunks", None)
     doc["sources"] = sources
     write_atomic(
         path,

@@ -1,8 +1,11 @@
 """Offline ingest: recorded bags -> WideDepth training set (the product's main job).
 
 Recipe:
-1. Plan (one cheap pass): camera header stamps (no pixels decoded) and each
-   LiDAR sweep's time span; pair the stereo frames, pick the samples.
+1. Plan (one cheap pass): camera and IMU header stamps (no pixels decoded)
+   and each LiDAR sweep's time span; pair the stereo frames, pick the samples.
+   A corrupt chunk stops the run here, before anything is written; with
+   --salvage it is skipped, its messages are counted as lost, and samples
+   whose LiDAR/IMU window overlaps them are not planned (`ingest.train.lost`).
 2. Stream (second pass, log-time order): decode only the planned images, keep
    a sliding buffer of sweeps and the IMU; a sample is handed to a worker as
    soon as every sweep overlapping its +-window has arrived.
@@ -37,6 +40,7 @@ from ingest.train.bad_messages import BadMessages
 from ingest.train.dense import DenseParams
 from ingest.train.describe import record_undecodable, write_dataset_yaml
 from ingest.train.lidar_rate import THIN_FRACTION, LidarRates
+from ingest.train.lost import lost_intervals, untouched
 from ingest.train.odometry import RigTrajectory
 from ingest.train.sample import (
     Geometry,
@@ -118,6 +122,8 @@ class IngestSummary:
     method: str = "sparse"
     decision: str = ""
     trajectory: TrajectorySummary | None = None
+    lost: dict[str, int] = field(default_factory=dict)  # topic -> messages in corrupt chunks (--salvage)
+    lost_chunks: list[str] = field(default_factory=list)  # one line per corrupt chunk skipped
 
     def add(self, result: SampleResult) -> None:
         if not result.written:
@@ -179,38 +185,76 @@ class Plan:
     frames: int
     pairs: int
     rates: LidarRates = field(default_factory=LidarRates)  # each LiDAR's point rate (thin windows)
+    lost_samples: int = 0  # eligible, but their LiDAR/IMU window overlaps a corrupt chunk's messages
 
 
-def plan(bags: BagSet, topics: Topics, cfg: IngestConfig, bad: BadMessages | None = None) -> Plan:
-    """First pass: stamps and sweep spans only; pairs and samples on header stamps."""
+LOST_REASON = "LiDAR/IMU window overlaps a corrupt chunk (not planned)"
+IMU_MARGIN_NS = 20_000_000
+"""IMU readings are taken this far beyond a sample's LiDAR window (motion compensation)."""
+
+
+def _seen(bags: BagSet, topics: Topics, bad: BadMessages) -> tuple[dict[str, I64], LidarRates]:
+    """Per camera, LiDAR and IMU topic: (log_ns, first stamp, last stamp) of each message, as (N, 3).
+
+    A sweep's stamps are its first and last point's (empty sweeps are left
+    out), a frame's or IMU sample's its header stamp twice. Reading the IMU
+    here too means every chunk the stream pass will read has been checked
+    before anything is written. Undecodable messages are left out and
+    counted by `bad`; each LiDAR's point rate is measured on the way.
+    """
     where = bags.label
-    bad = bad or BadMessages()
-    stamps: dict[str, list[int]] = {topics.upper: [], topics.lower: []}
-    spans: dict[str, list[tuple[int, int]]] = {t: [] for t in topics.lidars}
+    imu = [topics.imu] if topics.imu else []
+    seen: dict[str, list[tuple[int, int, int]]] = {
+        t: [] for t in (topics.upper, topics.lower, *topics.lidars, *imu)
+    }
     rates = LidarRates()
-    for msg in bags.messages(topics=[*stamps, *spans]):
-        if msg.topic in stamps:
+    for msg in bags.messages(topics=list(seen)):
+        if msg.topic not in topics.lidars:
             stamp = bad.stamp(msg, where)
             if stamp is not None:
-                stamps[msg.topic].append(stamp)
+                seen[msg.topic].append((msg.log_ns, stamp, stamp))
             continue
         sweep = bad.decoded(msg, where)
         assert sweep is None or isinstance(sweep, Sweep)
         if sweep is not None and len(sweep.stamps_ns):
-            spans[msg.topic].append((int(sweep.stamps_ns.min()), int(sweep.stamps_ns.max())))
+            seen[msg.topic].append((msg.log_ns, int(sweep.stamps_ns.min()), int(sweep.stamps_ns.max())))
             rates.add(msg.topic, sweep.stamps_ns)
+    return {t: np.array(v, np.int64).reshape(-1, 3) for t, v in seen.items()}, rates
+
+
+def _untouched(bags: BagSet, topics: Topics, seen: dict[str, I64], tc_ns: I64, cfg: IngestConfig) -> Any:
+    """Mask of samples whose LiDAR and (when motion uses it) IMU windows overlap no message lost
+    in a corrupt chunk."""
+    chunks = bags.lost_chunks
+    if not chunks:
+        return np.ones(len(tc_ns), bool)
+    w = cfg.lidar_window_ns
+    margins = {t: w for t in topics.lidars}
+    if topics.imu and cfg.sample.motion != "off":
+        margins[topics.imu] = w + IMU_MARGIN_NS
+    intervals = {t: lost_intervals(chunks, t, *seen[t].T) for t in margins}
+    return untouched(tc_ns, intervals, margins)
+
+
+def plan(bags: BagSet, topics: Topics, cfg: IngestConfig, bad: BadMessages | None = None) -> Plan:
+    """First pass: stamps and sweep spans only; pairs and samples on header stamps."""
+    seen, rates = _seen(bags, topics, bad or BadMessages())
+    spans = {t: [(int(a), int(b)) for _, a, b in seen[t]] for t in topics.lidars}
     for topic, name in topics.lidars.items():
         if not spans[topic]:
             raise BagError(f"{bags.paths[0]}: no points on {topic} (the rig's lidar {name}) in the whole bag")
-    up = np.unique(np.array(stamps[topics.upper], np.int64))  # duplicated stamps count once
-    lo = np.unique(np.array(stamps[topics.lower], np.int64))
+    up = np.unique(seen[topics.upper][:, 1])  # duplicated stamps count once
+    lo = np.unique(seen[topics.lower][:, 1])
     if len(up) < 2:
         raise BagError(f"{bags.paths[0]}: {len(up)} frame(s) on {topics.upper}; need at least 2")
     tol = cfg.stereo_tolerance_ns or pair_tolerance_ns(median_period_ns(up))
     pairs = pair_stereo(up, lo, tol)
     all_spans = [s for v in spans.values() for s in v]
     chosen = select_samples(up[pairs.upper], all_spans, cfg.lidar_window_ns, cfg.every)
-    return Plan(up[pairs.upper][chosen], lo[pairs.lower][chosen], spans, len(up), len(pairs.upper), rates)
+    upper, lower = up[pairs.upper][chosen], lo[pairs.lower][chosen]
+    keep = _untouched(bags, topics, seen, upper, cfg)
+    lost = int(len(keep) - keep.sum())
+    return Plan(upper[keep], lower[keep], spans, len(up), len(pairs.upper), rates, lost)
 
 
 def _lidar_window(sweeps: list[Sweep], name: str, t_c: int, w: int) -> LidarPoints:
@@ -243,11 +287,11 @@ def _sweeps_needed(the_plan: Plan, topics: Topics, w: int) -> dict[int, dict[str
 
 
 def _imu_window(imu_t: list[int], imu_g: list[Any], tc: int, w: int, R_cam0_imu: Any) -> ImuWindow | None:
-    """The gyro readings within the sample's window (+ 20 ms each side), or None without an IMU."""
+    """The gyro readings within the sample's window (+ IMU_MARGIN_NS each side), or None without an IMU."""
     if not imu_t or R_cam0_imu is None:
         return None
     t = np.array(imu_t, np.int64)
-    sel = (t >= tc - w - 20_000_000) & (t <= tc + w + 20_000_000)
+    sel = (t >= tc - w - IMU_MARGIN_NS) & (t <= tc + w + IMU_MARGIN_NS)
     return ImuWindow(t[sel], np.array(imu_g)[sel], R_cam0_imu)
 
 
@@ -421,6 +465,9 @@ def ingest(
             the_plan.pairs,
             len(the_plan.upper_ns),
         )
+        summary.lost, summary.lost_chunks = bags.lost_counts(), [c.describe() for c in bags.lost_chunks]
+        if the_plan.lost_samples:
+            summary.skipped[LOST_REASON] = the_plan.lost_samples
         prepare_dirs(cfg.out, cfg.sample.exr)
         first_id = write_dataset_yaml(asked, cfg, geometry, [Path(p) for p in bag_paths], summary)
         if not cfg.dask and summary.planned:

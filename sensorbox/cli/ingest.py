@@ -64,7 +64,10 @@ SalvageOpt = Annotated[
     bool,
     typer.Option(
         "--salvage",
-        help="Read mcap files record by record: keep what a truncated or damaged file still holds.",
+        help="Read mcap files record by record: keep what a truncated or damaged file still holds; skip "
+        "corrupt chunks (failed CRC or decompression, any format) and count their messages as lost, "
+        "planning no sample whose LiDAR/IMU window overlaps them. Without it a corrupt chunk stops the "
+        "run, naming it, before anything is written.",
     ),
 ]
 
@@ -86,6 +89,7 @@ def summary_table(summary: IngestSummary, out: Path) -> Table:
         *((f"skipped: {reason}", str(n)) for reason, n in summary.skipped.items()),
         *((f"written, flagged in meta: {what}", str(n)) for what, n in summary.flagged.items()),
         *((f"undecodable messages skipped: {topic}", str(n)) for topic, n in summary.undecodable.items()),
+        *((f"lost in corrupt chunks: {topic}", str(n)) for topic, n in summary.lost.items()),
     ]
     if summary.trajectory is not None:
         t = summary.trajectory
@@ -139,6 +143,8 @@ def ingest_cmd(
     )  # fmt: skip
     with progress_bar("ingesting", "samples") as update:
         summary = ingest(bags, cfg, progress=update, warn=_warn)
+    for line in summary.lost_chunks:
+        console.print(f"skipped {line}", markup=False, highlight=False, soft_wrap=True)
     console.print(summary_table(summary, out))
     metas = sorted((out / "meta").glob("*.json"))
     if metas:

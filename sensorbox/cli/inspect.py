@@ -42,8 +42,9 @@ def _offsets(t: TopicStats) -> str:
 
 def _topics_table(report: BagReport) -> Table:
     table = Table(title="Topics: timing from header stamps (log = bag receive time)")
+    lost = ["lost (corrupt chunks)"] if report.lost_chunks else []
     for col in (
-        "topic", "type", "count", "rate [Hz]", "gaps, max [ms]", "dup/order",
+        "topic", "type", "count", *lost, "rate [Hz]", "gaps, max [ms]", "dup/order",
         "log-stamp [ms] med (min..max)",
     ):  # fmt: skip
         table.add_column(
@@ -53,10 +54,11 @@ def _topics_table(report: BagReport) -> Table:
         rate = _num(t.rate_hz, ".2f") if t.stamped else "no header"
         order = f"{t.duplicates}/{t.out_of_order}" if t.stamped else "-"
         gaps = _gaps(t) if t.stamped else "-"
-        table.add_row(t.topic, _short_type(t.msgtype), str(t.count), rate, gaps, order, _offsets(t))
+        n_lost = [f"[red]{t.lost}[/red]" if t.lost else "0"] if lost else []
+        table.add_row(t.topic, _short_type(t.msgtype), str(t.count), *n_lost, rate, gaps, order, _offsets(t))
         if t.error:
             what = f"{t.undecodable} unreadable: {t.error}" if t.undecodable else t.error
-            table.add_row("", f"[red]{escape(what)}[/red]", *[""] * 5)
+            table.add_row("", f"[red]{escape(what)}[/red]", *[""] * (5 + len(lost)))
     return table
 
 
@@ -134,6 +136,8 @@ def _print_report(report: BagReport, rig_path: Path | None) -> None:
         console.print(
             f"read record by record (--salvage): {', '.join(map(str, report.salvaged))}", highlight=False
         )
+    for chunk in report.lost_chunks:
+        console.print(f"[red]{escape(chunk.describe())}; skipped[/red]", highlight=False, soft_wrap=True)
     console.print(_topics_table(report))
     if report.stereo is not None:
         console.print(_stereo_table(report.stereo))
@@ -165,7 +169,9 @@ def inspect_cmd(
         bool,
         typer.Option(
             "--salvage",
-            help="Read MCAP files record by record: keep what truncated or damaged files still hold.",
+            help="Read MCAP files record by record: keep what truncated or damaged files still hold; "
+            "skip corrupt chunks (failed CRC or decompression, any format), counting their messages as "
+            "lost (without it, a corrupt chunk is an error naming it).",
         ),
     ] = False,
 ) -> None:

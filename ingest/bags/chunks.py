@@ -1,0 +1,295 @@
+"""Corrupt chunks: found while reading, reported with their bag and time range, never decoded.
+
+Public API:
+
+- `LostChunk`: one chunk whose messages could not be read (CRC mismatch, data
+  that does not decompress, a header that does not parse): file, byte offset,
+  the log-time range of its messages, how many it held per topic, and why.
+  `describe()` is the one line that reports it.
+- `CorruptChunkError(BagError)`: raised at a corrupt chunk unless the reader
+  was told to skip them (`--salvage`); it carries the `LostChunk`.
+- `ChunkGuard`: what a reader does at a corrupt chunk: raise, or (skip=True)
+  log one warning line and record the chunk in `lost`.
+- `guard_readers(readers, guard)`: make rosbags' readers of an `AnyReader`
+  (before `open()`) check chunk by chunk and report to `guard`.
+
+What can be checked depends on the format. An MCAP chunk carries the CRC-32
+of its records (every mcap SensorBox writes sets it; 0 means "not computed")
+and its compressed data fails to decompress when damaged; the chunk index in
+the summary gives each chunk's log-time range and its message count per
+channel. A ROS 1 bag's chunks have no checksum: a bz2 chunk (block CRCs) or an
+lz4 chunk with a content checksum (as `sensorbox.live.interop.Ros1Writer`
+writes them) fails to decompress when damaged, but an uncompressed chunk's
+damage cannot be told from data. rosbag2 `.db3` files have no chunks: SQLite
+keeps rows in pages without checksums.
+"""
+
+from __future__ import annotations
+
+import heapq
+import logging
+from collections.abc import Collection, Generator, Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from io import BytesIO
+from pathlib import Path
+from typing import Any
+
+from rosbags.rosbag1 import Reader as Ros1Reader
+from rosbags.rosbag1 import ReaderError as Ros1ReaderError
+from rosbags.rosbag1.reader import Header, RecordType, read_bytes, read_uint32
+from rosbags.rosbag2 import Reader as Ros2Reader
+from rosbags.rosbag2.reader import DirectoryReader
+from rosbags.rosbag2.storage_mcap import ChunkInfo, McapReader, Msg, msgsrc
+
+from ingest.errors import BagError
+
+__all__ = ["ChunkGuard", "CorruptChunkError", "LostChunk", "guard_readers"]
+
+log = logging.getLogger(__name__)
+
+SALVAGE_SKIP_HINT = "rerun with --salvage to skip it and count its messages as lost"
+
+
+def ros_time(ns: int) -> str:
+    """`sec.nanosec` of a ROS time in ns."""
+    sec, nsec = divmod(ns, 1_000_000_000)
+    return f"{sec}.{nsec:09d}"
+
+
+@dataclass(frozen=True)
+class LostChunk:
+    """A chunk whose messages could not be read. Times are log times in ns, `end_ns` inclusive.
+
+    `start_ns`/`end_ns` are None when the chunk's own header was damaged and
+    no index recorded them; `counts` (topic -> messages) is empty when no
+    index recorded them. `file_start_ns` is the log time of the file's first
+    message, for times relative to the bag start.
+    """
+
+    path: Path
+    offset: int
+    start_ns: int | None
+    end_ns: int | None
+    counts: Mapping[str, int]
+    reason: str
+    file_start_ns: int | None = None
+
+    @property
+    def messages(self) -> int | None:
+        """Messages the chunk held (None: unknown)."""
+        return sum(self.counts.values()) if self.counts else None
+
+    def time_range(self) -> str:
+        """The log-time range as ROS time and as seconds from the bag start."""
+        if self.start_ns is None or self.end_ns is None:
+            return "log-time range unknown"
+        text = f"log time {ros_time(self.start_ns)}..{ros_time(self.end_ns)}"
+        if self.file_start_ns is not None:
+            rel = ((t - self.file_start_ns) / 1e9 for t in (self.start_ns, self.end_ns))
+            text += " ({:.3f}..{:.3f} s from the bag start)".format(*rel)
+        return text
+
+    def describe(self) -> str:
+        """One line: file, offset, why, time range and the messages lost per topic."""
+        held = ", ".join(f"{n} on {t}" for t, n in sorted(self.counts.items()))
+        what = f"{self.messages} messages: {held}" if self.counts else "message count unknown"
+        return (
+            f"{self.path}: corrupt chunk at byte {self.offset} ({self.reason}), {self.time_range()}, {what}"
+        )
+
+
+class CorruptChunkError(BagError):
+    """A chunk of a bag is corrupt and the reader was not asked to skip it."""
+
+    def __init__(self, chunk: LostChunk) -> None:
+        super().__init__(f"{chunk.describe()}; {SALVAGE_SKIP_HINT}")
+        self.chunk = chunk
+
+
+def _reason(err: BaseException) -> str:
+    text = " ".join(str(err).split()).rstrip(".")
+    return f"{type(err).__name__}: {text}" if text else type(err).__name__
+
+
+@dataclass
+class ChunkGuard:
+    """What readers do at a corrupt chunk: raise `CorruptChunkError`, or record it and go on."""
+
+    skip: bool = False
+    lost: dict[tuple[Path, int], LostChunk] = field(default_factory=dict)
+    """Chunks skipped so far, by (file, byte offset)."""
+
+    def report(self, chunk: LostChunk) -> None:
+        """Raise, or (skip) log one warning line the first time and record the chunk."""
+        if not self.skip:
+            raise CorruptChunkError(chunk)
+        key = (chunk.path, chunk.offset)
+        if key not in self.lost:
+            log.warning("%s; skipped, its messages are counted as lost", chunk.describe())
+            self.lost[key] = chunk
+
+    def is_lost(self, path: Path, offset: int) -> bool:
+        return (path, offset) in self.lost
+
+
+# ---------------------------------------------------------------- MCAP (rosbag2)
+
+
+class CheckedMcapReader(McapReader):
+    """rosbags' MCAP storage whose indexed reads report a corrupt chunk to `guard` instead of aborting."""
+
+    guard: ChunkGuard = ChunkGuard()  # raises; `guard_readers` gives each reader the run's guard
+
+    def _lost(self, chunk: ChunkInfo, err: BaseException) -> LostChunk:
+        counts: dict[str, int] = {}
+        for cid, n in chunk.channel_count.items():
+            topic = self.channels[cid].topic if cid in self.channels else f"channel {cid}"
+            counts[topic] = counts.get(topic, 0) + n
+        return LostChunk(
+            Path(str(self.path)), chunk.chunk_start_offset, chunk.message_start_time, chunk.message_end_time,
+            counts, _reason(err), self.metadata.start_time,
+        )  # fmt: skip
+
+    def _chunk(self, chunk: ChunkInfo, channels: dict[int, Any], start: int, stop: int) -> Iterator[Msg]:
+        """The chunk's messages in time order, its decompression deferred until the merge reaches it."""
+        yield Msg(chunk.message_start_time, 0, None, None)  # placeholder: no bytes read yet
+        path = Path(str(self.path))
+        if self.guard.is_lost(path, chunk.chunk_start_offset):
+            return
+        assert self.bio is not None
+        try:
+            found = list(msgsrc(chunk, channels, start, stop, self.bio))[1:]  # all or nothing
+        except Exception as err:  # checksum, size, decompressor and record errors of damaged bytes
+            self.guard.report(self._lost(chunk, err))
+            return
+        yield from found
+
+    def messages(
+        self, connections: Collection[Any], start: int | None = None, stop: int | None = None
+    ) -> Generator[tuple[Any, int, bytes], None, None]:
+        """Messages of `connections` in log-time order; a corrupt chunk goes to `guard`.
+
+        A file without a chunk index (unchunked, or no summary) is scanned by rosbags as is.
+        """
+        if not self.chunks:
+            yield from super().messages(connections, start, stop)
+            return
+        channels = {c.id: c for c in connections}
+        lo = 0 if start is None else start
+        sources = [
+            self._chunk(c, channels, lo, c.message_end_time + 1 if stop is None else stop)
+            for c in self.chunks
+            if lo <= c.message_end_time
+            and (stop is None or c.message_start_time < stop)
+            and any(c.channel_count.get(cid, 0) for cid in channels)
+        ]
+        for msg in heapq.merge(*sources):
+            if msg.connection is not None and msg.data is not None:
+                yield msg.connection, msg.timestamp, msg.data
+
+
+# ---------------------------------------------------------------- ROS 1
+
+
+class CheckedRos1Reader(Ros1Reader):
+    """rosbags' ROS 1 reader that reports a chunk that fails to decompress to `guard` and skips it."""
+
+    guard: ChunkGuard = ChunkGuard()  # raises; `guard_readers` gives each reader the run's guard
+
+    def _lost(self, pos: int, err: BaseException) -> LostChunk:
+        info = next(i for i in self.chunk_infos if i.pos == pos)
+        names = {c.id: c.topic for c in self.connections}
+        counts: dict[str, int] = {}
+        for cid, n in info.connection_counts.items():
+            topic = names.get(cid, f"connection {cid}")
+            counts[topic] = counts.get(topic, 0) + n
+        end = info.end_time - 1  # rosbags stores the end exclusive
+        return LostChunk(
+            Path(str(self.path)), pos, info.start_time, end, counts, _reason(err), self.start_time
+        )
+
+    def _records(self, pos: int) -> BytesIO | None:
+        """The decompressed records of the chunk at `pos`; None (after `guard.report`) when corrupt."""
+        if self.guard.is_lost(Path(str(self.path)), pos):
+            return None
+        assert self.bio is not None
+        chunk = self.chunks[pos]
+        self.bio.seek(chunk.datapos)
+        try:
+            return BytesIO(chunk.decompressor(read_bytes(self.bio, chunk.datasize)))
+        except Exception as err:  # bz2 / lz4 errors of damaged bytes, a chunk cut short
+            self.guard.report(self._lost(pos, err))
+            return None
+
+    def messages(
+        self, connections: Collection[Any] = (), start: int | None = None, stop: int | None = None
+    ) -> Generator[tuple[Any, int, bytes], None, None]:
+        """Messages of `connections` (empty: all) in log-time order, `stop` exclusive.
+
+        Walks the merged per-connection indexes like rosbags' reader; a chunk
+        that fails to decompress goes to `guard` and its entries are passed over.
+        """
+        self._check_open()
+        by_id = {c.id: c for c in self.connections}
+        entries = heapq.merge(*(self.indexes[c.id] for c in (connections or self.connections)))
+        pos, records = -1, None
+        for entry in entries:
+            if start is not None and entry.time < start:
+                continue
+            if stop is not None and entry.time >= stop:
+                return
+            if entry.chunk_pos != pos:
+                pos, records = entry.chunk_pos, self._records(entry.chunk_pos)
+            if records is not None:
+                yield _message_at(records, entry.offset, by_id), entry.time, _data(records)
+
+
+def _message_at(records: BytesIO, offset: int, by_id: Mapping[int, Any]) -> Any:
+    """The connection of the message record at `offset` (connection records before it are skipped).
+
+    Leaves `records` at the record's data length field, for `_data`.
+    """
+    records.seek(offset)
+    header = Header.read(records)
+    while header.get_uint8("op") == RecordType.CONNECTION:
+        records.seek(read_uint32(records), 1)
+        header = Header.read(records)
+    if header.get_uint8("op") != RecordType.MSGDATA:
+        raise Ros1ReaderError(f"expected a message record at chunk offset {offset}")
+    return by_id[header.get_uint32("conn")]
+
+
+def _data(records: BytesIO) -> bytes:
+    return read_bytes(records, read_uint32(records))
+
+
+# ---------------------------------------------------------------- wiring
+
+
+def guard_readers(readers: Sequence[Any], guard: ChunkGuard) -> list[Any]:
+    """`readers` (an AnyReader's, not yet open) with checked MCAP / ROS 1 readers reporting to `guard`.
+
+    A rosbag2 directory's storage files are created when it opens; its plugin
+    table is pointed at `CheckedMcapReader` for that.
+    """
+    checked: list[Any] = []
+    for reader in readers:
+        if isinstance(reader, Ros1Reader):
+            reader = CheckedRos1Reader(reader.path)
+            reader.guard = guard
+        elif isinstance(reader, Ros2Reader) and isinstance(reader.storage, McapReader):
+            storage = CheckedMcapReader(reader.storage.path)
+            storage.guard = guard
+            reader.storage = storage
+        elif isinstance(reader, Ros2Reader) and isinstance(reader.storage, DirectoryReader):
+            reader.storage.STORAGE_PLUGINS = {
+                **DirectoryReader.STORAGE_PLUGINS,
+                "mcap": _guarded_mcap(guard),
+            }
+        checked.append(reader)
+    return checked
+
+
+def _guarded_mcap(guard: ChunkGuard) -> type[CheckedMcapReader]:
+    """A `CheckedMcapReader` class whose instances report to `guard` (storage plugins are classes)."""
+    return type("GuardedMcapReader", (CheckedMcapReader,), {"guard": guard})
