@@ -117,8 +117,33 @@ def plot_rig(rig: Rig, report: RigReport, path: str | Path, cone_m: float = 0.15
     return _save(fig, path, dpi=110)
 
 
+PREVIEW_WIDTH_PX = 960  # each panel is drawn from an image this wide at most (the figure shows less)
+
+
+def _shrunk(image: np.ndarray, gt: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
+    """The panel's image (area-averaged) and GT (the largest value of each block, so a lone point
+    stays visible) at most `PREVIEW_WIDTH_PX` wide."""
+    import cv2
+
+    h, w = image.shape[:2]
+    step = max(1, int(np.ceil(w / PREVIEW_WIDTH_PX)))
+    if step == 1:
+        return image, gt
+    hs, ws = h // step, w // step
+    small = cv2.resize(image[: hs * step, : ws * step], (ws, hs), interpolation=cv2.INTER_AREA)
+    if gt is None:
+        return small, None
+    blocks = gt[: hs * step, : ws * step].reshape(hs, step, ws, step)
+    return small, blocks.max(axis=(1, 3))  # the largest value of each block: a lone point stays
+
+
 def plot_sample(dataset_dir: Path, sid: str, out: Path) -> Path:
-    """Preview of one written sample: fisheye with its range GT, the rectified pair with disparity GT."""
+    """Preview of one written sample: fisheye with its range GT, the rectified pair with disparity GT.
+
+    GT is painted into the image (a colour per valid pixel) rather than
+    scattered as markers: dense GT has a million valid pixels, which
+    matplotlib's scatter took seconds to draw.
+    """
     import cv2
 
     from ingest.dataset.layout import DEPTH_SCALE, DISP_SCALE, read_png_u16
@@ -136,13 +161,18 @@ def plot_sample(dataset_dir: Path, sid: str, out: Path) -> Path:
         (axes[1, 0], rgb("equirect_up"), disp, "equirect_up + disp_equirect (px)"),
         (axes[1, 1], rgb("equirect_down_virt"), None, "equirect_down_virt"),
     ]
-    for ax, image, gt, title in panels:
-        ax.imshow(image)
+    cmap = matplotlib.colormaps["turbo"]
+    for ax, full, full_gt, title in panels:
+        image, gt = _shrunk(full, full_gt)
         if gt is not None:
-            rows, cols = np.nonzero(gt)
-            dot = float(np.clip(3e5 / gt.size, 0.3, 3.0))  # visible on small and large images alike
-            sc = ax.scatter(cols, rows, c=gt[rows, cols], s=dot, cmap="turbo", linewidths=0)
-            fig.colorbar(sc, ax=ax, shrink=0.7)
+            valid = gt > 0
+            values = full_gt[full_gt > 0] if full_gt is not None else gt[valid]
+            lo, hi = (float(values.min()), float(values.max())) if values.size else (0.0, 1.0)
+            norm = matplotlib.colors.Normalize(lo, hi)
+            image = image.copy()
+            image[valid] = (cmap(norm(gt[valid]))[:, :3] * 255).astype(np.uint8)
+            fig.colorbar(matplotlib.cm.ScalarMappable(norm, cmap), ax=ax, shrink=0.7)
+        ax.imshow(image, interpolation="nearest")
         ax.set_title(f"{title} [{sid}]")
         ax.set_axis_off()
     return _save(fig, out, dpi=90)

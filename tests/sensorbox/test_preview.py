@@ -1,0 +1,27 @@
+"""The ingest preview: images shrunk for the figure, sparse GT still visible and with its value."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sensorbox.analysis.plots import PREVIEW_WIDTH_PX, _shrunk
+
+
+def test_a_single_gt_pixel_survives_the_shrinking_with_its_value() -> None:
+    h, w = 1200, 2 * PREVIEW_WIDTH_PX + 50  # shrinks by 3
+    image = np.full((h, w, 3), 100, np.uint8)
+    gt = np.zeros((h, w), np.float32)
+    gt[777, 1000] = 5.25
+    gt[10, 9], gt[10, 10] = 2.0, 9.0  # in one 3x3 block: its largest value is kept
+    small, small_gt = _shrunk(image, gt)
+    assert small.shape == (h // 3, w // 3, 3) and small_gt is not None and small_gt.shape == (h // 3, w // 3)
+    assert np.count_nonzero(small_gt == np.float32(5.25)) == 1
+    assert set(np.unique(small_gt).tolist()) == {0.0, 5.25, 9.0}
+    assert (small == 100).all()
+
+
+def test_small_images_are_drawn_as_they_are() -> None:
+    image = np.zeros((300, 480, 3), np.uint8)
+    gt = np.ones((300, 480), np.float32)
+    small, small_gt = _shrunk(image, gt)
+    assert small is image and small_gt is gt
