@@ -29,21 +29,16 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable
 from dataclasses import dataclass, field, replace
-from pathlib import Path
 
 import numpy as np
 from scipy.spatial import cKDTree
-from scipy.spatial.transform import Rotation
 
 from calibration.linalg3 import rotvec_to_matrix
 from calibration.types import F64, I64, Bool
-from ingest.dataset.layout import write_atomic
 from ingest.errors import OdometryError
 from ingest.train.clouds import GyroTrack, estimate_velocity
 from ingest.train.planes import neighbour_covariances, normals_from_covariances
-
-POSE_NODES = 100  # poses of many points: exact at this many nodes per knot interval, linear in between
-POSE_GRID_MIN_RATIO = 4  # ... when there are at least this many points per node
+from ingest.train.rig_trajectory import RigTrajectory
 
 
 @dataclass(frozen=True)
@@ -65,115 +60,6 @@ class OdometryParams:
     refine_start_s: float = 1.0  # then the start's knots are solved again against the map built since
 
 
-@dataclass(frozen=True)
-class RigTrajectory:
-    """T_world_cam0 at knots, joined by the gyro (see the module doc); world = cam0 at the first knot."""
-
-    stamps_ns: I64  # (K,)
-    R_world_cam0: F64  # (K, 3, 3)
-    p_world_cam0: F64  # (K, 3)
-    residual_m: F64  # (K,) RMS point-to-plane residual of the solve that placed each knot (0: the first)
-    gyro: GyroTrack | None = None
-
-    def _segment(self, t_ns: I64) -> tuple[I64, F64]:
-        t = np.clip(np.asarray(t_ns, np.int64), self.stamps_ns[0], self.stamps_ns[-1])
-        k = np.clip(np.searchsorted(self.stamps_ns, t, side="right") - 1, 0, len(self.stamps_ns) - 2)
-        f: F64 = (t - self.stamps_ns[k]) / (self.stamps_ns[k + 1] - self.stamps_ns[k]).astype(np.float64)
-        return k, f
-
-    def covers(self, t_ns: I64) -> Bool:
-        """Times inside the knots' span (outside it the pose is clamped, so unknown)."""
-        out: Bool = (t_ns >= self.stamps_ns[0]) & (t_ns <= self.stamps_ns[-1])
-        return out
-
-    def pose(self, t_ns: I64) -> tuple[F64, F64]:
-        """(R_world_cam0 (N, 3, 3), p_world_cam0 (N, 3)) at times `t_ns` (clamped to the knots).
-
-        Many times (a cloud's points) take the exact pose at `POSE_NODES`
-        nodes per knot interval (0.5 ms at 50 ms knots; knots are nodes, so
-        the chain's kinks are kept), blended linearly per point: the rotation
-        turns by at most omega * 0.5 ms between nodes (5e-4 rad at 60 deg/s)
-        and the blend is off by about that squared over 8, well under a
-        micrometre at 10 m, at a fraction of the cost of three Rodrigues
-        exponentials per point.
-        """
-        t = np.atleast_1d(np.asarray(t_ns, np.int64))
-        if len(self.stamps_ns) == 1:
-            R0 = np.broadcast_to(self.R_world_cam0[0], (len(t), 3, 3)).copy()
-            return R0, np.tile(self.p_world_cam0[0], (len(t), 1))
-        k, _ = self._segment(t)
-        k_lo, k_hi = int(k.min()), int(k.max())
-        if len(t) < POSE_GRID_MIN_RATIO * POSE_NODES * (k_hi - k_lo + 1):
-            return self._pose_exact(t)
-        t = np.clip(t, self.stamps_ns[0], self.stamps_ns[-1])
-        start = self.stamps_ns[k_lo : k_hi + 1, None]
-        span = self.stamps_ns[k_lo + 1 : k_hi + 2, None] - start
-        nodes = start + (np.arange(POSE_NODES + 1, dtype=np.int64) * span) // POSE_NODES  # (S, M + 1)
-        R_n, p_n = self._pose_exact(nodes.reshape(-1))
-        j = np.minimum(((t - self.stamps_ns[k]) * POSE_NODES) // (self.stamps_ns[k + 1] - self.stamps_ns[k]),
-                       POSE_NODES - 1)  # fmt: skip
-        a = (k - k_lo) * (POSE_NODES + 1) + j  # node before each time, flat
-        t_a, t_b = nodes.reshape(-1)[a], nodes.reshape(-1)[a + 1]
-        g = ((t - t_a) / np.maximum(t_b - t_a, 1))[:, None]
-        p = p_n[a] + g * (p_n[a + 1] - p_n[a])
-        R = R_n[a] + g[:, :, None] * (R_n[a + 1] - R_n[a])
-        return R, p
-
-    def _pose_exact(self, t: I64) -> tuple[F64, F64]:
-        k, f = self._segment(t)
-        p = self.p_world_cam0[k] + f[:, None] * (self.p_world_cam0[k + 1] - self.p_world_cam0[k])
-        return _chain_rotation(self, k, f, self.gyro_shape(t)), p
-
-    def gyro_shape(self, t_ns: I64) -> F64:
-        """G(t_k)^T G(t) (N, 3, 3): the gyro's turn from the knot before each time to it (identity: none)."""
-        t = np.atleast_1d(np.asarray(t_ns, np.int64))
-        if self.gyro is None or len(self.stamps_ns) == 1:
-            return np.broadcast_to(np.eye(3), (len(t), 3, 3))
-        k, _ = self._segment(t)
-        return self.gyro.between(self.stamps_ns[k], np.clip(t, self.stamps_ns[0], self.stamps_ns[-1]))
-
-    def speed_mps(self, t_ns: int) -> float:
-        """Speed of cam0 (m/s) over the knot interval holding `t_ns`."""
-        if len(self.stamps_ns) < 2:
-            return 0.0
-        k, _ = self._segment(np.array([t_ns]))
-        step = self.p_world_cam0[k[0] + 1] - self.p_world_cam0[k[0]]
-        return float(np.linalg.norm(step) / ((self.stamps_ns[k[0] + 1] - self.stamps_ns[k[0]]) / 1e9))
-
-    def to_frame(self, pts_cam0: F64, t_ns: I64, t_ref_ns: int) -> F64:
-        """Points measured in cam0 at their times `t_ns` (N, 3), expressed in cam0 at `t_ref_ns`."""
-        R, p = self.pose(t_ns)
-        R_ref, p_ref = self.pose(np.array([t_ref_ns]))
-        world = np.einsum("nij,nj->ni", R, pts_cam0) + p
-        out: F64 = (world - p_ref[0]) @ R_ref[0]
-        return out
-
-    def write_tum(self, path: Path) -> None:
-        """`t_sec tx ty tz qx qy qz qw` per knot (T_world_cam0), with the residual as a comment header."""
-        q = Rotation.from_matrix(self.R_world_cam0).as_quat()
-        lines = ["# T_world_cam0 (world = cam0 at the first knot): t_sec tx ty tz qx qy qz qw"]
-        for k, t in enumerate(self.stamps_ns):
-            sec, nsec = divmod(int(t), 1_000_000_000)
-            lines.append(f"{sec}.{nsec:09d} " + " ".join(f"{v:.9f}" for v in (*self.p_world_cam0[k], *q[k])))
-        write_atomic(path, ("\n".join(lines) + "\n").encode())
-
-
-def _chain_rotation(traj: RigTrajectory, k: I64, f: F64, rel: F64) -> F64:
-    """R(t) of the module doc in segments `k` at fractions `f`, the gyro's shape `rel` given."""
-    # the gyro's mismatch with the next knot, once per segment
-    seg, inv = np.unique(k, return_inverse=True)
-    if traj.gyro is None:
-        shape_next = np.broadcast_to(np.eye(3), (len(seg), 3, 3))
-    else:
-        shape_next = traj.gyro.between(traj.stamps_ns[seg], traj.stamps_ns[seg + 1])
-    E = np.matmul(
-        np.swapaxes(np.matmul(traj.R_world_cam0[seg], shape_next), 1, 2), traj.R_world_cam0[seg + 1]
-    )
-    err = Rotation.from_matrix(E).as_rotvec()[inv]
-    out: F64 = np.matmul(np.matmul(traj.R_world_cam0[k], rel), rotvec_to_matrix(err * f[:, None]))
-    return out
-
-
 def voxel_subsample(pts: F64, voxel_m: float) -> I64:
     """Index of the first point in each occupied `voxel_m` cube (in input order)."""
     if len(pts) == 0:
@@ -185,21 +71,27 @@ def voxel_subsample(pts: F64, voxel_m: float) -> I64:
 
 @dataclass
 class LocalMap:
-    """World-frame points on a voxel grid with normals, each remembering when it joined."""
+    """World-frame points on a voxel grid, each remembering when and from where it joined.
+
+    Normals are computed when ICP first matches a point (`normals_at`), not
+    when it joins: most map points are never matched, and the k-neighbour
+    query and covariance of every new point were the odometry's largest
+    cost. A normal is the PCA normal of the point's neighbours in the map at
+    that time; "planar" is judged at its range from where the rig was when
+    it joined.
+    """
 
     params: OdometryParams
     xyz: F64 = field(default_factory=lambda: np.zeros((0, 3)))
     normal: F64 = field(default_factory=lambda: np.zeros((0, 3)))
     planar: Bool = field(default_factory=lambda: np.zeros(0, bool))
+    known: Bool = field(default_factory=lambda: np.zeros(0, bool))  # normal computed
+    origin: F64 = field(default_factory=lambda: np.zeros((0, 3)))  # the rig when the point joined
     added_ns: I64 = field(default_factory=lambda: np.zeros(0, np.int64))
     tree: cKDTree | None = None
 
     def add(self, pts_world: F64, t_ns: int, origin_world: F64) -> None:
-        """A registered chunk joins (one point per free voxel); points older than the horizon leave.
-
-        New points get the PCA normal of their neighbours in the whole map;
-        "planar" is judged at their range from `origin_world` (the rig).
-        """
+        """A registered chunk joins (one point per free voxel); points older than the horizon leave."""
         prm = self.params
         keep = self.added_ns >= t_ns - int(prm.map_horizon_s * 1e9)
         keep &= np.einsum("ij,ij->i", self.xyz - origin_world, self.xyz - origin_world) <= prm.map_range_m**2
@@ -211,23 +103,26 @@ class LocalMap:
         at = np.minimum(np.searchsorted(old_keys, cand_keys), max(len(old_keys) - 1, 0))
         taken = old_keys[at] == cand_keys if len(old_keys) else np.zeros(len(cand), bool)
         new = cand[~taken]
-        xyz = np.concatenate([old, new])
-        tree = cKDTree(xyz, leafsize=16, balanced_tree=False)
-        k = min(prm.map_neighbours, len(xyz))
-        normal, planar = self.normal[keep], self.planar[keep]
-        if len(new) and k >= 3:
-            _, idx = tree.query(new, k=k)
-            fit = normals_from_covariances(
-                neighbour_covariances(xyz, idx), new - origin_world, prm.map_max_flatness
-            )
-            normal, planar = np.concatenate([normal, fit.normal]), np.concatenate([planar, fit.planar])
-        else:
-            normal, planar = (
-                np.concatenate([normal, np.zeros((len(new), 3))]),
-                np.concatenate([planar, np.zeros(len(new), bool)]),
-            )
-        self.xyz, self.normal, self.planar, self.tree = xyz, normal, planar, tree
-        self.added_ns = np.concatenate([self.added_ns[keep], np.full(len(new), t_ns, np.int64)])
+        m = len(new)
+        self.xyz = np.concatenate([old, new])
+        self.normal = np.concatenate([self.normal[keep], np.zeros((m, 3))])
+        self.planar = np.concatenate([self.planar[keep], np.zeros(m, bool)])
+        self.known = np.concatenate([self.known[keep], np.zeros(m, bool)])
+        self.origin = np.concatenate([self.origin[keep], np.broadcast_to(origin_world, (m, 3))])
+        self.added_ns = np.concatenate([self.added_ns[keep], np.full(m, t_ns, np.int64)])
+        self.tree = cKDTree(self.xyz, leafsize=16, balanced_tree=False)
+
+    def normals_at(self, j: I64) -> None:
+        """Compute the normals of map points `j` that have none yet."""
+        assert self.tree is not None
+        todo = np.unique(j[~self.known[j]])
+        k = min(self.params.map_neighbours, len(self.xyz))
+        if len(todo) == 0 or k < 3:
+            return
+        _, idx = self.tree.query(self.xyz[todo], k=k)
+        cov = neighbour_covariances(self.xyz, idx)
+        fit = normals_from_covariances(cov, self.xyz[todo] - self.origin[todo], self.params.map_max_flatness)
+        self.normal[todo], self.planar[todo], self.known[todo] = fit.normal, fit.planar, True
 
 
 def _voxel_keys(pts: F64, voxel_m: float) -> I64:
@@ -279,6 +174,7 @@ def _solve_knots(
         world = a + p_t
         dist, j = the_map.tree.query(world, k=1, distance_upper_bound=prm.max_correspondence_m)
         ok = np.isfinite(dist)
+        the_map.normals_at(j[ok])
         ok[ok] &= the_map.planar[j[ok]]
         idx = np.flatnonzero(ok)
         if len(idx) < 50:
@@ -294,8 +190,9 @@ def _solve_knots(
             weight = np.where(seg == k - 1, f, 0.0) + np.where(seg == k, 1.0 - f, 0.0)
             J[:, 6 * u : 6 * u + 3] = rot * weight[:, None]
             J[:, 6 * u + 3 : 6 * u + 6] = pos * weight[:, None]
-        H = J.T @ (J * w[:, None]) + 1e-9 * np.eye(6 * n_free)
-        dx = np.linalg.solve(H, -(J.T @ (w * r)))
+        # einsum, not @: a (12 x N) product is too small for BLAS's threads, which only spin
+        H = np.einsum("ni,nj->ij", J, J * w[:, None]) + 1e-9 * np.eye(6 * n_free)
+        dx = np.linalg.solve(H, -np.einsum("ni,n->i", J, w * r))
         for u, k in enumerate(free):
             R[k] = rotvec_to_matrix(dx[6 * u : 6 * u + 3][None])[0] @ R[k]
             p[k] = p[k] + dx[6 * u + 3 : 6 * u + 6]
@@ -493,4 +390,5 @@ def _refine_start(
     fresh = LocalMap(prm)
     fresh.add(np.einsum("nij,nj->ni", R_t, P) + p_t, chain.stamps[-1], chain.p[-1])
     the_map.xyz, the_map.normal, the_map.planar = fresh.xyz, fresh.normal, fresh.planar
+    the_map.known, the_map.origin = fresh.known, fresh.origin
     the_map.added_ns, the_map.tree = fresh.added_ns, fresh.tree

@@ -41,7 +41,7 @@ from ingest.train.dense import DenseParams
 from ingest.train.describe import record_undecodable, write_dataset_yaml
 from ingest.train.lidar_rate import THIN_FRACTION, LidarRates
 from ingest.train.lost import lost_intervals, untouched
-from ingest.train.odometry import RigTrajectory
+from ingest.train.rig_trajectory import RigTrajectory
 from ingest.train.sample import (
     Geometry,
     ImuWindow,

@@ -25,7 +25,8 @@ from ingest.bags.reader import BagSet
 from ingest.errors import OutputError
 from ingest.train.bad_messages import BadMessages
 from ingest.train.clouds import GyroTrack, filter_points, integrate_gyro
-from ingest.train.odometry import Odometry, OdometryParams, RigTrajectory
+from ingest.train.odometry import Odometry, OdometryParams
+from ingest.train.rig_trajectory import RigTrajectory
 
 
 @dataclass(frozen=True)

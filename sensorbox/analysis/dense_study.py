@@ -37,7 +37,7 @@ from ingest.bags.decode import ImuSample, Sweep, decode
 from ingest.bags.reader import open_bags
 from ingest.dataset.layout import prepare_dirs
 from ingest.train.dense import DenseParams
-from ingest.train.odometry import RigTrajectory
+from ingest.train.rig_trajectory import RigTrajectory
 from ingest.train.sample import Geometry, ImuWindow, LidarPoints, SampleJob, SampleParams, process_sample
 from ingest.train.trajectory import run_trajectory_pass
 from sensorbox.sim.run import SimConfig, simulate

@@ -7,7 +7,8 @@ from scipy.spatial.transform import Rotation
 from calibration.linalg3 import rotvec_to_matrix
 from ingest.errors import OdometryError
 from ingest.train.clouds import integrate_gyro
-from ingest.train.odometry import Odometry, RigTrajectory, voxel_subsample
+from ingest.train.odometry import Odometry, voxel_subsample
+from ingest.train.rig_trajectory import RigTrajectory
 from ingest.train.trajectory import AUTO_MAX_RESIDUAL_MM, TrajectorySummary, choose_method
 
 
