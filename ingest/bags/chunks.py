@@ -92,7 +92,8 @@ class LostChunk:
     def describe(self) -> str:
         """One line: file, offset, why, time range and the messages lost per topic."""
         held = ", ".join(f"{n} on {t}" for t, n in sorted(self.counts.items()))
-        what = f"{self.messages} messages: {held}" if self.counts else "message count unknown"
+        noun = "message" if self.messages == 1 else "messages"
+        what = f"{self.messages} {noun}: {held}" if self.counts else "message count unknown"
         return (
             f"{self.path}: corrupt chunk at byte {self.offset} ({self.reason}), {self.time_range()}, {what}"
         )
