@@ -1,0 +1,109 @@
+"""The ingest's first pass: every camera stamp, sweep span and IMU stamp, the stereo pairs and the samples.
+
+It reads every message the stream pass will read (cameras, LiDARs, IMU), so
+a corrupt chunk is found before anything is written; undecodable messages
+are counted by `BadMessages`, each LiDAR's point rate is measured (thin
+windows), and samples whose windows overlap messages lost in a corrupt chunk
+are not planned.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from calibration.types import I64
+from ingest.bags.decode import Sweep
+from ingest.bags.reader import BagSet
+from ingest.errors import BagError
+from ingest.train.bad_messages import BadMessages
+from ingest.train.lidar_rate import LidarRates
+from ingest.train.lost import lost_intervals, untouched
+from ingest.train.sync import median_period_ns, pair_stereo, pair_tolerance_ns, select_samples
+
+if TYPE_CHECKING:
+    from ingest.train.pipeline import IngestConfig, Topics
+
+
+@dataclass(frozen=True)
+class Plan:
+    """The samples of a run: their upper/lower stamps and the sweeps each needs."""
+
+    upper_ns: I64
+    lower_ns: I64
+    spans: dict[str, list[tuple[int, int]]]  # per lidar topic: (first, last) point stamp per sweep
+    frames: int
+    pairs: int
+    rates: LidarRates = field(default_factory=LidarRates)  # each LiDAR's point rate (thin windows)
+    lost_samples: int = 0  # eligible, but their LiDAR/IMU window overlaps a corrupt chunk's messages
+
+
+LOST_REASON = "LiDAR/IMU window overlaps a corrupt chunk (not planned)"
+IMU_MARGIN_NS = 20_000_000
+"""IMU readings are taken this far beyond a sample's LiDAR window (motion compensation)."""
+
+
+def _seen(bags: BagSet, topics: Topics, bad: BadMessages) -> tuple[dict[str, I64], LidarRates]:
+    """Per camera, LiDAR and IMU topic: (log_ns, first stamp, last stamp) of each message, as (N, 3).
+
+    A sweep's stamps are its first and last point's (empty sweeps are left
+    out), a frame's or IMU sample's its header stamp twice. Reading the IMU
+    here too means every chunk the stream pass will read has been checked
+    before anything is written. Undecodable messages are left out and
+    counted by `bad`; each LiDAR's point rate is measured on the way.
+    """
+    where = bags.label
+    imu = [topics.imu] if topics.imu else []
+    seen: dict[str, list[tuple[int, int, int]]] = {
+        t: [] for t in (topics.upper, topics.lower, *topics.lidars, *imu)
+    }
+    rates = LidarRates()
+    for msg in bags.messages(topics=list(seen)):
+        if msg.topic not in topics.lidars:
+            stamp = bad.stamp(msg, where)
+            if stamp is not None:
+                seen[msg.topic].append((msg.log_ns, stamp, stamp))
+            continue
+        sweep = bad.decoded(msg, where)
+        assert sweep is None or isinstance(sweep, Sweep)
+        if sweep is not None and len(sweep.stamps_ns):
+            seen[msg.topic].append((msg.log_ns, int(sweep.stamps_ns.min()), int(sweep.stamps_ns.max())))
+            rates.add(msg.topic, sweep.stamps_ns)
+    return {t: np.array(v, np.int64).reshape(-1, 3) for t, v in seen.items()}, rates
+
+
+def _untouched(bags: BagSet, topics: Topics, seen: dict[str, I64], tc_ns: I64, cfg: IngestConfig) -> Any:
+    """Mask of samples whose LiDAR and (when motion uses it) IMU windows overlap no message lost
+    in a corrupt chunk."""
+    chunks = bags.lost_chunks
+    if not chunks:
+        return np.ones(len(tc_ns), bool)
+    w = cfg.lidar_window_ns
+    margins = {t: w for t in topics.lidars}
+    if topics.imu and cfg.sample.motion != "off":
+        margins[topics.imu] = w + IMU_MARGIN_NS
+    intervals = {t: lost_intervals(chunks, t, *seen[t].T) for t in margins}
+    return untouched(tc_ns, intervals, margins)
+
+
+def plan(bags: BagSet, topics: Topics, cfg: IngestConfig, bad: BadMessages | None = None) -> Plan:
+    """First pass: stamps and sweep spans only; pairs and samples on header stamps."""
+    seen, rates = _seen(bags, topics, bad or BadMessages())
+    spans = {t: [(int(a), int(b)) for _, a, b in seen[t]] for t in topics.lidars}
+    for topic, name in topics.lidars.items():
+        if not spans[topic]:
+            raise BagError(f"{bags.paths[0]}: no points on {topic} (the rig's lidar {name}) in the whole bag")
+    up = np.unique(seen[topics.upper][:, 1])  # duplicated stamps count once
+    lo = np.unique(seen[topics.lower][:, 1])
+    if len(up) < 2:
+        raise BagError(f"{bags.paths[0]}: {len(up)} frame(s) on {topics.upper}; need at least 2")
+    tol = cfg.stereo_tolerance_ns or pair_tolerance_ns(median_period_ns(up))
+    pairs = pair_stereo(up, lo, tol)
+    all_spans = [s for v in spans.values() for s in v]
+    chosen = select_samples(up[pairs.upper], all_spans, cfg.lidar_window_ns, cfg.every)
+    upper, lower = up[pairs.upper][chosen], lo[pairs.lower][chosen]
+    keep = _untouched(bags, topics, seen, upper, cfg)
+    lost = int(len(keep) - keep.sum())
+    return Plan(upper[keep], lower[keep], spans, len(up), len(pairs.upper), rates, lost)
