@@ -88,7 +88,8 @@ from ingest.bags.livox_msg import decode_custom_msg
 from ingest.bags.reader import open_bags
 from ingest.bags.rostypes import CUSTOM_MSG_TYPE, typestore
 from ingest.dataset.png import LEVELS, encode_png
-from ingest.train.pipeline import IngestConfig, _resolve_topics, ingest, plan, stream_jobs
+from ingest.train.pipeline import IngestConfig, _resolve_topics, ingest, stream_jobs
+from ingest.train.plan import plan
 from ingest.train.planes import knn_covariances, neighbour_covariances
 from ingest.train.sample import Geometry, SampleJob, SampleParams, process_sample
 from sensorbox.sim.run import SimConfig, simulate

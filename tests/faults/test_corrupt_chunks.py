@@ -26,7 +26,8 @@ from ingest.bags.decode import Sweep, decode, header_stamp_ns
 from ingest.bags.reader import CorruptChunkError, open_bags, salvage_mcap
 from ingest.bags.rostypes import typestore
 from ingest.inspect import inspect_bags
-from ingest.train.pipeline import LOST_REASON, IngestConfig, ingest
+from ingest.train.pipeline import IngestConfig, ingest
+from ingest.train.plan import LOST_REASON
 from sensorbox.cli.main import main
 from sensorbox.live.interop import Ros2Writer
 from sensorbox.sim.fixtures import fixture_bag

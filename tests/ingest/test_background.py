@@ -18,7 +18,8 @@ from ingest.bags.reader import open_bags
 from ingest.dataset.layout import prepare_dirs
 from ingest.runtime.background import Background
 from ingest.train import sample
-from ingest.train.pipeline import IngestConfig, _resolve_topics, plan, stream_jobs
+from ingest.train.pipeline import IngestConfig, _resolve_topics, stream_jobs
+from ingest.train.plan import plan
 from ingest.train.sample import Geometry, SampleJob, process_sample, start_equirects
 from tests.ingest.test_pipeline import INDOOR, _rig
 from tests.live import HANG_S

@@ -167,7 +167,9 @@ def test_e57_with_invalid_zero_record_data_is_a_scan_error(tmp_path):
     xyz = np.random.default_rng(1).uniform(-3, 3, (40, 3)).astype(np.float32)
     _write_e57(tmp_path / "ok.e57", [("st", xyz, np.full((40, 3), 9, np.uint8), [1, 0, 0, 0], [0, 0, 0])])
     data = bytearray((tmp_path / "ok.e57").read_bytes())
-    offset = int(re.search(rb'<points type="CompressedVector" fileOffset="(\d+)"', data).group(1))
+    found = re.search(rb'<points type="CompressedVector" fileOffset="(\d+)"', data)
+    assert found is not None
+    offset = int(found.group(1))
     data[offset : offset + 32] = bytes(32)  # the binary section's header: id, lengths, offsets
     for page in range(0, len(data), 1024):  # E57 pages: 1020 bytes + big-endian CRC-32C
         data[page + 1020 : page + 1024] = struct.pack(">I", _crc32c(bytes(data[page : page + 1020])))

@@ -343,7 +343,7 @@ class SmallDisk:
         disk = self
 
         class Raw(io.FileIO):
-            def write(self, b) -> int:  # type: ignore[override]
+            def write(self, b) -> int:
                 room = 0 if disk.full and disk.sticky else disk.capacity - os.fstat(self.fileno()).st_size
                 if room <= 0 and len(b):
                     disk.full = True
