@@ -34,17 +34,18 @@ import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import OUT_DIR
+from _common import OUT_DIR, machine_line
 
 from calibration import DoubleSphere, read_rig
 from calibration.stereo import rotate_for_stereo, unrotate_from_stereo
 from calibration.virtual import R_up_cam, partner_pose, virtual_ds
 from ingest.dataset.layout import DISP_SCALE, read_png_u16
 from ingest.eval.metrics import score_range
+from ingest.raster import view as view_module
 from ingest.raster.lod import ScanIndex, build_index
 from ingest.raster.scan import Scan
 from ingest.raster.view import Rendering, pixel_geometry, render_view
-from ingest.raster.visibility import RenderParams
+from ingest.raster.visibility import RenderParams, zbuffer, zbuffer_erode
 from ingest.render.benchmark import run_benchmark
 from ingest.render.plan import BenchmarkConfig
 from ingest.render.scans import read_scans
@@ -140,6 +141,13 @@ def speed(args: argparse.Namespace) -> list[tuple[str, float, str]]:
     t_setup = time.perf_counter() - t0
     t_lod, rend = timed(lambda: render_view([index], model, T), args.runs)
     rss_lod = peak_rss_mb()
+    # the alternative z-buffer (numpy: one full-image erode per footprint class), same keys bit for bit
+    view_module.zbuffer = zbuffer_erode
+    try:
+        t_erode, rend_erode = timed(lambda: render_view([index], model, T), args.runs)
+    finally:
+        view_module.zbuffer = zbuffer
+    same = bool(np.array_equal(rend_erode.range_m, rend.range_m))
     naive = RenderParams(points_per_px=None, frustum_culling=False)
     t_naive, rend_naive = timed(lambda: render_view([index], model, T, naive), args.naive_runs)
     rss_naive = peak_rss_mb()
@@ -153,6 +161,7 @@ def speed(args: argparse.Namespace) -> list[tuple[str, float, str]]:
         pixel_geometry(m)  # per-model setup before forking, as render-benchmark does
     vps1, vps2 = throughput(1), throughput(2)
     st, sn = rend.stats, rend_naive.stats
+    print(f"\n{machine_line()}")
     print(f"\n{n / 1e6:.1f} M-point scan, {w}x{h} fisheye (nominal FOV {args.fov} deg), render = median "
           f"of {args.runs} runs (naive: {args.naive_runs}); cv2 threads {cv2.getNumThreads()}\n")  # fmt: skip
     rows = [
@@ -162,6 +171,9 @@ def speed(args: argparse.Namespace) -> list[tuple[str, float, str]]:
         ("render one view, LOD + culling", t_lod,
          f"{st['points_touched'] / 1e6:.2f} M points touched, {st['points_in_image'] / 1e6:.2f} M in image; "
          f"peak RSS {rss_lod:.0f} MB"),
+        ("render one view, numpy z-buffer (erode per footprint class)", t_erode,
+         f"same range image as the compiled z-buffer: {same}"),
+        ("numpy z-buffer / compiled", t_erode / t_lod, "ratio"),
         ("render one view, naive (all points)", t_naive,
          f"{sn['points_touched'] / 1e6:.2f} M points touched, {sn['points_in_image'] / 1e6:.2f} M in image; "
          f"peak RSS {rss_naive:.0f} MB"),
