@@ -60,3 +60,16 @@ def test_os_errors_on_the_output_side_are_one_line_and_exit_3(tmp_path):
     assert res.returncode == 3, res.stderr
     lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
     assert lines == ["error: /proc/sensorbox-nothere: No such file or directory"], res.stderr
+
+
+def test_the_cli_gives_numpys_blas_one_thread_unless_the_user_chose():
+    import os
+
+    code = "import sensorbox.cli.main, os; print(os.environ['OPENBLAS_NUM_THREADS'])"
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    for given, expected in ((None, "1"), ("3", "3")):
+        run_env = env if given is None else {**env, "OPENBLAS_NUM_THREADS": given}
+        out = subprocess.run(
+            [sys.executable, "-c", code], env=run_env, capture_output=True, text=True, check=True
+        )
+        assert out.stdout.strip() == expected
