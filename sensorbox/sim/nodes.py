@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import itertools
 from collections.abc import Iterator, Sequence
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +19,7 @@ from sensorbox.errors import GraphError
 from sensorbox.live.bus import PRIORITY_DEVICE, Node, NodeContext, NodeStatus
 from sensorbox.live.nodes import Params, stereo_camera_node
 from sensorbox.sim.camera_source import SimCameras, SimCameraSource
+from sensorbox.sim.emulator_process import EmulatorProcess, EmulatorSpec
 from sensorbox.sim.lidar import SWEEP_PERIOD_NS, Sweep
 from sensorbox.sim.mid360 import Mid360Emulator
 from sensorbox.sim.run import SimConfig, setup_sim
@@ -72,51 +72,23 @@ class LoopedScan:
 
 
 class EmulatorNode:
-    """One emulated Mid-360 (`sensorbox.sim.mid360.Mid360Emulator`) on loopback (priority: device)."""
+    """One emulated Mid-360 (`sensorbox.sim.mid360.Mid360Emulator`) on loopback, in a child process of its
+    own (`sensorbox.sim.emulator_process`: the graph's threads cannot stall it); priority: device."""
 
     priority = PRIORITY_DEVICE
 
     def __init__(self, name: str, sim_cfg: Any, lidar: str, ip: str, loop_s: float, options: dict[str, Any]):
         self.name = name
-        self.sim_cfg = sim_cfg
-        self.lidar = lidar
-        self.ip = ip
-        self.loop_s = loop_s
-        self.options = options
-        self.emulator: Any = None
+        self.process = EmulatorProcess(EmulatorSpec(name, sim_cfg, lidar, ip, loop_s, options))
 
     def start(self) -> None:
-        cfg = replace(self.sim_cfg, duration_s=self.loop_s if self.loop_s > 0 else 1e7)
-        setup = setup_sim(cfg)
-        names = [li.name for li in setup.rig.lidars]
-        if self.lidar not in names:
-            raise GraphError(
-                f"emulator {self.name}: rig has no lidar {self.lidar!r}; it has {', '.join(names)}"
-            )
-        index = names.index(self.lidar)
-        scan = SimScan(setup, index)
-        source = LoopedScan(scan, self.loop_s) if self.loop_s > 0 else scan
-        last = (setup.rig.lidars[index].ip or "0.0.0.0").rsplit(".", 1)[-1]
-        self.emulator = Mid360Emulator(
-            self.ip,
-            source,
-            serial=f"47MDL9A00100{int(last) % 100:02d}",
-            seed=cfg.seed * 100 + index,
-            **self.options,
-        )
-        self.emulator.start()
+        self.process.start()
 
     def stop(self) -> None:
-        if self.emulator is not None:
-            self.emulator.stop()
+        self.process.stop()
 
     def status(self) -> NodeStatus:
-        if self.emulator is None:
-            return NodeStatus()
-        c = self.emulator.counters
-        counters = {"packets_sent": c.packets_sent, "points_sent": c.points_sent, "imu_sent": c.imu_sent,
-                    "sweeps_sent": c.sweeps}  # fmt: skip
-        return NodeStatus({k: float(v) for k, v in counters.items()})
+        return NodeStatus(dict(self.process.counters))
 
 
 def mid360_emulator_node(ctx: NodeContext, p: Params) -> Node:
