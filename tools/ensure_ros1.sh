@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Make sure ROS 1's own rosbag (Debian's python3-rosbag, with roslz4) and sensor_msgs are
 # importable by the system python: the interop tests read our ROS 1 bags with them and write
-# bags with them for our reader (tests/sensorbox/test_ros_interop.py). They skip without them.
+# bags with them for our reader (tests/sensorbox/test_ros1_interop.py). They skip without them.
 # Usage: ensure_ros1.sh
 set -u
 sys_py=/usr/bin/python3
