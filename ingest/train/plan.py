@@ -69,7 +69,7 @@ def _seen(bags: BagSet, topics: Topics, bad: BadMessages) -> tuple[dict[str, I64
         sweep = bad.decoded(msg, where)
         assert sweep is None or isinstance(sweep, Sweep)
         if sweep is not None and len(sweep.stamps_ns):
-            seen[msg.topic].append((msg.log_ns, int(sweep.stamps_ns.min()), int(sweep.stamps_ns.max())))
+            seen[msg.topic].append((msg.log_ns, *sweep.span_ns))
             rates.add(msg.topic, sweep.stamps_ns)
     return {t: np.array(v, np.int64).reshape(-1, 3) for t, v in seen.items()}, rates
 

@@ -98,9 +98,10 @@ def trajectory_pass(
         T = rig.lidar(lidar_topics[msg.topic]).T_cam0_lidar
         xyz = np.asarray(sweep.xyz_m, np.float64)[keep]
         odo.add(xyz @ T[:3, :3].T + T[:3, 3], sweep.stamps_ns[keep])
-        last[msg.topic] = max(last[msg.topic], int(sweep.stamps_ns.max()))
+        earliest, latest = sweep.span_ns
+        last[msg.topic] = max(last[msg.topic], latest)
         odo.advance(min(last.values()))
-        first_ns = int(sweep.stamps_ns.min()) if first_ns is None else first_ns
+        first_ns = earliest if first_ns is None else first_ns
         if progress is not None:
             progress((last[msg.topic] - first_ns) / 1e9)
     return odo.result()

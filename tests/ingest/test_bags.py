@@ -15,6 +15,7 @@ from rosbags.rosbag2 import Writer as Writer2
 from ingest.bags.decode import ImuSample, Sweep, decode
 from ingest.bags.reader import BagError, RawMessage, TopicSummary, open_bags, salvage_mcap
 from ingest.bags.rostypes import IMU_TYPE, typestore
+from tests.ingest.mcap_layout import chunk_offsets
 
 RNG = np.random.default_rng(11)
 T0 = 1_700_000_000_000_000_000
@@ -409,16 +410,6 @@ def test_rosbag2_directory_of_an_interrupted_recording(blob_bag):
         msgs = list(bags.messages())
     assert 0 < len(msgs) < N_BLOBS
     assert_blobs(msgs)
-
-
-def chunk_offsets(data):
-    """Byte offsets of the Chunk records (opcode 0x06) of an mcap file."""
-    pos, found = 8, []
-    while pos + 9 <= len(data) and data[pos] != 0x02:  # up to the Footer
-        if data[pos] == 0x06:
-            found.append(pos)
-        pos += 9 + int.from_bytes(data[pos + 1 : pos + 9], "little")
-    return found
 
 
 def test_salvage_skips_a_corrupt_chunk(tmp_path):

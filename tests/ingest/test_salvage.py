@@ -19,6 +19,7 @@ from rosbags.rosbag2 import Writer as Writer2
 from ingest.bags.reader import BagError, TopicSummary, open_bags, salvage_mcap
 from ingest.bags.rostypes import typestore
 from ingest.inspect import inspect_bags
+from tests.ingest.mcap_layout import chunk_offsets
 
 T0 = 1_700_000_000_000_000_000
 INT32 = "std_msgs/msg/Int32"
@@ -72,16 +73,6 @@ def write_mcap(path, compression, chunk_size):
 def mcap_bytes(request, tmp_path_factory):
     path = tmp_path_factory.mktemp("mcap") / f"{request.param}.mcap"
     return request.param, write_mcap(path, *WRITERS[request.param]).read_bytes()
-
-
-def chunk_offsets(data: bytes) -> list[int]:
-    """Byte offsets of the top-level Chunk records (opcode 0x06) of an intact mcap file."""
-    pos, found = 8, []
-    while pos + 9 <= len(data) and data[pos] != 0x02:  # up to the Footer
-        if data[pos] == 0x06:
-            found.append(pos)
-        pos += 9 + int.from_bytes(data[pos + 1 : pos + 9], "little")
-    return found
 
 
 def test_every_cut_point_salvages_a_prefix(mcap_bytes, tmp_path):
