@@ -55,7 +55,7 @@ class GtMeta:
     window_ms: float = 50.0  # +- LiDAR window around the frame time
     decision: str = ""  # why this method (--gt auto), or "asked" (--gt sparse|dense)
     accumulated_points: int = 0  # dense: points placed into cam0 at the frame time
-    removed_moving: int = 0  # dense: points removed because another sweep saw through them
+    removed_moving: int = 0  # dense: points near the view removed because another sweep saw through them
     trajectory_residual_mm: float | None = None  # dense: worst knot RMS point-to-plane residual in it
 
 

@@ -14,7 +14,6 @@ Kernels are compiled on first use and cached on disk (`cache=True`).
 
 from __future__ import annotations
 
-import math
 from functools import lru_cache
 
 import cv2
@@ -122,64 +121,3 @@ def snap_planar(
     n_out = _snap(pts, normal, cols, rows, allowed, rays, ray_ok, radius, min_cos, out)
     kept: F64 = out[:n_out]
     return kept
-
-
-@njit(cache=True, nogil=True)
-def _cell(dx, dy, dz, cells_per_rad, n_az, n_el):  # type: ignore[no-untyped-def]  # pragma: no cover
-    rng = math.sqrt(dx * dx + dy * dy + dz * dz)
-    az = math.atan2(dy, dx) + math.pi
-    c = dz / max(rng, 1e-12)
-    el = math.acos(min(1.0, max(-1.0, c)))
-    ia = min(int(az * cells_per_rad), n_az - 1)
-    ie = min(int(el * cells_per_rad), n_el - 1)
-    return ie * n_az + ia, rng
-
-
-@njit(cache=True, nogil=True)
-def _free_space(pts, voxel, rep, own, own_start, origins, cells_per_rad, n_az, n_el, margin_m, margin_rel):  # type: ignore[no-untyped-def]  # pragma: no cover
-    n_vox = rep.shape[0]
-    keep = np.ones(n_vox, np.bool_)
-    hit_by = np.full(n_vox, -1, np.int64)
-    nearest = np.empty(n_az * n_el, np.float64)
-    for r in range(origins.shape[0]):
-        a, b = own_start[r], own_start[r + 1]
-        if a == b:
-            continue
-        ox, oy, oz = origins[r, 0], origins[r, 1], origins[r, 2]
-        nearest[:] = np.inf
-        for j in range(a, b):
-            i = own[j]
-            cell, rng = _cell(pts[i, 0] - ox, pts[i, 1] - oy, pts[i, 2] - oz, cells_per_rad, n_az, n_el)
-            if rng < nearest[cell]:
-                nearest[cell] = rng
-            hit_by[voxel[i]] = r
-        for v in range(n_vox):
-            if not keep[v] or hit_by[v] == r:
-                continue
-            i = rep[v]
-            cell, rng = _cell(pts[i, 0] - ox, pts[i, 1] - oy, pts[i, 2] - oz, cells_per_rad, n_az, n_el)
-            if nearest[cell] < np.inf and nearest[cell] > rng + margin_m + margin_rel * rng:
-                keep[v] = False
-    return keep
-
-
-def free_space_voxels(
-    pts: F64, voxel: I64, rep: I64, own: I64, own_start: I64, origins: F64, cell_rad: float,
-    margin_m: float, margin_rel: float,
-) -> Bool:  # fmt: skip
-    """Keep mask per voxel: no reference saw through it (see `ingest.train.dense.free_space_filter`).
-
-    `voxel` is each point's voxel, `rep` each voxel's representative point;
-    reference r's points are `own[own_start[r]:own_start[r + 1]]`, seen from
-    `origins[r]`. Per reference: the nearest return in each `cell_rad` cell of
-    direction (azimuth x polar angle), then every voxel that reference did not
-    hit and whose representative lies nearer than its cell's nearest return
-    by more than `margin_m` + `margin_rel` x its range is cleared.
-    """
-    cells_per_rad = 1.0 / cell_rad
-    n_az = math.ceil(2 * math.pi * cells_per_rad)
-    n_el = math.ceil(math.pi * cells_per_rad)
-    out: Bool = _free_space(
-        pts, voxel, rep, own, own_start, origins, cells_per_rad, n_az, n_el, margin_m, margin_rel
-    )
-    return out

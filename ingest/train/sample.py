@@ -24,7 +24,7 @@ from ingest.dataset.meta import GtMeta, MotionMeta, PointMeta, SampleMeta
 from ingest.dataset.sparse import SparseImage
 from ingest.runtime.background import Background
 from ingest.train.clouds import FilterCounts, compensate, estimate_velocity, filter_points, integrate_gyro
-from ingest.train.dense import DenseParams, dense_ground_truth, free_space_filter
+from ingest.train.dense import DenseParams, dense_ground_truth, free_space_filter, may_matter
 from ingest.train.groundtruth import (
     GtParams,
     equirect_disparity,
@@ -350,7 +350,8 @@ def _process_dense(job: SampleJob, images: Background[Equirects], start_ms: floa
     placed = traj.to_frame(pts, stamps, tc)
     moving = np.zeros((0, 3))
     if prm.dense.free_space:
-        keep = free_space_filter(placed, *_slices(job, traj, stamps, which), prm.dense)
+        test = may_matter(geo.rig.upper.model, placed, prm.dense)
+        keep = free_space_filter(placed, *_slices(job, traj, stamps, which), prm.dense, test)
         moving, placed = placed[~keep], placed[keep]
     t1 = time.perf_counter()
     ms["clouds"] = (t1 - t0) * 1e3

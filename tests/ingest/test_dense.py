@@ -183,3 +183,15 @@ def test_free_space_clears_exactly_the_voxels_a_reference_saw_through():
     d = wall[wall_cleared] / np.linalg.norm(wall[wall_cleared], axis=1)[:, None]
     toward = stale[1] / np.linalg.norm(stale[1])
     assert np.degrees(np.arccos(d @ toward)).max() < 2.0  # within a cell or two of its direction
+
+
+def test_free_space_tests_only_the_voxels_asked_about():
+    """A stale point outside the tested set is kept; the same point tested is cleared."""
+    ys, zs = np.meshgrid(np.linspace(-1, 1, 41), np.linspace(-1, 1, 41))
+    wall = np.c_[np.full(ys.size, 10.0), ys.ravel(), zs.ravel()]
+    pts = np.concatenate([wall, [[5.0, 0.0, 0.0], [5.0, 0.5, 0.0]]])
+    slice_id = np.r_[np.zeros(len(wall), np.int64), np.ones(2, np.int64)]
+    test = np.zeros(len(pts), bool)
+    test[-1] = True
+    keep = free_space_filter(pts, slice_id, [(0, np.zeros(3))], DenseParams(), test)
+    assert keep[:-2].all() and keep[-2:].tolist() == [True, False]

@@ -1,0 +1,139 @@
+"""Free-space consistency of accumulated sweeps: what the frame's own sweeps saw through is removed.
+
+A mover's earlier positions are empty once it has left: a LiDAR slice near
+the frame time (a reference) sees past the spot, so points there from
+other slices are stale. Each reference's points give the nearest return per
+cell of direction from its origin; a point of another slice nearer than its
+cell's nearest return (by a margin) sat in space the reference saw empty.
+
+The test runs per voxel (its first point stands for it), and only on the
+voxels a caller asks about (those near the camera's view): a reference's
+own points still come from every direction, as its map of nearest returns
+needs them. Directions are binned on the faces of a cube around the origin
+(no trigonometry per test, which dominated the test's cost): a cell is at
+most the requested angle wide, at the faces' centres, and about a third of
+it in the corners.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from calibration.types import F64, I64, Bool
+
+FREE_MARGIN_REL = 0.03  # a ray must pass a point by margin_m + 3 % of its range to clear it
+
+
+@njit(cache=True, nogil=True)
+def _cell(dx, dy, dz, n):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """Cube-map cell (face, row, col flattened) of a direction and its length."""
+    ax, ay, az = abs(dx), abs(dy), abs(dz)
+    if ax >= ay and ax >= az:
+        face, m, u, v = (0 if dx > 0 else 1), ax, dy, dz
+    elif ay >= az:
+        face, m, u, v = (2 if dy > 0 else 3), ay, dx, dz
+    else:
+        face, m, u, v = (4 if dz > 0 else 5), az, dx, dy
+    m = max(m, 1e-12)
+    iu = min(int((u / m + 1.0) * 0.5 * n), n - 1)
+    iv = min(int((v / m + 1.0) * 0.5 * n), n - 1)
+    return (face * n + iv) * n + iu, math.sqrt(dx * dx + dy * dy + dz * dz)
+
+
+@njit(cache=True, nogil=True)
+def _free_space(pts, voxel, rep, candidate, own, own_start, origins, n, margin_m, margin_rel):  # type: ignore[no-untyped-def]  # pragma: no cover
+    n_vox = rep.shape[0]
+    keep = np.ones(n_vox, np.bool_)
+    hit_by = np.full(n_vox, -1, np.int64)
+    nearest = np.empty(6 * n * n, np.float64)
+    tested = np.flatnonzero(candidate)
+    for r in range(origins.shape[0]):
+        a, b = own_start[r], own_start[r + 1]
+        if a == b:
+            continue
+        ox, oy, oz = origins[r, 0], origins[r, 1], origins[r, 2]
+        nearest[:] = np.inf
+        for j in range(a, b):
+            i = own[j]
+            cell, rng = _cell(pts[i, 0] - ox, pts[i, 1] - oy, pts[i, 2] - oz, n)
+            if rng < nearest[cell]:
+                nearest[cell] = rng
+            hit_by[voxel[i]] = r
+        for v in tested:
+            if not keep[v] or hit_by[v] == r:
+                continue
+            i = rep[v]
+            cell, rng = _cell(pts[i, 0] - ox, pts[i, 1] - oy, pts[i, 2] - oz, n)
+            if nearest[cell] < np.inf and nearest[cell] > rng + margin_m + margin_rel * rng:
+                keep[v] = False
+    return keep
+
+
+def free_space_voxels(
+    pts: F64, voxel: I64, rep: I64, candidate: Bool, own: I64, own_start: I64, origins: F64,
+    cell_rad: float, margin_m: float, margin_rel: float = FREE_MARGIN_REL,
+) -> Bool:  # fmt: skip
+    """Keep mask per voxel: no reference saw through it.
+
+    `voxel` is each point's voxel, `rep` each voxel's representative point,
+    `candidate` the voxels to test (the others are kept); reference r's
+    points are `own[own_start[r]:own_start[r + 1]]`, seen from `origins[r]`.
+    Per reference: the nearest return in each cell of direction (cube-map
+    cells at most `cell_rad` wide), then every candidate voxel that
+    reference did not hit and whose representative lies nearer than its
+    cell's nearest return by more than `margin_m` + `margin_rel` x its range
+    is cleared. All positions in metres, in one frame.
+    """
+    n = max(1, math.ceil(2.0 / cell_rad))  # cells per face edge: tangents -1..1, 2/n rad at the centre
+    out: Bool = _free_space(pts, voxel, rep, candidate, own, own_start, origins, n, margin_m, margin_rel)
+    return out
+
+
+def free_space_filter(
+    pts: F64,
+    slice_id: I64,
+    references: list[tuple[int, F64]],
+    cell_deg: float,
+    voxel_m: float,
+    margin_m: float,
+    test: Bool | None = None,
+) -> Bool:
+    """Keep mask: points that no reference slice saw through (a mover's earlier positions are cleared).
+
+    `slice_id` names each point's slice (one LiDAR, a few tens of ms);
+    `references` are (slice id, that LiDAR's origin at the slice's time), all
+    in the same frame as `pts` (metres): the frame's own slices. A point of
+    another slice whose direction from a reference's origin falls in a
+    `cell_deg` cell and that lies nearer than the cell's nearest return by
+    more than `margin_m` + 3 % of its range sat where the reference saw
+    empty space, so it is removed. Cells with no return say nothing, and the
+    nearest return (not the farthest) makes the test clear a point only
+    where the whole cell was seen beyond it, so static edges stay. The test
+    runs per `voxel_m` voxel (its first point stands for it; a voxel the
+    reference itself hit is occupied), well inside the margin. Only voxels
+    holding a point with `test` set are tested (default: all).
+    """
+    cell = np.floor(pts / voxel_m).astype(np.int64)
+    key = (cell[:, 0] << 42) ^ (cell[:, 1] << 21) ^ cell[:, 2]
+    _, rep, voxel = np.unique(key, return_index=True, return_inverse=True)
+    voxel = voxel.astype(np.int64).reshape(-1)
+    candidate = np.ones(len(rep), bool)
+    if test is not None:
+        candidate[:] = False
+        candidate[voxel[test]] = True
+    order = np.argsort(slice_id, kind="stable")
+    sids = np.array([sid for sid, _ in references], np.int64)
+    lo = np.searchsorted(slice_id[order], sids)
+    hi = np.searchsorted(slice_id[order], sids + 1)
+    own = np.concatenate([order[a:b] for a, b in zip(lo, hi, strict=True)] + [np.zeros(0, np.int64)])
+    own_start = np.r_[0, np.cumsum(hi - lo)].astype(np.int64)
+    origins = np.array([o for _, o in references], np.float64).reshape(-1, 3)
+    keep_voxel = free_space_voxels(
+        np.ascontiguousarray(pts, np.float64), voxel, rep.astype(np.int64), candidate, own, own_start,
+        origins, math.radians(cell_deg), margin_m,
+    )  # fmt: skip
+    out: Bool = keep_voxel[voxel]
+    return out
