@@ -66,11 +66,23 @@ class CameraModel(ABC):
         from calibration.kernels import finish_projection  # numba: loaded with the first projection
 
         flat = P.reshape(-1, 3)
-        x, y, z = flat[:, 0], flat[:, 1], flat[:, 2]
-        with np.errstate(all="ignore"):
-            u, v, valid = self._project(x, y, z)
-        uv, valid = finish_projection(u, v, valid, x, y, z)
+        fused = self._project_fused(flat)
+        if fused is not None:
+            uv, valid = fused
+        else:
+            x, y, z = flat[:, 0], flat[:, 1], flat[:, 2]
+            with np.errstate(all="ignore"):
+                u, v, valid = self._project(x, y, z)
+            uv, valid = finish_projection(u, v, valid, x, y, z)
         return uv.reshape(*P.shape[:-1], 2), valid.reshape(P.shape[:-1])
+
+    def _project_fused(self, flat: F64) -> tuple[F64, Bool] | None:
+        """`project` of (N, 3) points as one compiled pass, where the model has one (else None).
+
+        The closed-form models have one: it computes the same formula as
+        `_project` point by point, without the numpy temporaries.
+        """
+        return None
 
     def unproject(self, pixels: ArrayLike) -> tuple[F64, Bool]:
         """Unproject pixels of shape (..., 2) to unit rays (..., 3).

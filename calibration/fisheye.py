@@ -65,6 +65,12 @@ class DoubleSphere(FocalModel):
         """acos(-w2): the angle from the axis where projection stops being valid."""
         return math.acos(min(1.0, max(-1.0, -self.w2)))
 
+    def _project_fused(self, flat: F64) -> tuple[F64, Bool]:
+        from calibration.kernels import project_double_sphere
+
+        p = np.ascontiguousarray(flat)
+        return project_double_sphere(p, self.fx, self.fy, self.cx, self.cy, self.xi, self.alpha, self.w2)
+
     def _project_normalised(self, x: F64, y: F64, z: F64) -> tuple[F64, F64, Bool]:
         # in place where possible: fresh temporaries of a million points cost more than the arithmetic
         r2 = x * x
@@ -114,6 +120,15 @@ def _eucm_project(x: F64, y: F64, z: F64, alpha: float, beta: float) -> tuple[F6
     valid &= n > 0.0
     np.divide(1.0, n, out=n)
     return x * n, y * n, valid
+
+
+def _eucm_fused(model: ExtendedUnified | Unified, flat: F64, beta: float) -> tuple[F64, Bool]:
+    """EUCM/UCM `project` in one compiled pass (`calibration.kernels`)."""
+    from calibration.kernels import project_extended_unified
+
+    p = np.ascontiguousarray(flat)
+    m = model
+    return project_extended_unified(p, m.fx, m.fy, m.cx, m.cy, m.alpha, beta, _alpha_w1(m.alpha))
 
 
 def _eucm_max_off_axis(alpha: float, beta: float) -> float:
@@ -166,6 +181,9 @@ class ExtendedUnified(FocalModel):
         """The angle from the axis where projection stops being valid."""
         return _eucm_max_off_axis(self.alpha, self.beta)
 
+    def _project_fused(self, flat: F64) -> tuple[F64, Bool]:
+        return _eucm_fused(self, flat, self.beta)
+
     def _project_normalised(self, x: F64, y: F64, z: F64) -> tuple[F64, F64, Bool]:
         return _eucm_project(x, y, z, self.alpha, self.beta)
 
@@ -197,6 +215,9 @@ class Unified(FocalModel):
     def max_off_axis_rad(self) -> float:
         """As for EUCM: projection stops at z = -w1 |p|."""
         return _eucm_max_off_axis(self.alpha, 1.0)
+
+    def _project_fused(self, flat: F64) -> tuple[F64, Bool]:
+        return _eucm_fused(self, flat, 1.0)
 
     def _project_normalised(self, x: F64, y: F64, z: F64) -> tuple[F64, F64, Bool]:
         return _eucm_project(x, y, z, self.alpha, 1.0)

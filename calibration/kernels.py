@@ -49,3 +49,75 @@ def finish_projection(u: F64, v: F64, valid: Bool, x: F64, y: F64, z: F64) -> tu
         x, y, z, uv, ok,
     )  # fmt: skip
     return uv, ok
+
+
+@njit(cache=True, nogil=True)
+def _store(i, u, v, good, uv, ok):  # type: ignore[no-untyped-def]  # pragma: no cover
+    good = good and math.isfinite(u) and math.isfinite(v)
+    ok[i] = good
+    uv[i, 0] = u if good else np.nan
+    uv[i, 1] = v if good else np.nan
+
+
+@njit(cache=True, nogil=True)
+def _finite3(x, y, z):  # type: ignore[no-untyped-def]  # pragma: no cover
+    return math.isfinite(x) and math.isfinite(y) and math.isfinite(z)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")  # x / 0 gives inf or NaN, as numpy
+def _double_sphere(p, fx, fy, cx, cy, xi, alpha, w2, uv, ok):  # type: ignore[no-untyped-def]  # pragma: no cover
+    for i in range(p.shape[0]):
+        x, y, z = p[i, 0], p[i, 1], p[i, 2]
+        r2 = x * x + y * y
+        d1 = math.sqrt(z * z + r2)
+        k = d1 * xi + z
+        n = math.sqrt(k * k + r2) * alpha + k * (1.0 - alpha)
+        good = _finite3(x, y, z) and z > -w2 * d1 and n > 0.0
+        _store(i, x / n * fx + cx, y / n * fy + cy, good, uv, ok)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")  # x / 0 gives inf or NaN, as numpy
+def _extended_unified(p, fx, fy, cx, cy, alpha, beta, w1, uv, ok):  # type: ignore[no-untyped-def]  # pragma: no cover
+    for i in range(p.shape[0]):
+        x, y, z = p[i, 0], p[i, 1], p[i, 2]
+        d = math.sqrt((x * x + y * y) * beta + z * z)
+        n = z * (1.0 - alpha) + alpha * d
+        good = _finite3(x, y, z) and z > -w1 * d and n > 0.0
+        _store(i, x / n * fx + cx, y / n * fy + cy, good, uv, ok)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")  # x / 0 gives inf or NaN, as numpy
+def _pinhole(p, fx, fy, cx, cy, uv, ok):  # type: ignore[no-untyped-def]  # pragma: no cover
+    for i in range(p.shape[0]):
+        x, y, z = p[i, 0], p[i, 1], p[i, 2]
+        good = _finite3(x, y, z) and z > 0.0
+        _store(i, x / z * fx + cx, y / z * fy + cy, good, uv, ok)
+
+
+def _outputs(p: F64) -> tuple[F64, Bool]:
+    return np.empty((p.shape[0], 2), np.float64), np.empty(p.shape[0], np.bool_)
+
+
+def project_double_sphere(
+    p: F64, fx: float, fy: float, cx: float, cy: float, xi: float, alpha: float, w2: float
+) -> tuple[F64, Bool]:
+    """Double Sphere projection of (N, 3) points fused with `finish_projection`: one pass."""
+    uv, ok = _outputs(p)
+    _double_sphere(p, fx, fy, cx, cy, xi, alpha, w2, uv, ok)
+    return uv, ok
+
+
+def project_extended_unified(
+    p: F64, fx: float, fy: float, cx: float, cy: float, alpha: float, beta: float, w1: float
+) -> tuple[F64, Bool]:
+    """EUCM (UCM with beta = 1) projection of (N, 3) points fused with `finish_projection`."""
+    uv, ok = _outputs(p)
+    _extended_unified(p, fx, fy, cx, cy, alpha, beta, w1, uv, ok)
+    return uv, ok
+
+
+def project_pinhole(p: F64, fx: float, fy: float, cx: float, cy: float) -> tuple[F64, Bool]:
+    """Undistorted pinhole projection of (N, 3) points fused with `finish_projection`."""
+    uv, ok = _outputs(p)
+    _pinhole(p, fx, fy, cx, cy, uv, ok)
+    return uv, ok

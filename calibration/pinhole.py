@@ -39,6 +39,13 @@ class Pinhole(FocalModel):
         """3x3 intrinsic matrix."""
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 
+    def _project_fused(self, flat: F64) -> tuple[F64, Bool] | None:
+        if self.distortion is not None:
+            return None
+        from calibration.kernels import project_pinhole
+
+        return project_pinhole(np.ascontiguousarray(flat), self.fx, self.fy, self.cx, self.cy)
+
     def _project_normalised(self, x: F64, y: F64, z: F64) -> tuple[F64, F64, Bool]:
         mx, my = x / z, y / z
         if self.distortion is not None:
