@@ -50,6 +50,10 @@ def _free_space(pts, voxel, rep, candidate, own, own_start, origins, n, margin_m
     hit_by = np.full(n_vox, -1, np.int64)
     nearest = np.empty(6 * n * n, np.float64)
     tested = np.flatnonzero(candidate)
+    # the tested voxels' representatives, gathered once: the loop per reference reads them in order
+    rep_pts = np.empty((tested.shape[0], 3), np.float64)
+    for t in range(tested.shape[0]):
+        rep_pts[t] = pts[rep[tested[t]]]
     for r in range(origins.shape[0]):
         a, b = own_start[r], own_start[r + 1]
         if a == b:
@@ -62,11 +66,11 @@ def _free_space(pts, voxel, rep, candidate, own, own_start, origins, n, margin_m
             if rng < nearest[cell]:
                 nearest[cell] = rng
             hit_by[voxel[i]] = r
-        for v in tested:
+        for t in range(tested.shape[0]):
+            v = tested[t]
             if not keep[v] or hit_by[v] == r:
                 continue
-            i = rep[v]
-            cell, rng = _cell(pts[i, 0] - ox, pts[i, 1] - oy, pts[i, 2] - oz, n)
+            cell, rng = _cell(rep_pts[t, 0] - ox, rep_pts[t, 1] - oy, rep_pts[t, 2] - oz, n)
             if nearest[cell] < np.inf and nearest[cell] > rng + margin_m + margin_rel * rng:
                 keep[v] = False
     return keep
