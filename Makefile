@@ -44,6 +44,7 @@ bench: setup
 	$(BIN)/python bench/bench_tradeoff.py
 	$(BIN)/python bench/bench_stability.py
 	$(BIN)/python bench/bench_dense.py
+	$(BIN)/python bench/bench_dense_speed.py
 
 # Regenerate the small simulated bags in tests/fixtures (deterministic: same bytes every time).
 fixtures: setup
