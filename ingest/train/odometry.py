@@ -31,14 +31,16 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 from calibration.linalg3 import rotvec_to_matrix
 from calibration.types import F64, I64, Bool
 from ingest.errors import OdometryError
 from ingest.train.clouds import GyroTrack, estimate_velocity
+from ingest.train.odometry_kernels import chain_points, normal_equations
 from ingest.train.planes import neighbour_covariances, normals_from_covariances
 from ingest.train.rig_trajectory import RigTrajectory
+from ingest.train.voxel_hash import VoxelHash
 
 
 @dataclass(frozen=True)
@@ -53,6 +55,8 @@ class OdometryParams:
     map_horizon_s: float = 2.0
     map_range_m: float = 30.0  # the map keeps what lies this close to the rig (far voxels hold few points)
     map_neighbours: int = 10
+    map_normal_radius_m: float = 1.0  # a normal needs `map_neighbours` points this close
+    map_cell_m: float = 0.5  # cube of the map's search hash
     map_max_flatness: float = 0.05
     max_correspondence_m: float = 0.5
     iterations: int = 15
@@ -88,7 +92,7 @@ class LocalMap:
     known: Bool = field(default_factory=lambda: np.zeros(0, bool))  # normal computed
     origin: F64 = field(default_factory=lambda: np.zeros((0, 3)))  # the rig when the point joined
     added_ns: I64 = field(default_factory=lambda: np.zeros(0, np.int64))
-    tree: cKDTree | None = None
+    grid: VoxelHash | None = None
 
     def add(self, pts_world: F64, t_ns: int, origin_world: F64) -> None:
         """A registered chunk joins (one point per free voxel); points older than the horizon leave."""
@@ -110,19 +114,21 @@ class LocalMap:
         self.known = np.concatenate([self.known[keep], np.zeros(m, bool)])
         self.origin = np.concatenate([self.origin[keep], np.broadcast_to(origin_world, (m, 3))])
         self.added_ns = np.concatenate([self.added_ns[keep], np.full(m, t_ns, np.int64)])
-        self.tree = cKDTree(self.xyz, leafsize=16, balanced_tree=False)
+        self.grid = VoxelHash.build(self.xyz, prm.map_cell_m)
 
     def normals_at(self, j: I64) -> None:
         """Compute the normals of map points `j` that have none yet."""
-        assert self.tree is not None
+        assert self.grid is not None
+        prm = self.params
         todo = np.unique(j[~self.known[j]])
-        k = min(self.params.map_neighbours, len(self.xyz))
-        if len(todo) == 0 or k < 3:
+        self.known[todo] = True
+        _, idx = self.grid.query(self.xyz[todo], prm.map_neighbours, prm.map_normal_radius_m)
+        todo, idx = todo[idx[:, -1] >= 0], idx[idx[:, -1] >= 0]  # too few neighbours: never planar
+        if len(todo) == 0:
             return
-        _, idx = self.tree.query(self.xyz[todo], k=k)
         cov = neighbour_covariances(self.xyz, idx)
-        fit = normals_from_covariances(cov, self.xyz[todo] - self.origin[todo], self.params.map_max_flatness)
-        self.normal[todo], self.planar[todo], self.known[todo] = fit.normal, fit.planar, True
+        fit = normals_from_covariances(cov, self.xyz[todo] - self.origin[todo], prm.map_max_flatness)
+        self.normal[todo], self.planar[todo] = fit.normal, fit.planar
 
 
 def _voxel_keys(pts: F64, voxel_m: float) -> I64:
@@ -162,18 +168,22 @@ def _solve_knots(
 
     Returns every knot (fixed ones as given) and the weighted RMS residual (m).
     """
-    assert the_map.tree is not None
+    assert the_map.grid is not None
     R, p = [r.copy() for r in R_init], [q.copy() for q in p_init]
-    n_free = len(free)
     stamps = np.array(knots_ns, np.int64)
+    # constant through the iterations: each point's segment and the gyro's turn within it
+    chain = RigTrajectory(stamps, np.array(R), np.array(p), np.zeros(len(stamps)), gyro)
+    seg, f = chain._segment(t_ns)
+    rel = chain.gyro_shape(t_ns)
+    shape_next = chain.gyro_shape(stamps[1:] - 1) if gyro is None else gyro.between(stamps[:-1], stamps[1:])
+    free_k = np.array(free, np.int64)
     residual = math.nan
     for _ in range(prm.iterations):
-        traj = RigTrajectory(stamps, np.array(R), np.array(p), np.zeros(len(knots_ns)), gyro)
-        R_t, p_t = traj.pose(t_ns)
-        a = np.einsum("nij,nj->ni", R_t, pts_cam0)
-        world = a + p_t
-        dist, j = the_map.tree.query(world, k=1, distance_upper_bound=prm.max_correspondence_m)
-        ok = np.isfinite(dist)
+        R_k = np.array(R)
+        E = np.matmul(np.swapaxes(np.matmul(R_k[:-1], shape_next), 1, 2), R_k[1:])
+        a, world = chain_points(pts_cam0, seg, f, rel, R_k, np.array(p), Rotation.from_matrix(E).as_rotvec())
+        j = the_map.grid.query(world, 1, prm.max_correspondence_m)[1][:, 0]
+        ok = j >= 0
         the_map.normals_at(j[ok])
         ok[ok] &= the_map.planar[j[ok]]
         idx = np.flatnonzero(ok)
@@ -183,16 +193,8 @@ def _solve_knots(
         r = np.einsum("ij,ij->i", n, world[idx] - the_map.xyz[j[idx]])
         scale = max(1.4826 * float(np.median(np.abs(r))), 0.005)
         w = 1.0 / (1.0 + (r / scale) ** 2)  # Cauchy weights: gross outliers (movers, wrong matches) fade
-        seg, f = traj._segment(t_ns[idx])
-        J = np.zeros((len(idx), 6 * n_free))
-        rot, pos = np.cross(a[idx], n), n
-        for u, k in enumerate(free):  # knot k ends segment k-1 (weight f) and starts segment k (1-f)
-            weight = np.where(seg == k - 1, f, 0.0) + np.where(seg == k, 1.0 - f, 0.0)
-            J[:, 6 * u : 6 * u + 3] = rot * weight[:, None]
-            J[:, 6 * u + 3 : 6 * u + 6] = pos * weight[:, None]
-        # einsum, not @: a (12 x N) product is too small for BLAS's threads, which only spin
-        H = np.einsum("ni,nj->ij", J, J * w[:, None]) + 1e-9 * np.eye(6 * n_free)
-        dx = np.linalg.solve(H, -np.einsum("ni,n->i", J, w * r))
+        H, g = normal_equations(a[idx], n, r, w, seg[idx], f[idx], free_k)
+        dx = np.linalg.solve(H + 1e-9 * np.eye(len(g)), -g)
         for u, k in enumerate(free):
             R[k] = rotvec_to_matrix(dx[6 * u : 6 * u + 3][None])[0] @ R[k]
             p[k] = p[k] + dx[6 * u + 3 : 6 * u + 6]
@@ -391,4 +393,4 @@ def _refine_start(
     fresh.add(np.einsum("nij,nj->ni", R_t, P) + p_t, chain.stamps[-1], chain.p[-1])
     the_map.xyz, the_map.normal, the_map.planar = fresh.xyz, fresh.normal, fresh.planar
     the_map.known, the_map.origin = fresh.known, fresh.origin
-    the_map.added_ns, the_map.tree = fresh.added_ns, fresh.tree
+    the_map.added_ns, the_map.grid = fresh.added_ns, fresh.grid

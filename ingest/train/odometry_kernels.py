@@ -1,0 +1,108 @@
+"""Compiled (numba) per-point loops of the odometry's Gauss-Newton solve.
+
+Each iteration of `ingest.train.odometry` moves a chunk's few thousand points
+with the knot chain and accumulates the point-to-plane normal equations. In
+numpy that was a (N, 3, 3) rotation stack per iteration (`RigTrajectory.pose`)
+and a dense (N, 12) Jacobian, a dozen passes over the points; here it is one
+pass each. The chain's formula is the module doc's of
+`ingest.train.rig_trajectory`: R(t) p = R_k G_k^T G(t) Exp(f e_k) p with
+e_k = Log(E_k), position linear between the knots.
+
+Kernels are compiled on first use and cached on disk (`cache=True`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from calibration.types import F64, I64
+
+
+@njit(cache=True, nogil=True)
+def _chain_points(pts, seg, f, rel, R_knot, p_knot, err, a_out, world_out):  # type: ignore[no-untyped-def]  # pragma: no cover
+    for i in range(pts.shape[0]):
+        k = seg[i]
+        fi = f[i]
+        wx, wy, wz = fi * err[k, 0], fi * err[k, 1], fi * err[k, 2]
+        th2 = wx * wx + wy * wy + wz * wz
+        if th2 < 1e-12:  # series of sin(th)/th and (1 - cos(th))/th^2
+            s = 1.0 - th2 / 6.0
+            c = 0.5 - th2 / 24.0
+        else:
+            th = math.sqrt(th2)
+            s = math.sin(th) / th
+            c = (1.0 - math.cos(th)) / th2
+        x, y, z = pts[i, 0], pts[i, 1], pts[i, 2]
+        cx, cy, cz = wy * z - wz * y, wz * x - wx * z, wx * y - wy * x  # w x p
+        ccx, ccy, ccz = wy * cz - wz * cy, wz * cx - wx * cz, wx * cy - wy * cx  # w x (w x p)
+        y0, y1, y2 = x + s * cx + c * ccx, y + s * cy + c * ccy, z + s * cz + c * ccz
+        for r in range(3):  # a = R_k rel (Exp(f e) p)
+            v = 0.0
+            for m in range(3):
+                v += R_knot[k, r, m] * (rel[i, m, 0] * y0 + rel[i, m, 1] * y1 + rel[i, m, 2] * y2)
+            a_out[i, r] = v
+            world_out[i, r] = v + p_knot[k, r] + fi * (p_knot[k + 1, r] - p_knot[k, r])
+
+
+def chain_points(pts: F64, seg: I64, f: F64, rel: F64, R_knot: F64, p_knot: F64, err: F64) -> tuple[F64, F64]:
+    """(rotated (N, 3), world (N, 3)) of points `pts` (cam0, N x 3) on the knot chain.
+
+    Point i lies in segment `seg[i]` at fraction `f[i]`, with the gyro's turn
+    `rel[i]` (3, 3) from the segment's start; `R_knot` (K, 3, 3) and `p_knot`
+    (K, 3) are the knots, `err` (K - 1, 3) each segment's spread mismatch
+    Log(E_k). rotated = R(t) p, world = R(t) p + p(t).
+    """
+    a = np.empty((len(pts), 3))
+    world = np.empty((len(pts), 3))
+    if len(pts):
+        _chain_points(np.ascontiguousarray(pts, np.float64), seg, f, np.ascontiguousarray(rel, np.float64),
+                      np.ascontiguousarray(R_knot), np.ascontiguousarray(p_knot), np.ascontiguousarray(err),
+                      a, world)  # fmt: skip
+    return a, world
+
+
+@njit(cache=True, nogil=True)
+def _normal_equations(a, n, r, w, seg, f, free, H, g):  # type: ignore[no-untyped-def]  # pragma: no cover
+    n_free = free.shape[0]
+    J = np.zeros(6 * n_free)
+    for i in range(a.shape[0]):
+        rot0 = a[i, 1] * n[i, 2] - a[i, 2] * n[i, 1]
+        rot1 = a[i, 2] * n[i, 0] - a[i, 0] * n[i, 2]
+        rot2 = a[i, 0] * n[i, 1] - a[i, 1] * n[i, 0]
+        for u in range(n_free):  # knot k ends segment k - 1 (weight f) and starts segment k (1 - f)
+            k = free[u]
+            wt = 0.0
+            if seg[i] == k - 1:
+                wt = f[i]
+            elif seg[i] == k:
+                wt = 1.0 - f[i]
+            J[6 * u + 0] = rot0 * wt
+            J[6 * u + 1] = rot1 * wt
+            J[6 * u + 2] = rot2 * wt
+            J[6 * u + 3] = n[i, 0] * wt
+            J[6 * u + 4] = n[i, 1] * wt
+            J[6 * u + 5] = n[i, 2] * wt
+        wi = w[i]
+        for p in range(6 * n_free):
+            if J[p] == 0.0:
+                continue
+            g[p] += wi * J[p] * r[i]
+            for q in range(6 * n_free):
+                H[p, q] += wi * J[p] * J[q]
+
+
+def normal_equations(a: F64, n: F64, r: F64, w: F64, seg: I64, f: F64, free: I64) -> tuple[F64, F64]:
+    """(J^T W J, J^T W r) of the point-to-plane residuals `r` (N,) with weights `w` (N,).
+
+    Point i (rotated `a[i]`, map normal `n[i]`) in segment `seg[i]` at
+    fraction `f[i]` moves with the knots `free` (6 unknowns each: rotation
+    vector, then translation, both in the world frame); its Jacobian is
+    (a x n, n) times its weight between the two knots of its segment.
+    """
+    H = np.zeros((6 * len(free), 6 * len(free)))
+    g = np.zeros(6 * len(free))
+    _normal_equations(a, n, r, w, seg, f, np.asarray(free, np.int64), H, g)
+    return H, g
