@@ -40,7 +40,7 @@ from ingest.train.clouds import GyroTrack, estimate_velocity
 from ingest.train.odometry_kernels import chain_points, normal_equations
 from ingest.train.planes import neighbour_covariances, normals_from_covariances
 from ingest.train.rig_trajectory import RigTrajectory
-from ingest.train.voxel_hash import VoxelHash
+from ingest.train.voxel_hash import VoxelHash, first_free, voxel_keys
 
 
 @dataclass(frozen=True)
@@ -66,11 +66,7 @@ class OdometryParams:
 
 def voxel_subsample(pts: F64, voxel_m: float) -> I64:
     """Index of the first point in each occupied `voxel_m` cube (in input order)."""
-    if len(pts) == 0:
-        return np.zeros(0, np.int64)
-    _, first = np.unique(_voxel_keys(pts, voxel_m), return_index=True)
-    out: I64 = np.sort(first)
-    return out
+    return first_free(voxel_keys(pts, voxel_m), np.zeros(0, np.int64))
 
 
 @dataclass
@@ -92,6 +88,7 @@ class LocalMap:
     known: Bool = field(default_factory=lambda: np.zeros(0, bool))  # normal computed
     origin: F64 = field(default_factory=lambda: np.zeros((0, 3)))  # the rig when the point joined
     added_ns: I64 = field(default_factory=lambda: np.zeros(0, np.int64))
+    key: I64 = field(default_factory=lambda: np.zeros(0, np.int64))  # voxel_keys at map_voxel_m
     grid: VoxelHash | None = None
 
     def add(self, pts_world: F64, t_ns: int, origin_world: F64) -> None:
@@ -100,15 +97,13 @@ class LocalMap:
         keep = self.added_ns >= t_ns - int(prm.map_horizon_s * 1e9)
         keep &= np.einsum("ij,ij->i", self.xyz - origin_world, self.xyz - origin_world) <= prm.map_range_m**2
         old = self.xyz[keep]
-        near = np.einsum("ij,ij->i", pts_world - origin_world, pts_world - origin_world) <= prm.map_range_m**2
-        cand = pts_world[near][voxel_subsample(pts_world[near], prm.map_voxel_m)]
-        old_keys = np.sort(_voxel_keys(old, prm.map_voxel_m))
-        cand_keys = _voxel_keys(cand, prm.map_voxel_m)
-        at = np.minimum(np.searchsorted(old_keys, cand_keys), max(len(old_keys) - 1, 0))
-        taken = old_keys[at] == cand_keys if len(old_keys) else np.zeros(len(cand), bool)
-        new = cand[~taken]
+        near = pts_world[np.einsum("ij,ij->i", pts_world - origin_world, pts_world - origin_world) <= prm.map_range_m**2]
+        near_keys = voxel_keys(near, prm.map_voxel_m)
+        fresh = first_free(near_keys, self.key[keep])  # one point per voxel the map does not hold yet
+        new = near[fresh]
         m = len(new)
         self.xyz = np.concatenate([old, new])
+        self.key = np.concatenate([self.key[keep], near_keys[fresh]])
         self.normal = np.concatenate([self.normal[keep], np.zeros((m, 3))])
         self.planar = np.concatenate([self.planar[keep], np.zeros(m, bool)])
         self.known = np.concatenate([self.known[keep], np.zeros(m, bool)])
@@ -129,13 +124,6 @@ class LocalMap:
         cov = neighbour_covariances(self.xyz, idx)
         fit = normals_from_covariances(cov, self.xyz[todo] - self.origin[todo], prm.map_max_flatness)
         self.normal[todo], self.planar[todo] = fit.normal, fit.planar
-
-
-def _voxel_keys(pts: F64, voxel_m: float) -> I64:
-    """One int64 per voxel (21 bits per axis: +-100 km at 0.1 m)."""
-    c = np.floor(pts / voxel_m).astype(np.int64) + (1 << 20)
-    out: I64 = (c[:, 0] << 42) | (c[:, 1] << 21) | c[:, 2]
-    return out
 
 
 @dataclass
@@ -178,11 +166,12 @@ def _solve_knots(
     shape_next = chain.gyro_shape(stamps[1:] - 1) if gyro is None else gyro.between(stamps[:-1], stamps[1:])
     free_k = np.array(free, np.int64)
     residual = math.nan
+    j = np.full(len(t_ns), -1, np.int64)
     for _ in range(prm.iterations):
         R_k = np.array(R)
         E = np.matmul(np.swapaxes(np.matmul(R_k[:-1], shape_next), 1, 2), R_k[1:])
         a, world = chain_points(pts_cam0, seg, f, rel, R_k, np.array(p), Rotation.from_matrix(E).as_rotvec())
-        j = the_map.grid.query(world, 1, prm.max_correspondence_m)[1][:, 0]
+        j = the_map.grid.query(world, 1, prm.max_correspondence_m, seed=j)[1][:, 0]
         ok = j >= 0
         the_map.normals_at(j[ok])
         ok[ok] &= the_map.planar[j[ok]]
@@ -393,4 +382,4 @@ def _refine_start(
     fresh.add(np.einsum("nij,nj->ni", R_t, P) + p_t, chain.stamps[-1], chain.p[-1])
     the_map.xyz, the_map.normal, the_map.planar = fresh.xyz, fresh.normal, fresh.planar
     the_map.known, the_map.origin = fresh.known, fresh.origin
-    the_map.added_ns, the_map.grid = fresh.added_ns, fresh.grid
+    the_map.added_ns, the_map.grid, the_map.key = fresh.added_ns, fresh.grid, fresh.key

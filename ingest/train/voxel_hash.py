@@ -106,7 +106,7 @@ def _box_d2(q, lo, cell_m):  # type: ignore[no-untyped-def]  # pragma: no cover
 
 
 @njit(cache=True, nogil=True)
-def _knn(queries, xyz_sorted, order, start, table_key, table_bucket, cell_m, k, radius_m, out_idx, out_d2):  # type: ignore[no-untyped-def]  # pragma: no cover
+def _knn(queries, xyz, xyz_sorted, order, start, table_key, table_bucket, cell_m, k, radius_m, seed, out_idx, out_d2):  # type: ignore[no-untyped-def]  # pragma: no cover
     """The k nearest points within `radius_m` of each query, nearest first (-1 / inf: none)."""
     shift = 64
     size = table_key.shape[0]
@@ -121,6 +121,14 @@ def _knn(queries, xyz_sorted, order, start, table_key, table_bucket, cell_m, k, 
         idx = out_idx[i]
         best[:] = radius_m * radius_m
         idx[:] = -1
+        if k == 1 and seed[i] >= 0:  # a guess bounds the search from the start
+            d2 = 0.0
+            for a in range(3):
+                v = xyz[seed[i], a] - q[a]
+                d2 += v * v
+            if d2 < best[0]:
+                best[0] = d2
+                idx[0] = seed[i]
         cx = int(math.floor(q[0] / cell_m))
         cy = int(math.floor(q[1] / cell_m))
         cz = int(math.floor(q[2] / cell_m))
@@ -159,6 +167,58 @@ def _knn(queries, xyz_sorted, order, start, table_key, table_bucket, cell_m, k, 
                 best[j] = np.inf
 
 
+@njit(cache=True, nogil=True)
+def _voxel_keys(xyz, voxel_m, out):  # type: ignore[no-untyped-def]  # pragma: no cover
+    for i in range(xyz.shape[0]):
+        out[i] = _key(
+            int(math.floor(xyz[i, 0] / voxel_m)),
+            int(math.floor(xyz[i, 1] / voxel_m)),
+            int(math.floor(xyz[i, 2] / voxel_m)),
+        )
+
+
+def voxel_keys(xyz: F64, voxel_m: float) -> I64:
+    """One int64 per point naming its `voxel_m` cube (21 bits per axis: +-100 km at 0.1 m)."""
+    out = np.empty(len(xyz), np.int64)
+    if len(xyz):
+        _voxel_keys(np.ascontiguousarray(xyz, np.float64), float(voxel_m), out)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _first_free(keys, taken, bits, out):  # type: ignore[no-untyped-def]  # pragma: no cover
+    size = 1 << bits
+    shift = 64 - bits
+    table = np.full(size, _EMPTY, np.int64)
+    for i in range(taken.shape[0]):
+        s = _slot(taken[i], shift)
+        while table[s] != taken[i] and table[s] != _EMPTY:
+            s = (s + 1) & (size - 1)
+        table[s] = taken[i]
+    n = 0
+    for i in range(keys.shape[0]):
+        s = _slot(keys[i], shift)
+        while table[s] != keys[i] and table[s] != _EMPTY:
+            s = (s + 1) & (size - 1)
+        if table[s] == _EMPTY:
+            table[s] = keys[i]
+            out[n] = i
+            n += 1
+    return n
+
+
+def first_free(keys: I64, taken: I64) -> I64:
+    """Ascending indices of the first of each distinct key in `keys` that is not among `taken`.
+
+    With voxel keys: one point per voxel (the first in input order), none in a
+    voxel already held. A hash set, one linear pass: no sort.
+    """
+    out = np.empty(len(keys), np.int64)
+    bits = max(4, int(np.ceil(np.log2(2 * max(len(keys) + len(taken), 1)))))
+    n = _first_free(np.ascontiguousarray(keys, np.int64), np.ascontiguousarray(taken, np.int64), bits, out)
+    return out[:n]
+
+
 @dataclass(frozen=True)
 class VoxelHash:
     """Points bucketed by `cell_m` cubes, searchable for their k nearest neighbours within a radius."""
@@ -179,18 +239,22 @@ class VoxelHash:
         table_key, table_bucket, start, order = _build(pts, float(cell_m), bits)
         return cls(pts, float(cell_m), pts[order], order, start, table_key, table_bucket)
 
-    def query(self, queries: F64, k: int, radius_m: float) -> tuple[F64, I64]:
+    def query(self, queries: F64, k: int, radius_m: float, seed: I64 | None = None) -> tuple[F64, I64]:
         """Distances (M, k, metres, ascending) and indices (M, k) of each query's k nearest within `radius_m`.
 
         Neighbours closer than `radius_m` only (strictly); missing ones are
-        distance inf and index -1, as scipy's cKDTree reports them.
+        distance inf and index -1, as scipy's cKDTree reports them. With k = 1,
+        `seed` (M,) may name a point near each query (-1: none), such as the
+        previous iteration's match: the search then skips every cube farther
+        than it, and the answer is the same.
         """
         q = np.ascontiguousarray(queries, np.float64).reshape(-1, 3)
         idx = np.empty((len(q), k), np.int64)
         d2 = np.empty((len(q), k))
+        hint = np.full(len(q), -1, np.int64) if seed is None or k != 1 else np.asarray(seed, np.int64)
         if len(q) and len(self.xyz) and k > 0:
-            _knn(q, self.xyz_sorted, self.order, self.start, self.table_key, self.table_bucket,
-                 self.cell_m, k, float(radius_m), idx, d2)  # fmt: skip
+            _knn(q, self.xyz, self.xyz_sorted, self.order, self.start, self.table_key, self.table_bucket,
+                 self.cell_m, k, float(radius_m), hint, idx, d2)  # fmt: skip
         else:
             idx[:], d2[:] = -1, np.inf
         return np.sqrt(d2), idx
