@@ -37,8 +37,8 @@ from calibration.linalg3 import rotvec_to_matrix
 from calibration.types import F64, I64, Bool
 from ingest.errors import OdometryError
 from ingest.train.clouds import GyroTrack, estimate_velocity
-from ingest.train.odometry_kernels import chain_points, normal_equations
-from ingest.train.planes import neighbour_covariances, normals_from_covariances
+from ingest.train.odometry_kernels import chain_points, covariances, normal_equations
+from ingest.train.planes import normals_from_covariances
 from ingest.train.rig_trajectory import RigTrajectory
 from ingest.train.voxel_hash import VoxelHash, first_free, voxel_keys
 
@@ -53,7 +53,7 @@ class OdometryParams:
     max_source_points: int = 4000
     map_voxel_m: float = 0.1
     map_horizon_s: float = 2.0
-    map_range_m: float = 30.0  # the map keeps what lies this close to the rig (far voxels hold few points)
+    map_range_m: float = 30.0  # what lies this close to the rig joins the map (far voxels hold few points)
     map_neighbours: int = 10
     map_normal_radius_m: float = 1.0  # a normal needs `map_neighbours` points this close
     map_cell_m: float = 0.5  # cube of the map's search hash
@@ -92,24 +92,25 @@ class LocalMap:
     grid: VoxelHash | None = None
 
     def add(self, pts_world: F64, t_ns: int, origin_world: F64) -> None:
-        """A registered chunk joins (one point per free voxel); points older than the horizon leave."""
+        """A registered chunk joins (one point per free voxel); points older than the horizon leave.
+
+        Points join in time order, so the expired ones are a prefix of the arrays.
+        """
         prm = self.params
-        keep = self.added_ns >= t_ns - int(prm.map_horizon_s * 1e9)
-        keep &= np.einsum("ij,ij->i", self.xyz - origin_world, self.xyz - origin_world) <= prm.map_range_m**2
-        old = self.xyz[keep]
-        near = pts_world[np.einsum("ij,ij->i", pts_world - origin_world, pts_world - origin_world) <= prm.map_range_m**2]
+        first = int(np.searchsorted(self.added_ns, t_ns - int(prm.map_horizon_s * 1e9)))
+        rel = pts_world - origin_world
+        near = pts_world[np.einsum("ij,ij->i", rel, rel) <= prm.map_range_m**2]
         near_keys = voxel_keys(near, prm.map_voxel_m)
-        fresh = first_free(near_keys, self.key[keep])  # one point per voxel the map does not hold yet
-        new = near[fresh]
-        m = len(new)
-        self.xyz = np.concatenate([old, new])
-        self.key = np.concatenate([self.key[keep], near_keys[fresh]])
-        self.normal = np.concatenate([self.normal[keep], np.zeros((m, 3))])
-        self.planar = np.concatenate([self.planar[keep], np.zeros(m, bool)])
-        self.known = np.concatenate([self.known[keep], np.zeros(m, bool)])
-        self.origin = np.concatenate([self.origin[keep], np.broadcast_to(origin_world, (m, 3))])
-        self.added_ns = np.concatenate([self.added_ns[keep], np.full(m, t_ns, np.int64)])
-        self.grid = VoxelHash.build(self.xyz, prm.map_cell_m)
+        fresh = first_free(near_keys, self.key[first:])  # one point per voxel the map does not hold yet
+        m = len(fresh)
+        self.xyz = np.concatenate([self.xyz[first:], near[fresh]])
+        self.key = np.concatenate([self.key[first:], near_keys[fresh]])
+        self.normal = np.concatenate([self.normal[first:], np.zeros((m, 3))])
+        self.planar = np.concatenate([self.planar[first:], np.zeros(m, bool)])
+        self.known = np.concatenate([self.known[first:], np.zeros(m, bool)])
+        self.origin = np.concatenate([self.origin[first:], np.broadcast_to(origin_world, (m, 3))])
+        self.added_ns = np.concatenate([self.added_ns[first:], np.full(m, t_ns, np.int64)])
+        self.grid = VoxelHash.build(self.xyz, prm.map_cell_m, self.grid.buckets if self.grid else 0)
 
     def normals_at(self, j: I64) -> None:
         """Compute the normals of map points `j` that have none yet."""
@@ -121,7 +122,7 @@ class LocalMap:
         todo, idx = todo[idx[:, -1] >= 0], idx[idx[:, -1] >= 0]  # too few neighbours: never planar
         if len(todo) == 0:
             return
-        cov = neighbour_covariances(self.xyz, idx)
+        cov = covariances(self.xyz, idx)
         fit = normals_from_covariances(cov, self.xyz[todo] - self.origin[todo], prm.map_max_flatness)
         self.normal[todo], self.planar[todo] = fit.normal, fit.planar
 
@@ -291,9 +292,19 @@ def _start(
     ps = [v_world * (s - t0) / 1e9 for s in stamps]
     chain = _Chain(stamps, Rs, ps, [0.0] * len(stamps))
     sel = voxel_subsample(p, prm.map_voxel_m)
-    R_t, p_t = chain.trajectory(gyro).pose(t[sel])
-    the_map.add(np.einsum("nij,nj->ni", R_t, p[sel]) + p_t, stamps[-1], ps[-1])
+    the_map.add(chain.trajectory(gyro).transform(p[sel], t[sel]), stamps[-1], ps[-1])
     return chain, ~first
+
+
+def _source_points(pts_cam0: F64, prm: OdometryParams) -> I64:
+    """The points of a chunk that take part in its fit: one per `source_voxel_m` cube, in the map's reach.
+
+    The map keeps what lies within `map_range_m` of the rig, so a point much
+    farther cannot find a match; searching for one costs the most of all.
+    """
+    reach = prm.map_range_m + prm.max_correspondence_m
+    near = np.flatnonzero(np.einsum("ij,ij->i", pts_cam0, pts_cam0) <= reach**2)
+    return near[voxel_subsample(pts_cam0[near], prm.source_voxel_m)]
 
 
 def _register_chunk(
@@ -312,7 +323,7 @@ def _register_chunk(
         else:
             R_guess.append(chain.R[-1].copy())
         p_guess.append(chain.p[-1] + v * (s - t_last) / 1e9)
-    src = voxel_subsample(P, prm.source_voxel_m)
+    src = _source_points(P, prm)
     if len(src) > prm.max_source_points:
         src = src[np.linspace(0, len(src) - 1, prm.max_source_points).astype(np.int64)]
     if len(src) >= 50:
@@ -336,8 +347,7 @@ def _register_chunk(
     chain.residual.extend([res] * len(R_new))
     dense = voxel_subsample(P, prm.map_voxel_m)  # in cam0: the deskew moves points far less than a voxel
     if len(dense):
-        R_t, p_t = chain.trajectory(gyro).pose(T[dense])
-        the_map.add(np.einsum("nij,nj->ni", R_t, P[dense]) + p_t, knots[-1], chain.p[-1])
+        the_map.add(chain.trajectory(gyro).transform(P[dense], T[dense]), knots[-1], chain.p[-1])
     return P[dense], T[dense]
 
 
@@ -363,10 +373,9 @@ def _refine_start(
     T = np.concatenate([e[1] for e in early])
     start = chain.stamps[n_start] > T
     traj = chain.trajectory(gyro)
-    R_t, p_t = traj.pose(T[~start])
     later = LocalMap(replace(prm, map_horizon_s=1e6))
-    later.add(np.einsum("nij,nj->ni", R_t, P[~start]) + p_t, chain.stamps[-1], chain.p[-1])
-    src = voxel_subsample(P[start], prm.source_voxel_m)
+    later.add(traj.transform(P[~start], T[~start]), chain.stamps[-1], chain.p[-1])
+    src = _source_points(P[start], prm)
     R, p, res = _solve_knots(
         chain.stamps[: n_start + 1], chain.R[: n_start + 1], chain.p[: n_start + 1], list(range(n_start)),
         P[start][src], T[start][src], later, gyro, prm,
@@ -377,9 +386,7 @@ def _refine_start(
     chain.R = [R0.T @ r for r in chain.R]
     chain.p = [R0.T @ (q - p0) for q in chain.p]
     traj = chain.trajectory(gyro)
-    R_t, p_t = traj.pose(T)
     fresh = LocalMap(prm)
-    fresh.add(np.einsum("nij,nj->ni", R_t, P) + p_t, chain.stamps[-1], chain.p[-1])
-    the_map.xyz, the_map.normal, the_map.planar = fresh.xyz, fresh.normal, fresh.planar
-    the_map.known, the_map.origin = fresh.known, fresh.origin
-    the_map.added_ns, the_map.grid, the_map.key = fresh.added_ns, fresh.grid, fresh.key
+    fresh.add(traj.transform(P, T), chain.stamps[-1], chain.p[-1])
+    for name in ("xyz", "normal", "planar", "known", "origin", "added_ns", "key", "grid"):
+        setattr(the_map, name, getattr(fresh, name))

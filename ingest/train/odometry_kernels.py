@@ -106,3 +106,65 @@ def normal_equations(a: F64, n: F64, r: F64, w: F64, seg: I64, f: F64, free: I64
     g = np.zeros(6 * len(free))
     _normal_equations(a, n, r, w, seg, f, np.asarray(free, np.int64), H, g)
     return H, g
+
+
+@njit(cache=True, nogil=True)
+def _blend_points(pts, a, g, R_n, p_n, out):  # type: ignore[no-untyped-def]  # pragma: no cover
+    for i in range(pts.shape[0]):
+        j = a[i]
+        gi = g[i]
+        for r in range(3):
+            v = p_n[j, r] + gi * (p_n[j + 1, r] - p_n[j, r])
+            for m in range(3):
+                v += (R_n[j, r, m] + gi * (R_n[j + 1, r, m] - R_n[j, r, m])) * pts[i, m]
+            out[i, r] = v
+
+
+def blend_points(pts: F64, a: I64, g: F64, R_n: F64, p_n: F64) -> F64:
+    """World points (N, 3): each point's pose blended linearly between nodes `a[i]` and `a[i] + 1` by `g[i]`.
+
+    `RigTrajectory.pose`'s node grid applied to the points without forming a (N, 3, 3) stack.
+    """
+    out = np.empty((len(pts), 3))
+    if len(pts):
+        _blend_points(np.ascontiguousarray(pts), a, np.ascontiguousarray(g), R_n, p_n, out)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _covariances(xyz, idx, out):  # type: ignore[no-untyped-def]  # pragma: no cover
+    k = idx.shape[1]
+    for i in range(idx.shape[0]):
+        mx = my = mz = 0.0
+        for j in range(k):
+            mx += xyz[idx[i, j], 0]
+            my += xyz[idx[i, j], 1]
+            mz += xyz[idx[i, j], 2]
+        mx /= k
+        my /= k
+        mz /= k
+        sxx = sxy = sxz = syy = syz = szz = 0.0
+        for j in range(k):
+            x = xyz[idx[i, j], 0] - mx
+            y = xyz[idx[i, j], 1] - my
+            z = xyz[idx[i, j], 2] - mz
+            sxx += x * x
+            sxy += x * y
+            sxz += x * z
+            syy += y * y
+            syz += y * z
+            szz += z * z
+        out[i, 0, 0], out[i, 0, 1], out[i, 0, 2] = sxx / k, sxy / k, sxz / k
+        out[i, 1, 0], out[i, 1, 1], out[i, 1, 2] = sxy / k, syy / k, syz / k
+        out[i, 2, 0], out[i, 2, 1], out[i, 2, 2] = sxz / k, syz / k, szz / k
+
+
+def covariances(xyz: F64, idx: I64) -> F64:
+    """Covariance (N, 3, 3, m^2) of each neighbourhood `xyz[idx[i]]` (idx: N x k), divided by k.
+
+    `ingest.train.planes.neighbour_covariances` in one pass, without the (N, k, 3) gather.
+    """
+    out = np.empty((len(idx), 3, 3))
+    if len(idx):
+        _covariances(np.ascontiguousarray(xyz, np.float64), np.ascontiguousarray(idx, np.int64), out)
+    return out

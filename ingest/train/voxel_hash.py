@@ -44,28 +44,48 @@ def _slot(key: int, shift: int) -> int:  # pragma: no cover
 
 
 @njit(cache=True, nogil=True)
-def _build(xyz, cell_m, bits):  # type: ignore[no-untyped-def]  # pragma: no cover
-    n = xyz.shape[0]
-    size = 1 << bits
-    shift = 64 - bits
-    table_key = np.full(size, _EMPTY, np.int64)
-    table_bucket = np.zeros(size, np.int64)
-    bucket_of = np.empty(n, np.int64)
-    n_buckets = 0
-    for i in range(n):
-        key = _key(
+def _cube_keys(xyz, cell_m):  # type: ignore[no-untyped-def]  # pragma: no cover
+    keys = np.empty(xyz.shape[0], np.int64)
+    for i in range(xyz.shape[0]):
+        keys[i] = _key(
             int(math.floor(xyz[i, 0] / cell_m)),
             int(math.floor(xyz[i, 1] / cell_m)),
             int(math.floor(xyz[i, 2] / cell_m)),
         )
-        s = _slot(key, shift)
-        while table_key[s] != key and table_key[s] != _EMPTY:
-            s = (s + 1) & (size - 1)
-        if table_key[s] == _EMPTY:
-            table_key[s] = key
-            table_bucket[s] = n_buckets
-            n_buckets += 1
-        bucket_of[i] = table_bucket[s]
+    return keys
+
+
+@njit(cache=True, nogil=True)
+def _bucket_of(keys, bits):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """Each key's bucket (numbered as first seen) in a table of 2^bits slots; -1 rows when it fills up."""
+    size = 1 << bits
+    shift = 64 - bits
+    table_key = np.full(size, _EMPTY, np.int64)
+    table_bucket = np.zeros(size, np.int64)
+    bucket_of = np.empty(keys.shape[0], np.int64)
+    n_buckets = 0
+    last_key, last_bucket = _EMPTY, -1
+    for i in range(keys.shape[0]):
+        key = keys[i]
+        if key != last_key:  # neighbours in a scan mostly share a cube
+            s = _slot(key, shift)
+            while table_key[s] != key and table_key[s] != _EMPTY:
+                s = (s + 1) & (size - 1)
+            if table_key[s] == _EMPTY:
+                if 2 * (n_buckets + 1) > size:
+                    return table_key, table_bucket, bucket_of[:0], -1
+                table_key[s] = key
+                table_bucket[s] = n_buckets
+                n_buckets += 1
+            last_key, last_bucket = key, table_bucket[s]
+        bucket_of[i] = last_bucket
+    return table_key, table_bucket, bucket_of, n_buckets
+
+
+@njit(cache=True, nogil=True)
+def _layout(xyz, bucket_of, n_buckets):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """Counting sort of the points by bucket: (start (B + 1,), order (N,), points in that order (N, 3))."""
+    n = xyz.shape[0]
     start = np.zeros(n_buckets + 1, np.int64)
     for i in range(n):
         start[bucket_of[i] + 1] += 1
@@ -73,10 +93,15 @@ def _build(xyz, cell_m, bits):  # type: ignore[no-untyped-def]  # pragma: no cov
         start[b + 1] += start[b]
     fill = start[:-1].copy()
     order = np.empty(n, np.int64)
+    xyz_sorted = np.empty((n, 3))
     for i in range(n):
-        order[fill[bucket_of[i]]] = i
+        s = fill[bucket_of[i]]
         fill[bucket_of[i]] += 1
-    return table_key, table_bucket, start, order
+        order[s] = i
+        xyz_sorted[s, 0] = xyz[i, 0]
+        xyz_sorted[s, 1] = xyz[i, 1]
+        xyz_sorted[s, 2] = xyz[i, 2]
+    return start, order, xyz_sorted
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -93,78 +118,71 @@ def _bucket(table_key, table_bucket, shift, key):  # type: ignore[no-untyped-def
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _box_d2(q, lo, cell_m):  # type: ignore[no-untyped-def]  # pragma: no cover
-    """Squared distance from point q to the cube with lower corner `lo` (0 inside)."""
-    d2 = 0.0
-    for a in range(3):
-        v = q[a] - lo[a]
-        if v < 0.0:
-            d2 += v * v
-        elif v > cell_m:
-            d2 += (v - cell_m) * (v - cell_m)
-    return d2
+def _axis_d2(v, lo, cell_m):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """Squared distance along one axis from v to the interval [lo, lo + cell_m] (0 inside)."""
+    d = v - lo
+    if d < 0.0:
+        return d * d
+    if d > cell_m:
+        return (d - cell_m) * (d - cell_m)
+    return 0.0
 
 
 @njit(cache=True, nogil=True)
-def _knn(queries, xyz, xyz_sorted, order, start, table_key, table_bucket, cell_m, k, radius_m, seed, out_idx, out_d2):  # type: ignore[no-untyped-def]  # pragma: no cover
-    """The k nearest points within `radius_m` of each query, nearest first (-1 / inf: none)."""
+def _shift(table_key):  # type: ignore[no-untyped-def]  # pragma: no cover
     shift = 64
     size = table_key.shape[0]
     while size > 1:
         size >>= 1
         shift -= 1
+    return shift
+
+
+@njit(cache=True, nogil=True)
+def _knn(queries, xyz_sorted, order, start, table_key, table_bucket, cell_m, radius_m, best, idx):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """The k nearest points within `radius_m` of each query, nearest first (-1: none).
+
+    best (M, k) and idx (M, k) come in holding a bound and a guess per query
+    (radius_m^2 and -1 without one) and leave holding the answer.
+    """
+    shift = _shift(table_key)
+    k = best.shape[1]
     r_max = int(math.ceil(radius_m / cell_m))
-    lo = np.empty(3)
     for i in range(queries.shape[0]):
-        q = queries[i]
-        best = out_d2[i]
-        idx = out_idx[i]
-        best[:] = radius_m * radius_m
-        idx[:] = -1
-        if k == 1 and seed[i] >= 0:  # a guess bounds the search from the start
-            d2 = 0.0
-            for a in range(3):
-                v = xyz[seed[i], a] - q[a]
-                d2 += v * v
-            if d2 < best[0]:
-                best[0] = d2
-                idx[0] = seed[i]
-        cx = int(math.floor(q[0] / cell_m))
-        cy = int(math.floor(q[1] / cell_m))
-        cz = int(math.floor(q[2] / cell_m))
+        qx, qy, qz = queries[i, 0], queries[i, 1], queries[i, 2]
+        cx, cy, cz = int(math.floor(qx / cell_m)), int(math.floor(qy / cell_m)), int(math.floor(qz / cell_m))
+        worst = best[i, k - 1]
         for r in range(r_max + 1):
             for dx in range(-r, r + 1):
+                ex = _axis_d2(qx, (cx + dx) * cell_m, cell_m)
+                if ex >= worst:
+                    continue
                 for dy in range(-r, r + 1):
-                    edge = abs(dx) == r or abs(dy) == r
-                    step = 1 if edge else max(2 * r, 1)
+                    ey = ex + _axis_d2(qy, (cy + dy) * cell_m, cell_m)
+                    if ey >= worst:
+                        continue
+                    step = 1 if abs(dx) == r or abs(dy) == r else 2 * r  # inside the shell: its two z faces
                     for dz in range(-r, r + 1, step):
-                        lo[0] = (cx + dx) * cell_m
-                        lo[1] = (cy + dy) * cell_m
-                        lo[2] = (cz + dz) * cell_m
-                        if _box_d2(q, lo, cell_m) >= best[k - 1]:
+                        if ey + _axis_d2(qz, (cz + dz) * cell_m, cell_m) >= worst:
                             continue
                         b = _bucket(table_key, table_bucket, shift, _key(cx + dx, cy + dy, cz + dz))
                         if b < 0:
                             continue
                         for s in range(start[b], start[b + 1]):
-                            d2 = 0.0
-                            for a in range(3):
-                                v = xyz_sorted[s, a] - q[a]
-                                d2 += v * v
-                            if d2 < best[k - 1]:  # insert, keeping best ascending
+                            d2 = (xyz_sorted[s, 0] - qx) ** 2 + (xyz_sorted[s, 1] - qy) ** 2
+                            d2 += (xyz_sorted[s, 2] - qz) ** 2
+                            if d2 < worst:  # insert, keeping the row ascending
                                 j = k - 1
-                                while j > 0 and best[j - 1] > d2:
-                                    best[j] = best[j - 1]
-                                    idx[j] = idx[j - 1]
+                                while j > 0 and best[i, j - 1] > d2:
+                                    best[i, j] = best[i, j - 1]
+                                    idx[i, j] = idx[i, j - 1]
                                     j -= 1
-                                best[j] = d2
-                                idx[j] = order[s]
-            seen = r * cell_m
-            if idx[k - 1] >= 0 and best[k - 1] <= seen * seen:
+                                best[i, j] = d2
+                                idx[i, j] = order[s]
+                                worst = best[i, k - 1]
+            seen = r * cell_m  # every point this close to the query has been seen
+            if idx[i, k - 1] >= 0 and worst <= seen * seen:
                 break
-        for j in range(k):
-            if idx[j] < 0:
-                best[j] = np.inf
 
 
 @njit(cache=True, nogil=True)
@@ -232,12 +250,28 @@ class VoxelHash:
     table_bucket: I64  # ... and its bucket
 
     @classmethod
-    def build(cls, xyz: F64, cell_m: float) -> VoxelHash:
-        """Bucket the points `xyz` (N, 3, metres) by `cell_m` cubes (load factor at most 1/2)."""
+    def build(cls, xyz: F64, cell_m: float, buckets_hint: int = 0) -> VoxelHash:
+        """Bucket the points `xyz` (N, 3, metres) by `cell_m` cubes.
+
+        The table holds at most half as many cubes as slots; `buckets_hint`
+        (such as the count of a previous build) sizes it so that it stays small
+        enough for the cache, and it doubles until the cubes fit.
+        """
         pts = np.ascontiguousarray(xyz, np.float64)
-        bits = max(4, int(np.ceil(np.log2(2 * max(len(pts), 1)))))
-        table_key, table_bucket, start, order = _build(pts, float(cell_m), bits)
-        return cls(pts, float(cell_m), pts[order], order, start, table_key, table_bucket)
+        keys = _cube_keys(pts, float(cell_m))
+        bits = max(4, int(np.ceil(np.log2(2 * max(buckets_hint, 1)))) + 1)
+        while True:
+            table_key, table_bucket, bucket_of, n_buckets = _bucket_of(keys, bits)
+            if n_buckets >= 0:
+                break
+            bits += 1
+        start, order, xyz_sorted = _layout(pts, bucket_of, n_buckets)
+        return cls(pts, float(cell_m), xyz_sorted, order, start, table_key, table_bucket)
+
+    @property
+    def buckets(self) -> int:
+        """Occupied cubes."""
+        return len(self.start) - 1
 
     def query(self, queries: F64, k: int, radius_m: float, seed: I64 | None = None) -> tuple[F64, I64]:
         """Distances (M, k, metres, ascending) and indices (M, k) of each query's k nearest within `radius_m`.
@@ -249,12 +283,16 @@ class VoxelHash:
         than it, and the answer is the same.
         """
         q = np.ascontiguousarray(queries, np.float64).reshape(-1, 3)
-        idx = np.empty((len(q), k), np.int64)
-        d2 = np.empty((len(q), k))
-        hint = np.full(len(q), -1, np.int64) if seed is None or k != 1 else np.asarray(seed, np.int64)
+        idx = np.full((len(q), k), -1, np.int64)
+        d2 = np.full((len(q), k), float(radius_m) ** 2)
+        if seed is not None and k == 1:
+            idx[:, 0] = seed
+            guess = np.einsum("ij,ij->i", self.xyz[seed] - q, self.xyz[seed] - q)
+            use = (seed >= 0) & (guess < d2[:, 0])
+            idx[~use, 0] = -1
+            d2[use, 0] = guess[use]
         if len(q) and len(self.xyz) and k > 0:
-            _knn(q, self.xyz, self.xyz_sorted, self.order, self.start, self.table_key, self.table_bucket,
-                 self.cell_m, k, float(radius_m), hint, idx, d2)  # fmt: skip
-        else:
-            idx[:], d2[:] = -1, np.inf
+            _knn(q, self.xyz_sorted, self.order, self.start, self.table_key, self.table_bucket,
+                 self.cell_m, float(radius_m), d2, idx)  # fmt: skip
+        d2[idx < 0] = np.inf
         return np.sqrt(d2), idx
