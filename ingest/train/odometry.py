@@ -31,13 +31,12 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from calibration.linalg3 import rotvec_to_matrix
 from calibration.types import F64, I64, Bool
 from ingest.errors import OdometryError
 from ingest.train.clouds import GyroTrack, estimate_velocity
-from ingest.train.odometry_kernels import chain_points, covariances, normal_equations
+from ingest.train.odometry_kernels import chain_points, covariances, gyro_between, log_rotations, normal_equations
 from ingest.train.planes import normals_from_covariances
 from ingest.train.rig_trajectory import RigTrajectory
 from ingest.train.voxel_hash import VoxelHash, first_free, voxel_keys
@@ -164,14 +163,14 @@ def _solve_knots(
     chain = RigTrajectory(stamps, np.array(R), np.array(p), np.zeros(len(stamps)), gyro)
     seg, f = chain._segment(t_ns)
     rel = chain.gyro_shape(t_ns)
-    shape_next = chain.gyro_shape(stamps[1:] - 1) if gyro is None else gyro.between(stamps[:-1], stamps[1:])
+    shape_next = chain.gyro_shape(stamps[1:] - 1) if gyro is None else gyro_between(gyro, stamps[:-1], stamps[1:])
     free_k = np.array(free, np.int64)
     residual = math.nan
     j = np.full(len(t_ns), -1, np.int64)
     for _ in range(prm.iterations):
         R_k = np.array(R)
         E = np.matmul(np.swapaxes(np.matmul(R_k[:-1], shape_next), 1, 2), R_k[1:])
-        a, world = chain_points(pts_cam0, seg, f, rel, R_k, np.array(p), Rotation.from_matrix(E).as_rotvec())
+        a, world = chain_points(pts_cam0, seg, f, rel, R_k, np.array(p), log_rotations(E))
         j = the_map.grid.query(world, 1, prm.max_correspondence_m, seed=j)[1][:, 0]
         ok = j >= 0
         the_map.normals_at(j[ok])
@@ -319,7 +318,7 @@ def _register_chunk(
     R_guess, p_guess = [], []
     for s in knots[1:]:
         if gyro is not None:
-            R_guess.append(chain.R[-1] @ gyro.between(np.array([t_last]), np.array([s]))[0])
+            R_guess.append(chain.R[-1] @ gyro_between(gyro, np.array([t_last]), np.array([s]))[0])
         else:
             R_guess.append(chain.R[-1].copy())
         p_guess.append(chain.p[-1] + v * (s - t_last) / 1e9)

@@ -17,8 +17,10 @@ import math
 
 import numpy as np
 from numba import njit
+from scipy.spatial.transform import Rotation
 
 from calibration.types import F64, I64
+from ingest.train.clouds import GyroTrack
 
 
 @njit(cache=True, nogil=True)
@@ -167,4 +169,75 @@ def covariances(xyz: F64, idx: I64) -> F64:
     out = np.empty((len(idx), 3, 3))
     if len(idx):
         _covariances(np.ascontiguousarray(xyz, np.float64), np.ascontiguousarray(idx, np.int64), out)
+    return out
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _track_at(stamps, rotations, steps, t, out):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """GyroTrack.at for one time, into out (3, 3): R_k Exp(frac s_k), Rodrigues with its series near zero."""
+    n = stamps.shape[0]
+    tc = min(max(t, stamps[0]), stamps[n - 1])
+    k = min(max(np.searchsorted(stamps, tc, side="right") - 1, 0), n - 2)
+    frac = (tc - stamps[k]) / (stamps[k + 1] - stamps[k])
+    x, y, z = steps[k, 0] * frac, steps[k, 1] * frac, steps[k, 2] * frac
+    th2 = x * x + y * y + z * z
+    if th2 < 1e-8:
+        a = 1.0 - th2 / 6.0
+        b = 0.5 - th2 / 24.0
+    else:
+        th = math.sqrt(th2)
+        a = math.sin(th) / th
+        b = (1.0 - math.cos(th)) / th2
+    E = np.empty((3, 3))
+    E[0, 0] = 1.0 - b * (y * y + z * z)
+    E[1, 1] = 1.0 - b * (x * x + z * z)
+    E[2, 2] = 1.0 - b * (x * x + y * y)
+    E[0, 1] = b * x * y - a * z
+    E[1, 0] = b * x * y + a * z
+    E[0, 2] = b * x * z + a * y
+    E[2, 0] = b * x * z - a * y
+    E[1, 2] = b * y * z - a * x
+    E[2, 1] = b * y * z + a * x
+    for r in range(3):
+        for c in range(3):
+            out[r, c] = rotations[k, r, 0] * E[0, c] + rotations[k, r, 1] * E[1, c] + rotations[k, r, 2] * E[2, c]
+
+
+@njit(cache=True, nogil=True)
+def _track_between(stamps, rotations, steps, t0, t1, out):  # type: ignore[no-untyped-def]  # pragma: no cover
+    A = np.empty((3, 3))
+    B = np.empty((3, 3))
+    for i in range(t1.shape[0]):
+        _track_at(stamps, rotations, steps, t0[i], A)
+        _track_at(stamps, rotations, steps, t1[i], B)
+        for r in range(3):
+            for c in range(3):
+                out[i, r, c] = A[0, r] * B[0, c] + A[1, r] * B[1, c] + A[2, r] * B[2, c]
+
+
+def gyro_between(gyro: GyroTrack, t0_ns: I64, t1_ns: I64) -> F64:
+    """`GyroTrack.between` (R(t0)^T R(t1), N x 3 x 3; `t0_ns` may be one time) in one compiled pass."""
+    t1 = np.atleast_1d(np.asarray(t1_ns, np.int64))
+    t0 = np.ascontiguousarray(np.broadcast_to(np.asarray(t0_ns, np.int64), t1.shape))
+    if len(gyro.stamps_ns) < 2:
+        return gyro.between(t0, t1)
+    out = np.empty((len(t1), 3, 3))
+    _track_between(gyro.stamps_ns, np.ascontiguousarray(gyro.rotations), gyro.steps, t0, t1, out)
+    return out
+
+
+def log_rotations(R: F64) -> F64:
+    """Rotation vectors (N, 3) of rotation matrices (N, 3, 3): angle from atan2, exact near zero.
+
+    For the chain's mismatches, which are small; angles near pi (where the
+    skew part vanishes) go to scipy.
+    """
+    vee = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], axis=1)
+    s = 0.5 * np.linalg.norm(vee, axis=1)  # sin(theta)
+    theta = np.arctan2(s, 0.5 * (np.trace(R, axis1=1, axis2=2) - 1.0))
+    scale = np.where(s > 1e-12, theta / np.maximum(s, 1e-300), 1.0 + theta**2 / 6.0)
+    out: F64 = 0.5 * scale[:, None] * vee
+    far = theta > 3.0
+    if far.any():
+        out[far] = Rotation.from_matrix(R[far]).as_rotvec()
     return out

@@ -17,7 +17,7 @@ from calibration.linalg3 import rotvec_to_matrix
 from calibration.types import F64, I64, Bool
 from ingest.dataset.layout import write_atomic
 from ingest.train.clouds import GyroTrack
-from ingest.train.odometry_kernels import blend_points
+from ingest.train.odometry_kernels import blend_points, gyro_between, log_rotations
 
 POSE_NODES = 100  # poses of many points: exact at this many nodes per knot interval, linear in between
 POSE_GRID_MIN_RATIO = 4  # ... when there are at least this many points per node
@@ -106,7 +106,7 @@ class RigTrajectory:
         if self.gyro is None or len(self.stamps_ns) == 1:
             return np.broadcast_to(np.eye(3), (len(t), 3, 3))
         k, _ = self._segment(t)
-        return self.gyro.between(self.stamps_ns[k], np.clip(t, self.stamps_ns[0], self.stamps_ns[-1]))
+        return gyro_between(self.gyro, self.stamps_ns[k], np.clip(t, self.stamps_ns[0], self.stamps_ns[-1]))
 
     def speed_mps(self, t_ns: int) -> float:
         """Speed of cam0 (m/s) over the knot interval holding `t_ns`."""
@@ -141,10 +141,10 @@ def _chain_rotation(traj: RigTrajectory, k: I64, f: F64, rel: F64) -> F64:
     if traj.gyro is None:
         shape_next = np.broadcast_to(np.eye(3), (len(seg), 3, 3))
     else:
-        shape_next = traj.gyro.between(traj.stamps_ns[seg], traj.stamps_ns[seg + 1])
+        shape_next = gyro_between(traj.gyro, traj.stamps_ns[seg], traj.stamps_ns[seg + 1])
     E = np.matmul(
         np.swapaxes(np.matmul(traj.R_world_cam0[seg], shape_next), 1, 2), traj.R_world_cam0[seg + 1]
     )
-    err = Rotation.from_matrix(E).as_rotvec()[inv]
+    err = log_rotations(E)[inv]
     out: F64 = np.matmul(np.matmul(traj.R_world_cam0[k], rel), rotvec_to_matrix(err * f[:, None]))
     return out
