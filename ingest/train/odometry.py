@@ -39,7 +39,7 @@ from ingest.train.clouds import GyroTrack, estimate_velocity
 from ingest.train.odometry_kernels import chain_points, covariances, gyro_between, log_rotations, normal_equations
 from ingest.train.planes import normals_from_covariances
 from ingest.train.rig_trajectory import RigTrajectory
-from ingest.train.voxel_hash import VoxelHash, first_free, voxel_keys
+from ingest.train.voxel_hash import VoxelHash, VoxelSet, first_free, voxel_keys
 
 
 @dataclass(frozen=True)
@@ -87,8 +87,9 @@ class LocalMap:
     known: Bool = field(default_factory=lambda: np.zeros(0, bool))  # normal computed
     origin: F64 = field(default_factory=lambda: np.zeros((0, 3)))  # the rig when the point joined
     added_ns: I64 = field(default_factory=lambda: np.zeros(0, np.int64))
-    key: I64 = field(default_factory=lambda: np.zeros(0, np.int64))  # voxel_keys at map_voxel_m
     grid: VoxelHash | None = None
+    voxels: VoxelSet = field(default_factory=VoxelSet)  # the voxels the points hold; ids: dropped + index
+    dropped: int = 0  # points that left so far
 
     def add(self, pts_world: F64, t_ns: int, origin_world: F64) -> None:
         """A registered chunk joins (one point per free voxel); points older than the horizon leave.
@@ -100,10 +101,10 @@ class LocalMap:
         rel = pts_world - origin_world
         near = pts_world[np.einsum("ij,ij->i", rel, rel) <= prm.map_range_m**2]
         near_keys = voxel_keys(near, prm.map_voxel_m)
-        fresh = first_free(near_keys, self.key[first:])  # one point per voxel the map does not hold yet
+        self.dropped += first
+        fresh = self.voxels.claim(near_keys, self.dropped)  # one point per voxel the map does not hold yet
         m = len(fresh)
         self.xyz = np.concatenate([self.xyz[first:], near[fresh]])
-        self.key = np.concatenate([self.key[first:], near_keys[fresh]])
         self.normal = np.concatenate([self.normal[first:], np.zeros((m, 3))])
         self.planar = np.concatenate([self.planar[first:], np.zeros(m, bool)])
         self.known = np.concatenate([self.known[first:], np.zeros(m, bool)])
@@ -387,5 +388,4 @@ def _refine_start(
     traj = chain.trajectory(gyro)
     fresh = LocalMap(prm)
     fresh.add(traj.transform(P, T), chain.stamps[-1], chain.p[-1])
-    for name in ("xyz", "normal", "planar", "known", "origin", "added_ns", "key", "grid"):
-        setattr(the_map, name, getattr(fresh, name))
+    vars(the_map).update(vars(fresh))

@@ -296,3 +296,77 @@ class VoxelHash:
                  self.cell_m, float(radius_m), d2, idx)  # fmt: skip
         d2[idx < 0] = np.inf
         return np.sqrt(d2), idx
+
+
+@njit(cache=True, nogil=True)
+def _claim(table_key, table_id, keys, live_from, next_id, out):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """Claim the free voxels among `keys` (in order) for ids next_id, next_id + 1, ...; (claimed, new slots)."""
+    size = table_key.shape[0]
+    shift = _shift(table_key)
+    n = 0
+    used = 0
+    for i in range(keys.shape[0]):
+        s = _slot(keys[i], shift)
+        while table_key[s] != keys[i] and table_key[s] != _EMPTY:
+            s = (s + 1) & (size - 1)
+        if table_key[s] == _EMPTY:
+            table_key[s] = keys[i]
+            used += 1
+        elif table_id[s] >= live_from:
+            continue  # held by a live point
+        table_id[s] = next_id + n
+        out[n] = i
+        n += 1
+    return n, used
+
+
+@njit(cache=True, nogil=True)
+def _insert(table_key, table_id, keys, ids):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """Insert distinct `keys` with their `ids` into an empty table."""
+    size = table_key.shape[0]
+    shift = _shift(table_key)
+    for i in range(keys.shape[0]):
+        s = _slot(keys[i], shift)
+        while table_key[s] != _EMPTY:
+            s = (s + 1) & (size - 1)
+        table_key[s] = keys[i]
+        table_id[s] = ids[i]
+
+
+class VoxelSet:
+    """Which voxels the map's live points hold: voxel key -> id of the point (ids count up as points join).
+
+    Points leave by age, the oldest first, so "live" is one threshold on the
+    id: an entry whose point has left counts as free and is reused, and the
+    table is rebuilt from the live entries only when it fills up. Each chunk
+    then costs its own points, not the map's.
+    """
+
+    def __init__(self) -> None:
+        self.table_key = np.full(16, _EMPTY, np.int64)
+        self.table_id = np.zeros(16, np.int64)
+        self.used = 0  # slots taken, by live or departed points
+        self.next_id = 0
+
+    def claim(self, keys: I64, live_from: int) -> I64:
+        """Ascending indices of the first of each of `keys` whose voxel no point with id >= `live_from` holds.
+
+        The claimed get the next ids, in order.
+        """
+        keys = np.ascontiguousarray(keys, np.int64)
+        if 2 * (self.used + len(keys)) > len(self.table_key):
+            self._rebuild(live_from, len(keys))
+        out = np.empty(len(keys), np.int64)
+        n, used = _claim(self.table_key, self.table_id, keys, live_from, self.next_id, out)
+        self.used += used
+        self.next_id += n
+        return out[:n]
+
+    def _rebuild(self, live_from: int, extra: int) -> None:
+        live = (self.table_key != _EMPTY) & (self.table_id >= live_from)
+        keys, ids = self.table_key[live], self.table_id[live]
+        size = 1 << max(4, int(np.ceil(np.log2(4 * (len(keys) + extra)))))
+        self.table_key = np.full(size, _EMPTY, np.int64)
+        self.table_id = np.zeros(size, np.int64)
+        _insert(self.table_key, self.table_id, keys, ids)
+        self.used = len(keys)
