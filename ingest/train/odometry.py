@@ -36,7 +36,13 @@ from calibration.linalg3 import rotvec_to_matrix
 from calibration.types import F64, I64, Bool
 from ingest.errors import OdometryError
 from ingest.train.clouds import GyroTrack, estimate_velocity
-from ingest.train.odometry_kernels import chain_points, covariances, gyro_between, log_rotations, normal_equations
+from ingest.train.odometry_kernels import (
+    chain_points,
+    covariances,
+    gyro_between,
+    log_rotations,
+    normal_equations,
+)
 from ingest.train.planes import normals_from_covariances
 from ingest.train.rig_trajectory import RigTrajectory
 from ingest.train.voxel_hash import VoxelHash, VoxelSet, first_free, voxel_keys
@@ -164,7 +170,9 @@ def _solve_knots(
     chain = RigTrajectory(stamps, np.array(R), np.array(p), np.zeros(len(stamps)), gyro)
     seg, f = chain._segment(t_ns)
     rel = chain.gyro_shape(t_ns)
-    shape_next = chain.gyro_shape(stamps[1:] - 1) if gyro is None else gyro_between(gyro, stamps[:-1], stamps[1:])
+    shape_next = (
+        chain.gyro_shape(stamps[1:] - 1) if gyro is None else gyro_between(gyro, stamps[:-1], stamps[1:])
+    )
     free_k = np.array(free, np.int64)
     residual = math.nan
     j = np.full(len(t_ns), -1, np.int64)
@@ -184,7 +192,7 @@ def _solve_knots(
         scale = max(1.4826 * float(np.median(np.abs(r))), 0.005)
         w = 1.0 / (1.0 + (r / scale) ** 2)  # Cauchy weights: gross outliers (movers, wrong matches) fade
         H, g = normal_equations(a[idx], n, r, w, seg[idx], f[idx], free_k)
-        dx = np.linalg.solve(H + 1e-9 * np.eye(len(g)), -g)
+        dx = np.asarray(np.linalg.solve(H + 1e-9 * np.eye(len(g)), -g), np.float64)
         for u, k in enumerate(free):
             R[k] = rotvec_to_matrix(dx[6 * u : 6 * u + 3][None])[0] @ R[k]
             p[k] = p[k] + dx[6 * u + 3 : 6 * u + 6]

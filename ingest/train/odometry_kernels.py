@@ -200,7 +200,9 @@ def _track_at(stamps, rotations, steps, t, out):  # type: ignore[no-untyped-def]
     E[2, 1] = b * y * z + a * x
     for r in range(3):
         for c in range(3):
-            out[r, c] = rotations[k, r, 0] * E[0, c] + rotations[k, r, 1] * E[1, c] + rotations[k, r, 2] * E[2, c]
+            out[r, c] = (
+                rotations[k, r, 0] * E[0, c] + rotations[k, r, 1] * E[1, c] + rotations[k, r, 2] * E[2, c]
+            )
 
 
 @njit(cache=True, nogil=True)

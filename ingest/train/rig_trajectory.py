@@ -68,7 +68,7 @@ class RigTrajectory:
         return R, p
 
     def transform(self, pts_cam0: F64, t_ns: I64) -> F64:
-        """World points (N, 3) of points measured in cam0 (N, 3) at their times: `pose` applied, in one pass."""
+        """World points (N, 3) of cam0 points (N, 3) measured at times `t_ns`: `pose` applied in one pass."""
         t = np.atleast_1d(np.asarray(t_ns, np.int64))
         grid = self._node_grid(t) if len(self.stamps_ns) > 1 else None
         if grid is None:

@@ -40,7 +40,9 @@ def _key(ix: int, iy: int, iz: int) -> int:  # pragma: no cover
 
 @njit(cache=True, nogil=True, inline="always")
 def _slot(key: int, shift: int) -> int:  # pragma: no cover
-    return np.int64((np.uint64(key) * _GOLDEN) >> np.uint64(shift))
+    return np.int64(  # type: ignore[return-value]
+        (np.uint64(key) * _GOLDEN) >> np.uint64(shift)
+    )
 
 
 @njit(cache=True, nogil=True)
@@ -48,9 +50,9 @@ def _cube_keys(xyz, cell_m):  # type: ignore[no-untyped-def]  # pragma: no cover
     keys = np.empty(xyz.shape[0], np.int64)
     for i in range(xyz.shape[0]):
         keys[i] = _key(
-            int(math.floor(xyz[i, 0] / cell_m)),
-            int(math.floor(xyz[i, 1] / cell_m)),
-            int(math.floor(xyz[i, 2] / cell_m)),
+            math.floor(xyz[i, 0] / cell_m),
+            math.floor(xyz[i, 1] / cell_m),
+            math.floor(xyz[i, 2] / cell_m),
         )
     return keys
 
@@ -147,10 +149,10 @@ def _knn(queries, xyz_sorted, order, start, table_key, table_bucket, cell_m, rad
     """
     shift = _shift(table_key)
     k = best.shape[1]
-    r_max = int(math.ceil(radius_m / cell_m))
+    r_max = math.ceil(radius_m / cell_m)
     for i in range(queries.shape[0]):
         qx, qy, qz = queries[i, 0], queries[i, 1], queries[i, 2]
-        cx, cy, cz = int(math.floor(qx / cell_m)), int(math.floor(qy / cell_m)), int(math.floor(qz / cell_m))
+        cx, cy, cz = math.floor(qx / cell_m), math.floor(qy / cell_m), math.floor(qz / cell_m)
         worst = best[i, k - 1]
         for r in range(r_max + 1):
             for dx in range(-r, r + 1):
@@ -185,21 +187,9 @@ def _knn(queries, xyz_sorted, order, start, table_key, table_bucket, cell_m, rad
                 break
 
 
-@njit(cache=True, nogil=True)
-def _voxel_keys(xyz, voxel_m, out):  # type: ignore[no-untyped-def]  # pragma: no cover
-    for i in range(xyz.shape[0]):
-        out[i] = _key(
-            int(math.floor(xyz[i, 0] / voxel_m)),
-            int(math.floor(xyz[i, 1] / voxel_m)),
-            int(math.floor(xyz[i, 2] / voxel_m)),
-        )
-
-
 def voxel_keys(xyz: F64, voxel_m: float) -> I64:
     """One int64 per point naming its `voxel_m` cube (21 bits per axis: +-100 km at 0.1 m)."""
-    out = np.empty(len(xyz), np.int64)
-    if len(xyz):
-        _voxel_keys(np.ascontiguousarray(xyz, np.float64), float(voxel_m), out)
+    out: I64 = _cube_keys(np.ascontiguousarray(xyz, np.float64).reshape(-1, 3), float(voxel_m))
     return out
 
 
@@ -300,7 +290,10 @@ class VoxelHash:
 
 @njit(cache=True, nogil=True)
 def _claim(table_key, table_id, keys, live_from, next_id, out):  # type: ignore[no-untyped-def]  # pragma: no cover
-    """Claim the free voxels among `keys` (in order) for ids next_id, next_id + 1, ...; (claimed, new slots)."""
+    """Claim the free voxels among `keys` (in order) for ids next_id, next_id + 1, ...
+
+    Returns (claimed, slots newly taken).
+    """
     size = table_key.shape[0]
     shift = _shift(table_key)
     n = 0
