@@ -31,14 +31,21 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from calibration.linalg3 import rotvec_to_matrix
 from calibration.types import F64, I64, Bool
 from ingest.errors import OdometryError
 from ingest.train.clouds import GyroTrack, estimate_velocity
-from ingest.train.planes import neighbour_covariances, normals_from_covariances
+from ingest.train.odometry_kernels import (
+    chain_points,
+    covariances,
+    gyro_between,
+    log_rotations,
+    normal_equations,
+)
+from ingest.train.planes import normals_from_covariances
 from ingest.train.rig_trajectory import RigTrajectory
+from ingest.train.voxel_hash import VoxelHash, VoxelSet, first_free, voxel_keys
 
 
 @dataclass(frozen=True)
@@ -51,8 +58,10 @@ class OdometryParams:
     max_source_points: int = 4000
     map_voxel_m: float = 0.1
     map_horizon_s: float = 2.0
-    map_range_m: float = 30.0  # the map keeps what lies this close to the rig (far voxels hold few points)
+    map_range_m: float = 30.0  # what lies this close to the rig joins the map (far voxels hold few points)
     map_neighbours: int = 10
+    map_normal_radius_m: float = 1.0  # a normal needs `map_neighbours` points this close
+    map_cell_m: float = 0.5  # cube of the map's search hash
     map_max_flatness: float = 0.05
     max_correspondence_m: float = 0.5
     iterations: int = 15
@@ -62,11 +71,7 @@ class OdometryParams:
 
 def voxel_subsample(pts: F64, voxel_m: float) -> I64:
     """Index of the first point in each occupied `voxel_m` cube (in input order)."""
-    if len(pts) == 0:
-        return np.zeros(0, np.int64)
-    _, first = np.unique(_voxel_keys(pts, voxel_m), return_index=True)
-    out: I64 = np.sort(first)
-    return out
+    return first_free(voxel_keys(pts, voxel_m), np.zeros(0, np.int64))
 
 
 @dataclass
@@ -88,48 +93,44 @@ class LocalMap:
     known: Bool = field(default_factory=lambda: np.zeros(0, bool))  # normal computed
     origin: F64 = field(default_factory=lambda: np.zeros((0, 3)))  # the rig when the point joined
     added_ns: I64 = field(default_factory=lambda: np.zeros(0, np.int64))
-    tree: cKDTree | None = None
+    grid: VoxelHash | None = None
+    voxels: VoxelSet = field(default_factory=VoxelSet)  # the voxels the points hold; ids: dropped + index
+    dropped: int = 0  # points that left so far
 
     def add(self, pts_world: F64, t_ns: int, origin_world: F64) -> None:
-        """A registered chunk joins (one point per free voxel); points older than the horizon leave."""
+        """A registered chunk joins (one point per free voxel); points older than the horizon leave.
+
+        Points join in time order, so the expired ones are a prefix of the arrays.
+        """
         prm = self.params
-        keep = self.added_ns >= t_ns - int(prm.map_horizon_s * 1e9)
-        keep &= np.einsum("ij,ij->i", self.xyz - origin_world, self.xyz - origin_world) <= prm.map_range_m**2
-        old = self.xyz[keep]
-        near = np.einsum("ij,ij->i", pts_world - origin_world, pts_world - origin_world) <= prm.map_range_m**2
-        cand = pts_world[near][voxel_subsample(pts_world[near], prm.map_voxel_m)]
-        old_keys = np.sort(_voxel_keys(old, prm.map_voxel_m))
-        cand_keys = _voxel_keys(cand, prm.map_voxel_m)
-        at = np.minimum(np.searchsorted(old_keys, cand_keys), max(len(old_keys) - 1, 0))
-        taken = old_keys[at] == cand_keys if len(old_keys) else np.zeros(len(cand), bool)
-        new = cand[~taken]
-        m = len(new)
-        self.xyz = np.concatenate([old, new])
-        self.normal = np.concatenate([self.normal[keep], np.zeros((m, 3))])
-        self.planar = np.concatenate([self.planar[keep], np.zeros(m, bool)])
-        self.known = np.concatenate([self.known[keep], np.zeros(m, bool)])
-        self.origin = np.concatenate([self.origin[keep], np.broadcast_to(origin_world, (m, 3))])
-        self.added_ns = np.concatenate([self.added_ns[keep], np.full(m, t_ns, np.int64)])
-        self.tree = cKDTree(self.xyz, leafsize=16, balanced_tree=False)
+        first = int(np.searchsorted(self.added_ns, t_ns - int(prm.map_horizon_s * 1e9)))
+        rel = pts_world - origin_world
+        near = pts_world[np.einsum("ij,ij->i", rel, rel) <= prm.map_range_m**2]
+        near_keys = voxel_keys(near, prm.map_voxel_m)
+        self.dropped += first
+        fresh = self.voxels.claim(near_keys, self.dropped)  # one point per voxel the map does not hold yet
+        m = len(fresh)
+        self.xyz = np.concatenate([self.xyz[first:], near[fresh]])
+        self.normal = np.concatenate([self.normal[first:], np.zeros((m, 3))])
+        self.planar = np.concatenate([self.planar[first:], np.zeros(m, bool)])
+        self.known = np.concatenate([self.known[first:], np.zeros(m, bool)])
+        self.origin = np.concatenate([self.origin[first:], np.broadcast_to(origin_world, (m, 3))])
+        self.added_ns = np.concatenate([self.added_ns[first:], np.full(m, t_ns, np.int64)])
+        self.grid = VoxelHash.build(self.xyz, prm.map_cell_m, self.grid.buckets if self.grid else 0)
 
     def normals_at(self, j: I64) -> None:
         """Compute the normals of map points `j` that have none yet."""
-        assert self.tree is not None
+        assert self.grid is not None
+        prm = self.params
         todo = np.unique(j[~self.known[j]])
-        k = min(self.params.map_neighbours, len(self.xyz))
-        if len(todo) == 0 or k < 3:
+        self.known[todo] = True
+        _, idx = self.grid.query(self.xyz[todo], prm.map_neighbours, prm.map_normal_radius_m)
+        todo, idx = todo[idx[:, -1] >= 0], idx[idx[:, -1] >= 0]  # too few neighbours: never planar
+        if len(todo) == 0:
             return
-        _, idx = self.tree.query(self.xyz[todo], k=k)
-        cov = neighbour_covariances(self.xyz, idx)
-        fit = normals_from_covariances(cov, self.xyz[todo] - self.origin[todo], self.params.map_max_flatness)
-        self.normal[todo], self.planar[todo], self.known[todo] = fit.normal, fit.planar, True
-
-
-def _voxel_keys(pts: F64, voxel_m: float) -> I64:
-    """One int64 per voxel (21 bits per axis: +-100 km at 0.1 m)."""
-    c = np.floor(pts / voxel_m).astype(np.int64) + (1 << 20)
-    out: I64 = (c[:, 0] << 42) | (c[:, 1] << 21) | c[:, 2]
-    return out
+        cov = covariances(self.xyz, idx)
+        fit = normals_from_covariances(cov, self.xyz[todo] - self.origin[todo], prm.map_max_flatness)
+        self.normal[todo], self.planar[todo] = fit.normal, fit.planar
 
 
 @dataclass
@@ -162,18 +163,25 @@ def _solve_knots(
 
     Returns every knot (fixed ones as given) and the weighted RMS residual (m).
     """
-    assert the_map.tree is not None
+    assert the_map.grid is not None
     R, p = [r.copy() for r in R_init], [q.copy() for q in p_init]
-    n_free = len(free)
     stamps = np.array(knots_ns, np.int64)
+    # constant through the iterations: each point's segment and the gyro's turn within it
+    chain = RigTrajectory(stamps, np.array(R), np.array(p), np.zeros(len(stamps)), gyro)
+    seg, f = chain._segment(t_ns)
+    rel = chain.gyro_shape(t_ns)
+    shape_next = (
+        chain.gyro_shape(stamps[1:] - 1) if gyro is None else gyro_between(gyro, stamps[:-1], stamps[1:])
+    )
+    free_k = np.array(free, np.int64)
     residual = math.nan
+    j = np.full(len(t_ns), -1, np.int64)
     for _ in range(prm.iterations):
-        traj = RigTrajectory(stamps, np.array(R), np.array(p), np.zeros(len(knots_ns)), gyro)
-        R_t, p_t = traj.pose(t_ns)
-        a = np.einsum("nij,nj->ni", R_t, pts_cam0)
-        world = a + p_t
-        dist, j = the_map.tree.query(world, k=1, distance_upper_bound=prm.max_correspondence_m)
-        ok = np.isfinite(dist)
+        R_k = np.array(R)
+        E = np.matmul(np.swapaxes(np.matmul(R_k[:-1], shape_next), 1, 2), R_k[1:])
+        a, world = chain_points(pts_cam0, seg, f, rel, R_k, np.array(p), log_rotations(E))
+        j = the_map.grid.query(world, 1, prm.max_correspondence_m, seed=j)[1][:, 0]
+        ok = j >= 0
         the_map.normals_at(j[ok])
         ok[ok] &= the_map.planar[j[ok]]
         idx = np.flatnonzero(ok)
@@ -183,16 +191,8 @@ def _solve_knots(
         r = np.einsum("ij,ij->i", n, world[idx] - the_map.xyz[j[idx]])
         scale = max(1.4826 * float(np.median(np.abs(r))), 0.005)
         w = 1.0 / (1.0 + (r / scale) ** 2)  # Cauchy weights: gross outliers (movers, wrong matches) fade
-        seg, f = traj._segment(t_ns[idx])
-        J = np.zeros((len(idx), 6 * n_free))
-        rot, pos = np.cross(a[idx], n), n
-        for u, k in enumerate(free):  # knot k ends segment k-1 (weight f) and starts segment k (1-f)
-            weight = np.where(seg == k - 1, f, 0.0) + np.where(seg == k, 1.0 - f, 0.0)
-            J[:, 6 * u : 6 * u + 3] = rot * weight[:, None]
-            J[:, 6 * u + 3 : 6 * u + 6] = pos * weight[:, None]
-        # einsum, not @: a (12 x N) product is too small for BLAS's threads, which only spin
-        H = np.einsum("ni,nj->ij", J, J * w[:, None]) + 1e-9 * np.eye(6 * n_free)
-        dx = np.linalg.solve(H, -np.einsum("ni,n->i", J, w * r))
+        H, g = normal_equations(a[idx], n, r, w, seg[idx], f[idx], free_k)
+        dx = np.asarray(np.linalg.solve(H + 1e-9 * np.eye(len(g)), -g), np.float64)
         for u, k in enumerate(free):
             R[k] = rotvec_to_matrix(dx[6 * u : 6 * u + 3][None])[0] @ R[k]
             p[k] = p[k] + dx[6 * u + 3 : 6 * u + 6]
@@ -300,9 +300,19 @@ def _start(
     ps = [v_world * (s - t0) / 1e9 for s in stamps]
     chain = _Chain(stamps, Rs, ps, [0.0] * len(stamps))
     sel = voxel_subsample(p, prm.map_voxel_m)
-    R_t, p_t = chain.trajectory(gyro).pose(t[sel])
-    the_map.add(np.einsum("nij,nj->ni", R_t, p[sel]) + p_t, stamps[-1], ps[-1])
+    the_map.add(chain.trajectory(gyro).transform(p[sel], t[sel]), stamps[-1], ps[-1])
     return chain, ~first
+
+
+def _source_points(pts_cam0: F64, prm: OdometryParams) -> I64:
+    """The points of a chunk that take part in its fit: one per `source_voxel_m` cube, in the map's reach.
+
+    The map keeps what lies within `map_range_m` of the rig, so a point much
+    farther cannot find a match; searching for one costs the most of all.
+    """
+    reach = prm.map_range_m + prm.max_correspondence_m
+    near = np.flatnonzero(np.einsum("ij,ij->i", pts_cam0, pts_cam0) <= reach**2)
+    return near[voxel_subsample(pts_cam0[near], prm.source_voxel_m)]
 
 
 def _register_chunk(
@@ -317,11 +327,11 @@ def _register_chunk(
     R_guess, p_guess = [], []
     for s in knots[1:]:
         if gyro is not None:
-            R_guess.append(chain.R[-1] @ gyro.between(np.array([t_last]), np.array([s]))[0])
+            R_guess.append(chain.R[-1] @ gyro_between(gyro, np.array([t_last]), np.array([s]))[0])
         else:
             R_guess.append(chain.R[-1].copy())
         p_guess.append(chain.p[-1] + v * (s - t_last) / 1e9)
-    src = voxel_subsample(P, prm.source_voxel_m)
+    src = _source_points(P, prm)
     if len(src) > prm.max_source_points:
         src = src[np.linspace(0, len(src) - 1, prm.max_source_points).astype(np.int64)]
     if len(src) >= 50:
@@ -345,8 +355,7 @@ def _register_chunk(
     chain.residual.extend([res] * len(R_new))
     dense = voxel_subsample(P, prm.map_voxel_m)  # in cam0: the deskew moves points far less than a voxel
     if len(dense):
-        R_t, p_t = chain.trajectory(gyro).pose(T[dense])
-        the_map.add(np.einsum("nij,nj->ni", R_t, P[dense]) + p_t, knots[-1], chain.p[-1])
+        the_map.add(chain.trajectory(gyro).transform(P[dense], T[dense]), knots[-1], chain.p[-1])
     return P[dense], T[dense]
 
 
@@ -372,10 +381,9 @@ def _refine_start(
     T = np.concatenate([e[1] for e in early])
     start = chain.stamps[n_start] > T
     traj = chain.trajectory(gyro)
-    R_t, p_t = traj.pose(T[~start])
     later = LocalMap(replace(prm, map_horizon_s=1e6))
-    later.add(np.einsum("nij,nj->ni", R_t, P[~start]) + p_t, chain.stamps[-1], chain.p[-1])
-    src = voxel_subsample(P[start], prm.source_voxel_m)
+    later.add(traj.transform(P[~start], T[~start]), chain.stamps[-1], chain.p[-1])
+    src = _source_points(P[start], prm)
     R, p, res = _solve_knots(
         chain.stamps[: n_start + 1], chain.R[: n_start + 1], chain.p[: n_start + 1], list(range(n_start)),
         P[start][src], T[start][src], later, gyro, prm,
@@ -386,9 +394,6 @@ def _refine_start(
     chain.R = [R0.T @ r for r in chain.R]
     chain.p = [R0.T @ (q - p0) for q in chain.p]
     traj = chain.trajectory(gyro)
-    R_t, p_t = traj.pose(T)
     fresh = LocalMap(prm)
-    fresh.add(np.einsum("nij,nj->ni", R_t, P) + p_t, chain.stamps[-1], chain.p[-1])
-    the_map.xyz, the_map.normal, the_map.planar = fresh.xyz, fresh.normal, fresh.planar
-    the_map.known, the_map.origin = fresh.known, fresh.origin
-    the_map.added_ns, the_map.tree = fresh.added_ns, fresh.tree
+    fresh.add(traj.transform(P, T), chain.stamps[-1], chain.p[-1])
+    vars(the_map).update(vars(fresh))

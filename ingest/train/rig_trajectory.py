@@ -17,6 +17,7 @@ from calibration.linalg3 import rotvec_to_matrix
 from calibration.types import F64, I64, Bool
 from ingest.dataset.layout import write_atomic
 from ingest.train.clouds import GyroTrack
+from ingest.train.odometry_kernels import blend_points, gyro_between, log_rotations
 
 POSE_NODES = 100  # poses of many points: exact at this many nodes per knot interval, linear in between
 POSE_GRID_MIN_RATIO = 4  # ... when there are at least this many points per node
@@ -58,10 +59,30 @@ class RigTrajectory:
         if len(self.stamps_ns) == 1:
             R0 = np.broadcast_to(self.R_world_cam0[0], (len(t), 3, 3)).copy()
             return R0, np.tile(self.p_world_cam0[0], (len(t), 1))
+        grid = self._node_grid(t)
+        if grid is None:
+            return self._pose_exact(t)
+        a, g, R_n, p_n = grid
+        p = p_n[a] + g[:, None] * (p_n[a + 1] - p_n[a])
+        R = R_n[a] + g[:, None, None] * (R_n[a + 1] - R_n[a])
+        return R, p
+
+    def transform(self, pts_cam0: F64, t_ns: I64) -> F64:
+        """World points (N, 3) of cam0 points (N, 3) measured at times `t_ns`: `pose` applied in one pass."""
+        t = np.atleast_1d(np.asarray(t_ns, np.int64))
+        grid = self._node_grid(t) if len(self.stamps_ns) > 1 else None
+        if grid is None:
+            R, p = self.pose(t)
+            out: F64 = np.einsum("nij,nj->ni", R, pts_cam0) + p
+            return out
+        return blend_points(np.asarray(pts_cam0, np.float64), *grid)
+
+    def _node_grid(self, t: I64) -> tuple[I64, F64, F64, F64] | None:
+        """For many times: (node before each a, blend g, node rotations, node positions); None for few."""
         k, _ = self._segment(t)
         k_lo, k_hi = int(k.min()), int(k.max())
         if len(t) < POSE_GRID_MIN_RATIO * POSE_NODES * (k_hi - k_lo + 1):
-            return self._pose_exact(t)
+            return None
         t = np.clip(t, self.stamps_ns[0], self.stamps_ns[-1])
         start = self.stamps_ns[k_lo : k_hi + 1, None]
         span = self.stamps_ns[k_lo + 1 : k_hi + 2, None] - start
@@ -71,10 +92,8 @@ class RigTrajectory:
                        POSE_NODES - 1)  # fmt: skip
         a = (k - k_lo) * (POSE_NODES + 1) + j  # node before each time, flat
         t_a, t_b = nodes.reshape(-1)[a], nodes.reshape(-1)[a + 1]
-        g = ((t - t_a) / np.maximum(t_b - t_a, 1))[:, None]
-        p = p_n[a] + g * (p_n[a + 1] - p_n[a])
-        R = R_n[a] + g[:, :, None] * (R_n[a + 1] - R_n[a])
-        return R, p
+        g: F64 = (t - t_a) / np.maximum(t_b - t_a, 1)
+        return a, g, R_n, p_n
 
     def _pose_exact(self, t: I64) -> tuple[F64, F64]:
         k, f = self._segment(t)
@@ -87,7 +106,7 @@ class RigTrajectory:
         if self.gyro is None or len(self.stamps_ns) == 1:
             return np.broadcast_to(np.eye(3), (len(t), 3, 3))
         k, _ = self._segment(t)
-        return self.gyro.between(self.stamps_ns[k], np.clip(t, self.stamps_ns[0], self.stamps_ns[-1]))
+        return gyro_between(self.gyro, self.stamps_ns[k], np.clip(t, self.stamps_ns[0], self.stamps_ns[-1]))
 
     def speed_mps(self, t_ns: int) -> float:
         """Speed of cam0 (m/s) over the knot interval holding `t_ns`."""
@@ -122,10 +141,10 @@ def _chain_rotation(traj: RigTrajectory, k: I64, f: F64, rel: F64) -> F64:
     if traj.gyro is None:
         shape_next = np.broadcast_to(np.eye(3), (len(seg), 3, 3))
     else:
-        shape_next = traj.gyro.between(traj.stamps_ns[seg], traj.stamps_ns[seg + 1])
+        shape_next = gyro_between(traj.gyro, traj.stamps_ns[seg], traj.stamps_ns[seg + 1])
     E = np.matmul(
         np.swapaxes(np.matmul(traj.R_world_cam0[seg], shape_next), 1, 2), traj.R_world_cam0[seg + 1]
     )
-    err = Rotation.from_matrix(E).as_rotvec()[inv]
+    err = log_rotations(E)[inv]
     out: F64 = np.matmul(np.matmul(traj.R_world_cam0[k], rel), rotvec_to_matrix(err * f[:, None]))
     return out

@@ -1,0 +1,245 @@
+"""Compiled (numba) per-point loops of the odometry's Gauss-Newton solve.
+
+Each iteration of `ingest.train.odometry` moves a chunk's few thousand points
+with the knot chain and accumulates the point-to-plane normal equations. In
+numpy that was a (N, 3, 3) rotation stack per iteration (`RigTrajectory.pose`)
+and a dense (N, 12) Jacobian, a dozen passes over the points; here it is one
+pass each. The chain's formula is the module doc's of
+`ingest.train.rig_trajectory`: R(t) p = R_k G_k^T G(t) Exp(f e_k) p with
+e_k = Log(E_k), position linear between the knots.
+
+Kernels are compiled on first use and cached on disk (`cache=True`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+from scipy.spatial.transform import Rotation
+
+from calibration.types import F64, I64
+from ingest.train.clouds import GyroTrack
+
+
+@njit(cache=True, nogil=True)
+def _chain_points(pts, seg, f, rel, R_knot, p_knot, err, a_out, world_out):  # type: ignore[no-untyped-def]  # pragma: no cover
+    for i in range(pts.shape[0]):
+        k = seg[i]
+        fi = f[i]
+        wx, wy, wz = fi * err[k, 0], fi * err[k, 1], fi * err[k, 2]
+        th2 = wx * wx + wy * wy + wz * wz
+        if th2 < 1e-12:  # series of sin(th)/th and (1 - cos(th))/th^2
+            s = 1.0 - th2 / 6.0
+            c = 0.5 - th2 / 24.0
+        else:
+            th = math.sqrt(th2)
+            s = math.sin(th) / th
+            c = (1.0 - math.cos(th)) / th2
+        x, y, z = pts[i, 0], pts[i, 1], pts[i, 2]
+        cx, cy, cz = wy * z - wz * y, wz * x - wx * z, wx * y - wy * x  # w x p
+        ccx, ccy, ccz = wy * cz - wz * cy, wz * cx - wx * cz, wx * cy - wy * cx  # w x (w x p)
+        y0, y1, y2 = x + s * cx + c * ccx, y + s * cy + c * ccy, z + s * cz + c * ccz
+        for r in range(3):  # a = R_k rel (Exp(f e) p)
+            v = 0.0
+            for m in range(3):
+                v += R_knot[k, r, m] * (rel[i, m, 0] * y0 + rel[i, m, 1] * y1 + rel[i, m, 2] * y2)
+            a_out[i, r] = v
+            world_out[i, r] = v + p_knot[k, r] + fi * (p_knot[k + 1, r] - p_knot[k, r])
+
+
+def chain_points(pts: F64, seg: I64, f: F64, rel: F64, R_knot: F64, p_knot: F64, err: F64) -> tuple[F64, F64]:
+    """(rotated (N, 3), world (N, 3)) of points `pts` (cam0, N x 3) on the knot chain.
+
+    Point i lies in segment `seg[i]` at fraction `f[i]`, with the gyro's turn
+    `rel[i]` (3, 3) from the segment's start; `R_knot` (K, 3, 3) and `p_knot`
+    (K, 3) are the knots, `err` (K - 1, 3) each segment's spread mismatch
+    Log(E_k). rotated = R(t) p, world = R(t) p + p(t).
+    """
+    a = np.empty((len(pts), 3))
+    world = np.empty((len(pts), 3))
+    if len(pts):
+        _chain_points(np.ascontiguousarray(pts, np.float64), seg, f, np.ascontiguousarray(rel, np.float64),
+                      np.ascontiguousarray(R_knot), np.ascontiguousarray(p_knot), np.ascontiguousarray(err),
+                      a, world)  # fmt: skip
+    return a, world
+
+
+@njit(cache=True, nogil=True)
+def _normal_equations(a, n, r, w, seg, f, free, H, g):  # type: ignore[no-untyped-def]  # pragma: no cover
+    n_free = free.shape[0]
+    J = np.zeros(6 * n_free)
+    for i in range(a.shape[0]):
+        rot0 = a[i, 1] * n[i, 2] - a[i, 2] * n[i, 1]
+        rot1 = a[i, 2] * n[i, 0] - a[i, 0] * n[i, 2]
+        rot2 = a[i, 0] * n[i, 1] - a[i, 1] * n[i, 0]
+        for u in range(n_free):  # knot k ends segment k - 1 (weight f) and starts segment k (1 - f)
+            k = free[u]
+            wt = 0.0
+            if seg[i] == k - 1:
+                wt = f[i]
+            elif seg[i] == k:
+                wt = 1.0 - f[i]
+            J[6 * u + 0] = rot0 * wt
+            J[6 * u + 1] = rot1 * wt
+            J[6 * u + 2] = rot2 * wt
+            J[6 * u + 3] = n[i, 0] * wt
+            J[6 * u + 4] = n[i, 1] * wt
+            J[6 * u + 5] = n[i, 2] * wt
+        wi = w[i]
+        for p in range(6 * n_free):
+            if J[p] == 0.0:
+                continue
+            g[p] += wi * J[p] * r[i]
+            for q in range(6 * n_free):
+                H[p, q] += wi * J[p] * J[q]
+
+
+def normal_equations(a: F64, n: F64, r: F64, w: F64, seg: I64, f: F64, free: I64) -> tuple[F64, F64]:
+    """(J^T W J, J^T W r) of the point-to-plane residuals `r` (N,) with weights `w` (N,).
+
+    Point i (rotated `a[i]`, map normal `n[i]`) in segment `seg[i]` at
+    fraction `f[i]` moves with the knots `free` (6 unknowns each: rotation
+    vector, then translation, both in the world frame); its Jacobian is
+    (a x n, n) times its weight between the two knots of its segment.
+    """
+    H = np.zeros((6 * len(free), 6 * len(free)))
+    g = np.zeros(6 * len(free))
+    _normal_equations(a, n, r, w, seg, f, np.asarray(free, np.int64), H, g)
+    return H, g
+
+
+@njit(cache=True, nogil=True)
+def _blend_points(pts, a, g, R_n, p_n, out):  # type: ignore[no-untyped-def]  # pragma: no cover
+    for i in range(pts.shape[0]):
+        j = a[i]
+        gi = g[i]
+        for r in range(3):
+            v = p_n[j, r] + gi * (p_n[j + 1, r] - p_n[j, r])
+            for m in range(3):
+                v += (R_n[j, r, m] + gi * (R_n[j + 1, r, m] - R_n[j, r, m])) * pts[i, m]
+            out[i, r] = v
+
+
+def blend_points(pts: F64, a: I64, g: F64, R_n: F64, p_n: F64) -> F64:
+    """World points (N, 3): each point's pose blended linearly between nodes `a[i]` and `a[i] + 1` by `g[i]`.
+
+    `RigTrajectory.pose`'s node grid applied to the points without forming a (N, 3, 3) stack.
+    """
+    out = np.empty((len(pts), 3))
+    if len(pts):
+        _blend_points(np.ascontiguousarray(pts), a, np.ascontiguousarray(g), R_n, p_n, out)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _covariances(xyz, idx, out):  # type: ignore[no-untyped-def]  # pragma: no cover
+    k = idx.shape[1]
+    for i in range(idx.shape[0]):
+        mx = my = mz = 0.0
+        for j in range(k):
+            mx += xyz[idx[i, j], 0]
+            my += xyz[idx[i, j], 1]
+            mz += xyz[idx[i, j], 2]
+        mx /= k
+        my /= k
+        mz /= k
+        sxx = sxy = sxz = syy = syz = szz = 0.0
+        for j in range(k):
+            x = xyz[idx[i, j], 0] - mx
+            y = xyz[idx[i, j], 1] - my
+            z = xyz[idx[i, j], 2] - mz
+            sxx += x * x
+            sxy += x * y
+            sxz += x * z
+            syy += y * y
+            syz += y * z
+            szz += z * z
+        out[i, 0, 0], out[i, 0, 1], out[i, 0, 2] = sxx / k, sxy / k, sxz / k
+        out[i, 1, 0], out[i, 1, 1], out[i, 1, 2] = sxy / k, syy / k, syz / k
+        out[i, 2, 0], out[i, 2, 1], out[i, 2, 2] = sxz / k, syz / k, szz / k
+
+
+def covariances(xyz: F64, idx: I64) -> F64:
+    """Covariance (N, 3, 3, m^2) of each neighbourhood `xyz[idx[i]]` (idx: N x k), divided by k.
+
+    `ingest.train.planes.neighbour_covariances` in one pass, without the (N, k, 3) gather.
+    """
+    out = np.empty((len(idx), 3, 3))
+    if len(idx):
+        _covariances(np.ascontiguousarray(xyz, np.float64), np.ascontiguousarray(idx, np.int64), out)
+    return out
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _track_at(stamps, rotations, steps, t, out):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """GyroTrack.at for one time, into out (3, 3): R_k Exp(frac s_k), Rodrigues with its series near zero."""
+    n = stamps.shape[0]
+    tc = min(max(t, stamps[0]), stamps[n - 1])
+    k = min(max(np.searchsorted(stamps, tc, side="right") - 1, 0), n - 2)
+    frac = (tc - stamps[k]) / (stamps[k + 1] - stamps[k])
+    x, y, z = steps[k, 0] * frac, steps[k, 1] * frac, steps[k, 2] * frac
+    th2 = x * x + y * y + z * z
+    if th2 < 1e-8:
+        a = 1.0 - th2 / 6.0
+        b = 0.5 - th2 / 24.0
+    else:
+        th = math.sqrt(th2)
+        a = math.sin(th) / th
+        b = (1.0 - math.cos(th)) / th2
+    E = np.empty((3, 3))
+    E[0, 0] = 1.0 - b * (y * y + z * z)
+    E[1, 1] = 1.0 - b * (x * x + z * z)
+    E[2, 2] = 1.0 - b * (x * x + y * y)
+    E[0, 1] = b * x * y - a * z
+    E[1, 0] = b * x * y + a * z
+    E[0, 2] = b * x * z + a * y
+    E[2, 0] = b * x * z - a * y
+    E[1, 2] = b * y * z - a * x
+    E[2, 1] = b * y * z + a * x
+    for r in range(3):
+        for c in range(3):
+            out[r, c] = (
+                rotations[k, r, 0] * E[0, c] + rotations[k, r, 1] * E[1, c] + rotations[k, r, 2] * E[2, c]
+            )
+
+
+@njit(cache=True, nogil=True)
+def _track_between(stamps, rotations, steps, t0, t1, out):  # type: ignore[no-untyped-def]  # pragma: no cover
+    A = np.empty((3, 3))
+    B = np.empty((3, 3))
+    for i in range(t1.shape[0]):
+        _track_at(stamps, rotations, steps, t0[i], A)
+        _track_at(stamps, rotations, steps, t1[i], B)
+        for r in range(3):
+            for c in range(3):
+                out[i, r, c] = A[0, r] * B[0, c] + A[1, r] * B[1, c] + A[2, r] * B[2, c]
+
+
+def gyro_between(gyro: GyroTrack, t0_ns: I64, t1_ns: I64) -> F64:
+    """`GyroTrack.between` (R(t0)^T R(t1), N x 3 x 3; `t0_ns` may be one time) in one compiled pass."""
+    t1 = np.atleast_1d(np.asarray(t1_ns, np.int64))
+    t0 = np.ascontiguousarray(np.broadcast_to(np.asarray(t0_ns, np.int64), t1.shape))
+    if len(gyro.stamps_ns) < 2:
+        return gyro.between(t0, t1)
+    out = np.empty((len(t1), 3, 3))
+    _track_between(gyro.stamps_ns, np.ascontiguousarray(gyro.rotations), gyro.steps, t0, t1, out)
+    return out
+
+
+def log_rotations(R: F64) -> F64:
+    """Rotation vectors (N, 3) of rotation matrices (N, 3, 3): angle from atan2, exact near zero.
+
+    For the chain's mismatches, which are small; angles near pi (where the
+    skew part vanishes) go to scipy.
+    """
+    vee = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], axis=1)
+    s = 0.5 * np.linalg.norm(vee, axis=1)  # sin(theta)
+    theta = np.arctan2(s, 0.5 * (np.trace(R, axis1=1, axis2=2) - 1.0))
+    scale = np.where(s > 1e-12, theta / np.maximum(s, 1e-300), 1.0 + theta**2 / 6.0)
+    out: F64 = 0.5 * scale[:, None] * vee
+    far = theta > 3.0
+    if far.any():
+        out[far] = Rotation.from_matrix(R[far]).as_rotvec()
+    return out
