@@ -283,6 +283,10 @@ def render_view(
     equirect crop a fisheye sees); outside it everything is 0.
     """
     params = params or RenderParams()
+    if params.backend == "numba":
+        from ingest.raster.compiled_view import render_compiled
+
+        return render_compiled(sources, model, T_world_cam, params, pixel_mask)
     H, W = model.height, model.width
     geo = pixel_geometry(model)
     ppr = geo.ppr
