@@ -48,7 +48,11 @@ def _selected_in_view(
     src: ScanIndex, idx: I64, sp: F32, model: CameraModel, geo: PixelGeometry, T_cam_scan: F64,
     params: RenderParams,
 ) -> tuple[Any, ...]:  # fmt: skip
-    """`view._points_in_view` of ``src.xyz[idx]`` in compiled passes: (pix, u, v, r, ku, kv, kept scan index)."""
+    """`view._points_in_view` of ``src.xyz[idx]`` in compiled passes, packed by row group.
+
+    Returns (pix, u, v, r, ku, kv, kept scan index, index in selection order,
+    where each row group starts).
+    """
     n = len(idx)
     x, y, z, r, pn = (np.empty(n, np.float32) for _ in range(5))
     R = np.ascontiguousarray(T_cam_scan[:3, :3], np.float32)
@@ -58,25 +62,27 @@ def _selected_in_view(
     del x, y, z
     near = f32(params.near_m)
     far = f32(params.clip_m) if params.clip_m is not None and params.clip_mode == "drop" else f32(np.inf)
-    counts = np.empty(pk.chunks(n), np.int64)
     H, W = model.height, model.width
+    counts = np.empty((pk.chunks(n), pk.n_groups(H)), np.int64)
     pk.count_in_view(u, v, ok, r, near, far, W, H, counts)
-    offsets, m = pk.in_view_offsets(counts)
+    offsets, chunk_base, group_start, m = pk.in_view_offsets(counts)
     out = (np.empty(m, np.int64), np.empty(m, np.float32), np.empty(m, np.float32), np.empty(m, np.float32),
-           np.empty(m, np.int16), np.empty(m, np.int16), np.empty(m, np.int64))  # fmt: skip
-    pk.write_in_view(u, v, ok, r, pn, sp, idx, near, far, W, H, offsets, geo.ppr_u, geo.ppr_v, geo.stride,
-                     f32(params.splat_scale), params.max_splat_px, *out)  # fmt: skip
-    return out
+           np.empty(m, np.int16), np.empty(m, np.int16), np.empty(m, np.int64), np.empty(m, np.int64))  # fmt: skip
+    pk.write_in_view(u, v, ok, r, pn, sp, idx, near, far, W, H, offsets, chunk_base, geo.ppr_u, geo.ppr_v,
+                     geo.stride, f32(params.splat_scale), params.max_splat_px, *out)  # fmt: skip
+    return (*out, group_start)
 
 
 def _gather(
     sources: list[ScanIndex], model: CameraModel, geo: PixelGeometry, T_world_cam: F64, params: RenderParams,
     pixel_mask: Bool | None,
-) -> tuple[ViewPoints, ViewPoints, dict[str, int]]:  # fmt: skip
-    """`view._gather`: selected points of every scan, and every mask point, in the camera."""
+) -> tuple[ViewPoints, I64, I64, ViewPoints, dict[str, int]]:  # fmt: skip
+    """`view._gather`: every scan's selected points (by row group), their order and group starts; mask points."""
     T_cam_world = invert(T_world_cam)
     coarse = None if pixel_mask is None else _coarse_mask(pixel_mask, geo.stride)
     parts: list[tuple[Any, ...]] = []
+    orders: list[I64] = []
+    segs: list[I64] = []
     mask_parts: list[tuple[Any, ...]] = []
     stats = {"points_total": 0, "points_touched": 0, "points_in_image": 0}
     for src in sources:
@@ -89,20 +95,32 @@ def _gather(
             idx = np.arange(src.n_points)
             sp = np.repeat(src.voxel_spacing_rad, np.diff(src.voxel_start))
         stats["points_touched"] += len(idx)
-        *proj, kept = _selected_in_view(src, idx, sp, model, geo, T_cam_scan, params)
+        *proj, kept, order, group_start = _selected_in_view(src, idx, sp, model, geo, T_cam_scan, params)
+        orders.append(order + stats["points_in_image"])
+        segs.append(group_start + stats["points_in_image"])
         stats["points_in_image"] += len(kept)
         masked = src.masked[kept] if src.masked is not None else np.zeros(len(kept), bool)
         parts.append((*proj, src.rgb[kept], masked))
-        if masked.any():
-            mask_parts.append(tuple(a[masked] for a in parts[-1]))
+        if masked.any():  # labelled points, in the recipe's order (the mask z-buffer breaks ties by it)
+            lab = np.flatnonzero(masked)
+            lab = lab[np.argsort(order[lab])]
+            mask_parts.append(tuple(a[lab] for a in parts[-1]))
         if len(src.mask_xyz):  # a small cloud: the numpy projection
             *mproj, mkept = _points_in_view(model, geo, T_cam_scan, src.mask_xyz, src.mask_spacing_rad, params)
             mask_parts.append((*mproj, np.zeros((len(mkept), 3), np.uint8), np.ones(len(mkept), bool)))
-    return concat_points(parts), concat_points(mask_parts), stats
+    order_all = orders[0] if len(orders) == 1 else np.concatenate(orders) if orders else np.zeros(0, np.int64)
+    seg = np.stack(segs) if segs else np.zeros((0, pk.n_groups(model.height) + 1), np.int64)
+    return concat_points(parts), order_all, seg, concat_points(mask_parts), stats
 
 
-def zbuffer(pts: ViewPoints, H: int, W: int, with_own: bool = True) -> tuple[I64, I64]:
-    """`visibility.zbuffer` in parallel row bands: the same (own, splat) key images."""
+def zbuffer(
+    pts: ViewPoints, order: I64, seg: I64, H: int, W: int, with_own: bool = True, bands: int | None = None
+) -> tuple[I64, I64]:
+    """`visibility.zbuffer` in parallel bands: the same (own, splat) key images, indices from ``order``.
+
+    ``seg`` (sources, groups + 1): where each source's points of each row group start (`_gather`);
+    points not packed by rows need one band (``bands=1``) whose segment holds them all.
+    """
     own = np.full(H * W if with_own else 0, EMPTY_KEY, np.int64)
     splat = np.full(H * W, EMPTY_KEY, np.int64)
     n = len(pts.pix)
@@ -110,10 +128,30 @@ def zbuffer(pts: ViewPoints, H: int, W: int, with_own: bool = True) -> tuple[I64
         if n >= 1 << IDX_BITS:
             raise ValueError(f"a view can z-buffer at most 2^{IDX_BITS} points, got {n}")
         k_max = int(max(pts.ku.max(), pts.kv.max()))
-        start, drow, dcol = ellipse_offsets(k_max)
-        pk.zbuffer_bands(pts.pix, pts.r, pts.ku, pts.kv, k_max + 1, start, drow, dcol, H, W, pk.n_bands(H),
-                         f32(RANGE_QUANTUM_M), KEY_BASE, Q_MAX, IDX_BITS, own, splat, with_own)  # fmt: skip
+        spans = pk.ellipse_spans(*ellipse_offsets(k_max))
+        layer_of, layer_cls = _dense_classes(pts, k_max, H * W)
+        layers = np.full((len(layer_cls), H * W), EMPTY_KEY, np.int64)
+        pk.zbuffer_bands(pts.pix, order, pts.r, pts.ku, pts.kv, seg, k_max + 1, k_max, *spans, layer_of, H, W,
+                         bands or pk.n_bands(seg.shape[1] - 1), f32(RANGE_QUANTUM_M), KEY_BASE, Q_MAX, IDX_BITS,
+                         own, splat, layers, with_own)  # fmt: skip
+        if len(layer_cls):
+            pk.dilate_layers(layers, layer_cls, *spans, H, W, splat)
     return own, splat
+
+
+def _dense_classes(pts: ViewPoints, k_max: int, P: int) -> tuple[I64, I64]:
+    """Footprint classes whose points would write more footprint pixels than the image has: cheaper as a
+    min filter over a layer of their own points (`point_kernels.dilate_layers`), the same minimum.
+
+    Returns the layer of each class (-1: written point by point) and the class of each layer.
+    """
+    k1 = k_max + 1
+    area = np.diff(ellipse_offsets(k_max)[0])
+    n = np.bincount(pts.ku.astype(np.int64) * k1 + pts.kv, minlength=k1 * k1)
+    layer_cls = np.flatnonzero(n * area > P)
+    layer_of = np.full(k1 * k1, -1, np.int64)
+    layer_of[layer_cls] = np.arange(len(layer_cls))
+    return layer_of, layer_cls
 
 
 def _fill(value: F32, gu: F32, gv: F32, need: I64, ppr: F32, W: int, params: RenderParams) -> Bool:
@@ -141,7 +179,9 @@ def _mask_buffer(mask_pts: ViewPoints, H: int, W: int) -> I64:
     """The mask points' splat keys (empty array: no mask point)."""
     if not len(mask_pts.pix):
         return np.zeros(0, np.int64)
-    return zbuffer(mask_pts, H, W, with_own=False)[1]
+    n = len(mask_pts.pix)
+    whole = np.array([[0] + [n] * pk.n_groups(H)], np.int64)  # not packed by rows: one band reads them all
+    return zbuffer(mask_pts, np.arange(n), whole, H, W, with_own=False, bands=1)[1]
 
 
 def render_compiled(
@@ -153,12 +193,14 @@ def render_compiled(
     P = H * W
     geo = pixel_geometry(model)
     ppr = geo.ppr.reshape(-1)
-    pts, mask_pts, stats = _gather(sources, model, geo, T_world_cam, params, pixel_mask)
-    own_key, splat_key = zbuffer(pts, H, W)
+    pts, order, seg, mask_pts, stats = _gather(sources, model, geo, T_world_cam, params, pixel_mask)
+    own_key, splat_key = zbuffer(pts, order, seg, H, W)
+    inv = np.empty(len(order), np.int64)
+    pk.invert_order(order, inv)
     own_ok, leak = np.empty(P, bool), np.empty(P, bool)
     own_i, splat_i = np.empty(P, np.int64), np.empty(P, np.int64)
     r_own, r_splat = np.empty(P, np.float32), np.empty(P, np.float32)
-    px.decode(own_key, splat_key, pts.r, EMPTY_KEY, IDX_MASK, own_ok, own_i, splat_i, r_own, r_splat)
+    px.decode(own_key, splat_key, inv, pts.r, EMPTY_KEY, IDX_MASK, own_ok, own_i, splat_i, r_own, r_splat)
     surface = splat_key != EMPTY_KEY
     del own_key, splat_key
     tau_m, tau_rel, slope = f32(params.tau_m), f32(params.tau_rel), _slope(params)
@@ -174,8 +216,8 @@ def render_compiled(
     gu, gv, value = (np.empty(P, np.float32) for _ in range(3))
     px.gradient_value(R, U, V, ppr, W, tau_m, tau_rel, f32(slope * 1.0), params.fit_gradient, gu, gv, value)
     if params.average_samples and len(pts.r):
-        pk.average_bands(pts.pix, pts.u, pts.v, pts.r, own2, R, gu, gv, ppr, tau_m, tau_rel, f32(slope * 1.0),
-                         W, pk.n_bands(H), value)  # fmt: skip
+        pk.average_bands(pts.pix, pts.u, pts.v, pts.r, seg, own2, R, gu, gv, ppr, tau_m, tau_rel,
+                         f32(slope * 1.0), W, pk.n_bands(seg.shape[1] - 1), value)  # fmt: skip
     need = np.flatnonzero(surface & ~own2)
     got = _fill(value, gu, gv, need, ppr, W, params)
     raw_px = need[~got]  # a surface but no own point and no neighbour: the splat's nearest range

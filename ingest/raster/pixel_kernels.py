@@ -22,17 +22,17 @@ NB_DC = np.array([1, -1, 0, 0, 1, -1, -1, 1], np.int64)
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def decode(own_key, splat_key, r, empty, idx_mask, own_ok, own_i, splat_i, r_own, r_splat):  # type: ignore[no-untyped-def]  # pragma: no cover
-    """Winners of the two key images: point index (n where none) and range (inf where none)."""
+def decode(own_key, splat_key, inv, r, empty, idx_mask, own_ok, own_i, splat_i, r_own, r_splat):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """Winners of the two key images: point (``inv`` of the key's index; n where none), range (inf where none)."""
     n = r.shape[0]
     inf = np.float32(np.inf)
     for p in prange(own_key.shape[0]):
         ok = own_key[p] != empty
         own_ok[p] = ok
-        i = own_key[p] & idx_mask if ok else n
+        i = inv[own_key[p] & idx_mask] if ok else n
         own_i[p] = i
         r_own[p] = r[i] if ok else inf
-        s = splat_key[p] & idx_mask if splat_key[p] != empty else n
+        s = inv[splat_key[p] & idx_mask] if splat_key[p] != empty else n
         splat_i[p] = s
         r_splat[p] = r[s] if s < n else inf
 
