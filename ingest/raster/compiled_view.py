@@ -50,8 +50,8 @@ def _selected_in_view(
 ) -> tuple[Any, ...]:  # fmt: skip
     """`view._points_in_view` of ``src.xyz[idx]`` in compiled passes, packed by row group.
 
-    Returns (pix, u, v, r, ku, kv, kept scan index, index in selection order,
-    where each row group starts).
+    Returns (pix, u, v, r, ku, kv, rgb, kept scan index, index in selection
+    order, where each row group starts, points per footprint class (ku, kv)).
     """
     n = len(idx)
     x, y, z, r, pn = (np.empty(n, np.float32) for _ in range(5))
@@ -66,23 +66,29 @@ def _selected_in_view(
     counts = np.empty((pk.chunks(n), pk.n_groups(H)), np.int64)
     pk.count_in_view(u, v, ok, r, near, far, W, H, counts)
     offsets, chunk_base, group_start, m = pk.in_view_offsets(counts)
+    K = params.max_splat_px
+    hist = np.empty((len(counts), (K + 1) ** 2), np.int64)
     out = (np.empty(m, np.int64), np.empty(m, np.float32), np.empty(m, np.float32), np.empty(m, np.float32),
-           np.empty(m, np.int16), np.empty(m, np.int16), np.empty(m, np.int64), np.empty(m, np.int64))  # fmt: skip
-    pk.write_in_view(u, v, ok, r, pn, sp, idx, near, far, W, H, offsets, chunk_base, geo.ppr_u, geo.ppr_v,
-                     geo.stride, f32(params.splat_scale), params.max_splat_px, *out)  # fmt: skip
-    return (*out, group_start)
+           np.empty(m, np.int16), np.empty(m, np.int16), np.empty(m, np.int64), np.empty(m, np.int64),
+           np.empty((m, 3), np.uint8))  # fmt: skip
+    pk.write_in_view(u, v, ok, r, pn, sp, idx, src.rgb, near, far, W, H, offsets, chunk_base, geo.ppr_u,
+                     geo.ppr_v, geo.stride, f32(params.splat_scale), K, hist, *out)  # fmt: skip
+    pix, u_k, v_k, r_k, ku, kv, kept, order, rgb = out
+    return pix, u_k, v_k, r_k, ku, kv, rgb, kept, order, group_start, hist.sum(axis=0).reshape(K + 1, K + 1)
 
 
 def _gather(
     sources: list[ScanIndex], model: CameraModel, geo: PixelGeometry, T_world_cam: F64, params: RenderParams,
     pixel_mask: Bool | None,
-) -> tuple[ViewPoints, I64, I64, ViewPoints, dict[str, int]]:  # fmt: skip
-    """`view._gather`: every scan's selected points (by row group), their order and group starts; mask points."""
+) -> tuple[ViewPoints, I64, I64, I64, ViewPoints, dict[str, int]]:  # fmt: skip
+    """`view._gather`: every scan's selected points (by row group), their order, group starts and
+    footprint class counts (ku, kv); the mask points."""
     T_cam_world = invert(T_world_cam)
     coarse = None if pixel_mask is None else _coarse_mask(pixel_mask, geo.stride)
     parts: list[tuple[Any, ...]] = []
     orders: list[I64] = []
     segs: list[I64] = []
+    classes = np.zeros((params.max_splat_px + 1,) * 2, np.int64)
     mask_parts: list[tuple[Any, ...]] = []
     stats = {"points_total": 0, "points_touched": 0, "points_in_image": 0}
     for src in sources:
@@ -95,12 +101,14 @@ def _gather(
             idx = np.arange(src.n_points)
             sp = np.repeat(src.voxel_spacing_rad, np.diff(src.voxel_start))
         stats["points_touched"] += len(idx)
-        *proj, kept, order, group_start = _selected_in_view(src, idx, sp, model, geo, T_cam_scan, params)
+        *proj, rgb, kept, order, group_start, n_cls = _selected_in_view(src, idx, sp, model, geo, T_cam_scan,
+                                                                         params)  # fmt: skip
+        classes = classes + n_cls
         orders.append(order + stats["points_in_image"])
         segs.append(group_start + stats["points_in_image"])
         stats["points_in_image"] += len(kept)
         masked = src.masked[kept] if src.masked is not None else np.zeros(len(kept), bool)
-        parts.append((*proj, src.rgb[kept], masked))
+        parts.append((*proj, rgb, masked))
         if masked.any():  # labelled points, in the recipe's order (the mask z-buffer breaks ties by it)
             lab = np.flatnonzero(masked)
             lab = lab[np.argsort(order[lab])]
@@ -110,16 +118,18 @@ def _gather(
             mask_parts.append((*mproj, np.zeros((len(mkept), 3), np.uint8), np.ones(len(mkept), bool)))
     order_all = orders[0] if len(orders) == 1 else np.concatenate(orders) if orders else np.zeros(0, np.int64)
     seg = np.stack(segs) if segs else np.zeros((0, pk.n_groups(model.height) + 1), np.int64)
-    return concat_points(parts), order_all, seg, concat_points(mask_parts), stats
+    return concat_points(parts), order_all, seg, classes, concat_points(mask_parts), stats
 
 
 def zbuffer(
-    pts: ViewPoints, order: I64, seg: I64, H: int, W: int, with_own: bool = True, bands: int | None = None
-) -> tuple[I64, I64]:
+    pts: ViewPoints, order: I64, seg: I64, classes: I64, H: int, W: int, with_own: bool = True,
+    bands: int | None = None,
+) -> tuple[I64, I64]:  # fmt: skip
     """`visibility.zbuffer` in parallel bands: the same (own, splat) key images, indices from ``order``.
 
     ``seg`` (sources, groups + 1): where each source's points of each row group start (`_gather`);
     points not packed by rows need one band (``bands=1``) whose segment holds them all.
+    ``classes[ku, kv]`` counts the points per footprint.
     """
     own = np.full(H * W if with_own else 0, EMPTY_KEY, np.int64)
     splat = np.full(H * W, EMPTY_KEY, np.int64)
@@ -127,9 +137,9 @@ def zbuffer(
     if n:
         if n >= 1 << IDX_BITS:
             raise ValueError(f"a view can z-buffer at most 2^{IDX_BITS} points, got {n}")
-        k_max = int(max(pts.ku.max(), pts.kv.max()))
+        k_max = k_max_of(classes)
         spans = pk.ellipse_spans(*ellipse_offsets(k_max))
-        layer_of, layer_cls = _dense_classes(pts, k_max, H * W)
+        layer_of, layer_cls = _dense_classes(classes, k_max, H * W)
         layers = np.full((len(layer_cls), H * W), EMPTY_KEY, np.int64)
         pk.zbuffer_bands(pts.pix, order, pts.r, pts.ku, pts.kv, seg, k_max + 1, k_max, *spans, layer_of, H, W,
                          bands or pk.n_bands(seg.shape[1] - 1), f32(RANGE_QUANTUM_M), KEY_BASE, Q_MAX, IDX_BITS,
@@ -139,15 +149,22 @@ def zbuffer(
     return own, splat
 
 
-def _dense_classes(pts: ViewPoints, k_max: int, P: int) -> tuple[I64, I64]:
+def k_max_of(classes: I64) -> int:
+    """The largest footprint half-width with a point (0 when none)."""
+    ku, kv = np.nonzero(classes)
+    return int(max(ku.max(), kv.max())) if len(ku) else 0
+
+
+def _dense_classes(classes: I64, k_max: int, P: int) -> tuple[I64, I64]:
     """Footprint classes whose points would write more footprint pixels than the image has: cheaper as a
     min filter over a layer of their own points (`point_kernels.dilate_layers`), the same minimum.
 
-    Returns the layer of each class (-1: written point by point) and the class of each layer.
+    Returns the layer of each class ku * (k_max + 1) + kv (-1: written point by point) and the class of
+    each layer.
     """
     k1 = k_max + 1
     area = np.diff(ellipse_offsets(k_max)[0])
-    n = np.bincount(pts.ku.astype(np.int64) * k1 + pts.kv, minlength=k1 * k1)
+    n = classes[:k1, :k1].reshape(-1)
     layer_cls = np.flatnonzero(n * area > P)
     layer_of = np.full(k1 * k1, -1, np.int64)
     layer_of[layer_cls] = np.arange(len(layer_cls))
@@ -181,7 +198,9 @@ def _mask_buffer(mask_pts: ViewPoints, H: int, W: int) -> I64:
         return np.zeros(0, np.int64)
     n = len(mask_pts.pix)
     whole = np.array([[0] + [n] * pk.n_groups(H)], np.int64)  # not packed by rows: one band reads them all
-    return zbuffer(mask_pts, np.arange(n), whole, H, W, with_own=False, bands=1)[1]
+    k = int(max(mask_pts.ku.max(), mask_pts.kv.max())) + 1
+    classes = np.bincount(mask_pts.ku.astype(np.int64) * k + mask_pts.kv, minlength=k * k).reshape(k, k)
+    return zbuffer(mask_pts, np.arange(n), whole, classes, H, W, with_own=False, bands=1)[1]
 
 
 def render_compiled(
@@ -193,8 +212,8 @@ def render_compiled(
     P = H * W
     geo = pixel_geometry(model)
     ppr = geo.ppr.reshape(-1)
-    pts, order, seg, mask_pts, stats = _gather(sources, model, geo, T_world_cam, params, pixel_mask)
-    own_key, splat_key = zbuffer(pts, order, seg, H, W)
+    pts, order, seg, classes, mask_pts, stats = _gather(sources, model, geo, T_world_cam, params, pixel_mask)
+    own_key, splat_key = zbuffer(pts, order, seg, classes, H, W)
     inv = np.empty(len(order), np.int64)
     pk.invert_order(order, inv)
     own_ok, leak = np.empty(P, bool), np.empty(P, bool)
@@ -204,7 +223,7 @@ def render_compiled(
     surface = splat_key != EMPTY_KEY
     del own_key, splat_key
     tau_m, tau_rel, slope = f32(params.tau_m), f32(params.tau_rel), _slope(params)
-    K = int(min(3, max(1, int(pts.ku.max()), int(pts.kv.max())))) if len(pts.r) else 1
+    K = min(3, max(1, k_max_of(classes)))
     px.leaking(own_ok, r_own, r_splat, splat_i, pts.u, pts.v, ppr, W, K, tau_m, tau_rel, slope,
                f32(slope * 1.0), f32(slope * (K + 0.5)), leak)  # fmt: skip
     own2 = np.empty(P, bool)

@@ -109,49 +109,65 @@ def _solve(a11, a12, a22, b1, b2, one, zero):  # type: ignore[no-untyped-def]  #
 
 
 @njit(cache=True, nogil=True)
-def _terms(R, U, V, p, q_ok, q, dr, dc, gate):  # type: ignore[no-untyped-def]  # pragma: no cover
-    """One neighbour's (du, dv, dR) as `fit_gradient` weighs it: zero when off the surface or the image."""
-    Rn = R[q] if q_ok else np.float32(np.nan)
-    Un = U[q] if q_ok else np.float32(0.0)
-    Vn = V[q] if q_ok else np.float32(0.0)
-    dR = Rn - R[p]
+def _terms(Rn, Un, Vn, Rc, Uc, Vc, dr, dc, gate):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """One neighbour's (du, dv, dR) as `fit_gradient` weighs it: zero when off the surface (or NaN)."""
+    dR = Rn - Rc
     ok = abs(dR) <= gate
     okf = np.float32(1.0) if ok else np.float32(0.0)
-    du = (np.float32(dc) + Un - U[p]) * okf
-    dv = (np.float32(dr) + Vn - V[p]) * okf
+    du = (dc + Un - Uc) * okf
+    dv = (dr + Vn - Vc) * okf
     return du, dv, dR if ok else np.float32(0.0)
 
 
 @njit(parallel=True, cache=True, nogil=True)
 def gradient_value(R, U, V, ppr, W, tau_m, tau_rel, slope1, fit, gu, gv, value):  # type: ignore[no-untyped-def]  # pragma: no cover
-    """`visibility.fit_gradient` per pixel, then the value on the pixel-centre ray, R - gu U - gv V."""
-    P = R.shape[0]
-    H = P // W
-    one32, zero32 = np.float32(1.0), np.float32(0.0)
-    for p in prange(P):
-        g_u, g_v = zero32, zero32
-        if fit:
-            row = p // W
-            col = p - row * W
+    """`visibility.fit_gradient` per pixel, then the value on the pixel-centre ray, R - gu U - gv V.
+
+    A pixel without an own point (R NaN) has no neighbour on its surface:
+    gradient 0, value NaN, as in numpy.
+    """
+    H = R.shape[0] // W
+    one32, zero32, nan32 = np.float32(1.0), np.float32(0.0), np.float32(np.nan)
+    for row in prange(H):
+        for col in range(W):
+            p = row * W + col
+            Rc, Uc, Vc = R[p], U[p], V[p]
+            if not fit or not np.isfinite(Rc):
+                gu[p], gv[p] = zero32, zero32
+                value[p] = Rc - zero32 * Uc - zero32 * Vc
+                continue
             sl = (tau_m + (tau_rel + slope1 / ppr[p])) - tau_m
-            gate = tau_m + R[p] * sl * np.float32(1.6)
+            gate = tau_m + Rc * sl * np.float32(1.6)
             a11 = a12 = a22 = b1 = b2 = zero32
-            for k in range(4):
-                rr, cc = row + NB_DR[k], col + NB_DC[k]
-                du, dv, dR = _terms(R, U, V, p, 0 <= rr < H and 0 <= cc < W, rr * W + cc, NB_DR[k], NB_DC[k], gate)
+            for k in range(4):  # (0, 1), (0, -1), (1, 0), (-1, 0) as (drow, dcol)
+                dr = 0 if k < 2 else (1 if k == 2 else -1)
+                dc = (1 if k == 0 else -1) if k < 2 else 0
+                rr, cc = row + dr, col + dc
+                if 0 <= rr < H and 0 <= cc < W:
+                    q = rr * W + cc
+                    Rn, Un, Vn = R[q], U[q], V[q]
+                else:
+                    Rn, Un, Vn = nan32, zero32, zero32
+                du, dv, dR = _terms(Rn, Un, Vn, Rc, Uc, Vc, np.float32(dr), np.float32(dc), gate)
                 a11 += du * du
                 a12 += du * dv
                 a22 += dv * dv
                 b1 += du * dR
                 b2 += dv * dR
             g_u, g_v, full = _solve(a11, a12, a22, b1, b2, one32, zero32)
-            if not full and np.isfinite(R[p]):  # the diagonal neighbours join, in float64
-                g = tau_m + R[p] * sl * np.float32(2.2)
+            if not full:  # the diagonal neighbours join, in float64
+                g = tau_m + Rc * sl * np.float32(2.2)
                 s11, s12, s22 = np.float64(a11), np.float64(a12), np.float64(a22)
                 t1, t2 = np.float64(b1), np.float64(b2)
                 for k in range(4, 8):
-                    rr, cc = row + NB_DR[k], col + NB_DC[k]
-                    du, dv, dR = _terms(R, U, V, p, 0 <= rr < H and 0 <= cc < W, rr * W + cc, NB_DR[k], NB_DC[k], g)
+                    dr, dc = NB_DR[k], NB_DC[k]
+                    rr, cc = row + dr, col + dc
+                    if 0 <= rr < H and 0 <= cc < W:
+                        q = rr * W + cc
+                        Rn, Un, Vn = R[q], U[q], V[q]
+                    else:
+                        Rn, Un, Vn = nan32, zero32, zero32
+                    du, dv, dR = _terms(Rn, Un, Vn, Rc, Uc, Vc, np.float32(dr), np.float32(dc), g)
                     s11 += du * du
                     s12 += du * dv
                     s22 += dv * dv
@@ -159,9 +175,9 @@ def gradient_value(R, U, V, ppr, W, tau_m, tau_rel, slope1, fit, gu, gv, value):
                     t2 += dv * dR
                 w_u, w_v, _ = _solve(s11, s12, s22, t1, t2, 1.0, 0.0)
                 g_u, g_v = np.float32(w_u), np.float32(w_v)
-        gu[p] = g_u
-        gv[p] = g_v
-        value[p] = R[p] - g_u * U[p] - g_v * V[p]
+            gu[p] = g_u
+            gv[p] = g_v
+            value[p] = Rc - g_u * Uc - g_v * Vc
 
 
 @njit(cache=True, nogil=True)

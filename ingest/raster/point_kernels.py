@@ -74,16 +74,18 @@ def count_in_view(u, v, ok, r, near, far, W, H, counts):  # type: ignore[no-unty
 
 @njit(parallel=True, cache=True, nogil=True)
 def write_in_view(  # type: ignore[no-untyped-def]  # pragma: no cover
-    u, v, ok, r, pn, sp, idx, near, far, W, H, offsets, chunk_base, ppr_u, ppr_v, stride, scale, k_max,
-    out_pix, out_u, out_v, out_r, out_ku, out_kv, out_src, out_order,
+    u, v, ok, r, pn, sp, idx, rgb, near, far, W, H, offsets, chunk_base, ppr_u, ppr_v, stride, scale, k_max,
+    hist, out_pix, out_u, out_v, out_r, out_ku, out_kv, out_src, out_order, out_rgb,
 ):  # fmt: skip
     """The points `count_in_view` counted, packed by row group: pixel, position, range, footprint.
 
     ``offsets[c, g]`` is where chunk c's points of group g start. Footprint
     half-widths: scale x spacing at the scanner x range from the scanner /
     range from the camera x local pixels per radian, + 0.5 and truncated
-    (whole pixels), at most ``k_max``. ``out_src`` is each point's index into
-    the scan, ``out_order`` its index in selection order.
+    (whole pixels), at most ``k_max``; ``hist[c]`` counts chunk c's points
+    per (ku, kv) as ku * (k_max + 1) + kv. ``out_src`` is each point's index
+    into the scan, ``out_order`` its index in selection order, ``out_rgb``
+    its colour.
     """
     n = u.shape[0]
     half = np.float32(0.5)
@@ -91,6 +93,7 @@ def write_in_view(  # type: ignore[no-untyped-def]  # pragma: no cover
     for c in prange(offsets.shape[0]):
         o = offsets[c].copy()
         m = chunk_base[c]
+        hist[c, :] = 0
         for i in range(c * CHUNK, min(n, (c + 1) * CHUNK)):
             if not (ok[i] and r[i] > near and r[i] <= far):
                 continue
@@ -108,10 +111,17 @@ def write_in_view(  # type: ignore[no-untyped-def]  # pragma: no cover
             out_u[j] = u[i]
             out_v[j] = v[i]
             out_r[j] = r[i]
-            out_ku[j] = np.int16(min(kf, scale * foot * ppr_u[cv, cu] + half))
-            out_kv[j] = np.int16(min(kf, scale * foot * ppr_v[cv, cu] + half))
-            out_src[j] = idx[i]
+            a = np.int16(min(kf, scale * foot * ppr_u[cv, cu] + half))
+            b = np.int16(min(kf, scale * foot * ppr_v[cv, cu] + half))
+            out_ku[j] = a
+            out_kv[j] = b
+            hist[c, a * (k_max + 1) + b] += 1
+            s = idx[i]
+            out_src[j] = s
             out_order[j] = m
+            out_rgb[j, 0] = rgb[s, 0]
+            out_rgb[j, 1] = rgb[s, 1]
+            out_rgb[j, 2] = rgb[s, 2]
             m += 1
 
 
