@@ -12,8 +12,12 @@ once instead of once per numpy operation.
 from __future__ import annotations
 
 import math
+import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Any
 
+import numba
 import numpy as np
 
 from calibration.camera import CameraModel
@@ -24,7 +28,7 @@ from ingest.raster import pixel_kernels as px
 from ingest.raster import point_kernels as pk
 from ingest.raster.kernels import ellipse_offsets
 from ingest.raster.lod import ScanIndex, select
-from ingest.raster.view import PixelGeometry, Rendering, _coarse_mask, _points_in_view, pixel_geometry
+from ingest.raster.view import PixelGeometry, Rendering, coarse_mask, pixel_geometry, points_in_view
 from ingest.raster.visibility import (
     EMPTY_KEY,
     IDX_BITS,
@@ -36,8 +40,19 @@ from ingest.raster.visibility import (
     concat_points,
 )
 
+# Renders run in forked workers (render-benchmark, dense ground truth in ingest) whose parent may have
+# rendered already: GNU OpenMP, numba's usual pick on Linux, aborts such a child ("fork() called from
+# a process already using GNU OpenMP"). "forksafe" takes TBB when a recent one is installed, else
+# numba's own workqueue (fork safe; one parallel call at a time per process, as the renderer makes).
+if "NUMBA_THREADING_LAYER" not in os.environ:
+    numba.config.THREADING_LAYER = "forksafe"  # type: ignore[attr-defined]
+
 f32 = np.float32
 IDX_MASK = (1 << IDX_BITS) - 1
+# Smaller views run their kernels on one thread: starting a parallel region costs tens of
+# microseconds on an idle machine and milliseconds on a busy one, more than such a view saves.
+SMALL_VIEW_PX = 250_000
+SMALL_VIEW_POINTS = 1_000_000
 
 
 def _slope(params: RenderParams) -> float:
@@ -48,7 +63,7 @@ def _selected_in_view(
     src: ScanIndex, idx: I64, sp: F32, model: CameraModel, geo: PixelGeometry, T_cam_scan: F64,
     params: RenderParams,
 ) -> tuple[Any, ...]:  # fmt: skip
-    """`view._points_in_view` of ``src.xyz[idx]`` in compiled passes, packed by row group.
+    """`view.points_in_view` of ``src.xyz[idx]`` in compiled passes, packed by row group.
 
     Returns (pix, u, v, r, ku, kv, rgb, kept scan index, index in selection
     order, where each row group starts, points per footprint class (ku, kv)).
@@ -84,7 +99,7 @@ def _gather(
     """`view._gather`: every scan's selected points (by row group), their order, group starts and
     footprint class counts (ku, kv); the mask points."""
     T_cam_world = invert(T_world_cam)
-    coarse = None if pixel_mask is None else _coarse_mask(pixel_mask, geo.stride)
+    coarse = None if pixel_mask is None else coarse_mask(pixel_mask, geo.stride)
     parts: list[tuple[Any, ...]] = []
     orders: list[I64] = []
     segs: list[I64] = []
@@ -114,7 +129,8 @@ def _gather(
             lab = lab[np.argsort(order[lab])]
             mask_parts.append(tuple(a[lab] for a in parts[-1]))
         if len(src.mask_xyz):  # a small cloud: the numpy projection
-            *mproj, mkept = _points_in_view(model, geo, T_cam_scan, src.mask_xyz, src.mask_spacing_rad, params)
+            sp_m = src.mask_spacing_rad
+            *mproj, mkept = points_in_view(model, geo, T_cam_scan, src.mask_xyz, sp_m, params)
             mask_parts.append((*mproj, np.zeros((len(mkept), 3), np.uint8), np.ones(len(mkept), bool)))
     order_all = orders[0] if len(orders) == 1 else np.concatenate(orders) if orders else np.zeros(0, np.int64)
     seg = np.stack(segs) if segs else np.zeros((0, pk.n_groups(model.height) + 1), np.int64)
@@ -141,9 +157,10 @@ def zbuffer(
         spans = pk.ellipse_spans(*ellipse_offsets(k_max))
         layer_of, layer_cls = _dense_classes(classes, k_max, H * W)
         layers = np.full((len(layer_cls), H * W), EMPTY_KEY, np.int64)
+        bands = bands or pk.n_bands(seg.shape[1] - 1)
         pk.zbuffer_bands(pts.pix, order, pts.r, pts.ku, pts.kv, seg, k_max + 1, k_max, *spans, layer_of, H, W,
-                         bands or pk.n_bands(seg.shape[1] - 1), f32(RANGE_QUANTUM_M), KEY_BASE, Q_MAX, IDX_BITS,
-                         own, splat, layers, with_own)  # fmt: skip
+                         bands, f32(RANGE_QUANTUM_M), KEY_BASE, Q_MAX, IDX_BITS, own, splat, layers,
+                         with_own)  # fmt: skip
         if len(layer_cls):
             pk.dilate_layers(layers, layer_cls, *spans, H, W, splat)
     return own, splat
@@ -203,11 +220,32 @@ def _mask_buffer(mask_pts: ViewPoints, H: int, W: int) -> I64:
     return zbuffer(mask_pts, np.arange(n), whole, classes, H, W, with_own=False, bands=1)[1]
 
 
+@contextmanager
+def threads_at_most(n: int) -> Iterator[None]:
+    """Numba's thread count for this thread limited to ``n`` inside the block."""
+    old = numba.get_num_threads()
+    numba.set_num_threads(max(1, min(n, old)))
+    try:
+        yield
+    finally:
+        numba.set_num_threads(old)
+
+
 def render_compiled(
     sources: list[ScanIndex], model: CameraModel, T_world_cam: F64, params: RenderParams,
     pixel_mask: Bool | None = None,
 ) -> Rendering:  # fmt: skip
     """`ingest.raster.view.render_view` with compiled kernels (see module doc); the same `Rendering`."""
+    n_points = sum(s.n_points for s in sources)
+    small = model.width * model.height < SMALL_VIEW_PX and n_points < SMALL_VIEW_POINTS
+    with threads_at_most(1 if small else numba.get_num_threads()):
+        return _render(sources, model, T_world_cam, params, pixel_mask)
+
+
+def _render(
+    sources: list[ScanIndex], model: CameraModel, T_world_cam: F64, params: RenderParams,
+    pixel_mask: Bool | None,
+) -> Rendering:  # fmt: skip
     H, W = model.height, model.width
     P = H * W
     geo = pixel_geometry(model)
@@ -248,9 +286,10 @@ def render_compiled(
     range_m, bgr = np.empty(P, np.float32), np.empty((P, 3), np.uint8)
     clip = f32(np.inf) if params.clip_m is None else f32(params.clip_m)
     rgb = pts.rgb if len(pts.rgb) else np.zeros((1, 3), np.uint8)
-    px.finish(value, surface, own2, own_i, splat_i, rays.reshape(-1), rgb, ppr, W, _mask_buffer(mask_pts, H, W),
-              mask_pts.r, mask_pts.u, mask_pts.v, EMPTY_KEY, IDX_MASK, tau_m, tau_rel, f32(slope), clip,
-              surf, masked, clipped, good, range_m, bgr)  # fmt: skip
+    mask_key = _mask_buffer(mask_pts, H, W)
+    px.finish(value, surface, own2, own_i, splat_i, rays.reshape(-1), rgb, ppr, W, mask_key, mask_pts.r,
+              mask_pts.u, mask_pts.v, EMPTY_KEY, IDX_MASK, tau_m, tau_rel, f32(slope), clip, surf, masked,
+              clipped, good, range_m, bgr)  # fmt: skip
     stats.update(
         pixels_with_ray=int(rays.sum()),
         surface_px=int(surf.sum()),

@@ -23,7 +23,7 @@ NB_DC = np.array([1, -1, 0, 0, 1, -1, -1, 1], np.int64)
 
 @njit(parallel=True, cache=True, nogil=True)
 def decode(own_key, splat_key, inv, r, empty, idx_mask, own_ok, own_i, splat_i, r_own, r_splat):  # type: ignore[no-untyped-def]  # pragma: no cover
-    """Winners of the two key images: point (``inv`` of the key's index; n where none), range (inf where none)."""
+    """Winners of the two key images: point (``inv`` of the key's index; n: none), range (inf: none)."""
     n = r.shape[0]
     inf = np.float32(np.inf)
     for p in prange(own_key.shape[0]):
@@ -41,7 +41,7 @@ def decode(own_key, splat_key, inv, r, empty, idx_mask, own_ok, own_i, splat_i, 
 def leaking(  # type: ignore[no-untyped-def]  # pragma: no cover
     own_ok, r_own, r_splat, splat_i, u, v, ppr, W, K, tau_m, tau_rel, slope, slope1, slope_k, leak
 ):  # fmt: skip
-    """`view._leaking` per pixel: an own point behind a nearer splat with nearer own points on two opposite sides."""
+    """`view._leaking` per pixel: an own point behind a nearer splat, nearer own points on opposite sides."""
     P = own_ok.shape[0]
     H = P // W
     tm64, tr64, sl64 = np.float64(tau_m), np.float64(tau_rel), np.float64(slope)
@@ -194,7 +194,7 @@ def _finite(x):  # type: ignore[no-untyped-def]  # pragma: no cover
 def fill_pass(  # type: ignore[no-untyped-def]  # pragma: no cover
     todo, val, gu, gv, ppr, W, tau_m, tau_rel, slope15, weight, pred, gnu, gnv, new, got
 ):  # fmt: skip
-    """One pass of `visibility.fill_gaps` over the flat pixels ``todo``; results in ``new`` (v, gu, gv), ``got``.
+    """One pass of `visibility.fill_gaps` over flat pixels ``todo``: ``new`` (v, gu, gv) and ``got``.
 
     Reads the previous pass only: the caller writes ``new`` into the images
     after the pass.
@@ -251,10 +251,10 @@ def fill_pass(  # type: ignore[no-untyped-def]  # pragma: no cover
 
 @njit(parallel=True, cache=True, nogil=True)
 def finish(  # type: ignore[no-untyped-def]  # pragma: no cover
-    value, surface, own_ok, own_i, splat_i, rays, rgb, ppr, W, mask_key, mask_r, mask_u, mask_v, empty, idx_mask,
-    tau_m, tau_rel, slope, clip, surf, masked, clipped, good, range_m, bgr,
+    value, surface, own_ok, own_i, splat_i, rays, rgb, ppr, W, mask_key, mask_r, mask_u, mask_v, empty,
+    idx_mask, tau_m, tau_rel, slope, clip, surf, masked, clipped, good, range_m, bgr,
 ):  # fmt: skip
-    """Masks (a mask surface not behind the value), clipping, the valid range and the colour of every pixel."""
+    """Masks (a mask surface not behind the value), clipping, valid range and colour of every pixel."""
     half, zero = np.float32(0.5), np.float32(0.0)
     for p in prange(value.shape[0]):
         s = surface[p] and rays[p]

@@ -1,4 +1,4 @@
-"""Compiled (numba, parallel) per-point stages of the renderer: transform, view test, footprint, z-buffer, average.
+"""Compiled (numba, parallel) per-point stages of the renderer: transform, view test, z-buffer, average.
 
 Each kernel does in one pass over the points what `ingest.raster.view` and
 `ingest.raster.visibility` do in numpy with one full-length temporary per
@@ -40,7 +40,7 @@ def n_groups(H: int) -> int:
 
 @njit(parallel=True, cache=True, nogil=True)
 def transform(xyz, idx, R, t, x, y, z, r, pn):  # type: ignore[no-untyped-def]  # pragma: no cover
-    """Points ``xyz[idx]`` into the camera (x, y, z), their range from it and from the scan origin (float32)."""
+    """Points ``xyz[idx]`` into the camera (x, y, z), their range from it and from the scan origin."""
     for i in prange(idx.shape[0]):
         j = idx[i]
         px, py, pz = xyz[j, 0], xyz[j, 1], xyz[j, 2]
@@ -56,7 +56,7 @@ def transform(xyz, idx, R, t, x, y, z, r, pn):  # type: ignore[no-untyped-def]  
 
 @njit(parallel=True, cache=True, nogil=True)
 def count_in_view(u, v, ok, r, near, far, W, H, counts):  # type: ignore[no-untyped-def]  # pragma: no cover
-    """Per chunk of CHUNK points and row group: how many land there, nearer than ``far``, farther than ``near``.
+    """Per chunk of CHUNK points and row group: how many land there, within (``near``, ``far``].
 
     ``counts`` is (chunks, row groups).
     """
@@ -259,9 +259,13 @@ def in_view_offsets(counts: I64) -> tuple[I64, I64, I64, int]:
 
 def ellipse_spans(start: I64, drow: np.ndarray, dcol: np.ndarray) -> tuple[I64, I64, I64, I64]:
     """`kernels.ellipse_offsets` as row runs per class: (span_start, drow, dcol0, dcol1), dcol1 inclusive."""
-    s_start, s_dr, s_c0, s_c1 = [0], [], [], []
+    s_start: list[int] = [0]
+    s_dr: list[int] = []
+    s_c0: list[int] = []
+    s_c1: list[int] = []
     for c in range(len(start) - 1):
-        cells = sorted(zip(drow[start[c] : start[c + 1]].tolist(), dcol[start[c] : start[c + 1]].tolist()))
+        a, b = start[c], start[c + 1]
+        cells = sorted(zip(drow[a:b].tolist(), dcol[a:b].tolist(), strict=True))
         for dr, dc in cells:
             if s_dr and len(s_dr) > s_start[-1] and s_dr[-1] == dr and s_c1[-1] == dc - 1:
                 s_c1[-1] = dc
