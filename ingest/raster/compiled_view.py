@@ -21,6 +21,7 @@ import numba
 import numpy as np
 
 from calibration.camera import CameraModel
+from calibration.fisheye import DoubleSphere
 from calibration.transforms import invert
 from calibration.types import F32, F64, I64, Bool
 from calibration.virtual import project_f32
@@ -42,10 +43,11 @@ from ingest.raster.visibility import (
 
 # Renders run in forked workers (render-benchmark, dense ground truth in ingest) whose parent may have
 # rendered already: GNU OpenMP, numba's usual pick on Linux, aborts such a child ("fork() called from
-# a process already using GNU OpenMP"). "forksafe" takes TBB when a recent one is installed, else
-# numba's own workqueue (fork safe; one parallel call at a time per process, as the renderer makes).
+# a process already using GNU OpenMP"). numba's own workqueue layer is fork safe and always there; it
+# takes one parallel call at a time per process, as the renderer makes them. (Naming it also spares
+# numba's probe of an older system TBB, which warns.) NUMBA_THREADING_LAYER, when set, wins.
 if "NUMBA_THREADING_LAYER" not in os.environ:
-    numba.config.THREADING_LAYER = "forksafe"  # type: ignore[attr-defined]
+    numba.config.THREADING_LAYER = "workqueue"  # type: ignore[attr-defined]
 
 f32 = np.float32
 IDX_MASK = (1 << IDX_BITS) - 1
@@ -69,16 +71,23 @@ def _selected_in_view(
     order, where each row group starts, points per footprint class (ku, kv)).
     """
     n = len(idx)
-    x, y, z, r, pn = (np.empty(n, np.float32) for _ in range(5))
     R = np.ascontiguousarray(T_cam_scan[:3, :3], np.float32)
     t = np.ascontiguousarray(T_cam_scan[:3, 3], np.float32)
-    pk.transform(src.xyz, idx, R, t, x, y, z, r, pn)
-    u, v, ok = project_f32(model, x, y, z)
-    del x, y, z
     near = f32(params.near_m)
     far = f32(params.clip_m) if params.clip_m is not None and params.clip_mode == "drop" else f32(np.inf)
     H, W = model.height, model.width
     counts = np.empty((pk.chunks(n), pk.n_groups(H)), np.int64)
+    r, pn = np.empty(n, np.float32), np.empty(n, np.float32)
+    if type(model) is DoubleSphere:  # projected in the same pass
+        c = model
+        ds = np.array([c.xi, c.alpha, 1.0 - c.alpha, -c.w2, c.fx, c.fy, c.cx, c.cy], np.float32)
+        u, v, ok = np.empty(n, np.float32), np.empty(n, np.float32), np.empty(n, bool)
+        pk.transform_ds(src.xyz, idx, R, t, ds, u, v, ok, r, pn)
+    else:
+        x, y, z = (np.empty(n, np.float32) for _ in range(3))
+        pk.transform(src.xyz, idx, R, t, x, y, z, r, pn)
+        u, v, ok = project_f32(model, x, y, z)
+        del x, y, z
     pk.count_in_view(u, v, ok, r, near, far, W, H, counts)
     offsets, chunk_base, group_start, m = pk.in_view_offsets(counts)
     K = params.max_splat_px

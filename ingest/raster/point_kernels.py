@@ -55,6 +55,37 @@ def transform(xyz, idx, R, t, x, y, z, r, pn):  # type: ignore[no-untyped-def]  
 
 
 @njit(parallel=True, cache=True, nogil=True)
+def transform_ds(xyz, idx, R, t, ds, u, v, ok, r, pn):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """`transform` and the Double Sphere projection in one pass (float32, in numpy's order of operations).
+
+    ``ds`` = float32 (xi, alpha, 1 - alpha, -w2, fx, fy, cx, cy): the
+    operations of `DoubleSphere._project_normalised` and `FocalModel._project`,
+    validity as `calibration.virtual.project_f32` gives it.
+    """
+    one = np.float32(1.0)
+    xi, alpha, beta, mw2, fx, fy, cx, cy = ds[0], ds[1], ds[2], ds[3], ds[4], ds[5], ds[6], ds[7]
+    for i in prange(idx.shape[0]):
+        j = idx[i]
+        px, py, pz = xyz[j, 0], xyz[j, 1], xyz[j, 2]
+        x = R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz + t[0]
+        y = R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz + t[1]
+        z = R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz + t[2]
+        r[i] = np.sqrt(x * x + y * y + z * z)
+        pn[i] = np.sqrt(px * px + py * py + pz * pz)
+        r2 = x * x + y * y
+        d1 = np.sqrt(z * z + r2)
+        k = d1 * xi + z
+        m = np.sqrt(k * k + r2) * alpha + k * beta
+        valid = (z > d1 * mw2) & (m > 0)
+        m = one / m
+        ui = x * m * fx + cx
+        vi = y * m * fy + cy
+        u[i] = ui
+        v[i] = vi
+        ok[i] = valid & np.isfinite(ui) & np.isfinite(vi)
+
+
+@njit(parallel=True, cache=True, nogil=True)
 def count_in_view(u, v, ok, r, near, far, W, H, counts):  # type: ignore[no-untyped-def]  # pragma: no cover
     """Per chunk of CHUNK points and row group: how many land there, within (``near``, ``far``].
 

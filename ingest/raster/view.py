@@ -285,6 +285,11 @@ def render_view(
         from ingest.raster.compiled_view import render_compiled
 
         return render_compiled(sources, model, T_world_cam, params, pixel_mask)
+    if params.backend in ("torch", "cuda"):
+        from ingest.raster.torch_view import render_torch
+
+        device = "cuda" if params.backend == "cuda" else "cpu"
+        return render_torch(sources, model, T_world_cam, params, pixel_mask, device)
     H, W = model.height, model.width
     geo = pixel_geometry(model)
     ppr = geo.ppr
