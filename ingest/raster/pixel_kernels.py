@@ -44,6 +44,7 @@ def leaking(  # type: ignore[no-untyped-def]  # pragma: no cover
     """`view._leaking` per pixel: an own point behind a nearer splat, nearer own points on opposite sides."""
     P = own_ok.shape[0]
     H = P // W
+    inv_w = 1.0 / W
     tm64, tr64, sl64 = np.float64(tau_m), np.float64(tau_rel), np.float64(slope)
     for p in prange(P):
         leak[p] = False
@@ -52,7 +53,7 @@ def leaking(  # type: ignore[no-untyped-def]  # pragma: no cover
         ro, rs, pp = r_own[p], r_splat[p], ppr[p]
         if not (ro > rs + (tau_m + rs * (tau_rel + slope1 / pp))):
             continue
-        row = p // W
+        row = np.int64((p + 0.5) * inv_w)  # p // W without an integer division
         col = p - row * W
         s = splat_i[p]
         d = math.hypot(np.float64(u[s]) - col, np.float64(v[s]) - row)
@@ -80,12 +81,13 @@ def leaking(  # type: ignore[no-untyped-def]  # pragma: no cover
 def own_samples(own_ok, leak, own_i, r, u, v, W, ok2, R, U, V):  # type: ignore[no-untyped-def]  # pragma: no cover
     """Own points left after the leak test: range (NaN where none) and sub-pixel offset (0 where none)."""
     nan, zero = np.float32(np.nan), np.float32(0.0)
+    inv_w = 1.0 / W
     for p in prange(own_ok.shape[0]):
         ok = own_ok[p] and not leak[p]
         ok2[p] = ok
         if ok:
             i = own_i[p]
-            row = p // W
+            row = np.int64((p + 0.5) * inv_w)  # p // W without an integer division
             R[p] = r[i]
             U[p] = u[i] - np.float32(p - row * W)
             V[p] = v[i] - np.float32(row)
@@ -201,10 +203,11 @@ def fill_pass(  # type: ignore[no-untyped-def]  # pragma: no cover
     """
     P = val.shape[0]
     H = P // W
+    inv_w = 1.0 / W
     inf = np.float32(np.inf)
     for j in prange(todo.shape[0]):
         p = todo[j]
-        row = p // W
+        row = np.int64((p + 0.5) * inv_w)  # p // W without an integer division
         col = p - row * W
         nearest = inf
         for k in range(8):
@@ -256,6 +259,7 @@ def finish(  # type: ignore[no-untyped-def]  # pragma: no cover
 ):  # fmt: skip
     """Masks (a mask surface not behind the value), clipping, valid range and colour of every pixel."""
     half, zero = np.float32(0.5), np.float32(0.0)
+    inv_w = 1.0 / W
     for p in prange(value.shape[0]):
         s = surface[p] and rays[p]
         surf[p] = s
@@ -263,7 +267,7 @@ def finish(  # type: ignore[no-untyped-def]  # pragma: no cover
         m = False
         if s and mask_key.shape[0] and mask_key[p] != empty:
             i = mask_key[p] & idx_mask
-            row = p // W
+            row = np.int64((p + 0.5) * inv_w)  # p // W without an integer division
             du = np.float64(mask_u[i] - np.float32(p - row * W))
             dv = np.float64(mask_v[i] - np.float32(row))
             d = np.float32(math.sqrt(du * du + dv * dv))

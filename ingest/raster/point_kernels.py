@@ -121,6 +121,7 @@ def write_in_view(  # type: ignore[no-untyped-def]  # pragma: no cover
     n = u.shape[0]
     half = np.float32(0.5)
     kf = np.float32(k_max)
+    inv_s = 1.0 / stride
     for c in prange(offsets.shape[0]):
         o = offsets[c].copy()
         m = chunk_base[c]
@@ -134,7 +135,7 @@ def write_in_view(  # type: ignore[no-untyped-def]  # pragma: no cover
                 continue
             col, row = np.int64(colf), np.int64(rowf)
             foot = sp[i] * pn[i] / r[i]
-            cu, cv = col // stride, row // stride
+            cu, cv = np.int64((colf + half) * inv_s), np.int64((rowf + half) * inv_s)
             g = row // ROW_GROUP
             j = o[g]
             o[g] += 1
@@ -179,6 +180,7 @@ def zbuffer_bands(  # type: ignore[no-untyped-def]  # pragma: no cover
     """
     G = seg.shape[1] - 1
     reach = -(-k_max // ROW_GROUP)
+    inv_w = 1.0 / W
     for b in prange(bands):
         g0 = b * G // bands
         g1 = (b + 1) * G // bands
@@ -187,7 +189,7 @@ def zbuffer_bands(  # type: ignore[no-untyped-def]  # pragma: no cover
         for s in range(seg.shape[0]):
             for i in range(seg[s, max(0, g0 - reach)], seg[s, min(G, g1 + reach)]):
                 p = pix[i]
-                row = p // W
+                row = np.int64((p + 0.5) * inv_w)  # p // W without an integer division
                 if row + kv[i] < r0 or row - kv[i] >= r1:
                     continue
                 k = _key(r[i], order[i], quantum, base, q_max, idx_bits)
@@ -247,6 +249,7 @@ def average_bands(  # type: ignore[no-untyped-def]  # pragma: no cover
     """
     G = seg.shape[1] - 1
     H = value.shape[0] // W
+    inv_w = 1.0 / W
     for b in prange(bands):
         g0 = b * G // bands
         g1 = (b + 1) * G // bands
@@ -262,7 +265,7 @@ def average_bands(  # type: ignore[no-untyped-def]  # pragma: no cover
                 ref = R[p]
                 if not (r[i] <= ref + (tau_m + ref * (tau_rel + slope1 / ppr[p]))):
                     continue
-                row = p // W
+                row = np.int64((p + 0.5) * inv_w)  # p // W without an integer division
                 col = p - row * W
                 du = np.float64(u[i]) - col
                 dv = np.float64(v[i]) - row
