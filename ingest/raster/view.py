@@ -143,7 +143,7 @@ class Rendering:
         return out
 
 
-def _points_in_view(
+def points_in_view(
     model: CameraModel, geo: PixelGeometry, T_cam_scan: F64, xyz: F32, spacing_rad: F32, params: RenderParams
 ) -> tuple[Any, ...]:
     """Project scan-frame points; (pix, u, v, r, ku, kv, kept index) of those landing in the image."""
@@ -175,7 +175,7 @@ def _points_in_view(
     return row_i * model.width + col_i, u[keep], v[keep], r_k, ku, kv, keep
 
 
-def _coarse_mask(mask: Bool, stride: int) -> Bool:
+def coarse_mask(mask: Bool, stride: int) -> Bool:
     """Cells of ``stride`` x ``stride`` pixels holding any True pixel, grown by one cell."""
     H, W = mask.shape
     hp, wp = -(-H // stride) * stride, -(-W // stride) * stride
@@ -196,7 +196,7 @@ def _gather(
 ) -> tuple[ViewPoints, ViewPoints, dict[str, int]]:
     """Selected points of every scan, and every mask point, in the camera."""
     T_cam_world = invert(T_world_cam)
-    coarse = None if pixel_mask is None else _coarse_mask(pixel_mask, geo.stride)
+    coarse = None if pixel_mask is None else coarse_mask(pixel_mask, geo.stride)
     parts: list[tuple[Any, ...]] = []
     mask_parts: list[tuple[Any, ...]] = []
     stats = {"points_total": 0, "points_touched": 0, "points_in_image": 0}
@@ -212,7 +212,7 @@ def _gather(
             sp = np.repeat(src.voxel_spacing_rad, np.diff(src.voxel_start))
             xyz = src.xyz
         stats["points_touched"] += len(idx)
-        *proj, kept = _points_in_view(model, geo, T_cam_scan, xyz, sp, params)
+        *proj, kept = points_in_view(model, geo, T_cam_scan, xyz, sp, params)
         stats["points_in_image"] += len(kept)
         sel_idx = idx[kept]
         masked = src.masked[sel_idx] if src.masked is not None else np.zeros(len(kept), bool)
@@ -220,9 +220,7 @@ def _gather(
         if masked.any():  # labelled points render into the mask buffer too
             mask_parts.append(tuple(a[masked] for a in parts[-1]))
         if len(src.mask_xyz):
-            *mproj, mkept = _points_in_view(
-                model, geo, T_cam_scan, src.mask_xyz, src.mask_spacing_rad, params
-            )
+            *mproj, mkept = points_in_view(model, geo, T_cam_scan, src.mask_xyz, src.mask_spacing_rad, params)
             mask_parts.append((*mproj, np.zeros((len(mkept), 3), np.uint8), np.ones(len(mkept), bool)))
     return concat_points(parts), concat_points(mask_parts), stats
 
@@ -283,6 +281,15 @@ def render_view(
     equirect crop a fisheye sees); outside it everything is 0.
     """
     params = params or RenderParams()
+    if params.backend == "numba":
+        from ingest.raster.compiled_view import render_compiled
+
+        return render_compiled(sources, model, T_world_cam, params, pixel_mask)
+    if params.backend in ("torch", "cuda"):
+        from ingest.raster.torch_view import render_torch
+
+        device = "cuda" if params.backend == "cuda" else "cpu"
+        return render_torch(sources, model, T_world_cam, params, pixel_mask, device)
     H, W = model.height, model.width
     geo = pixel_geometry(model)
     ppr = geo.ppr

@@ -55,6 +55,8 @@ class RenderParams:
     frustum_culling: bool = True  # False: project every point of every scan (the naive baseline)
     raw_fallback: bool = True  # a surface pixel with no own point and no planar fill takes the splat's range
     fit_gradient: bool = True  # False: points already lie on pixel-centre rays (dense GT snaps them there)
+    # compiled kernels, the numpy reference, or PyTorch on the CPU / a CUDA GPU (same output)
+    backend: Literal["numba", "numpy", "torch", "cuda"] = "numba"
 
     def tolerance(self, range_m: Any, dist_px: Any, ppr: Any) -> Any:
         """Largest range difference (m) between two samples of one surface ``dist_px`` apart.

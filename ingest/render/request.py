@@ -50,6 +50,7 @@ class BenchmarkRequest:
     site_id: int = 0
     exr: bool = True
     png_level: int = 1
+    backend: str = "numba"  # numba | numpy | torch | cuda (RenderParams.backend)
 
 
 def parse_size(text: str) -> tuple[int, int]:
@@ -58,6 +59,19 @@ def parse_size(text: str) -> tuple[int, int]:
     if not sep or not w.isdigit() or not h.isdigit():
         raise BenchmarkError(f"--size {text!r}: expected WIDTHxHEIGHT, e.g. 2048x1152")
     return int(w), int(h)
+
+
+def _check_backend(backend: str) -> None:
+    """--backend: a known renderer whose requirements are here (torch for torch/cuda, and a GPU for cuda)."""
+    if backend not in ("numba", "numpy", "torch", "cuda"):
+        raise BenchmarkError(f"--backend {backend!r}: expected numba, numpy, torch or cuda")
+    if backend in ("torch", "cuda"):
+        try:
+            import torch
+        except ImportError as err:
+            raise BenchmarkError(f"--backend {backend}: PyTorch is not installed") from err
+        if backend == "cuda" and not torch.cuda.is_available():
+            raise BenchmarkError(f"--backend cuda: torch {torch.__version__} sees no CUDA GPU")
 
 
 def _to_scan(pts_world: F64, T_world_scan: F64) -> F32:
@@ -72,8 +86,10 @@ def _config(req: BenchmarkRequest) -> BenchmarkConfig:
         raise BenchmarkError(f"--png-level {req.png_level}: expected 0..3")
     if not req.points_per_px > 0:
         raise BenchmarkError(f"--points-per-px {req.points_per_px}: must be > 0")
+    _check_backend(req.backend)
     width, height = parse_size(req.size)
-    render = RenderParams(points_per_px=req.points_per_px, clip_m=req.clip_m, clip_mode=req.clip_mode)  # type: ignore[arg-type]
+    render = RenderParams(points_per_px=req.points_per_px, clip_m=req.clip_m, clip_mode=req.clip_mode,  # type: ignore[arg-type]
+                          backend=req.backend)  # type: ignore[arg-type]  # fmt: skip
     return BenchmarkConfig(
         fovs_deg=tuple(req.fovs_deg or FOVS_DEG), baselines_mm=tuple(req.baselines_mm or BASELINES_MM),
         width=width, height=height, yaws_deg=tuple(req.yaws_deg or (0.0,)),

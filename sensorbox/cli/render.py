@@ -58,6 +58,11 @@ MaskLabelOpt = Annotated[
     str, typer.Option(help="Per-point field marking masked points (non-zero); '' for none.")
 ]
 PointsPerPxOpt = Annotated[float, typer.Option(help="Level of detail: points drawn per pixel.")]
+BackendOpt = Annotated[
+    str,
+    typer.Option(help="Renderer: numba (compiled CPU kernels), numpy (reference), torch (PyTorch on the CPU) "
+                 "or cuda (PyTorch on the GPU); the same images."),
+]  # fmt: skip
 HeightFullOpt = Annotated[
     int | None,
     typer.Option(
@@ -110,7 +115,7 @@ def render_benchmark_cmd(
     size: SizeOpt = "2048x1152", bundle: BundleOpt = 3, workers: WorkersOpt = 2, clip: ClipOpt = None,
     clip_mode: ClipModeOpt = "invalid", mask: MaskOpt = None, mask_label: MaskLabelOpt = "label",
     points_per_px: PointsPerPxOpt = 2.0, height_full: HeightFullOpt = None, pinhole_fov: PinholeOpt = None,
-    site_id: SiteOpt = 0, exr: ExrOpt = True, png_level: PngLevelOpt = 1,
+    site_id: SiteOpt = 0, exr: ExrOpt = True, png_level: PngLevelOpt = 1, backend: BackendOpt = "numba",
 ) -> None:  # fmt: skip
     """Render benchmark views (virtual fisheye, pano, Cassini and pinhole cameras, DOWN/RIGHT stereo
     partners) from dense laser scans into the WideDepth benchmark layout."""
@@ -122,7 +127,7 @@ def render_benchmark_cmd(
         centers=center, size=size, bundle=bundle, workers=workers, clip_m=clip, clip_mode=clip_mode,
         masks=mask,
         mask_label=mask_label, points_per_px=points_per_px, height_full=height_full, pinhole_fovs=pinhole_fov,
-        site_id=site_id, exr=exr, png_level=png_level,
+        site_id=site_id, exr=exr, png_level=png_level, backend=backend,
     )  # fmt: skip
     site, reference, cfg = prepare(request)
     points = sum(len(s.xyz) for s in site) / 1e6

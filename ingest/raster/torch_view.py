@@ -1,0 +1,424 @@
+"""`render_view` in PyTorch: the renderer's recipe on tensors of any device (CPU in CI, CUDA on a GPU).
+
+`RenderParams.backend` "torch" runs it on the CPU, "cuda" on the GPU. The
+level-of-detail selection stays on the host (numpy, voxel level: small);
+the points' transform, projection, view test and footprints, the z-buffers
+(int64 keys reduced by ``scatter_reduce(amin)``), the leak test, gradient
+fit, same-surface average, gap fill, masks and colour run on the device as
+whole-tensor operations, the numpy recipe's (`ingest.raster.view`) step by
+step and in its precisions. A scan's arrays go to the device once per
+`ScanIndex` (kept while the index lives). Double Sphere cameras project on
+the device; other models project on the host in numpy float32.
+
+Same output as the other backends: the keys are the same integers, so the
+same point wins every pixel and the holes are the same; per-pixel float64
+sums may add in another order on a GPU (float32 results within rounding).
+Needs only numpy and torch (no Open3D, no numba), so a GPU machine can time
+it on a synthetic scan (`bench/bench_gpu.py`).
+"""
+
+from __future__ import annotations
+
+import math
+import weakref
+from typing import Any
+
+import numpy as np
+import torch
+
+from calibration.camera import CameraModel
+from calibration.fisheye import DoubleSphere
+from calibration.transforms import invert
+from calibration.types import F64, Bool
+from calibration.virtual import project_f32
+from ingest.raster.kernels import ellipse_offsets
+from ingest.raster.lod import ScanIndex, select
+from ingest.raster.view import PixelGeometry, Rendering, coarse_mask, pixel_geometry
+from ingest.raster.visibility import (
+    AXES,
+    EMPTY_KEY,
+    IDX_BITS,
+    KEY_BASE,
+    NB8,
+    Q_MAX,
+    RANGE_QUANTUM_M,
+    RenderParams,
+)
+
+T = torch.Tensor
+_ON_DEVICE: weakref.WeakKeyDictionary[ScanIndex, dict[str, Any]] = weakref.WeakKeyDictionary()
+
+
+def _scan_on(src: ScanIndex, dev: torch.device) -> dict[str, T]:
+    """The scan's points and colours on ``dev`` (copied once per index and device)."""
+    per = _ON_DEVICE.setdefault(src, {})
+    key = str(dev)
+    if key not in per:
+        per[key] = {
+            "xyz": torch.from_numpy(src.xyz).to(dev),
+            "rgb": torch.from_numpy(src.rgb).to(dev),
+            "masked": None if src.masked is None else torch.from_numpy(src.masked).to(dev),
+        }
+    out: dict[str, T] = per[key]
+    return out
+
+
+def _sqrt(a: T) -> T:
+    """Correctly rounded square root in the dtype of ``a``: torch's vectorised float32 sqrt on the CPU
+    is off by one ulp in about a sixth of cases; float64's, rounded to float32, never is."""
+    return torch.sqrt(a.double()).to(a.dtype)
+
+
+def _project(model: CameraModel, x: T, y: T, z: T) -> tuple[T, T, T]:
+    """`calibration.virtual.project_f32` on tensors: Double Sphere on the device, others via the host."""
+    if isinstance(model, DoubleSphere):  # `DoubleSphere._project_normalised`, float32 as numpy runs it
+        r2 = x * x + y * y
+        d1 = _sqrt(z * z + r2)
+        k = d1 * model.xi + z
+        n = _sqrt(k * k + r2) * model.alpha + k * (1.0 - model.alpha)
+        valid = (z > d1 * -model.w2) & (n > 0.0)
+        inv = 1.0 / n
+        u = x * inv * model.fx + model.cx
+        v = y * inv * model.fy + model.cy
+        return u, v, valid & torch.isfinite(u) & torch.isfinite(v)
+    u_np, v_np, ok = project_f32(model, *(a.cpu().numpy() for a in (x, y, z)))
+    dev = x.device
+    return torch.from_numpy(u_np).to(dev), torch.from_numpy(v_np).to(dev), torch.from_numpy(ok).to(dev)
+
+
+def _in_view(
+    xyz: T, sp: T, model: CameraModel, geo: PixelGeometry, T_cam_scan: F64, params: RenderParams
+) -> tuple[T, ...]:
+    """`view.points_in_view` on tensors: (pix, u, v, r, ku, kv, kept row of ``xyz``)."""
+    dev = xyz.device
+    R = torch.from_numpy(T_cam_scan[:3, :3].astype(np.float32)).to(dev)
+    t = torch.from_numpy(T_cam_scan[:3, 3].astype(np.float32)).to(dev)
+    px, py, pz = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    x = R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz + t[0]
+    y = R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz + t[1]
+    z = R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz + t[2]
+    r = _sqrt(x * x + y * y + z * z)
+    u, v, ok = _project(model, x, y, z)
+    ok &= r > params.near_m
+    if params.clip_m is not None and params.clip_mode == "drop":
+        ok &= r <= params.clip_m
+    col, row = torch.floor(u + 0.5), torch.floor(v + 0.5)
+    ok &= (col >= 0) & (col < model.width) & (row >= 0) & (row < model.height)
+    keep = torch.nonzero(ok).squeeze(1)
+    col_i, row_i, r_k, pk = col[keep].long(), row[keep].long(), r[keep], xyz[keep]
+    foot = sp[keep] * _sqrt(pk[:, 0] * pk[:, 0] + pk[:, 1] * pk[:, 1] + pk[:, 2] * pk[:, 2]) / r_k
+    cu, cv = col_i // geo.stride, row_i // geo.stride
+    K, s = float(params.max_splat_px), params.splat_scale
+    ppr_u, ppr_v = (torch.from_numpy(a).to(dev) for a in (geo.ppr_u, geo.ppr_v))
+    ku = torch.clamp(s * foot * ppr_u[cv, cu] + 0.5, max=K).to(torch.int16)
+    kv = torch.clamp(s * foot * ppr_v[cv, cu] + 0.5, max=K).to(torch.int16)
+    return row_i * model.width + col_i, u[keep], v[keep], r_k, ku, kv, keep
+
+
+def _gather(
+    sources: list[ScanIndex], model: CameraModel, geo: PixelGeometry, T_world_cam: F64, params: RenderParams,
+    pixel_mask: Bool | None, dev: torch.device,
+) -> tuple[dict[str, T], dict[str, T], dict[str, int]]:  # fmt: skip
+    """`view._gather` on tensors: every scan's selected points and the mask points, in the camera."""
+    T_cam_world = invert(T_world_cam)
+    coarse = None if pixel_mask is None else coarse_mask(pixel_mask, geo.stride)
+    names = ("pix", "u", "v", "r", "ku", "kv", "rgb", "masked")
+    parts: list[tuple[T, ...]] = []
+    mask_parts: list[tuple[T, ...]] = []
+    stats = {"points_total": 0, "points_touched": 0, "points_in_image": 0}
+    for src in sources:
+        on = _scan_on(src, dev)
+        T_cam_scan = T_cam_world @ src.T_world_scan
+        stats["points_total"] += src.n_points
+        if params.frustum_culling:
+            sel = select(src, model, T_cam_scan, geo.coarse, params.points_per_px, coarse)
+            idx = torch.from_numpy(sel.idx).to(dev)
+            sp = torch.from_numpy(sel.spacing_rad).to(dev)
+        else:
+            idx = torch.arange(src.n_points, device=dev)
+            sp = torch.from_numpy(np.repeat(src.voxel_spacing_rad, np.diff(src.voxel_start))).to(dev)
+        stats["points_touched"] += len(idx)
+        *proj, kept = _in_view(on["xyz"][idx], sp, model, geo, T_cam_scan, params)
+        stats["points_in_image"] += len(kept)
+        rows = idx[kept]
+        masked = (
+            on["masked"][rows]
+            if on["masked"] is not None
+            else torch.zeros(len(kept), dtype=torch.bool, device=dev)
+        )
+        parts.append((*proj, on["rgb"][rows], masked))
+        if bool(masked.any()):
+            mask_parts.append(tuple(a[masked] for a in parts[-1]))
+        if len(src.mask_xyz):
+            m_xyz = torch.from_numpy(src.mask_xyz).to(dev)
+            m_sp = torch.from_numpy(src.mask_spacing_rad).to(dev)
+            *mproj, mkept = _in_view(m_xyz, m_sp, model, geo, T_cam_scan, params)
+            n_m = len(mkept)
+            mask_parts.append((*mproj, torch.zeros((n_m, 3), dtype=torch.uint8, device=dev),
+                               torch.ones(n_m, dtype=torch.bool, device=dev)))  # fmt: skip
+    return _concat(parts, names, dev), _concat(mask_parts, names, dev), stats
+
+
+def _concat(parts: list[tuple[T, ...]], names: tuple[str, ...], dev: torch.device) -> dict[str, T]:
+    if not parts:
+        f = torch.zeros(0, dtype=torch.float32, device=dev)
+        k = torch.zeros(0, dtype=torch.int16, device=dev)
+        i = torch.zeros(0, dtype=torch.int64, device=dev)
+        return {"pix": i, "u": f, "v": f, "r": f, "ku": k, "kv": k,
+                "rgb": torch.zeros((0, 3), dtype=torch.uint8, device=dev),
+                "masked": torch.zeros(0, dtype=torch.bool, device=dev)}  # fmt: skip
+    return {name: torch.cat([p[k] for p in parts]) for k, name in enumerate(names)}
+
+
+def zbuffer(pts: dict[str, T], H: int, W: int) -> tuple[T, T]:
+    """`visibility.zbuffer` on tensors: (own, splat) int64 key images, flat, the same keys."""
+    dev = pts["pix"].device
+    own = torch.full((H * W,), EMPTY_KEY, dtype=torch.int64, device=dev)
+    splat = own.clone()
+    n = len(pts["pix"])
+    if n == 0:
+        return own, splat
+    q = torch.clamp(torch.round(pts["r"] / float(np.float32(RANGE_QUANTUM_M))).long(), max=Q_MAX)
+    key = KEY_BASE + (q << IDX_BITS) + torch.arange(n, device=dev)
+    pix = pts["pix"]
+    own.scatter_reduce_(0, pix, key, "amin")
+    row, col = pix // W, pix % W
+    k_max = int(max(int(pts["ku"].max()), int(pts["kv"].max())))
+    start, drow, dcol = ellipse_offsets(k_max)
+    cls = pts["ku"].long() * (k_max + 1) + pts["kv"].long()
+    for c in torch.unique(cls).tolist():
+        sel = torch.nonzero(cls == c).squeeze(1)
+        r_c, c_c, k_c = row[sel], col[sel], key[sel]
+        for j in range(int(start[c]), int(start[c + 1])):
+            rr, cc = r_c + int(drow[j]), c_c + int(dcol[j])
+            ok = (rr >= 0) & (rr < H) & (cc >= 0) & (cc < W)
+            splat.scatter_reduce_(0, (rr * W + cc)[ok], k_c[ok], "amin")
+    return own, splat
+
+
+def _shift(img: T, dr: int, dc: int, fill: float) -> T:
+    """out[r, c] = img[r + dr, c + dc], ``fill`` outside the image."""
+    H, W = img.shape
+    out = torch.full_like(img, fill)
+    r0, r1 = max(0, -dr), min(H, H - dr)
+    c0, c1 = max(0, -dc), min(W, W - dc)
+    if r1 > r0 and c1 > c0:
+        out[r0:r1, c0:c1] = img[r0 + dr : r1 + dr, c0 + dc : c1 + dc]
+    return out
+
+
+def _leaking(pts: dict[str, T], r_own: T, r_splat: T, own_ok: T, splat_i: T, ppr: T, params: RenderParams,
+             W: int, K: int) -> T:  # fmt: skip
+    """`view._leaking` on whole images: own points behind a nearer splat, nearer own points on two sides."""
+    H = len(own_ok) // W
+    cand = own_ok & (r_own > r_splat + params.tolerance(r_splat, 1.0, ppr))
+    n = len(pts["u"])
+    s = torch.clamp(splat_i, max=max(n - 1, 0))
+    p = torch.arange(H * W, device=ppr.device)
+    if n:
+        d = torch.hypot(pts["u"][s].double() - (p % W).double(), pts["v"][s].double() - (p // W).double())
+    else:
+        d = torch.zeros(H * W, dtype=torch.float64, device=ppr.device)
+    cand &= r_own.double() > r_splat.double() + params.tolerance(r_splat.double(), d + 0.5, ppr.double())
+    thr = (r_own - params.tolerance(r_own, K + 0.5, ppr)).reshape(H, W)
+    img = torch.where(own_ok, r_own, torch.inf).reshape(H, W)
+    out = torch.zeros((H, W), dtype=torch.bool, device=ppr.device)
+    for dr, dc in AXES:
+        a = torch.zeros_like(out)
+        b = torch.zeros_like(out)
+        for t in range(1, K + 1):
+            a |= _shift(img, t * dr, t * dc, math.inf) < thr
+            b |= _shift(img, -t * dr, -t * dc, math.inf) < thr
+        out |= a & b
+    leak: T = cand & out.reshape(-1)
+    return leak
+
+
+def _solve(a11: T, a12: T, a22: T, b1: T, b2: T) -> tuple[T, T, T]:
+    """`visibility.solve_gradient` on tensors (their dtype)."""
+    det = a11 * a22 - a12 * a12
+    full = det > 0.25
+    inv = torch.where(full, 1.0 / torch.where(full, det, 1.0), 0.0)
+    gu = (a22 * b1 - a12 * b2) * inv
+    gv = (a11 * b2 - a12 * b1) * inv
+    only_u, only_v = ~full & (a11 > 0.25), ~full & (a22 > 0.25)
+    gu = torch.where(only_u, b1 / torch.where(only_u, a11, 1.0), gu)
+    gv = torch.where(only_v, b2 / torch.where(only_v, a22, 1.0), gv)
+    return gu, gv, full
+
+
+def _fit_gradient(R: T, U: T, V: T, ppr: T, params: RenderParams) -> tuple[T, T]:
+    """`visibility.fit_gradient` on (H, W) tensors; the diagonal neighbours join in float64 where needed."""
+    slope = params.tolerance(1.0, 1.0, ppr) - params.tau_m
+    acc = [torch.zeros_like(R) for _ in range(5)]
+
+    def terms(dr: int, dc: int, gate: T) -> tuple[T, T, T]:
+        dR = _shift(R, dr, dc, math.nan) - R
+        ok = (torch.abs(dR) <= gate).to(R.dtype)
+        du = (dc + _shift(U, dr, dc, 0.0) - U) * ok
+        dv = (dr + _shift(V, dr, dc, 0.0) - V) * ok
+        return du, dv, torch.where(ok > 0, dR, 0.0)
+
+    gate = params.tau_m + R * slope * np.float32(1.6)
+    for dr, dc in NB8[:4]:
+        du, dv, dR = terms(dr, dc, gate)
+        for a, term in zip(acc, (du * du, du * dv, dv * dv, du * dR, dv * dR), strict=True):
+            a += term
+    gu, gv, full = _solve(*acc)
+    weak = ~full & torch.isfinite(R)
+    if bool(weak.any()):
+        sub = [a.double() for a in acc]
+        g = params.tau_m + R * slope * np.float32(2.2)
+        for dr, dc in NB8[4:]:
+            du, dv, dR = terms(dr, dc, g)
+            for a, term in zip(sub, (du * du, du * dv, dv * dv, du * dR, dv * dR), strict=True):
+                a += term.double()
+        wu, wv, _ = _solve(*sub)
+        gu = torch.where(weak, wu.float(), gu)
+        gv = torch.where(weak, wv.float(), gv)
+    return gu, gv
+
+
+def _average(pts: dict[str, T], value: T, own_ok: T, R: T, gu: T, gv: T, ppr: T, params: RenderParams) -> T:
+    """`visibility.average_surface` on flat tensors."""
+    pix = pts["pix"]
+    W = value.shape[1]
+    ref = R.reshape(-1)[pix]
+    ok = own_ok[pix] & (pts["r"] <= ref + params.tolerance(ref, 1.0, ppr[pix]))
+    pix, r, u, v = pix[ok], pts["r"][ok], pts["u"][ok], pts["v"][ok]
+    row, col = (pix // W).double(), (pix % W).double()
+    g_u, g_v = gu.reshape(-1)[pix].double(), gv.reshape(-1)[pix].double()
+    corrected = r.double() - g_u * (u.double() - col) - g_v * (v.double() - row)
+    P = value.numel()
+    sums = torch.zeros(P, dtype=torch.float64, device=pix.device).index_add_(0, pix, corrected)
+    counts = torch.bincount(pix, minlength=P)
+    out = torch.where(counts > 0, (sums / torch.clamp(counts, min=1)).float(), value.reshape(-1))
+    return out.reshape(value.shape)
+
+
+def _fill(value: T, has: T, gu: T, gv: T, need: T, ppr: T, params: RenderParams) -> tuple[T, T]:
+    """`visibility.fill_gaps` on tensors: values of the flat pixels ``need`` from their neighbours."""
+    H, W = value.shape
+    dev = value.device
+    vp = torch.nn.functional.pad(torch.where(has, value, torch.nan), (1, 1, 1, 1), value=math.nan).reshape(-1)
+    gup = torch.nn.functional.pad(gu, (1, 1, 1, 1)).reshape(-1)
+    gvp = torch.nn.functional.pad(gv, (1, 1, 1, 1)).reshape(-1)
+    pn = (need // W + 1) * (W + 2) + need % W + 1
+    got_all = torch.zeros(len(need), dtype=torch.bool, device=dev)
+    todo = torch.arange(len(need), device=dev)
+    offs = torch.tensor([dr * (W + 2) + dc for dr, dc in NB8], device=dev)[:, None]
+    drs = torch.tensor([dr for dr, _ in NB8], dtype=torch.float32, device=dev)[:, None]
+    dcs = torch.tensor([dc for _, dc in NB8], dtype=torch.float32, device=dev)[:, None]
+    weight = torch.tensor([1.0] * 4 + [1.0 / math.sqrt(2.0)] * 4, dtype=torch.float32, device=dev)[:, None]
+    ppr_n = ppr[need]
+    for _ in range(params.fill_passes):
+        if len(todo) == 0:
+            break
+        nb = pn[todo][None, :] + offs
+        gnu, gnv = gup[nb], gvp[nb]
+        pred = vp[nb] - gnu * dcs - gnv * drs
+        fin = torch.isfinite(pred)
+        nearest = torch.where(fin, pred, torch.inf).min(dim=0).values
+        in_near = fin & (pred <= nearest + params.tolerance(nearest, 1.5, ppr_n[todo]))
+        in_far = fin & ~in_near
+        pairs = (in_near[0::2] & in_near[1::2]).any(dim=0)
+        use_far = ~pairs & in_far.any(dim=0)
+        far = torch.where(in_far, pred, torch.inf).min(dim=0).values
+        in_far &= pred <= far + params.tolerance(far, 1.5, ppr_n[todo])
+        w = weight * torch.where(use_far, in_far, in_near)
+        wsum = w.sum(dim=0)
+        got = wsum > 0
+        safe = torch.where(got, wsum, 1.0)
+        new_v = (w * torch.nan_to_num(pred)).sum(dim=0) / safe
+        new_gu = (w * gnu).sum(dim=0) / safe
+        new_gv = (w * gnv).sum(dim=0) / safe
+        done = todo[got]
+        vp[pn[done]], gup[pn[done]], gvp[pn[done]] = new_v[got], new_gu[got], new_gv[got]
+        got_all[done] = True
+        todo = todo[~got]
+    return vp.reshape(H + 2, W + 2)[1:-1, 1:-1], got_all
+
+
+def _masked(mask_pts: dict[str, T], surf: T, value: T, ppr: T, params: RenderParams) -> T:
+    """`view._masked` on tensors: surface pixels on or behind a mask surface."""
+    H, W = surf.shape
+    if not len(mask_pts["pix"]):
+        return torch.zeros_like(surf)
+    _, key = zbuffer(mask_pts, H, W)
+    has = key != EMPTY_KEY
+    i = torch.where(has, key & ((1 << IDX_BITS) - 1), 0)
+    p = torch.arange(H * W, device=surf.device)
+    r_mask = torch.where(has, mask_pts["r"][i], torch.inf).reshape(H, W)
+    du = (torch.where(has, mask_pts["u"][i], 0.0) - (p % W).float()).double()
+    dv = (torch.where(has, mask_pts["v"][i], 0.0) - (p // W).float()).double()
+    d = torch.sqrt(du * du + dv * dv).float().reshape(H, W)  # hypot in float32, correctly rounded
+    out: T = surf & (r_mask <= value + params.tolerance(value, d + 0.5, ppr))
+    return out
+
+
+def render_torch(
+    sources: list[ScanIndex], model: CameraModel, T_world_cam: F64, params: RenderParams,
+    pixel_mask: Bool | None = None, device: str = "cpu",
+) -> Rendering:  # fmt: skip
+    """`ingest.raster.view.render_view` on ``device`` (see module doc); a host `Rendering`."""
+    dev = torch.device(device)
+    H, W = model.height, model.width
+    geo = pixel_geometry(model)
+    ppr = torch.from_numpy(geo.ppr.reshape(-1)).to(dev)
+    pts, mask_pts, stats = _gather(sources, model, geo, T_world_cam, params, pixel_mask, dev)
+    n = len(pts["r"])
+    own_key, splat_key = zbuffer(pts, H, W)
+    idx_mask = (1 << IDX_BITS) - 1
+    own_ok, surface = own_key != EMPTY_KEY, splat_key != EMPTY_KEY
+    r_all = torch.cat([pts["r"], torch.tensor([math.inf], device=dev)])
+    own_i = torch.where(own_ok, own_key & idx_mask, n)
+    splat_i = torch.where(surface, splat_key & idx_mask, n)
+    del own_key, splat_key
+    r_splat = r_all[splat_i]
+    K = min(3, max(1, int(pts["ku"].max()), int(pts["kv"].max()))) if n else 1
+    leak = _leaking(pts, r_all[own_i], r_splat, own_ok, splat_i, ppr, params, W, K)
+    own_ok &= ~leak
+    own_i = torch.where(own_ok, own_i, n)
+    u_all = torch.cat([pts["u"], torch.zeros(1, device=dev)])
+    v_all = torch.cat([pts["v"], torch.zeros(1, device=dev)])
+    cols = torch.arange(W, dtype=torch.float32, device=dev)[None, :]
+    rows = torch.arange(H, dtype=torch.float32, device=dev)[:, None]
+    own2, ppr2 = own_ok.reshape(H, W), ppr.reshape(H, W)
+    R = torch.where(own2, r_all[own_i].reshape(H, W), torch.nan)
+    U = torch.where(own2, u_all[own_i].reshape(H, W) - cols, 0.0)
+    V = torch.where(own2, v_all[own_i].reshape(H, W) - rows, 0.0)
+
+    flat = torch.zeros((H, W), dtype=torch.float32, device=dev)
+    gu, gv = _fit_gradient(R, U, V, ppr2, params) if params.fit_gradient else (flat, flat)
+    value = R - gu * U - gv * V
+    if params.average_samples and n:
+        value = _average(pts, value, own_ok, R, gu, gv, ppr, params)
+    need = torch.nonzero(surface & ~own_ok).squeeze(1)
+    value, got = _fill(value, own2, gu, gv, need, ppr, params)
+    raw_px = need[~got]
+    value.reshape(-1)[raw_px] = r_splat[raw_px] if params.raw_fallback else torch.nan
+
+    rays_np = geo.valid if pixel_mask is None else geo.valid & pixel_mask
+    rays = torch.from_numpy(np.ascontiguousarray(rays_np)).to(dev)
+    surf = surface.reshape(H, W) & rays
+    masked = _masked(mask_pts, surf, value, ppr2, params)
+    clipped = torch.zeros_like(surf)
+    if params.clip_m is not None:
+        clipped = surf & ~masked & (value > params.clip_m)
+    good = surf & ~masked & ~clipped & torch.isfinite(value) & (value > 0)
+    range_m = torch.where(good, value, 0.0)
+    bgr = torch.zeros((H * W, 3), dtype=torch.uint8, device=dev)
+    if n:
+        src = torch.where(own_ok, own_i, splat_i)
+        show = torch.nonzero(surf.reshape(-1)).squeeze(1)
+        bgr[show] = pts["rgb"][src[show]].flip(1)
+    sflat = surf.reshape(-1)
+    stats.update({k: int(v) for k, v in {
+        "pixels_with_ray": rays.sum(), "surface_px": surf.sum(), "own_px": (own2 & surf).sum(),
+        "filled_px": sflat[need[got]].sum(), "raw_px": sflat[raw_px].sum(),
+        "leak_rejected_px": (leak & sflat).sum(), "masked_px": masked.sum(), "clipped_px": clipped.sum(),
+        "hole_px": (rays & ~surf).sum(), "valid_px": good.sum()}.items()})  # fmt: skip
+    bgr_h, range_h, surf_h, masked_h, clipped_h = (
+        a.cpu().numpy() for a in (bgr.reshape(H, W, 3), range_m, surf, masked, clipped)
+    )
+    return Rendering(bgr_h, range_h, surf_h, masked_h, clipped_h, rays_np, stats)
