@@ -9,15 +9,12 @@ from ingest.errors import MessageDecodeError
 
 
 class RawMessage(NamedTuple):
-    """One stored message: topic, type (`pkg/msg/Type`), log time (ns), bytes, ROS version.
-
-    `raw` is a memoryview where the bytes are read in place (a worker's shared slot).
-    """
+    """One stored message: topic, type (`pkg/msg/Type`), log time (ns), bytes, ROS version."""
 
     topic: str
     msgtype: str
     log_ns: int
-    raw: bytes | memoryview
+    raw: bytes
     ros_version: RosVersion
 
     def decoded(self, where: str) -> Sweep | Frame | ImuSample:

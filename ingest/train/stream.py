@@ -95,9 +95,11 @@ def take_messages(job: StreamedJob) -> tuple[StreamedJob, tuple[Array, ...]]:
 
 
 def give_messages(job: StreamedJob, arrays: tuple[Array, ...]) -> StreamedJob:
-    """`take_messages` undone in the worker: the bytes are read in place (valid for this job)."""
+    """`take_messages` undone in the worker (one copy out of the slot: a raw image's 9 MB take ~2 ms)."""
     upper, lower = arrays
-    return replace(job, upper=job.upper._replace(raw=upper.data), lower=job.lower._replace(raw=lower.data))
+    return replace(
+        job, upper=job.upper._replace(raw=upper.tobytes()), lower=job.lower._replace(raw=lower.tobytes())
+    )
 
 
 def message_bytes_bound(geometry: Geometry) -> int:

@@ -1,4 +1,7 @@
-"""Offline ingest at full resolution: LiDAR decode, per-stage cost, encoders, throughput.
+"""Offline ingest at full resolution, part by part: LiDAR decode, per-stage cost, encoders, throughput.
+
+(`bench/bench_ingest.py` prints the run-level table: CPU against the codec
+floor, worker scaling, start-up, Dask; this script looks inside a sample.)
 
 Input: a bag simulated into a temporary folder (indoor, static, `--seconds` of
 1920x1200 raw fisheyes, two Livox Mid-360 CustomMsg streams with 2 cm range
@@ -88,10 +91,11 @@ from ingest.bags.livox_msg import decode_custom_msg
 from ingest.bags.reader import open_bags
 from ingest.bags.rostypes import CUSTOM_MSG_TYPE, typestore
 from ingest.dataset.png import LEVELS, encode_png
-from ingest.train.pipeline import IngestConfig, _resolve_topics, ingest, stream_jobs
+from ingest.train.pipeline import IngestConfig, _resolve_topics, ingest
 from ingest.train.plan import plan
 from ingest.train.planes import knn_covariances, neighbour_covariances
 from ingest.train.sample import Geometry, SampleJob, SampleParams, process_sample
+from ingest.train.stream import Shared, StreamedJob, decode_images, stream_jobs
 from sensorbox.sim.run import SimConfig, simulate
 from sensorbox.sim.truth import truth_dir
 
@@ -186,7 +190,7 @@ class Jobs:
 
 
 def load_jobs(bag: Path, rig_path: Path, out: Path) -> Jobs:
-    """Plan and stream the bag the way `ingest` does; keep every SampleJob."""
+    """Plan and stream the bag the way `ingest` does; keep every sample's job, its images decoded."""
     rig = read_rig(rig_path)
     ms: dict[str, float] = {}
     geometry = timed(ms, "Geometry.from_rig", lambda: Geometry.from_rig(rig))
@@ -194,10 +198,10 @@ def load_jobs(bag: Path, rig_path: Path, out: Path) -> Jobs:
     with open_bags([bag]) as bags:
         topics = _resolve_topics(rig, bags.topics(), str(bag))
         the_plan = timed(ms, "plan pass", lambda: plan(bags, topics, cfg))
-        items = timed(
-            ms, "stream_jobs pass", lambda: list(stream_jobs(bags, topics, the_plan, cfg, geometry))
-        )
-    jobs = [j for j in items if isinstance(j, SampleJob)]
+        items = timed(ms, "stream_jobs pass", lambda: list(stream_jobs(bags, topics, the_plan, cfg)))
+    shared = Shared(geometry)
+    streamed = [j for j in items if isinstance(j, StreamedJob)]
+    jobs = [j.sample_job(shared, *decode_images(j, shared)[0]) for j in streamed]
     if not jobs:
         raise SystemExit(f"{bag}: no sample could be planned; use a longer --seconds")
     return Jobs(jobs, geometry, ms)
