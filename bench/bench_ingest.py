@@ -22,7 +22,8 @@ Rows (medians over `--runs` runs; 1- and 2-worker runs interleaved):
   worker pool's start, with the maps cached on disk and cold (target < 2 s
   cached);
 - Dask: the same ingest on a local cluster of 2 single-threaded worker
-  processes, samples/s end to end (cluster start not included).
+  processes, samples/s end to end (cluster start not included), and the
+  "Sending large graph" warnings it raised (jobs' bytes in the task graph).
 
 Every figure names the machine (`_common.machine_line`); other processes
 sharing it show in the load average printed beside the table.
@@ -39,6 +40,7 @@ import statistics
 import sys
 import tempfile
 import time
+import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -245,11 +247,13 @@ def measure(bag: Path, rig: Path, root: Path, runs: int, dask: bool) -> list[lis
                       f"steady {run.steady:.2f}/s, CPU {run.cpu_ms:.0f} ms/sample; {load()}")  # fmt: skip
         last = runs_by[2][-1]
         dec, enc = codec_floor_ms(bag, rig, last.out)
-        dask_rate = float("nan")
+        dask_rate, large_graphs = float("nan"), 0
         if dask:
-            with dask_cluster(2) as address:
+            with dask_cluster(2) as address, warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
                 dask_run = ingest_run(bag, rig, root, 2, dask=address)
             dask_rate = dask_run.e2e
+            large_graphs = sum("large graph" in str(w.message) for w in caught)
     two, one = runs_by[2], runs_by[1]
     floor = dec + enc
     cpu = med([r.cpu_ms for r in two])
@@ -280,6 +284,9 @@ def measure(bag: Path, rig: Path, root: Path, runs: int, dask: bool) -> list[lis
         row("start-up s, maps cold (built, stored)", f"{cold:.2f}"),
         row(
             "Dask, 2 local worker processes: samples/s end to end", f"{dask_rate:.2f}" if dask else "not run"
+        ),
+        row(
+            "Dask: 'Sending large graph' warnings", f"{large_graphs}" if dask else "-", "0", large_graphs < 1
         ),
     ]
 
