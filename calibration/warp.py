@@ -4,16 +4,23 @@ For every target pixel: unproject it, rotate the ray into the source camera
 (``R_src_dst``), project it into the source and sample there with
 `cv2.remap`. Fisheye -> equirect, -> pinhole, -> cubemap and -> Cassini are
 all calls of `warp`. Maps are cached by the (hashable, frozen) models and the
-rotation, so a sequence of frames from one rig builds them once.
+rotation, so a sequence of frames from one rig builds them once; maps of
+large targets (a full-resolution equirect takes seconds to build) are also
+kept on disk (`map_cache_dir`), so that a new process loads them instead.
 """
 
 from __future__ import annotations
 
+import contextlib
+import hashlib
+import logging
 import math
 import os
 import threading
+import zipfile
 from collections import OrderedDict
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import cv2
@@ -33,6 +40,12 @@ SPHERE_BYTES_PER_PX = 90  # memory per full-sphere pixel of a train sample or a 
 """Map value of target pixels with no source: so far outside that every interpolation tap
 reads the constant border, so `cv2.remap` itself writes the fill value."""
 _CACHE: OrderedDict[tuple[Any, ...], RemapMaps] = OrderedDict()
+MAP_CACHE_ENV = "SENSORBOX_MAP_CACHE"
+"""Environment variable: the folder of the on-disk map cache, or "off" (default: ~/.cache/sensorbox/maps)."""
+DISK_CACHE_MIN_PX = 1 << 20  # targets with fewer pixels build in milliseconds: memory cache only
+MAPS_FORMAT = 1  # part of every cache file's key: a new layout never reads an old file
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True, eq=False)
@@ -80,7 +93,7 @@ def _key(src: CameraModel, dst: CameraModel, R_src_dst: F64) -> tuple[Any, ...]:
 
 
 def build_maps(src: CameraModel, dst: CameraModel, R_src_dst: F64 | None = None) -> RemapMaps:
-    """Remap maps that render ``dst``'s view from ``src``'s image (cached, LRU).
+    """Remap maps that render ``dst``'s view from ``src``'s image (cached, LRU; large ones on disk too).
 
     ``R_src_dst`` rotates rays from the target frame into the source frame
     (identity when None).
@@ -91,6 +104,19 @@ def build_maps(src: CameraModel, dst: CameraModel, R_src_dst: F64 | None = None)
     if hit is not None:
         _CACHE.move_to_end(key)
         return hit
+    path = maps_file(src, dst, R) if dst.width * dst.height >= DISK_CACHE_MIN_PX else None
+    maps = load_maps(path, dst) if path is not None and path.exists() else None
+    if maps is None:
+        maps = _compute_maps(src, dst, R)
+        if path is not None:
+            save_maps(path, maps)
+    _CACHE[key] = maps
+    while len(_CACHE) > MAP_CACHE_SIZE:
+        _CACHE.popitem(last=False)
+    return maps
+
+
+def _compute_maps(src: CameraModel, dst: CameraModel, R: F64) -> RemapMaps:
     map_x = np.empty((dst.height, dst.width), np.float32)
     map_y = np.empty((dst.height, dst.width), np.float32)
     valid = np.empty((dst.height, dst.width), bool)
@@ -103,15 +129,79 @@ def build_maps(src: CameraModel, dst: CameraModel, R_src_dst: F64 | None = None)
         valid[r0:r1] = ok
         map_x[r0:r1] = np.where(ok, uv[..., 0], INVALID_COORD)
         map_y[r0:r1] = np.where(ok, uv[..., 1], INVALID_COORD)
-    maps = RemapMaps(map_x, map_y, valid, valid_spans(valid))
-    _CACHE[key] = maps
-    while len(_CACHE) > MAP_CACHE_SIZE:
-        _CACHE.popitem(last=False)
-    return maps
+    return RemapMaps(map_x, map_y, valid, valid_spans(valid))
+
+
+# ---------------------------------------------------------------- on-disk cache
+
+
+def map_cache_dir() -> Path | None:
+    """The on-disk map cache: `$SENSORBOX_MAP_CACHE`, else `$XDG_CACHE_HOME` or ~/.cache + sensorbox/maps.
+
+    None when the variable is "off" or empty. Forked workers inherit it; a
+    Dask worker on another machine uses its own.
+    """
+    value = os.environ.get(MAP_CACHE_ENV)
+    if value is not None:
+        return None if value.strip() in ("", "off") else Path(value).expanduser()
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "sensorbox" / "maps"
+
+
+def maps_file(src: CameraModel, dst: CameraModel, R_src_dst: F64) -> Path | None:
+    """The cache file of these maps: named by a hash of both models' parameters, the rotation and sizes.
+
+    Models are frozen dataclasses whose repr holds every parameter exactly
+    (floats repr round-trip), so two calibrations differing in any digit get
+    two files.
+    """
+    folder = map_cache_dir()
+    if folder is None:
+        return None
+    R = np.asarray(R_src_dst, dtype=np.float64)
+    text = f"maps v{MAPS_FORMAT}|{src!r}|{dst!r}|{R.tobytes().hex()}"
+    return folder / f"{hashlib.sha256(text.encode()).hexdigest()[:32]}.npz"
+
+
+def load_maps(path: Path, dst: CameraModel) -> RemapMaps | None:
+    """The maps stored at `path`, or None (with one warning line) when the file is not what was stored."""
+    shape = (dst.height, dst.width)
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            map_x, map_y, valid, spans = (data[k] for k in ("map_x", "map_y", "valid", "spans"))
+        ok = (
+            map_x.shape == map_y.shape == valid.shape == shape
+            and map_x.dtype == map_y.dtype == np.float32
+            and valid.dtype == bool
+            and spans.ndim == 2
+            and spans.shape[1:] == (4,)
+        )
+        if not ok:
+            raise ValueError(f"arrays are not {shape[1]}x{shape[0]} float32 maps, a mask and (n, 4) spans")
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as err:
+        log.warning("%s: unreadable remap map cache file (%s); building the maps again", path, err)
+        return None
+    boxes = tuple((int(r0), int(r1), int(c0), int(c1)) for r0, r1, c0, c1 in spans.tolist())
+    return RemapMaps(map_x, map_y, valid, boxes)
+
+
+def save_maps(path: Path, maps: RemapMaps) -> None:
+    """Store `maps` at `path` atomically (a temporary file, then a rename); a failure is one warning line."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with tmp.open("wb") as f:
+            spans = np.array(maps.spans, np.int64).reshape(-1, 4)
+            np.savez(f, map_x=maps.map_x, map_y=maps.map_y, valid=maps.valid, spans=spans)
+        tmp.replace(path)
+    except OSError as err:
+        log.warning("%s: cannot store the remap maps (%s); they will be built again next time", path, err)
+        with contextlib.suppress(OSError):  # the folder itself may be what failed
+            tmp.unlink(missing_ok=True)
 
 
 def clear_map_cache() -> None:
-    """Forget every cached map (e.g. after changing a calibration in place)."""
+    """Forget every map cached in memory (the disk cache is keyed by the parameters: never stale)."""
     _CACHE.clear()
 
 

@@ -5,7 +5,10 @@
   process's memory: remap maps, scan indexes); otherwise inline, in this process.
 - `shared`: what every job needs and no job should carry. A forked worker
   inherits it, a Dask worker receives it once (scattered to every worker),
-  inline calls get it as it is. `fn(shared, job)` does one job.
+  inline calls get it as it is. `fn(shared, job)` does one job. On Dask each
+  job is scattered straight to a worker (`direct=True`) and the task refers
+  to it by key, so a job's bytes never travel in the task graph through the
+  scheduler (no "Sending large graph"); the client must reach the workers.
 - `worker_init` runs once in every worker process before its first job, and
   once in this process when running inline: process-wide settings (allocator,
   thread counts) belong there, not in a job. Pool workers also end with this
@@ -173,7 +176,9 @@ class Executor:
             shared_ref = client.scatter(shared, broadcast=True) if shared is not None else None  # type: ignore[no-untyped-call]
             pending: deque[Any] = deque()
             for job in jobs:
-                pending.append(client.submit(fn, shared_ref, job, pure=False))
+                # the job's data goes straight to a worker; the scheduler sees only its key
+                job_ref = client.scatter(job, direct=True, hash=False)  # type: ignore[no-untyped-call]
+                pending.append(client.submit(fn, shared_ref, job_ref, pure=False))
                 while pending and (len(pending) >= self.max_in_flight or pending[0].done()):
                     yield pending.popleft().result()
             while pending:

@@ -7,7 +7,8 @@ is named by bag, topic and log time in a warning, counted per topic in the
 summary and in `dataset.yaml`, and the run stops with a `MessageDecodeError`
 as soon as there are more than the allowed number. With the default of 0 the
 first one stops the run. The ingest passes read a message more than once
-(plan, trajectory, stream): a message counts once, keyed by topic and log time.
+(plan, trajectory, stream) and the workers decode the camera images (`add`):
+a message counts once, keyed by topic and log time.
 
 What a skipped message costs: a camera frame makes its sample "skipped:
 undecodable image"; a LiDAR sweep leaves its samples with fewer points (see
@@ -37,7 +38,7 @@ class BadMessages:
         try:
             return msg.decoded(where)
         except MessageDecodeError as err:
-            self._add(msg, err)
+            self._add(msg.topic, msg.log_ns, err)
             return None
 
     def stamp(self, msg: RawMessage, where: str) -> int | None:
@@ -45,11 +46,15 @@ class BadMessages:
         try:
             return msg.stamp(where)
         except MessageDecodeError as err:
-            self._add(msg, err)
+            self._add(msg.topic, msg.log_ns, err)
             return None
 
-    def _add(self, msg: RawMessage, err: MessageDecodeError) -> None:
-        key = (msg.topic, msg.log_ns)
+    def add(self, topic: str, log_ns: int, why: str) -> None:
+        """Count a message found undecodable elsewhere (workers decode the camera images); `why` names it."""
+        self._add(topic, log_ns, MessageDecodeError(why))
+
+    def _add(self, topic: str, log_ns: int, err: MessageDecodeError) -> None:
+        key = (topic, log_ns)
         if key in self.errors:
             return
         self.errors[key] = str(err)

@@ -6,12 +6,28 @@ Recipe:
    A corrupt chunk stops the run here, before anything is written; with
    --salvage it is skipped, its messages are counted as lost, and samples
    whose LiDAR/IMU window overlaps them are not planned (`ingest.train.lost`).
-2. Stream (second pass, log-time order): decode only the planned images, keep
-   a sliding buffer of sweeps and the IMU; a sample is handed to a worker as
-   soon as every sweep overlapping its +-window has arrived.
-3. Each worker runs `ingest.train.sample.process_sample` (clouds -> GT -> images ->
-   files); a local process pool by default, or a Dask cluster.
+2. Stream (second pass, log-time order, `ingest.train.stream`): keep the
+   planned camera messages as stored (compressed or raw bytes, not decoded)
+   and a sliding buffer of sweeps and the IMU; a sample is handed to a worker
+   as soon as every sweep overlapping its +-window has arrived.
+3. Each worker decodes the sample's two images and runs
+   `ingest.train.sample.process_sample` (clouds -> GT -> images -> files); a
+   local process pool by default, or a Dask cluster. The rig's geometry and
+   the trajectory go to each worker once, not with every job.
 Finished samples (their meta/<id>.json exists) are skipped on a rerun.
+
+Why two passes over the bags, not one: the plan needs the whole recording
+before the first sample can be decided exactly as it is now (the stereo
+tolerance is half the median camera period of the recording, each LiDAR's
+thin-window rate is its median over the recording, a LiDAR with no point in
+the whole bag is an error), and a corrupt chunk must stop the run before
+anything is written, which only a read of every chunk can promise. Neither
+pass decodes an image: the plan pass reads the camera messages' header
+stamps, the stream pass hands their stored bytes to the workers. What the
+second pass repeats is the chunks' decompression and checksum (bench_ingest:
+about 45 ms a sample for a raw-image zstd mcap, a few ms with JPEG images);
+an MCAP chunk is one compressed block, so its header stamps cannot be read
+without decompressing all of it.
 """
 
 from __future__ import annotations
@@ -22,15 +38,10 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from calibration.rig import Rig, read_rig
-from ingest.bags.decode import Frame, ImuSample, Sweep
 from ingest.bags.reader import BagSet, open_bags
 from ingest.dataset.layout import (
-    is_done,
     prepare_dirs,
-    sample_id,
 )
 from ingest.errors import BagError, DatasetError, OdometryError
 from ingest.runtime.executor import Executor, Handoff
@@ -38,25 +49,24 @@ from ingest.runtime.heap import retain_freed_memory
 from ingest.train.bad_messages import BadMessages
 from ingest.train.dense import DenseParams
 from ingest.train.describe import record_undecodable, write_dataset_yaml
-from ingest.train.lidar_rate import THIN_FRACTION, LidarRates
-from ingest.train.plan import IMU_MARGIN_NS, LOST_REASON, Plan, plan
+from ingest.train.lidar_rate import THIN_FRACTION
+from ingest.train.plan import LOST_REASON, plan
 from ingest.train.rig_trajectory import RigTrajectory
-from ingest.train.sample import (
-    Geometry,
-    ImuWindow,
-    LidarPoints,
-    SampleJob,
-    SampleParams,
-    SampleResult,
-    give_images,
-    run_sample,
-    take_images,
+from ingest.train.sample import Geometry, SampleParams, SampleResult
+from ingest.train.stream import (
+    UNDECODABLE_IMAGE,
+    Shared,
+    StreamedJob,
+    give_messages,
+    message_bytes_bound,
+    run_streamed,
+    stream_jobs,
+    take_messages,
 )
 from ingest.train.sync import DEFAULT_LIDAR_WINDOW_NS
 from ingest.train.trajectory import STATIC_WINDOW_NS, TrajectorySummary, choose_method, run_trajectory_pass
 
-UNDECODABLE_IMAGE = "undecodable image (--max-bad)"
-"""Why a sample was skipped when one of its camera images could not be decoded."""
+__all__ = ["UNDECODABLE_IMAGE", "IngestConfig", "IngestSummary", "Topics", "ingest", "stream_jobs"]
 
 
 @dataclass(frozen=True)
@@ -168,146 +178,6 @@ def _resolve_topics(rig: Rig, bag_topics: dict[str, Any], where: str) -> Topics:
     return Topics(upper, lower, lidars, imu.topic if imu else None, imu.T_cam0_imu[:3, :3] if imu else None)
 
 
-def _lidar_window(sweeps: list[Sweep], name: str, t_c: int, w: int) -> LidarPoints:
-    parts = [(s, (s.stamps_ns >= t_c - w) & (s.stamps_ns <= t_c + w)) for s in sweeps]
-    xyz = np.concatenate([s.xyz_m[m] for s, m in parts]) if parts else np.zeros((0, 3), np.float32)
-    st = np.concatenate([s.stamps_ns[m] for s, m in parts]) if parts else np.zeros(0, np.int64)
-    tags = [s.tag[m] for s, m in parts if s.tag is not None]
-    tag = np.concatenate(tags) if tags and len(tags) == len(parts) else None
-    return LidarPoints(name, xyz, st, tag)
-
-
-def _check_size(frame: Frame, camera: Any, topic: str) -> None:
-    h, w = frame.image.shape[:2]
-    if (w, h) != (camera.model.width, camera.model.height):
-        raise BagError(
-            f"{topic}: images are {w}x{h} but the rig's {camera.name} is "
-            f"{camera.model.width}x{camera.model.height}; wrong rig file for this bag?"
-        )
-
-
-def _sweeps_needed(the_plan: Plan, topics: Topics, w: int) -> dict[int, dict[str, int]]:
-    """Per planned sample, per LiDAR topic: how many sweeps overlap its +-w window (from the plan pass)."""
-    return {
-        k: {
-            t: sum(1 for a, b in the_plan.spans[t] if b >= int(tc) - w and a <= int(tc) + w)
-            for t in topics.lidars
-        }
-        for k, tc in enumerate(the_plan.upper_ns)
-    }
-
-
-def _imu_window(imu_t: list[int], imu_g: list[Any], tc: int, w: int, R_cam0_imu: Any) -> ImuWindow | None:
-    """The gyro readings within the sample's window (+ IMU_MARGIN_NS each side), or None without an IMU."""
-    if not imu_t or R_cam0_imu is None:
-        return None
-    t = np.array(imu_t, np.int64)
-    sel = (t >= tc - w - IMU_MARGIN_NS) & (t <= tc + w + IMU_MARGIN_NS)
-    return ImuWindow(t[sel], np.array(imu_g)[sel], R_cam0_imu)
-
-
-def _thin_lidars(
-    rates: LidarRates, topics: Topics, lidars: tuple[LidarPoints, ...], t_ns: int, w: int
-) -> tuple[str, ...]:
-    """The LiDARs whose window holds far fewer points than their rate promises (lidar_rate's rule)."""
-    return tuple(
-        lp.name
-        for topic, lp in zip(topics.lidars, lidars, strict=True)
-        if rates.is_thin(topic, len(lp.stamps_ns), t_ns, w)
-    )
-
-
-def _file_reading(
-    topic: str, decoded: Sweep | Frame | ImuSample | None, imu_t: list[int], imu_g: list[Any],
-    sweeps: dict[str, list[Sweep]],
-) -> None:  # fmt: skip
-    """Keep an IMU reading or a LiDAR sweep (with points) for the samples; None was skipped as undecodable."""
-    if isinstance(decoded, ImuSample):
-        imu_t.append(decoded.stamp_ns)
-        imu_g.append(decoded.gyro_rad_s)
-    elif isinstance(decoded, Sweep) and len(decoded.stamps_ns):
-        sweeps[topic].append(decoded)
-
-
-def stream_jobs(
-    bags: BagSet, topics: Topics, the_plan: Plan, cfg: IngestConfig, geometry: Geometry,
-    trajectory: RigTrajectory | None = None, first_id: int = 0, bad: BadMessages | None = None,
-) -> Iterator[SampleJob | tuple[str, str]]:  # fmt: skip
-    """Second pass: a SampleJob per planned sample, or (sid, why): "done" before, UNDECODABLE_IMAGE, ..."""
-    where = bags.label
-    bad = bad or BadMessages()
-    broken: set[int] = set()  # samples with an undecodable image
-    w = cfg.lidar_window_ns
-    index = {int(t): k for k, t in enumerate(the_plan.upper_ns)}
-    lower_index = {int(t): k for k, t in enumerate(the_plan.lower_ns)}
-    frames: dict[int, dict[str, Frame]] = {}
-    sweeps: dict[str, list[Sweep]] = {t: [] for t in topics.lidars}
-    need = _sweeps_needed(the_plan, topics, w)
-    imu_t: list[int] = []
-    imu_g: list[Any] = []
-    next_k = 0
-    sids = [sample_id(first_id + k) for k in range(len(the_plan.upper_ns))]
-    done = {sid for sid in sids if is_done(cfg.out, sid)}  # finished by an earlier run (one stat each)
-    source = ",".join(p.name for p in bags.paths)
-
-    def ready(k: int) -> bool:
-        tc = int(the_plan.upper_ns[k])
-        have = {
-            t: sum(1 for s in v if s.span_ns[1] >= tc - w and s.span_ns[0] <= tc + w)
-            for t, v in sweeps.items()
-        }
-        return len(frames.get(k, {})) == 2 and all(have[t] >= n for t, n in need[k].items())
-
-    def status(k: int) -> str:
-        """Why sample k yields no job ("done" by an earlier run, an undecodable image), or ""."""
-        return "done" if sids[k] in done else UNDECODABLE_IMAGE if k in broken else ""
-
-    def job(k: int) -> SampleJob:
-        tc = int(the_plan.upper_ns[k])
-        lidars = tuple(_lidar_window(sweeps[t], name, tc, w) for t, name in topics.lidars.items())
-        thin = _thin_lidars(the_plan.rates, topics, lidars, tc, w)
-        imu = _imu_window(imu_t, imu_g, tc, w, topics.R_cam0_imu)
-        f = frames.pop(k)
-        return SampleJob(
-            cfg.out, sids[k], source, tc, int(the_plan.lower_ns[k]), f["upper"].image, f["lower"].image,
-            lidars, imu, None, geometry, cfg.sample, trajectory, thin,
-        )  # fmt: skip
-
-    wanted = [topics.upper, topics.lower, *topics.lidars, *([topics.imu] if topics.imu else [])]
-    for msg in bags.messages(topics=wanted):
-        if msg.topic in (topics.upper, topics.lower):
-            stamp = bad.stamp(msg, where)
-            side = "upper" if msg.topic == topics.upper else "lower"
-            k = None if stamp is None else (index if side == "upper" else lower_index).get(stamp)
-            if k is None or k < next_k:
-                continue
-            if sids[k] in done:
-                frames.setdefault(k, {})
-                continue
-            frame = bad.decoded(msg, where)
-            if frame is None:
-                broken.add(k)
-                continue
-            assert isinstance(frame, Frame)
-            _check_size(frame, geometry.rig.upper if side == "upper" else geometry.rig.lower, msg.topic)
-            frames.setdefault(k, {})[side] = frame
-        else:
-            _file_reading(msg.topic, bad.decoded(msg, where), imu_t, imu_g, sweeps)
-        while next_k < len(sids) and (status(next_k) or ready(next_k)):
-            why = status(next_k)
-            if why:
-                frames.pop(next_k, None)
-            yield (sids[next_k], why) if why else job(next_k)
-            next_k += 1
-            if next_k < len(sids):  # forget sweeps no later sample can use
-                horizon = int(the_plan.upper_ns[next_k]) - w
-                for t in sweeps:
-                    sweeps[t] = [s for s in sweeps[t] if s.span_ns[1] >= horizon]
-    for k in range(next_k, len(sids)):  # the bag ended: whatever is complete still goes
-        why = status(k) or ("" if len(frames.get(k, {})) == 2 else "missing image")
-        yield (sids[k], why) if why else job(k)
-
-
 def _gt_method(
     bags: BagSet, topics: Topics, rig: Rig, cfg: IngestConfig, summary: IngestSummary, bad: BadMessages
 ) -> tuple[IngestConfig, RigTrajectory | None]:
@@ -343,11 +213,6 @@ def _gt_method(
     sample = replace(cfg.sample, method=method, decision=decision, dense=dense)  # type: ignore[arg-type]
     window = dense.window_ns if method == "dense" else cfg.lidar_window_ns
     return replace(cfg, sample=sample, lidar_window_ns=window), traj if method == "dense" else None
-
-
-def _slot_bytes(rig: Rig) -> int:
-    """Bytes of one sample's two BGR uint8 images at the rig's sizes."""
-    return sum(cam.model.width * cam.model.height * 3 for cam in (rig.upper, rig.lower))
 
 
 def ingest(
@@ -395,9 +260,9 @@ def ingest(
             if progress:
                 progress(done, summary.planned)
 
-        def jobs() -> Iterator[SampleJob]:
+        def jobs() -> Iterator[StreamedJob]:
             """The jobs to run; resumed and skipped samples are counted here, in stream order."""
-            for item in stream_jobs(bags, topics, the_plan, cfg, geometry, traj, first_id, bad):
+            for item in stream_jobs(bags, topics, the_plan, cfg, first_id, bad):
                 if not isinstance(item, tuple):
                     yield item
                     continue
@@ -407,10 +272,12 @@ def ingest(
                     summary.skipped[item[1]] = summary.skipped.get(item[1], 0) + 1
                 tick()
 
-        handoff = Handoff(take_images, give_images, _slot_bytes(rig))
-        results = executor.run(run_sample, jobs(), handoff=handoff)
+        handoff = Handoff(take_messages, give_messages, message_bytes_bound(geometry))
+        results = executor.run(run_streamed, jobs(), shared=Shared(geometry, traj), handoff=handoff)
         try:
             for result in results:
+                for topic, log_ns, why in result.undecodable:  # decoded in the worker, counted here
+                    bad.add(topic, log_ns, why)
                 summary.add(result)
                 tick()
         finally:

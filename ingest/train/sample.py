@@ -60,12 +60,13 @@ class Geometry:
         return cls(rig, rectify_rig(rig), Equirectangular(h), px_per_rad(model), valid)
 
     def warm_maps(self) -> None:
-        """Build both cameras' equirect remap maps into calibration.warp's cache now.
+        """Load or build both cameras' equirect remap maps into calibration.warp's cache now.
 
-        Called in the main process before the worker pool forks, the map
-        building (~0.9 s for the reference rig, the two maps in two threads) is
-        done once and shared copy-on-write by every worker instead of repeated
-        in each one's first sample.
+        Called in the main process before the worker pool forks, the maps
+        are loaded once (from the on-disk cache, `calibration.warp.map_cache_dir`;
+        built and stored there the first time, ~3.5 s of CPU for the reference
+        rig, the two maps in two threads) and shared copy-on-write by every
+        worker instead of being loaded or built in each one's first sample.
         """
         from concurrent.futures import ThreadPoolExecutor
 
@@ -134,25 +135,6 @@ class SampleJob:
     thin_lidars: tuple[str, ...] = ()  # LiDARs with far fewer points than their rate (lidar_rate)
 
 
-_NO_IMAGE = np.zeros((0, 0, 3), np.uint8)  # a job's image field while its images travel apart
-
-
-def take_images(job: SampleJob) -> tuple[SampleJob, tuple[np.ndarray[Any, Any], ...]]:
-    """The job without its two camera images, and the images (for the executor's shared slots)."""
-    return replace(job, upper_bgr=_NO_IMAGE, lower_bgr=_NO_IMAGE), (job.upper_bgr, job.lower_bgr)
-
-
-def give_images(job: SampleJob, images: tuple[np.ndarray[Any, Any], ...]) -> SampleJob:
-    """`take_images` undone in the worker."""
-    upper, lower = images
-    return replace(job, upper_bgr=upper, lower_bgr=lower)
-
-
-def run_sample(_shared: object, job: SampleJob) -> SampleResult:
-    """`process_sample` as an executor job (samples carry everything they need: nothing is shared)."""
-    return process_sample(job)
-
-
 @dataclass(frozen=True)
 class SampleResult:
     """What happened to one sample: counts for the summary, milliseconds per stage."""
@@ -163,6 +145,7 @@ class SampleResult:
     meta: SampleMeta | None  # None when the sample was skipped
     stage_ms: dict[str, float]  # sequential stages of the calling thread: they add up to its wall time
     overlapped_ms: dict[str, float] = field(default_factory=dict)  # helper-thread work beside them
+    undecodable: tuple[tuple[str, int, str], ...] = ()  # (topic, log ns, why) per image that did not decode
 
 
 def _silent(job: SampleJob) -> list[str]:

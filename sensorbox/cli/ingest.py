@@ -1,7 +1,9 @@
 """`sensorbox ingest BAG... --rig RIG --out DIR`: recorded bags -> the WideDepth training set.
 
 Parses the options into an `ingest.train.pipeline.IngestConfig`, runs `ingest`
-with a progress bar, prints the summary and draws a preview of the middle sample.
+with a progress bar, prints the summary and then draws a preview of the middle
+sample (after the run and its summary: not part of the run's time; a few seconds
+of matplotlib at full resolution, `--no-preview` skips it).
 """
 
 from __future__ import annotations
@@ -59,6 +61,9 @@ MaxBadOpt = Annotated[
         help="Skip and count up to N undecodable messages (a warning names each one's bag, topic and time); "
         "one more stops the run (exit code 2). The count goes to the summary and dataset.yaml."
     ),
+]
+PreviewOpt = Annotated[
+    bool, typer.Option(help="After the summary, draw preview.png of the middle sample (matplotlib).")
 ]
 SalvageOpt = Annotated[
     bool,
@@ -127,13 +132,12 @@ def ingest_cmd(
     every: EveryOpt = 1, window_ms: WindowOpt = 50.0, exr: ExrOpt = False, png_level: PngLevelOpt = 1,
     height_full: HeightFullOpt = None, min_range: MinRangeOpt = 0.3, motion: MotionOpt = "full",
     salvage: SalvageOpt = False, gt: GtOpt = "sparse", gt_window_ms: GtWindowOpt = 500.0,
-    max_bad: MaxBadOpt = 0,
+    max_bad: MaxBadOpt = 0, preview: PreviewOpt = True,
 ) -> None:  # fmt: skip
     """Turn recorded bags into the WideDepth training set (rectified equirect pairs + depth/disparity GT)."""
     from ingest.train.dense import DenseParams
     from ingest.train.pipeline import IngestConfig, ingest
     from ingest.train.sample import SampleParams
-    from sensorbox.analysis.plots import plot_sample
 
     dense = DenseParams(window_ns=round(gt_window_ms * 1e6))
     sample = SampleParams(min_range_m=min_range, exr=exr, png_level=png_level, motion=motion, dense=dense)  # type: ignore[arg-type]
@@ -146,8 +150,10 @@ def ingest_cmd(
     for line in summary.lost_chunks:
         console.print(f"skipped {line}", markup=False, highlight=False, soft_wrap=True)
     console.print(summary_table(summary, out))
-    metas = sorted((out / "meta").glob("*.json"))
+    metas = sorted((out / "meta").glob("*.json")) if preview else []
     if metas:
+        from sensorbox.analysis.plots import plot_sample
+
         sid = metas[len(metas) // 2].stem
         console.print(f"Preview of sample {sid}: {plot_sample(out, sid, out / 'preview.png')}")
     console.print(f"Dataset: {out} (dataset.yaml describes it)")

@@ -114,3 +114,20 @@ def test_max_bad_skips_names_and_counts_each_and_stops_beyond(
     # the default is 0: the first one stops the run
     with pytest.raises(MessageDecodeError, match="undecodable message 1, more than --max-bad 0"):
         ingest([bag], IngestConfig(rig=rig, out=tmp_path / "ds0", **FAST))  # type: ignore[arg-type]
+
+
+def test_images_decoded_in_pool_workers_are_counted_as_in_one_process(
+    bad_bag: tuple[Path, Path, dict[str, int]], tmp_path: Path
+) -> None:
+    """The pool's workers decode the camera images; the main process counts what they could not decode."""
+    bag, rig, log_ns = bad_bag
+    warnings: list[str] = []
+    out = tmp_path / "ds"
+    cfg = IngestConfig(rig=rig, out=out, max_bad=3, **{**FAST, "workers": 2})  # type: ignore[arg-type]
+    summary = ingest([bag], cfg, warn=warnings.append)
+    assert [w.split(": ")[2] for w in warnings] == [
+        f"{topic} at log time {_at(log_ns[topic])}" for topic in (LIDAR_TOP, UPPER, LOWER)
+    ]
+    assert summary.undecodable == {LIDAR_TOP: 1, LOWER: 1, UPPER: 1}
+    assert (summary.planned, summary.written, summary.skipped) == (6, 4, {UNDECODABLE_IMAGE: 2})
+    assert sorted(p.stem for p in (out / "meta").glob("*.json")) == [f"{k:06d}" for k in (0, 2, 3, 5)]

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
+import pytest
 
 from sensorbox.analysis.plots import PREVIEW_WIDTH_PX, _shrunk
 
@@ -25,3 +28,16 @@ def test_small_images_are_drawn_as_they_are() -> None:
     gt = np.ones((300, 480), np.float32)
     small, small_gt = _shrunk(image, gt)
     assert small is image and small_gt is gt
+
+
+def test_no_preview_writes_the_dataset_and_no_figure(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from tests.faults.cli import sensorbox
+    from tests.ingest.test_pipeline import INDOOR, _rig
+
+    out = tmp_path / "ds"
+    args = ["ingest", str(INDOOR), "--rig", str(_rig(INDOOR)), "--out", str(out), "--workers", "1"]
+    code, stdout, _ = sensorbox(capsys, *args, "--every", "10", "--height-full", "64", "--no-preview")
+    assert code == 0 and "Preview" not in stdout
+    assert len(list((out / "meta").glob("*.json"))) == 3 and not (out / "preview.png").exists()

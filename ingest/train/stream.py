@@ -1,0 +1,277 @@
+"""The ingest's stream pass and what travels to the workers: a sample's camera messages as stored.
+
+The main process reads the bags once more in log-time order (after the plan
+pass, `ingest.train.plan`), keeps a sliding buffer of sweeps and the IMU, and
+hands a `StreamedJob` to a worker as soon as every sweep overlapping the
+sample's +-window has arrived. The job carries the two camera messages as the
+bag stores them (a CompressedImage's JPEG/PNG bytes, or a raw Image's bytes),
+never decoded pixels: the worker decodes them (`run_streamed`), so decoding
+costs one worker's CPU instead of the main process's, and a job is the size
+of the compressed images. What every job needs and none should carry (the
+rig's geometry, the recording's trajectory) is `Shared`, handed to the
+executor once.
+
+A camera message that does not decode in the worker skips its sample with
+`UNDECODABLE_IMAGE`, and the result names the message (`SampleResult.undecodable`)
+so that the main process counts it in `BadMessages` exactly as if it had
+decoded it itself (`--max-bad`).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from ingest.bags.decode import Frame, ImuSample, Sweep
+from ingest.bags.message import RawMessage
+from ingest.bags.reader import BagSet
+from ingest.dataset.layout import is_done, sample_id
+from ingest.errors import BagError, MessageDecodeError
+from ingest.train.bad_messages import BadMessages
+from ingest.train.lidar_rate import LidarRates
+from ingest.train.plan import IMU_MARGIN_NS, Plan
+from ingest.train.rig_trajectory import RigTrajectory
+from ingest.train.sample import (
+    Geometry,
+    ImuWindow,
+    LidarPoints,
+    SampleJob,
+    SampleParams,
+    SampleResult,
+    process_sample,
+)
+
+if TYPE_CHECKING:
+    from ingest.train.pipeline import IngestConfig, Topics
+
+UNDECODABLE_IMAGE = "undecodable image (--max-bad)"
+"""Why a sample was skipped when one of its camera images could not be decoded."""
+
+Array = np.ndarray[Any, Any]
+
+
+@dataclass(frozen=True)
+class Shared:
+    """What every sample of a run needs: sent to each worker once, never with a job."""
+
+    geometry: Geometry
+    trajectory: RigTrajectory | None = None  # the recording's (dense GT)
+
+
+@dataclass(frozen=True)
+class StreamedJob:
+    """One sample on its way to a worker: its camera messages as stored, its LiDAR and IMU windows."""
+
+    out: Path
+    sid: str
+    source: str  # the bags' file names, for the sample's meta
+    where: str  # the bags' paths, for error messages
+    upper_stamp_ns: int
+    lower_stamp_ns: int
+    upper: RawMessage
+    lower: RawMessage
+    lidars: tuple[LidarPoints, ...]
+    imu: ImuWindow | None
+    params: SampleParams
+    thin_lidars: tuple[str, ...] = ()
+
+    def sample_job(self, shared: Shared, upper_bgr: Array, lower_bgr: Array) -> SampleJob:
+        """The `process_sample` job of this sample, with its decoded images."""
+        return SampleJob(
+            self.out, self.sid, self.source, self.upper_stamp_ns, self.lower_stamp_ns, upper_bgr, lower_bgr,
+            self.lidars, self.imu, None, shared.geometry, self.params, shared.trajectory, self.thin_lidars,
+        )  # fmt: skip
+
+
+def take_messages(job: StreamedJob) -> tuple[StreamedJob, tuple[Array, ...]]:
+    """The job without its two messages' bytes, and those bytes as uint8 arrays (executor's shared slots)."""
+    light = replace(job, upper=job.upper._replace(raw=b""), lower=job.lower._replace(raw=b""))
+    return light, (np.frombuffer(job.upper.raw, np.uint8), np.frombuffer(job.lower.raw, np.uint8))
+
+
+def give_messages(job: StreamedJob, arrays: tuple[Array, ...]) -> StreamedJob:
+    """`take_messages` undone in the worker (one copy out of the slot: a raw image's 9 MB take ~2 ms)."""
+    upper, lower = arrays
+    return replace(
+        job, upper=job.upper._replace(raw=upper.tobytes()), lower=job.lower._replace(raw=lower.tobytes())
+    )
+
+
+def message_bytes_bound(geometry: Geometry) -> int:
+    """An upper bound of one sample's two camera messages in bytes: 4 bytes a pixel (bgra8) and a header."""
+    cams = (geometry.rig.upper, geometry.rig.lower)
+    return sum(cam.model.width * cam.model.height * 4 + 65536 for cam in cams)
+
+
+def _check_size(image: Array, camera: Any, topic: str) -> None:
+    h, w = image.shape[:2]
+    if (w, h) != (camera.model.width, camera.model.height):
+        raise BagError(
+            f"{topic}: images are {w}x{h} but the rig's {camera.name} is "
+            f"{camera.model.width}x{camera.model.height}; wrong rig file for this bag?"
+        )
+
+
+def decode_images(job: StreamedJob, shared: Shared) -> tuple[list[Array], list[tuple[str, int, str]]]:
+    """The upper and lower images (BGR), and (topic, log ns, why) of each message that did not decode.
+
+    Images of another size than the rig's cameras stop the run (`BagError`):
+    the rig file does not belong to the bag.
+    """
+    rig = shared.geometry.rig
+    images: list[Array] = []
+    errors: list[tuple[str, int, str]] = []
+    for msg, camera in ((job.upper, rig.upper), (job.lower, rig.lower)):
+        try:
+            frame = msg.decoded(job.where)
+        except MessageDecodeError as err:
+            errors.append((msg.topic, msg.log_ns, str(err)))
+            continue
+        assert isinstance(frame, Frame)  # the camera topics hold Image or CompressedImage messages
+        _check_size(frame.image, camera, msg.topic)
+        images.append(frame.image)
+    return images, errors
+
+
+def run_streamed(shared: Shared, job: StreamedJob) -> SampleResult:
+    """Decode the sample's two camera messages, then `process_sample` (the executor's job function).
+
+    A message that does not decode skips the sample (`UNDECODABLE_IMAGE`) and
+    is named in the result for the main process to count. The decoding time
+    is stage "decode".
+    """
+    t0 = time.perf_counter()
+    images, errors = decode_images(job, shared)
+    if errors:
+        return SampleResult(job.sid, False, UNDECODABLE_IMAGE, None, {}, undecodable=tuple(errors))
+    decode_ms = (time.perf_counter() - t0) * 1e3
+    result = process_sample(job.sample_job(shared, images[0], images[1]))
+    return replace(result, stage_ms={"decode": decode_ms, **result.stage_ms}) if result.written else result
+
+
+# ---------------------------------------------------------------- the stream pass
+
+
+def _lidar_window(sweeps: list[Sweep], name: str, t_c: int, w: int) -> LidarPoints:
+    parts = [(s, (s.stamps_ns >= t_c - w) & (s.stamps_ns <= t_c + w)) for s in sweeps]
+    xyz = np.concatenate([s.xyz_m[m] for s, m in parts]) if parts else np.zeros((0, 3), np.float32)
+    st = np.concatenate([s.stamps_ns[m] for s, m in parts]) if parts else np.zeros(0, np.int64)
+    tags = [s.tag[m] for s, m in parts if s.tag is not None]
+    tag = np.concatenate(tags) if tags and len(tags) == len(parts) else None
+    return LidarPoints(name, xyz, st, tag)
+
+
+def _sweeps_needed(the_plan: Plan, topics: Topics, w: int) -> dict[int, dict[str, int]]:
+    """Per planned sample, per LiDAR topic: how many sweeps overlap its +-w window (from the plan pass)."""
+    return {
+        k: {
+            t: sum(1 for a, b in the_plan.spans[t] if b >= int(tc) - w and a <= int(tc) + w)
+            for t in topics.lidars
+        }
+        for k, tc in enumerate(the_plan.upper_ns)
+    }
+
+
+def _imu_window(imu_t: list[int], imu_g: list[Any], tc: int, w: int, R_cam0_imu: Any) -> ImuWindow | None:
+    """The gyro readings within the sample's window (+ IMU_MARGIN_NS each side), or None without an IMU."""
+    if not imu_t or R_cam0_imu is None:
+        return None
+    t = np.array(imu_t, np.int64)
+    sel = (t >= tc - w - IMU_MARGIN_NS) & (t <= tc + w + IMU_MARGIN_NS)
+    return ImuWindow(t[sel], np.array(imu_g)[sel], R_cam0_imu)
+
+
+def _thin_lidars(
+    rates: LidarRates, topics: Topics, lidars: tuple[LidarPoints, ...], t_ns: int, w: int
+) -> tuple[str, ...]:
+    """The LiDARs whose window holds far fewer points than their rate promises (lidar_rate's rule)."""
+    return tuple(
+        lp.name
+        for topic, lp in zip(topics.lidars, lidars, strict=True)
+        if rates.is_thin(topic, len(lp.stamps_ns), t_ns, w)
+    )
+
+
+def _file_reading(
+    topic: str, decoded: Sweep | Frame | ImuSample | None, imu_t: list[int], imu_g: list[Any],
+    sweeps: dict[str, list[Sweep]],
+) -> None:  # fmt: skip
+    """Keep an IMU reading or a LiDAR sweep (with points) for the samples; None was skipped as undecodable."""
+    if isinstance(decoded, ImuSample):
+        imu_t.append(decoded.stamp_ns)
+        imu_g.append(decoded.gyro_rad_s)
+    elif isinstance(decoded, Sweep) and len(decoded.stamps_ns):
+        sweeps[topic].append(decoded)
+
+
+def stream_jobs(
+    bags: BagSet, topics: Topics, the_plan: Plan, cfg: IngestConfig, first_id: int = 0,
+    bad: BadMessages | None = None,
+) -> Iterator[StreamedJob | tuple[str, str]]:  # fmt: skip
+    """Second pass: a StreamedJob per planned sample, or (sid, why): "done" earlier, "missing image"."""
+    where = bags.label
+    bad = bad or BadMessages()
+    w = cfg.lidar_window_ns
+    index = {int(t): k for k, t in enumerate(the_plan.upper_ns)}
+    lower_index = {int(t): k for k, t in enumerate(the_plan.lower_ns)}
+    frames: dict[int, dict[str, RawMessage]] = {}  # as stored: the workers decode them
+    sweeps: dict[str, list[Sweep]] = {t: [] for t in topics.lidars}
+    need = _sweeps_needed(the_plan, topics, w)
+    imu_t: list[int] = []
+    imu_g: list[Any] = []
+    next_k = 0
+    sids = [sample_id(first_id + k) for k in range(len(the_plan.upper_ns))]
+    done = {sid for sid in sids if is_done(cfg.out, sid)}  # finished by an earlier run (one stat each)
+    source = ",".join(p.name for p in bags.paths)
+
+    def ready(k: int) -> bool:
+        tc = int(the_plan.upper_ns[k])
+        have = {
+            t: sum(1 for s in v if s.span_ns[1] >= tc - w and s.span_ns[0] <= tc + w)
+            for t, v in sweeps.items()
+        }
+        return len(frames.get(k, {})) == 2 and all(have[t] >= n for t, n in need[k].items())
+
+    def job(k: int) -> StreamedJob:
+        tc = int(the_plan.upper_ns[k])
+        lidars = tuple(_lidar_window(sweeps[t], name, tc, w) for t, name in topics.lidars.items())
+        thin = _thin_lidars(the_plan.rates, topics, lidars, tc, w)
+        imu = _imu_window(imu_t, imu_g, tc, w, topics.R_cam0_imu)
+        f = frames.pop(k)
+        return StreamedJob(
+            cfg.out, sids[k], source, where, tc, int(the_plan.lower_ns[k]), f["upper"], f["lower"],
+            lidars, imu, cfg.sample, thin,
+        )  # fmt: skip
+
+    wanted = [topics.upper, topics.lower, *topics.lidars, *([topics.imu] if topics.imu else [])]
+    for msg in bags.messages(topics=wanted):
+        if msg.topic in (topics.upper, topics.lower):
+            stamp = bad.stamp(msg, where)
+            side = "upper" if msg.topic == topics.upper else "lower"
+            k = None if stamp is None else (index if side == "upper" else lower_index).get(stamp)
+            if k is None or k < next_k:
+                continue
+            frames.setdefault(k, {})
+            if sids[k] not in done:
+                frames[k][side] = msg
+        else:
+            _file_reading(msg.topic, bad.decoded(msg, where), imu_t, imu_g, sweeps)
+        while next_k < len(sids) and (sids[next_k] in done or ready(next_k)):
+            if sids[next_k] in done:
+                frames.pop(next_k, None)
+                yield sids[next_k], "done"
+            else:
+                yield job(next_k)
+            next_k += 1
+            if next_k < len(sids):  # forget sweeps no later sample can use
+                horizon = int(the_plan.upper_ns[next_k]) - w
+                for t in sweeps:
+                    sweeps[t] = [s for s in sweeps[t] if s.span_ns[1] >= horizon]
+    for k in range(next_k, len(sids)):  # the bag ended: whatever is complete still goes
+        why = "done" if sids[k] in done else ("" if len(frames.get(k, {})) == 2 else "missing image")
+        yield (sids[k], why) if why else job(k)

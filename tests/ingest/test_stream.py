@@ -1,0 +1,39 @@
+"""The stream pass hands the workers each sample's camera messages exactly as the bag stores them."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from calibration.rig import read_rig
+from ingest.bags.reader import open_bags
+from ingest.train.pipeline import IngestConfig, _resolve_topics
+from ingest.train.plan import plan
+from ingest.train.sample import Geometry
+from ingest.train.stream import Shared, StreamedJob, decode_images, give_messages, stream_jobs, take_messages
+from tests.ingest.test_pipeline import INDOOR, _rig
+
+
+def test_jobs_carry_the_stored_bytes_and_the_worker_decodes_them(tmp_path: Path) -> None:
+    cfg = IngestConfig(rig=_rig(INDOOR), out=tmp_path / "ds", workers=1, every=10)
+    cfg = replace(cfg, sample=replace(cfg.sample, window_ns=cfg.lidar_window_ns))
+    geometry = Geometry.from_rig(read_rig(cfg.rig), 64)
+    with open_bags([INDOOR]) as bags:
+        topics = _resolve_topics(geometry.rig, bags.topics(), str(INDOOR))
+        stored = {
+            (m.topic, m.stamp(bags.label)): m.raw for m in bags.messages(topics=[topics.upper, topics.lower])
+        }
+        jobs = [
+            j for j in stream_jobs(bags, topics, plan(bags, topics, cfg), cfg) if isinstance(j, StreamedJob)
+        ]
+    assert len(jobs) == 3
+    for job in jobs:
+        assert job.upper.raw == stored[(topics.upper, job.upper_stamp_ns)]  # CompressedImage JPEG, untouched
+        assert job.lower.raw == stored[(topics.lower, job.lower_stamp_ns)]
+        light, arrays = take_messages(job)
+        assert light.upper.raw == light.lower.raw == b""
+        assert give_messages(light, tuple(np.array(a) for a in arrays)) == job  # through a slot and back
+        images, errors = decode_images(job, Shared(geometry))
+        assert errors == [] and [i.shape for i in images] == [(300, 480, 3), (300, 480, 3)]
