@@ -86,7 +86,7 @@ from ingest.render.plan import (
     task_key,
 )
 from ingest.render.scans import frame_hint
-from ingest.runtime.executor import Executor, usable_cpus
+from ingest.runtime.executor import Executor, share_cores
 
 BENCHMARK_VERSION = 1
 EMPTY_RENDER_FRACTION = 0.01  # a render drawing a surface in fewer of its pixels with a ray is empty
@@ -214,14 +214,6 @@ def _angular_disparity(
 def _pinhole_disparity(z_m: F32, focal_px: float) -> Callable[[float], F32]:
     """Baseline (mm) -> f B / z of a z-depth image (0 stays 0)."""
     return lambda b_mm: pinhole_depth_to_disparity(z_m, focal_px, b_mm / 1000.0).astype(np.float32)
-
-
-def share_cores(workers: int) -> None:
-    """Worker init: the compiled renderer's threads are this worker's share of the usable cores."""
-    import numba
-
-    cores = max(1, usable_cpus() // workers)
-    numba.set_num_threads(min(cores, numba.config.NUMBA_NUM_THREADS))  # type: ignore[attr-defined]
 
 
 def run_task(s: RenderState, task: Task) -> tuple[Task, dict[str, int], int]:

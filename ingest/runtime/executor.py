@@ -56,6 +56,17 @@ def usable_cpus() -> int:
     return os.cpu_count() or 1
 
 
+def share_cores(workers: int) -> None:
+    """Worker init: numba's threads (the compiled renderer's) are this worker's share of the usable cores.
+
+    With one worker per core, more threads per worker only add switches.
+    """
+    import numba
+
+    cores = max(1, usable_cpus() // workers)
+    numba.set_num_threads(min(cores, numba.config.NUMBA_NUM_THREADS))  # type: ignore[attr-defined]
+
+
 @dataclass(frozen=True)
 class Handoff(Generic[J]):
     """How a job's large arrays leave it (`take`, in this process) and come back (`give`, in a worker)."""

@@ -35,6 +35,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -44,7 +45,7 @@ from ingest.dataset.layout import (
     prepare_dirs,
 )
 from ingest.errors import BagError, DatasetError, OdometryError
-from ingest.runtime.executor import Executor, Handoff
+from ingest.runtime.executor import Executor, Handoff, share_cores
 from ingest.runtime.heap import retain_freed_memory
 from ingest.train.bad_messages import BadMessages
 from ingest.train.dense import DenseParams
@@ -215,6 +216,12 @@ def _gt_method(
     return replace(cfg, sample=sample, lidar_window_ns=window), traj if method == "dense" else None
 
 
+def _init_worker(workers: int) -> None:
+    """Every worker keeps freed image-sized arrays mapped and runs numba on its share of the cores."""
+    retain_freed_memory()
+    share_cores(workers)
+
+
 def ingest(
     bag_paths: list[Path],
     cfg: IngestConfig,
@@ -248,7 +255,7 @@ def ingest(
         first_id = write_dataset_yaml(asked, cfg, geometry, [Path(p) for p in bag_paths], summary)
         if not cfg.dask and summary.planned:
             geometry.warm_maps()
-        executor = Executor(cfg.workers, dask=cfg.dask, worker_init=retain_freed_memory)
+        executor = Executor(cfg.workers, dask=cfg.dask, worker_init=partial(_init_worker, cfg.workers))
         if executor.every_core_busy:
             # every core runs a worker: a helper thread per worker would only add thread switches
             cfg = replace(cfg, sample=replace(cfg.sample, overlap_images=False))
