@@ -10,7 +10,9 @@ stacking, the NaN fill), more than the Double Sphere formula itself.
 from __future__ import annotations
 
 import math
+import os
 
+import numba
 import numpy as np
 from numba import njit
 
@@ -121,3 +123,18 @@ def project_pinhole(p: F64, fx: float, fy: float, cx: float, cy: float) -> tuple
     uv, ok = _outputs(p)
     _pinhole(p, fx, fy, cx, cy, uv, ok)
     return uv, ok
+
+
+def fork_safe_numba_threads() -> None:
+    """Make numba's thread pool one that forked workers survive; call before its first parallel use.
+
+    Renders run in forked workers (render-benchmark, dense ground truth in
+    ingest) whose parent may have used numba's threads already: GNU OpenMP,
+    numba's usual pick on Linux, aborts such a child ("fork() called from a
+    process already using GNU OpenMP"). numba's own workqueue layer is fork
+    safe and always there; it takes one parallel call at a time per process,
+    as the renderer makes them (naming it also spares numba's probe of an
+    older system TBB, which warns). NUMBA_THREADING_LAYER, when set, wins.
+    """
+    if "NUMBA_THREADING_LAYER" not in os.environ:
+        numba.config.THREADING_LAYER = "workqueue"  # type: ignore[attr-defined]

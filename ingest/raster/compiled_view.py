@@ -12,7 +12,6 @@ once instead of once per numpy operation.
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
@@ -22,6 +21,7 @@ import numpy as np
 
 from calibration.camera import CameraModel
 from calibration.fisheye import DoubleSphere
+from calibration.kernels import fork_safe_numba_threads
 from calibration.transforms import invert
 from calibration.types import F32, F64, I64, Bool
 from calibration.virtual import project_f32
@@ -41,13 +41,7 @@ from ingest.raster.visibility import (
     concat_points,
 )
 
-# Renders run in forked workers (render-benchmark, dense ground truth in ingest) whose parent may have
-# rendered already: GNU OpenMP, numba's usual pick on Linux, aborts such a child ("fork() called from
-# a process already using GNU OpenMP"). numba's own workqueue layer is fork safe and always there; it
-# takes one parallel call at a time per process, as the renderer makes them. (Naming it also spares
-# numba's probe of an older system TBB, which warns.) NUMBA_THREADING_LAYER, when set, wins.
-if "NUMBA_THREADING_LAYER" not in os.environ:
-    numba.config.THREADING_LAYER = "workqueue"  # type: ignore[attr-defined]
+fork_safe_numba_threads()  # before any parallel kernel runs in this process
 
 f32 = np.float32
 IDX_MASK = (1 << IDX_BITS) - 1

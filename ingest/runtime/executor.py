@@ -63,6 +63,10 @@ def share_cores(workers: int) -> None:
     """
     import numba
 
+    from calibration.kernels import fork_safe_numba_threads
+
+    fork_safe_numba_threads()
+
     cores = max(1, usable_cpus() // workers)
     numba.set_num_threads(min(cores, numba.config.NUMBA_NUM_THREADS))  # type: ignore[attr-defined]
 
