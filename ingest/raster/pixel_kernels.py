@@ -121,6 +121,32 @@ def _terms(Rn, Un, Vn, Rc, Uc, Vc, dr, dc, gate):  # type: ignore[no-untyped-def
     return du, dv, dR if ok else np.float32(0.0)
 
 
+@njit(cache=True, nogil=True)
+def _neighbour_sums(R, U, V, W, H, row, col, gate, k0, k1, a11, a12, a22, b1, b2):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """The normal equations of neighbours `NB_DR/NB_DC[k0:k1]` added to (a11, a12, a22, b1, b2).
+
+    The sums stay in the type they come in (float32 for the direct
+    neighbours, float64 once the diagonal ones join), as in numpy's recipe.
+    """
+    p = row * W + col
+    Rc, Uc, Vc = R[p], U[p], V[p]
+    for k in range(k0, k1):
+        dr, dc = NB_DR[k], NB_DC[k]
+        rr, cc = row + dr, col + dc
+        if 0 <= rr < H and 0 <= cc < W:
+            q = rr * W + cc
+            Rn, Un, Vn = R[q], U[q], V[q]
+        else:
+            Rn, Un, Vn = np.float32(np.nan), np.float32(0.0), np.float32(0.0)
+        du, dv, dR = _terms(Rn, Un, Vn, Rc, Uc, Vc, np.float32(dr), np.float32(dc), gate)
+        a11 += du * du
+        a12 += du * dv
+        a22 += dv * dv
+        b1 += du * dR
+        b2 += dv * dR
+    return a11, a12, a22, b1, b2
+
+
 @njit(parallel=True, cache=True, nogil=True)
 def gradient_value(R, U, V, ppr, W, tau_m, tau_rel, slope1, fit, gu, gv, value):  # type: ignore[no-untyped-def]  # pragma: no cover
     """`visibility.fit_gradient` per pixel, then the value on the pixel-centre ray, R - gu U - gv V.
@@ -129,7 +155,7 @@ def gradient_value(R, U, V, ppr, W, tau_m, tau_rel, slope1, fit, gu, gv, value):
     gradient 0, value NaN, as in numpy.
     """
     H = R.shape[0] // W
-    one32, zero32, nan32 = np.float32(1.0), np.float32(0.0), np.float32(np.nan)
+    one32, zero32 = np.float32(1.0), np.float32(0.0)
     for row in prange(H):
         for col in range(W):
             p = row * W + col
@@ -140,41 +166,15 @@ def gradient_value(R, U, V, ppr, W, tau_m, tau_rel, slope1, fit, gu, gv, value):
                 continue
             sl = (tau_m + (tau_rel + slope1 / ppr[p])) - tau_m
             gate = tau_m + Rc * sl * np.float32(1.6)
-            a11 = a12 = a22 = b1 = b2 = zero32
-            for k in range(4):  # (0, 1), (0, -1), (1, 0), (-1, 0) as (drow, dcol)
-                dr = 0 if k < 2 else (1 if k == 2 else -1)
-                dc = (1 if k == 0 else -1) if k < 2 else 0
-                rr, cc = row + dr, col + dc
-                if 0 <= rr < H and 0 <= cc < W:
-                    q = rr * W + cc
-                    Rn, Un, Vn = R[q], U[q], V[q]
-                else:
-                    Rn, Un, Vn = nan32, zero32, zero32
-                du, dv, dR = _terms(Rn, Un, Vn, Rc, Uc, Vc, np.float32(dr), np.float32(dc), gate)
-                a11 += du * du
-                a12 += du * dv
-                a22 += dv * dv
-                b1 += du * dR
-                b2 += dv * dR
+            z = zero32  # the four direct neighbours, summed in float32
+            a11, a12, a22, b1, b2 = _neighbour_sums(R, U, V, W, H, row, col, gate, 0, 4, z, z, z, z, z)
             g_u, g_v, full = _solve(a11, a12, a22, b1, b2, one32, zero32)
             if not full:  # the diagonal neighbours join, in float64
                 g = tau_m + Rc * sl * np.float32(2.2)
-                s11, s12, s22 = np.float64(a11), np.float64(a12), np.float64(a22)
-                t1, t2 = np.float64(b1), np.float64(b2)
-                for k in range(4, 8):
-                    dr, dc = NB_DR[k], NB_DC[k]
-                    rr, cc = row + dr, col + dc
-                    if 0 <= rr < H and 0 <= cc < W:
-                        q = rr * W + cc
-                        Rn, Un, Vn = R[q], U[q], V[q]
-                    else:
-                        Rn, Un, Vn = nan32, zero32, zero32
-                    du, dv, dR = _terms(Rn, Un, Vn, Rc, Uc, Vc, np.float32(dr), np.float32(dc), g)
-                    s11 += du * du
-                    s12 += du * dv
-                    s22 += dv * dv
-                    t1 += du * dR
-                    t2 += dv * dR
+                s11, s12, s22, t1, t2 = _neighbour_sums(
+                    R, U, V, W, H, row, col, g, 4, 8, np.float64(a11), np.float64(a12), np.float64(a22),
+                    np.float64(b1), np.float64(b2),
+                )  # fmt: skip
                 w_u, w_v, _ = _solve(s11, s12, s22, t1, t2, 1.0, 0.0)
                 g_u, g_v = np.float32(w_u), np.float32(w_v)
             gu[p] = g_u
