@@ -38,6 +38,7 @@ bench: setup
 	$(BIN)/python bench/bench_warp.py
 	$(BIN)/python bench/bench_sim.py
 	$(BIN)/python bench/bench_ingest.py
+	$(BIN)/python bench/bench_ingest_stages.py
 	$(BIN)/python bench/bench_livox.py
 	$(BIN)/python bench/bench_render.py
 	$(BIN)/python bench/bench_capture.py
