@@ -51,9 +51,10 @@ from ingest.raster.lod import ScanIndex, build_index
 from ingest.raster.scan import Scan
 from ingest.raster.view import Rendering, pixel_geometry, render_view
 from ingest.raster.visibility import RenderParams
-from ingest.render.benchmark import run_benchmark, share_cores
+from ingest.render.benchmark import run_benchmark
 from ingest.render.plan import BenchmarkConfig
 from ingest.render.scans import read_scans
+from ingest.runtime.executor import share_cores
 from sensorbox.sim.appearance import Texture
 from sensorbox.sim.scenes import build_scene
 from sensorbox.sim.tls import TlsParams, bundle_poses, pose_at, simulate_scan, true_range, write_site
