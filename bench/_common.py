@@ -45,3 +45,13 @@ def machine_line() -> str:
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     return (f"machine: {os.cpu_count()} cores, {model}, load {load:.1f}, "
             f"reference sort 4M float64 {ref_ms:.0f} ms")  # fmt: skip
+
+
+def markdown_table(header: list[str], rows: list[list[str]]) -> None:
+    """Print a markdown table: first column left-aligned, the others right-aligned."""
+    widths = [max(len(h), *(len(r[i]) for r in rows)) for i, h in enumerate(header)]
+    print("| " + " | ".join(h.ljust(w) for h, w in zip(header, widths, strict=True)) + " |")
+    print("|" + "|".join("-" * (w + 2) for w in widths) + "|")
+    for r in rows:
+        cells = [c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(r, widths, strict=True))]
+        print("| " + " | ".join(cells) + " |")

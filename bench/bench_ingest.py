@@ -57,7 +57,7 @@ import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import machine_line
+from _common import machine_line, markdown_table
 
 from calibration.rig import read_rig
 from calibration.warp import MAP_CACHE_ENV, clear_map_cache
@@ -237,16 +237,6 @@ def row(name: str, value: str, target: str = "", met: bool | None = None) -> lis
     return [name, value, target, status]
 
 
-def table(rows: list[list[str]]) -> None:
-    header = ["measure", "value", "target", "status"]
-    widths = [max(len(h), *(len(r[i]) for r in rows)) for i, h in enumerate(header)]
-    print("| " + " | ".join(h.ljust(w) for h, w in zip(header, widths, strict=True)) + " |")
-    print("|" + "|".join("-" * (w + 2) for w in widths) + "|")
-    for r in rows:
-        cells = [c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(r, widths, strict=True))]
-        print("| " + " | ".join(cells) + " |")
-
-
 def measure(bag: Path, rig: Path, root: Path, runs: int, dask: bool) -> list[list[str]]:
     """Every row of the table (see the module docstring)."""
     runs_by: dict[str, list[Run]] = {"1": [], "1 core": [], "2": []}
@@ -331,7 +321,7 @@ def main() -> None:
         print()
         print(machine_line())
         print()
-        table(rows)
+        markdown_table(["measure", "value", "target", "status"], rows)
         print(f"\n{load()} (other processes share this machine: timings include their contention)")
         shutil.rmtree(root, ignore_errors=True)
 

@@ -78,7 +78,7 @@ import open3d as o3d
 from scipy.spatial import cKDTree
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import OUT_DIR, median_seconds
+from _common import OUT_DIR, markdown_table, median_seconds
 
 import ingest.dataset.layout as dataset
 import ingest.train.clouds as clouds_mod
@@ -111,16 +111,6 @@ MAX_INGEST_RUNS = 3
 
 
 # ---------------------------------------------------------------- helpers
-
-
-def table(header: list[str], rows: list[list[str]]) -> None:
-    """A markdown table: first column left-aligned, the others right-aligned."""
-    widths = [max(len(h), *(len(r[i]) for r in rows)) for i, h in enumerate(header)]
-    print("| " + " | ".join(h.ljust(w) for h, w in zip(header, widths, strict=True)) + " |")
-    print("|" + "|".join("-" * (w + 2) for w in widths) + "|")
-    for r in rows:
-        cells = [c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(r, widths, strict=True))]
-        print("| " + " | ".join(cells) + " |")
 
 
 def timed(times: dict[str, float], name: str, fn: Callable[[], T]) -> T:
@@ -612,7 +602,7 @@ def part_decode(bag: Path, repeats: int) -> None:
         target = f">= {DECODE_TARGET:.0f}x" if name.startswith("decode_custom_msg +") else ""
         met = ("met" if base / t >= DECODE_TARGET else "NOT met") if target else ""
         rows.append([name, f"{t * 1e3:.3f}", f"{base / t:.1f}x", target, met])
-    table(["decoder", "ms", "speed-up vs rosbags + numpy", "target", "status"], rows)
+    markdown_table(["decoder", "ms", "speed-up vs rosbags + numpy", "target", "status"], rows)
     ratio = base / dec[3][1]
     print(f"\nspeed-up decode_custom_msg (+arrays) vs rosbags (+arrays): {ratio:.0f}x (target >= 100x)")
 
@@ -671,7 +661,7 @@ def part_stages(jobs: list[SampleJob]) -> StagePart:
     rows.append(
         ["first sample, images stage, cold maps", f"{sr.cold_images_ms:.0f}", "once per worker process"]
     )
-    table(["stage", "ms / sample", "target"], rows)
+    markdown_table(["stage", "ms / sample", "target"], rows)
 
     return StagePart(sr, stage_rows, no_png)
 
@@ -701,7 +691,7 @@ def part_calls(loaded: Jobs, sr: StageRun, repeats: int) -> list[str]:
         [f"main process: stream_jobs pass (/ {n} samples)", "-", f"{oh['stream_jobs pass'] / n:.1f}"],
         [f"main process: pickle SampleJob ({job_mb:.1f} MB)", "1", f"{t_pickle:.1f}"],
     ]
-    table(["call", "calls / sample", "ms / sample"], rows)
+    markdown_table(["call", "calls / sample", "ms / sample"], rows)
     return names
 
 
@@ -728,7 +718,7 @@ def part_encoders(images: SampleImages, repeats: int) -> dict[str, tuple[float, 
                 continue
             rows.append([r.encoder, f"{r.ms:.1f}", f"{r.mb:.2f}", f"{r.ms / ref.ms:.2f}",
                          f"{r.mb / ref.mb:.2f}", "yes" if r.lossless else "NO"])  # fmt: skip
-        table(["encoder", "ms", "MB", "time / PNG 1", "size / PNG 1", "lossless"], rows)
+        markdown_table(["encoder", "ms", "MB", "time / PNG 1", "size / PNG 1", "lossless"], rows)
     print("\n### One sample's 6 images (2 fisheye + 2 equirect as the upper ones, disp + depth; "
           "GT in PNG level 1 where the encoder is 8-bit only)\n")  # fmt: skip
     keys_img = list(imgs)
@@ -744,7 +734,7 @@ def part_encoders(images: SampleImages, repeats: int) -> dict[str, tuple[float, 
         per_enc[e.name] = (t, s)
     t1, s1 = per_enc["PNG level 1"]
     rows = [[k, f"{t:.0f}", f"{s:.1f}", f"{t / t1:.2f}", f"{s / s1:.2f}"] for k, (t, s) in per_enc.items()]
-    table(["encoder", "ms / sample", "MB / sample", "time / PNG 1", "size / PNG 1"], rows)
+    markdown_table(["encoder", "ms / sample", "MB / sample", "time / PNG 1", "size / PNG 1"], rows)
     for note in notes:
         print(f"- {note}")
 
@@ -769,7 +759,7 @@ def part_throughput(bag: Path, rig: Path, root: Path, n: int, n_runs: int) -> No
                      f"{med([r.worker_ms for r in rs]):.0f}", f"{med([r.write_ms for r in rs]):.0f}",
                      f"{med([r.mb_per_sample for r in rs]):.1f}",
                      f">= {THROUGHPUT_TARGET:.0f} ({met})"])  # fmt: skip
-    table(["encoder", "written", "wall s", "written samples/s", "completions/s after 1st per worker",
+    markdown_table(["encoder", "written", "wall s", "written samples/s", "completions/s after 1st per worker",
            "worker ms / sample", "of which write", "MB / sample", "target samples/s"], rows)  # fmt: skip
     print(f"\n{load()} (other processes share this machine: timings include their contention)")
     print("(samples/s = written / IngestSummary.seconds, startup included; worker ms = sum of the median "
@@ -787,7 +777,7 @@ def part_encoding_free(bag: Path, rig: Path, root: Path, n_runs: int) -> None:
     met = "met" if 1e3 / steady <= STAGE_TARGET_MS else "NOT met"
     print(f"\n## 5. ingest(..., workers={WORKERS}) without image encoding (one PNG per image kind, reused), "
           f"median of {n_runs} runs\n")  # fmt: skip
-    table(["run", "written", "wall s", "samples/s", "ms / sample on 2 cores", "target"], [
+    markdown_table(["run", "written", "wall s", "samples/s", "ms / sample on 2 cores", "target"], [
         ["end to end (startup included)", f"{med([r.written for r in free]):.0f}",
          f"{med([r.seconds for r in free]):.1f}", f"{e2e:.2f}", f"{1e3 / e2e:.0f}", ""],
         ["after each worker's first sample", "", "", f"{steady:.2f}", f"{1e3 / steady:.0f}",
