@@ -31,9 +31,7 @@ from contextlib import suppress
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from rosbags.rosbag2.storage_mcap import decompress as decompress_chunk
-
-from ingest.bags.chunks import LostChunk
+from ingest.bags.chunks import LostChunk, decompress_checked
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 
@@ -141,7 +139,7 @@ def _chunk_payload(body: memoryview) -> tuple[str, int, int, memoryview]:
 def _chunk_records(body: memoryview) -> memoryview:
     """The decompressed, size- and CRC-checked records of one chunk."""
     compression, size, crc, data = _chunk_payload(body)
-    return memoryview(decompress_chunk(bytes(data), compression, size, crc))
+    return memoryview(decompress_checked(bytes(data), compression, size, crc))
 
 
 def _resync(buf: memoryview, data: mmap.mmap, pos: int) -> int | None:

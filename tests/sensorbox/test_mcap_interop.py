@@ -166,7 +166,8 @@ def test_a_damaged_chunk_fails_its_crc(tmp_path: Path) -> None:
         foxglove_decode(path)
     with (
         pytest.raises(
-            BagError, match=r"bag\.mcap: corrupt chunk at byte \d+ \(ReaderError: Chunk checksum mismatch\)"
+            BagError,
+            match=r"bag\.mcap: corrupt chunk at byte \d+ \(ChunkDataError: Chunk checksum mismatch: records. CRC-32 0x[0-9a-f]{8}, header 0x[0-9a-f]{8}\)",
         ),
         open_bags(tmp_path / "bag") as ours,
     ):
