@@ -165,7 +165,10 @@ def zbuffer(
                          bands, f32(RANGE_QUANTUM_M), KEY_BASE, Q_MAX, IDX_BITS, own, splat, layers,
                          with_own)  # fmt: skip
         if len(layer_cls):
-            pk.dilate_layers(layers, layer_cls, *spans, H, W, splat)
+            span_start, span_dr, span_c0, span_c1 = spans
+            if not (span_c0 == -span_c1).all():
+                raise ValueError("footprint spans must be symmetric (-w..w) to dilate a layer")
+            pk.dilate_layers(layers, layer_cls, span_start, span_dr, span_c1, H, W, splat)
     return own, splat
 
 

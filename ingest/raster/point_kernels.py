@@ -212,28 +212,62 @@ def zbuffer_bands(  # type: ignore[no-untyped-def]  # pragma: no cover
                         splat[q0 + cc] = min(splat[q0 + cc], k)
 
 
-@njit(parallel=True, cache=True, nogil=True)
-def dilate_layers(layers, layer_cls, span_start, span_dr, span_c0, span_c1, H, W, splat):  # type: ignore[no-untyped-def]  # pragma: no cover
-    """Spread each layer's keys over its class's spans into ``splat`` (a min filter per row, in parallel).
+DILATE_ROWS = 32  # output rows per parallel work item of `dilate_layers`
 
-    Pixel (q, x) takes the minimum of the layer over (q - drow, x - dcol1 ..
-    x - dcol0) for every span: the pixels whose points' footprints cover it.
+
+@njit(parallel=True, cache=True, nogil=True)
+def dilate_layers(layers, layer_cls, span_start, span_dr, span_w, H, W, splat):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """Spread each layer's keys over its class's spans into ``splat`` (a min filter, in parallel row blocks).
+
+    Spans are symmetric (columns -w..w, as every ellipse's are): pixel (q, x)
+    takes, for each span (drow, w), the minimum of the layer's row q - drow
+    over columns x - w .. x + w (clipped to the image). Those row minima are
+    built once per source row and width, each width from the one before
+    (for w >= 2 the minimum over x - w .. x + w is that of the width w - 1
+    minima at x - 1 and x + 1), so a span costs one comparison per pixel
+    whatever its width.
     """
-    for q in prange(H):
-        out = q * W
+    n_blocks = (H + DILATE_ROWS - 1) // DILATE_ROWS
+    for b in prange(n_blocks):
+        q0 = b * DILATE_ROWS
+        q1 = min(H, q0 + DILATE_ROWS)
         for li in range(layers.shape[0]):
             cls = layer_cls[li]
-            for j in range(span_start[cls], span_start[cls + 1]):
-                sr = q - span_dr[j]
-                if sr < 0 or sr >= H:
-                    continue
-                src = sr * W
-                for dc in range(span_c0[j], span_c1[j] + 1):  # one shifted row min per span column
-                    x0, x1 = max(0, dc), min(W, W + dc)
-                    a = splat[out + x0 : out + x1]
-                    v = layers[li, src + x0 - dc : src + x1 - dc]
-                    for x in range(x1 - x0):
-                        a[x] = min(a[x], v[x])
+            a, e = span_start[cls], span_start[cls + 1]
+            if a == e:
+                continue
+            d_lo, d_hi, w_cls = span_dr[a], span_dr[a], 0
+            for j in range(a, e):
+                d_lo = min(d_lo, span_dr[j])
+                d_hi = max(d_hi, span_dr[j])
+                w_cls = max(w_cls, span_w[j])
+            s0 = max(0, q0 - d_hi)
+            s1 = min(H, q1 - d_lo)
+            if s1 <= s0:
+                continue
+            rowmin = np.empty((s1 - s0, w_cls + 1, W), np.int64)
+            for sr in range(s0, s1):
+                m = rowmin[sr - s0]
+                m[0, :] = layers[li, sr * W : (sr + 1) * W]
+                for w in range(1, w_cls + 1):
+                    prev, cur = m[w - 1], m[w]
+                    cur[0] = min(prev[0], prev[min(1, W - 1)])
+                    if w == 1:
+                        for x in range(1, W - 1):
+                            cur[x] = min(prev[x - 1], min(prev[x], prev[x + 1]))
+                    else:  # the two width w - 1 windows overlap: they cover x - w .. x + w
+                        for x in range(1, W - 1):
+                            cur[x] = min(prev[x - 1], prev[x + 1])
+                    cur[W - 1] = min(prev[max(W - 2, 0)], prev[W - 1])
+            for q in range(q0, q1):
+                out = splat[q * W : (q + 1) * W]
+                for j in range(a, e):
+                    sr = q - span_dr[j]
+                    if sr < s0 or sr >= s1:
+                        continue
+                    v = rowmin[sr - s0, span_w[j]]
+                    for x in range(W):
+                        out[x] = min(out[x], v[x])
 
 
 @njit(parallel=True, cache=True, nogil=True)

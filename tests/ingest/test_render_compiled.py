@@ -128,3 +128,31 @@ def test_compiled_zbuffer_gives_the_numpy_keys(k_max):
     for bands in (None, 1):
         c_own, c_splat = compiled_view.zbuffer(packed, order, seg, classes, H, W, bands=bands)
         assert np.array_equal(c_own, own) and np.array_equal(c_splat, splat)
+
+
+@pytest.mark.parametrize(("k_max", "H", "W"), [(1, 9, 1), (2, 40, 33), (3, 70, 2), (6, 101, 77)])
+def test_layer_dilation_is_the_min_over_each_points_footprint(k_max: int, H: int, W: int) -> None:
+    """`dilate_layers` (row minima built width by width) against the plain definition: every layer pixel's
+    key spread over its class's ellipse offsets, clipped to the image."""
+    from ingest.raster import point_kernels as pk
+    from ingest.raster.kernels import ellipse_offsets
+
+    start, drow, dcol = ellipse_offsets(k_max)
+    span_start, span_dr, _, span_w = pk.ellipse_spans(start, drow, dcol)
+    rng = np.random.default_rng(k_max)
+    n_cls = (k_max + 1) ** 2
+    layer_cls = np.sort(rng.choice(n_cls, size=min(3, n_cls), replace=False)).astype(np.int64)
+    empty = np.iinfo(np.int64).max
+    layers = rng.integers(0, 1 << 40, size=(len(layer_cls), H * W)).astype(np.int64)
+    layers[rng.random(layers.shape) < 0.9] = empty
+    got = np.full(H * W, empty, np.int64)
+    pk.dilate_layers(layers, layer_cls, span_start, span_dr, span_w, H, W, got)
+
+    want = np.full((H, W), empty, np.int64)
+    for layer, cls in zip(layers, layer_cls, strict=True):
+        rows, cols = np.divmod(np.flatnonzero(layer != empty), W)
+        for dr, dc in zip(drow[start[cls] : start[cls + 1]], dcol[start[cls] : start[cls + 1]], strict=True):
+            r, c = rows + dr, cols + dc
+            ok = (r >= 0) & (r < H) & (c >= 0) & (c < W)
+            np.minimum.at(want, (r[ok], c[ok]), layer[rows[ok] * W + cols[ok]])
+    assert np.array_equal(got, want.reshape(-1))
