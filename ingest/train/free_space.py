@@ -96,6 +96,14 @@ def free_space_voxels(
     return out
 
 
+def _stable_order(ids: I64) -> I64:
+    """`np.argsort(ids, kind="stable")`; a radix sort when the ids span fewer than 2^15 values (slices do)."""
+    if len(ids) and int(ids.max()) - int(ids.min()) < 1 << 15:
+        out: I64 = np.argsort((ids - ids.min()).astype(np.int16), kind="stable")
+        return out
+    return np.argsort(ids, kind="stable")
+
+
 def free_space_filter(
     pts: F64,
     slice_id: I64,
@@ -128,7 +136,7 @@ def free_space_filter(
     if test is not None:
         candidate[:] = False
         candidate[voxel[test]] = True
-    order = np.argsort(slice_id, kind="stable")
+    order = _stable_order(slice_id)
     sids = np.array([sid for sid, _ in references], np.int64)
     lo = np.searchsorted(slice_id[order], sids)
     hi = np.searchsorted(slice_id[order], sids + 1)

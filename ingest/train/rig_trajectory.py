@@ -118,10 +118,8 @@ class RigTrajectory:
 
     def to_frame(self, pts_cam0: F64, t_ns: I64, t_ref_ns: int) -> F64:
         """Points measured in cam0 at their times `t_ns` (N, 3), expressed in cam0 at `t_ref_ns`."""
-        R, p = self.pose(t_ns)
         R_ref, p_ref = self.pose(np.array([t_ref_ns]))
-        world = np.einsum("nij,nj->ni", R, pts_cam0) + p
-        out: F64 = (world - p_ref[0]) @ R_ref[0]
+        out: F64 = (self.transform(pts_cam0, t_ns) - p_ref[0]) @ R_ref[0]
         return out
 
     def write_tum(self, path: Path) -> None:
