@@ -48,10 +48,11 @@ class FilterCounts:
 def filter_points(xyz_m: F64, tag: U8 | None, min_range_m: float) -> tuple[Bool, FilterCounts]:
     """Keep mask for points that are real returns: non-zero, finite, >= min range, no noise tag."""
     xyz = np.asarray(xyz_m, np.float64)
-    finite = np.isfinite(xyz).all(axis=1)
-    zero = finite & ~xyz.any(axis=1)
-    with np.errstate(invalid="ignore"):
-        r = np.linalg.norm(xyz, axis=1)
+    x, y, z = xyz[:, 0], xyz[:, 1], xyz[:, 2]  # per column: reductions along rows of 3 are slow
+    finite = np.isfinite(x) & np.isfinite(y) & np.isfinite(z)
+    zero = finite & (x == 0) & (y == 0) & (z == 0)
+    with np.errstate(invalid="ignore", over="ignore"):
+        r = np.sqrt(x * x + y * y + z * z)
     close = finite & ~zero & (r < min_range_m)
     tagged = np.zeros(len(xyz), bool) if tag is None else (np.asarray(tag) & NOISE_TAG_BITS) != 0
     tagged &= finite & ~zero & ~close

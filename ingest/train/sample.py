@@ -166,7 +166,7 @@ def _points_by_lidar(job: SampleJob) -> tuple[F64, I64, I64, FilterCounts, dict[
         keep, counts = filter_points(lp.xyz_m, lp.tag, job.params.min_range_m)
         T = job.geometry.rig.lidar(lp.name).T_cam0_lidar
         xyz = np.asarray(lp.xyz_m, np.float64)[keep]
-        pts.append(np.einsum("ij,nj->ni", T[:3, :3], xyz) + T[:3, 3])
+        pts.append(xyz @ T[:3, :3].T + T[:3, 3])
         stamps.append(lp.stamps_ns[keep])
         which.append(np.full(int(keep.sum()), i, np.int64))
         total = total + counts
