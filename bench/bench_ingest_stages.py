@@ -206,7 +206,7 @@ def pick_sweep(bag: Path) -> bytes:
         topics = [t for t, s in bags.topics().items() if s.msgtype.endswith("/CustomMsg")]
         raws = [m.raw for m in bags.messages(topics=topics)]
     counts = [len(decode_custom_msg(r).points) for r in raws]
-    return next(r for r, n in zip(raws, counts, strict=True) if n >= 0.95 * max(counts))
+    return bytes(next(r for r, n in zip(raws, counts, strict=True) if n >= 0.95 * max(counts)))
 
 
 def ours_arrays(raw: bytes) -> tuple[Arr, Arr]:

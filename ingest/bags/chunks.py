@@ -33,7 +33,7 @@ from collections.abc import Collection, Generator, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from io import BytesIO
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 from isal import isal_zlib
 from rosbags.rosbag1 import Reader as Ros1Reader
@@ -278,18 +278,20 @@ class CheckedRos1Reader(Ros1Reader):
             Path(str(self.path)), pos, info.start_time, end, counts, _reason(err), self.start_time
         )
 
-    def _records(self, pos: int) -> BytesIO | None:
-        """The decompressed records of the chunk at `pos`; None (after `guard.report`) when corrupt."""
+    def _records(self, pos: int) -> tuple[BytesIO, memoryview] | None:
+        """The decompressed records of the chunk at `pos` (as a stream, and a view of the same bytes);
+        None (after `guard.report`) when corrupt."""
         if self.guard.is_lost(Path(str(self.path)), pos):
             return None
         assert self.bio is not None
         chunk = self.chunks[pos]
         self.bio.seek(chunk.datapos)
         try:
-            return BytesIO(chunk.decompressor(read_bytes(self.bio, chunk.datasize)))
+            raw = chunk.decompressor(read_bytes(self.bio, chunk.datasize))
         except Exception as err:  # bz2 / lz4 errors of damaged bytes, a chunk cut short
             self.guard.report(self._lost(pos, err))
             return None
+        return BytesIO(raw), memoryview(raw)
 
     def messages(
         self, connections: Collection[Any] = (), start: int | None = None, stop: int | None = None
@@ -311,7 +313,11 @@ class CheckedRos1Reader(Ros1Reader):
             if entry.chunk_pos != pos:
                 pos, records = entry.chunk_pos, self._records(entry.chunk_pos)
             if records is not None:
-                yield _message_at(records, entry.offset, by_id), entry.time, _data(records)
+                stream, view = records
+                connection = _message_at(stream, entry.offset, by_id)  # leaves the stream at the data
+                # rosbags' reader protocol says bytes; a large message is a memoryview, which every
+                # consumer here takes (`ingest.bags.decode.Raw`, `RawMessage.raw`)
+                yield connection, entry.time, cast(bytes, _data(stream, view))
 
 
 def _message_at(records: BytesIO, offset: int, by_id: Mapping[int, Any]) -> Any:
@@ -329,8 +335,16 @@ def _message_at(records: BytesIO, offset: int, by_id: Mapping[int, Any]) -> Any:
     return by_id[header.get_uint32("conn")]
 
 
-def _data(records: BytesIO) -> bytes:
-    return read_bytes(records, read_uint32(records))
+def _data(records: BytesIO, view: memoryview) -> bytes | memoryview:
+    """The message data at the record's length field: a view of the chunk when large (see `chunk_messages`)."""
+    n = read_uint32(records)
+    if n < COPY_BELOW_BYTES:
+        return read_bytes(records, n)
+    start = records.tell()
+    if start + n > len(view):
+        raise Ros1ReaderError(f"message data of {n} bytes overruns its chunk at offset {start}")
+    records.seek(start + n)
+    return view[start : start + n]
 
 
 # ---------------------------------------------------------------- wiring

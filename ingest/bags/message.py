@@ -4,18 +4,26 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
-from ingest.bags.decode import Frame, ImuSample, RosVersion, Sweep, decode, header_stamp_ns
+from ingest.bags.decode import Frame, ImuSample, Raw, RosVersion, Sweep, decode, header_stamp_ns
 from ingest.errors import MessageDecodeError
 
 
 class RawMessage(NamedTuple):
-    """One stored message: topic, type (`pkg/msg/Type`), log time (ns), bytes, ROS version."""
+    """One stored message: topic, type (`pkg/msg/Type`), log time (ns), bytes, ROS version.
+
+    `raw` is a memoryview into its decompressed chunk for a large message
+    (an image), bytes otherwise (`ingest.bags.chunks.COPY_BELOW_BYTES`).
+    """
 
     topic: str
     msgtype: str
     log_ns: int
-    raw: bytes
+    raw: Raw
     ros_version: RosVersion
+
+    def __reduce__(self) -> tuple[type[RawMessage], tuple[str, str, int, bytes, RosVersion]]:
+        """Pickled (a Dask job, a process pipe) with `raw` as bytes: a view of its chunk does not pickle."""
+        return RawMessage, (self.topic, self.msgtype, self.log_ns, bytes(self.raw), self.ros_version)
 
     def decoded(self, where: str) -> Sweep | Frame | ImuSample:
         """`ingest.bags.decode.decode` of this message; a failure names `where`, the topic and log time."""

@@ -38,8 +38,8 @@ def header(v, stamp_ns, frame_id):
     return ts.types["std_msgs/msg/Header"](stamp=stamp, frame_id=frame_id)
 
 
-def int32_value(raw: bytes) -> int:
-    msg: Any = typestore(2).deserialize_cdr(raw, INT32)
+def int32_value(raw: bytes | memoryview) -> int:
+    msg: Any = typestore(2).deserialize_cdr(memoryview(raw), INT32)
     return int(msg.data)
 
 
@@ -493,3 +493,44 @@ def test_the_failing_bag_among_several_is_named(tmp_path, blob_bag):
         msgs = list(bags.messages())
     assert len(msgs) > N_BLOBS and isinstance(msgs[0], RawMessage)
     assert [m.log_ns for m in msgs] == sorted(m.log_ns for m in msgs)
+
+
+def test_a_message_viewing_its_chunk_pickles_as_bytes() -> None:
+    """Large messages are memoryviews into their decompressed chunk; a Dask job or a pipe pickles them."""
+    import pickle
+
+    chunk = bytes(range(256)) * 4
+    msg = RawMessage("/cam", "sensor_msgs/msg/Image", 7, memoryview(chunk)[16:48], 2)
+    back = pickle.loads(pickle.dumps(msg))
+    assert back == RawMessage("/cam", "sensor_msgs/msg/Image", 7, chunk[16:48], 2)
+    assert type(back.raw) is bytes
+
+
+@pytest.mark.parametrize("fmt", ["mcap", "ros1"])
+@pytest.mark.parametrize("compress", [False, True], ids=["plain", "compressed"])
+def test_large_messages_are_views_of_their_chunk_with_the_written_bytes(tmp_path, fmt, compress):
+    """Messages of at least `COPY_BELOW_BYTES` come as memoryviews into the decompressed chunk (no copy),
+    smaller ones as bytes; either way the bytes written, in log-time order, beside small messages."""
+    from ingest.bags.chunks import COPY_BELOW_BYTES
+
+    v = version(fmt)
+    ts = typestore(v)
+    sizes = [COPY_BELOW_BYTES + 5, 10, COPY_BELOW_BYTES - 40, 2 * COPY_BELOW_BYTES, 3]
+
+    def blob(i, size):
+        layout = ts.types["std_msgs/msg/MultiArrayLayout"](dim=[], data_offset=i)
+        data = np.random.default_rng(i).integers(0, 256, size, dtype=np.uint8)
+        return serialize(v, ts.types[BLOB](layout=layout, data=data), BLOB)
+
+    written = [(T0 + 10 * i, blob(i, n)) for i, n in enumerate(sizes)]
+    ints = [(T0 + 10 * i + 5, serialize(v, ts.types[INT32](data=i), INT32)) for i in range(len(sizes))]
+    path = write_bag(tmp_path / f"big.{'bag' if fmt == 'ros1' else 'd'}", fmt,
+                     {"/blob": (BLOB, written), "/int": (INT32, ints)}, compress=compress)  # fmt: skip
+    with open_bags(path) as bags:
+        msgs = list(bags.messages())
+    assert [m.log_ns for m in msgs] == sorted(t for t, _ in written + ints)
+    blobs = [m for m in msgs if m.topic == "/blob"]
+    assert [bytes(m.raw) for m in blobs] == [raw for _, raw in written]
+    views = [isinstance(m.raw, memoryview) for m in blobs]
+    assert views == [len(raw) >= COPY_BELOW_BYTES for _, raw in written]
+    assert [bytes(m.raw) for m in msgs if m.topic == "/int"] == [raw for _, raw in ints]

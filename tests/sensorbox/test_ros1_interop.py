@@ -176,7 +176,7 @@ def ros1_read(full: list[Path], raw: list[Path]) -> dict[Path, Any]:
     return {Path(path): result for path, result in json.loads(done.stdout).items()}
 
 
-def sha256(data: bytes | np.ndarray[Any, Any]) -> str:
+def sha256(data: bytes | memoryview | np.ndarray[Any, Any]) -> str:
     return hashlib.sha256(bytes(data)).hexdigest()
 
 
