@@ -336,7 +336,7 @@ def _message_at(records: BytesIO, offset: int, by_id: Mapping[int, Any]) -> Any:
 
 
 def _data(records: BytesIO, view: memoryview) -> bytes | memoryview:
-    """The message data at the record's length field: a view of the chunk when large (see `chunk_messages`)."""
+    """The message data at the record's length field: a view of the chunk when large (`chunk_messages`)."""
     n = read_uint32(records)
     if n < COPY_BELOW_BYTES:
         return read_bytes(records, n)
