@@ -8,6 +8,7 @@ its pixel-centre ray, and gap filling along that plane (see `ingest.raster.view`
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -35,6 +36,29 @@ KEY_BASE = 0x3FF0_0000_0000_0000
 
 
 EMPTY_KEY = 0x7FF0_0000_0000_0000
+
+
+BACKENDS = ("numba", "numpy", "torch", "cuda")
+
+
+def backend_problem(backend: str) -> str | None:
+    """Why `backend` (`RenderParams.backend`) cannot render here, or None: torch for torch and cuda, a GPU
+    for cuda.
+
+    The GPU is looked for through NVML, without starting CUDA in this process,
+    so that forked workers can still start it themselves.
+    """
+    if backend not in BACKENDS:
+        return f"expected {', '.join(BACKENDS[:-1])} or {BACKENDS[-1]}"
+    if backend in ("torch", "cuda"):
+        try:
+            import torch
+        except ImportError:
+            return "PyTorch is not installed (pip install torch)"
+        os.environ.setdefault("PYTORCH_NVML_BASED_CUDA_CHECK", "1")
+        if backend == "cuda" and not torch.cuda.is_available():
+            return f"torch {torch.__version__} sees no CUDA GPU"
+    return None
 
 
 @dataclass(frozen=True)

@@ -19,7 +19,7 @@ from calibration.rig import read_rig
 from calibration.types import F32, F64
 from ingest.errors import BenchmarkError
 from ingest.raster.scan import Scan
-from ingest.raster.visibility import RenderParams
+from ingest.raster.visibility import RenderParams, backend_problem
 from ingest.render.plan import BASELINES_MM, FOVS_DEG, BenchmarkConfig
 from ingest.render.scans import read_cloud, read_scans
 
@@ -62,16 +62,10 @@ def parse_size(text: str) -> tuple[int, int]:
 
 
 def _check_backend(backend: str) -> None:
-    """--backend: a known renderer whose requirements are here (torch for torch/cuda, and a GPU for cuda)."""
-    if backend not in ("numba", "numpy", "torch", "cuda"):
-        raise BenchmarkError(f"--backend {backend!r}: expected numba, numpy, torch or cuda")
-    if backend in ("torch", "cuda"):
-        try:
-            import torch
-        except ImportError as err:
-            raise BenchmarkError(f"--backend {backend}: PyTorch is not installed") from err
-        if backend == "cuda" and not torch.cuda.is_available():
-            raise BenchmarkError(f"--backend cuda: torch {torch.__version__} sees no CUDA GPU")
+    """--backend: a known renderer whose requirements are here (`visibility.backend_problem`)."""
+    problem = backend_problem(backend)
+    if problem is not None:
+        raise BenchmarkError(f"--backend {backend!r}: {problem}")
 
 
 def _to_scan(pts_world: F64, T_world_scan: F64) -> F32:

@@ -45,6 +45,7 @@ from ingest.dataset.layout import (
     prepare_dirs,
 )
 from ingest.errors import BagError, DatasetError, OdometryError
+from ingest.raster.visibility import backend_problem
 from ingest.runtime.executor import Executor, Handoff, share_cores
 from ingest.runtime.heap import retain_freed_memory
 from ingest.train.bad_messages import BadMessages
@@ -95,6 +96,9 @@ class IngestConfig:
             raise DatasetError(f"--gt-window-ms must be > 0, got {self.sample.dense.window_ns / 1e6:g}")
         if self.sample.motion not in ("full", "rotation", "off"):
             raise DatasetError(f"--motion {self.sample.motion!r}: expected full, rotation or off")
+        backend = self.sample.dense.render.backend
+        if (problem := backend_problem(backend)) is not None:
+            raise DatasetError(f"--backend {backend!r}: {problem}")
         if self.max_bad < 0:
             raise DatasetError(f"--max-bad must be >= 0, got {self.max_bad}")
         if self.workers < 1 or self.every < 1 or not 0 <= self.sample.png_level <= 3:

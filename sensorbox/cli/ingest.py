@@ -8,6 +8,7 @@ of matplotlib at full resolution, `--no-preview` skips it).
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
@@ -42,6 +43,13 @@ GtOpt = Annotated[
     ),
 ]
 GtWindowOpt = Annotated[float, typer.Option(help="Dense GT: sweeps within +- this of the frame time (ms).")]
+BackendOpt = Annotated[
+    str,
+    typer.Option(
+        help="Dense GT renderer: numba (compiled CPU kernels), numpy (reference), torch (PyTorch on the "
+        "CPU) or cuda (PyTorch on the GPU); the same GT."
+    ),
+]
 ExrOpt = Annotated[bool, typer.Option("--exr", help="Also write float32 EXR copies of the GT.")]
 PngLevelOpt = Annotated[int, typer.Option(help="PNG deflate level 0-3 (ISA-L; 0 fastest, 3 smallest).")]
 HeightFullOpt = Annotated[
@@ -132,7 +140,7 @@ def ingest_cmd(
     every: EveryOpt = 1, window_ms: WindowOpt = 50.0, exr: ExrOpt = False, png_level: PngLevelOpt = 1,
     height_full: HeightFullOpt = None, min_range: MinRangeOpt = 0.3, motion: MotionOpt = "full",
     salvage: SalvageOpt = False, gt: GtOpt = "sparse", gt_window_ms: GtWindowOpt = 500.0,
-    max_bad: MaxBadOpt = 0, preview: PreviewOpt = True,
+    max_bad: MaxBadOpt = 0, preview: PreviewOpt = True, backend: BackendOpt = "numba",
 ) -> None:  # fmt: skip
     """Turn recorded bags into the WideDepth training set (rectified equirect pairs + depth/disparity GT)."""
     from ingest.train.dense import DenseParams
@@ -140,6 +148,7 @@ def ingest_cmd(
     from ingest.train.sample import SampleParams
 
     dense = DenseParams(window_ns=round(gt_window_ms * 1e6))
+    dense = replace(dense, render=replace(dense.render, backend=backend))  # type: ignore[arg-type]  # validated
     sample = SampleParams(min_range_m=min_range, exr=exr, png_level=png_level, motion=motion, dense=dense)  # type: ignore[arg-type]
     cfg = IngestConfig(
         rig=rig, out=out, workers=workers, every=every, lidar_window_ns=round(window_ms * 1e6),

@@ -81,3 +81,24 @@ def test_torch_zbuffer_gives_the_numpy_keys():
     t = {k: torch.from_numpy(getattr(pts, k)) for k in ("pix", "r", "ku", "kv")}
     t_own, t_splat = torch_view.zbuffer(t, H, W)
     assert np.array_equal(t_own.numpy(), own) and np.array_equal(t_splat.numpy(), splat)
+
+
+def test_dense_gt_with_the_torch_backend_is_the_compiled_gt(scans):  # noqa: F811
+    """`--backend torch|cuda` reaches the dense-GT renders: the same fisheye range and equirect disparity."""
+    from ingest.train.dense import DenseParams, dense_ground_truth
+
+    scan = scans["scans"][0]
+    T_world_cam = scans["T"]
+    xyz_world = scan.xyz.astype(np.float64) @ scan.T_world_scan[:3, :3].T + scan.T_world_scan[:3, 3]
+    pts_cam = (xyz_world - T_world_cam[:3, 3]) @ T_world_cam[:3, :3]
+    model = virtual_ds(scans["ref"], 150, W, H)
+    eq = Equirectangular(384)
+    numba_params = DenseParams(free_space=False)
+    torch_params = replace(numba_params, render=replace(numba_params.render, backend="torch"))
+    a = dense_ground_truth(model, eq, np.eye(3), 0.1, pts_cam, numba_params)
+    b = dense_ground_truth(model, eq, np.eye(3), 0.1, pts_cam, torch_params)
+    assert a.range_img.count > 0.2 * W * H and a.disp_img.count > 2000, (a.range_img.count, a.disp_img.count)
+    for x, y in ((a.range_img, b.range_img), (a.disp_img, b.disp_img)):
+        assert np.array_equal(x.pixel, y.pixel)
+        np.testing.assert_allclose(y.value, x.value, rtol=1e-5, atol=1e-4)
+    assert a.unstable == b.unstable

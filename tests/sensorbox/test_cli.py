@@ -73,3 +73,22 @@ def test_the_cli_gives_numpys_blas_one_thread_unless_the_user_chose():
             [sys.executable, "-c", code], env=run_env, capture_output=True, text=True, check=True
         )
         assert out.stdout.strip() == expected
+
+
+def test_ingest_backend_is_checked_before_any_bag_is_read(tmp_path):
+    """`--backend` (the dense-GT renderer): an unknown one, or cuda without a GPU, is one line, exit 2."""
+    out = tmp_path / "out"
+    args = ("ingest", str(tmp_path / "no.bag"), "--rig", str(REF), "--out", str(out), "--gt", "dense")
+    res = run(*args, "--backend", "gpu")
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert res.returncode == 2 and len(lines) == 1, res.stderr
+    assert lines[0] == "error: --backend 'gpu': expected numba, numpy, torch or cuda"
+    try:
+        import torch
+    except ImportError:
+        return
+    if not torch.cuda.is_available():
+        res = run(*args, "--backend", "cuda")
+        assert res.returncode == 2 and "--backend 'cuda': torch" in res.stderr
+        assert "sees no CUDA GPU" in res.stderr and "Traceback" not in res.stderr
+    assert not out.exists()
