@@ -31,15 +31,21 @@ Rows (medians over `--runs` runs; 1- and 2-worker runs interleaved):
   processes, samples/s end to end (cluster start not included), and the
   "Sending large graph" warnings it raised (jobs' bytes in the task graph).
 
-Every figure names the machine (`_common.machine_line`); other processes
+numpy's BLAS runs on one thread, as under the `sensorbox` command. Every
+figure names the machine (`_common.machine_line`); other processes
 sharing it show in the load average printed beside the table.
 """
 
 from __future__ import annotations
 
+import os
+
+# as the `sensorbox` command runs (sensorbox/cli/__init__.py): numpy's BLAS on one thread, set before
+# numpy is imported
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
 import argparse
 import json
-import os
 import resource
 import shutil
 import statistics
