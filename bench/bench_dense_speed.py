@@ -23,7 +23,6 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse
-import resource
 import shutil
 import statistics
 import sys
@@ -33,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import OUT_DIR, machine_line
+from _common import OUT_DIR, cpu_s, machine_line
 
 from ingest.train.pipeline import IngestConfig, IngestSummary, ingest
 from sensorbox.sim.run import SimConfig, simulate
@@ -58,12 +57,6 @@ def recording(root: Path, duration_s: float) -> Path:
 
 
 Cpu = tuple[float, float]  # (main process, workers) CPU seconds
-
-
-def cpu_s() -> Cpu:
-    """(this process, its reaped children): user + system CPU seconds so far."""
-    me, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
-    return me.ru_utime + me.ru_stime, kids.ru_utime + kids.ru_stime
 
 
 def run_once(bag: Path, out: Path, workers: int, every: int) -> tuple[float, Cpu, IngestSummary]:

@@ -46,7 +46,6 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse
 import json
-import resource
 import shutil
 import statistics
 import sys
@@ -63,7 +62,7 @@ import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import machine_line, markdown_table
+from _common import cpu_s, machine_line, markdown_table
 
 from calibration.rig import read_rig
 from calibration.warp import MAP_CACHE_ENV, clear_map_cache
@@ -86,12 +85,6 @@ Arr = np.ndarray[Any, Any]
 
 def med(values: list[float]) -> float:
     return statistics.median(values) if values else float("nan")
-
-
-def cpu_s() -> tuple[float, float]:
-    """(this process, its reaped children): user + system CPU seconds so far."""
-    me, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
-    return me.ru_utime + me.ru_stime, kids.ru_utime + kids.ru_stime
 
 
 def load() -> str:
