@@ -12,6 +12,12 @@ Public API:
   log one warning line and record the chunk in `lost`.
 - `guard_readers(readers, guard)`: make rosbags' readers of an `AnyReader`
   (before `open()`) check chunk by chunk and report to `guard`.
+- `decompress_checked(data, compression, size, crc)`: an MCAP chunk's records,
+  size- and CRC-checked (`ChunkDataError` when they do not match).
+- `chunk_messages(bio, chunk, channels, start, stop)`: one MCAP chunk's
+  messages in time order, walked in place. Both readers hand out a message of
+  `COPY_BELOW_BYTES` or more as a memoryview into its decompressed chunk (no
+  copy of an image), a smaller one as bytes.
 
 What can be checked depends on the format. An MCAP chunk carries the CRC-32
 of its records (every mcap SensorBox writes sets it; 0 means "not computed")
@@ -45,7 +51,16 @@ from rosbags.rosbag2.storage_mcap import DECOMPRESSORS, ChunkInfo, McapReader, M
 
 from ingest.errors import BagError
 
-__all__ = ["ChunkGuard", "CorruptChunkError", "LostChunk", "guard_readers"]
+__all__ = [
+    "COPY_BELOW_BYTES",
+    "ChunkDataError",
+    "ChunkGuard",
+    "CorruptChunkError",
+    "LostChunk",
+    "chunk_messages",
+    "decompress_checked",
+    "guard_readers",
+]
 
 log = logging.getLogger(__name__)
 
@@ -232,7 +247,8 @@ def chunk_messages(
     """
     bio.seek(chunk.chunk_start_offset + _CHUNK_CRC_AT)
     (crc,) = struct.unpack("<I", read_exact(bio, 4))
-    bio.seek(chunk.chunk_start_offset + 9 + 40 + len(chunk.compression))
+    # after the crc: compression (u32 length + text), then the records' length (u64), then the records
+    bio.seek(chunk.chunk_start_offset + _CHUNK_CRC_AT + 4 + 4 + len(chunk.compression) + 8)
     compressed = read_exact(bio, chunk.compressed_size)
     records = decompress_checked(compressed, chunk.compression, chunk.uncompressed_size, crc)
     view = memoryview(records)
