@@ -57,15 +57,21 @@ def disparity_stability_mask(
     height_full_px: int,
     max_rel_error: float,
     disp_error_px: float = 0.5,
+    disp_px: ArrayLike | None = None,
 ) -> Bool:
     """True where disparity is a stable depth cue.
 
     A pixel is stable when a disparity error of ``disp_error_px`` changes the
     recovered range by at most ``max_rel_error`` (relative). Pixels near the
     poles (theta -> 0 or pi) and far points fail, as do invalid ranges.
+    ``disp_px``: `depth_to_disparity` of the same arguments, when the caller
+    has it already (it is not computed again).
     """
     r = np.asarray(range_m, dtype=np.float64)
-    d = depth_to_disparity(r, theta_rad, baseline_m, height_full_px)
+    if disp_px is None:
+        d = depth_to_disparity(r, theta_rad, baseline_m, height_full_px)
+    else:
+        d = np.asarray(disp_px, dtype=np.float64)
     r_lo = disparity_to_depth(d + disp_error_px, theta_rad, baseline_m, height_full_px)
     r_hi = disparity_to_depth(d - disp_error_px, theta_rad, baseline_m, height_full_px)
     with np.errstate(all="ignore"):

@@ -204,7 +204,7 @@ def _angular_disparity(
         b = b_mm / 1000.0
         d = depth_to_disparity(r, th, b, height_full)
         stable = disparity_stability_mask(th, r, b, height_full, cfg.stability_max_rel_error,
-                                          cfg.stability_disp_error_px)  # fmt: skip
+                                          cfg.stability_disp_error_px, d)  # fmt: skip
         out: F32 = np.where(stable & (r > 0), d, 0.0).astype(np.float32)
         return out
 

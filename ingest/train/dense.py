@@ -228,11 +228,10 @@ def dense_ground_truth(
     inside = (rows >= 0) & (rows < eq.height) & (cols >= 0) & (cols < eq.width)
     rows, cols, r = rows[inside], cols[inside], r[inside]
     epix = rows * eq.width + cols
-    rays, _ = eq.unproject(np.stack([cols, rows], axis=1).astype(np.float64))
-    theta = np.arccos(np.clip(-rays[:, 1], -1.0, 1.0))
+    theta = eq.theta_of_row(rows)  # latitude from up: the rectified equirect's poles lie on its y axis
     disp = depth_to_disparity(r, theta, baseline_m, eq.height_full)
     stable = disparity_stability_mask(
-        theta, r, baseline_m, eq.height_full, params.stability_max_rel_error, params.stability_disp_error_px
+        theta, r, baseline_m, eq.height_full, params.stability_max_rel_error, params.stability_disp_error_px, disp
     )
     disp_img = SparseImage((eq.height, eq.width), epix[stable], disp[stable].astype(np.float32))
     return DenseGt(range_img, disp_img, int((~stable).sum()))

@@ -194,6 +194,7 @@ def equirect_disparity(
         eq.height_full,
         params.stability_max_rel_error,
         params.stability_disp_error_px,
+        disp,
     )
     shape = (eq.height, eq.width)
     disp_img = SparseImage(shape, splat.pixel[stable], disp[stable].astype(np.float32))

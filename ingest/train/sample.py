@@ -380,13 +380,14 @@ def _slices(
     k = (stamps - tc) // prm.free_slice_ns
     n_lidars = max(len(job.lidars), 1)
     slice_id = k * n_lidars + which
-    refs = []
-    own = (
-        np.abs(stamps - tc) <= prm.free_reference_ns if prm.free_reference_ns else np.ones(len(stamps), bool)
-    )
-    for sid in np.unique(slice_id[own]):
-        lidar = job.lidars[int(sid % n_lidars)].name
-        t_mid = tc + int(sid // n_lidars) * prm.free_slice_ns + prm.free_slice_ns // 2
-        origin_cam0 = job.geometry.rig.lidar(lidar).T_cam0_lidar[:3, 3][None, :]
-        refs.append((int(sid), traj.to_frame(origin_cam0, np.array([t_mid]), tc)[0]))
+    own = slice_id if not prm.free_reference_ns else slice_id[np.abs(stamps - tc) <= prm.free_reference_ns]
+    if len(own) == 0:
+        return slice_id, []
+    # the window spans a few dozen slices: a bincount finds them without sorting every point
+    lo = int(own.min())
+    sids = lo + np.flatnonzero(np.bincount(own - lo))
+    t_mid = tc + (sids // n_lidars) * prm.free_slice_ns + prm.free_slice_ns // 2
+    origins_lidar = np.array([job.geometry.rig.lidar(lidar.name).T_cam0_lidar[:3, 3] for lidar in job.lidars])
+    origins = traj.to_frame(origins_lidar[sids % n_lidars], t_mid, tc)
+    refs = [(int(sid), origin) for sid, origin in zip(sids, origins, strict=True)]
     return slice_id, refs
