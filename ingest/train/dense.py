@@ -231,8 +231,9 @@ def dense_ground_truth(
     theta = eq.theta_of_row(rows)  # latitude from up: the rectified equirect's poles lie on its y axis
     disp = depth_to_disparity(r, theta, baseline_m, eq.height_full)
     stable = disparity_stability_mask(
-        theta, r, baseline_m, eq.height_full, params.stability_max_rel_error, params.stability_disp_error_px, disp
-    )
+        theta, r, baseline_m, eq.height_full, params.stability_max_rel_error, params.stability_disp_error_px,
+        disp,
+    )  # fmt: skip
     disp_img = SparseImage((eq.height, eq.width), epix[stable], disp[stable].astype(np.float32))
     return DenseGt(range_img, disp_img, int((~stable).sum()))
 
