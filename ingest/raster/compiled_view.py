@@ -155,7 +155,9 @@ def zbuffer(
         return np.full(H * W if with_own else 0, EMPTY_KEY, np.int64), np.full(H * W, EMPTY_KEY, np.int64)
     if n >= 1 << IDX_BITS:
         raise ValueError(f"a view can z-buffer at most 2^{IDX_BITS} points, got {n}")
-    # uninitialised: each band of the kernel fills its own rows first
+    if seg.shape[1] - 1 != pk.n_groups(H):
+        raise ValueError(f"segments of {seg.shape[1] - 1} row groups for an image of {pk.n_groups(H)}")
+    # uninitialised: each band of the kernel fills its own rows first (the groups cover every row)
     own = np.empty(H * W if with_own else 0, np.int64)
     splat = np.empty(H * W, np.int64)
     k_max = k_max_of(classes)
