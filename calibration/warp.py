@@ -294,8 +294,10 @@ def check_height_full(height_full: int, budget_bytes: int | None = None) -> int:
     range, disparity and masks; measured: 6 GB RSS for ingest at 5888 rows).
     """
     budget = memory_budget_bytes() if budget_bytes is None else budget_bytes
+    if height_full < 2:
+        raise CalibrationError(f"--height-full must be >= 2 rows, got {height_full}")
     need = 2 * height_full * height_full * SPHERE_BYTES_PER_PX
-    if height_full < 2 or need > budget:
+    if need > budget:
         most = max(2, int(math.sqrt(budget / (2 * SPHERE_BYTES_PER_PX))) // 256 * 256)
         raise CalibrationError(
             f"--height-full {height_full}: a full-sphere equirect of {height_full} x {2 * height_full} "

@@ -364,6 +364,11 @@ def _walk(
             pos = found
             continue
         pos += _HEADER + len(frame[1])
+    if report.has_magic or report.intact_records:  # an MCAP file ends with its footer: this one was cut
+        report.end = (
+            f"stopped at byte {len(buf)}, the end of the file, before the footer: the recording was cut "
+            "there or is still being written"
+        )
 
 
 def mcap_messages(path: Path, report: SalvageReport) -> Iterator[tuple[McapChannel, int, bytes]]:

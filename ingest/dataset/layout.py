@@ -134,7 +134,10 @@ def write_sample(out: Path, sid: str, files: SampleFiles, exr: bool, png_level: 
 def read_png_u16(path: Path, scale: float) -> F32:
     """Read a uint16 GT PNG back into float32 physical units (0 stays 0)."""
     raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if raw is None or raw.dtype != np.uint16:
-        raise DatasetError(f"{path}: not a 16-bit PNG")
+    if raw is None:
+        size = path.stat().st_size if path.is_file() else 0
+        raise DatasetError(f"{path}: cannot be decoded ({size} bytes: empty, cut short or not an image)")
+    if raw.dtype != np.uint16:
+        raise DatasetError(f"{path}: not a 16-bit PNG ({raw.dtype} pixels)")
     out: F32 = raw.astype(np.float32) / np.float32(scale)
     return out

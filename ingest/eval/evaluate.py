@@ -143,7 +143,7 @@ def read_gt(gt: GtFile) -> F32:
     try:
         values = read_png_u16(gt.path, gt.scale)
     except DatasetError as err:
-        raise EvalError(f"{gt.path}: ground truth must be a 16-bit single-channel PNG") from err
+        raise EvalError(f"{err}; ground truth must be a 16-bit single-channel PNG") from err
     if values.ndim != 2:
         raise EvalError(f"{gt.path}: ground truth must be single-channel, got shape {values.shape}")
     out: F32 = np.where(values > 0, values, np.float32(np.nan)).astype(np.float32)

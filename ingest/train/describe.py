@@ -10,6 +10,7 @@ line per chunk (`lost_in_corrupt_chunks`).
 
 from __future__ import annotations
 
+import hashlib
 import shutil
 import tempfile
 from dataclasses import asdict
@@ -85,13 +86,27 @@ def write_dataset_yaml(
         old = _read_dataset_yaml(path)
         for key in ("R_cam0_rect", "height_full", "baseline_m", "params", "fisheye_size"):
             if old.get(key) != doc[key]:
+                where = first_difference(old.get(key), doc[key])
                 raise DatasetError(
-                    f"{path}: an existing dataset was made with a different {key!r}; "
+                    f"{path}: an existing dataset was made with a different {key!r}{where}; "
                     "choose a new --out or delete it"
                 )
+        rig_differs = _rig_difference(geometry, cfg.out / "rig")
+        if rig_differs:
+            raise DatasetError(
+                f"{cfg.out / 'rig'}: the dataset was made with another rig ({rig_differs}); "
+                "choose a new --out or delete it"
+            )
     sources: list[dict[str, Any]] = list(old.get("sources") or [])
     names = [p.name for p in bags]
+    identity = [bag_identity(p) for p in bags]
     mine = next((s for s in sources if s.get("bags") == names), None)
+    if mine is not None and mine.get("identity", identity) != identity:
+        raise DatasetError(
+            f"{path}: a recording named {', '.join(names)} was ingested here before, from other data "
+            f"(bytes {[i['bytes'] for i in mine['identity']]} then, {[i['bytes'] for i in identity]} now, "
+            "or other content); choose a new --out or rename the recording"
+        )
     if mine is not None and mine.get("samples") != run.planned:
         raise DatasetError(
             f"{path}: {', '.join(names)} was ingested here before with {mine.get('samples')} planned "
@@ -101,6 +116,7 @@ def write_dataset_yaml(
         first = max((int(s["first_id"]) + int(s["samples"]) for s in sources), default=0)
         mine = {"bags": names, "first_id": first, "samples": run.planned}
         sources.append(mine)
+    mine["identity"] = identity
     mine["paths"] = [str(p) for p in bags]
     mine["ground_truth"] = {
         "method": run.method,
@@ -120,6 +136,73 @@ def write_dataset_yaml(
     )
     copy_rig(geometry, cfg.out / "rig")
     return int(mine["first_id"])
+
+
+IDENTITY_HEAD_BYTES = 1 << 20
+
+
+def bag_identity(bag: Path) -> dict[str, Any]:
+    """What tells two recordings of the same name apart: their size and a hash of each file's first MiB.
+
+    A bag is a file (ROS 1, MCAP) or a rosbag2 folder (its files, by name).
+    Reading a MiB per file costs milliseconds, and a different recording
+    differs in its header or index within it, or in size.
+    """
+    files = sorted(f for f in bag.rglob("*") if f.is_file()) if bag.is_dir() else [bag]
+    digest = hashlib.sha256()
+    total = 0
+    try:
+        for f in files:
+            size = f.stat().st_size
+            total += size
+            digest.update(f"{f.relative_to(bag) if bag.is_dir() else f.name}:{size}:".encode())
+            with f.open("rb") as fh:
+                digest.update(fh.read(IDENTITY_HEAD_BYTES))
+    except OSError as err:
+        raise DatasetError(f"{bag}: cannot read it to identify the recording: {err.strerror or err}") from err
+    return {"bytes": total, "sha256_head": digest.hexdigest()}
+
+
+def first_difference(old: Any, new: Any, path: str = "") -> str:
+    """' (key.sub: old -> new)' for the first key whose values differ in two YAML-like trees ('' if none)."""
+    if isinstance(old, dict) and isinstance(new, dict):
+        for key in [*old, *(k for k in new if k not in old)]:
+            if key not in old or key not in new:
+                was, now = old.get(key, "absent"), new.get(key, "absent")
+                return f" ({path}{key}: {was} -> {now})"
+            found = first_difference(old[key], new[key], f"{path}{key}.")
+            if found:
+                return found
+        return ""
+    return "" if old == new else f" ({path.rstrip('.') or 'value'}: {old} -> {new})"
+
+
+def _rig_difference(geometry: Geometry, rig_dir: Path) -> str:
+    """The first difference between `geometry`'s rig and the copy a dataset keeps in `rig_dir` ('' if none).
+
+    Both files are compared as YAML (rig.yaml's poses and topics, camchain.yaml's
+    intrinsics and extrinsics); the rig's name is not part of it. A dataset
+    without a copy yet has nothing to differ from.
+    """
+    from calibration.rig import write_rig
+
+    if not (rig_dir / "rig.yaml").is_file():
+        return ""
+    with tempfile.TemporaryDirectory(prefix="sensorbox-rig-") as tmp:
+        write_rig(geometry.rig, Path(tmp) / "rig.yaml", camchain_name="camchain.yaml")
+        for name in ("rig.yaml", "camchain.yaml"):
+            new = yaml.safe_load((Path(tmp) / name).read_text())
+            try:
+                old = yaml.safe_load((rig_dir / name).read_text())
+            except (OSError, ValueError, yaml.YAMLError) as err:
+                raise DatasetError(f"{rig_dir / name}: cannot read the dataset's rig: {err}") from err
+            if isinstance(old, dict) and isinstance(new, dict):
+                old.pop("name", None)
+                new.pop("name", None)
+            found = first_difference(old, new)
+            if found:
+                return f"{name}{found}"
+    return ""
 
 
 def copy_rig(geometry: Geometry, rig_dir: Path) -> None:

@@ -32,6 +32,7 @@ without decompressing all of it.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
@@ -101,11 +102,35 @@ class IngestConfig:
             raise DatasetError(f"--backend {backend!r}: {problem}")
         if self.max_bad < 0:
             raise DatasetError(f"--max-bad must be >= 0, got {self.max_bad}")
-        if self.workers < 1 or self.every < 1 or not 0 <= self.sample.png_level <= 3:
-            raise DatasetError(
-                f"--workers {self.workers} / --every {self.every} must be >= 1 and --png-level 0..3 "
-                f"({self.sample.png_level})"
-            )
+        if self.workers < 1:
+            raise DatasetError(f"--workers must be >= 1, got {self.workers}")
+        if self.every < 1:
+            raise DatasetError(f"--every must be >= 1, got {self.every}")
+        if not 0 <= self.sample.png_level <= 3:
+            raise DatasetError(f"--png-level must be 0..3, got {self.sample.png_level}")
+        if self.dask:
+            from distributed.comm.addressing import get_address_host_port
+
+            try:
+                get_address_host_port(self.dask)
+            except ValueError as err:
+                raise DatasetError(
+                    f"--dask {self.dask!r}: expected a scheduler address tcp://HOST:PORT ({err})"
+                ) from err
+        if not self.lidar_window_ns > 0:
+            raise DatasetError(f"--window-ms must be > 0, got {self.lidar_window_ns / 1e6:g}")
+        if not (math.isfinite(self.sample.min_range_m) and self.sample.min_range_m >= 0):
+            raise DatasetError(f"--min-range must be >= 0 m, got {self.sample.min_range_m:g}")
+
+
+def _given_once(bag_paths: list[Path]) -> None:
+    """One line when a recording is named twice (it would be read twice and described as two)."""
+    seen: set[Path] = set()
+    for p in bag_paths:
+        key = Path(p).resolve()
+        if key in seen:
+            raise DatasetError(f"{p}: the same recording is given twice")
+        seen.add(key)
 
 
 @dataclass
@@ -171,6 +196,8 @@ def _resolve_topics(rig: Rig, bag_topics: dict[str, Any], where: str) -> Topics:
         for cand in (topic, f"{topic}/compressed"):
             if cand in bag_topics:
                 return cand
+        if not bag_topics:
+            raise BagError(f"{where}: no messages at all (an empty bag, or cut before its first message)")
         listing = "\n  ".join(sorted(bag_topics))
         raise BagError(f"{where}: no topic {topic!r} for {what} (from the rig); the bag has:\n  {listing}")
 
@@ -235,9 +262,12 @@ def ingest(
     """Run the whole job; `progress(done, total)` after each sample, `warn(line)` per skipped message."""
     t_start = time.perf_counter()
     cfg.validate()
+    _given_once(bag_paths)
     retain_freed_memory()  # chunks and images: ~20 MB per sample pass through this process too
     cfg = replace(cfg, sample=replace(cfg.sample, window_ns=cfg.lidar_window_ns))
     rig = read_rig(cfg.rig)
+    if not rig.lidars:
+        raise DatasetError(f"{cfg.rig}: the rig has no LiDAR under 'lidars'; ingest needs at least one")
     geometry = Geometry.from_rig(rig, cfg.height_full)
     summary = IngestSummary(out=cfg.out)
     bad = BadMessages(cfg.max_bad, warn)

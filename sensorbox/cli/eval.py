@@ -118,7 +118,8 @@ def eval_cmd(
     stereo: EPE, median, p95, bad-1/2/3 (px); depth: AbsRel, MAE, RMSE,
     delta < 1.25^k. Totals pool every pixel.
     """
-    from ingest.eval.evaluate import evaluate, write_report_json
+    from ingest.errors import EvalError
+    from ingest.eval.evaluate import PRED_EXTS, evaluate, write_report_json
     from ingest.eval.request import eval_request
 
     req = eval_request(
@@ -126,6 +127,12 @@ def eval_cmd(
     )
     with progress_bar("scoring", "samples") as update:
         report = evaluate(dataset, pred, req.options, progress=update)
+    if not report.samples and report.missing:
+        raise EvalError(
+            f"{pred}: no prediction for any of the {len(report.missing)} GT samples of {dataset}; "
+            f"expected files such as {pred / report.missing[0]}{{{','.join(PRED_EXTS)}}} "
+            "(the prediction folder mirrors the dataset's)"
+        )
     _print_report(report, task, dataset)
     _print_extras(report, req, heatmap, metric, task, pred)
     out = write_report_json(report, json_out or pred / f"eval_{task}.json")

@@ -8,6 +8,7 @@ of matplotlib at full resolution, `--no-preview` skips it).
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
@@ -143,10 +144,15 @@ def ingest_cmd(
     max_bad: MaxBadOpt = 0, preview: PreviewOpt = True, backend: BackendOpt = "numba",
 ) -> None:  # fmt: skip
     """Turn recorded bags into the WideDepth training set (rectified equirect pairs + depth/disparity GT)."""
+    from ingest.errors import DatasetError
     from ingest.train.dense import DenseParams
     from ingest.train.pipeline import IngestConfig, ingest
     from ingest.train.sample import SampleParams
 
+    given = (("--window-ms", window_ms), ("--gt-window-ms", gt_window_ms), ("--min-range", min_range))
+    for name, value in given:
+        if not math.isfinite(value):
+            raise DatasetError(f"{name} must be a finite number, got {value:g}")
     dense = DenseParams(window_ns=round(gt_window_ms * 1e6))
     dense = replace(dense, render=replace(dense.render, backend=backend))  # type: ignore[arg-type]  # validated
     sample = SampleParams(min_range_m=min_range, exr=exr, png_level=png_level, motion=motion, dense=dense)  # type: ignore[arg-type]
@@ -154,6 +160,7 @@ def ingest_cmd(
         rig=rig, out=out, workers=workers, every=every, lidar_window_ns=round(window_ms * 1e6),
         height_full=height_full, salvage=salvage, dask=dask, gt=gt, max_bad=max_bad, sample=sample,
     )  # fmt: skip
+    cfg.validate()  # before the progress bar: a bad value is one line
     with progress_bar("ingesting", "samples") as update:
         summary = ingest(bags, cfg, progress=update, warn=_warn)
     for line in summary.lost_chunks:

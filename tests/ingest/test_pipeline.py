@@ -172,9 +172,74 @@ def test_a_second_recording_is_appended_and_each_resumes_its_own_ids(tmp_path: P
     again = ingest([walk], IngestConfig(rig=_rig(INDOOR), out=out, workers=1, every=10))
     assert (again.written, again.resumed, again.skipped) == (0, second.written, second.skipped)
     with pytest.raises(
-        DatasetError, match=r"dataset.yaml: an existing dataset was made with a different 'params'"
+        DatasetError,
+        match=r"dataset.yaml: an existing dataset was made with a different 'params' \(every: 10 -> 5\)",
     ):
         ingest([walk], IngestConfig(rig=_rig(INDOOR), out=out, workers=1, every=5))
+
+
+def test_a_recording_is_known_by_its_content_and_a_dataset_by_its_rig(tmp_path: Path) -> None:
+    """Another recording under the same name, or the same one with another rig, cannot resume into a dataset."""
+    out = tmp_path / "ds"
+    first = ingest([INDOOR], IngestConfig(rig=_rig(INDOOR), out=out, workers=1, every=10))
+    stored = {name: (out / "rig" / name).read_bytes() for name in ("rig.yaml", "camchain.yaml")}
+    impostor = tmp_path / "other" / INDOOR.name  # other data, the same folder name
+    shutil.copytree(FIXTURES_DIR / "indoor_walk_db3", impostor)
+    with pytest.raises(
+        DatasetError, match=r"a recording named indoor_static_mcap was ingested here before, from other data"
+    ):
+        ingest([impostor], IngestConfig(rig=_rig(INDOOR), out=out, workers=1, every=10))
+    shifted = yaml.safe_load(_rig(INDOOR).read_text())
+    shifted["lidars"]["lidar_top"]["T_cam0_lidar"][0][3] += 0.01  # 1 cm
+    (tmp_path / "rig.yaml").write_text(yaml.safe_dump(shifted))
+    shutil.copy(truth_dir(INDOOR) / "camchain.yaml", tmp_path / "camchain.yaml")
+    with pytest.raises(DatasetError, match=r"another rig \(rig.yaml \(lidars.lidar_top.T_cam0_lidar: "):
+        ingest([INDOOR], IngestConfig(rig=tmp_path / "rig.yaml", out=out, workers=1, every=10))
+    chain = yaml.safe_load((truth_dir(INDOOR) / "camchain.yaml").read_text())
+    chain["cam0"]["intrinsics"][-2] += 1.0  # cx, 1 px
+    (tmp_path / "camchain.yaml").write_text(yaml.safe_dump(chain))
+    (tmp_path / "rig.yaml").write_text(_rig(INDOOR).read_text())
+    with pytest.raises(DatasetError, match=r"another rig \(camchain.yaml \(cam0.intrinsics: "):
+        ingest([INDOOR], IngestConfig(rig=tmp_path / "rig.yaml", out=out, workers=1, every=10))
+    assert {name: (out / "rig" / name).read_bytes() for name in stored} == stored  # left as it was
+    again = ingest([INDOOR], IngestConfig(rig=_rig(INDOOR), out=out, workers=1, every=10))
+    assert (again.written, again.resumed) == (0, first.written)
+    with pytest.raises(DatasetError, match=r"indoor_static_mcap: the same recording is given twice"):
+        ingest([INDOOR, INDOOR], IngestConfig(rig=_rig(INDOOR), out=tmp_path / "twice", workers=1))
+    assert not (tmp_path / "twice").exists()
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"workers": 0}, r"--workers must be >= 1, got 0"),
+        ({"every": 0}, r"--every must be >= 1, got 0"),
+        ({"lidar_window_ns": 0}, r"--window-ms must be > 0, got 0"),
+        ({"lidar_window_ns": -5_000_000}, r"--window-ms must be > 0, got -5"),
+        ({"dask": "notanaddress"}, r"--dask 'notanaddress': expected a scheduler address tcp://HOST:PORT"),
+        ({"sample": SampleParams(png_level=9)}, r"--png-level must be 0..3, got 9"),
+        ({"sample": SampleParams(min_range_m=-1.0)}, r"--min-range must be >= 0 m, got -1"),
+    ],
+)
+def test_a_bad_option_is_one_line_naming_it(tmp_path: Path, change: dict[str, object], message: str) -> None:
+    cfg = IngestConfig(rig=_rig(INDOOR), out=tmp_path / "ds", **change)  # type: ignore[arg-type]
+    with pytest.raises(DatasetError, match=message):
+        ingest([INDOOR], cfg)
+    assert not (tmp_path / "ds").exists()
+
+
+def test_a_rig_without_lidars_or_a_bag_without_messages_is_one_line(tmp_path: Path) -> None:
+    rig = yaml.safe_load(_rig(INDOOR).read_text())
+    rig["lidars"] = {}
+    (tmp_path / "rig.yaml").write_text(yaml.safe_dump(rig))
+    shutil.copy(truth_dir(INDOOR) / "camchain.yaml", tmp_path / "camchain.yaml")
+    with pytest.raises(DatasetError, match=r"rig.yaml: the rig has no LiDAR under 'lidars'"):
+        ingest([INDOOR], IngestConfig(rig=tmp_path / "rig.yaml", out=tmp_path / "ds"))
+    empty = tmp_path / "empty.mcap"
+    empty.write_bytes(b"")
+    with pytest.raises(BagError, match=r"empty.mcap: no messages at all"):
+        ingest([empty], IngestConfig(rig=_rig(INDOOR), out=tmp_path / "ds", salvage=True))
+    assert not (tmp_path / "ds").exists()
 
 
 def test_dask_local_cluster_writes_the_same_files(tmp_path: Path) -> None:

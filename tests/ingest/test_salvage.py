@@ -119,6 +119,18 @@ def test_damage_is_logged_with_its_byte_range(tmp_path, caplog):
     assert f"damaged bytes skipped: {first}..{second}" in caplog.text
 
 
+def test_a_cut_between_chunks_is_logged_as_a_cut(tmp_path, caplog):
+    """A file that ends where a chunk ends has no footer: it was cut, and salvage says so (a warning)."""
+    data = write_mcap(tmp_path / "a.mcap", CompressionType.ZSTD, 512).read_bytes()
+    third = chunk_offsets(data)[2]
+    (tmp_path / "b.mcap").write_bytes(data[:third])  # two whole chunks, nothing after
+    with caplog.at_level(logging.WARNING, logger="ingest.bags.reader"):
+        got = values_of(salvage_mcap(tmp_path / "b.mcap"))
+    assert 0 < len(got) < N and got == list(range(len(got)))
+    assert f"b.mcap: salvaged {len(got)} messages" in caplog.text
+    assert f"stopped at byte {third}, the end of the file, before the footer" in caplog.text
+
+
 def test_a_cut_magic_is_an_empty_file_and_garbage_is_not_mcap(tmp_path):
     (tmp_path / "m.mcap").write_bytes(b"\x89MC")
     with pytest.raises(BagError, match=r"m\.mcap: not an MCAP file"):

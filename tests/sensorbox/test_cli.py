@@ -83,6 +83,15 @@ def test_ingest_backend_is_checked_before_any_bag_is_read(tmp_path):
     lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
     assert res.returncode == 2 and len(lines) == 1, res.stderr
     assert lines[0] == "error: --backend 'gpu': expected numba, numpy, torch or cuda"
+    for option, value, line in (
+        ("--window-ms", "nan", "error: --window-ms must be a finite number, got nan"),
+        ("--gt-window-ms", "inf", "error: --gt-window-ms must be a finite number, got inf"),
+        ("--window-ms", "-5", "error: --window-ms must be > 0, got -5"),
+    ):
+        res = run(*args, option, value)
+        assert res.returncode == 2 and [ln for ln in res.stderr.splitlines() if ln.strip()] == [line], (
+            res.stderr
+        )
     try:
         import torch
     except ImportError:

@@ -124,6 +124,19 @@ def test_errors_are_one_line_and_exit_2(tmp_path: Path) -> None:
     npy.write_bytes(b"")  # an empty prediction file printed only "Aborted!" (issue 20, class 10)
     res = _run("eval", "--dataset", str(bench), "--pred", str(pred), "--task", "stereo")
     assert res.returncode == 2 and f"error: {npy}: cannot read the .npy file" in res.stderr, res.stderr
+    empty = tmp_path / "empty"  # a prediction folder that matches nothing (wrong level, say)
+    empty.mkdir()
+    res = _run("eval", "--dataset", str(bench), "--pred", str(empty), "--task", "stereo")
+    assert res.returncode == 2 and f"error: {empty}: no prediction for any of the 16 GT samples" in res.stderr
+    assert (
+        "(the prediction folder mirrors the dataset's)" in res.stderr
+        and not (empty / "eval_stereo.json").exists()
+    )
+    gt = sorted(bench.rglob("depth/*.png"))[0]
+    gt.write_bytes(gt.read_bytes()[:60])  # a GT PNG cut short
+    res = _run("stats", str(bench))
+    assert res.returncode == 2, res.stdout + res.stderr
+    assert f"error: {gt}: cannot be decoded (60 bytes: empty, cut short or not an image)" in res.stderr
     for cmd in ("eval", "stats"):
         res = _run(cmd, "--help")
         assert res.returncode == 0 and "Usage" in res.stdout
