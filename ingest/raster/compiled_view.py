@@ -150,29 +150,25 @@ def zbuffer(
     points not packed by rows need one band (``bands=1``) whose segment holds them all.
     ``classes[ku, kv]`` counts the points per footprint.
     """
+    own = np.full(H * W if with_own else 0, EMPTY_KEY, np.int64)
+    splat = np.full(H * W, EMPTY_KEY, np.int64)
     n = len(pts.pix)
-    if not n:
-        return np.full(H * W if with_own else 0, EMPTY_KEY, np.int64), np.full(H * W, EMPTY_KEY, np.int64)
-    if n >= 1 << IDX_BITS:
-        raise ValueError(f"a view can z-buffer at most 2^{IDX_BITS} points, got {n}")
-    if seg.shape[1] - 1 != pk.n_groups(H):
-        raise ValueError(f"segments of {seg.shape[1] - 1} row groups for an image of {pk.n_groups(H)}")
-    # uninitialised: each band of the kernel fills its own rows first (the groups cover every row)
-    own = np.empty(H * W if with_own else 0, np.int64)
-    splat = np.empty(H * W, np.int64)
-    k_max = k_max_of(classes)
-    spans = pk.ellipse_spans(*ellipse_offsets(k_max))
-    layer_of, layer_cls = _dense_classes(classes, k_max, H * W)
-    layers = np.empty((len(layer_cls), H * W), np.int64)
-    bands = bands or pk.n_bands(seg.shape[1] - 1)
-    pk.zbuffer_bands(pts.pix, order, pts.r, pts.ku, pts.kv, seg, k_max + 1, k_max, *spans, layer_of, H, W,
-                     bands, f32(RANGE_QUANTUM_M), KEY_BASE, Q_MAX, IDX_BITS, EMPTY_KEY, own, splat, layers,
-                     with_own)  # fmt: skip
-    if len(layer_cls):
-        span_start, span_dr, span_c0, span_c1 = spans
-        if not (span_c0 == -span_c1).all():
-            raise ValueError("footprint spans must be symmetric (-w..w) to dilate a layer")
-        pk.dilate_layers(layers, layer_cls, span_start, span_dr, span_c1, H, W, splat)
+    if n:
+        if n >= 1 << IDX_BITS:
+            raise ValueError(f"a view can z-buffer at most 2^{IDX_BITS} points, got {n}")
+        k_max = k_max_of(classes)
+        spans = pk.ellipse_spans(*ellipse_offsets(k_max))
+        layer_of, layer_cls = _dense_classes(classes, k_max, H * W)
+        layers = np.full((len(layer_cls), H * W), EMPTY_KEY, np.int64)
+        bands = bands or pk.n_bands(seg.shape[1] - 1)
+        pk.zbuffer_bands(pts.pix, order, pts.r, pts.ku, pts.kv, seg, k_max + 1, k_max, *spans, layer_of, H, W,
+                         bands, f32(RANGE_QUANTUM_M), KEY_BASE, Q_MAX, IDX_BITS, own, splat, layers,
+                         with_own)  # fmt: skip
+        if len(layer_cls):
+            span_start, span_dr, span_c0, span_c1 = spans
+            if not (span_c0 == -span_c1).all():
+                raise ValueError("footprint spans must be symmetric (-w..w) to dilate a layer")
+            pk.dilate_layers(layers, layer_cls, span_start, span_dr, span_c1, H, W, splat)
     return own, splat
 
 

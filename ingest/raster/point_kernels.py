@@ -166,14 +166,9 @@ def _key(r, i, quantum, base, q_max, idx_bits):  # type: ignore[no-untyped-def] 
 @njit(parallel=True, cache=True, nogil=True)
 def zbuffer_bands(  # type: ignore[no-untyped-def]  # pragma: no cover
     pix, order, r, ku, kv, seg, k1, k_max, span_start, span_dr, span_c0, span_c1, layer_of, H, W, bands,
-    quantum, base, q_max, idx_bits, empty, own, splat, layers, with_own,
+    quantum, base, q_max, idx_bits, own, splat, layers, with_own,
 ):  # fmt: skip
     """`ingest.raster.kernels.zbuffer_keys` with the keys made here, in parallel bands of row groups.
-
-    Each band first sets its own rows of ``own``, ``splat`` and ``layers`` to
-    ``empty`` (the buffers may come uninitialised): the rows are then in the
-    thread's cache when its points are written, and no separate pass fills
-    the images.
 
     ``seg[s, g]`` is where source s's points of row group g start. A point
     covers, per footprint class cls = ku * k1 + kv, the row spans
@@ -191,11 +186,6 @@ def zbuffer_bands(  # type: ignore[no-untyped-def]  # pragma: no cover
         g1 = (b + 1) * G // bands
         r0 = g0 * ROW_GROUP
         r1 = min(H, g1 * ROW_GROUP)
-        if with_own:
-            own[r0 * W : r1 * W] = empty
-        splat[r0 * W : r1 * W] = empty
-        for li in range(layers.shape[0]):
-            layers[li, r0 * W : r1 * W] = empty
         for s in range(seg.shape[0]):
             for i in range(seg[s, max(0, g0 - reach)], seg[s, min(G, g1 + reach)]):
                 p = pix[i]
