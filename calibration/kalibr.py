@@ -245,6 +245,13 @@ def _parse_camera(name: str, block: object, where: str) -> dict[str, Any]:
         or not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in res)
     ):
         raise CalibrationError(f"{where}.resolution: expected [width, height] positive ints, got {res!r}")
+    given = dict(zip(names, intr, strict=True))
+    pu, pv = given["pu"], given["pv"]
+    if not (0.0 <= pu <= res[0] and 0.0 <= pv <= res[1]):
+        raise CalibrationError(
+            f"{where}.intrinsics: the principal point (pu, pv) = ({pu:g}, {pv:g}) lies outside the "
+            f"{res[0]}x{res[1]} image"
+        )
     try:
         camera = model_from_kalibr(model, intr, dist, coeffs, res)
     except CalibrationError as err:

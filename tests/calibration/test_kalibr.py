@@ -183,6 +183,7 @@ def write_bad(tmp_path, cam0=None, cam1=None, text=None):
         ({"cam0": {"intrinsics": [-0.18, 0.59, 500, 500.0, 960.0, 600.0]}}, r"cam0\.intrinsics: fu must be a float \(Kalibr rejects integers\), got 500"),
         ({"cam0": {"intrinsics": [-0.18, 0.59, -500.0, 500.0, 960.0, 600.0]}}, r"cam0\.intrinsics: fu must be > 0, got -500\.0"),
         ({"cam0": {"intrinsics": [-0.18, 1.5, 500.0, 500.0, 960.0, 600.0]}}, r"cam0: DoubleSphere: alpha must be in \[0, 1\), got 1\.5"),
+        ({"cam0": {"intrinsics": [-0.18, 0.59, 500.0, 500.0, -240.0, 600.0]}}, r"cam0\.intrinsics: the principal point \(pu, pv\) = \(-240, 600\) lies outside the 1920x1200 image"),
         ({"cam0": {"distortion_model": "radtan", "distortion_coeffs": [0.0, 0.0, 0.0, 0.0]}}, r"cam0\.distortion_model: 'radtan' is not valid with camera_model 'ds' \(expected one of none\)"),
         ({"cam0": {"camera_model": "pinhole", "intrinsics": [5.0, 5.0, 1.0, 1.0], "distortion_model": "radtan", "distortion_coeffs": [0.1]}}, r"cam0\.distortion_coeffs \(radtan\): expected 4 values, got 1"),
         ({"cam0": {"resolution": [1920.0, 1200]}}, r"cam0\.resolution: expected \[width, height\] positive ints"),
