@@ -144,11 +144,15 @@ IDENTITY_HEAD_BYTES = 1 << 20
 def bag_identity(bag: Path) -> dict[str, Any]:
     """What tells two recordings of the same name apart: their size and a hash of each file's first MiB.
 
-    A bag is a file (ROS 1, MCAP) or a rosbag2 folder (its files, by name).
+    A bag is a file (ROS 1, MCAP) or a rosbag2 folder (its data files, by
+    name; not `metadata.yaml`, which tools such as `ros2 bag reindex` rewrite).
     Reading a MiB per file costs milliseconds, and a different recording
     differs in its header or index within it, or in size.
     """
-    files = sorted(f for f in bag.rglob("*") if f.is_file()) if bag.is_dir() else [bag]
+    if bag.is_dir():
+        files = sorted(f for f in bag.rglob("*") if f.is_file() and f.name != "metadata.yaml")
+    else:
+        files = [bag]
     digest = hashlib.sha256()
     total = 0
     try:
