@@ -239,7 +239,9 @@ def _parse_imu(name: str, block: object, where: str) -> Imu:
     if "T_cam0_imu" not in block:
         raise CalibrationError(f"{where}: missing key 'T_cam0_imu'")
     rate = block.get("rate_hz")
-    if rate is not None and (not isinstance(rate, int | float) or isinstance(rate, bool) or rate <= 0):
+    if rate is not None and (
+        not isinstance(rate, int | float) or isinstance(rate, bool) or not (rate > 0 and math.isfinite(rate))
+    ):
         raise CalibrationError(f"{where}.rate_hz: expected a positive number, got {rate!r}")
     return Imu(
         name=name,

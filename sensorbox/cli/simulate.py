@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
@@ -52,8 +53,11 @@ def simulate_cmd(
     """Simulate the SensorBox in a procedural scene: write a bag plus its exact truth (<bag>.truth/)."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
+    from calibration.errors import SensorboxError
     from sensorbox.sim.run import SimConfig, simulate
 
+    if not math.isfinite(lidar_offset_ms):
+        raise SensorboxError(f"--lidar-offset-ms must be a finite number, got {lidar_offset_ms}")
     cfg = SimConfig(
         scene=scene, trajectory=trajectory, tum=tum, duration_s=duration, seed=seed, format=fmt,  # type: ignore[arg-type]
         lidar_msg=lidar_msg, image=image, scale=scale, range_noise_m=range_noise,  # type: ignore[arg-type]

@@ -43,6 +43,7 @@ import importlib
 import itertools
 import json
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -101,8 +102,8 @@ class Params:
 
     def number(self, key: str, default: float) -> float:
         v = self.raw(key, default)
-        if isinstance(v, bool) or not isinstance(v, int | float):
-            raise self._err(key, v, "a number")
+        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+            raise self._err(key, v, "a finite number")
         return float(v)
 
     def integer(self, key: str, default: int) -> int:

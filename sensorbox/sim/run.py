@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import heapq
 import itertools
+import math
 import shutil
 import time
 from collections.abc import Callable
@@ -91,11 +92,15 @@ class SimConfig:
         ):
             if choice not in known:
                 raise SensorboxError(f"{flag} {choice!r}: expected one of {', '.join(known)}")
+        if self.tum is not None and self.trajectory != "custom":
+            raise SensorboxError(
+                f"--tum is read only with --trajectory custom (got --trajectory {self.trajectory})"
+            )
         for name, value, lo in (("duration", self.duration_s, 0.0), ("scale", self.scale, 0.0)):
-            if not value > lo:
-                raise SensorboxError(f"--{name} must be > {lo}, got {value}")
-        if self.range_noise_m < 0:
-            raise SensorboxError(f"--range-noise must be >= 0 m, got {self.range_noise_m}")
+            if not (value > lo and math.isfinite(value)):
+                raise SensorboxError(f"--{name} must be a finite number > {lo}, got {value}")
+        if not (self.range_noise_m >= 0 and math.isfinite(self.range_noise_m)):
+            raise SensorboxError(f"--range-noise must be a finite number >= 0 m, got {self.range_noise_m}")
         if self.supersample < 1:
             raise SensorboxError(f"--supersample must be >= 1, got {self.supersample}")
 

@@ -293,19 +293,23 @@ def test_node_parameters_are_checked_when_built(tmp_path):
         - node: {exec: talker, name: t, param: [{name: rate_hz, value: 5.0}, {name: colour, value: red}]}
         - node: {exec: talker, name: u, param: [{name: rate_hz, value: fast}]}
         - node: {exec: recorder, param: [{name: split_size_mb, value: -1}]}
+        - node: {exec: recorder, param: [{name: duration_s, value: .nan}]}
         """)  # fmt: skip
-    t, u, r = parse_launch(f).nodes
+    t, u, r, nan = parse_launch(f).nodes
     with pytest.raises(
         GraphError, match=r"parameter\(s\) colour not used by this node .*it reads: count, payload_bytes"
     ):
         build_node(t, Bus(), Shutdown())
-    with pytest.raises(GraphError, match="parameter 'rate_hz' = 'fast': expected a number"):
+    with pytest.raises(GraphError, match="parameter 'rate_hz' = 'fast': expected a finite number"):
         build_node(u, Bus(), Shutdown())
     with pytest.raises(
         GraphError,
-        match=r"node 'recorder' \(sensorbox/recorder\) at .*n.launch.yaml:4: recorder split_bytes must be >= 0",
+        match=r"node 'recorder' \(sensorbox/recorder\) at .*n.launch.yaml:4: recorder split_bytes must be a finite "
+        r"number >= 0",
     ):
         build_node(r, Bus(), Shutdown())
+    with pytest.raises(GraphError, match=r"parameter 'duration_s' = nan: expected a finite number"):
+        build_node(nan, Bus(), Shutdown())  # NaN passed '>= 0' and recorded forever
 
 
 def test_shipped_launch_files_parse_with_their_defaults():

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
@@ -10,6 +11,7 @@ import numpy as np
 import pytest
 from rosbags.highlevel import AnyReader
 
+from calibration.errors import SensorboxError
 from calibration.rig import REFERENCE_RIG, read_rig
 from calibration.transforms import invert
 from ingest.bags.livox_msg import decode_custom_msg
@@ -335,3 +337,22 @@ def test_movers_are_where_their_truth_says_at_each_points_own_time(tmp_path: Pat
                 np.minimum(static_r, mover_only), r, atol=1e-3
             )  # every hit is explained
     assert on_mover > 100
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"duration_s": math.inf}, r"--duration must be a finite number > 0.0, got inf"),
+        ({"scale": math.nan}, r"--scale must be a finite number > 0.0, got nan"),
+        ({"range_noise_m": math.nan}, r"--range-noise must be a finite number >= 0 m, got nan"),
+        ({"tum": Path("t.tum")}, r"--tum is read only with --trajectory custom \(got --trajectory static\)"),
+    ],
+)
+def test_a_bad_simulation_setting_is_one_line_before_anything_is_written(
+    tmp_path: Path, change: dict[str, object], message: str
+) -> None:
+    """Non-finite values reached int() (a traceback) or the bag (NaN noise); --tum alone left a partial bag."""
+    cfg = SimConfig(**{"duration_s": 0.1, "scale": 0.1, **change})  # type: ignore[arg-type]
+    with pytest.raises(SensorboxError, match=message):
+        simulate(cfg, tmp_path / "bag")
+    assert list(tmp_path.iterdir()) == []
