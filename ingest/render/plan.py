@@ -61,8 +61,24 @@ class BenchmarkConfig:
     def validate(self) -> None:
         if not self.fovs_deg or any(not 0.0 < f < 360.0 for f in self.fovs_deg):
             raise BenchmarkError(f"--fov {list(self.fovs_deg)}: each FOV must be in (0, 360) degrees")
-        if not self.baselines_mm or any(not b > 0.0 for b in self.baselines_mm):
-            raise BenchmarkError(f"--baseline {list(self.baselines_mm)}: each baseline must be > 0 mm")
+        if not self.baselines_mm or any(not (b > 0.0 and math.isfinite(b)) for b in self.baselines_mm):
+            raise BenchmarkError(
+                f"--baseline {list(self.baselines_mm)}: each baseline must be a finite number > 0 mm"
+            )
+        for option, values in (
+            ("--yaw", self.yaws_deg),
+            ("--height", self.heights_m),
+            ("--pitch", (self.pitch_deg,)),
+        ):
+            if not all(math.isfinite(v) for v in values):
+                raise BenchmarkError(f"{option} {list(values)}: each value must be a finite number")
+        clip = self.render.clip_m
+        if clip is not None and not (clip > 0.0 and math.isfinite(clip)):
+            raise BenchmarkError(f"--clip {clip}: must be a finite number > 0 m")
+        if self.height_full is not None and self.height_full < 2:
+            raise BenchmarkError(f"--height-full must be >= 2 rows, got {self.height_full}")
+        if self.site_id < 0:
+            raise BenchmarkError(f"--site-id must be >= 0, got {self.site_id}")
         if self.width < 8 or self.height < 8:
             raise BenchmarkError(f"image size {self.width}x{self.height}: both must be >= 8 px")
         if self.bundle < 1 or self.workers < 1:

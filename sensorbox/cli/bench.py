@@ -71,7 +71,8 @@ def bench_cmd(
         def on_step(what: str) -> None:  # called as each step starts: the ones before it are done
             bar.update(job, description=what[:60], advance=1)
 
-        bags = bench_bags(bag or [], Path(tmp), scale or (0.25 if quick else 0.5), duration, on_step)
+        sim_scale = (0.25 if quick else 0.5) if scale is None else scale  # 0 is refused, not the default
+        bags = bench_bags(bag or [], Path(tmp), sim_scale, duration, on_step)
         bar.reset(job, total=len(alternatives) * len(bags) * repeats + int(projection))
         result = run_bench(bags, out, alternatives, Path(tmp) / "work", step, projection, repeats, on_step)
     typer.echo(bench_report(result, bags))

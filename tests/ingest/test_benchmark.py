@@ -317,6 +317,18 @@ def test_rerun_skips_finished_scenes_and_bad_setups_are_refused(bench):
         run_benchmark(bench["scans"], bench["ref"], bench["root"] / "x", replace(CFG, centers=("nope",)))
     with pytest.raises(BenchmarkError, match="--fov"):
         run_benchmark(bench["scans"], bench["ref"], bench["root"] / "x", replace(CFG, fovs_deg=(400.0,)))
+    nan, inf = float("nan"), float("inf")
+    for change, message in (  # each used to render empty or fully clipped scenes with exit 0, or a traceback
+        ({"baselines_mm": (inf,)}, r"--baseline \[inf\]: each baseline must be a finite number > 0 mm"),
+        ({"yaws_deg": (inf,)}, r"--yaw \[inf\]: each value must be a finite number"),
+        ({"heights_m": (nan,)}, r"--height \[nan\]: each value must be a finite number"),
+        ({"render": replace(CFG.render, clip_m=0.0)}, r"--clip 0.0: must be a finite number > 0 m"),
+        ({"height_full": 0}, r"--height-full must be >= 2 rows, got 0"),
+        ({"site_id": -1}, r"--site-id must be >= 0, got -1"),
+    ):
+        with pytest.raises(BenchmarkError, match=message):
+            run_benchmark(bench["scans"], bench["ref"], bench["root"] / "x", replace(CFG, **change))
+    assert not (bench["root"] / "x").exists()
 
 
 def _cli(*args):
