@@ -39,7 +39,8 @@ images to every folder.
 
 Work is one task per rendered camera; tasks run in a local process pool
 (forked, so the scans' level-of-detail index is shared, not copied). A scene
-whose scene.yaml exists is skipped on a rerun.
+whose scene.yaml exists is skipped on a rerun when it was rendered with the
+same cameras, baselines and render settings; otherwise the run is refused.
 """
 
 from __future__ import annotations
@@ -65,6 +66,7 @@ from calibration.types import F32, F64
 from calibration.virtual import (
     partner_pose,
 )
+from ingest.dataset.compare import first_difference
 from ingest.dataset.layout import DEPTH_SCALE, DISP_SCALE, encode_exr, to_uint16, write_atomic
 from ingest.dataset.png import encode_png
 from ingest.dataset.sparse import SparseImage
@@ -285,14 +287,14 @@ def _empty_warning(scene: str, empty: list[str], stats: dict[str, dict[str, int]
     return f"{scene}: {what}; {frame_hint(scan)}"
 
 
-def _scene_doc(
-    state: RenderState, view: View, scans: list[Scan], stats: dict[str, dict[str, int]]
+def _cameras_doc(
+    cfg: BenchmarkConfig, fovs: dict[float, FovCameras], pinhole: tuple[Pinhole, tuple[int, int, int, int]]
 ) -> dict[str, Any]:
-    cfg = state.cfg
-    ph, (c0, r0, cw, ch) = state.pinhole
+    """scene.yaml's `cameras`: every product's model per FOV folder."""
+    ph, (c0, r0, cw, ch) = pinhole
     cams: dict[str, Any] = {}
     for f in cfg.fovs_deg:
-        fc = state.fovs[f]
+        fc = fovs[f]
         eq, cas = fc.pano, fc.cassini
         cams[fov_label(f)] = {
             "fisheye": fc.fisheye.report(),
@@ -309,6 +311,40 @@ def _scene_doc(
                                  "cy": ph.cy - r0, "width": cw, "height": ch, "col_offset": c0,
                                  "row_offset": r0}} if f in cfg.pinhole_fovs else {}),
         }  # fmt: skip
+    return cams
+
+
+def _setup_doc(
+    cfg: BenchmarkConfig, fovs: dict[float, FovCameras], pinhole: tuple[Pinhole, tuple[int, int, int, int]]
+) -> dict[str, Any]:
+    """What a finished scene must share with a rerun that skips it: cameras, baselines, render settings
+    (as scene.yaml holds them, so that a read-back file compares equal)."""
+    doc = {"cameras": _cameras_doc(cfg, fovs, pinhole), "baselines_mm": list(cfg.baselines_mm),
+           "render": asdict(cfg.render)}  # fmt: skip
+    out: dict[str, Any] = yaml.safe_load(yaml.safe_dump(doc))
+    return out
+
+
+def _same_setup(path: Path, setup: dict[str, Any]) -> None:
+    """A BenchmarkError naming the first difference when the finished scene `path` was rendered otherwise."""
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except (OSError, ValueError, yaml.YAMLError) as err:
+        raise BenchmarkError(f"{path}: cannot read the finished scene's description: {err}") from err
+    stored = {key: doc.get(key) for key in setup} if isinstance(doc, dict) else {}
+    found = first_difference(stored, setup)
+    if found:
+        raise BenchmarkError(
+            f"{path}: this scene was rendered with other settings{found}; choose a new --out or delete "
+            f"{path.parent}"
+        )
+
+
+def _scene_doc(
+    state: RenderState, view: View, scans: list[Scan], stats: dict[str, dict[str, int]]
+) -> dict[str, Any]:
+    cfg = state.cfg
+    cams = _cameras_doc(cfg, state.fovs, state.pinhole)
     T = view.T_world_center
     partners = {
         cam: {baseline_label(b): partner_pose(np.eye(4), cam, b / 1000.0).tolist() for b in cfg.baselines_mm}
@@ -377,6 +413,11 @@ def run_benchmark(
     fovs = {f: fov_cameras(reference, f, cfg) for f in cfg.fovs_deg}  # first: refuses an equirect too big
     summary = BenchmarkSummary(out)
     views = plan_views(scans, cfg)
+    ph = pinhole_camera(cfg)
+    setup = _setup_doc(cfg, fovs, ph)
+    for v in views:  # a finished scene is skipped only when it was rendered as asked now
+        if (out / v.scene / "scene.yaml").exists():
+            _same_setup(out / v.scene / "scene.yaml", setup)
     todo = [v for v in views if not (out / v.scene / "scene.yaml").exists()]
     summary.skipped = [v.scene for v in views if v not in todo]
     used = sorted({i for v in todo for i in v.bundle})
@@ -385,7 +426,6 @@ def run_benchmark(
     for i in used:
         indexes[i] = build_index(scans[i], cfg.voxel_m)
     summary.index_seconds = time.perf_counter() - t_index
-    ph = pinhole_camera(cfg)
     for fc in fovs.values():  # warm the per-model caches before forking
         for m in (fc.fisheye.model, fc.pano, fc.cassini):
             pixel_geometry(m)

@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import yaml
 
+from ingest.dataset.compare import first_difference
 from ingest.dataset.layout import DEPTH_SCALE, DISP_SCALE, write_atomic
 from ingest.errors import DatasetError, OutputError
 from ingest.train.sample import Geometry
@@ -165,20 +166,6 @@ def bag_identity(bag: Path) -> dict[str, Any]:
     except OSError as err:
         raise DatasetError(f"{bag}: cannot read it to identify the recording: {err.strerror or err}") from err
     return {"bytes": total, "sha256_head": digest.hexdigest()}
-
-
-def first_difference(old: Any, new: Any, path: str = "") -> str:
-    """' (key.sub: old -> new)' for the first key whose values differ in two YAML-like trees ('' if none)."""
-    if isinstance(old, dict) and isinstance(new, dict):
-        for key in [*old, *(k for k in new if k not in old)]:
-            if key not in old or key not in new:
-                was, now = old.get(key, "absent"), new.get(key, "absent")
-                return f" ({path}{key}: {was} -> {now})"
-            found = first_difference(old[key], new[key], f"{path}{key}.")
-            if found:
-                return found
-        return ""
-    return "" if old == new else f" ({path.rstrip('.') or 'value'}: {old} -> {new})"
 
 
 def _rig_difference(geometry: Geometry, rig_dir: Path) -> str:

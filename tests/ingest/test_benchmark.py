@@ -311,6 +311,12 @@ def test_rerun_skips_finished_scenes_and_bad_setups_are_refused(bench):
     again = run_benchmark(bench["scans"], bench["ref"], bench["out"], CFG)
     assert again.skipped == ["000_000_000"] and again.renders == 0
     assert (bench["dir"] / "scene.yaml").stat().st_mtime_ns == stamp
+    # another size, FOV set or baseline into the same folder: refused, not skipped as done (exit 0 before)
+    other = r"scene.yaml: this scene was rendered with other settings \("
+    for change in ({"width": CFG.width + 8}, {"fovs_deg": (*CFG.fovs_deg, 90.0)}, {"baselines_mm": (100.0,)}):
+        with pytest.raises(BenchmarkError, match=other):
+            run_benchmark(bench["scans"], bench["ref"], bench["out"], replace(CFG, **change))
+    assert (bench["dir"] / "scene.yaml").stat().st_mtime_ns == stamp
     with pytest.raises(BenchmarkError, match="Double Sphere"):
         run_benchmark(bench["scans"], Pinhole(100, 100, 50, 50, 100, 100), bench["root"] / "x", CFG)
     with pytest.raises(BenchmarkError, match=r"--center 'nope'.*s0, s1, s2"):
