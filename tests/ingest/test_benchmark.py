@@ -11,6 +11,7 @@ import subprocess
 import sys
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -324,14 +325,17 @@ def test_rerun_skips_finished_scenes_and_bad_setups_are_refused(bench):
     with pytest.raises(BenchmarkError, match="--fov"):
         run_benchmark(bench["scans"], bench["ref"], bench["root"] / "x", replace(CFG, fovs_deg=(400.0,)))
     nan, inf = float("nan"), float("inf")
-    for change, message in (  # each used to render empty or fully clipped scenes with exit 0, or a traceback
+    bad: tuple[
+        tuple[dict[str, Any], str], ...
+    ] = (  # each rendered empty or clipped scenes (exit 0) or crashed
         ({"baselines_mm": (inf,)}, r"--baseline \[inf\]: each baseline must be a finite number > 0 mm"),
         ({"yaws_deg": (inf,)}, r"--yaw \[inf\]: each value must be a finite number"),
         ({"heights_m": (nan,)}, r"--height \[nan\]: each value must be a finite number"),
         ({"render": replace(CFG.render, clip_m=0.0)}, r"--clip 0.0: must be a finite number > 0 m"),
         ({"height_full": 0}, r"--height-full must be >= 2 rows, got 0"),
         ({"site_id": -1}, r"--site-id must be >= 0, got -1"),
-    ):
+    )
+    for change, message in bad:
         with pytest.raises(BenchmarkError, match=message):
             run_benchmark(bench["scans"], bench["ref"], bench["root"] / "x", replace(CFG, **change))
     assert not (bench["root"] / "x").exists()
