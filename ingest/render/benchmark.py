@@ -414,12 +414,12 @@ def run_benchmark(
     summary = BenchmarkSummary(out)
     views = plan_views(scans, cfg)
     ph = pinhole_camera(cfg)
+    done_before = {v.scene for v in views if (out / v.scene / "scene.yaml").exists()}
     setup = _setup_doc(cfg, fovs, ph)
-    for v in views:  # a finished scene is skipped only when it was rendered as asked now
-        if (out / v.scene / "scene.yaml").exists():
-            _same_setup(out / v.scene / "scene.yaml", setup)
-    todo = [v for v in views if not (out / v.scene / "scene.yaml").exists()]
-    summary.skipped = [v.scene for v in views if v not in todo]
+    for scene in sorted(done_before):  # a finished scene is skipped only when it was rendered as asked now
+        _same_setup(out / scene / "scene.yaml", setup)
+    todo = [v for v in views if v.scene not in done_before]
+    summary.skipped = [v.scene for v in views if v.scene in done_before]
     used = sorted({i for v in todo for i in v.bundle})
     indexes: list[ScanIndex] = [None] * len(scans)  # type: ignore[list-item]
     t_index = time.perf_counter()

@@ -149,8 +149,7 @@ def ingest_cmd(
     from ingest.train.pipeline import IngestConfig, ingest
     from ingest.train.sample import SampleParams
 
-    given = (("--window-ms", window_ms), ("--gt-window-ms", gt_window_ms), ("--min-range", min_range))
-    for name, value in given:
+    for name, value in (("--window-ms", window_ms), ("--gt-window-ms", gt_window_ms)):  # before round()
         if not math.isfinite(value):
             raise DatasetError(f"{name} must be a finite number, got {value:g}")
     dense = DenseParams(window_ns=round(gt_window_ms * 1e6))

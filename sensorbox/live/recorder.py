@@ -100,8 +100,9 @@ class RecorderConfig:
         if self.name and not re.fullmatch(r"[A-Za-z0-9_.+-]+", self.name):
             raise RecorderError(f"recorder name {self.name!r}: use letters, digits and _ . + - only")
         for key in ("split_bytes", "split_s", "duration_s", "min_free_bytes", "flush_s"):
-            if not getattr(self, key) >= 0 or not math.isfinite(getattr(self, key)):
-                raise RecorderError(f"recorder {key} must be a finite number >= 0, got {getattr(self, key)}")
+            value = getattr(self, key)
+            if not (value >= 0 and math.isfinite(value)):
+                raise RecorderError(f"recorder {key} must be a finite number >= 0, got {value}")
         if self.queue_msgs < 1 or self.queue_bytes < 1:
             raise RecorderError(
                 f"recorder queue_msgs ({self.queue_msgs}) and queue_bytes ({self.queue_bytes}) must be >= 1"
