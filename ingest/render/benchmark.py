@@ -58,7 +58,6 @@ import numpy as np
 import yaml
 
 from calibration.camera import CameraModel
-from calibration.fisheye import DoubleSphere
 from calibration.pinhole import Pinhole
 from calibration.spherical import Equirectangular
 from calibration.stereo import depth_to_disparity, disparity_stability_mask, pinhole_depth_to_disparity
@@ -80,6 +79,7 @@ from ingest.render.plan import (
     Task,
     View,
     baseline_label,
+    check_reference,
     fov_cameras,
     fov_label,
     pinhole_camera,
@@ -403,10 +403,7 @@ def run_benchmark(
 ) -> BenchmarkSummary:
     """Render every view of the site into ``out`` (see the module doc); resumable per scene."""
     cfg.validate()
-    if not isinstance(reference, DoubleSphere):
-        raise BenchmarkError(
-            f"the reference camera must be Double Sphere (the FOV laws), got {type(reference).__name__}"
-        )
+    check_reference(reference)
     if not scans:
         raise BenchmarkError("no scans given")
     t0 = time.perf_counter()

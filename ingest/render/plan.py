@@ -147,6 +147,14 @@ def _window_mask(fisheye: CameraModel, full: CameraModel, factor: int = 8) -> tu
     return (c0 * factor, r0 * factor, min(W - c0 * factor, w * factor), min(H - r0 * factor, h * factor))
 
 
+def check_reference(reference: CameraModel) -> None:
+    """The rig's cam0 must be Double Sphere: the virtual fisheyes' FOV laws are fitted to it."""
+    if not isinstance(reference, DoubleSphere):
+        raise BenchmarkError(
+            f"the reference camera must be Double Sphere (the FOV laws), got {type(reference).__name__}"
+        )
+
+
 def fov_cameras(reference: DoubleSphere, fov_deg: float, cfg: BenchmarkConfig) -> FovCameras:
     """The fisheye of ``fov_deg`` and the equirect/Cassini windows covering it."""
     fish = virtual_fisheye(reference, fov_deg, cfg.width, cfg.height)

@@ -1,9 +1,10 @@
 """A render-benchmark run as a user states it (files and option values) -> scans, reference camera, config.
 
 `sensorbox render-benchmark` fills a `BenchmarkRequest` from its options;
-`prepare` checks the values, reads the rig's cam0 (the reference Double
-Sphere calibration) and the scans, adds world-frame mask clouds to every scan
-(in that scan's frame) and builds the `BenchmarkConfig` for `run_benchmark`.
+`prepare` builds the `BenchmarkConfig` and checks it and the rig's cam0 (the
+reference Double Sphere calibration) before it reads the scans, which can
+take minutes; then it reads them and adds world-frame mask clouds to every
+scan (in that scan's frame) for `run_benchmark`.
 """
 
 from __future__ import annotations
@@ -17,10 +18,11 @@ import numpy as np
 from calibration.camera import CameraModel
 from calibration.rig import read_rig
 from calibration.types import F32, F64
+from calibration.warp import check_height_full
 from ingest.errors import BenchmarkError
 from ingest.raster.scan import Scan
 from ingest.raster.visibility import RenderParams, backend_problem
-from ingest.render.plan import BASELINES_MM, FOVS_DEG, BenchmarkConfig
+from ingest.render.plan import BASELINES_MM, FOVS_DEG, BenchmarkConfig, check_reference
 from ingest.render.scans import read_cloud, read_scans
 
 
@@ -96,7 +98,11 @@ def _config(req: BenchmarkRequest) -> BenchmarkConfig:
 def prepare(req: BenchmarkRequest) -> tuple[list[Scan], CameraModel, BenchmarkConfig]:
     """The scans (masks joined), the reference camera and the config of a request."""
     cfg = _config(req)
+    cfg.validate()  # every option and the rig before the scans, which may take minutes to read
     reference = read_rig(req.rig).camera("cam0").model
+    check_reference(reference)
+    if cfg.height_full is not None:
+        check_height_full(cfg.height_full)
     site = read_scans(list(req.scans), req.mask_label or None)
     for m in req.masks or ():  # a world-frame mask cloud joins every scan, in that scan's frame
         world = read_cloud(m, np.eye(4), None).xyz.astype(np.float64)

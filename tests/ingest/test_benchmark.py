@@ -20,7 +20,7 @@ import pytest
 import yaml
 
 from calibration import read_rig
-from calibration.errors import CalibrationError
+from calibration.errors import CalibrationError, SensorboxError
 from calibration.pinhole import Pinhole
 from calibration.spherical import Cassini, Equirectangular
 from calibration.stereo import depth_to_disparity, rotate_for_stereo, unrotate_from_stereo
@@ -403,3 +403,25 @@ def test_an_equirect_beyond_memory_is_refused_before_any_work(tmp_path):
         run_benchmark([_ground_scan(2)], read_rig(RIG).camera("cam0").model, tmp_path / "b",
                       replace(CFG, height_full=100_000, centers=()))  # fmt: skip
     assert not (tmp_path / "b").exists()
+
+
+@pytest.mark.parametrize(
+    ("changes", "pattern"),
+    [
+        ({"clip_m": -1.0}, r"^--clip -1\.0: must be a finite number > 0 m$"),
+        (
+            {"baselines_mm": (float("inf"),)},
+            r"^--baseline \[inf\]: each baseline must be a finite number > 0 mm$",
+        ),
+        ({"height_full": 100_000}, r"^--height-full 100000: .* pass --height-full \d+ or less$"),
+    ],
+)
+def test_options_are_refused_before_the_scans_are_read(tmp_path, changes, pattern):
+    """A bad option is named at once, not after minutes of reading scans: here the scan does not even exist."""
+    from ingest.render.request import BenchmarkRequest, prepare
+
+    request = BenchmarkRequest([tmp_path / "missing.e57"], RIG, tmp_path / "out", **changes)
+    with pytest.raises(SensorboxError, match=pattern):
+        prepare(request)
+    with pytest.raises(SensorboxError, match=r"missing\.e57"):  # the same request with good options: the scan
+        prepare(BenchmarkRequest([tmp_path / "missing.e57"], RIG, tmp_path / "out"))
