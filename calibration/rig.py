@@ -28,6 +28,7 @@ the LiDAR into a base frame, placed in cam0 by ``T_cam0_base``.
 from __future__ import annotations
 
 import importlib.resources
+import ipaddress
 import json
 import math
 from collections.abc import Mapping
@@ -199,12 +200,40 @@ def _livox_block(block: object, where: str) -> F64:
     return livox_extrinsic_to_transform(*values)
 
 
+def _is_ipv4(value: object) -> bool:
+    if not isinstance(value, str):
+        return False
+    try:
+        ipaddress.IPv4Address(value)
+    except ValueError:
+        return False
+    return True
+
+
+def _one_sensor_per_topic(rig_topics: list[tuple[str, str | None]], where: str) -> None:
+    """Each topic belongs to one sensor: messages on a shared topic cannot be told apart.
+
+    (Two Mid-360s on livox_ros_driver2's multi_topic 0 share /livox/lidar, and
+    their CustomMsg.lidar_id is the first octet of the IP, the same for both.)
+    """
+    owner: dict[str, str] = {}
+    for key, topic in rig_topics:
+        if topic is None:
+            continue
+        if topic in owner:
+            raise CalibrationError(
+                f"{where}: {owner[topic]}.topic and {key}.topic are both {topic}: each sensor needs its own "
+                "topic (for Livox LiDARs, livox_ros_driver2's multi_topic: 1)"
+            )
+        owner[topic] = key
+
+
 def _parse_lidar(name: str, block: object, where: str, base_dir: Path) -> Lidar:
     block = _require_mapping(block, where)
     topic = _require_str(block, "topic", where)
     ip = block.get("ip")
-    if ip is not None and not isinstance(ip, str):
-        raise CalibrationError(f"{where}.ip: expected a dotted IPv4 string, got {ip!r}")
+    if ip is not None and not _is_ipv4(ip):
+        raise CalibrationError(f"{where}.ip: expected a dotted IPv4 address such as 192.168.1.12, got {ip!r}")
     given = [k for k in ("T_cam0_lidar", "livox_extrinsic", "livox_config") if k in block]
     if len(given) != 1:
         raise CalibrationError(
@@ -317,6 +346,12 @@ def read_rig(path: str | Path) -> Rig:
     imus = tuple(
         _parse_imu(str(n), b, f"{where}: imus.{n}")
         for n, b in _require_mapping(data.get("imus", {}), f"{where}: imus").items()
+    )
+    _one_sensor_per_topic(
+        [(f"cameras.{c.name}", c.topic) for c in cameras]
+        + [(f"lidars.{li.name}", li.topic) for li in lidars]
+        + [(f"imus.{imu.name}", imu.topic) for imu in imus],
+        where,
     )
     name = data.get("name", p.stem)
     return Rig(cameras, lidars, imus, name=str(name), source=p, camchain=chain)

@@ -403,11 +403,11 @@ def run_benchmark(
 ) -> BenchmarkSummary:
     """Render every view of the site into ``out`` (see the module doc); resumable per scene."""
     cfg.validate()
-    check_reference(reference)
+    ds = check_reference(reference)
     if not scans:
         raise BenchmarkError("no scans given")
     t0 = time.perf_counter()
-    fovs = {f: fov_cameras(reference, f, cfg) for f in cfg.fovs_deg}  # first: refuses an equirect too big
+    fovs = {f: fov_cameras(ds, f, cfg) for f in cfg.fovs_deg}  # first: refuses an equirect too big
     summary = BenchmarkSummary(out)
     views = plan_views(scans, cfg)
     ph = pinhole_camera(cfg)

@@ -147,12 +147,13 @@ def _window_mask(fisheye: CameraModel, full: CameraModel, factor: int = 8) -> tu
     return (c0 * factor, r0 * factor, min(W - c0 * factor, w * factor), min(H - r0 * factor, h * factor))
 
 
-def check_reference(reference: CameraModel) -> None:
-    """The rig's cam0 must be Double Sphere: the virtual fisheyes' FOV laws are fitted to it."""
+def check_reference(reference: CameraModel) -> DoubleSphere:
+    """The rig's cam0, which must be Double Sphere: the virtual fisheyes' FOV laws are fitted to it."""
     if not isinstance(reference, DoubleSphere):
         raise BenchmarkError(
             f"the reference camera must be Double Sphere (the FOV laws), got {type(reference).__name__}"
         )
+    return reference
 
 
 def fov_cameras(reference: DoubleSphere, fov_deg: float, cfg: BenchmarkConfig) -> FovCameras:
