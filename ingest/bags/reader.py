@@ -287,6 +287,16 @@ def _open_reader(paths: list[Path], ros_version: RosVersion, guard: ChunkGuard) 
     return reader
 
 
+def given_once(bag_paths: Sequence[Path]) -> None:
+    """One line when a recording is named twice: it would be read twice, its messages counted twice."""
+    seen: set[Path] = set()
+    for p in bag_paths:
+        key = Path(p).resolve()
+        if key in seen:
+            raise BagError(f"{p}: the same recording is given twice")
+        seen.add(key)
+
+
 def open_bags(paths: str | Path | Sequence[str | Path], salvage: bool = False) -> BagSet:
     """Open one or several bags of one ROS version for reading (see the module docstring).
 
@@ -299,6 +309,7 @@ def open_bags(paths: str | Path | Sequence[str | Path], salvage: bool = False) -
     if not items:
         raise BagError("no bag paths given")
     bag_paths = [Path(p) for p in items]
+    given_once(bag_paths)
     ros_version = _ros_version(bag_paths)
     salvaged: list[Path] = []
     direct = bag_paths

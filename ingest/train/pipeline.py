@@ -41,7 +41,7 @@ from pathlib import Path
 from typing import Any
 
 from calibration.rig import Rig, read_rig
-from ingest.bags.reader import BagSet, open_bags
+from ingest.bags.reader import BagSet, given_once, open_bags
 from ingest.dataset.layout import (
     prepare_dirs,
 )
@@ -121,16 +121,6 @@ class IngestConfig:
             raise DatasetError(f"--window-ms must be > 0, got {self.lidar_window_ns / 1e6:g}")
         if not (math.isfinite(self.sample.min_range_m) and self.sample.min_range_m >= 0):
             raise DatasetError(f"--min-range must be >= 0 m, got {self.sample.min_range_m:g}")
-
-
-def _given_once(bag_paths: list[Path]) -> None:
-    """One line when a recording is named twice (it would be read twice and described as two)."""
-    seen: set[Path] = set()
-    for p in bag_paths:
-        key = Path(p).resolve()
-        if key in seen:
-            raise DatasetError(f"{p}: the same recording is given twice")
-        seen.add(key)
 
 
 @dataclass
@@ -262,7 +252,7 @@ def ingest(
     """Run the whole job; `progress(done, total)` after each sample, `warn(line)` per skipped message."""
     t_start = time.perf_counter()
     cfg.validate()
-    _given_once(bag_paths)
+    given_once(bag_paths)  # before the rig and the output are touched
     retain_freed_memory()  # chunks and images: ~20 MB per sample pass through this process too
     cfg = replace(cfg, sample=replace(cfg.sample, window_ns=cfg.lidar_window_ns))
     rig = read_rig(cfg.rig)

@@ -204,7 +204,7 @@ def test_a_recording_is_known_by_its_content_and_a_dataset_by_its_rig(tmp_path: 
     assert {name: (out / "rig" / name).read_bytes() for name in stored} == stored  # left as it was
     again = ingest([INDOOR], IngestConfig(rig=_rig(INDOOR), out=out, workers=1, every=10))
     assert (again.written, again.resumed) == (0, first.written)
-    with pytest.raises(DatasetError, match=r"indoor_static_mcap: the same recording is given twice"):
+    with pytest.raises(BagError, match=r"indoor_static_mcap: the same recording is given twice"):
         ingest([INDOOR, INDOOR], IngestConfig(rig=_rig(INDOOR), out=tmp_path / "twice", workers=1))
     assert not (tmp_path / "twice").exists()
 

@@ -94,6 +94,16 @@ def test_errors_are_left_to_the_main_cli(tmp_path: Path):
     assert "no such file" in str(res.exception)
 
 
+def test_the_same_bag_twice_is_refused_not_counted_twice():
+    bag = fixture_bag("indoor_static_mcap", FIXTURES_DIR)
+    res = runner.invoke(app, ["inspect", str(bag), str(bag.parent / ".." / bag.parent.name / bag.name)])
+    assert isinstance(res.exception, BagError)
+    assert (
+        str(res.exception)
+        == f"{bag.parent / '..' / bag.parent.name / bag.name}: the same recording is given twice"
+    )
+
+
 def test_help_describes_the_command_and_options():
     res = runner.invoke(app, ["inspect", "--help"])
     assert res.exit_code == 0
