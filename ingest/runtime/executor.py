@@ -34,12 +34,15 @@ from collections import deque
 from collections.abc import Callable, Generator, Iterable
 from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass
-from typing import Any, Generic, Literal, TypeVar
+from typing import TYPE_CHECKING, Any, Generic, Literal, TypeVar
 
 import numpy as np
 
 from ingest.runtime.lifetime import die_with_parent
 from ingest.runtime.transport import ArraySlots, SlotRef, slot_views
+
+if TYPE_CHECKING:
+    from distributed import Client
 
 J = TypeVar("J")
 R = TypeVar("R")
@@ -113,6 +116,23 @@ class Executor:
         self.backend: Backend = (
             "dask" if dask else "inline" if self.workers == 1 else "fork" if forks else "spawn"
         )
+        self._client: Client | None = None  # opened by `connect`
+
+    def connect(self) -> None:
+        """Dask: connect to the scheduler now, so that an unreachable one fails before anything is written.
+
+        `run` connects on its own otherwise; `close` ends the connection. Other backends: nothing.
+        """
+        if self.backend == "dask" and self._client is None:
+            from distributed import Client
+
+            self._client = Client(self.dask)  # type: ignore[no-untyped-call]
+
+    def close(self) -> None:
+        """End a connection that `connect` opened."""
+        if self._client is not None:
+            self._client.close()  # type: ignore[no-untyped-call]
+            self._client = None
 
     @property
     def every_core_busy(self) -> bool:
@@ -182,9 +202,9 @@ class Executor:
     def _run_dask(
         self, fn: Callable[[Any, J], R], jobs: Iterable[J], shared: Any
     ) -> Generator[R, None, None]:
-        from distributed import Client
-
-        client = Client(self.dask)  # type: ignore[no-untyped-call]
+        self.connect()
+        client = self._client
+        assert client is not None
         try:
             if self.worker_init is not None:
                 client.run(self.worker_init)
@@ -199,4 +219,4 @@ class Executor:
             while pending:
                 yield pending.popleft().result()
         finally:
-            client.close()  # type: ignore[no-untyped-call]
+            self.close()

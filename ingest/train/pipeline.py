@@ -261,6 +261,30 @@ def ingest(
     geometry = Geometry.from_rig(rig, cfg.height_full)
     summary = IngestSummary(out=cfg.out)
     bad = BadMessages(cfg.max_bad, warn)
+    executor = Executor(cfg.workers, dask=cfg.dask, worker_init=partial(_init_worker, cfg.workers))
+    executor.connect()  # an unreachable Dask scheduler fails here, before the output is touched
+    try:
+        _run(bag_paths, cfg, rig, geometry, summary, bad, executor, progress)
+    finally:
+        executor.close()
+    if bad.by_topic() != summary.undecodable:  # the stream pass found more (images): update dataset.yaml
+        summary.undecodable = bad.by_topic()
+        record_undecodable(cfg.out, [Path(p) for p in bag_paths], summary.undecodable)
+    summary.seconds = time.perf_counter() - t_start
+    return summary
+
+
+def _run(
+    bag_paths: list[Path],
+    cfg: IngestConfig,
+    rig: Rig,
+    geometry: Geometry,
+    summary: IngestSummary,
+    bad: BadMessages,
+    executor: Executor,
+    progress: Callable[[int, int], None] | None,
+) -> None:
+    """The plan and stream passes over the bags, the samples run on `executor`."""
     with open_bags(bag_paths, salvage=cfg.salvage) as bags:
         topics = _resolve_topics(rig, bags.topics(), ", ".join(str(p) for p in bag_paths))
         asked = cfg
@@ -279,7 +303,6 @@ def ingest(
         first_id = write_dataset_yaml(asked, cfg, geometry, [Path(p) for p in bag_paths], summary)
         if not cfg.dask and summary.planned:
             geometry.warm_maps()
-        executor = Executor(cfg.workers, dask=cfg.dask, worker_init=partial(_init_worker, cfg.workers))
         if executor.every_core_busy:
             # every core runs a worker: a helper thread per worker would only add thread switches
             cfg = replace(cfg, sample=replace(cfg.sample, overlap_images=False))
@@ -313,8 +336,3 @@ def ingest(
                 tick()
         finally:
             results.close()
-    if bad.by_topic() != summary.undecodable:  # the stream pass found more (images): update dataset.yaml
-        summary.undecodable = bad.by_topic()
-        record_undecodable(cfg.out, [Path(p) for p in bag_paths], summary.undecodable)
-    summary.seconds = time.perf_counter() - t_start
-    return summary

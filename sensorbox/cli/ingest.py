@@ -29,7 +29,10 @@ RigOpt = Annotated[Path, typer.Option(help="Rig file (cameras, LiDARs, IMUs and 
 OutOpt = Annotated[Path, typer.Option(help="Output folder (WideDepth train layout); reruns resume.")]
 WorkersOpt = Annotated[int, typer.Option(help="Local worker processes (1 = in this process).")]
 DaskOpt = Annotated[
-    str | None, typer.Option(help="dask.distributed scheduler address, e.g. tcp://host:8786.")
+    str | None,
+    typer.Option(
+        help="dask.distributed scheduler address, e.g. tcp://host:8786; checked before anything is written."
+    ),
 ]
 EveryOpt = Annotated[int, typer.Option(help="Keep every N-th eligible frame.")]
 WindowOpt = Annotated[

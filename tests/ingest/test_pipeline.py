@@ -258,6 +258,23 @@ def test_dask_local_cluster_writes_the_same_files(tmp_path: Path) -> None:
             assert filecmp.cmp(f, out / sub / f.name, shallow=False)
 
 
+def test_an_unreachable_dask_scheduler_fails_before_anything_is_written(tmp_path: Path) -> None:
+    import socket
+
+    import dask
+
+    with socket.socket() as sock:  # a port nobody listens on
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    out = tmp_path / "ds"
+    with (
+        dask.config.set({"distributed.comm.timeouts.connect": "1s"}),
+        pytest.raises(OSError, match=r"Timed out"),
+    ):
+        ingest([INDOOR], IngestConfig(rig=_rig(INDOOR), out=out, dask=f"tcp://127.0.0.1:{port}"))
+    assert not out.exists()
+
+
 def _rig_renaming(tmp_path: Path, topic: str, new: str) -> Path:
     """The fixture's rig with one topic renamed (so the bag lacks it), written into `tmp_path`."""
     (tmp_path / "rig.yaml").write_text(_rig(INDOOR).read_text().replace(topic, new))
