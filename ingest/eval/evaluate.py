@@ -85,6 +85,8 @@ def _is_stereo(task: str) -> bool:
 
 def detect_layout(root: Path) -> Layout:
     """'train' when the ingest folders exist, 'benchmark' when `<scene>/<FOV>FOV/<B>mm/CENTER` does."""
+    if root.exists() and not root.is_dir():
+        raise EvalError(f"{root}: is a file; expected a dataset folder")
     if not root.is_dir():
         raise EvalError(f"{root}: no such dataset folder")
     if (root / "disp_equirect").is_dir() or (root / "depth_fisheye").is_dir():
@@ -126,7 +128,7 @@ def discover_gt(root: Path, task: Task, image_type: str | None = None) -> tuple[
         if layout == "benchmark":
             kind = "disparity" if _is_stereo(task) else "depth"
             what = f"<scene>/<FOV>FOV/<B>mm/CENTER/{kind}/{image_type or '<view>'}.png"
-        raise EvalError(f"{root}: no ground truth for task {task!r} ({what})")
+        raise EvalError(f"{root}: no {'disparity' if _is_stereo(task) else 'depth'} ground truth ({what})")
     return layout, found
 
 

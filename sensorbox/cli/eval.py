@@ -179,7 +179,7 @@ def stats_cmd(
     from sensorbox.analysis.plots import plot_stats
 
     folder = out or dataset
-    if folder.exists() and not folder.is_dir():
+    if out is not None and folder.exists() and not folder.is_dir():
         raise DatasetError(f"--out {folder}: is a file; give a folder for stats.json and stats.png")
     with progress_bar("describing", "samples") as update:
         stats = dataset_stats(dataset, image_type, progress=update)

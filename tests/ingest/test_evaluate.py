@@ -121,10 +121,21 @@ def test_discovery_parses_fov_and_baseline_from_the_path(bench: Path) -> None:
     assert {(x.fov_deg, x.baseline_mm) for x in gts} == {(120, 65), (120, 200), (195, 65), (195, 200)}
     _, depth = discover_gt(bench, "mono")  # every view: pano_crop and fisheye
     assert len(depth) == 16 and all(x.rel.split("/")[4] == "depth" and x.scale == 1000.0 for x in depth)
-    with pytest.raises(EvalError, match=r"no ground truth for task 'stereo'.*CENTER/disparity/pinhole.png"):
+    with pytest.raises(
+        EvalError, match=r"no disparity ground truth \(<scene>/<FOV>FOV/<B>mm/CENTER/disparity/pinhole.png\)$"
+    ):
         discover_gt(bench, "stereo", "pinhole")
     with pytest.raises(EvalError, match="neither the WideDepth train layout"):
         discover_gt(bench / "notes", "stereo")
+
+
+def test_a_dataset_that_is_a_file_or_lacks_depth_is_named_as_such(tmp_path):
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(EvalError, match=r"file: is a file; expected a dataset folder$"):
+        discover_gt(tmp_path / "file", "mono")
+    (tmp_path / "ds" / "disp_equirect").mkdir(parents=True)
+    with pytest.raises(EvalError, match=r"ds: no depth ground truth \(depth_fisheye/\*\.png\)$"):
+        discover_gt(tmp_path / "ds", "mono")
 
 
 def test_stereo_grouped_by_fov_and_baseline(bench: Path, tmp_path: Path) -> None:
