@@ -219,6 +219,7 @@ class EvalOptions:
     edge_band_px: int = 3
     masks: tuple[tuple[str, Path], ...] = ()  # (region name, folder of mask PNGs)
     align: Literal["none", "median"] = "none"  # depth only: per-sample median scaling
+    asked_by: tuple[str, ...] = ()  # the options that asked for the groups, as the user wrote them (messages)
 
 
 @dataclass(frozen=True)
@@ -325,9 +326,10 @@ def _check_options(opts: EvalOptions, layout: Layout) -> None:
     if bad:
         raise EvalError(f"--by {bad[0]!r}: expected one of {', '.join(GROUP_KEYS)}")
     if opts.by and layout != "benchmark":
+        asked = ", ".join(opts.asked_by) or f"--by {'/'.join(opts.by)}"
         raise EvalError(
-            f"--by {'/'.join(opts.by)} needs the benchmark layout (<scene>/<FOV>FOV/<B>mm/...); "
-            "this dataset is the train layout"
+            f"{asked}: grouping by {'/'.join(opts.by)} needs the benchmark layout "
+            "(<scene>/<FOV>FOV/<B>mm/...); this dataset is the train layout"
         )
     names = [name for name, _ in opts.masks]
     if len(set(names)) != len(names) or {"all", "edges"} & set(names):

@@ -63,8 +63,10 @@ def eval_request(
     regions = ("all", *(["edges"] if edges else []), *(name for name, _ in named))
     if region not in regions:
         raise EvalError(f"--region {region!r}: expected one of {', '.join(regions)}")
+    asked = ([f"--by {'/'.join(by)}"] if by else []) + ([f"--compare {compare}"] if pair else [])
     options = EvalOptions(
         task=task, by=tuple(keys), image_type=image_type, edges=edges, masks=named,
         align=align,  # type: ignore[arg-type]
+        asked_by=(*asked, *(["--heatmap"] if heatmap else [])),
     )  # fmt: skip
     return EvalRequest(options, pair, region)

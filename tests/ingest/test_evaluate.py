@@ -16,6 +16,7 @@ from ingest.dataset.layout import encode_exr
 from ingest.errors import EvalError
 from ingest.eval.evaluate import EvalOptions, discover_gt, evaluate, write_report_json
 from ingest.eval.report import compare, heatmap, markdown_compare, markdown_table
+from ingest.eval.request import eval_request
 from ingest.train.pipeline import IngestConfig, ingest
 from ingest.train.sample import SampleParams
 from sensorbox.sim.truth import truth_dir
@@ -357,7 +358,16 @@ def test_sgbm_predictions_give_plausible_numbers(ingested: Path, tmp_path: Path)
 
 
 def test_grouping_needs_the_benchmark_layout(ingested: Path, tmp_path: Path) -> None:
-    with pytest.raises(EvalError, match="needs the benchmark layout"):
+    with pytest.raises(EvalError, match=r"^--by fov: grouping by fov needs the benchmark layout"):
         evaluate(ingested, tmp_path, EvalOptions("stereo", by=("fov",)))
+    heatmap = eval_request("stereo", [], None, True, [], "all", None, True, "none").options
+    with pytest.raises(
+        EvalError,
+        match=r"^--heatmap: grouping by fov/baseline needs the benchmark layout .*this dataset is the train layout$",
+    ):
+        evaluate(ingested, tmp_path, heatmap)  # it asked for no --by
+    both = eval_request("stereo", ["fov"], "195FOV,120FOV", False, [], "all", None, True, "none").options
+    with pytest.raises(EvalError, match=r"^--by fov, --compare 195FOV,120FOV: grouping by fov needs"):
+        evaluate(ingested, tmp_path, both)
     with pytest.raises(EvalError, match="no such prediction folder"):
         evaluate(ingested, tmp_path / "nope", EvalOptions("stereo"))
