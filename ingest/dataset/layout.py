@@ -27,13 +27,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 import OpenEXR
 
 from calibration.types import F32, U8
 from ingest.dataset.meta import SampleMeta
-from ingest.dataset.png import encode_png
+from ingest.dataset.png import encode_png, read_image
 from ingest.dataset.sparse import SparseImage
 from ingest.errors import DatasetError, OutputError
 
@@ -133,7 +132,7 @@ def write_sample(out: Path, sid: str, files: SampleFiles, exr: bool, png_level: 
 
 def read_png_u16(path: Path, scale: float) -> F32:
     """Read a uint16 GT PNG back into float32 physical units (0 stays 0)."""
-    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    raw = read_image(path)
     if raw is None:
         size = path.stat().st_size if path.is_file() else 0
         raise DatasetError(f"{path}: cannot be decoded ({size} bytes: empty, cut short or not an image)")

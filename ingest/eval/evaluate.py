@@ -33,11 +33,11 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-import cv2
 import numpy as np
 
 from calibration.types import F32
 from ingest.dataset.layout import DEPTH_SCALE, DISP_SCALE, read_png_u16, write_atomic
+from ingest.dataset.png import read_image
 from ingest.errors import DatasetError, EvalError
 from ingest.eval.metrics import (
     Accumulator,
@@ -170,7 +170,7 @@ def read_prediction(path: Path, scale: float) -> F32:
     """A prediction in metres or px (float32), NaN where there is none (0, negative, non-finite)."""
     ext = path.suffix.lower()
     if ext == ".png":
-        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        raw = read_image(path)
         if raw is None or raw.dtype != np.uint16 or raw.ndim != 2:
             got = "unreadable" if raw is None else f"{raw.dtype} with shape {raw.shape}"
             raise EvalError(f"{path}: expected a 16-bit single-channel PNG (value x {scale:g}), got {got}")
@@ -198,7 +198,7 @@ def read_prediction(path: Path, scale: float) -> F32:
 def read_mask(mask_root: Path, gt: GtFile, shape: tuple[int, ...]) -> np.ndarray[Any, np.dtype[np.bool_]]:
     """A region mask named like the GT (`<mask_root>/<rel>.png`), non-zero = inside."""
     path = mask_root / f"{gt.rel}.png"
-    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    raw = read_image(path)
     if raw is None:
         raise EvalError(f"{path}: missing or unreadable mask for {gt.rel}")
     if raw.shape[:2] != shape:

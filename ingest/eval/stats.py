@@ -27,6 +27,7 @@ import cv2
 import numpy as np
 
 from calibration.types import F32, U8
+from ingest.dataset.png import read_image
 from ingest.errors import EvalError
 from ingest.eval.evaluate import GtFile, Layout, discover_gt, json_safe, read_gt
 
@@ -127,7 +128,7 @@ def sample_stats(root: Path, layout: Layout, gt: GtFile, window: int = ENTROPY_W
     image_path = image_for(root, layout, gt)
     gray: U8 | None = None
     if image_path.is_file():
-        raw = cv2.imread(str(image_path), cv2.IMREAD_GRAYSCALE)
+        raw = read_image(image_path, cv2.IMREAD_GRAYSCALE)
         if raw is None:
             raise EvalError(f"{image_path}: unreadable image")
         gray = np.asarray(raw, np.uint8)

@@ -112,6 +112,7 @@ def project(dataset: Path, truth: Any) -> tuple[list[ProjectionResult], str]:
     import yaml
 
     from ingest.dataset.meta import read_meta
+    from ingest.dataset.png import read_image
     from sensorbox.analysis.projection import compare_projections
 
     sids = sorted(p.stem for p in (dataset / "meta").glob("*.json"))
@@ -119,8 +120,8 @@ def project(dataset: Path, truth: Any) -> tuple[list[ProjectionResult], str]:
         raise SensorboxError(f"{dataset}: no samples were written, nothing to compare projections on")
     sid = sids[len(sids) // 2]
     stamp = read_meta(dataset, sid).stamp_ns
-    upper = cv2.imread(str(dataset / "left_fisheye" / f"{sid}.png"))
-    lower = cv2.imread(str(dataset / "right_fisheye" / f"{sid}.png"))
+    upper = read_image(dataset / "left_fisheye" / f"{sid}.png", cv2.IMREAD_COLOR)
+    lower = read_image(dataset / "right_fisheye" / f"{sid}.png", cv2.IMREAD_COLOR)
     if upper is None or lower is None:
         raise SensorboxError(f"{dataset}: cannot read the fisheye images of sample {sid}")
     height = int(yaml.safe_load((dataset / "dataset.yaml").read_text())["height_full"])

@@ -242,7 +242,7 @@ def test_shape_mismatch_and_ambiguous_or_bad_predictions(bench: Path, tmp_path: 
         evaluate(bench, pred, EvalOptions("stereo", image_type="pano_crop"))
 
 
-def test_mask_regions_and_json(bench: Path, tmp_path: Path) -> None:
+def test_mask_regions_and_json(bench: Path, tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
     pred = tmp_path / "pred"
     write_predictions(bench, pred, "stereo")
     masks = tmp_path / "masks"
@@ -268,9 +268,11 @@ def test_mask_regions_and_json(bench: Path, tmp_path: Path) -> None:
     assert doc["groups"][0]["label"] == "120FOV" and len(doc["samples"]) == 8
     assert doc["samples"][4]["metrics"]["lower"]["epe_px"] is None
     assert "| 120FOV | 4 | 192 | 100.00 | 0.375 |" in markdown_table(report)
+    (masks / f"{report.samples[0].rel}.png").unlink()
+    capfd.readouterr()
     with pytest.raises(EvalError, match="missing or unreadable mask"):
-        (masks / f"{report.samples[0].rel}.png").unlink()
         evaluate(bench, pred, opts)
+    assert capfd.readouterr().err == ""  # the one-line error only: no OpenCV warning on stderr before it
 
 
 # ---- a real dataset made by `ingest` from a fixture bag ----------------------------------------
