@@ -45,7 +45,7 @@ from calibration.camera import CameraModel
 from calibration.distortion import Fov, RadTan
 from calibration.errors import CalibrationError
 from calibration.fisheye import DoubleSphere, ExtendedUnified, KannalaBrandt, Unified
-from calibration.opencv_yaml import load_opencv_yaml
+from calibration.opencv_yaml import load_opencv_yaml, yaml_error_line
 from calibration.pinhole import Omni, Pinhole
 from calibration.transforms import as_transform, invert
 from calibration.types import F64
@@ -195,10 +195,7 @@ def load_yaml(path: Path, what: str) -> Any:
     try:
         return load_opencv_yaml(text)
     except yaml.YAMLError as err:
-        mark = getattr(err, "problem_mark", None)
-        where = f" line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
-        problem = getattr(err, "problem", None) or str(err)
-        raise CalibrationError(f"{path}:{where}: malformed YAML: {problem}") from err
+        raise CalibrationError(yaml_error_line(path, err)) from err
 
 
 def _parse_camera(name: str, block: object, where: str) -> dict[str, Any]:

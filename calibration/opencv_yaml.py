@@ -76,3 +76,14 @@ OpenCvSafeLoader.add_constructor(OPENCV_MATRIX_TAG, _construct_opencv_matrix)
 def load_opencv_yaml(text: str) -> Any:
     """Parse YAML text that may be in OpenCV's dialect; raises `yaml.YAMLError` like `yaml.safe_load`."""
     return yaml.load(strip_opencv_directive(text), Loader=OpenCvSafeLoader)
+
+
+def yaml_error_line(path: object, err: yaml.YAMLError) -> str:
+    """One line for a YAML syntax error in `path`: "PATH: line L, column C: malformed YAML: PROBLEM".
+
+    PyYAML's own message spans several lines (the context, a caret, the problem).
+    """
+    mark = getattr(err, "problem_mark", None)
+    where = f" line {mark.line + 1}, column {mark.column + 1}:" if mark is not None else ""
+    problem = getattr(err, "problem", None) or " ".join(str(err).split())
+    return f"{path}:{where} malformed YAML: {problem}"

@@ -55,9 +55,11 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any
 
+import yaml
 from rosbags.interfaces import MessageDefinition, MessageDefinitionFormat
 
 from calibration.errors import SensorboxError
+from calibration.opencv_yaml import yaml_error_line
 from ingest.bags.chunks import ChunkGuard, CorruptChunkError, LostChunk, guard_readers
 from ingest.bags.decode import RosVersion
 from ingest.bags.definitions import TolerantAnyReader, check_definition
@@ -252,6 +254,12 @@ def _explain(path: Path, err: BaseException) -> str:
                     f" or is still running); {SALVAGE_HINT}"
                 )
             return f"{path}: not a rosbag2 directory (no metadata.yaml)"
+        try:
+            yaml.safe_load((path / "metadata.yaml").read_bytes())
+        except yaml.YAMLError as bad:
+            return f"rosbag2 {yaml_error_line(path / 'metadata.yaml', bad)}"
+        except OSError:
+            pass  # rosbags' own error below names it
         cut = [m.name for m in mcaps if not _mcap_is_complete(m)]
         if cut:
             return f"{path}: {', '.join(cut)} truncated or still being written; {SALVAGE_HINT}"
@@ -264,7 +272,7 @@ def _explain(path: Path, err: BaseException) -> str:
             f"{path}: ROS 1 bag is truncated or its index is damaged ({text});"
             " run `rosbag reindex` on it first"
         )
-    return f"{path}: cannot read bag: {type(err).__name__}: {text}"
+    return f"{path}: cannot read bag: {type(err).__name__}: {' '.join(text.split())}"
 
 
 def _open_reader(paths: list[Path], ros_version: RosVersion, guard: ChunkGuard) -> TolerantAnyReader:

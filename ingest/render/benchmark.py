@@ -58,6 +58,7 @@ import numpy as np
 import yaml
 
 from calibration.camera import CameraModel
+from calibration.opencv_yaml import yaml_error_line
 from calibration.pinhole import Pinhole
 from calibration.spherical import Equirectangular
 from calibration.stereo import depth_to_disparity, disparity_stability_mask, pinhole_depth_to_disparity
@@ -329,7 +330,9 @@ def _same_setup(path: Path, setup: dict[str, Any]) -> None:
     """A BenchmarkError naming the first difference when the finished scene `path` was rendered otherwise."""
     try:
         doc = yaml.safe_load(path.read_text())
-    except (OSError, ValueError, yaml.YAMLError) as err:
+    except yaml.YAMLError as err:
+        raise BenchmarkError(f"finished scene {yaml_error_line(path, err)}") from err
+    except (OSError, ValueError) as err:
         raise BenchmarkError(f"{path}: cannot read the finished scene's description: {err}") from err
     stored = {key: doc.get(key) for key in setup} if isinstance(doc, dict) else {}
     found = first_difference(stored, setup)

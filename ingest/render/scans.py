@@ -31,6 +31,7 @@ import numpy as np
 import yaml
 
 from calibration.errors import SensorboxError
+from calibration.opencv_yaml import yaml_error_line
 from calibration.transforms import as_transform
 from calibration.types import F32, F64, U8
 from ingest.errors import ScanError
@@ -73,7 +74,9 @@ def read_site(manifest: Path, mask_label: str | None = "label") -> list[Scan]:
     """The scans of a site manifest (`site.yaml`)."""
     try:
         doc = yaml.safe_load(manifest.read_text())
-    except (OSError, yaml.YAMLError) as err:
+    except yaml.YAMLError as err:
+        raise ScanError(f"site manifest {yaml_error_line(manifest, err)}") from err
+    except (OSError, ValueError) as err:  # ValueError: not UTF-8 text
         raise ScanError(f"{manifest}: cannot read the site manifest: {err}") from err
     if not isinstance(doc, dict) or doc.get("sensorbox_site") != SITE_VERSION:
         raise ScanError(f"{manifest}: not a site manifest (expected 'sensorbox_site: {SITE_VERSION}')")

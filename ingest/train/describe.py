@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import yaml
 
+from calibration.opencv_yaml import yaml_error_line
 from ingest.dataset.compare import first_difference
 from ingest.dataset.layout import DEPTH_SCALE, DISP_SCALE, write_atomic
 from ingest.errors import DatasetError, OutputError
@@ -241,7 +242,9 @@ def record_undecodable(out: Path, bags: list[Path], counts: dict[str, int]) -> N
 def _read_dataset_yaml(path: Path) -> dict[str, Any]:
     try:
         doc = yaml.safe_load(path.read_text())
-    except (OSError, ValueError, yaml.YAMLError) as err:  # ValueError: not UTF-8 text
+    except yaml.YAMLError as err:
+        raise DatasetError(f"existing dataset description {yaml_error_line(path, err)}") from err
+    except (OSError, ValueError) as err:  # ValueError: not UTF-8 text
         raise DatasetError(f"{path}: cannot read the existing dataset description: {err}") from err
     if not isinstance(doc, dict):
         raise DatasetError(f"{path}: not a SensorBox dataset description (expected a mapping)")

@@ -48,6 +48,7 @@ from typing import Any, ClassVar
 
 import yaml
 
+from calibration.opencv_yaml import yaml_error_line
 from sensorbox.errors import LaunchError
 from sensorbox.live.bus import Bus, GraphResult, GraphSnapshot, Shutdown, run_graph
 from sensorbox.live.substitutions import Scope, bool_word, evaluate_parts, parse_substitutions
@@ -94,9 +95,7 @@ def _load_yaml(path: Path) -> Any:
     except LaunchError as err:
         raise LaunchError(f"{path}:{err}") from err
     except yaml.YAMLError as err:
-        mark = getattr(err, "problem_mark", None)
-        where = f"{path}:{mark.line + 1}" if mark is not None else str(path)
-        raise LaunchError(f"{where}: malformed YAML: {getattr(err, 'problem', err)}") from err
+        raise LaunchError(yaml_error_line(path, err)) from err
 
 
 # ---------------------------------------------------------------- results
@@ -422,7 +421,7 @@ def _param_file(path: Path, node: str, ns: str, where: str) -> dict[str, Any]:
     except FileNotFoundError as err:
         raise LaunchError(f"{where}: parameter file {path} not found") from err
     except yaml.YAMLError as err:
-        raise LaunchError(f"{where}: parameter file {path}: malformed YAML: {err}") from err
+        raise LaunchError(f"{where}: parameter file {yaml_error_line(path, err)}") from err
     if not isinstance(doc, dict):
         raise LaunchError(f"{where}: parameter file {path}: expected a mapping of node names")
     fqn = _join_ns(ns, node)
