@@ -6,6 +6,11 @@ happens while it waits. On Linux the kernel can send the child a signal when
 its parent dies (`prctl(PR_SET_PDEATHSIG)`); `die_with_parent` asks for
 SIGKILL, and exits at once if the parent is already gone (it may die between
 the fork and this call). Elsewhere nothing is set.
+
+`sigint_blocked` starts spawned children with SIGINT blocked, for children
+that their parent stops through a pipe: Ctrl-C reaches the whole process
+group, and a child still importing (a second or more) would otherwise die
+there with a KeyboardInterrupt traceback on the terminal.
 """
 
 from __future__ import annotations
@@ -15,8 +20,36 @@ import ctypes.util
 import os
 import signal
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
+from multiprocessing import resource_tracker
 
 PR_SET_PDEATHSIG = 1  # linux/prctl.h
+
+
+@contextmanager
+def sigint_blocked() -> Iterator[None]:
+    """SIGINT blocked in this thread inside: a process spawned here starts with it blocked.
+
+    Ctrl-C goes to the whole process group. A spawned child needs a second or
+    more to import before its own code can ignore SIGINT, and a
+    KeyboardInterrupt in that time was a traceback on the terminal. The mask
+    survives fork and exec, so the child never sees SIGINT (its parent must
+    stop it some other way, such as a control pipe). A SIGINT that reaches
+    this thread inside stays pending and is delivered when the block ends, so
+    the parent's own Ctrl-C is not lost.
+    """
+    if not hasattr(signal, "pthread_sigmask"):
+        yield
+        return
+    # spawning starts multiprocessing's resource tracker once, and that start unblocks SIGINT on its way
+    # out (CPython's resource_tracker.ensure_running): it runs before the block, not inside it
+    resource_tracker.ensure_running()
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
 def die_with_parent(parent_pid: int) -> bool:

@@ -33,6 +33,7 @@ from multiprocessing.connection import Connection
 from types import TracebackType
 from typing import Any
 
+from ingest.runtime.lifetime import sigint_blocked
 from sensorbox.errors import DriverError
 from sensorbox.livox.config import DriverConfig, DriverStats
 from sensorbox.livox.discovery import discover
@@ -109,7 +110,8 @@ class DriverProcess:
         pipes = [ctx.Pipe(duplex=False) for _ in range(3)]  # (receive end, send end): msgs, status, control
         args = (self.config, pipes[0][1], pipes[1][1], pipes[2][0], self.nice)
         proc = ctx.Process(target=_child, args=args, name="livox-driver", daemon=True)
-        proc.start()
+        with sigint_blocked():
+            proc.start()
         for conn in (pipes[0][1], pipes[1][1], pipes[2][0]):
             conn.close()
         self._proc, self._control = proc, pipes[2][1]

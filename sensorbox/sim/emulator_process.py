@@ -20,6 +20,8 @@ from dataclasses import dataclass, replace
 from multiprocessing.connection import Connection
 from typing import Any
 
+from ingest.runtime.lifetime import sigint_blocked
+
 STATS_S = 0.2
 START_S = 120.0  # spawning imports the simulator and builds its scene: slow on a busy machine
 
@@ -100,7 +102,8 @@ class EmulatorProcess:
         control_r, control_w = ctx.Pipe(duplex=False)
         args = (self.spec, status_w, control_r)
         proc = ctx.Process(target=_child, args=args, name=self.spec.name, daemon=True)
-        proc.start()
+        with sigint_blocked():  # Ctrl-C never reaches the child, even while it imports: we stop it
+            proc.start()
         status_w.close()
         control_r.close()
         self._proc, self._control = proc, control_w

@@ -75,3 +75,35 @@ def test_a_driver_process_that_dies_is_one_clear_error():
         wait_for(lambda: driver.error is not None, "the parent to notice")
         driver.stop()
     assert driver.error == "the driver process ended unexpectedly (exit code -9)"
+
+
+def _report_sigint_blocked(conn) -> None:
+    conn.send(signal.SIGINT in signal.pthread_sigmask(signal.SIG_BLOCK, set()))
+    conn.close()
+
+
+def test_a_spawned_child_starts_with_sigint_blocked_and_the_parents_sigint_is_kept():
+    """Ctrl-C reaches the process group while the driver's child is still importing: it must not raise a
+    KeyboardInterrupt traceback there (the child is stopped through its pipe), and the parent still gets it."""
+    import multiprocessing
+
+    from ingest.runtime.lifetime import sigint_blocked
+
+    ctx = multiprocessing.get_context("spawn")
+    got, send = ctx.Pipe(duplex=False)
+    received: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: received.append(signum))
+    try:
+        proc = ctx.Process(target=_report_sigint_blocked, args=(send,), daemon=True)
+        with sigint_blocked():
+            proc.start()
+            signal.pthread_kill(threading.get_ident(), signal.SIGINT)  # to this thread: pending while blocked
+            assert received == []
+        assert received == [signal.SIGINT]  # delivered once the block ended
+        send.close()
+        assert got.poll(HANG_S) and got.recv() is True
+        proc.join(HANG_S)
+        assert proc.exitcode == 0
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    assert signal.SIGINT not in signal.pthread_sigmask(signal.SIG_BLOCK, set())
