@@ -68,6 +68,7 @@ from calibration.virtual import (
 )
 from ingest.dataset.compare import first_difference
 from ingest.dataset.layout import DEPTH_SCALE, DISP_SCALE, encode_exr, to_uint16, write_atomic
+from ingest.dataset.lock import hold_folder
 from ingest.dataset.png import encode_png
 from ingest.dataset.sparse import SparseImage
 from ingest.errors import BenchmarkError
@@ -122,6 +123,7 @@ class BenchmarkSummary:
     stats: dict[str, dict[str, dict[str, int]]] = field(default_factory=dict)  # scene -> render key -> counts
     empty: dict[str, list[str]] = field(default_factory=dict)  # scene -> renders showing (almost) nothing
     warnings: list[str] = field(default_factory=list)  # one line per scene with empty renders
+    stale_temporaries: int = 0  # left by a killed run, removed (`ingest.dataset.lock`)
 
 
 @dataclass
@@ -434,10 +436,28 @@ def run_benchmark(
         out.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         raise BenchmarkError(f"cannot create {out}: {err.strerror or err}") from err
-    state = RenderState(out, cfg, indexes, {v.scene: v for v in todo}, fovs, ph)
-    tasks = plan_tasks(todo, cfg)
-    stats: dict[str, dict[str, dict[str, int]]] = {v.scene: {} for v in todo}
-    remaining = {v.scene: sum(t.scene == v.scene for t in tasks) for v in todo}
+    with hold_folder(out) as stale:  # one run at a time into `out`; a killed run's temporaries are removed
+        summary.stale_temporaries = stale
+        state = RenderState(out, cfg, indexes, {v.scene: v for v in todo}, fovs, ph)
+        summary.stats = _render_tasks(state, scans, plan_tasks(todo, cfg), summary, progress)
+    summary.seconds = time.perf_counter() - t0
+    return summary
+
+
+def _render_tasks(
+    state: RenderState,
+    scans: list[Scan],
+    tasks: list[Task],
+    summary: BenchmarkSummary,
+    progress: Callable[[int, int], None] | None,
+) -> dict[str, dict[str, dict[str, int]]]:
+    """Every render task of `state`'s views; each scene's scene.yaml once its last render is written.
+
+    Returns the per-render counts of each scene.
+    """
+    out = state.out
+    stats: dict[str, dict[str, dict[str, int]]] = {scene: {} for scene in state.views}
+    remaining = {scene: sum(t.scene == scene for t in tasks) for scene in state.views}
     done = 0
 
     def finished(task: Task, st: dict[str, int], files: int) -> None:
@@ -466,13 +486,11 @@ def run_benchmark(
 
     # workers share the scans' index by fork; without fork the run stays in this process (no copies)
     # no cv2.setNumThreads in the workers: reconfiguring a forked OpenCV pool deadlocks
-    workers = cfg.workers if len(tasks) > 1 and "fork" in multiprocessing.get_all_start_methods() else 1
+    workers = state.cfg.workers if len(tasks) > 1 and "fork" in multiprocessing.get_all_start_methods() else 1
     results = Executor(workers, worker_init=partial(share_cores, workers)).run(run_task, tasks, shared=state)
     try:
         for result in results:
             finished(*result)
     finally:
         results.close()
-    summary.stats = stats
-    summary.seconds = time.perf_counter() - t0
-    return summary
+    return stats

@@ -35,6 +35,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Iterator
+from contextlib import ExitStack
 from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
@@ -45,6 +46,7 @@ from ingest.bags.reader import BagSet, given_once, open_bags
 from ingest.dataset.layout import (
     prepare_dirs,
 )
+from ingest.dataset.lock import hold_folder
 from ingest.errors import BagError, DatasetError, OdometryError
 from ingest.raster.visibility import backend_problem
 from ingest.runtime.executor import Executor, Handoff, share_cores
@@ -147,6 +149,7 @@ class IngestSummary:
     trajectory: TrajectorySummary | None = None
     lost: dict[str, int] = field(default_factory=dict)  # topic -> messages in corrupt chunks (--salvage)
     lost_chunks: list[str] = field(default_factory=list)  # one line per corrupt chunk skipped
+    stale_temporaries: int = 0  # left in the output by a killed run, removed (`ingest.dataset.lock`)
 
     def add(self, result: SampleResult) -> None:
         if not result.written:
@@ -263,13 +266,14 @@ def ingest(
     bad = BadMessages(cfg.max_bad, warn)
     executor = Executor(cfg.workers, dask=cfg.dask, worker_init=partial(_init_worker, cfg.workers))
     executor.connect()  # an unreachable Dask scheduler fails here, before the output is touched
-    try:
-        _run(bag_paths, cfg, rig, geometry, summary, bad, executor, progress)
-    finally:
-        executor.close()
-    if bad.by_topic() != summary.undecodable:  # the stream pass found more (images): update dataset.yaml
-        summary.undecodable = bad.by_topic()
-        record_undecodable(cfg.out, [Path(p) for p in bag_paths], summary.undecodable)
+    with ExitStack() as held:  # the output folder, once it exists (`_run`), until dataset.yaml is final
+        try:
+            _run(bag_paths, cfg, rig, geometry, summary, bad, executor, progress, held)
+        finally:
+            executor.close()
+        if bad.by_topic() != summary.undecodable:  # the stream pass found more (images): update dataset.yaml
+            summary.undecodable = bad.by_topic()
+            record_undecodable(cfg.out, [Path(p) for p in bag_paths], summary.undecodable)
     summary.seconds = time.perf_counter() - t_start
     return summary
 
@@ -283,8 +287,10 @@ def _run(
     bad: BadMessages,
     executor: Executor,
     progress: Callable[[int, int], None] | None,
+    held: ExitStack,
 ) -> None:
-    """The plan and stream passes over the bags, the samples run on `executor`."""
+    """The plan and stream passes over the bags, the samples run on `executor`; `held` keeps the output
+    folder locked (`hold_folder`) from its creation on."""
     with open_bags(bag_paths, salvage=cfg.salvage) as bags:
         topics = _resolve_topics(rig, bags.topics(), ", ".join(str(p) for p in bag_paths))
         asked = cfg
@@ -300,6 +306,7 @@ def _run(
         if the_plan.lost_samples:
             summary.skipped[LOST_REASON] = the_plan.lost_samples
         prepare_dirs(cfg.out, cfg.sample.exr)
+        summary.stale_temporaries = held.enter_context(hold_folder(cfg.out))
         first_id = write_dataset_yaml(asked, cfg, geometry, [Path(p) for p in bag_paths], summary)
         if not cfg.dask and summary.planned:
             geometry.warm_maps()

@@ -143,4 +143,6 @@ def render_benchmark_cmd(
         console.print(f"Renders showing (almost) nothing: {n} in {scenes} scenes (scene.yaml: warnings)")
     if summary.skipped:
         console.print(f"Already done (scene.yaml present, skipped): {', '.join(summary.skipped)}")
+    if summary.stale_temporaries:
+        console.print(f"Removed {summary.stale_temporaries} unfinished temporary files of a killed run")
     console.print(f"Benchmark: {out} (each <scene>/scene.yaml lists cameras, poses and counts)")

@@ -1,0 +1,68 @@
+"""One run per output folder; a killed run's temporaries are removed by the next (`ingest.dataset.lock`)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from ingest.dataset.layout import write_atomic
+from ingest.dataset.lock import hold_folder
+from ingest.errors import DatasetError
+from ingest.train.pipeline import IngestConfig, ingest
+from tests.ingest.test_pipeline import INDOOR, _rig
+
+KILLED = (".000001.png.k3x_9QzA.tmp", "left_fisheye")  # write_atomic's name for left_fisheye/000001.png
+
+
+def test_a_held_folder_is_refused_and_released_when_its_holder_dies(tmp_path: Path) -> None:
+    with hold_folder(tmp_path) as removed:
+        assert removed == 0
+        busy = rf"^{tmp_path}: another SensorBox run is writing into this folder"
+        with pytest.raises(DatasetError, match=busy), hold_folder(tmp_path):
+            pass
+    with hold_folder(tmp_path):  # released on exit
+        pass
+    holder = subprocess.Popen(  # another process holds it, then is killed: the kernel releases the lock
+        [sys.executable, "-c", "import sys, time; from pathlib import Path; from ingest.dataset.lock import "
+         "hold_folder\nwith hold_folder(Path(sys.argv[1])):\n    print('held', flush=True); time.sleep(60)",
+         str(tmp_path)], stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        assert holder.stdout is not None and holder.stdout.readline() == "held\n"
+        with pytest.raises(DatasetError, match="another SensorBox run"), hold_folder(tmp_path):
+            pass
+    finally:
+        holder.kill()
+        holder.wait()
+    with hold_folder(tmp_path):
+        pass
+
+
+def test_a_rerun_removes_the_temporaries_of_a_killed_run_and_nothing_else(tmp_path: Path) -> None:
+    out = tmp_path / "ds"
+    first = ingest([INDOOR], IngestConfig(rig=_rig(INDOOR), out=out, workers=1, every=10))
+    before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    name, folder = KILLED
+    (out / folder / name).write_bytes(b"half a png")
+    (out / ".rig.a1b2c3d4.tmp").mkdir()  # describe's staging folder for rig/
+    (out / ".rig.a1b2c3d4.tmp" / "rig.yaml").write_text("half")
+    (out / "notes.tmp").write_text("mine")  # not a temporary of ours: stays
+    (out / ".mine.tmp").write_text("mine")
+    again = ingest([INDOOR], IngestConfig(rig=_rig(INDOOR), out=out, workers=1, every=10))
+    assert (again.written, again.resumed, again.stale_temporaries) == (0, first.written, 2)
+    after = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    assert after == {**before, out / "notes.tmp": b"mine", out / ".mine.tmp": b"mine"}
+
+
+def test_a_second_run_into_a_held_dataset_is_refused(tmp_path: Path) -> None:
+    out = tmp_path / "ds"
+    out.mkdir()
+    write_atomic(out / "mine.txt", b"x")
+    with (
+        hold_folder(out),
+        pytest.raises(DatasetError, match="another SensorBox run is writing into this folder"),
+    ):
+        ingest([INDOOR], IngestConfig(rig=_rig(INDOOR), out=out, workers=1, every=10))
