@@ -257,7 +257,7 @@ def read_e57(path: Path, chunk: int = E57_CHUNK) -> list[Scan]:
     try:
         e57 = pye57.E57(str(path))
     except Exception as err:  # libE57Format raises its own exception types
-        raise ScanError(f"{path}: not a readable E57 file: {err}") from err
+        raise ScanError(f"{path}: not a readable E57 file: {_first_line(err)}") from err
     scans = []
     where = f"{path}: the header"
     try:
@@ -273,10 +273,16 @@ def read_e57(path: Path, chunk: int = E57_CHUNK) -> list[Scan]:
             xyz, rgb = _read_e57_points(e57, libe57, header, chunk, where)
             scans.append(Scan(str(name), T, xyz, rgb, source=f"{path}#{i}"))
     except libe57.E57Exception as err:  # corrupt records, bad sections: libE57Format's own exception
-        raise ScanError(f"{where}: libE57 cannot read it: {err}") from err
+        raise ScanError(f"{where}: libE57 cannot read it: {_first_line(err)}") from err
     finally:
         e57.close()
     return scans
+
+
+def _first_line(err: BaseException) -> str:
+    """The first line of an exception's text: pye57 appends libE57's multi-line debug report to it."""
+    lines = [line for line in str(err).splitlines() if line.strip()]
+    return lines[0] if lines else type(err).__name__
 
 
 def _read_e57_points(e57: Any, libe57: Any, header: Any, chunk: int, where: str) -> tuple[F32, U8]:
