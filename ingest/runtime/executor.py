@@ -90,6 +90,18 @@ def _forked_call(job: Any, ref: SlotRef | None) -> Any:
     return _WORKER["fn"](_WORKER["shared"], job)
 
 
+def _terminate_workers(pool: ProcessPoolExecutor) -> None:
+    """SIGTERM every worker of `pool`, so that its shutdown does not wait for the jobs they are running.
+
+    A Ctrl-C that reaches only this process (`kill -INT`, a supervisor) would
+    otherwise wait for every running job to end. The pool keeps its processes
+    in a private mapping (Python 3.14 adds `terminate_workers` for this).
+    """
+    for proc in list(getattr(pool, "_processes", {}).values()):
+        if proc.is_alive():
+            proc.terminate()
+
+
 def _init_worker(worker_init: Callable[[], object] | None, parent_pid: int | None = None) -> None:
     if parent_pid is not None:
         die_with_parent(parent_pid)
@@ -168,6 +180,7 @@ class Executor:
             self.workers, mp_context=ctx, initializer=_init_worker, initargs=(self.worker_init, os.getpid())
         )
         pending: deque[tuple[Future[R], SlotRef | None]] = deque()
+        finished = False
         try:
             for job in jobs:
                 ref = None
@@ -184,7 +197,10 @@ class Executor:
                     yield self._collect(pending, slots)
             while pending:
                 yield self._collect(pending, slots)
+            finished = True
         finally:
+            if not finished:  # an error, Ctrl-C or the consumer stopped: running jobs' results are unwanted
+                _terminate_workers(pool)
             pool.shutdown(cancel_futures=True)
             _WORKER.clear()
             if slots is not None:

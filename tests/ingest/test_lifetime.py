@@ -1,13 +1,14 @@
 """Pool workers end with their parent, even when it is SIGKILLed (issue 20, class 8)."""
 
 import contextlib
+import os
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 
-from tests.live import wait_for
+from tests.live import HANG_S, wait_for
 from tests.paths import ROOT
 
 pytestmark = [
@@ -55,3 +56,30 @@ def test_pool_workers_die_when_their_parent_is_killed(tmp_path):
         parent.kill()
         parent.wait()
     wait_for(lambda: not any(_running(w) for w in workers), "the workers ended with their parent")
+
+
+def _sleep_or_return(_shared, k):
+    import time
+
+    if k > 0:
+        time.sleep(3 * HANG_S)  # far beyond the wait below: a pool that waits for it fails the test
+    return k
+
+
+def test_a_run_left_early_ends_its_workers_instead_of_waiting_for_their_jobs():
+    """A consumer that stops (an error, or Ctrl-C reaching only this process) gets the pool shut down
+    at once: the workers running long jobs are terminated, not waited for."""
+    import threading
+
+    from ingest.runtime.executor import Executor
+
+    before = set(_children(os.getpid()))  # a resource tracker, say
+    results = Executor(3).run(_sleep_or_return, range(4))
+    assert next(results) == 0
+    workers = [c for c in _children(os.getpid()) if c not in before]
+    assert len(workers) >= 2 and all(_running(w) for w in workers)
+    closing = threading.Thread(target=results.close, daemon=True)  # returns once the pool is shut down
+    closing.start()
+    closing.join(HANG_S)
+    assert not closing.is_alive(), "the pool waited for its running jobs"
+    assert not any(_running(w) for w in workers)
