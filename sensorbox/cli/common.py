@@ -23,7 +23,14 @@ Update = Callable[[int, int], None]
 
 @contextmanager
 def progress_bar(verb: str, unit: str) -> Iterator[Update]:
-    """A transient progress bar on stderr ("VERB [bar] done/total UNIT, time left"); yields the callback."""
+    """A transient progress bar on stderr ("VERB [bar] done/total UNIT, time left"); yields the callback.
+
+    Only on a terminal: rich leaves an empty line behind in a log or a pipe,
+    where a bar cannot be redrawn anyway, so there the callback does nothing.
+    """
+    if not err_console.is_terminal:
+        yield lambda done, total: None
+        return
     columns = (TextColumn(verb), BarColumn(), MofNCompleteColumn(), TextColumn(unit), TimeRemainingColumn())
     with Progress(*columns, console=err_console, transient=True) as bar:
         task = bar.add_task(verb, total=None)

@@ -10,7 +10,7 @@ from sensorbox.cli.main import main
 
 
 def sensorbox(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str, list[str]]:
-    """(exit code, stdout, the non-blank stderr lines) of `sensorbox ARGS`."""
+    """(exit code, stdout, the stderr lines) of `sensorbox ARGS` (a blank line counts: errors are one line)."""
     argv = sys.argv
     sys.argv = ["sensorbox", *args]
     try:
@@ -21,4 +21,4 @@ def sensorbox(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str,
     finally:
         sys.argv = argv
     out, err = capsys.readouterr()
-    return code, out, [line for line in err.splitlines() if line.strip()]
+    return code, out, err.splitlines()
