@@ -296,13 +296,21 @@ def _open_reader(paths: list[Path], ros_version: RosVersion, guard: ChunkGuard) 
 
 
 def given_once(bag_paths: Sequence[Path]) -> None:
-    """One line when a recording is named twice: it would be read twice, its messages counted twice."""
-    seen: set[Path] = set()
+    """One line when a recording is named twice: it would be read twice, its messages counted twice.
+
+    A rosbag2 folder and a data file inside it (`bag/` and `bag/bag_0.mcap`)
+    are the same recording too.
+    """
+    owner: dict[Path, Path] = {}
     for p in bag_paths:
-        key = Path(p).resolve()
-        if key in seen:
-            raise BagError(f"{p}: the same recording is given twice")
-        seen.add(key)
+        path = Path(p)
+        files = sorted(path.glob("*.mcap")) + sorted(path.glob("*.db3")) if path.is_dir() else []
+        for key in {f.resolve() for f in files} | {path.resolve()}:
+            if key in owner:
+                first = owner[key]
+                same = "" if first.resolve() == path.resolve() else f" (as {first})"
+                raise BagError(f"{p}: the same recording is given twice{same}")
+            owner[key] = path
 
 
 def open_bags(paths: str | Path | Sequence[str | Path], salvage: bool = False) -> BagSet:

@@ -96,12 +96,14 @@ def test_errors_are_left_to_the_main_cli(tmp_path: Path):
 
 def test_the_same_bag_twice_is_refused_not_counted_twice():
     bag = fixture_bag("indoor_static_mcap", FIXTURES_DIR)
-    res = runner.invoke(app, ["inspect", str(bag), str(bag.parent / ".." / bag.parent.name / bag.name)])
+    again = bag.parent / ".." / bag.parent.name / bag.name
+    res = runner.invoke(app, ["inspect", str(bag), str(again)])
     assert isinstance(res.exception, BagError)
-    assert (
-        str(res.exception)
-        == f"{bag.parent / '..' / bag.parent.name / bag.name}: the same recording is given twice"
-    )
+    assert str(res.exception) == f"{again}: the same recording is given twice"
+    (data,) = bag.glob("*.mcap")  # the rosbag2 folder and its own data file
+    res = runner.invoke(app, ["inspect", str(bag), str(data)])
+    assert isinstance(res.exception, BagError)
+    assert str(res.exception) == f"{data}: the same recording is given twice (as {bag})"
 
 
 def test_help_describes_the_command_and_options():
