@@ -265,7 +265,10 @@ def ingest(
     summary = IngestSummary(out=cfg.out)
     bad = BadMessages(cfg.max_bad, warn)
     executor = Executor(cfg.workers, dask=cfg.dask, worker_init=partial(_init_worker, cfg.workers))
-    executor.connect()  # an unreachable Dask scheduler fails here, before the output is touched
+    try:
+        executor.connect()  # an unreachable Dask scheduler fails here, before the output is touched
+    except OSError as err:  # distributed's connect timeout is an OSError
+        raise DatasetError(f"--dask {cfg.dask!r}: cannot reach the scheduler ({err})") from err
     with ExitStack() as held:  # the output folder, once it exists (`_run`), until dataset.yaml is final
         try:
             _run(bag_paths, cfg, rig, geometry, summary, bad, executor, progress, held)

@@ -269,7 +269,9 @@ def test_an_unreachable_dask_scheduler_fails_before_anything_is_written(tmp_path
     out = tmp_path / "ds"
     with (
         dask.config.set({"distributed.comm.timeouts.connect": "1s"}),
-        pytest.raises(OSError, match=r"Timed out"),
+        pytest.raises(
+            DatasetError, match=rf"^--dask 'tcp://127\.0\.0\.1:{port}': cannot reach the scheduler \("
+        ),
     ):
         ingest([INDOOR], IngestConfig(rig=_rig(INDOOR), out=out, dask=f"tcp://127.0.0.1:{port}"))
     assert not out.exists()
