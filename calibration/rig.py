@@ -221,9 +221,10 @@ def _one_sensor_per_topic(rig_topics: list[tuple[str, str | None]], where: str) 
         if topic is None:
             continue
         if topic in owner:
+            both_lidars = owner[topic].startswith("lidars.") and key.startswith("lidars.")
             raise CalibrationError(
                 f"{where}: {owner[topic]}.topic and {key}.topic are both {topic}: each sensor needs its own "
-                "topic (for Livox LiDARs, livox_ros_driver2's multi_topic: 1)"
+                "topic" + (" (for Livox LiDARs, livox_ros_driver2's multi_topic: 1)" if both_lidars else "")
             )
         owner[topic] = key
 
@@ -353,6 +354,12 @@ def read_rig(path: str | Path) -> Rig:
         + [(f"imus.{imu.name}", imu.topic) for imu in imus],
         where,
     )
+    ips = [(f"lidars.{li.name}", li.ip) for li in lidars if li.ip is not None]
+    for k, (key, ip) in enumerate(ips):
+        if (twin := next((other for other, o_ip in ips[:k] if o_ip == ip), None)) is not None:
+            raise CalibrationError(
+                f"{where}: {twin}.ip and {key}.ip are both {ip}: each LiDAR has its own address"
+            )
     name = data.get("name", p.stem)
     return Rig(cameras, lidars, imus, name=str(name), source=p, camchain=chain)
 

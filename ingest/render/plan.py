@@ -72,6 +72,8 @@ class BenchmarkConfig:
         ):
             if not all(math.isfinite(v) for v in values):
                 raise BenchmarkError(f"{option} {list(values)}: each value must be a finite number")
+        if not -90.0 <= self.pitch_deg <= 90.0:
+            raise BenchmarkError(f"--pitch {self.pitch_deg}: must be within -90..90 degrees (up > 0)")
         clip = self.render.clip_m
         if clip is not None and not (clip > 0.0 and math.isfinite(clip)):
             raise BenchmarkError(f"--clip {clip}: must be a finite number > 0 m")

@@ -9,6 +9,7 @@ scan (in that scan's frame) for `run_benchmark`.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -80,8 +81,14 @@ def _config(req: BenchmarkRequest) -> BenchmarkConfig:
         raise BenchmarkError(f"--clip-mode {req.clip_mode!r}: expected invalid or drop")
     if not 0 <= req.png_level <= 3:
         raise BenchmarkError(f"--png-level {req.png_level}: expected 0..3")
-    if not req.points_per_px > 0:
-        raise BenchmarkError(f"--points-per-px {req.points_per_px}: must be > 0")
+    if not (req.points_per_px > 0 and math.isfinite(req.points_per_px)):
+        raise BenchmarkError(f"--points-per-px {req.points_per_px}: must be a finite number > 0")
+    fovs = tuple(req.fovs_deg or FOVS_DEG)
+    if req.pinhole_fovs is not None and (stray := [f for f in req.pinhole_fovs if f not in fovs]):
+        raise BenchmarkError(
+            f"--pinhole-in {stray[0]:g}: not one of the rendered FOVs ({', '.join(f'{f:g}' for f in fovs)}); "
+            "the pinhole images go into those folders"
+        )
     _check_backend(req.backend)
     width, height = parse_size(req.size)
     render = RenderParams(points_per_px=req.points_per_px, clip_m=req.clip_m, clip_mode=req.clip_mode,  # type: ignore[arg-type]

@@ -151,7 +151,8 @@ def _rig_with(tmp_path, **changes):
         ({"lidars__lidar_top__ip": "192.168.1.300"}, r"lidars\.lidar_top\.ip: expected a dotted IPv4 address such as 192\.168\.1\.12, got '192\.168\.1\.300'"),
         ({"lidars__lidar_top__ip": 3232235788}, r"lidars\.lidar_top\.ip: expected a dotted IPv4 address .*got 3232235788"),
         ({"lidars__lidar_bottom__topic": "/livox/lidar_192_168_1_12"}, r"rig\.yaml: lidars\.lidar_bottom\.topic and lidars\.lidar_top\.topic are both /livox/lidar_192_168_1_12: each sensor needs its own topic \(for Livox LiDARs, livox_ros_driver2's multi_topic: 1\)$"),
-        ({"imus__imu_top__topic": "/livox/lidar_192_168_1_12"}, r"lidars\.lidar_top\.topic and imus\.imu_top\.topic are both"),
+        ({"imus__imu_top__topic": "/livox/lidar_192_168_1_12"}, r"lidars\.lidar_top\.topic and imus\.imu_top\.topic are both /livox/lidar_192_168_1_12: each sensor needs its own topic$"),
+        ({"lidars__lidar_bottom__ip": "192.168.1.12"}, r"rig\.yaml: lidars\.lidar_bottom\.ip and lidars\.lidar_top\.ip are both 192\.168\.1\.12: each LiDAR has its own address$"),
     ],
 )  # fmt: skip
 def test_bad_rig_messages(tmp_path, changes, message):

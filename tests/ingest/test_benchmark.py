@@ -414,6 +414,12 @@ def test_an_equirect_beyond_memory_is_refused_before_any_work(tmp_path):
             r"^--baseline \[inf\]: each baseline must be a finite number > 0 mm$",
         ),
         ({"height_full": 100_000}, r"^--height-full 100000: .* pass --height-full \d+ or less$"),
+        ({"points_per_px": float("inf")}, r"^--points-per-px inf: must be a finite number > 0$"),
+        ({"pitch_deg": 200.0}, r"^--pitch 200\.0: must be within -90\.\.90 degrees \(up > 0\)$"),
+        (
+            {"fovs_deg": (140.0, 195.0), "pinhole_fovs": (120.0,)},
+            r"^--pinhole-in 120: not one of the rendered FOVs \(140, 195\); the pinhole images go into those folders$",
+        ),
     ],
 )
 def test_options_are_refused_before_the_scans_are_read(tmp_path, changes, pattern):
