@@ -37,6 +37,7 @@ class Plan:
     frames: int
     pairs: int
     rates: LidarRates = field(default_factory=LidarRates)  # each LiDAR's point rate (thin windows)
+    duplicates: dict[str, int] = field(default_factory=dict)  # per topic: repeated messages, read once
     lost_samples: int = 0  # eligible, but their LiDAR/IMU window overlaps a corrupt chunk's messages
 
 
@@ -45,7 +46,19 @@ IMU_MARGIN_NS = 20_000_000
 """IMU readings are taken this far beyond a sample's LiDAR window (motion compensation)."""
 
 
-def _seen(bags: BagSet, topics: Topics, bad: BadMessages) -> tuple[dict[str, I64], LidarRates]:
+def sweep_key(sweep: Sweep) -> tuple[int, int, int]:
+    """What makes a sweep the same as another: its first and last point time and its point count.
+
+    Two different sweeps of one LiDAR never share all three; the same
+    message read twice (a file given under two names, split bags that
+    overlap, a recorder that wrote it twice) does.
+    """
+    return int(sweep.span_ns[0]), int(sweep.span_ns[1]), len(sweep.stamps_ns)
+
+
+def _seen(
+    bags: BagSet, topics: Topics, bad: BadMessages
+) -> tuple[dict[str, I64], LidarRates, dict[str, int]]:
     """Per camera, LiDAR and IMU topic: (log_ns, first stamp, last stamp) of each message, as (N, 3).
 
     A sweep's stamps are its first and last point's (empty sweeps are left
@@ -53,6 +66,8 @@ def _seen(bags: BagSet, topics: Topics, bad: BadMessages) -> tuple[dict[str, I64
     here too means every chunk the stream pass will read has been checked
     before anything is written. Undecodable messages are left out and
     counted by `bad`; each LiDAR's point rate is measured on the way.
+    A message seen before (the same sweep, or a frame or IMU reading with the
+    same stamp) is left out and counted per topic (the third value).
     """
     where = bags.label
     imu = [topics.imu] if topics.imu else []
@@ -60,18 +75,29 @@ def _seen(bags: BagSet, topics: Topics, bad: BadMessages) -> tuple[dict[str, I64
         t: [] for t in (topics.upper, topics.lower, *topics.lidars, *imu)
     }
     rates = LidarRates()
+    keys: dict[str, set[object]] = {t: set() for t in seen}
+    duplicates: dict[str, int] = {}
     for msg in bags.messages(topics=list(seen)):
+        points: I64 | None = None
         if msg.topic not in topics.lidars:
             stamp = bad.stamp(msg, where)
-            if stamp is not None:
-                seen[msg.topic].append((msg.log_ns, stamp, stamp))
+            if stamp is None:
+                continue
+            key: object = stamp
+            entry = (msg.log_ns, stamp, stamp)
+        else:
+            sweep = bad.decoded(msg, where)
+            if not isinstance(sweep, Sweep) or not len(sweep.stamps_ns):
+                continue
+            key, entry, points = sweep_key(sweep), (msg.log_ns, *sweep.span_ns), sweep.stamps_ns
+        if key in keys[msg.topic]:
+            duplicates[msg.topic] = duplicates.get(msg.topic, 0) + 1
             continue
-        sweep = bad.decoded(msg, where)
-        assert sweep is None or isinstance(sweep, Sweep)
-        if sweep is not None and len(sweep.stamps_ns):
-            seen[msg.topic].append((msg.log_ns, *sweep.span_ns))
-            rates.add(msg.topic, sweep.stamps_ns)
-    return {t: np.array(v, np.int64).reshape(-1, 3) for t, v in seen.items()}, rates
+        keys[msg.topic].add(key)
+        seen[msg.topic].append(entry)
+        if points is not None:
+            rates.add(msg.topic, points)
+    return {t: np.array(v, np.int64).reshape(-1, 3) for t, v in seen.items()}, rates, duplicates
 
 
 def _untouched(bags: BagSet, topics: Topics, seen: dict[str, I64], tc_ns: I64, cfg: IngestConfig) -> Any:
@@ -88,9 +114,42 @@ def _untouched(bags: BagSet, topics: Topics, seen: dict[str, I64], tc_ns: I64, c
     return untouched(tc_ns, intervals, margins)
 
 
+def _seconds(ns: int) -> str:
+    return f"{ns / 1e9:.3f} s"
+
+
+def _same_clock(
+    bags: BagSet, topics: Topics, seen: dict[str, I64], duplicates: dict[str, int], up: I64, window_ns: int
+) -> None:
+    """Every LiDAR's point times and the IMU's stamps overlap the upper camera's stamps (+- the window).
+
+    A LiDAR on its own clock (a CustomMsg timebase counted from the sensor's
+    boot, no PTP/gPTP sync) or an IMU whose header stamps are all zero would
+    otherwise plan no sample, or no motion compensation, without a word.
+    """
+    first, last = int(up[0]) - window_ns, int(up[-1]) + window_ns
+    camera = f"the upper camera's stamps {_seconds(int(up[0]))}..{_seconds(int(up[-1]))}"
+    for topic in (*topics.lidars, *([topics.imu] if topics.imu else [])):
+        times = seen[topic]
+        if not len(times):
+            continue
+        a, b = int(times[:, 1].min()), int(times[:, 2].max())
+        what = "point times" if topic in topics.lidars else "header stamps"
+        if b < first or a > last:
+            raise BagError(
+                f"{bags.paths[0]}: {topic}: {what} {_seconds(a)}..{_seconds(b)} do not overlap {camera}; "
+                "the sensor's clock is not the cameras' (sync it: PTP/gPTP or the host's time)"
+            )
+        if duplicates.get(topic, 0) > len(times):
+            raise BagError(
+                f"{bags.paths[0]}: {topic}: {len(times) + duplicates[topic]} messages but "
+                f"{len(times)} distinct {what}; the stamps repeat (a sensor clock that is not running?)"
+            )
+
+
 def plan(bags: BagSet, topics: Topics, cfg: IngestConfig, bad: BadMessages | None = None) -> Plan:
     """First pass: stamps and sweep spans only; pairs and samples on header stamps."""
-    seen, rates = _seen(bags, topics, bad or BadMessages())
+    seen, rates, duplicates = _seen(bags, topics, bad or BadMessages())
     spans = {t: [(int(a), int(b)) for _, a, b in seen[t]] for t in topics.lidars}
     for topic, name in topics.lidars.items():
         if not spans[topic]:
@@ -98,7 +157,13 @@ def plan(bags: BagSet, topics: Topics, cfg: IngestConfig, bad: BadMessages | Non
     up = np.unique(seen[topics.upper][:, 1])  # duplicated stamps count once
     lo = np.unique(seen[topics.lower][:, 1])
     if len(up) < 2:
-        raise BagError(f"{bags.paths[0]}: {len(up)} frame(s) on {topics.upper}; need at least 2")
+        n = len(up) + duplicates.get(topics.upper, 0)
+        stamps = f" (header stamps: {_seconds(int(up[0]))} for all)" if n > len(up) == 1 else ""
+        raise BagError(
+            f"{bags.paths[0]}: {n} frame(s) on {topics.upper} but {len(up)} distinct header "
+            f"stamp(s){stamps}; need at least 2"
+        )
+    _same_clock(bags, topics, seen, duplicates, up, cfg.lidar_window_ns)
     tol = cfg.stereo_tolerance_ns or pair_tolerance_ns(median_period_ns(up))
     pairs = pair_stereo(up, lo, tol)
     all_spans = [s for v in spans.values() for s in v]
@@ -106,4 +171,13 @@ def plan(bags: BagSet, topics: Topics, cfg: IngestConfig, bad: BadMessages | Non
     upper, lower = up[pairs.upper][chosen], lo[pairs.lower][chosen]
     keep = _untouched(bags, topics, seen, upper, cfg)
     lost = int(len(keep) - keep.sum())
-    return Plan(upper[keep], lower[keep], spans, len(up), len(pairs.upper), rates, lost)
+    return Plan(
+        upper[keep],
+        lower[keep],
+        spans,
+        len(up),
+        len(pairs.upper),
+        rates,
+        duplicates=duplicates,
+        lost_samples=lost,
+    )

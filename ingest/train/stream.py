@@ -34,7 +34,7 @@ from ingest.dataset.layout import is_done, sample_id
 from ingest.errors import BagError, MessageDecodeError
 from ingest.train.bad_messages import BadMessages
 from ingest.train.lidar_rate import LidarRates
-from ingest.train.plan import IMU_MARGIN_NS, Plan
+from ingest.train.plan import IMU_MARGIN_NS, Plan, sweep_key
 from ingest.train.rig_trajectory import RigTrajectory
 from ingest.train.sample import (
     Geometry,
@@ -197,15 +197,34 @@ def _thin_lidars(
     )
 
 
+DUPLICATE_MARGIN_NS = 10_000_000_000
+"""A repeated sweep or IMU reading is recognised this long after the window no sample needs any more
+(a duplicate arrives beside its first copy: the bags are read merged in time)."""
+
+
 def _file_reading(
     topic: str, decoded: Sweep | Frame | ImuSample | None, imu_t: list[int], imu_g: list[Any],
-    sweeps: dict[str, list[Sweep]],
+    sweeps: dict[str, list[Sweep]], read: dict[tuple[str, object], int],
 ) -> None:  # fmt: skip
-    """Keep an IMU reading or a LiDAR sweep (with points) for the samples; None was skipped as undecodable."""
+    """Keep an IMU reading or a LiDAR sweep (with points) for the samples; None was skipped as undecodable.
+
+    A reading already `read` (key -> its latest time; the plan pass counted it
+    as a duplicate) is left out.
+    """
+    if isinstance(decoded, ImuSample):
+        key: object = decoded.stamp_ns
+        t_ns = decoded.stamp_ns
+    elif isinstance(decoded, Sweep) and len(decoded.stamps_ns):
+        key, t_ns = sweep_key(decoded), int(decoded.span_ns[1])
+    else:
+        return
+    if (topic, key) in read:
+        return
+    read[(topic, key)] = t_ns
     if isinstance(decoded, ImuSample):
         imu_t.append(decoded.stamp_ns)
         imu_g.append(decoded.gyro_rad_s)
-    elif isinstance(decoded, Sweep) and len(decoded.stamps_ns):
+    else:
         sweeps[topic].append(decoded)
 
 
@@ -224,6 +243,7 @@ def stream_jobs(
     need = _sweeps_needed(the_plan, topics, w)
     imu_t: list[int] = []
     imu_g: list[Any] = []
+    read: dict[tuple[str, object], int] = {}  # sweeps and IMU readings kept (no older than the horizon)
     next_k = 0
     sids = [sample_id(first_id + k) for k in range(len(the_plan.upper_ns))]
     done = {sid for sid in sids if is_done(cfg.out, sid)}  # finished by an earlier run (one stat each)
@@ -260,7 +280,7 @@ def stream_jobs(
             if sids[k] not in done:
                 frames[k][side] = msg
         else:
-            _file_reading(msg.topic, bad.decoded(msg, where), imu_t, imu_g, sweeps)
+            _file_reading(msg.topic, bad.decoded(msg, where), imu_t, imu_g, sweeps, read)
         while next_k < len(sids) and (sids[next_k] in done or ready(next_k)):
             if sids[next_k] in done:
                 frames.pop(next_k, None)
@@ -272,6 +292,7 @@ def stream_jobs(
                 horizon = int(the_plan.upper_ns[next_k]) - w
                 for t in sweeps:
                     sweeps[t] = [s for s in sweeps[t] if s.span_ns[1] >= horizon]
+                read = {key: t_ns for key, t_ns in read.items() if t_ns >= horizon - DUPLICATE_MARGIN_NS}
     for k in range(next_k, len(sids)):  # the bag ended: whatever is complete still goes
         why = "done" if sids[k] in done else ("" if len(frames.get(k, {})) == 2 else "missing image")
         yield (sids[k], why) if why else job(k)

@@ -107,6 +107,7 @@ def summary_table(summary: IngestSummary, out: Path) -> Table:
         *((f"written, flagged in meta: {what}", str(n)) for what, n in summary.flagged.items()),
         *((f"undecodable messages skipped: {topic}", str(n)) for topic, n in summary.undecodable.items()),
         *((f"lost in corrupt chunks: {topic}", str(n)) for topic, n in summary.lost.items()),
+        *((f"repeated messages, read once: {topic}", str(n)) for topic, n in summary.duplicates.items()),
         *(
             [("unfinished temporary files of a killed run, removed", str(summary.stale_temporaries))]
             if summary.stale_temporaries

@@ -1,0 +1,93 @@
+"""Real recordings repeat messages and run sensors on other clocks: read once, or refused in one line.
+
+- The same messages twice (a file given under two names, split bags that
+  overlap, a recorder that wrote them twice) are read once and counted per
+  topic: each sample's points and GT are those of the recording read once.
+- A LiDAR or IMU on a clock other than the cameras' (a CustomMsg timebase
+  from the sensor's boot, IMU header stamps of zero) is refused naming the
+  topic and both time ranges, instead of planning no sample or silently
+  turning motion compensation off.
+"""
+
+from __future__ import annotations
+
+import filecmp
+import shutil
+import struct
+from pathlib import Path
+
+import pytest
+
+from ingest.bags.livox_msg import decode_custom_msg, encode_custom_msg
+from ingest.errors import BagError
+from ingest.train.pipeline import IngestConfig, ingest
+from sensorbox.sim.truth import truth_dir
+from tests.faults.bags import INDOOR, LIDAR_BOTTOM, LIDAR_TOP, LOWER, rewrite
+
+IMU = "/livox/imu_192_168_1_12"
+UPPER_STORED = "/zed_upper/zed_node/rgb/color/rect/image/compressed"
+COUNTS = {UPPER_STORED: 21, LOWER: 21, LIDAR_TOP: 7, LIDAR_BOTTOM: 7, IMU: 140}  # the fixture's messages
+
+
+def _config(out: Path, rig: Path | None = None) -> IngestConfig:
+    return IngestConfig(rig=rig or truth_dir(INDOOR) / "rig.yaml", out=out, workers=1, every=5)
+
+
+def _stamped(raw: bytes, stamp_ns: int) -> bytes:
+    """A ROS 2 message (CDR) whose std_msgs/Header stamp, its first field, is `stamp_ns`."""
+    return raw[:4] + struct.pack("<iI", *divmod(stamp_ns, 1_000_000_000)) + raw[12:]
+
+
+def test_the_same_messages_twice_are_read_once_and_counted(tmp_path: Path) -> None:
+    once = ingest([INDOOR], _config(tmp_path / "once"))
+    (data,) = INDOOR.glob("*.mcap")
+    copy = tmp_path / "copy.mcap"  # the same data under another name
+    shutil.copy(data, copy)
+    twice = ingest([INDOOR, copy], _config(tmp_path / "twice"))
+    assert (twice.written, twice.planned) == (once.written, once.planned) == (5, 5)
+    assert twice.duplicates == COUNTS and once.duplicates == {}
+    for folder in ("depth_fisheye", "disp_equirect", "left_fisheye"):
+        for f in sorted((tmp_path / "once" / folder).iterdir()):
+            assert filecmp.cmp(f, tmp_path / "twice" / folder / f.name, shallow=False), f
+
+
+def test_a_lidar_on_its_own_clock_is_refused_naming_it(tmp_path: Path) -> None:
+    def boot_clock(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        if topic != LIDAR_BOTTOM:
+            return [(topic, raw)]
+        msg = decode_custom_msg(raw)  # the timebase counted from the sensor's boot, 123 s ago
+        boot = msg.timebase_ns % 1_000_000_000 + 123_000_000_000
+        return [(topic, encode_custom_msg(msg.stamp_ns, msg.frame_id, boot, msg.points, msg.lidar_id))]
+
+    bag, rig = rewrite(tmp_path / "bag.mcap", boot_clock)
+    pattern = (
+        rf"^{bag}: {LIDAR_BOTTOM}: point times 123\.\d+ s\.\.123\.\d+ s do not overlap the upper camera's stamps "
+        r"\d+\.\d+ s\.\.\d+\.\d+ s; the sensor's clock is not the cameras' \(sync it: PTP/gPTP or the host's time\)$"
+    )
+    with pytest.raises(BagError, match=pattern):
+        ingest([bag], _config(tmp_path / "ds", rig))
+    assert not (tmp_path / "ds").exists()
+
+
+def test_imu_stamps_of_zero_are_refused_naming_the_topic(tmp_path: Path) -> None:
+    def zero(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        return [(topic, _stamped(raw, 0) if topic == IMU else raw)]
+
+    bag, rig = rewrite(tmp_path / "bag.mcap", zero)
+    with pytest.raises(BagError, match=rf"^{bag}: {IMU}: header stamps 0\.000 s\.\.0\.000 s do not overlap"):
+        ingest([bag], _config(tmp_path / "ds", rig))
+    assert not (tmp_path / "ds").exists()
+
+
+def test_camera_stamps_that_do_not_change_are_named(tmp_path: Path) -> None:
+    def constant(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        return [(topic, _stamped(raw, 5_000_000_000) if topic == UPPER_STORED else raw)]
+
+    bag, rig = rewrite(tmp_path / "bag.mcap", constant)
+    message = (
+        f"{bag}: 21 frame(s) on {UPPER_STORED} but 1 distinct header stamp(s) (header stamps: 5.000 s for all); "
+        "need at least 2"
+    )
+    with pytest.raises(BagError) as err:
+        ingest([bag], _config(tmp_path / "ds", rig))
+    assert str(err.value) == message
