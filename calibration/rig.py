@@ -200,6 +200,15 @@ def _livox_block(block: object, where: str) -> F64:
     return livox_extrinsic_to_transform(*values)
 
 
+def _topic(name: str) -> str:
+    """A rig topic as a bag stores it: fully qualified, no trailing slash.
+
+    Recorders write absolute names (`/livox/lidar_192_168_1_12`); a relative
+    one in a rig file means the same topic in the root namespace.
+    """
+    return "/" + name.strip("/")
+
+
 def _is_ipv4(value: object) -> bool:
     if not isinstance(value, str):
         return False
@@ -231,7 +240,7 @@ def _one_sensor_per_topic(rig_topics: list[tuple[str, str | None]], where: str) 
 
 def _parse_lidar(name: str, block: object, where: str, base_dir: Path) -> Lidar:
     block = _require_mapping(block, where)
-    topic = _require_str(block, "topic", where)
+    topic = _topic(_require_str(block, "topic", where))
     ip = block.get("ip")
     if ip is not None and not _is_ipv4(ip):
         raise CalibrationError(f"{where}.ip: expected a dotted IPv4 address such as 192.168.1.12, got {ip!r}")
@@ -265,7 +274,7 @@ def _parse_lidar(name: str, block: object, where: str, base_dir: Path) -> Lidar:
 
 def _parse_imu(name: str, block: object, where: str) -> Imu:
     block = _require_mapping(block, where)
-    topic = _require_str(block, "topic", where)
+    topic = _topic(_require_str(block, "topic", where))
     if "T_cam0_imu" not in block:
         raise CalibrationError(f"{where}: missing key 'T_cam0_imu'")
     rate = block.get("rate_hz")
@@ -307,7 +316,7 @@ def _parse_cameras(block: object, chain: CameraChain, where: str) -> tuple[Camer
         topic = entry.get("topic", kc.rostopic)
         if topic is not None and not isinstance(topic, str):
             raise CalibrationError(f"{where}.{kc.name}.topic: expected a string, got {topic!r}")
-        cams.append(Camera(kc.name, kc.model, kc.T_cam_cam0, role, topic))
+        cams.append(Camera(kc.name, kc.model, kc.T_cam_cam0, role, None if topic is None else _topic(topic)))
     unknown = set(block) - {c.name for c in chain.cameras}
     if unknown:
         raise CalibrationError(

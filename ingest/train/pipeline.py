@@ -192,16 +192,18 @@ def _resolve_topics(rig: Rig, bag_topics: dict[str, Any], where: str) -> Topics:
                 return cand
         if not bag_topics:
             raise BagError(f"{where}: no messages at all (an empty bag, or cut before its first message)")
-        listing = "\n  ".join(sorted(bag_topics))
-        raise BagError(f"{where}: no topic {topic!r} for {what} (from the rig); the bag has:\n  {listing}")
+        listing = ", ".join(sorted(bag_topics))
+        raise BagError(f"{where}: no topic {topic!r} for {what} (from the rig); the bag has: {listing}")
 
     upper = find(rig.upper.topic, "the upper camera")
     lower = find(rig.lower.topic, "the lower camera")
     lidars = {find(li.topic, f"lidar {li.name}"): li.name for li in rig.lidars}
-    for i in rig.imus:  # every IMU the rig names must be there: a silent fallback skews the motion model
-        find(i.topic, f"imu {i.name}")
+    # every IMU the rig names must be there: a silent fallback skews the motion model
+    imu_topics = [find(i.topic, f"imu {i.name}") for i in rig.imus]
     imu = rig.imus[0] if rig.imus else None
-    return Topics(upper, lower, lidars, imu.topic if imu else None, imu.T_cam0_imu[:3, :3] if imu else None)
+    return Topics(
+        upper, lower, lidars, imu_topics[0] if imu else None, imu.T_cam0_imu[:3, :3] if imu else None
+    )
 
 
 def _gt_method(

@@ -161,6 +161,19 @@ def test_bad_rig_messages(tmp_path, changes, message):
         read_rig(path)
 
 
+def test_relative_topics_are_the_absolute_ones_a_bag_stores(tmp_path):
+    path = _rig_with(tmp_path, lidars__lidar_top__topic="livox/lidar_192_168_1_12/", imus__imu_top__topic="livox/imu_192_168_1_12",
+                     cameras__cam0__topic="zed_upper/zed_node/rgb/color/rect/image")  # fmt: skip
+
+    def topics(rig):
+        imu = next(i for i in rig.imus if i.name == "imu_top")
+        return rig.lidar("lidar_top").topic, imu.topic, rig.upper.topic
+
+    assert topics(read_rig(path)) == topics(read_rig(REF)) == (
+        "/livox/lidar_192_168_1_12", "/livox/imu_192_168_1_12", "/zed_upper/zed_node/rgb/color/rect/image"
+    )  # fmt: skip
+
+
 def test_unknown_role_lookup_lists_cameras():
     rig = read_rig(REF)
     with pytest.raises(
