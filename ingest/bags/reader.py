@@ -46,8 +46,10 @@ in `lost_chunks` (`ingest.bags.chunks` says what each format lets us check).
 
 from __future__ import annotations
 
+import contextlib
 import heapq
 import logging
+import sqlite3
 from collections.abc import Collection, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from functools import cache
@@ -260,6 +262,14 @@ def _explain(path: Path, err: BaseException) -> str:
             return f"rosbag2 {yaml_error_line(path / 'metadata.yaml', bad)}"
         except OSError:
             pass  # rosbags' own error below names it
+        if isinstance(err, KeyError) and (odd := _odd_definition_encodings(path)):
+            name, msgtype, encoding = odd[0]
+            return (
+                f"{path}: {name}: the definition of {msgtype} is stored with encoding {encoding!r} (rosbag2 "
+                "writes that for a type it could not find while recording), which rosbags cannot open; "
+                "record with that type's package sourced, or leave its topic out (ros2 bag convert, "
+                "exclude_topics)"
+            )
         cut = [m.name for m in mcaps if not _mcap_is_complete(m)]
         if cut:
             return f"{path}: {', '.join(cut)} truncated or still being written; {SALVAGE_HINT}"
@@ -273,6 +283,22 @@ def _explain(path: Path, err: BaseException) -> str:
             " run `rosbag reindex` on it first"
         )
     return f"{path}: cannot read bag: {type(err).__name__}: {' '.join(text.split())}"
+
+
+def _odd_definition_encodings(path: Path) -> list[tuple[str, str, str]]:
+    """(file, type, encoding) of each .db3 message definition rosbags cannot read (not ros2msg/ros2idl)."""
+    found: list[tuple[str, str, str]] = []
+    for db3 in sorted(path.glob("*.db3")):
+        try:
+            with contextlib.closing(sqlite3.connect(f"file:{db3}?mode=ro", uri=True)) as db:
+                rows = db.execute(
+                    "SELECT topic_type, encoding FROM message_definitions "
+                    "WHERE encoding NOT IN ('ros2msg', 'ros2idl')"
+                ).fetchall()
+        except sqlite3.Error:  # no such table (an older rosbag2), not a database: rosbags' own error stands
+            continue
+        found += [(db3.name, str(t), str(e)) for t, e in rows]
+    return found
 
 
 def _open_reader(paths: list[Path], ros_version: RosVersion, guard: ChunkGuard) -> TolerantAnyReader:

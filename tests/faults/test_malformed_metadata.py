@@ -1,4 +1,5 @@
-"""Malformed YAML in any file we read is one line: the file, line and column, and PyYAML's problem.
+"""Malformed metadata is one line naming the file: YAML (file, line, column, PyYAML's problem) and a
+rosbag2 .db3's message definitions that rosbags cannot open.
 
 PyYAML's own message spans five lines (context, a caret, problem, a caret);
 every reader here condenses it with `calibration.opencv_yaml.yaml_error_line`.
@@ -48,3 +49,23 @@ def test_site_manifest_and_dataset_description(tmp_path: Path) -> None:
     with pytest.raises(SensorboxError, match=PROBLEM) as err:
         _read_dataset_yaml(path)
     assert _one_line(err).startswith(f"existing dataset description {path}: line 2")
+
+
+def test_a_db3_definition_rosbags_cannot_open_is_named(tmp_path: Path) -> None:
+    """rosbag2 stores encoding 'unknown' for a type it could not find while recording; rosbags then fails
+    with a bare KeyError for the whole bag. The error names the file, the type and the way out."""
+    import sqlite3
+
+    bag = tmp_path / "bag"
+    shutil.copytree(fixture_bag("indoor_walk_db3", FIXTURES_DIR), bag)
+    (db3,) = bag.glob("*.db3")
+    with sqlite3.connect(db3) as db:
+        db.execute("INSERT INTO topics VALUES (99, '/my/foo', 'my_pkg/msg/Foo', 'cdr', '', '')")
+        db.execute("INSERT INTO message_definitions VALUES (99, 'my_pkg/msg/Foo', 'unknown', '', '')")
+    with pytest.raises(SensorboxError) as err:
+        open_bags(bag)
+    assert _one_line(err) == (
+        f"{bag}: {db3.name}: the definition of my_pkg/msg/Foo is stored with encoding 'unknown' (rosbag2 writes "
+        "that for a type it could not find while recording), which rosbags cannot open; record with that "
+        "type's package sourced, or leave its topic out (ros2 bag convert, exclude_topics)"
+    )
