@@ -150,6 +150,7 @@ class IngestSummary:
     lost: dict[str, int] = field(default_factory=dict)  # topic -> messages in corrupt chunks (--salvage)
     lost_chunks: list[str] = field(default_factory=list)  # one line per corrupt chunk skipped
     duplicates: dict[str, int] = field(default_factory=dict)  # per topic: repeated messages, read once
+    uncovered: int = 0  # stereo pairs without LiDAR points within the window: not planned
     stale_temporaries: int = 0  # left in the output by a killed run, removed (`ingest.dataset.lock`)
 
     def add(self, result: SampleResult) -> None:
@@ -309,7 +310,7 @@ def _run(
             len(the_plan.upper_ns),
         )
         summary.lost, summary.lost_chunks = bags.lost_counts(), [c.describe() for c in bags.lost_chunks]
-        summary.duplicates = the_plan.duplicates
+        summary.duplicates, summary.uncovered = the_plan.duplicates, the_plan.uncovered
         if the_plan.lost_samples:
             summary.skipped[LOST_REASON] = the_plan.lost_samples
         prepare_dirs(cfg.out, cfg.sample.exr)

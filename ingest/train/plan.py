@@ -21,7 +21,7 @@ from ingest.errors import BagError
 from ingest.train.bad_messages import BadMessages
 from ingest.train.lidar_rate import LidarRates
 from ingest.train.lost import lost_intervals, untouched
-from ingest.train.sync import median_period_ns, pair_stereo, pair_tolerance_ns, select_samples
+from ingest.train.sync import lidar_covered, median_period_ns, pair_stereo, pair_tolerance_ns, select_samples
 
 if TYPE_CHECKING:
     from ingest.train.pipeline import IngestConfig, Topics
@@ -38,6 +38,7 @@ class Plan:
     pairs: int
     rates: LidarRates = field(default_factory=LidarRates)  # each LiDAR's point rate (thin windows)
     duplicates: dict[str, int] = field(default_factory=dict)  # per topic: repeated messages, read once
+    uncovered: int = 0  # stereo pairs with no LiDAR point within the window (never eligible)
     lost_samples: int = 0  # eligible, but their LiDAR/IMU window overlaps a corrupt chunk's messages
 
 
@@ -168,6 +169,7 @@ def plan(bags: BagSet, topics: Topics, cfg: IngestConfig, bad: BadMessages | Non
     pairs = pair_stereo(up, lo, tol)
     all_spans = [s for v in spans.values() for s in v]
     chosen = select_samples(up[pairs.upper], all_spans, cfg.lidar_window_ns, cfg.every)
+    uncovered = int((~lidar_covered(up[pairs.upper], all_spans, cfg.lidar_window_ns)).sum())
     upper, lower = up[pairs.upper][chosen], lo[pairs.lower][chosen]
     keep = _untouched(bags, topics, seen, upper, cfg)
     lost = int(len(keep) - keep.sum())
@@ -180,4 +182,5 @@ def plan(bags: BagSet, topics: Topics, cfg: IngestConfig, bad: BadMessages | Non
         rates,
         duplicates=duplicates,
         lost_samples=lost,
+        uncovered=uncovered,
     )

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calibration.types import I64
+from calibration.types import I64, Bool
 
 DEFAULT_LIDAR_WINDOW_NS = 50_000_000
 
@@ -84,23 +84,28 @@ def pair_stereo(upper_ns: I64, lower_ns: I64, tolerance_ns: int) -> StereoPairs:
     return StereoPairs(pu, pl, lo[pl] - up[pu], len(up) - len(pu), len(lo) - len(pl))
 
 
+def lidar_covered(frame_ns: I64, lidar_spans_ns: list[tuple[int, int]], window_ns: int) -> Bool:
+    """Which frames have LiDAR points within +-`window_ns`: some sweep overlaps [t - window, t + window].
+
+    `lidar_spans_ns` are (first, last) point stamps of each sweep of any LiDAR.
+    """
+    t = np.asarray(frame_ns, np.int64)
+    ok = np.zeros(len(t), bool)
+    for first, last in sorted(lidar_spans_ns):
+        ok |= (t + window_ns >= first) & (t - window_ns <= last)
+    return ok
+
+
 def select_samples(
     frame_ns: I64,
     lidar_spans_ns: list[tuple[int, int]],
     window_ns: int = DEFAULT_LIDAR_WINDOW_NS,
     every: int = 1,
 ) -> I64:
-    """Indices of frames that have LiDAR points within +-`window_ns`, thinned to every `every`-th.
-
-    `lidar_spans_ns` are (first, last) point stamps of each sweep of any LiDAR;
-    a frame qualifies when some sweep overlaps [t - window, t + window].
-    """
+    """Indices of frames that have LiDAR points within +-`window_ns` (`lidar_covered`), thinned to every
+    `every`-th."""
     t = np.asarray(frame_ns, np.int64)
     if not lidar_spans_ns or len(t) == 0:
         return np.zeros(0, np.int64)
-    spans = np.array(sorted(lidar_spans_ns), np.int64)
-    ok = np.zeros(len(t), bool)
-    for first, last in spans:
-        ok |= (t + window_ns >= first) & (t - window_ns <= last)
-    idx = np.nonzero(ok)[0].astype(np.int64)
+    idx = np.nonzero(lidar_covered(t, lidar_spans_ns, window_ns))[0].astype(np.int64)
     return idx[:: max(1, every)]

@@ -101,6 +101,11 @@ def summary_table(summary: IngestSummary, out: Path) -> Table:
             "upper frames / stereo pairs / planned samples",
             f"{summary.frames} / {summary.pairs} / {summary.planned}",
         ),
+        *(
+            [("stereo pairs without LiDAR points in their window (not planned)", str(summary.uncovered))]
+            if summary.uncovered
+            else []
+        ),
         ("written / already done (resumed)", f"{summary.written} / {summary.resumed}"),
         ("ground truth", f"{summary.method} ({summary.decision})"),
         *((f"skipped: {reason}", str(n)) for reason, n in summary.skipped.items()),

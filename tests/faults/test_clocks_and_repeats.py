@@ -91,3 +91,18 @@ def test_camera_stamps_that_do_not_change_are_named(tmp_path: Path) -> None:
     with pytest.raises(BagError) as err:
         ingest([bag], _config(tmp_path / "ds", rig))
     assert str(err.value) == message
+
+
+def test_pairs_without_lidar_in_their_window_are_counted(tmp_path: Path) -> None:
+    """Both LiDARs lose their last two sweeps: the last frames have no point within +-50 ms, are not
+    planned, and the summary says how many, so that planned + uncovered = pairs."""
+
+    def drop_last(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        return [] if topic in (LIDAR_TOP, LIDAR_BOTTOM) and k >= COUNTS[topic] - 2 else [(topic, raw)]
+
+    bag, rig = rewrite(tmp_path / "bag.mcap", drop_last)
+    full = ingest([INDOOR], IngestConfig(rig=rig, out=tmp_path / "full", workers=1, every=1))
+    cut = ingest([bag], IngestConfig(rig=rig, out=tmp_path / "cut", workers=1, every=1))
+    assert full.uncovered == 0 and full.planned == full.pairs == 21
+    assert cut.pairs == 21 and cut.uncovered > 0
+    assert cut.planned + cut.uncovered == cut.pairs and cut.written == cut.planned

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ingest.train.sync import median_period_ns, pair_stereo, pair_tolerance_ns
+from ingest.train.sync import lidar_covered, median_period_ns, pair_stereo, pair_tolerance_ns, select_samples
 from sensorbox.live.cameras import StereoPairer
 
 
@@ -49,3 +49,15 @@ def test_the_live_pairer_pairs_as_the_recording_rule_does(seed):
     assert live.pairs == len(want.upper)
     assert live.unpaired[0] + live.at_stop[0] == want.dropped_upper
     assert live.unpaired[1] + live.at_stop[1] == want.dropped_lower
+
+
+def test_frames_without_lidar_in_their_window_are_left_out_and_can_be_counted():
+    """A sweep covers a frame when it overlaps [t - w, t + w]; the others are not samples (and the
+    pipeline counts them as 'stereo pairs without LiDAR points in their window')."""
+    frames = np.array([0, 100, 200, 300, 400], np.int64)
+    spans = [(60, 140), (240, 250)]  # PointCloud2 without point times: a sweep can be one instant
+    covered = lidar_covered(frames, spans, 50)
+    assert covered.tolist() == [False, True, True, True, False]  # 200: 250 - 50; 300: 250 + 50
+    assert select_samples(frames, spans, 50).tolist() == [1, 2, 3]
+    assert select_samples(frames, spans, 50, every=2).tolist() == [1, 3]
+    assert lidar_covered(frames, [], 50).tolist() == [False] * 5
