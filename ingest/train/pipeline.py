@@ -139,6 +139,7 @@ class IngestSummary:
     planned: int = 0
     density: list[float] = field(default_factory=list)
     skew_ms: list[float] = field(default_factory=list)
+    stereo_dt_ms: list[float] = field(default_factory=list)  # lower minus upper header stamp, per sample
     motion_applied: int = 0
     stage_ms: dict[str, list[float]] = field(default_factory=dict)  # sequential: they add up per sample
     overlapped_ms: dict[str, list[float]] = field(default_factory=dict)  # helper threads beside them
@@ -162,6 +163,7 @@ class IngestSummary:
         assert meta is not None  # written samples carry their metadata
         self.density.append(meta.gt.density)
         self.skew_ms.extend(meta.lidar_skew_ms.values())
+        self.stereo_dt_ms.append(meta.stereo_dt_ms)
         for name in meta.points.silent_lidars:
             key = f"{name} silent in the window"
             self.flagged[key] = self.flagged.get(key, 0) + 1

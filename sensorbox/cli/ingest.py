@@ -133,6 +133,10 @@ def summary_table(summary: IngestSummary, out: Path) -> Table:
                 "LiDAR skew |t_point - t_frame| max (median of samples)",
                 f"{np.median(summary.skew_ms):.1f} ms",
             ),
+            (  # hardware-synced cameras: 0; a constant offset means unsynced exposures
+                "stereo stamp offset lower - upper (median, max |.|)",
+                f"{np.median(summary.stereo_dt_ms):.2f} ms, {np.max(np.abs(summary.stereo_dt_ms)):.2f} ms",
+            ),
             ("motion compensation applied", f"{summary.motion_applied} / {summary.written}"),
             *((f"time: {k}", f"{np.mean(v):.0f} ms/sample") for k, v in summary.stage_ms.items()),
             *(

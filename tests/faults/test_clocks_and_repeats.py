@@ -106,3 +106,20 @@ def test_pairs_without_lidar_in_their_window_are_counted(tmp_path: Path) -> None
     assert full.uncovered == 0 and full.planned == full.pairs == 21
     assert cut.pairs == 21 and cut.uncovered > 0
     assert cut.planned + cut.uncovered == cut.pairs and cut.written == cut.planned
+
+
+def test_a_constant_stereo_offset_is_shown(tmp_path: Path) -> None:
+    """Cameras that are not hardware-synced pair within half a period; the summary shows the offset."""
+
+    def late(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        if topic != LOWER:
+            return [(topic, raw)]
+        sec, nsec = struct.unpack_from("<iI", raw, 4)
+        return [(topic, _stamped(raw, sec * 1_000_000_000 + nsec + 12_000_000))]
+
+    bag, rig = rewrite(tmp_path / "bag.mcap", late)
+    summary = ingest([bag], _config(tmp_path / "ds", rig))
+    synced = ingest([INDOOR], _config(tmp_path / "synced"))
+    assert summary.written == synced.written == 5
+    assert summary.stereo_dt_ms == pytest.approx([dt + 12.0 for dt in synced.stereo_dt_ms], abs=1e-6)
+    assert max(abs(dt) for dt in synced.stereo_dt_ms) < 1.0  # the simulated cameras' own jitter
