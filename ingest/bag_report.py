@@ -88,6 +88,8 @@ class LidarCoverage:
     elevation_max_deg: float | None
     undecodable: int = 0
     time_layout: str | None = None
+    first_point_ns: int | None = None  # the earliest and latest point time of all sweeps
+    last_point_ns: int | None = None
 
 
 @dataclass(frozen=True)
@@ -174,6 +176,32 @@ class BagReport:
         if self.start_log_ns is None or self.end_log_ns is None:
             return 0.0
         return (self.end_log_ns - self.start_log_ns) / 1e9
+
+    def clock_problems(self) -> list[str]:
+        """One line per LiDAR (point times) or IMU (header stamps) whose times miss the upper camera's.
+
+        A sensor on its own clock (a CustomMsg timebase from the sensor's boot,
+        IMU stamps of zero): ingest refuses the recording when the rig uses it.
+        """
+        if self.stereo is None:
+            return []
+        cam = next((t for t in self.topics if t.topic == self.stereo.upper_topic), None)
+        if cam is None or cam.first_stamp_ns is None or cam.last_stamp_ns is None:
+            return []
+        c0, c1 = cam.first_stamp_ns, cam.last_stamp_ns
+        ranges = [(li.topic, "point times", li.first_point_ns, li.last_point_ns) for li in self.lidars]
+        imus = {s.topic for s in self.mapping.of_kind("imu")}
+        ranges += [
+            (t.topic, "header stamps", t.first_stamp_ns, t.last_stamp_ns)
+            for t in self.topics
+            if t.topic in imus
+        ]
+        return [
+            f"{topic}: {what} {a / 1e9:.3f} s..{b / 1e9:.3f} s do not overlap {cam.topic}'s stamps "
+            f"{c0 / 1e9:.3f} s..{c1 / 1e9:.3f} s (the sensor's clock is not the cameras')"
+            for topic, what, a, b in ranges
+            if a is not None and b is not None and (b < c0 or a > c1)
+        ]
 
     def topic(self, name: str) -> TopicStats:
         """The stats of one topic; `BagError` listing the bag's topics when absent."""

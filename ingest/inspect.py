@@ -147,6 +147,8 @@ class _SweepAcc:
     el_max: float = -np.inf
     undecodable: int = 0
     time_layouts: dict[str, None] = field(default_factory=dict)  # insertion-ordered set
+    first_point_ns: int | None = None
+    last_point_ns: int | None = None
 
 
 @dataclass
@@ -181,6 +183,10 @@ def _add_sweep(acc: _SweepAcc, sweep: Sweep) -> None:
     acc.zeros.append(int(len(xyz) - np.count_nonzero(valid)))
     stamps = sweep.stamps_ns
     acc.durations_ms.append(float(stamps.max() - stamps.min()) / 1e6 if len(stamps) else 0.0)
+    if len(stamps):
+        a, b = int(stamps.min()), int(stamps.max())
+        acc.first_point_ns = a if acc.first_point_ns is None else min(acc.first_point_ns, a)
+        acc.last_point_ns = b if acc.last_point_ns is None else max(acc.last_point_ns, b)
     acc.coverage.append(hit / (N_AZ * N_EL))
     acc.time_layouts[sweep.time_layout] = None
     if len(el):
@@ -304,6 +310,8 @@ def _lidar_coverage(topic: str, acc: _SweepAcc) -> LidarCoverage:
         elevation_max_deg=acc.el_max if np.isfinite(acc.el_max) else None,
         undecodable=acc.undecodable,
         time_layout=layouts or None,
+        first_point_ns=acc.first_point_ns,
+        last_point_ns=acc.last_point_ns,
     )
 
 

@@ -14,6 +14,7 @@ from typing import Annotated
 import typer
 from rich.markup import escape
 from rich.table import Table
+from rich.text import Text
 
 from ingest.bag_report import BagReport, LidarCoverage, StereoReport, TopicStats
 from ingest.inspect import inspect_bags
@@ -143,6 +144,8 @@ def _print_report(report: BagReport, rig_path: Path | None) -> None:
         console.print(_stereo_table(report.stereo))
     if report.lidars:
         console.print(_lidar_table(report.lidars))
+    for line in report.clock_problems():
+        console.print(Text.assemble(("warning:", "bold yellow"), " ", line), highlight=False, soft_wrap=True)
     if rig_path is not None:
         _print_rig(report, rig_path)
     console.print("[bold]Suggested rig topic mapping[/bold]")

@@ -20,6 +20,7 @@ import pytest
 
 from ingest.bags.livox_msg import decode_custom_msg, encode_custom_msg
 from ingest.errors import BagError
+from ingest.inspect import inspect_bags
 from ingest.train.pipeline import IngestConfig, ingest
 from sensorbox.sim.truth import truth_dir
 from tests.faults.bags import INDOOR, LIDAR_BOTTOM, LIDAR_TOP, LOWER, rewrite
@@ -67,6 +68,9 @@ def test_a_lidar_on_its_own_clock_is_refused_naming_it(tmp_path: Path) -> None:
     with pytest.raises(BagError, match=pattern):
         ingest([bag], _config(tmp_path / "ds", rig))
     assert not (tmp_path / "ds").exists()
+    (line,) = inspect_bags(bag).clock_problems()  # inspect says so too, for this LiDAR only
+    assert line.startswith(f"{LIDAR_BOTTOM}: point times 123.") and "do not overlap" in line
+    assert inspect_bags(INDOOR).clock_problems() == []
 
 
 def test_imu_stamps_of_zero_are_refused_naming_the_topic(tmp_path: Path) -> None:
