@@ -21,6 +21,7 @@ from ingest.errors import BagError
 from ingest.train.bad_messages import BadMessages
 from ingest.train.lidar_rate import LidarRates
 from ingest.train.lost import lost_intervals, untouched
+from ingest.train.repeats import FirstCopies
 from ingest.train.sync import lidar_covered, median_period_ns, pair_stereo, pair_tolerance_ns, select_samples
 
 if TYPE_CHECKING:
@@ -47,16 +48,6 @@ IMU_MARGIN_NS = 20_000_000
 """IMU readings are taken this far beyond a sample's LiDAR window (motion compensation)."""
 
 
-def sweep_key(sweep: Sweep) -> tuple[int, int, int]:
-    """What makes a sweep the same as another: its first and last point time and its point count.
-
-    Two different sweeps of one LiDAR never share all three; the same
-    message read twice (a file given under two names, split bags that
-    overlap, a recorder that wrote it twice) does.
-    """
-    return int(sweep.span_ns[0]), int(sweep.span_ns[1]), len(sweep.stamps_ns)
-
-
 def _seen(
     bags: BagSet, topics: Topics, bad: BadMessages
 ) -> tuple[dict[str, I64], LidarRates, dict[str, int]]:
@@ -76,29 +67,18 @@ def _seen(
         t: [] for t in (topics.upper, topics.lower, *topics.lidars, *imu)
     }
     rates = LidarRates()
-    keys: dict[str, set[object]] = {t: set() for t in seen}
-    duplicates: dict[str, int] = {}
+    copies = FirstCopies()
     for msg in bags.messages(topics=list(seen)):
-        points: I64 | None = None
         if msg.topic not in topics.lidars:
             stamp = bad.stamp(msg, where)
-            if stamp is None:
-                continue
-            key: object = stamp
-            entry = (msg.log_ns, stamp, stamp)
-        else:
-            sweep = bad.decoded(msg, where)
-            if not isinstance(sweep, Sweep) or not len(sweep.stamps_ns):
-                continue
-            key, entry, points = sweep_key(sweep), (msg.log_ns, *sweep.span_ns), sweep.stamps_ns
-        if key in keys[msg.topic]:
-            duplicates[msg.topic] = duplicates.get(msg.topic, 0) + 1
+            if stamp is not None and copies.first(msg.topic, stamp, stamp):
+                seen[msg.topic].append((msg.log_ns, stamp, stamp))
             continue
-        keys[msg.topic].add(key)
-        seen[msg.topic].append(entry)
-        if points is not None:
-            rates.add(msg.topic, points)
-    return {t: np.array(v, np.int64).reshape(-1, 3) for t, v in seen.items()}, rates, duplicates
+        sweep = bad.decoded(msg, where)
+        if isinstance(sweep, Sweep) and len(sweep.stamps_ns) and copies.sweep(msg.topic, sweep):
+            seen[msg.topic].append((msg.log_ns, *sweep.span_ns))
+            rates.add(msg.topic, sweep.stamps_ns)
+    return {t: np.array(v, np.int64).reshape(-1, 3) for t, v in seen.items()}, rates, copies.repeats
 
 
 def _untouched(bags: BagSet, topics: Topics, seen: dict[str, I64], tc_ns: I64, cfg: IngestConfig) -> Any:

@@ -34,7 +34,8 @@ from ingest.dataset.layout import is_done, sample_id
 from ingest.errors import BagError, MessageDecodeError
 from ingest.train.bad_messages import BadMessages
 from ingest.train.lidar_rate import LidarRates
-from ingest.train.plan import IMU_MARGIN_NS, Plan, sweep_key
+from ingest.train.plan import IMU_MARGIN_NS, Plan
+from ingest.train.repeats import FirstCopies
 from ingest.train.rig_trajectory import RigTrajectory
 from ingest.train.sample import (
     Geometry,
@@ -197,34 +198,19 @@ def _thin_lidars(
     )
 
 
-DUPLICATE_MARGIN_NS = 10_000_000_000
-"""A repeated sweep or IMU reading is recognised this long after the window no sample needs any more
-(a duplicate arrives beside its first copy: the bags are read merged in time)."""
-
-
 def _file_reading(
     topic: str, decoded: Sweep | Frame | ImuSample | None, imu_t: list[int], imu_g: list[Any],
-    sweeps: dict[str, list[Sweep]], read: dict[tuple[str, object], int],
+    sweeps: dict[str, list[Sweep]], copies: FirstCopies,
 ) -> None:  # fmt: skip
     """Keep an IMU reading or a LiDAR sweep (with points) for the samples; None was skipped as undecodable.
 
-    A reading already `read` (key -> its latest time; the plan pass counted it
-    as a duplicate) is left out.
+    A repeated reading (`copies`; the plan pass counted it) is left out.
     """
     if isinstance(decoded, ImuSample):
-        key: object = decoded.stamp_ns
-        t_ns = decoded.stamp_ns
-    elif isinstance(decoded, Sweep) and len(decoded.stamps_ns):
-        key, t_ns = sweep_key(decoded), int(decoded.span_ns[1])
-    else:
-        return
-    if (topic, key) in read:
-        return
-    read[(topic, key)] = t_ns
-    if isinstance(decoded, ImuSample):
-        imu_t.append(decoded.stamp_ns)
-        imu_g.append(decoded.gyro_rad_s)
-    else:
+        if copies.first(topic, decoded.stamp_ns, decoded.stamp_ns):
+            imu_t.append(decoded.stamp_ns)
+            imu_g.append(decoded.gyro_rad_s)
+    elif isinstance(decoded, Sweep) and len(decoded.stamps_ns) and copies.sweep(topic, decoded):
         sweeps[topic].append(decoded)
 
 
@@ -243,7 +229,7 @@ def stream_jobs(
     need = _sweeps_needed(the_plan, topics, w)
     imu_t: list[int] = []
     imu_g: list[Any] = []
-    read: dict[tuple[str, object], int] = {}  # sweeps and IMU readings kept (no older than the horizon)
+    copies = FirstCopies()  # sweeps and IMU readings: each once
     next_k = 0
     sids = [sample_id(first_id + k) for k in range(len(the_plan.upper_ns))]
     done = {sid for sid in sids if is_done(cfg.out, sid)}  # finished by an earlier run (one stat each)
@@ -280,7 +266,7 @@ def stream_jobs(
             if sids[k] not in done:
                 frames[k][side] = msg
         else:
-            _file_reading(msg.topic, bad.decoded(msg, where), imu_t, imu_g, sweeps, read)
+            _file_reading(msg.topic, bad.decoded(msg, where), imu_t, imu_g, sweeps, copies)
         while next_k < len(sids) and (sids[next_k] in done or ready(next_k)):
             if sids[next_k] in done:
                 frames.pop(next_k, None)
@@ -292,7 +278,6 @@ def stream_jobs(
                 horizon = int(the_plan.upper_ns[next_k]) - w
                 for t in sweeps:
                     sweeps[t] = [s for s in sweeps[t] if s.span_ns[1] >= horizon]
-                read = {key: t_ns for key, t_ns in read.items() if t_ns >= horizon - DUPLICATE_MARGIN_NS}
     for k in range(next_k, len(sids)):  # the bag ended: whatever is complete still goes
         why = "done" if sids[k] in done else ("" if len(frames.get(k, {})) == 2 else "missing image")
         yield (sids[k], why) if why else job(k)

@@ -26,6 +26,7 @@ from ingest.errors import OutputError
 from ingest.train.bad_messages import BadMessages
 from ingest.train.clouds import GyroTrack, filter_points, integrate_gyro
 from ingest.train.odometry import Odometry, OdometryParams
+from ingest.train.repeats import FirstCopies
 from ingest.train.rig_trajectory import RigTrajectory
 
 
@@ -61,11 +62,14 @@ def read_gyro(
         return None
     where = bags.label
     stamps, rates = [], []
+    copies = FirstCopies()
     for msg in bags.messages(topics=[imu_topic]):
         sample = bad.decoded(msg, where)
         if sample is None:
             continue
         assert isinstance(sample, ImuSample)
+        if not copies.first(imu_topic, sample.stamp_ns, sample.stamp_ns):
+            continue
         stamps.append(sample.stamp_ns)
         rates.append(sample.gyro_rad_s)
     if len(stamps) < 2:
@@ -89,10 +93,11 @@ def trajectory_pass(
     where = bags.label
     last = {topic: -(2**62) for topic in lidar_topics}
     first_ns: int | None = None
+    copies = FirstCopies()
     for msg in bags.messages(topics=list(lidar_topics)):
         sweep = bad.decoded(msg, where)
         assert sweep is None or isinstance(sweep, Sweep)
-        if sweep is None or not len(sweep.stamps_ns):
+        if sweep is None or not len(sweep.stamps_ns) or not copies.sweep(msg.topic, sweep):
             continue
         keep, _ = filter_points(sweep.xyz_m, sweep.tag, min_range_m)
         T = rig.lidar(lidar_topics[msg.topic]).T_cam0_lidar

@@ -1,0 +1,49 @@
+"""Messages read twice: the same file under two names, split bags that overlap, a recorder that wrote
+a message twice. Every pass over the bags keeps the first copy only, so that the plan, the gyro,
+the trajectory and the samples all see the recording once.
+
+A sweep is known by `sweep_key` (its first and last point time and its point
+count: two different sweeps of one LiDAR never share all three), a frame or
+an IMU reading by its header stamp.
+"""
+
+from __future__ import annotations
+
+from ingest.bags.decode import Sweep
+
+HORIZON_NS = 10_000_000_000
+"""A copy is recognised up to this long (message time) after its first: bags are read merged in time,
+so a copy arrives beside its first."""
+
+
+def sweep_key(sweep: Sweep) -> tuple[int, int, int]:
+    """What makes a sweep the same as another: its first and last point time and its point count."""
+    return int(sweep.span_ns[0]), int(sweep.span_ns[1]), len(sweep.stamps_ns)
+
+
+class FirstCopies:
+    """Which messages are first copies; keys older than `HORIZON_NS` behind their topic's newest are
+    forgotten (per topic: sensors on other clocks do not prune each other)."""
+
+    def __init__(self, horizon_ns: int = HORIZON_NS) -> None:
+        self.horizon_ns = horizon_ns
+        self.repeats: dict[str, int] = {}  # per topic: copies seen after the first
+        self._seen: dict[tuple[str, object], int] = {}
+        self._newest: dict[str, int] = {}
+        self._bound = 4096  # entries before the next pruning
+
+    def first(self, topic: str, key: object, t_ns: int) -> bool:
+        """True for the first copy of (`topic`, `key`) at message time `t_ns`; a repeat is counted."""
+        if (topic, key) in self._seen:
+            self.repeats[topic] = self.repeats.get(topic, 0) + 1
+            return False
+        self._seen[(topic, key)] = t_ns
+        self._newest[topic] = max(self._newest.get(topic, t_ns), t_ns)
+        if len(self._seen) > self._bound:
+            self._seen = {k: t for k, t in self._seen.items() if t >= self._newest[k[0]] - self.horizon_ns}
+            self._bound = max(4096, 2 * len(self._seen))
+        return True
+
+    def sweep(self, topic: str, sweep: Sweep) -> bool:
+        """`first` for a sweep with points."""
+        return self.first(topic, sweep_key(sweep), int(sweep.span_ns[1]))
