@@ -22,6 +22,7 @@ DEMO_BAG := tests/fixtures/indoor_static_mcap
 demo: setup
 	$(BIN)/sensorbox calib check $(DEMO_BAG).truth/rig.yaml --plot $(DEMO_OUT)/rig.png
 	$(BIN)/sensorbox inspect $(DEMO_BAG) --rig $(DEMO_BAG).truth/rig.yaml
+	@rm -rf $(DEMO_OUT)/widedepth  # a fresh dataset each run: ingest refuses to add to one made with other settings
 	$(BIN)/sensorbox ingest $(DEMO_BAG) --rig $(DEMO_BAG).truth/rig.yaml --out $(DEMO_OUT)/widedepth
 	@echo "Demo output: $(DEMO_OUT)/widedepth (WideDepth layout, dataset.yaml) and $(DEMO_OUT)/rig.png"
 
