@@ -13,6 +13,7 @@ for the same sample files.
 
 from __future__ import annotations
 
+import logging
 import os
 import re
 import shutil
@@ -21,6 +22,8 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from ingest.errors import DatasetError, OutputError
+
+log = logging.getLogger(__name__)
 
 # write_atomic's temporaries (mkstemp's 8 random characters) and describe's staging folders for rig/
 TEMPORARY = re.compile(r"^\..+\.[A-Za-z0-9_]{8}\.tmp$")
@@ -31,7 +34,9 @@ def hold_folder(out: Path) -> Iterator[int]:
     """Hold `out` (an existing folder) for this run; yields how many stale temporaries were removed.
 
     Raises DatasetError when another process holds it. Without `fcntl`
-    (Windows) there is no lock and nothing is removed.
+    (Windows), or on a file system that refuses locks (a warning), there is
+    no lock and nothing is removed: no temporary can be told from a running
+    run's.
     """
     try:
         import fcntl
@@ -50,6 +55,10 @@ def hold_folder(out: Path) -> Iterator[int]:
                 f"{out}: another SensorBox run is writing into this folder; wait for it to end or choose "
                 "another --out"
             ) from err
+        except OSError as err:  # a file system without locks (some network mounts): run, but say so
+            log.warning("cannot lock %s (%s): a second run into it would not be refused", out, err.strerror)
+            yield 0
+            return
         yield remove_temporaries(out)
     finally:
         os.close(fd)  # releases the lock

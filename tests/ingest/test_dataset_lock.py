@@ -66,3 +66,20 @@ def test_a_second_run_into_a_held_dataset_is_refused(tmp_path: Path) -> None:
         pytest.raises(DatasetError, match="another SensorBox run is writing into this folder"),
     ):
         ingest([INDOOR], IngestConfig(rig=_rig(INDOOR), out=out, workers=1, every=10))
+
+
+def test_a_file_system_without_locks_runs_unlocked_and_says_so(tmp_path, monkeypatch, caplog) -> None:
+    """Some network mounts refuse flock (ENOLCK): the run goes on with a warning, and leaves temporaries
+    alone (one could be another run's)."""
+    import errno
+    import fcntl
+
+    def refuse(fd: int, op: int) -> None:
+        raise OSError(errno.ENOLCK, "No locks available")
+
+    (tmp_path / KILLED[0]).write_bytes(b"x")
+    monkeypatch.setattr(fcntl, "flock", refuse)
+    with caplog.at_level("WARNING"), hold_folder(tmp_path) as removed:
+        assert removed == 0
+    assert (tmp_path / KILLED[0]).exists()
+    assert f"cannot lock {tmp_path} (No locks available)" in caplog.text
