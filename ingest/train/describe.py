@@ -71,6 +71,44 @@ def _fingerprint(cfg: IngestConfig, geometry: Geometry, bags: list[Path]) -> dic
     }
 
 
+def check_existing(asked: IngestConfig, geometry: Geometry, bags: list[Path]) -> dict[str, Any]:
+    """The existing dataset.yaml of `asked.out` ({} when none), or DatasetError naming what differs.
+
+    A dataset is extended or resumed only with the same settings, rig and,
+    for a recording ingested before, the same data. Ingest checks this first,
+    before its passes over the bags (minutes with a trajectory), and again when
+    it writes dataset.yaml.
+    """
+    path = asked.out / "dataset.yaml"
+    if not path.exists():
+        return {}
+    doc = _fingerprint(asked, geometry, bags)
+    old = _read_dataset_yaml(path)
+    for key in ("R_cam0_rect", "height_full", "baseline_m", "params", "fisheye_size"):
+        if old.get(key) != doc[key]:
+            where = first_difference(old.get(key), doc[key])
+            raise DatasetError(
+                f"{path}: an existing dataset was made with a different {key!r}{where}; "
+                "choose a new --out or delete it"
+            )
+    rig_differs = _rig_difference(geometry, asked.out / "rig")
+    if rig_differs:
+        raise DatasetError(
+            f"{asked.out / 'rig'}: the dataset was made with another rig ({rig_differs}); "
+            "choose a new --out or delete it"
+        )
+    names = [p.name for p in bags]
+    mine = next((s for s in old.get("sources") or [] if s.get("bags") == names), None)
+    identity = [bag_identity(p) for p in bags] if mine is not None else []
+    if mine is not None and mine.get("identity", identity) != identity:
+        raise DatasetError(
+            f"{path}: a recording named {', '.join(names)} was ingested here before, from other data "
+            f"(bytes {[i['bytes'] for i in mine['identity']]} then, {[i['bytes'] for i in identity]} now, "
+            "or other content); choose a new --out or rename the recording"
+        )
+    return old
+
+
 def write_dataset_yaml(
     asked: IngestConfig, cfg: IngestConfig, geometry: Geometry, bags: list[Path], run: IngestSummary
 ) -> int:
@@ -83,32 +121,11 @@ def write_dataset_yaml(
     """
     doc = _fingerprint(asked, geometry, bags)
     path = cfg.out / "dataset.yaml"
-    old: dict[str, Any] = {}
-    if path.exists():
-        old = _read_dataset_yaml(path)
-        for key in ("R_cam0_rect", "height_full", "baseline_m", "params", "fisheye_size"):
-            if old.get(key) != doc[key]:
-                where = first_difference(old.get(key), doc[key])
-                raise DatasetError(
-                    f"{path}: an existing dataset was made with a different {key!r}{where}; "
-                    "choose a new --out or delete it"
-                )
-        rig_differs = _rig_difference(geometry, cfg.out / "rig")
-        if rig_differs:
-            raise DatasetError(
-                f"{cfg.out / 'rig'}: the dataset was made with another rig ({rig_differs}); "
-                "choose a new --out or delete it"
-            )
+    old = check_existing(asked, geometry, bags)
     sources: list[dict[str, Any]] = list(old.get("sources") or [])
     names = [p.name for p in bags]
     identity = [bag_identity(p) for p in bags]
     mine = next((s for s in sources if s.get("bags") == names), None)
-    if mine is not None and mine.get("identity", identity) != identity:
-        raise DatasetError(
-            f"{path}: a recording named {', '.join(names)} was ingested here before, from other data "
-            f"(bytes {[i['bytes'] for i in mine['identity']]} then, {[i['bytes'] for i in identity]} now, "
-            "or other content); choose a new --out or rename the recording"
-        )
     if mine is not None and mine.get("samples") != run.planned:
         raise DatasetError(
             f"{path}: {', '.join(names)} was ingested here before with {mine.get('samples')} planned "

@@ -53,7 +53,7 @@ from ingest.runtime.executor import Executor, Handoff, share_cores
 from ingest.runtime.heap import retain_freed_memory
 from ingest.train.bad_messages import BadMessages
 from ingest.train.dense import DenseParams
-from ingest.train.describe import record_undecodable, write_dataset_yaml
+from ingest.train.describe import check_existing, record_undecodable, write_dataset_yaml
 from ingest.train.lidar_rate import THIN_FRACTION
 from ingest.train.plan import LOST_REASON, plan
 from ingest.train.rig_trajectory import RigTrajectory
@@ -268,6 +268,7 @@ def ingest(
     if not rig.lidars:
         raise DatasetError(f"{cfg.rig}: the rig has no LiDAR under 'lidars'; ingest needs at least one")
     geometry = Geometry.from_rig(rig, cfg.height_full)
+    check_existing(cfg, geometry, [Path(p) for p in bag_paths])  # settings, rig, data: before the passes
     summary = IngestSummary(out=cfg.out)
     bad = BadMessages(cfg.max_bad, warn)
     executor = Executor(cfg.workers, dask=cfg.dask, worker_init=partial(_init_worker, cfg.workers))

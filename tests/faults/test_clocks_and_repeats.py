@@ -20,7 +20,7 @@ from pathlib import Path
 import pytest
 
 from ingest.bags.livox_msg import decode_custom_msg, encode_custom_msg
-from ingest.errors import BagError
+from ingest.errors import BagError, DatasetError
 from ingest.inspect import inspect_bags
 from ingest.train.pipeline import IngestConfig, ingest
 from sensorbox.sim.truth import truth_dir
@@ -134,3 +134,18 @@ def test_a_constant_stereo_offset_is_shown(tmp_path: Path) -> None:
     assert summary.written == synced.written == 5
     assert summary.stereo_dt_ms == pytest.approx([dt + 12.0 for dt in synced.stereo_dt_ms], abs=1e-6)
     assert max(abs(dt) for dt in synced.stereo_dt_ms) < 1.0  # the simulated cameras' own jitter
+
+
+def test_a_rerun_with_other_settings_is_refused_before_any_pass(tmp_path: Path) -> None:
+    """The dataset's settings are compared before the passes over the bags: a dense rerun with another
+    --every is refused without running the trajectory pass again (its file stays as it was)."""
+    out = tmp_path / "ds"
+    ingest([INDOOR], replace(_config(out), gt="dense"))
+    (tum,) = (out / "trajectories").iterdir()
+    before = tum.stat()
+    with pytest.raises(
+        DatasetError, match=r"an existing dataset was made with a different 'params' \(every: 5 -> 7\)"
+    ):
+        ingest([INDOOR], replace(_config(out), gt="dense", every=7))
+    after = tum.stat()
+    assert (after.st_ino, after.st_mtime_ns) == (before.st_ino, before.st_mtime_ns)
