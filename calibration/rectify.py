@@ -74,8 +74,52 @@ def rectify_stereo(T_cam1_cam0: F64, orientation: str = "vertical") -> StereoRec
     return StereoRectification(R_cam0_rect, R_cam1_rect, float(np.linalg.norm(b)), orientation)
 
 
+MIN_BASELINE_M = 1e-3
+MAX_PLAUSIBLE_BASELINE_M = 2.0  # a handheld rig; more is a camchain in millimetres, most likely
+
+
+def _lower_in_upper(rig: Rig) -> tuple[F64, str, str]:
+    """The lower camera's centre in the upper camera's frame (m), and both names."""
+    ref, oth = rig.upper, rig.lower
+    return (ref.T_cam_cam0 @ oth.T_cam0_cam)[:3, 3], ref.name, oth.name
+
+
 def rectify_rig(rig: Rig, reference: str = "upper", other: str = "lower") -> StereoRectification:
     """Vertical-stereo rectification of a rig's upper/lower pair (upper = reference)."""
     ref, oth = rig.camera(reference), rig.camera(other)
     T_oth_ref = oth.T_cam_cam0 @ ref.T_cam0_cam
+    b = invert(T_oth_ref)[:3, 3]
+    if (apart_mm := float(np.linalg.norm(b)) * 1e3) < MIN_BASELINE_M * 1e3:
+        raise CalibrationError(
+            f"{rig.source or rig.name}: cameras {ref.name} and {oth.name} are {apart_mm:.3f} mm apart; "
+            f"a stereo pair needs a baseline of at least {MIN_BASELINE_M * 1e3:g} mm"
+        )
     return rectify_stereo(T_oth_ref, "vertical")
+
+
+def stereo_warnings(rig: Rig) -> list[str]:
+    """What looks wrong in the upper/lower pair's layout, one line each (nothing for a rig without both).
+
+    The rectified images point their "up" from the lower camera to the upper:
+    a lower camera above the upper one in the upper's frame (y down) turns the
+    dataset upside down (roles swapped?). A baseline over 2 m is most likely
+    a camchain in millimetres (Kalibr writes metres).
+    """
+    try:
+        b, up, low = _lower_in_upper(rig)
+    except CalibrationError:  # no upper or lower role
+        return []
+    out = []
+    where = f"{rig.source or rig.name}"
+    if b[1] <= 0.0:
+        out.append(
+            f"{where}: the lower camera {low} is not below the upper camera {up} (its centre at "
+            f"[{b[0]:.4f}, {b[1]:.4f}, {b[2]:.4f}] m in {up}, whose y points down): rectified images and GT "
+            "will be upside down unless both cameras are mounted upside down; are the roles swapped?"
+        )
+    if np.linalg.norm(b) > MAX_PLAUSIBLE_BASELINE_M:
+        out.append(
+            f"{where}: stereo baseline {np.linalg.norm(b):.3f} m; is the camchain in millimetres? "
+            "(Kalibr writes metres)"
+        )
+    return out

@@ -167,9 +167,15 @@ def read_livox_config(path: str | Path) -> dict[str, F64]:
     """
     p = Path(path)
     try:
-        data = json.loads(p.read_text())
+        data = json.loads(p.read_text(encoding="utf-8-sig"))  # a BOM, as some Windows editors save
     except FileNotFoundError as err:
         raise CalibrationError(f"{p}: Livox config file not found") from err
+    except OSError as err:  # a folder, no permission
+        raise CalibrationError(f"{p}: cannot read the Livox config file: {err.strerror or err}") from err
+    except UnicodeDecodeError as err:
+        raise CalibrationError(
+            f"{p}: not a JSON Livox config (byte {err.start} is {err.object[err.start]:#04x}, not UTF-8 text)"
+        ) from err
     except json.JSONDecodeError as err:
         raise CalibrationError(f"{p}: line {err.lineno}: malformed JSON: {err.msg}") from err
     configs = data.get("lidar_configs") if isinstance(data, dict) else None
@@ -257,8 +263,13 @@ def _parse_lidar(name: str, block: object, where: str, base_dir: Path) -> Lidar:
             T_base_lidar = _livox_block(block["livox_extrinsic"], f"{where}.livox_extrinsic")
         else:
             cfg_path = base_dir / str(block["livox_config"])
-            table = read_livox_config(cfg_path)
-            if ip is None or ip not in table:
+            if ip is None:
+                raise CalibrationError(f"{where}: missing key 'ip' (which LiDAR of the livox_config it is)")
+            try:
+                table = read_livox_config(cfg_path)
+            except CalibrationError as err:
+                raise CalibrationError(f"{where}.livox_config: {err}") from err
+            if ip not in table:
                 raise CalibrationError(
                     f"{where}.ip: {ip!r} not found in {cfg_path} (has: {', '.join(table) or 'none'})"
                 )

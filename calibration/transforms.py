@@ -14,7 +14,10 @@ import numpy as np
 from calibration.errors import CalibrationError
 from calibration.types import F64
 
-ORTHONORMAL_TOL = 1e-6
+# A rotation printed to 6 decimals (C++ streams' default precision, many tools' output) is off
+# orthonormal by up to about 3e-6; 1e-5 accepts those and refuses a 4-decimal one (about 1e-4) or a
+# wrong matrix. Accepted rotations are used as written: 1e-5 rad is 0.1 mm at 10 m.
+ORTHONORMAL_TOL = 1e-5
 """Largest |R^T R - I| entry accepted for a rotation read from a file."""
 
 

@@ -41,6 +41,7 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
+from calibration.rectify import stereo_warnings
 from calibration.rig import Rig, read_rig
 from ingest.bags.reader import BagSet, given_once, open_bags
 from ingest.dataset.layout import (
@@ -152,6 +153,7 @@ class IngestSummary:
     lost_chunks: list[str] = field(default_factory=list)  # one line per corrupt chunk skipped
     duplicates: dict[str, int] = field(default_factory=dict)  # per topic: repeated messages, read once
     uncovered: int = 0  # stereo pairs without LiDAR points within the window: not planned
+    warnings: list[str] = field(default_factory=list)  # about the inputs, one line each (the rig's layout)
     stale_temporaries: int = 0  # left in the output by a killed run, removed (`ingest.dataset.lock`)
 
     def add(self, result: SampleResult) -> None:
@@ -269,7 +271,7 @@ def ingest(
         raise DatasetError(f"{cfg.rig}: the rig has no LiDAR under 'lidars'; ingest needs at least one")
     geometry = Geometry.from_rig(rig, cfg.height_full)
     check_existing(cfg, geometry, [Path(p) for p in bag_paths])  # settings, rig, data: before the passes
-    summary = IngestSummary(out=cfg.out)
+    summary = IngestSummary(out=cfg.out, warnings=stereo_warnings(rig))
     bad = BadMessages(cfg.max_bad, warn)
     executor = Executor(cfg.workers, dask=cfg.dask, worker_init=partial(_init_worker, cfg.workers))
     try:

@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 from rich.table import Table
+from rich.text import Text
 
 from sensorbox.cli.common import console
 
@@ -85,6 +86,7 @@ def frames_table(report: RigReport) -> Table:
 
 def calib_check(path: PathArg, plot: PlotOpt = None) -> None:
     """Print each camera's model, parameters and true FOV, the baseline and the rig's frames."""
+    from calibration.rectify import stereo_warnings
     from calibration.report import describe_rig
     from calibration.rig import read_rig
 
@@ -97,6 +99,8 @@ def calib_check(path: PathArg, plot: PlotOpt = None) -> None:
     console.print(frames_table(report))
     if report.baseline_m is not None:
         console.print(f"Stereo baseline upper->lower: [bold]{report.baseline_m * 1000:.2f} mm[/bold]")
+    for line in stereo_warnings(rig):
+        console.print(Text.assemble(("warning:", "bold yellow"), " ", line), highlight=False, soft_wrap=True)
     if plot is not None:
         from sensorbox.analysis.plots import plot_rig
 

@@ -183,6 +183,8 @@ def ingest_cmd(
     for line in summary.lost_chunks:
         console.print(f"skipped {line}", markup=False, highlight=False, soft_wrap=True)
     console.print(summary_table(summary, out))
+    for line in summary.warnings:
+        _warn(line)
     metas = sorted((out / "meta").glob("*.json")) if preview else []
     if metas:
         from sensorbox.analysis.plots import plot_sample

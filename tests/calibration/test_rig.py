@@ -93,6 +93,27 @@ def test_livox_config_json(tmp_path):
     T = rig.lidar("bottom").T_cam0_lidar
     # base z up = cam -y; the bottom lidar sits 0.12 m below the base -> +0.12 in cam y; its z points down
     assert np.allclose(T[:3, 3], [0, 0.12, 0]) and np.allclose(T[:3, 2], [0, 1, 0])
+    # saved by a Windows editor: a BOM reads the same
+    path.write_bytes(b"\xef\xbb\xbf" + json.dumps(cfg).encode())
+    assert np.array_equal(read_rig(tmp_path / "rig.yaml").lidar("bottom").T_cam0_lidar, T)
+    where = f"{tmp_path / 'rig.yaml'}: lidars.bottom"
+    for bad, message in (
+        ({"livox_config": "."}, f"{where}.livox_config: {tmp_path}: cannot read the Livox config file: Is a directory"),
+        ({"ip": None}, f"{where}: missing key 'ip' (which LiDAR of the livox_config it is)"),
+    ):  # fmt: skip
+        doc = yaml.safe_load(yaml.safe_dump(rig_doc))
+        doc["lidars"]["bottom"].update(bad)
+        doc["lidars"]["bottom"] = {k: v for k, v in doc["lidars"]["bottom"].items() if v is not None}
+        (tmp_path / "bad.yaml").write_text(yaml.safe_dump(doc))
+        with pytest.raises(CalibrationError) as err:
+            read_rig(tmp_path / "bad.yaml")
+        assert str(err.value) == message.replace("rig.yaml", "bad.yaml")
+    path.write_bytes(b'{"lidar_configs": [{"ip": "caf\xe9"}]}')
+    with pytest.raises(
+        CalibrationError,
+        match=r"MID360_config\.json: not a JSON Livox config \(byte 30 is 0xe9, not UTF-8 text\)$",
+    ):
+        read_livox_config(path)
 
 
 def test_rig_write_read_round_trip(tmp_path):
@@ -180,3 +201,55 @@ def test_unknown_role_lookup_lists_cameras():
         CalibrationError, match=r"no camera named or role 'left' \(has: cam0 \(upper\), cam1 \(lower\)\)"
     ):
         rig.camera("left")
+
+
+def test_rotations_printed_to_six_decimals_are_accepted_and_coarser_ones_refused():
+    """Many tools print 6 decimals: those rotations are off orthonormal by up to ~3e-6 and must be read;
+    4 decimals (~1e-4) are refused, as is any matrix that is not a rotation."""
+    from scipy.spatial.transform import Rotation
+
+    from calibration.transforms import as_transform
+
+    T = np.eye(4)
+    for R in Rotation.random(2000, random_state=3).as_matrix():
+        T[:3, :3] = np.round(R, 6)
+        as_transform(T.tolist(), "six decimals")
+    T[:3, :3] = np.round(Rotation.from_euler("xyz", [0.3, -1.1, 2.0]).as_matrix(), 4)
+    with pytest.raises(
+        CalibrationError,
+        match=r"^four: rotation is not orthonormal \(max \|R\^T R - I\| = .*, expected <= 1e-05\)$",
+    ):
+        as_transform(T.tolist(), "four")
+
+
+def _rig_with_chain(tmp_path, scale: float):
+    """The reference rig with cam1's T_cn_cnm1 translation multiplied by `scale`."""
+    path = _rig_with(tmp_path)
+    chain = yaml.safe_load((tmp_path / "sensorbox-camchain.yaml").read_text())
+    T = np.array(chain["cam1"]["T_cn_cnm1"], float)
+    T[:3, 3] *= scale
+    chain["cam1"]["T_cn_cnm1"] = T.tolist()
+    (tmp_path / "sensorbox-camchain.yaml").write_text(yaml.safe_dump(chain))
+    return path
+
+
+def test_stereo_layout_warnings_and_a_zero_baseline(tmp_path):
+    from calibration.rectify import rectify_rig, stereo_warnings
+
+    assert stereo_warnings(read_rig(REF)) == []
+    for sub in "abc":
+        (tmp_path / sub).mkdir()
+    swapped = read_rig(_rig_with(tmp_path / "a", cameras__cam0__role="lower", cameras__cam1__role="upper"))
+    (line,) = stereo_warnings(swapped)
+    assert "rig.yaml: the lower camera cam0 is not below the upper camera cam1 (its centre at [" in line
+    assert line.endswith("are the roles swapped?")
+    (line,) = stereo_warnings(read_rig(_rig_with_chain(tmp_path / "b", 1000.0)))  # a camchain in mm
+    assert line.endswith(
+        "rig.yaml: stereo baseline 120.309 m; is the camchain in millimetres? (Kalibr writes metres)"
+    )
+    zero = read_rig(_rig_with_chain(tmp_path / "c", 0.0))
+    with pytest.raises(
+        CalibrationError,
+        match=r"rig\.yaml: cameras cam0 and cam1 are 0\.000 mm apart; a stereo pair needs a baseline of at least 1 mm$",
+    ):
+        rectify_rig(zero)
