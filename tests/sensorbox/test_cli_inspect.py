@@ -1,5 +1,6 @@
 """`sensorbox inspect` through typer, with its own app (the main CLI wires the same function)."""
 
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -68,12 +69,18 @@ def test_inspect_prints_topics_timing_and_mapping():
     assert "cam0: {role: upper, topic: /zed_upper/zed_node/rgb/color/rect/image}" in out
 
 
-def test_inspect_with_rig_reports_missing_topics():
+def test_inspect_with_rig_reports_missing_topics(tmp_path: Path):
     bag = fixture_bag("indoor_walk_db3", FIXTURES_DIR)
-    rig = bag.parent / "indoor_walk_db3.truth" / "rig.yaml"
+    truth = bag.parent / "indoor_walk_db3.truth"
+    shutil.copy(truth / "camchain.yaml", tmp_path)
+    rig = tmp_path / "rig.yaml"  # a LiDAR topic the bag lacks; the cameras' /compressed variants count
+    rig.write_text(
+        (truth / "rig.yaml").read_text().replace("/livox/lidar_192_168_1_13", "/livox/lidar_10_0_0_9")
+    )
     res = runner.invoke(app, ["inspect", str(bag), "--rig", str(rig)])
     assert res.exit_code == 0, res.output
-    assert "not in the bag" in res.stdout
+    assert "/livox/lidar_10_0_0_9" in res.stdout and "not in the bag" in res.stdout
+    assert "/zed_upper/zed_node/rgb/color/rect/image " not in res.stdout  # found as /compressed
     assert "The bag's topics:" in res.stdout
     assert "/zed_upper/zed_node/rgb/color/rect/image/compressed (CompressedImage)" in res.stdout
     assert "topics from rig" in res.stdout
