@@ -35,7 +35,32 @@ def strip_opencv_directive(text: str) -> str:
 
 
 class OpenCvSafeLoader(yaml.SafeLoader):
-    """`yaml.SafeLoader` that also constructs ``!!opencv-matrix`` nodes (see the module doc)."""
+    """`yaml.SafeLoader` that also constructs ``!!opencv-matrix`` nodes (see the module doc).
+
+    Two more differences from PyYAML's YAML 1.1 reading, for files other
+    tools write: a number in exponent form without a dot (``1e-04``,
+    ``5000693e-4``, as C++ and YAML 1.2 writers print them) is a float, not
+    the string YAML 1.1 makes of it; and a key given twice in one mapping is
+    an error instead of the last copy silently winning.
+    """
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        seen: set[Any] = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            if key in seen:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"key {key!r} given twice in one mapping", key_node.start_mark
+                )
+            seen.add(key)
+        return super().construct_mapping(node, deep=deep)
+
+
+OpenCvSafeLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$"),
+    list("-+0123456789."),
+)
 
 
 def _matrix_error(node: yaml.Node, problem: str) -> yaml.constructor.ConstructorError:

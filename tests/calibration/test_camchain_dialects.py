@@ -94,6 +94,20 @@ def test_opencv_yaml_header_is_read(tmp_path, header):
     assert chain.cameras[0].model == Pinhole(458.654, 457.296, 367.215, 248.375, 752, 480, RADTAN0)
 
 
+def test_exponents_without_a_dot_are_numbers_and_a_repeated_key_is_refused(tmp_path):
+    """YAML 1.1 reads an exponent without a dot (458654e-3, 5e-4), as C++ and YAML 1.2 writers print
+    numbers, as a string. A camera given twice was silently the last copy."""
+    plain = read(tmp_path, kalibr_with_T_cn_cnm1(), "plain.yaml")
+    text = kalibr_with_T_cn_cnm1().replace("458.654, 457.296", "458654e-3, 457296E-3", 1)
+    text = text.replace("1.76187114e-05", "176187114e-13", 1)
+    assert_same_chain(read(tmp_path, text, "exp.yaml"), plain)
+    twice = kalibr_with_T_cn_cnm1() + camera("cam1", f"T_cn_cnm1:\n{rows(T_C1_C0_KALIBR, 2)}\n")
+    with pytest.raises(
+        CalibrationError, match=r"twice\.yaml: line \d+, column 1: malformed YAML: key 'cam1' given twice"
+    ):
+        read(tmp_path, twice, "twice.yaml")
+
+
 def test_opencv_matrix_nodes_are_read(tmp_path):
     text = "%YAML:1.0\n---\n" + camera(
         "cam0", "", intrinsics="!!opencv-matrix {rows: 1, cols: 4, dt: d, data: [458.654, 457.296, 367.215, 248.375]}"
