@@ -43,7 +43,7 @@ def _fingerprint(cfg: IngestConfig, geometry: Geometry, bags: list[Path]) -> dic
     return {
         "format": "widedepth-train",
         "sensorbox_version": version("sensorbox"),
-        "rig": {"name": rig.name, "source": str(rig.source) if rig.source else None},
+        "rig": {"name": rig.name, "source": str(Path(rig.source).resolve()) if rig.source else None},
         "R_cam0_rect": geometry.rect.R_cam0_rect.tolist(),
         "R_cam1_rect": geometry.rect.R_cam1_rect.tolist(),
         "baseline_m": geometry.rect.baseline_m,

@@ -470,3 +470,14 @@ def test_workers_use_a_helper_thread_only_when_a_core_is_free(
     assert summary.written >= 2
     assert bool(summary.overlapped_ms) is helper and "images" in summary.stage_ms
     assert "overlap_images" not in yaml.safe_load((tmp_path / "ds" / "dataset.yaml").read_text())["params"]
+
+
+def test_dataset_yaml_names_the_rig_by_an_absolute_path(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A rig given relative to the working folder is recorded so that it resolves from anywhere."""
+    monkeypatch.chdir(_rig(INDOOR).parent.parent)
+    relative = Path(_rig(INDOOR).parent.name) / "rig.yaml"
+    ingest([INDOOR], IngestConfig(rig=relative, out=tmp_path / "ds", workers=1, every=10))
+    doc = yaml.safe_load((tmp_path / "ds" / "dataset.yaml").read_text())
+    assert doc["rig"]["source"] == str(_rig(INDOOR).resolve())
