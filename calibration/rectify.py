@@ -109,8 +109,13 @@ def stereo_warnings(rig: Rig) -> list[str]:
         b, up, low = _lower_in_upper(rig)
     except CalibrationError:  # no upper or lower role
         return []
-    out = []
     where = f"{rig.source or rig.name}"
+    if float(np.linalg.norm(b)) < MIN_BASELINE_M:
+        return [
+            f"{where}: cameras {up} and {low} are {np.linalg.norm(b) * 1e3:.3f} mm apart: not a stereo pair "
+            "(ingest refuses it)"
+        ]
+    out = []
     if b[1] <= 0.0:
         out.append(
             f"{where}: the lower camera {low} is not below the upper camera {up} (its centre at "

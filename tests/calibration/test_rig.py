@@ -248,6 +248,9 @@ def test_stereo_layout_warnings_and_a_zero_baseline(tmp_path):
         "rig.yaml: stereo baseline 120.309 m; is the camchain in millimetres? (Kalibr writes metres)"
     )
     zero = read_rig(_rig_with_chain(tmp_path / "c", 0.0))
+    assert stereo_warnings(zero) == [
+        f"{zero.source}: cameras cam0 and cam1 are 0.000 mm apart: not a stereo pair (ingest refuses it)"
+    ]
     with pytest.raises(
         CalibrationError,
         match=r"rig\.yaml: cameras cam0 and cam1 are 0\.000 mm apart; a stereo pair needs a baseline of at least 1 mm$",
