@@ -88,12 +88,20 @@ def lidar_covered(frame_ns: I64, lidar_spans_ns: list[tuple[int, int]], window_n
     """Which frames have LiDAR points within +-`window_ns`: some sweep overlaps [t - window, t + window].
 
     `lidar_spans_ns` are (first, last) point stamps of each sweep of any LiDAR.
+    A frame is covered when the latest end among the windows starting at or
+    before it reaches it: one sort and one search, not a pass over the frames
+    per sweep (an hour holds 72,000 sweeps).
     """
     t = np.asarray(frame_ns, np.int64)
-    ok = np.zeros(len(t), bool)
-    for first, last in sorted(lidar_spans_ns):
-        ok |= (t + window_ns >= first) & (t - window_ns <= last)
-    return ok
+    if not lidar_spans_ns:
+        return np.zeros(len(t), bool)
+    spans = np.array(lidar_spans_ns, np.int64).reshape(-1, 2)
+    order = np.argsort(spans[:, 0], kind="stable")
+    starts = spans[order, 0] - window_ns
+    reach = np.maximum.accumulate(spans[order, 1] + window_ns)
+    k = np.searchsorted(starts, t, side="right") - 1
+    out: Bool = (k >= 0) & (reach[np.maximum(k, 0)] >= t)
+    return out
 
 
 def select_samples(
