@@ -71,7 +71,7 @@ def _seen(
     for msg in bags.messages(topics=list(seen)):
         if msg.topic not in topics.lidars:
             stamp = bad.stamp(msg, where)
-            if stamp is not None and copies.first(msg.topic, stamp, stamp):
+            if stamp is not None and copies.stamped(msg.topic, stamp):
                 seen[msg.topic].append((msg.log_ns, stamp, stamp))
             continue
         sweep = bad.decoded(msg, where)

@@ -44,6 +44,10 @@ class FirstCopies:
             self._bound = max(4096, 2 * len(self._seen))
         return True
 
+    def stamped(self, topic: str, stamp_ns: int) -> bool:
+        """`first` for a frame or IMU reading, known by its header stamp."""
+        return self.first(topic, stamp_ns, stamp_ns)
+
     def sweep(self, topic: str, sweep: Sweep) -> bool:
         """`first` for a sweep with points."""
         return self.first(topic, sweep_key(sweep), int(sweep.span_ns[1]))

@@ -207,7 +207,7 @@ def _file_reading(
     A repeated reading (`copies`; the plan pass counted it) is left out.
     """
     if isinstance(decoded, ImuSample):
-        if copies.first(topic, decoded.stamp_ns, decoded.stamp_ns):
+        if copies.stamped(topic, decoded.stamp_ns):
             imu_t.append(decoded.stamp_ns)
             imu_g.append(decoded.gyro_rad_s)
     elif isinstance(decoded, Sweep) and len(decoded.stamps_ns) and copies.sweep(topic, decoded):

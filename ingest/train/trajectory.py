@@ -68,7 +68,7 @@ def read_gyro(
         if sample is None:
             continue
         assert isinstance(sample, ImuSample)
-        if not copies.first(imu_topic, sample.stamp_ns, sample.stamp_ns):
+        if not copies.stamped(imu_topic, sample.stamp_ns):
             continue
         stamps.append(sample.stamp_ns)
         rates.append(sample.gyro_rad_s)
