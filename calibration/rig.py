@@ -225,23 +225,27 @@ def _is_ipv4(value: object) -> bool:
     return True
 
 
-def _one_sensor_per_topic(rig_topics: list[tuple[str, str | None]], where: str) -> None:
-    """Each topic belongs to one sensor: messages on a shared topic cannot be told apart.
+def _each_once(values: list[tuple[str, str | None]], field: str, where: str, why: str) -> None:
+    """Refuse a `field` value (a topic, an IP) that two sensors share, naming both keys; None is unset.
 
-    (Two Mid-360s on livox_ros_driver2's multi_topic 0 share /livox/lidar, and
-    their CustomMsg.lidar_id is the first octet of the IP, the same for both.)
+    A topic belongs to one sensor: messages on a shared one cannot be told
+    apart (two Mid-360s on livox_ros_driver2's multi_topic 0 share
+    /livox/lidar, and their CustomMsg.lidar_id is the first octet of the IP,
+    the same for both).
     """
     owner: dict[str, str] = {}
-    for key, topic in rig_topics:
-        if topic is None:
+    for key, value in values:
+        if value is None:
             continue
-        if topic in owner:
-            both_lidars = owner[topic].startswith("lidars.") and key.startswith("lidars.")
-            raise CalibrationError(
-                f"{where}: {owner[topic]}.topic and {key}.topic are both {topic}: each sensor needs its own "
-                "topic" + (" (for Livox LiDARs, livox_ros_driver2's multi_topic: 1)" if both_lidars else "")
+        if value in owner:
+            both_lidars = (
+                field == "topic" and owner[value].startswith("lidars.") and key.startswith("lidars.")
             )
-        owner[topic] = key
+            hint = " (for Livox LiDARs, livox_ros_driver2's multi_topic: 1)" if both_lidars else ""
+            raise CalibrationError(
+                f"{where}: {owner[value]}.{field} and {key}.{field} are both {value}: {why}{hint}"
+            )
+        owner[value] = key
 
 
 def _parse_lidar(name: str, block: object, where: str, base_dir: Path) -> Lidar:
@@ -368,18 +372,11 @@ def read_rig(path: str | Path) -> Rig:
         _parse_imu(str(n), b, f"{where}: imus.{n}")
         for n, b in _require_mapping(data.get("imus", {}), f"{where}: imus").items()
     )
-    _one_sensor_per_topic(
-        [(f"cameras.{c.name}", c.topic) for c in cameras]
-        + [(f"lidars.{li.name}", li.topic) for li in lidars]
-        + [(f"imus.{imu.name}", imu.topic) for imu in imus],
-        where,
-    )
-    ips = [(f"lidars.{li.name}", li.ip) for li in lidars if li.ip is not None]
-    for k, (key, ip) in enumerate(ips):
-        if (twin := next((other for other, o_ip in ips[:k] if o_ip == ip), None)) is not None:
-            raise CalibrationError(
-                f"{where}: {twin}.ip and {key}.ip are both {ip}: each LiDAR has its own address"
-            )
+    topics = [(f"cameras.{c.name}", c.topic) for c in cameras] + [
+        (f"{kind}.{s.name}", s.topic) for kind, group in (("lidars", lidars), ("imus", imus)) for s in group
+    ]
+    _each_once(topics, "topic", where, "each sensor needs its own topic")
+    _each_once([(f"lidars.{li.name}", li.ip) for li in lidars], "ip", where, "each LiDAR has its own address")
     name = data.get("name", p.stem)
     return Rig(cameras, lidars, imus, name=str(name), source=p, camchain=chain)
 
