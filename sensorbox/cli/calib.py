@@ -8,9 +8,8 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 from rich.table import Table
-from rich.text import Text
 
-from sensorbox.cli.common import console
+from sensorbox.cli.common import console, print_warning
 
 if TYPE_CHECKING:
     from calibration.report import RigReport
@@ -100,7 +99,7 @@ def calib_check(path: PathArg, plot: PlotOpt = None) -> None:
     if report.baseline_m is not None:
         console.print(f"Stereo baseline upper->lower: [bold]{report.baseline_m * 1000:.2f} mm[/bold]")
     for line in stereo_warnings(rig):
-        console.print(Text.assemble(("warning:", "bold yellow"), " ", line), highlight=False, soft_wrap=True)
+        print_warning(line, console)
     if plot is not None:
         from sensorbox.analysis.plots import plot_rig
 

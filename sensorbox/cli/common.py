@@ -10,6 +10,7 @@ from typing import Annotated
 import typer
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+from rich.text import Text
 
 console = Console(width=None if sys.stdout.isatty() else 140, highlight=False)
 err_console = Console(stderr=True, width=None if sys.stderr.isatty() else 200)
@@ -44,3 +45,8 @@ def human_bytes(n: float) -> str:
             return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
         n /= 1024
     return f"{n:.1f} TiB"
+
+
+def print_warning(line: str, target: Console = err_console) -> None:
+    """One plain "warning: LINE" (no markup: paths and values print as they are), on stderr by default."""
+    target.print(Text.assemble(("warning:", "bold yellow"), " ", line), highlight=False, soft_wrap=True)

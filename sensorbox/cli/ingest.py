@@ -15,9 +15,8 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 from rich.table import Table
-from rich.text import Text
 
-from sensorbox.cli.common import console, err_console, progress_bar
+from sensorbox.cli.common import console, print_warning, progress_bar
 
 if TYPE_CHECKING:
     from ingest.train.pipeline import IngestSummary
@@ -149,11 +148,6 @@ def summary_table(summary: IngestSummary, out: Path) -> Table:
     return table
 
 
-def _warn(line: str) -> None:
-    """One plain warning line on stderr (above the progress bar)."""
-    err_console.print(Text.assemble(("warning:", "bold yellow"), " ", line), highlight=False, soft_wrap=True)
-
-
 def ingest_cmd(
     bags: BagsArg, rig: RigOpt, out: OutOpt, workers: WorkersOpt = 2, dask: DaskOpt = None,
     every: EveryOpt = 1, window_ms: WindowOpt = 50.0, exr: ExrOpt = False, png_level: PngLevelOpt = 1,
@@ -179,12 +173,12 @@ def ingest_cmd(
     )  # fmt: skip
     cfg.validate()  # before the progress bar: a bad value is one line
     with progress_bar("ingesting", "samples") as update:
-        summary = ingest(bags, cfg, progress=update, warn=_warn)
+        summary = ingest(bags, cfg, progress=update, warn=print_warning)
     for line in summary.lost_chunks:
         console.print(f"skipped {line}", markup=False, highlight=False, soft_wrap=True)
     console.print(summary_table(summary, out))
     for line in summary.warnings:
-        _warn(line)
+        print_warning(line)
     metas = sorted((out / "meta").glob("*.json")) if preview else []
     if metas:
         from sensorbox.analysis.plots import plot_sample

@@ -14,11 +14,10 @@ from typing import Annotated
 import typer
 from rich.markup import escape
 from rich.table import Table
-from rich.text import Text
 
 from ingest.bag_report import BagReport, LidarCoverage, StereoReport, TopicStats
 from ingest.inspect import inspect_bags
-from sensorbox.cli.common import console, progress_bar
+from sensorbox.cli.common import console, print_warning, progress_bar
 
 
 def _num(value: float | None, fmt: str = ".3f") -> str:
@@ -145,7 +144,7 @@ def _print_report(report: BagReport, rig_path: Path | None) -> None:
     if report.lidars:
         console.print(_lidar_table(report.lidars))
     for line in report.clock_problems():
-        console.print(Text.assemble(("warning:", "bold yellow"), " ", line), highlight=False, soft_wrap=True)
+        print_warning(line, console)
     if rig_path is not None:
         _print_rig(report, rig_path)
     console.print("[bold]Suggested rig topic mapping[/bold]")
