@@ -283,3 +283,16 @@ def test_calib_check_reads_such_a_file(tmp_path):
     cam0_row = next(line for line in res.stdout.splitlines() if "cam0" in line and "DoubleSphere" in line)
     assert cam0_row.count("248.1°") == 2, cam0_row
     assert read_rig(path).cameras[1].T_cam_cam0[1, 3] == pytest.approx(-0.12, abs=1e-12)
+
+
+def test_merge_keys_are_read_and_a_list_as_key_is_one_line() -> None:
+    """The duplicate-key check leaves YAML's merge key (`<<: *defaults`) to PyYAML, which flattens it,
+    and lets PyYAML refuse an unhashable key in its own one-line error rather than a TypeError."""
+    import yaml
+
+    from calibration.opencv_yaml import OpenCvSafeLoader
+
+    doc = "defaults: &d {model: ds, rate_hz: 30}\ncam0:\n  <<: *d\n  rate_hz: 60\n"
+    assert yaml.load(doc, Loader=OpenCvSafeLoader)["cam0"] == {"model": "ds", "rate_hz": 60}
+    with pytest.raises(yaml.constructor.ConstructorError, match="found unhashable key"):
+        yaml.load("? [a, b]\n: 1\n", Loader=OpenCvSafeLoader)
