@@ -67,6 +67,8 @@ class OdometryParams:
     iterations: int = 15
     tol_m: float = 5e-5  # stop when no knot moves by more than this (rotation: this at 1 m)
     refine_start_s: float = 1.0  # then the start's knots are solved again against the map built since
+    min_segment_points: int = 50  # a knot is solved only when the knot interval before it has this many
+    max_jump_m: float = 0.5  # a solved knot this far from its predicted position is a failed solve
 
 
 def voxel_subsample(pts: F64, voxel_m: float) -> I64:
@@ -263,7 +265,9 @@ class Odometry:
         elif self._t:
             self.advance(int(np.concatenate(self._t).max()))
         if self._chain is None:
-            raise OdometryError(f"odometry: less than {2 * self.span_ns / 1e6:.0f} ms of LiDAR points")
+            t = np.concatenate(self._t) if self._t else np.zeros(1, np.int64)
+            need, had = 2 * self.span_ns / 1e6, (int(t.max()) - int(t.min())) / 1e6
+            raise OdometryError(f"odometry: less than {need:.0f} ms of LiDAR points ({had:.0f} ms)")
         return self._chain.trajectory(self.gyro)
 
 
@@ -334,29 +338,59 @@ def _register_chunk(
     src = _source_points(P, prm)
     if len(src) > prm.max_source_points:
         src = src[np.linspace(0, len(src) - 1, prm.max_source_points).astype(np.int64)]
-    if len(src) >= 50:
+    m = _supported_knots(T[src], t_last, prm)
+    R_new, p_new, res = R_guess, p_guess, math.nan
+    if m:
+        src = src[T[src] < knots[m]]
+        # after a gap the chunk's first knot is a prediction too: solved with the others
+        first = 1 if math.isfinite(chain.residual[-1]) else 0
+        R_0, p_0 = [chain.R[-1], *R_guess[:m]], [chain.p[-1], *p_guess[:m]]
         R_all, p_all, res = _solve_knots(
-            knots,
-            [chain.R[-1], *R_guess],
-            [chain.p[-1], *p_guess],
-            list(range(1, len(knots))),
-            P[src],
-            T[src],
-            the_map,
-            gyro,
-            prm,
+            knots[: m + 1], R_0, p_0, list(range(first, m + 1)), P[src], T[src], the_map, gyro, prm
         )
-        R_new, p_new = R_all[1:], p_all[1:]
-    else:  # a LiDAR gap: carry the prediction
-        R_new, p_new, res = R_guess, p_guess, math.nan
+        if math.isfinite(res) and _plausible(p_all, p_0, prm):
+            if first == 0:
+                chain.R[-1], chain.p[-1], chain.residual[-1] = R_all[0], p_all[0], res
+            R_new, p_new = R_all[1:], p_all[1:]
+            # the knots after the last supported one: its pose carried on with the gyro and the velocity
+            for s in knots[m + 1 :]:
+                turn = np.eye(3) if gyro is None else gyro_between(gyro, np.array([knots[m]]), np.array([s]))
+                R_new.append(R_new[-1] @ turn.reshape(3, 3))
+                p_new.append(p_new[-1] + v * (s - knots[m]) / 1e9)
+        else:
+            m = 0
+    # a LiDAR gap (no or too few points) carries the prediction: residual NaN marks those knots
+    residuals = [res] * m + [math.nan] * (len(knots) - 1 - m)
     chain.stamps.extend(knots[1:])
     chain.R.extend(R_new)
     chain.p.extend(p_new)
-    chain.residual.extend([res] * len(R_new))
+    chain.residual.extend(residuals)
     dense = voxel_subsample(P, prm.map_voxel_m)  # in cam0: the deskew moves points far less than a voxel
     if len(dense):
         the_map.add(chain.trajectory(gyro).transform(P[dense], T[dense]), knots[-1], chain.p[-1])
     return P[dense], T[dense]
+
+
+def _supported_knots(t_ns: I64, t_last: int, prm: OdometryParams) -> int:
+    """How many of a chunk's new knots its points can place: those after knot intervals that each hold
+    `min_segment_points` (counted from the chunk's start; a knot whose interval before it is thin is left
+    almost unconstrained by the solve, and so are the knots after it)."""
+    k = prm.knots_per_chunk
+    seg = np.clip((t_ns - t_last) // prm.knot_ns, 0, k - 1)
+    full = np.bincount(seg, minlength=k)[:k] >= prm.min_segment_points
+    return k if full.all() else int(np.argmin(full))
+
+
+def _plausible(p: list[F64], p_guess: list[F64], prm: OdometryParams) -> bool:
+    """Solved knot positions within `max_jump_m` of their predictions.
+
+    Over one 100 ms chunk a handheld rig leaves the constant-velocity
+    prediction by centimetres (bob ~3 m/s^2), so a larger step is a solve
+    that went astray (few points, or points on one plane), not motion. The
+    rotation is not tested: across a gap in the IMU's readings the gyro's
+    prediction is the one that is wrong.
+    """
+    return all(float(np.linalg.norm(pk - pg)) <= prm.max_jump_m for pk, pg in zip(p, p_guess, strict=True))
 
 
 def _refine_start(

@@ -44,6 +44,30 @@ class RigTrajectory:
         out: Bool = (t_ns >= self.stamps_ns[0]) & (t_ns <= self.stamps_ns[-1])
         return out
 
+    def measured_span(self, t_ns: int) -> tuple[int, int] | None:
+        """(first, last) knot time of the stretch of registered knots around `t_ns`; None outside the knots
+        or where a knot beside it was carried by prediction (a LiDAR gap: residual NaN).
+
+        Within one stretch every pose was placed against the same map. Across
+        a gap the prediction drifts (and after a gap longer than the map's
+        horizon the map is rebuilt from drifted poses), so points from both
+        sides of it need not agree.
+        """
+        stamps = self.stamps_ns
+        if not stamps[0] <= t_ns <= stamps[-1]:
+            return None
+        measured = np.isfinite(self.residual_m)
+        if len(stamps) == 1:
+            return (int(stamps[0]), int(stamps[0])) if measured[0] else None
+        k = min(int(np.searchsorted(stamps, t_ns, side="right")) - 1, len(stamps) - 2)
+        if not (measured[k] and measured[k + 1]):
+            return None
+        gaps = np.flatnonzero(~measured)
+        before, after = gaps[gaps < k], gaps[gaps > k + 1]
+        lo = int(before[-1]) + 1 if len(before) else 0
+        hi = int(after[0]) - 1 if len(after) else len(stamps) - 1
+        return int(stamps[lo]), int(stamps[hi])
+
     def pose(self, t_ns: I64) -> tuple[F64, F64]:
         """(R_world_cam0 (N, 3, 3), p_world_cam0 (N, 3)) at times `t_ns` (clamped to the knots).
 

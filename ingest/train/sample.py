@@ -317,6 +317,9 @@ def _finish(
     return SampleResult(job.sid, True, "", meta.written(job.sid, drops), ms, helper)
 
 
+GAP_REASON = "frame in a trajectory gap (LiDAR points missing around it)"
+
+
 def _process_dense(job: SampleJob, images: Background[Equirects], start_ms: float) -> SampleResult:
     """Dense GT: every point of the window placed by the trajectory, movers removed, rendered."""
     ms: dict[str, float] = {}
@@ -326,8 +329,13 @@ def _process_dense(job: SampleJob, images: Background[Equirects], start_ms: floa
         return SampleResult(job.sid, False, "dense GT without a trajectory", None, {})
     pts, stamps, which, counts, skew_ms = _points_by_lidar(job)
     tc = job.upper_stamp_ns
-    covered = traj.covers(stamps)
-    if not (traj.covers(np.array([tc]))[0] and covered.any()):
+    if not traj.covers(np.array([tc]))[0]:
+        return SampleResult(job.sid, False, "outside the trajectory", None, {})
+    span = traj.measured_span(tc)
+    if span is None:  # the frame's own pose is a prediction across a LiDAR gap
+        return SampleResult(job.sid, False, GAP_REASON, None, {})
+    covered = (stamps >= span[0]) & (stamps <= span[1])  # no point placed across a gap
+    if not covered.any():
         return SampleResult(job.sid, False, "outside the trajectory", None, {})
     pts, stamps, which = pts[covered], stamps[covered], which[covered]
     placed = traj.to_frame(pts, stamps, tc)
@@ -356,7 +364,7 @@ def _process_dense(job: SampleJob, images: Background[Equirects], start_ms: floa
         points=PointMeta(
             total=counts.total, zero=counts.zero, non_finite=counts.non_finite, too_close=counts.too_close,
             noise_tag=counts.noise_tag, kept=int(covered.sum()), out_of_view=0, occluded=0,
-            silent_lidars=_silent(job),
+            silent_lidars=_silent(job), off_trajectory=int(len(covered) - covered.sum()),
         ),
         gt=GtMeta(
             depth_pixels=dense.range_img.count, disp_pixels=dense.disp_img.count,

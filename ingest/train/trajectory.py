@@ -86,8 +86,14 @@ def trajectory_pass(
     params: OdometryParams | None = None,
     progress: Callable[[float], None] | None = None,
     bad: BadMessages | None = None,
+    span_ns: tuple[int, int] | None = None,
 ) -> RigTrajectory:
-    """Odometry over every sweep of `lidar_topics` (topic -> rig lidar name); `progress(seconds read)`."""
+    """Odometry over every sweep of `lidar_topics` (topic -> rig lidar name); `progress(seconds read)`.
+
+    With `span_ns` (first, last) only points within it take part (no sample
+    can use the others, and a stray sweep stamped years away would make the
+    odometry step knot by knot across the gap).
+    """
     bad = bad or BadMessages()
     odo = Odometry(gyro, params)
     where = bags.label
@@ -100,10 +106,14 @@ def trajectory_pass(
         if sweep is None or not len(sweep.stamps_ns) or not copies.sweep(msg.topic, sweep):
             continue
         keep, _ = filter_points(sweep.xyz_m, sweep.tag, min_range_m)
+        if span_ns is not None:
+            keep &= (sweep.stamps_ns >= span_ns[0]) & (sweep.stamps_ns <= span_ns[1])
         T = rig.lidar(lidar_topics[msg.topic]).T_cam0_lidar
         xyz = np.asarray(sweep.xyz_m, np.float64)[keep]
         odo.add(xyz @ T[:3, :3].T + T[:3, 3], sweep.stamps_ns[keep])
         earliest, latest = sweep.span_ns
+        if span_ns is not None:
+            earliest, latest = max(earliest, span_ns[0]), min(latest, span_ns[1])
         last[msg.topic] = max(last[msg.topic], latest)
         odo.advance(min(last.values()))
         first_ns = earliest if first_ns is None else first_ns
@@ -142,11 +152,12 @@ def run_trajectory_pass(
     out_file: Path,
     params: OdometryParams | None = None,
     bad: BadMessages | None = None,
+    span_ns: tuple[int, int] | None = None,
 ) -> tuple[RigTrajectory, TrajectorySummary]:
-    """Gyro, odometry and `out_file` (TUM, T_world_cam0), with the summary of the run."""
+    """Gyro, odometry (points within `span_ns`) and `out_file` (TUM, T_world_cam0), with the summary."""
     t0 = time.perf_counter()
     gyro = read_gyro(bags, *imu, bad=bad)
-    traj = trajectory_pass(bags, lidar_topics, rig, gyro, min_range_m, params, bad=bad)
+    traj = trajectory_pass(bags, lidar_topics, rig, gyro, min_range_m, params, bad=bad, span_ns=span_ns)
     try:
         out_file.parent.mkdir(parents=True, exist_ok=True)
     except OSError as err:
@@ -169,7 +180,10 @@ def choose_method(asked: str, summary: TrajectorySummary | None, failure: str = 
 
     auto takes dense GT when the odometry placed every knot (no LiDAR gap
     carried by prediction alone) with a median residual below
-    `AUTO_MAX_RESIDUAL_MM`; otherwise sparse GT, which needs no trajectory.
+    `AUTO_MAX_RESIDUAL_MM`, over at least the `OdometryParams.refine_start_s`
+    after which the start is solved again (before that its first knots are
+    a constant-velocity guess, centimetres off for a handheld rig that
+    moves); otherwise sparse GT, which needs no trajectory.
     """
     if asked != "auto":
         return asked, "asked"
@@ -177,6 +191,12 @@ def choose_method(asked: str, summary: TrajectorySummary | None, failure: str = 
         return "sparse", f"auto: no trajectory ({failure})"
     if summary.gaps:
         return "sparse", f"auto: trajectory has {summary.gaps} knots without LiDAR points"
+    refine_s = OdometryParams().refine_start_s
+    if summary.span_s < refine_s and not summary.static:  # standing still, the guess is right
+        return "sparse", (
+            f"auto: trajectory spans {summary.span_s:.2f} s, under the {refine_s:g} s after which its start "
+            "is solved again"
+        )
     if not summary.residual_median_mm <= AUTO_MAX_RESIDUAL_MM:
         median = summary.residual_median_mm
         return "sparse", f"auto: trajectory residual median {median:.1f} mm > {AUTO_MAX_RESIDUAL_MM:g} mm"

@@ -45,7 +45,13 @@ GtOpt = Annotated[
         "sound, else sparse; the decision goes to dataset.yaml and every meta file)."
     ),
 ]
-GtWindowOpt = Annotated[float, typer.Option(help="Dense GT: sweeps within +- this of the frame time (ms).")]
+GtWindowOpt = Annotated[
+    float | None,
+    typer.Option(
+        help="Dense GT: sweeps within +- this of the frame time (ms). Default 500; --gt auto widens the "
+        "default to 1000 for a rig that stood still."
+    ),
+]
 BackendOpt = Annotated[
     str,
     typer.Option(
@@ -124,6 +130,8 @@ def summary_table(summary: IngestSummary, out: Path) -> Table:
         rows.append(
             ("trajectory (knots, residual median / p95, time)", f"{t.knots}, {residual}, {t.seconds:.1f} s")
         )
+        if t.gaps:
+            rows.append(("trajectory gaps: knots carried by prediction (too few LiDAR points)", str(t.gaps)))
         rows.append(("trajectory file (TUM, T_world_cam0)", t.file))
     if summary.density:
         rows += [
@@ -152,7 +160,7 @@ def ingest_cmd(
     bags: BagsArg, rig: RigOpt, out: OutOpt, workers: WorkersOpt = 2, dask: DaskOpt = None,
     every: EveryOpt = 1, window_ms: WindowOpt = 50.0, exr: ExrOpt = False, png_level: PngLevelOpt = 1,
     height_full: HeightFullOpt = None, min_range: MinRangeOpt = 0.3, motion: MotionOpt = "full",
-    salvage: SalvageOpt = False, gt: GtOpt = "sparse", gt_window_ms: GtWindowOpt = 500.0,
+    salvage: SalvageOpt = False, gt: GtOpt = "sparse", gt_window_ms: GtWindowOpt = None,
     max_bad: MaxBadOpt = 0, preview: PreviewOpt = True, backend: BackendOpt = "numba",
 ) -> None:  # fmt: skip
     """Turn recorded bags into the WideDepth training set (rectified equirect pairs + depth/disparity GT)."""
@@ -161,15 +169,21 @@ def ingest_cmd(
     from ingest.train.pipeline import IngestConfig, ingest
     from ingest.train.sample import SampleParams
 
-    for name, value in (("--window-ms", window_ms), ("--gt-window-ms", gt_window_ms)):  # before round()
+    if gt_window_ms is not None and gt == "sparse":
+        raise DatasetError(
+            "--gt-window-ms sets the window of dense GT (--gt dense or auto); sparse GT's is --window-ms"
+        )
+    given = DenseParams().window_ns / 1e6 if gt_window_ms is None else gt_window_ms
+    for name, value in (("--window-ms", window_ms), ("--gt-window-ms", given)):  # before round()
         if not math.isfinite(value):
             raise DatasetError(f"{name} must be a finite number, got {value:g}")
-    dense = DenseParams(window_ns=round(gt_window_ms * 1e6))
+    dense = DenseParams(window_ns=round(given * 1e6))
     dense = replace(dense, render=replace(dense.render, backend=backend))  # type: ignore[arg-type]  # validated
     sample = SampleParams(min_range_m=min_range, exr=exr, png_level=png_level, motion=motion, dense=dense)  # type: ignore[arg-type]
     cfg = IngestConfig(
         rig=rig, out=out, workers=workers, every=every, lidar_window_ns=round(window_ms * 1e6),
         height_full=height_full, salvage=salvage, dask=dask, gt=gt, max_bad=max_bad, sample=sample,
+        widen_static=gt_window_ms is None,
     )  # fmt: skip
     cfg.validate()  # before the progress bar: a bad value is one line
     with progress_bar("ingesting", "samples") as update:

@@ -87,11 +87,20 @@ def test_ingest_backend_is_checked_before_any_bag_is_read(tmp_path):
         ("--window-ms", "nan", "error: --window-ms must be a finite number, got nan"),
         ("--gt-window-ms", "inf", "error: --gt-window-ms must be a finite number, got inf"),
         ("--window-ms", "-5", "error: --window-ms must be > 0, got -5"),
-    ):
+        ("--motion", "off", "error: --motion off does not apply to --gt dense, which places every point with "
+         "the trajectory; it chooses the motion model of sparse GT (--gt sparse or auto)"),
+    ):  # fmt: skip
         res = run(*args, option, value)
         assert res.returncode == 2 and [ln for ln in res.stderr.splitlines() if ln.strip()] == [line], (
             res.stderr
         )
+    sparse = [a if a != "dense" else "sparse" for a in args]
+    res = run(
+        *sparse, "--gt-window-ms", "300"
+    )  # dense GT's window, given for sparse GT: not silently ignored
+    assert res.returncode == 2 and res.stderr.strip() == (
+        "error: --gt-window-ms sets the window of dense GT (--gt dense or auto); sparse GT's is --window-ms"
+    )
     try:
         import torch
     except ImportError:
