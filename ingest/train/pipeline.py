@@ -35,7 +35,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Iterator
-from contextlib import ExitStack
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
@@ -48,7 +48,7 @@ from ingest.dataset.layout import (
     prepare_dirs,
 )
 from ingest.dataset.lock import hold_folder
-from ingest.errors import BagError, DatasetError, OdometryError
+from ingest.errors import BagError, DatasetError, OdometryError, OutputError
 from ingest.raster.visibility import backend_problem
 from ingest.runtime.executor import Executor, Handoff, share_cores
 from ingest.runtime.heap import retain_freed_memory
@@ -56,7 +56,7 @@ from ingest.train.bad_messages import BadMessages
 from ingest.train.dense import DenseParams
 from ingest.train.describe import check_existing, record_undecodable, write_dataset_yaml
 from ingest.train.lidar_rate import THIN_FRACTION
-from ingest.train.plan import LOST_REASON, plan
+from ingest.train.plan import LOST_REASON, plan, survey
 from ingest.train.rig_trajectory import RigTrajectory
 from ingest.train.sample import Geometry, SampleParams, SampleResult
 from ingest.train.stream import (
@@ -91,6 +91,7 @@ class IngestConfig:
     gt: str = "sparse"  # sparse | dense | auto (see ingest.train.trajectory.choose_method)
     max_bad: int = 0  # undecodable messages skipped and counted before the run stops (bad_messages)
     sample: SampleParams = field(default_factory=SampleParams)
+    widen_static: bool = True  # --gt auto may widen the default dense window for a rig that stood still
 
     def validate(self) -> None:
         """Values a run cannot start with, named as the CLI options that set them."""
@@ -100,6 +101,11 @@ class IngestConfig:
             raise DatasetError(f"--gt-window-ms must be > 0, got {self.sample.dense.window_ns / 1e6:g}")
         if self.sample.motion not in ("full", "rotation", "off"):
             raise DatasetError(f"--motion {self.sample.motion!r}: expected full, rotation or off")
+        if self.gt == "dense" and self.sample.motion != "full":
+            raise DatasetError(
+                f"--motion {self.sample.motion} does not apply to --gt dense, which places every point with "
+                "the trajectory; it chooses the motion model of sparse GT (--gt sparse or auto)"
+            )
         backend = self.sample.dense.render.backend
         if (problem := backend_problem(backend)) is not None:
             raise DatasetError(f"--backend {backend!r}: {problem}")
@@ -212,17 +218,20 @@ def _resolve_topics(rig: Rig, bag_topics: dict[str, Any], where: str) -> Topics:
 
 
 def _gt_method(
-    bags: BagSet, topics: Topics, rig: Rig, cfg: IngestConfig, summary: IngestSummary, bad: BadMessages
-) -> tuple[IngestConfig, RigTrajectory | None]:
+    bags: BagSet, topics: Topics, rig: Rig, cfg: IngestConfig, summary: IngestSummary, bad: BadMessages,
+    camera_span_ns: tuple[int, int],
+) -> tuple[IngestConfig, RigTrajectory | None]:  # fmt: skip
     """Run the trajectory pass when --gt dense/auto needs it, decide the method, set the window.
 
     Dense GT streams every sweep within its window (`--gt-window-ms`); the
-    trajectory goes to `trajectories/<first bag>.tum` in the output.
+    trajectory goes to `trajectories/<first bag>.tum` in the output and
+    spans the upper camera's stamps `camera_span_ns` plus that window.
     """
     traj, tsum, failure = None, None, ""
     if cfg.gt in ("dense", "auto"):
         out_file = cfg.out / "trajectories" / f"{Path(bags.paths[0]).name}.tum"
         try:
+            w = cfg.sample.dense.window_ns
             traj, tsum = run_trajectory_pass(
                 bags,
                 topics.lidars,
@@ -231,14 +240,16 @@ def _gt_method(
                 cfg.sample.min_range_m,
                 out_file,
                 bad=bad,
+                span_ns=(camera_span_ns[0] - w, camera_span_ns[1] + w),
             )
         except OdometryError as err:
             if cfg.gt == "dense":
-                raise
+                why = f"{bags.label}: {err}; dense GT needs a trajectory (--gt sparse does not)"
+                raise OdometryError(why) from err
             failure = str(err)
     method, decision = choose_method(cfg.gt, tsum, failure)
     dense = cfg.sample.dense
-    default_window = dense.window_ns == DenseParams().window_ns  # not the user's choice
+    default_window = cfg.widen_static and dense.window_ns == DenseParams().window_ns  # not the user's choice
     if cfg.gt == "auto" and method == "dense" and tsum is not None and tsum.static and default_window:
         dense = replace(dense, window_ns=STATIC_WINDOW_NS)
         decision += f"; rig static: window +-{STATIC_WINDOW_NS / 1e6:.0f} ms"
@@ -246,6 +257,24 @@ def _gt_method(
     sample = replace(cfg.sample, method=method, decision=decision, dense=dense)  # type: ignore[arg-type]
     window = dense.window_ns if method == "dense" else cfg.lidar_window_ns
     return replace(cfg, sample=sample, lidar_window_ns=window), traj if method == "dense" else None
+
+
+@contextmanager
+def _held_output(out: Path) -> Iterator[int]:
+    """`hold_folder` on `out`, created for it when missing; a folder this creates is removed again when
+    the run fails before writing into it (yields the stale temporaries removed)."""
+    created = not out.exists()
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise OutputError(f"cannot create {out}: {err.strerror or err}") from err
+    try:
+        with hold_folder(out) as stale:
+            yield stale
+    except BaseException:
+        if created and not any(out.iterdir()):
+            out.rmdir()
+        raise
 
 
 def _init_worker(workers: int) -> None:
@@ -301,13 +330,16 @@ def _run(
     progress: Callable[[int, int], None] | None,
     held: ExitStack,
 ) -> None:
-    """The plan and stream passes over the bags, the samples run on `executor`; `held` keeps the output
-    folder locked (`hold_folder`) from its creation on."""
+    """The passes over the bags (survey, trajectory, plan, stream), the samples run on `executor`; `held`
+    keeps the output folder locked (`hold_folder`) from before its first write on."""
     with open_bags(bag_paths, salvage=cfg.salvage) as bags:
         topics = _resolve_topics(rig, bags.topics(), ", ".join(str(p) for p in bag_paths))
         asked = cfg
-        cfg, traj = _gt_method(bags, topics, rig, cfg, summary, bad)
-        the_plan = plan(bags, topics, cfg, bad)
+        widest = max(cfg.lidar_window_ns, cfg.sample.dense.window_ns if cfg.gt != "sparse" else 0)
+        surveyed = survey(bags, topics, widest, bad)  # stamps, clocks, corrupt chunks: before any write
+        summary.stale_temporaries = held.enter_context(_held_output(cfg.out))
+        cfg, traj = _gt_method(bags, topics, rig, cfg, summary, bad, surveyed.span_ns)
+        the_plan = plan(bags, topics, cfg, bad, surveyed)
         summary.undecodable = bad.by_topic()
         summary.frames, summary.pairs, summary.planned = (
             the_plan.frames,
@@ -319,7 +351,6 @@ def _run(
         if the_plan.lost_samples:
             summary.skipped[LOST_REASON] = the_plan.lost_samples
         prepare_dirs(cfg.out, cfg.sample.exr)
-        summary.stale_temporaries = held.enter_context(hold_folder(cfg.out))
         first_id = write_dataset_yaml(asked, cfg, geometry, [Path(p) for p in bag_paths], summary)
         if not cfg.dask and summary.planned:
             geometry.warm_maps()

@@ -121,20 +121,41 @@ def _same_clock(
                 f"{bags.paths[0]}: {topic}: {what} {_seconds(a)}..{_seconds(b)} do not overlap {camera}; "
                 "the sensor's clock is not the cameras' (sync it: PTP/gPTP or the host's time)"
             )
-        if duplicates.get(topic, 0) > len(times):
+        if len(times) == 1 and duplicates.get(topic, 0):
             raise BagError(
-                f"{bags.paths[0]}: {topic}: {len(times) + duplicates[topic]} messages but "
-                f"{len(times)} distinct {what}; the stamps repeat (a sensor clock that is not running?)"
+                f"{bags.paths[0]}: {topic}: {1 + duplicates[topic]} messages, all with the {what} "
+                f"{_seconds(a)}..{_seconds(b)}; a sensor clock that is not running?"
             )
 
 
-def plan(bags: BagSet, topics: Topics, cfg: IngestConfig, bad: BadMessages | None = None) -> Plan:
-    """First pass: stamps and sweep spans only; pairs and samples on header stamps."""
+@dataclass(frozen=True)
+class Survey:
+    """What the first pass read: per topic (log_ns, first stamp, last stamp) of each message, checked."""
+
+    seen: dict[str, I64]
+    rates: LidarRates
+    duplicates: dict[str, int]
+    upper_ns: I64  # the upper camera's distinct header stamps, ascending
+    lower_ns: I64
+
+    @property
+    def span_ns(self) -> tuple[int, int]:
+        """The upper camera's first and last stamp."""
+        return int(self.upper_ns[0]), int(self.upper_ns[-1])
+
+
+def survey(bags: BagSet, topics: Topics, window_ns: int, bad: BadMessages | None = None) -> Survey:
+    """The first pass (`_seen`) and its checks: points on every LiDAR, two camera stamps, one clock.
+
+    Runs before anything is written, and before the trajectory pass, which
+    would otherwise walk a LiDAR on its own clock knot by knot across years.
+    """
     seen, rates, duplicates = _seen(bags, topics, bad or BadMessages())
-    spans = {t: [(int(a), int(b)) for _, a, b in seen[t]] for t in topics.lidars}
     for topic, name in topics.lidars.items():
-        if not spans[topic]:
+        if not len(seen[topic]):
             raise BagError(f"{bags.paths[0]}: no points on {topic} (the rig's lidar {name}) in the whole bag")
+    if topics.imu and not len(seen[topics.imu]):  # the rig names it: motion and odometry rely on it
+        raise BagError(f"{bags.paths[0]}: no readings on {topics.imu} (the rig's IMU) in the whole bag")
     up = np.unique(seen[topics.upper][:, 1])  # duplicated stamps count once
     lo = np.unique(seen[topics.lower][:, 1])
     if len(up) < 2:
@@ -144,14 +165,25 @@ def plan(bags: BagSet, topics: Topics, cfg: IngestConfig, bad: BadMessages | Non
             f"{bags.paths[0]}: {n} frame(s) on {topics.upper} but {len(up)} distinct header "
             f"stamp(s){stamps}; need at least 2"
         )
-    _same_clock(bags, topics, seen, duplicates, up, cfg.lidar_window_ns)
+    _same_clock(bags, topics, seen, duplicates, up, window_ns)
+    return Survey(seen, rates, duplicates, up, lo)
+
+
+def plan(
+    bags: BagSet, topics: Topics, cfg: IngestConfig, bad: BadMessages | None = None,
+    surveyed: Survey | None = None,
+) -> Plan:  # fmt: skip
+    """Pairs and samples on header stamps, from the first pass (`survey`; run here when not given)."""
+    sv = surveyed or survey(bags, topics, cfg.lidar_window_ns, bad)
+    spans = {t: [(int(a), int(b)) for _, a, b in sv.seen[t]] for t in topics.lidars}
+    up, lo = sv.upper_ns, sv.lower_ns
     tol = cfg.stereo_tolerance_ns or pair_tolerance_ns(median_period_ns(up))
     pairs = pair_stereo(up, lo, tol)
     all_spans = [s for v in spans.values() for s in v]
     chosen = select_samples(up[pairs.upper], all_spans, cfg.lidar_window_ns, cfg.every)
     uncovered = int((~lidar_covered(up[pairs.upper], all_spans, cfg.lidar_window_ns)).sum())
     upper, lower = up[pairs.upper][chosen], lo[pairs.lower][chosen]
-    keep = _untouched(bags, topics, seen, upper, cfg)
+    keep = _untouched(bags, topics, sv.seen, upper, cfg)
     lost = int(len(keep) - keep.sum())
     return Plan(
         upper[keep],
@@ -159,8 +191,8 @@ def plan(bags: BagSet, topics: Topics, cfg: IngestConfig, bad: BadMessages | Non
         spans,
         len(up),
         len(pairs.upper),
-        rates,
-        duplicates=duplicates,
+        sv.rates,
+        duplicates=sv.duplicates,
         lost_samples=lost,
         uncovered=uncovered,
     )

@@ -29,9 +29,14 @@ Keep = Callable[[str, int, bytes], list[tuple[str, bytes]]]
 """keep(topic, index on its topic, raw) -> the (topic, raw) messages to write in its place."""
 
 
-def rewrite(dst: Path, keep: Keep, src: Path = INDOOR) -> tuple[Path, Path]:
-    """The fixture rewritten through `keep` into the mcap `dst`, its truth beside it; (bag, rig)."""
-    types: dict[str, str] = {}
+def rewrite(
+    dst: Path, keep: Keep, src: Path = INDOOR, declare: dict[str, str] | None = None
+) -> tuple[Path, Path]:
+    """The fixture rewritten through `keep` into the mcap `dst`, its truth beside it; (bag, rig).
+
+    `declare` (topic -> type) adds topics to the bag even when no message is written on them.
+    """
+    types: dict[str, str] = dict(declare or {})
     with open_bags([src]) as bags:
         messages = [(m.topic, m.msgtype, m.log_ns, bytes(m.raw)) for m in bags.messages()]
     seen: dict[str, int] = {}

@@ -20,9 +20,12 @@ from pathlib import Path
 import pytest
 
 from ingest.bags.livox_msg import decode_custom_msg, encode_custom_msg
+from ingest.bags.reader import open_bags
+from ingest.dataset.meta import read_meta
 from ingest.errors import BagError, DatasetError
 from ingest.inspect import inspect_bags
 from ingest.train.pipeline import IngestConfig, ingest
+from ingest.train.sample import GAP_REASON
 from sensorbox.sim.truth import truth_dir
 from tests.faults.bags import INDOOR, LIDAR_BOTTOM, LIDAR_TOP, LOWER, rewrite
 
@@ -57,6 +60,17 @@ def test_the_same_messages_twice_are_read_once_and_counted(tmp_path: Path, gt: s
         assert files
         for f in files:
             assert filecmp.cmp(f, tmp_path / "twice" / folder / f.name, shallow=False), f
+
+
+def test_the_same_messages_three_times_are_not_a_stopped_clock(tmp_path: Path) -> None:
+    """Two extra copies per message are repeats, counted twice; a clock that is not running is told by
+    one stamp for every message, not by how many copies there are."""
+    (data,) = INDOOR.glob("*.mcap")
+    copies = [tmp_path / "a.mcap", tmp_path / "b.mcap"]
+    for c in copies:
+        shutil.copy(data, c)
+    thrice = ingest([INDOOR, *copies], _config(tmp_path / "thrice"))
+    assert thrice.duplicates == {t: 2 * n for t, n in COUNTS.items()} and thrice.written >= 4
 
 
 def test_a_lidar_on_its_own_clock_is_refused_naming_it(tmp_path: Path) -> None:
@@ -149,3 +163,58 @@ def test_a_rerun_with_other_settings_is_refused_before_any_pass(tmp_path: Path) 
         ingest([INDOOR], replace(_config(out), gt="dense", every=7))
     after = tum.stat()
     assert (after.st_ino, after.st_mtime_ns) == (before.st_ino, before.st_mtime_ns)
+
+
+def test_a_lidar_gap_skips_the_dense_samples_it_touches(tmp_path: Path) -> None:
+    """Both LiDARs lose two sweeps: those knots are carried by prediction (residual NaN), a frame inside
+    the gap is skipped by reason, and no sample accumulates points across it."""
+
+    def gap(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        return [] if topic in (LIDAR_TOP, LIDAR_BOTTOM) and k in (3, 4) else [(topic, raw)]
+
+    bag, rig = rewrite(tmp_path / "bag.mcap", gap)
+    dense = ingest([bag], IngestConfig(rig=rig, out=tmp_path / "dense", workers=1, every=1, gt="dense"))
+    assert dense.trajectory is not None and dense.trajectory.gaps >= 1
+    assert dense.skipped.get(GAP_REASON, 0) >= 1
+    assert dense.written + sum(dense.skipped.values()) == dense.planned
+    metas = [read_meta(tmp_path / "dense", f.stem) for f in sorted((tmp_path / "dense" / "meta").iterdir())]
+    assert len(metas) == dense.written >= 5
+    assert any(m.points.off_trajectory > 0 for m in metas)  # windows reaching into the gap stop at it
+    assert all(m.points.kept + m.points.off_trajectory <= m.points.total for m in metas)
+    auto = ingest([bag], IngestConfig(rig=rig, out=tmp_path / "auto", workers=1, every=5, gt="auto"))
+    assert auto.method == "sparse" and "knots without LiDAR points" in auto.decision
+
+
+@pytest.mark.parametrize("gt", ["dense", "auto"])
+def test_clocks_are_checked_before_the_trajectory_pass(tmp_path: Path, gt: str) -> None:
+    """A LiDAR on its own clock is refused before the odometry, which would step knot by knot across
+    the years between the clocks, and before anything is written."""
+
+    def boot_clock(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        if topic != LIDAR_BOTTOM:
+            return [(topic, raw)]
+        msg = decode_custom_msg(raw)
+        boot = msg.timebase_ns % 1_000_000_000 + 123_000_000_000
+        return [(topic, encode_custom_msg(msg.stamp_ns, msg.frame_id, boot, msg.points, msg.lidar_id))]
+
+    bag, rig = rewrite(tmp_path / "bag.mcap", boot_clock)
+    with pytest.raises(BagError, match="the sensor's clock is not the cameras'"):
+        ingest([bag], replace(_config(tmp_path / "ds", rig), gt=gt))
+    assert not (tmp_path / "ds").exists()
+
+
+def test_an_imu_topic_without_readings_is_refused(tmp_path: Path) -> None:
+    """The rig names an IMU whose topic is in the bag but holds no message: refused like a missing topic
+    (motion compensation and the odometry would otherwise run without it, unsaid)."""
+
+    def no_imu(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        return [] if topic == IMU else [(topic, raw)]
+
+    bag, rig = rewrite(tmp_path / "bag.mcap", no_imu, declare={IMU: "sensor_msgs/msg/Imu"})
+    with open_bags([bag]) as bags:
+        assert IMU in bags.topics()
+    for gt in ("sparse", "auto"):
+        with pytest.raises(BagError) as err:
+            ingest([bag], replace(_config(tmp_path / "ds", rig), gt=gt))
+        assert str(err.value) == f"{bag}: no readings on {IMU} (the rig's IMU) in the whole bag"
+        assert not (tmp_path / "ds").exists()

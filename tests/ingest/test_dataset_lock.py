@@ -10,7 +10,7 @@ import pytest
 
 from ingest.dataset.layout import write_atomic
 from ingest.dataset.lock import hold_folder
-from ingest.errors import DatasetError
+from ingest.errors import DatasetError, OdometryError
 from ingest.train.pipeline import IngestConfig, ingest
 from tests.ingest.test_pipeline import INDOOR, _rig
 
@@ -57,7 +57,9 @@ def test_a_rerun_removes_the_temporaries_of_a_killed_run_and_nothing_else(tmp_pa
     assert after == {**before, out / "notes.tmp": b"mine", out / ".mine.tmp": b"mine"}
 
 
-def test_a_second_run_into_a_held_dataset_is_refused(tmp_path: Path) -> None:
+@pytest.mark.parametrize("gt", ["sparse", "dense"])
+def test_a_second_run_into_a_held_dataset_is_refused_before_it_writes(tmp_path: Path, gt: str) -> None:
+    """Refused before its first write: the dense run's trajectory file and the sample folders too."""
     out = tmp_path / "ds"
     out.mkdir()
     write_atomic(out / "mine.txt", b"x")
@@ -65,7 +67,25 @@ def test_a_second_run_into_a_held_dataset_is_refused(tmp_path: Path) -> None:
         hold_folder(out),
         pytest.raises(DatasetError, match="another SensorBox run is writing into this folder"),
     ):
-        ingest([INDOOR], IngestConfig(rig=_rig(INDOOR), out=out, workers=1, every=10))
+        ingest([INDOOR], IngestConfig(rig=_rig(INDOOR), out=out, workers=1, every=10, gt=gt))
+    assert [p.name for p in out.iterdir()] == ["mine.txt"]
+
+
+def test_a_run_refused_after_creating_the_output_removes_it_again(tmp_path: Path) -> None:
+    """--gt dense on a recording with 100 ms of LiDAR, too short for a trajectory: the folder made for
+    the lock goes again, and the error names the recording."""
+    from tests.faults.bags import LIDAR_BOTTOM, LIDAR_TOP, rewrite
+
+    def first_sweeps(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        return [] if topic in (LIDAR_TOP, LIDAR_BOTTOM) and k > 0 else [(topic, raw)]
+
+    bag, rig = rewrite(tmp_path / "bag.mcap", first_sweeps)
+    out = tmp_path / "ds"
+    with pytest.raises(
+        OdometryError, match=rf"^{bag}: odometry: less than 200 ms of LiDAR points \(\d+ ms\); "
+    ):
+        ingest([bag], IngestConfig(rig=rig, out=out, workers=1, gt="dense"))
+    assert not out.exists()
 
 
 def test_a_file_system_without_locks_runs_unlocked_and_says_so(tmp_path, monkeypatch, caplog) -> None:
