@@ -20,6 +20,7 @@ import ctypes.util
 import os
 import signal
 import sys
+import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from multiprocessing import resource_tracker
@@ -29,15 +30,19 @@ PR_SET_PDEATHSIG = 1  # linux/prctl.h
 
 @contextmanager
 def sigint_blocked() -> Iterator[None]:
-    """SIGINT blocked in this thread inside: a process spawned here starts with it blocked.
+    """SIGINT held back inside: a process spawned here starts with it blocked, and this one gets it after.
 
     Ctrl-C goes to the whole process group. A spawned child needs a second or
     more to import before its own code can ignore SIGINT, and a
-    KeyboardInterrupt in that time was a traceback on the terminal. The mask
-    survives fork and exec, so the child never sees SIGINT (its parent must
-    stop it some other way, such as a control pipe). A SIGINT that reaches
-    this thread inside stays pending and is delivered when the block ends, so
-    the parent's own Ctrl-C is not lost.
+    KeyboardInterrupt in that time was a traceback on the terminal. The
+    thread's signal mask survives fork and exec, so the child never sees
+    SIGINT (its parent must stop it some other way, such as a control pipe).
+    A Ctrl-C is directed at the process, and the kernel hands it to any
+    thread that has SIGINT unblocked (a reader thread, say); Python then runs
+    its handler in the main thread, which would raise KeyboardInterrupt in
+    the middle of the spawn. So, in the main thread, the handler only notes
+    it inside the block. Either way the SIGINT is delivered when the block
+    ends, and the parent's own Ctrl-C is not lost.
     """
     if not hasattr(signal, "pthread_sigmask"):
         yield
@@ -45,11 +50,20 @@ def sigint_blocked() -> Iterator[None]:
     # spawning starts multiprocessing's resource tracker once, and that start unblocks SIGINT on its way
     # out (CPython's resource_tracker.ensure_running): it runs before the block, not inside it
     resource_tracker.ensure_running()
+    noted: list[int] = []
+    handler = signal.getsignal(signal.SIGINT)  # None: not set from Python, left alone
+    defer = threading.current_thread() is threading.main_thread() and handler is not None
+    if defer:
+        signal.signal(signal.SIGINT, lambda signum, frame: noted.append(signum))
     old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
         yield
     finally:
+        if defer:
+            signal.signal(signal.SIGINT, handler)
         signal.pthread_sigmask(signal.SIG_SETMASK, old)
+        if noted:
+            signal.raise_signal(signal.SIGINT)  # to this thread, now unblocked: the handler of before
 
 
 def die_with_parent(parent_pid: int) -> bool:

@@ -10,6 +10,7 @@ values with brackets arrive as they are.
 
 from __future__ import annotations
 
+import logging
 import sys
 
 import typer
@@ -20,7 +21,7 @@ from ingest.errors import OutputError
 from sensorbox.cli.bench import bench_cmd
 from sensorbox.cli.calib import calib_check
 from sensorbox.cli.capture import capture_cmd, launch_cmd
-from sensorbox.cli.common import err_console
+from sensorbox.cli.common import err_console, print_warning
 from sensorbox.cli.eval import eval_cmd, stats_cmd
 from sensorbox.cli.ingest import ingest_cmd
 from sensorbox.cli.inspect import inspect_cmd
@@ -47,9 +48,19 @@ for name, command in (
     app.command(name)(command)
 
 
+class _WarningLines(logging.Handler):
+    """Library warnings (logging, WARNING and up) as the CLI's own "warning: LINE" lines."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        print_warning(record.getMessage())
+
+
 @app.callback()
 def _root() -> None:
     """SensorBox command line."""
+    root = logging.getLogger()
+    if not root.handlers:  # `capture` sets up its own (rich) logging
+        root.addHandler(_WarningLines(logging.WARNING))
 
 
 def main() -> None:

@@ -277,7 +277,9 @@ def test_calib_check_reads_such_a_file(tmp_path):
         capture_output=True, text=True, cwd=ROOT, check=False,
     )  # fmt: skip
     assert res.returncode == 0, res.stderr
-    assert res.stderr.strip() == f"{path}: ignoring top-level keys imu0 (not cameras cam0, cam1, ...)"
+    assert (
+        res.stderr.strip() == f"warning: {path}: ignoring top-level keys imu0 (not cameras cam0, cam1, ...)"
+    )
     assert "Stereo baseline upper->lower: 120.00 mm" in res.stdout
     # DFOV and the model's limit are both 248.1 deg (it was 250.3 deg before issue 19)
     cam0_row = next(line for line in res.stdout.splitlines() if "cam0" in line and "DoubleSphere" in line)

@@ -103,3 +103,25 @@ def test_a_file_system_without_locks_runs_unlocked_and_says_so(tmp_path, monkeyp
         assert removed == 0
     assert (tmp_path / KILLED[0]).exists()
     assert f"cannot lock {tmp_path} (No locks available)" in caplog.text
+
+
+def test_the_unlocked_warning_is_a_warning_line_of_the_cli(tmp_path: Path) -> None:
+    """A library warning (here: the folder cannot be locked) prints as the CLI's "warning: ..." line."""
+    code = (
+        "import errno, fcntl, sys\n"
+        "def refuse(fd, op): raise OSError(errno.ENOLCK, 'No locks available')\n"
+        "fcntl.flock = refuse\n"
+        "from sensorbox.cli.main import main\n"
+        "sys.argv = ['sensorbox', 'ingest', sys.argv[1], '--rig', sys.argv[2], '--out', sys.argv[3],\n"
+        "            '--workers', '1', '--every', '10', '--no-preview']\n"
+        "main()\n"
+    )
+    out = tmp_path / "ds"
+    res = subprocess.run(
+        [sys.executable, "-c", code, str(INDOOR), str(_rig(INDOOR)), str(out)],
+        capture_output=True, text=True, check=False,
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    assert res.stderr.splitlines() == [
+        f"warning: cannot lock {out} (No locks available): a second run into it would not be refused"
+    ]

@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import signal
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -107,3 +108,27 @@ def test_a_spawned_child_starts_with_sigint_blocked_and_the_parents_sigint_is_ke
     finally:
         signal.signal(signal.SIGINT, previous)
     assert signal.SIGINT not in signal.pthread_sigmask(signal.SIG_BLOCK, set())
+
+
+def test_a_ctrl_c_taken_by_another_thread_waits_for_the_block_to_end():
+    """A Ctrl-C is process-directed: with SIGINT blocked in the main thread the kernel gives it to another
+    thread, and Python runs the handler in the main thread anyway; inside the block it only waits."""
+    from ingest.runtime.lifetime import sigint_blocked
+
+    received: list[int] = []
+    stop = threading.Event()
+    reader = threading.Thread(target=stop.wait, daemon=True)  # SIGINT unblocked here, as a reader thread
+    reader.start()
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: received.append(signum))
+    try:
+        with sigint_blocked():
+            os.kill(os.getpid(), signal.SIGINT)
+            deadline = time.monotonic() + 0.5
+            while time.monotonic() < deadline:  # the handler would run at one of these checks
+                time.sleep(0.01)
+            assert received == []
+        assert received == [signal.SIGINT]
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        stop.set()
+        reader.join(HANG_S)
