@@ -159,6 +159,7 @@ class IngestSummary:
     lost_chunks: list[str] = field(default_factory=list)  # one line per corrupt chunk skipped
     duplicates: dict[str, int] = field(default_factory=dict)  # per topic: repeated messages, read once
     uncovered: int = 0  # stereo pairs without LiDAR points within the window: not planned
+    imu_gaps_ms: list[float] = field(default_factory=list)  # IMU intervals over 5 periods (plan.imu_gaps)
     warnings: list[str] = field(default_factory=list)  # about the inputs, one line each (the rig's layout)
     stale_temporaries: int = 0  # left in the output by a killed run, removed (`ingest.dataset.lock`)
 
@@ -337,6 +338,7 @@ def _run(
         asked = cfg
         widest = max(cfg.lidar_window_ns, cfg.sample.dense.window_ns if cfg.gt != "sparse" else 0)
         surveyed = survey(bags, topics, widest, bad)  # stamps, clocks, corrupt chunks: before any write
+        summary.imu_gaps_ms = [float(g) / 1e6 for g in surveyed.imu_gaps_ns]
         summary.stale_temporaries = held.enter_context(_held_output(cfg.out))
         cfg, traj = _gt_method(bags, topics, rig, cfg, summary, bad, surveyed.span_ns)
         the_plan = plan(bags, topics, cfg, bad, surveyed)

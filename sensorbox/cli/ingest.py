@@ -111,6 +111,16 @@ def summary_table(summary: IngestSummary, out: Path) -> Table:
             if summary.uncovered
             else []
         ),
+        *(
+            [
+                (
+                    "IMU gaps over 5 periods (longest)",
+                    f"{len(summary.imu_gaps_ms)} ({max(summary.imu_gaps_ms):.0f} ms)",
+                )
+            ]
+            if summary.imu_gaps_ms
+            else []
+        ),
         ("written / already done (resumed)", f"{summary.written} / {summary.resumed}"),
         ("ground truth", f"{summary.method} ({summary.decision})"),
         *((f"skipped: {reason}", str(n)) for reason, n in summary.skipped.items()),

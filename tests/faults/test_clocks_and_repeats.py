@@ -218,3 +218,15 @@ def test_an_imu_topic_without_readings_is_refused(tmp_path: Path) -> None:
             ingest([bag], replace(_config(tmp_path / "ds", rig), gt=gt))
         assert str(err.value) == f"{bag}: no readings on {IMU} (the rig's IMU) in the whole bag"
         assert not (tmp_path / "ds").exists()
+
+
+def test_an_imu_gap_is_shown_in_the_summary(tmp_path: Path) -> None:
+    """40 IMU readings (200 ms at 200 Hz) missing: one gap, its length measured on the stamps."""
+
+    def gap(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        return [] if topic == IMU and 40 <= k < 80 else [(topic, raw)]
+
+    bag, rig = rewrite(tmp_path / "bag.mcap", gap)
+    summary = ingest([bag], _config(tmp_path / "ds", rig))
+    assert len(summary.imu_gaps_ms) == 1 and summary.imu_gaps_ms[0] == pytest.approx(205.0, abs=1.0)
+    assert ingest([INDOOR], _config(tmp_path / "whole")).imu_gaps_ms == []
