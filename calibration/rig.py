@@ -182,15 +182,27 @@ def read_livox_config(path: str | Path) -> dict[str, F64]:
     if not isinstance(configs, list):
         raise CalibrationError(f"{p}: missing key 'lidar_configs' (a list)")
     out: dict[str, F64] = {}
+    index: dict[str, int] = {}
     for i, cfg in enumerate(configs):
         where = f"{p}: lidar_configs[{i}]"
         cfg = _require_mapping(cfg, where)
         ip = _require_str(cfg, "ip", where)
+        if ip in index:  # which extrinsic is meant cannot be told
+            raise CalibrationError(f"{where}.ip: {ip} is also lidar_configs[{index[ip]}]'s")
+        index[ip] = i
         ext = cfg.get("extrinsic_parameter")
         if ext is None:
             raise CalibrationError(f"{where}: missing key 'extrinsic_parameter'")
         out[ip] = _livox_block(ext, f"{where}.extrinsic_parameter")
     return out
+
+
+def _finite(v: float) -> bool:
+    """`math.isfinite`, False (not OverflowError) for an integer beyond float's range."""
+    try:
+        return math.isfinite(v)
+    except OverflowError:
+        return False
 
 
 def _livox_block(block: object, where: str) -> F64:
@@ -200,7 +212,7 @@ def _livox_block(block: object, where: str) -> F64:
         if key not in block:
             raise CalibrationError(f"{where}: missing key '{key}' (degrees for roll/pitch/yaw, mm for x/y/z)")
         v = block[key]
-        if not isinstance(v, int | float) or isinstance(v, bool) or not math.isfinite(v):
+        if not isinstance(v, int | float) or isinstance(v, bool) or not _finite(v):
             raise CalibrationError(f"{where}.{key}: expected a number, got {v!r}")
         values.append(float(v))
     return livox_extrinsic_to_transform(*values)
@@ -294,7 +306,7 @@ def _parse_imu(name: str, block: object, where: str) -> Imu:
         raise CalibrationError(f"{where}: missing key 'T_cam0_imu'")
     rate = block.get("rate_hz")
     if rate is not None and (
-        not isinstance(rate, int | float) or isinstance(rate, bool) or not (rate > 0 and math.isfinite(rate))
+        not isinstance(rate, int | float) or isinstance(rate, bool) or not (rate > 0 and _finite(rate))
     ):
         raise CalibrationError(f"{where}.rate_hz: expected a positive number, got {rate!r}")
     return Imu(

@@ -108,6 +108,11 @@ def test_livox_config_json(tmp_path):
         with pytest.raises(CalibrationError) as err:
             read_rig(tmp_path / "bad.yaml")
         assert str(err.value) == message.replace("rig.yaml", "bad.yaml")
+    twice = {"lidar_configs": [cfg["lidar_configs"][0], {**cfg["lidar_configs"][1], "ip": "192.168.1.12"}]}
+    path.write_text(json.dumps(twice))  # two extrinsics for one LiDAR: which is meant cannot be told
+    with pytest.raises(CalibrationError) as err:
+        read_livox_config(path)
+    assert str(err.value) == f"{path}: lidar_configs[1].ip: 192.168.1.12 is also lidar_configs[0]'s"
     path.write_bytes(b'{"lidar_configs": [{"ip": "caf\xe9"}]}')
     with pytest.raises(
         CalibrationError,
@@ -168,6 +173,7 @@ def _rig_with(tmp_path, **changes):
         ({"imus__imu_top__T_cam0_imu": None}, r"imus\.imu_top: missing key 'T_cam0_imu'"),
         ({"imus__imu_top__rate_hz": float("nan")}, r"imus\.imu_top\.rate_hz: expected a positive number, got nan"),
         ({"imus__imu_top__rate_hz": float("inf")}, r"imus\.imu_top\.rate_hz: expected a positive number, got inf"),
+        ({"imus__imu_top__rate_hz": 10**400}, r"imus\.imu_top\.rate_hz: expected a positive number, got 1000"),
         ({"lidars__lidar_top__livox_extrinsic": {"roll": 0.0}}, r"expected exactly one of .*got \['T_cam0_lidar', 'livox_extrinsic'\]"),
         ({"lidars__lidar_top__ip": "192.168.1.300"}, r"lidars\.lidar_top\.ip: expected a dotted IPv4 address such as 192\.168\.1\.12, got '192\.168\.1\.300'"),
         ({"lidars__lidar_top__ip": 3232235788}, r"lidars\.lidar_top\.ip: expected a dotted IPv4 address .*got 3232235788"),
