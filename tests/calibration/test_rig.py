@@ -108,7 +108,8 @@ def test_livox_config_json(tmp_path):
         with pytest.raises(CalibrationError) as err:
             read_rig(tmp_path / "bad.yaml")
         assert str(err.value) == message.replace("rig.yaml", "bad.yaml")
-    twice = {"lidar_configs": [cfg["lidar_configs"][0], {**cfg["lidar_configs"][1], "ip": "192.168.1.12"}]}
+    blocks = json.loads(json.dumps(cfg))["lidar_configs"]
+    twice = {"lidar_configs": [blocks[0], {**blocks[1], "ip": "192.168.1.12"}]}
     path.write_text(json.dumps(twice))  # two extrinsics for one LiDAR: which is meant cannot be told
     with pytest.raises(CalibrationError) as err:
         read_livox_config(path)
