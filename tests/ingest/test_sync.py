@@ -61,3 +61,18 @@ def test_frames_without_lidar_in_their_window_are_left_out_and_can_be_counted():
     assert select_samples(frames, spans, 50).tolist() == [1, 2, 3]
     assert select_samples(frames, spans, 50, every=2).tolist() == [1, 3]
     assert lidar_covered(frames, [], 50).tolist() == [False] * 5
+
+
+def test_lidar_covered_is_the_overlap_test_of_every_sweep_on_random_spans():
+    """The one-sort, one-search version against the definition (some sweep overlaps [t - w, t + w])
+    on random overlapping, nested and touching spans, frames on the window's edges included."""
+    rng = np.random.default_rng(3)
+    for _ in range(200):
+        n = int(rng.integers(1, 12))
+        first = rng.integers(0, 1000, n)
+        spans = [(int(a), int(a + b)) for a, b in zip(first, rng.integers(0, 200, n), strict=True)]
+        w = int(rng.integers(0, 60))
+        edges = [t for a, b in spans for t in (a - w - 1, a - w, b + w, b + w + 1)]
+        frames = np.sort(np.r_[rng.integers(-100, 1300, 30), edges]).astype(np.int64)
+        expected = [any(a <= t + w and b >= t - w for a, b in spans) for t in frames]
+        assert lidar_covered(frames, spans, w).tolist() == expected
