@@ -148,6 +148,9 @@ class IngestSummary:
     skew_ms: list[float] = field(default_factory=list)
     stereo_dt_ms: list[float] = field(default_factory=list)  # lower minus upper header stamp, per sample
     motion_applied: int = 0
+    dense_points: dict[str, int] = field(
+        default_factory=dict
+    )  # dense GT: accumulated, movers, off trajectory
     stage_ms: dict[str, list[float]] = field(default_factory=dict)  # sequential: they add up per sample
     overlapped_ms: dict[str, list[float]] = field(default_factory=dict)  # helper threads beside them
     seconds: float = 0.0
@@ -180,6 +183,13 @@ class IngestSummary:
             key = f"{name} thin in the window (< {THIN_FRACTION:.0%} of its rate)"
             self.flagged[key] = self.flagged.get(key, 0) + 1
         self.motion_applied += meta.motion.applied
+        if meta.gt.method == "dense":
+            for key, n in (
+                ("accumulated", meta.gt.accumulated_points),
+                ("removed as movers", meta.gt.removed_moving),
+                ("left out across a trajectory gap", meta.points.off_trajectory),
+            ):
+                self.dense_points[key] = self.dense_points.get(key, 0) + n
         for k, v in result.stage_ms.items():
             self.stage_ms.setdefault(k, []).append(v)
         for k, v in result.overlapped_ms.items():

@@ -155,6 +155,7 @@ def summary_table(summary: IngestSummary, out: Path) -> Table:
                 f"{np.median(summary.stereo_dt_ms):.2f} ms, {np.max(np.abs(summary.stereo_dt_ms)):.2f} ms",
             ),
             ("motion compensation applied", f"{summary.motion_applied} / {summary.written}"),
+            *((f"dense GT points (all samples): {k}", f"{n:,}") for k, n in summary.dense_points.items()),
             *((f"time: {k}", f"{np.mean(v):.0f} ms/sample") for k, v in summary.stage_ms.items()),
             *(
                 (f"time: {k} (helper thread, beside clouds + GT)", f"{np.mean(v):.0f} ms/sample")

@@ -181,6 +181,11 @@ def test_a_lidar_gap_skips_the_dense_samples_it_touches(tmp_path: Path) -> None:
     assert len(metas) == dense.written >= 5
     assert any(m.points.off_trajectory > 0 for m in metas)  # windows reaching into the gap stop at it
     assert all(m.points.kept + m.points.off_trajectory <= m.points.total for m in metas)
+    assert dense.dense_points == {  # the summary's totals are the metadata's
+        "accumulated": sum(m.gt.accumulated_points for m in metas),
+        "removed as movers": sum(m.gt.removed_moving for m in metas),
+        "left out across a trajectory gap": sum(m.points.off_trajectory for m in metas),
+    }
     auto = ingest([bag], IngestConfig(rig=rig, out=tmp_path / "auto", workers=1, every=5, gt="auto"))
     assert auto.method == "sparse" and "knots without LiDAR points" in auto.decision
 
