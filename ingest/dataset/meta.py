@@ -41,7 +41,7 @@ class PointMeta:
     occluded: int
     silent_lidars: list[str] = field(default_factory=list)  # rig LiDARs with no point in the window
     thin_lidars: list[str] = field(default_factory=list)  # far fewer than their rate: ingest.train.lidar_rate
-    off_trajectory: int = 0  # dense: kept points outside the registered trajectory around the frame (gaps)
+    off_trajectory: int = 0  # dense: points without a registered pose near the frame (a gap, the ends)
 
 
 @dataclass(frozen=True)

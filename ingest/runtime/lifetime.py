@@ -59,9 +59,11 @@ def sigint_blocked() -> Iterator[None]:
     try:
         yield
     finally:
+        # unblocked first, while the noting handler is still in place: a SIGINT pending or arriving now
+        # is noted, never raised between the two restores
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
         if defer:
             signal.signal(signal.SIGINT, handler)
-        signal.pthread_sigmask(signal.SIG_SETMASK, old)
         if noted:
             signal.raise_signal(signal.SIGINT)  # to this thread, now unblocked: the handler of before
 

@@ -20,6 +20,13 @@ Jacobian weighted by its position between the knots. The registered chunk
 then joins the map: world-frame points on a `map_voxel_m` grid, each with the
 PCA normal of its neighbourhood, forgotten after `map_horizon_s`.
 
+LiDAR gaps: a knot after a knot interval with too few points, or solved
+far from its prediction, carries the prediction and residual NaN (a gap);
+the first chunk after a gap solves its start knot too, against the map from
+before the gap (nothing joins the map meanwhile). After a gap longer than
+the map's horizon the odometry starts afresh, its new chain placed at the
+prediction across the gap (`_joined`).
+
 The world frame is cam0 at the first knot. Every knot keeps the RMS residual
 of its solve, written next to the trajectory so a user sees where it is weak.
 """
@@ -220,6 +227,7 @@ class Odometry:
         self._chain: _Chain | None = None
         self._map = LocalMap(self.params)
         self._early: list[tuple[F64, I64]] | None = None  # map points of the chunks before the refinement
+        self._before: list[_Chain] = []  # the chains before LiDAR gaps longer than the map's horizon
 
     @property
     def span_ns(self) -> int:
@@ -247,6 +255,12 @@ class Odometry:
             P, T = P[rest], T[rest]
         while self._chain.stamps[-1] + self.span_ns <= complete_ns:
             mine = self._chain.stamps[-1] + self.span_ns > T
+            if mine.any() and self._stale():  # points again after a long gap: start afresh from them
+                self._before.append(self._chain)
+                self._chain, self._map, self._early = None, LocalMap(self.params), None
+                self._pts, self._t = [P], [T]
+                self.advance(complete_ns)
+                return
             kept = _register_chunk(self._chain, P[mine], T[mine], self._map, self.gyro, self.params)
             P, T = P[~mine], T[~mine]
             if self._early is not None:
@@ -255,6 +269,21 @@ class Odometry:
                     _refine_start(self._chain, self._early, self._map, self.gyro, self.params)
                     self._early = None
         self._pts, self._t = [P], [T]
+
+    def _stale(self) -> bool:
+        """The chain has gone without a registered knot for longer than the map's horizon.
+
+        The map then still holds the scene from before the gap (nothing joins
+        it meanwhile), while the prediction has drifted and the rig may have
+        left: registering against it placed the next knots up to 0.7 m apart
+        after a 6 s gap. The odometry starts again instead, as at the
+        recording's start.
+        """
+        assert self._chain is not None
+        res = np.array(self._chain.residual)
+        registered = np.flatnonzero(np.isfinite(res))
+        last = self._chain.stamps[int(registered[-1])] if len(registered) else self._chain.stamps[0]
+        return self._chain.stamps[-1] - last > self.params.map_horizon_s * 1e9
 
     def result(self) -> RigTrajectory:
         """The knots so far (after registering every whole chunk); `OdometryError` below 200 ms of points."""
@@ -267,8 +296,26 @@ class Odometry:
         if self._chain is None:
             t = np.concatenate(self._t) if self._t else np.zeros(1, np.int64)
             need, had = 2 * self.span_ns / 1e6, (int(t.max()) - int(t.min())) / 1e6
-            raise OdometryError(f"odometry: less than {need:.0f} ms of LiDAR points ({had:.0f} ms)")
-        return self._chain.trajectory(self.gyro)
+            if not self._before:
+                raise OdometryError(f"odometry: less than {need:.0f} ms of LiDAR points ({had:.0f} ms)")
+            self._chain, self._before = self._before[-1], self._before[:-1]  # too little after the last gap
+        return _joined([*self._before, self._chain]).trajectory(self.gyro)
+
+
+def _joined(chains: list[_Chain]) -> _Chain:
+    """Chains of the stretches between long LiDAR gaps as one: each later chain's world (cam0 at its first
+    knot) placed at the last knot of the one before, a prediction across the gap; knots of the earlier
+    chain at or after a later one's start are dropped (gap knots: the prediction)."""
+    out = _Chain(list(chains[0].stamps), list(chains[0].R), list(chains[0].p), list(chains[0].residual))
+    for c in chains[1:]:
+        R_w, p_w = out.R[-1], out.p[-1]
+        keep = sum(1 for t in out.stamps if t < c.stamps[0])
+        del out.stamps[keep:], out.R[keep:], out.p[keep:], out.residual[keep:]
+        out.stamps += c.stamps
+        out.R += [R_w @ r for r in c.R]
+        out.p += [R_w @ q + p_w for q in c.p]
+        out.residual += [math.nan, *c.residual[1:]]  # its first knot was not registered to the one before
+    return out
 
 
 def estimate_trajectory(
@@ -338,33 +385,45 @@ def _register_chunk(
     src = _source_points(P, prm)
     if len(src) > prm.max_source_points:
         src = src[np.linspace(0, len(src) - 1, prm.max_source_points).astype(np.int64)]
-    m = _supported_knots(T[src], t_last, prm)
-    R_new, p_new, res = R_guess, p_guess, math.nan
-    if m:
-        src = src[T[src] < knots[m]]
+    supported = _supported_knots(T[src], t_last, prm)
+    R_new, p_new, res, m = R_guess, p_guess, math.nan, 0
+    if supported:
+        src = src[T[src] < knots[supported]]
         # after a gap the chunk's first knot is a prediction too: solved with the others
         first = 1 if math.isfinite(chain.residual[-1]) else 0
-        R_0, p_0 = [chain.R[-1], *R_guess[:m]], [chain.p[-1], *p_guess[:m]]
+        R_0, p_0 = [chain.R[-1], *R_guess[:supported]], [chain.p[-1], *p_guess[:supported]]
+        free = list(range(first, supported + 1))
         R_all, p_all, res = _solve_knots(
-            knots[: m + 1], R_0, p_0, list(range(first, m + 1)), P[src], T[src], the_map, gyro, prm
+            knots[: supported + 1], R_0, p_0, free, P[src], T[src], the_map, gyro, prm
         )
-        if math.isfinite(res) and _plausible(p_all, p_0, prm):
+        # right after a gap the prediction has drifted by however long the gap was: the map decides
+        if math.isfinite(res) and (first == 0 or _plausible(p_all, p_0, prm)):
+            m = supported
             if first == 0:
                 chain.R[-1], chain.p[-1], chain.residual[-1] = R_all[0], p_all[0], res
             R_new, p_new = R_all[1:], p_all[1:]
             # the knots after the last supported one: its pose carried on with the gyro and the velocity
             for s in knots[m + 1 :]:
                 turn = np.eye(3) if gyro is None else gyro_between(gyro, np.array([knots[m]]), np.array([s]))
-                R_new.append(R_new[-1] @ turn.reshape(3, 3))
-                p_new.append(p_new[-1] + v * (s - knots[m]) / 1e9)
-        else:
-            m = 0
-    # a LiDAR gap (no or too few points) carries the prediction: residual NaN marks those knots
+                R_new.append(R_all[m] @ turn.reshape(3, 3))
+                p_new.append(p_all[m] + v * (s - knots[m]) / 1e9)
+    # a LiDAR gap (no or too few points, or a failed solve) carries the prediction: residual NaN marks it
     residuals = [res] * m + [math.nan] * (len(knots) - 1 - m)
     chain.stamps.extend(knots[1:])
     chain.R.extend(R_new)
     chain.p.extend(p_new)
     chain.residual.extend(residuals)
+    # the map takes the points the registered knots placed; after a gap the map keeps what it held, so the
+    # next chunk registers against the scene before the gap. Only a chunk with points throughout whose
+    # solve found too few matches (the map does not reach it: a long gap, the rig far from there) starts
+    # the map again from its own points at the predicted poses.
+    if m:
+        joins = np.less(T, knots[m])
+    elif supported == prm.knots_per_chunk and not math.isfinite(res):
+        joins = np.ones(len(T), bool)
+    else:
+        joins = np.zeros(len(T), bool)
+    P, T = P[joins], T[joins]
     dense = voxel_subsample(P, prm.map_voxel_m)  # in cam0: the deskew moves points far less than a voxel
     if len(dense):
         the_map.add(chain.trajectory(gyro).transform(P[dense], T[dense]), knots[-1], chain.p[-1])
@@ -418,12 +477,22 @@ def _refine_start(
     later = LocalMap(replace(prm, map_horizon_s=1e6))
     later.add(traj.transform(P[~start], T[~start]), chain.stamps[-1], chain.p[-1])
     src = _source_points(P[start], prm)
-    R, p, res = _solve_knots(
-        chain.stamps[: n_start + 1], chain.R[: n_start + 1], chain.p[: n_start + 1], list(range(n_start)),
-        P[start][src], T[start][src], later, gyro, prm,
-    )  # fmt: skip
-    chain.R[:n_start], chain.p[:n_start] = R[:n_start], p[:n_start]
-    chain.residual[1:n_start] = [res] * (n_start - 1)
+    # as in a chunk: only the knots after intervals that hold points are solved, the others are gaps
+    seg = np.clip((T[start][src] - chain.stamps[0]) // prm.knot_ns, 0, n_start - 1)
+    full = np.bincount(seg, minlength=n_start)[:n_start] >= prm.min_segment_points
+    m = n_start if full.all() else int(np.argmin(full))
+    res = math.nan
+    if m:
+        free = list(range(min(m + 1, n_start)))
+        keep = T[start][src] < chain.stamps[m]
+        R, p, res = _solve_knots(
+            chain.stamps[: n_start + 1], chain.R[: n_start + 1], chain.p[: n_start + 1], free,
+            P[start][src][keep], T[start][src][keep], later, gyro, prm,
+        )  # fmt: skip
+        if math.isfinite(res):
+            chain.R[: len(free)], chain.p[: len(free)] = R[: len(free)], p[: len(free)]
+    solved = m if math.isfinite(res) else 0
+    chain.residual[1:n_start] = [res] * max(0, min(solved, n_start - 1)) + [math.nan] * (n_start - 1 - solved)
     R0, p0 = chain.R[0].copy(), chain.p[0].copy()
     chain.R = [R0.T @ r for r in chain.R]
     chain.p = [R0.T @ (q - p0) for q in chain.p]

@@ -187,7 +187,7 @@ class IngestSummary:
             for key, n in (
                 ("accumulated", meta.gt.accumulated_points),
                 ("removed as movers", meta.gt.removed_moving),
-                ("left out across a trajectory gap", meta.points.off_trajectory),
+                ("left out: no registered pose near the frame", meta.points.off_trajectory),
             ):
                 self.dense_points[key] = self.dense_points.get(key, 0) + n
         for k, v in result.stage_ms.items():
@@ -242,7 +242,10 @@ def _gt_method(
     if cfg.gt in ("dense", "auto"):
         out_file = cfg.out / "trajectories" / f"{Path(bags.paths[0]).name}.tum"
         try:
-            w = cfg.sample.dense.window_ns
+            w = (
+                cfg.sample.dense.window_ns
+            )  # auto may widen the default window for a static rig: read that far
+            w = max(w, STATIC_WINDOW_NS) if cfg.gt == "auto" and cfg.widen_static else w
             traj, tsum = run_trajectory_pass(
                 bags,
                 topics.lidars,
@@ -274,9 +277,11 @@ def _gt_method(
 def _held_output(out: Path) -> Iterator[int]:
     """`hold_folder` on `out`, created for it when missing; a folder this creates is removed again when
     the run fails before writing into it (yields the stale temporaries removed)."""
-    created = not out.exists()
     try:
-        out.mkdir(parents=True, exist_ok=True)
+        out.mkdir(parents=True)
+        created = True  # by this run (a run starting beside it finds it there)
+    except FileExistsError:
+        created = False
     except OSError as err:
         raise OutputError(f"cannot create {out}: {err.strerror or err}") from err
     try:

@@ -190,7 +190,7 @@ def choose_method(asked: str, summary: TrajectorySummary | None, failure: str = 
     if summary is None:
         return "sparse", f"auto: no trajectory ({failure})"
     if summary.gaps:
-        return "sparse", f"auto: trajectory has {summary.gaps} knots without LiDAR points"
+        return "sparse", f"auto: trajectory has {summary.gaps} knots not registered (LiDAR gaps)"
     refine_s = OdometryParams().refine_start_s
     if summary.span_s < refine_s and not summary.static:  # standing still, the guess is right
         return "sparse", (

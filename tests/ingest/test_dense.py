@@ -19,8 +19,10 @@ from ingest.bags.message import RawMessage
 from ingest.bags.reader import BagSet, open_bags
 from ingest.dataset.meta import read_meta
 from ingest.train.dense import DenseParams, dense_ground_truth, free_space_filter, snap_to_pixel_rays
+from ingest.train.odometry import OdometryParams
 from ingest.train.pipeline import IngestConfig, _resolve_topics, ingest
 from ingest.train.planes import Normals
+from ingest.train.rig_trajectory import RigTrajectory
 from ingest.train.sample import SampleParams
 from ingest.train.trajectory import read_gyro, trajectory_pass
 from sensorbox.sim.run import SimConfig, simulate
@@ -243,3 +245,43 @@ def test_a_lost_sweep_leaves_a_gap_in_the_trajectory_not_a_wild_knot(walk):
     assert traj.measured_span(truth.start_ns + 1_100_000_000) is None
     first, last = traj.measured_span(truth.start_ns + 500_000_000) or (0, 0)
     assert first == traj.stamps_ns[0] and last < truth.start_ns + 1_100_000_000
+
+
+def _worst_relative_error_m(traj: RigTrajectory, truth: Truth, steps: int) -> float:
+    """Largest error of the motion over `steps` knots, between knots of one registered stretch."""
+    T_true = truth.T_world_cam0(traj.stamps_ns)
+    worst = 0.0
+    for k in range(len(traj.stamps_ns) - steps):
+        span = traj.measured_span(int(traj.stamps_ns[k]))
+        if span is None or traj.stamps_ns[k + steps] > span[1]:
+            continue
+        T_est = np.tile(np.eye(4), (2, 1, 1))
+        T_est[:, :3, :3], T_est[:, :3, 3] = (
+            traj.R_world_cam0[[k, k + steps]],
+            traj.p_world_cam0[[k, k + steps]],
+        )
+        est = np.linalg.inv(T_est[0]) @ T_est[1]
+        true = np.linalg.inv(T_true[k]) @ T_true[k + steps]
+        worst = max(worst, float(np.linalg.norm(est[:3, 3] - true[:3, 3])))
+    return worst
+
+
+def test_after_a_gap_longer_than_the_map_horizon_the_odometry_starts_again(walk):
+    """Registering against the map from before a long gap placed the next knots up to 0.7 m apart (a 6 s
+    gap on a 10 s walk); the odometry starts afresh instead. Scaled to CI: a 0.7 s gap against a 0.2 s
+    horizon, where registering against the old map put 9 mm into the motion over 0.25 s (1.6 mm now)."""
+    truth = walk["truth"]
+    rig = read_rig(truth.path / "rig.yaml")
+    prm = OdometryParams(map_horizon_s=0.2, refine_start_s=0.5)
+    with open_bags([walk["bag"]]) as bags:
+        topics = _resolve_topics(rig, bags.topics(), str(walk["bag"]))
+        gyro = read_gyro(bags, topics.imu, topics.R_cam0_imu)
+        lost = _WithoutLidar(
+            bags, topics.lidars, truth.start_ns + 800_000_000, truth.start_ns + 1_500_000_000
+        )
+        traj = trajectory_pass(lost, topics.lidars, rig, gyro, 0.3, prm)  # type: ignore[arg-type]
+    assert traj.measured_span(truth.start_ns + 1_100_000_000) is None
+    before = traj.measured_span(truth.start_ns + 400_000_000)
+    after = traj.measured_span(truth.start_ns + 1_900_000_000)
+    assert before is not None and after is not None and before[1] < after[0]
+    assert _worst_relative_error_m(traj, truth, 5) <= 0.005
