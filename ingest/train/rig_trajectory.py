@@ -60,6 +60,8 @@ class RigTrajectory:
         if len(stamps) == 1:
             return (int(stamps[0]), int(stamps[0])) if measured[0] else None
         k = min(int(np.searchsorted(stamps, t_ns, side="right")) - 1, len(stamps) - 2)
+        if not (measured[k] and measured[k + 1]) and t_ns == stamps[k] and k > 0 and measured[k - 1]:
+            k -= 1  # exactly on a registered knot: the interval before it is the registered one
         if not (measured[k] and measured[k + 1]):
             return None
         gaps = np.flatnonzero(~measured)

@@ -144,3 +144,15 @@ def test_many_points_take_the_pose_grid_within_a_tenth_of_a_millimetre():
     err = np.linalg.norm(np.einsum("nij,nj->ni", R_grid - R_exact, x) + p_grid - p_exact, axis=1)
     assert 0 < err.max() < 1e-5
     np.testing.assert_allclose(traj.pose(t[:3])[0], R_exact[:3], atol=1e-12)  # few points: exact
+
+
+def test_measured_span_is_the_stretch_of_registered_knots_around_a_time():
+    """Knots 3 and 4 are gaps (NaN): the stretches are knots 0..2 and 5..7; a time beside a gap knot, or
+    outside the knots, has none; a time exactly on knot 2 belongs to the stretch before it."""
+    stamps = np.arange(8, dtype=np.int64) * 50
+    residual = np.array([0.0, 1e-3, 1e-3, np.nan, np.nan, 1e-3, 1e-3, 1e-3])
+    traj = RigTrajectory(stamps, np.tile(np.eye(3), (8, 1, 1)), np.zeros((8, 3)), residual)
+    assert [traj.measured_span(t) for t in (0, 60, 100)] == [(0, 100)] * 3
+    assert [traj.measured_span(t) for t in (101, 150, 200, 249)] == [None] * 4
+    assert [traj.measured_span(t) for t in (250, 300, 350)] == [(250, 350)] * 3
+    assert traj.measured_span(-1) is None and traj.measured_span(351) is None
