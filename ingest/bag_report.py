@@ -12,6 +12,7 @@ import yaml
 from ingest.bags.chunks import LostChunk
 from ingest.bags.decode import RosVersion
 from ingest.errors import BagError
+from ingest.train.sync import lidar_clock_spread
 
 
 @dataclass(frozen=True)
@@ -182,6 +183,8 @@ class BagReport:
 
         A sensor on its own clock (a CustomMsg timebase from the sensor's boot,
         IMU stamps of zero): ingest refuses the recording when the rig uses it.
+        Also one line when the LiDARs' clocks seem to disagree
+        (`ingest.train.sync.lidar_clock_spread`), which ingest warns about.
         """
         if self.stereo is None:
             return []
@@ -196,12 +199,16 @@ class BagReport:
             for t in self.topics
             if t.topic in imus
         ]
-        return [
+        lines = [
             f"{topic}: {what} {a / 1e9:.3f} s..{b / 1e9:.3f} s do not overlap {cam.topic}'s stamps "
             f"{c0 / 1e9:.3f} s..{c1 / 1e9:.3f} s (the sensor's clock is not the cameras')"
             for topic, what, a, b in ranges
             if a is not None and b is not None and (b < c0 or a > c1)
         ]
+        lidars = {li.topic for li in self.lidars}
+        offsets = {t.topic: t.log_offset_median_ms for t in self.topics if t.topic in lidars}
+        spread = lidar_clock_spread({t: ms for t, ms in offsets.items() if ms is not None})
+        return lines + ([spread] if spread else [])
 
     def topic(self, name: str) -> TopicStats:
         """The stats of one topic; `BagError` listing the bag's topics when absent."""

@@ -354,6 +354,7 @@ def _run(
         widest = max(cfg.lidar_window_ns, cfg.sample.dense.window_ns if cfg.gt != "sparse" else 0)
         surveyed = survey(bags, topics, widest, bad)  # stamps, clocks, corrupt chunks: before any write
         summary.imu_gaps_ms = [float(g) / 1e6 for g in surveyed.imu_gaps_ns]
+        summary.warnings += surveyed.warnings
         summary.stale_temporaries = held.enter_context(_held_output(cfg.out))
         cfg, traj = _gt_method(bags, topics, rig, cfg, summary, bad, surveyed.span_ns)
         the_plan = plan(bags, topics, cfg, bad, surveyed)

@@ -22,7 +22,14 @@ from ingest.train.bad_messages import BadMessages
 from ingest.train.lidar_rate import LidarRates
 from ingest.train.lost import lost_intervals, untouched
 from ingest.train.repeats import FirstCopies
-from ingest.train.sync import lidar_covered, median_period_ns, pair_stereo, pair_tolerance_ns, select_samples
+from ingest.train.sync import (
+    lidar_clock_spread,
+    lidar_covered,
+    median_period_ns,
+    pair_stereo,
+    pair_tolerance_ns,
+    select_samples,
+)
 
 if TYPE_CHECKING:
     from ingest.train.pipeline import IngestConfig, Topics
@@ -138,6 +145,7 @@ class Survey:
     upper_ns: I64  # the upper camera's distinct header stamps, ascending
     lower_ns: I64
     imu_gaps_ns: I64 = field(default_factory=lambda: np.zeros(0, np.int64))  # `imu_gaps` of the IMU
+    warnings: list[str] = field(default_factory=list)  # one line each (`lidar_clock_spread`)
 
     @property
     def span_ns(self) -> tuple[int, int]:
@@ -168,7 +176,9 @@ def survey(bags: BagSet, topics: Topics, window_ns: int, bad: BadMessages | None
         )
     _same_clock(bags, topics, seen, duplicates, up, window_ns)
     gaps = imu_gaps(np.unique(seen[topics.imu][:, 1])) if topics.imu else np.zeros(0, np.int64)
-    return Survey(seen, rates, duplicates, up, lo, gaps)
+    offsets_ms = {t: float(np.median(seen[t][:, 0] - seen[t][:, 1])) / 1e6 for t in topics.lidars}
+    spread = lidar_clock_spread(offsets_ms)
+    return Survey(seen, rates, duplicates, up, lo, gaps, [spread] if spread else [])
 
 
 IMU_GAP_PERIODS = 5

@@ -12,6 +12,7 @@
 from __future__ import annotations
 
 import filecmp
+import re
 import shutil
 import struct
 from dataclasses import replace
@@ -241,3 +242,26 @@ def test_an_imu_gap_is_shown_in_the_summary(tmp_path: Path) -> None:
     summary = ingest([bag], _config(tmp_path / "ds", rig))
     assert len(summary.imu_gaps_ms) == 1 and summary.imu_gaps_ms[0] == pytest.approx(205.0, abs=1.0)
     assert ingest([INDOOR], _config(tmp_path / "whole")).imu_gaps_ms == []
+
+
+def test_a_clock_offset_between_the_lidars_is_named(tmp_path: Path) -> None:
+    """The bottom LiDAR's clock 30 ms ahead (no PTP between the two): ingest and inspect say so in one
+    line; it used to show only as a drop in dense GT's density (48 % -> 22 %)."""
+
+    def ahead(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        if topic != LIDAR_BOTTOM:
+            return [(topic, raw)]
+        msg = decode_custom_msg(raw)
+        shift = 30_000_000
+        return [(topic, encode_custom_msg(msg.stamp_ns + shift, msg.frame_id, msg.timebase_ns + shift, msg.points,
+                                          msg.lidar_id))]  # fmt: skip
+
+    bag, rig = rewrite(tmp_path / "bag.mcap", ahead)
+    line = (
+        rf"^{LIDAR_TOP} and {LIDAR_BOTTOM}: bag time minus stamp differs by 30\.\d ms \(median\); their "
+        r"clocks may disagree by that much \(sync the LiDARs: PTP/gPTP\)$"
+    )
+    summary = ingest([bag], _config(tmp_path / "ds", rig))
+    assert len([w for w in summary.warnings if re.match(line, w)]) == 1
+    assert [p for p in inspect_bags(bag).clock_problems() if re.match(line, p)]
+    assert ingest([INDOOR], _config(tmp_path / "synced")).warnings == []
