@@ -280,10 +280,11 @@ class Odometry:
         recording's start.
         """
         assert self._chain is not None
-        res = np.array(self._chain.residual)
-        registered = np.flatnonzero(np.isfinite(res))
-        last = self._chain.stamps[int(registered[-1])] if len(registered) else self._chain.stamps[0]
-        return self._chain.stamps[-1] - last > self.params.map_horizon_s * 1e9
+        stamps, res = self._chain.stamps, self._chain.residual
+        k = len(res) - 1  # back from the end: one step unless the chain is in a gap
+        while k > 0 and not math.isfinite(res[k]):
+            k -= 1
+        return stamps[-1] - stamps[k] > self.params.map_horizon_s * 1e9
 
     def result(self) -> RigTrajectory:
         """The knots so far (after registering every whole chunk); `OdometryError` below 200 ms of points."""
@@ -385,7 +386,7 @@ def _register_chunk(
     src = _source_points(P, prm)
     if len(src) > prm.max_source_points:
         src = src[np.linspace(0, len(src) - 1, prm.max_source_points).astype(np.int64)]
-    supported = _supported_knots(T[src], t_last, prm)
+    supported = _supported_knots(T[src], t_last, prm.knots_per_chunk, prm)
     R_new, p_new, res, m = R_guess, p_guess, math.nan, 0
     if supported:
         src = src[T[src] < knots[supported]]
@@ -430,12 +431,11 @@ def _register_chunk(
     return P[dense], T[dense]
 
 
-def _supported_knots(t_ns: I64, t_last: int, prm: OdometryParams) -> int:
-    """How many of a chunk's new knots its points can place: those after knot intervals that each hold
-    `min_segment_points` (counted from the chunk's start; a knot whose interval before it is thin is left
-    almost unconstrained by the solve, and so are the knots after it)."""
-    k = prm.knots_per_chunk
-    seg = np.clip((t_ns - t_last) // prm.knot_ns, 0, k - 1)
+def _supported_knots(t_ns: I64, t0_ns: int, k: int, prm: OdometryParams) -> int:
+    """How many of the `k` knots after the one at `t0_ns` points at times `t_ns` can place: those after
+    knot intervals that each hold `min_segment_points` (counted from the first; a knot whose interval
+    before it is thin is left almost unconstrained by the solve, and so are the knots after it)."""
+    seg = np.clip((t_ns - t0_ns) // prm.knot_ns, 0, k - 1)
     full = np.bincount(seg, minlength=k)[:k] >= prm.min_segment_points
     return k if full.all() else int(np.argmin(full))
 
@@ -478,9 +478,7 @@ def _refine_start(
     later.add(traj.transform(P[~start], T[~start]), chain.stamps[-1], chain.p[-1])
     src = _source_points(P[start], prm)
     # as in a chunk: only the knots after intervals that hold points are solved, the others are gaps
-    seg = np.clip((T[start][src] - chain.stamps[0]) // prm.knot_ns, 0, n_start - 1)
-    full = np.bincount(seg, minlength=n_start)[:n_start] >= prm.min_segment_points
-    m = n_start if full.all() else int(np.argmin(full))
+    m = _supported_knots(T[start][src], chain.stamps[0], n_start, prm)
     res = math.nan
     if m:
         free = list(range(min(m + 1, n_start)))
@@ -491,8 +489,8 @@ def _refine_start(
         )  # fmt: skip
         if math.isfinite(res):
             chain.R[: len(free)], chain.p[: len(free)] = R[: len(free)], p[: len(free)]
-    solved = m if math.isfinite(res) else 0
-    chain.residual[1:n_start] = [res] * max(0, min(solved, n_start - 1)) + [math.nan] * (n_start - 1 - solved)
+    solved = min(m, n_start - 1) if math.isfinite(res) else 0  # knot n_start is the first chunk's
+    chain.residual[1:n_start] = [res] * solved + [math.nan] * (n_start - 1 - solved)
     R0, p0 = chain.R[0].copy(), chain.p[0].copy()
     chain.R = [R0.T @ r for r in chain.R]
     chain.p = [R0.T @ (q - p0) for q in chain.p]

@@ -148,9 +148,7 @@ class IngestSummary:
     skew_ms: list[float] = field(default_factory=list)
     stereo_dt_ms: list[float] = field(default_factory=list)  # lower minus upper header stamp, per sample
     motion_applied: int = 0
-    dense_points: dict[str, int] = field(
-        default_factory=dict
-    )  # dense GT: accumulated, movers, off trajectory
+    dense_points: dict[str, int] = field(default_factory=dict)  # dense GT: totals over the samples
     stage_ms: dict[str, list[float]] = field(default_factory=dict)  # sequential: they add up per sample
     overlapped_ms: dict[str, list[float]] = field(default_factory=dict)  # helper threads beside them
     seconds: float = 0.0
@@ -230,22 +228,18 @@ def _resolve_topics(rig: Rig, bag_topics: dict[str, Any], where: str) -> Topics:
 
 def _gt_method(
     bags: BagSet, topics: Topics, rig: Rig, cfg: IngestConfig, summary: IngestSummary, bad: BadMessages,
-    camera_span_ns: tuple[int, int],
+    trajectory_span_ns: tuple[int, int],
 ) -> tuple[IngestConfig, RigTrajectory | None]:  # fmt: skip
     """Run the trajectory pass when --gt dense/auto needs it, decide the method, set the window.
 
     Dense GT streams every sweep within its window (`--gt-window-ms`); the
     trajectory goes to `trajectories/<first bag>.tum` in the output and
-    spans the upper camera's stamps `camera_span_ns` plus that window.
+    spans `trajectory_span_ns` (`_dense_reach_ns` around the upper camera's stamps).
     """
     traj, tsum, failure = None, None, ""
     if cfg.gt in ("dense", "auto"):
         out_file = cfg.out / "trajectories" / f"{Path(bags.paths[0]).name}.tum"
         try:
-            w = (
-                cfg.sample.dense.window_ns
-            )  # auto may widen the default window for a static rig: read that far
-            w = max(w, STATIC_WINDOW_NS) if cfg.gt == "auto" and cfg.widen_static else w
             traj, tsum = run_trajectory_pass(
                 bags,
                 topics.lidars,
@@ -254,7 +248,7 @@ def _gt_method(
                 cfg.sample.min_range_m,
                 out_file,
                 bad=bad,
-                span_ns=(camera_span_ns[0] - w, camera_span_ns[1] + w),
+                span_ns=trajectory_span_ns,
             )
         except OdometryError as err:
             if cfg.gt == "dense":
@@ -271,6 +265,16 @@ def _gt_method(
     sample = replace(cfg.sample, method=method, decision=decision, dense=dense)  # type: ignore[arg-type]
     window = dense.window_ns if method == "dense" else cfg.lidar_window_ns
     return replace(cfg, sample=sample, lidar_window_ns=window), traj if method == "dense" else None
+
+
+def _dense_reach_ns(cfg: IngestConfig) -> int:
+    """How far around a frame dense GT may read sweeps (0 for sparse GT): its window, or the wider one
+    `--gt auto` may choose for a static rig."""
+    if cfg.gt == "sparse":
+        return 0
+    if cfg.gt == "auto" and cfg.widen_static:
+        return max(cfg.sample.dense.window_ns, STATIC_WINDOW_NS)
+    return cfg.sample.dense.window_ns
 
 
 @contextmanager
@@ -351,12 +355,13 @@ def _run(
     with open_bags(bag_paths, salvage=cfg.salvage) as bags:
         topics = _resolve_topics(rig, bags.topics(), ", ".join(str(p) for p in bag_paths))
         asked = cfg
-        widest = max(cfg.lidar_window_ns, cfg.sample.dense.window_ns if cfg.gt != "sparse" else 0)
-        surveyed = survey(bags, topics, widest, bad)  # stamps, clocks, corrupt chunks: before any write
+        reach = _dense_reach_ns(cfg)
+        surveyed = survey(bags, topics, max(cfg.lidar_window_ns, reach), bad)  # before any write
         summary.imu_gaps_ms = [float(g) / 1e6 for g in surveyed.imu_gaps_ns]
         summary.warnings += surveyed.warnings
         summary.stale_temporaries = held.enter_context(_held_output(cfg.out))
-        cfg, traj = _gt_method(bags, topics, rig, cfg, summary, bad, surveyed.span_ns)
+        first, last = surveyed.span_ns
+        cfg, traj = _gt_method(bags, topics, rig, cfg, summary, bad, (first - reach, last + reach))
         the_plan = plan(bags, topics, cfg, bad, surveyed)
         summary.undecodable = bad.by_topic()
         summary.frames, summary.pairs, summary.planned = (
