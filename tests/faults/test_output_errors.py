@@ -187,9 +187,10 @@ def _port_base_launch(tmp: Path, mp: pytest.MonkeyPatch) -> tuple[list[str], str
     out = tmp / "bags"
     launch = ROOT / "launch" / "sim.launch.yaml"
     cmd = ["launch", str(launch), "port_base:=70000", f"out:={out}", "duration:=1"]
+    node_line = 1 + launch.read_text().splitlines().index("  - node:")  # the first emulator's
     msg = (
         "error: node 'lidar_top_emulator' (sensorbox/mid360_emulator) at "
-        f"{ROOT}/sensorbox/share/launch/sim.launch.yaml:26: parameter 'port_base' = 70000: "
+        f"{ROOT}/sensorbox/share/launch/sim.launch.yaml:{node_line}: parameter 'port_base' = 70000: "
         "expected 1..65527 (the first of nine UDP ports, each <= 65535)"
     )
     return cmd, msg, 2, lambda: _check(not out.exists(), out)

@@ -22,7 +22,7 @@ from ingest.bags.reader import open_bags
 from ingest.train.pipeline import IngestConfig, ingest
 from sensorbox.live.capture import CaptureConfig, capture_plan
 from sensorbox.live.launch import parse_launch, run_launch
-from tests.live import HANG_S
+from tests.live import HANG_S, NO_DISK_GUARD
 
 ROOT = Path(__file__).resolve().parents[2]
 REF = ROOT / "calibration" / "sensorbox.yaml"
@@ -56,6 +56,7 @@ def test_sim_launch_records_a_bag_that_ingests_into_a_dataset(tmp_path):
         "scale": "0.25",
         "name": "sim",
         "port_base": str(fresh_port_base()),
+        "min_free_mb": str(NO_DISK_GUARD),
     }
     result = run_launch(parse_launch(SIM_LAUNCH, args), tick_s=0.1)
     assert result.error is None and result.reason == "recorder: recorded 2.5 s"
@@ -200,7 +201,7 @@ def test_cli_capture_emulated_rig(tmp_path):
     out = tmp_path / "cap"
     res = run_cli(
         "capture", "--rig", str(REF), "--out", str(out), "--emulate", "--duration", "1", "--scale", "0.25",
-        "--name", "c", "--port-base", str(fresh_port_base()),
+        "--name", "c", "--port-base", str(fresh_port_base()), "--min-free", str(NO_DISK_GUARD),
     )  # fmt: skip
     assert res.returncode == 0, res.stderr
     flat = " ".join(res.stdout.split())

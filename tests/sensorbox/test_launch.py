@@ -318,7 +318,9 @@ def test_shipped_launch_files_parse_with_their_defaults():
         ("sensorbox", "mid360_emulator"), ("sensorbox", "mid360_emulator"),
         ("livox_ros_driver2", "livox_ros_driver2_node"), ("sensorbox", "sim_camera"), ("sensorbox", "recorder"),
     ]  # fmt: skip
-    assert dict(sim.nodes[-1].params) == {"out": "bags/sim", "name": "", "duration_s": 0, "split_size_mb": 0}
+    assert dict(sim.nodes[-1].params) == {
+        "out": "bags/sim", "name": "", "duration_s": 0, "split_size_mb": 0, "min_free_mb": 1024,
+    }  # fmt: skip
     real = parse_launch(ROOT / "launch" / "sensorbox.launch.yaml", {"camera": "opencv"})
     assert [n.name for n in real.nodes] == ["livox_lidar_publisher", "v4l2_stereo", "recorder"]
     with pytest.raises(LaunchError, match="camera:='usb' is not one of zed, opencv"):

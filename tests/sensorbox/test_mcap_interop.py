@@ -35,6 +35,7 @@ from sensorbox import messages
 from sensorbox.live.bagwriter import BagWriter
 from sensorbox.live.recorder import Recorder, RecorderConfig
 from sensorbox.sim.fixtures import FIXTURES, fixture_bag
+from tests.live import NO_DISK_GUARD
 from tests.paths import FIXTURES_DIR
 
 LOG0_NS = 1_700_000_000_000_000_000
@@ -186,7 +187,7 @@ class FakeClock:
 
 @pytest.mark.realtime  # the recorder's writer thread
 def test_foxglove_mcap_decodes_the_recorders_bags(tmp_path: Path) -> None:
-    rec = Recorder(RecorderConfig(tmp_path, name="rec"), clock_ns=FakeClock())
+    rec = Recorder(RecorderConfig(tmp_path, name="rec", min_free_bytes=NO_DISK_GUARD), clock_ns=FakeClock())
     rec.start()
     for topic, msgtype, _, raw in WRITTEN:
         assert rec.enqueue(topic, msgtype, 0, raw)

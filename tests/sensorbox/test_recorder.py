@@ -27,7 +27,7 @@ from sensorbox import messages
 from sensorbox.errors import RecorderError
 from sensorbox.live.bus import Bus, NodeStatus, Shutdown, run_graph
 from sensorbox.live.recorder import Recorder, RecorderConfig
-from tests.live import HANG_S, ManualClock, wait_for
+from tests.live import HANG_S, NO_DISK_GUARD, ManualClock, wait_for
 
 pytestmark = pytest.mark.realtime  # writer threads, clocks, signals to subprocesses: run serially (make test)
 
@@ -67,7 +67,7 @@ class FakeClock:
 
 
 def test_round_trip_keeps_bytes_stamps_and_receive_order(tmp_path):
-    rec = Recorder(RecorderConfig(tmp_path, name="rt"), clock_ns=FakeClock())
+    rec = Recorder(RecorderConfig(tmp_path, name="rt", min_free_bytes=NO_DISK_GUARD), clock_ns=FakeClock())
     rec.start()
     sent = []
     for k in range(50):
@@ -89,7 +89,7 @@ def test_round_trip_keeps_bytes_stamps_and_receive_order(tmp_path):
 
 
 def test_queue_overflow_is_counted_per_topic(tmp_path):
-    rec = Recorder(RecorderConfig(tmp_path, name="q", queue_msgs=3))
+    rec = Recorder(RecorderConfig(tmp_path, name="q", queue_msgs=3, min_free_bytes=NO_DISK_GUARD))
     gate, entered = threading.Event(), threading.Event()
     write = rec._write
 
@@ -115,7 +115,7 @@ def test_queue_overflow_is_counted_per_topic(tmp_path):
 
 
 def test_queue_byte_bound(tmp_path):
-    rec = Recorder(RecorderConfig(tmp_path, name="qb", queue_bytes=250_000))
+    rec = Recorder(RecorderConfig(tmp_path, name="qb", queue_bytes=250_000, min_free_bytes=NO_DISK_GUARD))
     rec._accepting = True  # enqueue without a writer draining: only the byte bound decides
     rec.bag_name = "qb"
     accepted = [rec.enqueue("/img", IMAGE, 0, blob_msg(k, 100_000)) for k in range(4)]
@@ -124,7 +124,9 @@ def test_queue_byte_bound(tmp_path):
 
 
 def test_split_by_duration_gives_several_readable_bags(tmp_path):
-    rec = Recorder(RecorderConfig(tmp_path, name="d", split_s=1.0), clock_ns=FakeClock())
+    rec = Recorder(
+        RecorderConfig(tmp_path, name="d", split_s=1.0, min_free_bytes=NO_DISK_GUARD), clock_ns=FakeClock()
+    )
     rec.start()
     for k in range(35):  # receive times 0.0, 0.1, ... 3.4 s
         rec.enqueue("/chatter", STRING, 0, string_msg(f"m{k}"))
@@ -139,7 +141,7 @@ def test_split_by_duration_gives_several_readable_bags(tmp_path):
 
 def test_split_by_size(tmp_path):
     split = 2 << 20
-    rec = Recorder(RecorderConfig(tmp_path, name="s", split_bytes=split))
+    rec = Recorder(RecorderConfig(tmp_path, name="s", split_bytes=split, min_free_bytes=NO_DISK_GUARD))
     rec.start()
     for k in range(40):  # 40 x 200 kB of incompressible data: 8 MB
         rec.enqueue("/img", IMAGE, 0, blob_msg(k, 200_000))
@@ -180,7 +182,11 @@ def test_disk_guard_closes_the_bag_and_stops(tmp_path):
 
 def test_duration_counts_from_the_first_message(tmp_path):
     sd, clock = Shutdown(), ManualClock(100.0)
-    rec = Recorder(RecorderConfig(tmp_path, name="t", duration_s=0.2), shutdown=sd, monotonic=clock)
+    rec = Recorder(
+        RecorderConfig(tmp_path, name="t", duration_s=0.2, min_free_bytes=NO_DISK_GUARD),
+        shutdown=sd,
+        monotonic=clock,
+    )
     rec.start()
     clock.advance(10.0)
     assert not sd.event.wait(0.3)  # nothing recorded yet: the clock has not started
@@ -195,7 +201,7 @@ def test_duration_counts_from_the_first_message(tmp_path):
 
 def test_duration_counts_from_graph_start(tmp_path):
     bus, sd, clock = Bus(), Shutdown(), ManualClock(100.0)
-    cfg = RecorderConfig(tmp_path, name="g", duration_s=0.3)
+    cfg = RecorderConfig(tmp_path, name="g", duration_s=0.3, min_free_bytes=NO_DISK_GUARD)
     rec = Recorder(cfg, shutdown=sd, in_graph=True, monotonic=clock)
     rec.subscribe_to(bus)
 
@@ -232,7 +238,7 @@ def test_existing_bag_and_bad_config_are_errors(tmp_path):
 
 def test_bus_subscription_with_topic_filter(tmp_path):
     bus = Bus()
-    rec = Recorder(RecorderConfig(tmp_path, name="f", topics=("/keep",)))
+    rec = Recorder(RecorderConfig(tmp_path, name="f", topics=("/keep",), min_free_bytes=NO_DISK_GUARD))
     rec.subscribe_to(bus)
     rec.start()
     bus.publish("/keep", STRING, 0, string_msg("a"))
@@ -250,7 +256,7 @@ launch:
 - node:
     pkg: sensorbox
     exec: recorder
-    param: [{name: out, value: $(var out)}, {name: name, value: sig}, {name: flush_s, value: 0.1}]
+    param: [{name: out, value: $(var out)}, {name: name, value: sig}, {name: flush_s, value: 0.1}, {name: min_free_mb, value: 0}]
 """
 
 
@@ -264,7 +270,7 @@ def test_sigint_sigterm_leave_a_readable_bag(tmp_path, sig):
         cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
     mcap = out / "sig_000" / "sig_000.mcap"
-    wait_for(lambda: mcap.exists() and mcap.stat().st_size > 2000, "the first chunk on disk")
+    wait_for(lambda: mcap.exists() and mcap.stat().st_size > 2000, "the first chunk on disk", child=proc)
     proc.send_signal(sig)
     stdout, stderr = proc.communicate(timeout=HANG_S)
     assert proc.returncode == 0, stderr
@@ -285,7 +291,7 @@ import sys, time
 from pathlib import Path
 from sensorbox.live.recorder import Recorder, RecorderConfig
 out, n, size, flush_s = Path(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]), float(sys.argv[4])
-rec = Recorder(RecorderConfig(out, name="k", flush_s=flush_s, queue_msgs=n))
+rec = Recorder(RecorderConfig(out, name="k", flush_s=flush_s, queue_msgs=n, min_free_bytes=0))
 rec.start()
 from tests.sensorbox.test_recorder import string_msg
 for k in range(n):
