@@ -30,7 +30,7 @@ if TYPE_CHECKING:
     from ingest.train.pipeline import IngestConfig, IngestSummary
 
 HEADER = "# WideDepth training set written by SensorBox\n"
-PER_SOURCE = ("gt", "overlap_images", "method", "decision", "window_ns")
+PER_SOURCE = ("gt", "overlap_images", "method", "decision", "gap_fallback", "window_ns")
 """SampleParams fields resolved per recording (dataset.yaml keeps them with each source), not config."""
 
 

@@ -58,7 +58,7 @@ from ingest.train.describe import check_existing, record_undecodable, write_data
 from ingest.train.lidar_rate import THIN_FRACTION
 from ingest.train.plan import LOST_REASON, plan, survey
 from ingest.train.rig_trajectory import RigTrajectory
-from ingest.train.sample import Geometry, SampleParams, SampleResult
+from ingest.train.sample import GAP_FALLBACK, Geometry, SampleParams, SampleResult
 from ingest.train.stream import (
     UNDECODABLE_IMAGE,
     Shared,
@@ -181,6 +181,9 @@ class IngestSummary:
             key = f"{name} thin in the window (< {THIN_FRACTION:.0%} of its rate)"
             self.flagged[key] = self.flagged.get(key, 0) + 1
         self.motion_applied += meta.motion.applied
+        if meta.gt.decision == GAP_FALLBACK:
+            key = "sparse GT (frame in a trajectory gap)"
+            self.flagged[key] = self.flagged.get(key, 0) + 1
         if meta.gt.method == "dense":
             for key, n in (
                 ("accumulated", meta.gt.accumulated_points),
@@ -262,7 +265,14 @@ def _gt_method(
         dense = replace(dense, window_ns=STATIC_WINDOW_NS)
         decision += f"; rig static: window +-{STATIC_WINDOW_NS / 1e6:.0f} ms"
     summary.method, summary.decision, summary.trajectory = method, decision, tsum
-    sample = replace(cfg.sample, method=method, decision=decision, dense=dense)  # type: ignore[arg-type]
+    fallback = cfg.gt == "auto"  # sparse GT for frames in trajectory gaps; --gt dense skips them
+    sample = replace(
+        cfg.sample,
+        method=method,  # type: ignore[arg-type]
+        decision=decision,
+        dense=dense,
+        gap_fallback=fallback,
+    )
     window = dense.window_ns if method == "dense" else cfg.lidar_window_ns
     return replace(cfg, sample=sample, lidar_window_ns=window), traj if method == "dense" else None
 

@@ -35,6 +35,7 @@ from ingest.train.groundtruth import (
     splat_to_pixels,
     surface_normals,
 )
+from ingest.train.plan import IMU_MARGIN_NS
 from ingest.train.planes import Normals
 from ingest.train.rig_trajectory import RigTrajectory
 
@@ -84,6 +85,12 @@ class LidarPoints:
     stamps_ns: I64
     tag: np.ndarray[Any, Any] | None
 
+    def within(self, t0_ns: int, t1_ns: int) -> LidarPoints:
+        """The points stamped in [t0_ns, t1_ns], in their order."""
+        keep = (self.stamps_ns >= t0_ns) & (self.stamps_ns <= t1_ns)
+        tag = None if self.tag is None else self.tag[keep]
+        return LidarPoints(self.name, self.xyz_m[keep], self.stamps_ns[keep], tag)
+
 
 @dataclass(frozen=True)
 class ImuWindow:
@@ -92,6 +99,11 @@ class ImuWindow:
     stamps_ns: I64
     gyro_rad_s: F64
     R_cam0_imu: F64
+
+    def within(self, t0_ns: int, t1_ns: int) -> ImuWindow:
+        """The readings stamped in [t0_ns, t1_ns]."""
+        keep = (self.stamps_ns >= t0_ns) & (self.stamps_ns <= t1_ns)
+        return ImuWindow(self.stamps_ns[keep], self.gyro_rad_s[keep], self.R_cam0_imu)
 
 
 @dataclass(frozen=True)
@@ -112,6 +124,7 @@ class SampleParams:
     gt: GtParams = field(default_factory=GtParams)
     method: Literal["sparse", "dense"] = "sparse"  # the run's GT method (--gt auto is decided before)
     decision: str = "asked"  # why `method` (written to every sample's meta)
+    gap_fallback: bool = False  # dense: a frame in a trajectory gap gets sparse GT (--gt auto), not skipped
     dense: DenseParams = field(default_factory=DenseParams)
 
 
@@ -226,6 +239,11 @@ def _process(job: SampleJob, images: Background[Equirects], start_ms: float) -> 
     """`process_sample`'s stages, with its warps under way in `images` (starting them took `start_ms`)."""
     if job.params.method == "dense":
         return _process_dense(job, images, start_ms)
+    return _process_sparse(job, images, start_ms)
+
+
+def _process_sparse(job: SampleJob, images: Background[Equirects], start_ms: float) -> SampleResult:
+    """Sparse GT: the frame's own sweeps, motion-compensated to the frame time."""
     ms: dict[str, float] = {}
     t0 = time.perf_counter()
     geo, prm = job.geometry, job.params
@@ -318,6 +336,22 @@ def _finish(
 
 
 GAP_REASON = "frame in a trajectory gap (LiDAR points missing around it)"
+GAP_FALLBACK = "auto: frame in a trajectory gap, sparse GT"
+"""The decision in the meta of a frame that `--gt auto` gave sparse GT inside a dense run."""
+
+
+def sparse_window(job: SampleJob) -> SampleJob:
+    """`job` as a sparse run streams it: the points within +-`SampleParams.window_ns` of the frame and
+    the gyro readings `IMU_MARGIN_NS` beyond, with no trajectory. A dense job holds a wider window."""
+    tc, w = job.upper_stamp_ns, job.params.window_ns
+    imu = None if job.imu is None else job.imu.within(tc - w - IMU_MARGIN_NS, tc + w + IMU_MARGIN_NS)
+    return replace(
+        job,
+        lidars=tuple(lp.within(tc - w, tc + w) for lp in job.lidars),
+        imu=imu,
+        params=replace(job.params, method="sparse", decision=GAP_FALLBACK, gap_fallback=False),
+        trajectory=None,
+    )
 
 
 def _process_dense(job: SampleJob, images: Background[Equirects], start_ms: float) -> SampleResult:
@@ -327,13 +361,13 @@ def _process_dense(job: SampleJob, images: Background[Equirects], start_ms: floa
     geo, prm, traj = job.geometry, job.params, job.trajectory
     if traj is None:
         return SampleResult(job.sid, False, "dense GT without a trajectory", None, {})
-    pts, stamps, which, counts, skew_ms = _points_by_lidar(job)
     tc = job.upper_stamp_ns
     if not traj.covers(np.array([tc]))[0]:
         return SampleResult(job.sid, False, "outside the trajectory", None, {})
     span = traj.measured_span(tc)
     if span is None:  # the frame's own pose is a prediction across a LiDAR gap
-        return SampleResult(job.sid, False, GAP_REASON, None, {})
+        return _in_gap(job, images, start_ms)
+    pts, stamps, which, counts, skew_ms = _points_by_lidar(job)
     covered = (stamps >= span[0]) & (stamps <= span[1])  # no point placed across a gap
     if not covered.any():
         return SampleResult(job.sid, False, "outside the trajectory", None, {})
@@ -375,6 +409,16 @@ def _process_dense(job: SampleJob, images: Background[Equirects], start_ms: floa
         ),
     )  # fmt: skip
     return _finish(job, images, start_ms, ms, (dense.range_img, dense.disp_img), meta)
+
+
+def _in_gap(job: SampleJob, images: Background[Equirects], start_ms: float) -> SampleResult:
+    """A dense frame in a trajectory gap: sparse GT under `SampleParams.gap_fallback`, else skipped."""
+    if not job.params.gap_fallback:
+        return SampleResult(job.sid, False, GAP_REASON, None, {})
+    sparse = sparse_window(job)
+    if not any(len(lp.stamps_ns) for lp in sparse.lidars):  # a sparse run does not plan it either
+        return SampleResult(job.sid, False, GAP_REASON, None, {})
+    return _process_sparse(sparse, images, start_ms)
 
 
 def _slices(

@@ -178,19 +178,19 @@ AUTO_MAX_RESIDUAL_MM = 30.0
 def choose_method(asked: str, summary: TrajectorySummary | None, failure: str = "") -> tuple[str, str]:
     """(method, decision) for `--gt asked`: sparse/dense as asked; auto from the trajectory's quality.
 
-    auto takes dense GT when the odometry placed every knot (no LiDAR gap
-    carried by prediction alone) with a median residual below
-    `AUTO_MAX_RESIDUAL_MM`, over at least the `OdometryParams.refine_start_s`
-    after which the start is solved again (before that its first knots are
-    a constant-velocity guess, centimetres off for a handheld rig that
-    moves); otherwise sparse GT, which needs no trajectory.
+    auto takes dense GT when the odometry's registered knots have a median
+    residual below `AUTO_MAX_RESIDUAL_MM`, over at least the
+    `OdometryParams.refine_start_s` after which the start is solved again
+    (before that its first knots are a constant-velocity guess, centimetres
+    off for a handheld rig that moves); otherwise sparse GT, which needs no
+    trajectory. Knots in LiDAR gaps (carried by prediction alone) do not
+    decide for the recording: the frames among them get sparse GT
+    (`SampleParams.gap_fallback`).
     """
     if asked != "auto":
         return asked, "asked"
     if summary is None:
         return "sparse", f"auto: no trajectory ({failure})"
-    if summary.gaps:
-        return "sparse", f"auto: trajectory has {summary.gaps} knots not registered (LiDAR gaps)"
     refine_s = OdometryParams().refine_start_s
     if summary.span_s < refine_s and not summary.static:  # standing still, the guess is right
         return "sparse", (
@@ -200,7 +200,7 @@ def choose_method(asked: str, summary: TrajectorySummary | None, failure: str = 
     if not summary.residual_median_mm <= AUTO_MAX_RESIDUAL_MM:
         median = summary.residual_median_mm
         return "sparse", f"auto: trajectory residual median {median:.1f} mm > {AUTO_MAX_RESIDUAL_MM:g} mm"
-    return (
-        "dense",
-        f"auto: trajectory residual median {summary.residual_median_mm:.2f} mm, {summary.knots} knots",
-    )
+    decision = f"auto: trajectory residual median {summary.residual_median_mm:.2f} mm, {summary.knots} knots"
+    if summary.gaps:
+        decision += f"; {summary.gaps} in LiDAR gaps: frames there get sparse GT"
+    return "dense", decision

@@ -22,11 +22,12 @@ import pytest
 
 from ingest.bags.livox_msg import decode_custom_msg, encode_custom_msg
 from ingest.bags.reader import open_bags
+from ingest.dataset.layout import GT_DIRS
 from ingest.dataset.meta import read_meta
 from ingest.errors import BagError, DatasetError
 from ingest.inspect import inspect_bags
 from ingest.train.pipeline import IngestConfig, ingest
-from ingest.train.sample import GAP_REASON
+from ingest.train.sample import GAP_FALLBACK, GAP_REASON
 from sensorbox.sim.truth import truth_dir
 from tests.faults.bags import INDOOR, LIDAR_BOTTOM, LIDAR_TOP, LOWER, rewrite
 
@@ -193,8 +194,34 @@ def test_a_lidar_gap_skips_the_dense_samples_it_touches(tmp_path: Path) -> None:
         "removed as movers": sum(m.gt.removed_moving for m in metas),
         "left out: no registered pose near the frame": sum(m.points.off_trajectory for m in metas),
     }
-    auto = ingest([bag], IngestConfig(rig=rig, out=tmp_path / "auto", workers=1, every=5, gt="auto"))
-    assert auto.method == "sparse" and "knots not registered (LiDAR gaps)" in auto.decision
+
+    # --gt auto keeps dense GT and gives the frames in the gap the sparse GT a sparse run gives them
+    auto = ingest([bag], IngestConfig(rig=rig, out=tmp_path / "auto", workers=1, every=1, gt="auto"))
+    sparse = ingest([bag], IngestConfig(rig=rig, out=tmp_path / "sparse", workers=1, every=1, gt="sparse"))
+    assert auto.method == "dense" and "in LiDAR gaps: frames there get sparse GT" in auto.decision
+    # frames with no LiDAR point within +-50 ms are skipped, as a sparse run leaves them unplanned; the
+    # frames past the trajectory's ends are skipped as in a dense run
+    ends = dense.skipped.get("outside the trajectory", 0)
+    assert auto.skipped == {**dense.skipped, GAP_REASON: sparse.uncovered}
+    assert (
+        sparse.uncovered > 0 and auto.written == dense.written + dense.skipped[GAP_REASON] - sparse.uncovered
+    )
+
+    def by_stamp(name: str) -> dict[int, str]:
+        folder = tmp_path / name
+        return {read_meta(folder, f.stem).stamp_ns: f.stem for f in (folder / "meta").iterdir()}
+
+    runs = {name: by_stamp(name) for name in ("auto", "dense", "sparse")}
+    in_gap = runs["auto"].keys() - runs["dense"].keys()
+    assert auto.flagged["sparse GT (frame in a trajectory gap)"] == len(in_gap) > 0
+    assert len(runs["sparse"]) == auto.written + ends  # sparse GT at the ends too
+    for stamp, sid in runs["auto"].items():
+        like = "dense" if stamp in runs["dense"] else "sparse"
+        meta = read_meta(tmp_path / "auto", sid)
+        assert (meta.gt.method, meta.gt.decision == GAP_FALLBACK) == (like, like == "sparse")
+        for folder in GT_DIRS:
+            got = (tmp_path / "auto" / folder / f"{sid}.png").read_bytes()
+            assert got == (tmp_path / like / folder / f"{runs[like][stamp]}.png").read_bytes(), (sid, folder)
 
 
 @pytest.mark.parametrize("gt", ["dense", "auto"])

@@ -102,8 +102,8 @@ def test_auto_chooses_dense_only_with_a_sound_trajectory():
     assert choose_method("auto", _summary(1.0))[0] == "dense"
     method, why = choose_method("auto", _summary(AUTO_MAX_RESIDUAL_MM * 2))
     assert method == "sparse" and "residual" in why
-    method, why = choose_method("auto", _summary(1.0, gaps=3))
-    assert method == "sparse" and "3 knots" in why
+    method, why = choose_method("auto", _summary(1.0, gaps=3))  # the frames in the gaps get sparse GT
+    assert method == "dense" and "3 in LiDAR gaps: frames there get sparse GT" in why
     method, why = choose_method("auto", None, "odometry: less than 200 ms of LiDAR points")
     assert method == "sparse" and "200 ms" in why
 
