@@ -6,6 +6,7 @@ tests score its trajectory and every sample against the truth, at a reduced
 resolution that fits CI (bench/bench_dense.py measures full resolution).
 """
 
+import math
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -245,6 +246,35 @@ def test_a_lost_sweep_leaves_a_gap_in_the_trajectory_not_a_wild_knot(walk):
     assert traj.measured_span(truth.start_ns + 1_100_000_000) is None
     first, last = traj.measured_span(truth.start_ns + 500_000_000) or (0, 0)
     assert first == traj.stamps_ns[0] and last < truth.start_ns + 1_100_000_000
+
+
+@pytest.mark.parametrize(
+    ("rule", "prm"),
+    [
+        ("the jump gate alone", OdometryParams(min_segment_points=1)),
+        ("neither rule", OdometryParams(min_segment_points=1, max_jump_m=math.inf)),
+    ],
+)
+def test_the_jump_gate_alone_keeps_the_wild_knot_out(walk, rule, prm):
+    """The lost sweep of the test above with the support rule off: the knot solved on the sliver lands
+    more than `max_jump_m` from its prediction and is carried instead; without the gate it stays."""
+    truth = walk["truth"]
+    rig = read_rig(truth.path / "rig.yaml")
+    with open_bags([walk["bag"]]) as bags:
+        topics = _resolve_topics(rig, bags.topics(), str(walk["bag"]))
+        gyro = read_gyro(bags, topics.imu, topics.R_cam0_imu)
+        lost = _WithoutLidar(
+            bags, topics.lidars, truth.start_ns + 1_050_000_000, truth.start_ns + 1_150_000_000
+        )
+        traj = trajectory_pass(lost, topics.lidars, rig, gyro, 0.3, prm)  # type: ignore[arg-type]
+    T_true = truth.T_world_cam0(traj.stamps_ns)
+    T_true = np.linalg.inv(T_true[0]) @ T_true
+    err_m = np.linalg.norm(T_true[:, :3, 3] - traj.p_world_cam0, axis=1)
+    measured = np.isfinite(traj.residual_m)
+    if rule == "neither rule":
+        assert err_m[measured].max() > 0.1
+    else:
+        assert not measured.all() and err_m[measured].max() <= 0.01
 
 
 def _worst_relative_error_m(traj: RigTrajectory, truth: Truth, steps: int) -> float:
