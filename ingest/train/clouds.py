@@ -198,6 +198,10 @@ class MotionDecision:
     velocity_cam0_mps: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
 
 
+REFERENCE_RANGE_M = 2.0
+"""The range (m) at which a translation of the rig is turned into predicted image motion."""
+
+
 def compensate(
     pts_cam0: F64,
     dt_s: F64,
@@ -205,7 +209,7 @@ def compensate(
     velocity_cam0_mps: F64 | None,
     px_per_rad: float,
     min_motion_px: float = 0.25,
-    reference_range_m: float = 2.0,
+    reference_range_m: float = REFERENCE_RANGE_M,
     source: str = "none",
 ) -> tuple[F64, MotionDecision]:
     """Move cam0-frame points measured `dt_s` after the frame time to cam0 at the frame time.

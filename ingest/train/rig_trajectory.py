@@ -142,6 +142,21 @@ class RigTrajectory:
         step = self.p_world_cam0[k[0] + 1] - self.p_world_cam0[k[0]]
         return float(np.linalg.norm(step) / ((self.stamps_ns[k[0] + 1] - self.stamps_ns[k[0]]) / 1e9))
 
+    def motion_from(self, t_ref_ns: int, t0_ns: int, t1_ns: int) -> tuple[float, float]:
+        """(largest rotation in rad, largest displacement in m) of cam0 between `t_ref_ns` and any time
+        in [t0_ns, t1_ns]: how far the rig moved while the points of that interval were measured.
+
+        Position is linear between knots, so the largest displacement is at a knot or an end; the
+        rotation is taken there and at every 5 ms between (the gyro may turn back within an interval).
+        """
+        inner = self.stamps_ns[(self.stamps_ns > t0_ns) & (self.stamps_ns < t1_ns)]
+        t = np.unique(np.r_[np.arange(t0_ns, t1_ns, 5_000_000, dtype=np.int64), inner, t1_ns])
+        R, p = self.pose(t)
+        R_ref, p_ref = self.pose(np.array([t_ref_ns]))
+        cos = (np.einsum("ji,nji->n", R_ref[0], R) - 1.0) / 2.0  # trace(R_ref^T R) = 1 + 2 cos(angle)
+        angle = float(np.arccos(np.clip(cos, -1.0, 1.0)).max())
+        return angle, float(np.linalg.norm(p - p_ref[0], axis=1).max())
+
     def to_frame(self, pts_cam0: F64, t_ns: I64, t_ref_ns: int) -> F64:
         """Points measured in cam0 at their times `t_ns` (N, 3), expressed in cam0 at `t_ref_ns`."""
         R_ref, p_ref = self.pose(np.array([t_ref_ns]))

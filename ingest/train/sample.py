@@ -23,7 +23,14 @@ from ingest.dataset.layout import SampleFiles, write_sample
 from ingest.dataset.meta import GtMeta, MotionMeta, PointMeta, SampleMeta
 from ingest.dataset.sparse import SparseImage
 from ingest.runtime.background import Background
-from ingest.train.clouds import FilterCounts, compensate, estimate_velocity, filter_points, integrate_gyro
+from ingest.train.clouds import (
+    REFERENCE_RANGE_M,
+    FilterCounts,
+    compensate,
+    estimate_velocity,
+    filter_points,
+    integrate_gyro,
+)
 from ingest.train.dense import DenseParams, dense_ground_truth, free_space_filter, may_matter
 from ingest.train.groundtruth import (
     GtParams,
@@ -372,6 +379,7 @@ def _process_dense(job: SampleJob, images: Background[Equirects], start_ms: floa
     if not covered.any():
         return SampleResult(job.sid, False, "outside the trajectory", None, {})
     pts, stamps, which = pts[covered], stamps[covered], which[covered]
+    turn_rad, shift_m = traj.motion_from(tc, int(stamps.min()), int(stamps.max()))
     placed = traj.to_frame(pts, stamps, tc)
     moving = np.zeros((0, 3))
     if prm.dense.free_space:
@@ -392,8 +400,9 @@ def _process_dense(job: SampleJob, images: Background[Equirects], start_ms: floa
         stamp_ns=tc, lower_stamp_ns=job.lower_stamp_ns, stereo_dt_ms=(job.lower_stamp_ns - tc) / 1e6,
         source_bag=job.source, lidar_skew_ms=skew_ms,
         motion=MotionMeta(
-            applied=True, source="trajectory", max_rotation_deg=0.0, speed_mps=traj.speed_mps(tc),
-            predicted_motion_px=0.0, velocity_cam0_mps=None,
+            applied=True, source="trajectory", max_rotation_deg=float(np.degrees(turn_rad)),
+            speed_mps=traj.speed_mps(tc), velocity_cam0_mps=None,
+            predicted_motion_px=(turn_rad + shift_m / REFERENCE_RANGE_M) * geo.px_per_rad,
         ),
         points=PointMeta(
             total=counts.total, zero=counts.zero, non_finite=counts.non_finite, too_close=counts.too_close,

@@ -156,3 +156,22 @@ def test_measured_span_is_the_stretch_of_registered_knots_around_a_time():
     assert [traj.measured_span(t) for t in (101, 150, 200, 249)] == [None] * 4
     assert [traj.measured_span(t) for t in (250, 300, 350)] == [(250, 350)] * 3
     assert traj.measured_span(-1) is None and traj.measured_span(351) is None
+
+
+def test_motion_from_is_the_largest_turn_and_shift_over_the_interval():
+    """A 2 rad/s yaw and 1 m/s along x: from t = 0.2 s, the interval [0.1, 0.5] s holds a 0.6 rad turn and
+    a 0.3 m shift (at 0.5 s); a yaw that turns back within a knot interval still counts its peak."""
+    track = _constant_rate_gyro([0.0, 0.0, 2.0])
+    stamps = np.arange(0, 1_000_000_001, 50_000_000, dtype=np.int64)
+    R = rotvec_to_matrix(np.outer(stamps / 1e9, [0.0, 0.0, 2.0]))
+    p = np.c_[stamps / 1e9, np.zeros((len(stamps), 2))]
+    traj = RigTrajectory(stamps, R, p, np.zeros(len(stamps)), track)
+    turn, shift = traj.motion_from(200_000_000, 100_000_000, 500_000_000)
+    assert turn == pytest.approx(0.6, abs=1e-9) and shift == pytest.approx(0.3, abs=1e-12)
+    # knots 0 and 100 ms both at yaw 0, the gyro turning +1 rad/s and back in between: a 0.05 rad peak
+    t = np.arange(0, 100_000_001, 1_000_000, dtype=np.int64)
+    rate = np.where(t < 50_000_000, 1.0, -1.0)
+    wobble = integrate_gyro(t, np.c_[np.zeros((len(t), 2)), rate], np.eye(3))
+    flat = RigTrajectory(t[[0, -1]], np.tile(np.eye(3), (2, 1, 1)), np.zeros((2, 3)), np.zeros(2), wobble)
+    turn, shift = flat.motion_from(0, 0, 100_000_000)
+    assert turn == pytest.approx(0.05, abs=2e-3) and shift == 0.0
