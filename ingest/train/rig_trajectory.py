@@ -105,6 +105,8 @@ class RigTrajectory:
 
     def _node_grid(self, t: I64) -> tuple[I64, F64, F64, F64] | None:
         """For many times: (node before each a, blend g, node rotations, node positions); None for few."""
+        if len(t) == 0:
+            return None
         k, _ = self._segment(t)
         k_lo, k_hi = int(k.min()), int(k.max())
         if len(t) < POSE_GRID_MIN_RATIO * POSE_NODES * (k_hi - k_lo + 1):

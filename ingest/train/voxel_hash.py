@@ -275,7 +275,7 @@ class VoxelHash:
         q = np.ascontiguousarray(queries, np.float64).reshape(-1, 3)
         idx = np.full((len(q), k), -1, np.int64)
         d2 = np.full((len(q), k), float(radius_m) ** 2)
-        if seed is not None and k == 1:
+        if seed is not None and k == 1 and len(self.xyz):  # an empty index has nothing to seed from
             idx[:, 0] = seed
             guess = np.einsum("ij,ij->i", self.xyz[seed] - q, self.xyz[seed] - q)
             use = (seed >= 0) & (guess < d2[:, 0])

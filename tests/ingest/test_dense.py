@@ -294,6 +294,26 @@ def test_the_jump_gate_alone_keeps_the_wild_knot_out(walk, rule, prm):
         assert not measured.all() and err_m[measured].max() <= 0.01
 
 
+def test_a_start_followed_by_a_long_gap_is_left_unrefined_not_a_crash(walk):
+    """0.2 s of LiDAR, then none for a second: the start is due to be solved again once the chain spans
+    `refine_start_s`, but no later point exists to solve it against (an empty map raised IndexError).
+    The gap is carried by prediction and the odometry goes on after it."""
+    truth = walk["truth"]
+    rig = read_rig(truth.path / "rig.yaml")
+    prm = OdometryParams(map_horizon_s=0.5, refine_start_s=0.5)
+    with open_bags([walk["bag"]]) as bags:
+        topics = _resolve_topics(rig, bags.topics(), str(walk["bag"]))
+        gyro = read_gyro(bags, topics.imu, topics.R_cam0_imu)
+        lost = _WithoutLidar(
+            bags, topics.lidars, truth.start_ns + 200_000_000, truth.start_ns + 1_200_000_000
+        )
+        traj = trajectory_pass(lost, topics.lidars, rig, gyro, 0.3, prm)  # type: ignore[arg-type]
+    assert traj.measured_span(truth.start_ns + 700_000_000) is None
+    after = traj.measured_span(truth.start_ns + 1_800_000_000)
+    assert after is not None and after[0] > truth.start_ns + 1_000_000_000
+    assert _worst_relative_error_m(traj, truth, 5) <= 0.005
+
+
 def _worst_relative_error_m(traj: RigTrajectory, truth: Truth, steps: int) -> float:
     """Largest error of the motion over `steps` knots, between knots of one registered stretch."""
     T_true = truth.T_world_cam0(traj.stamps_ns)
