@@ -41,7 +41,7 @@ def wait_for(
     make `condition()` true: its exit ends the wait at once, with what it printed."""
     end = time.monotonic() + timeout_s
     while not condition():
-        if child is not None and child.poll() is not None:
+        if child is not None and child.poll() is not None and not condition():  # it may have just made it
             stdout, stderr = child.communicate()
             pytest.fail(f"the child exited ({child.returncode}) before {what}:\n{stdout}\n{stderr}")
         if time.monotonic() > end:

@@ -128,6 +128,12 @@ class IngestConfig:
                 ) from err
         if not self.lidar_window_ns > 0:
             raise DatasetError(f"--window-ms must be > 0, got {self.lidar_window_ns / 1e6:g}")
+        if self.gt == "auto" and self.sample.dense.window_ns < self.lidar_window_ns:
+            raise DatasetError(
+                f"--gt auto: --gt-window-ms {self.sample.dense.window_ns / 1e6:g} is narrower than "
+                f"--window-ms {self.lidar_window_ns / 1e6:g}; the sparse GT it gives frames in trajectory "
+                "gaps reads --window-ms of points from the dense window"
+            )
         if not (math.isfinite(self.sample.min_range_m) and self.sample.min_range_m >= 0):
             raise DatasetError(f"--min-range must be >= 0 m, got {self.sample.min_range_m:g}")
 

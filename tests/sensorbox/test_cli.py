@@ -101,6 +101,12 @@ def test_ingest_backend_is_checked_before_any_bag_is_read(tmp_path):
     assert res.returncode == 2 and res.stderr.strip() == (
         "error: --gt-window-ms sets the window of dense GT (--gt dense or auto); sparse GT's is --window-ms"
     )
+    auto = [a if a != "dense" else "auto" for a in args]
+    res = run(*auto, "--gt-window-ms", "40", "--window-ms", "80")  # the gaps' sparse GT reads within it
+    assert res.returncode == 2 and " ".join(res.stderr.split()) == (
+        "error: --gt auto: --gt-window-ms 40 is narrower than --window-ms 80; the sparse GT it gives frames "
+        "in trajectory gaps reads --window-ms of points from the dense window"
+    )
     try:
         import torch
     except ImportError:
