@@ -153,6 +153,7 @@ class SampleJob:
     params: SampleParams
     trajectory: RigTrajectory | None = None  # the recording's (dense GT)
     thin_lidars: tuple[str, ...] = ()  # LiDARs with far fewer points than their rate (lidar_rate)
+    thin_lidars_sparse: tuple[str, ...] = ()  # the same over sparse GT's window (`sparse_window`)
 
 
 @dataclass(frozen=True)
@@ -348,8 +349,9 @@ GAP_FALLBACK = "auto: frame in a trajectory gap, sparse GT"
 
 
 def sparse_window(job: SampleJob) -> SampleJob:
-    """`job` as a sparse run streams it: the points within +-`SampleParams.window_ns` of the frame and
-    the gyro readings `IMU_MARGIN_NS` beyond, with no trajectory. A dense job holds a wider window."""
+    """`job` as a sparse run streams it: the points within +-`SampleParams.window_ns` of the frame, the
+    gyro readings `IMU_MARGIN_NS` beyond and the thin LiDARs over that window, with no trajectory. A
+    dense job holds a wider window."""
     tc, w = job.upper_stamp_ns, job.params.window_ns
     imu = None if job.imu is None else job.imu.within(tc - w - IMU_MARGIN_NS, tc + w + IMU_MARGIN_NS)
     return replace(
@@ -358,6 +360,7 @@ def sparse_window(job: SampleJob) -> SampleJob:
         imu=imu,
         params=replace(job.params, method="sparse", decision=GAP_FALLBACK, gap_fallback=False),
         trajectory=None,
+        thin_lidars=job.thin_lidars_sparse,
     )
 
 

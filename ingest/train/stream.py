@@ -80,12 +80,14 @@ class StreamedJob:
     imu: ImuWindow | None
     params: SampleParams
     thin_lidars: tuple[str, ...] = ()
+    thin_lidars_sparse: tuple[str, ...] = ()  # over sparse GT's window, for a dense frame in a gap
 
     def sample_job(self, shared: Shared, upper_bgr: Array, lower_bgr: Array) -> SampleJob:
         """The `process_sample` job of this sample, with its decoded images."""
         return SampleJob(
             self.out, self.sid, self.source, self.upper_stamp_ns, self.lower_stamp_ns, upper_bgr, lower_bgr,
             self.lidars, self.imu, None, shared.geometry, self.params, shared.trajectory, self.thin_lidars,
+            self.thin_lidars_sparse,
         )  # fmt: skip
 
 
@@ -247,11 +249,16 @@ def stream_jobs(
         tc = int(the_plan.upper_ns[k])
         lidars = tuple(_lidar_window(sweeps[t], name, tc, w) for t, name in topics.lidars.items())
         thin = _thin_lidars(the_plan.rates, topics, lidars, tc, w)
+        thin_sparse: tuple[str, ...] = ()
+        if cfg.sample.gap_fallback:
+            ws = cfg.sample.window_ns
+            narrow = tuple(lp.within(tc - ws, tc + ws) for lp in lidars)
+            thin_sparse = _thin_lidars(the_plan.rates, topics, narrow, tc, ws)
         imu = _imu_window(imu_t, imu_g, tc, w, topics.R_cam0_imu)
         f = frames.pop(k)
         return StreamedJob(
             cfg.out, sids[k], source, where, tc, int(the_plan.lower_ns[k]), f["upper"], f["lower"],
-            lidars, imu, cfg.sample, thin,
+            lidars, imu, cfg.sample, thin, thin_sparse,
         )  # fmt: skip
 
     wanted = [topics.upper, topics.lower, *topics.lidars, *([topics.imu] if topics.imu else [])]

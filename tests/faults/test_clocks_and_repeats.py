@@ -222,6 +222,11 @@ def test_a_lidar_gap_skips_the_dense_samples_it_touches(tmp_path: Path) -> None:
         for folder in GT_DIRS:
             got = (tmp_path / "auto" / folder / f"{sid}.png").read_bytes()
             assert got == (tmp_path / like / folder / f"{runs[like][stamp]}.png").read_bytes(), (sid, folder)
+        if like == "sparse":  # and the same metadata, thin LiDARs over the same window included
+            want = read_meta(tmp_path / "sparse", runs["sparse"][stamp])
+            assert replace(meta, id="", gt=replace(meta.gt, decision="")) == replace(
+                want, id="", gt=replace(want.gt, decision="")
+            )
 
 
 @pytest.mark.parametrize("gt", ["dense", "auto"])
