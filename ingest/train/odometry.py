@@ -150,6 +150,7 @@ class _Chain:
     R: list[F64]
     p: list[F64]
     residual: list[float]
+    refined: bool = True  # False while its start is the constant-velocity guess (`_refine_start`)
 
     def trajectory(self, gyro: GyroTrack | None) -> RigTrajectory:
         return RigTrajectory(
@@ -250,6 +251,7 @@ class Odometry:
                 self._pts, self._t = [P], [T]
                 return
             self._chain, rest = _start(P, T, self._map, self.gyro, self.params)
+            self._chain.refined = False
             sub = voxel_subsample(P[~rest], self.params.map_voxel_m)
             self._early = [(P[~rest][sub], T[~rest][sub])]
             P, T = P[rest], T[rest]
@@ -267,7 +269,7 @@ class Odometry:
                 self._early.append(kept)
                 if self._chain.stamps[-1] - self._chain.stamps[0] >= self.params.refine_start_s * 1e9:
                     _refine_start(self._chain, self._early, self._map, self.gyro, self.params)
-                    self._early = None
+                    self._chain.refined, self._early = True, None
         self._pts, self._t = [P], [T]
 
     def _stale(self) -> bool:
@@ -287,7 +289,12 @@ class Odometry:
         return stamps[-1] - stamps[k] > self.params.map_horizon_s * 1e9
 
     def result(self) -> RigTrajectory:
-        """The knots so far (after registering every whole chunk); `OdometryError` below 200 ms of points."""
+        """The knots so far (after registering every whole chunk); `OdometryError` below 200 ms of points.
+
+        Between LiDAR gaps longer than the map's horizon, a stretch shorter
+        than `refine_start_s` (its start never solved again) is all gap knots
+        unless the rig stood still through it.
+        """
         if self._t and self._chain is not None:
             end = int(np.concatenate(self._t).max())
 
@@ -300,7 +307,14 @@ class Odometry:
             if not self._before:
                 raise OdometryError(f"odometry: less than {need:.0f} ms of LiDAR points ({had:.0f} ms)")
             self._chain, self._before = self._before[-1], self._before[:-1]  # too little after the last gap
-        return _joined([*self._before, self._chain]).trajectory(self.gyro)
+        chains = [*self._before, self._chain]
+        if len(chains) > 1:  # a lone chain is the recording, which `choose_method` judges by its span
+            for chain in chains:
+                # a stretch between long gaps too short to solve its start again keeps the guess, mm off
+                # over a few hundred ms for a rig that moves: its knots are gaps, not registered
+                if not chain.refined and not chain.trajectory(self.gyro).stood_still():
+                    chain.residual = [math.nan] * len(chain.residual)
+        return _joined(chains).trajectory(self.gyro)
 
 
 def _joined(chains: list[_Chain]) -> _Chain:

@@ -19,6 +19,10 @@ from ingest.dataset.layout import write_atomic
 from ingest.train.clouds import GyroTrack
 from ingest.train.odometry_kernels import blend_points, gyro_between, log_rotations
 
+STATIC_SPEED_MPS = 0.05
+STATIC_RATE_DEG_S = 2.0
+"""A rig slower than both throughout stood still (`RigTrajectory.stood_still`)."""
+
 POSE_NODES = 100  # poses of many points: exact at this many nodes per knot interval, linear in between
 POSE_GRID_MIN_RATIO = 4  # ... when there are at least this many points per node
 
@@ -135,6 +139,21 @@ class RigTrajectory:
             return np.broadcast_to(np.eye(3), (len(t), 3, 3))
         k, _ = self._segment(t)
         return gyro_between(self.gyro, self.stamps_ns[k], np.clip(t, self.stamps_ns[0], self.stamps_ns[-1]))
+
+    def peak_motion(self) -> tuple[float, float]:
+        """(fastest knot interval in m/s, fastest turn between knots in deg/s); zeros for one knot."""
+        if len(self.stamps_ns) < 2:
+            return 0.0, 0.0
+        dt_s = np.diff(self.stamps_ns) / 1e9
+        speed = np.linalg.norm(np.diff(self.p_world_cam0, axis=0), axis=1) / dt_s
+        turn = np.einsum("nji,njk->nik", self.R_world_cam0[:-1], self.R_world_cam0[1:])
+        angle = np.arccos(np.clip((np.trace(turn, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0))
+        return float(speed.max()), float((np.degrees(angle) / dt_s).max())
+
+    def stood_still(self) -> bool:
+        """Below `STATIC_SPEED_MPS` and `STATIC_RATE_DEG_S` between every two knots."""
+        speed, rate = self.peak_motion()
+        return speed < STATIC_SPEED_MPS and rate < STATIC_RATE_DEG_S
 
     def speed_mps(self, t_ns: int) -> float:
         """Speed of cam0 (m/s) over the knot interval holding `t_ns`."""

@@ -27,7 +27,7 @@ from ingest.train.bad_messages import BadMessages
 from ingest.train.clouds import GyroTrack, filter_points, integrate_gyro
 from ingest.train.odometry import Odometry, OdometryParams
 from ingest.train.repeats import FirstCopies
-from ingest.train.rig_trajectory import RigTrajectory
+from ingest.train.rig_trajectory import STATIC_RATE_DEG_S, STATIC_SPEED_MPS, RigTrajectory
 
 
 @dataclass(frozen=True)
@@ -125,11 +125,7 @@ def trajectory_pass(
 def summarize(traj: RigTrajectory, seconds: float, file: Path) -> TrajectorySummary:
     res = traj.residual_m[1:]
     ok = res[np.isfinite(res)]
-    dt_s = np.diff(traj.stamps_ns) / 1e9
-    speed = np.linalg.norm(np.diff(traj.p_world_cam0, axis=0), axis=1) / dt_s if len(dt_s) else np.zeros(1)
-    turn = np.einsum("nji,njk->nik", traj.R_world_cam0[:-1], traj.R_world_cam0[1:])
-    angle = np.arccos(np.clip((np.trace(turn, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0))
-    rate = np.degrees(angle) / dt_s if len(dt_s) else np.zeros(1)
+    speed, rate = traj.peak_motion()
     return TrajectorySummary(
         knots=len(traj.stamps_ns),
         span_s=float((traj.stamps_ns[-1] - traj.stamps_ns[0]) / 1e9),
@@ -138,8 +134,8 @@ def summarize(traj: RigTrajectory, seconds: float, file: Path) -> TrajectorySumm
         gaps=int((~np.isfinite(res)).sum()),
         seconds=seconds,
         file=file.as_posix(),
-        max_speed_mps=float(speed.max()),
-        max_rate_deg_s=float(rate.max()),
+        max_speed_mps=speed,
+        max_rate_deg_s=rate,
     )
 
 
@@ -166,8 +162,6 @@ def run_trajectory_pass(
     return traj, summarize(traj, time.perf_counter() - t0, out_file)
 
 
-STATIC_SPEED_MPS = 0.05
-STATIC_RATE_DEG_S = 2.0
 STATIC_WINDOW_NS = 1_000_000_000
 """--gt auto widens the default window to this for a rig that stood still: a Mid-360's pattern keeps
 filling the view, and nothing the rig does can smear it (bench_dense: 30 % -> 54 % density in the room)."""
