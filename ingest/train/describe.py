@@ -131,6 +131,14 @@ def write_dataset_yaml(
             f"{path}: {', '.join(names)} was ingested here before with {mine.get('samples')} planned "
             f"samples, now {run.planned}; choose a new --out or delete it"
         )
+    gt_now = {"method": run.method, "window_ms": cfg.lidar_window_ns / 1e6}
+    gt_then = {k: ((mine or {}).get("ground_truth") or {}).get(k, v) for k, v in gt_now.items()}
+    if gt_then != gt_now:  # a resumed recording would mix samples of two kinds of GT
+        raise DatasetError(
+            f"{path}: {', '.join(names)} was ingested here before with {gt_then['method']} GT over "
+            f"+-{gt_then['window_ms']:g} ms, now {run.method} GT over +-{gt_now['window_ms']:g} ms "
+            f"({run.decision}); choose a new --out or delete it"
+        )
     if mine is None:
         first = max((int(s["first_id"]) + int(s["samples"]) for s in sources), default=0)
         mine = {"bags": names, "first_id": first, "samples": run.planned}

@@ -19,6 +19,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import pytest
+import yaml
 
 from ingest.bags.livox_msg import decode_custom_msg, encode_custom_msg
 from ingest.bags.reader import open_bags
@@ -227,6 +228,17 @@ def test_a_lidar_gap_skips_the_dense_samples_it_touches(tmp_path: Path) -> None:
             assert replace(meta, id="", gt=replace(meta.gt, decision="")) == replace(
                 want, id="", gt=replace(want.gt, decision="")
             )
+
+    # a dataset whose auto run chose sparse GT for this recording (as an earlier version did for any gap)
+    # is not resumed with dense samples
+    doc_path = tmp_path / "auto" / "dataset.yaml"
+    doc = yaml.safe_load(doc_path.read_text())
+    doc["sources"][0]["ground_truth"].update(method="sparse", window_ms=50.0)
+    doc_path.write_text(yaml.safe_dump(doc, sort_keys=False))
+    with pytest.raises(
+        DatasetError, match=r"before with sparse GT over \+-50 ms, now dense GT over \+-1000 ms \(auto: "
+    ):
+        ingest([bag], IngestConfig(rig=rig, out=tmp_path / "auto", workers=1, every=1, gt="auto"))
 
 
 @pytest.mark.parametrize("gt", ["dense", "auto"])
