@@ -48,6 +48,7 @@ class Plan:
     duplicates: dict[str, int] = field(default_factory=dict)  # per topic: repeated messages, read once
     uncovered: int = 0  # stereo pairs with no LiDAR point within the window (never eligible)
     lost_samples: int = 0  # eligible, but their LiDAR/IMU window overlaps a corrupt chunk's messages
+    imu_last_ns: int | None = None  # the IMU's latest reading in the bags (None without an IMU)
 
 
 LOST_REASON = "LiDAR/IMU window overlaps a corrupt chunk (not planned)"
@@ -225,4 +226,5 @@ def plan(
         duplicates=sv.duplicates,
         lost_samples=lost,
         uncovered=uncovered,
+        imu_last_ns=int(sv.seen[topics.imu][:, 1].max()) if topics.imu else None,
     )

@@ -232,6 +232,9 @@ def stream_jobs(
     imu_t: list[int] = []
     imu_g: list[Any] = []
     copies = FirstCopies()  # sweeps and IMU readings: each once
+    # a sweep is logged at its end, often before the gyro readings past it: a sample also waits for those
+    imu_last = the_plan.imu_last_ns if topics.imu else None
+    imu_max = -(1 << 62)
     next_k = 0
     sids = [sample_id(first_id + k) for k in range(len(the_plan.upper_ns))]
     done = {sid for sid in sids if is_done(cfg.out, sid)}  # finished by an earlier run (one stat each)
@@ -243,7 +246,11 @@ def stream_jobs(
             t: sum(1 for s in v if s.span_ns[1] >= tc - w and s.span_ns[0] <= tc + w)
             for t, v in sweeps.items()
         }
-        return len(frames.get(k, {})) == 2 and all(have[t] >= n for t, n in need[k].items())
+        return (
+            len(frames.get(k, {})) == 2
+            and all(have[t] >= n for t, n in need[k].items())
+            and (imu_last is None or imu_max >= min(tc + w + IMU_MARGIN_NS, imu_last))
+        )
 
     def job(k: int) -> StreamedJob:
         tc = int(the_plan.upper_ns[k])
@@ -274,6 +281,8 @@ def stream_jobs(
                 frames[k][side] = msg
         else:
             _file_reading(msg.topic, bad.decoded(msg, where), imu_t, imu_g, sweeps, copies)
+            if msg.topic == topics.imu and imu_t:
+                imu_max = max(imu_max, imu_t[-1])
         while next_k < len(sids) and (sids[next_k] in done or ready(next_k)):
             if sids[next_k] in done:
                 frames.pop(next_k, None)

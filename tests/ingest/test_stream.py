@@ -10,7 +10,7 @@ import numpy as np
 from calibration.rig import read_rig
 from ingest.bags.reader import open_bags
 from ingest.train.pipeline import IngestConfig, _resolve_topics
-from ingest.train.plan import plan
+from ingest.train.plan import IMU_MARGIN_NS, plan
 from ingest.train.sample import Geometry
 from ingest.train.stream import Shared, StreamedJob, decode_images, give_messages, stream_jobs, take_messages
 from tests.ingest.test_pipeline import INDOOR, _rig
@@ -37,3 +37,28 @@ def test_jobs_carry_the_stored_bytes_and_the_worker_decodes_them(tmp_path: Path)
         assert give_messages(light, tuple(np.array(a) for a in arrays)) == job  # through a slot and back
         images, errors = decode_images(job, Shared(geometry))
         assert errors == [] and [i.shape for i in images] == [(300, 480, 3), (300, 480, 3)]
+
+
+def test_every_job_holds_the_gyro_readings_its_points_need(tmp_path: Path) -> None:
+    """A sample is handed out once its IMU readings reach IMU_MARGIN_NS past its window (or the IMU's
+    last reading): a sweep logged at its end can arrive before them, and the sparse path drops the
+    points the gyro does not cover. On the indoor fixture 7 of 21 jobs were handed out short of the
+    margin (their points still covered); an IMU logged later than the sweeps would lose points."""
+    cfg = IngestConfig(rig=_rig(INDOOR), out=tmp_path / "ds", workers=1, every=1)
+    cfg = replace(cfg, sample=replace(cfg.sample, window_ns=cfg.lidar_window_ns))
+    rig = read_rig(cfg.rig)
+    with open_bags([INDOOR]) as bags:
+        topics = _resolve_topics(rig, bags.topics(), str(INDOOR))
+        assert topics.imu is not None
+        imu_last = max(m.stamp(bags.label) for m in bags.messages(topics=[topics.imu]))
+        jobs = [
+            j for j in stream_jobs(bags, topics, plan(bags, topics, cfg), cfg) if isinstance(j, StreamedJob)
+        ]
+    assert len(jobs) == 21
+    for job in jobs:
+        assert job.imu is not None
+        want = min(job.upper_stamp_ns + cfg.lidar_window_ns + IMU_MARGIN_NS, imu_last)
+        last_point = max(int(lp.stamps_ns.max()) for lp in job.lidars if len(lp.stamps_ns))
+        got = int(job.imu.stamps_ns.max())
+        assert got >= min(want - 5_000_000, imu_last), job.sid  # the readings' period is 5 ms
+        assert got >= min(last_point, imu_last), job.sid  # every point the IMU's recording covers
