@@ -216,6 +216,15 @@ def _file_reading(
         sweeps[topic].append(decoded)
 
 
+def _forget_readings(imu_t: list[int], imu_g: list[Any], before_ns: int) -> None:
+    """Drop the IMU readings stamped before `before_ns` from both lists, in place: every sample's
+    window is built from them, so kept whole they made each job cost time in the recording's length."""
+    if imu_t and min(imu_t) < before_ns:
+        keep = [k for k, t in enumerate(imu_t) if t >= before_ns]
+        imu_t[:] = [imu_t[k] for k in keep]
+        imu_g[:] = [imu_g[k] for k in keep]
+
+
 def stream_jobs(
     bags: BagSet, topics: Topics, the_plan: Plan, cfg: IngestConfig, first_id: int = 0,
     bad: BadMessages | None = None,
@@ -290,10 +299,11 @@ def stream_jobs(
             else:
                 yield job(next_k)
             next_k += 1
-            if next_k < len(sids):  # forget sweeps no later sample can use
+            if next_k < len(sids):  # forget sweeps and IMU readings no later sample can use
                 horizon = int(the_plan.upper_ns[next_k]) - w
                 for t in sweeps:
                     sweeps[t] = [s for s in sweeps[t] if s.span_ns[1] >= horizon]
+                _forget_readings(imu_t, imu_g, horizon - IMU_MARGIN_NS)
     for k in range(next_k, len(sids)):  # the bag ended: whatever is complete still goes
         why = "done" if sids[k] in done else ("" if len(frames.get(k, {})) == 2 else "missing image")
         yield (sids[k], why) if why else job(k)

@@ -50,7 +50,8 @@ def test_every_job_holds_the_gyro_readings_its_points_need(tmp_path: Path) -> No
     with open_bags([INDOOR]) as bags:
         topics = _resolve_topics(rig, bags.topics(), str(INDOOR))
         assert topics.imu is not None
-        imu_last = max(m.stamp(bags.label) for m in bags.messages(topics=[topics.imu]))
+        imu_stamps = [m.stamp(bags.label) for m in bags.messages(topics=[topics.imu])]
+        imu_first, imu_last = min(imu_stamps), max(imu_stamps)
         jobs = [
             j for j in stream_jobs(bags, topics, plan(bags, topics, cfg), cfg) if isinstance(j, StreamedJob)
         ]
@@ -59,6 +60,8 @@ def test_every_job_holds_the_gyro_readings_its_points_need(tmp_path: Path) -> No
         assert job.imu is not None
         want = min(job.upper_stamp_ns + cfg.lidar_window_ns + IMU_MARGIN_NS, imu_last)
         last_point = max(int(lp.stamps_ns.max()) for lp in job.lidars if len(lp.stamps_ns))
+        first = job.upper_stamp_ns - cfg.lidar_window_ns - IMU_MARGIN_NS
+        assert int(job.imu.stamps_ns.min()) <= max(first + 5_000_000, imu_first), job.sid  # none forgotten
         got = int(job.imu.stamps_ns.max())
         assert got >= min(want - 5_000_000, imu_last), job.sid  # the readings' period is 5 ms
         assert got >= min(last_point, imu_last), job.sid  # every point the IMU's recording covers
