@@ -4,15 +4,24 @@ from __future__ import annotations
 
 from dataclasses import replace
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
 from calibration.rig import read_rig
 from ingest.bags.reader import open_bags
 from ingest.train.pipeline import IngestConfig, _resolve_topics
-from ingest.train.plan import IMU_MARGIN_NS, plan
+from ingest.train.plan import IMU_MARGIN_NS, Plan, plan
 from ingest.train.sample import Geometry
-from ingest.train.stream import Shared, StreamedJob, decode_images, give_messages, stream_jobs, take_messages
+from ingest.train.stream import (
+    Shared,
+    StreamedJob,
+    _sweeps_needed,
+    decode_images,
+    give_messages,
+    stream_jobs,
+    take_messages,
+)
 from tests.ingest.test_pipeline import INDOOR, _rig
 
 
@@ -65,3 +74,19 @@ def test_every_job_holds_the_gyro_readings_its_points_need(tmp_path: Path) -> No
         got = int(job.imu.stamps_ns.max())
         assert got >= min(want - 5_000_000, imu_last), job.sid  # the readings' period is 5 ms
         assert got >= min(last_point, imu_last), job.sid  # every point the IMU's recording covers
+
+
+def test_sweeps_needed_counts_the_sweeps_overlapping_each_window() -> None:
+    """Against its definition (a sweep [a, b] overlaps [t - w, t + w]) on random sweeps and times,
+    overlapping and touching ones included."""
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        a = rng.integers(0, 1_000, 30)
+        spans = [(int(x), int(x + d)) for x, d in zip(a, rng.integers(0, 150, 30), strict=True)]
+        upper = np.sort(rng.integers(-100, 1_200, 20))
+        w = int(rng.integers(0, 120))
+        the_plan = Plan(upper, upper, {"/l": spans}, len(upper), len(upper))
+        topics = SimpleNamespace(lidars={"/l": "lidar"})
+        got = _sweeps_needed(the_plan, topics, w)  # type: ignore[arg-type]
+        want = {k: {"/l": sum(1 for x, y in spans if y >= t - w and x <= t + w)} for k, t in enumerate(upper)}
+        assert got == want
