@@ -23,6 +23,7 @@ from calibration.types import F64
 from ingest.bags.decode import ImuSample, Sweep
 from ingest.bags.reader import BagSet
 from ingest.errors import OutputError
+from ingest.train import trajectory_cache
 from ingest.train.bad_messages import BadMessages
 from ingest.train.clouds import GyroTrack, filter_points, integrate_gyro
 from ingest.train.odometry import Odometry, OdometryParams
@@ -43,6 +44,7 @@ class TrajectorySummary:
     file: str
     max_speed_mps: float = 0.0  # fastest knot interval
     max_rate_deg_s: float = 0.0  # fastest turn between knots
+    reused: bool = False  # read from the pass an earlier run kept (`trajectory_cache`), not computed
 
     @property
     def static(self) -> bool:
@@ -122,7 +124,7 @@ def trajectory_pass(
     return odo.result()
 
 
-def summarize(traj: RigTrajectory, seconds: float, file: Path) -> TrajectorySummary:
+def summarize(traj: RigTrajectory, seconds: float, file: Path, reused: bool = False) -> TrajectorySummary:
     res = traj.residual_m[1:]
     ok = res[np.isfinite(res)]
     speed, rate = traj.peak_motion()
@@ -136,6 +138,7 @@ def summarize(traj: RigTrajectory, seconds: float, file: Path) -> TrajectorySumm
         file=file.as_posix(),
         max_speed_mps=speed,
         max_rate_deg_s=rate,
+        reused=reused,
     )
 
 
@@ -150,16 +153,28 @@ def run_trajectory_pass(
     bad: BadMessages | None = None,
     span_ns: tuple[int, int] | None = None,
 ) -> tuple[RigTrajectory, TrajectorySummary]:
-    """Gyro, odometry (points within `span_ns`) and `out_file` (TUM, T_world_cam0), with the summary."""
+    """Gyro, odometry (points within `span_ns`) and `out_file` (TUM, T_world_cam0), with the summary.
+
+    The pass is kept beside it (`out_file` with suffix .npz, `trajectory_cache`)
+    and read back instead of computed when a rerun would compute the same.
+    """
     t0 = time.perf_counter()
-    gyro = read_gyro(bags, *imu, bad=bad)
-    traj = trajectory_pass(bags, lidar_topics, rig, gyro, min_range_m, params, bad=bad, span_ns=span_ns)
+    params = params or OdometryParams()
+    kept = out_file.with_suffix(".npz")
+    key = trajectory_cache.cache_key(bags, lidar_topics, imu, rig, min_range_m, params, span_ns)
+    traj = trajectory_cache.load(kept, key)
+    reused = traj is not None
+    if traj is None:
+        gyro = read_gyro(bags, *imu, bad=bad)
+        traj = trajectory_pass(bags, lidar_topics, rig, gyro, min_range_m, params, bad=bad, span_ns=span_ns)
     try:
         out_file.parent.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         raise OutputError(f"cannot create {out_file.parent}: {err.strerror or err}") from err
     traj.write_tum(out_file)
-    return traj, summarize(traj, time.perf_counter() - t0, out_file)
+    if not reused:
+        trajectory_cache.save(kept, key, traj)
+    return traj, summarize(traj, time.perf_counter() - t0, out_file, reused)
 
 
 STATIC_WINDOW_NS = 1_000_000_000

@@ -137,9 +137,8 @@ def summary_table(summary: IngestSummary, out: Path) -> Table:
     if summary.trajectory is not None:
         t = summary.trajectory
         residual = f"{t.residual_median_mm:.2f} / {t.residual_p95_mm:.2f} mm"
-        rows.append(
-            ("trajectory (knots, residual median / p95, time)", f"{t.knots}, {residual}, {t.seconds:.1f} s")
-        )
+        took = f"{t.seconds:.1f} s" + (", the earlier run's pass reused" if t.reused else "")
+        rows.append(("trajectory (knots, residual median / p95, time)", f"{t.knots}, {residual}, {took}"))
         if t.gaps:
             rows.append(("trajectory gaps: knots carried by prediction (too few LiDAR points)", str(t.gaps)))
         rows.append(("trajectory file (TUM, T_world_cam0)", t.file))

@@ -12,12 +12,14 @@
 from __future__ import annotations
 
 import filecmp
+import json
 import re
 import shutil
 import struct
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
@@ -27,6 +29,8 @@ from ingest.dataset.layout import GT_DIRS
 from ingest.dataset.meta import read_meta
 from ingest.errors import BagError, DatasetError
 from ingest.inspect import inspect_bags
+from ingest.train import trajectory as trajectory_module
+from ingest.train import trajectory_cache
 from ingest.train.pipeline import IngestConfig, ingest
 from ingest.train.sample import GAP_FALLBACK, GAP_REASON
 from sensorbox.sim.truth import truth_dir
@@ -158,7 +162,7 @@ def test_a_rerun_with_other_settings_is_refused_before_any_pass(tmp_path: Path) 
     --every is refused without running the trajectory pass again (its file stays as it was)."""
     out = tmp_path / "ds"
     ingest([INDOOR], replace(_config(out), gt="dense"))
-    (tum,) = (out / "trajectories").iterdir()
+    (tum,) = (out / "trajectories").glob("*.tum")
     before = tum.stat()
     with pytest.raises(
         DatasetError, match=r"an existing dataset was made with a different 'params' \(every: 5 -> 7\)"
@@ -166,6 +170,45 @@ def test_a_rerun_with_other_settings_is_refused_before_any_pass(tmp_path: Path) 
         ingest([INDOOR], replace(_config(out), gt="dense", every=7))
     after = tum.stat()
     assert (after.st_ino, after.st_mtime_ns) == (before.st_ino, before.st_mtime_ns)
+
+
+def test_a_resumed_dense_run_reuses_the_trajectory_pass(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A rerun after a killed run reads the pass the first run kept (`trajectories/<bag>.npz`) instead
+    of repeating the odometry, and writes the same bytes; a kept file that cannot be read is computed
+    again."""
+    out = tmp_path / "ds"
+    first = ingest([INDOOR], replace(_config(out), gt="dense"))
+    assert first.trajectory is not None and not first.trajectory.reused and first.written >= 3
+    (kept,) = (out / "trajectories").glob("*.npz")
+    sid = "000001"
+    files = [out / folder / f"{sid}.png" for folder in GT_DIRS]
+    before = [f.read_bytes() for f in files]
+
+    def killed_before_the_sample() -> None:  # what a run stopped before it finished the sample leaves
+        for f in [*files, out / "meta" / f"{sid}.json"]:
+            f.unlink()
+
+    def no_odometry(*args: object, **kwargs: object) -> None:
+        raise AssertionError("the odometry ran again")
+
+    killed_before_the_sample()
+    with monkeypatch.context() as patch:
+        patch.setattr(trajectory_module, "trajectory_pass", no_odometry)
+        again = ingest([INDOOR], replace(_config(out), gt="dense"))
+    assert again.trajectory is not None and again.trajectory.reused
+    assert (again.written, again.resumed) == (1, first.written - 1)
+    assert [f.read_bytes() for f in files] == before
+    with np.load(kept) as z:
+        key = str(z["key"])
+    assert json.loads(key)["code"] == trajectory_cache.code_digest()  # a new version computes it again
+    assert trajectory_cache.load(kept, key) is not None and trajectory_cache.load(kept, key + " ") is None
+    kept.write_bytes(kept.read_bytes()[:200])  # damaged
+    killed_before_the_sample()
+    third = ingest([INDOOR], replace(_config(out), gt="dense"))
+    assert third.trajectory is not None and not third.trajectory.reused and third.written == 1
+    assert [f.read_bytes() for f in files] == before
 
 
 def test_a_lidar_gap_skips_the_dense_samples_it_touches(tmp_path: Path) -> None:

@@ -9,6 +9,7 @@ resolution that fits CI (bench/bench_dense.py measures full resolution).
 import math
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -227,6 +228,19 @@ def test_free_space_tests_only_the_voxels_asked_about():
     assert keep[:-2].all() and keep[-2:].tolist() == [True, False]
 
 
+def _trajectory_without_lidar(
+    walk: dict[str, Any], lo_ns: int, hi_ns: int, prm: OdometryParams | None = None
+) -> RigTrajectory:
+    """The walk's trajectory pass with both LiDARs' messages logged in [start + lo_ns, start + hi_ns) lost."""
+    truth = walk["truth"]
+    rig = read_rig(truth.path / "rig.yaml")
+    with open_bags([walk["bag"]]) as bags:
+        topics = _resolve_topics(rig, bags.topics(), str(walk["bag"]))
+        gyro = read_gyro(bags, topics.imu, topics.R_cam0_imu)
+        lost = _WithoutLidar(bags, topics.lidars, truth.start_ns + lo_ns, truth.start_ns + hi_ns)
+        return trajectory_pass(lost, topics.lidars, rig, gyro, 0.3, prm)  # type: ignore[arg-type]
+
+
 class _WithoutLidar:
     """A bag set whose LiDAR messages logged in [lo_ns, hi_ns) are gone (a dropped sweep per LiDAR)."""
 
@@ -245,14 +259,7 @@ def test_a_lost_sweep_leaves_a_gap_in_the_trajectory_not_a_wild_knot(walk):
     (residual NaN: a gap that `auto` and dense GT see) instead of being solved on a sliver of points,
     which placed it 0.88 m off with a normal residual; every registered knot stays within 1 cm."""
     truth = walk["truth"]
-    rig = read_rig(truth.path / "rig.yaml")
-    with open_bags([walk["bag"]]) as bags:
-        topics = _resolve_topics(rig, bags.topics(), str(walk["bag"]))
-        gyro = read_gyro(bags, topics.imu, topics.R_cam0_imu)
-        lost = _WithoutLidar(
-            bags, topics.lidars, truth.start_ns + 1_050_000_000, truth.start_ns + 1_150_000_000
-        )
-        traj = trajectory_pass(lost, topics.lidars, rig, gyro, 0.3)  # type: ignore[arg-type]
+    traj = _trajectory_without_lidar(walk, 1_050_000_000, 1_150_000_000)
     T_true = truth.T_world_cam0(traj.stamps_ns)
     T_true = np.linalg.inv(T_true[0]) @ T_true
     err_m = np.linalg.norm(T_true[:, :3, 3] - traj.p_world_cam0, axis=1)
@@ -276,14 +283,7 @@ def test_the_jump_gate_alone_keeps_the_wild_knot_out(walk, rule, prm):
     """The lost sweep of the test above with the support rule off: the knot solved on the sliver lands
     more than `max_jump_m` from its prediction and is carried instead; without the gate it stays."""
     truth = walk["truth"]
-    rig = read_rig(truth.path / "rig.yaml")
-    with open_bags([walk["bag"]]) as bags:
-        topics = _resolve_topics(rig, bags.topics(), str(walk["bag"]))
-        gyro = read_gyro(bags, topics.imu, topics.R_cam0_imu)
-        lost = _WithoutLidar(
-            bags, topics.lidars, truth.start_ns + 1_050_000_000, truth.start_ns + 1_150_000_000
-        )
-        traj = trajectory_pass(lost, topics.lidars, rig, gyro, 0.3, prm)  # type: ignore[arg-type]
+    traj = _trajectory_without_lidar(walk, 1_050_000_000, 1_150_000_000, prm)
     T_true = truth.T_world_cam0(traj.stamps_ns)
     T_true = np.linalg.inv(T_true[0]) @ T_true
     err_m = np.linalg.norm(T_true[:, :3, 3] - traj.p_world_cam0, axis=1)
@@ -300,15 +300,9 @@ def test_a_stretch_too_short_to_solve_its_start_again_is_not_registered(walk):
     stretch, against 1.6 mm elsewhere): its knots are gaps, so dense GT does not build on them. Scaled to
     CI: a 0.2 s horizon, the start solved again after 0.5 s, and 0.4 s of LiDAR after a 1 s gap."""
     truth = walk["truth"]
-    rig = read_rig(truth.path / "rig.yaml")
-    prm = OdometryParams(map_horizon_s=0.2, refine_start_s=0.5)
-    with open_bags([walk["bag"]]) as bags:
-        topics = _resolve_topics(rig, bags.topics(), str(walk["bag"]))
-        gyro = read_gyro(bags, topics.imu, topics.R_cam0_imu)
-        lost = _WithoutLidar(
-            bags, topics.lidars, truth.start_ns + 800_000_000, truth.start_ns + 1_800_000_000
-        )
-        traj = trajectory_pass(lost, topics.lidars, rig, gyro, 0.3, prm)  # type: ignore[arg-type]
+    traj = _trajectory_without_lidar(
+        walk, 800_000_000, 1_800_000_000, OdometryParams(map_horizon_s=0.2, refine_start_s=0.5)
+    )
     assert traj.stamps_ns[-1] > truth.start_ns + 2_000_000_000  # the stretch after the gap has knots
     assert traj.measured_span(truth.start_ns + 400_000_000) is not None  # the first, refined, stays
     late = traj.stamps_ns > truth.start_ns + 1_800_000_000
@@ -320,15 +314,9 @@ def test_a_start_followed_by_a_long_gap_is_left_unrefined_not_a_crash(walk):
     `refine_start_s`, but no later point exists to solve it against (an empty map raised IndexError).
     The gap is carried by prediction and the odometry goes on after it."""
     truth = walk["truth"]
-    rig = read_rig(truth.path / "rig.yaml")
-    prm = OdometryParams(map_horizon_s=0.5, refine_start_s=0.5)
-    with open_bags([walk["bag"]]) as bags:
-        topics = _resolve_topics(rig, bags.topics(), str(walk["bag"]))
-        gyro = read_gyro(bags, topics.imu, topics.R_cam0_imu)
-        lost = _WithoutLidar(
-            bags, topics.lidars, truth.start_ns + 200_000_000, truth.start_ns + 1_200_000_000
-        )
-        traj = trajectory_pass(lost, topics.lidars, rig, gyro, 0.3, prm)  # type: ignore[arg-type]
+    traj = _trajectory_without_lidar(
+        walk, 200_000_000, 1_200_000_000, OdometryParams(map_horizon_s=0.5, refine_start_s=0.5)
+    )
     assert traj.measured_span(truth.start_ns + 700_000_000) is None
     after = traj.measured_span(truth.start_ns + 1_800_000_000)
     assert after is not None and after[0] > truth.start_ns + 1_000_000_000
@@ -359,15 +347,9 @@ def test_after_a_gap_longer_than_the_map_horizon_the_odometry_starts_again(walk)
     gap on a 10 s walk); the odometry starts afresh instead. Scaled to CI: a 0.7 s gap against a 0.2 s
     horizon, where registering against the old map put 9 mm into the motion over 0.25 s (1.6 mm now)."""
     truth = walk["truth"]
-    rig = read_rig(truth.path / "rig.yaml")
-    prm = OdometryParams(map_horizon_s=0.2, refine_start_s=0.5)
-    with open_bags([walk["bag"]]) as bags:
-        topics = _resolve_topics(rig, bags.topics(), str(walk["bag"]))
-        gyro = read_gyro(bags, topics.imu, topics.R_cam0_imu)
-        lost = _WithoutLidar(
-            bags, topics.lidars, truth.start_ns + 800_000_000, truth.start_ns + 1_500_000_000
-        )
-        traj = trajectory_pass(lost, topics.lidars, rig, gyro, 0.3, prm)  # type: ignore[arg-type]
+    traj = _trajectory_without_lidar(
+        walk, 800_000_000, 1_500_000_000, OdometryParams(map_horizon_s=0.2, refine_start_s=0.5)
+    )
     assert traj.measured_span(truth.start_ns + 1_100_000_000) is None
     before = traj.measured_span(truth.start_ns + 400_000_000)
     after = traj.measured_span(truth.start_ns + 1_900_000_000)
