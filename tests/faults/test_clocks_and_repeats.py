@@ -66,7 +66,13 @@ def test_the_same_messages_twice_are_read_once_and_counted(tmp_path: Path, gt: s
         files = sorted((tmp_path / "once" / folder).iterdir())
         assert files
         for f in files:
-            assert filecmp.cmp(f, tmp_path / "twice" / folder / f.name, shallow=False), f
+            other = tmp_path / "twice" / folder / f.name
+            if f.suffix == ".npz":  # the kept trajectory pass: the same arrays, under a key naming two bags
+                with np.load(f) as a, np.load(other) as b:
+                    assert a.files == b.files and str(a["key"]) != str(b["key"])
+                    assert all(np.array_equal(a[k], b[k]) for k in a.files if k != "key"), f
+                continue
+            assert filecmp.cmp(f, other, shallow=False), f
 
 
 def test_the_same_messages_three_times_are_not_a_stopped_clock(tmp_path: Path) -> None:
