@@ -151,6 +151,7 @@ class IngestSummary:
     pairs: int = 0
     planned: int = 0
     density: list[float] = field(default_factory=list)
+    density_by_method: dict[str, list[float]] = field(default_factory=dict)  # under --gt auto both occur
     skew_ms: list[float] = field(default_factory=list)
     stereo_dt_ms: list[float] = field(default_factory=list)  # lower minus upper header stamp, per sample
     motion_applied: int = 0
@@ -178,6 +179,7 @@ class IngestSummary:
         meta = result.meta
         assert meta is not None  # written samples carry their metadata
         self.density.append(meta.gt.density)
+        self.density_by_method.setdefault(meta.gt.method, []).append(meta.gt.density)
         self.skew_ms.extend(meta.lidar_skew_ms.values())
         self.stereo_dt_ms.append(meta.stereo_dt_ms)
         for name in meta.points.silent_lidars:

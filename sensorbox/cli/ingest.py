@@ -145,6 +145,14 @@ def summary_table(summary: IngestSummary, out: Path) -> Table:
     if summary.density:
         rows += [
             ("GT density (fisheye, median)", f"{np.median(summary.density) * 100:.2f} %"),
+            *(
+                (
+                    f"GT density of the {method} GT samples (median, samples)",
+                    f"{np.median(d) * 100:.2f} %, {len(d)}",
+                )
+                for method, d in summary.density_by_method.items()
+                if len(summary.density_by_method) > 1
+            ),
             (
                 "LiDAR skew |t_point - t_frame| max (median of samples)",
                 f"{np.median(summary.skew_ms):.1f} ms",

@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from rich.console import Console
 
 from ingest.bags.livox_msg import decode_custom_msg, encode_custom_msg
 from ingest.bags.reader import open_bags
@@ -33,6 +34,7 @@ from ingest.train import trajectory as trajectory_module
 from ingest.train import trajectory_cache
 from ingest.train.pipeline import IngestConfig, ingest
 from ingest.train.sample import GAP_FALLBACK, GAP_REASON
+from sensorbox.cli.ingest import summary_table
 from sensorbox.sim.truth import truth_dir
 from tests.faults.bags import INDOOR, LIDAR_BOTTOM, LIDAR_TOP, LOWER, rewrite
 
@@ -264,6 +266,16 @@ def test_a_lidar_gap_skips_the_dense_samples_it_touches(tmp_path: Path) -> None:
     runs = {name: by_stamp(name) for name in ("auto", "dense", "sparse")}
     in_gap = runs["auto"].keys() - runs["dense"].keys()
     assert auto.flagged["sparse GT (frame in a trajectory gap)"] == len(in_gap) > 0
+    assert {m: len(d) for m, d in auto.density_by_method.items()} == {
+        "dense": auto.written - len(in_gap), "sparse": len(in_gap)
+    }  # fmt: skip
+    console = Console(width=200, record=True)
+    console.print(summary_table(auto, tmp_path / "auto"))
+    text = console.export_text()
+    for method, n in (("dense", auto.written - len(in_gap)), ("sparse", len(in_gap))):
+        assert re.search(
+            rf"GT density of the {method} GT samples \(median, samples\) +│ +[0-9.]+ %, {n} ", text
+        )
     assert len(runs["sparse"]) == auto.written + ends  # sparse GT at the ends too
     for stamp, sid in runs["auto"].items():
         like = "dense" if stamp in runs["dense"] else "sparse"
