@@ -302,9 +302,9 @@ class Odometry:
         elif self._t:
             self.advance(int(np.concatenate(self._t).max()))
         if self._chain is None:
-            t = np.concatenate(self._t) if self._t else np.zeros(1, np.int64)
-            need, had = 2 * self.span_ns / 1e6, (int(t.max()) - int(t.min())) / 1e6
             if not self._before:
+                t = np.concatenate(self._t) if self._t else np.zeros(1, np.int64)
+                need, had = 2 * self.span_ns / 1e6, (int(t.max()) - int(t.min())) / 1e6
                 raise OdometryError(f"odometry: less than {need:.0f} ms of LiDAR points ({had:.0f} ms)")
             self._chain, self._before = self._before[-1], self._before[:-1]  # too little after the last gap
         chains = [*self._before, self._chain]

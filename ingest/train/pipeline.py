@@ -150,7 +150,6 @@ class IngestSummary:
     frames: int = 0
     pairs: int = 0
     planned: int = 0
-    density: list[float] = field(default_factory=list)
     density_by_method: dict[str, list[float]] = field(default_factory=dict)  # under --gt auto both occur
     skew_ms: list[float] = field(default_factory=list)
     stereo_dt_ms: list[float] = field(default_factory=list)  # lower minus upper header stamp, per sample
@@ -171,6 +170,11 @@ class IngestSummary:
     warnings: list[str] = field(default_factory=list)  # about the inputs, one line each (the rig's layout)
     stale_temporaries: int = 0  # left in the output by a killed run, removed (`ingest.dataset.lock`)
 
+    @property
+    def density(self) -> list[float]:
+        """GT density (fisheye) of every written sample, grouped by GT method."""
+        return [d for by_method in self.density_by_method.values() for d in by_method]
+
     def add(self, result: SampleResult) -> None:
         if not result.written:
             self.skipped[result.reason] = self.skipped.get(result.reason, 0) + 1
@@ -178,7 +182,6 @@ class IngestSummary:
         self.written += 1
         meta = result.meta
         assert meta is not None  # written samples carry their metadata
-        self.density.append(meta.gt.density)
         self.density_by_method.setdefault(meta.gt.method, []).append(meta.gt.density)
         self.skew_ms.extend(meta.lidar_skew_ms.values())
         self.stereo_dt_ms.append(meta.stereo_dt_ms)

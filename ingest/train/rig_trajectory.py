@@ -21,7 +21,13 @@ from ingest.train.odometry_kernels import blend_points, gyro_between, log_rotati
 
 STATIC_SPEED_MPS = 0.05
 STATIC_RATE_DEG_S = 2.0
-"""A rig slower than both throughout stood still (`RigTrajectory.stood_still`)."""
+
+
+def still(max_speed_mps: float, max_rate_deg_s: float) -> bool:
+    """A rig whose fastest knot interval and turn stay below `STATIC_SPEED_MPS` and `STATIC_RATE_DEG_S`
+    stood still."""
+    return max_speed_mps < STATIC_SPEED_MPS and max_rate_deg_s < STATIC_RATE_DEG_S
+
 
 POSE_NODES = 100  # poses of many points: exact at this many nodes per knot interval, linear in between
 POSE_GRID_MIN_RATIO = 4  # ... when there are at least this many points per node
@@ -151,9 +157,8 @@ class RigTrajectory:
         return float(speed.max()), float((np.degrees(angle) / dt_s).max())
 
     def stood_still(self) -> bool:
-        """Below `STATIC_SPEED_MPS` and `STATIC_RATE_DEG_S` between every two knots."""
-        speed, rate = self.peak_motion()
-        return speed < STATIC_SPEED_MPS and rate < STATIC_RATE_DEG_S
+        """`still` between every two knots."""
+        return still(*self.peak_motion())
 
     def speed_mps(self, t_ns: int) -> float:
         """Speed of cam0 (m/s) over the knot interval holding `t_ns`."""

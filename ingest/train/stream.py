@@ -188,9 +188,8 @@ def _imu_window(imu_t: list[int], imu_g: list[Any], tc: int, w: int, R_cam0_imu:
     """The gyro readings within the sample's window (+ IMU_MARGIN_NS each side), or None without an IMU."""
     if not imu_t or R_cam0_imu is None:
         return None
-    t = np.array(imu_t, np.int64)
-    sel = (t >= tc - w - IMU_MARGIN_NS) & (t <= tc + w + IMU_MARGIN_NS)
-    return ImuWindow(t[sel], np.array(imu_g)[sel], R_cam0_imu)
+    readings = ImuWindow(np.array(imu_t, np.int64), np.array(imu_g), R_cam0_imu)
+    return readings.within(tc - w - IMU_MARGIN_NS, tc + w + IMU_MARGIN_NS)
 
 
 def _thin_lidars(

@@ -28,7 +28,7 @@ from ingest.train.bad_messages import BadMessages
 from ingest.train.clouds import GyroTrack, filter_points, integrate_gyro
 from ingest.train.odometry import Odometry, OdometryParams
 from ingest.train.repeats import FirstCopies
-from ingest.train.rig_trajectory import STATIC_RATE_DEG_S, STATIC_SPEED_MPS, RigTrajectory
+from ingest.train.rig_trajectory import RigTrajectory, still
 
 
 @dataclass(frozen=True)
@@ -49,7 +49,7 @@ class TrajectorySummary:
     @property
     def static(self) -> bool:
         """The rig stood still (below 5 cm/s and 2 deg/s throughout)."""
-        return self.max_speed_mps < STATIC_SPEED_MPS and self.max_rate_deg_s < STATIC_RATE_DEG_S
+        return still(self.max_speed_mps, self.max_rate_deg_s)
 
     def as_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
