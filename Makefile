@@ -11,8 +11,11 @@ setup: $(STAMP)
 
 $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	$(BIN)/python -m pip install --quiet --no-cache-dir --upgrade pip
+	@# no byte-compiling at install (about 250 MB of .pyc for modules never imported) and no wheel cache
+	$(BIN)/python -m pip install --quiet --no-cache-dir --no-compile -e '.[dev]' || { \
+	  echo "error: pip install failed; $(VENV) needs about 2 GB, and $$(df -Pm . | awk 'NR==2 {print $$4}') MB are free here" >&2; \
+	  exit 1; }
 	@bash tools/ensure_libusb.sh $(BIN)/python
 	@touch $(STAMP)
 
