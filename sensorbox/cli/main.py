@@ -49,10 +49,21 @@ for name, command in (
 
 
 class _WarningLines(logging.Handler):
-    """Library warnings (logging, WARNING and up) as the CLI's own "warning: LINE" lines."""
+    """Library log records, WARNING and up, as the CLI's own lines: "warning: LINE" or "error: LINE".
+
+    A record that carries an exception gets its type and message appended
+    (one line, no traceback).
+    """
 
     def emit(self, record: logging.LogRecord) -> None:
-        print_warning(record.getMessage())
+        line = record.getMessage()
+        if record.exc_info and record.exc_info[1] is not None:
+            exc = record.exc_info[1]
+            line = f"{line}: {type(exc).__name__}: {exc}"
+        if record.levelno >= logging.ERROR:
+            _error(line)
+        else:
+            print_warning(line)
 
 
 @app.callback()

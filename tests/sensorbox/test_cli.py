@@ -116,3 +116,29 @@ def test_ingest_backend_is_checked_before_any_bag_is_read(tmp_path):
         assert res.returncode == 2 and "--backend 'cuda': torch" in res.stderr
         assert "sees no CUDA GPU" in res.stderr and "Traceback" not in res.stderr
     assert not out.exists()
+
+
+def test_library_log_records_become_warning_and_error_lines(capsys):
+    import logging
+
+    from sensorbox.cli.main import _WarningLines
+
+    log = logging.getLogger("sensorbox.test.lines")
+    log.propagate = False
+    log.addHandler(_WarningLines(logging.WARNING))
+    try:
+        log.info("not shown")
+        log.warning("disk at %d %%", 91)
+        log.error("recorder stopped")
+        try:
+            raise OSError(28, "No space left on device")
+        except OSError:
+            log.exception("recorder writer failed")
+    finally:
+        log.handlers.clear()
+    lines = capsys.readouterr().err.splitlines()
+    assert lines == [
+        "warning: disk at 91 %",
+        "error: recorder stopped",
+        "error: recorder writer failed: OSError: [Errno 28] No space left on device",
+    ]
