@@ -13,7 +13,8 @@ $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --no-cache-dir --upgrade pip
 	@# no byte-compiling at install (about 250 MB of .pyc for modules never imported) and no wheel cache
-	$(BIN)/python -m pip install --quiet --no-cache-dir --no-compile -e '.[dev]' || { \
+	@echo "$(BIN)/python -m pip install --quiet --no-cache-dir --no-compile -e '.[dev]'"
+	@$(BIN)/python -m pip install --quiet --no-cache-dir --no-compile -e '.[dev]' || { \
 	  echo "error: pip install failed; $(VENV) needs about 2 GB, and $$(df -Pm . | awk 'NR==2 {print $$4}') MB are free here" >&2; \
 	  exit 1; }
 	@bash tools/ensure_libusb.sh $(BIN)/python
