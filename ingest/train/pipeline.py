@@ -158,6 +158,7 @@ class IngestSummary:
     stage_ms: dict[str, list[float]] = field(default_factory=dict)  # sequential: they add up per sample
     overlapped_ms: dict[str, list[float]] = field(default_factory=dict)  # helper threads beside them
     seconds: float = 0.0
+    dense_warm_up_s: float | None = None  # dense GT's kernels and pixel rays, before the samples
     out: Path | None = None
     method: str = "sparse"
     decision: str = ""
@@ -398,6 +399,10 @@ def _run(
         first_id = write_dataset_yaml(asked, cfg, geometry, [Path(p) for p in bag_paths], summary)
         if not cfg.dask and summary.planned:
             geometry.warm_maps()
+            if cfg.sample.method == "dense":
+                t0 = time.perf_counter()
+                geometry.warm_dense(cfg.sample.dense)
+                summary.dense_warm_up_s = time.perf_counter() - t0
         if executor.every_core_busy:
             # every core runs a worker: a helper thread per worker would only add thread switches
             cfg = replace(cfg, sample=replace(cfg.sample, overlap_images=False))

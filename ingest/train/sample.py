@@ -31,7 +31,7 @@ from ingest.train.clouds import (
     filter_points,
     integrate_gyro,
 )
-from ingest.train.dense import DenseParams, dense_ground_truth, free_space_filter, may_matter
+from ingest.train.dense import DenseParams, dense_ground_truth, free_space_filter, may_matter, warm_up
 from ingest.train.groundtruth import (
     GtParams,
     equirect_disparity,
@@ -81,6 +81,10 @@ class Geometry:
         jobs = [(self.rig.upper.model, self.rect.R_cam0_rect), (self.rig.lower.model, self.rect.R_cam1_rect)]
         with ThreadPoolExecutor(2) as pool:  # numpy releases the GIL in the array work
             list(pool.map(lambda job: build_maps(job[0], self.equirect, job[1]), jobs))
+
+    def warm_dense(self, params: DenseParams) -> None:
+        """Dense GT's per-camera caches and compiled kernels, built now (`ingest.train.dense.warm_up`)."""
+        warm_up(self.rig.upper.model, self.equirect, self.rect.R_cam0_rect, self.rect.baseline_m, params)
 
 
 @dataclass(frozen=True)

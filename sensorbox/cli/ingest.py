@@ -142,6 +142,8 @@ def summary_table(summary: IngestSummary, out: Path) -> Table:
         if t.gaps:
             rows.append(("trajectory gaps: knots carried by prediction (too few LiDAR points)", str(t.gaps)))
         rows.append(("trajectory file (TUM, T_world_cam0)", t.file))
+    if summary.dense_warm_up_s is not None:  # the first run of a checkout compiles the kernels here
+        rows.append(("dense GT start-up: kernels and pixel rays, once", f"{summary.dense_warm_up_s:.1f} s"))
     if summary.density:
         rows += [
             ("GT density (fisheye, median)", f"{np.median(summary.density) * 100:.2f} %"),

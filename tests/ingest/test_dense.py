@@ -355,3 +355,53 @@ def test_after_a_gap_longer_than_the_map_horizon_the_odometry_starts_again(walk)
     after = traj.measured_span(truth.start_ns + 1_900_000_000)
     assert before is not None and after is not None and before[1] < after[0]
     assert _worst_relative_error_m(traj, truth, 5) <= 0.005
+
+
+_WARM_UP_CHECK = """
+import sys
+from pathlib import Path
+
+from importlib import import_module
+
+from numba.core.registry import CPUDispatcher
+
+from calibration.rig import read_rig
+from ingest.train.pipeline import IngestConfig, ingest
+from ingest.train.sample import Geometry, SampleParams
+
+MODULES = [import_module(name) for name in ("calibration.kernels", "ingest.raster.kernels",
+           "ingest.raster.pixel_kernels", "ingest.raster.point_kernels", "ingest.train.free_space")]
+
+
+def signatures():
+    return {f"{m.__name__}.{name}": {str(s) for s in obj.signatures}
+            for m in MODULES for name, obj in vars(m).items() if isinstance(obj, CPUDispatcher)}
+
+
+bag, rig, out = (Path(a) for a in sys.argv[1:4])
+geometry = Geometry.from_rig(read_rig(rig))
+geometry.warm_maps()
+geometry.warm_dense(SampleParams().dense)
+warmed = signatures()
+summary = ingest([bag], IngestConfig(rig=rig, out=out, workers=1, every=8, gt="dense"))
+assert summary.written >= 3, summary
+new = {k: sorted(v - warmed.get(k, set())) for k, v in signatures().items() if v - warmed.get(k, set())}
+print(f"kernels: {sum(map(len, warmed.values()))} signatures warmed, {summary.written} samples; new: {new}")
+sys.exit(1 if new else 0)
+"""
+
+
+def test_the_warm_up_builds_every_kernel_a_dense_sample_runs(walk, tmp_path):
+    """Workers fork after `Geometry.warm_dense`: a kernel signature it misses is compiled in every worker.
+
+    A fresh interpreter warms up, then ingests the walk in-process; the
+    samples must add no compiled signature (from numba's cache or new).
+    """
+    import subprocess
+    import sys
+
+    args = [str(walk["bag"]), str(walk["truth"].path / "rig.yaml"), str(tmp_path / "out")]
+    res = subprocess.run([sys.executable, "-c", _WARM_UP_CHECK, *args], capture_output=True, text=True,
+                         cwd=Path(__file__).resolve().parents[2], check=False, timeout=600)  # fmt: skip
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
+    assert "new: {}" in res.stdout
