@@ -383,7 +383,7 @@ geometry = Geometry.from_rig(read_rig(rig))
 geometry.warm_maps()
 geometry.warm_dense(SampleParams().dense)
 warmed = signatures()
-summary = ingest([bag], IngestConfig(rig=rig, out=out, workers=1, every=8, gt="dense"))
+summary = ingest([bag], IngestConfig(rig=rig, out=out, workers=1, every=20, gt="dense"))
 assert summary.written >= 3, summary
 new = {k: sorted(v - warmed.get(k, set())) for k, v in signatures().items() if v - warmed.get(k, set())}
 print(f"kernels: {sum(map(len, warmed.values()))} signatures warmed, {summary.written} samples; new: {new}")
