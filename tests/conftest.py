@@ -11,5 +11,15 @@ from calibration.warp import MAP_CACHE_ENV
 
 @pytest.fixture(autouse=True, scope="session")
 def _map_cache_in_a_temporary_folder(tmp_path_factory: pytest.TempPathFactory) -> None:
-    """Remap maps cached on disk go to the session's temporary folder, never the user's ~/.cache."""
-    os.environ[MAP_CACHE_ENV] = str(tmp_path_factory.mktemp("map_cache"))
+    """Remap maps cached on disk go to the run's temporary folder, never the user's ~/.cache.
+
+    Under xdist the workers share one folder (the run's, above each worker's
+    own): a full-resolution pair of maps is about 190 MB, and the cache
+    writes atomically (a temporary file, then a rename).
+    """
+    root = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        root = root.parent
+    folder = root / "map_cache"
+    folder.mkdir(exist_ok=True)
+    os.environ[MAP_CACHE_ENV] = str(folder)
