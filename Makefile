@@ -4,6 +4,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 DEMO_OUT ?= out/demo
+PIP_INSTALL := $(BIN)/python -m pip install --quiet --no-cache-dir --no-compile -e '.[dev]'
 
 .PHONY: setup demo test bench lint clean fixtures
 
@@ -13,8 +14,8 @@ $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --no-cache-dir --upgrade pip
 	@# no byte-compiling at install (about 250 MB of .pyc for modules never imported) and no wheel cache
-	@echo "$(BIN)/python -m pip install --quiet --no-cache-dir --no-compile -e '.[dev]'"
-	@$(BIN)/python -m pip install --quiet --no-cache-dir --no-compile -e '.[dev]' || { \
+	@echo "$(PIP_INSTALL)"
+	@$(PIP_INSTALL) || { \
 	  echo "error: pip install failed; $(VENV) needs about 2 GB, and $$(df -Pm . | awk 'NR==2 {print $$4}') MB are free here" >&2; \
 	  exit 1; }
 	@bash tools/ensure_libusb.sh $(BIN)/python

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from calibration.linalg3 import rotvec_to_matrix
+from calibration.linalg3 import rotation_angle, rotvec_to_matrix
 from calibration.types import F64, I64, Bool
 from ingest.dataset.layout import write_atomic
 from ingest.train.clouds import GyroTrack
@@ -152,8 +152,7 @@ class RigTrajectory:
             return 0.0, 0.0
         dt_s = np.diff(self.stamps_ns) / 1e9
         speed = np.linalg.norm(np.diff(self.p_world_cam0, axis=0), axis=1) / dt_s
-        turn = np.einsum("nji,njk->nik", self.R_world_cam0[:-1], self.R_world_cam0[1:])
-        angle = np.arccos(np.clip((np.trace(turn, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0))
+        angle = rotation_angle(np.einsum("nji,njk->nik", self.R_world_cam0[:-1], self.R_world_cam0[1:]))
         return float(speed.max()), float((np.degrees(angle) / dt_s).max())
 
     def stood_still(self) -> bool:
@@ -179,8 +178,7 @@ class RigTrajectory:
         t = np.unique(np.r_[np.arange(t0_ns, t1_ns, 5_000_000, dtype=np.int64), inner, t1_ns])
         R, p = self.pose(t)
         R_ref, p_ref = self.pose(np.array([t_ref_ns]))
-        cos = (np.einsum("ji,nji->n", R_ref[0], R) - 1.0) / 2.0  # trace(R_ref^T R) = 1 + 2 cos(angle)
-        angle = float(np.arccos(np.clip(cos, -1.0, 1.0)).max())
+        angle = float(rotation_angle(np.einsum("ji,njk->nik", R_ref[0], R)).max())
         return angle, float(np.linalg.norm(p - p_ref[0], axis=1).max())
 
     def to_frame(self, pts_cam0: F64, t_ns: I64, t_ref_ns: int) -> F64:
