@@ -176,6 +176,27 @@ def test_no_points_no_gt():
     assert gt.range_img.count == 0 and gt.disp_img.count == 0
 
 
+def test_dense_gt_does_not_depend_on_the_order_of_its_points():
+    """Points are put in Z-order inside; any input order gives the same pixels and values."""
+    from calibration.fisheye import DoubleSphere
+    from calibration.spherical import Equirectangular
+
+    model = DoubleSphere(120.0, 120.0, 160.0, 100.0, -0.2, 0.6, 320, 200)
+    rng = np.random.default_rng(5)
+    rays = rng.normal(size=(40_000, 3))
+    rays[:, 2] = np.abs(rays[:, 2]) + 0.3
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    box = (np.abs(rays[:, 0]) < 0.3 * rays[:, 2]) & (np.abs(rays[:, 1]) < 0.3 * rays[:, 2])
+    pts = rays * (np.where(box, 1.5, 3.0) / rays[:, 2])[:, None]  # a box 1.5 m in front of a wall at 3 m
+    args = (model, Equirectangular(256), np.eye(3), 0.1)
+    a = dense_ground_truth(*args, pts, DenseParams())
+    b = dense_ground_truth(*args, pts[rng.permutation(len(pts))], DenseParams())
+    assert a.range_img.count > 5000 and a.disp_img.count > 5000
+    for x, y in ((a.range_img, b.range_img), (a.disp_img, b.disp_img)):
+        np.testing.assert_array_equal(x.pixel, y.pixel)
+        np.testing.assert_allclose(x.value, y.value, rtol=0, atol=1e-6)
+
+
 def test_auto_widens_the_window_for_a_static_rig(tmp_path):
     from sensorbox.sim.fixtures import fixture_bag
     from tests.paths import FIXTURES_DIR
