@@ -96,6 +96,19 @@ def _pinhole(p, fx, fy, cx, cy, uv, ok):  # type: ignore[no-untyped-def]  # prag
         _store(i, x / z * fx + cx, y / z * fy + cy, good, uv, ok)
 
 
+@njit(cache=True, nogil=True, error_model="numpy")
+def _equirect(p, R, pitch, u0, v0, uv, ok):  # type: ignore[no-untyped-def]  # pragma: no cover
+    for i in range(p.shape[0]):
+        # model frame -> the standard frame (pole on -y): R^T p
+        x = R[0, 0] * p[i, 0] + R[1, 0] * p[i, 1] + R[2, 0] * p[i, 2]
+        y = R[0, 1] * p[i, 0] + R[1, 1] * p[i, 1] + R[2, 1] * p[i, 2]
+        z = R[0, 2] * p[i, 0] + R[1, 2] * p[i, 1] + R[2, 2] * p[i, 2]
+        theta = math.atan2(math.hypot(x, z), -y)
+        phi = math.atan2(x, z)
+        good = _finite3(x, y, z) and x * x + y * y + z * z > 0.0
+        _store(i, (phi + math.pi) / pitch - u0, theta / pitch - v0, good, uv, ok)
+
+
 def _outputs(p: F64) -> tuple[F64, Bool]:
     return np.empty((p.shape[0], 2), np.float64), np.empty(p.shape[0], np.bool_)
 
@@ -122,6 +135,17 @@ def project_pinhole(p: F64, fx: float, fy: float, cx: float, cy: float) -> tuple
     """Undistorted pinhole projection of (N, 3) points fused with `finish_projection`."""
     uv, ok = _outputs(p)
     _pinhole(p, fx, fy, cx, cy, uv, ok)
+    return uv, ok
+
+
+def project_equirect(p: F64, R_model_std: F64, pitch_rad: float, u0: float, v0: float) -> tuple[F64, Bool]:
+    """Equirectangular projection of (N, 3) points fused with `finish_projection`: one pass.
+
+    `R_model_std` turns the standard frame (pole on -y) into the model's; a
+    point's pixel is u = (phi + pi) / pitch - u0, v = theta / pitch - v0.
+    """
+    uv, ok = _outputs(p)
+    _equirect(p, np.ascontiguousarray(R_model_std, np.float64), pitch_rad, u0, v0, uv, ok)
     return uv, ok
 
 

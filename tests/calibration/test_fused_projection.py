@@ -7,6 +7,7 @@ import pytest
 
 from calibration import DoubleSphere, ExtendedUnified, Fov, Pinhole, Unified
 from calibration.kernels import finish_projection
+from calibration.spherical import Equirectangular
 
 MODELS = [
     DoubleSphere(500.2, 500.1, 962.4, 597.9, -0.18, 0.59, 1920, 1200),
@@ -14,6 +15,9 @@ MODELS = [
     ExtendedUnified(380.0, 380.0, 640.0, 512.0, 0.63, 1.04, 1280, 1024),
     Unified(400.0, 400.0, 640.0, 512.0, 0.4, 1280, 1024),
     Pinhole(500.0, 500.0, 320.0, 240.0, 640, 480),
+    Equirectangular(2048),
+    Equirectangular(2048, 2668, 1310, 369, 714),
+    Equirectangular(1024, pole_axis="x"),
 ]
 
 
