@@ -23,6 +23,7 @@ import numpy as np
 from numba import njit
 
 from calibration.types import F64, I64, Bool
+from ingest.train.voxel_hash import voxel_groups
 
 FREE_MARGIN_REL = 0.03  # a ray must pass a point by margin_m + 3 % of its range to clear it
 
@@ -128,10 +129,7 @@ def free_space_filter(
     reference itself hit is occupied), well inside the margin. Only voxels
     holding a point with `test` set are tested (default: all).
     """
-    cell = np.floor(pts / voxel_m).astype(np.int64)
-    key = (cell[:, 0] << 42) ^ (cell[:, 1] << 21) ^ cell[:, 2]
-    _, rep, voxel = np.unique(key, return_index=True, return_inverse=True)
-    voxel = voxel.astype(np.int64).reshape(-1)
+    voxel, rep = voxel_groups(pts, voxel_m)
     candidate = np.ones(len(rep), bool)
     if test is not None:
         candidate[:] = False

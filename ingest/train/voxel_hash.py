@@ -194,6 +194,33 @@ def voxel_keys(xyz: F64, voxel_m: float) -> I64:
 
 
 @njit(cache=True, nogil=True)
+def _first_of_bucket(bucket_of, n_buckets):  # type: ignore[no-untyped-def]  # pragma: no cover
+    first = np.empty(n_buckets, np.int64)
+    for i in range(bucket_of.shape[0] - 1, -1, -1):
+        first[bucket_of[i]] = i
+    return first
+
+
+def voxel_groups(xyz: F64, voxel_m: float) -> tuple[I64, I64]:
+    """Each point's voxel (N,), numbered by first appearance, and each voxel's first point (V,).
+
+    What `np.unique(keys, return_index=True, return_inverse=True)` gives up to
+    the voxels' numbering, in one hashed pass instead of a sort.
+    """
+    keys = voxel_keys(xyz, voxel_m)
+    # a table for up to half as many voxels as points (a small table stays in cache); doubled if short
+    bits = max(4, int(np.ceil(np.log2(max(len(keys), 1)))))
+    while True:
+        _, _, bucket_of, n_buckets = _bucket_of(keys, bits)
+        if n_buckets >= 0:
+            break
+        bits += 1
+    first: I64 = _first_of_bucket(bucket_of, n_buckets)
+    voxel: I64 = bucket_of
+    return voxel, first
+
+
+@njit(cache=True, nogil=True)
 def _first_free(keys, taken, bits, out):  # type: ignore[no-untyped-def]  # pragma: no cover
     size = 1 << bits
     shift = 64 - bits

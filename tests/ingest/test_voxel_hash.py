@@ -15,7 +15,7 @@ from ingest.train.odometry_kernels import (
 )
 from ingest.train.planes import neighbour_covariances
 from ingest.train.rig_trajectory import RigTrajectory
-from ingest.train.voxel_hash import VoxelHash, VoxelSet, first_free, voxel_keys
+from ingest.train.voxel_hash import VoxelHash, VoxelSet, first_free, voxel_groups, voxel_keys
 
 
 def _scene(n=20_000, seed=0):
@@ -84,6 +84,18 @@ def test_voxel_set_claims_free_voxels_as_points_come_and_go():
 def test_first_free_is_first_in_order_and_skips_taken():
     keys = np.array([5, 3, 5, 7, 3, 9, 1], np.int64)
     np.testing.assert_array_equal(first_free(keys, np.array([7, 2], np.int64)), [0, 1, 5, 6])
+
+
+@pytest.mark.parametrize("voxel_m", [0.05, 2.0])  # most voxels hold one point; a few hold them all
+def test_voxel_groups_are_numpys_unique_up_to_numbering(voxel_m):
+    pts, _ = _scene()
+    voxel, first = voxel_groups(pts, voxel_m)
+    keys = voxel_keys(pts, voxel_m)
+    _, first_ref, voxel_ref = np.unique(keys, return_index=True, return_inverse=True)
+    assert len(first) == len(first_ref)
+    np.testing.assert_array_equal(first[voxel], first_ref[voxel_ref])  # same groups, same first point
+    assert (np.diff(first) > 0).all()  # numbered by first appearance
+    assert voxel_groups(np.zeros((0, 3)), 0.1)[1].shape == (0,)
 
 
 def test_chain_points_match_the_trajectory_pose():
