@@ -35,6 +35,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field, replace
 from functools import partial
@@ -289,6 +290,37 @@ def _gt_method(
     return replace(cfg, sample=sample, lidar_window_ns=window), traj if method == "dense" else None
 
 
+@contextmanager
+def _warming_up(
+    geometry: Geometry, cfg: IngestConfig, summary: IngestSummary
+) -> Iterator[Callable[[], None]]:
+    """Load the remap maps and, for --gt dense/auto, warm dense GT up (`Geometry.warm_dense`) in a thread.
+
+    It runs while the main thread reads the bags for the trajectory and the
+    plan (on 2 cores the two overlap: about 3 s of a dense run's start-up),
+    and yields `ready`, which waits for it and raises what it raised. The
+    thread is joined on the way out whatever happens, so no worker forks
+    while it runs. The trajectory pass calls no parallel (renderer) kernel,
+    so numba's thread pool is the warm-up's alone. With Dask the workers
+    build their own. `--gt auto` may still choose sparse GT; its dense
+    warm-up is then a few seconds of CPU spent beside the passes.
+    """
+    dense = cfg.gt in ("dense", "auto")
+
+    def warm() -> None:
+        geometry.warm_maps()
+        if dense:
+            t0 = time.perf_counter()
+            geometry.warm_dense(cfg.sample.dense)
+            summary.dense_warm_up_s = time.perf_counter() - t0
+
+    if cfg.dask:
+        yield lambda: None
+        return
+    with ThreadPoolExecutor(1, thread_name_prefix="warm-up") as pool:
+        yield pool.submit(warm).result
+
+
 def _dense_reach_ns(cfg: IngestConfig) -> int:
     """How far around a frame dense GT may read sweeps (0 for sparse GT): its window, or the wider one
     `--gt auto` may choose for a static rig."""
@@ -383,6 +415,7 @@ def _run(
         summary.warnings += surveyed.warnings
         summary.stale_temporaries = held.enter_context(_held_output(cfg.out))
         first, last = surveyed.span_ns
+        ready = held.enter_context(_warming_up(geometry, cfg, summary))  # beside the trajectory pass
         cfg, traj = _gt_method(bags, topics, rig, cfg, summary, bad, (first - reach, last + reach))
         the_plan = plan(bags, topics, cfg, bad, surveyed)
         summary.undecodable = bad.by_topic()
@@ -397,12 +430,9 @@ def _run(
             summary.skipped[LOST_REASON] = the_plan.lost_samples
         prepare_dirs(cfg.out, cfg.sample.exr)
         first_id = write_dataset_yaml(asked, cfg, geometry, [Path(p) for p in bag_paths], summary)
-        if not cfg.dask and summary.planned:
-            geometry.warm_maps()
-            if cfg.sample.method == "dense":
-                t0 = time.perf_counter()
-                geometry.warm_dense(cfg.sample.dense)
-                summary.dense_warm_up_s = time.perf_counter() - t0
+        ready()  # before the workers fork: they inherit what it built
+        if cfg.sample.method != "dense":
+            summary.dense_warm_up_s = None
         if executor.every_core_busy:
             # every core runs a worker: a helper thread per worker would only add thread switches
             cfg = replace(cfg, sample=replace(cfg.sample, overlap_images=False))

@@ -197,6 +197,29 @@ def test_dense_gt_does_not_depend_on_the_order_of_its_points():
         np.testing.assert_allclose(x.value, y.value, rtol=0, atol=1e-6)
 
 
+def test_the_warm_up_runs_beside_the_trajectory_pass_and_its_error_stops_the_run(tmp_path, monkeypatch):
+    import threading
+
+    from ingest.errors import OutputError
+    from ingest.train.sample import Geometry
+    from sensorbox.sim.fixtures import fixture_bag
+    from tests.paths import FIXTURES_DIR
+
+    bag = fixture_bag("indoor_static_mcap", FIXTURES_DIR)
+    threads = []
+
+    def fail(self, params):
+        threads.append(threading.current_thread().name)
+        raise OutputError("no space left for the warm-up")
+
+    monkeypatch.setattr(Geometry, "warm_dense", fail)
+    cfg = IngestConfig(rig=Truth.load(bag).path / "rig.yaml", out=tmp_path, workers=1, every=10, gt="dense")
+    with pytest.raises(OutputError, match="no space left for the warm-up"):
+        ingest([bag], cfg)
+    assert threads and threads[0].startswith("warm-up")  # not the main thread
+    assert not list((tmp_path / "meta").glob("*.json"))  # no sample was written
+
+
 def test_auto_widens_the_window_for_a_static_rig(tmp_path):
     from sensorbox.sim.fixtures import fixture_bag
     from tests.paths import FIXTURES_DIR
