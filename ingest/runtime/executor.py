@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import sys
 from collections import deque
 from collections.abc import Callable, Generator, Iterable
 from concurrent.futures import Future, ProcessPoolExecutor
@@ -60,9 +61,12 @@ def usable_cpus() -> int:
 
 
 def share_cores(workers: int) -> None:
-    """Worker init: numba's threads (the compiled renderer's) are this worker's share of the usable cores.
+    """Worker init: numba's threads (the compiled renderer's) and Open3D's (its k-NN) are this worker's
+    share of the usable cores.
 
     With one worker per core, more threads per worker only add switches.
+    Open3D's TBB pool knows no environment variable; `set_max_threads`
+    (Open3D 0.20) bounds it, where Open3D is loaded (the GPU machines have none).
     """
     import numba
 
@@ -72,6 +76,9 @@ def share_cores(workers: int) -> None:
 
     cores = max(1, usable_cpus() // workers)
     numba.set_num_threads(min(cores, numba.config.NUMBA_NUM_THREADS))  # type: ignore[attr-defined]
+    o3d = sys.modules.get("open3d")
+    if o3d is not None and hasattr(o3d.utility, "set_max_threads"):
+        o3d.utility.set_max_threads(cores)
 
 
 @dataclass(frozen=True)
