@@ -38,20 +38,25 @@ def n_groups(H: int) -> int:
     return -(-H // ROW_GROUP)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _to_camera(xyz, j, R, t):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """Point ``xyz[j]`` in the camera (R, t) and its range from the scan origin."""
+    px, py, pz = xyz[j, 0], xyz[j, 1], xyz[j, 2]
+    x = R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz + t[0]
+    y = R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz + t[1]
+    z = R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz + t[2]
+    return x, y, z, np.sqrt(px * px + py * py + pz * pz)
+
+
 @njit(parallel=True, cache=True, nogil=True)
 def transform(xyz, idx, R, t, x, y, z, r, pn):  # type: ignore[no-untyped-def]  # pragma: no cover
     """Points ``xyz[idx]`` into the camera (x, y, z), their range from it and from the scan origin."""
     for i in prange(idx.shape[0]):
-        j = idx[i]
-        px, py, pz = xyz[j, 0], xyz[j, 1], xyz[j, 2]
-        xi = R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz + t[0]
-        yi = R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz + t[1]
-        zi = R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz + t[2]
+        xi, yi, zi, pn[i] = _to_camera(xyz, idx[i], R, t)
         x[i] = xi
         y[i] = yi
         z[i] = zi
         r[i] = np.sqrt(xi * xi + yi * yi + zi * zi)
-        pn[i] = np.sqrt(px * px + py * py + pz * pz)
 
 
 @njit(parallel=True, cache=True, nogil=True)
@@ -65,13 +70,8 @@ def transform_ds(xyz, idx, R, t, ds, u, v, ok, r, pn):  # type: ignore[no-untype
     one = np.float32(1.0)
     xi, alpha, beta, mw2, fx, fy, cx, cy = ds[0], ds[1], ds[2], ds[3], ds[4], ds[5], ds[6], ds[7]
     for i in prange(idx.shape[0]):
-        j = idx[i]
-        px, py, pz = xyz[j, 0], xyz[j, 1], xyz[j, 2]
-        x = R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz + t[0]
-        y = R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz + t[1]
-        z = R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz + t[2]
+        x, y, z, pn[i] = _to_camera(xyz, idx[i], R, t)
         r[i] = np.sqrt(x * x + y * y + z * z)
-        pn[i] = np.sqrt(px * px + py * py + pz * pz)
         r2 = x * x + y * y
         d1 = np.sqrt(z * z + r2)
         k = d1 * xi + z
@@ -95,13 +95,8 @@ def transform_equirect(xyz, idx, R, t, eq, u, v, ok, r, pn):  # type: ignore[no-
     """
     pi, pitch, half, c0, r0 = eq[0], eq[1], eq[2], eq[3], eq[4]
     for i in prange(idx.shape[0]):
-        j = idx[i]
-        px, py, pz = xyz[j, 0], xyz[j, 1], xyz[j, 2]
-        x = R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz + t[0]
-        y = R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz + t[1]
-        z = R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz + t[2]
+        x, y, z, pn[i] = _to_camera(xyz, idx[i], R, t)
         r[i] = np.sqrt(x * x + y * y + z * z)
-        pn[i] = np.sqrt(px * px + py * py + pz * pz)
         theta = np.arctan2(np.hypot(x, z), -y)
         phi = np.arctan2(x, z)
         ui = (phi + pi) / pitch - half - c0
