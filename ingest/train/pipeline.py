@@ -297,7 +297,7 @@ def _warming_up(
     """Load the remap maps and, for --gt dense/auto, warm dense GT up (`Geometry.warm_dense`) in a thread.
 
     It runs while the main thread reads the bags for the trajectory and the
-    plan (on 2 cores the two overlap: about 3 s of a dense run's start-up),
+    plan (on 2 cores the two overlap: a dense run starts about 2 s sooner),
     and yields `ready`, which waits for it and raises what it raised. The
     thread is joined on the way out whatever happens, so no worker forks
     while it runs. The trajectory pass calls no parallel (renderer) kernel,
