@@ -104,9 +104,8 @@ class Equirectangular(CameraModel):
     def _project_fused(self, flat: F64) -> tuple[F64, Bool]:
         from calibration.kernels import project_equirect
 
-        R = _R_POLE[self.pole_axis] if self.pole_axis != "y" else np.eye(3)
         u0, v0 = 0.5 + self.col_offset, 0.5 + self.row_offset
-        return project_equirect(np.ascontiguousarray(flat), R, self.pitch_rad, u0, v0)
+        return project_equirect(np.ascontiguousarray(flat), _R_POLE[self.pole_axis], self.pitch_rad, u0, v0)
 
     def _project(self, x: F64, y: F64, z: F64) -> tuple[F64, F64, Bool]:
         if self.pole_axis != "y":

@@ -96,14 +96,15 @@ def transform_equirect(xyz, idx, R, t, eq, u, v, ok, r, pn):  # type: ignore[no-
     pi, pitch, half, c0, r0 = eq[0], eq[1], eq[2], eq[3], eq[4]
     for i in prange(idx.shape[0]):
         x, y, z, pn[i] = _to_camera(xyz, idx[i], R, t)
-        r[i] = np.sqrt(x * x + y * y + z * z)
+        ri = np.sqrt(x * x + y * y + z * z)
+        r[i] = ri
         theta = np.arctan2(np.hypot(x, z), -y)
         phi = np.arctan2(x, z)
         ui = (phi + pi) / pitch - half - c0
         vi = theta / pitch - half - r0
         u[i] = ui
         v[i] = vi
-        ok[i] = (x * x + y * y + z * z > 0) & np.isfinite(ui) & np.isfinite(vi)
+        ok[i] = (ri > 0) & np.isfinite(ui) & np.isfinite(vi)  # sqrt(s) > 0 exactly where s > 0
 
 
 @njit(parallel=True, cache=True, nogil=True)

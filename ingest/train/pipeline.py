@@ -291,14 +291,13 @@ def _gt_method(
 
 
 @contextmanager
-def _warming_up(
-    geometry: Geometry, cfg: IngestConfig, summary: IngestSummary
-) -> Iterator[Callable[[], None]]:
+def _warming_up(geometry: Geometry, cfg: IngestConfig) -> Iterator[Callable[[], float | None]]:
     """Load the remap maps and, for --gt dense/auto, warm dense GT up (`Geometry.warm_dense`) in a thread.
 
     It runs while the main thread reads the bags for the trajectory and the
     plan (on 2 cores the two overlap: a dense run starts about 2 s sooner),
-    and yields `ready`, which waits for it and raises what it raised. The
+    and yields `ready`, which waits for it, raises what it raised and
+    returns the dense warm-up's seconds (None without one). The
     thread is joined on the way out whatever happens, so no worker forks
     while it runs. The trajectory pass calls no parallel (renderer) kernel,
     so numba's thread pool is the warm-up's alone. With Dask the workers
@@ -307,12 +306,13 @@ def _warming_up(
     """
     dense = cfg.gt in ("dense", "auto")
 
-    def warm() -> None:
+    def warm() -> float | None:
         geometry.warm_maps()
-        if dense:
-            t0 = time.perf_counter()
-            geometry.warm_dense(cfg.sample.dense)
-            summary.dense_warm_up_s = time.perf_counter() - t0
+        if not dense:
+            return None
+        t0 = time.perf_counter()
+        geometry.warm_dense(cfg.sample.dense)
+        return time.perf_counter() - t0
 
     if cfg.dask:
         yield lambda: None
@@ -415,7 +415,7 @@ def _run(
         summary.warnings += surveyed.warnings
         summary.stale_temporaries = held.enter_context(_held_output(cfg.out))
         first, last = surveyed.span_ns
-        ready = held.enter_context(_warming_up(geometry, cfg, summary))  # beside the trajectory pass
+        ready = held.enter_context(_warming_up(geometry, cfg))  # beside the trajectory pass
         cfg, traj = _gt_method(bags, topics, rig, cfg, summary, bad, (first - reach, last + reach))
         the_plan = plan(bags, topics, cfg, bad, surveyed)
         summary.undecodable = bad.by_topic()
@@ -430,9 +430,8 @@ def _run(
             summary.skipped[LOST_REASON] = the_plan.lost_samples
         prepare_dirs(cfg.out, cfg.sample.exr)
         first_id = write_dataset_yaml(asked, cfg, geometry, [Path(p) for p in bag_paths], summary)
-        ready()  # before the workers fork: they inherit what it built
-        if cfg.sample.method != "dense":
-            summary.dense_warm_up_s = None
+        warm_up_s = ready()  # before the workers fork: they inherit what it built
+        summary.dense_warm_up_s = warm_up_s if cfg.sample.method == "dense" else None
         if executor.every_core_busy:
             # every core runs a worker: a helper thread per worker would only add thread switches
             cfg = replace(cfg, sample=replace(cfg.sample, overlap_images=False))

@@ -193,6 +193,15 @@ def voxel_keys(xyz: F64, voxel_m: float) -> I64:
     return out
 
 
+def _buckets(keys: I64, bits: int) -> tuple[I64, I64, I64, int]:
+    """`_bucket_of` in a table of 2^bits slots, doubled until the distinct keys fill at most half of it."""
+    while True:
+        table_key, table_bucket, bucket_of, n_buckets = _bucket_of(keys, bits)
+        if n_buckets >= 0:
+            return table_key, table_bucket, bucket_of, int(n_buckets)
+        bits += 1
+
+
 @njit(cache=True, nogil=True)
 def _first_of_bucket(bucket_of, n_buckets):  # type: ignore[no-untyped-def]  # pragma: no cover
     first = np.empty(n_buckets, np.int64)
@@ -209,12 +218,7 @@ def voxel_groups(xyz: F64, voxel_m: float) -> tuple[I64, I64]:
     """
     keys = voxel_keys(xyz, voxel_m)
     # a table for up to half as many voxels as points (a small table stays in cache); doubled if short
-    bits = max(4, int(np.ceil(np.log2(max(len(keys), 1)))))
-    while True:
-        _, _, bucket_of, n_buckets = _bucket_of(keys, bits)
-        if n_buckets >= 0:
-            break
-        bits += 1
+    _, _, bucket_of, n_buckets = _buckets(keys, max(4, int(np.ceil(np.log2(max(len(keys), 1))))))
     first: I64 = _first_of_bucket(bucket_of, n_buckets)
     voxel: I64 = bucket_of
     return voxel, first
@@ -277,11 +281,7 @@ class VoxelHash:
         pts = np.ascontiguousarray(xyz, np.float64)
         keys = _cube_keys(pts, float(cell_m))
         bits = max(4, int(np.ceil(np.log2(2 * max(buckets_hint, 1)))) + 1)
-        while True:
-            table_key, table_bucket, bucket_of, n_buckets = _bucket_of(keys, bits)
-            if n_buckets >= 0:
-                break
-            bits += 1
+        table_key, table_bucket, bucket_of, n_buckets = _buckets(keys, bits)
         start, order, xyz_sorted = _layout(pts, bucket_of, n_buckets)
         return cls(pts, float(cell_m), xyz_sorted, order, start, table_key, table_bucket)
 
