@@ -14,10 +14,17 @@ Public API:
   (before `open()`) check chunk by chunk and report to `guard`.
 - `decompress_checked(data, compression, size, crc)`: an MCAP chunk's records,
   size- and CRC-checked (`ChunkDataError` when they do not match).
-- `chunk_messages(bio, chunk, channels, start, stop)`: one MCAP chunk's
+- `chunk_messages(bio, chunk, channels, start, stop, defer)`: one MCAP chunk's
   messages in time order, walked in place. Both readers hand out a message of
   `COPY_BELOW_BYTES` or more as a memoryview into its decompressed chunk (no
   copy of an image), a smaller one as bytes.
+- `DeferredData`: a message still in its compressed MCAP chunk. Asked for
+  (`ChunkGuard.defer_topics`), the last wanted message of a chunk, when it is
+  at least `DEFER_MIN_BYTES` and no smaller than the chunk's compressed bytes,
+  comes this way: the reader decompresses only the records before it and the
+  first bytes of its data (its header stamp), and whoever calls `data()`
+  decompresses and checks the whole chunk. The ingest's stream pass hands
+  camera images to its workers so (`ingest.train.stream`).
 
 What can be checked depends on the format. An MCAP chunk carries the CRC-32
 of its records (every mcap SensorBox writes sets it; 0 means "not computed")
@@ -35,12 +42,14 @@ from __future__ import annotations
 import heapq
 import logging
 import struct
+import sys
 from collections.abc import Collection, Generator, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from io import BytesIO
 from pathlib import Path
 from typing import Any, cast
 
+import lz4.frame
 from isal import isal_zlib
 from rosbags.rosbag1 import Reader as Ros1Reader
 from rosbags.rosbag1 import ReaderError as Ros1ReaderError
@@ -49,13 +58,20 @@ from rosbags.rosbag2 import Reader as Ros2Reader
 from rosbags.rosbag2.reader import DirectoryReader
 from rosbags.rosbag2.storage_mcap import DECOMPRESSORS, ChunkInfo, McapReader, Msg, read_exact
 
-from ingest.errors import BagError
+from ingest.errors import BagError, MessageDecodeError
+
+if sys.version_info >= (3, 14):
+    from compression.zstd import ZstdDecompressor
+else:
+    from backports.zstd import ZstdDecompressor
 
 __all__ = [
     "COPY_BELOW_BYTES",
+    "DEFER_MIN_BYTES",
     "ChunkDataError",
     "ChunkGuard",
     "CorruptChunkError",
+    "DeferredData",
     "LostChunk",
     "chunk_messages",
     "decompress_checked",
@@ -131,11 +147,15 @@ def _reason(err: BaseException) -> str:
 
 @dataclass
 class ChunkGuard:
-    """What readers do at a corrupt chunk: raise `CorruptChunkError`, or record it and go on."""
+    """What the readers of one bag set share: what to do at a corrupt chunk (raise
+    `CorruptChunkError`, or record it and go on), and which topics' messages may stay compressed."""
 
     skip: bool = False
     lost: dict[tuple[Path, int], LostChunk] = field(default_factory=dict)
     """Chunks skipped so far, by (file, byte offset)."""
+    defer_topics: frozenset[str] = frozenset()
+    """Topics whose large messages an MCAP reader may hand out as `DeferredData` (set for one read by
+    `BagSet.messages(defer=...)`)."""
 
     def report(self, chunk: LostChunk) -> None:
         """Raise, or (skip) log one warning line the first time and record the chunk."""
@@ -168,15 +188,17 @@ class CheckedMcapReader(McapReader):
             counts, _reason(err), self.metadata.start_time,
         )  # fmt: skip
 
-    def _chunk(self, chunk: ChunkInfo, channels: dict[int, Any], start: int, stop: int) -> Iterator[Msg]:
-        """The chunk's messages in time order, its decompression deferred until the merge reaches it."""
+    def _chunk(
+        self, chunk: ChunkInfo, channels: dict[int, Any], start: int, stop: int, defer: Collection[int]
+    ) -> Iterator[Msg]:
+        """The chunk's messages in time order, its decompression put off until the merge reaches it."""
         yield Msg(chunk.message_start_time, 0, None, None)  # placeholder: no bytes read yet
         path = Path(str(self.path))
         if self.guard.is_lost(path, chunk.chunk_start_offset):
             return
         assert self.bio is not None
         try:
-            found = chunk_messages(self.bio, chunk, channels, start, stop)  # all or nothing
+            found = chunk_messages(self.bio, chunk, channels, start, stop, defer, str(path))  # all or nothing
         except Exception as err:  # checksum, size, decompressor and record errors of damaged bytes
             self.guard.report(self._lost(chunk, err))
             return
@@ -187,15 +209,18 @@ class CheckedMcapReader(McapReader):
     ) -> Generator[tuple[Any, int, bytes], None, None]:
         """Messages of `connections` in log-time order; a corrupt chunk goes to `guard`.
 
-        A file without a chunk index (unchunked, or no summary) is scanned by rosbags as is.
+        A large message on a topic of `guard.defer_topics` may come as `DeferredData`
+        (`chunk_messages`). A file without a chunk index (unchunked, or no summary) is
+        scanned by rosbags as is.
         """
         if not self.chunks:
             yield from super().messages(connections, start, stop)
             return
         channels = {c.id: c for c in connections}
+        defer = {i for i, c in channels.items() if c.topic in self.guard.defer_topics}
         lo = 0 if start is None else start
         sources = [
-            self._chunk(c, channels, lo, c.message_end_time + 1 if stop is None else stop)
+            self._chunk(c, channels, lo, c.message_end_time + 1 if stop is None else stop, defer)
             for c in self.chunks
             if lo <= c.message_end_time
             and (stop is None or c.message_start_time < stop)
@@ -234,26 +259,17 @@ _MESSAGE = 0x05
 _MESSAGE_HEAD = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time
 
 
-def chunk_messages(
-    bio: Any, chunk: ChunkInfo, channels: Mapping[int, Any], start: int, stop: int
+def _walk(
+    records: bytes, end: int, chunk: ChunkInfo, channels: Mapping[int, Any], start: int, stop: int
 ) -> list[Msg]:
-    """The messages of `channels` in one MCAP chunk with log time in [start, stop), in time order.
+    """The messages of `channels` with log time in [start, stop) among the records in [0, end).
 
-    The records are decompressed and CRC-checked once (`decompress_checked`)
-    and walked in place: a large message (an image) is a memoryview into the
-    chunk's records rather than a copy, and a small one (a sweep, an IMU
-    sample) is copied, so a buffered sweep never keeps a whole chunk of
-    images alive. A record that overruns the chunk raises `ChunkDataError`.
+    A large message is a memoryview into `records`, a small one a copy. A
+    record that overruns `end` raises `ChunkDataError`.
     """
-    bio.seek(chunk.chunk_start_offset + _CHUNK_CRC_AT)
-    (crc,) = struct.unpack("<I", read_exact(bio, 4))
-    # after the crc: compression (u32 length + text), then the records' length (u64), then the records
-    bio.seek(chunk.chunk_start_offset + _CHUNK_CRC_AT + 4 + 4 + len(chunk.compression) + 8)
-    compressed = read_exact(bio, chunk.compressed_size)
-    records = decompress_checked(compressed, chunk.compression, chunk.uncompressed_size, crc)
     view = memoryview(records)
     found: list[Msg] = []
-    pos, end = 0, len(records)
+    pos = 0
     while pos < end:
         if pos + 9 > end:
             raise ChunkDataError(f"record header cut at chunk offset {pos}")
@@ -270,6 +286,133 @@ def chunk_messages(
             data = view[body + _MESSAGE_HEAD.size : pos]
             found.append(Msg(log_ns, chunk.chunk_start_offset, channels[channel_id],
                              bytes(data) if len(data) < COPY_BELOW_BYTES else data))  # type: ignore[arg-type]  # fmt: skip
+    return found
+
+
+def _compressed(bio: Any, chunk: ChunkInfo) -> tuple[bytes, int]:
+    """A chunk's compressed records and the CRC-32 of the uncompressed ones (0: not computed)."""
+    bio.seek(chunk.chunk_start_offset + _CHUNK_CRC_AT)
+    (crc,) = struct.unpack("<I", read_exact(bio, 4))
+    # after the crc: compression (u32 length + text), then the records' length (u64), then the records
+    bio.seek(chunk.chunk_start_offset + _CHUNK_CRC_AT + 4 + 4 + len(chunk.compression) + 8)
+    return read_exact(bio, chunk.compressed_size), crc
+
+
+def chunk_messages(
+    bio: Any, chunk: ChunkInfo, channels: Mapping[int, Any], start: int, stop: int,
+    defer: Collection[int] = (), where: str = "",
+) -> list[Msg]:  # fmt: skip
+    """The messages of `channels` in one MCAP chunk with log time in [start, stop), in time order.
+
+    The records are decompressed and CRC-checked once (`decompress_checked`)
+    and walked in place: a large message (an image) is a memoryview into the
+    chunk's records rather than a copy, and a small one (a sweep, an IMU
+    sample) is copied, so a buffered sweep never keeps a whole chunk of
+    images alive. A record that overruns the chunk raises `ChunkDataError`.
+
+    When the last wanted message is on a channel of `defer` and large enough
+    (`_deferred`), it comes as `DeferredData` (`where` names the file in its
+    errors) and only the records before it are decompressed, unchecked: the
+    CRC is checked by `DeferredData.data`, which decompresses the whole chunk.
+    """
+    if defer and (found := _deferred(bio, chunk, channels, start, stop, defer, where)) is not None:
+        return found
+    compressed, crc = _compressed(bio, chunk)
+    records = decompress_checked(compressed, chunk.compression, chunk.uncompressed_size, crc)
+    found = _walk(records, len(records), chunk, channels, start, stop)
+    found.sort(key=lambda m: m.timestamp)
+    return found
+
+
+DEFER_MIN_BYTES = 1 << 20
+"""A message at least this large may be handed out still compressed (`DeferredData`)."""
+_HEAD_BYTES = 64  # of a deferred message's data, decompressed: its header stamp (`header_stamp_ns`)
+_MESSAGE_INDEX = 0x07
+_PREFIX: dict[str, Any] = {  # the first n bytes of a chunk's records, decompressing no more than that
+    "zstd": lambda data, n: ZstdDecompressor().decompress(data, max_length=n),
+    "lz4": lambda data, n: lz4.frame.LZ4FrameDecompressor().decompress(data, max_length=n),
+}
+
+
+@dataclass(frozen=True)
+class DeferredData:
+    """A message's data still in its compressed MCAP chunk: the chunk's compressed records, their
+    size and CRC-32, where the data lies in them, and the data's first bytes (its header stamp)."""
+
+    chunk: str  # "<file>: chunk at byte <offset>", for errors
+    compression: str
+    compressed: bytes
+    size: int
+    crc: int
+    start: int
+    length: int
+    head: bytes
+
+    def data(self) -> memoryview:
+        """The message's bytes: the chunk decompressed and checked; `MessageDecodeError` if it is not."""
+        try:
+            records = decompress_checked(self.compressed, self.compression, self.size, self.crc)
+        except Exception as err:  # checksum, size and decompressor errors of bytes that changed
+            raise MessageDecodeError(f"{self.chunk}: {_reason(err)}") from err
+        return memoryview(records)[self.start : self.start + self.length]
+
+
+def _message_index(
+    bio: Any, chunk: ChunkInfo, channels: Collection[int]
+) -> list[tuple[int, int, int]] | None:
+    """(offset in the records, channel, log ns) of the chunk's messages on `channels`, from its
+    MessageIndex records; None when they are missing or do not parse."""
+    out: list[tuple[int, int, int]] = []
+    for channel_id in channels:
+        at = chunk.message_index_offsets.get(channel_id)
+        if at is None:
+            if chunk.channel_count.get(channel_id, 0):
+                return None
+            continue
+        bio.seek(at)
+        op, length, got, n = struct.unpack("<BQHI", read_exact(bio, 15))
+        if op != _MESSAGE_INDEX or got != channel_id or n % 16 or length != 6 + n:
+            return None
+        entries = struct.iter_unpack("<QQ", read_exact(bio, n))  # (log time, offset)
+        out += [(offset, channel_id, log_ns) for log_ns, offset in entries]
+    return out
+
+
+def _deferred(
+    bio: Any, chunk: ChunkInfo, channels: Mapping[int, Any], start: int, stop: int, defer: Collection[int],
+    where: str,
+) -> list[Msg] | None:  # fmt: skip
+    """`chunk_messages` with its last wanted message as `DeferredData`, or None when that does not
+    apply: not on a `defer` channel, under `DEFER_MIN_BYTES`, smaller than the compressed chunk, a
+    compression without partial decompression, or an index that does not match the records."""
+    if chunk.compression not in _PREFIX or not any(chunk.channel_count.get(c, 0) for c in defer):
+        return None
+    try:
+        index = _message_index(bio, chunk, channels)
+        wanted = sorted(e for e in index or () if start <= e[2] < stop)
+        if index is None or not wanted or wanted[-1][1] not in defer:
+            return None
+        at, channel_id, log_ns = wanted[-1]
+        data_at = at + 9 + _MESSAGE_HEAD.size
+        compressed, crc = _compressed(bio, chunk)
+        records = _PREFIX[chunk.compression](compressed, min(data_at + _HEAD_BYTES, chunk.uncompressed_size))
+        if len(records) < data_at:
+            return None
+        op, length = records[at], int.from_bytes(records[at + 1 : at + 9], "little")
+        got, _, got_ns, _ = _MESSAGE_HEAD.unpack_from(records, at + 9)
+        size = length - _MESSAGE_HEAD.size
+        if (op, got, got_ns) != (_MESSAGE, channel_id, log_ns) or at + 9 + length > chunk.uncompressed_size:
+            return None
+        if size < DEFER_MIN_BYTES or len(compressed) > size:
+            return None
+        found = _walk(records, at, chunk, channels, start, stop)
+    except Exception:  # a damaged index or prefix: the whole chunk is read and checked instead
+        return None
+    data = DeferredData(
+        f"{where}: chunk at byte {chunk.chunk_start_offset}", chunk.compression, compressed,
+        chunk.uncompressed_size, crc, data_at, size, bytes(records[data_at : data_at + _HEAD_BYTES]),
+    )  # fmt: skip
+    found.append(Msg(log_ns, chunk.chunk_start_offset, channels[channel_id], data))  # type: ignore[arg-type]
     found.sort(key=lambda m: m.timestamp)
     return found
 

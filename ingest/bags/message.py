@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+from ingest.bags.chunks import DeferredData
 from ingest.bags.decode import Frame, ImuSample, Raw, RosVersion, Sweep, decode, header_stamp_ns
 from ingest.errors import MessageDecodeError
 
@@ -13,6 +14,10 @@ class RawMessage(NamedTuple):
 
     `raw` is a memoryview into its decompressed chunk for a large message
     (an image), bytes otherwise (`ingest.bags.chunks.COPY_BELOW_BYTES`).
+    When the read asked for it (`BagSet.messages(defer=...)`), a large
+    message may still be in its compressed chunk: `deferred` holds that
+    chunk, `raw` only the data's first bytes (its header), and `data()`
+    decompresses it.
     """
 
     topic: str
@@ -20,15 +25,29 @@ class RawMessage(NamedTuple):
     log_ns: int
     raw: Raw
     ros_version: RosVersion
+    deferred: DeferredData | None = None
 
-    def __reduce__(self) -> tuple[type[RawMessage], tuple[str, str, int, bytes, RosVersion]]:
+    def __reduce__(
+        self,
+    ) -> tuple[type[RawMessage], tuple[str, str, int, bytes, RosVersion, DeferredData | None]]:
         """Pickled (a Dask job, a process pipe) with `raw` as bytes: a view of its chunk does not pickle."""
-        return RawMessage, (self.topic, self.msgtype, self.log_ns, bytes(self.raw), self.ros_version)
+        return RawMessage, (
+            self.topic,
+            self.msgtype,
+            self.log_ns,
+            bytes(self.raw),
+            self.ros_version,
+            self.deferred,
+        )
+
+    def data(self) -> Raw:
+        """The message's bytes (a deferred chunk decompressed: `MessageDecodeError` if it fails)."""
+        return self.raw if self.deferred is None else self.deferred.data()
 
     def decoded(self, where: str) -> Sweep | Frame | ImuSample:
         """`ingest.bags.decode.decode` of this message; a failure names `where`, the topic and log time."""
         try:
-            return decode(self.msgtype, self.raw, self.ros_version)
+            return decode(self.msgtype, self.data(), self.ros_version)
         except MessageDecodeError as err:
             raise MessageDecodeError(f"{where}: {self.topic} at log time {self.log_time}: {err}") from err
 

@@ -62,7 +62,7 @@ from rosbags.interfaces import MessageDefinition, MessageDefinitionFormat
 
 from calibration.errors import SensorboxError
 from calibration.opencv_yaml import yaml_error_line
-from ingest.bags.chunks import ChunkGuard, CorruptChunkError, LostChunk, guard_readers
+from ingest.bags.chunks import ChunkGuard, CorruptChunkError, DeferredData, LostChunk, guard_readers
 from ingest.bags.decode import RosVersion
 from ingest.bags.definitions import TolerantAnyReader, check_definition
 from ingest.bags.mcap_records import MCAP_MAGIC, McapChannel, SalvageReport, mcap_messages
@@ -482,6 +482,7 @@ class BagSet:
         topics: Iterable[str] | None = None,
         start_ns: int | None = None,
         stop_ns: int | None = None,
+        defer: Collection[str] = (),
     ) -> Iterator[RawMessage]:
         """Lazy iterator over the raw messages of `topics` (None: all), merged by log time.
 
@@ -489,6 +490,9 @@ class BagSet:
         leaves out those in `skipped`. Topics that are not in the bags,
         and topics whose type cannot be decoded safely (asked for by name,
         skipped ones too), raise `BagError` here, before any message is read.
+        A large message of a `defer` topic that ends its MCAP chunk may come
+        still compressed (`DeferredData`, `ingest.bags.chunks.chunk_messages`):
+        for a read after one that checked every chunk. One such read at a time.
         """
         names = self.topics()
         wanted = set(names) - set(self.skipped) if topics is None else set(topics)
@@ -504,22 +508,30 @@ class BagSet:
                 where = str(getattr(conn.owner, "path", self._where))
                 check_definition(where, conn.topic, conn.msgtype, conn.msgdef, self.ros_version)
             if conns:
-                sources.append(self._read(conns, start_ns, stop_ns))
+                sources.append(self._read(conns, start_ns, stop_ns, frozenset(defer)))
         for path in self.salvaged:  # skipped topics are not in `wanted`
             sources.append(_time_window(_salvage(path, wanted, quiet=True), start_ns, stop_ns))
         if len(sources) == 1:
             return sources[0]
         return heapq.merge(*sources, key=lambda m: m.log_ns)
 
-    def _read(self, conns: list[Any], start_ns: int | None, stop_ns: int | None) -> Iterator[RawMessage]:
+    def _read(
+        self, conns: list[Any], start_ns: int | None, stop_ns: int | None, defer: frozenset[str]
+    ) -> Iterator[RawMessage]:
         assert self._reader is not None
+        self._guard.defer_topics = defer  # the MCAP readers look when this read starts
         try:
             for conn, log_ns, raw in self._reader.messages(connections=conns, start=start_ns, stop=stop_ns):
-                yield RawMessage(conn.topic, conn.msgtype, log_ns, raw, self.ros_version)
+                if isinstance(raw, DeferredData):
+                    yield RawMessage(conn.topic, conn.msgtype, log_ns, raw.head, self.ros_version, raw)
+                else:
+                    yield RawMessage(conn.topic, conn.msgtype, log_ns, raw, self.ros_version)
         except SensorboxError:
             raise
         except Exception as err:  # rosbags raises its own errors, OSError, struct.error, ...
             raise BagError(f"{self._where}: reading messages failed: {type(err).__name__}: {err}") from err
+        finally:
+            self._guard.defer_topics = frozenset()
 
 
 def _time_window(

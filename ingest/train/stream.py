@@ -7,7 +7,11 @@ sample's +-window has arrived. The job carries the two camera messages as the
 bag stores them (a CompressedImage's JPEG/PNG bytes, or a raw Image's bytes),
 never decoded pixels: the worker decodes them (`run_streamed`), so decoding
 costs one worker's CPU instead of the main process's, and a job is the size
-of the compressed images. What every job needs and none should carry (the
+of the compressed images. An image that ends its compressed MCAP chunk (a
+raw image fills one) travels as that chunk's compressed bytes
+(`ingest.bags.chunks.DeferredData`): the stream pass decompresses only the
+records before it and its header, and the worker the rest (the plan pass
+has checked every chunk). What every job needs and none should carry (the
 rig's geometry, the recording's trajectory) is `Shared`, handed to the
 executor once.
 
@@ -91,17 +95,29 @@ class StreamedJob:
         )  # fmt: skip
 
 
+def _payload(msg: RawMessage) -> Array:
+    """The bytes a message's trip to a worker carries: its data, or its chunk's compressed records."""
+    return np.frombuffer(msg.raw if msg.deferred is None else msg.deferred.compressed, np.uint8)
+
+
+def _with_payload(msg: RawMessage, payload: bytes) -> RawMessage:
+    """`msg` with `payload` (`_payload`'s bytes, or b"") in their place."""
+    if msg.deferred is None:
+        return msg._replace(raw=payload)
+    return msg._replace(deferred=replace(msg.deferred, compressed=payload))
+
+
 def take_messages(job: StreamedJob) -> tuple[StreamedJob, tuple[Array, ...]]:
     """The job without its two messages' bytes, and those bytes as uint8 arrays (executor's shared slots)."""
-    light = replace(job, upper=job.upper._replace(raw=b""), lower=job.lower._replace(raw=b""))
-    return light, (np.frombuffer(job.upper.raw, np.uint8), np.frombuffer(job.lower.raw, np.uint8))
+    light = replace(job, upper=_with_payload(job.upper, b""), lower=_with_payload(job.lower, b""))
+    return light, (_payload(job.upper), _payload(job.lower))
 
 
 def give_messages(job: StreamedJob, arrays: tuple[Array, ...]) -> StreamedJob:
     """`take_messages` undone in the worker (one copy out of the slot: a raw image's 9 MB take ~2 ms)."""
     upper, lower = arrays
     return replace(
-        job, upper=job.upper._replace(raw=upper.tobytes()), lower=job.lower._replace(raw=lower.tobytes())
+        job, upper=_with_payload(job.upper, upper.tobytes()), lower=_with_payload(job.lower, lower.tobytes())
     )
 
 
@@ -281,7 +297,7 @@ def stream_jobs(
         )  # fmt: skip
 
     wanted = [topics.upper, topics.lower, *topics.lidars, *([topics.imu] if topics.imu else [])]
-    for msg in bags.messages(topics=wanted):
+    for msg in bags.messages(topics=wanted, defer=(topics.upper, topics.lower)):
         if msg.topic in (topics.upper, topics.lower):
             stamp = bad.stamp(msg, where)
             side = "upper" if msg.topic == topics.upper else "lower"

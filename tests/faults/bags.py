@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import shutil
 import struct
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from pathlib import Path
 from typing import Any
 
@@ -30,11 +30,13 @@ Keep = Callable[[str, int, bytes], list[tuple[str, bytes]]]
 
 
 def rewrite(
-    dst: Path, keep: Keep, src: Path = INDOOR, declare: dict[str, str] | None = None
-) -> tuple[Path, Path]:
+    dst: Path, keep: Keep, src: Path = INDOOR, declare: dict[str, str] | None = None,
+    flush_after: Collection[str] = (),
+) -> tuple[Path, Path]:  # fmt: skip
     """The fixture rewritten through `keep` into the mcap `dst`, its truth beside it; (bag, rig).
 
     `declare` (topic -> type) adds topics to the bag even when no message is written on them.
+    A message on a topic of `flush_after` closes its mcap chunk (it is the chunk's last).
     """
     types: dict[str, str] = dict(declare or {})
     with open_bags([src]) as bags:
@@ -51,6 +53,8 @@ def rewrite(
             out.add(topic, msgtype)
         for topic, log_ns, raw in out_msgs:
             out.write(topic, log_ns, raw)
+            if topic in flush_after:
+                out.flush()
     shutil.copytree(truth_dir(src), truth_dir(dst))
     return dst, truth_dir(dst) / "rig.yaml"
 

@@ -1,0 +1,163 @@
+"""Images handed out still in their compressed MCAP chunk (`DeferredData`): the same bytes, checked.
+
+The bags are written by rosbags (zstd chunks, `BagWriter`: each image closes
+its chunk, as a raw image does in a recorded bag) and by the mcap library (lz4,
+everything in one chunk); the expected bytes are those written, and a read
+without deferral, which decompresses every chunk, gives the same messages.
+"""
+
+from __future__ import annotations
+
+import filecmp
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+import pytest
+from mcap.writer import CompressionType
+from mcap.writer import Writer as McapWriter
+
+from ingest.bags import chunks
+from ingest.bags.chunks import DEFER_MIN_BYTES, DeferredData
+from ingest.bags.decode import Frame, header_stamp_ns
+from ingest.bags.reader import open_bags
+from ingest.bags.rostypes import IMAGE_TYPE, typestore
+from ingest.dataset.layout import GT_DIRS, IMAGE_DIRS
+from ingest.errors import MessageDecodeError
+from ingest.train.pipeline import IngestConfig, ingest
+from sensorbox.live.bagwriter import BagWriter
+from sensorbox.messages import image_msg
+from tests.faults.bags import LIDAR_BOTTOM, LIDAR_TOP, UPPER, raw_image, rewrite
+
+T0 = 1_700_000_000_000_000_000
+IMAGE = "/cam/image"
+INT32 = "std_msgs/msg/Int32"
+H, W = 480, 720  # 1.38 MB as bgra8: at least DEFER_MIN_BYTES
+
+
+def picture(k: int) -> np.ndarray:
+    """A compressible BGR image (colour gradients), different for each k."""
+    ramp = np.add.outer(np.arange(H), np.arange(W))[..., None] // (3, 5, 7) + 7 * k
+    return (ramp % 256).astype(np.uint8)
+
+
+def int32(k: int) -> bytes:
+    ts = typestore(2)
+    return bytes(ts.serialize_cdr(ts.types[INT32](data=k), INT32))
+
+
+def written(n: int = 4) -> list[tuple[str, int, bytes]]:
+    """(topic, log ns, bytes): per k an Int32, then an image; the last image is followed by an Int32."""
+    out = []
+    for k in range(n):
+        out.append(("/n", T0 + 10 * k, int32(k)))
+        out.append((IMAGE, T0 + 10 * k + 5, image_msg(T0 + k * 33_000_000, "cam", picture(k))))
+    out.append(("/n", T0 + 10 * n, int32(n)))  # in the last image's chunk, after it
+    return out
+
+
+def zstd_bag(tmp_path, messages):
+    """rosbags' mcap, zstd chunks; each image but the last closes its chunk."""
+    path = tmp_path / "z"
+    with BagWriter(path, "mcap", compress=True) as out:
+        out.add("/n", INT32)
+        out.add(IMAGE, IMAGE_TYPE)
+        for k, (topic, log_ns, raw) in enumerate(messages):
+            out.write(topic, log_ns, raw)
+            if topic == IMAGE and k < len(messages) - 2:
+                out.flush()
+    return path
+
+
+def lz4_bag(tmp_path, messages):
+    """The mcap library's writer, lz4: every message in one chunk."""
+    path = tmp_path / "l.mcap"
+    with path.open("wb") as f:
+        writer = McapWriter(f, compression=CompressionType.LZ4, chunk_size=64 * DEFER_MIN_BYTES)
+        writer.start(profile="ros2", library="test")
+        ids = {
+            topic: writer.register_channel(topic, "cdr", writer.register_schema(msgtype, "ros2msg", b""))
+            for topic, msgtype in (("/n", INT32), (IMAGE, IMAGE_TYPE))
+        }
+        for topic, log_ns, raw in messages:
+            writer.add_message(ids[topic], log_time=log_ns, data=raw, publish_time=log_ns)
+        writer.finish()
+    return path
+
+
+@pytest.mark.parametrize("write", [zstd_bag, lz4_bag], ids=["zstd", "lz4"])
+def test_deferred_images_are_the_written_bytes(tmp_path, write):
+    messages = written()
+    path = write(tmp_path, messages)
+    with open_bags(path) as bags:
+        plain = list(bags.messages())
+        deferring = list(bags.messages(defer=[IMAGE]))
+        images_only = list(bags.messages(topics=[IMAGE], defer=[IMAGE]))
+    assert [(m.topic, m.log_ns, bytes(m.raw)) for m in plain] == messages
+    assert not any(m.deferred for m in plain)
+    assert [(m.topic, m.log_ns, bytes(m.data())) for m in deferring] == messages
+    deferred = [m.deferred is not None for m in deferring if m.topic == IMAGE]
+    deferred_alone = [m.deferred is not None for m in images_only]
+    if write is zstd_bag:  # each image ends its chunk
+        assert deferred == deferred_alone == [True] * 4
+    else:  # one chunk: only its last wanted message can stay compressed
+        assert deferred == [False] * 4  # an Int32 follows the last image
+        assert deferred_alone == [False, False, False, True]
+    assert [(m.log_ns, bytes(m.data())) for m in images_only] == [
+        (t, r) for c, t, r in messages if c == IMAGE
+    ]
+    for m in images_only:
+        assert m.stamp("bag") == header_stamp_ns(m.data(), 2)
+        frame = m.decoded("bag")
+        assert isinstance(frame, Frame)
+        assert np.array_equal(frame.image, picture((m.log_ns - T0) // 10))
+
+
+def test_a_deferred_chunk_that_no_longer_checks_is_an_undecodable_message(tmp_path):
+    """Bytes that changed after the chunk was checked: one error naming the file, chunk, topic and time."""
+    path = zstd_bag(tmp_path, written(2))
+    with open_bags(path) as bags:
+        msg = next(m for m in bags.messages(topics=[IMAGE], defer=[IMAGE]))
+    assert msg.deferred is not None and len(msg.raw) < 100 < len(msg.data())  # raw: the header only
+    data = bytearray(msg.deferred.compressed)
+    data[len(data) // 2] ^= 0xFF
+    damaged = msg._replace(deferred=replace(msg.deferred, compressed=bytes(data)))
+    with pytest.raises(MessageDecodeError) as err:
+        damaged.decoded("the bag")
+    text = str(err.value)
+    assert text.startswith(f"the bag: {IMAGE} at log time ")
+    assert f"{path}" in text and "chunk at byte " in text
+
+
+def test_ingest_writes_the_same_files_with_its_images_left_in_their_chunks(tmp_path, monkeypatch):
+    """The fixture with raw upper images, each closing its zstd chunk (sweeps in chunks of their own):
+    read whole, and left compressed for the workers (`DEFER_MIN_BYTES` lowered to take the fixture's
+    576 kB images)."""
+
+    def keep(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        return [(UPPER, raw_image(raw))] if topic.startswith("/zed_upper") else [(topic, raw)]
+
+    bag, rig = rewrite(tmp_path / "raw", keep, flush_after=[UPPER, LIDAR_TOP, LIDAR_BOTTOM])
+    real = chunks._deferred
+    deferred: dict[str, list[int]] = {}
+    for name, min_bytes, workers in (("whole", DEFER_MIN_BYTES, 1), ("deferred", 1024, 2)):
+        times = deferred[name] = []
+
+        def counting(*args: Any, **kwargs: Any) -> Any:
+            found = real(*args, **kwargs)
+            times.extend(m.timestamp for m in found or () if isinstance(m.data, DeferredData))  # noqa: B023
+            return found
+
+        monkeypatch.setattr(chunks, "DEFER_MIN_BYTES", min_bytes)
+        monkeypatch.setattr(chunks, "_deferred", counting)
+        cfg = IngestConfig(rig=rig, out=tmp_path / name, workers=workers, every=4, height_full=64)
+        assert ingest([bag], cfg).written == 6
+    with open_bags(bag) as bags:
+        uppers = [m.log_ns for m in bags.messages(topics=[UPPER])]
+    assert deferred["whole"] == []
+    assert deferred["deferred"] == uppers  # every upper image, in the stream pass only
+    a, b = tmp_path / "whole", tmp_path / "deferred"
+    for sub in (*IMAGE_DIRS, *GT_DIRS, "meta"):
+        names = sorted(p.name for p in (a / sub).iterdir())
+        match, mismatch, errs = filecmp.cmpfiles(a / sub, b / sub, names, shallow=False)
+        assert not mismatch and not errs and len(match) == 6, (sub, mismatch)
