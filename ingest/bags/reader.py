@@ -491,8 +491,11 @@ class BagSet:
         and topics whose type cannot be decoded safely (asked for by name,
         skipped ones too), raise `BagError` here, before any message is read.
         A large message of a `defer` topic that ends its MCAP chunk may come
-        still compressed (`DeferredData`, `ingest.bags.chunks.chunk_messages`):
-        for a read after one that checked every chunk. One such read at a time.
+        still compressed (`RawMessage.deferred`, `ingest.bags.chunks.chunk_messages`):
+        for a read after one that checked every chunk. The readers are told
+        when the read starts and until it ends; a read interleaved with it may
+        be handed deferred messages too, which it decompresses here, so only a
+        read that asked gets `deferred` messages.
         """
         names = self.topics()
         wanted = set(names) - set(self.skipped) if topics is None else set(topics)
@@ -519,11 +522,14 @@ class BagSet:
         self, conns: list[Any], start_ns: int | None, stop_ns: int | None, defer: frozenset[str]
     ) -> Iterator[RawMessage]:
         assert self._reader is not None
-        self._guard.defer_topics = defer  # the MCAP readers look when this read starts
+        if defer:
+            self._guard.defer_topics = defer  # the MCAP readers look when they start reading
         try:
             for conn, log_ns, raw in self._reader.messages(connections=conns, start=start_ns, stop=stop_ns):
-                if isinstance(raw, DeferredData):
+                if isinstance(raw, DeferredData) and conn.topic in defer:
                     yield RawMessage(conn.topic, conn.msgtype, log_ns, raw.head, self.ros_version, raw)
+                elif isinstance(raw, DeferredData):  # asked for by another read running beside this one
+                    yield RawMessage(conn.topic, conn.msgtype, log_ns, raw.data(), self.ros_version)
                 else:
                     yield RawMessage(conn.topic, conn.msgtype, log_ns, raw, self.ros_version)
         except SensorboxError:
@@ -531,7 +537,8 @@ class BagSet:
         except Exception as err:  # rosbags raises its own errors, OSError, struct.error, ...
             raise BagError(f"{self._where}: reading messages failed: {type(err).__name__}: {err}") from err
         finally:
-            self._guard.defer_topics = frozenset()
+            if defer:
+                self._guard.defer_topics = frozenset()
 
 
 def _time_window(

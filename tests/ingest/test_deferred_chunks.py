@@ -161,3 +161,18 @@ def test_ingest_writes_the_same_files_with_its_images_left_in_their_chunks(tmp_p
         names = sorted(p.name for p in (a / sub).iterdir())
         match, mismatch, errs = filecmp.cmpfiles(a / sub, b / sub, names, shallow=False)
         assert not mismatch and not errs and len(match) == 6, (sub, mismatch)
+
+
+def test_a_read_beside_a_deferring_one_gets_whole_messages(tmp_path):
+    """The readers share what to defer: an interleaved read that did not ask still gets every byte."""
+    messages = written()
+    with open_bags(zstd_bag(tmp_path, messages)) as bags:
+        deferring = bags.messages(topics=[IMAGE], defer=[IMAGE])
+        first = next(deferring)  # this read has told the readers to defer
+        beside = list(bags.messages(topics=[IMAGE]))
+        rest = list(deferring)
+    assert first.deferred is not None and all(m.deferred is not None for m in rest)
+    assert not any(m.deferred for m in beside)
+    images = [(t, r) for c, t, r in messages if c == IMAGE]
+    assert [(m.log_ns, bytes(m.raw)) for m in beside] == images
+    assert [(m.log_ns, bytes(m.data())) for m in [first, *rest]] == images
