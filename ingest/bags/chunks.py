@@ -18,13 +18,18 @@ Public API:
   messages in time order, walked in place. Both readers hand out a message of
   `COPY_BELOW_BYTES` or more as a memoryview into its decompressed chunk (no
   copy of an image), a smaller one as bytes.
+- Each MCAP chunk is decompressed whole and checked the first time a bag
+  set reads it (`ChunkGuard.checked`). A later read of a checked chunk
+  decompresses it only as far as its wanted messages reach, found through
+  its MessageIndex records: the ingest's later passes read a sweep or an IMU
+  sample without the raw image that shares its chunk.
 - `DeferredData`: a message still in its compressed MCAP chunk. Asked for
-  (`ChunkGuard.defer_topics`), the last wanted message of a chunk, when it is
-  at least `DEFER_MIN_BYTES` and no smaller than the chunk's compressed bytes,
-  comes this way: the reader decompresses only the records before it and the
-  first bytes of its data (its header stamp), and whoever calls `data()`
-  decompresses and checks the whole chunk. The ingest's stream pass hands
-  camera images to its workers so (`ingest.train.stream`).
+  (`ChunkGuard.defer_topics`), the last wanted message of a checked chunk,
+  when it is at least `DEFER_MIN_BYTES` and no smaller than the chunk's
+  compressed bytes, comes this way: the reader decompresses only the records
+  before it and the first bytes of its data (its header stamp), and whoever
+  calls `data()` decompresses and checks the whole chunk. The ingest's
+  stream pass hands camera images to its workers so (`ingest.train.stream`).
 
 What can be checked depends on the format. An MCAP chunk carries the CRC-32
 of its records (every mcap SensorBox writes sets it; 0 means "not computed")
@@ -156,6 +161,8 @@ class ChunkGuard:
     defer_topics: frozenset[str] = frozenset()
     """Topics whose large messages an MCAP reader may hand out as `DeferredData` (set for one read by
     `BagSet.messages(defer=...)`)."""
+    checked: set[tuple[Path, int]] = field(default_factory=set)
+    """MCAP chunks read whole and found intact, by (file, byte offset): later reads may read part."""
 
     def report(self, chunk: LostChunk) -> None:
         """Raise, or (skip) log one warning line the first time and record the chunk."""
@@ -197,11 +204,15 @@ class CheckedMcapReader(McapReader):
         if self.guard.is_lost(path, chunk.chunk_start_offset):
             return
         assert self.bio is not None
-        try:
-            found = chunk_messages(self.bio, chunk, channels, start, stop, defer, str(path))  # all or nothing
+        key = (path, chunk.chunk_start_offset)
+        try:  # all or nothing
+            found = chunk_messages(
+                self.bio, chunk, channels, start, stop, key in self.guard.checked, defer, str(path)
+            )
         except Exception as err:  # checksum, size, decompressor and record errors of damaged bytes
             self.guard.report(self._lost(chunk, err))
             return
+        self.guard.checked.add(key)
         yield from found
 
     def messages(
@@ -260,7 +271,7 @@ _MESSAGE_HEAD = struct.Struct("<HIQQ")  # channel id, sequence, log time, publis
 
 
 def _walk(
-    records: bytes, end: int, chunk: ChunkInfo, channels: Mapping[int, Any], start: int, stop: int
+    records: bytes | bytearray, end: int, chunk: ChunkInfo, channels: Mapping[int, Any], start: int, stop: int
 ) -> list[Msg]:
     """The messages of `channels` with log time in [start, stop) among the records in [0, end).
 
@@ -299,7 +310,7 @@ def _compressed(bio: Any, chunk: ChunkInfo) -> tuple[bytes, int]:
 
 
 def chunk_messages(
-    bio: Any, chunk: ChunkInfo, channels: Mapping[int, Any], start: int, stop: int,
+    bio: Any, chunk: ChunkInfo, channels: Mapping[int, Any], start: int, stop: int, checked: bool = False,
     defer: Collection[int] = (), where: str = "",
 ) -> list[Msg]:  # fmt: skip
     """The messages of `channels` in one MCAP chunk with log time in [start, stop), in time order.
@@ -310,12 +321,13 @@ def chunk_messages(
     sample) is copied, so a buffered sweep never keeps a whole chunk of
     images alive. A record that overruns the chunk raises `ChunkDataError`.
 
-    When the last wanted message is on a channel of `defer` and large enough
-    (`_deferred`), it comes as `DeferredData` (`where` names the file in its
-    errors) and only the records before it are decompressed, unchecked: the
-    CRC is checked by `DeferredData.data`, which decompresses the whole chunk.
+    A chunk already `checked` (read whole and intact before) is decompressed
+    only up to its last wanted message (`_partial`). That message, when on a
+    channel of `defer` and large enough, comes as `DeferredData` (`where`
+    names the file in its errors): only the records before it and its header
+    are decompressed, and `DeferredData.data` decompresses and checks the rest.
     """
-    if defer and (found := _deferred(bio, chunk, channels, start, stop, defer, where)) is not None:
+    if checked and (found := _partial(bio, chunk, channels, start, stop, defer, where)) is not None:
         return found
     compressed, crc = _compressed(bio, chunk)
     records = decompress_checked(compressed, chunk.compression, chunk.uncompressed_size, crc)
@@ -326,12 +338,34 @@ def chunk_messages(
 
 DEFER_MIN_BYTES = 1 << 20
 """A message at least this large may be handed out still compressed (`DeferredData`)."""
+PARTIAL_AT_MOST = 0.9
+"""A checked chunk is decompressed in part only when its wanted messages end before this fraction of it
+(beyond, one whole decompression is as fast as a streamed one)."""
 _HEAD_BYTES = 64  # of a deferred message's data, decompressed: its header stamp (`header_stamp_ns`)
 _MESSAGE_INDEX = 0x07
-_PREFIX: dict[str, Any] = {  # the first n bytes of a chunk's records, decompressing no more than that
-    "zstd": lambda data, n: ZstdDecompressor().decompress(data, max_length=n),
-    "lz4": lambda data, n: lz4.frame.LZ4FrameDecompressor().decompress(data, max_length=n),
+_STREAMING: dict[str, Any] = {  # decompressors that stop at a given output length and go on from there
+    "zstd": ZstdDecompressor,
+    "lz4": lz4.frame.LZ4FrameDecompressor,
 }
+
+
+class _Prefix:
+    """A compressed chunk's records, decompressed only as far as asked."""
+
+    def __init__(self, compression: str, data: bytes) -> None:
+        self._decompressor = _STREAMING[compression]()
+        self._data = data
+        self.records = bytearray()
+
+    def upto(self, n: int) -> bytearray:
+        """The first n bytes of the records (fewer when the chunk ends before)."""
+        while len(self.records) < n:
+            more = self._decompressor.decompress(self._data, max_length=n - len(self.records))
+            self._data = b""  # fed once; later calls take what the decompressor still holds
+            if not more:
+                break
+            self.records += more
+        return self.records
 
 
 @dataclass(frozen=True)
@@ -378,41 +412,47 @@ def _message_index(
     return out
 
 
-def _deferred(
+def _partial(
     bio: Any, chunk: ChunkInfo, channels: Mapping[int, Any], start: int, stop: int, defer: Collection[int],
     where: str,
 ) -> list[Msg] | None:  # fmt: skip
-    """`chunk_messages` with its last wanted message as `DeferredData`, or None when that does not
-    apply: not on a `defer` channel, under `DEFER_MIN_BYTES`, smaller than the compressed chunk, a
-    compression without partial decompression, or an index that does not match the records."""
-    if chunk.compression not in _PREFIX or not any(chunk.channel_count.get(c, 0) for c in defer):
+    """`chunk_messages` of a checked chunk, decompressed up to its last wanted message (that message as
+    `DeferredData` when on a `defer` channel, at least `DEFER_MIN_BYTES` and no smaller than the
+    compressed chunk); None when it is better or only possible read whole: a compression that cannot
+    stop part way, no usable index, or wanted messages reaching past `PARTIAL_AT_MOST` of the chunk."""
+    if chunk.compression not in _STREAMING:
         return None
     try:
         index = _message_index(bio, chunk, channels)
-        wanted = sorted(e for e in index or () if start <= e[2] < stop)
-        if index is None or not wanted or wanted[-1][1] not in defer:
+        if index is None:
             return None
+        wanted = sorted(e for e in index if start <= e[2] < stop)
+        if not wanted:
+            return []
         at, channel_id, log_ns = wanted[-1]
         data_at = at + 9 + _MESSAGE_HEAD.size
         compressed, crc = _compressed(bio, chunk)
-        records = _PREFIX[chunk.compression](compressed, min(data_at + _HEAD_BYTES, chunk.uncompressed_size))
+        prefix = _Prefix(chunk.compression, compressed)
+        records = prefix.upto(data_at + _HEAD_BYTES)
         if len(records) < data_at:
             return None
         op, length = records[at], int.from_bytes(records[at + 1 : at + 9], "little")
         got, _, got_ns, _ = _MESSAGE_HEAD.unpack_from(records, at + 9)
-        size = length - _MESSAGE_HEAD.size
-        if (op, got, got_ns) != (_MESSAGE, channel_id, log_ns) or at + 9 + length > chunk.uncompressed_size:
+        end, size = at + 9 + length, length - _MESSAGE_HEAD.size
+        if (op, got, got_ns) != (_MESSAGE, channel_id, log_ns) or end > chunk.uncompressed_size:
             return None
-        if size < DEFER_MIN_BYTES or len(compressed) > size:
+        if channel_id in defer and size >= DEFER_MIN_BYTES and len(compressed) <= size:
+            found = _walk(records, at, chunk, channels, start, stop)
+            head = bytes(records[data_at : data_at + _HEAD_BYTES])
+            data = DeferredData(f"{where}: chunk at byte {chunk.chunk_start_offset}", chunk.compression,
+                                compressed, chunk.uncompressed_size, crc, data_at, size, head)  # fmt: skip
+            found.append(Msg(log_ns, chunk.chunk_start_offset, channels[channel_id], data))  # type: ignore[arg-type]
+        elif end <= PARTIAL_AT_MOST * chunk.uncompressed_size:
+            found = _walk(prefix.upto(end), end, chunk, channels, start, stop)
+        else:
             return None
-        found = _walk(records, at, chunk, channels, start, stop)
     except Exception:  # a damaged index or prefix: the whole chunk is read and checked instead
         return None
-    data = DeferredData(
-        f"{where}: chunk at byte {chunk.chunk_start_offset}", chunk.compression, compressed,
-        chunk.uncompressed_size, crc, data_at, size, bytes(records[data_at : data_at + _HEAD_BYTES]),
-    )  # fmt: skip
-    found.append(Msg(log_ns, chunk.chunk_start_offset, channels[channel_id], data))  # type: ignore[arg-type]
     found.sort(key=lambda m: m.timestamp)
     return found
 

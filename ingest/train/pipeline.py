@@ -25,13 +25,15 @@ the whole bag is an error), and a corrupt chunk must stop the run before
 anything is written, which only a read of every chunk can promise. Neither
 pass decodes an image: the plan pass reads the camera messages' header
 stamps, the stream pass hands their stored bytes to the workers. An MCAP
-chunk is one compressed block, so the plan pass decompresses all of it. The
-stream pass does not repeat that for an image that ends its chunk (a raw
-image fills one): it decompresses the records before the image and the
-image's header, found through the chunk's message index, and the job carries
-the chunk's compressed bytes, which the worker decompresses and checks
-(`ingest.bags.chunks.DeferredData`). On a raw-image zstd bag that took the
-main process from about 240 to 165 ms of CPU a sample (2 workers).
+chunk is one compressed block, so the plan pass decompresses all of it and
+checks its CRC. The later passes (trajectory, stream) decompress a checked
+chunk only as far as their wanted messages reach, found through the chunk's
+message index (`ingest.bags.chunks`): a sweep or an IMU reading logged before
+a raw image in the same chunk costs no decompression of the image. An image
+that ends its chunk travels as the chunk's compressed bytes, which the worker
+decompresses and checks (`ingest.bags.chunks.DeferredData`): on a raw-image
+zstd bag that took the main process from about 240 to 165 ms of CPU a sample
+(2 workers).
 """
 
 from __future__ import annotations

@@ -20,7 +20,7 @@ from mcap.writer import Writer as McapWriter
 from ingest.bags import chunks
 from ingest.bags.chunks import DEFER_MIN_BYTES, DeferredData
 from ingest.bags.decode import Frame, header_stamp_ns
-from ingest.bags.reader import open_bags
+from ingest.bags.reader import CorruptChunkError, open_bags
 from ingest.bags.rostypes import IMAGE_TYPE, typestore
 from ingest.dataset.layout import GT_DIRS, IMAGE_DIRS
 from ingest.errors import MessageDecodeError
@@ -28,6 +28,7 @@ from ingest.train.pipeline import IngestConfig, ingest
 from sensorbox.live.bagwriter import BagWriter
 from sensorbox.messages import image_msg
 from tests.faults.bags import LIDAR_BOTTOM, LIDAR_TOP, UPPER, raw_image, rewrite
+from tests.ingest.mcap_layout import chunk_offsets
 
 T0 = 1_700_000_000_000_000_000
 IMAGE = "/cam/image"
@@ -90,11 +91,13 @@ def test_deferred_images_are_the_written_bytes(tmp_path, write):
     messages = written()
     path = write(tmp_path, messages)
     with open_bags(path) as bags:
+        first = list(bags.messages(defer=[IMAGE]))  # no chunk is checked yet: all are read whole
         plain = list(bags.messages())
         deferring = list(bags.messages(defer=[IMAGE]))
         images_only = list(bags.messages(topics=[IMAGE], defer=[IMAGE]))
-    assert [(m.topic, m.log_ns, bytes(m.raw)) for m in plain] == messages
-    assert not any(m.deferred for m in plain)
+    for read in (first, plain):
+        assert [(m.topic, m.log_ns, bytes(m.raw)) for m in read] == messages
+        assert not any(m.deferred for m in read)
     assert [(m.topic, m.log_ns, bytes(m.data())) for m in deferring] == messages
     deferred = [m.deferred is not None for m in deferring if m.topic == IMAGE]
     deferred_alone = [m.deferred is not None for m in images_only]
@@ -117,6 +120,7 @@ def test_a_deferred_chunk_that_no_longer_checks_is_an_undecodable_message(tmp_pa
     """Bytes that changed after the chunk was checked: one error naming the file, chunk, topic and time."""
     path = zstd_bag(tmp_path, written(2))
     with open_bags(path) as bags:
+        list(bags.messages())  # checks every chunk
         msg = next(m for m in bags.messages(topics=[IMAGE], defer=[IMAGE]))
     assert msg.deferred is not None and len(msg.raw) < 100 < len(msg.data())  # raw: the header only
     data = bytearray(msg.deferred.compressed)
@@ -138,7 +142,7 @@ def test_ingest_writes_the_same_files_with_its_images_left_in_their_chunks(tmp_p
         return [(UPPER, raw_image(raw))] if topic.startswith("/zed_upper") else [(topic, raw)]
 
     bag, rig = rewrite(tmp_path / "raw", keep, flush_after=[UPPER, LIDAR_TOP, LIDAR_BOTTOM])
-    real = chunks._deferred
+    real = chunks._partial
     deferred: dict[str, list[int]] = {}
     for name, min_bytes, workers in (("whole", DEFER_MIN_BYTES, 1), ("deferred", 1024, 2)):
         times = deferred[name] = []
@@ -149,7 +153,7 @@ def test_ingest_writes_the_same_files_with_its_images_left_in_their_chunks(tmp_p
             return found
 
         monkeypatch.setattr(chunks, "DEFER_MIN_BYTES", min_bytes)
-        monkeypatch.setattr(chunks, "_deferred", counting)
+        monkeypatch.setattr(chunks, "_partial", counting)
         cfg = IngestConfig(rig=rig, out=tmp_path / name, workers=workers, every=4, height_full=64)
         assert ingest([bag], cfg).written == 6
     with open_bags(bag) as bags:
@@ -167,6 +171,7 @@ def test_a_read_beside_a_deferring_one_gets_whole_messages(tmp_path):
     """The readers share what to defer: an interleaved read that did not ask still gets every byte."""
     messages = written()
     with open_bags(zstd_bag(tmp_path, messages)) as bags:
+        list(bags.messages())  # checks every chunk
         deferring = bags.messages(topics=[IMAGE], defer=[IMAGE])
         first = next(deferring)  # this read has told the readers to defer
         beside = list(bags.messages(topics=[IMAGE]))
@@ -176,3 +181,40 @@ def test_a_read_beside_a_deferring_one_gets_whole_messages(tmp_path):
     images = [(t, r) for c, t, r in messages if c == IMAGE]
     assert [(m.log_ns, bytes(m.raw)) for m in beside] == images
     assert [(m.log_ns, bytes(m.data())) for m in [first, *rest]] == images
+
+
+def test_a_checked_chunk_is_read_only_as_far_as_its_wanted_messages(tmp_path, monkeypatch):
+    """Chunks [Int32, image] x 4 and [Int32]: the first read of the Int32s decompresses and checks each
+    chunk whole, a second one only the one whose Int32 ends it."""
+    messages = written()
+    path = zstd_bag(tmp_path, messages)
+    whole: list[int] = []
+    real = chunks.decompress_checked
+
+    def counting(data: bytes, compression: str, size: int, crc: int) -> bytes:
+        whole.append(size)
+        return real(data, compression, size, crc)
+
+    monkeypatch.setattr(chunks, "decompress_checked", counting)
+    with open_bags(path) as bags:
+        first = list(bags.messages(topics=["/n"]))
+        checked = len(whole)
+        again = list(bags.messages(topics=["/n"]))
+    ints = [(t, r) for c, t, r in messages if c == "/n"]
+    assert [(m.log_ns, bytes(m.raw)) for m in first] == [(m.log_ns, bytes(m.raw)) for m in again] == ints
+    assert checked == 5 and min(whole[:4]) > DEFER_MIN_BYTES  # the four image chunks, read whole once
+    assert len(whole) == 6 and whole[5] < 100  # again: the last chunk, a lone Int32
+
+
+def test_the_first_read_finds_damage_past_its_wanted_messages(tmp_path):
+    """Damage in an image's bytes is found by a read that wants only the Int32 before it in the chunk."""
+    path = zstd_bag(tmp_path, written())
+    mcap = path / f"{path.name}.mcap"
+    data = bytearray(mcap.read_bytes())
+    first = chunk_offsets(data)[0]
+    records = first + 9 + 8 + 8 + 8 + 4 + 4 + len("zstd") + 8  # the first chunk's compressed records
+    size = int.from_bytes(data[records - 8 : records], "little")
+    data[records + 3 * size // 4] ^= 0xFF  # well past the Int32 at its start
+    mcap.write_bytes(bytes(data))
+    with open_bags(path) as bags, pytest.raises(CorruptChunkError, match=f"corrupt chunk at byte {first} "):
+        list(bags.messages(topics=["/n"]))
