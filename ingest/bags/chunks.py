@@ -19,10 +19,13 @@ Public API:
   `COPY_BELOW_BYTES` or more as a memoryview into its decompressed chunk (no
   copy of an image), a smaller one as bytes.
 - Each MCAP chunk is decompressed whole and checked the first time a bag
-  set reads it (`ChunkGuard.checked`). A later read of a checked chunk
-  decompresses it only as far as its wanted messages reach, found through
-  its MessageIndex records: the ingest's later passes read a sweep or an IMU
-  sample without the raw image that shares its chunk.
+  set reads it; when its MessageIndex records (which the CRC does not
+  cover) list exactly its message records, it is `ChunkGuard.checked`. A
+  later read of a checked chunk decompresses it only as far as its wanted
+  messages reach, found through that index: the ingest's later passes read
+  a sweep or an IMU sample without the raw image that shares its chunk.
+  Such a read does not check the CRC again, so it relies on the file not
+  changing while the bag set is open (as the ingest's passes do).
 - `DeferredData`: a message still in its compressed MCAP chunk. Asked for
   (`ChunkGuard.defer_topics`), the last wanted message of a checked chunk,
   when it is at least `DEFER_MIN_BYTES` and no smaller than the chunk's
@@ -206,13 +209,14 @@ class CheckedMcapReader(McapReader):
         assert self.bio is not None
         key = (path, chunk.chunk_start_offset)
         try:  # all or nothing
-            found = chunk_messages(
+            found, indexed = chunk_messages(
                 self.bio, chunk, channels, start, stop, key in self.guard.checked, defer, str(path)
             )
         except Exception as err:  # checksum, size, decompressor and record errors of damaged bytes
             self.guard.report(self._lost(chunk, err))
             return
-        self.guard.checked.add(key)
+        if indexed:
+            self.guard.checked.add(key)
         yield from found
 
     def messages(
@@ -271,14 +275,16 @@ _MESSAGE_HEAD = struct.Struct("<HIQQ")  # channel id, sequence, log time, publis
 
 
 def _walk(
-    records: bytes | bytearray, end: int, chunk: ChunkInfo, channels: Mapping[int, Any], start: int, stop: int
-) -> list[Msg]:
+    records: bytes | bytearray, end: int, chunk: ChunkInfo, channels: Mapping[int, Any], start: int,
+    stop: int, every: list[tuple[int, int, int]] | None = None,
+) -> list[Msg]:  # fmt: skip
     """The messages of `channels` with log time in [start, stop) among the records in [0, end).
 
-    A large message is a memoryview into `records`, a small one a copy. A
-    record that overruns `end` raises `ChunkDataError`.
+    A large message is a read-only memoryview into `records`, a small one a
+    copy. A record that overruns `end` raises `ChunkDataError`. `every`, when
+    given, gets (offset, channel, log ns) of every message record, wanted or not.
     """
-    view = memoryview(records)
+    view = memoryview(records).toreadonly()
     found: list[Msg] = []
     pos = 0
     while pos < end:
@@ -293,6 +299,8 @@ def _walk(
         if length < _MESSAGE_HEAD.size:
             raise ChunkDataError(f"message record of {length} bytes at chunk offset {body - 9}")
         channel_id, _, log_ns, _ = _MESSAGE_HEAD.unpack_from(records, body)
+        if every is not None:
+            every.append((body - 9, channel_id, log_ns))
         if start <= log_ns < stop and channel_id in channels:
             data = view[body + _MESSAGE_HEAD.size : pos]
             found.append(Msg(log_ns, chunk.chunk_start_offset, channels[channel_id],
@@ -312,8 +320,9 @@ def _compressed(bio: Any, chunk: ChunkInfo) -> tuple[bytes, int]:
 def chunk_messages(
     bio: Any, chunk: ChunkInfo, channels: Mapping[int, Any], start: int, stop: int, checked: bool = False,
     defer: Collection[int] = (), where: str = "",
-) -> list[Msg]:  # fmt: skip
-    """The messages of `channels` in one MCAP chunk with log time in [start, stop), in time order.
+) -> tuple[list[Msg], bool]:  # fmt: skip
+    """The messages of `channels` in one MCAP chunk with log time in [start, stop), in time order, and
+    whether a later read may take the chunk in part.
 
     The records are decompressed and CRC-checked once (`decompress_checked`)
     and walked in place: a large message (an image) is a memoryview into the
@@ -321,19 +330,29 @@ def chunk_messages(
     sample) is copied, so a buffered sweep never keeps a whole chunk of
     images alive. A record that overruns the chunk raises `ChunkDataError`.
 
-    A chunk already `checked` (read whole and intact before) is decompressed
-    only up to its last wanted message (`_partial`). That message, when on a
-    channel of `defer` and large enough, comes as `DeferredData` (`where`
-    names the file in its errors): only the records before it and its header
-    are decompressed, and `DeferredData.data` decompresses and checks the rest.
+    A later read may take a chunk in part when this whole read found it
+    intact, its compression can stop part way, and its MessageIndex records
+    (outside the CRC) list exactly its message records. A chunk already
+    `checked` so is decompressed only up to its last wanted message
+    (`_partial`). That message, when on a channel of `defer` and large
+    enough, comes as `DeferredData` (`where` names the file in its errors):
+    only the records before it and its header are decompressed, and
+    `DeferredData.data` decompresses and checks the rest.
     """
     if checked and (found := _partial(bio, chunk, channels, start, stop, defer, where)) is not None:
-        return found
+        return found, True
     compressed, crc = _compressed(bio, chunk)
     records = decompress_checked(compressed, chunk.compression, chunk.uncompressed_size, crc)
-    found = _walk(records, len(records), chunk, channels, start, stop)
+    every: list[tuple[int, int, int]] = []
+    found = _walk(records, len(records), chunk, channels, start, stop, every)
     found.sort(key=lambda m: m.timestamp)
-    return found
+    if chunk.compression not in _STREAMING:
+        return found, False
+    try:
+        index = _message_index(bio, chunk, chunk.message_index_offsets)
+    except Exception:  # an index that does not parse: this chunk is always read whole
+        index = None
+    return found, index is not None and sorted(index) == sorted(every)
 
 
 DEFER_MIN_BYTES = 1 << 20
@@ -358,8 +377,8 @@ class _Prefix:
         self.records = bytearray()
 
     def upto(self, n: int) -> bytearray:
-        """The first n bytes of the records (fewer when the chunk ends before)."""
-        while len(self.records) < n:
+        """The first n bytes of the records (fewer when the compressed frame ends before)."""
+        while len(self.records) < n and not self._decompressor.eof:
             more = self._decompressor.decompress(self._data, max_length=n - len(self.records))
             self._data = b""  # fed once; later calls take what the decompressor still holds
             if not more:
@@ -407,6 +426,8 @@ def _message_index(
         op, length, got, n = struct.unpack("<BQHI", read_exact(bio, 15))
         if op != _MESSAGE_INDEX or got != channel_id or n % 16 or length != 6 + n:
             return None
+        if n > chunk.message_index_length:
+            return None
         entries = struct.iter_unpack("<QQ", read_exact(bio, n))  # (log time, offset)
         out += [(offset, channel_id, log_ns) for log_ns, offset in entries]
     return out
@@ -447,8 +468,8 @@ def _partial(
             data = DeferredData(f"{where}: chunk at byte {chunk.chunk_start_offset}", chunk.compression,
                                 compressed, chunk.uncompressed_size, crc, data_at, size, head)  # fmt: skip
             found.append(Msg(log_ns, chunk.chunk_start_offset, channels[channel_id], data))  # type: ignore[arg-type]
-        elif end <= PARTIAL_AT_MOST * chunk.uncompressed_size:
-            found = _walk(prefix.upto(end), end, chunk, channels, start, stop)
+        elif end <= PARTIAL_AT_MOST * chunk.uncompressed_size and len(prefix.upto(end)) >= end:
+            found = _walk(prefix.records, end, chunk, channels, start, stop)
         else:
             return None
     except Exception:  # a damaged index or prefix: the whole chunk is read and checked instead

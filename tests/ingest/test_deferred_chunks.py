@@ -86,6 +86,19 @@ def lz4_bag(tmp_path, messages):
     return path
 
 
+def count_whole_reads(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """The size of each chunk read whole from now on (`decompress_checked` calls), in order."""
+    whole: list[int] = []
+    real = chunks.decompress_checked
+
+    def counting(data: bytes, compression: str, size: int, crc: int) -> bytes:
+        whole.append(size)
+        return real(data, compression, size, crc)
+
+    monkeypatch.setattr(chunks, "decompress_checked", counting)
+    return whole
+
+
 @pytest.mark.parametrize("write", [zstd_bag, lz4_bag], ids=["zstd", "lz4"])
 def test_deferred_images_are_the_written_bytes(tmp_path, write):
     messages = written()
@@ -188,14 +201,7 @@ def test_a_checked_chunk_is_read_only_as_far_as_its_wanted_messages(tmp_path, mo
     chunk whole, a second one only the one whose Int32 ends it."""
     messages = written()
     path = zstd_bag(tmp_path, messages)
-    whole: list[int] = []
-    real = chunks.decompress_checked
-
-    def counting(data: bytes, compression: str, size: int, crc: int) -> bytes:
-        whole.append(size)
-        return real(data, compression, size, crc)
-
-    monkeypatch.setattr(chunks, "decompress_checked", counting)
+    whole = count_whole_reads(monkeypatch)
     with open_bags(path) as bags:
         first = list(bags.messages(topics=["/n"]))
         checked = len(whole)
@@ -218,3 +224,37 @@ def test_the_first_read_finds_damage_past_its_wanted_messages(tmp_path):
     mcap.write_bytes(bytes(data))
     with open_bags(path) as bags, pytest.raises(CorruptChunkError, match=f"corrupt chunk at byte {first} "):
         list(bags.messages(topics=["/n"]))
+
+
+def test_a_chunk_whose_message_index_disagrees_is_always_read_whole(tmp_path, monkeypatch):
+    """MessageIndex records lie outside the chunk's CRC: one whose log time was damaged must not make
+    a later read stop early and lose the message it misplaces."""
+    path = tmp_path / "i.mcap"
+    ints = [(T0 + 100, int32(1)), (T0 + 200, int32(2))]
+    with path.open("wb") as f:
+        writer = McapWriter(f, compression=CompressionType.ZSTD, chunk_size=64 * DEFER_MIN_BYTES)
+        writer.start(profile="ros2", library="test")
+        n = writer.register_channel("/n", "cdr", writer.register_schema(INT32, "ros2msg", b""))
+        image = writer.register_channel(
+            "/cam/image", "cdr", writer.register_schema(IMAGE_TYPE, "ros2msg", b"")
+        )
+        for log_ns, raw in ints:
+            writer.add_message(n, log_time=log_ns, data=raw, publish_time=log_ns)
+        picture_raw = image_msg(T0, "cam", picture(0))
+        writer.add_message(image, log_time=T0 + 300, data=picture_raw, publish_time=T0 + 300)
+        writer.finish()
+    data = bytearray(path.read_bytes())
+    pos = 8
+    while data[pos] != 0x02:  # up to the Footer: the MessageIndex (0x07) of channel /n
+        length = int.from_bytes(data[pos + 1 : pos + 9], "little")
+        if data[pos] == 0x07 and int.from_bytes(data[pos + 9 : pos + 11], "little") == n:
+            second = pos + 15 + 16  # its entries (log time u64, offset u64) start after 15 bytes
+            assert int.from_bytes(data[second : second + 8], "little") == T0 + 200
+            data[second + 5] ^= 0x01  # + 2^40 ns: the log time lies 18 minutes on, past the chunk's end
+        pos += 9 + length
+    path.write_bytes(bytes(data))
+    whole = count_whole_reads(monkeypatch)
+    with open_bags(path) as bags:
+        reads = [[(m.log_ns, bytes(m.raw)) for m in bags.messages(topics=["/n"])] for _ in range(2)]
+    assert reads == [ints, ints]
+    assert len(whole) == 2  # the second read too
