@@ -49,9 +49,12 @@ from __future__ import annotations
 
 import heapq
 import logging
+import os
 import struct
 import sys
-from collections.abc import Collection, Generator, Iterator, Mapping, Sequence
+from collections import deque
+from collections.abc import Callable, Collection, Generator, Iterator, Mapping, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from io import BytesIO
 from pathlib import Path
@@ -166,6 +169,9 @@ class ChunkGuard:
     `BagSet.messages(defer=...)`)."""
     checked: set[tuple[Path, int]] = field(default_factory=set)
     """MCAP chunks read whole and found intact, by (file, byte offset): later reads may read part."""
+    readahead: int = 0
+    """Threads that decompress the chunks an MCAP read will read whole ahead of it (0: none; set for
+    one read by `BagSet.messages(readahead=...)`)."""
 
     def report(self, chunk: LostChunk) -> None:
         """Raise, or (skip) log one warning line the first time and record the chunk."""
@@ -199,8 +205,9 @@ class CheckedMcapReader(McapReader):
         )  # fmt: skip
 
     def _chunk(
-        self, chunk: ChunkInfo, channels: dict[int, Any], start: int, stop: int, defer: Collection[int]
-    ) -> Iterator[Msg]:
+        self, chunk: ChunkInfo, channels: dict[int, Any], start: int, stop: int, defer: Collection[int],
+        ahead: _Readahead | None,
+    ) -> Iterator[Msg]:  # fmt: skip
         """The chunk's messages in time order, its decompression put off until the merge reaches it."""
         yield Msg(chunk.message_start_time, 0, None, None)  # placeholder: no bytes read yet
         path = Path(str(self.path))
@@ -210,8 +217,9 @@ class CheckedMcapReader(McapReader):
         key = (path, chunk.chunk_start_offset)
         try:  # all or nothing
             found, indexed = chunk_messages(
-                self.bio, chunk, channels, start, stop, key in self.guard.checked, defer, str(path)
-            )
+                self.bio, chunk, channels, start, stop, key in self.guard.checked, defer, str(path),
+                ahead.records if ahead is not None else None,
+            )  # fmt: skip
         except Exception as err:  # checksum, size, decompressor and record errors of damaged bytes
             self.guard.report(self._lost(chunk, err))
             return
@@ -225,8 +233,10 @@ class CheckedMcapReader(McapReader):
         """Messages of `connections` in log-time order; a corrupt chunk goes to `guard`.
 
         A large message on a topic of `guard.defer_topics` may come as `DeferredData`
-        (`chunk_messages`). A file without a chunk index (unchunked, or no summary) is
-        scanned by rosbags as is.
+        (`chunk_messages`). With `guard.readahead` threads, the chunks to be read
+        whole are decompressed ahead in them (`_Readahead`), stopped when the read
+        ends. A file without a chunk index (unchunked, or no summary) is scanned
+        by rosbags as is.
         """
         if not self.chunks:
             yield from super().messages(connections, start, stop)
@@ -234,16 +244,31 @@ class CheckedMcapReader(McapReader):
         channels = {c.id: c for c in connections}
         defer = {i for i, c in channels.items() if c.topic in self.guard.defer_topics}
         lo = 0 if start is None else start
-        sources = [
-            self._chunk(c, channels, lo, c.message_end_time + 1 if stop is None else stop, defer)
+        chunks = [
+            c
             for c in self.chunks
             if lo <= c.message_end_time
             and (stop is None or c.message_start_time < stop)
             and any(c.channel_count.get(cid, 0) for cid in channels)
         ]
-        for msg in heapq.merge(*sources):
-            if msg.connection is not None and msg.data is not None:
-                yield msg.connection, msg.timestamp, msg.data
+        ahead = None
+        if self.guard.readahead > 0 and self.bio is not None:
+            path = Path(str(self.path))
+            whole = [c for c in chunks if (path, c.chunk_start_offset) not in self.guard.checked]
+            # the merge below opens the chunks in the order of their first log time
+            whole.sort(key=lambda c: c.message_start_time)
+            ahead = _Readahead(self.bio.fileno(), whole, self.guard.readahead)
+        sources = [
+            self._chunk(c, channels, lo, c.message_end_time + 1 if stop is None else stop, defer, ahead)
+            for c in chunks
+        ]
+        try:
+            for msg in heapq.merge(*sources):
+                if msg.connection is not None and msg.data is not None:
+                    yield msg.connection, msg.timestamp, msg.data
+        finally:
+            if ahead is not None:
+                ahead.close()
 
 
 class ChunkDataError(ValueError):
@@ -317,9 +342,54 @@ def _compressed(bio: Any, chunk: ChunkInfo) -> tuple[bytes, int]:
     return read_exact(bio, chunk.compressed_size), crc
 
 
+def _read_whole(fd: int, chunk: ChunkInfo) -> bytes:
+    """A chunk's records, read with `os.pread` (no shared file position: any thread), decompressed and
+    checked (`decompress_checked`)."""
+    crc_at = chunk.chunk_start_offset + _CHUNK_CRC_AT
+    head = os.pread(fd, 4, crc_at)
+    at = crc_at + 4 + 4 + len(chunk.compression) + 8  # compression (u32 + text), the records' length
+    compressed = os.pread(fd, chunk.compressed_size, at)
+    if len(head) != 4 or len(compressed) != chunk.compressed_size:
+        raise ChunkDataError(f"the file ends inside the chunk ({chunk.compressed_size} bytes expected)")
+    return decompress_checked(
+        compressed, chunk.compression, chunk.uncompressed_size, *struct.unpack("<I", head)
+    )
+
+
+class _Readahead:
+    """Whole reads (`_read_whole`) of a read's chunks, in the order it opens them, run in `threads`
+    threads up to `threads` + 1 chunks ahead of it (zstd, lz4 and the CRC release the GIL)."""
+
+    def __init__(self, fd: int, chunks: Sequence[ChunkInfo], threads: int) -> None:
+        self._fd = fd
+        self._todo = deque(chunks)
+        self._depth = threads + 1
+        self._running: dict[int, Future[bytes]] = {}
+        self._pool = ThreadPoolExecutor(threads, thread_name_prefix="chunk-readahead")
+        self._fill()
+
+    def _fill(self) -> None:
+        while self._todo and len(self._running) < self._depth:
+            chunk = self._todo.popleft()
+            self._running[chunk.chunk_start_offset] = self._pool.submit(_read_whole, self._fd, chunk)
+
+    def records(self, chunk: ChunkInfo) -> bytes:
+        """The chunk's records: read ahead, or now when it was not (its errors are raised here)."""
+        future = self._running.pop(chunk.chunk_start_offset, None)
+        if future is None:
+            self._todo = deque(c for c in self._todo if c.chunk_start_offset != chunk.chunk_start_offset)
+        self._fill()
+        return future.result() if future is not None else _read_whole(self._fd, chunk)
+
+    def close(self) -> None:
+        """Stop: what was not started is dropped, what runs is waited for (no thread outlives the read)."""
+        self._todo.clear()
+        self._pool.shutdown(wait=True, cancel_futures=True)
+
+
 def chunk_messages(
     bio: Any, chunk: ChunkInfo, channels: Mapping[int, Any], start: int, stop: int, checked: bool = False,
-    defer: Collection[int] = (), where: str = "",
+    defer: Collection[int] = (), where: str = "", whole: Callable[[ChunkInfo], bytes] | None = None,
 ) -> tuple[list[Msg], bool]:  # fmt: skip
     """The messages of `channels` in one MCAP chunk with log time in [start, stop), in time order, and
     whether a later read may take the chunk in part.
@@ -337,12 +407,12 @@ def chunk_messages(
     (`_partial`). That message, when on a channel of `defer` and large
     enough, comes as `DeferredData` (`where` names the file in its errors):
     only the records before it and its header are decompressed, and
-    `DeferredData.data` decompresses and checks the rest.
+    `DeferredData.data` decompresses and checks the rest. `whole(chunk)`,
+    when given, reads the records whole instead (`_Readahead.records`).
     """
     if checked and (found := _partial(bio, chunk, channels, start, stop, defer, where)) is not None:
         return found, True
-    compressed, crc = _compressed(bio, chunk)
-    records = decompress_checked(compressed, chunk.compression, chunk.uncompressed_size, crc)
+    records = whole(chunk) if whole is not None else _read_whole(bio.fileno(), chunk)
     every: list[tuple[int, int, int]] = []
     found = _walk(records, len(records), chunk, channels, start, stop, every)
     found.sort(key=lambda m: m.timestamp)

@@ -483,6 +483,7 @@ class BagSet:
         start_ns: int | None = None,
         stop_ns: int | None = None,
         defer: Collection[str] = (),
+        readahead: int = 0,
     ) -> Iterator[RawMessage]:
         """Lazy iterator over the raw messages of `topics` (None: all), merged by log time.
 
@@ -495,7 +496,9 @@ class BagSet:
         for a read after one that checked every chunk. The readers are told
         when the read starts and until it ends; a read interleaved with it may
         be handed deferred messages too, which it decompresses here, so only a
-        read that asked gets `deferred` messages.
+        read that asked gets `deferred` messages. `readahead` threads decompress
+        the MCAP chunks this read reads whole ahead of it (a first read of a
+        bag of raw images: each chunk is an image); they end with the read.
         """
         names = self.topics()
         wanted = set(names) - set(self.skipped) if topics is None else set(topics)
@@ -511,7 +514,7 @@ class BagSet:
                 where = str(getattr(conn.owner, "path", self._where))
                 check_definition(where, conn.topic, conn.msgtype, conn.msgdef, self.ros_version)
             if conns:
-                sources.append(self._read(conns, start_ns, stop_ns, frozenset(defer)))
+                sources.append(self._read(conns, start_ns, stop_ns, frozenset(defer), readahead))
         for path in self.salvaged:  # skipped topics are not in `wanted`
             sources.append(_time_window(_salvage(path, wanted, quiet=True), start_ns, stop_ns))
         if len(sources) == 1:
@@ -519,11 +522,14 @@ class BagSet:
         return heapq.merge(*sources, key=lambda m: m.log_ns)
 
     def _read(
-        self, conns: list[Any], start_ns: int | None, stop_ns: int | None, defer: frozenset[str]
-    ) -> Iterator[RawMessage]:
+        self, conns: list[Any], start_ns: int | None, stop_ns: int | None, defer: frozenset[str],
+        readahead: int,
+    ) -> Iterator[RawMessage]:  # fmt: skip
         assert self._reader is not None
-        if defer:
-            self._guard.defer_topics = defer  # the MCAP readers look when they start reading
+        if defer:  # the MCAP readers look when they start reading
+            self._guard.defer_topics = defer
+        if readahead:
+            self._guard.readahead = readahead
         try:
             for conn, log_ns, raw in self._reader.messages(connections=conns, start=start_ns, stop=stop_ns):
                 if isinstance(raw, DeferredData) and conn.topic in defer:
@@ -539,6 +545,8 @@ class BagSet:
         finally:
             if defer:
                 self._guard.defer_topics = frozenset()
+            if readahead:
+                self._guard.readahead = 0
 
 
 def _time_window(

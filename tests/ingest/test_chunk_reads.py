@@ -1,4 +1,5 @@
-"""Images handed out still in their compressed MCAP chunk (`DeferredData`): the same bytes, checked.
+"""MCAP chunks read in part once checked, images handed out still compressed (`DeferredData`), and
+chunks decompressed ahead in threads: the same bytes as a plain read, and damage still found.
 
 The bags are written by rosbags (zstd chunks, `BagWriter`: each image closes
 its chunk, as a raw image does in a recorded bag) and by the mcap library (lz4,
@@ -9,7 +10,9 @@ without deferral, which decompresses every chunk, gives the same messages.
 from __future__ import annotations
 
 import filecmp
+import threading
 from dataclasses import replace
+from types import GeneratorType
 from typing import Any
 
 import numpy as np
@@ -258,3 +261,41 @@ def test_a_chunk_whose_message_index_disagrees_is_always_read_whole(tmp_path, mo
         reads = [[(m.log_ns, bytes(m.raw)) for m in bags.messages(topics=["/n"])] for _ in range(2)]
     assert reads == [ints, ints]
     assert len(whole) == 2  # the second read too
+
+
+def chunk_threads() -> list[str]:
+    return [t.name for t in threading.enumerate() if t.name.startswith("chunk-readahead")]
+
+
+@pytest.mark.parametrize("write", [zstd_bag, lz4_bag], ids=["zstd", "lz4"])
+def test_a_read_ahead_gives_the_same_messages_and_leaves_no_thread(tmp_path, write):
+    messages = written(6)
+    path = write(tmp_path, messages)
+    with open_bags(path) as bags:
+        ahead = [(m.topic, m.log_ns, bytes(m.raw)) for m in bags.messages(readahead=3)]
+    assert ahead == messages
+    assert chunk_threads() == []
+    with open_bags(path) as bags:  # stopped part way: the threads end with the read
+        read = bags.messages(readahead=3)
+        assert isinstance(read, GeneratorType)
+        assert (next(read).log_ns, chunk_threads() != []) == (T0, True)
+        read.close()
+    assert chunk_threads() == []
+
+
+def test_a_read_ahead_names_a_corrupt_chunk_as_a_plain_read_does(tmp_path):
+    path = zstd_bag(tmp_path, written(6))
+    mcap = path / f"{path.name}.mcap"
+    data = bytearray(mcap.read_bytes())
+    third = chunk_offsets(data)[2]
+    records = third + 9 + 8 + 8 + 8 + 4 + 4 + len("zstd") + 8
+    size = int.from_bytes(data[records - 8 : records], "little")
+    data[records + size // 2] ^= 0xFF
+    mcap.write_bytes(bytes(data))
+    errors = []
+    for readahead in (0, 4):
+        with open_bags(path) as bags, pytest.raises(CorruptChunkError) as err:
+            list(bags.messages(readahead=readahead))
+        errors.append(str(err.value))
+    assert errors[0] == errors[1] and f"corrupt chunk at byte {third} " in errors[0]
+    assert chunk_threads() == []
