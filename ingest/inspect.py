@@ -65,9 +65,10 @@ from ingest.bag_report import (
     TopicStats,
 )
 from ingest.bags.decode import ImuSample, RosVersion, Sweep, decode, header_stamp_ns
-from ingest.bags.reader import BagSet, RawMessage, open_bags
+from ingest.bags.reader import READAHEAD_THREADS, BagSet, RawMessage, open_bags
 from ingest.bags.rostypes import typestore as sensorbox_typestore
 from ingest.errors import BagError, MessageDecodeError
+from ingest.runtime.executor import usable_cpus
 from ingest.topic_map import IMU_TYPES, LIDAR_TYPES, check_rig, stereo_topics, suggest_mapping
 from ingest.train.sync import median_period_ns, pair_stereo, pair_tolerance_ns
 
@@ -215,7 +216,7 @@ def _read(
 ) -> None:
     """One pass over the messages of `topics`, filling the accumulators."""
     done = 0
-    for msg in bag.messages(topics=list(topics)):
+    for msg in bag.messages(topics=list(topics), readahead=min(READAHEAD_THREADS, usable_cpus())):
         acc = topics[msg.topic]
         acc.count += 1
         acc.first_log = msg.log_ns if acc.first_log is None else acc.first_log

@@ -86,6 +86,12 @@ log = logging.getLogger(__name__)
 SALVAGE_HINT = "rerun with --salvage to read its complete chunks"
 
 
+READAHEAD_THREADS = 8
+"""A whole read of the bags (the ingest's plan pass, inspect; no worker runs beside them) decompresses
+chunks in up to this many threads: a bag of raw images is one 9 MB zstd chunk per image, about 20 ms
+each on one core."""
+
+
 @dataclass(frozen=True)
 class TopicSummary:
     """What a topic holds: its message type and message count."""

@@ -16,7 +16,7 @@ import numpy as np
 
 from calibration.types import I64
 from ingest.bags.decode import Sweep
-from ingest.bags.reader import BagSet
+from ingest.bags.reader import READAHEAD_THREADS, BagSet
 from ingest.errors import BagError
 from ingest.runtime.executor import usable_cpus
 from ingest.train.bad_messages import BadMessages
@@ -53,9 +53,6 @@ class Plan:
 
 
 LOST_REASON = "LiDAR/IMU window overlaps a corrupt chunk (not planned)"
-READAHEAD_THREADS = 8
-"""The first pass decompresses chunks in up to this many threads (no worker runs yet): a bag of raw
-images is one 9 MB zstd chunk per image, about 20 ms each on one core."""
 IMU_MARGIN_NS = 20_000_000
 """IMU readings are taken this far beyond a sample's LiDAR window (motion compensation)."""
 
