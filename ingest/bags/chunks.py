@@ -14,10 +14,11 @@ Public API:
   (before `open()`) check chunk by chunk and report to `guard`.
 - `decompress_checked(data, compression, size, crc)`: an MCAP chunk's records,
   size- and CRC-checked (`ChunkDataError` when they do not match).
-- `chunk_messages(bio, chunk, channels, start, stop, defer)`: one MCAP chunk's
-  messages in time order, walked in place. Both readers hand out a message of
-  `COPY_BELOW_BYTES` or more as a memoryview into its decompressed chunk (no
-  copy of an image), a smaller one as bytes.
+- `chunk_messages(bio, chunk, channels, start, stop, ...)`: one MCAP chunk's
+  messages in time order, walked in place, and whether later reads may take
+  the chunk in part. Both readers hand out a message of `COPY_BELOW_BYTES` or
+  more as a read-only memoryview into its decompressed chunk (no copy of an
+  image), a smaller one as bytes.
 - Each MCAP chunk is decompressed whole and checked the first time a bag
   set reads it; when its MessageIndex records (which the CRC does not
   cover) list exactly its message records, it is `ChunkGuard.checked`. A
