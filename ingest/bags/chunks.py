@@ -50,9 +50,9 @@ from __future__ import annotations
 
 import heapq
 import logging
-import os
 import struct
 import sys
+import threading
 from collections import deque
 from collections.abc import Callable, Collection, Generator, Iterator, Mapping, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -253,12 +253,12 @@ class CheckedMcapReader(McapReader):
             and any(c.channel_count.get(cid, 0) for cid in channels)
         ]
         ahead = None
-        if self.guard.readahead > 0 and self.bio is not None:
+        if self.guard.readahead > 0:
             path = Path(str(self.path))
             whole = [c for c in chunks if (path, c.chunk_start_offset) not in self.guard.checked]
             # the merge below opens the chunks in the order of their first log time
             whole.sort(key=lambda c: c.message_start_time)
-            ahead = _Readahead(self.bio.fileno(), whole, self.guard.readahead)
+            ahead = _Readahead(path, whole, self.guard.readahead) if whole else None
         sources = [
             self._chunk(c, channels, lo, c.message_end_time + 1 if stop is None else stop, defer, ahead)
             for c in chunks
@@ -343,36 +343,35 @@ def _compressed(bio: Any, chunk: ChunkInfo) -> tuple[bytes, int]:
     return read_exact(bio, chunk.compressed_size), crc
 
 
-def _read_whole(fd: int, chunk: ChunkInfo) -> bytes:
-    """A chunk's records, read with `os.pread` (no shared file position: any thread), decompressed and
-    checked (`decompress_checked`)."""
-    crc_at = chunk.chunk_start_offset + _CHUNK_CRC_AT
-    head = os.pread(fd, 4, crc_at)
-    at = crc_at + 4 + 4 + len(chunk.compression) + 8  # compression (u32 + text), the records' length
-    compressed = os.pread(fd, chunk.compressed_size, at)
-    if len(head) != 4 or len(compressed) != chunk.compressed_size:
-        raise ChunkDataError(f"the file ends inside the chunk ({chunk.compressed_size} bytes expected)")
-    return decompress_checked(
-        compressed, chunk.compression, chunk.uncompressed_size, *struct.unpack("<I", head)
-    )
+def _read_whole(bio: Any, chunk: ChunkInfo) -> bytes:
+    """A chunk's records, read from `bio`, decompressed and checked (`decompress_checked`)."""
+    compressed, crc = _compressed(bio, chunk)
+    return decompress_checked(compressed, chunk.compression, chunk.uncompressed_size, crc)
 
 
 class _Readahead:
-    """Whole reads (`_read_whole`) of a read's chunks, in the order it opens them, run in `threads`
-    threads up to `threads` + 1 chunks ahead of it (zstd, lz4 and the CRC release the GIL)."""
+    """Whole reads of a read's chunks, in the order it opens them, decompressed in `threads` threads up
+    to `threads` + 1 chunks ahead of it (zstd, lz4 and the CRC release the GIL). The threads read
+    through a file object of their own, one at a time; they decompress side by side."""
 
-    def __init__(self, fd: int, chunks: Sequence[ChunkInfo], threads: int) -> None:
-        self._fd = fd
+    def __init__(self, path: Path, chunks: Sequence[ChunkInfo], threads: int) -> None:
+        self._file = path.open("rb")
+        self._lock = threading.Lock()
         self._todo = deque(chunks)
         self._depth = threads + 1
         self._running: dict[int, Future[bytes]] = {}
         self._pool = ThreadPoolExecutor(threads, thread_name_prefix="chunk-readahead")
         self._fill()
 
+    def _read(self, chunk: ChunkInfo) -> bytes:
+        with self._lock:
+            compressed, crc = _compressed(self._file, chunk)
+        return decompress_checked(compressed, chunk.compression, chunk.uncompressed_size, crc)
+
     def _fill(self) -> None:
         while self._todo and len(self._running) < self._depth:
             chunk = self._todo.popleft()
-            self._running[chunk.chunk_start_offset] = self._pool.submit(_read_whole, self._fd, chunk)
+            self._running[chunk.chunk_start_offset] = self._pool.submit(self._read, chunk)
 
     def records(self, chunk: ChunkInfo) -> bytes:
         """The chunk's records: read ahead, or now when it was not (its errors are raised here)."""
@@ -380,12 +379,13 @@ class _Readahead:
         if future is None:
             self._todo = deque(c for c in self._todo if c.chunk_start_offset != chunk.chunk_start_offset)
         self._fill()
-        return future.result() if future is not None else _read_whole(self._fd, chunk)
+        return future.result() if future is not None else self._read(chunk)
 
     def close(self) -> None:
         """Stop: what was not started is dropped, what runs is waited for (no thread outlives the read)."""
         self._todo.clear()
         self._pool.shutdown(wait=True, cancel_futures=True)
+        self._file.close()
 
 
 def chunk_messages(
@@ -413,7 +413,7 @@ def chunk_messages(
     """
     if checked and (found := _partial(bio, chunk, channels, start, stop, defer, where)) is not None:
         return found, True
-    records = whole(chunk) if whole is not None else _read_whole(bio.fileno(), chunk)
+    records = whole(chunk) if whole is not None else _read_whole(bio, chunk)
     every: list[tuple[int, int, int]] = []
     found = _walk(records, len(records), chunk, channels, start, stop, every)
     found.sort(key=lambda m: m.timestamp)
