@@ -417,8 +417,8 @@ def chunk_messages(
     every: list[tuple[int, int, int]] = []
     found = _walk(records, len(records), chunk, channels, start, stop, every)
     found.sort(key=lambda m: m.timestamp)
-    if chunk.compression not in _STREAMING:
-        return found, False
+    if checked or chunk.compression not in _STREAMING:  # its index was compared when it was checked
+        return found, checked
     try:
         index = _message_index(bio, chunk, chunk.message_index_offsets)
     except Exception:  # an index that does not parse: this chunk is always read whole
@@ -485,13 +485,11 @@ def _message_index(
     bio: Any, chunk: ChunkInfo, channels: Collection[int]
 ) -> list[tuple[int, int, int]] | None:
     """(offset in the records, channel, log ns) of the chunk's messages on `channels`, from its
-    MessageIndex records; None when they are missing or do not parse."""
+    MessageIndex records (a channel without one has none); None when they do not parse."""
     out: list[tuple[int, int, int]] = []
     for channel_id in channels:
         at = chunk.message_index_offsets.get(channel_id)
         if at is None:
-            if chunk.channel_count.get(channel_id, 0):
-                return None
             continue
         bio.seek(at)
         op, length, got, n = struct.unpack("<BQHI", read_exact(bio, 15))
