@@ -121,3 +121,103 @@ def snap_planar(
     n_out = _snap(pts, normal, cols, rows, allowed, rays, ray_ok, radius, min_cos, out)
     kept: F64 = out[:n_out]
     return kept
+
+
+@njit(cache=True, nogil=True)
+def _point(range_src, rays_src, r, c, out):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """The source point of pixel (r, c) into ``out``; False when it has none."""
+    H, W = range_src.shape
+    if r < 0 or r >= H or c < 0 or c >= W:
+        return False
+    rng = range_src[r, c]
+    if not rng > 0.0:
+        return False
+    out[0] = rays_src[r, c, 0] * rng
+    out[1] = rays_src[r, c, 1] * rng
+    out[2] = rays_src[r, c, 2] * rng
+    return True
+
+
+@njit(cache=True, nogil=True)
+def _tangent(range_src, rays_src, r, c, dr, dc, p0, a, b, t):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """Tangent at pixel (r, c) along (dr, dc) into ``t``: across both neighbours, else towards one."""
+    has_a = _point(range_src, rays_src, r - dr, c - dc, a)
+    has_b = _point(range_src, rays_src, r + dr, c + dc, b)
+    if has_a and has_b:
+        for i in range(3):
+            t[i] = b[i] - a[i]
+    elif has_b:
+        for i in range(3):
+            t[i] = b[i] - p0[i]
+    elif has_a:
+        for i in range(3):
+            t[i] = p0[i] - a[i]
+    else:
+        return 0
+    return int(has_a) + int(has_b)
+
+
+@njit(cache=True, nogil=True)
+def _resample(range_src, rays_src, uv, rays_dst, min_cos, tol_m, tol_rel, out):  # type: ignore[no-untyped-def]  # pragma: no cover
+    buf = np.empty((5, 3), np.float64)
+    p0, a, b, tu, tv = buf[0], buf[1], buf[2], buf[3], buf[4]
+    for j in range(uv.shape[0]):
+        out[j] = 0.0
+        uf, vf = uv[j, 0], uv[j, 1]
+        if not (uf > -0.5 and vf > -0.5):  # also NaN: no projection
+            continue
+        c = int(uf + 0.5)
+        r = int(vf + 0.5)
+        if not _point(range_src, rays_src, r, c, p0):
+            continue
+        if _tangent(range_src, rays_src, r, c, 0, 1, p0, a, b, tu) == 0:
+            continue
+        if _tangent(range_src, rays_src, r, c, 1, 0, p0, a, b, tv) == 0:
+            continue
+        nx = tu[1] * tv[2] - tu[2] * tv[1]
+        ny = tu[2] * tv[0] - tu[0] * tv[2]
+        nz = tu[0] * tv[1] - tu[1] * tv[0]
+        norm = np.sqrt(nx * nx + ny * ny + nz * nz)
+        if norm == 0.0:
+            continue
+        nx, ny, nz = nx / norm, ny / norm, nz / norm
+        # the 3x3 neighbours that hold a point must lie on that plane
+        rng0 = range_src[r, c]
+        tol = tol_m + tol_rel * rng0
+        flat = True
+        for dr in range(-1, 2):
+            for dc in range(-1, 2):
+                off = (
+                    _point(range_src, rays_src, r + dr, c + dc, a)
+                    and abs(nx * (a[0] - p0[0]) + ny * (a[1] - p0[1]) + nz * (a[2] - p0[2])) > tol
+                )
+                if off:
+                    flat = False
+        if not flat:
+            continue
+        dx, dy, dz = rays_dst[j, 0], rays_dst[j, 1], rays_dst[j, 2]
+        cos = nx * dx + ny * dy + nz * dz
+        if abs(cos) < min_cos:
+            continue
+        t = (nx * p0[0] + ny * p0[1] + nz * p0[2]) / cos
+        if t > 0.0 and abs(t - rng0) <= tol + 0.05 * rng0:
+            out[j] = t
+
+
+def planar_resample(
+    range_src: F32, rays_src: F32, uv: F32, rays_dst: F32, min_cos: float, tol_m: float, tol_rel: float
+) -> F32:
+    """Range (m) along each ray of a second view with the same centre, from a range image's local planes.
+
+    `range_src` (H, W) holds ranges along the unit rays `rays_src` (H, W, 3)
+    (0: no value); `uv` (N, 2) is where each of the N `rays_dst` (unit, in
+    the source view's frame) projects in the source image (pixel centres at
+    integers; NaN: nowhere). A ray gets a range only where the four source
+    pixels around its projection all hold one and their points lie on one
+    plane within `tol_m` + `tol_rel` x range: the ray meets that plane there
+    (exact on planes), unless it grazes it (|n . ray| < `min_cos`) or the
+    result leaves the four ranges' span by more than the tolerance. 0 elsewhere.
+    """
+    out = np.empty(len(uv), np.float32)
+    _resample(range_src, rays_src, uv, rays_dst, min_cos, tol_m, tol_rel, out)
+    return out

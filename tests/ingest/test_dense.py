@@ -167,6 +167,60 @@ def test_snapped_points_lie_on_pixel_rays_and_on_the_plane():
     np.testing.assert_allclose(uv, np.round(uv), atol=1e-6)  # on pixel centres
 
 
+def test_equirect_ranges_meet_the_planes_of_cam0s_gt_and_stop_at_steps_and_holes():
+    """`rect_ranges`: an equirect ray gets the range where it meets the plane of its nearest cam0 GT pixel.
+
+    cam0 sees a tilted wall at 3 m whose left part (x < -0.4 m) is a step
+    nearer (a box face at 2 m, parallel to the wall) and a square hole without GT.
+    Against the analytic ranges along the equirect rays (rotated 10 deg from
+    cam0): exact on both planes, nothing whose nearest cam0 pixel is a hole
+    or has a neighbour across the step.
+    """
+    from calibration.fisheye import DoubleSphere
+    from calibration.spherical import Equirectangular
+    from ingest.dataset.sparse import SparseImage
+    from ingest.raster.view import pixel_rays
+    from ingest.train.dense import cam0_window, rect_lookup, rect_ranges
+
+    model = DoubleSphere(120.0, 120.0, 160.0, 100.0, -0.2, 0.6, 320, 200)
+    n = np.array([0.2, -0.1, 1.0]) / np.linalg.norm([0.2, -0.1, 1.0])
+
+    def ranges(rays: np.ndarray) -> np.ndarray:
+        """Range along unit rays to the wall (n . p = 3) or, left of x = -0.4 m on the wall, the box (n . p = 2)."""
+        cos = rays @ n
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = np.where(cos > 0.05, 3.0 / cos, 0.0)
+            x_wall = rays[:, 0] * t
+            return np.where(x_wall < -0.4, 2.0 / cos, t)
+
+    rays, ok = pixel_rays(model)
+    r = np.where(ok.reshape(-1), ranges(rays.reshape(-1, 3).astype(np.float64)), 0.0)
+    r = r.reshape(model.height, model.width)
+    r[80:100, 200:220] = 0.0  # a hole without GT
+    R_cam0_rect = Rotation.from_euler("x", 10, degrees=True).as_matrix()
+    win = cam0_window(model, Equirectangular(256), R_cam0_rect)
+    got = rect_ranges(model, win, R_cam0_rect, SparseImage.from_dense(r), DenseParams())
+
+    uv, rays_win = rect_lookup(model, win, R_cam0_rect)
+    want = ranges(rays_win.astype(np.float64))
+    has = got > 0
+    assert has.mean() > 0.2
+    np.testing.assert_allclose(got[has], want[has], rtol=2e-6)
+    near = np.floor(np.nan_to_num(uv, nan=-9.0) + 0.5).astype(np.int64)
+    inside = (near >= 0).all(axis=1) & (near[:, 0] < model.width) & (near[:, 1] < model.height)
+    col, row = near[:, 0].clip(0, model.width - 1), near[:, 1].clip(0, model.height - 1)
+    assert not (has & inside & (r[row, col] == 0)).any()  # a hole or no ray: nothing
+    assert not (has & ~inside).any()
+    # a ray whose nearest cam0 pixel has a neighbour on the other side of the step gets nothing
+    other = np.zeros_like(has)
+    for dr in (-1, 0, 1):
+        for dc in (-1, 0, 1):
+            rr, cc = (row + dr).clip(0, model.height - 1), (col + dc).clip(0, model.width - 1)
+            other |= (r[rr, cc] > 0) & (np.abs(r[rr, cc] - r[row, col]) > 0.5)
+    assert other[inside & (r[row, col] > 0)].any()
+    assert not (has & other).any()
+
+
 def test_no_points_no_gt():
     from calibration.fisheye import DoubleSphere
     from calibration.spherical import Equirectangular
