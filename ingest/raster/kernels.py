@@ -123,101 +123,113 @@ def snap_planar(
     return kept
 
 
-@njit(cache=True, nogil=True)
-def _point(range_src, rays_src, r, c, out):  # type: ignore[no-untyped-def]  # pragma: no cover
-    """The source point of pixel (r, c) into ``out``; False when it has none."""
+@njit(cache=True, nogil=True, inline="always")
+def _point(range_src, rays_src, r, c):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """The source point (x, y, z) of pixel (r, c) and whether it has one."""
     H, W = range_src.shape
     if r < 0 or r >= H or c < 0 or c >= W:
-        return False
-    rng = range_src[r, c]
+        return False, 0.0, 0.0, 0.0
+    rng = np.float64(range_src[r, c])
     if not rng > 0.0:
-        return False
-    out[0] = rays_src[r, c, 0] * rng
-    out[1] = rays_src[r, c, 1] * rng
-    out[2] = rays_src[r, c, 2] * rng
-    return True
+        return False, 0.0, 0.0, 0.0
+    return True, rays_src[r, c, 0] * rng, rays_src[r, c, 1] * rng, rays_src[r, c, 2] * rng
 
 
-@njit(cache=True, nogil=True)
-def _tangent(range_src, rays_src, r, c, dr, dc, p0, a, b, t):  # type: ignore[no-untyped-def]  # pragma: no cover
-    """Tangent at pixel (r, c) along (dr, dc) into ``t``: across both neighbours, else towards one."""
-    has_a = _point(range_src, rays_src, r - dr, c - dc, a)
-    has_b = _point(range_src, rays_src, r + dr, c + dc, b)
-    if has_a and has_b:
-        for i in range(3):
-            t[i] = b[i] - a[i]
-    elif has_b:
-        for i in range(3):
-            t[i] = b[i] - p0[i]
-    elif has_a:
-        for i in range(3):
-            t[i] = p0[i] - a[i]
-    else:
-        return 0
-    return int(has_a) + int(has_b)
+@njit(cache=True, nogil=True, inline="always")
+def _tangent(has, nb, lo, hi, centre):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """Tangent through neighbour rows ``lo``, ``centre``, ``hi`` of ``nb``: across both, else towards the
+    one with a point; and whether there is one."""
+    if has[lo] and has[hi]:
+        return True, nb[hi, 0] - nb[lo, 0], nb[hi, 1] - nb[lo, 1], nb[hi, 2] - nb[lo, 2]
+    if has[hi]:
+        return True, nb[hi, 0] - nb[centre, 0], nb[hi, 1] - nb[centre, 1], nb[hi, 2] - nb[centre, 2]
+    if has[lo]:
+        return True, nb[centre, 0] - nb[lo, 0], nb[centre, 1] - nb[lo, 1], nb[centre, 2] - nb[lo, 2]
+    return False, 0.0, 0.0, 0.0
 
 
-@njit(cache=True, nogil=True)
-def _resample(range_src, rays_src, uv, rays_dst, min_cos, tol_m, tol_rel, out):  # type: ignore[no-untyped-def]  # pragma: no cover
-    buf = np.empty((5, 3), np.float64)
-    p0, a, b, tu, tv = buf[0], buf[1], buf[2], buf[3], buf[4]
-    for j in range(uv.shape[0]):
-        out[j] = 0.0
-        uf, vf = uv[j, 0], uv[j, 1]
-        if not (uf > -0.5 and vf > -0.5):  # also NaN: no projection
+@njit(cache=True, nogil=True, error_model="numpy")
+def _resample(range_src, rays_src, pixels, start, order, rays_dst, min_cos, tol_m, tol_rel, out):  # type: ignore[no-untyped-def]  # pragma: no cover
+    W = range_src.shape[1]
+    nb = np.empty((9, 3), np.float64)  # the 3x3 neighbourhood's points, row-major; centre 4
+    has = np.empty(9, np.bool_)
+    for i in range(pixels.shape[0]):
+        q = pixels[i]
+        if start[q] == start[q + 1]:
             continue
-        c = int(uf + 0.5)
-        r = int(vf + 0.5)
-        if not _point(range_src, rays_src, r, c, p0):
+        r = q // W
+        c = q - r * W
+        for k in range(9):
+            has[k], nb[k, 0], nb[k, 1], nb[k, 2] = _point(range_src, rays_src, r + k // 3 - 1, c + k % 3 - 1)
+        if not has[4]:
             continue
-        if _tangent(range_src, rays_src, r, c, 0, 1, p0, a, b, tu) == 0:
+        has_u, ux, uy, uz = _tangent(has, nb, 3, 5, 4)
+        has_v, vx, vy, vz = _tangent(has, nb, 1, 7, 4)
+        if not (has_u and has_v):
             continue
-        if _tangent(range_src, rays_src, r, c, 1, 0, p0, a, b, tv) == 0:
-            continue
-        nx = tu[1] * tv[2] - tu[2] * tv[1]
-        ny = tu[2] * tv[0] - tu[0] * tv[2]
-        nz = tu[0] * tv[1] - tu[1] * tv[0]
+        nx = uy * vz - uz * vy
+        ny = uz * vx - ux * vz
+        nz = ux * vy - uy * vx
         norm = np.sqrt(nx * nx + ny * ny + nz * nz)
         if norm == 0.0:
             continue
         nx, ny, nz = nx / norm, ny / norm, nz / norm
         # the 3x3 neighbours that hold a point must lie on that plane
-        rng0 = range_src[r, c]
+        x0, y0, z0 = nb[4, 0], nb[4, 1], nb[4, 2]
+        rng0 = np.float64(range_src[r, c])
         tol = tol_m + tol_rel * rng0
         flat = True
-        for dr in range(-1, 2):
-            for dc in range(-1, 2):
-                off = (
-                    _point(range_src, rays_src, r + dr, c + dc, a)
-                    and abs(nx * (a[0] - p0[0]) + ny * (a[1] - p0[1]) + nz * (a[2] - p0[2])) > tol
-                )
-                if off:
-                    flat = False
+        for k in range(9):
+            if has[k] and abs(nx * (nb[k, 0] - x0) + ny * (nb[k, 1] - y0) + nz * (nb[k, 2] - z0)) > tol:
+                flat = False
         if not flat:
             continue
-        dx, dy, dz = rays_dst[j, 0], rays_dst[j, 1], rays_dst[j, 2]
-        cos = nx * dx + ny * dy + nz * dz
-        if abs(cos) < min_cos:
-            continue
-        t = (nx * p0[0] + ny * p0[1] + nz * p0[2]) / cos
-        if t > 0.0 and abs(t - rng0) <= tol + 0.05 * rng0:
-            out[j] = t
+        d0 = nx * x0 + ny * y0 + nz * z0
+        for k in range(start[q], start[q + 1]):
+            j = order[k]
+            cos = nx * rays_dst[j, 0] + ny * rays_dst[j, 1] + nz * rays_dst[j, 2]
+            if abs(cos) < min_cos:
+                continue
+            t = d0 / cos
+            if t > 0.0 and abs(t - rng0) <= tol + 0.05 * rng0:
+                out[j] = t
+
+
+def nearest_pixel_groups(uv: F64, width: int, height: int) -> tuple[I64, I32]:
+    """The rays grouped by their nearest source pixel: (start (H W + 1), order) as in CSR.
+
+    `uv` (N, 2) are where N rays project in a (height, width) image (pixel
+    centres at integers; NaN: nowhere). The rays whose nearest pixel is
+    flat pixel q are ``order[start[q]:start[q + 1]]`` (int32).
+    """
+    with np.errstate(invalid="ignore"):
+        near = np.floor(uv + 0.5)
+        ok = (near[:, 0] >= 0) & (near[:, 0] < width) & (near[:, 1] >= 0) & (near[:, 1] < height)
+    q = (near[ok, 1] * width + near[ok, 0]).astype(np.int64)
+    rays = np.flatnonzero(ok)
+    by_pixel = np.argsort(q, kind="stable")
+    start = np.zeros(width * height + 1, np.int64)
+    np.cumsum(np.bincount(q, minlength=width * height), out=start[1:])
+    return start, rays[by_pixel].astype(np.int32)
 
 
 def planar_resample(
-    range_src: F32, rays_src: F32, uv: F32, rays_dst: F32, min_cos: float, tol_m: float, tol_rel: float
-) -> F32:
+    range_src: F32, rays_src: F32, pixels: I64, start: I64, order: I32, rays_dst: F32, min_cos: float,
+    tol_m: float, tol_rel: float,
+) -> F32:  # fmt: skip
     """Range (m) along each ray of a second view with the same centre, from a range image's local planes.
 
     `range_src` (H, W) holds ranges along the unit rays `rays_src` (H, W, 3)
-    (0: no value); `uv` (N, 2) is where each of the N `rays_dst` (unit, in
-    the source view's frame) projects in the source image (pixel centres at
-    integers; NaN: nowhere). A ray gets a range only where the four source
-    pixels around its projection all hold one and their points lie on one
-    plane within `tol_m` + `tol_rel` x range: the ray meets that plane there
-    (exact on planes), unless it grazes it (|n . ray| < `min_cos`) or the
-    result leaves the four ranges' span by more than the tolerance. 0 elsewhere.
+    (0: no value) at the flat `pixels`; (`start`, `order`) group the N
+    `rays_dst` (unit, in the source view's frame) by their nearest source
+    pixel (`nearest_pixel_groups`). A ray gets a range only where its
+    nearest pixel holds one, has a neighbour with one along each image axis,
+    and it and its 3x3 neighbours with a value lie on one plane within
+    `tol_m` + `tol_rel` x range (the plane through the pixel's point and its
+    tangents across those neighbours): the ray meets that plane there, exact
+    on planes, unless it grazes it (|n . ray| < `min_cos`) or the result
+    leaves the pixel's range by more than 5 %. 0 elsewhere.
     """
-    out = np.empty(len(uv), np.float32)
-    _resample(range_src, rays_src, uv, rays_dst, min_cos, tol_m, tol_rel, out)
+    out = np.zeros(len(rays_dst), np.float32)
+    _resample(range_src, rays_src, pixels, start, order, rays_dst, min_cos, tol_m, tol_rel, out)
     return out

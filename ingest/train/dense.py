@@ -38,7 +38,7 @@ from calibration.stereo import depth_to_disparity, disparity_stability_mask
 from calibration.types import F32, F64, I64, Bool
 from ingest.dataset.sparse import SparseImage
 from ingest.raster.edges import edge_band
-from ingest.raster.kernels import planar_resample, snap_planar
+from ingest.raster.kernels import I32, nearest_pixel_groups, planar_resample, snap_planar
 from ingest.raster.lod import point_index
 from ingest.raster.scan import Scan
 from ingest.raster.view import Rendering, pixel_rays, render_view
@@ -263,26 +263,28 @@ def rect_ranges(
     depth is.
     """
     rays, _ = pixel_rays(model)
-    uv, rays_win = rect_lookup(model, win, R_cam0_rect)
+    start, order, rays_win = rect_lookup(model, win, R_cam0_rect)
     return planar_resample(
-        range_img.dense(), rays.reshape(model.height, model.width, 3), uv, rays_win,
-        params.plane_min_cos, params.resample_flat_m, params.resample_flat_rel,
+        range_img.dense(), rays.reshape(model.height, model.width, 3), range_img.pixel, start, order,
+        rays_win, params.plane_min_cos, params.resample_flat_m, params.resample_flat_rel,
     )  # fmt: skip
 
 
 @lru_cache(maxsize=2)
-def _rect_lookup_cached(model: CameraModel, win: Equirectangular, R_bytes: bytes) -> tuple[F32, F32]:
+def _rect_lookup_cached(model: CameraModel, win: Equirectangular, R_bytes: bytes) -> tuple[I64, I32, F32]:
     R_cam0_rect = np.frombuffer(R_bytes).reshape(3, 3)
     rays_rect, ok = win.unproject(win.pixel_grid())
     rays_cam0 = rays_rect.reshape(-1, 3) @ R_cam0_rect.T  # p_cam0 = R_cam0_rect p_rect
     uv, good = model.project(rays_cam0)
-    good &= ok.reshape(-1) & np.isfinite(uv).all(axis=1)
-    uv_f32 = np.where(good[:, None], uv, np.nan).astype(np.float32)
-    return uv_f32, np.ascontiguousarray(np.nan_to_num(rays_cam0), np.float32)
+    good &= ok.reshape(-1)
+    start, order = nearest_pixel_groups(np.where(good[:, None], uv, np.nan), model.width, model.height)
+    return start, order, np.ascontiguousarray(np.nan_to_num(rays_cam0), np.float32)
 
 
-def rect_lookup(model: CameraModel, win: Equirectangular, R_cam0_rect: F64) -> tuple[F32, F32]:
-    """Cached: where each ray of `win` projects in `model` ((N, 2) px, NaN: nowhere), and the rays in cam0."""
+def rect_lookup(model: CameraModel, win: Equirectangular, R_cam0_rect: F64) -> tuple[I64, I32, F32]:
+    """Cached: the rays of `win` grouped by their nearest pixel of `model` (`nearest_pixel_groups`'
+    start and order) and the rays in cam0 ((N, 3) unit).
+    """
     return _rect_lookup_cached(model, win, np.ascontiguousarray(R_cam0_rect, np.float64).tobytes())
 
 
