@@ -1,4 +1,4 @@
-"""Compiled (numba) kernels of the renderer's per-point loops.
+"""Compiled (numba) kernels of the renderer's per-point loops, and dense GT's planar resampling.
 
 The z-buffer writes every point's key into its own pixel and into each pixel
 of its footprint ellipse, keeping the minimum: one pass over the points,
@@ -149,7 +149,7 @@ def _tangent(has, nb, lo, hi, centre):  # type: ignore[no-untyped-def]  # pragma
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _resample(range_src, rays_src, pixels, start, order, rays_dst, min_cos, tol_m, tol_rel, out):  # type: ignore[no-untyped-def]  # pragma: no cover
+def _resample(range_src, rays_src, pixels, start, order, rays_dst, min_cos, tol_m, tol_rel, max_change, out):  # type: ignore[no-untyped-def]  # pragma: no cover
     W = range_src.shape[1]
     nb = np.empty((9, 3), np.float64)  # the 3x3 neighbourhood's points, row-major; centre 4
     has = np.empty(9, np.bool_)
@@ -159,9 +159,11 @@ def _resample(range_src, rays_src, pixels, start, order, rays_dst, min_cos, tol_
             continue
         r = q // W
         c = q - r * W
+        n_pts = 0
         for k in range(9):
             has[k], nb[k, 0], nb[k, 1], nb[k, 2] = _point(range_src, rays_src, r + k // 3 - 1, c + k % 3 - 1)
-        if not has[4]:
+            n_pts += has[k]
+        if not has[4] or n_pts < 4:  # three points always lie on a plane: at least one must check it
             continue
         has_u, ux, uy, uz = _tangent(has, nb, 3, 5, 4)
         has_v, vx, vy, vz = _tangent(has, nb, 1, 7, 4)
@@ -171,8 +173,8 @@ def _resample(range_src, rays_src, pixels, start, order, rays_dst, min_cos, tol_
         ny = uz * vx - ux * vz
         nz = ux * vy - uy * vx
         norm = np.sqrt(nx * nx + ny * ny + nz * nz)
-        if norm == 0.0:
-            continue
+        if not norm > 1e-9 * np.sqrt((ux * ux + uy * uy + uz * uz) * (vx * vx + vy * vy + vz * vz)):
+            continue  # (nearly) parallel tangents: no plane
         nx, ny, nz = nx / norm, ny / norm, nz / norm
         # the 3x3 neighbours that hold a point must lie on that plane
         x0, y0, z0 = nb[4, 0], nb[4, 1], nb[4, 2]
@@ -191,7 +193,7 @@ def _resample(range_src, rays_src, pixels, start, order, rays_dst, min_cos, tol_
             if abs(cos) < min_cos:
                 continue
             t = d0 / cos
-            if t > 0.0 and abs(t - rng0) <= tol + 0.05 * rng0:
+            if t > 0.0 and abs(t - rng0) <= max_change * rng0:
                 out[j] = t
 
 
@@ -215,7 +217,7 @@ def nearest_pixel_groups(uv: F64, width: int, height: int) -> tuple[I64, I32]:
 
 def planar_resample(
     range_src: F32, rays_src: F32, pixels: I64, start: I64, order: I32, rays_dst: F32, min_cos: float,
-    tol_m: float, tol_rel: float,
+    tol_m: float, tol_rel: float, max_change: float,
 ) -> F32:  # fmt: skip
     """Range (m) along each ray of a second view with the same centre, from a range image's local planes.
 
@@ -223,13 +225,14 @@ def planar_resample(
     (0: no value) at the flat `pixels`; (`start`, `order`) group the N
     `rays_dst` (unit, in the source view's frame) by their nearest source
     pixel (`nearest_pixel_groups`). A ray gets a range only where its
-    nearest pixel holds one, has a neighbour with one along each image axis,
-    and it and its 3x3 neighbours with a value lie on one plane within
-    `tol_m` + `tol_rel` x range (the plane through the pixel's point and its
-    tangents across those neighbours): the ray meets that plane there, exact
-    on planes, unless it grazes it (|n . ray| < `min_cos`) or the result
-    leaves the pixel's range by more than 5 %. 0 elsewhere.
+    nearest pixel holds one, has a neighbour with one along each image axis
+    and at least four of its 3x3 pixels hold one, all within `tol_m` +
+    `tol_rel` x range of one plane (the plane through the pixel's point and
+    its tangents across those neighbours): the ray meets that plane there,
+    exact on planes, unless it grazes it (|n . ray| < `min_cos`) or the
+    result differs from the pixel's range by more than `max_change` of it.
+    0 elsewhere.
     """
     out = np.zeros(len(rays_dst), np.float32)
-    _resample(range_src, rays_src, pixels, start, order, rays_dst, min_cos, tol_m, tol_rel, out)
+    _resample(range_src, rays_src, pixels, start, order, rays_dst, min_cos, tol_m, tol_rel, max_change, out)
     return out

@@ -48,7 +48,7 @@ from ingest.train.free_space import free_space_filter as free_space_mask
 from ingest.train.groundtruth import px_per_rad
 from ingest.train.planes import Normals, plane_normals
 
-VIEW_MARGIN_PX = 16  # dense GT draws the points and equirect rays this near cam0's image too
+VIEW_MARGIN_PX = 16  # dense GT draws the points this near cam0's image too (they may occlude rays inside it)
 
 
 @dataclass(frozen=True)
@@ -78,8 +78,9 @@ class DenseParams:
     free_slice_ns: int = 50_000_000  # one LiDAR's points over this long share one origin
     free_reference_ns: int = 0  # only slices this near the frame time test the others (0: every slice)
     free_margin_m: float = 0.1  # a ray must pass a point by this much (plus 3 % of range) to clear it
-    resample_flat_m: float = 0.001  # cam0 GT neighbours giving an equirect ray its plane must lie on it
-    resample_flat_rel: float = 0.001  # ... within this much plus this fraction of the range
+    resample_flat_m: float = 0.01  # cam0 GT neighbours giving an equirect ray its plane must lie on it
+    resample_flat_rel: float = 0.01  # ... within this much plus this fraction of the range (the render's tau)
+    resample_max_change: float = 0.05  # ... and the plane may move the range by at most this fraction
     stability_max_rel_error: float = 0.5
     stability_disp_error_px: float = 0.5
 
@@ -257,16 +258,18 @@ def rect_ranges(
     along it: a ray's surface is the one of the GT pixel nearest to where it
     projects in cam0, and its range is where it meets that pixel's plane (the
     plane through the pixel's point and its GT neighbours, which must lie on
-    it within `resample_flat_m` + `resample_flat_rel` x range), exact on
-    planes as the snapped values are. Rays whose nearest cam0 pixel holds no
+    it within `resample_flat_m` + `resample_flat_rel` x range: the renderer's
+    same-surface tolerance, so a noisy surface keeps its GT and a crease or
+    step does not), exact on planes as the snapped values are. Rays whose nearest cam0 pixel holds no
     GT (a hole, a silhouette, a mover) get none: disparity is GT only where
     depth is.
     """
     rays, _ = pixel_rays(model)
     start, order, rays_win = rect_lookup(model, win, R_cam0_rect)
+    tolerances = (params.resample_flat_m, params.resample_flat_rel, params.resample_max_change)
     return planar_resample(
         range_img.dense(), rays.reshape(model.height, model.width, 3), range_img.pixel, start, order,
-        rays_win, params.plane_min_cos, params.resample_flat_m, params.resample_flat_rel,
+        rays_win, params.plane_min_cos, *tolerances,
     )  # fmt: skip
 
 
@@ -315,7 +318,7 @@ def _cam0_window_cached(model: CameraModel, eq: Equirectangular, R_bytes: bytes)
     full = eq.full()
     uv, good = full.project(rays[ok].astype(np.float64) @ R_cam0_rect)
     uv = uv[good]
-    m = VIEW_MARGIN_PX
+    m = 1  # an equirect ray outside cam0's image has no GT pixel near it
     c0 = max(0, int(np.floor(uv[:, 0].min())) - m)
     c1 = min(full.width, int(np.ceil(uv[:, 0].max())) + m + 1)
     r0 = max(0, int(np.floor(uv[:, 1].min())) - m)
@@ -324,7 +327,7 @@ def _cam0_window_cached(model: CameraModel, eq: Equirectangular, R_bytes: bytes)
 
 
 def cam0_window(model: CameraModel, eq: Equirectangular, R_cam0_rect: F64) -> Equirectangular:
-    """The crop of `eq`'s full sphere holding every ray of `model` (plus `VIEW_MARGIN_PX`), cached."""
+    """The crop of `eq`'s full sphere holding every ray of `model` (plus a pixel), cached."""
     return _cam0_window_cached(model, eq, np.ascontiguousarray(R_cam0_rect, np.float64).tobytes())
 
 

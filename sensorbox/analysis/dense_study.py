@@ -15,8 +15,8 @@ Methods x windows (+- around the frame time):
   +-200/500/1000 ms.
 
 `run_dense_study` returns a table row per scene and method (density, range
-median, outliers, disparity median and > 1 px, mover trail, seconds per
-sample) and the trajectory's error over the walk; `dense_chart` draws
+median, outliers, disparity median and > 1 px, disparity GT pixels per
+depth GT pixel, mover trail, seconds per sample) and the trajectory's error over the walk; `dense_chart` draws
 density against range error with each scene's Pareto front.
 """
 
@@ -154,10 +154,11 @@ def evaluate(rec: Recording, geo: Geometry, method: Method, stamps: list[int], o
         s = score_sample(out, truth, res.sid, trail_window_ns=method.window_ns)
         assert res.meta is not None
         wrong = s.depth_outlier_rate + s.depth_no_surface_rate  # GT on the sky counts as an outlier
+        disp_per_depth = s.disp_pixels / max(1, s.depth_pixels)
         rows.append((res.meta.gt.density, s.depth_median_abs_m * 1e3, wrong, s.disp_median_abs_px,
-                     s.disp_over_1px_rate, s.mover_trail_rate))  # fmt: skip
+                     s.disp_over_1px_rate, s.mover_trail_rate, disp_per_depth))  # fmt: skip
     a = np.array(rows)
-    keys = ("density", "median_mm", "outliers", "disp_median_px", "disp_over_1px", "trail")
+    keys = ("density", "median_mm", "outliers", "disp_median_px", "disp_over_1px", "trail", "disp_per_depth")
     return {
         **{k: float(np.mean(a[:, i])) for i, k in enumerate(keys)},
         "s_per_sample": statistics.median(secs),
@@ -294,7 +295,7 @@ def run_dense_study(
 def table_header() -> str:
     return (
         "| scene | method | density | range median [mm] | outliers | disp median [px] | disp > 1 px | "
-        "mover trail | s/sample |\n|---|---|---|---|---|---|---|---|---|"
+        "disp px / depth px | mover trail | s/sample |\n|---|---|---|---|---|---|---|---|---|---|"
     )
 
 
@@ -302,7 +303,8 @@ def format_row(scene: str, label: str, r: dict[str, float]) -> str:
     """One markdown row of the study's table."""
     cells = [
         scene, label, f"{100 * r['density']:.1f} %", f"{r['median_mm']:.2f}", f"{100 * r['outliers']:.2f} %",
-        f"{r['disp_median_px']:.3f}", f"{100 * r['disp_over_1px']:.2f} %", f"{100 * r['trail']:.3f} %",
+        f"{r['disp_median_px']:.3f}", f"{100 * r['disp_over_1px']:.2f} %", f"{r['disp_per_depth']:.2f}",
+        f"{100 * r['trail']:.3f} %",
         f"{r['s_per_sample']:.1f}",
     ]  # fmt: skip
     return "| " + " | ".join(cells) + " |"

@@ -12,9 +12,9 @@ def test_pareto_front_keeps_only_undominated_points():
 
 def test_row_and_chart(tmp_path):
     r = {"density": 0.335, "median_mm": 0.27, "outliers": 0.002, "disp_median_px": 0.003, "disp_over_1px": 0.0009,
-         "trail": 0.0, "s_per_sample": 16.6}  # fmt: skip
+         "trail": 0.0, "s_per_sample": 16.6, "disp_per_depth": 1.084}  # fmt: skip
     assert format_row("static room", "odometry +-500 ms", r) == (
-        "| static room | odometry +-500 ms | 33.5 % | 0.27 | 0.20 % | 0.003 | 0.09 % | 0.000 % | 16.6 |"
+        "| static room | odometry +-500 ms | 33.5 % | 0.27 | 0.20 % | 0.003 | 0.09 % | 1.08 | 0.000 % | 16.6 |"
     )
     rows = {
         scene: {
