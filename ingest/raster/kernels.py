@@ -135,19 +135,6 @@ def _point(range_src, rays_src, r, c):  # type: ignore[no-untyped-def]  # pragma
     return True, rays_src[r, c, 0] * rng, rays_src[r, c, 1] * rng, rays_src[r, c, 2] * rng
 
 
-@njit(cache=True, nogil=True, inline="always")
-def _tangent(has, nb, lo, hi, centre):  # type: ignore[no-untyped-def]  # pragma: no cover
-    """Tangent through neighbour rows ``lo``, ``centre``, ``hi`` of ``nb``: across both, else towards the
-    one with a point; and whether there is one."""
-    if has[lo] and has[hi]:
-        return True, nb[hi, 0] - nb[lo, 0], nb[hi, 1] - nb[lo, 1], nb[hi, 2] - nb[lo, 2]
-    if has[hi]:
-        return True, nb[hi, 0] - nb[centre, 0], nb[hi, 1] - nb[centre, 1], nb[hi, 2] - nb[centre, 2]
-    if has[lo]:
-        return True, nb[centre, 0] - nb[lo, 0], nb[centre, 1] - nb[lo, 1], nb[centre, 2] - nb[lo, 2]
-    return False, 0.0, 0.0, 0.0
-
-
 @njit(cache=True, nogil=True, error_model="numpy")
 def _resample(range_src, rays_src, pixels, start, order, rays_dst, min_cos, tol_m, tol_rel, max_change, out):  # type: ignore[no-untyped-def]  # pragma: no cover
     W = range_src.shape[1]
@@ -160,33 +147,56 @@ def _resample(range_src, rays_src, pixels, start, order, rays_dst, min_cos, tol_
         r = q // W
         c = q - r * W
         n_pts = 0
+        mx = my = mz = 0.0
         for k in range(9):
             has[k], nb[k, 0], nb[k, 1], nb[k, 2] = _point(range_src, rays_src, r + k // 3 - 1, c + k % 3 - 1)
-            n_pts += has[k]
+            if has[k]:
+                n_pts += 1
+                mx += nb[k, 0]
+                my += nb[k, 1]
+                mz += nb[k, 2]
         if not has[4] or n_pts < 4:  # three points always lie on a plane: at least one must check it
             continue
-        has_u, ux, uy, uz = _tangent(has, nb, 3, 5, 4)
-        has_v, vx, vy, vz = _tangent(has, nb, 1, 7, 4)
-        if not (has_u and has_v):
+        mx, my, mz = mx / n_pts, my / n_pts, mz / n_pts
+        # the least-squares plane w = w0 + b x + c y in a frame along the pixel's ray (w along it, x and y
+        # across): range noise lies along the rays, so this is the fit that noise model asks for
+        ex, ey, ez = rays_src[r, c, 0], rays_src[r, c, 1], rays_src[r, c, 2]
+        if abs(ex) < 0.9:  # x axis = ray x (1, 0, 0), normalised
+            ux, uy, uz = 0.0, ez, -ey
+        else:  # ray x (0, 1, 0)
+            ux, uy, uz = -ez, 0.0, ex
+        un = np.sqrt(ux * ux + uy * uy + uz * uz)
+        ux, uy, uz = ux / un, uy / un, uz / un
+        vx, vy, vz = ey * uz - ez * uy, ez * ux - ex * uz, ex * uy - ey * ux
+        sxx = sxy = syy = sxw = syw = 0.0
+        for k in range(9):
+            if has[k]:
+                dx, dy, dz = nb[k, 0] - mx, nb[k, 1] - my, nb[k, 2] - mz
+                x = ux * dx + uy * dy + uz * dz
+                y = vx * dx + vy * dy + vz * dz
+                w = ex * dx + ey * dy + ez * dz
+                sxx += x * x
+                sxy += x * y
+                syy += y * y
+                sxw += x * w
+                syw += y * w
+        det = sxx * syy - sxy * sxy
+        if not det > 1e-12 * (sxx + syy) * (sxx + syy):  # the points lie on a line: no plane
             continue
-        nx = uy * vz - uz * vy
-        ny = uz * vx - ux * vz
-        nz = ux * vy - uy * vx
+        b = (syy * sxw - sxy * syw) / det
+        c2 = (sxx * syw - sxy * sxw) / det
+        nx, ny, nz = ex - b * ux - c2 * vx, ey - b * uy - c2 * vy, ez - b * uz - c2 * vz
         norm = np.sqrt(nx * nx + ny * ny + nz * nz)
-        if not norm > 1e-9 * np.sqrt((ux * ux + uy * uy + uz * uz) * (vx * vx + vy * vy + vz * vz)):
-            continue  # (nearly) parallel tangents: no plane
         nx, ny, nz = nx / norm, ny / norm, nz / norm
-        # the 3x3 neighbours that hold a point must lie on that plane
-        x0, y0, z0 = nb[4, 0], nb[4, 1], nb[4, 2]
         rng0 = np.float64(range_src[r, c])
         tol = tol_m + tol_rel * rng0
         flat = True
         for k in range(9):
-            if has[k] and abs(nx * (nb[k, 0] - x0) + ny * (nb[k, 1] - y0) + nz * (nb[k, 2] - z0)) > tol:
+            if has[k] and abs(nx * (nb[k, 0] - mx) + ny * (nb[k, 1] - my) + nz * (nb[k, 2] - mz)) > tol:
                 flat = False
         if not flat:
             continue
-        d0 = nx * x0 + ny * y0 + nz * z0
+        d0 = nx * mx + ny * my + nz * mz
         for k in range(start[q], start[q + 1]):
             j = order[k]
             cos = nx * rays_dst[j, 0] + ny * rays_dst[j, 1] + nz * rays_dst[j, 2]
@@ -225,13 +235,13 @@ def planar_resample(
     (0: no value) at the flat `pixels`; (`start`, `order`) group the N
     `rays_dst` (unit, in the source view's frame) by their nearest source
     pixel (`nearest_pixel_groups`). A ray gets a range only where its
-    nearest pixel holds one, has a neighbour with one along each image axis
-    and at least four of its 3x3 pixels hold one, all within `tol_m` +
-    `tol_rel` x range of one plane (the plane through the pixel's point and
-    its tangents across those neighbours): the ray meets that plane there,
-    exact on planes, unless it grazes it (|n . ray| < `min_cos`) or the
-    result differs from the pixel's range by more than `max_change` of it.
-    0 elsewhere.
+    nearest pixel holds one, at least four of its 3x3 pixels hold one, and
+    their points lie within `tol_m` + `tol_rel` x range of their
+    least-squares plane (errors along the pixel's ray, as range noise
+    lies): the ray meets that plane there, exact on planes (and on noisy
+    ones an average of up to nine points rather than one), unless it
+    grazes it (|n . ray| < `min_cos`) or the result differs from the
+    pixel's range by more than `max_change` of it. 0 elsewhere.
     """
     out = np.zeros(len(rays_dst), np.float32)
     _resample(range_src, rays_src, pixels, start, order, rays_dst, min_cos, tol_m, tol_rel, max_change, out)

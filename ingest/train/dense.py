@@ -14,10 +14,10 @@ splat range: `RenderParams.raw_fallback` off).
 Depth (fisheye range) and disparity (cam0's rectified equirect, DESIGN.md's
 formula and stability mask) come from the same points: the equirect is not
 rendered a second time. It shares cam0's centre, so it sees what cam0 sees;
-each equirect ray takes the plane of its nearest fisheye GT pixel and meets
-it (`rect_ranges`). That is exact on planes, as the snapped values are, and
-costs about 35 ms at full resolution against about 450 ms for a second
-render of the 3.5 M-pixel window.
+each equirect ray takes the least-squares plane around its nearest fisheye
+GT pixel and meets it (`rect_ranges`). That is exact on planes, as the
+snapped values are, and costs about 80 ms at full resolution against about
+450 ms for a second render of the 3.4 M-pixel window.
 
 Moving objects: a point is kept only where the frame's own sweeps do not
 see through it (`free_space_filter`): a mover's earlier positions are free
@@ -78,7 +78,7 @@ class DenseParams:
     free_slice_ns: int = 50_000_000  # one LiDAR's points over this long share one origin
     free_reference_ns: int = 0  # only slices this near the frame time test the others (0: every slice)
     free_margin_m: float = 0.1  # a ray must pass a point by this much (plus 3 % of range) to clear it
-    resample_flat_m: float = 0.01  # cam0 GT neighbours giving an equirect ray its plane must lie on it
+    resample_flat_m: float = 0.01  # cam0 GT pixels giving an equirect ray its plane must lie on it
     resample_flat_rel: float = 0.01  # ... within this much plus this fraction of the range (the render's tau)
     resample_max_change: float = 0.05  # ... and the plane may move the range by at most this fraction
     stability_max_rel_error: float = 0.5
@@ -257,12 +257,12 @@ def rect_ranges(
     rotation), so what cam0 sees along a direction is what the equirect sees
     along it: a ray's surface is the one of the GT pixel nearest to where it
     projects in cam0, and its range is where it meets that pixel's plane (the
-    plane through the pixel's point and its GT neighbours, which must lie on
-    it within `resample_flat_m` + `resample_flat_rel` x range: the renderer's
-    same-surface tolerance, so a noisy surface keeps its GT and a crease or
-    step does not), exact on planes as the snapped values are. Rays whose nearest cam0 pixel holds no
-    GT (a hole, a silhouette, a mover) get none: disparity is GT only where
-    depth is.
+    least-squares plane of the pixel's point and its GT neighbours, which
+    must lie on it within `resample_flat_m` + `resample_flat_rel` x range:
+    the renderer's same-surface tolerance, so a noisy surface keeps its GT
+    and a crease or step does not), exact on planes as the snapped values
+    are. Rays whose nearest cam0 pixel holds no GT (a hole, a silhouette, a
+    mover) get none: disparity is GT only where depth is.
     """
     rays, _ = pixel_rays(model)
     start, order, rays_win = rect_lookup(model, win, R_cam0_rect)
