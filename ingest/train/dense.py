@@ -268,8 +268,7 @@ def rect_ranges(
     start, order, rays_win = rect_lookup(model, win, R_cam0_rect)
     tolerances = (params.resample_flat_m, params.resample_flat_rel, params.resample_max_change)
     return planar_resample(
-        range_img.dense(), rays.reshape(model.height, model.width, 3), range_img.pixel, start, order,
-        rays_win, params.plane_min_cos, *tolerances,
+        range_img.dense(), rays, range_img.pixel, start, order, rays_win, params.plane_min_cos, *tolerances,
     )  # fmt: skip
 
 

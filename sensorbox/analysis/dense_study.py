@@ -16,8 +16,9 @@ Methods x windows (+- around the frame time):
 
 `run_dense_study` returns a table row per scene and method (density, range
 median, outliers, disparity median and > 1 px, disparity GT pixels per
-depth GT pixel, mover trail, seconds per sample) and the trajectory's error over the walk; `dense_chart` draws
-density against range error with each scene's Pareto front.
+depth GT pixel, mover trail, seconds per sample) and the trajectory's error
+over the walk; `dense_chart` draws density against range error with each
+scene's Pareto front.
 """
 
 from __future__ import annotations
