@@ -67,6 +67,7 @@ class DenseParams:
     )
     plane_neighbours: int = 10
     plane_max_flatness: float = 0.02
+    plane_block_ns: int = 1_000_000_000  # the ingest fits planes once per point, among this long a block
     plane_min_cos: float = 0.2
     surfel_px: int = 1  # each planar point also gives values on the rays of pixels this close
     outline_px: int = 7  # ... inside the points' outline: gaps up to this wide closed
@@ -205,10 +206,14 @@ def dense_ground_truth(
     pts_cam0: F64,
     params: DenseParams,
     moving_cam0: F64 | None = None,
+    normals: Normals | None = None,
 ) -> DenseGt:
     """Fisheye range and equirect disparity of points already placed in cam0 at the frame time.
 
     `moving_cam0` are the points the free-space test removed (see `near_movers`).
+    `normals` are the points' local planes in cam0 (the ingest's block planes,
+    `ingest.train.block_planes`); without them each point's plane is fitted
+    to its `plane_neighbours` nearest neighbours among `pts_cam0`.
     Only what cam0 sees is rendered: points outside its view (plus a margin
     of `VIEW_MARGIN_PX`) cannot occlude rays inside it. The equirect's ranges
     come from cam0's GT over the window of the sphere cam0 covers
@@ -216,8 +221,9 @@ def dense_ground_truth(
     cam0's visible points too.
     """
     moving = np.zeros((0, 3)) if moving_cam0 is None else moving_cam0
-    pts_cam0 = pts_cam0[near_view(model, pts_cam0, VIEW_MARGIN_PX)]
-    pts_cam0 = pts_cam0[z_order(pts_cam0)]  # neighbours in memory: the k-NN runs twice as fast
+    near = np.flatnonzero(near_view(model, pts_cam0, VIEW_MARGIN_PX))
+    near = near[z_order(pts_cam0[near])]  # neighbours in memory: the k-NN runs twice as fast
+    pts_cam0 = pts_cam0[near]
     if len(pts_cam0) == 0:
         nothing = np.zeros(0, np.int64), np.zeros(0, np.float32)
         return DenseGt(
@@ -225,7 +231,10 @@ def dense_ground_truth(
             SparseImage((eq.height, eq.width), *nothing),
             0,
         )
-    normals = plane_normals(pts_cam0, params.plane_neighbours, params.plane_max_flatness)
+    if normals is None:
+        normals = plane_normals(pts_cam0, params.plane_neighbours, params.plane_max_flatness)
+    else:
+        normals = Normals(normals.normal[near], normals.planar[near])
     fish, pix = _view_gt(model, pts_cam0, normals, moving, params)
     range_img = SparseImage(fish.range_m.shape, pix, fish.range_m.reshape(-1)[pix])
     win = cam0_window(model, eq, R_cam0_rect)

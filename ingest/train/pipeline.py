@@ -60,10 +60,11 @@ from ingest.raster.visibility import backend_problem
 from ingest.runtime.executor import Executor, Handoff, share_cores
 from ingest.runtime.heap import retain_freed_memory
 from ingest.train.bad_messages import BadMessages
+from ingest.train.block_planes import BlockPlanes, PlaneSettings
 from ingest.train.dense import DenseParams
 from ingest.train.describe import check_existing, record_undecodable, write_dataset_yaml
 from ingest.train.lidar_rate import THIN_FRACTION
-from ingest.train.plan import LOST_REASON, plan, survey
+from ingest.train.plan import LOST_REASON, Plan, plan, survey
 from ingest.train.rig_trajectory import RigTrajectory
 from ingest.train.sample import GAP_FALLBACK, Geometry, SampleParams, SampleResult
 from ingest.train.stream import (
@@ -399,6 +400,20 @@ def ingest(
     return summary
 
 
+def _block_planes(
+    rig: Rig, topics: Topics, the_plan: Plan, cfg: IngestConfig, traj: RigTrajectory | None, busy: bool
+) -> BlockPlanes | None:
+    """Dense GT's plane fit, once per point in the stream pass (`ingest.train.block_planes`); None: sparse."""
+    if cfg.sample.method != "dense" or traj is None:
+        return None
+    dense = cfg.sample.dense
+    settings = PlaneSettings(
+        {t: rig.lidar(name).T_cam0_lidar for t, name in topics.lidars.items()}, dense.plane_block_ns,
+        dense.plane_neighbours, dense.plane_max_flatness, cfg.sample.min_range_m,
+    )  # fmt: skip
+    return BlockPlanes(traj, {t: the_plan.spans[t] for t in topics.lidars}, settings, 1 if busy else None)
+
+
 def _run(
     bag_paths: list[Path],
     cfg: IngestConfig,
@@ -451,7 +466,7 @@ def _run(
 
         def jobs() -> Iterator[StreamedJob]:
             """The jobs to run; resumed and skipped samples are counted here, in stream order."""
-            for item in stream_jobs(bags, topics, the_plan, cfg, first_id, bad):
+            for item in stream_jobs(bags, topics, the_plan, cfg, first_id, bad, planes):
                 if not isinstance(item, tuple):
                     yield item
                     continue
@@ -461,6 +476,7 @@ def _run(
                     summary.skipped[item[1]] = summary.skipped.get(item[1], 0) + 1
                 tick()
 
+        planes = _block_planes(rig, topics, the_plan, cfg, traj, executor.every_core_busy)
         handoff = Handoff(take_messages, give_messages, message_bytes_bound(geometry))
         results = executor.run(run_streamed, jobs(), shared=Shared(geometry, traj), handoff=handoff)
         try:

@@ -74,11 +74,11 @@ def neighbour_covariances(pts: F64, idx: np.ndarray[Any, Any]) -> F64:
     return out
 
 
-def _planar(lam_min: F64, lam_max: F64, total: F64, pts: F64, max_flatness: float) -> Bool:
+def _planar(lam_min: F64, lam_max: F64, total: F64, range_m: F64, max_flatness: float) -> Bool:
     """Planar and local: see `normals_from_covariances`."""
     flatness = lam_min / np.maximum(total, 1e-30)
     spread = np.sqrt(np.maximum(lam_max, 0.0))
-    local = spread < 0.1 * np.linalg.norm(pts, axis=1) + 0.05
+    local = spread < 0.1 * range_m + 0.05
     out: Bool = (flatness <= max_flatness) & local
     return out
 
@@ -93,7 +93,8 @@ def normals_from_covariances(cov: F64, pts: F64, max_flatness: float) -> Normals
     `plane_normals`' Open3D path.
     """
     evals, normal = sym3_smallest(cov)  # ascending
-    return Normals(normal, _planar(evals[:, 0], evals[:, 2], evals.sum(axis=1), pts, max_flatness))
+    lam_min, lam_max, total = evals[:, 0], evals[:, 2], evals.sum(axis=1)
+    return Normals(normal, _planar(lam_min, lam_max, total, np.linalg.norm(pts, axis=1), max_flatness))
 
 
 def extreme_eigenvalues(cov: F64, normal: F64) -> tuple[F64, F64]:
@@ -113,12 +114,18 @@ def extreme_eigenvalues(cov: F64, normal: F64) -> tuple[F64, F64]:
     return lam_min, lam_max
 
 
-def plane_normals(pts: F64, k: int, max_flatness: float) -> Normals:
-    """PCA normal of each point's k-neighbourhood among `pts` (the point included)."""
+def plane_normals(pts: F64, k: int, max_flatness: float, range_m: F64 | None = None) -> Normals:
+    """PCA normal of each point's k-neighbourhood among `pts` (the point included).
+
+    "Local" (`normals_from_covariances`) compares a neighbourhood's spread with
+    the point's distance from the sensor: `range_m` (N,), or |pts| when the
+    points are in the sensor's frame.
+    """
     n = len(pts)
     if n < 3:
         return Normals(np.zeros((n, 3)), np.zeros(n, bool))
     cov, normal = knn_planes(pts, min(k, n))
     lam_min, lam_max = extreme_eigenvalues(cov, normal)
     total = np.trace(cov, axis1=1, axis2=2)
-    return Normals(normal, _planar(lam_min, lam_max, total, pts, max_flatness))
+    r = np.linalg.norm(pts, axis=1) if range_m is None else range_m
+    return Normals(normal, _planar(lam_min, lam_max, total, r, max_flatness))

@@ -80,6 +80,26 @@ class RigTrajectory:
         hi = int(after[0]) - 1 if len(after) else len(stamps) - 1
         return int(stamps[lo]), int(stamps[hi])
 
+    def stretch_of(self, t_ns: I64) -> I64:
+        """Per time, an id shared by the times of one stretch of registered knots (`measured_span`'s
+        stretch), or -1 outside the knots or in an interval beside a predicted knot.
+
+        Points of one stretch were all placed against the same map, so they may
+        be neighbours; points of two stretches need not agree.
+        """
+        t = np.atleast_1d(np.asarray(t_ns, np.int64))
+        measured = np.isfinite(self.residual_m)
+        if len(self.stamps_ns) == 1:
+            one: I64 = np.where((t == self.stamps_ns[0]) & measured[0], 0, -1).astype(np.int64)
+            return one
+        k, _ = self._segment(t)
+        ok = measured[k] & measured[k + 1]
+        # exactly on a registered knot: the interval before it counts (as in `measured_span`)
+        ok |= (t == self.stamps_ns[k]) & (k > 0) & measured[np.maximum(k - 1, 0)] & measured[k]
+        ok &= self.covers(t)
+        out: I64 = np.where(ok, np.cumsum(~measured)[k], -1).astype(np.int64)
+        return out
+
     def pose(self, t_ns: I64) -> tuple[F64, F64]:
         """(R_world_cam0 (N, 3, 3), p_world_cam0 (N, 3)) at times `t_ns` (clamped to the knots).
 

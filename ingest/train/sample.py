@@ -95,12 +95,14 @@ class LidarPoints:
     xyz_m: np.ndarray[Any, Any]
     stamps_ns: I64
     tag: np.ndarray[Any, Any] | None
+    normal_world: np.ndarray[Any, Any] | None = None  # dense GT: (N, 3) float16, NaN: none (`block_planes`)
 
     def within(self, t0_ns: int, t1_ns: int) -> LidarPoints:
         """The points stamped in [t0_ns, t1_ns], in their order."""
         keep = (self.stamps_ns >= t0_ns) & (self.stamps_ns <= t1_ns)
         tag = None if self.tag is None else self.tag[keep]
-        return LidarPoints(self.name, self.xyz_m[keep], self.stamps_ns[keep], tag)
+        normal = None if self.normal_world is None else self.normal_world[keep]
+        return LidarPoints(self.name, self.xyz_m[keep], self.stamps_ns[keep], tag, normal)
 
 
 @dataclass(frozen=True)
@@ -180,13 +182,14 @@ def _silent(job: SampleJob) -> list[str]:
 
 def _points_in_cam0(job: SampleJob) -> tuple[F64, I64, FilterCounts, dict[str, float]]:
     """Filtered points of every LiDAR in cam0 (at their own times), their stamps, counts, skews."""
-    pts, stamps, _, total, skew = _points_by_lidar(job)
+    pts, stamps, _, total, skew, _ = _points_by_lidar(job)
     return pts, stamps, total, skew
 
 
-def _points_by_lidar(job: SampleJob) -> tuple[F64, I64, I64, FilterCounts, dict[str, float]]:
-    """`_points_in_cam0` and the index (into `job.lidars`) of each point's LiDAR."""
-    pts, stamps, which, total, skew = [], [], [], FilterCounts(), {}
+def _points_by_lidar(job: SampleJob) -> tuple[F64, I64, I64, FilterCounts, dict[str, float], F64 | None]:
+    """`_points_in_cam0`, the index (into `job.lidars`) of each point's LiDAR and the points' world
+    normals (None unless every LiDAR's points carry them)."""
+    pts, stamps, which, total, skew, normals = [], [], [], FilterCounts(), {}, []
     for i, lp in enumerate(job.lidars):
         keep, counts = filter_points(lp.xyz_m, lp.tag, job.params.min_range_m)
         T = job.geometry.rig.lidar(lp.name).T_cam0_lidar
@@ -194,10 +197,13 @@ def _points_by_lidar(job: SampleJob) -> tuple[F64, I64, I64, FilterCounts, dict[
         pts.append(xyz @ T[:3, :3].T + T[:3, 3])
         stamps.append(lp.stamps_ns[keep])
         which.append(np.full(int(keep.sum()), i, np.int64))
+        if lp.normal_world is not None:
+            normals.append(np.asarray(lp.normal_world[keep], np.float64))
         total = total + counts
         dt = (lp.stamps_ns[keep] - job.upper_stamp_ns) / 1e6
         skew[lp.name] = float(np.abs(dt).max()) if len(dt) else 0.0
-    return np.concatenate(pts), np.concatenate(stamps), np.concatenate(which), total, skew
+    normal = np.concatenate(normals) if len(normals) == len(job.lidars) else None
+    return np.concatenate(pts), np.concatenate(stamps), np.concatenate(which), total, skew, normal
 
 
 Equirects = tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]
@@ -381,24 +387,32 @@ def _process_dense(job: SampleJob, images: Background[Equirects], start_ms: floa
     span = traj.measured_span(tc)
     if span is None:  # the frame's own pose is a prediction across a LiDAR gap
         return _in_gap(job, images, start_ms)
-    pts, stamps, which, counts, skew_ms = _points_by_lidar(job)
+    pts, stamps, which, counts, skew_ms, normal_world = _points_by_lidar(job)
     covered = (stamps >= span[0]) & (stamps <= span[1])  # no point placed across a gap
     if not covered.any():
         return SampleResult(job.sid, False, "outside the trajectory", None, {})
     pts, stamps, which = pts[covered], stamps[covered], which[covered]
     turn_rad, shift_m = traj.motion_from(tc, int(stamps.min()), int(stamps.max()))
     placed = traj.to_frame(pts, stamps, tc)
+    normals = None
+    if normal_world is not None:  # the stream pass's block planes, turned into cam0 at the frame time
+        R_world_cam0, _ = traj.pose(np.array([tc]))
+        normal = normal_world[covered] @ R_world_cam0[0]
+        planar = np.isfinite(normal[:, 0])
+        normals = Normals(np.where(planar[:, None], normal, 0.0), planar)
     moving = np.zeros((0, 3))
     if prm.dense.free_space:
         test = may_matter(geo.rig.upper.model, placed, prm.dense)
         keep = free_space_filter(placed, *_slices(job, traj, stamps, which), prm.dense, test)
         moving, placed = placed[~keep], placed[keep]
+        normals = None if normals is None else Normals(normals.normal[keep], normals.planar[keep])
     t1 = time.perf_counter()
     ms["clouds"] = (t1 - t0) * 1e3
     rect = geo.rect
     dense = dense_ground_truth(
-        geo.rig.upper.model, geo.equirect, rect.R_cam0_rect, rect.baseline_m, placed, prm.dense, moving
-    )
+        geo.rig.upper.model, geo.equirect, rect.R_cam0_rect, rect.baseline_m, placed, prm.dense, moving,
+        normals,
+    )  # fmt: skip
     ms["ground_truth"] = (time.perf_counter() - t1) * 1e3
     in_window = (traj.stamps_ns >= tc - prm.dense.window_ns) & (traj.stamps_ns <= tc + prm.dense.window_ns)
     residual = traj.residual_m[in_window]

@@ -37,6 +37,7 @@ from ingest.bags.reader import BagSet
 from ingest.dataset.layout import is_done, sample_id
 from ingest.errors import BagError, MessageDecodeError
 from ingest.train.bad_messages import BadMessages
+from ingest.train.block_planes import NORMAL_DTYPE, BlockPlanes
 from ingest.train.lidar_rate import LidarRates
 from ingest.train.plan import IMU_MARGIN_NS, Plan
 from ingest.train.repeats import FirstCopies
@@ -176,13 +177,20 @@ def run_streamed(shared: Shared, job: StreamedJob) -> SampleResult:
 # ---------------------------------------------------------------- the stream pass
 
 
-def _lidar_window(sweeps: list[Sweep], name: str, t_c: int, w: int) -> LidarPoints:
-    parts = [(s, (s.stamps_ns >= t_c - w) & (s.stamps_ns <= t_c + w)) for s in sweeps]
+def _lidar_window(
+    sweeps: list[Sweep], name: str, t_c: int, w: int, planes: BlockPlanes | None
+) -> LidarPoints:
+    near = [s for s in sweeps if s.span_ns[1] >= t_c - w and s.span_ns[0] <= t_c + w]
+    parts = [(s, (s.stamps_ns >= t_c - w) & (s.stamps_ns <= t_c + w)) for s in near]
     xyz = np.concatenate([s.xyz_m[m] for s, m in parts]) if parts else np.zeros((0, 3), np.float32)
     st = np.concatenate([s.stamps_ns[m] for s, m in parts]) if parts else np.zeros(0, np.int64)
     tags = [s.tag[m] for s, m in parts if s.tag is not None]
     tag = np.concatenate(tags) if tags and len(tags) == len(parts) else None
-    return LidarPoints(name, xyz, st, tag)
+    normal = None
+    if planes is not None:
+        normals = [planes.normals(s)[m] for s, m in parts]
+        normal = np.concatenate(normals) if normals else np.zeros((0, 3), NORMAL_DTYPE)
+    return LidarPoints(name, xyz, st, tag, normal)
 
 
 def _sweeps_needed(the_plan: Plan, topics: Topics, w: int) -> dict[int, dict[str, int]]:
@@ -246,9 +254,13 @@ def _forget_readings(imu_t: list[int], imu_g: list[Any], before_ns: int) -> None
 
 def stream_jobs(
     bags: BagSet, topics: Topics, the_plan: Plan, cfg: IngestConfig, first_id: int = 0,
-    bad: BadMessages | None = None,
+    bad: BadMessages | None = None, planes: BlockPlanes | None = None,
 ) -> Iterator[StreamedJob | tuple[str, str]]:  # fmt: skip
-    """Second pass: a StreamedJob per planned sample, or (sid, why): "done" earlier, "missing image"."""
+    """Second pass: a StreamedJob per planned sample, or (sid, why): "done" earlier, "missing image".
+
+    With `planes` (dense GT) every job's points carry their world normals, and
+    a job waits until the plane blocks its window overlaps are fitted.
+    """
     where = bags.label
     bad = bad or BadMessages()
     w = cfg.lidar_window_ns
@@ -278,11 +290,12 @@ def stream_jobs(
             len(frames.get(k, {})) == 2
             and all(have[t] >= n for t, n in need[k].items())
             and (imu_last is None or imu_max >= min(tc + w + IMU_MARGIN_NS, imu_last))
+            and (planes is None or planes.complete(sweeps, tc - w, tc + w))
         )
 
     def job(k: int) -> StreamedJob:
         tc = int(the_plan.upper_ns[k])
-        lidars = tuple(_lidar_window(sweeps[t], name, tc, w) for t, name in topics.lidars.items())
+        lidars = tuple(_lidar_window(sweeps[t], name, tc, w, planes) for t, name in topics.lidars.items())
         thin = _thin_lidars(the_plan.rates, topics, lidars, tc, w)
         thin_sparse: tuple[str, ...] = ()
         if cfg.sample.gap_fallback:
@@ -320,9 +333,16 @@ def stream_jobs(
             next_k += 1
             if next_k < len(sids):  # forget sweeps and IMU readings no later sample can use
                 horizon = int(the_plan.upper_ns[next_k]) - w
+                # a plane block is fitted whole: its first sweeps stay until its last one is here
+                kept_from = horizon if planes is None else planes.block_start(horizon)
                 for t in sweeps:
-                    sweeps[t] = [s for s in sweeps[t] if s.span_ns[1] >= horizon]
+                    sweeps[t] = [s for s in sweeps[t] if s.span_ns[1] >= kept_from]
+                if planes is not None:
+                    planes.forget(sweeps)
                 _forget_readings(imu_t, imu_g, horizon - IMU_MARGIN_NS)
     for k in range(next_k, len(sids)):  # the bag ended: whatever is complete still goes
         why = "done" if sids[k] in done else ("" if len(frames.get(k, {})) == 2 else "missing image")
+        if not why and planes is not None:
+            tc = int(the_plan.upper_ns[k])
+            planes.complete(sweeps, tc - w, tc + w, final=True)
         yield (sids[k], why) if why else job(k)

@@ -7,11 +7,15 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 
 from calibration.rig import read_rig
+from ingest.bags.decode import Sweep
 from ingest.bags.reader import open_bags
+from ingest.train.block_planes import BlockPlanes, PlaneSettings, world_normals
 from ingest.train.pipeline import IngestConfig, _resolve_topics
 from ingest.train.plan import IMU_MARGIN_NS, Plan, plan
+from ingest.train.rig_trajectory import RigTrajectory
 from ingest.train.sample import Geometry
 from ingest.train.stream import (
     Shared,
@@ -90,3 +94,62 @@ def test_sweeps_needed_counts_the_sweeps_overlapping_each_window() -> None:
         got = _sweeps_needed(the_plan, topics, w)  # type: ignore[arg-type]
         want = {k: {"/l": sum(1 for x, y in spans if y >= t - w and x <= t + w)} for k, t in enumerate(upper)}
         assert got == want
+
+
+@pytest.mark.parametrize(
+    ("every", "window_ns", "block_ns", "n_jobs"),
+    [(1, 300_000_000, 400_000_000, 21), (5, 50_000_000, 150_000_000, 5)],
+)
+def test_dense_jobs_carry_each_points_normal_from_its_whole_block(
+    tmp_path: Path, every: int, window_ns: int, block_ns: int, n_jobs: int
+) -> None:
+    """With block planes every job's points carry the normal fitted among all the points of their block
+    (read here straight from the bag), whichever sample carries them: the stream pass keeps a block's
+    first sweeps until its last one has arrived and fits it then, also where samples lie farther apart
+    than their windows reach (every 5th frame, 167 ms apart, +-50 ms)."""
+    cfg = IngestConfig(rig=_rig(INDOOR), out=tmp_path / "ds", workers=1, every=every)
+    cfg = replace(cfg, lidar_window_ns=window_ns)
+    cfg = replace(cfg, sample=replace(cfg.sample, window_ns=cfg.lidar_window_ns, method="dense"))
+    rig = read_rig(cfg.rig)
+    with open_bags([INDOOR]) as bags:
+        topics = _resolve_topics(rig, bags.topics(), str(INDOOR))
+        sweeps: dict[str, list[Sweep]] = {t: [] for t in topics.lidars}
+        for msg in bags.messages(topics=list(topics.lidars)):
+            sweep = msg.decoded(bags.label)
+            assert isinstance(sweep, Sweep)
+            sweeps[msg.topic].append(sweep)
+        t_all = np.concatenate([s.stamps_ns for v in sweeps.values() for s in v])
+        knots = np.arange(int(t_all.min()) - 10**8, int(t_all.max()) + 2 * 10**8, 50_000_000, dtype=np.int64)
+        still = RigTrajectory(knots, np.tile(np.eye(3), (len(knots), 1, 1)), np.zeros((len(knots), 3)),
+                              np.zeros(len(knots)))  # fmt: skip
+        T = {t: rig.lidar(name).T_cam0_lidar for t, name in topics.lidars.items()}
+        settings = PlaneSettings(T, block_ns, 10, 0.02, cfg.sample.min_range_m)
+        the_plan = plan(bags, topics, cfg)
+        planes = BlockPlanes(still, {t: the_plan.spans[t] for t in topics.lidars}, settings)
+        jobs = [
+            j for j in stream_jobs(bags, topics, the_plan, cfg, planes=planes) if isinstance(j, StreamedJob)
+        ]
+    assert len(jobs) == n_jobs
+    # the same fits from the whole recording, block by block
+    want: dict[tuple[str, int], np.ndarray] = {}
+    first = int(t_all.min()) // block_ns
+    for j in range(first, int(t_all.max()) // block_ns + 1):
+        lo, hi = j * block_ns, (j + 1) * block_ns - 1
+        parts, keys = [], []
+        for topic, v in sweeps.items():
+            for s in v:
+                m = np.flatnonzero((s.stamps_ns >= lo) & (s.stamps_ns <= hi))
+                if len(m):
+                    parts.append((s.xyz_m[m], s.stamps_ns[m], None if s.tag is None else s.tag[m], T[topic]))
+                    keys.append((topics.lidars[topic], s.stamps_ns[m]))
+        for (name, stamps), normal in zip(keys, world_normals(parts, still, settings), strict=True):
+            for t, n in zip(stamps.tolist(), normal, strict=True):
+                want[(name, t)] = n
+    checked = 0
+    for job in jobs:
+        for lp in job.lidars:
+            assert lp.normal_world is not None and len(lp.normal_world) == len(lp.stamps_ns)
+            expect = np.array([want[(lp.name, t)] for t in lp.stamps_ns.tolist()])
+            np.testing.assert_array_equal(lp.normal_world, expect, err_msg=job.sid)
+            checked += int(np.isfinite(expect[:, 0]).sum())
+    assert checked > 1_000 * n_jobs
