@@ -222,7 +222,8 @@ def dense_ground_truth(
     """
     moving = np.zeros((0, 3)) if moving_cam0 is None else moving_cam0
     near = np.flatnonzero(near_view(model, pts_cam0, VIEW_MARGIN_PX))
-    near = near[z_order(pts_cam0[near])]  # neighbours in memory: the k-NN runs twice as fast
+    if normals is None:
+        near = near[z_order(pts_cam0[near])]  # neighbours in memory: the k-NN runs twice as fast
     pts_cam0 = pts_cam0[near]
     if len(pts_cam0) == 0:
         nothing = np.zeros(0, np.int64), np.zeros(0, np.float32)
