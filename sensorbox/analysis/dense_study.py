@@ -14,6 +14,10 @@ Methods x windows (+- around the frame time):
 - odometry + movers filter: the same with the free-space test (the default),
   +-200/500/1000 ms.
 
+Dense samples get their points' planes as ingest's stream pass fits them,
+once per 1 s block (`block_planes`; seconds per sample leave that fit out,
+as a worker's time does).
+
 `run_dense_study` returns a table row per scene and method (density, range
 median, outliers, disparity median and > 1 px, disparity GT pixels per
 depth GT pixel, mover trail, seconds per sample) and the trajectory's error
@@ -27,7 +31,7 @@ import shutil
 import statistics
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -37,6 +41,7 @@ from calibration.rig import REFERENCE_RIG, read_rig
 from ingest.bags.decode import ImuSample, Sweep, decode
 from ingest.bags.reader import open_bags
 from ingest.dataset.layout import prepare_dirs
+from ingest.train.block_planes import BlockPlanes, PlaneSettings
 from ingest.train.dense import DenseParams
 from ingest.train.rig_trajectory import RigTrajectory
 from ingest.train.sample import Geometry, ImuWindow, LidarPoints, SampleJob, SampleParams, process_sample
@@ -90,6 +95,25 @@ class Recording:
     imu_g: np.ndarray
     trajectory: RigTrajectory
     trajectory_s: float
+    planes: dict[tuple[int, int, float, float], BlockPlanes] = field(default_factory=dict)
+
+
+def block_planes(rec: Recording, geo: Geometry, params: SampleParams) -> BlockPlanes:
+    """The recording's plane blocks as ingest's stream pass fits them (`ingest.train.block_planes`),
+    every block fitted; once per recording and settings."""
+    dense = params.dense
+    key = (dense.plane_block_ns, dense.plane_neighbours, dense.plane_max_flatness, params.min_range_m)
+    if key not in rec.planes:
+        settings = PlaneSettings(
+            {name: geo.rig.lidar(name).T_cam0_lidar for name in rec.sweeps}, dense.plane_block_ns,
+            dense.plane_neighbours, dense.plane_max_flatness, params.min_range_m,
+        )  # fmt: skip
+        spans = {name: [s.span_ns for s in v] for name, v in rec.sweeps.items()}
+        planes = BlockPlanes(rec.trajectory, spans, settings)
+        stamps = [t for v in rec.sweeps.values() for s in v for t in s.span_ns]
+        planes.complete(rec.sweeps, min(stamps), max(stamps), final=True)
+        rec.planes[key] = planes
+    return rec.planes[key]
 
 
 def record(name: str, cfg: SimConfig, root: Path) -> Recording:
@@ -120,7 +144,10 @@ def record(name: str, cfg: SimConfig, root: Path) -> Recording:
 
 
 def job(rec: Recording, geo: Geometry, tc: int, method: Method, out: Path, sid: str) -> SampleJob:
+    """The sample at `tc` as ingest hands it to a worker (dense: with its points' block planes)."""
     w = method.window_ns
+    params = method.params()
+    planes = block_planes(rec, geo, params) if params.method == "dense" else None
     lidars = []
     for name, sweeps in rec.sweeps.items():
         parts = [(s, (s.stamps_ns >= tc - w) & (s.stamps_ns <= tc + w)) for s in sweeps]
@@ -128,16 +155,15 @@ def job(rec: Recording, geo: Geometry, tc: int, method: Method, out: Path, sid: 
         xyz = np.concatenate([s.xyz_m[m] for s, m in parts])
         stamps = np.concatenate([s.stamps_ns[m] for s, m in parts])
         tags = [s.tag[m] for s, m in parts if s.tag is not None]
-        lidars.append(
-            LidarPoints(name, xyz, stamps, np.concatenate(tags) if len(tags) == len(parts) else None)
-        )
+        tag = np.concatenate(tags) if len(tags) == len(parts) else None
+        normal = None if planes is None else np.concatenate([planes.normals(s)[m] for s, m in parts])
+        lidars.append(LidarPoints(name, xyz, stamps, tag, normal))
     sel = (rec.imu_t >= tc - w - 20 * MS) & (rec.imu_t <= tc + w + 20 * MS)
     imu = ImuWindow(rec.imu_t[sel], rec.imu_g[sel], rec.truth.rig.imus[0].T_cam0_imu[:3, :3])
     up = np.zeros((geo.rig.upper.model.height, geo.rig.upper.model.width, 3), np.uint8)
     lo = np.zeros((geo.rig.lower.model.height, geo.rig.lower.model.width, 3), np.uint8)
-    return SampleJob(
-        out, sid, rec.name, tc, tc, up, lo, tuple(lidars), imu, None, geo, method.params(), rec.trajectory
-    )
+    traj = rec.trajectory
+    return SampleJob(out, sid, rec.name, tc, tc, up, lo, tuple(lidars), imu, None, geo, params, traj)
 
 
 def evaluate(rec: Recording, geo: Geometry, method: Method, stamps: list[int], out: Path) -> dict[str, float]:
