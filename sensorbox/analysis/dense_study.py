@@ -117,10 +117,13 @@ def block_planes(rec: Recording, geo: Geometry, params: SampleParams) -> BlockPl
 
 
 def record(name: str, cfg: SimConfig, root: Path) -> Recording:
-    """Simulate the scene afresh (a previous run's recording under `root` is replaced) and read it."""
+    """Simulate the scene afresh (a previous run's recording and trajectory under `root` are replaced)
+    and read it."""
     for old in (root / name, root / f"{name}.truth"):
         if old.is_dir():
             shutil.rmtree(old)
+    for cached in (root / f"{name}.tum", root / f"{name}.npz"):  # the pass is timed: never read back
+        cached.unlink(missing_ok=True)
     bag = simulate(cfg, root / name).bag
     truth = Truth.load(bag)
     rig = truth.rig
