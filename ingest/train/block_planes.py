@@ -21,6 +21,7 @@ stretch, and those `filter_points` drops, get no normal (NaN).
 
 from __future__ import annotations
 
+import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -120,7 +121,8 @@ class BlockPlanes:
         self._ends = {t: np.sort(np.array(v, np.int64).reshape(-1, 2)[:, 1]) for t, v in spans.items()}
         self._normals: dict[int, tuple[Sweep, F16]] = {}  # id -> (the sweep, kept alive: ids stay unique)
         self._fitted: set[int] = set()
-        self.blocks_fitted = 0
+        self.blocks_fitted = 0  # with at least one point
+        self.seconds = 0.0  # spent fitting
 
     def block_start(self, t_ns: int) -> int:
         """The start (ns) of the block holding `t_ns`."""
@@ -166,6 +168,7 @@ class BlockPlanes:
         return sum(1 for s in v if s.span_ns[1] >= lo and s.span_ns[0] <= hi)
 
     def _fit(self, sweeps: Mapping[str, list[Sweep]], lo: int, hi: int) -> None:
+        t0 = time.perf_counter()
         parts, targets = [], []
         for topic, v in sweeps.items():
             T = self.settings.T_cam0_lidar[topic]
@@ -184,4 +187,5 @@ class BlockPlanes:
             o3d.utility.set_max_threads(before)
         for (s, m), normal in zip(targets, fitted, strict=True):
             self.normals(s)[m] = normal
-        self.blocks_fitted += 1
+        self.blocks_fitted += bool(parts)
+        self.seconds += time.perf_counter() - t0

@@ -167,6 +167,7 @@ class IngestSummary:
     overlapped_ms: dict[str, list[float]] = field(default_factory=dict)  # helper threads beside them
     seconds: float = 0.0
     dense_warm_up_s: float | None = None  # dense GT's kernels and pixel rays, before the samples
+    dense_planes: tuple[int, float] | None = None  # dense GT: (plane blocks fitted, seconds), main process
     out: Path | None = None
     method: str = "sparse"
     decision: str = ""
@@ -487,3 +488,5 @@ def _run(
                 tick()
         finally:
             results.close()
+            if planes is not None:
+                summary.dense_planes = (planes.blocks_fitted, planes.seconds)

@@ -17,6 +17,7 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from calibration.rig import read_rig
+from ingest.bags.decode import Sweep
 from ingest.bags.message import RawMessage
 from ingest.bags.reader import BagSet, open_bags
 from ingest.dataset.meta import read_meta
@@ -76,6 +77,23 @@ def test_auto_chose_dense_and_said_why(walk):
     meta = read_meta(walk["out"], "000002")
     assert meta.gt.method == "dense" and meta.gt.decision == s.decision and meta.gt.window_ms == 500.0
     assert meta.gt.accumulated_points > 100_000 and meta.gt.trajectory_residual_mm is not None
+
+
+def test_the_planes_are_fitted_once_per_block_the_samples_reach(walk):
+    """Each 1 s block a written sample's window touches is fitted, and none the recording has no point in."""
+    blocks, seconds = walk["summary"].dense_planes
+    block_ns, w = DenseParams().plane_block_ns, DenseParams().window_ns
+    metas = [read_meta(walk["out"], f.stem) for f in sorted((walk["out"] / "meta").glob("*.json"))]
+    reached = {
+        b for m in metas for b in range((m.stamp_ns - w) // block_ns, (m.stamp_ns + w) // block_ns + 1)
+    }
+    with open_bags([walk["bag"]]) as bags:
+        topics = [li.topic for li in walk["truth"].rig.lidars]
+        sweeps = [msg.decoded(bags.label) for msg in bags.messages(topics=topics)]
+    stamps = np.concatenate([s.stamps_ns for s in sweeps if isinstance(s, Sweep)])
+    recorded = set((stamps // block_ns).tolist())
+    assert len(reached & recorded) <= blocks <= len(recorded) and len(recorded) >= 3
+    assert seconds > 0
 
 
 def test_dense_meta_says_how_far_the_rig_moved_over_the_accumulated_points(walk):
