@@ -465,6 +465,8 @@ def _run(
             if progress:
                 progress(done, summary.planned)
 
+        planes = _block_planes(rig, topics, the_plan, cfg, traj, executor.every_core_busy)
+
         def jobs() -> Iterator[StreamedJob]:
             """The jobs to run; resumed and skipped samples are counted here, in stream order."""
             for item in stream_jobs(bags, topics, the_plan, cfg, first_id, bad, planes):
@@ -477,7 +479,6 @@ def _run(
                     summary.skipped[item[1]] = summary.skipped.get(item[1], 0) + 1
                 tick()
 
-        planes = _block_planes(rig, topics, the_plan, cfg, traj, executor.every_core_busy)
         handoff = Handoff(take_messages, give_messages, message_bytes_bound(geometry))
         results = executor.run(run_streamed, jobs(), shared=Shared(geometry, traj), handoff=handoff)
         try:

@@ -177,9 +177,9 @@ def run_streamed(shared: Shared, job: StreamedJob) -> SampleResult:
 # ---------------------------------------------------------------- the stream pass
 
 
-def _lidar_window(
-    sweeps: list[Sweep], name: str, t_c: int, w: int, planes: BlockPlanes | None
-) -> LidarPoints:
+def lidar_window(sweeps: list[Sweep], name: str, t_c: int, w: int, planes: BlockPlanes | None) -> LidarPoints:
+    """The points of `sweeps` stamped within +-`w` of `t_c` as LiDAR `name`'s window, in sweep order
+    (with their world normals when `planes` is given)."""
     near = [s for s in sweeps if s.span_ns[1] >= t_c - w and s.span_ns[0] <= t_c + w]
     parts = [(s, (s.stamps_ns >= t_c - w) & (s.stamps_ns <= t_c + w)) for s in near]
     xyz = np.concatenate([s.xyz_m[m] for s, m in parts]) if parts else np.zeros((0, 3), np.float32)
@@ -295,7 +295,7 @@ def stream_jobs(
 
     def job(k: int) -> StreamedJob:
         tc = int(the_plan.upper_ns[k])
-        lidars = tuple(_lidar_window(sweeps[t], name, tc, w, planes) for t, name in topics.lidars.items())
+        lidars = tuple(lidar_window(sweeps[t], name, tc, w, planes) for t, name in topics.lidars.items())
         thin = _thin_lidars(the_plan.rates, topics, lidars, tc, w)
         thin_sparse: tuple[str, ...] = ()
         if cfg.sample.gap_fallback:

@@ -44,7 +44,8 @@ from ingest.dataset.layout import prepare_dirs
 from ingest.train.block_planes import BlockPlanes, PlaneSettings
 from ingest.train.dense import DenseParams
 from ingest.train.rig_trajectory import RigTrajectory
-from ingest.train.sample import Geometry, ImuWindow, LidarPoints, SampleJob, SampleParams, process_sample
+from ingest.train.sample import Geometry, ImuWindow, SampleJob, SampleParams, process_sample
+from ingest.train.stream import lidar_window
 from ingest.train.trajectory import run_trajectory_pass
 from sensorbox.sim.run import SimConfig, simulate
 from sensorbox.sim.score import score_sample
@@ -151,22 +152,13 @@ def job(rec: Recording, geo: Geometry, tc: int, method: Method, out: Path, sid: 
     w = method.window_ns
     params = method.params()
     planes = block_planes(rec, geo, params) if params.method == "dense" else None
-    lidars = []
-    for name, sweeps in rec.sweeps.items():
-        parts = [(s, (s.stamps_ns >= tc - w) & (s.stamps_ns <= tc + w)) for s in sweeps]
-        parts = [(s, m) for s, m in parts if m.any()]
-        xyz = np.concatenate([s.xyz_m[m] for s, m in parts])
-        stamps = np.concatenate([s.stamps_ns[m] for s, m in parts])
-        tags = [s.tag[m] for s, m in parts if s.tag is not None]
-        tag = np.concatenate(tags) if len(tags) == len(parts) else None
-        normal = None if planes is None else np.concatenate([planes.normals(s)[m] for s, m in parts])
-        lidars.append(LidarPoints(name, xyz, stamps, tag, normal))
+    lidars = tuple(lidar_window(sweeps, name, tc, w, planes) for name, sweeps in rec.sweeps.items())
     sel = (rec.imu_t >= tc - w - 20 * MS) & (rec.imu_t <= tc + w + 20 * MS)
     imu = ImuWindow(rec.imu_t[sel], rec.imu_g[sel], rec.truth.rig.imus[0].T_cam0_imu[:3, :3])
     up = np.zeros((geo.rig.upper.model.height, geo.rig.upper.model.width, 3), np.uint8)
     lo = np.zeros((geo.rig.lower.model.height, geo.rig.lower.model.width, 3), np.uint8)
     traj = rec.trajectory
-    return SampleJob(out, sid, rec.name, tc, tc, up, lo, tuple(lidars), imu, None, geo, params, traj)
+    return SampleJob(out, sid, rec.name, tc, tc, up, lo, lidars, imu, None, geo, params, traj)
 
 
 def evaluate(rec: Recording, geo: Geometry, method: Method, stamps: list[int], out: Path) -> dict[str, float]:
