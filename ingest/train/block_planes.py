@@ -32,6 +32,7 @@ import open3d as o3d
 from calibration.types import F64, I64
 from ingest.bags.decode import Sweep
 from ingest.raster.z_order import z_order
+from ingest.rows import rows
 from ingest.train.clouds import filter_points
 from ingest.train.planes import plane_normals
 from ingest.train.rig_trajectory import RigTrajectory
@@ -74,7 +75,7 @@ def world_normals(
     for (xyz, st, tag, T), n in zip(parts, sizes, strict=True):
         keep, _ = filter_points(xyz, tag, settings.min_range_m)
         idx = np.flatnonzero(keep)
-        lidar = np.asarray(xyz, np.float64)[idx]
+        lidar = np.asarray(rows(xyz, idx), np.float64)
         pts.append(lidar @ T[:3, :3].T + T[:3, 3])
         stamps.append(st[idx])
         range_m.append(np.linalg.norm(lidar, axis=1))
@@ -84,12 +85,12 @@ def world_normals(
         all_stamps, where = np.concatenate(stamps), np.concatenate(at)
         stretch = traj.stretch_of(all_stamps)
         on = np.flatnonzero(stretch >= 0)
-        world = traj.transform(np.concatenate(pts)[on], all_stamps[on])
+        world = traj.transform(rows(np.concatenate(pts), on), all_stamps[on])
         r, stretch, where = np.concatenate(range_m)[on], stretch[on], where[on]
         for s in np.unique(stretch):
             sel = np.flatnonzero(stretch == s)
-            sel = sel[z_order(world[sel])]  # neighbours in memory: the k-NN runs about twice as fast
-            fit = plane_normals(world[sel], settings.neighbours, settings.max_flatness, r[sel])
+            sel = sel[z_order(rows(world, sel))]  # neighbours in memory: the k-NN runs about twice as fast
+            fit = plane_normals(rows(world, sel), settings.neighbours, settings.max_flatness, r[sel])
             flat[where[sel]] = np.where(fit.planar[:, None], fit.normal, np.nan)
     return np.split(flat, np.cumsum(sizes)[:-1])
 
@@ -176,7 +177,7 @@ class BlockPlanes:
                 if s.span_ns[1] < lo or s.span_ns[0] > hi:
                     continue
                 m = np.flatnonzero((s.stamps_ns >= lo) & (s.stamps_ns <= hi))
-                parts.append((s.xyz_m[m], s.stamps_ns[m], None if s.tag is None else s.tag[m], T))
+                parts.append((rows(s.xyz_m, m), s.stamps_ns[m], None if s.tag is None else s.tag[m], T))
                 targets.append((s, m))
         before = o3d.utility.get_max_threads()
         if self.threads is not None:

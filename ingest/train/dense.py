@@ -44,6 +44,7 @@ from ingest.raster.scan import Scan
 from ingest.raster.view import Rendering, pixel_rays, render_view
 from ingest.raster.visibility import RenderParams
 from ingest.raster.z_order import z_order
+from ingest.rows import rows
 from ingest.train.free_space import free_space_filter as free_space_mask
 from ingest.train.groundtruth import px_per_rad
 from ingest.train.planes import Normals, plane_normals
@@ -127,10 +128,10 @@ def snap_to_pixel_rays(
     idx = np.flatnonzero(snap)
     rays, ray_ok = pixel_rays(model)
     snapped = snap_planar(
-        np.ascontiguousarray(pts[idx]), np.ascontiguousarray(normals.normal[idx]), pix[idx, 0], pix[idx, 1],
-        allowed, rays, ray_ok, radius_px, min_cos,
+        rows(pts, idx), rows(normals.normal, idx), pix[:, 0][idx], pix[:, 1][idx], allowed, rays, ray_ok,
+        radius_px, min_cos,
     )  # fmt: skip
-    return np.concatenate([pts[~snap], snapped])
+    return np.concatenate([rows(pts, ~snap), snapped])
 
 
 def render_points(model: CameraModel, pts_cam: F64, T_world_cam: F64, params: RenderParams) -> Rendering:
@@ -223,8 +224,8 @@ def dense_ground_truth(
     moving = np.zeros((0, 3)) if moving_cam0 is None else moving_cam0
     near = np.flatnonzero(near_view(model, pts_cam0, VIEW_MARGIN_PX))
     if normals is None:
-        near = near[z_order(pts_cam0[near])]  # neighbours in memory: the k-NN runs twice as fast
-    pts_cam0 = pts_cam0[near]
+        near = near[z_order(rows(pts_cam0, near))]  # neighbours in memory: the k-NN runs twice as fast
+    pts_cam0 = rows(pts_cam0, near)
     if len(pts_cam0) == 0:
         nothing = np.zeros(0, np.int64), np.zeros(0, np.float32)
         return DenseGt(
@@ -235,20 +236,20 @@ def dense_ground_truth(
     if normals is None:
         normals = plane_normals(pts_cam0, params.plane_neighbours, params.plane_max_flatness)
     else:
-        normals = Normals(normals.normal[near], normals.planar[near])
+        normals = Normals(rows(normals.normal, near), normals.planar[near])
     fish, pix = _view_gt(model, pts_cam0, normals, moving, params)
     range_img = SparseImage(fish.range_m.shape, pix, fish.range_m.reshape(-1)[pix])
     win = cam0_window(model, eq, R_cam0_rect)
     r_win = rect_ranges(model, win, R_cam0_rect, range_img, params)
     wpix = np.flatnonzero(r_win > 0)
     r = r_win[wpix].astype(np.float64)
-    rows, cols = np.divmod(wpix, win.width)
-    rows += win.row_offset - eq.row_offset
-    cols += win.col_offset - eq.col_offset
-    inside = (rows >= 0) & (rows < eq.height) & (cols >= 0) & (cols < eq.width)
-    rows, cols, r = rows[inside], cols[inside], r[inside]
-    epix = rows * eq.width + cols
-    theta = eq.theta_of_row(rows)  # latitude from up: the rectified equirect's poles lie on its y axis
+    row, col = np.divmod(wpix, win.width)
+    row += win.row_offset - eq.row_offset
+    col += win.col_offset - eq.col_offset
+    inside = (row >= 0) & (row < eq.height) & (col >= 0) & (col < eq.width)
+    row, col, r = row[inside], col[inside], r[inside]
+    epix = row * eq.width + col
+    theta = eq.theta_of_row(row)  # latitude from up: the rectified equirect's poles lie on its y axis
     disp = depth_to_disparity(r, theta, baseline_m, eq.height_full)
     stable = disparity_stability_mask(
         theta, r, baseline_m, eq.height_full, params.stability_max_rel_error, params.stability_disp_error_px,

@@ -22,6 +22,7 @@ from calibration.warp import build_maps, check_height_full, check_source, defaul
 from ingest.dataset.layout import SampleFiles, write_sample
 from ingest.dataset.meta import GtMeta, MotionMeta, PointMeta, SampleMeta
 from ingest.dataset.sparse import SparseImage
+from ingest.rows import rows
 from ingest.runtime.background import Background
 from ingest.train.clouds import (
     REFERENCE_RANGE_M,
@@ -101,8 +102,8 @@ class LidarPoints:
         """The points stamped in [t0_ns, t1_ns], in their order."""
         keep = (self.stamps_ns >= t0_ns) & (self.stamps_ns <= t1_ns)
         tag = None if self.tag is None else self.tag[keep]
-        normal = None if self.normal_world is None else self.normal_world[keep]
-        return LidarPoints(self.name, self.xyz_m[keep], self.stamps_ns[keep], tag, normal)
+        normal = None if self.normal_world is None else rows(self.normal_world, keep)
+        return LidarPoints(self.name, rows(self.xyz_m, keep), self.stamps_ns[keep], tag, normal)
 
 
 @dataclass(frozen=True)
@@ -193,14 +194,14 @@ def _points_by_lidar(job: SampleJob) -> tuple[F64, I64, I64, FilterCounts, dict[
     for i, lp in enumerate(job.lidars):
         keep, counts = filter_points(lp.xyz_m, lp.tag, job.params.min_range_m)
         T = job.geometry.rig.lidar(lp.name).T_cam0_lidar
-        xyz = np.asarray(lp.xyz_m, np.float64)[keep]
+        xyz = np.asarray(rows(lp.xyz_m, keep), np.float64)
         pts.append(xyz @ T[:3, :3].T + T[:3, 3])
         stamps.append(lp.stamps_ns[keep])
         which.append(np.full(int(keep.sum()), i, np.int64))
         if lp.normal_world is not None:
-            normals.append(np.asarray(lp.normal_world[keep], np.float64))
+            normals.append(np.asarray(rows(lp.normal_world, keep), np.float64))
         total = total + counts
-        dt = (lp.stamps_ns[keep] - job.upper_stamp_ns) / 1e6
+        dt = (stamps[-1] - job.upper_stamp_ns) / 1e6
         skew[lp.name] = float(np.abs(dt).max()) if len(dt) else 0.0
     normal = np.concatenate(normals) if len(normals) == len(job.lidars) else None
     return np.concatenate(pts), np.concatenate(stamps), np.concatenate(which), total, skew, normal
@@ -271,7 +272,7 @@ def _process_sparse(job: SampleJob, images: Background[Equirects], start_ms: flo
         gyro = integrate_gyro(job.imu.stamps_ns, job.imu.gyro_rad_s, job.imu.R_cam0_imu)
         covered = gyro.covers(stamps)  # rotations outside the IMU's span are unknown: drop those points
         counts = replace(counts, kept=counts.kept - int((~covered).sum()))
-        pts, stamps = pts[covered], stamps[covered]
+        pts, stamps = rows(pts, covered), stamps[covered]
     dt_s = (stamps - job.upper_stamp_ns) / 1e9
     use_gyro = gyro is not None and prm.motion != "off"
     rotated = gyro.rotate(stamps, job.upper_stamp_ns, pts) if gyro is not None and use_gyro else None
@@ -391,21 +392,21 @@ def _process_dense(job: SampleJob, images: Background[Equirects], start_ms: floa
     covered = (stamps >= span[0]) & (stamps <= span[1])  # no point placed across a gap
     if not covered.any():
         return SampleResult(job.sid, False, "outside the trajectory", None, {})
-    pts, stamps, which = pts[covered], stamps[covered], which[covered]
+    pts, stamps, which = rows(pts, covered), stamps[covered], which[covered]
     turn_rad, shift_m = traj.motion_from(tc, int(stamps.min()), int(stamps.max()))
     placed = traj.to_frame(pts, stamps, tc)
     normals = None
     if normal_world is not None:  # the stream pass's block planes, turned into cam0 at the frame time
         R_world_cam0, _ = traj.pose(np.array([tc]))
-        normal = normal_world[covered] @ R_world_cam0[0]
+        normal = rows(normal_world, covered) @ R_world_cam0[0]
         planar = np.isfinite(normal[:, 0])
         normals = Normals(np.where(planar[:, None], normal, 0.0), planar)
     moving = np.zeros((0, 3))
     if prm.dense.free_space:
         test = may_matter(geo.rig.upper.model, placed, prm.dense)
         keep = free_space_filter(placed, *_slices(job, traj, stamps, which), prm.dense, test)
-        moving, placed = placed[~keep], placed[keep]
-        normals = None if normals is None else Normals(normals.normal[keep], normals.planar[keep])
+        moving, placed = rows(placed, ~keep), rows(placed, keep)
+        normals = None if normals is None else Normals(rows(normals.normal, keep), normals.planar[keep])
     t1 = time.perf_counter()
     ms["clouds"] = (t1 - t0) * 1e3
     rect = geo.rect

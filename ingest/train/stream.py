@@ -31,11 +31,13 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from calibration.types import I64
 from ingest.bags.decode import Frame, ImuSample, Sweep
 from ingest.bags.message import RawMessage
 from ingest.bags.reader import BagSet
 from ingest.dataset.layout import is_done, sample_id
 from ingest.errors import BagError, MessageDecodeError
+from ingest.rows import rows
 from ingest.train.bad_messages import BadMessages
 from ingest.train.block_planes import NORMAL_DTYPE, BlockPlanes
 from ingest.train.lidar_rate import LidarRates
@@ -180,17 +182,24 @@ def run_streamed(shared: Shared, job: StreamedJob) -> SampleResult:
 def lidar_window(sweeps: list[Sweep], name: str, t_c: int, w: int, planes: BlockPlanes | None) -> LidarPoints:
     """The points of `sweeps` stamped within +-`w` of `t_c` as LiDAR `name`'s window, in sweep order
     (with their world normals when `planes` is given)."""
-    near = [s for s in sweeps if s.span_ns[1] >= t_c - w and s.span_ns[0] <= t_c + w]
-    parts = [(s, (s.stamps_ns >= t_c - w) & (s.stamps_ns <= t_c + w)) for s in near]
-    xyz = np.concatenate([s.xyz_m[m] for s, m in parts]) if parts else np.zeros((0, 3), np.float32)
-    st = np.concatenate([s.stamps_ns[m] for s, m in parts]) if parts else np.zeros(0, np.int64)
-    tags = [s.tag[m] for s, m in parts if s.tag is not None]
+    lo, hi = t_c - w, t_c + w
+    near = [s for s in sweeps if s.span_ns[1] >= lo and s.span_ns[0] <= hi]
+    # a sweep inside the window is taken whole; only the (at most two) at its ends are cut
+    parts = [(s, slice(None) if lo <= s.span_ns[0] and s.span_ns[1] <= hi else
+              np.flatnonzero((s.stamps_ns >= lo) & (s.stamps_ns <= hi))) for s in near]  # fmt: skip
+    xyz = np.concatenate([_rows(s.xyz_m, m) for s, m in parts]) if parts else np.zeros((0, 3), np.float32)
+    st = np.concatenate([_rows(s.stamps_ns, m) for s, m in parts]) if parts else np.zeros(0, np.int64)
+    tags = [_rows(s.tag, m) for s, m in parts if s.tag is not None]
     tag = np.concatenate(tags) if tags and len(tags) == len(parts) else None
     normal = None
     if planes is not None:
-        normals = [planes.normals(s)[m] for s, m in parts]
+        normals = [_rows(planes.normals(s), m) for s, m in parts]
         normal = np.concatenate(normals) if normals else np.zeros((0, 3), NORMAL_DTYPE)
     return LidarPoints(name, xyz, st, tag, normal)
+
+
+def _rows(a: np.ndarray[Any, Any], which: slice | I64) -> np.ndarray[Any, Any]:
+    return a if isinstance(which, slice) else rows(a, which)
 
 
 def _sweeps_needed(the_plan: Plan, topics: Topics, w: int) -> dict[int, dict[str, int]]:
