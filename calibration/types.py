@@ -24,5 +24,8 @@ I64: TypeAlias = np.ndarray[Any, np.dtype[np.int64]]
 U8: TypeAlias = np.ndarray[Any, np.dtype[np.uint8]]
 """uint8 array (images, packed bytes)."""
 
+U64: TypeAlias = np.ndarray[Any, np.dtype[np.uint64]]
+"""uint64 array (bit sets)."""
+
 Structured: TypeAlias = np.ndarray[Any, np.dtype[np.void]]
 """Structured (record) array, e.g. decoded point or packet fields."""

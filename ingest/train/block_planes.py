@@ -17,6 +17,18 @@ in every sample and with any number of workers.
 Points of two stretches of the trajectory (`RigTrajectory.stretch_of`: a
 LiDAR gap between them) are never neighbours; points outside every
 stretch, and those `filter_points` drops, get no normal (NaN).
+
+The free-space test that removes movers (`ingest.train.free_space`) runs
+here too, once per block instead of once per sample (it was a sample's
+second largest cost). Every slice of `DenseParams.free_slice_ns` of one
+LiDAR (fixed in absolute time) is a reference; a sample's references are
+the slices within +-`free_reference_ns` (0: its window) of its frame time.
+A block's points are tested, in the world, against every slice some sample
+holding them can use: those within the window plus the reference reach of
+the block (`FreeSpaceSettings.reach_ns`), and each point keeps one bit per
+such slice time that saw through it (`LidarPoints.clear_bits`). The worker
+removes the points whose bits name one of its sample's slices
+(`cleared_for`). Points of one stretch are tested only by slices of it.
 """
 
 from __future__ import annotations
@@ -29,16 +41,43 @@ from typing import Any
 import numpy as np
 import open3d as o3d
 
-from calibration.types import F64, I64
+from calibration.types import F64, I64, U64, Bool
 from ingest.bags.decode import Sweep
 from ingest.raster.z_order import z_order
 from ingest.rows import rows
 from ingest.train.clouds import filter_points
+from ingest.train.free_space import free_space_bits
 from ingest.train.planes import plane_normals
 from ingest.train.rig_trajectory import RigTrajectory
 
 F16 = np.ndarray[Any, np.dtype[np.float16]]
 NORMAL_DTYPE = np.float16  # 1e-3 rad at worst (a snap moves a range by micrometres for it); 6 bytes a point
+
+
+@dataclass(frozen=True)
+class FreeSpaceSettings:
+    """Dense GT's free-space test as the blocks run it (`DenseParams`' window and free_* settings)."""
+
+    window_ns: int  # a sample's +- window
+    reference_ns: int  # a sample's references: slices within this of its frame time (0: its window)
+    slice_ns: int
+    cell_deg: float
+    voxel_m: float
+    margin_m: float
+
+    @property
+    def reach_ns(self) -> int:
+        """How far from a point a slice that tests it can lie: a window and a reference span."""
+        return self.window_ns + (self.reference_ns or self.window_ns)
+
+    def n_bits(self, block_ns: int) -> int:
+        """Slice times a block's points keep a bit for (an upper bound, the same for every block)."""
+        return (block_ns + 2 * self.reach_ns) // self.slice_ns + 2
+
+    def first_slice(self, block_start_ns: I64 | int) -> I64:
+        """The slice (`slice_ns` steps since t = 0) of bit 0 of the block starting at `block_start_ns`."""
+        out: I64 = (np.asarray(block_start_ns, np.int64) - self.reach_ns) // self.slice_ns
+        return out
 
 
 @dataclass(frozen=True)
@@ -50,6 +89,7 @@ class PlaneSettings:
     neighbours: int
     max_flatness: float
     min_range_m: float
+    free_space: FreeSpaceSettings | None = None  # None: no free-space test
 
 
 def world_normals(
@@ -95,6 +135,32 @@ def world_normals(
     return np.split(flat, np.cumsum(sizes)[:-1])
 
 
+def cleared_for(bits: U64, stamps_ns: I64, t_ns: int, settings: FreeSpaceSettings, block_ns: int) -> Bool:
+    """Which points a reference slice of the sample at `t_ns` saw through, from their blocks' bits.
+
+    `bits` (N, words) are the points' `BlockPlanes.clear_bits`, `stamps_ns`
+    their times; the sample's references are the slices overlapping
+    [t - span, t + span), span = `reference_ns` (0: the window).
+    """
+    span, S = settings.reference_ns or settings.window_ns, settings.slice_ns
+    first, last = (t_ns - span) // S, (t_ns + span - 1) // S  # the slices overlapping [t - span, t + span)
+    block = stamps_ns // block_ns
+    out = np.zeros(len(stamps_ns), bool)
+    for j in np.unique(block):
+        sel = np.flatnonzero(block == j)
+        k0 = int(settings.first_slice(int(j) * block_ns))
+        lo, hi = max(first - k0, 0), min(last - k0, bits.shape[1] * 64 - 1)
+        if lo <= hi:
+            out[sel] = (rows(bits, sel) & _bit_range(lo, hi, bits.shape[1])).any(axis=1)
+    return out
+
+
+def _bit_range(lo: int, hi: int, words: int) -> U64:
+    """Bits lo..hi (inclusive) set, as `words` uint64 words (bit b in word b // 64)."""
+    m = ((1 << (hi + 1)) - 1) ^ ((1 << lo) - 1)
+    return np.array([(m >> (64 * w)) & ((1 << 64) - 1) for w in range(words)], np.uint64)
+
+
 class BlockPlanes:
     """The stream pass's normals: each block fitted once, when all its sweeps have arrived.
 
@@ -106,6 +172,12 @@ class BlockPlanes:
     sweeps are still there when its last one arrives. `threads` bounds
     Open3D's threads during a fit (1 where the workers already occupy every
     core; None: as they are).
+
+    With `PlaneSettings.free_space`, a block is also tested for free space
+    once every slice that can test it has arrived (`FreeSpaceSettings.
+    reach_ns` beyond it), and `clear_bits(sweep)` gives its points' bits;
+    the stream pass then keeps sweeps back to `keep_from` of its oldest
+    window.
     """
 
     def __init__(
@@ -121,13 +193,40 @@ class BlockPlanes:
         self._starts = {t: np.sort(np.array(v, np.int64).reshape(-1, 2)[:, 0]) for t, v in spans.items()}
         self._ends = {t: np.sort(np.array(v, np.int64).reshape(-1, 2)[:, 1]) for t, v in spans.items()}
         self._normals: dict[int, tuple[Sweep, F16]] = {}  # id -> (the sweep, kept alive: ids stay unique)
+        self._bits: dict[int, tuple[Sweep, U64]] = {}
+        self._world: dict[int, tuple[Sweep, F64, I64]] = {}  # id -> (sweep, world points, stretch; -1: none)
         self._fitted: set[int] = set()
+        self._cleared: set[int] = set()
         self.blocks_fitted = 0  # with at least one point
-        self.seconds = 0.0  # spent fitting
+        self.seconds = 0.0  # spent fitting and testing free space
 
     def block_start(self, t_ns: int) -> int:
         """The start (ns) of the block holding `t_ns`."""
         return (t_ns // self.settings.block_ns) * self.settings.block_ns
+
+    def keep_from(self, t_ns: int) -> int:
+        """The earliest time whose sweeps the blocks of a window starting at `t_ns` still need."""
+        start = self.block_start(t_ns)
+        fs = self.settings.free_space
+        return start if fs is None else int(fs.first_slice(start)) * fs.slice_ns
+
+    def clear_bits(self, sweep: Sweep) -> U64:
+        """Per point of `sweep`, the slices that saw through it (`cleared_for`); zero rows until tested."""
+        fs = self.settings.free_space
+        if fs is None:
+            raise ValueError("these blocks run no free-space test (PlaneSettings.free_space is None)")
+        entry = self._bits.get(id(sweep))
+        if entry is None:
+            words = -(-fs.n_bits(self.settings.block_ns) // 64)
+            entry = (sweep, np.zeros((len(sweep.stamps_ns), words), np.uint64))
+            self._bits[id(sweep)] = entry
+        return entry[1]
+
+    def clear_bits_empty(self) -> U64:
+        """No point's `clear_bits` (0, words)."""
+        fs = self.settings.free_space
+        words = 1 if fs is None else -(-fs.n_bits(self.settings.block_ns) // 64)
+        return np.zeros((0, words), np.uint64)
 
     def normals(self, sweep: Sweep) -> F16:
         """World normals (N, 3) of `sweep`'s points."""
@@ -142,23 +241,32 @@ class BlockPlanes:
     ) -> bool:
         """Whether every block overlapping [t0_ns, t1_ns] is fitted; fits those whose sweeps are all here
         (`final`: the bag ended, fit with whatever arrived)."""
-        b = self.settings.block_ns
+        b, fs = self.settings.block_ns, self.settings.free_space
         for j in range(t0_ns // b, t1_ns // b + 1):
-            if j in self._fitted:
-                continue
             lo, hi = j * b, (j + 1) * b - 1
-            if not final and not all(
-                self._buffered(v, lo, hi) >= self._planned(t, lo, hi) for t, v in sweeps.items()
-            ):
-                return False
-            self._fit(sweeps, lo, hi)
-            self._fitted.add(j)
+            if j not in self._fitted:
+                if not final and not self._all_here(sweeps, lo, hi):
+                    return False
+                self._fit(sweeps, lo, hi)
+                self._fitted.add(j)
+            if fs is not None and j not in self._cleared:
+                k0 = int(fs.first_slice(lo))
+                a, z = k0 * fs.slice_ns, ((hi + fs.reach_ns) // fs.slice_ns + 1) * fs.slice_ns - 1
+                if not final and not self._all_here(sweeps, a, z):
+                    return False
+                self._clear(sweeps, lo, hi, k0, a, z)
+                self._cleared.add(j)
         return True
 
+    def _all_here(self, sweeps: Mapping[str, list[Sweep]], lo: int, hi: int) -> bool:
+        return all(self._buffered(v, lo, hi) >= self._planned(t, lo, hi) for t, v in sweeps.items())
+
     def forget(self, sweeps: Mapping[str, list[Sweep]]) -> None:
-        """Drop the normals of sweeps no longer buffered."""
+        """Drop the normals, bits and world points of sweeps no longer buffered."""
         alive = {id(s) for v in sweeps.values() for s in v}
         self._normals = {k: e for k, e in self._normals.items() if k in alive}
+        self._bits = {k: e for k, e in self._bits.items() if k in alive}
+        self._world = {k: e for k, e in self._world.items() if k in alive}
 
     def _planned(self, topic: str, lo: int, hi: int) -> int:
         starts, ends = self._starts[topic], self._ends[topic]
@@ -189,4 +297,63 @@ class BlockPlanes:
         for (s, m), normal in zip(targets, fitted, strict=True):
             self.normals(s)[m] = normal
         self.blocks_fitted += bool(parts)
+        self.seconds += time.perf_counter() - t0
+
+    def _placed(self, topic: str, sweep: Sweep) -> tuple[F64, I64]:
+        """`sweep`'s points in the world (NaN where filtered out or off every stretch) and their stretch."""
+        entry = self._world.get(id(sweep))
+        if entry is None:
+            keep, _ = filter_points(sweep.xyz_m, sweep.tag, self.settings.min_range_m)
+            stretch = np.where(keep, self.traj.stretch_of(sweep.stamps_ns), -1)
+            on = np.flatnonzero(stretch >= 0)
+            T = self.settings.T_cam0_lidar[topic]
+            world = np.full((len(stretch), 3), np.nan)
+            cam0 = np.asarray(rows(sweep.xyz_m, on), np.float64) @ T[:3, :3].T + T[:3, 3]
+            world[on] = self.traj.transform(cam0, sweep.stamps_ns[on])
+            entry = (sweep, world, stretch)
+            self._world[id(sweep)] = entry
+        return entry[1], entry[2]
+
+    def _clear(self, sweeps: Mapping[str, list[Sweep]], lo: int, hi: int, k0: int, a: int, z: int) -> None:
+        """The free-space bits of the points stamped in [lo, hi], from every slice in [a, z] (slice k0 on)."""
+        fs = self.settings.free_space
+        assert fs is not None
+        t0 = time.perf_counter()
+        S, n_topics = fs.slice_ns, len(sweeps)
+        pts, stamps, lidar, stretch, targets = [], [], [], [], []
+        for i, (topic, v) in enumerate(sweeps.items()):
+            for s in v:
+                if s.span_ns[1] < a or s.span_ns[0] > z:
+                    continue
+                world, on = self._placed(topic, s)
+                m = np.flatnonzero((s.stamps_ns >= a) & (s.stamps_ns <= z) & (on >= 0))
+                pts.append(rows(world, m))
+                stamps.append(s.stamps_ns[m])
+                lidar.append(np.full(len(m), i, np.int64))
+                stretch.append(on[m])
+                targets.append((s, m))
+        if not pts:
+            return
+        all_pts, all_st, all_stretch = np.concatenate(pts), np.concatenate(stamps), np.concatenate(stretch)
+        slice_id = (all_st // S) * n_topics + np.concatenate(lidar)
+        tested = (all_st >= lo) & (all_st <= hi)
+        bits = np.zeros((len(all_st), -(-fs.n_bits(self.settings.block_ns) // 64)), np.uint64)
+        origin_cam0 = {i: self.settings.T_cam0_lidar[t][:3, 3] for i, t in enumerate(sweeps)}
+        for st in np.unique(all_stretch[tested]):
+            sel = np.flatnonzero(all_stretch == st)
+            sids = np.unique(slice_id[sel])
+            k, which = sids // n_topics, sids % n_topics
+            t_mid = k * S + S // 2
+            lidar_at = np.array([origin_cam0[int(w)] for w in which]).reshape(-1, 3)
+            origins = self.traj.transform(lidar_at, t_mid)
+            refs = [(int(sid), o, int(kk - k0)) for sid, o, kk in zip(sids, origins, k, strict=True)]
+            bits[sel] = free_space_bits(
+                rows(all_pts, sel), slice_id[sel], refs, fs.n_bits(self.settings.block_ns), fs.cell_deg,
+                fs.voxel_m, fs.margin_m, tested[sel],
+            )  # fmt: skip
+        offset = 0
+        for s, m in targets:
+            mine = (s.stamps_ns[m] >= lo) & (s.stamps_ns[m] <= hi)
+            self.clear_bits(s)[m[mine]] = bits[offset : offset + len(m)][mine]
+            offset += len(m)
         self.seconds += time.perf_counter() - t0

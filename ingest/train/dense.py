@@ -45,6 +45,7 @@ from ingest.raster.view import Rendering, pixel_rays, render_view
 from ingest.raster.visibility import RenderParams
 from ingest.raster.z_order import z_order
 from ingest.rows import rows
+from ingest.train.block_planes import FreeSpaceSettings
 from ingest.train.free_space import free_space_filter as free_space_mask
 from ingest.train.groundtruth import px_per_rad
 from ingest.train.planes import Normals, plane_normals
@@ -339,6 +340,14 @@ def _cam0_window_cached(model: CameraModel, eq: Equirectangular, R_bytes: bytes)
 def cam0_window(model: CameraModel, eq: Equirectangular, R_cam0_rect: F64) -> Equirectangular:
     """The crop of `eq`'s full sphere holding every ray of `model` (plus a pixel), cached."""
     return _cam0_window_cached(model, eq, np.ascontiguousarray(R_cam0_rect, np.float64).tobytes())
+
+
+def free_space_settings(params: DenseParams) -> FreeSpaceSettings:
+    """The free-space test of `params` as the stream pass's blocks run it (`ingest.train.block_planes`)."""
+    return FreeSpaceSettings(
+        params.window_ns, params.free_reference_ns, params.free_slice_ns, params.free_cell_deg,
+        params.free_voxel_m, params.free_margin_m,
+    )  # fmt: skip
 
 
 def free_space_filter(

@@ -22,7 +22,8 @@ import math
 import numpy as np
 from numba import njit
 
-from calibration.types import F64, I64, Bool
+from calibration.types import F64, I64, U64, Bool
+from ingest.rows import rows
 from ingest.train.voxel_hash import voxel_groups
 
 FREE_MARGIN_REL = 0.03  # a ray must pass a point by margin_m + 3 % of its range to clear it
@@ -70,10 +71,9 @@ def _cells(x, y, z, ox, oy, oz, n, cell, range2):  # type: ignore[no-untyped-def
 
 
 @njit(cache=True, nogil=True)
-def _free_space(pts, voxel, rep, candidate, own, own_start, origins, n, margin_m, margin_rel):  # type: ignore[no-untyped-def]  # pragma: no cover
-    n_vox = rep.shape[0]
-    keep = np.ones(n_vox, np.bool_)
-    hit_by = np.full(n_vox, -1, np.int64)
+def _clearing(pts, voxel, rep, candidate, own, own_start, origins, ref_bit, n, margin_m, margin_rel, bits):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """Set bit `ref_bit[r]` of `bits[v]` for every candidate voxel v that reference r saw through."""
+    hit_by = np.full(rep.shape[0], -1, np.int64)
     nearest = np.empty(6 * n * n, np.float64)
     tested = np.flatnonzero(candidate)
     # the tested voxels' representatives, gathered once: the loop per reference reads them in order
@@ -87,6 +87,7 @@ def _free_space(pts, voxel, rep, candidate, own, own_start, origins, n, margin_m
         a, b = own_start[r], own_start[r + 1]
         if a == b:
             continue
+        word, bit = ref_bit[r] >> 6, np.uint64(1) << np.uint64(ref_bit[r] & 63)
         ox, oy, oz = origins[r, 0], origins[r, 1], origins[r, 2]
         nearest[:] = np.inf
         for j in range(a, b):
@@ -100,31 +101,35 @@ def _free_space(pts, voxel, rep, candidate, own, own_start, origins, n, margin_m
             near = nearest[cell[t]]
             if near < np.inf:
                 v = tested[t]
-                if not keep[v] or hit_by[v] == r:
+                if bits[v, word] & bit or hit_by[v] == r:
                     continue
                 rng = math.sqrt(range2[t])
                 if near > rng + margin_m + margin_rel * rng:
-                    keep[v] = False
-    return keep
+                    bits[v, word] |= bit
+    return bits
 
 
-def free_space_voxels(
-    pts: F64, voxel: I64, rep: I64, candidate: Bool, own: I64, own_start: I64, origins: F64,
-    cell_rad: float, margin_m: float, margin_rel: float = FREE_MARGIN_REL,
-) -> Bool:  # fmt: skip
-    """Keep mask per voxel: no reference saw through it.
+def clearing_voxels(
+    pts: F64, voxel: I64, rep: I64, candidate: Bool, own: I64, own_start: I64, origins: F64, ref_bit: I64,
+    n_bits: int, cell_rad: float, margin_m: float, margin_rel: float = FREE_MARGIN_REL,
+) -> U64:  # fmt: skip
+    """Per voxel, which references saw through it: bit `ref_bit[r]` of row v (V, ceil(n_bits / 64)).
 
     `voxel` is each point's voxel, `rep` each voxel's representative point,
-    `candidate` the voxels to test (the others are kept); reference r's
+    `candidate` the voxels to test (the others get no bit); reference r's
     points are `own[own_start[r]:own_start[r + 1]]`, seen from `origins[r]`.
     Per reference: the nearest return in each cell of direction (cube-map
     cells at most `cell_rad` wide), then every candidate voxel that
     reference did not hit and whose representative lies nearer than its
     cell's nearest return by more than `margin_m` + `margin_rel` x its range
-    is cleared. All positions in metres, in one frame.
+    is cleared. All positions in metres, in one frame. References may share
+    a bit (the same time, two LiDARs).
     """
     n = max(1, math.ceil(2.0 / cell_rad))  # cells per face edge: tangents -1..1, 2/n rad at the centre
-    out: Bool = _free_space(pts, voxel, rep, candidate, own, own_start, origins, n, margin_m, margin_rel)
+    bits = np.zeros((len(rep), max(1, -(-n_bits // 64))), np.uint64)
+    out: U64 = _clearing(
+        pts, voxel, rep, candidate, own, own_start, origins, ref_bit, n, margin_m, margin_rel, bits
+    )
     return out
 
 
@@ -136,6 +141,55 @@ def _stable_order(ids: I64) -> I64:
     return np.argsort(ids, kind="stable")
 
 
+def free_space_bits(
+    pts: F64,
+    slice_id: I64,
+    references: list[tuple[int, F64, int]],
+    n_bits: int,
+    cell_deg: float,
+    voxel_m: float,
+    margin_m: float,
+    test: Bool | None = None,
+) -> U64:
+    """Per point, which reference slices saw through it (a mover's earlier positions are cleared).
+
+    `slice_id` names each point's slice (one LiDAR, a few tens of ms);
+    `references` are (slice id, that LiDAR's origin at the slice's time,
+    its bit < `n_bits`), all in the same frame as `pts` (metres). A point of
+    another slice whose direction from a reference's origin falls in a
+    `cell_deg` cell and that lies nearer than the cell's nearest return by
+    more than `margin_m` + 3 % of its range sat where the reference saw
+    empty space: its row (N, ceil(n_bits / 64)) gets the reference's bit.
+    Cells with no return say nothing, and the nearest return (not the
+    farthest) makes the test clear a point only where the whole cell was
+    seen beyond it, so static edges stay. The test runs per `voxel_m` voxel
+    (its first point stands for it; a voxel the reference itself hit is
+    occupied), well inside the margin. Only voxels holding a point with
+    `test` set are tested (default: all).
+    """
+    voxel, rep = voxel_groups(pts, voxel_m)
+    candidate = np.ones(len(rep), bool)
+    if test is not None:
+        candidate[:] = False
+        candidate[voxel[test]] = True
+    order = _stable_order(slice_id)
+    sids = np.array([sid for sid, _, _ in references], np.int64)
+    lo = np.searchsorted(slice_id[order], sids)
+    hi = np.searchsorted(slice_id[order], sids + 1)
+    own = np.concatenate([order[a:b] for a, b in zip(lo, hi, strict=True)] + [np.zeros(0, np.int64)])
+    own_start = np.r_[0, np.cumsum(hi - lo)].astype(np.int64)
+    origins = np.array([o for _, o, _ in references], np.float64).reshape(-1, 3)
+    ref_bit = np.array([b for _, _, b in references], np.int64)
+    if len(ref_bit) and (ref_bit.min() < 0 or ref_bit.max() >= n_bits):
+        raise ValueError(f"reference bits must lie in 0..{n_bits - 1}, got {ref_bit.min()}..{ref_bit.max()}")
+    bits = clearing_voxels(
+        np.ascontiguousarray(pts, np.float64), voxel, rep.astype(np.int64), candidate, own, own_start,
+        origins, ref_bit, n_bits, math.radians(cell_deg), margin_m,
+    )  # fmt: skip
+    out: U64 = rows(bits, voxel)
+    return out
+
+
 def free_space_filter(
     pts: F64,
     slice_id: I64,
@@ -145,36 +199,12 @@ def free_space_filter(
     margin_m: float,
     test: Bool | None = None,
 ) -> Bool:
-    """Keep mask: points that no reference slice saw through (a mover's earlier positions are cleared).
+    """Keep mask: points that no reference slice saw through (`free_space_bits` with one bit for all).
 
-    `slice_id` names each point's slice (one LiDAR, a few tens of ms);
-    `references` are (slice id, that LiDAR's origin at the slice's time), all
-    in the same frame as `pts` (metres): the frame's own slices. A point of
-    another slice whose direction from a reference's origin falls in a
-    `cell_deg` cell and that lies nearer than the cell's nearest return by
-    more than `margin_m` + 3 % of its range sat where the reference saw
-    empty space, so it is removed. Cells with no return say nothing, and the
-    nearest return (not the farthest) makes the test clear a point only
-    where the whole cell was seen beyond it, so static edges stay. The test
-    runs per `voxel_m` voxel (its first point stands for it; a voxel the
-    reference itself hit is occupied), well inside the margin. Only voxels
-    holding a point with `test` set are tested (default: all).
+    `references` are (slice id, that LiDAR's origin at the slice's time): the
+    frame's own slices.
     """
-    voxel, rep = voxel_groups(pts, voxel_m)
-    candidate = np.ones(len(rep), bool)
-    if test is not None:
-        candidate[:] = False
-        candidate[voxel[test]] = True
-    order = _stable_order(slice_id)
-    sids = np.array([sid for sid, _ in references], np.int64)
-    lo = np.searchsorted(slice_id[order], sids)
-    hi = np.searchsorted(slice_id[order], sids + 1)
-    own = np.concatenate([order[a:b] for a, b in zip(lo, hi, strict=True)] + [np.zeros(0, np.int64)])
-    own_start = np.r_[0, np.cumsum(hi - lo)].astype(np.int64)
-    origins = np.array([o for _, o in references], np.float64).reshape(-1, 3)
-    keep_voxel = free_space_voxels(
-        np.ascontiguousarray(pts, np.float64), voxel, rep.astype(np.int64), candidate, own, own_start,
-        origins, math.radians(cell_deg), margin_m,
-    )  # fmt: skip
-    out: Bool = keep_voxel[voxel]
+    refs = [(sid, origin, 0) for sid, origin in references]
+    bits = free_space_bits(pts, slice_id, refs, 1, cell_deg, voxel_m, margin_m, test)
+    out: Bool = bits[:, 0] == 0
     return out

@@ -61,7 +61,7 @@ from ingest.runtime.executor import Executor, Handoff, share_cores
 from ingest.runtime.heap import retain_freed_memory
 from ingest.train.bad_messages import BadMessages
 from ingest.train.block_planes import BlockPlanes, PlaneSettings
-from ingest.train.dense import DenseParams
+from ingest.train.dense import DenseParams, free_space_settings
 from ingest.train.describe import check_existing, record_undecodable, write_dataset_yaml
 from ingest.train.lidar_rate import THIN_FRACTION
 from ingest.train.plan import LOST_REASON, Plan, plan, survey
@@ -167,7 +167,7 @@ class IngestSummary:
     overlapped_ms: dict[str, list[float]] = field(default_factory=dict)  # helper threads beside them
     seconds: float = 0.0
     dense_warm_up_s: float | None = None  # dense GT's kernels and pixel rays, before the samples
-    dense_planes: tuple[int, float] | None = None  # dense GT: (plane blocks fitted, seconds), main process
+    dense_planes: tuple[int, float] | None = None  # dense GT: (blocks fitted, seconds fitting and testing)
     out: Path | None = None
     method: str = "sparse"
     decision: str = ""
@@ -404,13 +404,15 @@ def ingest(
 def _block_planes(
     rig: Rig, topics: Topics, the_plan: Plan, cfg: IngestConfig, traj: RigTrajectory | None, busy: bool
 ) -> BlockPlanes | None:
-    """Dense GT's plane fit, once per point in the stream pass (`ingest.train.block_planes`); None: sparse."""
+    """Dense GT's plane fit and free-space test, once per point in the stream pass
+    (`ingest.train.block_planes`); None: sparse."""
     if cfg.sample.method != "dense" or traj is None:
         return None
     dense = cfg.sample.dense
     settings = PlaneSettings(
         {t: rig.lidar(name).T_cam0_lidar for t, name in topics.lidars.items()}, dense.plane_block_ns,
         dense.plane_neighbours, dense.plane_max_flatness, cfg.sample.min_range_m,
+        free_space_settings(dense) if dense.free_space else None,
     )  # fmt: skip
     return BlockPlanes(traj, {t: the_plan.spans[t] for t in topics.lidars}, settings, 1 if busy else None)
 

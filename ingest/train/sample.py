@@ -17,13 +17,14 @@ import numpy as np
 from calibration.rectify import StereoRectification, rectify_rig
 from calibration.rig import Rig
 from calibration.spherical import Equirectangular
-from calibration.types import F64, I64
+from calibration.types import F64, I64, U64
 from calibration.warp import build_maps, check_height_full, check_source, default_height_full, remap_spans
 from ingest.dataset.layout import SampleFiles, write_sample
 from ingest.dataset.meta import GtMeta, MotionMeta, PointMeta, SampleMeta
 from ingest.dataset.sparse import SparseImage
 from ingest.rows import rows
 from ingest.runtime.background import Background
+from ingest.train.block_planes import cleared_for
 from ingest.train.clouds import (
     REFERENCE_RANGE_M,
     FilterCounts,
@@ -32,7 +33,14 @@ from ingest.train.clouds import (
     filter_points,
     integrate_gyro,
 )
-from ingest.train.dense import DenseParams, dense_ground_truth, free_space_filter, may_matter, warm_up
+from ingest.train.dense import (
+    DenseParams,
+    dense_ground_truth,
+    free_space_filter,
+    free_space_settings,
+    may_matter,
+    warm_up,
+)
 from ingest.train.groundtruth import (
     GtParams,
     equirect_disparity,
@@ -97,13 +105,15 @@ class LidarPoints:
     stamps_ns: I64
     tag: np.ndarray[Any, Any] | None
     normal_world: np.ndarray[Any, Any] | None = None  # dense GT: (N, 3) float16, NaN: none (`block_planes`)
+    clear_bits: U64 | None = None  # dense GT: (N, words), the slices that saw through each (`block_planes`)
 
     def within(self, t0_ns: int, t1_ns: int) -> LidarPoints:
         """The points stamped in [t0_ns, t1_ns], in their order."""
         keep = (self.stamps_ns >= t0_ns) & (self.stamps_ns <= t1_ns)
         tag = None if self.tag is None else self.tag[keep]
         normal = None if self.normal_world is None else rows(self.normal_world, keep)
-        return LidarPoints(self.name, rows(self.xyz_m, keep), self.stamps_ns[keep], tag, normal)
+        bits = None if self.clear_bits is None else rows(self.clear_bits, keep)
+        return LidarPoints(self.name, rows(self.xyz_m, keep), self.stamps_ns[keep], tag, normal, bits)
 
 
 @dataclass(frozen=True)
@@ -183,14 +193,26 @@ def _silent(job: SampleJob) -> list[str]:
 
 def _points_in_cam0(job: SampleJob) -> tuple[F64, I64, FilterCounts, dict[str, float]]:
     """Filtered points of every LiDAR in cam0 (at their own times), their stamps, counts, skews."""
-    pts, stamps, _, total, skew, _ = _points_by_lidar(job)
-    return pts, stamps, total, skew
+    c = _points_by_lidar(job)
+    return c.pts, c.stamps_ns, c.counts, c.skew_ms
 
 
-def _points_by_lidar(job: SampleJob) -> tuple[F64, I64, I64, FilterCounts, dict[str, float], F64 | None]:
-    """`_points_in_cam0`, the index (into `job.lidars`) of each point's LiDAR and the points' world
-    normals (None unless every LiDAR's points carry them)."""
-    pts, stamps, which, total, skew, normals = [], [], [], FilterCounts(), {}, []
+@dataclass(frozen=True)
+class WindowPoints:
+    """A job's filtered points of every LiDAR, in cam0 at their own times, and what they carry."""
+
+    pts: F64  # (N, 3) m
+    stamps_ns: I64
+    lidar: I64  # index into `job.lidars`
+    counts: FilterCounts
+    skew_ms: dict[str, float]  # per LiDAR: the farthest point time from the frame's
+    normal_world: F64 | None  # (N, 3), when every LiDAR's points carry them
+    clear_bits: U64 | None  # (N, words), when every LiDAR's points carry them
+
+
+def _points_by_lidar(job: SampleJob) -> WindowPoints:
+    """`_points_in_cam0`, with each point's LiDAR and the block fits' normals and free-space bits."""
+    pts, stamps, which, total, skew, normals, bits = [], [], [], FilterCounts(), {}, [], []
     for i, lp in enumerate(job.lidars):
         keep, counts = filter_points(lp.xyz_m, lp.tag, job.params.min_range_m)
         T = job.geometry.rig.lidar(lp.name).T_cam0_lidar
@@ -200,11 +222,17 @@ def _points_by_lidar(job: SampleJob) -> tuple[F64, I64, I64, FilterCounts, dict[
         which.append(np.full(int(keep.sum()), i, np.int64))
         if lp.normal_world is not None:
             normals.append(np.asarray(rows(lp.normal_world, keep), np.float64))
+        if lp.clear_bits is not None:
+            bits.append(rows(lp.clear_bits, keep))
         total = total + counts
         dt = (stamps[-1] - job.upper_stamp_ns) / 1e6
         skew[lp.name] = float(np.abs(dt).max()) if len(dt) else 0.0
-    normal = np.concatenate(normals) if len(normals) == len(job.lidars) else None
-    return np.concatenate(pts), np.concatenate(stamps), np.concatenate(which), total, skew, normal
+    every = len(job.lidars)
+    return WindowPoints(
+        np.concatenate(pts), np.concatenate(stamps), np.concatenate(which), total, skew,
+        np.concatenate(normals) if len(normals) == every else None,
+        np.concatenate(bits) if len(bits) == every else None,
+    )  # fmt: skip
 
 
 Equirects = tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]
@@ -388,23 +416,29 @@ def _process_dense(job: SampleJob, images: Background[Equirects], start_ms: floa
     span = traj.measured_span(tc)
     if span is None:  # the frame's own pose is a prediction across a LiDAR gap
         return _in_gap(job, images, start_ms)
-    pts, stamps, which, counts, skew_ms, normal_world = _points_by_lidar(job)
+    cloud = _points_by_lidar(job)
+    stamps = cloud.stamps_ns
     covered = (stamps >= span[0]) & (stamps <= span[1])  # no point placed across a gap
     if not covered.any():
         return SampleResult(job.sid, False, "outside the trajectory", None, {})
-    pts, stamps, which = rows(pts, covered), stamps[covered], which[covered]
+    pts, stamps, which = rows(cloud.pts, covered), stamps[covered], cloud.lidar[covered]
     turn_rad, shift_m = traj.motion_from(tc, int(stamps.min()), int(stamps.max()))
     placed = traj.to_frame(pts, stamps, tc)
     normals = None
-    if normal_world is not None:  # the stream pass's block planes, turned into cam0 at the frame time
+    if cloud.normal_world is not None:  # the stream pass's block planes, turned into cam0 at the frame time
         R_world_cam0, _ = traj.pose(np.array([tc]))
-        normal = rows(normal_world, covered) @ R_world_cam0[0]
+        normal = rows(cloud.normal_world, covered) @ R_world_cam0[0]
         planar = np.isfinite(normal[:, 0])
         normals = Normals(np.where(planar[:, None], normal, 0.0), planar)
     moving = np.zeros((0, 3))
     if prm.dense.free_space:
         test = may_matter(geo.rig.upper.model, placed, prm.dense)
-        keep = free_space_filter(placed, *_slices(job, traj, stamps, which), prm.dense, test)
+        if cloud.clear_bits is not None:  # the stream pass's blocks were tested: look the sample's slices up
+            bits = rows(cloud.clear_bits, covered)
+            fs, block_ns = free_space_settings(prm.dense), prm.dense.plane_block_ns
+            keep = ~(test & cleared_for(bits, stamps, tc, fs, block_ns))
+        else:
+            keep = free_space_filter(placed, *_slices(job, traj, stamps, which), prm.dense, test)
         moving, placed = rows(placed, ~keep), rows(placed, keep)
         normals = None if normals is None else Normals(rows(normals.normal, keep), normals.planar[keep])
     t1 = time.perf_counter()
@@ -420,15 +454,16 @@ def _process_dense(job: SampleJob, images: Background[Equirects], start_ms: floa
     residual = residual[np.isfinite(residual)]
     meta = SampleMeta(
         stamp_ns=tc, lower_stamp_ns=job.lower_stamp_ns, stereo_dt_ms=(job.lower_stamp_ns - tc) / 1e6,
-        source_bag=job.source, lidar_skew_ms=skew_ms,
+        source_bag=job.source, lidar_skew_ms=cloud.skew_ms,
         motion=MotionMeta(
             applied=True, source="trajectory", max_rotation_deg=float(np.degrees(turn_rad)),
             speed_mps=traj.speed_mps(tc), velocity_cam0_mps=None,
             predicted_motion_px=(turn_rad + shift_m / REFERENCE_RANGE_M) * geo.px_per_rad,
         ),
         points=PointMeta(
-            total=counts.total, zero=counts.zero, non_finite=counts.non_finite, too_close=counts.too_close,
-            noise_tag=counts.noise_tag, kept=int(covered.sum()), out_of_view=0, occluded=0,
+            total=cloud.counts.total, zero=cloud.counts.zero, non_finite=cloud.counts.non_finite,
+            too_close=cloud.counts.too_close, noise_tag=cloud.counts.noise_tag, kept=int(covered.sum()),
+            out_of_view=0, occluded=0,
             silent_lidars=_silent(job), off_trajectory=int(len(covered) - covered.sum()),
         ),
         gt=GtMeta(

@@ -181,7 +181,7 @@ def run_streamed(shared: Shared, job: StreamedJob) -> SampleResult:
 
 def lidar_window(sweeps: list[Sweep], name: str, t_c: int, w: int, planes: BlockPlanes | None) -> LidarPoints:
     """The points of `sweeps` stamped within +-`w` of `t_c` as LiDAR `name`'s window, in sweep order
-    (with their world normals when `planes` is given)."""
+    (with their world normals and free-space bits when `planes` is given)."""
     lo, hi = t_c - w, t_c + w
     near = [s for s in sweeps if s.span_ns[1] >= lo and s.span_ns[0] <= hi]
     # a sweep inside the window is taken whole; only the (at most two) at its ends are cut
@@ -191,11 +191,14 @@ def lidar_window(sweeps: list[Sweep], name: str, t_c: int, w: int, planes: Block
     st = np.concatenate([_rows(s.stamps_ns, m) for s, m in parts]) if parts else np.zeros(0, np.int64)
     tags = [_rows(s.tag, m) for s, m in parts if s.tag is not None]
     tag = np.concatenate(tags) if tags and len(tags) == len(parts) else None
-    normal = None
+    normal = bits = None
     if planes is not None:
         normals = [_rows(planes.normals(s), m) for s, m in parts]
         normal = np.concatenate(normals) if normals else np.zeros((0, 3), NORMAL_DTYPE)
-    return LidarPoints(name, xyz, st, tag, normal)
+        if planes.settings.free_space is not None:
+            words = [_rows(planes.clear_bits(s), m) for s, m in parts]
+            bits = np.concatenate(words) if words else planes.clear_bits_empty()
+    return LidarPoints(name, xyz, st, tag, normal, bits)
 
 
 def _rows(a: np.ndarray[Any, Any], which: slice | I64) -> np.ndarray[Any, Any]:
@@ -267,8 +270,9 @@ def stream_jobs(
 ) -> Iterator[StreamedJob | tuple[str, str]]:  # fmt: skip
     """Second pass: a StreamedJob per planned sample, or (sid, why): "done" earlier, "missing image".
 
-    With `planes` (dense GT) every job's points carry their world normals, and
-    a job waits until the plane blocks its window overlaps are fitted.
+    With `planes` (dense GT) every job's points carry their world normals (and
+    free-space bits), and a job waits until the blocks its window overlaps
+    are done.
     """
     where = bags.label
     bad = bad or BadMessages()
@@ -342,8 +346,8 @@ def stream_jobs(
             next_k += 1
             if next_k < len(sids):  # forget sweeps and IMU readings no later sample can use
                 horizon = int(the_plan.upper_ns[next_k]) - w
-                # a plane block is fitted whole: its first sweeps stay until its last one is here
-                kept_from = horizon if planes is None else planes.block_start(horizon)
+                # a block is fitted whole, and tested by slices around it: its sweeps and those stay
+                kept_from = horizon if planes is None else planes.keep_from(horizon)
                 for t in sweeps:
                     sweeps[t] = [s for s in sweeps[t] if s.span_ns[1] >= kept_from]
                 if planes is not None:

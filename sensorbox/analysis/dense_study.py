@@ -33,6 +33,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -42,7 +43,7 @@ from ingest.bags.decode import ImuSample, Sweep, decode
 from ingest.bags.reader import open_bags
 from ingest.dataset.layout import prepare_dirs
 from ingest.train.block_planes import BlockPlanes, PlaneSettings
-from ingest.train.dense import DenseParams
+from ingest.train.dense import DenseParams, free_space_settings
 from ingest.train.rig_trajectory import RigTrajectory
 from ingest.train.sample import Geometry, ImuWindow, SampleJob, SampleParams, process_sample
 from ingest.train.stream import lidar_window
@@ -96,18 +97,19 @@ class Recording:
     imu_g: np.ndarray
     trajectory: RigTrajectory
     trajectory_s: float
-    planes: dict[tuple[int, int, float, float], BlockPlanes] = field(default_factory=dict)
+    planes: dict[tuple[Any, ...], BlockPlanes] = field(default_factory=dict)
 
 
 def block_planes(rec: Recording, geo: Geometry, params: SampleParams) -> BlockPlanes:
-    """The recording's plane blocks as ingest's stream pass fits them (`ingest.train.block_planes`),
-    every block fitted; once per recording and settings."""
+    """The recording's blocks (planes, free-space bits) as ingest's stream pass runs them
+    (`ingest.train.block_planes`), every block done; once per recording and settings."""
     dense = params.dense
-    key = (dense.plane_block_ns, dense.plane_neighbours, dense.plane_max_flatness, params.min_range_m)
+    free = free_space_settings(dense) if dense.free_space else None
+    key = (dense.plane_block_ns, dense.plane_neighbours, dense.plane_max_flatness, params.min_range_m, free)
     if key not in rec.planes:
         settings = PlaneSettings(
             {name: geo.rig.lidar(name).T_cam0_lidar for name in rec.sweeps}, dense.plane_block_ns,
-            dense.plane_neighbours, dense.plane_max_flatness, params.min_range_m,
+            dense.plane_neighbours, dense.plane_max_flatness, params.min_range_m, free,
         )  # fmt: skip
         spans = {name: [s.span_ns for s in v] for name, v in rec.sweeps.items()}
         planes = BlockPlanes(rec.trajectory, spans, settings)

@@ -144,9 +144,9 @@ def summary_table(summary: IngestSummary, out: Path) -> Table:
         rows.append(("trajectory file (TUM, T_world_cam0)", t.file))
     if summary.dense_warm_up_s is not None:  # the first run of a checkout compiles the kernels here
         rows.append(("dense GT start-up: kernels and pixel rays, once", f"{summary.dense_warm_up_s:.1f} s"))
-    if summary.dense_planes is not None:  # fitted in the stream pass, beside the workers
+    if summary.dense_planes is not None:  # fitted and tested in the stream pass, beside the workers
         blocks, seconds = summary.dense_planes
-        rows.append(("dense GT planes: blocks fitted once, time", f"{blocks}, {seconds:.1f} s"))
+        rows.append(("dense GT blocks: planes and free space once, time", f"{blocks}, {seconds:.1f} s"))
     if summary.density:
         rows += [
             ("GT density (fisheye, median)", f"{np.median(summary.density) * 100:.2f} %"),

@@ -1,12 +1,21 @@
 """Dense GT's block planes: one normal per point, fitted in its block of time, in the world frame."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
 from ingest.bags.decode import Sweep
-from ingest.train.block_planes import BlockPlanes, PlaneSettings, world_normals
+from ingest.train.block_planes import (
+    BlockPlanes,
+    FreeSpaceSettings,
+    PlaneSettings,
+    cleared_for,
+    world_normals,
+)
 from ingest.train.clouds import NOISE_TAG_BITS
+from ingest.train.free_space import free_space_filter
 from ingest.train.rig_trajectory import RigTrajectory
 
 KNOT_NS = 50_000_000
@@ -182,3 +191,93 @@ def test_a_fit_leaves_open3ds_thread_count_as_it_found_it(threads):
     planes = BlockPlanes(traj, _spans(every), _settings(), threads=threads)
     assert planes.complete(every, T0, T0 + 900_000_000)
     assert o3d.utility.get_max_threads() == before
+
+
+# ---------------------------------------------------------------- free space, once per block
+
+SLICE_NS = 50_000_000
+
+
+def _free_settings(window_ns: int, reference_ns: int = 0) -> FreeSpaceSettings:
+    return FreeSpaceSettings(window_ns, reference_ns, SLICE_NS, cell_deg=1.0, voxel_m=0.05, margin_m=0.1)
+
+
+def _still(seconds: float) -> RigTrajectory:
+    stamps = T0 + np.arange(-KNOT_NS, int(seconds * 1e9) + 2 * KNOT_NS, KNOT_NS, dtype=np.int64)
+    n = len(stamps)
+    return RigTrajectory(stamps, np.tile(np.eye(3), (n, 1, 1)), np.zeros((n, 3)), np.zeros(n))
+
+
+def _room_with_a_walker(seconds: float, seed: int = 0) -> dict[str, list[Sweep]]:
+    """Both LiDARs of a still rig (world = cam0) see a wall, a floor and a person walking across.
+
+    Every position lies on a 10 cm lattice, so points sharing a 5 cm voxel share their coordinates:
+    whichever point stands for a voxel, the free-space test sees the same position.
+    """
+    rng = np.random.default_rng(seed)
+    g = np.arange(-40, 41) * 0.1
+    wall = np.array([[x, y, 6.0] for x in g for y in g[(g > -2.0) & (g < 1.45)]])
+    floor = np.array([[x, 1.4, z] for x in g for z in np.arange(10, 60) * 0.1])
+    static = np.concatenate([wall, floor])
+    out: dict[str, list[Sweep]] = {topic: [] for topic in LIDARS}
+    for k in range(round(seconds * 1e9 / SWEEP_NS)):
+        for topic, T in LIDARS.items():
+            t = np.sort(rng.integers(T0 + k * SWEEP_NS + 1, T0 + (k + 1) * SWEEP_NS - 1, 2500)).astype(
+                np.int64
+            )
+            world = static[rng.integers(0, len(static), len(t))]
+            walker = rng.random(len(t)) < 0.2  # a 0.4 m x 1.6 m slab at z = 3 m, walking along x at 1 m/s
+            x = -1.5 + (t[walker] - T0) / 1e9
+            body = np.c_[x + rng.integers(0, 5, walker.sum()) * 0.1, rng.integers(-12, 4, walker.sum()) * 0.1]
+            world[walker] = np.c_[np.round(body, 1), np.full(walker.sum(), 3.0)]
+            lidar = (world - T[:3, 3]) @ T[:3, :3]  # the still rig: cam0 = world
+            out[topic].append(
+                Sweep(int(t[-1]), topic, lidar.astype(np.float32), t, tag=np.zeros(len(t), np.uint8))
+            )
+    return out
+
+
+@pytest.mark.parametrize("reference_ns", [0, 100_000_000])
+def test_a_blocks_free_space_bits_give_each_sample_what_its_own_test_gives(reference_ns):
+    """For every frame time, the points the block bits clear are those the per-sample test clears."""
+    seconds, window_ns, block_ns = 3.0, 500_000_000, 1_000_000_000
+    traj, sweeps = _still(seconds), _room_with_a_walker(seconds)
+    fs = _free_settings(window_ns, reference_ns)
+    settings = replace(_settings(block_ns), free_space=fs)
+    spans = {t: [s.span_ns for s in v] for t, v in sweeps.items()}
+    planes = BlockPlanes(traj, spans, settings)
+    assert planes.complete(sweeps, T0, T0 + int(seconds * 1e9) - 1)
+    topics = list(sweeps)
+    xyz = np.concatenate(
+        [s.xyz_m @ LIDARS[t][:3, :3].T + LIDARS[t][:3, 3] for t in topics for s in sweeps[t]]
+    )
+    st = np.concatenate([s.stamps_ns for t in topics for s in sweeps[t]])
+    lidar = np.concatenate([np.full(len(s.stamps_ns), i) for i, t in enumerate(topics) for s in sweeps[t]])
+    bits = np.concatenate([planes.clear_bits(s) for t in topics for s in sweeps[t]])
+    cleared_somewhere = 0
+    for tc in T0 + np.arange(600, 2500, 150) * 1_000_000:
+        w = np.flatnonzero(np.abs(st - tc) <= window_ns)
+        k = (st[w] - tc) // SLICE_NS
+        sid = k * 2 + lidar[w]
+        near = sid[np.abs(st[w] - tc) <= reference_ns] if reference_ns else sid
+        refs = [(int(s), LIDARS[topics[s % 2]][:3, 3].astype(float)) for s in np.unique(near)]
+        keep = free_space_filter(xyz[w].astype(np.float64), sid, refs, 1.0, 0.05, 0.1)
+        cleared = cleared_for(bits[w], st[w], int(tc), fs, block_ns)
+        np.testing.assert_array_equal(cleared, ~keep, err_msg=str(tc - T0))
+        cleared_somewhere += int(cleared.sum())
+    assert cleared_somewhere > 1000  # the walker's trail: what the test is there for
+
+
+def test_free_space_waits_for_the_slices_beyond_its_block():
+    """A block's bits need the slices a reach beyond it; until they are here the block is not done."""
+    traj, sweeps = _still(3.0), _room_with_a_walker(3.0)
+    settings = replace(_settings(), free_space=_free_settings(500_000_000))
+    spans = {t: [s.span_ns for s in v] for t, v in sweeps.items()}
+    planes = BlockPlanes(traj, spans, settings)
+    until = T0 + 1_900_000_000  # block 0 needs slices to 1 s + 1 s (window + reference reach)
+    early = {t: [s for s in v if s.span_ns[0] < until] for t, v in sweeps.items()}
+    assert not planes.complete(early, T0, T0 + 999_999_999)
+    assert planes.blocks_fitted == 1  # the planes need only the block itself
+    assert planes.complete(sweeps, T0, T0 + 999_999_999)
+    assert planes.keep_from(T0 + 1_200_000_000) == T0
+    assert planes.keep_from(T0 + 2_200_000_000) == T0 + 1_000_000_000

@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import replace
 from pathlib import Path
 from types import SimpleNamespace
+from typing import NamedTuple
 
 import numpy as np
 import pytest
@@ -12,8 +13,8 @@ import pytest
 from calibration.rig import read_rig
 from ingest.bags.decode import Sweep
 from ingest.bags.reader import open_bags
-from ingest.train.block_planes import BlockPlanes, PlaneSettings, world_normals
-from ingest.train.pipeline import IngestConfig, _resolve_topics
+from ingest.train.block_planes import BlockPlanes, FreeSpaceSettings, PlaneSettings, world_normals
+from ingest.train.pipeline import IngestConfig, Topics, _resolve_topics
 from ingest.train.plan import IMU_MARGIN_NS, Plan, plan
 from ingest.train.rig_trajectory import RigTrajectory
 from ingest.train.sample import Geometry
@@ -96,17 +97,19 @@ def test_sweeps_needed_counts_the_sweeps_overlapping_each_window() -> None:
         assert got == want
 
 
-@pytest.mark.parametrize(
-    ("every", "window_ns", "block_ns", "n_jobs"),
-    [(1, 300_000_000, 400_000_000, 21), (5, 50_000_000, 150_000_000, 5)],
-)
-def test_dense_jobs_carry_each_points_normal_from_its_whole_block(
-    tmp_path: Path, every: int, window_ns: int, block_ns: int, n_jobs: int
-) -> None:
-    """With block planes every job's points carry the normal fitted among all the points of their block
-    (read here straight from the bag), whichever sample carries them: the stream pass keeps a block's
-    first sweeps until its last one has arrived and fits it then, also where samples lie farther apart
-    than their windows reach (every 5th frame, 167 ms apart, +-50 ms)."""
+class Streamed(NamedTuple):
+    jobs: list[StreamedJob]
+    sweeps: dict[str, list[Sweep]]  # per LiDAR topic, read straight from the bag
+    whole: BlockPlanes  # every block done at once, over all the sweeps (as `final` does)
+    topics: Topics
+    trajectory: RigTrajectory
+    settings: PlaneSettings
+
+
+def _dense_jobs(
+    tmp_path: Path, every: int, window_ns: int, block_ns: int, free: FreeSpaceSettings | None = None
+) -> Streamed:
+    """The indoor fixture's dense jobs, streamed with block planes on a still trajectory."""
     cfg = IngestConfig(rig=_rig(INDOOR), out=tmp_path / "ds", workers=1, every=every)
     cfg = replace(cfg, lidar_window_ns=window_ns)
     cfg = replace(cfg, sample=replace(cfg.sample, window_ns=cfg.lidar_window_ns, method="dense"))
@@ -123,33 +126,84 @@ def test_dense_jobs_carry_each_points_normal_from_its_whole_block(
         still = RigTrajectory(knots, np.tile(np.eye(3), (len(knots), 1, 1)), np.zeros((len(knots), 3)),
                               np.zeros(len(knots)))  # fmt: skip
         T = {t: rig.lidar(name).T_cam0_lidar for t, name in topics.lidars.items()}
-        settings = PlaneSettings(T, block_ns, 10, 0.02, cfg.sample.min_range_m)
+        settings = PlaneSettings(T, block_ns, 10, 0.02, cfg.sample.min_range_m, free)
         the_plan = plan(bags, topics, cfg)
-        planes = BlockPlanes(still, {t: the_plan.spans[t] for t in topics.lidars}, settings)
+        spans = {t: the_plan.spans[t] for t in topics.lidars}
+        planes = BlockPlanes(still, spans, settings)
         jobs = [
             j for j in stream_jobs(bags, topics, the_plan, cfg, planes=planes) if isinstance(j, StreamedJob)
         ]
-    assert len(jobs) == n_jobs
+    whole = BlockPlanes(still, spans, settings)
+    whole.complete(sweeps, int(t_all.min()), int(t_all.max()), final=True)
+    return Streamed(jobs, sweeps, whole, topics, still, settings)
+
+
+@pytest.mark.parametrize(
+    ("every", "window_ns", "block_ns", "n_jobs"),
+    [(1, 300_000_000, 400_000_000, 21), (5, 50_000_000, 150_000_000, 5)],
+)
+def test_dense_jobs_carry_each_points_normal_from_its_whole_block(
+    tmp_path: Path, every: int, window_ns: int, block_ns: int, n_jobs: int
+) -> None:
+    """With block planes every job's points carry the normal fitted among all the points of their block
+    (read here straight from the bag), whichever sample carries them: the stream pass keeps a block's
+    first sweeps until its last one has arrived and fits it then, also where samples lie farther apart
+    than their windows reach (every 5th frame, 167 ms apart, +-50 ms)."""
+    run = _dense_jobs(tmp_path, every, window_ns, block_ns)
+    assert len(run.jobs) == n_jobs
     # the same fits from the whole recording, block by block
     want: dict[tuple[str, int], np.ndarray] = {}
-    first = int(t_all.min()) // block_ns
-    for j in range(first, int(t_all.max()) // block_ns + 1):
+    t_all = np.concatenate([s.stamps_ns for v in run.sweeps.values() for s in v])
+    for j in range(int(t_all.min()) // block_ns, int(t_all.max()) // block_ns + 1):
         lo, hi = j * block_ns, (j + 1) * block_ns - 1
         parts, keys = [], []
-        for topic, v in sweeps.items():
+        for topic, v in run.sweeps.items():
+            T = run.settings.T_cam0_lidar[topic]
             for s in v:
                 m = np.flatnonzero((s.stamps_ns >= lo) & (s.stamps_ns <= hi))
                 if len(m):
-                    parts.append((s.xyz_m[m], s.stamps_ns[m], None if s.tag is None else s.tag[m], T[topic]))
-                    keys.append((topics.lidars[topic], s.stamps_ns[m]))
-        for (name, stamps), normal in zip(keys, world_normals(parts, still, settings), strict=True):
+                    parts.append((s.xyz_m[m], s.stamps_ns[m], None if s.tag is None else s.tag[m], T))
+                    keys.append((run.topics.lidars[topic], s.stamps_ns[m]))
+        for (name, stamps), normal in zip(
+            keys, world_normals(parts, run.trajectory, run.settings), strict=True
+        ):
             for t, n in zip(stamps.tolist(), normal, strict=True):
                 want[(name, t)] = n
     checked = 0
-    for job in jobs:
+    for job in run.jobs:
         for lp in job.lidars:
             assert lp.normal_world is not None and len(lp.normal_world) == len(lp.stamps_ns)
+            assert lp.clear_bits is None  # no free-space test asked for
             expect = np.array([want[(lp.name, t)] for t in lp.stamps_ns.tolist()])
             np.testing.assert_array_equal(lp.normal_world, expect, err_msg=job.sid)
             checked += int(np.isfinite(expect[:, 0]).sum())
     assert checked > 1_000 * n_jobs
+
+
+@pytest.mark.parametrize(
+    ("every", "window_ns", "block_ns", "n_jobs"),
+    [(1, 300_000_000, 400_000_000, 21), (5, 50_000_000, 150_000_000, 5)],
+)
+def test_dense_jobs_carry_each_points_free_space_bits_from_every_slice_that_can_test_it(
+    tmp_path: Path, every: int, window_ns: int, block_ns: int, n_jobs: int
+) -> None:
+    """The free-space bits a job's points carry are those of their blocks tested against every slice
+    within a window and a reference span of them, as if the whole recording were at hand: the stream
+    pass keeps the sweeps before a block that can test it and waits for those after it."""
+    free = FreeSpaceSettings(window_ns, 0, 50_000_000, 1.0, 0.05, 0.1)
+    run = _dense_jobs(tmp_path, every, window_ns, block_ns, free)
+    assert len(run.jobs) == n_jobs
+    want = {
+        (run.topics.lidars[topic], t): b
+        for topic, v in run.sweeps.items()
+        for s in v
+        for t, b in zip(s.stamps_ns.tolist(), run.whole.clear_bits(s), strict=True)
+    }
+    set_bits = 0
+    for job in run.jobs:
+        for lp in job.lidars:
+            assert lp.clear_bits is not None and len(lp.clear_bits) == len(lp.stamps_ns)
+            expect = np.array([want[(lp.name, t)] for t in lp.stamps_ns.tolist()])
+            np.testing.assert_array_equal(lp.clear_bits, expect, err_msg=job.sid)
+            set_bits += int(np.unpackbits(expect.view(np.uint8)).sum())
+    assert set_bits > 100 * n_jobs  # a still rig's room: some points lie where later slices saw through
