@@ -123,7 +123,7 @@ def _gather(
             idx, sp = sel.idx, sel.spacing_rad
         else:
             idx = np.arange(src.n_points)
-            sp = np.repeat(src.voxel_spacing_rad, np.diff(src.voxel_start))
+            sp = src.point_spacing_rad()
         stats["points_touched"] += len(idx)
         *proj, rgb, kept, order, group_start, n_cls = _selected_in_view(src, idx, sp, model, geo, T_cam_scan,
                                                                          params)  # fmt: skip

@@ -61,6 +61,13 @@ class ScanIndex:
     def n_voxels(self) -> int:
         return len(self.voxel_centre)
 
+    def point_spacing_rad(self) -> F32:
+        """Each point's bucket's angular spacing (N,); a point index's own, without a copy."""
+        if self.n_voxels == self.n_points:  # one point per bucket (`point_index`)
+            return self.voxel_spacing_rad
+        out: F32 = np.repeat(self.voxel_spacing_rad, np.diff(self.voxel_start))
+        return out
+
 
 def angular_spacing(xyz: F32, cells: tuple[int, int] = SPHERE_CELLS, smooth: int = 1) -> F32:
     """Angular spacing (rad) of the scanner's sampling at each point, from points per steradian.

@@ -136,7 +136,7 @@ def _gather(
             sp = torch.from_numpy(sel.spacing_rad).to(dev)
         else:
             idx = torch.arange(src.n_points, device=dev)
-            sp = torch.from_numpy(np.repeat(src.voxel_spacing_rad, np.diff(src.voxel_start))).to(dev)
+            sp = torch.from_numpy(src.point_spacing_rad()).to(dev)
         stats["points_touched"] += len(idx)
         *proj, kept = _in_view(on["xyz"][idx], sp, model, geo, T_cam_scan, params)
         stats["points_in_image"] += len(kept)

@@ -209,7 +209,7 @@ def _gather(
             xyz = src.xyz[idx]
         else:  # the naive baseline: every point, with its bucket's spacing
             idx = np.arange(src.n_points)
-            sp = np.repeat(src.voxel_spacing_rad, np.diff(src.voxel_start))
+            sp = src.point_spacing_rad()
             xyz = src.xyz
         stats["points_touched"] += len(idx)
         *proj, kept = points_in_view(model, geo, T_cam_scan, xyz, sp, params)
