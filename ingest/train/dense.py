@@ -19,9 +19,11 @@ GT pixel and meets it (`rect_ranges`). That is exact on planes, as the
 snapped values are, and costs about 80 ms at full resolution against about
 450 ms for a second render of the 3.4 M-pixel window.
 
-Moving objects: a point is kept only where the frame's own sweeps do not
-see through it (`free_space_filter`): a mover's earlier positions are free
-space once it has left, so its stale points are removed and counted.
+Moving objects: a point is kept only where the window's slices do not see
+through it: a mover's earlier positions are free space once it has left, so
+its stale points are removed and counted. The ingest tests each block of
+points once for every sample (`ingest.train.block_planes`); without those
+bits a sample runs the test itself (`free_space_filter`).
 """
 
 from __future__ import annotations

@@ -7,12 +7,16 @@ cell of direction from its origin; a point of another slice nearer than its
 cell's nearest return (by a margin) sat in space the reference saw empty.
 
 The test runs per voxel (its first point stands for it), and only on the
-voxels a caller asks about (those near the camera's view): a reference's
-own points still come from every direction, as its map of nearest returns
-needs them. Directions are binned on the faces of a cube around the origin
-(no trigonometry per test, which dominated the test's cost): a cell is at
-most the requested angle wide, at the faces' centres, and about a third of
-it in the corners.
+voxels a caller asks about: a reference's own points still come from every
+direction, as its map of nearest returns needs them. Directions are binned
+on the faces of a cube around the origin (no trigonometry per test, which
+dominated the test's cost): a cell is at most the requested angle wide, at
+the faces' centres, and about a third of it in the corners.
+
+`free_space_bits` says which references saw through each point (one bit
+each, so that the stream pass can test a block once for every sample that
+will hold it: `ingest.train.block_planes`); `free_space_filter` is the
+test of one sample's own references.
 """
 
 from __future__ import annotations
