@@ -1,4 +1,4 @@
-"""Dense GT's local planes, fitted once per point: per block of recording time, in the world frame.
+"""Dense GT's per-point work, once per block of recording time in the world: planes, free space.
 
 Dense GT snaps every accumulated point onto its pixels' rays along the
 point's local plane (`ingest.train.dense.snap_to_pixel_rays`). Fitted per
