@@ -97,6 +97,14 @@ def test_sweeps_needed_counts_the_sweeps_overlapping_each_window() -> None:
         assert got == want
 
 
+# every frame with +-300 ms windows; every 5th frame (167 ms apart) with +-50 ms windows, farther apart
+# than the windows reach
+DENSE_STREAMS = pytest.mark.parametrize(
+    ("every", "window_ns", "block_ns", "n_jobs"),
+    [(1, 300_000_000, 400_000_000, 21), (5, 50_000_000, 150_000_000, 5)],
+)
+
+
 class Streamed(NamedTuple):
     jobs: list[StreamedJob]
     sweeps: dict[str, list[Sweep]]  # per LiDAR topic, read straight from the bag
@@ -138,10 +146,7 @@ def _dense_jobs(
     return Streamed(jobs, sweeps, whole, topics, still, settings)
 
 
-@pytest.mark.parametrize(
-    ("every", "window_ns", "block_ns", "n_jobs"),
-    [(1, 300_000_000, 400_000_000, 21), (5, 50_000_000, 150_000_000, 5)],
-)
+@DENSE_STREAMS
 def test_dense_jobs_carry_each_points_normal_from_its_whole_block(
     tmp_path: Path, every: int, window_ns: int, block_ns: int, n_jobs: int
 ) -> None:
@@ -180,10 +185,7 @@ def test_dense_jobs_carry_each_points_normal_from_its_whole_block(
     assert checked > 1_000 * n_jobs
 
 
-@pytest.mark.parametrize(
-    ("every", "window_ns", "block_ns", "n_jobs"),
-    [(1, 300_000_000, 400_000_000, 21), (5, 50_000_000, 150_000_000, 5)],
-)
+@DENSE_STREAMS
 def test_dense_jobs_carry_each_points_free_space_bits_from_every_slice_that_can_test_it(
     tmp_path: Path, every: int, window_ns: int, block_ns: int, n_jobs: int
 ) -> None:
