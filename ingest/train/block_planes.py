@@ -74,6 +74,10 @@ class FreeSpaceSettings:
         """Slice times a block's points keep a bit for (an upper bound, the same for every block)."""
         return (block_ns + 2 * self.reach_ns) // self.slice_ns + 2
 
+    def words(self, block_ns: int) -> int:
+        """uint64 words per point that hold `n_bits`."""
+        return -(-self.n_bits(block_ns) // 64)
+
     def first_slice(self, block_start_ns: I64 | int) -> I64:
         """The slice (`slice_ns` steps since t = 0) of bit 0 of the block starting at `block_start_ns`."""
         out: I64 = (np.asarray(block_start_ns, np.int64) - self.reach_ns) // self.slice_ns
@@ -113,10 +117,8 @@ def world_normals(
     pts, stamps, range_m, at = [], [], [], []
     offset = 0
     for (xyz, st, tag, T), n in zip(parts, sizes, strict=True):
-        keep, _ = filter_points(xyz, tag, settings.min_range_m)
-        idx = np.flatnonzero(keep)
-        lidar = np.asarray(rows(xyz, idx), np.float64)
-        pts.append(lidar @ T[:3, :3].T + T[:3, 3])
+        idx, lidar, cam0 = _kept_in_cam0(xyz, tag, T, settings.min_range_m)
+        pts.append(cam0)
         stamps.append(st[idx])
         range_m.append(np.linalg.norm(lidar, axis=1))
         at.append(offset + idx)
@@ -133,6 +135,15 @@ def world_normals(
             fit = plane_normals(rows(world, sel), settings.neighbours, settings.max_flatness, r[sel])
             flat[where[sel]] = np.where(fit.planar[:, None], fit.normal, np.nan)
     return np.split(flat, np.cumsum(sizes)[:-1])
+
+
+def _kept_in_cam0(xyz: np.ndarray[Any, Any], tag: np.ndarray[Any, Any] | None, T_cam0_lidar: F64,
+                  min_range_m: float) -> tuple[I64, F64, F64]:  # fmt: skip
+    """The points `filter_points` keeps: their indices, and their positions (m) in their LiDAR and in cam0."""
+    keep, _ = filter_points(xyz, tag, min_range_m)
+    idx = np.flatnonzero(keep)
+    lidar = np.asarray(rows(xyz, idx), np.float64)
+    return idx, lidar, lidar @ T_cam0_lidar[:3, :3].T + T_cam0_lidar[:3, 3]
 
 
 def cleared_for(bits: U64, stamps_ns: I64, t_ns: int, settings: FreeSpaceSettings, block_ns: int) -> Bool:
@@ -217,16 +228,14 @@ class BlockPlanes:
             raise ValueError("these blocks run no free-space test (PlaneSettings.free_space is None)")
         entry = self._bits.get(id(sweep))
         if entry is None:
-            words = -(-fs.n_bits(self.settings.block_ns) // 64)
-            entry = (sweep, np.zeros((len(sweep.stamps_ns), words), np.uint64))
+            entry = (sweep, np.zeros((len(sweep.stamps_ns), fs.words(self.settings.block_ns)), np.uint64))
             self._bits[id(sweep)] = entry
         return entry[1]
 
     def clear_bits_empty(self) -> U64:
         """No point's `clear_bits` (0, words)."""
         fs = self.settings.free_space
-        words = 1 if fs is None else -(-fs.n_bits(self.settings.block_ns) // 64)
-        return np.zeros((0, words), np.uint64)
+        return np.zeros((0, 1 if fs is None else fs.words(self.settings.block_ns)), np.uint64)
 
     def normals(self, sweep: Sweep) -> F16:
         """World normals (N, 3) of `sweep`'s points."""
@@ -303,13 +312,13 @@ class BlockPlanes:
         """`sweep`'s points in the world (NaN where filtered out or off every stretch) and their stretch."""
         entry = self._world.get(id(sweep))
         if entry is None:
-            keep, _ = filter_points(sweep.xyz_m, sweep.tag, self.settings.min_range_m)
-            stretch = np.where(keep, self.traj.stretch_of(sweep.stamps_ns), -1)
-            on = np.flatnonzero(stretch >= 0)
             T = self.settings.T_cam0_lidar[topic]
+            idx, _, cam0 = _kept_in_cam0(sweep.xyz_m, sweep.tag, T, self.settings.min_range_m)
+            stretch = np.full(len(sweep.stamps_ns), -1, np.int64)
+            stretch[idx] = self.traj.stretch_of(sweep.stamps_ns[idx])
+            placed = stretch[idx] >= 0
             world = np.full((len(stretch), 3), np.nan)
-            cam0 = np.asarray(rows(sweep.xyz_m, on), np.float64) @ T[:3, :3].T + T[:3, 3]
-            world[on] = self.traj.transform(cam0, sweep.stamps_ns[on])
+            world[idx[placed]] = self.traj.transform(rows(cam0, placed), sweep.stamps_ns[idx[placed]])
             entry = (sweep, world, stretch)
             self._world[id(sweep)] = entry
         return entry[1], entry[2]
@@ -337,7 +346,7 @@ class BlockPlanes:
         all_pts, all_st, all_stretch = np.concatenate(pts), np.concatenate(stamps), np.concatenate(stretch)
         slice_id = (all_st // S) * n_topics + np.concatenate(lidar)
         tested = (all_st >= lo) & (all_st <= hi)
-        bits = np.zeros((len(all_st), -(-fs.n_bits(self.settings.block_ns) // 64)), np.uint64)
+        bits = np.zeros((len(all_st), fs.words(self.settings.block_ns)), np.uint64)
         origin_cam0 = {i: self.settings.T_cam0_lidar[t][:3, 3] for i, t in enumerate(sweeps)}
         for st in np.unique(all_stretch[tested]):
             sel = np.flatnonzero(all_stretch == st)
