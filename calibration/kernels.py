@@ -149,6 +149,54 @@ def project_equirect(p: F64, R_model_std: F64, pitch_rad: float, u0: float, v0: 
     return uv, ok
 
 
+@njit(cache=True, nogil=True, error_model="numpy")  # x / 0 gives inf or NaN, as numpy
+def _disparity_stability(r, theta, B, k, e, max_rel, disp, stable):  # type: ignore[no-untyped-def]  # pragma: no cover
+    tau = math.tan(e / k)  # the disparity error as an angle's tangent
+    for i in range(r.shape[0]):
+        ri, ti = r[i], theta[i]
+        s, c = math.sin(ti), math.cos(ti)
+        den = ri / B + c
+        d = k * math.atan2(s, den)
+        if not (math.isfinite(d) and math.isfinite(ri) and ri > 0.0 and d > 0.0):
+            disp[i] = 0.0
+            stable[i] = False
+            continue
+        disp[i] = d
+        # range = B (sin(theta) cot(rho) - cos(theta)) at rho = rho_d +- delta, with tan(rho_d) = s / den:
+        # cot(rho_d +- delta) = (1 -+ T tau) / (T +- tau), no further sines
+        T = s / den
+        ok = d - e > 0.0 and (d + e) / k < ti  # both angles in (0, theta): the rays still meet
+        if ok:
+            r_lo = B * (s * (1.0 - T * tau) / (T + tau) - c)
+            r_hi = B * (s * (1.0 + T * tau) / (T - tau) - c)
+            ok = (
+                math.isfinite(r_lo)
+                and math.isfinite(r_hi)
+                and r_lo > 0.0
+                and r_hi > 0.0
+                and max(abs(ri - r_lo), abs(r_hi - ri)) / ri <= max_rel
+            )
+        stable[i] = ok
+
+
+def disparity_stability(
+    range_m: F64,
+    theta_rad: F64,
+    baseline_m: float,
+    height_full_px: int,
+    max_rel_error: float,
+    disp_error_px: float,
+) -> tuple[F64, Bool]:
+    """`calibration.stereo.disparity_and_stability` in one compiled pass over (N,) float64 arrays."""
+    n = len(range_m)
+    disp, stable = np.empty(n, np.float64), np.empty(n, np.bool_)
+    k = height_full_px / math.pi
+    _disparity_stability(
+        range_m, theta_rad, float(baseline_m), k, float(disp_error_px), float(max_rel_error), disp, stable
+    )
+    return disp, stable
+
+
 def fork_safe_numba_threads() -> None:
     """Make numba's thread pool one that forked workers survive; call before its first parallel use.
 

@@ -82,6 +82,33 @@ def disparity_stability_mask(
     return out
 
 
+def disparity_and_stability(
+    range_m: ArrayLike,
+    theta_rad: ArrayLike,
+    baseline_m: float,
+    height_full_px: int,
+    max_rel_error: float,
+    disp_error_px: float = 0.5,
+) -> tuple[F64, Bool]:
+    """`depth_to_disparity` and `disparity_stability_mask` of the same points in one compiled pass.
+
+    The same values (disparity to rounding, the mask but for ranges whose
+    relative error lies within rounding of ``max_rel_error``) at about a third
+    of the two numpy functions' cost: the ranges at disparity +- error come
+    from the tangent addition formula, so a point costs one sine, one cosine
+    and one arctangent instead of seven such calls.
+    """
+    from calibration.kernels import disparity_stability  # numba: loaded on first use
+
+    r, t = np.broadcast_arrays(np.asarray(range_m, np.float64), np.asarray(theta_rad, np.float64))
+    shape = r.shape
+    disp, stable = disparity_stability(
+        np.ascontiguousarray(r.reshape(-1)), np.ascontiguousarray(t.reshape(-1)),
+        baseline_m, height_full_px, max_rel_error, disp_error_px,
+    )  # fmt: skip
+    return disp.reshape(shape), stable.reshape(shape)
+
+
 def pinhole_depth_to_disparity(z_m: ArrayLike, focal_px: float, baseline_m: float) -> F64:
     """Horizontal pinhole stereo: disp = f B / z; z <= 0 or NaN gives 0."""
     z = np.asarray(z_m, dtype=np.float64)

@@ -61,7 +61,7 @@ from calibration.camera import CameraModel
 from calibration.opencv_yaml import yaml_error_line
 from calibration.pinhole import Pinhole
 from calibration.spherical import Equirectangular
-from calibration.stereo import depth_to_disparity, disparity_stability_mask, pinhole_depth_to_disparity
+from calibration.stereo import disparity_and_stability, pinhole_depth_to_disparity
 from calibration.types import F32, F64
 from calibration.virtual import (
     partner_pose,
@@ -207,9 +207,9 @@ def _angular_disparity(
 
     def disparity(b_mm: float) -> F32:
         b = b_mm / 1000.0
-        d = depth_to_disparity(r, th, b, height_full)
-        stable = disparity_stability_mask(th, r, b, height_full, cfg.stability_max_rel_error,
-                                          cfg.stability_disp_error_px, d)  # fmt: skip
+        d, stable = disparity_and_stability(
+            r, th, b, height_full, cfg.stability_max_rel_error, cfg.stability_disp_error_px
+        )
         out: F32 = np.where(stable & (r > 0), d, 0.0).astype(np.float32)
         return out
 

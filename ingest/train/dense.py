@@ -36,7 +36,7 @@ import numpy as np
 
 from calibration.camera import CameraModel
 from calibration.spherical import Equirectangular
-from calibration.stereo import depth_to_disparity, disparity_stability_mask
+from calibration.stereo import disparity_and_stability
 from calibration.types import F32, F64, I64, Bool
 from ingest.dataset.sparse import SparseImage
 from ingest.raster.edges import edge_band
@@ -253,11 +253,9 @@ def dense_ground_truth(
     row, col, r = row[inside], col[inside], r[inside]
     epix = row * eq.width + col
     theta = eq.theta_of_row(row)  # latitude from up: the rectified equirect's poles lie on its y axis
-    disp = depth_to_disparity(r, theta, baseline_m, eq.height_full)
-    stable = disparity_stability_mask(
-        theta, r, baseline_m, eq.height_full, params.stability_max_rel_error, params.stability_disp_error_px,
-        disp,
-    )  # fmt: skip
+    disp, stable = disparity_and_stability(
+        r, theta, baseline_m, eq.height_full, params.stability_max_rel_error, params.stability_disp_error_px
+    )
     disp_img = SparseImage((eq.height, eq.width), epix[stable], disp[stable].astype(np.float32))
     return DenseGt(range_img, disp_img, int((~stable).sum()))
 

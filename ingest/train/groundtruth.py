@@ -18,7 +18,7 @@ Steps, each a pure function:
    of up to half a pixel of depth gradient on oblique surfaces.
 4. Disparity uses the same surviving points, splatted into the rectified
    full-sphere equirect of cam0, converted with DESIGN.md's formula, and
-   masked by `disparity_stability_mask`.
+   masked by the stability test (both in `disparity_and_stability`).
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ import numpy as np
 
 from calibration.camera import CameraModel
 from calibration.spherical import Equirectangular
-from calibration.stereo import depth_to_disparity, disparity_stability_mask
+from calibration.stereo import disparity_and_stability
 from calibration.types import F64, Bool
 from ingest.dataset.sparse import SparseImage
 from ingest.train.planes import Normals, plane_normals
@@ -186,16 +186,10 @@ def equirect_disparity(
     normals_rect = Normals(np.einsum("ij,nj->ni", R_rect_cam0, normals_cam0.normal), normals_cam0.planar)
     splat = splat_to_pixels(eq, pts_rect, normals_rect, params)
     theta = np.arccos(np.clip(-splat.ray[:, 1], -1.0, 1.0))
-    disp = depth_to_disparity(splat.range_m, theta, baseline_m, eq.height_full)
-    stable = disparity_stability_mask(
-        theta,
-        splat.range_m,
-        baseline_m,
-        eq.height_full,
-        params.stability_max_rel_error,
+    disp, stable = disparity_and_stability(
+        splat.range_m, theta, baseline_m, eq.height_full, params.stability_max_rel_error,
         params.stability_disp_error_px,
-        disp,
-    )
+    )  # fmt: skip
     shape = (eq.height, eq.width)
     disp_img = SparseImage(shape, splat.pixel[stable], disp[stable].astype(np.float32))
     range_img = SparseImage(shape, splat.pixel, splat.range_m.astype(np.float32))

@@ -10,6 +10,7 @@ from calibration.rectify import rectify_stereo
 from calibration.spherical import Equirectangular
 from calibration.stereo import (
     depth_to_disparity,
+    disparity_and_stability,
     disparity_stability_mask,
     disparity_to_depth,
     pinhole_depth_to_disparity,
@@ -108,6 +109,32 @@ def test_stability_mask_removes_poles_and_far_points():
     assert stable.tolist() == [False, True, False, False, True]
     # exactly: at theta = 90, r = 5 m, d = atan(0.024) * 2048/pi = 15.64 px -> 0.5 px is ~3.2 %
     assert not disparity_stability_mask(np.pi / 2, 5.0, 0.12, H_FULL, max_rel_error=0.03)
+
+
+def test_the_fused_disparity_and_stability_equal_the_two_numpy_functions():
+    rng = np.random.default_rng(5)
+    n = 200_000
+    range_m = rng.uniform(0.01, 60.0, n)
+    theta = rng.uniform(0.0, np.pi, n)
+    # no range, NaN and the poles (0 / unstable); a point between the cameras (rho > 90 deg, still stable)
+    range_m[:6] = [0.0, -1.0, np.nan, 2.0, 2.0, 0.05]
+    theta[:6] = [1.0, 1.0, 1.0, 0.0, np.pi, 3.0]
+    baseline_m, max_rel, err_px = 0.12, 0.05, 0.5
+    disp, stable = disparity_and_stability(range_m, theta, baseline_m, H_FULL, max_rel, err_px)
+    want_disp = depth_to_disparity(range_m, theta, baseline_m, H_FULL)
+    want = disparity_stability_mask(theta, range_m, baseline_m, H_FULL, max_rel, err_px, want_disp)
+    assert np.abs(disp - want_disp).max() < 1e-9
+    assert disp[:3].tolist() == [0.0, 0.0, 0.0] and not stable[:5].any() and stable[5] and disp[5] > 1000
+    # the mask may differ only where the relative error lies within rounding of the threshold
+    with np.errstate(all="ignore"):
+        r_lo = disparity_to_depth(want_disp + err_px, theta, baseline_m, H_FULL)
+        r_hi = disparity_to_depth(want_disp - err_px, theta, baseline_m, H_FULL)
+        rel = np.maximum(np.abs(range_m - r_lo), np.abs(r_hi - range_m)) / range_m
+    differ = stable != want
+    assert np.all(np.abs(rel[differ] - max_rel) < 1e-9)
+    assert 0.05 < want.mean() < 0.5 and differ.sum() <= 2
+    one_d, one_s = disparity_and_stability(5.0, np.pi / 2, baseline_m, H_FULL, 0.03, err_px)
+    assert float(one_d) == pytest.approx(np.arctan(0.024) * H_FULL / np.pi, rel=1e-12) and not one_s
 
 
 def test_rotation_gives_horizontal_disparity():
