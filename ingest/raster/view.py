@@ -105,7 +105,7 @@ def pixel_rays(model: CameraModel) -> tuple[F32, Bool]:
 @lru_cache(maxsize=24)
 def pixel_geometry(model: CameraModel) -> PixelGeometry:
     """Cached per (hashable) model: ray validity of every pixel and local angular resolution."""
-    _, valid = model.unproject(model.pixel_grid())
+    valid = pixel_rays(model)[1]  # the one unprojection of every pixel, shared with the ray grid
     s = PPR_STRIDE
     uu, vv = np.meshgrid(np.arange(0, model.width, s, dtype=np.float64),
                          np.arange(0, model.height, s, dtype=np.float64))  # fmt: skip

@@ -45,6 +45,7 @@ from concurrent.futures import ThreadPoolExecutor
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field, replace
 from functools import partial
+from itertools import chain, islice
 from pathlib import Path
 from typing import Any
 
@@ -307,10 +308,11 @@ def _warming_up(geometry: Geometry, cfg: IngestConfig) -> Iterator[Callable[[], 
     and yields `ready`, which waits for it, raises what it raised and
     returns the dense warm-up's seconds (None without one). The
     thread is joined on the way out whatever happens, so no worker forks
-    while it runs. The trajectory pass calls no parallel (renderer) kernel,
-    so numba's thread pool is the warm-up's alone. With Dask the workers
-    build their own. `--gt auto` may still choose sparse GT; its dense
-    warm-up is then a few seconds of CPU spent beside the passes.
+    while it runs. The trajectory pass and the first job (the stream pass's
+    first blocks) call no parallel (renderer) kernel, so numba's thread pool
+    is the warm-up's alone. With Dask the workers build their own. `--gt
+    auto` may still choose sparse GT; its dense warm-up is then a few seconds
+    of CPU spent beside the passes.
     """
     dense = cfg.gt in ("dense", "auto")
 
@@ -454,8 +456,6 @@ def _run(
             summary.skipped[LOST_REASON] = the_plan.lost_samples
         prepare_dirs(cfg.out, cfg.sample.exr)
         first_id = write_dataset_yaml(asked, cfg, geometry, [Path(p) for p in bag_paths], summary)
-        warm_up_s = ready()  # before the workers fork: they inherit what it built
-        summary.dense_warm_up_s = warm_up_s if cfg.sample.method == "dense" else None
         if executor.every_core_busy:
             # every core runs a worker: a helper thread per worker would only add thread switches
             cfg = replace(cfg, sample=replace(cfg.sample, overlap_images=False))
@@ -481,8 +481,16 @@ def _run(
                     summary.skipped[item[1]] = summary.skipped.get(item[1], 0) + 1
                 tick()
 
+        # the first job (for dense GT: the first blocks' planes and free space) is made while the warm-up
+        # ends on the other core; the workers fork with the first submitted job, after the warm-up
+        queued = jobs()
+        head = list(islice(queued, 1))
+        warm_up_s = ready()  # before the workers fork: they inherit what it built
+        summary.dense_warm_up_s = warm_up_s if cfg.sample.method == "dense" else None
         handoff = Handoff(take_messages, give_messages, message_bytes_bound(geometry))
-        results = executor.run(run_streamed, jobs(), shared=Shared(geometry, traj), handoff=handoff)
+        results = executor.run(
+            run_streamed, chain(head, queued), shared=Shared(geometry, traj), handoff=handoff
+        )
         try:
             for result in results:
                 for topic, log_ns, why in result.undecodable:  # decoded in the worker, counted here

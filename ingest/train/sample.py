@@ -22,6 +22,7 @@ from calibration.warp import build_maps, check_height_full, check_source, defaul
 from ingest.dataset.layout import SampleFiles, write_sample
 from ingest.dataset.meta import GtMeta, MotionMeta, PointMeta, SampleMeta
 from ingest.dataset.sparse import SparseImage
+from ingest.raster.view import pixel_rays
 from ingest.rows import rows
 from ingest.runtime.background import Background
 from ingest.train.block_planes import cleared_for
@@ -73,7 +74,7 @@ class Geometry:
     def from_rig(cls, rig: Rig, height_full: int | None = None) -> Geometry:
         model = rig.upper.model
         h = check_height_full(height_full or default_height_full(model))
-        valid = int(model.unproject(model.pixel_grid().reshape(-1, 2))[1].sum())
+        valid = int(pixel_rays(model)[1].sum())  # cached: dense GT's warm-up and renderer reuse the rays
         return cls(rig, rectify_rig(rig), Equirectangular(h), px_per_rad(model), valid)
 
     def warm_maps(self) -> None:
