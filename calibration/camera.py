@@ -93,13 +93,26 @@ class CameraModel(ABC):
         uv = np.asarray(pixels, dtype=np.float64)
         _check_shape(uv, 2, f"{type(self).__name__}.unproject")
         flat = uv.reshape(-1, 2)
+        fused = self._unproject_fused(flat)
+        if fused is not None:
+            rays, valid = fused
+        else:
+            rays, valid = self._unproject_numpy(flat)
+        return rays.reshape(*uv.shape[:-1], 3), valid.reshape(uv.shape[:-1])
+
+    def _unproject_numpy(self, flat: F64) -> tuple[F64, Bool]:
+        """`unproject` of (N, 2) pixels with the model's numpy formula (`_unproject`)."""
         with np.errstate(all="ignore"):
             x, y, z, valid = self._unproject(flat[:, 0], flat[:, 1])
             norm = np.sqrt(x * x + y * y + z * z)
             rays = np.stack([x / norm, y / norm, z / norm], axis=-1)
             valid = valid & np.all(np.isfinite(rays), axis=1) & (norm > 0.0)
         rays[~valid] = np.nan
-        return rays.reshape(*uv.shape[:-1], 3), valid.reshape(uv.shape[:-1])
+        return rays, valid
+
+    def _unproject_fused(self, flat: F64) -> tuple[F64, Bool] | None:
+        """`unproject` of (N, 2) pixels as one compiled pass, where the model has one (else None)."""
+        return None
 
     def in_image(self, pixels: ArrayLike) -> Bool:
         """Mask of pixels inside the image: u in [-0.5, W - 0.5), v in [-0.5, H - 0.5)."""

@@ -71,6 +71,12 @@ class DoubleSphere(FocalModel):
         p = np.ascontiguousarray(flat)
         return project_double_sphere(p, self.fx, self.fy, self.cx, self.cy, self.xi, self.alpha, self.w2)
 
+    def _unproject_fused(self, flat: F64) -> tuple[F64, Bool]:
+        from calibration.kernels import unproject_double_sphere
+
+        uv = np.ascontiguousarray(flat)
+        return unproject_double_sphere(uv, self.fx, self.fy, self.cx, self.cy, self.xi, self.alpha, self.w2)
+
     def _project_normalised(self, x: F64, y: F64, z: F64) -> tuple[F64, F64, Bool]:
         # in place where possible: fresh temporaries of a million points cost more than the arithmetic
         r2 = x * x

@@ -109,6 +109,37 @@ def _equirect(p, R, pitch, u0, v0, uv, ok):  # type: ignore[no-untyped-def]  # p
         _store(i, (phi + math.pi) / pitch - u0, theta / pitch - v0, good, uv, ok)
 
 
+@njit(cache=True, nogil=True, error_model="numpy")  # sqrt(<0) and x / 0 give NaN or inf, as numpy
+def _unproject_double_sphere(uv, fx, fy, cx, cy, xi, alpha, w2, rays, ok):  # type: ignore[no-untyped-def]  # pragma: no cover
+    circle = 1.0 / (2.0 * alpha - 1.0) if alpha > 0.5 else np.inf  # r2 beyond it: no ray
+    for i in range(uv.shape[0]):
+        mx = (uv[i, 0] - cx) / fx
+        my = (uv[i, 1] - cy) / fy
+        r2 = mx * mx + my * my
+        mz = (1.0 - alpha * alpha * r2) / (alpha * math.sqrt(1.0 - (2.0 * alpha - 1.0) * r2) + 1.0 - alpha)
+        s = (mz * xi + math.sqrt(mz * mz + (1.0 - xi * xi) * r2)) / (mz * mz + r2)
+        x, y, z = s * mx, s * my, s * mz - xi
+        norm = math.sqrt(x * x + y * y + z * z)
+        x, y, z = x / norm, y / norm, z / norm
+        # z > -w2 |p| on the unit ray: the ray lies inside the projection's domain (not past the fold)
+        good = r2 <= circle and z > -w2 and norm > 0.0 and _finite3(x, y, z)
+        ok[i] = good
+        rays[i, 0] = x if good else np.nan
+        rays[i, 1] = y if good else np.nan
+        rays[i, 2] = z if good else np.nan
+
+
+def unproject_double_sphere(
+    uv: F64, fx: float, fy: float, cx: float, cy: float, xi: float, alpha: float, w2: float
+) -> tuple[F64, Bool]:
+    """Double Sphere unprojection of (N, 2) pixels to unit rays (N, 3) and validity, in one pass
+    (the numpy path's formula, normalisation and NaN fill fused)."""
+    rays = np.empty((uv.shape[0], 3), np.float64)
+    ok = np.empty(uv.shape[0], np.bool_)
+    _unproject_double_sphere(uv, fx, fy, cx, cy, xi, alpha, w2, rays, ok)
+    return rays, ok
+
+
 def _outputs(p: F64) -> tuple[F64, Bool]:
     return np.empty((p.shape[0], 2), np.float64), np.empty(p.shape[0], np.bool_)
 

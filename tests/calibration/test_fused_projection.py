@@ -46,5 +46,20 @@ def test_fused_projection_matches_the_numpy_formula(model):
     np.testing.assert_allclose(uv[ok], uv_ref[ok], rtol=0, atol=1e-9)
 
 
+@pytest.mark.parametrize("model", MODELS[:2], ids=["reference rig", "xi > 0"])
+def test_fused_double_sphere_unprojection_matches_the_numpy_formula(model):
+    rng = np.random.default_rng(4)
+    uv = np.concatenate([
+        model.pixel_grid().reshape(-1, 2)[::7],
+        rng.uniform(-2000.0, 4000.0, (20_000, 2)),  # far outside the image: past the circle and the fold
+        [[np.nan, 3.0], [model.cx, model.cy], [np.inf, 0.0]],
+    ])  # fmt: skip
+    rays, ok = model.unproject(uv)
+    rays_ref, ok_ref = model._unproject_numpy(uv)
+    assert np.array_equal(ok, ok_ref) and 0.1 < ok.mean() < 0.95 and not ok[-3] and ok[-2] and not ok[-1]
+    assert np.isnan(rays[~ok]).all()
+    np.testing.assert_allclose(rays[ok], rays_ref[ok], rtol=0, atol=1e-12)
+
+
 def test_models_with_distortion_keep_the_numpy_path():
     assert Pinhole(500.0, 500.0, 320.0, 240.0, 640, 480, Fov(0.9))._project_fused(np.zeros((1, 3))) is None
