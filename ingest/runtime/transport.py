@@ -1,6 +1,7 @@
 """Large arrays to forked workers through shared memory instead of the task pipe.
 
-A sample's two 1920x1200 BGR images are 13.8 MB. Sent with the job through
+A sample's two 1920x1200 BGR images are 13.8 MB, and a dense sample's LiDAR
+windows (+-0.5 s of two Mid-360s) about 15 MB. Sent with the job through
 `ProcessPoolExecutor`'s pipe they are pickled (a copy), written through a
 64 KiB pipe, read and unpickled (two more copies): ~7.5 ms of CPU per
 sample between the two processes (bench_ingest). Instead the main process
@@ -29,12 +30,20 @@ class SlotRef:
     layout: tuple[tuple[tuple[int, ...], str], ...]
 
 
+ALIGN = 64
+"""Each array of a slot starts at a multiple of this many bytes (a cache line: aligned for any dtype)."""
+
+
+def _padded(nbytes: int) -> int:
+    return -(-nbytes // ALIGN) * ALIGN
+
+
 def _views(region: mmap.mmap, slot_bytes: int, ref: SlotRef) -> tuple[np.ndarray[Any, Any], ...]:
     out, offset = [], ref.slot * slot_bytes
     for shape, dtype in ref.layout:
         arr: np.ndarray[Any, Any] = np.ndarray(shape, np.dtype(dtype), buffer=region, offset=offset)
         out.append(arr)
-        offset += arr.nbytes
+        offset += _padded(arr.nbytes)
     return tuple(out)
 
 
@@ -50,7 +59,7 @@ class ArraySlots:
 
     def put(self, arrays: tuple[np.ndarray[Any, Any], ...]) -> SlotRef | None:
         """Copy the arrays into a free slot; None when none is free or they do not fit."""
-        if not self.free or sum(a.nbytes for a in arrays) > self.slot_bytes:
+        if not self.free or sum(_padded(a.nbytes) for a in arrays) > self.slot_bytes:
             return None
         ref = SlotRef(self.free.pop(), tuple((a.shape, a.dtype.str) for a in arrays))
         for view, array in zip(_views(self.region, self.slot_bytes, ref), arrays, strict=True):

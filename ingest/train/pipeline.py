@@ -72,11 +72,11 @@ from ingest.train.stream import (
     UNDECODABLE_IMAGE,
     Shared,
     StreamedJob,
-    give_messages,
-    message_bytes_bound,
+    give_arrays,
+    handoff_bytes_bound,
     run_streamed,
     stream_jobs,
-    take_messages,
+    take_arrays,
 )
 from ingest.train.sync import DEFAULT_LIDAR_WINDOW_NS
 from ingest.train.trajectory import STATIC_WINDOW_NS, TrajectorySummary, choose_method, run_trajectory_pass
@@ -487,7 +487,8 @@ def _run(
         head = list(islice(queued, 1))
         warm_up_s = ready()  # before the workers fork: they inherit what it built
         summary.dense_warm_up_s = warm_up_s if cfg.sample.method == "dense" else None
-        handoff = Handoff(take_messages, give_messages, message_bytes_bound(geometry))
+        bound = handoff_bytes_bound(geometry, head[0], the_plan.rates, cfg.lidar_window_ns) if head else 0
+        handoff = Handoff(take_arrays, give_arrays, bound)
         results = executor.run(
             run_streamed, chain(head, queued), shared=Shared(geometry, traj), handoff=handoff
         )

@@ -38,6 +38,7 @@ from ingest.bags.reader import BagSet
 from ingest.dataset.layout import is_done, sample_id
 from ingest.errors import BagError, MessageDecodeError
 from ingest.rows import rows
+from ingest.runtime.transport import ALIGN
 from ingest.train.bad_messages import BadMessages
 from ingest.train.block_planes import NORMAL_DTYPE, BlockPlanes
 from ingest.train.lidar_rate import LidarRates
@@ -110,24 +111,64 @@ def _with_payload(msg: RawMessage, payload: bytes) -> RawMessage:
     return msg._replace(deferred=replace(msg.deferred, compressed=payload))
 
 
-def take_messages(job: StreamedJob) -> tuple[StreamedJob, tuple[Array, ...]]:
-    """The job without its two messages' bytes, and those bytes as uint8 arrays (executor's shared slots)."""
-    light = replace(job, upper=_with_payload(job.upper, b""), lower=_with_payload(job.lower, b""))
-    return light, (_payload(job.upper), _payload(job.lower))
+_LIDAR_FIELDS = ("xyz_m", "stamps_ns", "tag", "normal_world", "clear_bits")
 
 
-def give_messages(job: StreamedJob, arrays: tuple[Array, ...]) -> StreamedJob:
-    """`take_messages` undone in the worker (one copy out of the slot: a raw image's 9 MB take ~2 ms)."""
-    upper, lower = arrays
+def _lidar_arrays(points: LidarPoints) -> list[Array]:
+    """A window's arrays in `_LIDAR_FIELDS` order, those it has (tags, normals and bits may be None)."""
+    return [a for a in (getattr(points, f) for f in _LIDAR_FIELDS) if a is not None]
+
+
+def _refilled(points: LidarPoints, arrays: list[Array]) -> LidarPoints:
+    """`points` with the arrays it has replaced by `arrays`, in `_LIDAR_FIELDS` order (None stays None)."""
+    it = iter(arrays)
+    xyz, stamps, tag, normal, bits = (None if getattr(points, f) is None else next(it) for f in _LIDAR_FIELDS)
+    assert xyz is not None and stamps is not None  # never None
+    return LidarPoints(points.name, xyz, stamps, tag, normal, bits)
+
+
+def take_arrays(job: StreamedJob) -> tuple[StreamedJob, tuple[Array, ...]]:
+    """The job without its two messages' bytes and its LiDAR windows' arrays, and those as arrays (the
+    executor's shared slots, instead of pickling ~15 MB of points through the task pipe per dense sample).
+
+    The light job keeps each window's arrays cut to no rows: their dtypes and columns, and which are None.
+    """
+    light = replace(
+        job, upper=_with_payload(job.upper, b""), lower=_with_payload(job.lower, b""),
+        lidars=tuple(_refilled(p, [a[:0] for a in _lidar_arrays(p)]) for p in job.lidars),
+    )  # fmt: skip
+    points = [a for p in job.lidars for a in _lidar_arrays(p)]
+    return light, (_payload(job.upper), _payload(job.lower), *points)
+
+
+def give_arrays(job: StreamedJob, arrays: tuple[Array, ...]) -> StreamedJob:
+    """`take_arrays` undone in the worker, each array copied out of its slot (which the next job reuses)."""
+    upper, lower, *points = arrays
+    lidars, i = [], 0
+    for p in job.lidars:
+        n = len(_lidar_arrays(p))
+        lidars.append(_refilled(p, [np.array(a) for a in points[i : i + n]]))
+        i += n
     return replace(
-        job, upper=_with_payload(job.upper, upper.tobytes()), lower=_with_payload(job.lower, lower.tobytes())
-    )
+        job, upper=_with_payload(job.upper, upper.tobytes()), lower=_with_payload(job.lower, lower.tobytes()),
+        lidars=tuple(lidars),
+    )  # fmt: skip
 
 
-def message_bytes_bound(geometry: Geometry) -> int:
-    """An upper bound of one sample's two camera messages in bytes: 4 bytes a pixel (bgra8) and a header."""
+def handoff_bytes_bound(geometry: Geometry, job: StreamedJob, rates: LidarRates, window_ns: int) -> int:
+    """An upper bound of any job's `take_arrays` bytes, with `job`'s LiDAR arrays' bytes per point.
+
+    The two camera messages: 4 bytes a pixel (bgra8) and a header each. The
+    points: each LiDAR's window of +-`window_ns` at the fastest sweep rate
+    of any LiDAR, plus 10 % and a sweep's end (a window over this bound, a
+    burst of points, travels pickled: slower, never wrong).
+    """
     cams = (geometry.rig.upper, geometry.rig.lower)
-    return sum(cam.model.width * cam.model.height * 4 + 65536 for cam in cams)
+    images = sum(cam.model.width * cam.model.height * 4 + 65536 for cam in cams)
+    fastest = max((max(r) for r in rates.per_sweep.values() if r), default=0.0)
+    points = int(fastest * 2 * window_ns / 1e9 * 1.1) + 1000
+    per_point = sum(a.itemsize * int(np.prod(a.shape[1:])) for p in job.lidars for a in _lidar_arrays(p))
+    return images + points * per_point + ALIGN * (2 + len(_LIDAR_FIELDS) * len(job.lidars))
 
 
 def _check_size(image: Array, camera: Any, topic: str) -> None:

@@ -13,6 +13,7 @@ import pytest
 from calibration.rig import read_rig
 from ingest.bags.decode import Sweep
 from ingest.bags.reader import open_bags
+from ingest.runtime.transport import ArraySlots, slot_views
 from ingest.train.block_planes import BlockPlanes, FreeSpaceSettings, PlaneSettings, world_normals
 from ingest.train.pipeline import IngestConfig, Topics, _resolve_topics
 from ingest.train.plan import IMU_MARGIN_NS, Plan, plan
@@ -21,11 +22,13 @@ from ingest.train.sample import Geometry
 from ingest.train.stream import (
     Shared,
     StreamedJob,
+    _lidar_arrays,
     _sweeps_needed,
     decode_images,
-    give_messages,
+    give_arrays,
+    handoff_bytes_bound,
     stream_jobs,
-    take_messages,
+    take_arrays,
 )
 from tests.ingest.test_pipeline import INDOOR, _rig
 
@@ -46,11 +49,25 @@ def test_jobs_carry_the_stored_bytes_and_the_worker_decodes_them(tmp_path: Path)
     for job in jobs:
         assert job.upper.raw == stored[(topics.upper, job.upper_stamp_ns)]  # CompressedImage JPEG, untouched
         assert job.lower.raw == stored[(topics.lower, job.lower_stamp_ns)]
-        light, arrays = take_messages(job)
+        light, arrays = take_arrays(job)
         assert light.upper.raw == light.lower.raw == b""
-        assert give_messages(light, tuple(np.array(a) for a in arrays)) == job  # through a slot and back
+        back = give_arrays(light, tuple(np.array(a) for a in arrays))  # through a slot and back
+        assert (back.upper, back.lower) == (job.upper, job.lower)
+        _assert_same_windows(back, job)
         images, errors = decode_images(job, Shared(geometry))
         assert errors == [] and [i.shape for i in images] == [(300, 480, 3), (300, 480, 3)]
+
+
+def _assert_same_windows(got: StreamedJob, want: StreamedJob) -> None:
+    assert len(got.lidars) == len(want.lidars) > 0
+    for a, b in zip(got.lidars, want.lidars, strict=True):
+        assert a.name == b.name
+        for field in ("xyz_m", "stamps_ns", "tag", "normal_world", "clear_bits"):
+            x, y = getattr(a, field), getattr(b, field)
+            assert (x is None) == (y is None), field
+            if y is not None:
+                assert x.dtype == y.dtype and x.shape == y.shape, field
+                np.testing.assert_array_equal(x, y, err_msg=field)
 
 
 def test_every_job_holds_the_gyro_readings_its_points_need(tmp_path: Path) -> None:
@@ -112,6 +129,7 @@ class Streamed(NamedTuple):
     topics: Topics
     trajectory: RigTrajectory
     settings: PlaneSettings
+    the_plan: Plan
 
 
 def _dense_jobs(
@@ -143,7 +161,7 @@ def _dense_jobs(
         ]
     whole = BlockPlanes(still, spans, settings)
     whole.complete(sweeps, int(t_all.min()), int(t_all.max()), final=True)
-    return Streamed(jobs, sweeps, whole, topics, still, settings)
+    return Streamed(jobs, sweeps, whole, topics, still, settings, the_plan)
 
 
 @DENSE_STREAMS
@@ -209,3 +227,29 @@ def test_dense_jobs_carry_each_points_free_space_bits_from_every_slice_that_can_
             np.testing.assert_array_equal(lp.clear_bits, expect, err_msg=job.sid)
             set_bits += int(np.unpackbits(expect.view(np.uint8)).sum())
     assert set_bits > 100 * n_jobs  # a still rig's room: some points lie where later slices saw through
+
+
+def test_dense_jobs_travel_through_the_shared_slots_whole(tmp_path: Path) -> None:
+    """Every dense job's camera bytes and LiDAR arrays (points, stamps, tags, normals, free-space bits)
+    fit the slots sized from the first job and the LiDARs' fastest sweep, and come back out of them
+    equal to what was taken: the job itself carries none of their rows."""
+    window_ns = 300_000_000
+    run = _dense_jobs(
+        tmp_path, 1, window_ns, 400_000_000, FreeSpaceSettings(window_ns, 0, 50_000_000, 1.0, 0.05, 0.1)
+    )
+    geometry = Geometry.from_rig(read_rig(_rig(INDOOR)), 64)
+    bound = handoff_bytes_bound(geometry, run.jobs[0], run.the_plan.rates, window_ns)
+    slots = ArraySlots(2, bound)
+    try:
+        for job in run.jobs:
+            light, arrays = take_arrays(job)
+            assert all(len(a) == 0 for p in light.lidars for a in _lidar_arrays(p))
+            assert len(arrays) == 2 + 5 * len(job.lidars)  # tags, normals and bits all present here
+            ref = slots.put(arrays)
+            assert ref is not None, f"{job.sid}: {sum(a.nbytes for a in arrays)} bytes, slot {bound}"
+            back = give_arrays(light, slot_views(ref))
+            slots.release(ref)
+            assert (back.upper, back.lower) == (job.upper, job.lower)
+            _assert_same_windows(back, job)
+    finally:
+        slots.close()
