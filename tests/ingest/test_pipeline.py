@@ -445,7 +445,9 @@ def test_exr_copies_hold_the_unquantised_values(tmp_path: Path) -> None:
     assert np.allclose(np.array(doc["R_cam0_rect"]) @ np.array(doc["R_cam0_rect"]).T, np.eye(3))
 
 
-def test_pool_workers_get_their_images_and_points_through_the_shared_slots(tmp_path: Path, monkeypatch) -> None:
+def test_pool_workers_get_their_images_and_points_through_the_shared_slots(
+    tmp_path: Path, monkeypatch
+) -> None:
     from ingest.runtime.transport import ArraySlots
 
     used = []
