@@ -133,12 +133,12 @@ def take_arrays(job: StreamedJob) -> tuple[StreamedJob, tuple[Array, ...]]:
 
     The light job keeps each window's arrays cut to no rows: their dtypes and columns, and which are None.
     """
+    per_lidar = [_lidar_arrays(p) for p in job.lidars]
+    emptied = [_refilled(p, [a[:0] for a in own]) for p, own in zip(job.lidars, per_lidar, strict=True)]
     light = replace(
-        job, upper=_with_payload(job.upper, b""), lower=_with_payload(job.lower, b""),
-        lidars=tuple(_refilled(p, [a[:0] for a in _lidar_arrays(p)]) for p in job.lidars),
-    )  # fmt: skip
-    points = [a for p in job.lidars for a in _lidar_arrays(p)]
-    return light, (_payload(job.upper), _payload(job.lower), *points)
+        job, upper=_with_payload(job.upper, b""), lower=_with_payload(job.lower, b""), lidars=tuple(emptied)
+    )
+    return light, (_payload(job.upper), _payload(job.lower), *(a for arrays in per_lidar for a in arrays))
 
 
 def give_arrays(job: StreamedJob, arrays: tuple[Array, ...]) -> StreamedJob:
