@@ -25,6 +25,7 @@ import numpy as np
 from calibration.camera import CameraModel
 from calibration.types import F32, F64, I64, U8, Bool
 from ingest.errors import ScanError
+from ingest.raster.point_kernels import sphere_cells
 from ingest.raster.scan import Scan
 
 VOXEL_M = 0.25
@@ -75,24 +76,43 @@ def angular_spacing(xyz: F32, cells: tuple[int, int] = SPHERE_CELLS, smooth: int
     Cells at the edge of what the scanner saw (sky line, tripod shadow) are
     partly empty and report a wider spacing, which only makes splats larger.
     `smooth` > 1 averages the counts over that many cells square first
-    (occupied cells only), for points that get no other averaging.
+    (occupied cells only), for points that get no other averaging. The cells
+    are counted in one compiled pass (`point_kernels.sphere_cells`: 21 against
+    37 ms in numpy for 1 M points, whose float32 arctan2 alone took 16).
     """
     n_u, n_az = cells
+    cell = np.empty(len(xyz), np.int64)
+    counts = np.zeros(n_u * n_az, np.int64)
+    sphere_cells(np.ascontiguousarray(xyz, np.float32), n_u, n_az, cell, counts)
+    return cell_spacing(cell, counts, cells, smooth)
+
+
+def sphere_cells_numpy(xyz: F32, cells: tuple[int, int] = SPHERE_CELLS) -> tuple[I64, I64]:
+    """`point_kernels.sphere_cells` in numpy: each point's cell and the points per cell (the reference)."""
+    n_u, n_az = cells
     r = np.sqrt(np.einsum("ij,ij->i", xyz, xyz))
-    cu = np.clip(((xyz[:, 2] / np.maximum(r, 1e-12) + 1.0) * (n_u / 2.0)).astype(np.int32), 0, n_u - 1)
-    az = np.arctan2(xyz[:, 1], xyz[:, 0])
-    ca = np.clip(((az + math.pi) * (n_az / (2.0 * math.pi))).astype(np.int32), 0, n_az - 1)
-    cell = cu * n_az + ca
-    counts = np.bincount(cell, minlength=n_u * n_az).astype(np.float64)
+    with np.errstate(invalid="ignore"):  # NaN casts to int32's minimum: clipped into cell 0
+        cu = np.clip(((xyz[:, 2] / np.maximum(r, 1e-12) + 1.0) * (n_u / 2.0)).astype(np.int32), 0, n_u - 1)
+        az = np.arctan2(xyz[:, 1].astype(np.float64), xyz[:, 0].astype(np.float64)).astype(np.float32)
+        ca = np.clip(((az + math.pi) * (n_az / (2.0 * math.pi))).astype(np.int32), 0, n_az - 1)
+    cell: I64 = cu.astype(np.int64) * n_az + ca
+    counts: I64 = np.bincount(cell, minlength=n_u * n_az)
+    return cell, counts
+
+
+def cell_spacing(cell: I64, counts: I64, cells: tuple[int, int], smooth: int) -> F32:
+    """Each point's angular spacing (rad) from its cell's count (`angular_spacing`)."""
+    n_u, n_az = cells
+    per_cell = counts.astype(np.float64)
     if smooth > 1:
-        grid = counts.reshape(n_u, n_az)
+        grid = per_cell.reshape(n_u, n_az)
         occupied = (grid > 0).astype(np.float64)
         size = (smooth, smooth)
         mean = cv2.blur(grid, size, borderType=cv2.BORDER_REPLICATE)
         share = cv2.blur(occupied, size, borderType=cv2.BORDER_REPLICATE)
-        counts = np.where(grid > 0, mean / np.maximum(share, 1e-9), 0.0).reshape(-1)
+        per_cell = np.where(grid > 0, mean / np.maximum(share, 1e-9), 0.0).reshape(-1)
     cell_sr = 4.0 * math.pi / (n_u * n_az)
-    spacing = np.sqrt(cell_sr / np.maximum(counts, 1)).astype(np.float32)
+    spacing = np.sqrt(cell_sr / np.maximum(per_cell, 1)).astype(np.float32)
     out: F32 = spacing[cell]
     return out
 

@@ -19,6 +19,8 @@ order, which the z-buffer keys use, so ties resolve as in numpy.
 
 from __future__ import annotations
 
+import math
+
 import numba
 import numpy as np
 from numba import njit, prange
@@ -365,6 +367,62 @@ def ellipse_spans(start: I64, drow: np.ndarray, dcol: np.ndarray) -> tuple[I64, 
                 s_c1.append(dc)
         s_start.append(len(s_dr))
     return tuple(np.array(a, np.int64) for a in (s_start, s_dr, s_c0, s_c1))  # type: ignore[return-value]
+
+
+# atan(t) = t + t^3 P(t^2) on |t| <= tan(pi/8): least squares on Chebyshev nodes, 4.5e-16 rad at most
+_ATAN_P = (
+    -0.33333333333145027, 0.19999999965801685, -0.14285711953394978, 0.11111029048374284,
+    -0.09089216756095257, 0.0767060167553234, -0.06489846530297048, 0.049765973385356765,
+    -0.02471432071364193,
+)  # fmt: skip
+_TAN_PI_8 = 0.41421356237309503
+
+
+@njit(cache=True, nogil=True, inline="always")
+def atan2(y, x):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """`math.atan2` in float64 within 1e-15 rad, about 4x faster than the libm call numba makes.
+
+    Octant folding, one more halving of the range (atan a = pi/4 + atan((a - 1)/(a + 1))) and a
+    polynomial; zero and non-finite arguments go to `math.atan2` (signed zeros, infinities).
+    """
+    ax, ay = abs(x), abs(y)
+    hi, lo = max(ax, ay), min(ax, ay)
+    if not (hi > 0.0 and math.isfinite(x) and math.isfinite(y)):
+        return math.atan2(y, x)
+    a = lo / hi
+    big = a > _TAN_PI_8
+    t = (a - 1.0) / (a + 1.0) if big else a  # selects, not branches: the octants come in random order
+    s = t * t
+    c0, c1, c2, c3, c4, c5, c6, c7, c8 = _ATAN_P
+    p = (((((((c8 * s + c7) * s + c6) * s + c5) * s + c4) * s + c3) * s + c2) * s + c1) * s + c0
+    th = (math.pi / 4.0 if big else 0.0) + (t + t * s * p)
+    th = math.pi / 2.0 - th if ay > ax else th
+    th = math.pi - th if x < 0.0 else th
+    return -th if math.copysign(1.0, y) < 0.0 else th
+
+
+@njit(cache=True, nogil=True)
+def sphere_cells(xyz, n_u, n_az, cell, counts):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """`lod.angular_spacing`'s equal-area cell of each point (cos polar x azimuth) and the points per cell.
+
+    float32 as numpy computes it (``counts`` zeroed by the caller), but the
+    azimuth is the float64 arctangent rounded to float32: libm's float32
+    arctangent (numpy's) is sometimes an ulp off, and a point that close to a
+    cell's edge may fall on its other side.
+    """
+    half_u = np.float32(n_u / 2.0)
+    per_rad = np.float32(n_az / (2.0 * np.pi))
+    pi, one, tiny = np.float32(np.pi), np.float32(1.0), np.float32(1e-12)
+    for i in range(xyz.shape[0]):
+        x, y, z = xyz[i, 0], xyz[i, 1], xyz[i, 2]
+        r = np.sqrt(x * x + y * y + z * z)
+        fu = (z / max(r, tiny) + one) * half_u
+        cu = min(max(np.int64(fu), 0), n_u - 1) if fu >= 0 else 0  # NaN: cell 0, as numpy's cast and clip
+        fa = (np.float32(atan2(np.float64(y), np.float64(x))) + pi) * per_rad
+        ca = min(max(np.int64(fa), 0), n_az - 1) if fa >= 0 else 0
+        c = cu * n_az + ca
+        cell[i] = c
+        counts[c] += 1
 
 
 @njit(parallel=True, cache=True, nogil=True)

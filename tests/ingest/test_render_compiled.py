@@ -156,3 +156,59 @@ def test_layer_dilation_is_the_min_over_each_points_footprint(k_max: int, H: int
             ok = (r >= 0) & (r < H) & (c >= 0) & (c < W)
             np.minimum.at(want, (r[ok], c[ok]), layer[rows[ok] * W + cols[ok]])
     assert np.array_equal(got, want.reshape(-1))
+
+
+def test_compiled_atan2_matches_numpy_to_1e15_with_its_signed_zeros_and_infinities() -> None:
+    rng = np.random.default_rng(3)
+    n = 200_000
+    y = rng.normal(size=n) * 10.0 ** rng.uniform(-6, 6, n)
+    x = rng.normal(size=n) * 10.0 ** rng.uniform(-6, 6, n)
+    special = np.array([0.0, -0.0, 1.0, -1.0, np.inf, -np.inf, np.nan, 1e-300, -1e-300, 1e300])
+    y = np.concatenate([y, np.repeat(special, len(special)), [1.0, -1.0, 1.0, -1.0]])
+    x = np.concatenate([x, np.tile(special, len(special)), [1.0, 1.0, -1.0, -1.0]])  # the octants' edges
+    got = _atan2_all(y, x)
+    want = np.arctan2(y, x)
+    assert np.array_equal(np.isnan(got), np.isnan(want))
+    assert np.array_equal(np.signbit(got), np.signbit(want))  # atan2(-0, -1) = -pi, atan2(+0, -1) = +pi
+    assert np.nanmax(np.abs(got - want)) < 1e-15
+
+
+def _atan2_all(y: np.ndarray[Any, Any], x: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+    from numba import njit
+
+    from ingest.raster.point_kernels import atan2
+
+    @njit(cache=False)  # type: ignore[misc]
+    def run(y: Any, x: Any, out: Any) -> None:  # pragma: no cover
+        for i in range(len(y)):
+            out[i] = atan2(y[i], x[i])
+
+    out = np.empty_like(y)
+    run(y, x, out)
+    return out
+
+
+def test_compiled_sphere_cells_count_what_numpy_counts() -> None:
+    from ingest.raster.lod import SPHERE_CELLS, angular_spacing, cell_spacing, sphere_cells_numpy
+    from ingest.raster.point_kernels import sphere_cells
+
+    rng = np.random.default_rng(4)
+    xyz = (rng.normal(size=(300_000, 3)) * 10.0 ** rng.uniform(-3, 3, (300_000, 1))).astype(np.float32)
+    xyz[:1000, 0] = 0.0  # on the azimuth cells' edges at +-90 deg ...
+    xyz[1000:2000, 1] = 0.0  # ... at 0 and 180 deg (cell 0 or the last by the sign of zero)
+    xyz[2000:3000, 1] = -0.0
+    xyz[3000:3100] = 0.0  # at the scanner: on the equator, at azimuth 0
+    xyz[3100:3200, 2] = np.nan  # the first row of cells, as numpy's cast and clip put it
+    n_u, n_az = SPHERE_CELLS
+    cell = np.empty(len(xyz), np.int64)
+    counts = np.zeros(n_u * n_az, np.int64)
+    sphere_cells(xyz, n_u, n_az, cell, counts)
+    cell_np, counts_np = sphere_cells_numpy(xyz)
+    assert np.array_equal(cell, cell_np)
+    assert np.array_equal(counts, counts_np)
+    assert (cell[3000:3100] == n_u // 2 * n_az + n_az // 2).all()
+    assert (cell[3100:3200] < n_az).all()
+    for smooth in (1, 5):
+        assert np.array_equal(
+            angular_spacing(xyz, smooth=smooth), cell_spacing(cell_np, counts_np, SPHERE_CELLS, smooth)
+        )
