@@ -17,7 +17,7 @@ from calibration.linalg3 import rotation_angle, rotvec_to_matrix
 from calibration.types import F64, I64, Bool
 from ingest.dataset.layout import write_atomic
 from ingest.train.clouds import GyroTrack
-from ingest.train.odometry_kernels import blend_points, gyro_between, log_rotations
+from ingest.train.odometry_kernels import blend_points, gyro_between, log_rotations, node_fractions
 
 STATIC_SPEED_MPS = 0.05
 STATIC_RATE_DEG_S = 2.0
@@ -125,32 +125,38 @@ class RigTrajectory:
 
     def transform(self, pts_cam0: F64, t_ns: I64) -> F64:
         """World points (N, 3) of cam0 points (N, 3) measured at times `t_ns`: `pose` applied in one pass."""
+        return self._placed(pts_cam0, t_ns, np.eye(3), np.zeros(3))
+
+    def _placed(self, pts_cam0: F64, t_ns: I64, R_world_ref: F64, p_world_ref: F64) -> F64:
+        """`transform`, then into the frame (R_world_ref, p_world_ref): R_ref^T (T_world_cam0(t) p - p_ref).
+
+        The reference pose is folded into the grid's nodes (the blend is
+        linear in them), so the points are passed over once.
+        """
         t = np.atleast_1d(np.asarray(t_ns, np.int64))
         grid = self._node_grid(t) if len(self.stamps_ns) > 1 else None
         if grid is None:
             R, p = self.pose(t)
-            out: F64 = np.einsum("nij,nj->ni", R, pts_cam0) + p
+            out: F64 = (np.einsum("nij,nj->ni", R, pts_cam0) + p - p_world_ref) @ R_world_ref
             return out
-        return blend_points(np.asarray(pts_cam0, np.float64), *grid)
+        a, g, R_n, p_n = grid
+        R_ref_n = np.einsum("ji,njk->nik", R_world_ref, R_n)
+        p_ref_n = (p_n - p_world_ref) @ R_world_ref
+        return blend_points(np.asarray(pts_cam0, np.float64), a, g, R_ref_n, p_ref_n)
 
     def _node_grid(self, t: I64) -> tuple[I64, F64, F64, F64] | None:
         """For many times: (node before each a, blend g, node rotations, node positions); None for few."""
         if len(t) == 0:
             return None
-        k, _ = self._segment(t)
-        k_lo, k_hi = int(k.min()), int(k.max())
+        ends, _ = self._segment(np.array([t.min(), t.max()]))
+        k_lo, k_hi = int(ends[0]), int(ends[1])
         if len(t) < POSE_GRID_MIN_RATIO * POSE_NODES * (k_hi - k_lo + 1):
             return None
-        t = np.clip(t, self.stamps_ns[0], self.stamps_ns[-1])
         start = self.stamps_ns[k_lo : k_hi + 1, None]
         span = self.stamps_ns[k_lo + 1 : k_hi + 2, None] - start
         nodes = start + (np.arange(POSE_NODES + 1, dtype=np.int64) * span) // POSE_NODES  # (S, M + 1)
         R_n, p_n = self._pose_exact(nodes.reshape(-1))
-        j = np.minimum(((t - self.stamps_ns[k]) * POSE_NODES) // (self.stamps_ns[k + 1] - self.stamps_ns[k]),
-                       POSE_NODES - 1)  # fmt: skip
-        a = (k - k_lo) * (POSE_NODES + 1) + j  # node before each time, flat
-        t_a, t_b = nodes.reshape(-1)[a], nodes.reshape(-1)[a + 1]
-        g: F64 = (t - t_a) / np.maximum(t_b - t_a, 1)
+        a, g = node_fractions(t, self.stamps_ns, k_lo, k_hi, POSE_NODES, nodes.reshape(-1))
         return a, g, R_n, p_n
 
     def _pose_exact(self, t: I64) -> tuple[F64, F64]:
@@ -204,8 +210,7 @@ class RigTrajectory:
     def to_frame(self, pts_cam0: F64, t_ns: I64, t_ref_ns: int) -> F64:
         """Points measured in cam0 at their times `t_ns` (N, 3), expressed in cam0 at `t_ref_ns`."""
         R_ref, p_ref = self.pose(np.array([t_ref_ns]))
-        out: F64 = (self.transform(pts_cam0, t_ns) - p_ref[0]) @ R_ref[0]
-        return out
+        return self._placed(pts_cam0, t_ns, R_ref[0], p_ref[0])
 
     def write_tum(self, path: Path) -> None:
         """`t_sec tx ty tz qx qy qz qw` per knot (T_world_cam0), with the residual as a comment header."""

@@ -146,6 +146,60 @@ def test_many_points_take_the_pose_grid_within_a_tenth_of_a_millimetre():
     np.testing.assert_allclose(traj.pose(t[:3])[0], R_exact[:3], atol=1e-12)  # few points: exact
 
 
+def test_node_fractions_are_the_integer_grid_of_the_numpy_formula():
+    """The compiled node search gives j = (t - t_k) m // (t_k+1 - t_k) exactly: uneven knots whose spans
+    the node count does not divide, times on knots and on nodes, clamped beyond the ends, in any order."""
+    from ingest.train.odometry_kernels import node_fractions
+
+    rng = np.random.default_rng(5)
+    m = 100
+    stamps = np.cumsum(rng.integers(40_000_000, 60_000_000, 30)).astype(np.int64) + 7
+    k_lo, k_hi = 0, len(stamps) - 2
+    start = stamps[:-1, None]
+    nodes = (start + (np.arange(m + 1, dtype=np.int64) * (stamps[1:, None] - start)) // m).reshape(-1)
+    t = np.r_[
+        rng.integers(stamps[0] - 10**8, stamps[-1] + 10**8, 200_000), stamps, nodes, nodes - 1, nodes + 1
+    ]
+    t = rng.permutation(t)
+    a, g = node_fractions(t, stamps, k_lo, k_hi, m, nodes)
+    tc = np.clip(t, stamps[0], stamps[-1])
+    k = np.clip(np.searchsorted(stamps, tc, side="right") - 1, 0, len(stamps) - 2)
+    j = np.minimum(((tc - stamps[k]) * m) // (stamps[k + 1] - stamps[k]), m - 1)
+    want_a = (k - k_lo) * (m + 1) + j
+    assert np.array_equal(a, want_a)
+    assert np.array_equal(g, (tc - nodes[want_a]) / np.maximum(nodes[want_a + 1] - nodes[want_a], 1))
+    assert g.min() == 0.0 and g.max() == 1.0  # on a node; at the last knot (the last interval's end)
+    # spans of ~1e15 ns: (t - t_k) m exceeds 2^53, the float quotient is off by one near the nodes
+    stamps = np.array([0, 3 * 10**15 + 1, 6 * 10**15 + 3], np.int64)
+    start = stamps[:-1, None]
+    nodes = (start + (np.arange(m + 1, dtype=np.int64) * (stamps[1:, None] - start)) // m).reshape(-1)
+    t = np.clip(np.r_[nodes - 1, nodes, nodes + 1], 0, stamps[-1])
+    a, _ = node_fractions(t, stamps, 0, 1, m, nodes)
+    k = np.clip(np.searchsorted(stamps, t, side="right") - 1, 0, 1)
+    j = np.minimum(((t - stamps[k]) * m) // (stamps[k + 1] - stamps[k]), m - 1)
+    assert np.array_equal(a, k * (m + 1) + j)
+
+
+def test_points_moved_to_a_frame_time_match_the_exact_poses():
+    """`to_frame` folds the reference pose into the grid's nodes: a point lands where the exact poses put it."""
+    rng = np.random.default_rng(6)
+    K = 21
+    stamps = np.arange(K, dtype=np.int64) * 50_000_000
+    R = Rotation.from_rotvec(np.cumsum(rng.normal(0, 0.05, (K, 3)), 0)).as_matrix()
+    p = np.cumsum(rng.normal(0, 0.06, (K, 3)), 0)
+    traj = RigTrajectory(stamps, R, p, np.zeros(K))
+    t = rng.integers(0, stamps[-1], 100_000)
+    x = rng.normal(size=(len(t), 3)) * 10.0
+    t_ref = 512_345_678
+    R_ref, p_ref = traj._pose_exact(np.array([t_ref]))
+    for n in (len(t), 5):  # the node grid, and the exact poses of a few points
+        R_t, p_t = traj._pose_exact(t[:n])
+        want = (np.einsum("nij,nj->ni", R_t, x[:n]) + p_t - p_ref[0]) @ R_ref[0]
+        err = np.linalg.norm(traj.to_frame(x[:n], t[:n], t_ref) - want, axis=1)
+        assert err.max() < 1e-5
+    np.testing.assert_allclose(traj.to_frame(x[:5], np.full(5, t_ref), t_ref), x[:5], atol=1e-12)
+
+
 def test_measured_span_is_the_stretch_of_registered_knots_around_a_time():
     """Knots 3 and 4 are gaps (NaN): the stretches are knots 0..2 and 5..7; a time beside a gap knot, or
     outside the knots, has none; a time exactly on knot 2 belongs to the stretch before it."""
