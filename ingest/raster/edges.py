@@ -6,6 +6,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+from numba import njit
 
 from calibration.types import Bool
 
@@ -26,8 +27,20 @@ def edge_band(
     than max(`step_abs`, `step_rel` * their minimum) (in the map's unit: 5 cm /
     3 % suit depth in metres; for disparity use e.g. 0.25 px / 3 %). Only
     steps between valid GT pixels are seen, so sparse GT finds fewer edges
-    than dense GT does.
+    than dense GT does. Values are compared in float32.
     """
+    ok = valid_gt(gt)
+    step = np.empty(gt.shape, np.uint8)
+    g = np.ascontiguousarray(gt, np.float32)
+    _steps(g, ok, np.float32(step_abs), np.float32(step_rel), np.empty((2, *gt.shape), np.float32), step)
+    size = 2 * band_px + 1
+    band = cv2.dilate(step, np.ones((size, size), np.uint8)) > 0
+    out: Bool = band & ok
+    return out
+
+
+def edge_steps_numpy(gt: np.ndarray[Any, Any], step_abs: float = 0.05, step_rel: float = 0.03) -> Bool:
+    """`edge_band`'s discontinuities (H, W) in numpy: the reference of the compiled pass."""
     ok = valid_gt(gt)
     kernel = np.ones((3, 3), np.uint8)
     g = np.where(ok, gt, np.float32(0.0)).astype(np.float32, copy=False)
@@ -36,8 +49,34 @@ def edge_band(
     lo = cv2.erode(g, kernel)  # smallest valid value around (inf: none, so hi - lo = -inf: no step)
     threshold = lo * np.float32(step_rel)
     np.maximum(threshold, np.float32(step_abs), out=threshold)
-    step = hi - lo > threshold
-    size = 2 * band_px + 1
-    band = cv2.dilate(step.astype(np.uint8), np.ones((size, size), np.uint8)) > 0
-    out: Bool = band & ok
+    out: Bool = hi - lo > threshold
     return out
+
+
+@njit(cache=True, nogil=True)
+def _steps(g, ok, step_abs, step_rel, rows_hi_lo, step):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """step[r, c] = 1 where the valid values of the 3x3 around (r, c) span more than max(abs, rel * min).
+
+    Separable: the largest and smallest valid value of each row's three
+    pixels first (0 and inf: none), then of three rows of those.
+    """
+    H, W = g.shape
+    zero, inf = np.float32(0.0), np.float32(np.inf)
+    row_hi, row_lo = rows_hi_lo[0], rows_hi_lo[1]
+    hi_c, lo_c = np.empty(W + 2, np.float32), np.empty(W + 2, np.float32)
+    hi_c[0] = hi_c[W + 1] = zero
+    lo_c[0] = lo_c[W + 1] = inf
+    for r in range(H):
+        for c in range(W):
+            v, valid = g[r, c], ok[r, c]
+            hi_c[c + 1] = v if valid else zero
+            lo_c[c + 1] = v if valid else inf
+        for c in range(W):
+            row_hi[r, c] = max(max(hi_c[c], hi_c[c + 1]), hi_c[c + 2])
+            row_lo[r, c] = min(min(lo_c[c], lo_c[c + 1]), lo_c[c + 2])
+    for r in range(H):
+        above, below = max(r - 1, 0), min(r + 1, H - 1)
+        for c in range(W):
+            hi = max(max(row_hi[above, c], row_hi[r, c]), row_hi[below, c])
+            lo = min(min(row_lo[above, c], row_lo[r, c]), row_lo[below, c])
+            step[r, c] = 1 if hi - lo > max(lo * step_rel, step_abs) else 0

@@ -153,3 +153,25 @@ def test_edge_band_around_a_depth_step() -> None:
     sparse = np.zeros((20, 20), np.float32)  # sparse GT: a step is seen between valid neighbours only
     sparse[5, 5], sparse[5, 6], sparse[15, 15] = 1.0, 2.0, 9.0
     assert np.argwhere(edge_band(sparse, band_px=1)).tolist() == [[5, 5], [5, 6]]
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (1, 7), (6, 1), (97, 131)])
+def test_compiled_edge_steps_are_the_numpy_min_max_filters(shape: tuple[int, int]) -> None:
+    """The separable compiled pass finds the steps that cv2's 3x3 dilate and erode find: at the borders,
+    between valid pixels only (zeros, negatives, NaN and inf are not GT), float64 maps compared in float32."""
+    from ingest.raster.edges import _steps, edge_steps_numpy, valid_gt
+
+    rng = np.random.default_rng(7)
+    gt = rng.uniform(0.5, 3.0, shape) * rng.choice([1.0, 1.02, 1.1], shape)
+    holes = rng.random(shape)
+    gt[holes < 0.2] = 0.0
+    gt[(holes >= 0.2) & (holes < 0.25)] = np.nan
+    gt[(holes >= 0.25) & (holes < 0.28)] = np.inf
+    gt[(holes >= 0.28) & (holes < 0.3)] = -1.0
+    for m in (gt, gt.astype(np.float32)):
+        step = np.empty(shape, np.uint8)
+        _steps(np.asarray(m, np.float32), valid_gt(m), np.float32(0.05), np.float32(0.03),
+               np.empty((2, *shape), np.float32), step)  # fmt: skip
+        want = edge_steps_numpy(m)
+        assert np.array_equal(step > 0, want)
+        assert shape == (1, 1) or want.any()
