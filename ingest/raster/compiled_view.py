@@ -92,11 +92,13 @@ def _selected_in_view(
     offsets, chunk_base, group_start, m = pk.in_view_offsets(counts)
     K = params.max_splat_px
     hist = np.empty((len(counts), (K + 1) ** 2), np.int64)
+    # no colour: black points (pages of zeros cost nothing until read)
+    rgb = np.empty((m, 3), np.uint8) if params.colour else np.zeros((m, 3), np.uint8)
     out = (np.empty(m, np.int64), np.empty(m, np.float32), np.empty(m, np.float32), np.empty(m, np.float32),
            np.empty(m, np.int16), np.empty(m, np.int16), np.empty(m, np.int64), np.empty(m, np.int64),
-           np.empty((m, 3), np.uint8))  # fmt: skip
-    pk.write_in_view(u, v, ok, r, pn, sp, idx, src.rgb, near, far, W, H, offsets, chunk_base, geo.ppr_u,
-                     geo.ppr_v, geo.stride, f32(params.splat_scale), K, hist, *out)  # fmt: skip
+           rgb)  # fmt: skip
+    pk.write_in_view(u, v, ok, r, pn, sp, idx, src.rgb, params.colour, near, far, W, H, offsets, chunk_base,
+                     geo.ppr_u, geo.ppr_v, geo.stride, f32(params.splat_scale), K, hist, *out)  # fmt: skip
     pix, u_k, v_k, r_k, ku, kv, kept, order, rgb = out
     return pix, u_k, v_k, r_k, ku, kv, rgb, kept, order, group_start, hist.sum(axis=0).reshape(K + 1, K + 1)
 
@@ -295,13 +297,14 @@ def _render(
     # masks, clipping, colour
     rays = geo.valid if pixel_mask is None else geo.valid & pixel_mask
     surf, masked, clipped, good = (np.empty(P, bool) for _ in range(4))
-    range_m, bgr = np.empty(P, np.float32), np.empty((P, 3), np.uint8)
+    range_m = np.empty(P, np.float32)
+    bgr = np.empty((P, 3), np.uint8) if params.colour else np.zeros((P, 3), np.uint8)
     clip = f32(np.inf) if params.clip_m is None else f32(params.clip_m)
     rgb = pts.rgb if len(pts.rgb) else np.zeros((1, 3), np.uint8)
     mask_key = _mask_buffer(mask_pts, H, W)
-    px.finish(value, surface, own2, own_i, splat_i, rays.reshape(-1), rgb, ppr, W, mask_key, mask_pts.r,
-              mask_pts.u, mask_pts.v, EMPTY_KEY, IDX_MASK, tau_m, tau_rel, f32(slope), clip, surf, masked,
-              clipped, good, range_m, bgr)  # fmt: skip
+    px.finish(value, surface, own2, own_i, splat_i, rays.reshape(-1), rgb, params.colour, ppr, W, mask_key,
+              mask_pts.r, mask_pts.u, mask_pts.v, EMPTY_KEY, IDX_MASK, tau_m, tau_rel, f32(slope), clip, surf,
+              masked, clipped, good, range_m, bgr)  # fmt: skip
     stats.update(
         pixels_with_ray=int(rays.sum()),
         surface_px=int(surf.sum()),

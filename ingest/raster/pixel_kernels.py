@@ -254,10 +254,11 @@ def fill_pass(  # type: ignore[no-untyped-def]  # pragma: no cover
 
 @njit(parallel=True, cache=True, nogil=True)
 def finish(  # type: ignore[no-untyped-def]  # pragma: no cover
-    value, surface, own_ok, own_i, splat_i, rays, rgb, ppr, W, mask_key, mask_r, mask_u, mask_v, empty,
-    idx_mask, tau_m, tau_rel, slope, clip, surf, masked, clipped, good, range_m, bgr,
+    value, surface, own_ok, own_i, splat_i, rays, rgb, colour, ppr, W, mask_key, mask_r, mask_u, mask_v,
+    empty, idx_mask, tau_m, tau_rel, slope, clip, surf, masked, clipped, good, range_m, bgr,
 ):  # fmt: skip
-    """Masks (a mask surface not behind the value), clipping, valid range and colour of every pixel."""
+    """Masks (a mask surface not behind the value), clipping, valid range and colour of every pixel
+    (``bgr`` left as it is when ``colour`` is off)."""
     half, zero = np.float32(0.5), np.float32(0.0)
     inv_w = 1.0 / W
     for p in prange(value.shape[0]):
@@ -278,6 +279,8 @@ def finish(  # type: ignore[no-untyped-def]  # pragma: no cover
         g = s and not m and not c and np.isfinite(x) and x > 0
         good[p] = g
         range_m[p] = x if g else zero
+        if not colour:
+            continue
         if s:
             src = own_i[p] if own_ok[p] else splat_i[p]
             for ch in range(3):

@@ -129,8 +129,8 @@ def count_in_view(u, v, ok, r, near, far, W, H, counts):  # type: ignore[no-unty
 
 @njit(parallel=True, cache=True, nogil=True)
 def write_in_view(  # type: ignore[no-untyped-def]  # pragma: no cover
-    u, v, ok, r, pn, sp, idx, rgb, near, far, W, H, offsets, chunk_base, ppr_u, ppr_v, stride, scale, k_max,
-    hist, out_pix, out_u, out_v, out_r, out_ku, out_kv, out_src, out_order, out_rgb,
+    u, v, ok, r, pn, sp, idx, rgb, colour, near, far, W, H, offsets, chunk_base, ppr_u, ppr_v, stride, scale,
+    k_max, hist, out_pix, out_u, out_v, out_r, out_ku, out_kv, out_src, out_order, out_rgb,
 ):  # fmt: skip
     """The points `count_in_view` counted, packed by row group: pixel, position, range, footprint.
 
@@ -140,7 +140,7 @@ def write_in_view(  # type: ignore[no-untyped-def]  # pragma: no cover
     (whole pixels), at most ``k_max``; ``hist[c]`` counts chunk c's points
     per (ku, kv) as ku * (k_max + 1) + kv. ``out_src`` is each point's index
     into the scan, ``out_order`` its index in selection order, ``out_rgb``
-    its colour.
+    its colour (left as it is when ``colour`` is off).
     """
     n = u.shape[0]
     half = np.float32(0.5)
@@ -175,9 +175,10 @@ def write_in_view(  # type: ignore[no-untyped-def]  # pragma: no cover
             s = idx[i]
             out_src[j] = s
             out_order[j] = m
-            out_rgb[j, 0] = rgb[s, 0]
-            out_rgb[j, 1] = rgb[s, 1]
-            out_rgb[j, 2] = rgb[s, 2]
+            if colour:
+                out_rgb[j, 0] = rgb[s, 0]
+                out_rgb[j, 1] = rgb[s, 1]
+                out_rgb[j, 2] = rgb[s, 2]
             m += 1
 
 

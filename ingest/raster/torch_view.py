@@ -408,7 +408,7 @@ def render_torch(
     good = surf & ~masked & ~clipped & torch.isfinite(value) & (value > 0)
     range_m = torch.where(good, value, 0.0)
     bgr = torch.zeros((H * W, 3), dtype=torch.uint8, device=dev)
-    if n:
+    if n and params.colour:
         src = torch.where(own_ok, own_i, splat_i)
         show = torch.nonzero(surf.reshape(-1)).squeeze(1)
         bgr[show] = pts["rgb"][src[show]].flip(1)

@@ -339,7 +339,7 @@ def render_view(
 
     # colour: the own point, else the splat's
     bgr = np.zeros((H * W, 3), np.uint8)
-    if n:
+    if n and params.colour:
         src = np.where(own_ok, own_i, splat_i)
         show = np.flatnonzero(surf)
         bgr[show] = pts.rgb[src[show]][:, ::-1]

@@ -79,6 +79,7 @@ class RenderParams:
     frustum_culling: bool = True  # False: project every point of every scan (the naive baseline)
     raw_fallback: bool = True  # a surface pixel with no own point and no planar fill takes the splat's range
     fit_gradient: bool = True  # False: points already lie on pixel-centre rays (dense GT snaps them there)
+    colour: bool = True  # False: a black colour image, for callers that need only the ranges (dense GT)
     # compiled kernels, the numpy reference, or PyTorch on the CPU / a CUDA GPU (same output)
     backend: Literal["numba", "numpy", "torch", "cuda"] = "numba"
 

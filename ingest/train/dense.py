@@ -67,6 +67,7 @@ class DenseParams:
             raw_fallback=False,
             fill_passes=0,
             fit_gradient=False,
+            colour=False,
         )
     )
     plane_neighbours: int = 10

@@ -87,6 +87,13 @@ def test_other_models_pixel_masks_and_dense_gt_settings(scans):
     model = virtual_ds(scans["ref"], 120, W, H)
     numpy_dense = replace(dense, backend="numpy")
     assert_same(render_view(idx, model, T, numpy_dense), render_view(idx, model, T, dense))
+    # ... and without colour: the same ranges and masks, a black image, in both backends
+    coloured = render_view(idx, model, T, dense)
+    assert coloured.bgr.any()
+    for params in (dense, numpy_dense):
+        grey = render_view(idx, model, T, replace(params, colour=False))
+        assert not grey.bgr.any() and grey.bgr.shape == coloured.bgr.shape
+        assert_same(replace(grey, bgr=coloured.bgr), coloured)
 
 
 def test_nothing_in_view(scans):

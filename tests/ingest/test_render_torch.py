@@ -62,6 +62,9 @@ def test_torch_other_models_masks_and_dense_gt_settings(scans):  # noqa: F811
     assert_same(
         render_view(idx, model, T, dense), render_view(idx, model, T, replace(dense, backend="torch"))
     )
+    grey = replace(dense, colour=False)  # no colour: a black image, the same ranges
+    assert_same(render_view(idx, model, T, grey), render_view(idx, model, T, replace(grey, backend="torch")))
+    assert not render_view(idx, model, T, replace(grey, backend="torch")).bgr.any()
     T_away = T.copy()
     T_away[:3, 3] += [500.0, 0.0, 0.0]
     empty = render_view(scans["idx"], model, T_away, TORCH)
