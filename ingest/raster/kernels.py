@@ -123,80 +123,90 @@ def snap_planar(
     return kept
 
 
-@njit(cache=True, nogil=True, inline="always")
-def _point(range_src, rays_src, r, c):  # type: ignore[no-untyped-def]  # pragma: no cover
-    """The source point (x, y, z) of pixel (r, c) and whether it has one."""
-    H, W = range_src.shape
-    if r < 0 or r >= H or c < 0 or c >= W:
-        return False, 0.0, 0.0, 0.0
-    rng = np.float64(range_src[r, c])
-    if not rng > 0.0:
-        return False, 0.0, 0.0, 0.0
-    return True, rays_src[r, c, 0] * rng, rays_src[r, c, 1] * rng, rays_src[r, c, 2] * rng
-
-
 @njit(cache=True, nogil=True, error_model="numpy")
 def _resample(range_src, rays_src, pixels, start, order, rays_dst, min_cos, tol_m, tol_rel, max_change, out):  # type: ignore[no-untyped-def]  # pragma: no cover
-    W = range_src.shape[1]
-    nb = np.empty((9, 3), np.float64)  # the 3x3 neighbourhood's points, row-major; centre 4
-    has = np.empty(9, np.bool_)
+    """`planar_resample` per source pixel: its 3x3 points in a frame along its ray, their plane, its rays.
+
+    The frame (u, v across the ray e, e along it) has its origin at the
+    pixel's point: a neighbour at range r_k along ray d_k sits at
+    (u . d_k r_k, v . d_k r_k, e . d_k r_k - r_0), so the plane's fit and its
+    flatness test need no second pass over world coordinates.
+    """
+    H, W = range_src.shape
+    inv_w = 1.0 / W
+    xs, ys, ws = np.empty(9), np.empty(9), np.empty(9)
     for i in range(pixels.shape[0]):
         q = pixels[i]
         if start[q] == start[q + 1]:
             continue
-        r = q // W
+        r = np.int64((q + 0.5) * inv_w)  # q // W without an integer division
         c = q - r * W
-        n_pts = 0
-        mx = my = mz = 0.0
-        for k in range(9):
-            has[k], nb[k, 0], nb[k, 1], nb[k, 2] = _point(range_src, rays_src, r + k // 3 - 1, c + k % 3 - 1)
-            if has[k]:
-                n_pts += 1
-                mx += nb[k, 0]
-                my += nb[k, 1]
-                mz += nb[k, 2]
-        if not has[4] or n_pts < 4:  # three points always lie on a plane: at least one must check it
+        rng0 = np.float64(range_src[r, c])
+        if not rng0 > 0.0:
             continue
-        mx, my, mz = mx / n_pts, my / n_pts, mz / n_pts
-        # the least-squares plane w = w0 + b x + c y in a frame along the pixel's ray (w along it, x and y
-        # across): range noise lies along the rays, so this is the fit that noise model asks for
-        ex, ey, ez = rays_src[r, c, 0], rays_src[r, c, 1], rays_src[r, c, 2]
-        if abs(ex) < 0.9:  # x axis = ray x (1, 0, 0), normalised
+        ex, ey, ez = (
+            np.float64(rays_src[r, c, 0]),
+            np.float64(rays_src[r, c, 1]),
+            np.float64(rays_src[r, c, 2]),
+        )
+        if abs(ex) < 0.9:  # u = e x (1, 0, 0), normalised
             ux, uy, uz = 0.0, ez, -ey
-        else:  # ray x (0, 1, 0)
+        else:  # e x (0, 1, 0)
             ux, uy, uz = -ez, 0.0, ex
         un = np.sqrt(ux * ux + uy * uy + uz * uz)
         ux, uy, uz = ux / un, uy / un, uz / un
         vx, vy, vz = ey * uz - ez * uy, ez * ux - ex * uz, ex * uy - ey * ux
+        n_pts = 0
+        sx = sy = sw = 0.0
+        for rr in range(max(r - 1, 0), min(r + 2, H)):
+            for cc in range(max(c - 1, 0), min(c + 2, W)):
+                rk = np.float64(range_src[rr, cc])
+                if not rk > 0.0:
+                    continue
+                dx, dy, dz = rays_src[rr, cc, 0] * rk, rays_src[rr, cc, 1] * rk, rays_src[rr, cc, 2] * rk
+                xs[n_pts] = x = ux * dx + uy * dy + uz * dz
+                ys[n_pts] = y = vx * dx + vy * dy + vz * dz
+                ws[n_pts] = w = ex * dx + ey * dy + ez * dz - rng0
+                sx += x
+                sy += y
+                sw += w
+                n_pts += 1
+        if n_pts < 4:  # three points always lie on a plane: at least one must check it
+            continue
+        mx, my, mw = sx / n_pts, sy / n_pts, sw / n_pts
+        # the least-squares plane w = w0 + b x + c y: range noise lies along the rays, as w does
         sxx = sxy = syy = sxw = syw = 0.0
-        for k in range(9):
-            if has[k]:
-                dx, dy, dz = nb[k, 0] - mx, nb[k, 1] - my, nb[k, 2] - mz
-                x = ux * dx + uy * dy + uz * dz
-                y = vx * dx + vy * dy + vz * dz
-                w = ex * dx + ey * dy + ez * dz
-                sxx += x * x
-                sxy += x * y
-                syy += y * y
-                sxw += x * w
-                syw += y * w
+        for k in range(n_pts):
+            x, y, w = xs[k] - mx, ys[k] - my, ws[k] - mw
+            xs[k], ys[k], ws[k] = x, y, w
+            sxx += x * x
+            sxy += x * y
+            syy += y * y
+            sxw += x * w
+            syw += y * w
         det = sxx * syy - sxy * sxy
         if not det > 1e-12 * (sxx + syy) * (sxx + syy):  # the points lie on a line: no plane
             continue
         b = (syy * sxw - sxy * syw) / det
         c2 = (sxx * syw - sxy * sxw) / det
-        nx, ny, nz = ex - b * ux - c2 * vx, ey - b * uy - c2 * vy, ez - b * uz - c2 * vz
-        norm = np.sqrt(nx * nx + ny * ny + nz * nz)
-        nx, ny, nz = nx / norm, ny / norm, nz / norm
-        rng0 = np.float64(range_src[r, c])
-        tol = tol_m + tol_rel * rng0
+        norm = np.sqrt(1.0 + b * b + c2 * c2)  # |e - b u - c v|: the plane's normal before normalising
+        # every point within the tolerance of the plane (measured along its normal, hence the norm)
+        lim = (tol_m + tol_rel * rng0) * norm
         flat = True
-        for k in range(9):
-            if has[k] and abs(nx * (nb[k, 0] - mx) + ny * (nb[k, 1] - my) + nz * (nb[k, 2] - mz)) > tol:
+        for k in range(n_pts):
+            if abs(ws[k] - b * xs[k] - c2 * ys[k]) > lim:
                 flat = False
+                break
         if not flat:
             continue
-        d0 = nx * mx + ny * my + nz * mz
+        nx, ny, nz = (
+            (ex - b * ux - c2 * vx) / norm,
+            (ey - b * uy - c2 * vy) / norm,
+            (ez - b * uz - c2 * vz) / norm,
+        )
+        # the plane passes the points' mean, rng0 e + mx u + my v + mw e
+        d0 = (mx * (nx * ux + ny * uy + nz * uz) + my * (nx * vx + ny * vy + nz * vz)
+              + (rng0 + mw) * (nx * ex + ny * ey + nz * ez))  # fmt: skip
         for k in range(start[q], start[q + 1]):
             j = order[k]
             cos = nx * rays_dst[j, 0] + ny * rays_dst[j, 1] + nz * rays_dst[j, 2]
