@@ -139,16 +139,12 @@ def _resample(range_src, rays_src, pixels, start, order, rays_dst, min_cos, tol_
         q = pixels[i]
         if start[q] == start[q + 1]:
             continue
-        r = np.int64((q + 0.5) * inv_w)  # q // W without an integer division
+        r = int((q + 0.5) * inv_w)  # q // W without an integer division
         c = q - r * W
-        rng0 = np.float64(range_src[r, c])
+        rng0 = float(range_src[r, c])
         if not rng0 > 0.0:
             continue
-        ex, ey, ez = (
-            np.float64(rays_src[r, c, 0]),
-            np.float64(rays_src[r, c, 1]),
-            np.float64(rays_src[r, c, 2]),
-        )
+        ex, ey, ez = float(rays_src[r, c, 0]), float(rays_src[r, c, 1]), float(rays_src[r, c, 2])
         if abs(ex) < 0.9:  # u = e x (1, 0, 0), normalised
             ux, uy, uz = 0.0, ez, -ey
         else:  # e x (0, 1, 0)
@@ -160,7 +156,7 @@ def _resample(range_src, rays_src, pixels, start, order, rays_dst, min_cos, tol_
         sx = sy = sw = 0.0
         for rr in range(max(r - 1, 0), min(r + 2, H)):
             for cc in range(max(c - 1, 0), min(c + 2, W)):
-                rk = np.float64(range_src[rr, cc])
+                rk = float(range_src[rr, cc])
                 if not rk > 0.0:
                     continue
                 dx, dy, dz = rays_src[rr, cc, 0] * rk, rays_src[rr, cc, 1] * rk, rays_src[rr, cc, 2] * rk
