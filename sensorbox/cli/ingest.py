@@ -40,9 +40,10 @@ WindowOpt = Annotated[
 GtOpt = Annotated[
     str,
     typer.Option(
-        help="Ground truth: sparse (the frame's own sweeps), dense (every sweep of --gt-window-ms placed by "
-        "the recording's LiDAR-inertial trajectory, movers removed) or auto (dense when the trajectory is "
-        "sound, else sparse; the decision goes to dataset.yaml and every meta file)."
+        help="Ground truth: auto (dense when the trajectory is sound, else sparse; the decision goes to "
+        "dataset.yaml and every meta file), dense (every sweep of --gt-window-ms placed by the "
+        "recording's LiDAR-inertial trajectory, movers removed) or sparse (the frame's own sweeps: no "
+        "trajectory pass, the fastest)."
     ),
 ]
 GtWindowOpt = Annotated[
@@ -183,7 +184,7 @@ def ingest_cmd(
     bags: BagsArg, rig: RigOpt, out: OutOpt, workers: WorkersOpt = 2, dask: DaskOpt = None,
     every: EveryOpt = 1, window_ms: WindowOpt = 50.0, exr: ExrOpt = False, png_level: PngLevelOpt = 1,
     height_full: HeightFullOpt = None, min_range: MinRangeOpt = 0.3, motion: MotionOpt = "full",
-    salvage: SalvageOpt = False, gt: GtOpt = "sparse", gt_window_ms: GtWindowOpt = None,
+    salvage: SalvageOpt = False, gt: GtOpt = "auto", gt_window_ms: GtWindowOpt = None,
     max_bad: MaxBadOpt = 0, preview: PreviewOpt = True, backend: BackendOpt = "numba",
 ) -> None:  # fmt: skip
     """Turn recorded bags into the WideDepth training set (rectified equirect pairs + depth/disparity GT)."""

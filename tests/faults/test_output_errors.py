@@ -24,7 +24,20 @@ from tests.faults.cli import sensorbox
 from tests.paths import ROOT
 
 RIG = INDOOR.parent / "indoor_static_mcap.truth" / "rig.yaml"
-INGEST = ["ingest", str(INDOOR), "--rig", str(RIG), "--workers", "1", "--every", "20", "--height-full", "64"]
+INGEST = [
+    "ingest",
+    str(INDOOR),
+    "--rig",
+    str(RIG),
+    "--workers",
+    "1",
+    "--every",
+    "20",
+    "--height-full",
+    "64",
+    "--gt",
+    "sparse",
+]
 ENOSPC = os.strerror(errno.ENOSPC)
 
 

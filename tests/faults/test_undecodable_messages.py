@@ -100,7 +100,20 @@ def test_max_bad_skips_names_and_counts_each_and_stops_beyond(
 
     # beyond the limit: one line naming the message, exit code 2; what was finished stays, nothing partial
     out1 = tmp_path / "ds1"
-    args = ["ingest", str(bag), "--rig", str(rig), "--out", str(out1), "--workers", "1", "--every", "4"]
+    args = [
+        "ingest",
+        str(bag),
+        "--rig",
+        str(rig),
+        "--out",
+        str(out1),
+        "--workers",
+        "1",
+        "--every",
+        "4",
+        "--gt",
+        "sparse",
+    ]
     code, _, err = sensorbox(capsys, *args, "--height-full", "64", "--max-bad", "1")
     assert code == 2
     assert err == [

@@ -113,7 +113,7 @@ def test_the_unlocked_warning_is_a_warning_line_of_the_cli(tmp_path: Path) -> No
         "fcntl.flock = refuse\n"
         "from sensorbox.cli.main import main\n"
         "sys.argv = ['sensorbox', 'ingest', sys.argv[1], '--rig', sys.argv[2], '--out', sys.argv[3],\n"
-        "            '--workers', '1', '--every', '10', '--no-preview']\n"
+        "            '--workers', '1', '--every', '10', '--no-preview', '--gt', 'sparse']\n"
         "main()\n"
     )
     out = tmp_path / "ds"

@@ -5,6 +5,7 @@ import sys
 from pathlib import Path
 
 import cv2
+import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
 REF = ROOT / "calibration" / "sensorbox.yaml"
@@ -142,3 +143,25 @@ def test_library_log_records_become_warning_and_error_lines(capsys):
         "error: recorder stopped",
         "error: recorder writer failed: OSError: [Errno 28] No space left on device",
     ]
+
+
+def test_ingest_chooses_its_ground_truth_itself_by_default(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """With no --gt, `sensorbox ingest` runs the trajectory pass and decides (`--gt auto`): the static
+    indoor recording gets dense GT over +-1 s, and the decision is written to dataset.yaml and the meta."""
+    import yaml
+
+    from ingest.dataset.meta import read_meta
+    from tests.faults.cli import sensorbox
+    from tests.ingest.test_pipeline import INDOOR, _rig
+
+    out = tmp_path / "ds"
+    args = ["ingest", str(INDOOR), "--rig", str(_rig(INDOOR)), "--out", str(out), "--workers", "1"]
+    code, _, err = sensorbox(capsys, *args, "--every", "10", "--height-full", "64", "--no-preview")
+    assert code == 0, err
+    gt = yaml.safe_load((out / "dataset.yaml").read_text())["sources"][0]["ground_truth"]
+    assert gt["method"] == "dense" and gt["decision"].startswith("auto: ")
+    assert "window +-1000 ms" in gt["decision"] and gt["trajectory"] is not None
+    metas = [read_meta(out, p.stem) for p in sorted((out / "meta").glob("*.json"))]
+    assert metas and all(m.gt.method == "dense" and m.gt.decision == gt["decision"] for m in metas)

@@ -38,6 +38,8 @@ def test_no_preview_writes_the_dataset_and_no_figure(
 
     out = tmp_path / "ds"
     args = ["ingest", str(INDOOR), "--rig", str(_rig(INDOOR)), "--out", str(out), "--workers", "1"]
-    code, stdout, _ = sensorbox(capsys, *args, "--every", "10", "--height-full", "64", "--no-preview")
+    code, stdout, _ = sensorbox(
+        capsys, *args, "--every", "10", "--height-full", "64", "--no-preview", "--gt", "sparse"
+    )
     assert code == 0 and "Preview" not in stdout
     assert len(list((out / "meta").glob("*.json"))) == 3 and not (out / "preview.png").exists()
