@@ -97,7 +97,9 @@ class IngestConfig:
     height_full: int | None = None
     salvage: bool = False
     dask: str | None = None
-    gt: str = "sparse"  # sparse | dense | auto (see ingest.train.trajectory.choose_method)
+    # sparse | dense | auto (see ingest.train.trajectory.choose_method); `sensorbox ingest` defaults to auto,
+    # the library to sparse (no trajectory pass unless asked)
+    gt: str = "sparse"
     max_bad: int = 0  # undecodable messages skipped and counted before the run stops (bad_messages)
     sample: SampleParams = field(default_factory=SampleParams)
     widen_static: bool = True  # --gt auto may widen the default dense window for a rig that stood still
