@@ -175,9 +175,9 @@ def test_node_fractions_are_the_integer_grid_of_the_numpy_formula():
     nodes = (start + (np.arange(m + 1, dtype=np.int64) * (stamps[1:, None] - start)) // m).reshape(-1)
     t = np.clip(np.r_[nodes - 1, nodes, nodes + 1], 0, stamps[-1])
     a, _ = node_fractions(t, stamps, 0, 1, m, nodes)
-    k = np.clip(np.searchsorted(stamps, t, side="right") - 1, 0, 1)
-    j = np.minimum(((t - stamps[k]) * m) // (stamps[k + 1] - stamps[k]), m - 1)
-    assert np.array_equal(a, k * (m + 1) + j)
+    k_big = np.clip(np.searchsorted(stamps, t, side="right") - 1, 0, 1)
+    j_big = np.minimum(((t - stamps[k_big]) * m) // (stamps[k_big + 1] - stamps[k_big]), m - 1)
+    assert np.array_equal(a, k_big * (m + 1) + j_big)
 
 
 def test_points_moved_to_a_frame_time_match_the_exact_poses():

@@ -185,7 +185,7 @@ def _atan2_all(y: np.ndarray[Any, Any], x: np.ndarray[Any, Any]) -> np.ndarray[A
 
     from ingest.raster.point_kernels import atan2
 
-    @njit(cache=False)  # type: ignore[misc]
+    @njit(cache=False)
     def run(y: Any, x: Any, out: Any) -> None:  # pragma: no cover
         for i in range(len(y)):
             out[i] = atan2(y[i], x[i])
