@@ -125,14 +125,20 @@ def test_summary_measures_speed_and_turn_rate(tmp_path):
     assert still.static
 
 
+def _random_knots(rng: np.random.Generator, K: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """K knots 50 ms apart: stamps (ns), a random walk of rotations (about 3 deg a knot) and of positions."""
+    stamps = np.arange(K, dtype=np.int64) * 50_000_000
+    R = Rotation.from_rotvec(np.cumsum(rng.normal(0, 0.05, (K, 3)), 0)).as_matrix()
+    p = np.cumsum(rng.normal(0, 0.06, (K, 3)), 0)
+    return stamps, R, p
+
+
 def test_many_points_take_the_pose_grid_within_a_tenth_of_a_millimetre():
     # knots every 50 ms with random turns, a gyro at 200 Hz turning up to ~60 deg/s: the grid's linear
     # blend between exact poses every 0.5 ms (knots are nodes) moves a point 10 m away by < 10 um
     rng = np.random.default_rng(0)
     K = 41
-    stamps = np.arange(K, dtype=np.int64) * 50_000_000
-    R = Rotation.from_rotvec(np.cumsum(rng.normal(0, 0.05, (K, 3)), 0)).as_matrix()
-    p = np.cumsum(rng.normal(0, 0.06, (K, 3)), 0)
+    stamps, R, p = _random_knots(rng, K)
     ti = np.arange(0, 2_000_000_001, 5_000_000, dtype=np.int64)
     gyro = integrate_gyro(ti, np.c_[np.sin(ti / 2e8), np.cos(ti / 3e8), np.sin(ti / 1e8)], np.eye(3))
     traj = RigTrajectory(stamps, R, p, np.zeros(K), gyro)
@@ -184,9 +190,7 @@ def test_points_moved_to_a_frame_time_match_the_exact_poses():
     """`to_frame` folds the reference pose into the grid's nodes: a point lands where the exact poses put it."""
     rng = np.random.default_rng(6)
     K = 21
-    stamps = np.arange(K, dtype=np.int64) * 50_000_000
-    R = Rotation.from_rotvec(np.cumsum(rng.normal(0, 0.05, (K, 3)), 0)).as_matrix()
-    p = np.cumsum(rng.normal(0, 0.06, (K, 3)), 0)
+    stamps, R, p = _random_knots(rng, K)
     traj = RigTrajectory(stamps, R, p, np.zeros(K))
     t = rng.integers(0, stamps[-1], 100_000)
     x = rng.normal(size=(len(t), 3)) * 10.0
