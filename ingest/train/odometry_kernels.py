@@ -138,10 +138,10 @@ def node_fractions(t: I64, stamps: I64, k_lo: int, k_hi: int, m: int, nodes: I64
 
     `nodes` ((k_hi - k_lo + 1) * (m + 1),) are the node times of the knot
     intervals k_lo..k_hi, `m` + 1 per interval (knots included); times are
-    clamped to the knots and must fall in those intervals. Node j of interval
-    k is the first whose time is at most t's: j = (t - t_k) m // (t_k+1 - t_k),
-    found here from the float quotient and two integer checks (numpy's int64
-    division costs about 15 ns a point; a cloud has millions).
+    clamped to the knots and must fall in those intervals. A time in interval
+    k takes node j = (t - t_k) m // (t_k+1 - t_k) (at most m - 1), found here
+    from the float quotient and two integer checks (numpy's int64 division
+    costs about 15 ns a point; a cloud has millions).
     """
     a = np.empty(len(t), np.int64)
     g = np.empty(len(t), np.float64)
