@@ -62,6 +62,7 @@ from pathlib import Path
 from typing import Any, cast
 
 import lz4.frame
+import zstandard
 from isal import isal_zlib
 from rosbags.rosbag1 import Reader as Ros1Reader
 from rosbags.rosbag1 import ReaderError as Ros1ReaderError
@@ -272,11 +273,15 @@ class CheckedMcapReader(McapReader):
                 ahead.close()
 
 
+Records = bytes | bytearray
+"""A chunk's decompressed records."""
+
+
 class ChunkDataError(ValueError):
     """A chunk's records do not match its header (size, CRC) or cannot be decompressed."""
 
 
-def decompress_checked(data: bytes, compression: str, size: int, crc: int) -> bytes:
+def decompress_checked(data: bytes, compression: str, size: int, crc: int) -> Records:
     """A chunk's records: decompressed, checked against the header's size and CRC-32 (0: none).
 
     The CRC is ISA-L's (`isal`), several times faster than zlib's on the
@@ -285,11 +290,32 @@ def decompress_checked(data: bytes, compression: str, size: int, crc: int) -> by
     """
     if compression not in DECOMPRESSORS:
         raise ChunkDataError(f"Unsupported chunk compression {compression!r}")
-    records = DECOMPRESSORS[compression](data, size)
+    records = _zstd_records(data, size) if compression == "zstd" else DECOMPRESSORS[compression](data, size)
     if len(records) != size:
         raise ChunkDataError(f"Chunk size mismatch: expected {size} bytes, got {len(records)}")
     if crc and (got := isal_zlib.crc32(records)) != crc:
         raise ChunkDataError(f"Chunk checksum mismatch: records' CRC-32 {got:#010x}, header {crc:#010x}")
+    return records
+
+
+def _zstd_records(data: bytes | memoryview, size: int) -> bytearray:
+    """zstd data (one or more frames) decompressed into one buffer of the expected `size`, plus one
+    byte to notice more; the result holds what the frames gave (`decompress_checked` compares sizes).
+
+    python-zstandard fills a buffer allocated once, about twice as fast on a
+    9 MB raw-image chunk as rosbags' decompressor (`backports.zstd`, which
+    grows its output as it goes): 11-15 ms against 27, a cost the ingest
+    pays twice per image (bench/bench_ingest.py).
+    """
+    records = bytearray(size + 1)
+    done = 0
+    with (
+        memoryview(records) as view,
+        zstandard.ZstdDecompressor().stream_reader(data, read_across_frames=True) as reader,
+    ):
+        while done <= size and (got := reader.readinto(view[done:])):
+            done += got
+    del records[done:]
     return records
 
 
@@ -343,7 +369,7 @@ def _compressed(bio: Any, chunk: ChunkInfo) -> tuple[bytes, int]:
     return read_exact(bio, chunk.compressed_size), crc
 
 
-def _read_whole(bio: Any, chunk: ChunkInfo) -> bytes:
+def _read_whole(bio: Any, chunk: ChunkInfo) -> Records:
     """A chunk's records, read from `bio`, decompressed and checked (`decompress_checked`)."""
     compressed, crc = _compressed(bio, chunk)
     return decompress_checked(compressed, chunk.compression, chunk.uncompressed_size, crc)
@@ -359,11 +385,11 @@ class _Readahead:
         self._lock = threading.Lock()
         self._todo = deque(chunks)
         self._depth = threads + 1
-        self._running: dict[int, Future[bytes]] = {}
+        self._running: dict[int, Future[Records]] = {}
         self._pool = ThreadPoolExecutor(threads, thread_name_prefix="chunk-readahead")
         self._fill()
 
-    def _read(self, chunk: ChunkInfo) -> bytes:
+    def _read(self, chunk: ChunkInfo) -> Records:
         with self._lock:
             compressed, crc = _compressed(self._file, chunk)
         return decompress_checked(compressed, chunk.compression, chunk.uncompressed_size, crc)
@@ -373,7 +399,7 @@ class _Readahead:
             chunk = self._todo.popleft()
             self._running[chunk.chunk_start_offset] = self._pool.submit(self._read, chunk)
 
-    def records(self, chunk: ChunkInfo) -> bytes:
+    def records(self, chunk: ChunkInfo) -> Records:
         """The chunk's records: read ahead, or now when it was not (its errors are raised here)."""
         future = self._running.pop(chunk.chunk_start_offset, None)
         if future is None:
@@ -390,7 +416,7 @@ class _Readahead:
 
 def chunk_messages(
     bio: Any, chunk: ChunkInfo, channels: Mapping[int, Any], start: int, stop: int, checked: bool = False,
-    defer: Collection[int] = (), where: str = "", whole: Callable[[ChunkInfo], bytes] | None = None,
+    defer: Collection[int] = (), where: str = "", whole: Callable[[ChunkInfo], Records] | None = None,
 ) -> tuple[list[Msg], bool]:  # fmt: skip
     """The messages of `channels` in one MCAP chunk with log time in [start, stop), in time order, and
     whether a later read may take the chunk in part.
@@ -478,7 +504,7 @@ class DeferredData:
             records = decompress_checked(self.compressed, self.compression, self.size, self.crc)
         except Exception as err:  # checksum, size and decompressor errors of bytes that changed
             raise MessageDecodeError(f"{self.chunk}: {_reason(err)}") from err
-        return memoryview(records)[self.start : self.start + self.length]
+        return memoryview(records).toreadonly()[self.start : self.start + self.length]
 
 
 def _message_index(

@@ -94,7 +94,7 @@ def count_whole_reads(monkeypatch: pytest.MonkeyPatch) -> list[int]:
     whole: list[int] = []
     real = chunks.decompress_checked
 
-    def counting(data: bytes, compression: str, size: int, crc: int) -> bytes:
+    def counting(data: bytes, compression: str, size: int, crc: int) -> chunks.Records:
         whole.append(size)
         return real(data, compression, size, crc)
 
@@ -299,3 +299,32 @@ def test_a_read_ahead_names_a_corrupt_chunk_as_a_plain_read_does(tmp_path):
         errors.append(str(err.value))
     assert errors[0] == errors[1] and f"corrupt chunk at byte {third} " in errors[0]
     assert chunk_threads() == []
+
+
+def test_zstd_records_of_one_or_more_frames_are_the_bytes_compressed() -> None:
+    """decompress_checked's zstd path: frames from the reference compressor (with and without the content
+    size in their header), one or several, give the bytes back; a size or CRC that differs is named."""
+    import zstandard
+    from backports import zstd as reference
+    from isal import isal_zlib
+
+    records = picture(3).tobytes() + bytes(range(256)) * 7
+    half = len(records) // 2
+    with_size = reference.compress(records)
+    streamed = reference.ZstdCompressor()
+    no_size = streamed.compress(records) + streamed.flush()  # a streamed frame: no content size
+    two = reference.compress(records[:half]) + reference.compress(records[half:])
+    crc = isal_zlib.crc32(records)
+    for data in (with_size, no_size, two):
+        got = chunks.decompress_checked(data, "zstd", len(records), crc)
+        assert got == records
+    with pytest.raises(chunks.ChunkDataError, match=f"expected {len(records) - 1} bytes, got {len(records)}"):
+        chunks.decompress_checked(with_size, "zstd", len(records) - 1, 0)
+    with pytest.raises(chunks.ChunkDataError, match=f"expected {len(records) + 1} bytes, got {len(records)}"):
+        chunks.decompress_checked(two, "zstd", len(records) + 1, 0)
+    with pytest.raises(chunks.ChunkDataError, match="checksum mismatch"):
+        chunks.decompress_checked(two, "zstd", len(records), crc ^ 1)
+    damaged = bytearray(with_size)
+    damaged[len(damaged) // 2 : len(damaged) // 2 + 64] = bytes(64)
+    with pytest.raises((zstandard.ZstdError, chunks.ChunkDataError)):  # the decompressor's, or the CRC's
+        chunks.decompress_checked(bytes(damaged), "zstd", len(records), crc)
