@@ -8,7 +8,8 @@ Mid-360 CustomMsg streams with 2 cm range noise, IMUs), or `--bag PATH`
 Rows (medians over `--runs` runs; 1- and 2-worker runs interleaved):
 
 - samples/s end to end (`IngestSummary.seconds`, start-up included) and
-  steady (after each worker's first sample), with 2 workers;
+  steady (after each worker's first sample, over whole rounds of one sample
+  per worker), with 2 workers;
 - CPU ms per sample: CPU time of the main process and its workers over the
   whole 2-worker run, divided by the samples written; split into the main
   process's share (start-up, plan pass, stream pass) and the workers';
@@ -151,7 +152,11 @@ def ingest_run(
     me1, kids1 = cpu_s()
     n = max(summary.written, 1)
     k = 1 if dask else workers
-    steady = (len(stamps) - k) / (stamps[-1] - stamps[k - 1]) if len(stamps) > k + 1 else float("nan")
+    # whole rounds only: after the first sample of each worker, `workers` samples finish per round, and a
+    # last round with fewer leaves workers idle (15 samples on 2 workers: 13 after the first two, the
+    # last one alone) that a longer recording would not
+    m = (len(stamps) - k) // workers * workers
+    steady = m / (stamps[k - 1 + m] - stamps[k - 1]) if m >= max(workers, 2) else float("nan")
     return Run(workers, summary.written, summary.seconds, steady, (me1 - me0) * 1e3 / n,
                (kids1 - kids0) * 1e3 / n, out)  # fmt: skip
 
