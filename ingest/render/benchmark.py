@@ -485,7 +485,7 @@ def _render_tasks(
             progress(done, len(tasks))
 
     # workers share the scans' index by fork; without fork the run stays in this process (no copies)
-    # no cv2.setNumThreads in the workers: reconfiguring a forked OpenCV pool deadlocks
+    # OpenCV's threads are set before the fork (`Executor`): reconfiguring a forked OpenCV pool deadlocks
     workers = state.cfg.workers if len(tasks) > 1 and "fork" in multiprocessing.get_all_start_methods() else 1
     results = Executor(workers, worker_init=partial(share_cores, workers)).run(run_task, tasks, shared=state)
     try:

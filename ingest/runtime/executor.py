@@ -37,6 +37,7 @@ from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Generic, Literal, TypeVar
 
+import cv2
 import numpy as np
 
 from ingest.runtime.lifetime import die_with_parent
@@ -65,6 +66,7 @@ def share_cores(workers: int) -> None:
     share of the usable cores.
 
     With one worker per core, more threads per worker only add switches.
+    OpenCV's share is set before the fork instead (`_share_cv2_threads`).
     Open3D's TBB pool knows no environment variable; `set_max_threads`
     (Open3D 0.20) bounds it, where Open3D is loaded (the GPU machines have none).
     """
@@ -79,6 +81,20 @@ def share_cores(workers: int) -> None:
     o3d = sys.modules.get("open3d")
     if o3d is not None and hasattr(o3d.utility, "set_max_threads"):
         o3d.utility.set_max_threads(cores)
+
+
+def _share_cv2_threads(workers: int) -> int:
+    """OpenCV's threads set to one worker's share of the usable cores in this process, which forked workers
+    inherit; returns the previous setting, for this process to take back when its pool is done.
+
+    OpenCV runs a large cvtColor, remap or erode on every core by default, so
+    two workers on two cores ran four threads. Set here, before the fork,
+    because reconfiguring OpenCV's thread pool inside a forked child can
+    deadlock.
+    """
+    previous = cv2.getNumThreads()
+    cv2.setNumThreads(min(previous, max(1, usable_cpus() // workers)))
+    return previous
 
 
 @dataclass(frozen=True)
@@ -183,6 +199,7 @@ class Executor:
         slots = ArraySlots(self.max_in_flight + 1, handoff.slot_bytes) if fork and handoff else None
         _WORKER.update(shared=shared, fn=fn, give=handoff.give if handoff else None)
         ctx = multiprocessing.get_context("fork" if fork else "spawn")
+        cv2_threads = _share_cv2_threads(self.workers) if fork else None
         pool = ProcessPoolExecutor(
             self.workers, mp_context=ctx, initializer=_init_worker, initargs=(self.worker_init, os.getpid())
         )
@@ -210,6 +227,8 @@ class Executor:
                 _terminate_workers(pool)
             pool.shutdown(cancel_futures=True)
             _WORKER.clear()
+            if cv2_threads is not None:
+                cv2.setNumThreads(cv2_threads)
             if slots is not None:
                 slots.close()
 
