@@ -216,7 +216,7 @@ def codec_floor_ms(bag: Path, rig_path: Path, out: Path) -> tuple[float, float]:
         inputs = [messages[(topics.upper, up)], messages[(topics.lower, lo)]]
         t0 = time.thread_time()
         for msg in inputs:
-            msg.decoded(str(bag))  # what a worker does first: the image's chunk decompressed, then decoded
+            msg.decoded(str(bag), keep_bgra=True)  # what a worker does: the chunk decompressed, then decoded
         t1 = time.thread_time()
         for image in images:
             encode_png(image, PNG_LEVEL)

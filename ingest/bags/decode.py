@@ -393,11 +393,19 @@ def _to_bgr(pixels: Array, encoding: str) -> Array:
     return np.ascontiguousarray(out, dtype=out.dtype.newbyteorder("="))
 
 
-def decode_image(raw: Raw, ros_version: RosVersion = 2) -> Frame:
-    """Decode a `sensor_msgs/Image` (see `IMAGE_ENCODINGS`), honouring `step` padding."""
+def decode_image(raw: Raw, ros_version: RosVersion = 2, keep_bgra: bool = False) -> Frame:
+    """Decode a `sensor_msgs/Image` (see `IMAGE_ENCODINGS`), honouring `step` padding.
+
+    With `keep_bgra` a bgra8 image comes back as its recorded BGRA pixels
+    (H, W, 4), a view of `raw` when its rows are not padded: the ingest's
+    equirect warp and PNG writer take four channels faster than a conversion
+    to BGR and three (bench/bench_ingest.py); its PNGs drop the alpha.
+    """
     _check_version(ros_version)
     msg = _deserialize(raw, IMAGE_TYPE, ros_version)
-    image = _to_bgr(_pixels(msg), str(msg.encoding))
+    encoding = str(msg.encoding)
+    pixels = _pixels(msg)
+    image = np.ascontiguousarray(pixels) if keep_bgra and encoding == "bgra8" else _to_bgr(pixels, encoding)
     return Frame(_stamp_ns(msg.header), str(msg.header.frame_id), image)
 
 
@@ -467,9 +475,16 @@ def _normalize(msgtype: str) -> str:
     return f"{parts[0]}/msg/{parts[1]}" if len(parts) == 2 else msgtype
 
 
-def decode(msgtype: str, raw: Raw, ros_version: RosVersion = 2) -> Sweep | Frame | ImuSample:
-    """Decode one message by type: LiDAR -> `Sweep`, images -> `Frame`, IMU -> `ImuSample`."""
+def decode(
+    msgtype: str, raw: Raw, ros_version: RosVersion = 2, keep_bgra: bool = False
+) -> Sweep | Frame | ImuSample:
+    """Decode one message by type: LiDAR -> `Sweep`, images -> `Frame`, IMU -> `ImuSample`.
+
+    `keep_bgra`: a raw bgra8 image stays BGRA (`decode_image`).
+    """
     _check_version(ros_version)
+    if keep_bgra and _normalize(msgtype) == _normalize(IMAGE_TYPE):
+        return decode_image(raw, ros_version, keep_bgra=True)
     decoder = _DECODERS.get(_normalize(msgtype))
     if decoder is None:
         raise MessageDecodeError(

@@ -44,10 +44,10 @@ class RawMessage(NamedTuple):
         """The message's bytes (a deferred chunk decompressed: `MessageDecodeError` if it fails)."""
         return self.raw if self.deferred is None else self.deferred.data()
 
-    def decoded(self, where: str) -> Sweep | Frame | ImuSample:
+    def decoded(self, where: str, keep_bgra: bool = False) -> Sweep | Frame | ImuSample:
         """`ingest.bags.decode.decode` of this message; a failure names `where`, the topic and log time."""
         try:
-            return decode(self.msgtype, self.data(), self.ros_version)
+            return decode(self.msgtype, self.data(), self.ros_version, keep_bgra)
         except MessageDecodeError as err:
             raise MessageDecodeError(f"{where}: {self.topic} at log time {self.log_time}: {err}") from err
 

@@ -89,7 +89,8 @@ def encode_exr(values: F32) -> bytes:
 
 @dataclass(frozen=True)
 class SampleFiles:
-    """Everything one sample writes: BGR uint8 images and the sparse GT (float32, m or px)."""
+    """Everything one sample writes: BGR (or BGRA, alpha not written) uint8 images and the sparse GT
+    (float32, m or px)."""
 
     left_fisheye: U8
     right_fisheye: U8

@@ -13,8 +13,9 @@ and compare every pixel.
 stderr for a missing file (callers name the file in their own one-line error).
 
 Inputs follow OpenCV's conventions: (H, W, 3) uint8 is BGR and is stored as
-RGB, (H, W) uint8 is 8-bit grey, (H, W) uint16 is 16-bit grey (stored big
-endian, as PNG requires).
+RGB, (H, W, 4) uint8 is BGRA and is stored as RGB (the alpha dropped, as a
+bgra8 camera's constant one carries nothing), (H, W) uint8 is 8-bit grey,
+(H, W) uint16 is 16-bit grey (stored big endian, as PNG requires).
 """
 
 from __future__ import annotations
@@ -43,10 +44,9 @@ def _chunk(kind: bytes, data: bytes | memoryview) -> bytes:
 def _layout(image: np.ndarray[Any, Any]) -> tuple[np.ndarray[Any, Any], int, int, int]:
     """Rows (H, W * bytes per pixel) uint8 in PNG byte order, bit depth, colour type, bytes per pixel."""
     h, w = image.shape[:2]
-    if image.dtype == np.uint8 and image.ndim == 3 and image.shape[2] == 3:
-        rgb = cv2.cvtColor(
-            np.ascontiguousarray(image), cv2.COLOR_BGR2RGB
-        )  # SIMD; numpy's ::-1 view is 8x slower
+    if image.dtype == np.uint8 and image.ndim == 3 and image.shape[2] in (3, 4):
+        code = cv2.COLOR_BGR2RGB if image.shape[2] == 3 else cv2.COLOR_BGRA2RGB
+        rgb = cv2.cvtColor(np.ascontiguousarray(image), code)  # SIMD; numpy's ::-1 view is 8x slower
         return rgb.reshape(h, w * 3), 8, 2, 3
     if image.dtype == np.uint8 and image.ndim == 2:
         return np.ascontiguousarray(image), 8, 0, 1
@@ -54,7 +54,7 @@ def _layout(image: np.ndarray[Any, Any]) -> tuple[np.ndarray[Any, Any], int, int
         return np.ascontiguousarray(image, ">u2").view(np.uint8).reshape(h, w * 2), 16, 0, 2
     raise PngError(
         f"cannot write an array of shape {image.shape} and dtype {image.dtype} as PNG: "
-        "expected (H, W, 3) uint8 BGR, (H, W) uint8 or (H, W) uint16"
+        "expected (H, W, 3) uint8 BGR, (H, W, 4) uint8 BGRA, (H, W) uint8 or (H, W) uint16"
     )
 
 

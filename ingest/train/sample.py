@@ -162,7 +162,7 @@ class SampleJob:
     source: str
     upper_stamp_ns: int
     lower_stamp_ns: int
-    upper_bgr: np.ndarray[Any, Any]
+    upper_bgr: np.ndarray[Any, Any]  # BGR, or BGRA as a bgra8 bag records it (warped and written as is)
     lower_bgr: np.ndarray[Any, Any]
     lidars: tuple[LidarPoints, ...]
     imu: ImuWindow | None
@@ -237,7 +237,8 @@ def _points_by_lidar(job: SampleJob) -> WindowPoints:
 
 
 Equirects = tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]
-"""`equirect_up` and `equirect_down_virt` of one sample (BGR, the full-sphere equirect's size)."""
+"""`equirect_up` and `equirect_down_virt` of one sample (the full-sphere equirect's size, each with its
+source image's channels: BGR or BGRA)."""
 
 
 def start_equirects(job: SampleJob) -> Background[Equirects]:

@@ -181,7 +181,8 @@ def _check_size(image: Array, camera: Any, topic: str) -> None:
 
 
 def decode_images(job: StreamedJob, shared: Shared) -> tuple[list[Array], list[tuple[str, int, str]]]:
-    """The upper and lower images (BGR), and (topic, log ns, why) of each message that did not decode.
+    """The upper and lower images (BGR; a raw bgra8 image as recorded, BGRA), and (topic, log ns, why) of
+    each message that did not decode.
 
     Images of another size than the rig's cameras stop the run (`BagError`):
     the rig file does not belong to the bag.
@@ -191,7 +192,7 @@ def decode_images(job: StreamedJob, shared: Shared) -> tuple[list[Array], list[t
     errors: list[tuple[str, int, str]] = []
     for msg, camera in ((job.upper, rig.upper), (job.lower, rig.lower)):
         try:
-            frame = msg.decoded(job.where)
+            frame = msg.decoded(job.where, keep_bgra=True)
         except MessageDecodeError as err:
             errors.append((msg.topic, msg.log_ns, str(err)))
             continue

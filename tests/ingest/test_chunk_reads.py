@@ -328,3 +328,39 @@ def test_zstd_records_of_one_or_more_frames_are_the_bytes_compressed() -> None:
     damaged[len(damaged) // 2 : len(damaged) // 2 + 64] = bytes(64)
     with pytest.raises((zstandard.ZstdError, chunks.ChunkDataError)):  # the decompressor's, or the CRC's
         chunks.decompress_checked(bytes(damaged), "zstd", len(records), crc)
+
+
+def test_raw_bgra_images_are_warped_and_written_as_recorded_into_the_same_files(tmp_path, monkeypatch):
+    """Raw bgra8 upper images reach the sample as BGRA (no conversion to BGR) and give the files a BGR
+    conversion first gives, byte for byte; the lower camera's JPEGs come as BGR."""
+    from ingest.bags.message import RawMessage
+    from ingest.train import stream
+    from ingest.train.sample import process_sample
+
+    def keep(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        return [(UPPER, raw_image(raw))] if topic.startswith("/zed_upper") else [(topic, raw)]
+
+    bag, rig = rewrite(tmp_path / "raw", keep, flush_after=[UPPER])
+    real_decoded = RawMessage.decoded
+    for name in ("bgr", "bgra"):
+        channels: list[tuple[int, int]] = []
+
+        def recording(job: Any) -> Any:
+            channels.append((job.upper_bgr.shape[2], job.lower_bgr.shape[2]))  # noqa: B023
+            return process_sample(job)
+
+        monkeypatch.setattr(stream, "process_sample", recording)
+        if name == "bgr":  # the decode before: every image converted to BGR
+            monkeypatch.setattr(
+                RawMessage, "decoded", lambda m, where, keep_bgra=False: real_decoded(m, where)
+            )
+        else:
+            monkeypatch.setattr(RawMessage, "decoded", real_decoded)
+        cfg = IngestConfig(rig=rig, out=tmp_path / name, workers=1, every=4, height_full=64)
+        assert ingest([bag], cfg).written == 6
+        assert channels == [(3 if name == "bgr" else 4, 3)] * 6
+    a, b = tmp_path / "bgr", tmp_path / "bgra"
+    for sub in (*IMAGE_DIRS, *GT_DIRS, "meta"):
+        names = sorted(p.name for p in (a / sub).iterdir())
+        match, mismatch, errs = filecmp.cmpfiles(a / sub, b / sub, names, shallow=False)
+        assert not mismatch and not errs and len(match) == 6, (sub, mismatch)

@@ -275,6 +275,18 @@ def test_image_encodings_with_step_padding(v, encoding, pad):
     np.testing.assert_array_equal(frame.image, expected)
 
 
+@pytest.mark.parametrize("encoding", sorted(IMAGE_CASES))
+@pytest.mark.parametrize("pad", [0, PAD])
+def test_keep_bgra_gives_a_bgra8_image_as_recorded_and_the_others_as_before(encoding, pad):
+    pixels, expected = IMAGE_CASES[encoding]
+    if encoding == "bgra8":
+        expected = pixels
+    frame = decode(IMAGE_TYPE, image_raw(2, encoding, pixels, pad=pad), 2, keep_bgra=True)
+    assert isinstance(frame, Frame) and frame.image.flags.c_contiguous
+    assert frame.image.dtype == expected.dtype and frame.image.shape == expected.shape
+    np.testing.assert_array_equal(frame.image, expected)
+
+
 def test_mono16_big_endian():
     frame = decode_image(image_raw(2, "mono16", GREY16, big=True), 2)
     assert frame.image.dtype == np.uint16 and frame.image.dtype.isnative

@@ -56,6 +56,16 @@ def test_both_row_filters_decode_to_the_same_pixels(row_filter):
         assert np.array_equal(_decode(encode_png(image, 1, row_filter)), image)
 
 
+@pytest.mark.parametrize("level", LEVELS)
+def test_bgra_is_stored_as_the_same_rgb_file_as_its_bgr(level):
+    """A bgra8 camera's pixels are written without their alpha: the file of the BGR image, byte for byte."""
+    bgr = IMAGES["bgr"]
+    bgra = np.concatenate([bgr, RNG.integers(0, 256, (*bgr.shape[:2], 1), dtype=np.uint8)], axis=2)
+    data = encode_png(bgra, level)
+    assert data == encode_png(bgr, level)
+    assert np.array_equal(_decode(data), bgr)
+
+
 def test_header_chunks_and_rgb_byte_order():
     bgr = np.zeros((2, 3, 3), np.uint8)
     bgr[..., 0] = 10  # blue
@@ -79,7 +89,7 @@ def test_sub_filter_bytes_and_16_bit_big_endian():
     ("image", "level", "match"),
     [
         (np.zeros((4, 4), np.float32), 1, "dtype float32"),
-        (np.zeros((4, 4, 4), np.uint8), 1, r"shape \(4, 4, 4\)"),
+        (np.zeros((4, 4, 2), np.uint8), 1, r"shape \(4, 4, 2\)"),
         (np.zeros((0, 4), np.uint8), 1, "empty"),
         (np.zeros((4, 4), np.uint8), 9, "level 9"),
     ],
