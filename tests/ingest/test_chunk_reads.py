@@ -303,7 +303,8 @@ def test_a_read_ahead_names_a_corrupt_chunk_as_a_plain_read_does(tmp_path):
 
 def test_zstd_records_of_one_or_more_frames_are_the_bytes_compressed() -> None:
     """decompress_checked's zstd path: frames from the reference compressor (with and without the content
-    size in their header), one or several, give the bytes back; a size or CRC that differs is named."""
+    size in their header), one or several, give the bytes back; a size or CRC that differs is named, and
+    a size far beyond the data is not allocated."""
     import zstandard
     from backports import zstd as reference
     from isal import isal_zlib
@@ -314,10 +315,15 @@ def test_zstd_records_of_one_or_more_frames_are_the_bytes_compressed() -> None:
     streamed = reference.ZstdCompressor()
     no_size = streamed.compress(records) + streamed.flush()  # a streamed frame: no content size
     two = reference.compress(records[:half]) + reference.compress(records[half:])
+    empty_after = with_size + reference.compress(b"")  # a second frame with nothing in it
     crc = isal_zlib.crc32(records)
-    for data in (with_size, no_size, two):
+    for data in (with_size, no_size, two, empty_after):
         got = chunks.decompress_checked(data, "zstd", len(records), crc)
         assert got == records
+    with pytest.raises(chunks.ChunkDataError, match=f"expected {1 << 50} bytes, got {len(records)}"):
+        chunks.decompress_checked(with_size, "zstd", 1 << 50, 0)  # a damaged header sizes no allocation
+    with pytest.raises(chunks.ChunkDataError, match=f"expected {len(records)} bytes, got {len(records) + 1}"):
+        chunks.decompress_checked(with_size + with_size, "zstd", len(records), 0)  # read one byte past
     with pytest.raises(chunks.ChunkDataError, match=f"expected {len(records) - 1} bytes, got {len(records)}"):
         chunks.decompress_checked(with_size, "zstd", len(records) - 1, 0)
     with pytest.raises(chunks.ChunkDataError, match=f"expected {len(records) + 1} bytes, got {len(records)}"):
