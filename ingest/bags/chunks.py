@@ -298,6 +298,10 @@ def decompress_checked(data: bytes, compression: str, size: int, crc: int) -> Re
     return records
 
 
+_ZSTD_BLOCK = 1 << 22
+"""Bytes per read of zstd data that does not state its size up front (`_zstd_records`)."""
+
+
 def _zstd_records(data: bytes | memoryview, size: int) -> Records:
     """zstd data (one or more frames) decompressed, at most `size` + 1 bytes (`decompress_checked`
     compares the length with `size`).
@@ -322,8 +326,6 @@ def _zstd_records(data: bytes | memoryview, size: int) -> Records:
             records += block
     return records
 
-
-_ZSTD_BLOCK = 1 << 22
 
 COPY_BELOW_BYTES = 1 << 18
 """Messages smaller than this are copied out of their chunk; larger ones are views into it."""

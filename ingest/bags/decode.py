@@ -104,7 +104,8 @@ class Sweep:
 
 @dataclass(frozen=True)
 class Frame:
-    """One camera image: BGR uint8 HxWx3 for colour, HxW uint8/uint16 for mono."""
+    """One camera image: BGR uint8 HxWx3 for colour (BGRA HxWx4 for a bgra8 one decoded with
+    `keep_bgra`), HxW uint8/uint16 for mono."""
 
     stamp_ns: int
     frame_id: str
