@@ -43,7 +43,7 @@ bench: setup
 	$(BIN)/python bench/bench_models.py
 	$(BIN)/python bench/bench_warp.py
 	$(BIN)/python bench/bench_sim.py
-	$(BIN)/python bench/bench_ingest.py
+	$(BIN)/python bench/bench_ingest.py --seconds 1
 	$(BIN)/python bench/bench_ingest_stages.py
 	$(BIN)/python bench/bench_livox.py
 	$(BIN)/python bench/bench_render.py
