@@ -484,9 +484,10 @@ def decode(
     `keep_bgra`: a raw bgra8 image stays BGRA (`decode_image`).
     """
     _check_version(ros_version)
-    if keep_bgra and _normalize(msgtype) == _normalize(IMAGE_TYPE):
+    kind = _normalize(msgtype)
+    if keep_bgra and kind == _normalize(IMAGE_TYPE):
         return decode_image(raw, ros_version, keep_bgra=True)
-    decoder = _DECODERS.get(_normalize(msgtype))
+    decoder = _DECODERS.get(kind)
     if decoder is None:
         raise MessageDecodeError(
             f"no decoder for message type {msgtype!r}; expected one of {sorted(_DECODERS)}"
