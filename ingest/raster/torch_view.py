@@ -336,7 +336,9 @@ def _fill(value: T, has: T, gu: T, gv: T, need: T, ppr: T, params: RenderParams)
         vp[pn[done]], gup[pn[done]], gvp[pn[done]] = new_v[got], new_gu[got], new_gv[got]
         got_all[done] = True
         todo = todo[~got]
-    return vp.reshape(H + 2, W + 2)[1:-1, 1:-1], got_all
+    # a copy, not the padded buffer's strided view: callers write into it through `reshape(-1)`,
+    # which on a view would write into a temporary
+    return vp.reshape(H + 2, W + 2)[1:-1, 1:-1].contiguous(), got_all
 
 
 def _masked(mask_pts: dict[str, T], surf: T, value: T, ppr: T, params: RenderParams) -> T:
