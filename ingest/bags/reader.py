@@ -50,7 +50,7 @@ import contextlib
 import heapq
 import logging
 import sqlite3
-from collections.abc import Collection, Iterable, Iterator, Sequence
+from collections.abc import Callable, Collection, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
@@ -378,6 +378,25 @@ def open_bags(paths: str | Path | Sequence[str | Path], salvage: bool = False) -
 # ---------------------------------------------------------------- the bag set
 
 
+Progress = Callable[[int, int], None]
+"""progress(messages read, messages to read) of a read over the bags."""
+
+PROGRESS_EVERY = 256
+"""Messages between two `progress` calls of `BagSet.messages`."""
+
+
+def _counted(messages: Iterator[RawMessage], total: int, progress: Progress) -> Iterator[RawMessage]:
+    """`messages`, with `progress(read, total)` every `PROGRESS_EVERY` messages and at their end."""
+    read = 0
+    for msg in messages:
+        yield msg
+        read += 1
+        if read % PROGRESS_EVERY == 0:
+            progress(read, max(total, read))
+    if read == 0 or read % PROGRESS_EVERY:
+        progress(read, max(total, read))
+
+
 class BagSet:
     """Open bags of one ROS version; create with `open_bags`."""
 
@@ -490,6 +509,7 @@ class BagSet:
         stop_ns: int | None = None,
         defer: Collection[str] = (),
         readahead: int = 0,
+        progress: Progress | None = None,
     ) -> Iterator[RawMessage]:
         """Lazy iterator over the raw messages of `topics` (None: all), merged by log time.
 
@@ -505,6 +525,9 @@ class BagSet:
         read that asked gets `deferred` messages. `readahead` threads decompress
         the MCAP chunks this read reads whole ahead of it (a first read of a
         bag of raw images: each chunk is an image); they end with the read.
+        `progress(read, total)` hears every `PROGRESS_EVERY` messages and once
+        when the read ends, with `total` the topics' message count in the bags
+        (more than a read bounded by `start_ns`/`stop_ns` gets).
         """
         names = self.topics()
         wanted = set(names) - set(self.skipped) if topics is None else set(topics)
@@ -523,9 +546,10 @@ class BagSet:
                 sources.append(self._read(conns, start_ns, stop_ns, frozenset(defer), readahead))
         for path in self.salvaged:  # skipped topics are not in `wanted`
             sources.append(_time_window(_salvage(path, wanted, quiet=True), start_ns, stop_ns))
-        if len(sources) == 1:
-            return sources[0]
-        return heapq.merge(*sources, key=lambda m: m.log_ns)
+        merged = sources[0] if len(sources) == 1 else heapq.merge(*sources, key=lambda m: m.log_ns)
+        if progress is None:
+            return merged
+        return _counted(merged, sum(names[t].count for t in wanted), progress)
 
     def _read(
         self, conns: list[Any], start_ns: int | None, stop_ns: int | None, defer: frozenset[str],

@@ -51,7 +51,7 @@ from typing import Any
 
 from calibration.rectify import stereo_warnings
 from calibration.rig import Rig, read_rig
-from ingest.bags.reader import BagSet, given_once, open_bags
+from ingest.bags.reader import BagSet, Progress, given_once, open_bags
 from ingest.dataset.layout import (
     prepare_dirs,
 )
@@ -255,9 +255,10 @@ def _resolve_topics(rig: Rig, bag_topics: dict[str, Any], where: str) -> Topics:
 
 def _gt_method(
     bags: BagSet, topics: Topics, rig: Rig, cfg: IngestConfig, summary: IngestSummary, bad: BadMessages,
-    trajectory_span_ns: tuple[int, int],
+    trajectory_span_ns: tuple[int, int], progress: Progress | None = None,
 ) -> tuple[IngestConfig, RigTrajectory | None]:  # fmt: skip
-    """Run the trajectory pass when --gt dense/auto needs it, decide the method, set the window.
+    """Run the trajectory pass when --gt dense/auto needs it (`progress`: its sweeps), decide the method,
+    set the window.
 
     Dense GT streams every sweep within its window (`--gt-window-ms`); the
     trajectory goes to `trajectories/<first bag>.tum` in the output and
@@ -276,6 +277,7 @@ def _gt_method(
                 out_file,
                 bad=bad,
                 span_ns=trajectory_span_ns,
+                progress=progress,
             )
         except OdometryError as err:
             if cfg.gt == "dense":
@@ -363,6 +365,12 @@ def _held_output(out: Path) -> Iterator[int]:
         raise
 
 
+PASS_READ = "reading the bags"
+"""`ingest`'s first pass: every message of the rig's topics read, every chunk checked (unit: messages)."""
+PASS_TRAJECTORY = "trajectory"
+"""`ingest`'s trajectory pass for dense GT: every LiDAR sweep through the odometry (unit: sweeps)."""
+
+
 def _init_worker(workers: int) -> None:
     """Every worker keeps freed image-sized arrays mapped and runs numba on its share of the cores."""
     retain_freed_memory()
@@ -374,8 +382,15 @@ def ingest(
     cfg: IngestConfig,
     progress: Callable[[int, int], None] | None = None,
     warn: Callable[[str], None] | None = None,
+    passes: Callable[[str, int, int], None] | None = None,
 ) -> IngestSummary:
-    """Run the whole job; `progress(done, total)` after each sample, `warn(line)` per skipped message."""
+    """Run the whole job; `progress(done, total)` after each sample, `warn(line)` per skipped message.
+
+    `passes(what, done, total)` hears of the passes over the bags before the
+    first sample, which on a long recording take minutes: `PASS_READ`
+    (messages of every topic read, every chunk checked) and, for dense GT,
+    `PASS_TRAJECTORY` (LiDAR sweeps through the odometry).
+    """
     t_start = time.perf_counter()
     cfg.validate()
     given_once(bag_paths)  # before the rig and the output are touched
@@ -395,7 +410,7 @@ def ingest(
         raise DatasetError(f"--dask {cfg.dask!r}: cannot reach the scheduler ({err})") from err
     with ExitStack() as held:  # the output folder, once it exists (`_run`), until dataset.yaml is final
         try:
-            _run(bag_paths, cfg, rig, geometry, summary, bad, executor, progress, held)
+            _run(bag_paths, cfg, rig, geometry, summary, bad, executor, progress, held, passes)
         finally:
             executor.close()
         if bad.by_topic() != summary.undecodable:  # the stream pass found more (images): update dataset.yaml
@@ -431,6 +446,7 @@ def _run(
     executor: Executor,
     progress: Callable[[int, int], None] | None,
     held: ExitStack,
+    passes: Callable[[str, int, int], None] | None = None,
 ) -> None:
     """The passes over the bags (survey, trajectory, plan, stream), the samples run on `executor`; `held`
     keeps the output folder locked (`hold_folder`) from before its first write on."""
@@ -438,13 +454,15 @@ def _run(
         topics = _resolve_topics(rig, bags.topics(), ", ".join(str(p) for p in bag_paths))
         asked = cfg
         reach = _dense_reach_ns(cfg)
-        surveyed = survey(bags, topics, max(cfg.lidar_window_ns, reach), bad)  # before any write
+        read = partial(passes, PASS_READ) if passes else None
+        surveyed = survey(bags, topics, max(cfg.lidar_window_ns, reach), bad, read)  # before any write
         summary.imu_gaps_ms = [float(g) / 1e6 for g in surveyed.imu_gaps_ns]
         summary.warnings += surveyed.warnings
         summary.stale_temporaries = held.enter_context(_held_output(cfg.out))
         first, last = surveyed.span_ns
         ready = held.enter_context(_warming_up(geometry, cfg))  # beside the trajectory pass
-        cfg, traj = _gt_method(bags, topics, rig, cfg, summary, bad, (first - reach, last + reach))
+        odometry = partial(passes, PASS_TRAJECTORY) if passes else None
+        cfg, traj = _gt_method(bags, topics, rig, cfg, summary, bad, (first - reach, last + reach), odometry)
         the_plan = plan(bags, topics, cfg, bad, surveyed)
         summary.undecodable = bad.by_topic()
         summary.frames, summary.pairs, summary.planned = (

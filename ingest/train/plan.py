@@ -16,7 +16,7 @@ import numpy as np
 
 from calibration.types import I64
 from ingest.bags.decode import Sweep
-from ingest.bags.reader import READAHEAD_THREADS, BagSet
+from ingest.bags.reader import READAHEAD_THREADS, BagSet, Progress
 from ingest.errors import BagError
 from ingest.runtime.executor import usable_cpus
 from ingest.train.bad_messages import BadMessages
@@ -58,7 +58,7 @@ IMU_MARGIN_NS = 20_000_000
 
 
 def _seen(
-    bags: BagSet, topics: Topics, bad: BadMessages
+    bags: BagSet, topics: Topics, bad: BadMessages, progress: Progress | None = None
 ) -> tuple[dict[str, I64], LidarRates, dict[str, int]]:
     """Per camera, LiDAR and IMU topic: (log_ns, first stamp, last stamp) of each message, as (N, 3).
 
@@ -77,7 +77,8 @@ def _seen(
     }
     rates = LidarRates()
     copies = FirstCopies()
-    for msg in bags.messages(topics=list(seen), readahead=min(READAHEAD_THREADS, usable_cpus())):
+    readahead = min(READAHEAD_THREADS, usable_cpus())
+    for msg in bags.messages(topics=list(seen), readahead=readahead, progress=progress):
         if msg.topic not in topics.lidars:
             stamp = bad.stamp(msg, where)
             if stamp is not None and copies.stamped(msg.topic, stamp):
@@ -155,13 +156,18 @@ class Survey:
         return int(self.upper_ns[0]), int(self.upper_ns[-1])
 
 
-def survey(bags: BagSet, topics: Topics, window_ns: int, bad: BadMessages | None = None) -> Survey:
+def survey(
+    bags: BagSet, topics: Topics, window_ns: int, bad: BadMessages | None = None,
+    progress: Progress | None = None,
+) -> Survey:  # fmt: skip
     """The first pass (`_seen`) and its checks: points on every LiDAR, two camera stamps, one clock.
 
     Runs before anything is written, and before the trajectory pass, which
     would otherwise walk a LiDAR on its own clock knot by knot across years.
+    It reads (and checks) every chunk of the bags: on a long recording it
+    takes minutes: `progress` hears of the messages read (`BagSet.messages`).
     """
-    seen, rates, duplicates = _seen(bags, topics, bad or BadMessages())
+    seen, rates, duplicates = _seen(bags, topics, bad or BadMessages(), progress)
     for topic, name in topics.lidars.items():
         if not len(seen[topic]):
             raise BagError(f"{bags.paths[0]}: no points on {topic} (the rig's lidar {name}) in the whole bag")

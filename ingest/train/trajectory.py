@@ -11,7 +11,6 @@ LiDAR has delivered points past its end.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -21,7 +20,7 @@ import numpy as np
 from calibration.rig import Rig
 from calibration.types import F64
 from ingest.bags.decode import ImuSample, Sweep
-from ingest.bags.reader import BagSet
+from ingest.bags.reader import BagSet, Progress
 from ingest.errors import OutputError
 from ingest.train import trajectory_cache
 from ingest.train.bad_messages import BadMessages
@@ -86,11 +85,12 @@ def trajectory_pass(
     gyro: GyroTrack | None,
     min_range_m: float,
     params: OdometryParams | None = None,
-    progress: Callable[[float], None] | None = None,
+    progress: Progress | None = None,
     bad: BadMessages | None = None,
     span_ns: tuple[int, int] | None = None,
 ) -> RigTrajectory:
-    """Odometry over every sweep of `lidar_topics` (topic -> rig lidar name); `progress(seconds read)`.
+    """Odometry over every sweep of `lidar_topics` (topic -> rig lidar name); `progress` hears of the
+    sweeps read (`BagSet.messages`).
 
     With `span_ns` (first, last) only points within it take part (no sample
     can use the others, and a stray sweep stamped years away would make the
@@ -100,9 +100,8 @@ def trajectory_pass(
     odo = Odometry(gyro, params)
     where = bags.label
     last = {topic: -(2**62) for topic in lidar_topics}
-    first_ns: int | None = None
     copies = FirstCopies()
-    for msg in bags.messages(topics=list(lidar_topics)):
+    for msg in bags.messages(topics=list(lidar_topics), progress=progress):
         sweep = bad.decoded(msg, where)
         assert sweep is None or isinstance(sweep, Sweep)
         if sweep is None or not len(sweep.stamps_ns) or not copies.sweep(msg.topic, sweep):
@@ -113,14 +112,9 @@ def trajectory_pass(
         T = rig.lidar(lidar_topics[msg.topic]).T_cam0_lidar
         xyz = np.asarray(sweep.xyz_m, np.float64)[keep]
         odo.add(xyz @ T[:3, :3].T + T[:3, 3], sweep.stamps_ns[keep])
-        earliest, latest = sweep.span_ns
-        if span_ns is not None:
-            earliest, latest = max(earliest, span_ns[0]), min(latest, span_ns[1])
+        latest = sweep.span_ns[1] if span_ns is None else min(sweep.span_ns[1], span_ns[1])
         last[msg.topic] = max(last[msg.topic], latest)
         odo.advance(min(last.values()))
-        first_ns = earliest if first_ns is None else first_ns
-        if progress is not None:
-            progress((last[msg.topic] - first_ns) / 1e9)
     return odo.result()
 
 
@@ -152,8 +146,10 @@ def run_trajectory_pass(
     params: OdometryParams | None = None,
     bad: BadMessages | None = None,
     span_ns: tuple[int, int] | None = None,
+    progress: Progress | None = None,
 ) -> tuple[RigTrajectory, TrajectorySummary]:
-    """Gyro, odometry (points within `span_ns`) and `out_file` (TUM, T_world_cam0), with the summary.
+    """Gyro, odometry (points within `span_ns`) and `out_file` (TUM, T_world_cam0), with the summary;
+    `progress` hears of the odometry's sweeps (`trajectory_pass`).
 
     The pass is kept beside it (`out_file` with suffix .npz, `trajectory_cache`)
     and read back instead of computed when a rerun would compute the same.
@@ -166,7 +162,9 @@ def run_trajectory_pass(
     reused = traj is not None
     if traj is None:
         gyro = read_gyro(bags, *imu, bad=bad)
-        traj = trajectory_pass(bags, lidar_topics, rig, gyro, min_range_m, params, bad=bad, span_ns=span_ns)
+        traj = trajectory_pass(
+            bags, lidar_topics, rig, gyro, min_range_m, params, progress, bad=bad, span_ns=span_ns
+        )
     try:
         out_file.parent.mkdir(parents=True, exist_ok=True)
     except OSError as err:

@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import sys
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import Annotated
+from typing import Annotated, Protocol
 
 import typer
 from rich.console import Console
@@ -18,8 +18,12 @@ err_console = Console(stderr=True, width=None if sys.stderr.isatty() else 200)
 LidarMsgOpt = Annotated[str, typer.Option(help="custom (livox CustomMsg) | pointcloud2.")]
 """The LiDAR message type of a written bag (simulate, capture)."""
 
-Update = Callable[[int, int], None]
-"""progress(done, total): the library's progress callback."""
+
+class Update(Protocol):
+    """progress(done, total): the library's progress callback; with `verb` and `unit`, the bar's words
+    change to another stage of the work (a bar of its own: its time left restarts)."""
+
+    def __call__(self, done: int, total: int, verb: str | None = None, unit: str | None = None) -> None: ...
 
 
 @contextmanager
@@ -30,12 +34,25 @@ def progress_bar(verb: str, unit: str) -> Iterator[Update]:
     where a bar cannot be redrawn anyway, so there the callback does nothing.
     """
     if not err_console.is_terminal:
-        yield lambda done, total: None
+        yield lambda done, total, verb=None, unit=None: None
         return
-    columns = (TextColumn(verb), BarColumn(), MofNCompleteColumn(), TextColumn(unit), TimeRemainingColumn())
+    columns = (
+        TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+        TextColumn("{task.fields[unit]}"), TimeRemainingColumn(),
+    )  # fmt: skip
     with Progress(*columns, console=err_console, transient=True) as bar:
-        task = bar.add_task(verb, total=None)
-        yield lambda done, total: bar.update(task, completed=done, total=total)
+        task = bar.add_task(verb, total=None, unit=unit)
+        words = (verb, unit)
+
+        def update(done: int, total: int, verb: str | None = None, unit: str | None = None) -> None:
+            nonlocal task, words
+            stage = (verb or words[0], unit or words[1])
+            if stage != words:
+                bar.remove_task(task)
+                task, words = bar.add_task(stage[0], total=None, unit=stage[1]), stage
+            bar.update(task, completed=done, total=total)
+
+        yield update
 
 
 def human_bytes(n: float) -> str:

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 from rich.table import Table
 
-from sensorbox.cli.common import console, print_warning, progress_bar
+from sensorbox.cli.common import console, err_console, print_warning, progress_bar
 
 if TYPE_CHECKING:
     from ingest.train.pipeline import IngestSummary
@@ -190,7 +190,7 @@ def ingest_cmd(
     """Turn recorded bags into the WideDepth training set (rectified equirect pairs + depth/disparity GT)."""
     from ingest.errors import DatasetError
     from ingest.train.dense import DenseParams
-    from ingest.train.pipeline import IngestConfig, ingest
+    from ingest.train.pipeline import PASS_READ, PASS_TRAJECTORY, IngestConfig, ingest
     from ingest.train.sample import SampleParams
 
     if gt_window_ms is not None and gt == "sparse":
@@ -210,8 +210,20 @@ def ingest_cmd(
         widen_static=gt_window_ms is None,
     )  # fmt: skip
     cfg.validate()  # before the progress bar: a bad value is one line
-    with progress_bar("ingesting", "samples") as update:
-        summary = ingest(bags, cfg, progress=update, warn=print_warning)
+    units = {PASS_READ: "messages", PASS_TRAJECTORY: "LiDAR sweeps"}
+    try:
+        with progress_bar("ingesting", "samples") as update:
+            summary = ingest(
+                bags, cfg, warn=print_warning,
+                progress=lambda done, total: update(done, total, "ingesting", "samples"),
+                passes=lambda what, done, total: update(done, total, f"ingesting: {what}", units[what]),
+            )  # fmt: skip
+    except KeyboardInterrupt:  # Ctrl-C: every file written is whole (written atomically), a rerun resumes
+        held = len(list((out / "meta").glob("*.json"))) if (out / "meta").is_dir() else 0
+        samples = f"{held} sample{'' if held == 1 else 's'}"
+        line = f"interrupted: {out} holds {samples}; the same command resumes"
+        err_console.print(line, markup=False, highlight=False, soft_wrap=True)
+        raise typer.Exit(130) from None
     for line in summary.lost_chunks:
         console.print(f"skipped {line}", markup=False, highlight=False, soft_wrap=True)
     console.print(summary_table(summary, out))

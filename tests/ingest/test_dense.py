@@ -19,7 +19,7 @@ from scipy.spatial.transform import Rotation
 from calibration.rig import read_rig
 from ingest.bags.decode import Sweep
 from ingest.bags.message import RawMessage
-from ingest.bags.reader import BagSet, open_bags
+from ingest.bags.reader import BagSet, Progress, open_bags
 from ingest.dataset.meta import read_meta
 from ingest.train.dense import DenseParams, dense_ground_truth, free_space_filter, snap_to_pixel_rays
 from ingest.train.odometry import OdometryParams
@@ -446,8 +446,8 @@ class _WithoutLidar:
         self.bags, self.lidars, self.lo_ns, self.hi_ns = bags, lidars, lo_ns, hi_ns
         self.label = bags.label
 
-    def messages(self, topics: list[str]) -> Iterator[RawMessage]:
-        for msg in self.bags.messages(topics=topics):
+    def messages(self, topics: list[str], progress: Progress | None = None) -> Iterator[RawMessage]:
+        for msg in self.bags.messages(topics=topics, progress=progress):
             if not (msg.topic in self.lidars and self.lo_ns <= msg.log_ns < self.hi_ns):
                 yield msg
 

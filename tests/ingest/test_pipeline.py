@@ -483,3 +483,38 @@ def test_dataset_yaml_names_the_rig_by_an_absolute_path(
     ingest([INDOOR], IngestConfig(rig=relative, out=tmp_path / "ds", workers=1, every=10))
     doc = yaml.safe_load((tmp_path / "ds" / "dataset.yaml").read_text())
     assert doc["rig"]["source"] == str(_rig(INDOOR).resolve())
+
+
+def test_passes_report_every_message_and_sweep_they_read(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The passes before the first sample (minutes on a long recording) report their progress: the
+    first over every message of the rig's topics, the trajectory pass over every LiDAR sweep; the
+    counts are rosbags' own. (A call every 4 messages here: the fixture is short.)"""
+    from rosbags.highlevel import AnyReader
+
+    from calibration.rig import read_rig
+    from ingest.bags import reader as bag_reader
+    from ingest.train.pipeline import PASS_READ, PASS_TRAJECTORY
+
+    every = 4
+    monkeypatch.setattr(bag_reader, "PROGRESS_EVERY", every)
+
+    rig = read_rig(_rig(INDOOR))
+    with AnyReader([INDOOR]) as reader:
+        counts = {c.topic: c.msgcount for c in reader.connections}
+    cameras = [t if t in counts else f"{t}/compressed" for t in (rig.upper.topic, rig.lower.topic)]
+    lidars = [li.topic for li in rig.lidars]
+    n_lidar = sum(counts[t] for t in lidars)
+    n_read = n_lidar + sum(counts[t] for t in cameras) + counts[rig.imus[0].topic]
+    calls: list[tuple[str, int, int]] = []
+    cfg = IngestConfig(rig=_rig(INDOOR), out=tmp_path / "out", workers=1, every=10, gt="dense")
+    summary = ingest([INDOOR], cfg, passes=lambda what, done, total: calls.append((what, done, total)))
+    assert summary.written > 0 and summary.method == "dense"
+    stages = [what for what, _, _ in calls]
+    assert stages == sorted(stages, key=[PASS_READ, PASS_TRAJECTORY].index)  # one pass, then the other
+    for what, n in ((PASS_READ, n_read), (PASS_TRAJECTORY, n_lidar)):
+        done = [(d, t) for w, d, t in calls if w == what]
+        assert done[-1] == (n, n), what
+        assert [d for d, _ in done[:-1]] == list(range(every, n, every))
+        assert all(t == n for _, t in done)
