@@ -399,14 +399,24 @@ def _scene_doc(
     }
 
 
+PASS_INDEX = "indexing the scans"
+"""`run_benchmark`'s pass before the first view: each scan the views use sorted into its level-of-detail
+index (unit: scans)."""
+
+
 def run_benchmark(
     scans: list[Scan],
     reference: CameraModel,
     out: Path,
     cfg: BenchmarkConfig,
     progress: Callable[[int, int], None] | None = None,
+    passes: Callable[[str, int, int], None] | None = None,
 ) -> BenchmarkSummary:
-    """Render every view of the site into ``out`` (see the module doc); resumable per scene."""
+    """Render every view of the site into ``out`` (see the module doc); resumable per scene.
+
+    `progress(done, total)` after each view; `passes(PASS_INDEX, done, total)` before the first
+    view, per scan indexed (seconds to minutes each for a large scan).
+    """
     cfg.validate()
     ds = check_reference(reference)
     if not scans:
@@ -425,8 +435,12 @@ def run_benchmark(
     used = sorted({i for v in todo for i in v.bundle})
     indexes: list[ScanIndex] = [None] * len(scans)  # type: ignore[list-item]
     t_index = time.perf_counter()
-    for i in used:
+    for k, i in enumerate(used):
+        if passes:
+            passes(PASS_INDEX, k, len(used))
         indexes[i] = build_index(scans[i], cfg.voxel_m)
+    if passes:
+        passes(PASS_INDEX, len(used), len(used))
     summary.index_seconds = time.perf_counter() - t_index
     for fc in fovs.values():  # warm the per-model caches before forking
         for m in (fc.fisheye.model, fc.pano, fc.cassini):

@@ -133,7 +133,11 @@ def render_benchmark_cmd(
     points = sum(len(s.xyz) for s in site) / 1e6
     console.print(f"{len(site)} scans, {points:.1f} M points; reference camera {type(reference).__name__}")
     with progress_bar("rendering", "views") as update:
-        summary = run_benchmark(site, reference, out, cfg, progress=update)
+        summary = run_benchmark(
+            site, reference, out, cfg,
+            progress=lambda done, total: update(done, total, "rendering", "views"),
+            passes=lambda what, done, total: update(done, total, f"rendering: {what}", "scans"),
+        )  # fmt: skip
     console.print(summary_table(summary, cfg, out))
     for line in summary.warnings:
         console.print(f"[yellow]warning:[/] {line}", highlight=False)

@@ -62,10 +62,11 @@ def bench(tmp_path_factory):
     manifest = write_site(root / "site", scene, sims, "ply", params)
     scans = read_scans([manifest])
     ref = read_rig(RIG).camera("cam0").model
-    summary = run_benchmark(scans, ref, root / "out", CFG)
+    passes: list[tuple[str, int, int]] = []
+    summary = run_benchmark(scans, ref, root / "out", CFG, passes=lambda *call: passes.append(call))
     doc = yaml.safe_load((root / "out" / "000_000_000" / "scene.yaml").read_text())
     return {"root": root, "out": root / "out", "scene": scene, "scans": scans, "ref": ref, "summary": summary,
-            "doc": doc, "dir": root / "out" / "000_000_000"}  # fmt: skip
+            "doc": doc, "dir": root / "out" / "000_000_000", "passes": passes}  # fmt: skip
 
 
 def _img(path, flags=cv2.IMREAD_UNCHANGED) -> np.ndarray:
@@ -81,6 +82,13 @@ def _exr(path):
 
 def _folder(b, fov, base, cam):
     return b["dir"] / f"{fov}FOV" / f"{base}mm" / cam
+
+
+def test_indexing_reports_each_scan_before_the_first_view(bench):
+    from ingest.render.benchmark import PASS_INDEX
+
+    n = len(bench["scans"])  # the bundle of three: every view uses them all
+    assert bench["passes"] == [(PASS_INDEX, k, n) for k in range(n + 1)]
 
 
 def test_layout_files_and_types(bench):
