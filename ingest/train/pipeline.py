@@ -60,6 +60,7 @@ from ingest.errors import BagError, DatasetError, OdometryError, OutputError
 from ingest.raster.visibility import backend_problem
 from ingest.runtime.executor import Executor, Handoff, share_cores
 from ingest.runtime.heap import retain_freed_memory
+from ingest.runtime.jit import compiling
 from ingest.train.bad_messages import BadMessages
 from ingest.train.block_planes import BlockPlanes, PlaneSettings
 from ingest.train.dense import DenseParams, free_space_settings
@@ -170,6 +171,7 @@ class IngestSummary:
     overlapped_ms: dict[str, list[float]] = field(default_factory=dict)  # helper threads beside them
     seconds: float = 0.0
     dense_warm_up_s: float | None = None  # dense GT's kernels and pixel rays, before the samples
+    compile_s: float = 0.0  # numba compiling in this process (`ingest.runtime.jit`): a checkout's first run
     dense_planes: tuple[int, float] | None = None  # dense GT: (blocks fitted, seconds fitting and testing)
     out: Path | None = None
     method: str = "sparse"
@@ -389,8 +391,24 @@ def ingest(
     `passes(what, done, total)` hears of the passes over the bags before the
     first sample, which on a long recording take minutes: `PASS_READ`
     (messages of every topic read, every chunk checked) and, for dense GT,
-    `PASS_TRAJECTORY` (LiDAR sweeps through the odometry).
+    `PASS_TRAJECTORY` (LiDAR sweeps through the odometry). The summary's
+    `compile_s` is what numba spent compiling in this process: a checkout's
+    first run, which the stage times then include.
     """
+    with compiling() as compile_s:
+        summary = _ingest(bag_paths, cfg, progress, warn, passes)
+    summary.compile_s = compile_s[0]
+    return summary
+
+
+def _ingest(
+    bag_paths: list[Path],
+    cfg: IngestConfig,
+    progress: Callable[[int, int], None] | None = None,
+    warn: Callable[[str], None] | None = None,
+    passes: Callable[[str, int, int], None] | None = None,
+) -> IngestSummary:
+    """`ingest` itself (it counts numba's compiling around this)."""
     t_start = time.perf_counter()
     cfg.validate()
     given_once(bag_paths)  # before the rig and the output are touched

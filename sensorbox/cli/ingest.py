@@ -143,6 +143,9 @@ def summary_table(summary: IngestSummary, out: Path) -> Table:
         if t.gaps:
             rows.append(("trajectory gaps: knots carried by prediction (too few LiDAR points)", str(t.gaps)))
         rows.append(("trajectory file (TUM, T_world_cam0)", t.file))
+    if summary.compile_s >= 0.5:  # the first run of a checkout: the stage times above and below include it
+        what = "numba kernels compiled (once: cached on disk for later runs)"
+        rows.append((what, f"{summary.compile_s:.1f} s"))
     if summary.dense_warm_up_s is not None:  # the first run of a checkout compiles the kernels here
         rows.append(("dense GT start-up: kernels and pixel rays, once", f"{summary.dense_warm_up_s:.1f} s"))
     if summary.dense_planes is not None:  # fitted and tested in the stream pass, beside the workers
