@@ -395,20 +395,6 @@ def ingest(
     `compile_s` is what numba spent compiling in this process: a checkout's
     first run, which the stage times then include.
     """
-    with compiling() as compile_s:
-        summary = _ingest(bag_paths, cfg, progress, warn, passes)
-    summary.compile_s = compile_s[0]
-    return summary
-
-
-def _ingest(
-    bag_paths: list[Path],
-    cfg: IngestConfig,
-    progress: Callable[[int, int], None] | None = None,
-    warn: Callable[[str], None] | None = None,
-    passes: Callable[[str, int, int], None] | None = None,
-) -> IngestSummary:
-    """`ingest` itself (it counts numba's compiling around this)."""
     t_start = time.perf_counter()
     cfg.validate()
     given_once(bag_paths)  # before the rig and the output are touched
@@ -427,6 +413,7 @@ def _ingest(
     except OSError as err:  # distributed's connect timeout is an OSError
         raise DatasetError(f"--dask {cfg.dask!r}: cannot reach the scheduler ({err})") from err
     with ExitStack() as held:  # the output folder, once it exists (`_run`), until dataset.yaml is final
+        compile_s = held.enter_context(compiling())  # the passes and the samples: where numba compiles
         try:
             _run(bag_paths, cfg, rig, geometry, summary, bad, executor, progress, held, passes)
         finally:
@@ -435,6 +422,7 @@ def _ingest(
             summary.undecodable = bad.by_topic()
             record_undecodable(cfg.out, [Path(p) for p in bag_paths], summary.undecodable)
     summary.seconds = time.perf_counter() - t_start
+    summary.compile_s = compile_s[0]
     return summary
 
 
