@@ -44,11 +44,14 @@ def median_period_ns(stamps_ns: I64) -> float:
 def pair_stereo(upper_ns: I64, lower_ns: I64, tolerance_ns: int) -> StereoPairs:
     """Match each upper frame to the nearest lower frame within `tolerance_ns`, each used once.
 
-    The one stereo pairing rule of SensorBox: `inspect` and `ingest` use it on a
-    whole recording, the live camera node (`sensorbox.live.cameras.StereoPairer`)
-    applies it as frames arrive. Greedy by increasing |dt|, so a duplicated or
-    jittered frame never steals a better partner's match; unmatched frames on
-    either side are counted drops.
+    The stereo pairing rule of SensorBox: `inspect` and `ingest` use it on a
+    whole recording. Greedy by increasing |dt|, so a duplicated or jittered
+    frame never steals a better partner's match; unmatched frames on either
+    side are counted drops. The live camera node
+    (`sensorbox.live.cameras.StereoPairer`) pairs in arrival order instead,
+    which gives the same pairs wherever each frame has at most one candidate
+    partner within the tolerance (steady cameras, `pair_tolerance_ns`); a
+    duplicated frame can pair differently live.
     """
     up = np.asarray(upper_ns, np.int64)
     lo = np.asarray(lower_ns, np.int64)

@@ -70,7 +70,8 @@ class CameraSource(Protocol):
 
 
 class StereoPairer:
-    """Pair upper/lower frames by stamp as they arrive: ingest's rule (`ingest.train.sync.pair_stereo`).
+    """Pair upper/lower frames by stamp as they arrive: the pairs `ingest.train.sync.pair_stereo` makes of
+    steady cameras (each frame with one candidate within the tolerance; a duplicated frame may differ).
 
     Frames of each camera must arrive in stamp order. When both cameras have a
     frame waiting, the two oldest are paired if within tolerance; otherwise the

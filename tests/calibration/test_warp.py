@@ -201,6 +201,12 @@ def test_default_size_and_covering_crop_for_reference_rig():
     # which spans a few equirect columns where longitude is stretched at the image edge
     assert rows.min() - crop.row_offset <= 3 and crop.row_offset + crop.height - rows.max() <= 4
     assert cols.min() - crop.col_offset <= 4 and crop.col_offset + crop.width - cols.max() <= 5
+    # without the margin it still holds every seen pixel; the margin adds margin_px on all four sides
+    tight = covering_crop(cam0, R_CAM0_RECT, 2048, margin_px=0)
+    assert rows.min() >= tight.row_offset and rows.max() < tight.row_offset + tight.height
+    assert cols.min() >= tight.col_offset and cols.max() < tight.col_offset + tight.width
+    assert (crop.row_offset, crop.height) == (tight.row_offset - 1, tight.height + 2)
+    assert (crop.col_offset, crop.width) == (tight.col_offset - 1, tight.width + 2)
     # the warped crop equals the same window of the warped full sphere
     img = (np.random.default_rng(0).random((1200, 1920)) * 255).astype(np.uint8)
     w_full, _ = warp(img, cam0, full, R_CAM0_RECT)
@@ -209,6 +215,19 @@ def test_default_size_and_covering_crop_for_reference_rig():
         crop.row_offset : crop.row_offset + crop.height, crop.col_offset : crop.col_offset + crop.width
     ]
     assert np.array_equal(w_crop, window)
+
+
+@pytest.mark.parametrize("height_full", [512, 777])
+@pytest.mark.parametrize("margin_px", [0, 1, 3])
+def test_a_centred_fisheye_along_the_equirect_axis_gets_a_symmetric_crop(height_full, margin_px):
+    """The crop's rows and columns are [first, last] seen pixel plus the margin on both sides: for a
+    fisheye centred on the equirect's forward axis the crop is symmetric about the image centre."""
+    ds = DoubleSphere(300.0, 300.0, 639.5, 479.5, -0.2, 0.6, 1280, 960)
+    crop = covering_crop(ds, np.eye(3), height_full, margin_px)
+    assert crop.row_offset == height_full - (crop.row_offset + crop.height)
+    assert crop.col_offset == 2 * height_full - (crop.col_offset + crop.width)
+    tight = covering_crop(ds, np.eye(3), height_full, 0)
+    assert (crop.row_offset, crop.col_offset) == (tight.row_offset - margin_px, tight.col_offset - margin_px)
 
 
 def test_backward_looking_fisheye_crop_keeps_full_width():

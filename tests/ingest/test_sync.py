@@ -19,6 +19,17 @@ def test_pair_stereo_is_one_to_one():
     assert pair_stereo(np.array([5]), np.array([7]), 1).upper.tolist() == []
 
 
+def test_of_two_upper_frames_near_one_lower_frame_the_nearer_pairs():
+    """Greedy by |dt| over both cameras: a duplicated or jittered upper frame that comes first does not
+    take the lower frame from the later, nearer one."""
+    pairs = pair_stereo(np.array([0, 10]), np.array([9]), 20)
+    assert pairs.upper.tolist() == [1] and pairs.lower.tolist() == [0] and pairs.dt_ns.tolist() == [-1]
+    assert (pairs.dropped_upper, pairs.dropped_lower) == (1, 0)
+    pairs = pair_stereo(np.array([0, 100, 112]), np.array([3, 110, 96]), 20)  # lower out of order too
+    assert pairs.upper.tolist() == [0, 1, 2] and pairs.lower.tolist() == [0, 2, 1]
+    assert pairs.dt_ns.tolist() == [3, -4, -2]
+
+
 def test_the_tolerance_is_half_a_period():
     stamps = np.arange(10, dtype=np.int64) * 33_333_333
     assert (

@@ -264,6 +264,9 @@ def test_extrinsic_rotation_convention():
     np.testing.assert_allclose(to_metres(1, np.array([[1000.0, 0, 0]]), ext), [[0.1, 1.2, 0.305]], atol=1e-12)
     np.testing.assert_allclose(to_metres(2, np.array([[100.0, 0, 0]]), ext), [[0.1, 1.2, 0.30]], atol=1e-12)
     np.testing.assert_allclose(to_metres(3, np.array([[1.0, 0, 0]]), ext), [[0.1, 1.2, 0.305]], atol=1e-12)
+    # data type 2 (cm): the driver's C++ integer division truncates the mm translation toward zero
+    ext = (0.0, 0.0, 0.0, 17.0, -17.0, -9.0)
+    np.testing.assert_allclose(to_metres(2, np.array([[100.0, 0, 0]]), ext), [[1.01, -0.01, 0.0]], atol=1e-12)
 
 
 # --------------------------------------------------------------------------- udp_cnt accounting
