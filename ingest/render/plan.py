@@ -161,7 +161,7 @@ def check_reference(reference: CameraModel) -> DoubleSphere:
 def fov_cameras(reference: DoubleSphere, fov_deg: float, cfg: BenchmarkConfig) -> FovCameras:
     """The fisheye of ``fov_deg`` and the equirect/Cassini windows covering it."""
     fish = virtual_fisheye(reference, fov_deg, cfg.width, cfg.height)
-    hf = check_height_full(cfg.height_full or default_height_full(fish.model))
+    hf = check_height_full(default_height_full(fish.model) if cfg.height_full is None else cfg.height_full)
     pano = covering_crop(fish.model, np.eye(3), hf)
     c0, r0, w, h = _window_mask(fish.model, Cassini(hf))
     cas = CroppedModel(Cassini(hf), c0, r0, w, h)

@@ -73,7 +73,7 @@ class Geometry:
     @classmethod
     def from_rig(cls, rig: Rig, height_full: int | None = None) -> Geometry:
         model = rig.upper.model
-        h = check_height_full(height_full or default_height_full(model))
+        h = check_height_full(default_height_full(model) if height_full is None else height_full)
         valid = int(pixel_rays(model)[1].sum())  # cached: dense GT's warm-up and renderer reuse the rays
         return cls(rig, rectify_rig(rig), Equirectangular(h), px_per_rad(model), valid)
 

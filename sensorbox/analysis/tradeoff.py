@@ -64,7 +64,9 @@ class Alternative:
         sample = replace(cfg.sample, **dict(self.sample), gt=gt)
         out = replace(cfg, **dict(self.config), sample=sample)
         if self.height_scale != 1.0:
-            base = cfg.height_full or default_height_full(read_rig(cfg.rig).upper.model)
+            base = cfg.height_full
+            if base is None:
+                base = default_height_full(read_rig(cfg.rig).upper.model)
             out = replace(out, height_full=max(64, round(base * self.height_scale / 64) * 64))
         return out
 

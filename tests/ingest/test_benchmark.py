@@ -401,7 +401,8 @@ def test_a_y_up_scan_renders_nothing_and_says_why(tmp_path):
 
 
 def test_an_equirect_beyond_memory_is_refused_before_any_work(tmp_path):
-    """--height-full 100000 (a 1.8 TB sphere): one line suggesting a smaller --height-full, in both commands."""
+    """--height-full 100000 (a 1.8 TB sphere): one line suggesting a smaller --height-full, in both commands;
+    0 is refused as a value, not taken for the default."""
     from ingest.train.sample import Geometry
 
     pattern = r"^--height-full 100000: .* needs about 1800\.0 GB, .* pass --height-full \d+ or less$"
@@ -411,6 +412,8 @@ def test_an_equirect_beyond_memory_is_refused_before_any_work(tmp_path):
         run_benchmark([_ground_scan(2)], read_rig(RIG).camera("cam0").model, tmp_path / "b",
                       replace(CFG, height_full=100_000, centers=()))  # fmt: skip
     assert not (tmp_path / "b").exists()
+    with pytest.raises(CalibrationError, match=r"^--height-full must be >= 2 rows, got 0$"):
+        Geometry.from_rig(read_rig(RIG), 0)  # 0 is a value, not "the default"
 
 
 @pytest.mark.parametrize(
