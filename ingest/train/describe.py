@@ -77,10 +77,12 @@ def check_existing(asked: IngestConfig, geometry: Geometry, bags: list[Path]) ->
     A dataset is extended or resumed only with the same settings, rig and,
     for a recording ingested before, the same data. Ingest checks this first,
     before its passes over the bags (minutes with a trajectory), and again when
-    it writes dataset.yaml.
+    it writes dataset.yaml. A dataset without a sample (a run that stopped
+    before its first, say on images of another size than the rig's) has
+    nothing to differ from: it is started afresh, as if `asked.out` were empty.
     """
     path = asked.out / "dataset.yaml"
-    if not path.exists():
+    if not path.exists() or not any((asked.out / "meta").glob("*.json")):
         return {}
     doc = _fingerprint(asked, geometry, bags)
     old = _read_dataset_yaml(path)

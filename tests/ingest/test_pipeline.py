@@ -301,11 +301,17 @@ def test_an_imu_the_rig_names_must_be_in_the_bag(tmp_path: Path) -> None:
 
 
 def test_rig_that_does_not_match_the_bag(tmp_path: Path) -> None:
-    # the reference rig is full resolution; the fixture images are 480x300
+    """The reference rig is full resolution, the fixture images 480x300: the run stops at the first images.
+    The output it leaves holds no sample, so the same --out takes the right rig afterwards."""
     from calibration.rig import REFERENCE_RIG
 
     with pytest.raises(BagError, match=r"images are 480x300 but the rig's cam0 is 1920x1200"):
-        ingest([INDOOR], IngestConfig(rig=REFERENCE_RIG, out=tmp_path / "ds", workers=1))
+        ingest([INDOOR], IngestConfig(rig=REFERENCE_RIG, out=tmp_path / "ds", workers=1, every=10))
+    assert not list((tmp_path / "ds" / "meta").glob("*.json"))
+    summary = ingest([INDOOR], IngestConfig(rig=_rig(INDOOR), out=tmp_path / "ds", workers=1, every=10))
+    assert summary.written == summary.planned > 0
+    doc = yaml.safe_load((tmp_path / "ds" / "dataset.yaml").read_text())
+    assert doc["fisheye_size"] == [300, 480] and len(doc["sources"]) == 1  # rows, columns
 
 
 def _rewrite(src: Path, dst: Path, keep: object) -> Path:
