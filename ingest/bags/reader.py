@@ -307,8 +307,51 @@ def _odd_definition_encodings(path: Path) -> list[tuple[str, str, str]]:
     return found
 
 
+_METADATA_INTEGERS = (
+    "message_count", "duration.nanoseconds", "starting_time.nanoseconds_since_epoch",
+    "files[].message_count", "files[].duration.nanoseconds", "files[].starting_time.nanoseconds_since_epoch",
+    "topics_with_message_count[].message_count",
+)  # fmt: skip
+"""Keys of rosbag2's metadata.yaml (under `rosbag2_bagfile_information`) that hold integers."""
+
+
+def _metadata_values(node: Any, key: str, where: str) -> Iterator[tuple[str, Any]]:
+    """(dotted name with list indexes, value) of each value at `key` ("a.b", "list[].c") below `node`."""
+    head, _, rest = key.partition(".")
+    if head.endswith("[]"):
+        items = node.get(head[:-2]) if isinstance(node, dict) else None
+        for i, item in enumerate(items if isinstance(items, list) else []):
+            yield from _metadata_values(item, rest, f"{where}.{head[:-2]}[{i}]")
+    elif isinstance(node, dict) and head in node:
+        if rest:
+            yield from _metadata_values(node[head], rest, f"{where}.{head}")
+        else:
+            yield f"{where}.{head}", node[head]
+
+
+def check_metadata(path: Path) -> None:
+    """`BagError` naming the key and value when a rosbag2 folder's metadata.yaml holds a non-integer
+    count, duration or start time (rosbags would fail later with a bare TypeError). Keys that are
+    missing, and a file that is missing or not YAML, are left to rosbags' own errors (`_explain`)."""
+    meta = path / "metadata.yaml"
+    try:
+        doc = yaml.safe_load(meta.read_bytes())
+    except (OSError, yaml.YAMLError):
+        return
+    info = doc.get("rosbag2_bagfile_information") if isinstance(doc, dict) else None
+    if not isinstance(info, dict):
+        return
+    for key in _METADATA_INTEGERS:
+        for name, value in _metadata_values(info, key, "rosbag2_bagfile_information"):
+            if not isinstance(value, int) or isinstance(value, bool):
+                raise BagError(f"{meta}: {name} is {value!r}, expected an integer")
+
+
 def _open_reader(paths: list[Path], ros_version: RosVersion, guard: ChunkGuard) -> TolerantAnyReader:
     """An open reader over `paths` checking chunk by chunk, or `BagError` naming the path that fails."""
+    for path in paths:
+        if path.is_dir():
+            check_metadata(path)
     try:
         reader = TolerantAnyReader(paths, default_typestore=typestore(ros_version))
         reader.readers = guard_readers(reader.readers, guard)

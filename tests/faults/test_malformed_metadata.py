@@ -1,5 +1,6 @@
-"""Malformed metadata is one line naming the file: YAML (file, line, column, PyYAML's problem) and a
-rosbag2 .db3's message definitions that rosbags cannot open.
+"""Malformed metadata is one line naming the file: YAML (file, line, column, PyYAML's problem), a
+rosbag2 metadata.yaml's counts and times that are not integers (the key and value), and a rosbag2
+.db3's message definitions that rosbags cannot open.
 
 PyYAML's own message spans five lines (context, a caret, problem, a caret);
 every reader here condenses it with `calibration.opencv_yaml.yaml_error_line`.
@@ -69,3 +70,29 @@ def test_a_db3_definition_rosbags_cannot_open_is_named(tmp_path: Path) -> None:
         "that for a type it could not find while recording), which rosbags cannot open; record with that "
         "type's package sourced, or leave its topic out (ros2 bag convert, exclude_topics)"
     )
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "key"),
+    [
+        ("- message_count: 7\n    topic_metadata:\n      name: /livox/lidar_192_168_1_13",
+         "- message_count: lots\n    topic_metadata:\n      name: /livox/lidar_192_168_1_13",
+         "topics_with_message_count[4].message_count is 'lots'"),
+        ("nanoseconds_since_epoch: 1700000000001012932\n  storage", "nanoseconds_since_epoch: soon\n  storage",
+         "starting_time.nanoseconds_since_epoch is 'soon'"),
+        ("  message_count: 336\n  relative", "  message_count: 3.5\n  relative", "message_count is 3.5"),
+        ("    message_count: 336\n", "    message_count: true\n", "files[0].message_count is True"),
+    ],
+)  # fmt: skip
+def test_rosbag2_metadata_values_that_are_not_integers(tmp_path: Path, old: str, new: str, key: str) -> None:
+    """rosbags reads a non-integer count or time and fails later with a bare TypeError; the reader names
+    the file, the key and the value first."""
+    bag = tmp_path / "bag"
+    shutil.copytree(fixture_bag("indoor_static_mcap", FIXTURES_DIR), bag)
+    text = (bag / "metadata.yaml").read_text()
+    assert text.count(old) == 1
+    (bag / "metadata.yaml").write_text(text.replace(old, new))
+    with pytest.raises(SensorboxError) as err:
+        open_bags(bag)
+    expected = f"{bag / 'metadata.yaml'}: rosbag2_bagfile_information.{key}, expected an integer"
+    assert _one_line(err) == expected
