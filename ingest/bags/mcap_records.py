@@ -375,11 +375,11 @@ def mcap_messages(path: Path, report: SalvageReport) -> Iterator[tuple[McapChann
     """(channel, log_ns, data) of every intact message record of an MCAP file, in file order.
 
     `report` is filled while iterating (see the module docstring). The file
-    must exist; an empty file yields nothing.
+    must exist; an empty file yields nothing and its report is not intact.
     """
     with path.open("rb") as f:
         if f.seek(0, 2) == 0:
-            report.end = "read to the end of the file (empty)"
+            report.end = "the file is empty (0 bytes)"  # not intact: nothing of a recording was saved
             return
         data = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
     buf = memoryview(data)

@@ -347,11 +347,35 @@ def check_metadata(path: Path) -> None:
                 raise BagError(f"{meta}: {name} is {value!r}, expected an integer")
 
 
+ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
+
+
+def check_bare_db3(path: Path) -> None:
+    """`BagError` when the .db3 file `path`, given without its rosbag2 folder, holds zstd-compressed
+    messages: only the folder's metadata.yaml says so (compression_mode 'message'), and read without
+    it every message would fail to decode as CDR."""
+    try:
+        with contextlib.closing(sqlite3.connect(f"file:{path}?mode=ro", uri=True)) as db:
+            row = db.execute("SELECT data FROM messages LIMIT 1").fetchone()
+    except sqlite3.Error:  # not a database, no messages table: rosbags' own error names it
+        return
+    if row is not None and bytes(row[0][:4]) == ZSTD_MAGIC:
+        folder = path.parent
+        known = (folder / "metadata.yaml").is_file()
+        where = f"pass the folder {folder}" if known else "pass its rosbag2 folder"
+        raise BagError(
+            f"{path}: its messages are zstd-compressed, which only the rosbag2 folder's metadata.yaml "
+            f"declares (compression_mode 'message'); {where}, not the .db3 file"
+        )
+
+
 def _open_reader(paths: list[Path], ros_version: RosVersion, guard: ChunkGuard) -> TolerantAnyReader:
     """An open reader over `paths` checking chunk by chunk, or `BagError` naming the path that fails."""
     for path in paths:
         if path.is_dir():
             check_metadata(path)
+        elif path.suffix == ".db3":
+            check_bare_db3(path)
     try:
         reader = TolerantAnyReader(paths, default_typestore=typestore(ros_version))
         reader.readers = guard_readers(reader.readers, guard)

@@ -96,3 +96,22 @@ def test_rosbag2_metadata_values_that_are_not_integers(tmp_path: Path, old: str,
         open_bags(bag)
     expected = f"{bag / 'metadata.yaml'}: rosbag2_bagfile_information.{key}, expected an integer"
     assert _one_line(err) == expected
+
+
+def test_a_bare_db3_of_compressed_messages_asks_for_its_folder(tmp_path: Path) -> None:
+    """Message-compressed .db3 data is zstd frames, which only metadata.yaml declares: given the bare file,
+    every message would fail to decode as CDR. One line names the file and the folder to pass instead."""
+    bag = fixture_bag("indoor_walk_db3", FIXTURES_DIR)
+    (db3,) = bag.glob("*.db3")
+    with pytest.raises(SensorboxError) as err:
+        open_bags(db3)
+    assert _one_line(err) == (
+        f"{db3}: its messages are zstd-compressed, which only the rosbag2 folder's metadata.yaml declares "
+        f"(compression_mode 'message'); pass the folder {bag}, not the .db3 file"
+    )
+    alone = tmp_path / db3.name
+    shutil.copy(db3, alone)
+    with pytest.raises(SensorboxError, match=r"; pass its rosbag2 folder, not the .db3 file$"):
+        open_bags(alone)
+    with open_bags(bag) as bags:  # the folder reads
+        assert sum(t.count for t in bags.topics().values()) == 336

@@ -131,12 +131,17 @@ def test_a_cut_between_chunks_is_logged_as_a_cut(tmp_path, caplog):
     assert f"stopped at byte {third}, the end of the file, before the footer" in caplog.text
 
 
-def test_a_cut_magic_is_an_empty_file_and_garbage_is_not_mcap(tmp_path):
+def test_a_cut_magic_is_an_empty_file_and_garbage_is_not_mcap(tmp_path, caplog):
     (tmp_path / "m.mcap").write_bytes(b"\x89MC")
     with pytest.raises(BagError, match=r"m\.mcap: not an MCAP file"):
         list(salvage_mcap(tmp_path / "m.mcap"))
     (tmp_path / "e.mcap").write_bytes(b"")
-    assert list(salvage_mcap(tmp_path / "e.mcap")) == []
+    with caplog.at_level(logging.WARNING, logger="ingest.bags.reader"):
+        assert list(salvage_mcap(tmp_path / "e.mcap")) == []
+    warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert warned == [
+        f"{tmp_path / 'e.mcap'}: salvaged 0 messages (0 unreadable records skipped); the file is empty (0 bytes)"
+    ]
 
 
 # ---------------------------------------------------------------- unparsable definitions
