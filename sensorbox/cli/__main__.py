@@ -1,3 +1,3 @@
-from sensorbox.cli.main import main
+from sensorbox.cli import run
 
-main()
+run()

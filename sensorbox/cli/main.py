@@ -10,8 +10,11 @@ values with brackets arrive as they are.
 
 from __future__ import annotations
 
+import functools
 import logging
 import sys
+from collections.abc import Callable
+from typing import ParamSpec
 
 import typer
 from rich.text import Text
@@ -28,6 +31,8 @@ from sensorbox.cli.inspect import inspect_cmd
 from sensorbox.cli.render import render_benchmark_cmd
 from sensorbox.cli.simulate import simulate_cmd
 
+P = ParamSpec("P")
+
 app = typer.Typer(
     name="sensorbox",
     help="SensorBox: fisheye stereo + Livox LiDAR rig tools (WideDepth pipeline).",
@@ -39,13 +44,34 @@ calib_app = typer.Typer(
     help="Inspect and check calibrations (Kalibr camchains, rig files).", no_args_is_help=True
 )
 app.add_typer(calib_app, name="calib")
-calib_app.command("check")(calib_check)
+
+
+def _interruptible(command: Callable[P, None]) -> Callable[P, None]:
+    """`command` with Ctrl-C as one line, "interrupted", and exit code 130 (typer's own is silent).
+
+    Every writer of a command writes atomically, so nothing half-written
+    stays; a command with more to say (ingest: what its output holds)
+    catches KeyboardInterrupt itself first.
+    """
+
+    @functools.wraps(command)
+    def run(*args: P.args, **kwargs: P.kwargs) -> None:
+        try:
+            command(*args, **kwargs)
+        except KeyboardInterrupt:
+            err_console.print("interrupted", markup=False, highlight=False)
+            raise typer.Exit(130) from None
+
+    return run
+
+
+calib_app.command("check")(_interruptible(calib_check))
 for name, command in (
     ("simulate", simulate_cmd), ("inspect", inspect_cmd), ("ingest", ingest_cmd), ("eval", eval_cmd),
     ("stats", stats_cmd), ("bench", bench_cmd), ("launch", launch_cmd), ("capture", capture_cmd),
     ("render-benchmark", render_benchmark_cmd),
 ):  # fmt: skip
-    app.command(name)(command)
+    app.command(name)(_interruptible(command))
 
 
 class _WarningLines(logging.Handler):

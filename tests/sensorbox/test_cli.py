@@ -165,3 +165,37 @@ def test_ingest_chooses_its_ground_truth_itself_by_default(
     assert "window +-1000 ms" in gt["decision"] and gt["trajectory"] is not None
     metas = [read_meta(out, p.stem) for p in sorted((out / "meta").glob("*.json"))]
     assert metas and all(m.gt.method == "dense" and m.gt.decision == gt["decision"] for m in metas)
+
+
+CTRL_C_IN_IMPORT = """
+import sys
+class CtrlC:  # Ctrl-C while the command modules load
+    def find_spec(self, name, path=None, target=None):
+        if name == "sensorbox.cli.main":
+            raise KeyboardInterrupt
+sys.meta_path.insert(0, CtrlC())
+from sensorbox.cli import run
+run()
+"""
+CTRL_C_IN_COMMAND = """
+import sys
+import sensorbox.sim.run
+def pressed(*args, **kwargs):
+    raise KeyboardInterrupt
+sensorbox.sim.run.simulate = pressed
+from sensorbox.cli import run
+run()
+"""
+
+
+@pytest.mark.parametrize("code", [CTRL_C_IN_IMPORT, CTRL_C_IN_COMMAND], ids=["start-up", "command"])
+def test_ctrl_c_is_one_line_and_exit_130(tmp_path, code):
+    """Ctrl-C while the CLI's modules load or while a command works: 'interrupted', exit code 130,
+    no traceback (ingest says more: tests/sensorbox/test_cli_interrupt.py)."""
+    args = ["simulate", "--out", str(tmp_path / "bag"), "--duration", "0.2"]
+    res = subprocess.run(
+        [sys.executable, "-c", code, *args], capture_output=True, text=True, cwd=ROOT, check=False
+    )
+    assert res.returncode == 130, res.stderr
+    assert [ln for ln in res.stderr.splitlines() if ln.strip()] == ["interrupted"], res.stderr
+    assert not (tmp_path / "bag").exists()
