@@ -197,7 +197,7 @@ def _add_sweep(acc: _SweepAcc, sweep: Sweep) -> None:
 
 def _add_imu(acc: _ImuAcc, msg: RawMessage) -> None:
     """Add the unit specific force of one IMU message (unit-agnostic: g or m/s^2)."""
-    sample = decode(msg.msgtype, msg.raw, msg.ros_version)
+    sample = decode(msg.msgtype, msg.data(), msg.ros_version)
     if not isinstance(sample, ImuSample):
         return
     norm = float(np.linalg.norm(sample.acc))
@@ -223,7 +223,7 @@ def _read(
         acc.last_log = msg.log_ns
         if acc.stamped:
             try:
-                stamp = header_stamp_ns(msg.raw, msg.ros_version)
+                stamp = header_stamp_ns(msg.data(), msg.ros_version)
             except MessageDecodeError as err:
                 acc.fail(err)
             else:
@@ -241,7 +241,7 @@ def _measure(msg: RawMessage, sweeps: dict[str, _SweepAcc], imus: dict[str, _Imu
     """Decode what needs more than the header: LiDAR sweeps, the first IMU samples."""
     try:
         if msg.topic in sweeps:
-            sweep = decode(msg.msgtype, msg.raw, msg.ros_version)
+            sweep = decode(msg.msgtype, msg.data(), msg.ros_version)
             if isinstance(sweep, Sweep):
                 _add_sweep(sweeps[msg.topic], sweep)
         elif msg.topic in imus and imus[msg.topic].n < GRAVITY_SAMPLES:

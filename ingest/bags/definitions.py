@@ -112,11 +112,22 @@ class TolerantAnyReader(AnyReader):
     """
 
     unparsable: list[tuple[Connection, str]]
+    message_compressed: set[int]
+    """`id` of each rosbag2 storage (a connection's `owner`) whose messages are zstd-compressed one by
+    one (compression_mode 'message'): this reader yields them compressed, and `BagSet` decompresses
+    each itself, so that one corrupt message is that message's failure, not the end of the read."""
 
     def _open(self) -> None:
         assert self.stack is not None
         for reader in self.readers:
             self.stack.enter_context(reader)
+        self.message_compressed = set()
+        for reader in self.readers:
+            storage = getattr(reader, "storage", None)  # a rosbag2 reader's; a ROS 1 reader has none
+            metadata = getattr(storage, "metadata", None)
+            if getattr(metadata, "compression_mode", None) == "message":
+                storage.metadata = metadata._replace(compression_mode=None)  # type: ignore[union-attr]
+                self.message_compressed.add(id(storage))
         ros_version: RosVersion = 2 if self.is2 else 1
         kept: list[Connection] = []
         self.unparsable = []

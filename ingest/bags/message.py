@@ -17,7 +17,9 @@ class RawMessage(NamedTuple):
     When the read asked for it (`BagSet.messages(defer=...)`), a large
     message may still be in its compressed chunk: `deferred` holds that
     chunk, `raw` only the data's first bytes (its header), and `data()`
-    decompresses it.
+    decompresses it. `damage` says why a message stored on its own (a
+    rosbag2 .db3's zstd-compressed message) could not be read; `raw` is
+    then empty and every decoding raises `MessageDecodeError` with it.
     """
 
     topic: str
@@ -26,10 +28,11 @@ class RawMessage(NamedTuple):
     raw: Raw
     ros_version: RosVersion
     deferred: DeferredData | None = None
+    damage: str = ""
 
     def __reduce__(
         self,
-    ) -> tuple[type[RawMessage], tuple[str, str, int, bytes, RosVersion, DeferredData | None]]:
+    ) -> tuple[type[RawMessage], tuple[str, str, int, bytes, RosVersion, DeferredData | None, str]]:
         """Pickled (a Dask job, a process pipe) with `raw` as bytes: a view of its chunk does not pickle."""
         return RawMessage, (
             self.topic,
@@ -38,10 +41,14 @@ class RawMessage(NamedTuple):
             bytes(self.raw),
             self.ros_version,
             self.deferred,
+            self.damage,
         )
 
     def data(self) -> Raw:
-        """The message's bytes (a deferred chunk decompressed: `MessageDecodeError` if it fails)."""
+        """The message's bytes (a deferred chunk decompressed: `MessageDecodeError` if it fails or the
+        message is damaged)."""
+        if self.damage:
+            raise MessageDecodeError(self.damage)
         return self.raw if self.deferred is None else self.deferred.data()
 
     def decoded(self, where: str, keep_bgra: bool = False) -> Sweep | Frame | ImuSample:
@@ -54,6 +61,8 @@ class RawMessage(NamedTuple):
     def stamp(self, where: str) -> int:
         """The message's header stamp (ns); a failure names `where`, topic and log time."""
         try:
+            if self.damage:
+                raise MessageDecodeError(self.damage)
             return header_stamp_ns(self.raw, self.ros_version)
         except MessageDecodeError as err:
             raise MessageDecodeError(f"{where}: {self.topic} at log time {self.log_time}: {err}") from err

@@ -58,6 +58,7 @@ from types import TracebackType
 from typing import Any
 
 import yaml
+import zstandard
 from rosbags.interfaces import MessageDefinition, MessageDefinitionFormat
 
 from calibration.errors import SensorboxError
@@ -369,6 +370,20 @@ def check_bare_db3(path: Path) -> None:
         )
 
 
+def _decompressed(msg: RawMessage) -> RawMessage:
+    """`msg`, one zstd-compressed message of a rosbag2 .db3 (compression_mode 'message'), decompressed;
+    data that does not decompress is the message's `damage` (counted under --max-bad, or one line
+    naming the topic and log time), and the read goes on."""
+    frame = zstandard.ZstdDecompressor().decompressobj()
+    try:
+        data = frame.decompress(msg.raw)
+    except zstandard.ZstdError as err:
+        return msg._replace(raw=b"", damage=f"its zstd-compressed data does not decompress ({err})")
+    if not frame.eof:
+        return msg._replace(raw=b"", damage="its zstd-compressed data is cut short")
+    return msg._replace(raw=data)
+
+
 def _open_reader(paths: list[Path], ros_version: RosVersion, guard: ChunkGuard) -> TolerantAnyReader:
     """An open reader over `paths` checking chunk by chunk, or `BagError` naming the path that fails."""
     for path in paths:
@@ -627,9 +642,12 @@ class BagSet:
             self._guard.defer_topics = defer
         if readahead:
             self._guard.readahead = readahead
+        compressed = self._reader.message_compressed
         try:
             for conn, log_ns, raw in self._reader.messages(connections=conns, start=start_ns, stop=stop_ns):
-                if isinstance(raw, DeferredData) and conn.topic in defer:
+                if compressed and id(conn.owner) in compressed:
+                    yield _decompressed(RawMessage(conn.topic, conn.msgtype, log_ns, raw, self.ros_version))
+                elif isinstance(raw, DeferredData) and conn.topic in defer:
                     yield RawMessage(conn.topic, conn.msgtype, log_ns, raw.head, self.ros_version, raw)
                 elif isinstance(raw, DeferredData):  # asked for by another read running beside this one
                     yield RawMessage(conn.topic, conn.msgtype, log_ns, raw.data(), self.ros_version)

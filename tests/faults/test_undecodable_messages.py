@@ -19,6 +19,7 @@ from ingest.dataset.layout import GT_DIRS, IMAGE_DIRS
 from ingest.dataset.meta import read_meta
 from ingest.errors import MessageDecodeError
 from ingest.train.pipeline import UNDECODABLE_IMAGE, IngestConfig, ingest
+from sensorbox.sim.truth import truth_dir
 from tests.faults.bags import (
     LIDAR_TOP,
     LOWER,
@@ -144,3 +145,55 @@ def test_images_decoded_in_pool_workers_are_counted_as_in_one_process(
     assert summary.undecodable == {LIDAR_TOP: 1, LOWER: 1, UPPER: 1}
     assert (summary.planned, summary.written, summary.skipped) == (6, 4, {UNDECODABLE_IMAGE: 2})
     assert sorted(p.stem for p in (out / "meta").glob("*.json")) == [f"{k:06d}" for k in (0, 2, 3, 5)]
+
+
+def test_a_corrupt_message_of_a_compressed_db3_is_that_message_alone(tmp_path: Path) -> None:
+    """A rosbag2 .db3 with compression_mode 'message' stores each message as its own zstd frame. One whose
+    frame is damaged (zeroed bytes) or cut short is an undecodable message named by topic and log time,
+    skipped and counted under --max-bad; every other message of the recording still reads."""
+    import shutil
+    import sqlite3
+
+    from sensorbox.sim.fixtures import fixture_bag
+    from tests.paths import FIXTURES_DIR
+
+    src = fixture_bag("indoor_walk_db3", FIXTURES_DIR)
+    bag = tmp_path / "walk"
+    shutil.copytree(src, bag)
+    imu, upper = "/livox/imu_192_168_1_12", "/zed_upper/zed_node/rgb/color/rect/image/compressed"
+    (db3,) = bag.glob("*.db3")
+    with sqlite3.connect(db3) as db:
+        rows = db.execute(
+            "SELECT m.id, t.name, m.timestamp, m.data FROM messages m JOIN topics t ON m.topic_id = t.id "
+            "WHERE t.name IN (?, ?) ORDER BY m.timestamp",
+            (imu, upper),
+        ).fetchall()
+        bad_imu = next(r for r in rows if r[1] == imu and r[2] > rows[60][2])
+        bad_image = next(r for r in rows if r[1] == upper and r[2] > rows[100][2])
+        db.execute(
+            "UPDATE messages SET data = ? WHERE id = ?",
+            (bad_imu[3][:8] + bytes(32) + bad_imu[3][40:], bad_imu[0]),
+        )
+        db.execute(
+            "UPDATE messages SET data = ? WHERE id = ?",
+            (bad_image[3][: len(bad_image[3]) // 2], bad_image[0]),
+        )
+    with open_bags([bag]) as bags:
+        msgs = list(bags.messages())
+    assert len(msgs) == 336
+    damaged = {(m.topic, m.log_ns): m.damage for m in msgs if m.damage}
+    assert damaged == {
+        (imu, bad_imu[2]): "its zstd-compressed data does not decompress "
+        "(zstd decompressor error: Data corruption detected)",
+        (upper, bad_image[2]): "its zstd-compressed data is cut short",
+    }
+    rig = truth_dir(src) / "rig.yaml"
+    with pytest.raises(MessageDecodeError) as err:
+        ingest([bag], IngestConfig(rig=rig, out=tmp_path / "ds0", **FAST))  # type: ignore[arg-type]
+    assert str(err.value) == (
+        f"{bag}: {imu} at log time {_at(bad_imu[2])}: {damaged[(imu, bad_imu[2])]} "
+        "(undecodable message 1, more than --max-bad 0; --max-bad N skips and counts up to N)"
+    )
+    summary = ingest([bag], IngestConfig(rig=rig, out=tmp_path / "ds", max_bad=2, **FAST))  # type: ignore[arg-type]
+    assert summary.undecodable == {imu: 1, upper: 1}
+    assert summary.written >= 1
