@@ -19,7 +19,11 @@ OutOpt = Annotated[
 ]
 SceneOpt = Annotated[str, typer.Option(help="Procedural scene: indoor | outdoor.")]
 TrajectoryOpt = Annotated[str, typer.Option(help="static | walk (1.2 m/s handheld) | custom (--tum).")]
-TumOpt = Annotated[Path | None, typer.Option(help="TUM file of T_world_cam0 for --trajectory custom.")]
+TumOpt = Annotated[
+    Path | None,
+    typer.Option(help="TUM file of T_world_cam0 for --trajectory custom; time 0 is its first row, "
+                 "and it must span --duration."),
+]  # fmt: skip
 DurationOpt = Annotated[float, typer.Option(help="Seconds to simulate.")]
 SeedOpt = Annotated[int, typer.Option(help="Seed of the scene layout, texture, pattern phases and noise.")]
 FormatOpt = Annotated[str, typer.Option("--format", help="mcap | db3 (ROS 2 sqlite3) | bag (ROS 1).")]

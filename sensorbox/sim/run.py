@@ -115,11 +115,26 @@ class SimSummary:
     stage_seconds: dict[str, float]
 
 
+MIN_IMAGE_PX = 8
+"""Smallest camera image side: `render-benchmark` refuses smaller images too."""
+
+
 def scaled_rig(rig: Rig, scale: float) -> Rig:
-    """The rig with every camera model at `scale` x its resolution (extrinsics unchanged)."""
+    """The rig with every camera model at `scale` x its resolution (extrinsics unchanged).
+
+    A scale that leaves a camera under `MIN_IMAGE_PX` on a side is refused,
+    naming the scale, the camera, its scaled size and the smallest scale that works.
+    """
     if scale == 1.0:
         return rig
     cams = tuple(replace(c, model=c.model.scaled(scale)) for c in rig.cameras)
+    for full, small in zip(rig.cameras, cams, strict=True):
+        if min(small.model.width, small.model.height) < MIN_IMAGE_PX:
+            smallest = math.ceil(1000 * MIN_IMAGE_PX / min(full.model.width, full.model.height)) / 1000
+            raise SensorboxError(
+                f"--scale {scale:g} makes camera {small.name} {small.model.width}x{small.model.height} px; "
+                f"expected >= {MIN_IMAGE_PX} px on each side (--scale >= {smallest:g})"
+            )
     return replace(rig, cameras=cams, camchain=None)
 
 
@@ -136,12 +151,25 @@ def _imu_pose(rig: Rig, lidar_index: int) -> tuple[str, F64]:
 
 
 def build_trajectory(cfg: SimConfig, start_world: F64) -> Trajectory:
+    """The rig's trajectory of `cfg`; a TUM file must span the whole simulated duration.
+
+    Simulated time 0 is the TUM file's first row; a file shorter than
+    `--duration` is refused rather than holding its last pose to the end.
+    """
     if cfg.trajectory == "static":
         return static(start_world)
     if cfg.trajectory == "walk":
         return walk(start_world, cfg.seed)
     assert cfg.tum is not None
-    return TumSpline(cfg.tum)
+    traj = TumSpline(cfg.tum)
+    if traj.duration_s < cfg.duration_s:
+        span_s = round(traj.duration_s, 6)  # epoch stamps in float64: the span carries ~1e-7 s of noise
+        raise SensorboxError(
+            f"{cfg.tum}: the trajectory spans {span_s:g} s (first to last row), shorter than "
+            f"--duration {cfg.duration_s:g} s; expected a TUM file covering the whole simulation "
+            "(which starts at its first row)"
+        )
+    return traj
 
 
 @dataclass(frozen=True)

@@ -10,6 +10,7 @@ spline for position and scipy's C2 `RotationSpline` for orientation.
 
 from __future__ import annotations
 
+import math
 from abc import ABC, abstractmethod
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -137,6 +138,59 @@ def walk(start_world: F64, seed: int, speed_mps: float = 1.2) -> Handheld:
     )  # fmt: skip
 
 
+TUM_COLUMNS = ("t", "tx", "ty", "tz", "qx", "qy", "qz", "qw")
+
+
+def read_tum(path: Path) -> F64:
+    """The pose rows (N, 8) of a TUM file, `t tx ty tz qx qy qz qw` (t in s, position in m).
+
+    Blank lines and `#` comments are skipped. A row that is not 8 finite
+    numbers, whose quaternion has zero norm or whose time is not after the
+    previous row's is refused with its line number: the spline through it
+    would fail deep in scipy or be NaN.
+    """
+    try:
+        text = path.read_text()
+    except (OSError, ValueError) as err:  # ValueError: not UTF-8 text
+        raise SensorboxError(f"{path}: cannot read as a TUM trajectory ({err})") from err
+    rows: list[list[float]] = []
+    previous_t = ""  # the previous row's time as written
+    for line_no, line in enumerate(text.splitlines(), start=1):
+        fields = line.split("#", 1)[0].split()
+        if not fields:
+            continue
+        row = _tum_row(path, line_no, fields)
+        if rows and not row[0] > rows[-1][0]:
+            raise SensorboxError(
+                f"{path}: line {line_no}: t is {fields[0]}, not after the previous row's {previous_t}; "
+                "expected strictly increasing timestamps"
+            )
+        rows.append(row)
+        previous_t = fields[0]
+    if len(rows) < 4:
+        raise SensorboxError(f"{path}: {len(rows)} pose rows; expected >= 4 rows 't tx ty tz qx qy qz qw'")
+    return np.array(rows, np.float64)
+
+
+def _tum_row(path: Path, line_no: int, fields: list[str]) -> list[float]:
+    """One TUM row as 8 floats, or a SensorboxError naming the file, line and column at fault."""
+    where = f"{path}: line {line_no}"
+    if len(fields) != len(TUM_COLUMNS):
+        raise SensorboxError(f"{where}: {len(fields)} columns; expected 8, 't tx ty tz qx qy qz qw'")
+    values = []
+    for name, field in zip(TUM_COLUMNS, fields, strict=True):
+        try:
+            value = float(field)
+        except ValueError:
+            raise SensorboxError(f"{where}: {name} is {field!r}; expected a number") from None
+        if not math.isfinite(value):
+            raise SensorboxError(f"{where}: {name} is {field}; expected a finite number")
+        values.append(value)
+    if math.hypot(*values[4:8]) == 0.0:
+        raise SensorboxError(f"{where}: the quaternion qx qy qz qw is all zeros; expected a rotation")
+    return values
+
+
 class TumSpline(Trajectory):
     """Interpolates T_world_cam0 poses of a TUM file (`t tx ty tz qx qy qz qw`); t0 = first row."""
 
@@ -144,24 +198,16 @@ class TumSpline(Trajectory):
 
     def __init__(self, path: Path) -> None:
         self.path = Path(path)
-        try:
-            rows = np.loadtxt(self.path, comments="#", ndmin=2)
-        except (OSError, ValueError) as err:
-            raise SensorboxError(f"{path}: cannot read as a TUM trajectory ({err})") from err
-        if rows.shape[1] != 8 or len(rows) < 4:
-            raise SensorboxError(
-                f"{path}: expected >= 4 rows of 8 columns 't tx ty tz qx qy qz qw', got shape {rows.shape}"
-            )
-        t = rows[:, 0] - rows[0, 0]
-        if np.any(np.diff(t) <= 0):
-            raise SensorboxError(
-                f"{path}: timestamps must increase strictly (row {int(np.argmin(np.diff(t))) + 2})"
-            )
+        rows = read_tum(self.path)
+        t = rows[:, 0] - rows[0, 0]  # s since the first row
         self.duration_s = float(t[-1])
         self._pos = CubicSpline(t, rows[:, 1:4])
         self._rot = RotationSpline(t, Rotation.from_quat(rows[:, 4:8]))
 
     def pose(self, t_s: F64) -> tuple[F64, F64]:
+        # The simulator samples up to about 1 ms outside [0, duration] (camera jitter, IMU finite
+        # differences); those times take the end pose. `build_trajectory` refuses a file shorter
+        # than the simulated duration, so nothing longer is ever clamped.
         t = np.clip(np.asarray(t_s, np.float64), 0.0, self.duration_s)
         return self._rot(t).as_matrix().reshape(-1, 3, 3), self._pos(t).reshape(-1, 3)
 

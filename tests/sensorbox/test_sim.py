@@ -344,6 +344,10 @@ def test_movers_are_where_their_truth_says_at_each_points_own_time(tmp_path: Pat
     [
         ({"duration_s": math.inf}, r"--duration must be a finite number > 0.0, got inf"),
         ({"scale": math.nan}, r"--scale must be a finite number > 0.0, got nan"),
+        (
+            {"scale": 0.001},
+            r"--scale 0.001 makes camera cam0 2x1 px; expected >= 8 px on each side \(--scale >= 0.007\)$",
+        ),
         ({"range_noise_m": math.nan}, r"--range-noise must be a finite number >= 0 m, got nan"),
         ({"tum": Path("t.tum")}, r"--tum is read only with --trajectory custom \(got --trajectory static\)"),
     ],
@@ -351,8 +355,61 @@ def test_movers_are_where_their_truth_says_at_each_points_own_time(tmp_path: Pat
 def test_a_bad_simulation_setting_is_one_line_before_anything_is_written(
     tmp_path: Path, change: dict[str, object], message: str
 ) -> None:
-    """Non-finite values reached int() (a traceback) or the bag (NaN noise); --tum alone left a partial bag."""
+    """Non-finite values reached int() (a traceback) or the bag (NaN noise); --tum alone left a partial bag;
+    --scale 0.001 wrote 2x1 px cameras."""
     cfg = SimConfig(**{"duration_s": 0.1, "scale": 0.1, **change})  # type: ignore[arg-type]
     with pytest.raises(SensorboxError, match=message):
         simulate(cfg, tmp_path / "bag")
     assert list(tmp_path.iterdir()) == []
+
+
+def _write_tum(path: Path, rows: int, dt_s: float, replace: dict[int, str] | None = None) -> Path:
+    """A TUM file of `rows` poses `dt_s` apart at epoch stamps (line 1 a comment; row k on line k + 2)."""
+    lines = ["# t tx ty tz qx qy qz qw"]
+    for k in range(rows):
+        lines.append(f"{1_700_000_000 + k * dt_s:.6f} {0.1 * k:.3f} 0 1.4 0.5 -0.5 0.5 -0.5")
+    for line_no, text in (replace or {}).items():
+        lines[line_no - 1] = text
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+@pytest.mark.parametrize(
+    ("line", "message"),
+    [
+        ("1700000000.100000 nan 0 1.4 0.5 -0.5 0.5 -0.5", "line 4: tx is nan; expected a finite number"),
+        (
+            "1700000000.100000 0.2 0 1.4 0 0 0 0",
+            "line 4: the quaternion qx qy qz qw is all zeros; expected a rotation",
+        ),
+        (
+            "1700000000.100000 0.2 0 1.4 0.5 -0.5 0.5",
+            "line 4: 7 columns; expected 8, 't tx ty tz qx qy qz qw'",
+        ),
+        ("1700000000.100000 0.2 0 x 0.5 -0.5 0.5 -0.5", "line 4: tz is 'x'; expected a number"),
+        (
+            "1700000000.000000 0.2 0 1.4 0.5 -0.5 0.5 -0.5",
+            "line 4: t is 1700000000.000000, not after the previous row's 1700000000.050000; "
+            "expected strictly increasing timestamps",
+        ),
+    ],
+)
+def test_a_bad_tum_row_is_named_by_its_line(tmp_path: Path, line: str, message: str) -> None:
+    """NaN reached scipy's CubicSpline and a zero quaternion RotationSpline: tracebacks without a line."""
+    path = _write_tum(tmp_path / "t.tum", 20, 0.05, {4: line})
+    with pytest.raises(SensorboxError) as err:
+        TumSpline(path)
+    assert str(err.value) == f"{path}: {message}"
+
+
+def test_a_tum_file_shorter_than_the_duration_is_refused(tmp_path: Path) -> None:
+    """Poses past the last row were clamped: the rig froze for the rest of the recording, rc 0."""
+    path = _write_tum(tmp_path / "short.tum", 10, 0.01)
+    cfg = SimConfig(trajectory="custom", tum=path, duration_s=0.2, scale=0.1)
+    with pytest.raises(SensorboxError) as err:
+        simulate(cfg, tmp_path / "bag")
+    assert str(err.value) == (
+        f"{path}: the trajectory spans 0.09 s (first to last row), shorter than --duration 0.2 s; "
+        "expected a TUM file covering the whole simulation (which starts at its first row)"
+    )
+    assert not (tmp_path / "bag").exists()
