@@ -85,20 +85,44 @@ def read_site(manifest: Path, mask_label: str | None = "label") -> list[Scan]:
         raise ScanError(f"{manifest}: 'scans' must be a non-empty list")
     scans = []
     for k, e in enumerate(entries):
-        if not isinstance(e, dict) or "file" not in e:
-            raise ScanError(f"{manifest}: scans[{k}] needs at least 'file'")
+        _check_site_entry(manifest, k, e)
         try:
             T = as_transform(
                 e.get("T_world_scan", np.eye(4).tolist()), f"{manifest}: scans[{k}].T_world_scan"
             )
         except SensorboxError as err:
             raise ScanError(str(err)) from err
-        scan = read_cloud(manifest.parent / str(e["file"]), T, mask_label, name=e.get("name"))
-        if e.get("mask"):
-            mask = read_cloud(manifest.parent / str(e["mask"]), T, None)
+        scan = read_cloud(manifest.parent / e["file"], T, mask_label, name=e.get("name"))
+        if e.get("mask") is not None:
+            mask = read_cloud(manifest.parent / e["mask"], T, None)
             scan = Scan(scan.name, T, scan.xyz, scan.rgb, scan.masked, mask.xyz, scan.source)
         scans.append(scan)
     return scans
+
+
+SITE_ENTRY_KEYS = ("name", "file", "T_world_scan", "mask")
+
+
+def _check_site_entry(manifest: Path, k: int, entry: object) -> None:
+    """Refuse a `scans[k]` entry that is not a mapping of the known keys with string name/file/mask.
+
+    `T_world_scan` is checked by `as_transform`. An unknown key (a typo of
+    `T_world_scan`) would otherwise leave the scan at the identity pose.
+    """
+    where = f"{manifest}: scans[{k}]"
+    if not isinstance(entry, dict) or "file" not in entry:
+        raise ScanError(f"{where} needs at least 'file'")
+    unknown = [str(key) for key in entry if key not in SITE_ENTRY_KEYS]
+    if unknown:
+        raise ScanError(f"{where}: unknown key {unknown[0]!r}; expected {', '.join(SITE_ENTRY_KEYS)}")
+    for key, optional in (("name", True), ("file", False), ("mask", True)):
+        value = entry.get(key)
+        if optional and value is None:
+            continue
+        if not isinstance(value, str) or not value.strip():
+            raise ScanError(
+                f"{where}.{key} is {value!r} ({type(value).__name__}); expected a non-empty string"
+            )
 
 
 def read_cloud(path: Path, T_world_scan: F64 | None, mask_label: str | None = "label",

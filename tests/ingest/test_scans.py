@@ -202,3 +202,25 @@ def test_open3d_failures_name_the_file(tmp_path):
     with pytest.raises(ScanError, match=r"l\.ply: Open3D cannot read it: Total size of property x") as err:
         read_scans([tmp_path / "l.ply"])
     assert "\x1b" not in str(err.value) and ".cpp" not in str(err.value)
+
+
+@pytest.mark.parametrize(
+    ("entry", "problem"),
+    [
+        ("{name: [1, 2], file: room.ply}", "scans[0].name is [1, 2] (list); expected a non-empty string"),
+        ("{file: 3}", "scans[0].file is 3 (int); expected a non-empty string"),
+        ("{file: room.ply, mask: {a: 1}}", "scans[0].mask is {'a': 1} (dict); expected a non-empty string"),
+        ("{file: ''}", "scans[0].file is '' (str); expected a non-empty string"),
+        (
+            "{file: room.ply, T_world_scn: [[1]]}",
+            "scans[0]: unknown key 'T_world_scn'; expected name, file, T_world_scan, mask",
+        ),
+    ],
+)
+def test_site_entry_keys_of_the_wrong_type_name_the_key(tmp_path, entry, problem):
+    """A list as a name reached `_unique_names` (TypeError: unhashable type: 'list'), a traceback."""
+    manifest = tmp_path / "site.yaml"
+    manifest.write_text(f"sensorbox_site: 1\nscans:\n- {entry}\n")
+    with pytest.raises(ScanError) as err:
+        read_scans([manifest])
+    assert str(err.value) == f"{manifest}: {problem}"
