@@ -117,6 +117,37 @@ def cell_spacing(cell: I64, counts: I64, cells: tuple[int, int], smooth: int) ->
     return out
 
 
+def voxel_box(xyz: F32, inv: np.float32, voxel_m: float, source: str) -> tuple[I64, I64]:
+    """The lowest voxel (3,) and voxels per axis (3,) of the points' bounding box.
+
+    Voxel ids and a random rank share one int64 key, so the box may hold at
+    most 2^(62 - RANK_BITS) voxels (about 1.6 km a side at 0.25 m). A larger
+    box (outliers at 1e30, millimetres read as metres), or voxel ids beyond
+    int32 (points far from the origin), is refused naming the coordinates,
+    before the per-point int32 cast could overflow. `inv` is 1 / voxel_m in
+    float32, the arithmetic of the per-point cells, so the box matches them.
+    """
+    lo_m, hi_m = xyz.min(axis=0), xyz.max(axis=0)
+    if not (np.isfinite(lo_m).all() and np.isfinite(hi_m).all()):
+        raise ScanError(
+            f"{source}: coordinates that are not finite (NaN/inf); expected finite points in metres"
+        )
+    lo_v = np.floor(lo_m * inv).astype(np.float64)
+    span_v = np.floor(hi_m * inv).astype(np.float64) - lo_v + 1.0
+    bits = sum(math.ceil(math.log2(s + 1.0)) for s in span_v)
+    int32_cells = max(np.abs(lo_v).max(), np.abs(lo_v + span_v).max()) < 2.0**31
+    if bits + RANK_BITS > 62 or not int32_cells:
+        far_m = float(max(np.abs(lo_m).max(), np.abs(hi_m).max()))
+        box = " x ".join(f"{e:.3g}" for e in (hi_m.astype(np.float64) - lo_m))
+        side_m = voxel_m * 2.0 ** ((62 - RANK_BITS) / 3)
+        raise ScanError(
+            f"{source}: coordinates up to {far_m:.3g} m (bounding box {box} m), more than the renderer's "
+            f"index of {voxel_m:g} m voxels holds (about {side_m:.0f} m a side); expected the scan in metres "
+            "in its scanner frame (far outliers, another unit or a world frame?)"
+        )
+    return lo_v.astype(np.int64), span_v.astype(np.int64)
+
+
 def build_index(scan: Scan, voxel_m: float = VOXEL_M) -> ScanIndex:
     """Sort ``scan`` into voxel buckets, randomly ordered inside each (one argsort of N int64 keys).
 
@@ -128,18 +159,11 @@ def build_index(scan: Scan, voxel_m: float = VOXEL_M) -> ScanIndex:
     xyz = scan.xyz
     if len(xyz) == 0:
         raise ScanError(f"{scan.source or scan.name}: the scan has no points")
+    inv = np.float32(1.0 / voxel_m)
+    lo, span = voxel_box(xyz, inv, voxel_m, scan.source or scan.name)
     spacing = angular_spacing(xyz)
     # voxel id per point, one axis at a time (int32 cells: a 20M-point scan needs no (N, 3) int64)
-    inv = np.float32(1.0 / voxel_m)
     cells = [np.floor(xyz[:, k] * inv).astype(np.int32) for k in range(3)]
-    lo = np.array([int(c.min()) for c in cells])
-    span = np.array([int(c.max()) for c in cells]) - lo + 1
-    bits = sum(math.ceil(math.log2(int(s) + 1)) for s in span)
-    if bits + RANK_BITS > 62:
-        raise ScanError(
-            f"{scan.source or scan.name}: the scan spans {span.tolist()} voxels of {voxel_m} m; "
-            "use a larger voxel size"
-        )
     key = cells[0].astype(np.int64) - int(lo[0])
     for k in (1, 2):
         key *= int(span[k])

@@ -14,6 +14,7 @@ import pytest
 from calibration import CameraModel, read_rig
 from calibration.spherical import Cassini, Equirectangular, pinhole_for_fov
 from calibration.virtual import CroppedModel, R_up_cam, partner_pose, virtual_ds
+from ingest.errors import ScanError
 from ingest.eval.metrics import score_range
 from ingest.raster.lod import build_index
 from ingest.raster.scan import Scan
@@ -192,3 +193,31 @@ def test_pixel_mask_and_empty_input(site):
     T_away[:3, :3] = R_up_cam(0.0)
     empty = render_view(site["idx"][:1], m, T_away)
     assert empty.stats["valid_px"] == 0 and empty.holes.sum() == empty.rays.sum()
+
+
+def test_a_scan_with_absurd_coordinates_is_one_line_without_numpy_warnings():
+    """Every 1000th point at 1e30 gave two RuntimeWarnings (an int32 cast) and "use a larger voxel
+    size", which no CLI option sets."""
+    import warnings
+
+    xyz = np.random.default_rng(0).uniform(-5, 5, (5000, 3)).astype(np.float32)
+    xyz[::1000] = 1e30
+    scan = Scan("far", np.eye(4), xyz, np.zeros((5000, 3), np.uint8), source="far.ply")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(ScanError) as err:
+            build_index(scan)
+    assert str(err.value) == (
+        "far.ply: coordinates up to 1e+30 m (bounding box 1e+30 x 1e+30 x 1e+30 m), more than the renderer's "
+        "index of 0.25 m voxels holds (about 1625 m a side); expected the scan in metres in its scanner frame "
+        "(far outliers, another unit or a world frame?)"
+    )
+    small_but_far = replace(
+        scan, xyz=(xyz[1:1000] + np.float32(1e9)).astype(np.float32), rgb=scan.rgb[1:1000]
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(
+            ScanError, match=r"^far\.ply: coordinates up to 1e\+09 m \(bounding box 0 x 0 x 0 m\)"
+        ):
+            build_index(small_but_far)
