@@ -21,6 +21,7 @@ class Scan:
     masked: Bool | None = None  # (N,) True = reflective/transparent surface
     mask_xyz: F32 = field(default_factory=lambda: np.zeros((0, 3), np.float32))  # (M, 3) mask cloud
     source: str = ""
+    dropped_points: int = 0  # read but not kept: not finite or at the scanner origin (no return)
 
     def __post_init__(self) -> None:
         n = len(self.xyz)

@@ -371,6 +371,7 @@ def _scene_doc(
                 "name": scans[i].name,
                 "source": scans[i].source,
                 "points": len(scans[i].xyz),
+                "dropped_points": scans[i].dropped_points,  # not finite or at the scanner origin
                 "T_world_scan": np.round(scans[i].T_world_scan, 12).tolist(),
             }
             for i in view.bundle

@@ -24,7 +24,7 @@ from ingest.errors import BenchmarkError
 from ingest.raster.scan import Scan
 from ingest.raster.visibility import RenderParams, backend_problem
 from ingest.render.plan import BASELINES_MM, FOVS_DEG, BenchmarkConfig, check_reference
-from ingest.render.scans import read_cloud, read_scans
+from ingest.render.scans import read_mask_points, read_scans
 
 
 @dataclass(frozen=True)
@@ -112,7 +112,7 @@ def prepare(req: BenchmarkRequest) -> tuple[list[Scan], CameraModel, BenchmarkCo
         check_height_full(cfg.height_full)
     site = read_scans(list(req.scans), req.mask_label or None)
     for m in req.masks or ():  # a world-frame mask cloud joins every scan, in that scan's frame
-        world = read_cloud(m, np.eye(4), None).xyz.astype(np.float64)
+        world = read_mask_points(m).astype(np.float64)
         site = [
             replace(s, mask_xyz=np.concatenate([s.mask_xyz, _to_scan(world, s.T_world_scan)])) for s in site
         ]

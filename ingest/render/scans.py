@@ -15,14 +15,20 @@ Inputs (`read_scans` takes any mix):
 - `.pcd`: one scan, pose from the header's VIEWPOINT (tx ty tz qw qx qy qz);
 - `.ply`: one scan in its own frame (T_world_scan = identity).
 A label field (`mask_label`, default ``label``) marks masked points where it is
-non-zero.
+non-zero. Every scan must have colours (mask clouds need none); points that
+are not finite or at the scanner origin are dropped with a logged warning
+that counts them (`Scan.dropped_points`).
 """
 
 from __future__ import annotations
 
+import logging
 import math
+import os
 import re
-from collections.abc import Sequence
+import sys
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -33,12 +39,13 @@ import yaml
 from calibration.errors import SensorboxError
 from calibration.opencv_yaml import yaml_error_line
 from calibration.transforms import as_transform
-from calibration.types import F32, F64, U8
+from calibration.types import F32, F64, U8, Bool
 from ingest.errors import ScanError
 from ingest.raster.scan import Scan
 
 E57_CHUNK = 1_000_000
 SITE_VERSION = 1
+log = logging.getLogger(__name__)
 
 
 def read_scans(paths: Sequence[Path | str], mask_label: str | None = "label") -> list[Scan]:
@@ -94,8 +101,7 @@ def read_site(manifest: Path, mask_label: str | None = "label") -> list[Scan]:
             raise ScanError(str(err)) from err
         scan = read_cloud(manifest.parent / e["file"], T, mask_label, name=e.get("name"))
         if e.get("mask") is not None:
-            mask = read_cloud(manifest.parent / e["mask"], T, None)
-            scan = Scan(scan.name, T, scan.xyz, scan.rgb, scan.masked, mask.xyz, scan.source)
+            scan = replace(scan, mask_xyz=read_mask_points(manifest.parent / e["mask"]))
         scans.append(scan)
     return scans
 
@@ -127,7 +133,42 @@ def _check_site_entry(manifest: Path, k: int, entry: object) -> None:
 
 def read_cloud(path: Path, T_world_scan: F64 | None, mask_label: str | None = "label",
                name: str | None = None) -> Scan:  # fmt: skip
-    """One PLY/PCD scan through Open3D's tensor reader (float32 xyz, uint8 colours kept as stored)."""
+    """One PLY/PCD scan through Open3D's tensor reader (float32 xyz, uint8 colours kept as stored).
+
+    A scan without colours is refused: its renders would be uniform grey.
+    Points that are not finite or lie at the scanner origin are dropped, with
+    a logged warning and the count in `Scan.dropped_points`.
+    """
+    pc = _read_open3d(path)
+    xyz = np.ascontiguousarray(pc.point.positions.numpy(), np.float32)
+    n = len(xyz)
+    if "colors" not in pc.point:
+        raise ScanError(
+            f"{path}: the scan has no colours; expected per-point colours (PLY red, green, blue; PCD rgb)"
+        )
+    rgb = _to_u8(pc.point.colors.numpy(), path)
+    masked = None
+    if mask_label and mask_label in pc.point:
+        masked = np.ascontiguousarray(pc.point[mask_label].numpy().reshape(n) != 0)
+    if T_world_scan is None:
+        T_world_scan = _pcd_viewpoint(path) if path.suffix.lower() == ".pcd" else np.eye(4)
+    keep = _returns(xyz, str(path))
+    if not keep.all():
+        xyz, rgb = xyz[keep], rgb[keep]
+        masked = masked[keep] if masked is not None else None
+    T = np.asarray(T_world_scan, np.float64)
+    return Scan(name or path.stem, T, xyz, rgb, masked, source=str(path), dropped_points=n - len(xyz))
+
+
+def read_mask_points(path: Path) -> F32:
+    """The points (M, 3) of a PLY/PCD mask cloud (no colours needed), without non-finite or origin points."""
+    xyz = np.ascontiguousarray(_read_open3d(path).point.positions.numpy(), np.float32)
+    out: F32 = xyz[_returns(xyz, str(path))]
+    return out
+
+
+def _read_open3d(path: Path) -> Any:
+    """An Open3D tensor point cloud with at least one point, or a ScanError naming the file."""
     import open3d as o3d
 
     if not path.exists():
@@ -136,28 +177,57 @@ def read_cloud(path: Path, T_world_scan: F64 | None, mask_label: str | None = "l
     if short:  # Open3D zero-fills a short PLY
         raise ScanError(f"{path}: truncated: {short}")
     try:
-        pc = o3d.t.io.read_point_cloud(path)
+        with _open3d_quiet():
+            pc = o3d.t.io.read_point_cloud(path)
     except RuntimeError as err:  # Open3D raises for some malformed headers, warns for others
         raise ScanError(f"{path}: Open3D cannot read it: {_open3d_message(err)}") from err
     if "positions" not in pc.point or len(pc.point.positions) == 0:
         raise ScanError(f"{path}: no points (or not a PLY/PCD file Open3D can read)")
-    xyz = np.ascontiguousarray(pc.point.positions.numpy(), np.float32)
-    n = len(xyz)
-    if "colors" in pc.point:
-        c = pc.point.colors.numpy()
-        rgb = _to_u8(c, path)
-    else:
-        rgb = np.full((n, 3), 128, np.uint8)
-    masked = None
-    if mask_label and mask_label in pc.point:
-        masked = np.ascontiguousarray(pc.point[mask_label].numpy().reshape(n) != 0)
-    if T_world_scan is None:
-        T_world_scan = _pcd_viewpoint(path) if path.suffix.lower() == ".pcd" else np.eye(4)
-    finite = np.isfinite(xyz).all(axis=1) & (np.einsum("ij,ij->i", xyz, xyz) > 0.0)
-    if not finite.all():  # NaN / zero points are "no return" on most scanners: a counted drop
-        xyz, rgb = xyz[finite], rgb[finite]
-        masked = masked[finite] if masked is not None else None
-    return Scan(name or path.stem, np.asarray(T_world_scan, np.float64), xyz, rgb, masked, source=str(path))
+    return pc
+
+
+@contextmanager
+def _open3d_quiet() -> Iterator[None]:
+    """Hold back Open3D's own warnings (stdout) and RPly's messages (C stdio, fd 2) during a read.
+
+    They precede and repeat in other words ("Read PLY failed", "Unable to read
+    magic number") the one ScanError line the caller raises. fd 2 points at
+    /dev/null only for the call and is restored after it; scans are read before
+    any progress display or worker starts, so nothing else writes there meanwhile.
+    """
+    import open3d as o3d
+
+    sys.stderr.flush()
+    saved_fd = os.dup(2)
+    try:
+        with Path(os.devnull).open("wb") as null:
+            os.dup2(null.fileno(), 2)
+            try:
+                with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+                    yield
+            finally:
+                os.dup2(saved_fd, 2)
+    finally:
+        os.close(saved_fd)
+
+
+def _returns(xyz: F32, source: str) -> Bool:
+    """Points (N,) to keep: finite and not at the scanner origin; a warning counts the rest.
+
+    NaN/inf or (0, 0, 0) is how most scanners write "no return"; those points
+    carry no measurement, so they are dropped, and the user is told how many.
+    """
+    finite = np.isfinite(xyz).all(axis=1)
+    with np.errstate(invalid="ignore", over="ignore"):  # NaN and 1e30 compare as they should
+        keep: Bool = finite & (np.einsum("ij,ij->i", xyz, xyz) > 0.0)
+    dropped = len(xyz) - int(keep.sum())
+    if dropped:
+        not_finite = int((~finite).sum())
+        reasons = [f"{not_finite} not finite (NaN/inf)"] if not_finite else []
+        if dropped > not_finite:
+            reasons.append(f"{dropped - not_finite} at the scanner origin (no return)")
+        log.warning("%s: dropped %d of %d points: %s", source, dropped, len(xyz), ", ".join(reasons))
+    return keep
 
 
 def _open3d_message(err: RuntimeError) -> str:
@@ -295,7 +365,9 @@ def read_e57(path: Path, chunk: int = E57_CHUNK) -> list[Scan]:
                 else np.eye(4)
             )
             xyz, rgb = _read_e57_points(e57, libe57, header, chunk, where)
-            scans.append(Scan(str(name), T, xyz, rgb, source=f"{path}#{i}"))
+            keep = _returns(xyz, where)
+            scan = Scan(str(name), T, xyz[keep], rgb[keep], source=f"{path}#{i}")
+            scans.append(replace(scan, dropped_points=len(xyz) - len(scan.xyz)))
     except libe57.E57Exception as err:  # corrupt records, bad sections: libE57Format's own exception
         raise ScanError(f"{where}: libE57 cannot read it: {_first_line(err)}") from err
     finally:
@@ -317,9 +389,10 @@ def _read_e57_points(e57: Any, libe57: Any, header: Any, chunk: int, where: str)
     if coords is None:
         raise ScanError(f"{where}: no cartesian or spherical coordinates (fields: {sorted(fields)})")
     colours = ("colorRed", "colorGreen", "colorBlue")
-    has_rgb = set(colours) <= fields
+    if not set(colours) <= fields:
+        raise ScanError(f"{where}: the scan has no colours; expected per-point {', '.join(colours)}")
     invalid_field = "cartesianInvalidState" if coords is cart else "sphericalInvalidState"
-    names = [*coords, *(colours if has_rgb else ()), *((invalid_field,) if invalid_field in fields else ())]
+    names = [*coords, *colours, *((invalid_field,) if invalid_field in fields else ())]
     n_total = int(header.point_count)
     cap = max(1, min(chunk, n_total))
     # float64 for coordinates and colours (any colour limits), int8 for the invalid state; libE57's
@@ -328,7 +401,7 @@ def _read_e57_points(e57: Any, libe57: Any, header: Any, chunk: int, where: str)
     vec = libe57.VectorSourceDestBuffer()
     for n in names:
         vec.append(libe57.SourceDestBuffer(e57.image_file, n, bufs[n], cap, True, True))
-    scale = 255.0 / _colour_max(header) if has_rgb else 1.0
+    scale = 255.0 / _colour_max(header)
     xyz_parts, rgb_parts = [], []
     reader = header.points.reader(vec)
     try:
@@ -345,16 +418,14 @@ def _read_e57_points(e57: Any, libe57: Any, header: Any, chunk: int, where: str)
                 ce = np.cos(el)
                 p = np.stack([r * ce * np.cos(az), r * ce * np.sin(az), r * np.sin(el)], axis=1)
             xyz_parts.append(p.astype(np.float32))
-            if has_rgb:
-                c = np.stack([b[k][ok] for k in colours], axis=1) * scale
-                rgb_parts.append(np.clip(np.round(c), 0, 255).astype(np.uint8))
+            c = np.stack([b[k][ok] for k in colours], axis=1) * scale
+            rgb_parts.append(np.clip(np.round(c), 0, 255).astype(np.uint8))
     finally:
         reader.close()
     xyz = np.concatenate(xyz_parts) if xyz_parts else np.zeros((0, 3), np.float32)
     if len(xyz) == 0:
         raise ScanError(f"{where}: no valid points")
-    rgb = np.concatenate(rgb_parts) if has_rgb else np.full((len(xyz), 3), 128, np.uint8)
-    return xyz, rgb
+    return xyz, np.concatenate(rgb_parts)
 
 
 def _colour_max(header: Any) -> float:

@@ -386,8 +386,11 @@ def test_a_y_up_scan_renders_nothing_and_says_why(tmp_path):
     cfg = BenchmarkConfig(fovs_deg=(120.0,), baselines_mm=(65.0,), width=48, height=32, height_full=64,
                           yaws_deg=(90.0,), workers=1, exr=False)  # fmt: skip
     ref = read_rig(RIG).camera("cam0").model
-    z_up = run_benchmark([_ground_scan(2)], ref, tmp_path / "z", cfg)  # looks along +y: ground below
+    dropped = replace(_ground_scan(2), dropped_points=3)  # as read from a file with 3 NaN points
+    z_up = run_benchmark([dropped], ref, tmp_path / "z", cfg)  # looks along +y: ground below
     assert not z_up.warnings and not z_up.empty
+    doc = yaml.safe_load((tmp_path / "z" / "000_000_000" / "scene.yaml").read_text())
+    assert (doc["scans"][0]["points"], doc["scans"][0]["dropped_points"]) == (40_000, 3)
     y_up = run_benchmark([_ground_scan(1)], ref, tmp_path / "y", cfg)  # "along +y" is the sky
     stats = y_up.stats["000_000_000"]
     assert sorted(y_up.empty["000_000_000"]) == sorted(stats) and all(

@@ -63,22 +63,63 @@ def _cloud(path, xyz, rgb=None, label=None):
     assert o3d.t.io.write_point_cloud(path, pc)
 
 
-def test_label_field_marks_points_and_invalid_points_are_dropped(tmp_path):
+def test_label_field_marks_points_and_invalid_points_are_dropped(tmp_path, caplog):
+    """The dropped points were silent (scene.yaml's `points` the only trace): now a warning and a count."""
     xyz = np.random.default_rng(0).normal(size=(100, 3)).astype(np.float32)
-    xyz[5] = np.nan
+    xyz[[5, 6]] = np.nan
     xyz[7] = 0.0
     label = (np.arange(100) % 3 == 0).astype(np.uint8)
-    _cloud(tmp_path / "a.ply", xyz, np.full((100, 3), 7, np.uint8), label)
-    (scan,) = read_scans([tmp_path / "a.ply"])
+    path = tmp_path / "a.ply"
+    _cloud(path, xyz, np.full((100, 3), 7, np.uint8), label)
+    (scan,) = read_scans([path])
     keep = np.ones(100, bool)
-    keep[[5, 7]] = False
+    keep[[5, 6, 7]] = False
     np.testing.assert_array_equal(scan.xyz, xyz[keep])
     np.testing.assert_array_equal(scan.masked, label[keep] != 0)
-    (unlabelled,) = read_scans([tmp_path / "a.ply"], mask_label=None)
+    assert scan.dropped_points == 3
+    assert [r.getMessage() for r in caplog.records if r.levelname == "WARNING"] == [
+        f"{path}: dropped 3 of 100 points: 2 not finite (NaN/inf), 1 at the scanner origin (no return)"
+    ]
+    (unlabelled,) = read_scans([path], mask_label=None)
     assert unlabelled.masked is None
-    _cloud(tmp_path / "b.ply", xyz[keep])  # no colours: mid grey
-    (grey,) = read_scans([tmp_path / "b.ply"])
-    assert (grey.rgb == 128).all()
+
+
+def test_a_scan_without_colours_is_refused(tmp_path):
+    """A colourless PLY rendered every image a uniform grey 128, rc 0."""
+    _cloud(tmp_path / "b.ply", np.ones((10, 3), np.float32))
+    with pytest.raises(ScanError) as err:
+        read_scans([tmp_path / "b.ply"])
+    assert str(err.value) == (
+        f"{tmp_path / 'b.ply'}: the scan has no colours; expected per-point colours (PLY red, green, blue; PCD rgb)"
+    )
+    with pye57.E57(str(tmp_path / "b.e57"), mode="w") as e:
+        xyz = np.ones((10, 3))
+        e.write_scan_raw({"cartesianX": xyz[:, 0], "cartesianY": xyz[:, 1], "cartesianZ": xyz[:, 2]})
+    with pytest.raises(ScanError) as err:
+        read_scans([tmp_path / "b.e57"])
+    assert str(err.value) == (
+        f"{tmp_path / 'b.e57'}: data3D[0]: the scan has no colours; expected per-point colorRed, colorGreen, colorBlue"
+    )
+
+
+def test_a_mask_cloud_needs_no_colours(tmp_path):
+    _cloud(tmp_path / "s.ply", np.ones((10, 3), np.float32), np.full((10, 3), 7, np.uint8))
+    _cloud(tmp_path / "m.ply", np.full((4, 3), 2.0, np.float32))
+    (tmp_path / "site.yaml").write_text("sensorbox_site: 1\nscans:\n- {file: s.ply, mask: m.ply}\n")
+    (scan,) = read_scans([tmp_path / "site.yaml"])
+    np.testing.assert_array_equal(scan.mask_xyz, np.full((4, 3), 2.0, np.float32))
+
+
+@pytest.mark.parametrize("header", [b"", b"ply\nformat ascii 1.0\n"])
+def test_an_unreadable_ply_prints_only_our_line(tmp_path, capfd, header):
+    """Open3D's "[Open3D WARNING] Read PLY failed" (stdout) and RPly's "Unable to read magic number"
+    (stderr) came before the error line."""
+    path = tmp_path / "e.ply"
+    path.write_bytes(header)
+    with pytest.raises(ScanError) as err:
+        read_scans([path])
+    assert str(err.value) == f"{path}: no points (or not a PLY/PCD file Open3D can read)"
+    assert capfd.readouterr() == ("", "")
 
 
 def _write_e57(path, scans):
@@ -147,7 +188,7 @@ def test_bad_inputs_name_the_file(tmp_path, sim):
 
 
 def test_pcd_viewpoint_must_have_seven_numbers(tmp_path):
-    _cloud(tmp_path / "v.pcd", np.ones((3, 3), np.float32))
+    _cloud(tmp_path / "v.pcd", np.ones((3, 3), np.float32), np.full((3, 3), 7, np.uint8))
     data = (tmp_path / "v.pcd").read_bytes().replace(b"VIEWPOINT 0 0 0 1 0 0 0", b"VIEWPOINT 0 0 0 1")
     (tmp_path / "v.pcd").write_bytes(data)
     with pytest.raises(ScanError, match="VIEWPOINT needs 7 numbers"):
