@@ -67,3 +67,8 @@ def human_bytes(n: float) -> str:
 def print_warning(line: str, target: Console = err_console) -> None:
     """One plain "warning: LINE" (no markup: paths and values print as they are), on stderr by default."""
     target.print(Text.assemble(("warning:", "bold yellow"), " ", line), highlight=False, soft_wrap=True)
+
+
+def print_error(line: str) -> None:
+    """One plain "error: LINE" on stderr (no markup), as `sensorbox.cli.main` prints a SensorboxError."""
+    err_console.print(Text.assemble(("error:", "bold red"), " ", line), highlight=False, soft_wrap=True)

@@ -17,7 +17,7 @@ from rich.table import Table
 
 from ingest.bag_report import BagReport, LidarCoverage, StereoReport, TopicStats
 from ingest.inspect import inspect_bags
-from sensorbox.cli.common import console, print_warning, progress_bar
+from sensorbox.cli.common import console, print_error, print_warning, progress_bar
 
 
 def _num(value: float | None, fmt: str = ".3f") -> str:
@@ -165,7 +165,11 @@ def inspect_cmd(
     ],
     rig: Annotated[
         Path | None,
-        typer.Option("--rig", help="Rig file (or Kalibr camchain): check its topics and pair its cameras."),
+        typer.Option(
+            "--rig",
+            help="Rig file (or Kalibr camchain): check its topics and pair its cameras (exit code 2 when a "
+            "sensor's topic is missing or of another type).",
+        ),
     ] = None,
     salvage: Annotated[
         bool,
@@ -188,3 +192,8 @@ def inspect_cmd(
     with progress_bar("reading", "messages") as update:
         report = inspect_bags(bags, salvage=salvage, rig=rig_obj, progress=update)
     _print_report(report, rig)
+    if report.rig_problems:  # the report stands; a script running inspect before ingest sees the failure
+        n = len(report.rig_problems)
+        verb = "does" if n == 1 else "do"
+        print_error(f"{rig}: {n} of its sensors {verb} not match the bag (the table above)")
+        raise typer.Exit(2)

@@ -17,14 +17,13 @@ from collections.abc import Callable
 from typing import ParamSpec
 
 import typer
-from rich.text import Text
 
 from calibration.errors import SensorboxError
 from ingest.errors import OutputError
 from sensorbox.cli.bench import bench_cmd
 from sensorbox.cli.calib import calib_check
 from sensorbox.cli.capture import capture_cmd, launch_cmd
-from sensorbox.cli.common import err_console, print_warning
+from sensorbox.cli.common import err_console, print_error, print_warning
 from sensorbox.cli.eval import eval_cmd, stats_cmd
 from sensorbox.cli.ingest import ingest_cmd
 from sensorbox.cli.inspect import inspect_cmd
@@ -117,7 +116,7 @@ def main() -> None:
 
 
 def _error(message: str) -> None:
-    err_console.print(Text.assemble(("error:", "bold red"), " ", message), highlight=False, soft_wrap=True)
+    print_error(message)
 
 
 if __name__ == "__main__":

@@ -78,7 +78,8 @@ def test_inspect_with_rig_reports_missing_topics(tmp_path: Path):
         (truth / "rig.yaml").read_text().replace("/livox/lidar_192_168_1_13", "/livox/lidar_10_0_0_9")
     )
     res = runner.invoke(app, ["inspect", str(bag), "--rig", str(rig)])
-    assert res.exit_code == 0, res.output
+    assert res.exit_code == 2, res.output  # the whole report, then the failed check
+    assert res.stderr.strip() == f"error: {rig}: 1 of its sensors does not match the bag (the table above)"
     assert "/livox/lidar_10_0_0_9" in res.stdout and "not in the bag" in res.stdout
     assert "/zed_upper/zed_node/rgb/color/rect/image " not in res.stdout  # found as /compressed
     assert "The bag's topics:" in res.stdout
