@@ -69,7 +69,9 @@ def status_line(prev: GraphSnapshot | None, now: GraphSnapshot) -> str:
 def _summary(result: GraphResult, title: str) -> None:
     snap = result.snapshot
     elapsed = max(snap.elapsed_s, 1e-9)
-    table = Table(title=f"{title}: {snap.elapsed_s:.1f} s, stopped: {escape(result.reason)}")
+    by_error = result.error is not None and result.reason == result.error  # printed once, as `error:`
+    stopped = " by the error below" if by_error else f": {result.reason}"
+    table = Table(title=f"{title}: {snap.elapsed_s:.1f} s, stopped{escape(stopped)}")
     for col in ("topic", "published", "written", "lost", "rate [Hz]"):
         table.add_column(col, justify="left" if col == "topic" else "right", overflow="fold")
     for topic in sorted(set(snap.published) | set(snap.written)):
@@ -89,13 +91,22 @@ def _summary(result: GraphResult, title: str) -> None:
             sum(f.stat().st_size for f in Path(path).rglob("*") if f.is_file()) if Path(path).exists() else 0
         )
         console.print(f"Bag: {path} ({human_bytes(size)})", highlight=False)
-    errors = [f"{name}: {st.error}" for name, st in snap.nodes.items() if st.error]
+    # node errors other than the run's own (that one is the `error:` line `_finish` ends with)
+    errors = [
+        f"{name}: {st.error}" for name, st in snap.nodes.items() if st.error and st.error != result.error
+    ]
     for line in errors:
         err_console.print(f"[red]{escape(line)}[/red]")
 
 
 def _setup_logging(verbose: bool) -> None:
+    """Library log records on stderr through rich: its level column, then the message alone.
+
+    (`basicConfig` would give the handler logging's default "LEVEL:logger:message"
+    format, so every line said its level twice.)
+    """
     handler = RichHandler(console=err_console, show_path=False, show_time=False)
+    handler.setFormatter(logging.Formatter("%(message)s"))
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, handlers=[handler], force=True)
 
 
@@ -227,19 +238,18 @@ def capture_cmd(
 ) -> None:  # fmt: skip
     """Record the rig (both Mid-360s, both cameras) into mcap bags; the rig file's form of
     launch/sensorbox.launch.yaml."""
-    from sensorbox.live.capture import CaptureConfig, capture
+    from sensorbox.live.capture import CaptureConfig, capture, check_config
 
     _check_choice("--camera", camera, ("zed", "opencv"))
     _check_choice("--image", image, ("jpeg", "raw"))
     _check_choice("--lidar-msg", lidar_msg, ("custom", "pointcloud2"))
-    if not 1 <= port_base <= 65535 - 8:
-        raise SensorboxError(f"--port-base {port_base}: expected 1..65527 (the first of nine UDP ports)")
-    _setup_logging(verbose)
     cfg = CaptureConfig(
         rig=rig, out=out, name=name, host_ip=host_ip, camera=camera, upper=upper, lower=lower,  # type: ignore[arg-type]
         image=image, jpeg_quality=jpeg_quality, xfer_format=1 if lidar_msg == "custom" else 0,  # type: ignore[arg-type]
         duration_s=duration, split_size_mb=split_size, min_free_mb=min_free, emulate=emulate,
         port_base=port_base, scale=scale,
     )  # fmt: skip
+    check_config(cfg)  # before the logging set-up, as the choices above: a refused option changes nothing
+    _setup_logging(verbose)
     result = _run_live(lambda sd, tick: capture(cfg, shutdown=sd, on_tick=tick))
     _finish(result, f"capture {out}")

@@ -11,6 +11,8 @@ launch/sim.launch.yaml does, so the whole path runs without a rig.
 
 from __future__ import annotations
 
+import math
+import re
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -43,6 +45,32 @@ class CaptureConfig:
     port_base: int = 56000
     scene: str = "indoor"  # emulate: the simulated scene
     scale: float = 1.0  # emulate: camera resolution scale
+
+
+def check_config(cfg: CaptureConfig) -> None:
+    """Refuse settings the nodes would refuse, before anything is created or copied into `out`.
+
+    The fields are `sensorbox capture`'s options, so each message names the
+    option and the value as given (`--split-size -5`, not the recorder's
+    `split_bytes` in bytes, nor the rig file the plan is built from).
+    """
+    from sensorbox.live.recorder import NAME_PATTERN
+
+    if not 1 <= cfg.jpeg_quality <= 100:
+        raise SensorboxError(f"--jpeg-quality {cfg.jpeg_quality}: expected 1..100")
+    for flag, value, what in (
+        ("--duration", cfg.duration_s, "seconds (0 = until Ctrl-C)"),
+        ("--split-size", cfg.split_size_mb, "MiB (0 = never split)"),
+        ("--min-free", cfg.min_free_mb, "MiB"),
+    ):
+        if not (math.isfinite(value) and value >= 0):
+            raise SensorboxError(f"{flag} {value:g}: expected a finite number >= 0, in {what}")
+    if cfg.name and not re.fullmatch(NAME_PATTERN, cfg.name):
+        raise SensorboxError(f"--name {cfg.name!r}: use letters, digits and _ . + - only (a folder name)")
+    if cfg.emulate and not (math.isfinite(cfg.scale) and cfg.scale > 0):
+        raise SensorboxError(f"--scale {cfg.scale:g}: expected a number > 0 (0.25 -> 480x300)")
+    if not 1 <= cfg.port_base <= 65535 - 8:
+        raise SensorboxError(f"--port-base {cfg.port_base}: expected 1..65527 (the first of nine UDP ports)")
 
 
 def _where(cfg: CaptureConfig) -> str:
@@ -118,5 +146,10 @@ def capture(
     shutdown: Shutdown | None = None,
     on_tick: Callable[[GraphSnapshot], None] | None = None,
 ) -> GraphResult:
-    """Record the rig until interrupted, `duration_s`, the disk guard or an error; the result."""
+    """Record the rig until interrupted, `duration_s`, the disk guard or an error; the result.
+
+    The settings are checked (`check_config`) before any node starts: a node
+    writes into `out` as it starts (the simulated cameras copy the rig there).
+    """
+    check_config(cfg)
     return run_launch(capture_plan(cfg), shutdown=shutdown, on_tick=on_tick)

@@ -63,6 +63,7 @@ from sensorbox.live.bus import PRIORITY_SINK, NodeStatus, Shutdown
 log = logging.getLogger(__name__)
 
 MiB = 1 << 20
+NAME_PATTERN = r"[A-Za-z0-9_.+-]+"  # a bag name prefix: one folder name, nothing a shell or path reads
 DiskFree = Callable[[Path], int]
 
 
@@ -97,7 +98,7 @@ class RecorderConfig:
     disk_check_s: float = 1.0
 
     def validate(self) -> None:
-        if self.name and not re.fullmatch(r"[A-Za-z0-9_.+-]+", self.name):
+        if self.name and not re.fullmatch(NAME_PATTERN, self.name):
             raise RecorderError(f"recorder name {self.name!r}: use letters, digits and _ . + - only")
         for key in ("split_bytes", "split_s", "duration_s", "min_free_bytes", "flush_s"):
             value = getattr(self, key)
@@ -324,7 +325,9 @@ class Recorder:
             if self._shutdown is not None:
                 self._shutdown.request(self.error, error=True)
         finally:
-            self._close_bag()
+            closing = self._close_bag()
+            if closing is not None:
+                self._report_error(f"{self.name}: {closing}")
 
     def _write(self, topic: str, recv_ns: int, msgtype: str, raw: bytes) -> None:
         c = self.topics[topic]
@@ -340,8 +343,14 @@ class Recorder:
             return
         bag = self._bag
         if bag is not None and self._should_split(recv_ns):
-            self._close_bag()
+            closing = self._close_bag()
             bag = None
+            if closing is not None:  # no room for its summary: no room for the next bag either
+                self._stop_recording(
+                    f"{self.name}: {closing}; recording stopped", error=True, no_space=closing.no_space
+                )
+                self._write(topic, recv_ns, msgtype, raw)  # counted as dropped now that recording halted
+                return
         if bag is None:
             try:
                 bag = self._open_bag(recv_ns)
@@ -375,9 +384,21 @@ class Recorder:
         """The bag refused bytes (disk full): what it lost becomes dropped, recording stops, the bag
         is closed (cut back to its last complete chunk), and the graph is asked to shut down."""
         self._uncount(err)
-        self.error = f"{self.name}: {err}"
-        log.error("%s; recording stopped", self.error)
-        self._stop_recording(f"{self.error}; recording stopped", error=True, no_space=err.no_space)
+        self._stop_recording(f"{self.name}: {err}; recording stopped", error=True, no_space=err.no_space)
+
+    def _report_error(self, line: str) -> None:
+        """A failure of the recording, reported once: the node's error and, in a graph, the graph's.
+
+        In a graph the runner hands the error to whoever runs it (the CLI prints it
+        as its one `error:` line), so it is logged at INFO only; alone (no shutdown
+        to tell) it is an ERROR record. The first error stays the node's error.
+        """
+        self.error = self.error or line
+        if self._shutdown is not None:
+            log.info("%s", line)
+            self._shutdown.request(line, error=True)
+        else:
+            log.error("%s", line)
 
     def _uncount(self, err: BagWriteError) -> None:
         """Messages counted as written that the bag does not hold: dropped at the disk (or write) stage."""
@@ -423,17 +444,20 @@ class Recorder:
         log.info("%s: recording into %s", self.name, path)
         return bag
 
-    def _close_bag(self) -> None:
+    def _close_bag(self) -> BagWriteError | None:
+        """Close the open bag (summary, metadata.yaml); the error when they did not fit, for the
+        caller to report (the bag's complete chunks stay, what it lost is counted as dropped)."""
         bag, self._bag, self._bag_mcap = self._bag, None, None
         if bag is None:
-            return
+            return None
+        failed = None
         try:
             bag.__exit__(None, None, None)
         except BagWriteError as err:  # no room left for the summary: the complete chunks stay
             self._uncount(err)
-            self.error = self.error or f"{self.name}: {err}"
-            log.error("%s: %s", self.name, err)
+            failed = err
         self._flushed_total = self._written_total
+        return failed
 
     def _check_disk(self) -> None:
         try:
@@ -465,9 +489,13 @@ class Recorder:
                 c.queued_bytes = 0
                 q.clear()
             self._order.clear()
-        self._close_bag()
-        if self._shutdown is not None:
-            self._shutdown.request(reason, error=error)
+        closing = self._close_bag()
+        if closing is not None:  # the summary did not fit either: one line says both
+            reason, error = f"{reason}; {closing}", True
+        if error:
+            self._report_error(reason)
+        elif self._shutdown is not None:
+            self._shutdown.request(reason)
 
     def _check_duration(self, now: float) -> None:
         d = self.cfg.duration_s
