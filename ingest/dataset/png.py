@@ -9,8 +9,13 @@ deflate runs in Intel's ISA-L (`isal`), about 5x faster than zlib at a similar
 size. Any PNG reader decodes the result; tests decode it with OpenCV's libpng
 and compare every pixel.
 
-`read_image` reads any image OpenCV decodes, without OpenCV's warning line on
-stderr for a missing file (callers name the file in their own one-line error).
+`read_image` reads any image OpenCV decodes, without a line of OpenCV's or
+libpng's on stderr for a missing, cut-short or corrupt file (callers name the
+file in their own one-line error): OpenCV's log is silenced around the decode,
+and a PNG is walked chunk by chunk first (lengths, CRC-32s, IEND), because
+libpng prints its own "libpng error: ..." straight to the C stderr, which no
+Python setting reaches. A PNG whose damage keeps every CRC right (made so on
+purpose) can still get libpng's line.
 
 Inputs follow OpenCV's conventions: (H, W, 3) uint8 is BGR and is stored as
 RGB, (H, W, 4) uint8 is BGRA and is stored as RGB (the alpha dropped, as a
@@ -21,6 +26,7 @@ bgra8 camera's constant one carries nothing), (H, W) uint8 is 8-bit grey,
 from __future__ import annotations
 
 import struct
+import threading
 from pathlib import Path
 from typing import Any, Literal
 
@@ -94,13 +100,52 @@ def encode_png(image: np.ndarray[Any, Any], level: int = 1, row_filter: RowFilte
     return SIGNATURE + _chunk(b"IHDR", ihdr) + _chunk(b"IDAT", idat) + _chunk(b"IEND", b"")
 
 
+def png_intact(data: bytes | memoryview) -> bool:
+    """Whether PNG file bytes are whole: the signature, chunks whose CRC-32 match, IEND at the end."""
+    view = memoryview(data)
+    if bytes(view[:8]) != SIGNATURE:
+        return False
+    pos = 8
+    while pos + 12 <= len(view):
+        (length,) = struct.unpack_from(">I", view, pos)
+        end = pos + 12 + length
+        if end > len(view):
+            return False  # cut short inside this chunk
+        kind = view[pos + 4 : pos + 8]
+        (crc,) = struct.unpack_from(">I", view, end - 4)
+        if isal_zlib.crc32(view[pos + 8 : end - 4], isal_zlib.crc32(kind)) != crc:
+            return False
+        if bytes(kind) == b"IEND":
+            return True
+        pos = end
+    return False
+
+
+_CV_LOG = threading.Lock()
+_cv_log = {"quiet": 0, "level": 0}  # decodes under way with OpenCV's log silenced; its level before them
+
+
 def read_image(path: Path, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray[Any, Any] | None:
-    """`cv2.imread(path, flags)` in silence: None when the file is missing, unreadable or not an image."""
+    """`cv2.imread(path, flags)` in silence: None when the file is missing, unreadable, cut short, corrupt
+    (a PNG whose chunks do not check out) or not an image."""
     try:
         data = np.fromfile(path, np.uint8)
     except (OSError, ValueError):
         return None
     if data.size == 0:
         return None
-    image: np.ndarray[Any, Any] | None = cv2.imdecode(data, flags)
+    if bytes(data[:8]) == SIGNATURE and not png_intact(data.data):
+        return None  # libpng would print its own error line
+    with _CV_LOG:  # OpenCV's log level is global: silent while any thread decodes, the last one restores it
+        if _cv_log["quiet"] == 0:
+            _cv_log["level"] = cv2.utils.logging.getLogLevel()
+            cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+        _cv_log["quiet"] += 1
+    try:
+        image: np.ndarray[Any, Any] | None = cv2.imdecode(data, flags)
+    finally:
+        with _CV_LOG:
+            _cv_log["quiet"] -= 1
+            if _cv_log["quiet"] == 0:
+                cv2.utils.logging.setLogLevel(_cv_log["level"])
     return image

@@ -49,3 +49,57 @@ def test_capture_options_are_checked_before_anything_is_written(
     code, _, err = sensorbox(capsys, *CAPTURE, "--out", str(out), *option)
     assert (code, err) == (2, [f"error: {message}"])
     assert not out.exists()
+
+
+def _sensorbox_fd(capfd: pytest.CaptureFixture[str], *args: str) -> tuple[int, list[str]]:
+    """`sensorbox ARGS` in this process with file descriptors 1 and 2 captured: what C libraries print too."""
+    argv, sys.argv = sys.argv, ["sensorbox", *args]
+    try:
+        main()
+        code = 0
+    except SystemExit as done:
+        code = int(done.code or 0)
+    finally:
+        sys.argv = argv
+    return code, capfd.readouterr().err.splitlines()
+
+
+@pytest.mark.parametrize("damage", ["cut", "flip"])
+def test_a_damaged_ground_truth_png_is_our_one_line_only(
+    damage: str, tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """OpenCV's `[ WARN:0@0.8] ... PNG input buffer is incomplete` or `libpng error: ...` came first."""
+    bench = make_benchmark(tmp_path / "bench")
+    gt = sorted(bench.rglob("depth/*.png"))[0]
+    data = bytearray(gt.read_bytes())
+    if damage == "cut":
+        data = data[: len(data) // 2]
+    else:
+        idat = data.index(b"IDAT") + 4
+        data[idat + 2] ^= 0x10  # inside the zlib stream: libpng reads bad rows before it checks the CRC
+    pred = tmp_path / "pred"
+    write_predictions(bench, pred, "mono", view="fisheye")  # from the GT while it is whole
+    gt.write_bytes(bytes(data))
+    capfd.readouterr()
+    for args in (
+        ["stats", str(bench), "--out", str(tmp_path / "s")],
+        [
+            "eval",
+            "--dataset",
+            str(bench),
+            "--pred",
+            str(pred),
+            "--task",
+            "mono",
+            "--json",
+            str(tmp_path / "e.json"),
+        ],
+    ):
+        code, err = _sensorbox_fd(capfd, *args)
+        assert (code, err) == (
+            2,
+            [
+                f"error: {gt}: cannot be decoded ({len(data)} bytes: empty, cut short or not an image)"
+                + "; ground truth must be a 16-bit single-channel PNG"
+            ],
+        ), err
