@@ -21,8 +21,11 @@ and counted, never wrapped.
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import os
 import tempfile
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -66,6 +69,45 @@ def write_atomic(path: Path, data: bytes) -> None:
     except OSError as err:
         if tmp is not None:
             Path(tmp).unlink(missing_ok=True)
+        raise OutputError(f"cannot write {path}: {err.strerror or err}") from err
+
+
+def write_atomic_set(files: Sequence[tuple[Path, bytes]]) -> None:
+    """Write several files as one set: all of them, or (after any failure) none changed.
+
+    Each file's bytes go to a temporary file beside it first; only when every
+    one is written are they renamed into place (a rename takes no room). A
+    failure (a full disk, a read-only or missing folder, a folder where a file
+    belongs) is an `OutputError` naming the file, leaves every target as it
+    was, no temporary file, and no folder this call made. Folders are made as
+    needed.
+    """
+    made: list[Path] = []
+    staged: list[tuple[str, Path]] = []
+    path = files[0][0] if files else Path()
+    try:
+        for path, _ in files:
+            for folder in reversed([path.parent, *path.parent.parents]):
+                if not folder.exists():
+                    folder.mkdir()
+                    made.append(folder)
+        for path, _ in files:
+            if path.is_dir():  # a rename over it would fail only after others were renamed
+                raise IsADirectoryError(errno.EISDIR, os.strerror(errno.EISDIR), str(path))
+        for path, data in files:
+            fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+            staged.append((tmp, path))
+            os.fchmod(fd, 0o644)  # as write_atomic
+            with os.fdopen(fd, "wb") as f:
+                f.write(data)
+        for tmp, path in staged:
+            Path(tmp).replace(path)
+    except OSError as err:
+        for tmp, _ in staged:
+            Path(tmp).unlink(missing_ok=True)
+        for folder in reversed(made):
+            with contextlib.suppress(OSError):
+                folder.rmdir()
         raise OutputError(f"cannot write {path}: {err.strerror or err}") from err
 
 

@@ -102,11 +102,18 @@ def detect_layout(root: Path) -> Layout:
 def discover_gt(root: Path, task: Task, image_type: str | None = None) -> tuple[Layout, list[GtFile]]:
     """Every GT file of `task` under `root`: train by id, benchmark by scene, FOV, baseline (numeric), view.
 
-    `image_type` keeps only benchmark files of that view (e.g. "pano_crop").
+    `image_type` keeps only benchmark files of that view (e.g. "pano_crop"); a train
+    layout has one GT view per task and no choice of view, so there it is refused
+    rather than ignored.
     """
     if task not in TASKS:
         raise EvalError(f"task {task!r}: expected one of {', '.join(TASKS)}")
     layout = detect_layout(root)
+    if layout == "train" and image_type is not None:
+        raise EvalError(
+            f"--image-type {image_type!r}: {root} is a train-layout dataset, which has one view per sample; "
+            "--image-type selects benchmark views only (leave it out)"
+        )
     scale = DISP_SCALE if _is_stereo(task) else DEPTH_SCALE
     found: list[GtFile] = []
     if layout == "train":
@@ -347,6 +354,8 @@ def evaluate(
     """Score every prediction under `pred` against the GT of `dataset`; `progress(done, total)`."""
     layout, gts = discover_gt(dataset, opts.task, opts.image_type)
     _check_options(opts, layout)
+    if pred.exists() and not pred.is_dir():
+        raise EvalError(f"--pred {pred}: is a file; expected a folder of predictions")
     if not pred.is_dir():
         raise EvalError(f"{pred}: no such prediction folder")
     regions = _regions(opts)

@@ -65,9 +65,14 @@ def run_bench(
     repeats: int = 1,
     progress: Callable[[str], None] | None = None,
 ) -> BenchResult:
-    """Run the alternatives on simulator bags (each with `<bag>.truth/`); write CSVs and charts to `out`."""
+    """Run the alternatives on simulator bags (each with `<bag>.truth/`); write CSVs and charts to `out`.
+
+    The files are made in memory and written as one set at the end: a full
+    disk is one `OutputError` naming the file and leaves none of them.
+    """
+    from ingest.dataset.layout import write_atomic_set
     from ingest.train.pipeline import IngestConfig
-    from sensorbox.analysis.tradeoff import pool, run_alternatives, write_csv
+    from sensorbox.analysis.tradeoff import csv_bytes, pool, run_alternatives
     from sensorbox.sim.score import score_dataset
     from sensorbox.sim.truth import Truth
 
@@ -82,17 +87,26 @@ def run_bench(
     pooled = pool(measurements)
     result = BenchResult(measurements, pooled)
     rows = [m.row() for m in measurements] + [m.row() for m in pooled]
-    result.files.append(write_csv(out / "bench_tradeoff.csv", rows))
     per_bag = [(bag.name, [m for m in measurements if m.bag == bag.name]) for bag in bags]
-    result.files.append(plot_tradeoff(per_bag, out / "bench_tradeoff.png", _title(bags, truths)))
+    files = [
+        (out / "bench_tradeoff.csv", csv_bytes(rows)),
+        (
+            out / "bench_tradeoff.png",
+            draw_tradeoff(per_bag, out / "bench_tradeoff.png", _title(bags, truths)),
+        ),
+    ]
     kept = [m for m in measurements if m.out is not None]
     if projection and kept:
         if progress is not None:
             progress("projections (SGBM)")
         first = next(m for m in kept if m.bag == bags[0].name)
         result.projection, result.projection_source = project(first.out, truths[bags[0]])  # type: ignore[arg-type]
-        result.files.append(write_csv(out / "bench_projection.csv", [r.row() for r in result.projection]))
-        result.files.append(plot_projection(result.projection, out / "bench_projection.png"))
+        files.append((out / "bench_projection.csv", csv_bytes([r.row() for r in result.projection])))
+        files.append(
+            (out / "bench_projection.png", draw_projection(result.projection, out / "bench_projection.png"))
+        )
+    write_atomic_set(files)  # all four (two without the projection), or none: never a CSV without its chart
+    result.files = [path for path, _ in files]
     return result
 
 
@@ -186,15 +200,18 @@ def projection_table(results: Sequence[ProjectionResult]) -> str:
     return "\n".join(lines)
 
 
-def plot_tradeoff(
+def draw_tradeoff(
     groups: Sequence[tuple[str, Sequence[Measurement]]], path: Path, subtitle: str = ""
-) -> Path:
-    """Per bag (a row each): samples/s against median depth error and outlier share, with the Pareto front."""
+) -> bytes:
+    """Per bag (a row each): samples/s against median depth error and outlier share, with the Pareto front;
+    the bytes of the chart file `path` (its suffix picks the format)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+
+    from sensorbox.analysis.plots import figure_bytes
 
     n = len(groups)
     fig, axes = plt.subplots(
@@ -244,19 +261,19 @@ def plot_tradeoff(
     fig.suptitle(
         f"Ingest alternatives: speed vs GT accuracy (better: right and down)\n{subtitle}", fontsize=11
     )
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return figure_bytes(fig, path, dpi=100)
 
 
-def plot_projection(results: Sequence[ProjectionResult], path: Path) -> Path:
-    """Each projection's image and its SGBM error map with the stability mask's outline."""
+def draw_projection(results: Sequence[ProjectionResult], path: Path) -> bytes:
+    """Each projection's image and its SGBM error map with the stability mask's outline; the bytes of
+    the chart file `path`."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     import numpy as np
+
+    from sensorbox.analysis.plots import figure_bytes
 
     fig, axes = plt.subplots(len(results), 2, figsize=(14, 3.0 * len(results)), constrained_layout=True,
                              gridspec_kw={"width_ratios": [1, 1]})  # fmt: skip
@@ -285,10 +302,7 @@ def plot_projection(results: Sequence[ProjectionResult], path: Path) -> Path:
         for ax in row:
             ax.set_xticks([])
             ax.set_yticks([])
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=64)
-    plt.close(fig)
-    return path
+    return figure_bytes(fig, path, dpi=64)
 
 
 def bench_bags(

@@ -15,7 +15,7 @@ from matplotlib.figure import Figure
 from calibration.report import RigReport
 from calibration.rig import Rig
 from calibration.types import F64
-from ingest.dataset.layout import write_atomic
+from ingest.dataset.layout import write_atomic, write_atomic_set
 from ingest.errors import DatasetError
 
 # Plot frame: cam0 rotated so that x = forward, y = left, z = up (a familiar robot view).
@@ -24,13 +24,11 @@ _COLORS = {"camera": "tab:blue", "lidar": "tab:red", "imu": "tab:green"}
 LIDAR_VFOV_DEG = (-7.0, 52.0)
 
 
-def _save(fig: Figure, path: str | Path, dpi: int) -> Path:
-    """Write a figure (creating its folder), close it, return the path.
+def figure_bytes(fig: Figure, path: str | Path, dpi: int) -> bytes:
+    """A figure rendered in memory in the format of `path`'s suffix (PNG when it has none); closes it.
 
-    The format is the file's suffix (PNG when it has none, never a suffix
-    added behind the user's back); the figure is rendered in memory and
-    written atomically, so a full disk, a read-only folder or a folder given
-    as `path` is one `OutputError` naming `path` and leaves no partial file.
+    Rendering before anything is written lets a caller write a chart and its
+    data as one set (`ingest.dataset.layout.write_atomic_set`).
     """
     out = Path(path)
     try:
@@ -42,8 +40,21 @@ def _save(fig: Figure, path: str | Path, dpi: int) -> Path:
         fig.savefig(buf, format=fmt, dpi=dpi)
     finally:
         plt.close(fig)
+    return buf.getvalue()
+
+
+def _save(fig: Figure, path: str | Path, dpi: int) -> Path:
+    """Write a figure (creating its folder), close it, return the path.
+
+    The format is the file's suffix (PNG when it has none, never a suffix
+    added behind the user's back); the figure is rendered in memory and
+    written atomically, so a full disk, a read-only folder or a folder given
+    as `path` is one `OutputError` naming `path` and leaves no partial file.
+    """
+    out = Path(path)
+    data = figure_bytes(fig, out, dpi)
     out.parent.mkdir(parents=True, exist_ok=True)  # an OSError here names the folder (CLI: exit 3)
-    write_atomic(out, buf.getvalue())
+    write_atomic(out, data)
     return out
 
 
@@ -208,8 +219,9 @@ def plot_heatmap(hm: Heatmap, path: str | Path, title: str) -> Path:
     return _save(fig, path, dpi=110)
 
 
-def plot_stats(stats: DatasetStats, path: str | Path) -> Path:
-    """Histograms of a dataset: depth distribution (pixels), GT density and mean local entropy (samples)."""
+def draw_stats(stats: DatasetStats, path: str | Path) -> bytes:
+    """Histograms of a dataset, as file bytes: depth distribution (pixels), GT density and mean local
+    entropy (samples)."""
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.5))
     shares = [0.0 if not np.isfinite(s) else 100.0 * s for s in stats.depth_shares]
     axes[0].bar(stats.bins, shares, color="tab:blue")
@@ -227,7 +239,22 @@ def plot_stats(stats: DatasetStats, path: str | Path) -> Path:
     axes[2].set_title(f"texture (mean {stats.entropy_mean_bits:.3f} bits)")
     fig.suptitle(f"{stats.dataset} ({stats.layout} layout, {len(stats.samples)} samples)")
     fig.tight_layout()
-    return _save(fig, path, dpi=100)
+    return figure_bytes(fig, path, dpi=100)
+
+
+def write_stats(stats: DatasetStats, folder: Path) -> tuple[Path, Path]:
+    """`sensorbox stats`' output set, FOLDER/stats.json and FOLDER/stats.png: both written, or neither.
+
+    The chart is drawn in memory first, then both files are written with
+    `write_atomic_set`, so a full disk leaves no stats.json without its chart
+    (nor an old pair half replaced).
+    """
+    import json
+
+    doc = (json.dumps(stats.to_json(), indent=1) + "\n").encode()
+    json_path, png_path = folder / "stats.json", folder / "stats.png"
+    write_atomic_set([(json_path, doc), (png_path, draw_stats(stats, png_path))])
+    return json_path, png_path
 
 
 if typing.TYPE_CHECKING:

@@ -334,8 +334,8 @@ def pareto_front(speed: ArrayLike, error: ArrayLike) -> Bool:
     return out
 
 
-def write_csv(path: Path, rows: Sequence[Mapping[str, Any]]) -> Path:
-    """Rows as CSV (columns of the first row, then any new ones in order), written atomically."""
+def csv_bytes(rows: Sequence[Mapping[str, Any]]) -> bytes:
+    """Rows as CSV text (columns of the first row, then any new ones in order; floats to 6 digits)."""
     columns: list[str] = []
     for row in rows:
         columns += [k for k in row if k not in columns]
@@ -344,6 +344,11 @@ def write_csv(path: Path, rows: Sequence[Mapping[str, Any]]) -> Path:
     writer.writeheader()
     for row in rows:
         writer.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items()})
+    return buf.getvalue().encode()
+
+
+def write_csv(path: Path, rows: Sequence[Mapping[str, Any]]) -> Path:
+    """Rows as CSV (`csv_bytes`), written atomically."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    write_atomic(path, buf.getvalue().encode())
+    write_atomic(path, csv_bytes(rows))
     return path

@@ -11,9 +11,8 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-from sensorbox.cli.common import err_console
+from sensorbox.cli.common import check_out_folder, progress_bar
 
 OutOpt = Annotated[Path, typer.Option(help="Folder for the CSVs and charts.")]
 BagOpt = Annotated[
@@ -58,22 +57,26 @@ def bench_cmd(
     how far timing noise alone moves a point). Prints markdown tables and
     writes bench_tradeoff.csv/.png (Pareto front) and bench_projection.csv/.png.
     """
-    from sensorbox.analysis.bench import bench_bags, bench_report, bench_settings, run_bench
+    from sensorbox.analysis.bench import bench_bags, bench_report, bench_settings, default_sims, run_bench
 
     if dense:
         return dense_study(out)
+    check_out_folder("--out", out, "the CSVs and charts")
     alternatives, step = bench_settings(only or [], quick, every, repeats, duration)
-    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
-    bar = Progress(*columns, console=err_console, transient=True)
-    with tempfile.TemporaryDirectory(prefix="sensorbox-bench-") as tmp, bar:
-        job = bar.add_task("simulating", total=None)
+    with (
+        tempfile.TemporaryDirectory(prefix="sensorbox-bench-") as tmp,
+        progress_bar("bench", "steps") as update,
+    ):
+        steps = {"done": 0, "total": 0}
 
         def on_step(what: str) -> None:  # called as each step starts: the ones before it are done
-            bar.update(job, description=what[:60], advance=1)
+            update(steps["done"], steps["total"], note=what[:60])
+            steps["done"] += 1
 
         sim_scale = (0.25 if quick else 0.5) if scale is None else scale  # 0 is refused, not the default
+        steps["total"] = 0 if bag else len(default_sims(sim_scale, duration))  # simulated when none given
         bags = bench_bags(bag or [], Path(tmp), sim_scale, duration, on_step)
-        bar.reset(job, total=len(alternatives) * len(bags) * repeats + int(projection))
+        steps["done"], steps["total"] = 0, len(alternatives) * len(bags) * repeats + int(projection)
         result = run_bench(bags, out, alternatives, Path(tmp) / "work", step, projection, repeats, on_step)
     typer.echo(bench_report(result, bags))
 
@@ -82,6 +85,7 @@ def dense_study(out: Path) -> None:
     """`sensorbox bench --dense`: the dense-GT study's table as it is measured, the trajectory, the chart."""
     from sensorbox.analysis.dense_study import dense_chart, format_row, run_dense_study, table_header
 
+    check_out_folder("--out", out, "dense.png")
     typer.echo(table_header())
     with tempfile.TemporaryDirectory(prefix="sensorbox-dense-") as tmp:
         result = run_dense_study(Path(tmp), on_row=lambda *row: typer.echo(format_row(*row)))

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 from rich.table import Table
 
-from sensorbox.cli.common import console, print_warning
+from sensorbox.cli.common import check_out_file, console, print_warning
 
 if TYPE_CHECKING:
     from calibration.report import RigReport
@@ -89,6 +89,8 @@ def calib_check(path: PathArg, plot: PlotOpt = None) -> None:
     from calibration.report import describe_rig
     from calibration.rig import read_rig
 
+    if plot is not None:
+        check_out_file("--plot", plot)
     rig = read_rig(path)
     report = describe_rig(rig)
     console.print(cameras_table(report, path))

@@ -1,16 +1,20 @@
-"""What every command shares: the consoles, a progress bar on stderr, byte counts for people."""
+"""What every command shares: the consoles, a progress bar on stderr, byte counts for people, and the
+checks of an output path given on the command line (before any long work)."""
 
 from __future__ import annotations
 
 import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Annotated, Protocol
 
 import typer
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 from rich.text import Text
+
+from ingest.errors import DatasetError
 
 console = Console(width=None if sys.stdout.isatty() else 140, highlight=False)
 err_console = Console(stderr=True, width=None if sys.stderr.isatty() else 200)
@@ -21,9 +25,12 @@ LidarMsgOpt = Annotated[str, typer.Option(help="custom (livox CustomMsg) | point
 
 class Update(Protocol):
     """progress(done, total): the library's progress callback; with `verb` and `unit`, the bar's words
-    change to another stage of the work (a bar of its own: its time left restarts)."""
+    change to another stage of the work (a bar of its own: its time left restarts); `note` names the
+    item at hand after the bar (the bar and its time left go on)."""
 
-    def __call__(self, done: int, total: int, verb: str | None = None, unit: str | None = None) -> None: ...
+    def __call__(
+        self, done: int, total: int, verb: str | None = None, unit: str | None = None, note: str | None = None
+    ) -> None: ...
 
 
 @contextmanager
@@ -34,25 +41,54 @@ def progress_bar(verb: str, unit: str) -> Iterator[Update]:
     where a bar cannot be redrawn anyway, so there the callback does nothing.
     """
     if not err_console.is_terminal:
-        yield lambda done, total, verb=None, unit=None: None
+        yield lambda done, total, verb=None, unit=None, note=None: None
         return
     columns = (
         TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
-        TextColumn("{task.fields[unit]}"), TimeRemainingColumn(),
+        TextColumn("{task.fields[unit]}"), TimeRemainingColumn(), TextColumn("{task.fields[note]}"),
     )  # fmt: skip
     with Progress(*columns, console=err_console, transient=True) as bar:
-        task = bar.add_task(verb, total=None, unit=unit)
+        task = bar.add_task(verb, total=None, unit=unit, note="")
         words = (verb, unit)
 
-        def update(done: int, total: int, verb: str | None = None, unit: str | None = None) -> None:
+        def update(
+            done: int, total: int, verb: str | None = None, unit: str | None = None, note: str | None = None
+        ) -> None:
             nonlocal task, words
             stage = (verb or words[0], unit or words[1])
             if stage != words:
                 bar.remove_task(task)
-                task, words = bar.add_task(stage[0], total=None, unit=stage[1]), stage
+                task, words = bar.add_task(stage[0], total=None, unit=stage[1], note=""), stage
+            if note is not None:
+                bar.update(task, note=note)
             bar.update(task, completed=done, total=total)
 
         yield update
+
+
+def check_out_folder(flag: str, folder: Path, holds: str) -> None:
+    """Refuse, before any work, an output folder that is a file or lies under a file.
+
+    One line naming the option and the path ("--out X: is a file; give a folder
+    for HOLDS"), where mkdir would fail only after the work with a bare
+    "File exists" or "Not a directory". Nothing is created.
+    """
+    if folder.exists() and not folder.is_dir():
+        raise DatasetError(f"{flag} {folder}: is a file; give a folder for {holds}")
+    _check_parents(flag, folder)
+
+
+def check_out_file(flag: str, path: Path) -> None:
+    """Refuse, before any work, an output file whose folder would have to be made where a file is."""
+    _check_parents(flag, path)
+
+
+def _check_parents(flag: str, path: Path) -> None:
+    for parent in path.parents:  # the nearest one that exists decides
+        if parent.exists():
+            if not parent.is_dir():
+                raise DatasetError(f"{flag} {path}: {parent} is a file, not a folder")
+            return
 
 
 def human_bytes(n: float) -> str:

@@ -8,14 +8,13 @@ the main CLI to turn into one line and exit code 2.
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from sensorbox.cli.common import progress_bar
+from sensorbox.cli.common import check_out_file, check_out_folder, progress_bar
 
 if TYPE_CHECKING:
     from ingest.eval.evaluate import EvalReport
@@ -57,7 +56,8 @@ JsonOpt = Annotated[
     Path | None, typer.Option("--json", help="JSON report (default: <pred>/eval_<task>.json).")
 ]
 ImageTypeOpt = Annotated[
-    str | None, typer.Option(help="Benchmark view to score only (fisheye, pano, pano_crop, ...).")
+    str | None,
+    typer.Option(help="Benchmark view to score only (fisheye, pano, pano_crop, ...); benchmark layout only."),
 ]
 MaskOpt = Annotated[
     list[str] | None,
@@ -125,6 +125,9 @@ def eval_cmd(
     req = eval_request(
         task, by or [], compare, heatmap is not None, mask or [], region, image_type, edges, align
     )
+    for flag, path in (("--json", json_out), ("--heatmap", heatmap)):
+        if path is not None:
+            check_out_file(flag, path)
     with progress_bar("scoring", "samples") as update:
         report = evaluate(dataset, pred, req.options, progress=update)
     if not report.samples and report.missing:
@@ -164,7 +167,10 @@ def stats_cmd(
         Path | None, typer.Option("--out", help="Folder for stats.json and stats.png (default: DATASET).")
     ] = None,
     image_type: Annotated[
-        str | None, typer.Option(help="Benchmark view to describe only (fisheye, pano, pano_crop, ...).")
+        str | None,
+        typer.Option(
+            help="Benchmark view to describe only (fisheye, pano, pano_crop, ...); benchmark layout only."
+        ),
     ] = None,
 ) -> None:
     """Depth distribution (0-1, 1-2, 2-5, 5-10, 10+ m), GT density and mean 11x11 local entropy.
@@ -173,20 +179,15 @@ def stats_cmd(
     benchmark: CENTER/depth/<view> + CENTER/<view>). Writes stats.json and the
     histograms as stats.png.
     """
-    from ingest.dataset.layout import write_atomic
-    from ingest.errors import DatasetError
     from ingest.eval.stats import dataset_stats
-    from sensorbox.analysis.plots import plot_stats
+    from sensorbox.analysis.plots import write_stats
 
     folder = out or dataset
-    if out is not None and folder.exists() and not folder.is_dir():
-        raise DatasetError(f"--out {folder}: is a file; give a folder for stats.json and stats.png")
+    if out is not None:
+        check_out_folder("--out", folder, "stats.json and stats.png")
     with progress_bar("describing", "samples") as update:
         stats = dataset_stats(dataset, image_type, progress=update)
-    folder.mkdir(parents=True, exist_ok=True)
     _print_stats(stats, dataset)
-    doc = json.dumps(stats.to_json(), indent=1) + "\n"
-    write_atomic(folder / "stats.json", doc.encode())
-    png = plot_stats(stats, folder / "stats.png")
+    numbers, png = write_stats(stats, folder)
     _echo()
-    _echo(f"Numbers: {folder / 'stats.json'}; histograms: {png}")
+    _echo(f"Numbers: {numbers}; histograms: {png}")

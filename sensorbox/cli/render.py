@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 from rich.table import Table
 
-from sensorbox.cli.common import console, progress_bar
+from sensorbox.cli.common import check_out_folder, console, progress_bar
 
 if TYPE_CHECKING:
     from ingest.render.benchmark import BenchmarkSummary
@@ -122,6 +122,7 @@ def render_benchmark_cmd(
     from ingest.render.benchmark import run_benchmark
     from ingest.render.request import BenchmarkRequest, prepare
 
+    check_out_folder("--out", out, "the benchmark layout")
     request = BenchmarkRequest(
         scans, rig, out, fovs_deg=fov, baselines_mm=baseline, yaws_deg=yaw, heights_m=height, pitch_deg=pitch,
         centers=center, size=size, bundle=bundle, workers=workers, clip_m=clip, clip_mode=clip_mode,

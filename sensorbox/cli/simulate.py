@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 from rich.table import Table
 
-from sensorbox.cli.common import LidarMsgOpt, console, err_console, human_bytes
+from sensorbox.cli.common import LidarMsgOpt, console, human_bytes, progress_bar
 
 if TYPE_CHECKING:
     from sensorbox.sim.run import SimSummary
@@ -55,8 +55,6 @@ def simulate_cmd(
     lidar_offset_ms: LidarOffsetOpt = 0.0, supersample: SupersampleOpt = 1, movers: MoversOpt = False,
 ) -> None:  # fmt: skip
     """Simulate the SensorBox in a procedural scene: write a bag plus its exact truth (<bag>.truth/)."""
-    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
-
     from calibration.errors import SensorboxError
     from sensorbox.sim.run import SimConfig, simulate
 
@@ -67,10 +65,9 @@ def simulate_cmd(
         lidar_msg=lidar_msg, image=image, scale=scale, range_noise_m=range_noise,  # type: ignore[arg-type]
         lidar_clock_offset_ns=round(lidar_offset_ms * 1e6), supersample=supersample, movers=movers,
     )  # fmt: skip
-    columns = (TextColumn("simulating"), BarColumn(), TextColumn("{task.completed:.1f}/{task.total:.1f} s"))
-    with Progress(*columns, TimeRemainingColumn(), console=err_console, transient=True) as bar:
-        task = bar.add_task("sim", total=duration)
-        summary = simulate(cfg, out, progress=lambda done: bar.update(task, completed=done))
+    total_ms = round(duration * 1000) if math.isfinite(duration) else 0  # simulate() refuses the rest
+    with progress_bar("simulating", "ms simulated") as update:
+        summary = simulate(cfg, out, progress=lambda done: update(round(done * 1000), total_ms))
     console.print(summary_table(summary, duration))
     stages = ", ".join(f"{k} {v:.1f} s" for k, v in summary.stage_seconds.items())
     console.print(f"Time per stage: {stages}")

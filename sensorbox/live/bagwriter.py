@@ -21,8 +21,12 @@ next run would delete it. `flush()` closes the open mcap chunk and hands the
 file's buffered bytes to the OS, which bounds what such a kill loses.
 
 A write that fails (the disk filled up between the recorder's free-space
-checks) raises `BagWriteError` with the messages per topic that are not in the
-bag: those of the open chunk and of bytes the OS refused. The mcap is cut back
+checks) raises `BagWriteError` (an `OutputError`: the CLI prints one line naming
+the bag and exits 3) with the messages per topic that are not in the
+bag: those of the open chunk and of bytes the OS refused. For every format a
+refused write or close (an OSError, or sqlite3's "database or disk is full")
+is that one error; without `in_place` the hidden partial bag is removed, so the
+requested path holds a complete bag or nothing. In place, the mcap is cut back
 to its last complete chunk, so the bag still closes with a summary (or, when
 even that no longer fits, is left as complete chunks that `ingest --salvage`
 reads); `counts` then count exactly what the bag holds.
@@ -34,6 +38,7 @@ import contextlib
 import errno
 import os
 import shutil
+import sqlite3
 from collections import defaultdict
 from dataclasses import dataclass
 from io import BytesIO
@@ -49,6 +54,7 @@ from rosbags.rosbag2.storage_mcap import McapWriter, PendingChunk
 
 from calibration.errors import SensorboxError
 from ingest.bags.rostypes import typestore
+from ingest.errors import OutputError
 from sensorbox.live.interop import Ros1Writer, Ros2Writer
 
 BagFormat = Literal["mcap", "db3", "bag"]
@@ -56,7 +62,7 @@ FORMATS: tuple[BagFormat, ...] = ("mcap", "db3", "bag")
 NO_SPACE = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
 
 
-class BagWriteError(SensorboxError):
+class BagWriteError(OutputError):
     """Writing a bag failed; `lost` = (messages, bytes) per topic that are not in the bag."""
 
     def __init__(self, message: str, lost: dict[str, tuple[int, int]], no_space: bool) -> None:
@@ -147,7 +153,15 @@ class BagWriter:
                 mode = CompressionMode.STORAGE if self.fmt == "mcap" else CompressionMode.MESSAGE
                 w2.set_compression(mode, CompressionFormat.ZSTD)
             self._writer = w2
-        self._writer.open()
+        try:
+            self._writer.open()  # writes the file's header: a full disk can refuse it already
+        except (OSError, sqlite3.Error) as err:
+            self._writer = None
+            if not self._in_place:
+                shutil.rmtree(self._tmp_dir, ignore_errors=True)
+            raise BagWriteError(
+                f"{self.path}: cannot create the bag: {_why(err)}", {}, _no_space(err)
+            ) from None
         storage = self._mcap()
         if storage is not None:
             self._checkpoint = _Checkpoint.take(w2, storage)  # the header is in the buffer: flush() writes it
@@ -171,7 +185,7 @@ class BagWriter:
             self._writer.write(self._conns[topic], int(log_ns), raw)
             if storage is not None and len(storage.chunks) != self._checkpoint_chunks():
                 self._sync(storage)  # rosbags closed a full chunk: hand it to the OS now
-        except OSError as err:
+        except (OSError, sqlite3.Error) as err:  # sqlite3 (db3): "database or disk is full"
             self._fail(err, "cannot write")
 
     def flush(self) -> None:
@@ -204,8 +218,12 @@ class BagWriter:
         self._checkpoint = _Checkpoint.take(self._writer, storage)
         self.pending = {}
 
-    def _fail(self, err: OSError, doing: str) -> None:
-        """Cut the mcap back to its last complete chunk and raise BagWriteError naming what is lost."""
+    def _fail(self, err: OSError | sqlite3.Error, doing: str) -> None:
+        """Cut the mcap back to its last complete chunk and raise BagWriteError naming what is lost.
+
+        Not in place (any format) the hidden partial bag is removed on exit, so
+        nothing is written, which the message says.
+        """
         lost, self.pending = self.pending, {}
         for topic, (n, _) in lost.items():
             self.counts[topic] -= n
@@ -214,11 +232,12 @@ class BagWriter:
             assert isinstance(self._writer, Writer2)
             self._checkpoint.restore(self._writer, storage)
         n_lost = sum(n for n, _ in lost.values())
+        if self._in_place:  # the bag stays: say what it lacks
+            what = f"{n_lost} message{'s' if n_lost != 1 else ''} of the open chunk not in it"
+        else:  # the hidden partial bag is removed on exit
+            what = "no bag written"
         raise BagWriteError(
-            f"{self.path}: {doing} the bag: {err.strerror or err}; "
-            f"{n_lost} message{'s' if n_lost != 1 else ''} of the open chunk not in it",
-            lost,
-            err.errno in NO_SPACE,
+            f"{self.path}: {doing} the bag: {_why(err)}; {what}", lost, _no_space(err)
         ) from None
 
     def __exit__(
@@ -228,13 +247,23 @@ class BagWriter:
             if self._writer is not None:
                 self._close_in_place()
             return
+        closed = False
         try:
             if self._writer is not None:
-                self._writer.close()
+                writer, self._writer = self._writer, None
+                writer.close()
+            closed = True
+        except (OSError, sqlite3.Error) as err:
+            if exc_type is None:  # after an error of its own the bag is dropped anyway: that one stands
+                raise BagWriteError(
+                    f"{self.path}: cannot close the bag: {_why(err)}; no bag written", {}, _no_space(err)
+                ) from None
         finally:
-            if exc_type is None:
-                (self._tmp_dir / self.path.name).rename(self.path)
-            shutil.rmtree(self._tmp_dir, ignore_errors=True)
+            try:
+                if exc_type is None and closed:
+                    (self._tmp_dir / self.path.name).rename(self.path)
+            finally:
+                shutil.rmtree(self._tmp_dir, ignore_errors=True)
 
     def _close_in_place(self) -> None:
         """Close with summary and metadata.yaml; without room for them, leave the complete chunks."""
@@ -273,3 +302,15 @@ class BagWriter:
         if self.path.is_dir():
             return sum(f.stat().st_size for f in self.path.rglob("*") if f.is_file())
         return self.path.stat().st_size if self.path.exists() else 0
+
+
+def _why(err: OSError | sqlite3.Error) -> str:
+    """The OS's words for a refused write (sqlite3 has only its message)."""
+    return (err.strerror if isinstance(err, OSError) else None) or str(err)
+
+
+def _no_space(err: OSError | sqlite3.Error) -> bool:
+    """Whether the write failed for want of room (sqlite3 says "database or disk is full")."""
+    if isinstance(err, OSError):
+        return err.errno in NO_SPACE
+    return isinstance(err, sqlite3.OperationalError) and "full" in str(err)

@@ -27,6 +27,144 @@ from tests.ingest.test_evaluate import make_benchmark, write_predictions
 SIM = ["--duration", "0.2", "--scale", "0.1"]
 
 
+@pytest.mark.parametrize(
+    ("fmt", "where"), [("mcap", "open"), ("bag", "open"), ("db3", "write"), ("bag", "write")]
+)
+def test_a_full_disk_while_simulating_names_the_bag_and_leaves_nothing(
+    fmt: str, where: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """db3 was a sqlite3 traceback, bag `error: No space left on device` without a path."""
+    why = ENOSPC
+    if where == "open":
+        _fill_disk_at(monkeypatch, ".partial")  # the hidden bag: its header does not fit
+        doing, lost = "create", ""
+    else:
+        doing, lost = "write", "; no bag written"
+        if fmt == "db3":
+            why = "database or disk is full"
+
+            def full(*args: object) -> None:
+                raise sqlite3.OperationalError(why)
+
+            monkeypatch.setattr(Sqlite3Writer, "write", full)
+        else:
+
+            def nospace(*args: object) -> None:
+                raise OSError(errno.ENOSPC, ENOSPC)
+
+            monkeypatch.setattr(Writer1, "write", nospace)
+    out = tmp_path / ("a.bag" if fmt == "bag" else "a")
+    code, _, err = sensorbox(capsys, "simulate", "--out", str(out), *SIM, "--format", fmt)
+    assert (code, err) == (3, [f"error: {out}: cannot {doing} the bag: {why}{lost}"])
+    assert list(tmp_path.iterdir()) == []  # no bag, no hidden partial bag, no truth
+
+
+def test_a_refused_simulation_prints_no_blank_line_before_its_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """rich's Progress left an empty line on stderr when it is not a terminal."""
+    code, _, err = sensorbox(capsys, "simulate", "--out", str(tmp_path / "x"), "--duration", "0")
+    assert code == 2 and len(err) == 1 and err[0].startswith("error: "), err
+
+
+def test_a_simulation_prints_nothing_on_stderr(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    code, out, err = sensorbox(capsys, "simulate", "--out", str(tmp_path / "x"), *SIM)
+    assert (code, err) == (0, []) and "Truth" in out
+
+
+def _afile(tmp: Path) -> Path:
+    f = tmp / "afile"
+    f.write_text("mine\n")
+    return f
+
+
+def test_output_paths_that_are_files_are_refused_before_the_work(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Each used to fail after the work (`File exists`, `Not a directory`) or blame the wrong thing."""
+    f = _afile(tmp_path)
+    bench = make_benchmark(tmp_path / "bench")
+    pred = tmp_path / "pred"
+    write_predictions(bench, pred, "stereo")
+    eval_args = ["eval", "--dataset", str(bench), "--pred", str(pred), "--task", "stereo"]
+    cases = [
+        (
+            ["bench", "--bag", str(tmp_path / "none"), "--only", "default", "--out", str(f)],
+            f"error: --out {f}: is a file; give a folder for the CSVs and charts",
+        ),
+        (
+            ["bench", "--dense", "--out", str(f)],
+            f"error: --out {f}: is a file; give a folder for dense.png",
+        ),
+        (
+            ["render-benchmark", str(tmp_path / "scans"), "--rig", str(RIG), "--out", str(f)],
+            f"error: --out {f}: is a file; give a folder for the benchmark layout",
+        ),
+        (
+            ["calib", "check", str(RIG), "--plot", str(f / "p.png")],
+            f"error: --plot {f / 'p.png'}: {f} is a file, not a folder",
+        ),
+        (
+            [*eval_args, "--json", str(f / "x.json")],
+            f"error: --json {f / 'x.json'}: {f} is a file, not a folder",
+        ),
+        (
+            [*eval_args, "--heatmap", str(f / "h.png")],
+            f"error: --heatmap {f / 'h.png'}: {f} is a file, not a folder",
+        ),
+        (
+            ["eval", "--dataset", str(bench), "--pred", str(f), "--task", "stereo"],
+            f"error: --pred {f}: is a file; expected a folder of predictions",
+        ),
+        (
+            ["stats", str(bench), "--out", str(f / "s")],
+            f"error: --out {f / 's'}: {f} is a file, not a folder",
+        ),
+    ]
+    for args, message in cases:
+        code, out, err = sensorbox(capsys, *args)
+        assert (code, err) == (2, [message]), args
+        assert out == ""  # refused before any work printed anything
+    assert f.read_text() == "mine\n" and sorted(p.name for p in tmp_path.iterdir()) == [
+        "afile",
+        "bench",
+        "pred",
+    ]
+
+
+def test_a_set_of_files_is_written_whole_or_not_at_all(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """bench wrote bench_tradeoff.csv and then failed on the chart; stats likewise with stats.json."""
+    from ingest.dataset.layout import write_atomic_set
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "a.csv").write_text("old\n")
+    _fill_disk_at(monkeypatch, "b.png")
+    with pytest.raises(OutputError) as err:
+        write_atomic_set([(out / "a.csv", b"new\n"), (out / "b.png", b"x" * 1000)])
+    assert str(err.value) == f"cannot write {out / 'b.png'}: {ENOSPC}"
+    assert _files(out) == ["a.csv"] and (out / "a.csv").read_text() == "old\n"  # the old set, no temporaries
+    with pytest.raises(OutputError):  # a folder it made for the set goes again
+        write_atomic_set([(tmp_path / "new" / "sub" / "a.csv", b"1"), (tmp_path / "new" / "b.png", b"2")])
+    assert not (tmp_path / "new").exists()
+    with pytest.raises(OutputError, match=r"out: Is a directory$"):  # checked before any rename
+        write_atomic_set([(out / "c.csv", b"1"), (out, b"2")])
+    assert _files(out) == ["a.csv"]
+
+
+def test_stats_on_a_full_disk_leaves_neither_file(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    bench = make_benchmark(tmp_path / "bench")
+    out = tmp_path / "s"
+    _fill_disk_at(monkeypatch, "stats.png")
+    code, _, err = sensorbox(capsys, "stats", str(bench), "--out", str(out))
+    assert (code, err) == (3, [f"error: cannot write {out / 'stats.png'}: {ENOSPC}"])
+    assert not out.exists()  # no stats.json without its chart, and not the folder made for them
+
+
 CAPTURE = ["capture", "--rig", str(RIG), "--emulate", "--scale", "0.25"]
 
 
@@ -49,6 +187,36 @@ def test_capture_options_are_checked_before_anything_is_written(
     code, _, err = sensorbox(capsys, *CAPTURE, "--out", str(out), *option)
     assert (code, err) == (2, [f"error: {message}"])
     assert not out.exists()
+
+
+def _train_dataset(root: Path) -> Path:
+    for folder in ("depth_fisheye", "disp_equirect"):
+        (root / folder).mkdir(parents=True)
+        cv2.imwrite(str(root / folder / "000000.png"), np.full((6, 10), 500, np.uint16))
+    return root
+
+
+@pytest.mark.parametrize("cmd", ["eval", "stats"])
+def test_image_type_on_a_train_dataset_is_refused(
+    cmd: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """It was silently ignored (rc 0) on the train layout; it selects benchmark views only."""
+    ds = _train_dataset(tmp_path / "ds")
+    pred = tmp_path / "pred"
+    (pred / "disp_equirect").mkdir(parents=True)
+    np.save(pred / "disp_equirect" / "000000.npy", np.full((6, 10), 5.0, np.float32))
+    args = (
+        ["eval", "--dataset", str(ds), "--pred", str(pred), "--task", "stereo"]
+        if cmd == "eval"
+        else ["stats", str(ds)]
+    )
+    code, _, err = sensorbox(capsys, *args, "--image-type", "foo")
+    message = (
+        f"error: --image-type 'foo': {ds} is a train-layout dataset, which has one view per sample; "
+        "--image-type selects benchmark views only (leave it out)"
+    )
+    assert (code, err) == (2, [message])
+    assert sorted(p.name for p in ds.iterdir()) == ["depth_fisheye", "disp_equirect"]
 
 
 def _sensorbox_fd(capfd: pytest.CaptureFixture[str], *args: str) -> tuple[int, list[str]]:
