@@ -1,4 +1,8 @@
-"""Fault-injection review B: each finding as a user meets it, one line and the files left behind.
+"""Every command's outputs under faults, as a user meets them: one line, and what is left behind.
+
+Bags on a full disk (simulate), output paths that are files, sets of files
+written whole or not at all (bench, stats), capture's options checked before
+anything is written, --image-type where it has no meaning, damaged GT PNGs.
 
 Full disks are injected as in test_output_errors (`_fill_disk_at`: half the
 bytes land, then ENOSPC); sqlite3's "database or disk is full" by the
