@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import errno
 import sqlite3
-import sys
 from pathlib import Path
 
 import cv2
@@ -23,7 +22,6 @@ from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2.storage_sqlite3 import Sqlite3Writer
 
 from ingest.errors import OutputError
-from sensorbox.cli.main import main
 from tests.faults.cli import sensorbox
 from tests.faults.test_output_errors import ENOSPC, RIG, _files, _fill_disk_at
 from tests.ingest.test_evaluate import make_benchmark, write_predictions
@@ -223,19 +221,6 @@ def test_image_type_on_a_train_dataset_is_refused(
     assert sorted(p.name for p in ds.iterdir()) == ["depth_fisheye", "disp_equirect"]
 
 
-def _sensorbox_fd(capfd: pytest.CaptureFixture[str], *args: str) -> tuple[int, list[str]]:
-    """`sensorbox ARGS` in this process with file descriptors 1 and 2 captured: what C libraries print too."""
-    argv, sys.argv = sys.argv, ["sensorbox", *args]
-    try:
-        main()
-        code = 0
-    except SystemExit as done:
-        code = int(done.code or 0)
-    finally:
-        sys.argv = argv
-    return code, capfd.readouterr().err.splitlines()
-
-
 @pytest.mark.parametrize("damage", ["cut", "flip"])
 def test_a_damaged_ground_truth_png_is_our_one_line_only(
     damage: str, tmp_path: Path, capfd: pytest.CaptureFixture[str]
@@ -267,7 +252,7 @@ def test_a_damaged_ground_truth_png_is_our_one_line_only(
             str(tmp_path / "e.json"),
         ],
     ):
-        code, err = _sensorbox_fd(capfd, *args)
+        code, _, err = sensorbox(capfd, *args)  # file descriptors captured: what C libraries print too
         assert (code, err) == (
             2,
             [
