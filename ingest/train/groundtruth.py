@@ -108,8 +108,12 @@ def splat_to_pixels(
     use_plane = normals_model.planar[idx] & (np.abs(cos) >= params.plane_min_cos)
     with np.errstate(divide="ignore", invalid="ignore"):
         r_plane = np.einsum("ij,ij->i", n, p) / cos
-    # a plane correction moves the range by at most one pixel's worth of gradient on that plane
-    limit = r_point * np.sqrt(np.maximum(1.0 / np.maximum(cos**2, 1e-12) - 1.0, 0.0)) / px_per_rad(model)
+    # a plane correction moves the range by at most one pixel's worth of gradient on that plane: a pixel
+    # at the principal ray, or twice the point's own angle off its pixel-centre ray where pixels span
+    # more angle than there (a fisheye's corners; the point is within half of its own pixel)
+    off_rad = np.arctan2(np.linalg.norm(np.cross(p, ray), axis=1), np.einsum("ij,ij->i", p, ray))
+    pixel_rad = np.maximum(1.0 / px_per_rad(model), 2.0 * off_rad)
+    limit = r_point * np.sqrt(np.maximum(1.0 / np.maximum(cos**2, 1e-12) - 1.0, 0.0)) * pixel_rad
     use_plane &= np.isfinite(r_plane) & (np.abs(r_plane - r_point) <= limit + 1e-9)
     r = np.where(use_plane, r_plane, r_point)
     flat = centres[:, 1].astype(np.int64) * model.width + centres[:, 0].astype(np.int64)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from calibration.rig import REFERENCE_RIG, read_rig
-from ingest.train.groundtruth import GtParams, in_view, splat_to_pixels
+from ingest.train.groundtruth import GtParams, in_view, px_per_rad, splat_to_pixels
 from ingest.train.planes import Normals
 
 MODEL = read_rig(REFERENCE_RIG).upper.model.scaled(0.125)  # 240 x 150: many points per pixel
@@ -34,3 +34,25 @@ def test_splat_keeps_the_nearest_point_per_pixel_like_a_lexsort(zbuffer):
     np.testing.assert_array_equal(splat.pixel, flat[order][first])
     np.testing.assert_array_equal(splat.point, idx[order][first])
     np.testing.assert_allclose(splat.range_m, r[order][first], rtol=1e-12)
+
+
+@pytest.mark.parametrize("cos_incidence", [0.3, 0.5, 0.8])
+def test_a_corner_point_more_than_a_centre_pixel_off_its_ray_gets_the_plane_correction(cos_incidence):
+    """At the reference fisheye's corner a pixel spans more angle than at the principal ray: a point
+    at pixel (0.49, 0.49) is 1.25 centre-pixels off pixel (0, 0)'s ray. On a plane through it (normal
+    in the plane of the two rays, at the given incidence) its range along the pixel's ray is the exact
+    ray-plane intersection, which moves the range by more than one centre-pixel's gradient."""
+    model = read_rig(REFERENCE_RIG).upper.model
+    rays, ok = model.unproject(np.array([[0.0, 0.0], [0.49, 0.49]]))
+    assert ok.all()
+    ray, towards = rays
+    p = 5.0 * towards
+    across = towards - ray * (ray @ towards)
+    across /= np.linalg.norm(across)
+    n = cos_incidence * ray + np.sqrt(1.0 - cos_incidence**2) * across
+    exact_m = (n @ p) / (n @ ray)
+    splat = splat_to_pixels(model, p[None], Normals(n[None], np.array([True])), GtParams())
+    assert splat.pixel.tolist() == [0]
+    assert splat.range_m[0] == pytest.approx(exact_m, abs=1e-9)
+    centre_pixel_m = 5.0 * np.tan(np.arccos(cos_incidence)) / px_per_rad(model)
+    assert abs(exact_m - 5.0) > 1.2 * centre_pixel_m  # more than a centre pixel of gradient
