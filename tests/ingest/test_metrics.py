@@ -13,6 +13,7 @@ from ingest.eval.metrics import (
     StereoAccumulator,
     depth_metrics,
     median_scale,
+    score_range,
     stereo_metrics,
 )
 from ingest.raster.edges import edge_band
@@ -138,6 +139,31 @@ def test_median_scale() -> None:
     gt = np.array([1.0, 2.0, 4.0, 0.0])
     assert median_scale(gt / 2.5, gt) == pytest.approx(2.5)
     assert median_scale(np.zeros(4), gt) == 1.0
+
+
+def test_score_range_leak_is_farther_than_max_5cm_or_3_percent() -> None:
+    """A pixel leaks when it lies farther than truth by more than max(5 cm, 3 % of the truth).
+
+    On a flat 5 m truth the 3 % term rules (15 cm): +10 cm is not a leak, +20 cm is, and
+    nearer than truth never is. On a 1 m truth the 5 cm floor rules: +4 cm (4 %) is not a
+    leak, +6 cm is. A 30 % threshold would call none of them a leak.
+    """
+    exact = np.full((20, 20), 5.0)
+    range_m = np.full((20, 20), 5.2)  # rows 10-19: +20 cm, a leak
+    range_m[:5] = 4.8  # nearer: never a leak
+    range_m[5:10] = 5.1  # +10 cm = 2 %: within 3 %
+    range_m[0, 0] = 0.0  # no value: not counted at all
+    s = score_range(range_m, exact)
+    assert s.valid == 399
+    assert s.leak == 200 / 399
+    assert s.leak_off_silhouette == 200 / 399  # a flat truth has no silhouette
+    # |errors|: 100 x 0.1 m and 299 x 0.2 m; errors: 99 x -0.2, 100 x 0.1, 200 x 0.2 (median: rank 199)
+    assert (s.median_mm, s.p90_mm, s.bias_mm) == pytest.approx((200.0, 200.0, 200.0))
+
+    near = np.full((4, 4), 1.0)
+    near_range_m = np.full((4, 4), 1.04)  # 4 %, but within the 5 cm floor
+    near_range_m[:, 2:] = 1.06  # beyond 5 cm: a leak
+    assert score_range(near_range_m, near).leak == 0.5
 
 
 def test_edge_band_around_a_depth_step() -> None:
