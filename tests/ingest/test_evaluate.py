@@ -275,6 +275,49 @@ def test_mask_regions_and_json(bench: Path, tmp_path: Path, capfd: pytest.Captur
     assert capfd.readouterr().err == ""  # the one-line error only: no OpenCV warning on stderr before it
 
 
+def test_a_colour_mask_counts_a_pixel_with_any_channel_set(bench: Path, tmp_path: Path) -> None:
+    """A region mask is "non-zero = inside" per pixel: in a colour PNG one non-zero channel is enough.
+
+    Each first-scene mask marks row 3 in pure blue, row 4 in pure green and row 5 in pure red
+    (every pixel of those rows has valid GT): 3 rows x 10 columns in each of the 4 maps.
+    """
+    pred = tmp_path / "pred"
+    write_predictions(bench, pred, "stereo")
+    masks = tmp_path / "masks"
+    for gt in discover_gt(bench, "stereo", "pano_crop")[1]:
+        m = np.zeros((*SHAPE, 3), np.uint8)
+        if gt.scene == SCENES[0]:
+            m[3], m[4], m[5] = (255, 0, 0), (0, 255, 0), (0, 0, 1)  # BGR: one channel each
+        (masks / gt.rel).parent.mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(masks / f"{gt.rel}.png"), m)
+    report = evaluate(bench, pred, EvalOptions("stereo", image_type="pano_crop", masks=(("marked", masks),)))
+    assert report.overall.metrics["marked"]["n_gt"] == 4 * 3 * SHAPE[1]
+    first = next(s for s in report.samples if s.scene == SCENES[0])
+    assert first.metrics["marked"]["n_gt"] == 3 * SHAPE[1]
+
+
+@pytest.mark.parametrize("task", ["stereo", "mono"])
+def test_edges_use_the_step_thresholds_of_the_tasks_unit(bench: Path, tmp_path: Path, task: str) -> None:
+    """The "edges" region finds steps of max(0.25 px, 3 %) in disparity and max(5 cm, 3 %) in depth.
+
+    Every GT map steps from 1.0 to 1.1 between columns 4 and 5. In depth that is a 10 cm step
+    (more than 5 cm): columns 4 and 5 are steps, and the 3 px band around them holds columns
+    1-8 of all 6 rows, 48 pixels per map. In disparity 0.1 px is no step: no edges at all.
+    """
+    kind, scale = ("disparity", 100) if task == "stereo" else ("depth", 1000)
+    step = np.full(SHAPE, 1.0 * scale, np.float64)
+    step[:, 5:] = 1.1 * scale
+    for path in bench.glob(f"*/*FOV/*mm/CENTER/{kind}/pano_crop.png"):
+        cv2.imwrite(str(path), np.round(step).astype(np.uint16))
+    pred = tmp_path / "pred"
+    write_predictions(bench, pred, task)
+    report = evaluate(bench, pred, EvalOptions(task, image_type="pano_crop"))
+    assert len(report.samples) == 8
+    per_map = 0 if task == "stereo" else 48
+    assert [s.metrics["edges"]["n_gt"] for s in report.samples] == [per_map] * 8
+    assert report.overall.metrics["all"]["n_gt"] == 8 * SHAPE[0] * SHAPE[1]
+
+
 # ---- a real dataset made by `ingest` from a fixture bag ----------------------------------------
 
 INDOOR = FIXTURES_DIR / "indoor_static_mcap"
