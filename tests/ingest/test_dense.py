@@ -331,6 +331,104 @@ def test_dense_gt_does_not_depend_on_the_order_of_its_points():
         np.testing.assert_allclose(x.value, y.value, rtol=0, atol=1e-6)
 
 
+def test_every_equirect_pixel_with_range_is_disparity_gt_or_counted_unstable():
+    """`DenseGt.unstable` counts the equirect pixels with a range that fail the stability mask.
+
+    Which equirect pixels get a range does not depend on the baseline; which are stable does.
+    With a 1 m baseline every pixel of the box (1.5 m) and wall (3 m) scene is stable: its
+    disparities give each pixel's range (DESIGN.md's inverse formula). At 0.12 m, the numpy
+    stability mask of those ranges says which pixels keep disparity and how many are
+    unstable; at 1 micron none is stable and all of them are counted.
+    """
+    from calibration.fisheye import DoubleSphere
+    from calibration.spherical import Equirectangular
+    from calibration.stereo import disparity_stability_mask, disparity_to_depth
+
+    model = DoubleSphere(120.0, 120.0, 160.0, 100.0, -0.2, 0.6, 320, 200)
+    eq = Equirectangular(256)
+    args = (model, eq, Rotation.from_euler("x", 10, degrees=True).as_matrix())
+    pts = _box_and_wall(40_000, 0.0, 5)
+    wide = dense_ground_truth(*args, 1.0, pts, DenseParams())
+    assert wide.unstable == 0 and wide.disp_img.count > 10_000
+    theta = eq.theta_of_row(wide.disp_img.pixel // eq.width)
+    range_m = disparity_to_depth(wide.disp_img.value, theta, 1.0, 256)
+    stable = disparity_stability_mask(theta, range_m, 0.12, 256, 0.5, 0.5)
+
+    gt = dense_ground_truth(*args, 0.12, pts, DenseParams())
+    assert gt.unstable == int((~stable).sum()) > 0
+    np.testing.assert_array_equal(gt.disp_img.pixel, wide.disp_img.pixel[stable])
+    tiny = dense_ground_truth(*args, 1e-6, pts, DenseParams())
+    assert tiny.disp_img.count == 0 and tiny.unstable == wide.disp_img.count
+
+
+def test_away_from_edges_drops_pixels_next_to_a_range_step_or_a_hole():
+    """GT pixels within `edge_px` of a range step (`edge_band`: 5 cm / 3 %) or of a ray without surface go.
+
+    A 12 x 20 rendering: 2 m in columns 0-9, 4 m in columns 10-19, and one hole (a ray with no
+    surface) at row 6, column 3. The step's 3 x 3 neighbourhoods mark columns 9 and 10; 1 px
+    around them drops columns 8-11. The hole drops the 3 x 3 block around it.
+    """
+    from ingest.raster.view import Rendering
+    from ingest.train.dense import away_from_edges
+
+    shape = (12, 20)
+    range_m = np.full(shape, 2.0, np.float32)
+    range_m[:, 10:] = 4.0
+    surface = np.ones(shape, bool)
+    surface[6, 3] = False
+    range_m[6, 3] = 0.0
+    no = np.zeros(shape, bool)
+    rend = Rendering(np.zeros((*shape, 3), np.uint8), range_m, surface, no, no, np.ones(shape, bool))
+    want = np.ones(shape, bool)
+    want[:, 8:12] = False
+    want[5:8, 2:5] = False
+    np.testing.assert_array_equal(away_from_edges(rend, 1).reshape(shape), want)
+    np.testing.assert_array_equal(away_from_edges(rend, 0).reshape(shape), range_m > 0)
+
+
+def test_near_movers_is_a_disc_of_the_margin_in_pixels():
+    """The mover margin is an angle: 0.035 rad at this model's 150 px/rad is round(5.25) = 5 px.
+
+    A removed point on the optical axis lands on pixel (160, 100); the mask is the Euclidean
+    disc of radius 5 around it (81 pixels), at 0.02 rad one of radius 3 (29 pixels).
+    """
+    from calibration.fisheye import DoubleSphere
+    from ingest.train.dense import near_movers
+
+    model = DoubleSphere(120.0, 120.0, 160.0, 100.0, -0.2, 0.6, 320, 200)
+    rows, cols = np.mgrid[: model.height, : model.width]
+    for radius_rad, radius_px, count in ((0.035, 5, 81), (0.02, 3, 29)):
+        disc = (cols - 160) ** 2 + (rows - 100) ** 2 <= radius_px**2
+        assert disc.sum() == count
+        np.testing.assert_array_equal(near_movers(model, np.array([[0.0, 0.0, 5.0]]), radius_rad), disc)
+
+
+def test_near_view_and_may_matter_reach_their_margins_on_every_side():
+    """`near_view` keeps points within `margin_px` of the image (pixels -m .. W-1+m); `may_matter`
+    widens the view margin (16 px) by the mover margin (0.035 rad x 150 px/rad = 5.25 px) and 1 px.
+
+    Points 5 m out on the rays of pixels beyond the border of the 320 x 200 model, on each side.
+    """
+    from calibration.fisheye import DoubleSphere
+    from ingest.train.dense import VIEW_MARGIN_PX, may_matter, near_view
+
+    model = DoubleSphere(120.0, 120.0, 160.0, 100.0, -0.2, 0.6, 320, 200)
+    assert VIEW_MARGIN_PX == 16
+    W, H = model.width, model.height
+
+    def pts(beyond: float) -> np.ndarray:
+        """Points `beyond` px outside the right, left, bottom and top borders."""
+        uv = np.array([[W - 1 + beyond, 100.0], [-beyond, 100.0], [160.0, H - 1 + beyond], [160.0, -beyond]])
+        rays, ok = model.unproject(uv)
+        assert ok.all()
+        return rays * 5.0
+
+    for beyond, view, matter in ((10, True, True), (15.9, True, True), (16.1, False, True), (22.1, False, True),
+                                 (22.4, False, False)):  # fmt: skip
+        assert near_view(model, pts(beyond), 16).tolist() == [view] * 4, beyond
+        assert may_matter(model, pts(beyond), DenseParams()).tolist() == [matter] * 4, beyond
+
+
 def test_the_warm_up_runs_beside_the_trajectory_pass_and_its_error_stops_the_run(tmp_path, monkeypatch):
     import threading
 
