@@ -1,15 +1,28 @@
 """Odometry pieces against closed-form answers: the knot chain, its gyro shape, TUM output, failures."""
 
+import math
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
 from calibration.linalg3 import rotvec_to_matrix
+from ingest.bags.decode import Sweep
 from ingest.errors import OdometryError
+from ingest.train import trajectory
 from ingest.train.clouds import integrate_gyro
-from ingest.train.odometry import Odometry, voxel_subsample
-from ingest.train.rig_trajectory import RigTrajectory
-from ingest.train.trajectory import AUTO_MAX_RESIDUAL_MM, TrajectorySummary, choose_method
+from ingest.train.odometry import (
+    LocalMap,
+    Odometry,
+    OdometryParams,
+    _Chain,
+    _joined,
+    _register_chunk,
+    voxel_subsample,
+)
+from ingest.train.rig_trajectory import RigTrajectory, still
+from ingest.train.trajectory import AUTO_MAX_RESIDUAL_MM, TrajectorySummary, choose_method, summarize
 
 
 def _constant_rate_gyro(rate_rad_s, seconds=1.0, hz=200):
@@ -26,6 +39,14 @@ def test_gyro_between_matches_the_integrated_track():
     np.testing.assert_allclose(
         track.at(t[2:3])[0], rotvec_to_matrix(np.array([[0.15, -0.1, 0.25]]))[0], atol=1e-9
     )
+
+
+def test_gyro_track_covers_both_ends_of_its_span():
+    """Points stamped exactly at the first or the last IMU sample have a known rotation: both ends are
+    inside the integrated span, a nanosecond beyond either is not."""
+    track = integrate_gyro(np.array([0, 10], np.int64), np.zeros((2, 3)), np.eye(3))
+    t = np.array([-1, 0, 5, 10, 11], np.int64)
+    assert track.covers(t).tolist() == [False, True, True, True, False]
 
 
 def test_chain_is_exact_at_knots_and_linear_in_position_between():
@@ -96,6 +117,27 @@ def _summary(median_mm, gaps=0):
                              gaps=gaps, seconds=1.0, file="t.tum")  # fmt: skip
 
 
+def test_still_needs_both_slow_travel_and_slow_turning():
+    """A rig stood still only when it neither moved (< 5 cm/s) nor turned (< 2 deg/s): walking at 1 m/s
+    without turning, or turning on the spot, is motion."""
+    assert still(0.0, 0.0) and still(0.049, 1.9)
+    assert not still(1.0, 0.0)
+    assert not still(0.0, 10.0)
+    assert not still(0.05, 0.0) and not still(0.0, 2.0)  # the limits themselves are motion
+
+
+def test_a_short_recording_of_a_rig_that_stood_still_gets_dense_gt():
+    """Under `refine_start_s` the start's knots are a constant-velocity guess, which is exact for a rig
+    that stood still: auto keeps dense GT for it, but not for a short recording of a moving rig."""
+    short = dict(knots=11, span_s=0.5, residual_median_mm=1.0, residual_p95_mm=2.0, gaps=0, seconds=1.0,
+                 file="t.tum")  # fmt: skip
+    stood = TrajectorySummary(**short, max_speed_mps=0.0, max_rate_deg_s=0.0)
+    walked = TrajectorySummary(**short, max_speed_mps=1.0, max_rate_deg_s=0.0)
+    assert choose_method("auto", stood)[0] == "dense"
+    method, why = choose_method("auto", walked)
+    assert method == "sparse" and "spans 0.50 s" in why
+
+
 def test_auto_chooses_dense_only_with_a_sound_trajectory():
     assert choose_method("sparse", _summary(1.0)) == ("sparse", "asked")
     assert choose_method("dense", None) == ("dense", "asked")
@@ -123,6 +165,104 @@ def test_summary_measures_speed_and_turn_rate(tmp_path):
         tmp_path,
     )
     assert still.static
+
+
+def test_summary_leaves_out_the_first_knots_zero_residual(tmp_path):
+    """The first knot's residual is 0 by definition (it defines the world), not a measurement: the median
+    and 95th percentile are of the later knots only, [2, 4] mm: 3.0 and 2 + 0.95 * 2 = 3.9 mm."""
+    stamps = np.array([0, 50_000_000, 100_000_000], np.int64)
+    traj = RigTrajectory(
+        stamps, np.tile(np.eye(3), (3, 1, 1)), np.zeros((3, 3)), np.array([0.0, 0.002, 0.004])
+    )
+    s = summarize(traj, 1.0, tmp_path / "t.tum")
+    assert s.residual_median_mm == pytest.approx(3.0) and s.residual_p95_mm == pytest.approx(3.9)
+    assert s.gaps == 0 and s.knots == 3 and s.span_s == pytest.approx(0.1)
+
+
+def test_peak_motion_is_the_fastest_knot_interval_not_the_average():
+    """Knots at x = 0, 0.1 and 0.105 m, 50 ms apart: 2.0 m/s, then 0.1 m/s; the peak is 2.0 m/s (the
+    mean, 1.05 m/s, would hide the fast interval), so the rig did not stand still."""
+    stamps = np.array([0, 50_000_000, 100_000_000], np.int64)
+    p = np.array([[0.0, 0, 0], [0.1, 0, 0], [0.105, 0, 0]])
+    traj = RigTrajectory(stamps, np.tile(np.eye(3), (3, 1, 1)), p, np.zeros(3))
+    speed, rate = traj.peak_motion()
+    assert speed == pytest.approx(2.0) and rate == 0.0
+    assert not traj.stood_still()
+
+
+def test_speed_is_metres_per_second_over_the_knot_interval_of_a_time():
+    """Knots at x = 0, 0.06 and 0.12 m, 50 ms apart: 0.06 m / 0.05 s = 1.2 m/s in either interval."""
+    stamps = np.array([0, 50_000_000, 100_000_000], np.int64)
+    p = np.array([[0.0, 0, 0], [0.06, 0, 0], [0.12, 0, 0]])
+    traj = RigTrajectory(stamps, np.tile(np.eye(3), (3, 1, 1)), p, np.zeros(3))
+    assert traj.speed_mps(25_000_000) == pytest.approx(1.2)
+    assert traj.speed_mps(75_000_000) == pytest.approx(1.2)
+
+
+def test_a_chain_after_a_long_gap_starts_with_an_unregistered_knot():
+    """Chains joined across a gap: the later chain's world is placed at the earlier chain's last knot (a
+    prediction), so its first knot's residual is NaN (a gap knot), its later residuals are kept."""
+    yaw90 = Rotation.from_rotvec([0, 0, np.pi / 2]).as_matrix()
+    first = _Chain([0, 50, 100], [np.eye(3), np.eye(3), yaw90], [np.zeros(3), np.zeros(3), np.array([1.0, 0, 0])],
+                   [0.0, 0.001, 0.001])  # fmt: skip
+    second = _Chain([300, 350], [np.eye(3)] * 2, [np.zeros(3), np.array([0.1, 0, 0])], [0.0, 0.002])
+    out = _joined([first, second])
+    assert out.stamps == [0, 50, 100, 300, 350]
+    np.testing.assert_array_equal(out.residual, [0.0, 0.001, 0.001, math.nan, 0.002])
+    np.testing.assert_allclose(out.p[3:], [[1.0, 0, 0], [1.0, 0.1, 0]], atol=1e-15)  # x turned onto y
+
+
+def test_a_chunk_without_points_carries_the_knots_at_the_last_velocity():
+    """Knots moving 1 m/s along x (0, 5, 10 cm at 50 ms steps) and a chunk with no points: the two new
+    knots are the constant-velocity prediction, 15 and 20 cm, and are gap knots (residual NaN)."""
+    prm = OdometryParams()
+    chain = _Chain([0, 50_000_000, 100_000_000], [np.eye(3)] * 3,
+                   [np.array([0.0, 0, 0]), np.array([0.05, 0, 0]), np.array([0.1, 0, 0])],
+                   [0.0, 0.001, 0.001])  # fmt: skip
+    _register_chunk(chain, np.zeros((0, 3)), np.zeros(0, np.int64), LocalMap(prm), None, prm)
+    assert chain.stamps[3:] == [150_000_000, 200_000_000]
+    np.testing.assert_allclose(chain.p[3:], [[0.15, 0, 0], [0.2, 0, 0]], atol=1e-12)
+    np.testing.assert_allclose(chain.R[3:], [np.eye(3)] * 2)
+    assert all(math.isnan(r) for r in chain.residual[3:])
+
+
+class _OdometrySpy:
+    """Stands in for `Odometry` in `trajectory_pass`: records what it is told to register."""
+
+    last: "_OdometrySpy"
+
+    def __init__(self, gyro, params=None):
+        self.added: list[int] = []
+        self.advanced: list[int] = []
+        _OdometrySpy.last = self
+
+    def add(self, pts, stamps):
+        self.added.append(len(stamps))
+
+    def advance(self, complete_ns):
+        self.advanced.append(complete_ns)
+
+    def result(self):
+        return None
+
+
+def test_odometry_registers_only_up_to_where_every_lidar_has_delivered(monkeypatch):
+    """Sweeps of two LiDARs ending at 100 and 150 ms: chunks are complete only to 100 ms, the slower
+    LiDAR's end (its points up to 150 ms have not arrived yet); before the second LiDAR has spoken,
+    nothing is complete."""
+    monkeypatch.setattr(trajectory, "Odometry", _OdometrySpy)
+
+    def msg(topic, end_ns):
+        t = np.linspace(end_ns - 50_000_000, end_ns, 10).astype(np.int64)
+        sweep = Sweep(end_ns, topic, np.full((10, 3), 5.0), t)
+        return SimpleNamespace(topic=topic, log_ns=end_ns, decoded=lambda where: sweep)
+
+    msgs = [msg("/a", 150_000_000), msg("/b", 100_000_000)]
+    bags = SimpleNamespace(label="bag", messages=lambda topics, progress: iter(msgs))
+    rig = SimpleNamespace(lidar=lambda name: SimpleNamespace(T_cam0_lidar=np.eye(4)))
+    trajectory.trajectory_pass(bags, {"/a": "a", "/b": "b"}, rig, None, 0.3)
+    assert _OdometrySpy.last.added == [10, 10]
+    assert _OdometrySpy.last.advanced == [-(2**62), 100_000_000]
 
 
 def _random_knots(rng: np.random.Generator, K: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
