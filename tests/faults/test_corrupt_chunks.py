@@ -23,6 +23,7 @@ from rosbags.rosbag1 import Reader as Ros1Reader
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2.storage_mcap import McapReader
 
+from ingest.bags.chunks import LostChunk
 from ingest.bags.decode import Sweep, decode, header_stamp_ns
 from ingest.bags.reader import CorruptChunkError, open_bags, salvage_mcap
 from ingest.bags.rostypes import typestore
@@ -117,6 +118,18 @@ def test_inspect_salvage_counts_the_lost_messages_exactly(damaged) -> None:
         total = {t: s.count for t, s in bags.topics().items()}
     for t in report.topics:
         assert (t.lost, t.count) == (counts[t.topic], total[t.topic] - counts[t.topic])
+
+
+def test_a_lost_chunks_time_range_is_in_seconds_from_the_bag_start() -> None:
+    """A chunk logged from 3.5 s to 4.0 s of a bag whose first message was at 1.0 s: 2.5..3.0 s in."""
+    chunk = LostChunk(
+        Path("a.mcap"), 1234, 3_500_000_000, 4_000_000_000, {"/b": 2, "/a": 1}, "crc", 1_000_000_000
+    )
+    assert chunk.time_range() == "log time 3.500000000..4.000000000 (2.500..3.000 s from the bag start)"
+    assert chunk.describe() == (
+        "a.mcap: corrupt chunk at byte 1234 (crc), log time 3.500000000..4.000000000 "
+        "(2.500..3.000 s from the bag start), 3 messages: 1 on /a, 2 on /b"
+    )
 
 
 def test_ros1_corrupt_chunk_is_named_or_skipped_and_counted(tmp_path: Path) -> None:

@@ -68,13 +68,17 @@ def test_walk_outdoor_with_motion_compensation(tmp_path: Path) -> None:
         out = tmp_path / name
         summary = ingest([bag], IngestConfig(rig=_rig(bag), out=out, workers=1, sample=params))
         assert summary.written >= 4
+        applied = 0
         for score in score_dataset(out, truth):
             medians.setdefault(name, []).append(score.depth_median_abs_m)
+            motion = read_meta(out, score.sid).motion
+            applied += motion.applied
             if name == "on":
-                motion = read_meta(out, score.sid).motion
                 assert motion.applied and motion.speed_mps == pytest.approx(1.24, abs=0.1)
                 assert score.depth_outlier_rate <= 0.005, score
                 assert score.disp_median_abs_px <= 0.05 and score.disp_over_1px_rate <= 0.005, score
+        # the CLI's "motion compensation applied" row: every sample when on, none when off
+        assert summary.motion_applied == applied == (summary.written if name == "on" else 0)
     assert max(medians["on"]) <= 0.002
     assert min(medians["off"]) > 0.02  # uncompensated: centimetres
 

@@ -119,6 +119,21 @@ def test_damage_is_logged_with_its_byte_range(tmp_path, caplog):
     assert f"damaged bytes skipped: {first}..{second}" in caplog.text
 
 
+def test_lost_messages_of_several_damaged_chunks_of_one_topic_add_up(tmp_path):
+    """Two damaged chunks, both of /n: the messages lost on /n are those of both, every message the
+    salvage did not return (not only the last chunk's)."""
+    data = bytearray(write_mcap(tmp_path / "a.mcap", CompressionType.ZSTD, 512).read_bytes())
+    offsets = chunk_offsets(bytes(data))
+    for at in (offsets[1], offsets[3]):
+        data[at + 60 : at + 80] = bytes(20)  # inside the compressed records: zstd refuses them
+    (tmp_path / "b.mcap").write_bytes(bytes(data))
+    with open_bags(tmp_path / "b.mcap", salvage=True) as bags:
+        got = values_of(bags.messages())
+        assert [c.offset for c in bags.lost_chunks] == [offsets[1], offsets[3]]
+        assert all(c.counts["/n"] > 0 for c in bags.lost_chunks)
+        assert bags.lost_counts() == {"/n": N - len(got)}
+
+
 def test_a_cut_between_chunks_is_logged_as_a_cut(tmp_path, caplog):
     """A file that ends where a chunk ends has no footer: it was cut, and salvage says so (a warning)."""
     data = write_mcap(tmp_path / "a.mcap", CompressionType.ZSTD, 512).read_bytes()
