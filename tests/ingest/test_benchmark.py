@@ -32,7 +32,7 @@ from ingest.eval.evaluate import discover_gt
 from ingest.raster.edges import edge_band
 from ingest.raster.scan import Scan
 from ingest.render.benchmark import run_benchmark
-from ingest.render.plan import BenchmarkConfig
+from ingest.render.plan import BenchmarkConfig, pinhole_camera
 from ingest.render.scans import read_scans
 from sensorbox.sim.appearance import Texture
 from sensorbox.sim.scenes import build_scene
@@ -234,7 +234,16 @@ def test_horizontal_pinhole_pair(bench):
     crop = bench["doc"]["cameras"]["120FOV"]["pinhole_crop"]
     dc = _exr(c / "disparity" / "pinhole_crop.exr")
     r0, c0 = crop["row_offset"], crop["col_offset"]
+    assert (c0, r0, dc.shape) == ((320 - 160) // 2, (200 - 100) // 2, (100, 160))  # the centre half per axis
     np.testing.assert_array_equal(dc, disp[r0 : r0 + crop["height"], c0 : c0 + crop["width"]])
+
+
+def test_pinhole_crop_is_the_central_window_of_the_pinhole_image():
+    """(col, row, width, height) of the crop: half of each axis, centred; rows from the height, columns
+    from the width (a crop placed by the width would run past the bottom of a wide image)."""
+    ph, crop = pinhole_camera(BenchmarkConfig())
+    assert (ph.width, ph.height) == (2048, 1152) and crop == (512, 288, 1024, 576)
+    assert pinhole_camera(CFG)[1] == (80, 50, 160, 100)
 
 
 # The WideDepth release loader's stereo configurations: per FOV folder and baseline, every image
