@@ -2,11 +2,13 @@
 
 import re
 import struct
+import uuid
 
 import numpy as np
 import open3d as o3d
 import pye57
 import pytest
+from pye57 import libe57
 from scipy.spatial.transform import Rotation
 
 from ingest.errors import ScanError
@@ -82,6 +84,19 @@ def test_label_field_marks_points_and_invalid_points_are_dropped(tmp_path, caplo
     ]
     (unlabelled,) = read_scans([path], mask_label=None)
     assert unlabelled.masked is None
+
+
+def test_sixteen_bit_ply_colours_keep_their_high_byte(tmp_path):
+    """PLY colours stored as uint16 (0..65535) become 8-bit by their high byte, c // 256: full scale is
+    255, half scale 128, 256 is 1 and anything under 256 is 0 (not the low byte, which wraps around)."""
+    rgb = np.array([[65535, 32768, 256], [255, 511, 0], [40000, 1000, 65280]], np.uint16)
+    pc = o3d.t.geometry.PointCloud()
+    pc.point.positions = o3d.core.Tensor.from_numpy(np.arange(9, dtype=np.float32).reshape(3, 3) + 1.0)
+    pc.point.colors = o3d.core.Tensor.from_numpy(rgb)
+    assert o3d.t.io.write_point_cloud(str(tmp_path / "c.ply"), pc)
+    (scan,) = read_scans([tmp_path / "c.ply"])
+    assert scan.rgb.dtype == np.uint8
+    assert scan.rgb.tolist() == [[255, 128, 1], [0, 1, 0], [156, 3, 255]]
 
 
 def test_a_scan_without_colours_is_refused(tmp_path):
@@ -160,6 +175,52 @@ def test_e57_two_scans_with_poses(tmp_path):
             mine = g.xyz.astype(np.float64) @ g.T_world_scan[:3, :3].T + g.T_world_scan[:3, 3]
             np.testing.assert_allclose(mine, world, atol=1e-5)
             np.testing.assert_allclose(g.T_world_scan[:3, 3], scans[k][4])
+
+
+def _write_spherical_e57(path, r, az, el, rgb):
+    """One scan of spherical coordinates (pye57 writes only cartesian ones): libE57's own API, as pye57's
+    `write_scan_raw` uses it, with a range/azimuth/elevation prototype in double precision."""
+    with pye57.E57(str(path), mode="w") as e:
+        f = e.image_file
+        scan = libe57.StructureNode(f)
+        scan.set("guid", libe57.StringNode(f, f"{{{uuid.uuid4()}}}"))
+        scan.set("name", libe57.StringNode(f, "spherical"))
+        proto = libe57.StructureNode(f)
+        data = {"sphericalRange": r, "sphericalAzimuth": az, "sphericalElevation": el}
+        for name in data:
+            proto.set(name, libe57.FloatNode(f, 0.0, libe57.E57_DOUBLE))
+        for k, name in enumerate(("colorRed", "colorGreen", "colorBlue")):
+            proto.set(name, libe57.IntegerNode(f, 0, 0, 255))
+            data[name] = rgb[:, k]
+        points = libe57.CompressedVectorNode(f, proto, libe57.VectorNode(f, True))
+        scan.set("points", points)
+        e.data3d.append(scan)
+        arrays = {  # colours as int16: the binding refuses int32 buffers (and misreads 64-bit ones)
+            n: np.ascontiguousarray(v, np.float64 if n.startswith("sph") else np.int16)
+            for n, v in data.items()
+        }
+        buffers = libe57.VectorSourceDestBuffer()
+        for name, a in arrays.items():
+            buffers.append(libe57.SourceDestBuffer(f, name, a, len(a), True, False))
+        writer = points.writer(buffers)
+        writer.write(len(r))
+        writer.close()
+
+
+def test_e57_spherical_coordinates_become_cartesian_points(tmp_path):
+    """E57's spherical convention: x = r cos(el) cos(az), y = r cos(el) sin(az), z = r sin(el); a point
+    straight up (el = 90 deg) at 2 m is (0, 0, 2), one on the horizon at az = 0 lies on x."""
+    r = np.array([2.0, 3.0, 4.0, 1.0])
+    az = np.array([0.0, 0.0, np.pi / 2, np.pi])
+    el = np.array([np.pi / 2, 0.0, np.pi / 6, -np.pi / 4])
+    rgb = np.array([[1, 2, 3], [4, 5, 6], [7, 8, 9], [10, 11, 12]])
+    _write_spherical_e57(tmp_path / "s.e57", r, az, el, rgb)
+    (scan,) = read_e57(tmp_path / "s.e57")
+    half = np.sqrt(0.5)
+    want = [[0.0, 0.0, 2.0], [3.0, 0.0, 0.0], [0.0, 4.0 * np.sqrt(0.75), 2.0], [-half, 0.0, -half]]
+    np.testing.assert_allclose(scan.xyz, want, atol=1e-6)
+    np.testing.assert_array_equal(scan.rgb, rgb)
+    assert scan.name == "spherical" and np.array_equal(scan.T_world_scan, np.eye(4))
 
 
 def test_bad_inputs_name_the_file(tmp_path, sim):
