@@ -235,6 +235,20 @@ def test_kannala_brandt_equals_cv2_fisheye():
     assert np.abs(uv - ref.reshape(-1, 2)).max() < 1e-8
 
 
+def test_kannala_brandt_fov_ends_where_theta_d_stops_increasing():
+    """theta_max is the first root of d theta_d / d theta = 1 + 3 k1 t^2 + 5 k2 t^4 + 7 k3 t^6 + 9 k4 t^8:
+    with k4 alone, t = (-1 / (9 k4))^(1/8) (1.35120 rad for k4 = -0.01); with k1 alone,
+    t = sqrt(-1 / (3 k1)). Rays just inside project, rays just beyond do not."""
+    only_k4 = KannalaBrandt(400.0, 400.0, 640.0, 512.0, 0.0, 0.0, 0.0, -0.01, 1280, 1024)
+    assert only_k4.theta_max == pytest.approx((1.0 / 0.09) ** (1.0 / 8.0), rel=1e-9)
+    assert only_k4.theta_max == pytest.approx(1.35120, abs=1e-5)
+    only_k1 = KannalaBrandt(400.0, 400.0, 640.0, 512.0, -0.2, 0.0, 0.0, 0.0, 1280, 1024)
+    assert only_k1.theta_max == pytest.approx(math.sqrt(1.0 / 0.6), rel=1e-9)
+    t = only_k4.theta_max + np.array([-1e-3, 1e-3])
+    _, valid = only_k4.project(np.c_[np.sin(t), np.zeros(2), np.cos(t)])
+    assert valid.tolist() == [True, False]
+
+
 def test_pinhole_radtan_equals_cv2_project_points():
     model, _ = ITERATIVE["pinhole_radtan"]
     rng = np.random.default_rng(8)
