@@ -17,7 +17,7 @@ from ingest.bags.decode import decode_compressed_image, decode_image
 from ingest.bags.reader import open_bags
 from sensorbox.errors import DriverError
 from sensorbox.live.cameras import CameraNode, CameraOutput, Frame, StereoPairer
-from sensorbox.live.sources import OpenCVSource, ZedSource
+from sensorbox.live.sources import OpenCVSource, ZedSource, _count_gap
 from sensorbox.sim.camera_source import SimCameras, SimCameraSource
 from sensorbox.sim.fixtures import FIXTURES, fixture_bag
 from tests.live import ManualClock, wait_for
@@ -95,6 +95,19 @@ def test_opencv_source_errors(tmp_path):
 
 
 # ---------------------------------------------------------------- ZED
+
+
+def test_a_dropped_frame_is_counted_despite_stamp_jitter():
+    """Frames missing between two stamps of a 30 Hz camera: the gap in periods, rounded, less one; a
+    frame dropped between stamps that came a little early (66 ms: 1.98 periods) is still one."""
+    period = 1e9 / 30
+    assert _count_gap(None, 66_000_000, period) == 0  # the first frame
+    assert _count_gap(0, 34_000_000, period) == 0  # 1.02 periods: the next frame, late
+    assert _count_gap(0, 32_000_000, period) == 0  # 0.96 periods: the next frame, early
+    assert _count_gap(0, 66_000_000, period) == 1  # 1.98 periods
+    assert _count_gap(0, 101_000_000, period) == 2  # 3.03 periods
+    assert _count_gap(0, 132_000_000, period) == 3  # 3.96 periods
+    assert _count_gap(0, 66_000_000, 0.0) == 0  # no frame rate known
 
 
 def test_zed_without_pyzed_is_a_clear_error(monkeypatch):

@@ -27,9 +27,10 @@ from ingest.bags.decode import decode_imu, decode_pointcloud2
 from ingest.bags.livox_msg import decode_custom_msg
 from ingest.bags.rostypes import CUSTOM_MSG_TYPE, IMU_TYPE, POINTCLOUD2_TYPE
 from sensorbox.errors import DriverError
+from sensorbox.live.livox_node import LivoxDriverNode
 from sensorbox.livox import DriverConfig, LidarEndpoint, Mid360Driver, Ports, packets
 from sensorbox.livox import protocol as proto
-from sensorbox.livox.config import DriverStats
+from sensorbox.livox.config import DriverStats, LidarStats
 from sensorbox.livox.sockets import udp_socket
 from sensorbox.sim.lidar import Sweep, simulate_sweep
 from sensorbox.sim.mid360 import Mid360Emulator, credit_from
@@ -191,6 +192,28 @@ def test_discovery_finds_every_emulator():
     # the broadcast reached both, the unicast request only 127.0.0.3 (a slow reply may bring a resend)
     replies = [e.counters.discovery_replies for e in emus]
     assert replies[0] >= 1 and replies[1] >= replies[0] + 1
+
+
+def test_the_node_reports_each_drop_under_its_own_reason(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The graph node's status sums the driver's per-lidar counters by reason: packets missing by udp_cnt
+    are `udp_lost`, packets of an already published sweep `udp_late`, never one for the other."""
+    node = LivoxDriverNode("livox", config(fresh_ports(), "127.0.0.2", "127.0.0.3"), Sink(), process=False)
+    a = LidarStats("127.0.0.2", packets=100, points=9600, lost=3, duplicates=1, late=2, malformed=4,
+                   imu_packets=50, imu_lost=5, sweeps=10, time_jumps=1)  # fmt: skip
+    b = LidarStats("127.0.0.3", packets=80, points=7680, late=7, imu_packets=40, imu_lost=1, sweeps=8,
+                   counter_jumps=2)  # fmt: skip
+    stats = DriverStats({a.ip: a, b.ip: b}, foreign=6, rcvbuf_bytes=4096, kernel_drops=2)
+    monkeypatch.setattr(node.driver, "stats", lambda: stats)
+    status = node.status()
+    assert status.drops == {"udp_lost": 3, "udp_late": 9, "udp_malformed": 4, "imu_lost": 6}
+    assert status.counters == {
+        "foreign": 6.0, "rcvbuf_bytes": 4096.0, "kernel_drops": 2.0,
+        **{f"127.0.0.2.{k}": v for k, v in (("sweeps", 10.0), ("points", 9600.0), ("packets", 100.0),
+           ("duplicates", 1.0), ("imu_packets", 50.0), ("counter_jumps", 0.0), ("time_jumps", 1.0))},
+        **{f"127.0.0.3.{k}": v for k, v in (("sweeps", 8.0), ("points", 7680.0), ("packets", 80.0),
+           ("duplicates", 0.0), ("imu_packets", 40.0), ("counter_jumps", 2.0), ("time_jumps", 0.0))},
+    }  # fmt: skip
+    assert status.error is None
 
 
 def _hand_parse(raw: bytes) -> tuple[int, int, bytes]:
