@@ -7,6 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from ingest.bags.decode import Sweep
+from ingest.train import block_planes
 from ingest.train.block_planes import (
     BlockPlanes,
     FreeSpaceSettings,
@@ -281,3 +282,27 @@ def test_free_space_waits_for_the_slices_beyond_its_block():
     assert planes.complete(sweeps, T0, T0 + 999_999_999)
     assert planes.keep_from(T0 + 1_200_000_000) == T0
     assert planes.keep_from(T0 + 2_200_000_000) == T0 + 1_000_000_000
+
+
+def test_free_space_rays_start_where_each_lidar_was_in_the_middle_of_its_slice(monkeypatch):
+    """Walking at 1 m/s and turning: each slice's reference origin is its LiDAR's position at the slice's
+    middle, T_world_cam0(k S + S / 2) applied to the LiDAR's origin in cam0 (its start would be
+    2.5 cm behind), taken from the trajectory's exact pose."""
+    refs: list[tuple[int, np.ndarray, int]] = []
+
+    def spy(pts, slice_id, references, n_bits, *args):
+        refs.extend(references)
+        return np.zeros((len(pts), -(-n_bits // 64)), np.uint64)
+
+    monkeypatch.setattr(block_planes, "free_space_bits", spy)
+    traj = _trajectory(2.0)
+    sweeps = _sweeps(traj, 2.0, n=300)
+    settings = replace(_settings(), free_space=_free_settings(200_000_000))
+    planes = BlockPlanes(traj, {t: [s.span_ns for s in v] for t, v in sweeps.items()}, settings)
+    assert planes.complete(sweeps, T0, T0 + 999_999_999)
+    topics = list(sweeps)
+    assert len(refs) > 20 and len({sid for sid, _, _ in refs}) == len(refs)
+    for sid, origin, _ in refs:
+        t_mid = (sid // 2) * SLICE_NS + SLICE_NS // 2
+        R, p = traj.pose(np.array([t_mid]))
+        np.testing.assert_allclose(origin, R[0] @ LIDARS[topics[sid % 2]][:3, 3] + p[0], atol=1e-9)
