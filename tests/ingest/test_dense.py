@@ -350,7 +350,7 @@ def test_every_equirect_pixel_with_range_is_disparity_gt_or_counted_unstable():
     pts = _box_and_wall(40_000, 0.0, 5)
     wide = dense_ground_truth(*args, 1.0, pts, DenseParams())
     assert wide.unstable == 0 and wide.disp_img.count > 10_000
-    theta = eq.theta_of_row(wide.disp_img.pixel // eq.width)
+    theta = eq.theta_of_row((wide.disp_img.pixel // eq.width).astype(np.float64))
     range_m = disparity_to_depth(wide.disp_img.value, theta, 1.0, 256)
     stable = disparity_stability_mask(theta, range_m, 0.12, 256, 0.5, 0.5)
 

@@ -311,7 +311,7 @@ def test_edges_use_the_step_thresholds_of_the_tasks_unit(bench: Path, tmp_path: 
         cv2.imwrite(str(path), np.round(step).astype(np.uint16))
     pred = tmp_path / "pred"
     write_predictions(bench, pred, task)
-    report = evaluate(bench, pred, EvalOptions(task, image_type="pano_crop"))
+    report = evaluate(bench, pred, EvalOptions(task, image_type="pano_crop"))  # type: ignore[arg-type]
     assert len(report.samples) == 8
     per_map = 0 if task == "stereo" else 48
     assert [s.metrics["edges"]["n_gt"] for s in report.samples] == [per_map] * 8

@@ -93,7 +93,7 @@ def test_sixteen_bit_ply_colours_keep_their_high_byte(tmp_path):
     pc = o3d.t.geometry.PointCloud()
     pc.point.positions = o3d.core.Tensor.from_numpy(np.arange(9, dtype=np.float32).reshape(3, 3) + 1.0)
     pc.point.colors = o3d.core.Tensor.from_numpy(rgb)
-    assert o3d.t.io.write_point_cloud(str(tmp_path / "c.ply"), pc)
+    assert o3d.t.io.write_point_cloud(tmp_path / "c.ply", pc)
     (scan,) = read_scans([tmp_path / "c.ply"])
     assert scan.rgb.dtype == np.uint8
     assert scan.rgb.tolist() == [[255, 128, 1], [0, 1, 0], [156, 3, 255]]
