@@ -429,8 +429,13 @@ def evaluate(
     )  # fmt: skip
 
 
+def report_json(report: EvalReport) -> bytes:
+    """The report as the bytes of its JSON file."""
+    return (json.dumps(report.to_json(), indent=1) + "\n").encode()
+
+
 def write_report_json(report: EvalReport, path: Path) -> Path:
     """Write the report as JSON (atomically)."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    write_atomic(path, (json.dumps(report.to_json(), indent=1) + "\n").encode())
+    write_atomic(path, report_json(report))
     return path

@@ -194,8 +194,9 @@ def plot_sample(dataset_dir: Path, sid: str, out: Path) -> Path:
 import typing  # noqa: E402  (this section is appended; its types are only for the checker)
 
 
-def plot_heatmap(hm: Heatmap, path: str | Path, title: str) -> Path:
-    """A metric over FOV (rows) x baseline (columns), each cell annotated with its value."""
+def draw_heatmap(hm: Heatmap, path: str | Path, title: str) -> bytes:
+    """A metric over FOV (rows) x baseline (columns), each cell annotated with its value, as the bytes
+    of the image file `path` (its suffix picks the format)."""
     from ingest.eval.report import format_metric
 
     fig, ax = plt.subplots(figsize=(1.6 * len(hm.baselines_mm) + 3.0, 1.0 * len(hm.fovs_deg) + 2.2))
@@ -216,7 +217,7 @@ def plot_heatmap(hm: Heatmap, path: str | Path, title: str) -> Path:
     fig.colorbar(im, ax=ax, label=f"{hm.metric}{' [%]' if percent else ''}")
     ax.set_title(title)
     fig.tight_layout()
-    return _save(fig, path, dpi=110)
+    return figure_bytes(fig, path, dpi=110)
 
 
 def draw_stats(stats: DatasetStats, path: str | Path) -> bytes:

@@ -88,23 +88,23 @@ def _print_report(report: EvalReport, task: str, dataset: Path) -> None:
             _echo(f"  ... and {len(report.missing) - MISSING_LISTED} more (all in the JSON)")
 
 
-def _print_extras(
-    report: EvalReport, req: EvalRequest, heatmap: Path | None, metric: str | None, task: str, pred: Path
-) -> None:
-    """The --compare table and the --heatmap chart, when asked for."""
+def _print_compare(report: EvalReport, req: EvalRequest) -> None:
+    """The --compare table, when asked for."""
     from ingest.eval import report as rp
 
     if req.pair is not None:
         a, b = req.pair
         _echo(f"\n## {a} vs {b} (region {req.region}; change = (A - B) / |B|)\n")
         _echo(rp.markdown_compare(rp.compare(report, a, b, req.region), a, b))
-    if heatmap is not None:
-        from sensorbox.analysis.plots import plot_heatmap
 
-        name = metric or report.columns[0]
-        grid = rp.heatmap(report, name, req.region)
-        path = plot_heatmap(grid, heatmap, f"{task}: {name} ({req.region}), {pred.name}")
-        _echo(f"\nHeatmap of {name} over FOV x baseline: {path}")
+
+def _heatmap(report: EvalReport, req: EvalRequest, heatmap: Path, name: str, task: str, pred: Path) -> bytes:
+    """The --heatmap chart's file bytes: metric `name` over FOV x baseline."""
+    from ingest.eval import report as rp
+    from sensorbox.analysis.plots import draw_heatmap
+
+    title = f"{task}: {name} ({req.region}), {pred.name}"
+    return draw_heatmap(rp.heatmap(report, name, req.region), heatmap, title)
 
 
 def eval_cmd(
@@ -118,8 +118,9 @@ def eval_cmd(
     stereo: EPE, median, p95, bad-1/2/3 (px); depth: AbsRel, MAE, RMSE,
     delta < 1.25^k. Totals pool every pixel.
     """
+    from ingest.dataset.layout import write_atomic_set
     from ingest.errors import EvalError
-    from ingest.eval.evaluate import PRED_EXTS, evaluate, write_report_json
+    from ingest.eval.evaluate import PRED_EXTS, evaluate, report_json
     from ingest.eval.request import eval_request
 
     req = eval_request(
@@ -137,8 +138,15 @@ def eval_cmd(
             "(the prediction folder mirrors the dataset's)"
         )
     _print_report(report, task, dataset)
-    _print_extras(report, req, heatmap, metric, task, pred)
-    out = write_report_json(report, json_out or pred / f"eval_{task}.json")
+    _print_compare(report, req)
+    out = json_out or pred / f"eval_{task}.json"
+    name = metric or report.columns[0]
+    files = [(out, report_json(report))]
+    if heatmap is not None:  # the JSON and the chart are written as one set: both, or neither
+        files.append((heatmap, _heatmap(report, req, heatmap, name, task, pred)))
+    write_atomic_set(files)
+    if heatmap is not None:
+        _echo(f"\nHeatmap of {name} over FOV x baseline: {heatmap}")
     _echo(f"JSON report: {out}")
 
 

@@ -167,6 +167,37 @@ def test_stats_on_a_full_disk_leaves_neither_file(
     assert not out.exists()  # no stats.json without its chart, and not the folder made for them
 
 
+@pytest.mark.parametrize("fails", ["heat.png", "eval.json"])
+def test_eval_on_a_full_disk_leaves_neither_the_json_nor_the_heatmap(
+    fails: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """--json and --heatmap are one output set: whichever file the disk refuses, neither is left."""
+    bench = make_benchmark(tmp_path / "bench")
+    pred = tmp_path / "pred"
+    write_predictions(bench, pred, "stereo")
+    out = tmp_path / "out"
+    args = [
+        "eval",
+        "--dataset",
+        str(bench),
+        "--pred",
+        str(pred),
+        "--task",
+        "stereo",
+        "--image-type",
+        "pano_crop",
+    ]
+    files = ["--json", str(out / "eval.json"), "--heatmap", str(out / "heat.png")]
+    _fill_disk_at(monkeypatch, fails)
+    code, _, err = sensorbox(capsys, *args, *files)
+    assert (code, err) == (3, [f"error: cannot write {out / fails}: {ENOSPC}"])
+    assert not out.exists()
+    monkeypatch.undo()
+    code, stdout, _ = sensorbox(capsys, *args, *files)
+    assert code == 0 and sorted(p.name for p in out.iterdir()) == ["eval.json", "heat.png"]
+    assert f"JSON report: {out / 'eval.json'}" in stdout
+
+
 CAPTURE = ["capture", "--rig", str(RIG), "--emulate", "--scale", "0.25"]
 
 
