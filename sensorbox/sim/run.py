@@ -12,6 +12,7 @@ from __future__ import annotations
 import heapq
 import itertools
 import math
+import os
 import shutil
 import time
 from collections.abc import Callable
@@ -26,6 +27,7 @@ from calibration.errors import SensorboxError
 from calibration.rig import REFERENCE_RIG, Rig, read_rig
 from calibration.types import F64
 from ingest.bags.rostypes import IMU_TYPE
+from ingest.errors import OutputError
 from sensorbox import messages
 from sensorbox.live.bagwriter import FORMATS, BagFormat, BagWriter
 from sensorbox.messages import RosVersion
@@ -349,7 +351,31 @@ def simulate(cfg: SimConfig, out: Path, progress: Callable[[float], None] | None
                 progress(w1 / 1e9)
         counts = dict(bag.counts)
     tdir = truth_dir(bag.path)
-    if tdir.exists():
-        shutil.rmtree(tdir)  # stale truth of a bag that is no longer there
-    write_truth(tdir, s.scene, s.traj, s.rig, s.params(), cfg.tum)
+    try:
+        _write_truth_whole(tdir, s, cfg.tum)
+    except OSError as err:  # a bag without its truth is not a fixture: neither stays
+        _remove(bag.path)
+        where = err.filename or tdir
+        raise OutputError(f"cannot write {where}: {err.strerror or err}; no bag written") from err
     return SimSummary(bag.path, tdir, counts, bag.size_bytes, time.perf_counter() - t_start, stage)
+
+
+def _write_truth_whole(tdir: Path, s: SimSetup, tum: Path | None) -> None:
+    """The truth folder `tdir`, written into a staging folder beside it and renamed into place (a stale
+    one of an earlier bag replaced), so that it is whole or absent."""
+    staging = tdir.with_name(f".{tdir.name}.{os.getpid()}.tmp")
+    try:
+        write_truth(staging, s.scene, s.traj, s.rig, s.params(), tum)
+        if tdir.exists():
+            shutil.rmtree(tdir)  # stale truth of a bag that is no longer there
+        staging.rename(tdir)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+
+
+def _remove(path: Path) -> None:
+    """Delete a written bag: a rosbag2 folder or a .bag file."""
+    if path.is_dir():
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        path.unlink(missing_ok=True)

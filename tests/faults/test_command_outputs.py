@@ -61,6 +61,25 @@ def test_a_full_disk_while_simulating_names_the_bag_and_leaves_nothing(
     assert list(tmp_path.iterdir()) == []  # no bag, no hidden partial bag, no truth
 
 
+@pytest.mark.parametrize("fails", ["scene.ply", "sim.yaml"])
+def test_a_full_disk_while_writing_the_truth_leaves_neither_bag_nor_truth(
+    fails: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The truth folder is written after the bag; a bag whose truth did not fit is not a fixture, so
+    neither stays (and no staging folder), and a stale truth of an earlier bag is replaced only whole."""
+    out = tmp_path / "a"
+    _fill_disk_at(monkeypatch, fails)
+    code, _, err = sensorbox(capsys, "simulate", "--out", str(out), *SIM)
+    truth = tmp_path / "a.truth"
+    assert (code, err) == (3, [f"error: cannot write {truth}: {ENOSPC}; no bag written"])
+    assert list(tmp_path.iterdir()) == []
+    monkeypatch.undo()
+    code, _, err = sensorbox(capsys, "simulate", "--out", str(out), *SIM)
+    assert (code, err) == (0, [])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a", "a.truth"]
+    assert (truth / "sim.yaml").is_file() and (truth / "scene.ply").is_file()
+
+
 def test_a_refused_simulation_prints_no_blank_line_before_its_error(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
