@@ -15,6 +15,7 @@ from calibration import (
     Omni,
     Pinhole,
     RadTan,
+    Unified,
     read_kalibr_camchain,
     write_kalibr_camchain,
 )
@@ -98,6 +99,27 @@ def test_kalibr_layout_and_intrinsics_order(tmp_path):
     }
 
 
+def test_unified_is_written_as_eucm_with_beta_one(tmp_path):
+    """UCM is EUCM with beta = 1, and Kalibr's eucm intrinsics are [alpha, beta, fu, fv, pu, pv]:
+    a `Unified` camera is written with alpha first and beta = 1.0 second, and reads back as that EUCM."""
+    ucm = Unified(501.5, 502.5, 960.25, 600.75, 0.625, 1920, 1200)
+    path = tmp_path / "c.yaml"
+    write_kalibr_camchain(CameraChain((KalibrCamera("cam0", ucm, np.eye(4)),)), path)
+    cam0 = yaml.safe_load(path.read_text())["cam0"]
+    assert (cam0["camera_model"], cam0["distortion_model"]) == ("eucm", "none")
+    assert cam0["intrinsics"] == [0.625, 1.0, 501.5, 502.5, 960.25, 600.75]
+    back = read_kalibr_camchain(path).cameras[0].model
+    assert back == ExtendedUnified(501.5, 502.5, 960.25, 600.75, 0.625, 1.0, 1920, 1200)
+
+
+def test_principal_point_is_checked_against_width_and_height_in_that_order(tmp_path):
+    """resolution is [width, height]: pu may go up to the width (1920) even past the height (1200)."""
+    path = write_bad(tmp_path, cam0={"intrinsics": [-0.18, 0.59, 500.0, 500.0, 1500.0, 600.0]})
+    assert read_kalibr_camchain(path).cameras[0].model == DoubleSphere(
+        500.0, 500.0, 1500.0, 600.0, -0.18, 0.59, 1920, 1200
+    )
+
+
 def test_chaining_T_cn_cnm1(tmp_path):
     chain = make_chain([MODELS["ds"], MODELS["ds"], MODELS["eucm"]])
     path = tmp_path / "c.yaml"
@@ -110,6 +132,21 @@ def test_chaining_T_cn_cnm1(tmp_path):
     # a point in cam0 maps into cam2 through cam1
     p0 = np.array([0.3, -0.1, 2.0, 1.0])
     assert np.allclose(back.cameras[2].T_cam_cam0 @ p0, T21 @ (T10 @ p0))
+
+
+def test_chain_without_T_cn_cnm1_is_written_from_T_cam_cam0(tmp_path):
+    """A chain given only each camera's T_cam_cam0 is written with T_cn_cnm1 = T_cn_cam0 @ inv(T_cnm1_cam0)
+    (p_cn = T_cn_cam0 p_cam0 = T_cn_cam0 inv(T_cnm1_cam0) p_cnm1), so reading it back gives the same poses.
+    Three cameras: for cam1 the order of the product does not matter (T_cam0_cam0 = I), for cam2 it does."""
+    poses = [np.eye(4), random_pose(), random_pose()]
+    chain = CameraChain(tuple(KalibrCamera(f"cam{i}", MODELS["ds"], T) for i, T in enumerate(poses)))
+    path = tmp_path / "c.yaml"
+    write_kalibr_camchain(chain, path)
+    written = yaml.safe_load(path.read_text())
+    assert np.allclose(written["cam2"]["T_cn_cnm1"], poses[2] @ np.linalg.inv(poses[1]), atol=1e-12)
+    back = read_kalibr_camchain(path)
+    for cam, T in zip(back.cameras, poses, strict=True):
+        assert np.allclose(cam.T_cam_cam0, T, atol=1e-12)
 
 
 def test_reads_a_real_kalibr_style_file(tmp_path):
@@ -183,7 +220,9 @@ def write_bad(tmp_path, cam0=None, cam1=None, text=None):
         ({"cam0": {"intrinsics": [-0.18, 0.59, 500, 500.0, 960.0, 600.0]}}, r"cam0\.intrinsics: fu must be a float \(Kalibr rejects integers\), got 500"),
         ({"cam0": {"intrinsics": [-0.18, 0.59, -500.0, 500.0, 960.0, 600.0]}}, r"cam0\.intrinsics: fu must be > 0, got -500\.0"),
         ({"cam0": {"intrinsics": [-0.18, 1.5, 500.0, 500.0, 960.0, 600.0]}}, r"cam0: DoubleSphere: alpha must be in \[0, 1\), got 1\.5"),
+        ({"cam0": {"intrinsics": [-0.18, 0.59, 0.0, 500.0, 960.0, 600.0]}}, r"cam0\.intrinsics: fu must be > 0, got 0\.0"),
         ({"cam0": {"intrinsics": [-0.18, 0.59, 500.0, 500.0, -240.0, 600.0]}}, r"cam0\.intrinsics: the principal point \(pu, pv\) = \(-240, 600\) lies outside the 1920x1200 image"),
+        ({"cam0": {"intrinsics": [-0.18, 0.59, 500.0, 500.0, 960.0, 1300.0]}}, r"cam0\.intrinsics: the principal point \(pu, pv\) = \(960, 1300\) lies outside the 1920x1200 image"),
         ({"cam0": {"distortion_model": "radtan", "distortion_coeffs": [0.0, 0.0, 0.0, 0.0]}}, r"cam0\.distortion_model: 'radtan' is not valid with camera_model 'ds' \(expected one of none\)"),
         ({"cam0": {"camera_model": "pinhole", "intrinsics": [5.0, 5.0, 1.0, 1.0], "distortion_model": "radtan", "distortion_coeffs": [0.1]}}, r"cam0\.distortion_coeffs \(radtan\): expected 4 values, got 1"),
         ({"cam0": {"resolution": [1920.0, 1200]}}, r"cam0\.resolution: expected \[width, height\] positive ints"),

@@ -195,6 +195,19 @@ def test_eucm_beta_one_equals_ucm():
     assert np.abs(e.project(rays)[0] - u.project(rays)[0]).max() < 1e-12
 
 
+def test_eucm_unprojection_circle_scales_with_beta():
+    """EUCM unprojects where r^2 <= 1/(beta (2 alpha - 1)) (Khomutenko et al. 2016): alpha = 0.7 and
+    beta = 0.5 give r^2 <= 5, twice the UCM circle 1/(2 alpha - 1) = 2.5. Pixels between the two
+    circles are valid and round trip; just past r^2 = 5 none is."""
+    e = ExtendedUnified(100.0, 100.0, 640.0, 512.0, 0.7, 0.5, 1280, 1024)
+    r = np.array([math.sqrt(3.75), math.sqrt(5.0) - 1e-6, math.sqrt(5.0) + 1e-6])
+    px = np.stack([e.cx + r * e.fx, np.full(r.size, e.cy)], axis=-1)
+    rays, valid = e.unproject(px)
+    assert valid.tolist() == [True, True, False]
+    back, ok = e.project(rays[:2])
+    assert ok.all() and np.abs(back - px[:2]).max() < 1e-6
+
+
 def _omnidir(points, xi, fx, fy, cx, cy, dist=(0.0, 0.0, 0.0, 0.0)):
     K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
     out, _ = cv2.omnidir.projectPoints(

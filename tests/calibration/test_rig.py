@@ -172,6 +172,7 @@ def _rig_with(tmp_path, **changes):
         ({"cameras__cam1__role": "upper"}, r"each role may be given to one camera only"),
         ({"cameras__cam5": {"role": "lower"}}, r"cameras \['cam5'\] are not in the camchain \(has: cam0, cam1\)"),
         ({"imus__imu_top__T_cam0_imu": None}, r"imus\.imu_top: missing key 'T_cam0_imu'"),
+        ({"imus__imu_top__rate_hz": 0}, r"imus\.imu_top\.rate_hz: expected a positive number, got 0"),
         ({"imus__imu_top__rate_hz": float("nan")}, r"imus\.imu_top\.rate_hz: expected a positive number, got nan"),
         ({"imus__imu_top__rate_hz": float("inf")}, r"imus\.imu_top\.rate_hz: expected a positive number, got inf"),
         ({"imus__imu_top__rate_hz": 10**400}, r"imus\.imu_top\.rate_hz: expected a positive number, got 1000"),

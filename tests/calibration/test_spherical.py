@@ -106,6 +106,18 @@ def test_cubemap_faces_are_90_degree_pinholes():
     assert cube.split(img)["back"][0, 0] == 200
 
 
+def test_cubemap_strip_ends_at_its_last_pixel_edge():
+    """A 6F x F strip covers u in [-0.5, 6F - 0.5): the last column (6F - 1, the "down" face) unprojects,
+    the edge 6F - 0.5 and anything right of it (a seventh face) does not."""
+    F = 4
+    cube = Cubemap(F)
+    u = np.array([-0.5, 6 * F - 1.0, 6 * F - 0.5, 6 * F + 1.0, 7 * F - 1.0])
+    rays, valid = cube.unproject(np.stack([u, np.full(u.size, (F - 1) / 2.0)], axis=-1))
+    assert valid.tolist() == [True, True, False, False, False]
+    # the centre row of the down face's last column looks along +y (down), tilted towards +x
+    assert rays[1, 1] > 0 and rays[1, 1] > abs(rays[1, 0]) and abs(rays[1, 2]) < 1e-12
+
+
 def test_cassini_rows_are_horizontal_epipolar_lines():
     cas = Cassini(512)
     p = all_sphere_rays(1000) * np.random.default_rng(1).uniform(1, 10, (1000, 1))
