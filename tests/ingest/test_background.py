@@ -43,6 +43,13 @@ def test_result_is_the_helpers_return_value_computed_in_another_thread():
     assert bg.ms > 0.0 and bg.result() == (ident, True)  # a second result() returns the same value
 
 
+def test_ms_is_the_helpers_wall_time_in_milliseconds():
+    """`ms` is in milliseconds: a helper that sleeps 50 ms reports at least 50 (and not 50 000)."""
+    bg = Background(lambda: time.sleep(0.05))
+    bg.wait()
+    assert 50.0 <= bg.ms < 5000.0
+
+
 def test_an_error_in_the_helper_is_raised_by_result_not_by_wait():
     def fn() -> int:
         raise KeyError("no such lidar: lidar9")

@@ -6,7 +6,9 @@ import cv2
 import numba
 import numpy as np
 import open3d as o3d
+import pytest
 
+from ingest.runtime import executor as executor_module
 from ingest.runtime.executor import Executor, share_cores, usable_cpus
 
 
@@ -40,3 +42,27 @@ def test_forked_workers_run_opencv_on_their_share_and_this_process_gets_its_sett
         ]
     finally:
         cv2.setNumThreads(before)
+
+
+def test_opencv_threads_are_never_raised_to_a_workers_share(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The share only bounds OpenCV's threads: with 8 usable CPUs a worker of two may use 4, but when
+    this process runs OpenCV on 2 threads its forked workers keep 2 (min(2, 8 // 2)), not 4."""
+    monkeypatch.setattr(executor_module, "usable_cpus", lambda: 8)
+    before = cv2.getNumThreads()
+    try:
+        cv2.setNumThreads(2)
+        assert [n for n, _ in Executor(2).run(_cv2_threads, range(2))] == [2, 2]
+        assert cv2.getNumThreads() == 2
+    finally:
+        cv2.setNumThreads(before)
+
+
+def test_default_in_flight_is_two_jobs_per_worker_and_every_core_busy_from_one_worker_per_cpu(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Without `max_in_flight` a pool keeps two jobs per worker submitted (one running, one queued;
+    at least 2); `every_core_busy` holds once there are as many local workers as usable CPUs."""
+    monkeypatch.setattr(executor_module, "usable_cpus", lambda: 4)
+    assert [Executor(w).max_in_flight for w in (1, 2, 3, 5)] == [2, 4, 6, 10]
+    assert Executor(3, max_in_flight=7).max_in_flight == 7
+    assert [Executor(w).every_core_busy for w in (1, 3, 4, 5)] == [False, False, True, True]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import errno
 import filecmp
+import hashlib
 import json
 import os
 import shutil
@@ -19,6 +20,7 @@ from ingest.bags.reader import open_bags
 from ingest.dataset.layout import DEPTH_SCALE, DISP_SCALE, read_png_u16
 from ingest.dataset.meta import read_meta
 from ingest.errors import BagError, DatasetError, MessageDecodeError
+from ingest.train.describe import bag_identity
 from ingest.train.pipeline import IngestConfig, ingest
 from ingest.train.sample import SampleParams
 from sensorbox.live.bagwriter import BagWriter
@@ -180,6 +182,21 @@ def test_a_second_recording_is_appended_and_each_resumes_its_own_ids(tmp_path: P
         match=r"dataset.yaml: an existing dataset was made with a different 'params' \(every: 10 -> 5\)",
     ):
         ingest([walk], IngestConfig(rig=_rig(INDOOR), out=out, workers=1, every=5))
+
+
+def test_bag_identity_is_the_data_files_size_and_head_hash_without_metadata_yaml(tmp_path: Path) -> None:
+    """A rosbag2 folder is identified by its data files only: bytes = their total size, sha256 over each
+    file's "name:size:" and first MiB in name order; metadata.yaml, which `ros2 bag reindex` rewrites,
+    changes neither."""
+    bag = tmp_path / "rec"
+    bag.mkdir()
+    (bag / "rec_0.mcap").write_bytes(b"a" * 10)
+    (bag / "rec_1.mcap").write_bytes(b"bc" * 3)
+    (bag / "metadata.yaml").write_text("rosbag2_bagfile_information: {}\n")
+    digest = hashlib.sha256(b"rec_0.mcap:10:" + b"a" * 10 + b"rec_1.mcap:6:" + b"bc" * 3).hexdigest()
+    assert bag_identity(bag) == {"bytes": 16, "sha256_head": digest}
+    (bag / "metadata.yaml").write_text("rosbag2_bagfile_information: {version: 8}\n")
+    assert bag_identity(bag) == {"bytes": 16, "sha256_head": digest}
 
 
 def test_a_recording_is_known_by_its_content_and_a_dataset_by_its_rig(tmp_path: Path) -> None:

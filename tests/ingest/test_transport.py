@@ -41,3 +41,17 @@ def test_images_round_trip_through_a_forked_pool_and_slots_are_recycled():
         slots.close()
     with pytest.raises(RuntimeError, match="forked after ArraySlots"):
         slot_views(SlotRef(0, ()))
+
+
+def test_arrays_that_fill_a_slot_exactly_fit():
+    """A slot takes arrays whose sizes, each rounded up to 64 bytes (a cache line), sum to at most its size: 50 + 64
+    bytes round to 64 + 64 = 128 and fill a 128-byte slot; 65 bytes round to 128 and do not fit beside 64."""
+    slots = ArraySlots(2, 128)
+    try:
+        a, b = np.arange(50, dtype=np.uint8), np.arange(64, dtype=np.uint8)
+        ref = slots.put((a, b))
+        assert ref is not None and ref.slot == 0
+        assert slots.put((np.zeros(65, np.uint8), b)) is None
+        assert slots.free == [1]  # the refused put took no slot
+    finally:
+        slots.close()
