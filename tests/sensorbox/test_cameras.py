@@ -51,6 +51,24 @@ def test_pairer_ages_out_frames_of_a_silent_partner():
     assert p.unpaired == [4, 0] and p.pairs == 1
 
 
+def test_unpaired_frames_of_both_cameras_add_up_in_the_nodes_pair_drops():
+    """A lower frame that can never pair counts for the lower camera (unpaired[1]), and the node's "pair"
+    drop is both cameras' sum: upper 0 (lower 100 came next), lower 100 (upper 300 next) and lower 400
+    (upper 500 next) make unpaired [1, 2] and 3 pair drops; 300 and 305 pair."""
+    node = CameraNode(
+        "stereo", [ListSource("upper", []), ListSource("lower", [])],
+        [CameraOutput(UPPER, "cam0_optical_frame"), CameraOutput(LOWER, "cam1_optical_frame")],
+        lambda *m: None, image="jpeg", pair_tolerance_ns=10,
+    )  # fmt: skip
+    p = node.pairer
+    assert p is not None
+    out = []
+    for cam, stamp in [(0, 0), (1, 100), (0, 300), (1, 305), (1, 400), (0, 500)]:
+        out += p.push(cam, stamp, stamp)
+    assert out == [(300, 305)] and p.unpaired == [1, 2]
+    assert node.status().drops["pair"] == 3
+
+
 # ---------------------------------------------------------------- OpenCV
 
 

@@ -20,7 +20,7 @@ from ingest.bags.decode import header_stamp_ns
 from ingest.bags.livox_msg import decode_custom_msg
 from ingest.bags.reader import open_bags
 from ingest.train.pipeline import IngestConfig, ingest
-from sensorbox.live.capture import CaptureConfig, capture_plan
+from sensorbox.live.capture import CaptureConfig, capture_plan, check_config
 from sensorbox.live.launch import parse_launch, run_launch
 from tests.live import HANG_S, NO_DISK_GUARD
 
@@ -170,6 +170,19 @@ def test_capture_needs_lidar_ips(tmp_path):
     (tmp_path / "sensorbox-camchain.yaml").write_text((REF.parent / "sensorbox-camchain.yaml").read_text())
     with pytest.raises(SensorboxError, match=r"lidars\.lidar_bottom: no 'ip'"):
         capture_plan(CaptureConfig(rig=rig, out=tmp_path))
+
+
+def test_port_base_and_jpeg_quality_limits(tmp_path):
+    """The driver takes nine consecutive UDP ports from --port-base (`Ports.block`): 65527 + 8 = 65535
+    is the last that fits, 65528 is refused; JPEG quality runs 1..100, so 0 is refused."""
+    check_config(CaptureConfig(rig=REF, out=tmp_path, port_base=65527))
+    check_config(CaptureConfig(rig=REF, out=tmp_path, jpeg_quality=1))
+    with pytest.raises(
+        SensorboxError, match=r"^--port-base 65528: expected 1\.\.65527 \(the first of nine UDP ports\)$"
+    ):
+        check_config(CaptureConfig(rig=REF, out=tmp_path, port_base=65528))
+    with pytest.raises(SensorboxError, match=r"^--jpeg-quality 0: expected 1\.\.100$"):
+        check_config(CaptureConfig(rig=REF, out=tmp_path, jpeg_quality=0))
 
 
 def test_cli_launch_dry_run_show_args_and_errors():

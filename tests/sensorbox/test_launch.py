@@ -193,6 +193,22 @@ def test_parameters_types_nesting_and_files(tmp_path):
     }  # fmt: skip
 
 
+def test_parameter_file_node_entry_overrides_the_wildcard_and_keeps_full_dotted_names(tmp_path):
+    """As rcl reads a parameter file, the node's own entry wins over `/**` for a key both set (5, not 3),
+    and a parameter nested two levels deep keeps its whole dotted name (`lidar.top.ip`)."""
+    write(tmp_path / "params.yaml", """\
+        /**:
+          ros__parameters: {count: 3, lidar: {top: {ip: 10.0.0.1}}}
+        talker:
+          ros__parameters: {count: 5}
+        """)  # fmt: skip
+    f = write(tmp_path / "p.launch.yaml", """\
+        launch:
+        - node: {exec: talker, name: talker, param: [{from: params.yaml}]}
+        """)  # fmt: skip
+    assert dict(parse_launch(f).nodes[0].params) == {"count": 5, "lidar.top.ip": "10.0.0.1"}
+
+
 def test_group_forms(tmp_path):
     f = write(tmp_path / "g.launch.yaml", """\
         launch:

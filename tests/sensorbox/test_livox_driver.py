@@ -745,3 +745,25 @@ def test_a_spoofed_counter_or_clock_jump_is_a_counted_anomaly_not_loss(sim):
         stamps[real],
         np.concatenate([sw.timebase_ns + sw.points["offset_time"].astype(np.int64) for sw in items]),
     )
+
+
+def test_publish_interval_limits_are_inclusive() -> None:
+    """publish_freq 0.5..100 Hz as livox_ros_driver2 allows: 10 ms and 2 s themselves are accepted,
+    one nanosecond beyond either is refused."""
+    lidars = (LidarEndpoint("192.168.1.12"),)
+    for ns in (10_000_000, 2_000_000_000):
+        DriverConfig("192.168.1.5", lidars, publish_interval_ns=ns).validate()
+    for ns in (9_999_999, 2_000_000_001):
+        with pytest.raises(DriverError, match=rf"publish_interval_ns {ns}: expected 10 ms\.\.2 s"):
+            DriverConfig("192.168.1.5", lidars, publish_interval_ns=ns).validate()
+
+
+def test_point_datagram_books_balance_with_late_packets() -> None:
+    """Every point datagram is kept, a duplicate, late or a listed reject: 6 + 1 + 2 + 1 (short) = 10
+    balances; a malformed reason that is not a point reject (imu) does not count for the point port."""
+    s = LidarStats("192.168.1.12", packets=6, duplicates=1, late=2, point_datagrams=10,
+                   malformed_by_reason={"short": 1, "imu": 3})  # fmt: skip
+    assert s.unaccounted_point_datagrams() == 0
+    assert (
+        LidarStats("192.168.1.12", packets=6, late=2, point_datagrams=10).unaccounted_point_datagrams() == 2
+    )

@@ -249,6 +249,26 @@ def test_quantise_then_decode_is_within_one_unit(data_type):
     assert (np.linalg.norm(back - xyz, axis=1) <= tol + 1e-9).all()
 
 
+def test_spherical_azimuth_just_below_360_degrees_wraps_to_0():
+    """Spherical phi is 0.01-degree steps in [0, 36000): an azimuth of -0.001 deg (359.999) rounds to
+    36000, which is 0 on the wire; theta is the zenith angle, 90 deg (9000) in the x-y plane."""
+    xyz = np.array([[10.0, -10.0 * np.tan(np.radians(0.001)), 0.0], [0.0, 10.0, 0.0]])
+    q = packets.quantise_points(3, xyz, np.zeros(2, np.uint8), np.zeros(2, np.uint8))
+    assert q["phi"].tolist() == [0, 9000] and q["theta"].tolist() == [9000, 9000]
+    assert q["depth"].tolist() == [10000, 10000]
+
+
+def test_cartesian_coordinates_beyond_the_field_saturate_instead_of_wrapping():
+    """Data type 2 stores 10 mm units in int16: 400 m (40000) saturates at 32767 (327.67 m) and -400 m at
+    -32768, never wraps to the other side; data type 1 (mm, int32) holds 400 m exactly."""
+    xyz = np.array([[400.0, -400.0, 1.0]])
+    zero = np.zeros(1, np.uint8)
+    q2 = packets.quantise_points(2, xyz, zero, zero)
+    assert (int(q2["x"][0]), int(q2["y"][0]), int(q2["z"][0])) == (32767, -32768, 100)
+    q1 = packets.quantise_points(1, xyz, zero, zero)
+    assert (int(q1["x"][0]), int(q1["y"][0]), int(q1["z"][0])) == (400000, -400000, 1000)
+
+
 def test_extrinsic_rotation_convention():
     """R = Rz(yaw) Ry(pitch) Rx(roll): yaw 90 deg maps x to y; roll 90 deg maps y to z."""
     np.testing.assert_allclose(extrinsic_rotation(0, 0, 90) @ [1, 0, 0], [0, 1, 0], atol=1e-15)

@@ -9,7 +9,9 @@ writes, flushes), and the bundled simulator fixtures.
 
 from __future__ import annotations
 
+import errno
 import itertools
+import os
 from pathlib import Path
 from typing import Any
 
@@ -30,9 +32,10 @@ from ingest.bags.rostypes import (
     IMAGE_TYPE,
     IMU_TYPE,
     POINTCLOUD2_TYPE,
+    typestore,
 )
 from sensorbox import messages
-from sensorbox.live.bagwriter import BagWriter
+from sensorbox.live.bagwriter import BagWriteError, BagWriter, bag_path
 from sensorbox.live.recorder import Recorder, RecorderConfig
 from sensorbox.sim.fixtures import FIXTURES, fixture_bag
 from tests.live import NO_DISK_GUARD
@@ -214,3 +217,55 @@ def test_foxglove_mcap_reads_the_simulators_fixtures(name: str) -> None:
     assert len(firsts) == 4  # one per camera and IMU topic
     for raw, value in firsts:
         assert stamp_ns(value) == header_stamp_ns(raw, 2)
+
+
+def test_bag_path_appends_bag_to_a_dotted_name() -> None:
+    """`--out run.2024-05-01 --format bag` writes `run.2024-05-01.bag` (the name's dot is no suffix to
+    replace); a name already ending in .bag is kept, and rosbag2 formats use the folder as given."""
+    assert bag_path(Path("out/run.2024-05-01"), "bag") == Path("out/run.2024-05-01.bag")
+    assert bag_path(Path("out/run.bag"), "bag") == Path("out/run.bag")
+    assert bag_path(Path("out/run.2024-05-01"), "mcap") == Path("out/run.2024-05-01")
+
+
+@pytest.mark.parametrize(
+    ("code", "no_space"), [(errno.ENOSPC, True), (errno.EDQUOT, True), (errno.EIO, False)]
+)
+def test_a_refused_write_takes_back_exactly_the_messages_of_the_open_chunk(
+    tmp_path: Path, code: int, no_space: bool
+) -> None:
+    """In place, two messages flushed into a complete chunk stay; the three written after the flush and
+    the one refused are lost: counts go back to 2 and `lost` holds (4 messages, 10 + 20 + 30 + 40 bytes).
+    A full disk or an exhausted quota (EDQUOT) is "no space"; another I/O error is not."""
+    bag = tmp_path / "bag"
+    with BagWriter(bag, "mcap", compress=False, in_place=True) as out:
+        out.add("/s", "std_msgs/msg/String")
+        for k in range(2):
+            out.write("/s", LOG0_NS + k, _string_msg(f"{k}"))
+        out.flush()
+        raws = [_string_msg("x" * (n - 9)) for n in (10, 20, 30, 40)]
+        assert [len(r) for r in raws] == [10, 20, 30, 40]
+        for k, raw in enumerate(raws[:3]):
+            out.write("/s", LOG0_NS + 10 + k, raw)
+        writer: Any = out._writer
+
+        def refuse(*_args: Any) -> None:
+            raise OSError(code, os.strerror(code))
+
+        writer.write = refuse
+        with pytest.raises(BagWriteError) as info:
+            out.write("/s", LOG0_NS + 20, raws[3])
+        assert info.value.lost == {"/s": (4, 100)} and info.value.no_space is no_space
+        assert out.counts == {"/s": 2}
+        assert "4 messages of the open chunk not in it" in str(info.value)
+    assert [m.raw for m in read_all_messages(bag)] == [_string_msg("0"), _string_msg("1")]
+
+
+def read_all_messages(bag: Path) -> list[Any]:
+    with open_bags([bag]) as reader:
+        return list(reader.messages())
+
+
+def _string_msg(text: str) -> bytes:
+    """A std_msgs/String in CDR: 4 bytes of encapsulation, a 4-byte length, the text and its NUL."""
+    ts = typestore(2)
+    return bytes(ts.serialize_cdr(ts.types["std_msgs/msg/String"](data=text), "std_msgs/msg/String"))
