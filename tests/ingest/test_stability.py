@@ -346,3 +346,23 @@ def test_displacement_mask_reaches_the_whole_disc_and_little_more() -> None:
         assert not keep[c, c]
         assert not keep[(dist <= reach)].any()  # the rounded-up ladder never falls short
         assert keep[dist > 1.1 * reach + 2.5].all()  # and adds at most one rung and a pixel
+
+
+def test_seam_mask_counts_the_padding_above_the_face() -> None:
+    """A face padded `pad_px` rows above gives the match (v - d) that much room: v = 10, d = 20 and a
+    3 px block need v + pad - d >= 3, so pad 13 keeps the pixel and pad 12 does not."""
+    got = [bool(cubemap_seam_mask(50.0, 10.0, 20.0, 100, 3, pad_px=pad)) for pad in (0, 12, 13)]
+    assert got == [False, False, True]
+
+
+def test_displacement_bounds_are_the_same_for_either_sign_of_the_offset() -> None:
+    """px_per_rad |dt| (|omega| + |v| / r): 500 px/rad x 0.01 s x (1 rad/s + 2 m/s / 4 m) = 7.5 px whether
+    the LiDAR clock runs 10 ms ahead or behind; a rotation error of -0.002 rad with a 0.1 m lever
+    at 0.5 m gives 500 x 0.002 x (1 + 0.2) = 1.2 px and 0.2 mm along the ray."""
+    for dt in (0.01, -0.01):
+        assert time_offset_displacement_px(dt, -1.0, -2.0, np.array([4.0]), 500.0).tolist() == pytest.approx(
+            [7.5]
+        )
+        assert time_offset_range_error_m(dt, -2.0) == pytest.approx(0.02)
+    assert extrinsic_displacement_px(-0.002, np.array([0.5]), 0.1, 500.0).tolist() == pytest.approx([1.2])
+    assert extrinsic_range_error_m(-0.002, 0.1) == pytest.approx(0.0002)

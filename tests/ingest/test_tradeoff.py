@@ -5,12 +5,15 @@ from __future__ import annotations
 import csv
 from dataclasses import replace
 from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
 
 import cv2
 import numpy as np
 import pytest
 import yaml
 
+from calibration.pinhole import Pinhole
 from calibration.rectify import rectify_rig
 from calibration.stereo import depth_to_disparity
 from calibration.warp import covering_crop, default_height_full
@@ -20,6 +23,7 @@ from sensorbox.analysis.projection import Sgbm, compare_projections, num_dispari
 from sensorbox.analysis.tradeoff import (
     ALTERNATIVES,
     QUICK,
+    Alternative,
     Measurement,
     pareto_front,
     pool,
@@ -27,7 +31,7 @@ from sensorbox.analysis.tradeoff import (
     select,
     write_csv,
 )
-from sensorbox.sim.score import score_dataset
+from sensorbox.sim.score import _edge_band, score_dataset
 from sensorbox.sim.truth import Truth, truth_dir
 from tests.paths import FIXTURES_DIR
 
@@ -79,6 +83,15 @@ def test_alternatives_apply_their_changes() -> None:
         select(["default", "fast"])
 
 
+def test_scaled_equirect_height_rounds_to_the_nearest_multiple_of_64() -> None:
+    """height_full x scale goes to the nearest multiple of 64, at least 64: 1000 x 0.5 = 500 -> 512 (not
+    448), 1000 x 2 = 2000 -> 1984, 100 x 0.5 = 50 -> 64."""
+    half, double = Alternative("h", "r", height_scale=0.5), Alternative("d", "r", height_scale=2.0)
+    base = IngestConfig(rig=RIG, out=Path("x"), workers=1, height_full=1000)
+    assert (half.apply(base).height_full, double.apply(base).height_full) == (512, 1984)
+    assert half.apply(replace(base, height_full=100)).height_full == 64
+
+
 def test_csv_is_written_atomically_with_every_column(tmp_path: Path) -> None:
     path = write_csv(tmp_path / "sub" / "t.csv", [{"a": 1, "b": 0.5}, {"a": 2, "c": "x"}])
     rows = list(csv.DictReader(path.open()))
@@ -115,6 +128,26 @@ def test_repeats_take_each_samples_median_and_pooling_concatenates() -> None:
     b = replace(_m("x", (2.0, 3.0)), depth_median_m=(0.010, 0.020))
     row = pool([a, b])[0].row()
     assert row["depth_median_mm"] == pytest.approx((1.0 + 15.0) / 2) and row["ms_per_sample"] == 1.75
+
+
+def test_each_bag_and_alternative_takes_the_median_of_its_own_rounds(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Two alternatives on two bags, three rounds: each (alternative, bag) pair's time is the median of
+    its own three rounds (100 a + 10 b + round, so 100 a + 10 b + 1), never another pair's."""
+
+    def fake_measure(bag: Path, cfg: Any, alt: Any, score: Any, keep: bool = False) -> Measurement:
+        rep, a, b = (int(x) for x in cfg.name.split("_")[:3])
+        return replace(_m(alt.name, (100.0 * a + 10.0 * b + rep,)), bag=bag.name)
+
+    monkeypatch.setattr("sensorbox.analysis.tradeoff.measure", fake_measure)
+    bags = [(Path("b0"), RIG), (Path("b1"), RIG)]
+    alts = select(["default", "occlusion filter off"])
+    got = run_alternatives(bags, alts, tmp_path, lambda bag, ds: [], base=lambda rig, out: out, repeats=3)  # type: ignore[arg-type,return-value]
+    assert [(m.alternative, m.bag, m.sample_ms) for m in got] == [
+        ("default", "b0", (1.0,)), ("default", "b1", (11.0,)),
+        ("occlusion filter off", "b0", (101.0,)), ("occlusion filter off", "b1", (111.0,)),
+    ]  # fmt: skip
 
 
 @pytest.fixture(scope="module")
@@ -199,3 +232,18 @@ def test_equirect_vs_cubemap_on_a_fixture_sample(runs: list[Measurement]) -> Non
     r = float(truth.range_along(np.array([[0.0, 0.0, 1.0]]) @ rect.R_cam0_rect.T, stamp)[0])
     assert on_eq == pytest.approx(float(depth_to_disparity(r, np.pi / 2, rect.baseline_m, height)), rel=0.02)
     assert on_face == pytest.approx(on_eq, rel=0.02)
+
+
+def test_edge_band_reaches_band_px_either_side_of_a_depth_step() -> None:
+    """The edge band is every pixel within `band_px` (a (2 band_px + 1)^2 square) of a range step: a
+    1 m | 2 m wall at columns 9 | 10 of a 20 px image marks columns 9 and 10 (the 3x3 step), and
+    band_px = 3 widens that to columns 6..13."""
+    model = Pinhole(10.0, 10.0, 9.5, 9.5, 20, 20)
+
+    def range_at(m: Pinhole, pixels: np.ndarray, stamp_ns: int) -> np.ndarray:
+        return np.where(pixels[:, 0] < 10, 1.0, 2.0)
+
+    truth: Any = SimpleNamespace(rig=SimpleNamespace(upper=SimpleNamespace(model=model)), range_at=range_at)
+    band = _edge_band(truth, 0, band_px=3)
+    assert band.shape == (20, 20) and (band == band[:1]).all()  # the same in every row
+    assert np.flatnonzero(band[0]).tolist() == list(range(6, 14))
