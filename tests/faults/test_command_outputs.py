@@ -195,17 +195,7 @@ def test_eval_on_a_full_disk_leaves_neither_the_json_nor_the_heatmap(
     pred = tmp_path / "pred"
     write_predictions(bench, pred, "stereo")
     out = tmp_path / "out"
-    args = [
-        "eval",
-        "--dataset",
-        str(bench),
-        "--pred",
-        str(pred),
-        "--task",
-        "stereo",
-        "--image-type",
-        "pano_crop",
-    ]
+    args = ["eval", "--dataset", str(bench), "--pred", str(pred), "--task", "stereo", "--image-type", "pano_crop"]  # fmt: skip
     files = ["--json", str(out / "eval.json"), "--heatmap", str(out / "heat.png")]
     _fill_disk_at(monkeypatch, fails)
     code, _, err = sensorbox(capsys, *args, *files)
@@ -288,20 +278,8 @@ def test_a_damaged_ground_truth_png_is_our_one_line_only(
     write_predictions(bench, pred, "mono", view="fisheye")  # from the GT while it is whole
     gt.write_bytes(bytes(data))
     capfd.readouterr()
-    for args in (
-        ["stats", str(bench), "--out", str(tmp_path / "s")],
-        [
-            "eval",
-            "--dataset",
-            str(bench),
-            "--pred",
-            str(pred),
-            "--task",
-            "mono",
-            "--json",
-            str(tmp_path / "e.json"),
-        ],
-    ):
+    scoring = ["eval", "--dataset", str(bench), "--pred", str(pred), "--task", "mono", "--json", str(tmp_path / "e.json")]  # fmt: skip
+    for args in (["stats", str(bench), "--out", str(tmp_path / "s")], scoring):
         code, _, err = sensorbox(capfd, *args)  # file descriptors captured: what C libraries print too
         assert (code, err) == (
             2,
