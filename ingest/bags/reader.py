@@ -370,11 +370,11 @@ def check_bare_db3(path: Path) -> None:
         )
 
 
-def _decompressed(msg: RawMessage) -> RawMessage:
-    """`msg`, one zstd-compressed message of a rosbag2 .db3 (compression_mode 'message'), decompressed;
-    data that does not decompress is the message's `damage` (counted under --max-bad, or one line
-    naming the topic and log time), and the read goes on."""
-    frame = zstandard.ZstdDecompressor().decompressobj()
+def _decompressed(msg: RawMessage, dctx: zstandard.ZstdDecompressor) -> RawMessage:
+    """`msg`, one zstd-compressed message of a rosbag2 .db3 (compression_mode 'message'), decompressed
+    with `dctx` (one per read); data that does not decompress is the message's `damage` (counted under
+    --max-bad, or one line naming the topic and log time), and the read goes on."""
+    frame = dctx.decompressobj()
     try:
         data = frame.decompress(msg.raw)
     except zstandard.ZstdError as err:
@@ -643,10 +643,12 @@ class BagSet:
         if readahead:
             self._guard.readahead = readahead
         compressed = self._reader.message_compressed
+        dctx = zstandard.ZstdDecompressor()  # reused by every message of this read
         try:
             for conn, log_ns, raw in self._reader.messages(connections=conns, start=start_ns, stop=stop_ns):
                 if compressed and id(conn.owner) in compressed:
-                    yield _decompressed(RawMessage(conn.topic, conn.msgtype, log_ns, raw, self.ros_version))
+                    msg = RawMessage(conn.topic, conn.msgtype, log_ns, raw, self.ros_version)
+                    yield _decompressed(msg, dctx)
                 elif isinstance(raw, DeferredData) and conn.topic in defer:
                     yield RawMessage(conn.topic, conn.msgtype, log_ns, raw.head, self.ros_version, raw)
                 elif isinstance(raw, DeferredData):  # asked for by another read running beside this one
