@@ -78,7 +78,7 @@ import open3d as o3d
 from scipy.spatial import cKDTree
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import OUT_DIR, markdown_table, median_seconds
+from _common import OUT_DIR, machine_line, markdown_table, median_seconds
 
 import ingest.dataset.layout as dataset
 import ingest.train.clouds as clouds_mod
@@ -394,7 +394,21 @@ class SampleImages:
         files = args[2]  # write_sample(out, sid, files, exr, png_level)
         disp, _ = dataset.to_uint16(files.disp_px, dataset.DISP_SCALE)
         depth, _ = dataset.to_uint16(files.range_m, dataset.DEPTH_SCALE)
-        return cls(np.ascontiguousarray(files.left_fisheye), files.equirect_up, disp, depth)
+        return cls(stored_colour(files.left_fisheye), stored_colour(files.equirect_up), disp, depth)
+
+
+def stored_colour(image: Arr) -> Arr:
+    """A colour image as its PNG stores it: BGR, a raw bgra8 camera's alpha dropped.
+
+    The PNG writer drops the alpha (a camera's constant one; 0 outside an
+    equirect's valid pixels, like the colour), so the encoders are compared on,
+    and checked against, the three channels they all store. Given the BGRA
+    array, cv2's writers would store four channels and ours would never decode
+    back equal to its input.
+    """
+    if image.ndim == 3 and image.shape[2] == 4:
+        return cv2.cvtColor(image, cv2.COLOR_BGRA2BGR)
+    return np.ascontiguousarray(image)
 
 
 # ---------------------------------------------------------------- 3. encoders
@@ -493,6 +507,20 @@ class EncResult:
 
 
 def bench_encoders(images: dict[str, Arr], encs: list[Encoder], runs: int) -> list[EncResult]:
+    """Every encoder on every image: ms, MB and whether it decodes back bit-exact.
+
+    OpenCV's log is silenced meanwhile, so that its codecs' warnings do not
+    break up the tables.
+    """
+    level = cv2.utils.logging.getLogLevel()
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+    try:
+        return _bench_encoders(images, encs, runs)
+    finally:
+        cv2.utils.logging.setLogLevel(level)
+
+
+def _bench_encoders(images: dict[str, Arr], encs: list[Encoder], runs: int) -> list[EncResult]:
     out = []
     for label, img in images.items():
         for e in encs:
@@ -803,7 +831,7 @@ def run_all(bag: Path, rig: Path, root: Path, repeats: int, source: str, prefaul
     cam = geo.rig.upper.model
     print(f"\ninput: {source}; {n} samples; fisheye {cam.width}x{cam.height}, "
           f"equirect {geo.equirect.width}x{geo.equirect.height}; cv2 {cv2.__version__}, "
-          f"cv2 threads = {cv2.getNumThreads()}; {os.cpu_count()} CPUs, {load()}")  # fmt: skip
+          f"cv2 threads = {cv2.getNumThreads()}; {load()}\n{machine_line()}")  # fmt: skip
 
     part_decode(bag, repeats)
     print()
