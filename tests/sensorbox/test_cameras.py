@@ -235,7 +235,14 @@ def test_sim_cameras_reproduce_the_simulators_frames_and_stamps():
         for k, m in enumerate(msgs[topic]):
             frame = decode_image(m.raw)
             assert frame.stamp_ns == sim.stamp_ns(k, cam)
-            np.testing.assert_array_equal(sim.render(k, cam), frame.image)
+            # the fixture's CPU may have rendered through other SIMD paths: one level at most (test_fixtures)
+            diff = np.abs(sim.render(k, cam).astype(np.int16) - frame.image)
+            assert diff.max() <= 1 and (diff > 0).mean() < 1e-3, (
+                topic,
+                k,
+                int(diff.max()),
+                float((diff > 0).mean()),
+            )
 
 
 @pytest.mark.realtime
