@@ -90,7 +90,7 @@ from ingest.bags.decode import decode
 from ingest.bags.livox_msg import decode_custom_msg
 from ingest.bags.reader import open_bags
 from ingest.bags.rostypes import CUSTOM_MSG_TYPE, typestore
-from ingest.dataset.png import LEVELS, encode_png
+from ingest.dataset.png import LEVELS, encode_png, opencv_silenced
 from ingest.train.pipeline import IngestConfig, _resolve_topics, ingest
 from ingest.train.plan import plan
 from ingest.train.planes import knn_covariances, neighbour_covariances
@@ -480,9 +480,7 @@ def encoders() -> tuple[list[Encoder], list[str]]:
         )
     probe = np.zeros((64, 64, 3), np.uint8)
     usable, notes = [], []
-    level = cv2.utils.logging.getLogLevel()
-    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
-    try:
+    with opencv_silenced():
         for e in cands:
             try:
                 ok = cv2.haveImageWriter("x" + e.ext) and bool(e.encode(probe))
@@ -492,8 +490,6 @@ def encoders() -> tuple[list[Encoder], list[str]]:
                 usable.append(e)
             else:
                 notes.append(f"{e.name}: not available in this cv2 {cv2.__version__} build")
-    finally:
-        cv2.utils.logging.setLogLevel(level)
     return usable, notes
 
 
@@ -512,26 +508,18 @@ def bench_encoders(images: dict[str, Arr], encs: list[Encoder], runs: int) -> li
     OpenCV's log is silenced meanwhile, so that its codecs' warnings do not
     break up the tables.
     """
-    level = cv2.utils.logging.getLogLevel()
-    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
-    try:
-        return _bench_encoders(images, encs, runs)
-    finally:
-        cv2.utils.logging.setLogLevel(level)
-
-
-def _bench_encoders(images: dict[str, Arr], encs: list[Encoder], runs: int) -> list[EncResult]:
     out = []
-    for label, img in images.items():
-        for e in encs:
-            if img.dtype != np.uint8 and not e.u16:
-                out.append(EncResult(e.name, label, float("nan"), float("nan"), None))
-                continue
-            buf = e.encode(img)
-            back = cv2.imdecode(np.frombuffer(buf, np.uint8), cv2.IMREAD_UNCHANGED)
-            same = back is not None and back.dtype == img.dtype and np.array_equal(back, img)
-            t = median_seconds(lambda e=e, img=img: e.encode(img), runs, warmup=1)  # type: ignore[misc]
-            out.append(EncResult(e.name, label, t * 1e3, len(buf) / 1e6, same))
+    with opencv_silenced():
+        for label, img in images.items():
+            for e in encs:
+                if img.dtype != np.uint8 and not e.u16:
+                    out.append(EncResult(e.name, label, float("nan"), float("nan"), None))
+                    continue
+                buf = e.encode(img)
+                back = cv2.imdecode(np.frombuffer(buf, np.uint8), cv2.IMREAD_UNCHANGED)
+                same = back is not None and back.dtype == img.dtype and np.array_equal(back, img)
+                t = median_seconds(lambda e=e, img=img: e.encode(img), runs, warmup=1)  # type: ignore[misc]
+                out.append(EncResult(e.name, label, t * 1e3, len(buf) / 1e6, same))
     return out
 
 

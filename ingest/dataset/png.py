@@ -27,6 +27,8 @@ from __future__ import annotations
 
 import struct
 import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Literal
 
@@ -136,16 +138,24 @@ def read_image(path: Path, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray[Any,
         return None
     if bytes(data[:8]) == SIGNATURE and not png_intact(data.data):
         return None  # libpng would print its own error line
-    with _CV_LOG:  # OpenCV's log level is global: silent while any thread decodes, the last one restores it
+    with opencv_silenced():
+        image: np.ndarray[Any, Any] | None = cv2.imdecode(data, flags)
+    return image
+
+
+@contextmanager
+def opencv_silenced() -> Iterator[None]:
+    """OpenCV's log silent for the block. Its level is global: silent while any thread is inside such a
+    block, the last one out restores the level from before the first."""
+    with _CV_LOG:
         if _cv_log["quiet"] == 0:
             _cv_log["level"] = cv2.utils.logging.getLogLevel()
             cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
         _cv_log["quiet"] += 1
     try:
-        image: np.ndarray[Any, Any] | None = cv2.imdecode(data, flags)
+        yield
     finally:
         with _CV_LOG:
             _cv_log["quiet"] -= 1
             if _cv_log["quiet"] == 0:
                 cv2.utils.logging.setLogLevel(_cv_log["level"])
-    return image
