@@ -59,17 +59,29 @@ def write_atomic(path: Path, data: bytes) -> None:
     is an `OutputError` naming `path`, and leaves neither `path` changed nor
     the temporary file behind.
     """
-    tmp: str | None = None
     try:
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-        os.fchmod(fd, 0o644)  # mkstemp makes 0600; a dataset must be readable by its users
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        Path(tmp).replace(path)
-    except OSError as err:
-        if tmp is not None:
+        tmp = _staged(path, data)
+        try:
+            Path(tmp).replace(path)
+        except OSError:
             Path(tmp).unlink(missing_ok=True)
+            raise
+    except OSError as err:
         raise OutputError(f"cannot write {path}: {err.strerror or err}") from err
+
+
+def _staged(path: Path, data: bytes) -> str:
+    """`data` written to a new temporary file beside `path`, readable by all; its name. On an `OSError` no
+    temporary file is left."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            os.fchmod(fd, 0o644)  # mkstemp makes 0600; a dataset must be readable by its users
+            f.write(data)
+    except OSError:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return tmp
 
 
 def write_atomic_set(files: Sequence[tuple[Path, bytes]]) -> None:
@@ -95,11 +107,7 @@ def write_atomic_set(files: Sequence[tuple[Path, bytes]]) -> None:
             if path.is_dir():  # a rename over it would fail only after others were renamed
                 raise IsADirectoryError(errno.EISDIR, os.strerror(errno.EISDIR), str(path))
         for path, data in files:
-            fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-            staged.append((tmp, path))
-            os.fchmod(fd, 0o644)  # as write_atomic
-            with os.fdopen(fd, "wb") as f:
-                f.write(data)
+            staged.append((_staged(path, data), path))
         for tmp, path in staged:
             Path(tmp).replace(path)
     except OSError as err:
