@@ -86,7 +86,7 @@ class _WarningLines(logging.Handler):
             exc = record.exc_info[1]
             line = f"{line}: {type(exc).__name__}: {exc}"
         if record.levelno >= logging.ERROR:
-            _error(line)
+            print_error(line)
         else:
             print_warning(line)
 
@@ -104,19 +104,15 @@ def main() -> None:
     try:
         app()
     except OutputError as err:  # the operating system refused a write: as an OSError, named
-        _error(str(err))
+        print_error(str(err))
         sys.exit(3)
     except SensorboxError as err:
-        _error(str(err))
+        print_error(str(err))
         sys.exit(2)
     except OSError as err:
         where = f"{err.filename}: " if err.filename else ""
-        _error(f"{where}{err.strerror or err}")
+        print_error(f"{where}{err.strerror or err}")
         sys.exit(3)
-
-
-def _error(message: str) -> None:
-    print_error(message)
 
 
 if __name__ == "__main__":
