@@ -32,7 +32,7 @@ import ipaddress
 import json
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -62,13 +62,25 @@ _LIVOX_KEYS = ("roll", "pitch", "yaw", "x", "y", "z")
 
 @dataclass(frozen=True, eq=False)
 class Camera:
-    """A camera of the rig: its model, pose relative to cam0, role and topic."""
+    """A camera of the rig: its model, pose relative to cam0, role, topic and clock offset.
+
+    ``timeshift_cam_imu`` (seconds, Kalibr's name and convention) maps the
+    camera's header stamps onto the IMU's clock: t_imu = t_cam + shift. The
+    rig's IMUs are the Mid-360s' own, stamped by their LiDAR's clock, so it is
+    the camera's offset to the LiDAR clock; None when the camchain has none.
+    """
 
     name: str
     model: CameraModel
     T_cam_cam0: F64
     role: str | None = None
     topic: str | None = None
+    timeshift_cam_imu: float | None = None
+
+    @property
+    def timeshift_ns(self) -> int:
+        """``timeshift_cam_imu`` in ns (0 when unknown): add it to a header stamp to get the exposure time."""
+        return round((self.timeshift_cam_imu or 0.0) * 1e9)
 
     @property
     def T_cam0_cam(self) -> F64:
@@ -326,6 +338,7 @@ def rig_from_camchain(chain: CameraChain, name: str = "camchain") -> Rig:
             T_cam_cam0=c.T_cam_cam0,
             role=ROLES[i] if i < len(ROLES) else None,
             topic=c.rostopic,
+            timeshift_cam_imu=c.timeshift_cam_imu,
         )
         for i, c in enumerate(chain.cameras)
     )
@@ -343,7 +356,8 @@ def _parse_cameras(block: object, chain: CameraChain, where: str) -> tuple[Camer
         topic = entry.get("topic", kc.rostopic)
         if topic is not None and not isinstance(topic, str):
             raise CalibrationError(f"{where}.{kc.name}.topic: expected a string, got {topic!r}")
-        cams.append(Camera(kc.name, kc.model, kc.T_cam_cam0, role, None if topic is None else _topic(topic)))
+        topic = None if topic is None else _topic(topic)
+        cams.append(Camera(kc.name, kc.model, kc.T_cam_cam0, role, topic, kc.timeshift_cam_imu))
     unknown = set(block) - {c.name for c in chain.cameras}
     if unknown:
         raise CalibrationError(
@@ -393,6 +407,26 @@ def read_rig(path: str | Path) -> Rig:
     return Rig(cameras, lidars, imus, name=str(name), source=p, camchain=chain)
 
 
+def with_timeshifts(rig: Rig, timeshift_cam_imu_s: Mapping[str, float]) -> Rig:
+    """The rig with these cameras' ``timeshift_cam_imu`` (seconds, by camera name) replaced, in its
+    cameras and its camchain alike (so `write_rig` writes them)."""
+    unknown = set(timeshift_cam_imu_s) - {c.name for c in rig.cameras}
+    if unknown:
+        raise CalibrationError(f"{rig._where}: no cameras {sorted(unknown)} to set a time shift on")
+    shifts = {name: float(s) for name, s in timeshift_cam_imu_s.items()}
+    cams = tuple(replace(c, timeshift_cam_imu=shifts[c.name]) if c.name in shifts else c for c in rig.cameras)
+    chain = None
+    if rig.camchain is not None:
+        chain = replace(
+            rig.camchain,
+            cameras=tuple(
+                replace(k, timeshift_cam_imu=shifts[k.name]) if k.name in shifts else k
+                for k in rig.camchain.cameras
+            ),
+        )
+    return replace(rig, cameras=cams, camchain=chain)
+
+
 def write_rig(rig: Rig, path: str | Path, camchain_name: str | None = None) -> Path:
     """Write ``rig`` as a rig file plus its camchain beside it; returns the camchain path.
 
@@ -401,8 +435,11 @@ def write_rig(rig: Rig, path: str | Path, camchain_name: str | None = None) -> P
     p = Path(path)
     camchain_name = camchain_name or f"{p.stem}-camchain.yaml"
     chain = rig.camchain or CameraChain(
-        tuple(KalibrCamera(c.name, c.model, c.T_cam_cam0, rostopic=c.topic) for c in rig.cameras)
-    )
+        tuple(
+            KalibrCamera(c.name, c.model, c.T_cam_cam0, None, None, c.timeshift_cam_imu, c.topic)
+            for c in rig.cameras
+        )
+    )  # fmt: skip
     chain_path = p.parent / camchain_name
     write_kalibr_camchain(chain, chain_path)
     doc: dict[str, Any] = {

@@ -64,9 +64,9 @@ class GtMeta:
 class SampleMeta:
     """One written sample; `id` and `dropped` (values too large for uint16, per image) come with the write."""
 
-    stamp_ns: int  # upper camera header stamp: the sample's time
+    stamp_ns: int  # upper camera header stamp, as recorded in the bag
     lower_stamp_ns: int
-    stereo_dt_ms: float
+    stereo_dt_ms: float  # lower minus upper exposure time
     source_bag: str
     lidar_skew_ms: dict[str, float]  # per LiDAR topic: how far its points spread around the frame time
     motion: MotionMeta
@@ -74,6 +74,8 @@ class SampleMeta:
     gt: GtMeta
     id: str = ""
     dropped: dict[str, int] = field(default_factory=dict)
+    exposure_ns: int = 0  # the sample's time: the upper camera's mid-exposure on the LiDAR clock
+    clock_offset_ms: float = 0.0  # exposure_ns - stamp_ns: the rig's timeshift_cam_imu for the upper camera
 
     def written(self, sid: str, dropped: dict[str, int]) -> SampleMeta:
         return replace(self, id=sid, dropped=dict(dropped))
@@ -89,6 +91,8 @@ class SampleMeta:
             lidar_skew_ms={str(k): float(v) for k, v in d["lidar_skew_ms"].items()},
             motion=MotionMeta(**d["motion"]), points=PointMeta(**d["points"]), gt=GtMeta(**d["gt"]),
             id=str(d.get("id", "")), dropped={str(k): int(v) for k, v in d.get("dropped", {}).items()},
+            exposure_ns=int(d.get("exposure_ns", d["stamp_ns"])),
+            clock_offset_ms=float(d.get("clock_offset_ms", 0.0)),
         )  # fmt: skip
 
 

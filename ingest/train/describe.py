@@ -43,7 +43,11 @@ def _fingerprint(cfg: IngestConfig, geometry: Geometry, bags: list[Path]) -> dic
     return {
         "format": "widedepth-train",
         "sensorbox_version": version("sensorbox"),
-        "rig": {"name": rig.name, "source": str(Path(rig.source).resolve()) if rig.source else None},
+        "rig": {
+            "name": rig.name,
+            "source": str(Path(rig.source).resolve()) if rig.source else None,
+            "camera_clock_offsets": _clock_offsets(rig),
+        },
         "R_cam0_rect": geometry.rect.R_cam0_rect.tolist(),
         "R_cam1_rect": geometry.rect.R_cam1_rect.tolist(),
         "baseline_m": geometry.rect.baseline_m,
@@ -57,7 +61,8 @@ def _fingerprint(cfg: IngestConfig, geometry: Geometry, bags: list[Path]) -> dic
             "disparity": "angular vertical stereo, reference = upper camera (DESIGN.md section 3)",
             "equirect": "row j: theta = (j + 0.5) pi / height_full from up (-y_rect); "
             "col i: phi = (i + 0.5) pi / height_full - pi from +z_rect towards +x_rect",
-            "time": "int64 ns header stamps (meta stamp_ns = upper camera mid-exposure)",
+            "time": "int64 ns; meta stamp_ns = the upper camera's header stamp as recorded, exposure_ns = "
+            "its mid-exposure on the LiDAR clock (stamp + the rig's timeshift_cam_imu), the GT's time",
         },
         "params": {
             "lidar_window_ns": cfg.lidar_window_ns,
@@ -68,6 +73,20 @@ def _fingerprint(cfg: IngestConfig, geometry: Geometry, bags: list[Path]) -> dic
             "gt": asdict(cfg.sample.gt),
         },
         "versions": {"numpy": np.__version__, "opencv": cv2.__version__, "rosbags": version("rosbags")},
+    }
+
+
+def _clock_offsets(rig: Any) -> dict[str, Any]:
+    """Each camera's offset to the LiDAR clock as ingest applied it (ms), and where it came from."""
+    chain = str(rig.camchain.source) if rig.camchain is not None and rig.camchain.source else "the rig"
+    return {
+        c.name: {
+            "timeshift_cam_imu_ms": (c.timeshift_cam_imu or 0.0) * 1e3,
+            "from": f"timeshift_cam_imu in {chain}"
+            if c.timeshift_cam_imu is not None
+            else "none in the rig: header stamps taken as exposure times",
+        }
+        for c in rig.cameras
     }
 
 

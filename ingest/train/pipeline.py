@@ -232,6 +232,8 @@ class Topics:
     lidars: dict[str, str]  # topic -> rig lidar name
     imu: str | None
     R_cam0_imu: Any
+    upper_shift_ns: int = 0  # the rig's timeshift_cam_imu: header stamp + shift = exposure on the LiDAR clock
+    lower_shift_ns: int = 0
 
 
 def _resolve_topics(rig: Rig, bag_topics: dict[str, Any], where: str) -> Topics:
@@ -251,8 +253,9 @@ def _resolve_topics(rig: Rig, bag_topics: dict[str, Any], where: str) -> Topics:
     imu_topics = [find(i.topic, f"imu {i.name}") for i in rig.imus]
     imu = rig.imus[0] if rig.imus else None
     return Topics(
-        upper, lower, lidars, imu_topics[0] if imu else None, imu.T_cam0_imu[:3, :3] if imu else None
-    )
+        upper, lower, lidars, imu_topics[0] if imu else None, imu.T_cam0_imu[:3, :3] if imu else None,
+        rig.upper.timeshift_ns, rig.lower.timeshift_ns,
+    )  # fmt: skip
 
 
 def _gt_method(

@@ -50,6 +50,14 @@ class Plan:
     uncovered: int = 0  # stereo pairs with no LiDAR point within the window (never eligible)
     lost_samples: int = 0  # eligible, but their LiDAR/IMU window overlaps a corrupt chunk's messages
     imu_last_ns: int | None = None  # the IMU's latest reading in the bags (None without an IMU)
+    upper_shift_ns: int = 0  # added to a camera's header stamps: its exposure times on the LiDAR clock
+    lower_shift_ns: int = 0
+
+    @property
+    def upper_exposure_ns(self) -> I64:
+        """Each sample's time: the upper camera's mid-exposure on the LiDAR clock (stamp + timeshift)."""
+        out: I64 = self.upper_ns + self.upper_shift_ns
+        return out
 
 
 LOST_REASON = "LiDAR/IMU window overlaps a corrupt chunk (not planned)"
@@ -215,13 +223,15 @@ def plan(
     sv = surveyed or survey(bags, topics, cfg.lidar_window_ns, bad)
     spans = {t: [(int(a), int(b)) for _, a, b in sv.seen[t]] for t in topics.lidars}
     up, lo = sv.upper_ns, sv.lower_ns
+    # pairs and windows on exposure times (the rig's camera clock offsets applied), frames kept by stamp
+    up_t, lo_t = up + topics.upper_shift_ns, lo + topics.lower_shift_ns
     tol = cfg.stereo_tolerance_ns or pair_tolerance_ns(median_period_ns(up))
-    pairs = pair_stereo(up, lo, tol)
+    pairs = pair_stereo(up_t, lo_t, tol)
     all_spans = [s for v in spans.values() for s in v]
-    chosen = select_samples(up[pairs.upper], all_spans, cfg.lidar_window_ns, cfg.every)
-    uncovered = int((~lidar_covered(up[pairs.upper], all_spans, cfg.lidar_window_ns)).sum())
+    chosen = select_samples(up_t[pairs.upper], all_spans, cfg.lidar_window_ns, cfg.every)
+    uncovered = int((~lidar_covered(up_t[pairs.upper], all_spans, cfg.lidar_window_ns)).sum())
     upper, lower = up[pairs.upper][chosen], lo[pairs.lower][chosen]
-    keep = _untouched(bags, topics, sv.seen, upper, cfg)
+    keep = _untouched(bags, topics, sv.seen, upper + topics.upper_shift_ns, cfg)
     lost = int(len(keep) - keep.sum())
     return Plan(
         upper[keep],
@@ -234,4 +244,6 @@ def plan(
         lost_samples=lost,
         uncovered=uncovered,
         imu_last_ns=int(sv.seen[topics.imu][:, 1].max()) if topics.imu else None,
+        upper_shift_ns=topics.upper_shift_ns,
+        lower_shift_ns=topics.lower_shift_ns,
     )

@@ -172,6 +172,26 @@ class SampleJob:
     trajectory: RigTrajectory | None = None  # the recording's (dense GT)
     thin_lidars: tuple[str, ...] = ()  # LiDARs with far fewer points than their rate (lidar_rate)
     thin_lidars_sparse: tuple[str, ...] = ()  # the same over sparse GT's window (`sparse_window`)
+    upper_shift_ns: int = 0  # the rig's camera clock offsets: stamp + shift = exposure on the LiDAR clock
+    lower_shift_ns: int = 0
+
+    @property
+    def exposure_ns(self) -> int:
+        """The sample's time: the upper camera's mid-exposure on the LiDAR clock (ns)."""
+        return self.upper_stamp_ns + self.upper_shift_ns
+
+    @property
+    def stereo_dt_ms(self) -> float:
+        """Lower minus upper camera exposure time (ms)."""
+        return (self.lower_stamp_ns + self.lower_shift_ns - self.exposure_ns) / 1e6
+
+    def timing(self) -> dict[str, Any]:
+        """The SampleMeta fields that say when the sample is: stamps as recorded, the exposure used."""
+        return {
+            "stamp_ns": self.upper_stamp_ns, "lower_stamp_ns": self.lower_stamp_ns,
+            "stereo_dt_ms": self.stereo_dt_ms, "exposure_ns": self.exposure_ns,
+            "clock_offset_ms": self.upper_shift_ns / 1e6,
+        }  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -226,7 +246,7 @@ def _points_by_lidar(job: SampleJob) -> WindowPoints:
         if lp.clear_bits is not None:
             bits.append(rows(lp.clear_bits, keep))
         total = total + counts
-        dt = (stamps[-1] - job.upper_stamp_ns) / 1e6
+        dt = (stamps[-1] - job.exposure_ns) / 1e6
         skew[lp.name] = float(np.abs(dt).max()) if len(dt) else 0.0
     every = len(job.lidars)
     return WindowPoints(
@@ -303,9 +323,9 @@ def _process_sparse(job: SampleJob, images: Background[Equirects], start_ms: flo
         covered = gyro.covers(stamps)  # rotations outside the IMU's span are unknown: drop those points
         counts = replace(counts, kept=counts.kept - int((~covered).sum()))
         pts, stamps = rows(pts, covered), stamps[covered]
-    dt_s = (stamps - job.upper_stamp_ns) / 1e9
+    dt_s = (stamps - job.exposure_ns) / 1e9
     use_gyro = gyro is not None and prm.motion != "off"
-    rotated = gyro.rotate(stamps, job.upper_stamp_ns, pts) if gyro is not None and use_gyro else None
+    rotated = gyro.rotate(stamps, job.exposure_ns, pts) if gyro is not None and use_gyro else None
     velocity, source = job.velocity_cam0_mps, ("imu" if use_gyro else "none")
     if prm.motion != "full":
         velocity = None
@@ -341,8 +361,7 @@ def _process_sparse(job: SampleJob, images: Background[Equirects], start_ms: flo
     )
     ms["ground_truth"] = (time.perf_counter() - t1) * 1e3
     meta = SampleMeta(
-        stamp_ns=job.upper_stamp_ns, lower_stamp_ns=job.lower_stamp_ns,
-        stereo_dt_ms=(job.lower_stamp_ns - job.upper_stamp_ns) / 1e6, source_bag=job.source,
+        **job.timing(), source_bag=job.source,
         lidar_skew_ms=skew_ms,
         motion=MotionMeta(
             applied=motion.applied, source=motion.source, max_rotation_deg=motion.max_rotation_deg,
@@ -393,7 +412,7 @@ def sparse_window(job: SampleJob) -> SampleJob:
     """`job` as a sparse run streams it: the points within +-`SampleParams.window_ns` of the frame, the
     gyro readings `IMU_MARGIN_NS` beyond and the thin LiDARs over that window, with no trajectory. A
     dense job holds a wider window."""
-    tc, w = job.upper_stamp_ns, job.params.window_ns
+    tc, w = job.exposure_ns, job.params.window_ns
     imu = None if job.imu is None else job.imu.within(tc - w - IMU_MARGIN_NS, tc + w + IMU_MARGIN_NS)
     return replace(
         job,
@@ -412,7 +431,7 @@ def _process_dense(job: SampleJob, images: Background[Equirects], start_ms: floa
     geo, prm, traj = job.geometry, job.params, job.trajectory
     if traj is None:
         return SampleResult(job.sid, False, "dense GT without a trajectory", None, {})
-    tc = job.upper_stamp_ns
+    tc = job.exposure_ns
     if not traj.covers(np.array([tc]))[0]:
         return SampleResult(job.sid, False, "outside the trajectory", None, {})
     span = traj.measured_span(tc)
@@ -455,8 +474,7 @@ def _process_dense(job: SampleJob, images: Background[Equirects], start_ms: floa
     residual = traj.residual_m[in_window]
     residual = residual[np.isfinite(residual)]
     meta = SampleMeta(
-        stamp_ns=tc, lower_stamp_ns=job.lower_stamp_ns, stereo_dt_ms=(job.lower_stamp_ns - tc) / 1e6,
-        source_bag=job.source, lidar_skew_ms=cloud.skew_ms,
+        **job.timing(), source_bag=job.source, lidar_skew_ms=cloud.skew_ms,
         motion=MotionMeta(
             applied=True, source="trajectory", max_rotation_deg=float(np.degrees(turn_rad)),
             speed_mps=traj.speed_mps(tc), velocity_cam0_mps=None,
@@ -496,7 +514,7 @@ def _slices(
 
     Origins are in cam0 at the frame time, where `traj.to_frame` put the points.
     """
-    prm, tc = job.params.dense, job.upper_stamp_ns
+    prm, tc = job.params.dense, job.exposure_ns
     k = (stamps - tc) // prm.free_slice_ns
     n_lidars = max(len(job.lidars), 1)
     slice_id = k * n_lidars + which

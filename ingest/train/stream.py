@@ -80,7 +80,7 @@ class StreamedJob:
     sid: str
     source: str  # the bags' file names, for the sample's meta
     where: str  # the bags' paths, for error messages
-    upper_stamp_ns: int
+    upper_stamp_ns: int  # header stamps, as recorded
     lower_stamp_ns: int
     upper: RawMessage
     lower: RawMessage
@@ -89,13 +89,15 @@ class StreamedJob:
     params: SampleParams
     thin_lidars: tuple[str, ...] = ()
     thin_lidars_sparse: tuple[str, ...] = ()  # over sparse GT's window, for a dense frame in a gap
+    upper_shift_ns: int = 0  # the rig's camera clock offsets (`Plan.upper_shift_ns`)
+    lower_shift_ns: int = 0
 
     def sample_job(self, shared: Shared, upper_bgr: Array, lower_bgr: Array) -> SampleJob:
         """The `process_sample` job of this sample, with its decoded images."""
         return SampleJob(
             self.out, self.sid, self.source, self.upper_stamp_ns, self.lower_stamp_ns, upper_bgr, lower_bgr,
             self.lidars, self.imu, None, shared.geometry, self.params, shared.trajectory, self.thin_lidars,
-            self.thin_lidars_sparse,
+            self.thin_lidars_sparse, self.upper_shift_ns, self.lower_shift_ns,
         )  # fmt: skip
 
 
@@ -253,7 +255,7 @@ def _sweeps_needed(the_plan: Plan, topics: Topics, w: int) -> dict[int, dict[str
     A sweep [a, b] (a <= b) overlaps [lo, hi] unless b < lo or a > hi, and no sweep is both, so the count
     is #(a <= hi) - #(b < lo): two binary searches per sample instead of a walk over every sweep.
     """
-    tc = np.asarray(the_plan.upper_ns, np.int64)
+    tc = np.asarray(the_plan.upper_exposure_ns, np.int64)
     counts = {}
     for t in topics.lidars:
         spans = np.array(the_plan.spans[t], np.int64).reshape(-1, 2)
@@ -335,8 +337,10 @@ def stream_jobs(
     done = {sid for sid in sids if is_done(cfg.out, sid)}  # finished by an earlier run (one stat each)
     source = ",".join(p.name for p in bags.paths)
 
+    exposure_ns = the_plan.upper_exposure_ns
+
     def ready(k: int) -> bool:
-        tc = int(the_plan.upper_ns[k])
+        tc = int(exposure_ns[k])
         have = {
             t: sum(1 for s in v if s.span_ns[1] >= tc - w and s.span_ns[0] <= tc + w)
             for t, v in sweeps.items()
@@ -349,7 +353,7 @@ def stream_jobs(
         )
 
     def job(k: int) -> StreamedJob:
-        tc = int(the_plan.upper_ns[k])
+        tc = int(exposure_ns[k])
         lidars = tuple(lidar_window(sweeps[t], name, tc, w, planes) for t, name in topics.lidars.items())
         thin = _thin_lidars(the_plan.rates, topics, lidars, tc, w)
         thin_sparse: tuple[str, ...] = ()
@@ -360,8 +364,9 @@ def stream_jobs(
         imu = _imu_window(imu_t, imu_g, tc, w, topics.R_cam0_imu)
         f = frames.pop(k)
         return StreamedJob(
-            cfg.out, sids[k], source, where, tc, int(the_plan.lower_ns[k]), f["upper"], f["lower"],
-            lidars, imu, cfg.sample, thin, thin_sparse,
+            cfg.out, sids[k], source, where, int(the_plan.upper_ns[k]), int(the_plan.lower_ns[k]), f["upper"],
+            f["lower"], lidars, imu, cfg.sample, thin, thin_sparse, the_plan.upper_shift_ns,
+            the_plan.lower_shift_ns,
         )  # fmt: skip
 
     wanted = [topics.upper, topics.lower, *topics.lidars, *([topics.imu] if topics.imu else [])]
@@ -387,7 +392,7 @@ def stream_jobs(
                 yield job(next_k)
             next_k += 1
             if next_k < len(sids):  # forget sweeps and IMU readings no later sample can use
-                horizon = int(the_plan.upper_ns[next_k]) - w
+                horizon = int(exposure_ns[next_k]) - w
                 # a block is fitted whole, and tested by slices around it: its sweeps and those stay
                 kept_from = horizon if planes is None else planes.keep_from(horizon)
                 for t in sweeps:
@@ -398,6 +403,6 @@ def stream_jobs(
     for k in range(next_k, len(sids)):  # the bag ended: whatever is complete still goes
         why = "done" if sids[k] in done else ("" if len(frames.get(k, {})) == 2 else "missing image")
         if not why and planes is not None:
-            tc = int(the_plan.upper_ns[k])
+            tc = int(exposure_ns[k])
             planes.complete(sweeps, tc - w, tc + w, final=True)
         yield (sids[k], why) if why else job(k)

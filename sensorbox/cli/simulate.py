@@ -32,9 +32,39 @@ ScaleOpt = Annotated[float, typer.Option(help="Image resolution scale (0.25 -> 4
 RangeNoiseOpt = Annotated[float, typer.Option(help="LiDAR range noise, 1-sigma metres (0 = exact).")]
 LidarOffsetOpt = Annotated[float, typer.Option(help="Clock offset of the second LiDAR (ms).")]
 SupersampleOpt = Annotated[int, typer.Option(help="Rays per pixel per axis (anti-aliasing).")]
+CameraOffsetOpt = Annotated[
+    str,
+    typer.Option(help="Camera clock offset (ms): each image's header stamp is this much later than its true "
+                 "mid-exposure on the LiDAR clock; X for both cameras or X,Y for upper,lower."),
+]  # fmt: skip
+ImuNoiseOpt = Annotated[
+    bool, typer.Option("--imu-noise", help="IMU noise and bias at the Mid-360 IMU's datasheet figures.")
+]  # fmt: skip
+RangeNoiseModelOpt = Annotated[
+    str, typer.Option(help="constant | mid360 (sigma grows with range, falls with reflectivity; "
+                      "--range-noise is its value at 10 m).")
+]  # fmt: skip
+MixedReturnsOpt = Annotated[
+    bool, typer.Option("--mixed-returns", help="A 0.2 deg beam: mixed ranges at depth edges.")
+]  # fmt: skip
 MoversOpt = Annotated[
     bool, typer.Option("--movers", help="Add people walking, a swinging door and (outdoor) a passing car.")
 ]
+
+
+def camera_offsets_ns(text: str) -> tuple[int, int]:
+    """`--camera-offset-ms` ("X" or "X,Y", ms) as (upper, lower) ns; one line naming the value otherwise."""
+    from calibration.errors import SensorboxError
+
+    parts = text.split(",")
+    try:
+        ms = [float(p) for p in parts]
+    except ValueError:
+        ms = []
+    if len(ms) not in (1, 2) or not all(math.isfinite(v) for v in ms):
+        raise SensorboxError(f"--camera-offset-ms {text!r}: expected X or X,Y in milliseconds (upper,lower)")
+    upper, lower = (ms[0], ms[0]) if len(ms) == 1 else (ms[0], ms[1])
+    return round(upper * 1e6), round(lower * 1e6)
 
 
 def summary_table(summary: SimSummary, duration_s: float) -> Table:
@@ -53,10 +83,12 @@ def simulate_cmd(
     lidar_msg: LidarMsgOpt = "custom", image: ImageOpt = "raw", scale: ScaleOpt = 1.0,
     range_noise: RangeNoiseOpt = 0.02,
     lidar_offset_ms: LidarOffsetOpt = 0.0, supersample: SupersampleOpt = 1, movers: MoversOpt = False,
+    camera_offset_ms: CameraOffsetOpt = "0", imu_noise: ImuNoiseOpt = False,
+    range_noise_model: RangeNoiseModelOpt = "constant", mixed_returns: MixedReturnsOpt = False,
 ) -> None:  # fmt: skip
     """Simulate the SensorBox in a procedural scene: write a bag plus its exact truth (<bag>.truth/)."""
     from calibration.errors import SensorboxError
-    from sensorbox.sim.run import SimConfig, simulate
+    from sensorbox.sim.run import SimConfig, simulate, with_mid360_imu_noise
 
     if not math.isfinite(lidar_offset_ms):
         raise SensorboxError(f"--lidar-offset-ms must be a finite number, got {lidar_offset_ms}")
@@ -64,7 +96,11 @@ def simulate_cmd(
         scene=scene, trajectory=trajectory, tum=tum, duration_s=duration, seed=seed, format=fmt,  # type: ignore[arg-type]
         lidar_msg=lidar_msg, image=image, scale=scale, range_noise_m=range_noise,  # type: ignore[arg-type]
         lidar_clock_offset_ns=round(lidar_offset_ms * 1e6), supersample=supersample, movers=movers,
+        camera_offset_ns=camera_offsets_ns(camera_offset_ms), range_noise_model=range_noise_model,
+        mixed_returns=mixed_returns,
     )  # fmt: skip
+    if imu_noise:
+        cfg = with_mid360_imu_noise(cfg)
     total_ms = round(duration * 1000) if math.isfinite(duration) else 0  # simulate() refuses the rest
     with progress_bar("simulating", "ms simulated") as update:
         summary = simulate(cfg, out, progress=lambda done: update(round(done * 1000), total_ms))

@@ -50,7 +50,8 @@ class SimCameras:
         return round(float(nominal + cam * cfg.stereo_offset_ns + jitter[cam]))
 
     def stamp_ns(self, k: int, cam: int) -> int:
-        return int(self.cfg.start_ns) + self.sim_ns(k, cam)
+        """Frame k's header stamp: its mid-exposure plus the camera's clock offset (`camera_offset_ns`)."""
+        return int(self.cfg.start_ns) + self.sim_ns(k, cam) + int(self.cfg.camera_offset_ns[cam])
 
     def render(self, k: int, cam: int) -> U8:
         s = self.setup

@@ -24,7 +24,7 @@ from typing import Any, Literal
 import numpy as np
 
 from calibration.errors import SensorboxError
-from calibration.rig import REFERENCE_RIG, Rig, read_rig
+from calibration.rig import REFERENCE_RIG, Rig, read_rig, with_timeshifts
 from calibration.types import F64
 from ingest.bags.rostypes import IMU_TYPE
 from ingest.errors import OutputError
@@ -33,7 +33,14 @@ from sensorbox.live.bagwriter import FORMATS, BagFormat, BagWriter
 from sensorbox.messages import RosVersion
 from sensorbox.sim.appearance import Texture
 from sensorbox.sim.camera import CameraSim, render
-from sensorbox.sim.lidar import SWEEP_PERIOD_NS, LidarSim, simulate_sweep, sweep_windows
+from sensorbox.sim.lidar import (
+    MID360_BEAM_DIVERGENCE_DEG,
+    NOISE_MODELS,
+    SWEEP_PERIOD_NS,
+    LidarSim,
+    simulate_sweep,
+    sweep_windows,
+)
 from sensorbox.sim.movers import default_movers
 from sensorbox.sim.scenes import SCENES, Scene, build_scene
 from sensorbox.sim.trajectory import TRAJECTORIES, Trajectory, TumSpline, imu_readings, static, walk
@@ -43,6 +50,27 @@ CAMERA_LATENCY_NS = 18_000_000
 LIDAR_LATENCY_NS = 2_000_000  # after the sweep's end
 IMU_LATENCY_NS = 1_000_000
 LIVOX_IMU_T_LIDAR_IMU_M = (0.011, 0.02329, -0.04412)
+MAX_CAMERA_OFFSET_NS = 1_000_000_000
+MID360_IMU_GYRO_NOISE_DENSITY = np.radians(4.5e-3)
+"""The Mid-360's IMU (TDK ICM-40609-D) gyro noise density, rad/s/sqrt(Hz) (datasheet: 4.5 mdps/sqrt(Hz))."""
+MID360_IMU_ACC_NOISE_DENSITY_G = 100e-6
+"""Its accelerometer noise density, g/sqrt(Hz) (datasheet: 100 ug/sqrt(Hz))."""
+MID360_IMU_GYRO_BIAS_RAD_S = np.radians(0.1)
+"""1-sigma of a gyro's constant bias per axis: a factory-trimmed MEMS gyro's residual offset."""
+MID360_IMU_ACC_BIAS_G = 0.01
+"""1-sigma of an accelerometer's constant bias per axis (10 mg)."""
+
+
+def with_mid360_imu_noise(cfg: SimConfig) -> SimConfig:
+    """`cfg` with the Mid-360 IMU's datasheet noise at its IMU rate and typical constant biases."""
+    root_hz = math.sqrt(cfg.imu_rate_hz)
+    return replace(
+        cfg,
+        gyro_noise_rad_s=float(MID360_IMU_GYRO_NOISE_DENSITY * root_hz),
+        acc_noise_g=MID360_IMU_ACC_NOISE_DENSITY_G * root_hz,
+        gyro_bias_rad_s=float(MID360_IMU_GYRO_BIAS_RAD_S),
+        acc_bias_g=MID360_IMU_ACC_BIAS_G,
+    )
 
 
 @dataclass(frozen=True)
@@ -67,10 +95,13 @@ class SimConfig:
     camera_jitter_ns: int = 500_000  # uniform +-, on each camera's mid-exposure time
     stereo_offset_ns: int = 100_000  # lower camera's nominal exposure after the upper's
     imu_rate_hz: float = 200.0
-    gyro_noise_rad_s: float = 0.0
+    gyro_noise_rad_s: float = 0.0  # white noise, 1-sigma per reading
     acc_noise_g: float = 0.0
-    gyro_bias_rad_s: float = 0.0
+    gyro_bias_rad_s: float = 0.0  # 1-sigma of each IMU's constant per-axis bias
     acc_bias_g: float = 0.0
+    camera_offset_ns: tuple[int, int] = (0, 0)  # per camera (upper, lower): header stamp - true exposure
+    range_noise_model: str = "constant"  # or "mid360": sigma grows with range, falls with reflectivity
+    mixed_returns: bool = False  # a beam of MID360_BEAM_DIVERGENCE_DEG: mixed ranges at depth edges
     start_ns: int = 1_700_000_000_000_000_000
     compress: bool = True
     movers: bool = False  # people, a door and (outdoor) a car moving through the scene
@@ -105,6 +136,28 @@ class SimConfig:
             raise SensorboxError(f"--range-noise must be a finite number >= 0 m, got {self.range_noise_m}")
         if self.supersample < 1:
             raise SensorboxError(f"--supersample must be >= 1, got {self.supersample}")
+        if self.range_noise_model not in NOISE_MODELS:
+            raise SensorboxError(
+                f"--range-noise-model {self.range_noise_model!r}: expected one of {', '.join(NOISE_MODELS)}"
+            )
+        for ns in self.camera_offset_ns:
+            if abs(ns) > MAX_CAMERA_OFFSET_NS:
+                raise SensorboxError(
+                    f"--camera-offset-ms {ns / 1e6:g}: expected within +-{MAX_CAMERA_OFFSET_NS / 1e6:g} ms"
+                )
+
+    @property
+    def realism(self) -> dict[str, Any]:
+        """The real-world error sources switched on (sim.yaml records them only when on)."""
+        out: dict[str, Any] = {}
+        if any(self.camera_offset_ns):
+            out["camera_offset_ns"] = list(self.camera_offset_ns)
+        if self.range_noise_model != "constant":
+            out["range_noise_model"] = self.range_noise_model
+        if self.mixed_returns:
+            out["mixed_returns"] = True
+            out["beam_divergence_deg"] = MID360_BEAM_DIVERGENCE_DEG
+        return out
 
 
 @dataclass
@@ -207,6 +260,14 @@ class SimSetup:
             for sim, lidar in zip(self.lidars, self.rig.lidars, strict=True)
         ]  # fmt: skip
         out["imus"] = [{"topic": t, "T_cam0_imu": T.tolist()} for t, T in self.imus]
+        for k in ("camera_offset_ns", "range_noise_model", "mixed_returns"):
+            out.pop(k)
+        if self.cfg.realism:
+            out["realism"] = self.cfg.realism
+        if self.cfg.gyro_bias_rad_s or self.cfg.acc_bias_g:
+            for i, entry in enumerate(out["imus"]):
+                gyro_bias, acc_bias = imu_biases(self.cfg, i)
+                entry["gyro_bias_rad_s"], entry["acc_bias_g"] = gyro_bias.tolist(), acc_bias.tolist()
         out["cameras"] = {"topics": self.cam_topics, "first_frame_ns": self.camera_phase_ns}
         out["latency_ns"] = {
             "camera": CAMERA_LATENCY_NS, "lidar_after_sweep": LIDAR_LATENCY_NS, "imu": IMU_LATENCY_NS
@@ -218,6 +279,10 @@ def setup_sim(cfg: SimConfig) -> SimSetup:
     """The scene, rig, trajectory and sensors of a simulated recording, built once from `cfg`."""
     cfg.validate()
     rig = scaled_rig(read_rig(cfg.rig), cfg.scale)
+    if any(cfg.camera_offset_ns) or any(c.timeshift_cam_imu is not None for c in rig.cameras):
+        # the truth rig carries the exact offsets, in Kalibr's convention: t_lidar = stamp + shift
+        names = (rig.upper.name, rig.lower.name)
+        rig = with_timeshifts(rig, {n: -ns / 1e9 for n, ns in zip(names, cfg.camera_offset_ns, strict=True)})
     if not rig.lidars:
         raise SensorboxError(f"{cfg.rig}: the rig has no lidars to simulate")
     scene = build_scene(cfg.scene, cfg.seed)
@@ -229,6 +294,8 @@ def setup_sim(cfg: SimConfig) -> SimSetup:
             lidar.name, lidar.T_cam0_lidar, clock_offset_ns=cfg.lidar_clock_offset_ns if k else 0,
             first_packet_ns=int(rng.integers(0, 480_000)), pattern_phase=float(rng.uniform(0, 2 * np.pi)),
             range_noise_m=cfg.range_noise_m, dust_fraction=cfg.dust_fraction, seed=cfg.seed * 100 + k,
+            noise_model=cfg.range_noise_model,
+            beam_divergence_rad=math.radians(MID360_BEAM_DIVERGENCE_DEG) if cfg.mixed_returns else 0.0,
         )
         for k, lidar in enumerate(rig.lidars)
     ]  # fmt: skip
@@ -267,7 +334,7 @@ def _camera_messages(s: SimSetup, w0: int, w1: int, pool: ThreadPoolExecutor) ->
         ]
         images = [job.result() for job in jobs]
         for c, img in enumerate(images):
-            stamp = cfg.start_ns + t_ns[c]
+            stamp = cfg.start_ns + t_ns[c] + cfg.camera_offset_ns[c]
             frame_id = f"{s.cams[c].name}_optical_frame"
             raw = (
                 messages.compressed_image_msg(stamp, frame_id, img, cfg.jpeg_quality, s.ros)
@@ -304,13 +371,21 @@ def _imu_messages(s: SimSetup, w0: int, w1: int) -> list[Message]:
             continue
         gyro, acc = imu_readings(s.traj, t_ns / 1e9, T_cam0_imu)
         rng = np.random.default_rng([cfg.seed, k, w0 // SWEEP_PERIOD_NS, 0x1B])
-        gyro = gyro + cfg.gyro_bias_rad_s + rng.normal(0, 1, gyro.shape) * cfg.gyro_noise_rad_s
-        acc = acc + cfg.acc_bias_g + rng.normal(0, 1, acc.shape) * cfg.acc_noise_g
+        gyro_bias, acc_bias = imu_biases(cfg, k)
+        gyro = gyro + gyro_bias + rng.normal(0, 1, gyro.shape) * cfg.gyro_noise_rad_s
+        acc = acc + acc_bias + rng.normal(0, 1, acc.shape) * cfg.acc_noise_g
         for j, t in enumerate(t_ns.tolist()):
             stamp = cfg.start_ns + t + sim.clock_offset_ns
             raw = messages.imu_msg(stamp, gyro[j], acc[j], s.ros)
             out.append((cfg.start_ns + t + IMU_LATENCY_NS, topic, raw))
     return out
+
+
+def imu_biases(cfg: SimConfig, k: int) -> tuple[F64, F64]:
+    """IMU `k`'s constant gyro (rad/s) and accelerometer (g) bias per axis, drawn once from the seed."""
+    rng = np.random.default_rng([cfg.seed, k, 0x1C])
+    draw = rng.normal(0, 1, (2, 3))
+    return draw[0] * cfg.gyro_bias_rad_s, draw[1] * cfg.acc_bias_g
 
 
 def simulate(cfg: SimConfig, out: Path, progress: Callable[[float], None] | None = None) -> SimSummary:

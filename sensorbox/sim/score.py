@@ -62,7 +62,7 @@ def score_sample(
     With movers, `mover_trail_rate` looks for their earlier (and later)
     positions within +-`trail_window_ns` of the sample's stamp.
     """
-    stamp = read_meta(out, sid).stamp_ns
+    stamp = truth.exposure_ns(read_meta(out, sid).stamp_ns)  # the bag's stamp, moved to the true exposure
     model = truth.rig.upper.model
     depth = read_png_u16(out / "depth_fisheye" / f"{sid}.png", DEPTH_SCALE)
     rows, cols = np.nonzero(depth)

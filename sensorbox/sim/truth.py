@@ -112,6 +112,17 @@ class Truth:
     def start_ns(self) -> int:
         return int(self.params["start_ns"])
 
+    @property
+    def camera_offset_ns(self) -> tuple[int, int]:
+        """(upper, lower) header stamp minus true mid-exposure (ns): `simulate --camera-offset-ms`."""
+        upper, lower = self.params.get("realism", {}).get("camera_offset_ns", (0, 0))
+        return int(upper), int(lower)
+
+    def exposure_ns(self, stamp_ns: int, camera: int = 0) -> int:
+        """The true mid-exposure time (LiDAR clock, ns) of a frame of camera 0 (upper) or 1 (lower)
+        stamped `stamp_ns` in the bag."""
+        return int(stamp_ns) - self.camera_offset_ns[camera]
+
     def T_world_cam0(self, stamps_ns: I64) -> F64:
         """(N,4,4) exact cam0 poses at header stamps `stamps_ns`."""
         t = (np.atleast_1d(np.asarray(stamps_ns, np.int64)) - self.start_ns) / 1e9
