@@ -1,4 +1,4 @@
-"""Matplotlib figures for people to look at (rig layout)."""
+"""Matplotlib figures for people to look at (rig layout, samples, clock offsets, statistics)."""
 
 from __future__ import annotations
 
@@ -193,6 +193,9 @@ def plot_sample(dataset_dir: Path, sid: str, out: Path) -> Path:
 
 import typing  # noqa: E402  (this section is appended; its types are only for the checker)
 
+if typing.TYPE_CHECKING:
+    from ingest.train.refine import Refinement
+
 
 def draw_heatmap(hm: Heatmap, path: str | Path, title: str) -> bytes:
     """A metric over FOV (rows) x baseline (columns), each cell annotated with its value, as the bytes
@@ -261,3 +264,34 @@ def write_stats(stats: DatasetStats, folder: Path) -> tuple[Path, Path]:
 if typing.TYPE_CHECKING:
     from ingest.eval.report import Heatmap
     from ingest.eval.stats import DatasetStats
+
+
+def plot_timeshift(refinement: Refinement, path: str | Path) -> Path:
+    """Per camera: the rotation residual (RMS, deg) against the clock offset tried, the rig's value and
+    the estimate marked, so a person sees how sharp (observable) the minimum is."""
+    cams = refinement.cameras
+    fig, axes = plt.subplots(1, len(cams), figsize=(5 * len(cams), 3.6), squeeze=False)
+    for ax, cam in zip(axes[0], cams, strict=True):
+        e = cam.estimate
+        ax.plot(e.offsets_ms, np.sqrt(e.cost), color="tab:blue", lw=1.2, label="images vs gyro")
+        ax.axvline(
+            cam.rig_timeshift_ms, color="tab:gray", ls="--", lw=1, label=f"rig {cam.rig_timeshift_ms:+.2f} ms"
+        )
+        if e.observable:
+            ax.axvline(
+                e.timeshift_ms,
+                color="tab:red",
+                lw=1,
+                label=f"estimate {e.timeshift_ms:+.2f} ± {e.sigma_ms:.2f} ms",
+            )
+        else:
+            ax.set_title("not observable: the rig hardly turned", fontsize=9)
+        ax.set_xlabel("timeshift_cam_imu [ms] (exposure = stamp + this)")
+        ax.set_ylabel("rotation residual RMS [deg]")
+        ax.set_title(
+            f"{cam.camera}: {e.pairs} frame pairs, rate change {e.excitation_deg_s:.1f} deg/s", fontsize=9
+        )
+        ax.legend(fontsize=8)
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    return _save(fig, path, 120)

@@ -1,4 +1,5 @@
-"""`sensorbox calib check RIG_OR_CAMCHAIN [--plot rig.png]`: a calibration in numbers and a drawing."""
+"""`sensorbox calib check RIG_OR_CAMCHAIN [--plot rig.png]`: a calibration in numbers and a drawing;
+`sensorbox calib refine BAG... --rig RIG --out REFINED`: the clocks a recording reveals, as a refined rig."""
 
 from __future__ import annotations
 
@@ -9,10 +10,11 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 from rich.table import Table
 
-from sensorbox.cli.common import check_out_file, console, print_warning
+from sensorbox.cli.common import check_out_file, console, print_warning, progress_bar
 
 if TYPE_CHECKING:
     from calibration.report import RigReport
+    from ingest.train.refine import Refinement
 
 PathArg = Annotated[Path, typer.Argument(help="Rig file (sensorbox_rig YAML) or Kalibr camchain.")]
 PlotOpt = Annotated[Path | None, typer.Option("--plot", help="Write a top/side drawing of the rig (PNG).")]
@@ -107,3 +109,71 @@ def calib_check(path: PathArg, plot: PlotOpt = None) -> None:
 
         out = plot_rig(rig, report, plot)
         console.print(f"Rig drawing written to {out}")
+
+
+BagsArg = Annotated[list[Path], typer.Argument(help="The recording: bag files or rosbag2 folders.")]
+RigOpt = Annotated[
+    Path, typer.Option("--rig", help="The rig file to refine (sensorbox_rig YAML or camchain).")
+]
+RefinedOpt = Annotated[
+    Path, typer.Option("--out", help="Refined rig file to write (its camchain is written beside it).")
+]
+ChartOpt = Annotated[
+    Path | None, typer.Option("--plot", help="Chart of the residual against the clock offset (PNG).")
+]
+
+
+def refine_table(refinement: Refinement) -> Table:
+    """Per camera: the rig's clock offset, the estimate with its evidence, and what the refined rig takes."""
+    table = Table(
+        title="Camera clock offsets to the LiDAR/IMU clock (timeshift_cam_imu: exposure = stamp + shift)"
+    )
+    for col in ("camera", "rig [ms]", "estimate [ms]", "1-sigma [ms]", "frame pairs", "rate change [deg/s]",
+                "residual before -> after [deg]", "refined rig"):  # fmt: skip
+        table.add_column(col, justify="left" if col in ("camera", "refined rig") else "right")
+    for cam in refinement.cameras:
+        e = cam.estimate
+        table.add_row(
+            cam.camera, f"{cam.rig_timeshift_ms:+.3f}",
+            f"{e.timeshift_ms:+.3f}" if e.observable else "-", f"{e.sigma_ms:.3f}", str(e.pairs),
+            f"{e.excitation_deg_s:.1f}", f"{e.residual_before_deg:.4f} -> {e.residual_after_deg:.4f}",
+            "estimate" if cam.applied else "rig's value kept (not observable)",
+        )  # fmt: skip
+    return table
+
+
+def calib_refine(bags: BagsArg, rig: RigOpt, out: RefinedOpt, plot: ChartOpt = None) -> None:
+    """Estimate each camera's clock offset to the LiDAR/IMU clock from a recording and write the refined rig.
+
+    The offset is where the cameras' own rotation between frames (tracked corners) agrees with the
+    gyro's; it needs a recording in which the rig turned (a rig that stood still cannot reveal it,
+    and the report says so). LiDAR extrinsics are not refined yet.
+    """
+    from calibration.rig import read_rig, write_rig
+    from ingest.train.refine import refine
+
+    check_out_file("--out", out)
+    if plot is not None:
+        check_out_file("--plot", plot)
+    given = read_rig(rig)
+    with progress_bar("reading frames and gyro", "messages") as update:
+        refinement = refine(bags, given, progress=update)
+    console.print(refine_table(refinement))
+    frames = ", ".join(f"{n} {k}" for k, n in refinement.frames.items())
+    console.print(f"Read {frames} frames and {refinement.imu_readings} gyro readings.")
+    for cam in refinement.cameras:
+        if not cam.estimate.observable:
+            e = cam.estimate
+            print_warning(
+                f"{cam.camera}: clock offset not observable from this recording (rate change "
+                f"{e.excitation_deg_s:.1f} deg/s, 1-sigma {e.sigma_ms:.2f} ms); the rig's "
+                f"{cam.rig_timeshift_ms:+.3f} ms is kept: record the rig turned by hand for a few seconds",
+                console,
+            )
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_rig(refinement.rig, out)
+    console.print(f"Refined rig written to {out}")
+    if plot is not None:
+        from sensorbox.analysis.plots import plot_timeshift
+
+        console.print(f"Chart written to {plot_timeshift(refinement, plot)}")

@@ -21,7 +21,7 @@ import typer
 from calibration.errors import SensorboxError
 from ingest.errors import OutputError
 from sensorbox.cli.bench import bench_cmd
-from sensorbox.cli.calib import calib_check
+from sensorbox.cli.calib import calib_check, calib_refine
 from sensorbox.cli.capture import capture_cmd, launch_cmd
 from sensorbox.cli.common import err_console, print_error, print_warning
 from sensorbox.cli.eval import eval_cmd, stats_cmd
@@ -40,7 +40,7 @@ app = typer.Typer(
     add_completion=False,
 )
 calib_app = typer.Typer(
-    help="Inspect and check calibrations (Kalibr camchains, rig files).", no_args_is_help=True
+    help="Inspect, check and refine calibrations (Kalibr camchains, rig files).", no_args_is_help=True
 )
 app.add_typer(calib_app, name="calib")
 
@@ -65,6 +65,7 @@ def _interruptible(command: Callable[P, None]) -> Callable[P, None]:
 
 
 calib_app.command("check")(_interruptible(calib_check))
+calib_app.command("refine")(_interruptible(calib_refine))
 for name, command in (
     ("simulate", simulate_cmd), ("inspect", inspect_cmd), ("ingest", ingest_cmd), ("eval", eval_cmd),
     ("stats", stats_cmd), ("bench", bench_cmd), ("launch", launch_cmd), ("capture", capture_cmd),
