@@ -11,31 +11,39 @@ says why.
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 
-from calibration.rig import Camera, Rig, with_timeshifts
+from calibration.camera import CameraModel
+from calibration.rig import Imu, Lidar, Rig, with_timeshifts
 from calibration.types import F64, U8
 from ingest.bags.decode import Frame, ImuSample, decode
 from ingest.bags.reader import open_bags
 from ingest.errors import BagError
-from ingest.train.clouds import integrate_gyro
+from ingest.train.clouds import GyroTrack, integrate_gyro
 from ingest.train.timeshift import (
+    TIMING_ROTATION_SIGMA_DEG,
     FrameRotations,
+    ImuRotation,
     TimeshiftEstimate,
     corners,
+    estimate_imu_rotation,
     estimate_timeshift,
     pair_rotation,
 )
 
-PAIR_GAPS = (1, 3, 6)
+PAIR_GAPS = (1, 3, 6, 12)
 """Frames are paired with the ones this many frames before: the offset's signal, the change of the angular
 rate between the two, grows with the gap while the rotation's error does not."""
+IN_FLIGHT = 32
+"""Frame pairs queued for tracking at most (each holds two grey images)."""
 TRACK_WIDTH_PX = 1000
 """Images wider than this are halved (repeatedly) before tracking: corners track as well, 4x faster."""
 
@@ -51,13 +59,33 @@ class CameraRefinement:
 
 
 @dataclass(frozen=True)
+class ImuRefinement:
+    """One IMU (and the LiDAR in its housing): its clock against cam0's and its orientation in cam0."""
+
+    imu: str
+    lidar: str | None  # the LiDAR of the same housing, whose rotation moves with it
+    timeshift: TimeshiftEstimate  # cam0's exposure on this IMU's clock = stamp + this
+    rotation: ImuRotation
+
+
+@dataclass(frozen=True)
 class Refinement:
     """What `refine` found; `rig` is the refined rig (the input's where nothing was observable)."""
 
     cameras: tuple[CameraRefinement, ...]
+    imus: tuple[ImuRefinement, ...]
     rig: Rig
     frames: dict[str, int]  # per camera: frames read
-    imu_readings: int
+    imu_readings: dict[str, int]  # per IMU
+
+
+@dataclass
+class _Recording:
+    """What one pass over the bags keeps: both cameras' frame-pair rotations and every IMU's gyro."""
+
+    pairs: tuple[list[tuple[int, int, F64, int]], list[tuple[int, int, F64, int]]]
+    frames: list[int]
+    gyro: dict[str, tuple[list[int], list[F64]]]  # per IMU name: stamps, readings (rad/s, IMU frame)
 
 
 def _topic(topics: Sequence[str], wanted: str | None, what: str, where: str) -> str:
@@ -90,67 +118,143 @@ def _halvings(width: int) -> int:
     return n
 
 
-def refine(bags: Sequence[Path], rig: Rig, progress: Callable[[int, int], None] | None = None) -> Refinement:
-    """Each camera's clock offset to the rig's first IMU, from the recording in `bags`."""
-    if not rig.imus:
-        raise BagError(
-            f"{rig.source or rig.name}: the rig names no IMU; refine needs a gyro to time the cameras"
-        )
-    imu = rig.imus[0]
-    cams: tuple[Camera, Camera] = (rig.upper, rig.lower)
+def _housing_lidar(rig: Rig, imu: Imu, k: int) -> Lidar | None:
+    """The LiDAR built into the same Mid-360 as `imu`: the one whose address or topic suffix its topic
+    ends with, else the k-th."""
+    for lidar in rig.lidars:
+        key = lidar.ip.replace(".", "_") if lidar.ip else lidar.topic.rsplit("lidar", 1)[-1]
+        if key and imu.topic.endswith(key):
+            return lidar
+    return rig.lidars[k] if k < len(rig.lidars) else None
+
+
+def _read(bags: Sequence[Path], rig: Rig, progress: Callable[[int, int], None] | None) -> _Recording:
+    """One pass: frame-pair rotations of both cameras (`PAIR_GAPS`) and the readings of every IMU."""
+    cams = (rig.upper, rig.lower)
+    rec = _Recording(([], []), [0, 0], {imu.name: ([], []) for imu in rig.imus})
     with open_bags(list(bags)) as bagset:
         names = list(bagset.topics())
         topics = [_topic(names, c.topic, f"camera {c.name}", bagset.label) for c in cams]
-        imu_topic = _topic(names, imu.topic, f"imu {imu.name}", bagset.label)
+        imu_of = {_topic(names, i.topic, f"imu {i.name}", bagset.label): i.name for i in rig.imus}
         halvings = [_halvings(c.model.width) for c in cams]
         models = [c.model.scaled(0.5**h) if h else c.model for c, h in zip(cams, halvings, strict=True)]
-        recent: list[list[tuple[int, U8, F64 | None]]] = [[], []]  # per camera: its last frames, corners
-        pairs: list[list[tuple[int, int, F64, int]]] = [[], []]
-        frames = [0, 0]
-        imu_t: list[int] = []
-        imu_w: list[F64] = []
-        for msg in bagset.messages(topics=[*topics, imu_topic], progress=progress):
-            decoded = decode(msg.msgtype, msg.data(), bagset.ros_version)
-            if isinstance(decoded, ImuSample):
-                imu_t.append(decoded.stamp_ns)
-                imu_w.append(decoded.gyro_rad_s)
-                continue
-            assert isinstance(decoded, Frame)
-            c = topics.index(msg.topic)
-            h, w = decoded.image.shape[:2]
-            if (w, h) != (cams[c].model.width, cams[c].model.height):
-                raise BagError(
-                    f"{bagset.label}: topic {msg.topic!r} at stamp {decoded.stamp_ns}: a {w}x{h} image; camera "
-                    f"{cams[c].name} of the rig is {cams[c].model.width}x{cams[c].model.height} (a rig of "
-                    "another resolution?)"
-                )
-            gray = _gray(decoded, halvings[c])
-            frames[c] += 1
-            for gap in PAIR_GAPS:
-                if len(recent[c]) >= gap and decoded.stamp_ns > recent[c][-gap][0]:
-                    t0, gray0, corners0 = recent[c][-gap]
-                    got = None if corners0 is None else pair_rotation(models[c], gray0, gray, corners0)
-                    if got is not None:
-                        pairs[c].append((t0, decoded.stamp_ns, got[0], got[1]))
-            recent[c] = [
-                *recent[c][-max(PAIR_GAPS) + 1 :],
-                (decoded.stamp_ns, gray, corners(models[c], gray)),
-            ]
-    if len(imu_t) < 2:
-        raise BagError(
-            f"{', '.join(map(str, bags))}: topic {imu_topic!r} has {len(imu_t)} readings; need a gyro"
-        )
-    track = integrate_gyro(np.array(imu_t, np.int64), np.array(imu_w), imu.T_cam0_imu[:3, :3])
-    results = []
-    for cam, found in zip(cams, pairs, strict=True):
-        rot = FrameRotations(
-            np.array([p[0] for p in found], np.int64), np.array([p[1] for p in found], np.int64),
-            np.array([p[2] for p in found]).reshape(-1, 3), np.array([p[3] for p in found], np.int64),
-        )  # fmt: skip
-        prior_ms = (cam.timeshift_cam_imu or 0.0) * 1e3
-        est = estimate_timeshift(rot, track, cam.T_cam_cam0[:3, :3], prior_ms)
-        results.append(CameraRefinement(cam.name, prior_ms, est, est.observable))
-    refined = with_timeshifts(rig, {r.camera: r.estimate.timeshift_ms / 1e3 for r in results if r.applied})
-    return Refinement(
-        tuple(results), refined, {c.name: n for c, n in zip(cams, frames, strict=True)}, len(imu_t)
-    )
+        recent: list[list[tuple[int, U8, Future[F64 | None]]]] = [[], []]  # per camera: last frames
+        pending: deque[tuple[int, int, int, Future[tuple[F64, int] | None]]] = deque()
+        # OpenCV's trackers release the GIL: corners and pairs are tracked on two threads while the
+        # next frames are read and decoded; at most IN_FLIGHT pairs wait, so memory stays bounded
+        with ThreadPoolExecutor(2) as pool:
+            for msg in bagset.messages(topics=[*topics, *imu_of], progress=progress):
+                decoded = decode(msg.msgtype, msg.data(), bagset.ros_version)
+                if isinstance(decoded, ImuSample):
+                    stamps, readings = rec.gyro[imu_of[msg.topic]]
+                    stamps.append(decoded.stamp_ns)
+                    readings.append(decoded.gyro_rad_s)
+                    continue
+                assert isinstance(decoded, Frame)
+                c = topics.index(msg.topic)
+                h, w = decoded.image.shape[:2]
+                if (w, h) != (cams[c].model.width, cams[c].model.height):
+                    raise BagError(
+                        f"{bagset.label}: topic {msg.topic!r} at stamp {decoded.stamp_ns}: a {w}x{h} image; "
+                        f"camera {cams[c].name} of the rig is {cams[c].model.width}x{cams[c].model.height} "
+                        "(a rig of another resolution?)"
+                    )
+                gray = _gray(decoded, halvings[c])
+                rec.frames[c] += 1
+                for gap in PAIR_GAPS:
+                    if len(recent[c]) >= gap and decoded.stamp_ns > recent[c][-gap][0]:
+                        t0, gray0, corners0 = recent[c][-gap]
+                        job = pool.submit(_pair, models[c], gray0, gray, corners0)
+                        pending.append((c, t0, decoded.stamp_ns, job))
+                recent[c] = [
+                    *recent[c][-max(PAIR_GAPS) + 1 :],
+                    (decoded.stamp_ns, gray, pool.submit(corners, models[c], gray)),
+                ]
+                while len(pending) > IN_FLIGHT:
+                    _collect(rec, pending.popleft())
+            while pending:
+                _collect(rec, pending.popleft())
+    for imu in rig.imus:
+        if len(rec.gyro[imu.name][0]) < 2:
+            where = ", ".join(map(str, bags))
+            n = len(rec.gyro[imu.name][0])
+            raise BagError(f"{where}: topic {imu.topic!r} has {n} readings; refine needs its gyro")
+    return rec
+
+
+def _pair(model: CameraModel, gray0: U8, gray1: U8, corners0: Future[F64 | None]) -> tuple[F64, int] | None:
+    start = corners0.result()
+    return None if start is None else pair_rotation(model, gray0, gray1, start)
+
+
+def _collect(rec: _Recording, item: tuple[int, int, int, Future[tuple[F64, int] | None]]) -> None:
+    """Keep a tracked pair's rotation (camera, first and second stamp, the job) when it tracked."""
+    c, t0, t1, job = item
+    got = job.result()
+    if got is not None:
+        rec.pairs[c].append((t0, t1, got[0], got[1]))
+
+
+def _rotations(found: list[tuple[int, int, F64, int]]) -> FrameRotations:
+    return FrameRotations(
+        np.array([p[0] for p in found], np.int64), np.array([p[1] for p in found], np.int64),
+        np.array([p[2] for p in found]).reshape(-1, 3), np.array([p[3] for p in found], np.int64),
+    )  # fmt: skip
+
+
+def _track(rec: _Recording, imu: Imu, R_cam0_imu: F64) -> GyroTrack:
+    stamps, readings = rec.gyro[imu.name]
+    return integrate_gyro(np.array(stamps, np.int64), np.array(readings), R_cam0_imu)
+
+
+def _rotated(T: F64, R_new: F64, R_old: F64) -> F64:
+    """`T` (4x4, cam0 <- sensor) turned in place (position kept) by the correction R_new R_old^T."""
+    out = T.copy()
+    out[:3, :3] = R_new @ R_old.T @ T[:3, :3]
+    return out
+
+
+def refine(bags: Sequence[Path], rig: Rig, progress: Callable[[int, int], None] | None = None) -> Refinement:
+    """Each camera's clock offset to the rig's first IMU, and each IMU's (with its LiDAR's) rotation in
+    cam0, from the recording in `bags`."""
+    if not rig.imus:
+        where = rig.source or rig.name
+        raise BagError(f"{where}: the rig names no IMU; refine needs a gyro to time the cameras")
+    rec = _read(bags, rig, progress)
+    cam0_rot = _rotations(rec.pairs[0])
+    first = rig.imus[0]
+    # the first IMU's rotation errs the cameras' offsets a little, and the offset its rotation: the
+    # offset with the rig's rotation, then every IMU's rotation, then the offsets again with the new one
+    rough = estimate_timeshift(cam0_rot, _track(rec, first, first.T_cam0_imu[:3, :3]), np.eye(3))
+    prior_ms = rough.timeshift_ms if rough.observable else (rig.upper.timeshift_cam_imu or 0.0) * 1e3
+    imus, lidars = list(rig.imus), list(rig.lidars)
+    found_imus = []
+    timing_R: list[F64] = []  # per IMU: the rotation the cameras are timed with
+    for k, imu in enumerate(rig.imus):
+        R_rig = imu.T_cam0_imu[:3, :3]
+        shift = estimate_timeshift(cam0_rot, _track(rec, imu, R_rig), np.eye(3), prior_ms)
+        shift_ns = round(shift.timeshift_ms * 1e6)
+        rotation = estimate_imu_rotation(cam0_rot, _track(rec, imu, np.eye(3)), shift_ns, R_rig)
+        R_timing = rotation.R_cam0_imu if rotation.sigma_deg <= TIMING_ROTATION_SIGMA_DEG else R_rig
+        timing_R.append(R_timing)
+        # the IMU's clock against cam0 once more, with its rotation found
+        shift = estimate_timeshift(cam0_rot, _track(rec, imu, R_timing), np.eye(3), prior_ms)
+        housing = _housing_lidar(rig, imu, k)
+        found_imus.append(ImuRefinement(imu.name, housing.name if housing else None, shift, rotation))
+        if rotation.observable:
+            imus[k] = replace(imu, T_cam0_imu=_rotated(imu.T_cam0_imu, rotation.R_cam0_imu, R_rig))
+            if housing is not None:
+                j = lidars.index(housing)
+                T = _rotated(housing.T_cam0_lidar, rotation.R_cam0_imu, R_rig)
+                lidars[j] = replace(housing, T_cam0_lidar=T)
+    cams = []
+    for cam, found in zip((rig.upper, rig.lower), rec.pairs, strict=True):
+        rig_ms = (cam.timeshift_cam_imu or 0.0) * 1e3
+        track = _track(rec, first, timing_R[0])
+        est = estimate_timeshift(_rotations(found), track, cam.T_cam_cam0[:3, :3], rig_ms)
+        cams.append(CameraRefinement(cam.name, rig_ms, est, est.observable))
+    refined = with_timeshifts(rig, {r.camera: r.estimate.timeshift_ms / 1e3 for r in cams if r.applied})
+    refined = replace(refined, imus=tuple(imus), lidars=tuple(lidars))
+    frames = {c.name: n for c, n in zip((rig.upper, rig.lower), rec.frames, strict=True)}
+    readings = {name: len(v[0]) for name, v in rec.gyro.items()}
+    return Refinement(tuple(cams), tuple(found_imus), refined, frames, readings)

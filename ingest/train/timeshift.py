@@ -192,13 +192,20 @@ def estimate_timeshift(
     jac = (change * 1e-3).ravel()
     sigma_r = 1.4826 * np.median(np.abs(e_best.ravel() - np.median(e_best.ravel())))
     info = float(jac @ jac)
-    sigma_ms = float(sigma_r / np.sqrt(info)) if info > 0 else float("inf")
+    sigma_ms = float(sigma_r / np.sqrt(info)) * _overlap(rot) if info > 0 else float("inf")
     excitation = float(np.degrees(np.sqrt((change**2).sum(1).mean())))
     observable = sigma_ms <= OBSERVABLE_SIGMA_MS and excitation >= MIN_EXCITATION_DEG_S
     return TimeshiftEstimate(
         best if observable else prior_ms, sigma_ms, observable, len(rot.t0_ns), _rms_deg(e_prior),
         _rms_deg(e_best), bias, offsets, costs, excitation,
     )  # fmt: skip
+
+
+def _overlap(rot: FrameRotations) -> float:
+    """How much pairs that share frames inflate a standard error: sqrt(pairs / frames). A frame's
+    tracking error enters every pair it is in, so the pairs are not independent samples."""
+    frames = len(np.union1d(rot.t0_ns, rot.t1_ns))
+    return float(np.sqrt(max(1.0, len(rot.t0_ns) / max(frames, 1))))
 
 
 def _rms_deg(e: F64) -> float:
@@ -211,3 +218,82 @@ def _rate(track: GyroTrack, t_ns: I64, R_cam_cam0: F64) -> F64:
     half = RATE_SPAN_NS // 2
     out: F64 = gyro_rotations(track, t_ns - half, t_ns + half, R_cam_cam0) / (2 * half / 1e9)
     return out
+
+
+TIMING_ROTATION_SIGMA_DEG = 1.0
+"""An IMU rotation found this well (1-sigma, deg) is used to time the cameras even when it is not written
+to the refined rig: a rig rotation off by a degree biases the offset (1.7 ms in a 2.5 s walk at 480x300)."""
+MAX_ROTATION_SIGMA_DEG = 0.1
+"""A rotation whose 1-sigma uncertainty (largest axis) exceeds this is reported as unobservable (deg):
+below it the estimate is better than a target-based LiDAR-camera calibration's 0.1-0.3 deg."""
+
+
+@dataclass(frozen=True)
+class ImuRotation:
+    """An IMU's orientation in cam0 found by aligning its gyro's rotations with cam0's image rotations."""
+
+    R_cam0_imu: F64  # (3, 3) the estimate (whether observable or not: see `sigma_deg`)
+    correction_deg: float  # angle between the estimate and the rig's
+    sigma_deg: float  # 1-sigma, largest axis
+    observable: bool
+    pairs: int
+    residual_before_deg: float  # RMS per pair with the rig's rotation
+    residual_after_deg: float
+
+
+def _kabsch(src: F64, dst: F64, w: F64) -> F64:
+    """The rotation R minimising sum w |dst - R src|^2 (rows are vectors)."""
+    H = (src * w[:, None]).T @ dst
+    U, _, Vt = np.linalg.svd(H)
+    D = np.diag([1.0, 1.0, float(np.sign(np.linalg.det(Vt.T @ U.T)))])
+    out: F64 = Vt.T @ D @ U.T
+    return out
+
+
+def estimate_imu_rotation(
+    rot: FrameRotations, track_imu: GyroTrack, shift_ns: int, R_cam0_imu_rig: F64
+) -> ImuRotation:
+    """Hand-eye on rotations: the R_cam0_imu that maps the gyro's rotation between two frame times (IMU
+    frame, `track_imu` integrated with an identity mounting, exposure = stamp + `shift_ns`) onto cam0's
+    own rotation between them (`rot`, from cam0's images), with the gyro's constant bias; pairs whose
+    residual exceeds three times the median are left out of the second fit. Its uncertainty comes from
+    the residuals and how much, and about which axes, the rig turned: a rig that barely turned cannot
+    reveal it, and the rig's value is kept."""
+    inside = track_imu.covers(rot.t0_ns + shift_ns) & track_imu.covers(rot.t1_ns + shift_ns)
+    phi_cam = rot.rotvec[inside]
+    phi_imu = gyro_rotations(track_imu, rot.t0_ns[inside] + shift_ns, rot.t1_ns[inside] + shift_ns, np.eye(3))
+    dt = ((rot.t1_ns[inside] - rot.t0_ns[inside]) / 1e9)[:, None]
+    n = len(phi_cam)
+
+    def residual(R: F64, bias: F64) -> F64:
+        out: F64 = phi_cam - (phi_imu - bias * dt) @ R.T
+        return out
+
+    before = residual(R_cam0_imu_rig, np.zeros(3))
+    if n < 3:
+        nan = float("nan")
+        return ImuRotation(R_cam0_imu_rig, 0.0, nan, False, n, nan, nan)
+    w = np.ones(n)
+    R, bias = R_cam0_imu_rig, np.zeros(3)
+    for it in range(6):
+        R = _kabsch(phi_imu - bias * dt, phi_cam, w)
+        e = phi_cam - phi_imu @ R.T  # = -R bias dt + noise
+        bias = -R.T @ ((e * dt * w[:, None]).sum(0) / (w[:, None] * dt**2).sum())
+        if it == 2:  # then refit without the outliers
+            r = np.linalg.norm(residual(R, bias), axis=1)
+            w = (r <= 3 * np.median(r)).astype(np.float64)
+    e_after = residual(R, bias)[w > 0]
+    v = (phi_imu - bias * dt)[w > 0] @ R.T
+    info = np.zeros((3, 3))
+    for x in v:  # J = -[v]x per pair; sum J^T J
+        K = np.array([[0.0, -x[2], x[1]], [x[2], 0.0, -x[0]], [-x[1], x[0], 0.0]])
+        info += K.T @ K
+    sigma_r = 1.4826 * float(np.median(np.abs(e_after.ravel())))
+    eig = np.linalg.eigvalsh(info)
+    sigma_deg = float(np.degrees(sigma_r / np.sqrt(eig[0]))) * _overlap(rot) if eig[0] > 0 else float("inf")
+    observable = sigma_deg <= MAX_ROTATION_SIGMA_DEG
+    correction = float(np.degrees(np.linalg.norm(Rotation.from_matrix(R @ R_cam0_imu_rig.T).as_rotvec())))
+    return ImuRotation(
+        R, correction, sigma_deg, observable, int((w > 0).sum()),
+        _rms_deg(before), _rms_deg(e_after),
+    )  # fmt: skip

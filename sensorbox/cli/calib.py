@@ -142,12 +142,33 @@ def refine_table(refinement: Refinement) -> Table:
     return table
 
 
+def imu_table(refinement: Refinement) -> Table:
+    """Per IMU: its clock against cam0's exposures and its rotation correction (and its LiDAR's)."""
+    table = Table(
+        title="IMUs in cam0 (each Mid-360's IMU turns with its LiDAR): found from the gyro against cam0"
+    )
+    for col in ("imu", "lidar", "cam0 exposure on its clock [ms]", "rotation correction [deg]",
+                "1-sigma [deg]", "residual before -> after [deg]", "refined rig"):  # fmt: skip
+        table.add_column(col, justify="left" if col in ("imu", "lidar", "refined rig") else "right")
+    for imu in refinement.imus:
+        t, r = imu.timeshift, imu.rotation
+        table.add_row(
+            imu.imu, imu.lidar or "-",
+            f"{t.timeshift_ms:+.3f} ± {t.sigma_ms:.3f}" if t.observable else "not observable",
+            f"{r.correction_deg:.3f}" if r.observable else "-", f"{r.sigma_deg:.3f}",
+            f"{r.residual_before_deg:.4f} -> {r.residual_after_deg:.4f}",
+            "rotation refined" if r.observable else "rig's rotation kept (not observable)",
+        )  # fmt: skip
+    return table
+
+
 def calib_refine(bags: BagsArg, rig: RigOpt, out: RefinedOpt, plot: ChartOpt = None) -> None:
-    """Estimate each camera's clock offset to the LiDAR/IMU clock from a recording and write the refined rig.
+    """Estimate the cameras' clock offsets and the LiDARs' rotations from a recording; write the refined rig.
 
     The offset is where the cameras' own rotation between frames (tracked corners) agrees with the
-    gyro's; it needs a recording in which the rig turned (a rig that stood still cannot reveal it,
-    and the report says so). LiDAR extrinsics are not refined yet.
+    gyro's, and each Mid-360 IMU's rotation in cam0 (and so its LiDAR's) is the one that maps its
+    gyro's rotations onto cam0's. Both need a recording in which the rig turned (a rig that stood
+    still cannot reveal them, and the report says so). LiDAR translations are not refined.
     """
     from calibration.rig import read_rig, write_rig
     from ingest.train.refine import refine
@@ -159,8 +180,10 @@ def calib_refine(bags: BagsArg, rig: RigOpt, out: RefinedOpt, plot: ChartOpt = N
     with progress_bar("reading frames and gyro", "messages") as update:
         refinement = refine(bags, given, progress=update)
     console.print(refine_table(refinement))
+    console.print(imu_table(refinement))
     frames = ", ".join(f"{n} {k}" for k, n in refinement.frames.items())
-    console.print(f"Read {frames} frames and {refinement.imu_readings} gyro readings.")
+    readings = ", ".join(f"{n} {k}" for k, n in refinement.imu_readings.items())
+    console.print(f"Read {frames} frames and {readings} gyro readings. LiDAR translations are not refined.")
     for cam in refinement.cameras:
         if not cam.estimate.observable:
             e = cam.estimate
