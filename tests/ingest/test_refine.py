@@ -15,7 +15,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from calibration.rig import REFERENCE_RIG, read_rig, with_timeshifts
-from calibration.types import F64
+from calibration.types import F64, I64
 from ingest.train.clouds import integrate_gyro
 from ingest.train.refine import PAIR_GAPS, refine
 from ingest.train.timeshift import (
@@ -33,7 +33,7 @@ START = np.array([0.0, 0.0, 1.4])
 TURN = Rotation.from_rotvec(np.radians(1.0) * np.array([0.6, -0.48, 0.64])).as_matrix()
 
 
-def _exact(kind: str, seconds: float, offset_ns: int, seed: int = 0) -> tuple[FrameRotations, F64, F64]:
+def _exact(kind: str, seconds: float, offset_ns: int, seed: int = 0) -> tuple[FrameRotations, F64, I64]:
     """cam0's rotations between frames `PAIR_GAPS` apart at 30 Hz (header stamp = exposure + offset), with
     0.1 deg of noise; the gyro's readings at 200 Hz in the reference rig's first IMU (noise, bias), and
     their stamps."""
