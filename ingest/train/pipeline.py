@@ -67,6 +67,7 @@ from ingest.train.dense import DenseParams, free_space_settings
 from ingest.train.describe import check_existing, record_undecodable, write_dataset_yaml
 from ingest.train.lidar_rate import THIN_FRACTION
 from ingest.train.plan import LOST_REASON, Plan, plan, survey
+from ingest.train.plausible import check_imu_rate
 from ingest.train.rig_trajectory import RigTrajectory
 from ingest.train.sample import GAP_FALLBACK, Geometry, SampleParams, SampleResult
 from ingest.train.stream import (
@@ -159,6 +160,7 @@ class IngestSummary:
     skipped: dict[str, int] = field(default_factory=dict)
     flagged: dict[str, int] = field(default_factory=dict)  # written, with a warning in their meta
     undecodable: dict[str, int] = field(default_factory=dict)  # per topic: messages skipped (--max-bad)
+    dropped: dict[str, dict[str, int]] = field(default_factory=dict)  # per topic, reason: `plausible`
     frames: int = 0
     pairs: int = 0
     planned: int = 0
@@ -232,6 +234,8 @@ class Topics:
     lidars: dict[str, str]  # topic -> rig lidar name
     imu: str | None
     R_cam0_imu: Any
+    imu_name: str = ""  # the rig's name of the IMU on `imu`
+    imu_rate_hz: float | None = None  # its rate as the rig states it
 
 
 def _resolve_topics(rig: Rig, bag_topics: dict[str, Any], where: str) -> Topics:
@@ -251,8 +255,9 @@ def _resolve_topics(rig: Rig, bag_topics: dict[str, Any], where: str) -> Topics:
     imu_topics = [find(i.topic, f"imu {i.name}") for i in rig.imus]
     imu = rig.imus[0] if rig.imus else None
     return Topics(
-        upper, lower, lidars, imu_topics[0] if imu else None, imu.T_cam0_imu[:3, :3] if imu else None
-    )
+        upper, lower, lidars, imu_topics[0] if imu else None, imu.T_cam0_imu[:3, :3] if imu else None,
+        imu.name if imu else "", imu.rate_hz if imu else None,
+    )  # fmt: skip
 
 
 def _gt_method(
@@ -418,9 +423,11 @@ def ingest(
             _run(bag_paths, cfg, rig, geometry, summary, bad, executor, progress, held, passes)
         finally:
             executor.close()
-        if bad.by_topic() != summary.undecodable:  # the stream pass found more (images): update dataset.yaml
-            summary.undecodable = bad.by_topic()
-            record_undecodable(cfg.out, [Path(p) for p in bag_paths], summary.undecodable)
+        # the stream pass found more (images; IMU readings of a sparse run): update dataset.yaml
+        if bad.by_topic() != summary.undecodable or bad.dropped.by_topic() != summary.dropped:
+            summary.undecodable, summary.dropped = bad.by_topic(), bad.dropped.by_topic()
+            record_undecodable(cfg.out, [Path(p) for p in bag_paths], summary.undecodable, summary.dropped)
+        summary.warnings += bad.dropped.lines()
     summary.seconds = time.perf_counter() - t_start
     summary.compile_s = compile_s[0]
     return summary
@@ -462,6 +469,9 @@ def _run(
         reach = _dense_reach_ns(cfg)
         read = partial(passes, PASS_READ) if passes else None
         surveyed = survey(bags, topics, max(cfg.lidar_window_ns, reach), bad, read)  # before any write
+        if topics.imu:
+            stamps_ns = surveyed.seen[topics.imu][:, 1]
+            check_imu_rate(bags.label, topics.imu, topics.imu_name, topics.imu_rate_hz, stamps_ns)
         summary.imu_gaps_ms = [float(g) / 1e6 for g in surveyed.imu_gaps_ns]
         summary.warnings += surveyed.warnings
         summary.stale_temporaries = held.enter_context(_held_output(cfg.out))
@@ -470,7 +480,7 @@ def _run(
         odometry = partial(passes, PASS_TRAJECTORY) if passes else None
         cfg, traj = _gt_method(bags, topics, rig, cfg, summary, bad, (first - reach, last + reach), odometry)
         the_plan = plan(bags, topics, cfg, bad, surveyed)
-        summary.undecodable = bad.by_topic()
+        summary.undecodable, summary.dropped = bad.by_topic(), bad.dropped.by_topic()
         summary.frames, summary.pairs, summary.planned = (
             the_plan.frames,
             the_plan.pairs,

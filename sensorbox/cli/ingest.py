@@ -127,6 +127,11 @@ def summary_table(summary: IngestSummary, out: Path) -> Table:
         *((f"skipped: {reason}", str(n)) for reason, n in summary.skipped.items()),
         *((f"written, flagged in meta: {what}", str(n)) for what, n in summary.flagged.items()),
         *((f"undecodable messages skipped: {topic}", str(n)) for topic, n in summary.undecodable.items()),
+        *(
+            (f"dropped, {why}: {topic}", f"{n:,}")
+            for topic, counts in summary.dropped.items()
+            for why, n in counts.items()
+        ),
         *((f"lost in corrupt chunks: {topic}", str(n)) for topic, n in summary.lost.items()),
         *((f"repeated messages, read once: {topic}", str(n)) for topic, n in summary.duplicates.items()),
         *(
