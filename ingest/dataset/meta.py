@@ -46,7 +46,11 @@ class PointMeta:
 
 @dataclass(frozen=True)
 class GtMeta:
-    """Ground-truth pixels: fisheye range, equirect disparity, unstable (pole) pixels, density (0..1)."""
+    """Ground-truth pixels: fisheye range, equirect disparity, unstable (pole) pixels, density (0..1).
+
+    Once written (`SampleMeta.written`) the counts and the density are the PNGs': a value that did not
+    fit uint16 is counted in `SampleMeta.dropped` instead.
+    """
 
     depth_pixels: int
     disp_pixels: int
@@ -76,7 +80,15 @@ class SampleMeta:
     dropped: dict[str, int] = field(default_factory=dict)
 
     def written(self, sid: str, dropped: dict[str, int]) -> SampleMeta:
-        return replace(self, id=sid, dropped=dict(dropped))
+        """The metadata of the files as written: `dropped` (per image, values over uint16, left 0 in the
+        PNG) taken off the GT pixel counts and the density (a range over 65.535 m is no GT pixel)."""
+        gt = self.gt
+        depth_over, disp_over = dropped.get("depth_over_uint16", 0), dropped.get("disp_over_uint16", 0)
+        if depth_over or disp_over:
+            depth = gt.depth_pixels - depth_over
+            density = gt.density * depth / gt.depth_pixels if gt.depth_pixels else gt.density
+            gt = replace(gt, depth_pixels=depth, disp_pixels=gt.disp_pixels - disp_over, density=density)
+        return replace(self, id=sid, dropped=dict(dropped), gt=gt)
 
     def to_json(self) -> str:
         return json.dumps(asdict(self), indent=1, sort_keys=True) + "\n"

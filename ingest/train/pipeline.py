@@ -151,6 +151,9 @@ class IngestConfig:
             raise DatasetError(f"--min-range must be >= 0 m, got {self.sample.min_range_m:g}")
 
 
+OVER_UINT16 = "over the depth PNG's 65.535 m, left empty"
+
+
 @dataclass
 class IngestSummary:
     """What an ingest run did, for the CLI's summary table."""
@@ -186,6 +189,26 @@ class IngestSummary:
     imu_gaps_ms: list[float] = field(default_factory=list)  # IMU intervals over 5 periods (plan.imu_gaps)
     warnings: list[str] = field(default_factory=list)  # about the inputs, one line each (the rig's layout)
     stale_temporaries: int = 0  # left in the output by a killed run, removed (`ingest.dataset.lock`)
+    without_gt: int = 0  # samples written with no GT pixel in their depth PNG
+    without_gt_points: dict[str, int] = field(default_factory=dict)  # their windows' points, by filter
+
+    def without_gt_line(self) -> str:
+        """One warning line when written samples hold no GT pixel, with their points by filter ('' if none).
+
+        A recording whose points are all NaN, zero, noise-tagged or out of every view writes samples with
+        an empty depth PNG, which a training set must not take for ground truth without a word.
+        """
+        if not self.without_gt:
+            return ""
+        counts = self.without_gt_points
+        points = {why: n for why, n in counts.items() if why not in ("total", OVER_UINT16) and n}
+        reasons = ", ".join(f"{n:,} {why}" for why, n in points.items())
+        over = counts.get(OVER_UINT16, 0)
+        return (
+            f"{self.without_gt} of {self.written} samples written hold no ground truth pixel; their windows' "
+            f"LiDAR points: {counts.get('total', 0):,}{f' ({reasons})' if reasons else ''}"
+            + (f"; {over:,} GT pixels {OVER_UINT16}" if over else "")
+        )
 
     @property
     def density(self) -> list[float]:
@@ -200,6 +223,17 @@ class IngestSummary:
         meta = result.meta
         assert meta is not None  # written samples carry their metadata
         self.density_by_method.setdefault(meta.gt.method, []).append(meta.gt.density)
+        if meta.gt.depth_pixels == 0:
+            self.without_gt += 1
+            p = meta.points
+            for why, n in (
+                ("total", p.total), ("zero", p.zero), ("non-finite", p.non_finite),
+                ("nearer than --min-range", p.too_close), ("noise-tagged", p.noise_tag),
+                ("out of view", p.out_of_view), ("occluded", p.occluded),
+                ("visible", p.kept - p.out_of_view - p.occluded),
+                (OVER_UINT16, meta.dropped.get("depth_over_uint16", 0)),
+            ):  # fmt: skip
+                self.without_gt_points[why] = self.without_gt_points.get(why, 0) + n
         self.skew_ms.extend(meta.lidar_skew_ms.values())
         self.stereo_dt_ms.append(meta.stereo_dt_ms)
         for name in meta.points.silent_lidars:
@@ -428,6 +462,8 @@ def ingest(
             summary.undecodable, summary.dropped = bad.by_topic(), bad.dropped.by_topic()
             record_undecodable(cfg.out, [Path(p) for p in bag_paths], summary.undecodable, summary.dropped)
         summary.warnings += bad.dropped.lines()
+        if summary.without_gt_line():
+            summary.warnings.append(summary.without_gt_line())
     summary.seconds = time.perf_counter() - t_start
     summary.compile_s = compile_s[0]
     return summary

@@ -123,6 +123,7 @@ def summary_table(summary: IngestSummary, out: Path) -> Table:
             else []
         ),
         ("written / already done (resumed)", f"{summary.written} / {summary.resumed}"),
+        *([("written without any GT pixel", str(summary.without_gt))] if summary.without_gt else []),
         ("ground truth", f"{summary.method} ({summary.decision})"),
         *((f"skipped: {reason}", str(n)) for reason, n in summary.skipped.items()),
         *((f"written, flagged in meta: {what}", str(n)) for what, n in summary.flagged.items()),
