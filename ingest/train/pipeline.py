@@ -67,7 +67,7 @@ from ingest.train.dense import DenseParams, free_space_settings
 from ingest.train.describe import check_existing, record_undecodable, write_dataset_yaml
 from ingest.train.lidar_rate import THIN_FRACTION
 from ingest.train.plan import LOST_REASON, Plan, plan, survey
-from ingest.train.plausible import check_imu_rate
+from ingest.train.plausible import check_imu_rate, check_time_order
 from ingest.train.rig_trajectory import RigTrajectory
 from ingest.train.sample import GAP_FALLBACK, Geometry, SampleParams, SampleResult
 from ingest.train.stream import (
@@ -505,6 +505,10 @@ def _run(
         reach = _dense_reach_ns(cfg)
         read = partial(passes, PASS_READ) if passes else None
         surveyed = survey(bags, topics, max(cfg.lidar_window_ns, reach), bad, read)  # before any write
+        for topic, rows in surveyed.seen.items():
+            check_time_order(
+                bags.label, topic, "first point times" if topic in topics.lidars else "header stamps", rows
+            )
         if topics.imu:
             stamps_ns = surveyed.seen[topics.imu][:, 1]
             check_imu_rate(bags.label, topics.imu, topics.imu_name, topics.imu_rate_hz, stamps_ns)

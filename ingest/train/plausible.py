@@ -201,3 +201,40 @@ def check_imu_rate(where: str, topic: str, name: str, rate_hz: float | None, sta
             f" more than {IMU_RATE_TOLERANCE:.0%} apart"
             " (the wrong rig file, or the IMU set to another rate: correct rate_hz)"
         )
+
+
+BACKWARDS_FRACTION = 0.1
+"""A topic whose header stamps step back, in log order, in more than this fraction of its steps (and at
+least twice) is refused: a message delivered late steps back once, a clock or a bag running backwards
+in every step."""
+
+
+def _seconds(ns: int) -> str:
+    return f"{ns / 1e9:.3f} s"
+
+
+def check_time_order(where: str, topic: str, what: str, seen: I64) -> None:
+    """Raise `BagError` when `topic`'s stamps run backwards in log order.
+
+    `seen` is the survey's (N, 3) rows of (log ns, first stamp, last stamp) per
+    message, in log order (`ingest.train.plan.survey`); `what` names the stamps
+    ("header stamps", "first point times"). The passes read the bags in log
+    order and take it for time order (a sample is handed on once the
+    messages up to its window's end have arrived): with the order reversed, a
+    sparse run kept half the points of each window and every drop counter
+    read 0. A message or two delivered late are ordered by their stamps.
+    """
+    if len(seen) < 3:
+        return
+    stamps = seen[:, 1]
+    back = np.flatnonzero(np.diff(stamps) < 0)
+    steps = len(stamps) - 1
+    if len(back) < 2 or len(back) <= BACKWARDS_FRACTION * steps:
+        return
+    k = int(back[0])
+    raise BagError(
+        f"{where}: {topic}: {what} run backwards in {len(back)} of {steps} steps of the bag's log order "
+        f"(the first: {_seconds(int(stamps[k + 1]))} logged at {_seconds(int(seen[k + 1, 0]))}, after "
+        f"{_seconds(int(stamps[k]))}); expected stamps that rise with log time (a sensor clock running "
+        "backwards, or a bag rewritten out of order)"
+    )
