@@ -35,6 +35,7 @@ from typing import Any, Literal
 import cv2
 import numpy as np
 
+from ingest.bags.jpeg_warnings import jpeg_warnings
 from ingest.bags.livox_msg import CustomMsg, decode_custom_msg
 from ingest.bags.point_time import point_times_ns
 from ingest.bags.rostypes import (
@@ -413,21 +414,25 @@ def decode_image(raw: Raw, ros_version: RosVersion = 2, keep_bgra: bool = False)
 def decode_compressed_image(raw: Raw, ros_version: RosVersion = 2) -> Frame:
     """Decode a `sensor_msgs/CompressedImage` (jpeg, png, ...) with `cv2.imdecode`.
 
-    Colour comes back BGR uint8 HxWx3, greyscale HxW uint8.
+    Colour comes back BGR uint8 HxWx3, greyscale HxW uint8. A JPEG whose data
+    libjpeg finds corrupt (`ingest.bags.jpeg_warnings`) raises
+    `MessageDecodeError` with libjpeg's words, though OpenCV decodes it.
     """
     _check_version(ros_version)
     msg = _deserialize(raw, COMPRESSED_IMAGE_TYPE, ros_version)
     data = np.asarray(msg.data, np.uint8)
     image = None
-    if data.size:
-        try:
-            image = cv2.imdecode(data, cv2.IMREAD_ANYCOLOR)
-        except cv2.error:
-            image = None
+    with jpeg_warnings() as corrupt:
+        if data.size:
+            try:
+                image = cv2.imdecode(data, cv2.IMREAD_ANYCOLOR)
+            except cv2.error:
+                image = None
+    what = f"CompressedImage (format {str(msg.format)!r}, {data.size} bytes)"
     if image is None:
-        raise MessageDecodeError(
-            f"CompressedImage (format {str(msg.format)!r}, {data.size} bytes) could not be decoded"
-        )
+        raise MessageDecodeError(f"{what} could not be decoded")
+    if corrupt:  # decoded, with blocks of grey or smeared pixels where the data was damaged
+        raise MessageDecodeError(f"{what}: {'; '.join(corrupt)}")
     return Frame(_stamp_ns(msg.header), str(msg.header.frame_id), image)
 
 

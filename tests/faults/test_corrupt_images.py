@@ -1,0 +1,81 @@
+"""Issue 49: a JPEG whose data libjpeg finds corrupt is an undecodable message named by bag, topic and time.
+
+Bytes flipped inside a chunk whose CRC was written over them reach the
+decoder intact as far as the bag can tell; OpenCV decodes such a JPEG with
+grey or smeared blocks and libjpeg's only trace was a bare line on stderr
+(`Corrupt JPEG data: premature end of data segment`). Now it stops the run
+in one line, or with `--max-bad` is skipped with its sample and counted.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from ingest.bags.decode import decode_compressed_image
+from ingest.bags.reader import open_bags
+from ingest.bags.rostypes import COMPRESSED_IMAGE_TYPE, typestore
+from ingest.errors import MessageDecodeError
+from ingest.train.pipeline import UNDECODABLE_IMAGE, IngestConfig, ingest
+from tests.faults.bags import INDOOR, LOWER, rewrite
+
+FAST = {"workers": 1, "every": 4, "height_full": 64}
+
+
+def _flipped(raw: bytes, seed: int, flips: int) -> bytes:
+    """The CompressedImage with `flips` bytes of its JPEG data inverted, at places drawn from `seed`."""
+    ts = typestore(2)
+    msg: Any = ts.deserialize_cdr(raw, COMPRESSED_IMAGE_TYPE)
+    data = np.asarray(msg.data, np.uint8).copy()
+    for i in np.random.default_rng(seed).integers(1000, len(data) - 10, flips):
+        data[i] ^= 0xFF
+    bad = ts.types[COMPRESSED_IMAGE_TYPE](header=msg.header, format=msg.format, data=data)
+    return bytes(ts.serialize_cdr(bad, COMPRESSED_IMAGE_TYPE))
+
+
+def _lower(k: int) -> bytes:
+    with open_bags([INDOOR]) as bags:
+        return next(bytes(m.raw) for j, m in enumerate(bags.messages(topics=[LOWER])) if j == k)
+
+
+@pytest.mark.parametrize(
+    ("seed", "flips", "warning"),
+    [
+        (4, 5, "Corrupt JPEG data: premature end of data segment"),
+        (0, 1, "Corrupt JPEG data: 71 extraneous bytes before marker 0xd9"),
+    ],
+)
+def test_a_corrupt_jpeg_raises_with_libjpegs_words_and_prints_nothing(
+    seed: int, flips: int, warning: str, capfd: pytest.CaptureFixture[str]
+) -> None:
+    raw = _flipped(_lower(16), seed, flips)
+    with pytest.raises(MessageDecodeError) as err:
+        decode_compressed_image(raw)
+    assert str(err.value).endswith(f" bytes): {warning}")
+    assert capfd.readouterr().err == ""  # libjpeg's bare line is the error's now
+    decode_compressed_image(_lower(16))  # the intact one decodes
+
+
+def test_a_corrupt_jpeg_in_a_bag_is_named_and_skipped_under_max_bad(tmp_path: Path) -> None:
+    def keep(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        return [(topic, _flipped(raw, 4, 5) if topic == LOWER and k == 16 else raw)]
+
+    bag, rig = rewrite(tmp_path / "bag", keep)
+    with open_bags([bag]) as bags:
+        log_ns = next(m.log_ns for j, m in enumerate(bags.messages(topics=[LOWER])) if j == 16)
+    sec, nsec = divmod(log_ns, 1_000_000_000)
+    with pytest.raises(MessageDecodeError) as err:
+        ingest([bag], IngestConfig(rig=rig, out=tmp_path / "ds0", **FAST))  # type: ignore[arg-type]
+    line = str(err.value)
+    assert line.startswith(f"{bag}: {LOWER} at log time {sec}.{nsec:09d} s: CompressedImage (format ")
+    assert (
+        "Corrupt JPEG data: premature end of data segment (undecodable message 1, more than --max-bad 0"
+        in line
+    )
+    summary = ingest([bag], IngestConfig(rig=rig, out=tmp_path / "ds", max_bad=1, **FAST))  # type: ignore[arg-type]
+    assert summary.undecodable == {LOWER: 1}
+    assert summary.skipped == {UNDECODABLE_IMAGE: 1}  # frame 16: sample 4
+    assert not (tmp_path / "ds" / "meta" / "000004.json").exists()
