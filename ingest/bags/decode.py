@@ -364,10 +364,11 @@ def _pixels(msg: Any) -> Array:
         raise MessageDecodeError(
             f"Image {encoding} {width}x{height}: step {step} < {row_bytes} bytes per row"
         )
-    need = (height - 1) * step + row_bytes
-    if msg.data.size < need:
+    need = (height - 1) * step + row_bytes  # the last row's padding may be left out
+    if not need <= msg.data.size <= height * step:
+        expected = f"{need}" if need == height * step else f"{need}..{height * step}"
         raise MessageDecodeError(
-            f"Image {encoding} {width}x{height} step {step} needs {need} data bytes, has {msg.data.size}"
+            f"Image {encoding} {width}x{height} step {step} needs {expected} data bytes, has {msg.data.size}"
         )
     return np.ndarray(
         (height, width, channels),
