@@ -171,12 +171,13 @@ def handoff_bytes_bound(geometry: Geometry, job: StreamedJob, rates: LidarRates,
     return images + points * per_point + ALIGN * (2 + len(_LIDAR_FIELDS) * len(job.lidars))
 
 
-def _check_size(image: Array, camera: Any, topic: str) -> None:
+def _check_size(image: Array, camera: Any, msg: RawMessage, where: str) -> None:
     h, w = image.shape[:2]
     if (w, h) != (camera.model.width, camera.model.height):
         raise BagError(
-            f"{topic}: images are {w}x{h} but the rig's {camera.name} is "
-            f"{camera.model.width}x{camera.model.height}; wrong rig file for this bag?"
+            f"{where}: {msg.topic} at log time {msg.log_time}: the image is {w}x{h} but the rig's "
+            f"{camera.name} is {camera.model.width}x{camera.model.height} (the wrong rig file for this bag, "
+            "or a camera whose resolution changed during the recording)"
         )
 
 
@@ -197,7 +198,7 @@ def decode_images(job: StreamedJob, shared: Shared) -> tuple[list[Array], list[t
             errors.append((msg.topic, msg.log_ns, str(err)))
             continue
         assert isinstance(frame, Frame)  # the camera topics hold Image or CompressedImage messages
-        _check_size(frame.image, camera, msg.topic)
+        _check_size(frame.image, camera, msg, job.where)
         images.append(frame.image)
     return images, errors
 

@@ -12,14 +12,16 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import pytest
 
 from ingest.bags.decode import decode_compressed_image
 from ingest.bags.reader import open_bags
 from ingest.bags.rostypes import COMPRESSED_IMAGE_TYPE, typestore
-from ingest.errors import MessageDecodeError
+from ingest.errors import BagError, MessageDecodeError
 from ingest.train.pipeline import UNDECODABLE_IMAGE, IngestConfig, ingest
+from sensorbox.messages import compressed_image_msg
 from tests.faults.bags import INDOOR, LOWER, rewrite
 
 FAST = {"workers": 1, "every": 4, "height_full": 64}
@@ -79,3 +81,23 @@ def test_a_corrupt_jpeg_in_a_bag_is_named_and_skipped_under_max_bad(tmp_path: Pa
     assert summary.undecodable == {LOWER: 1}
     assert summary.skipped == {UNDECODABLE_IMAGE: 1}  # frame 16: sample 4
     assert not (tmp_path / "ds" / "meta" / "000004.json").exists()
+
+
+def test_a_frame_that_shrinks_mid_bag_is_refused_naming_bag_topic_and_time(tmp_path: Path) -> None:
+    def keep(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        if topic != LOWER or k != 8:
+            return [(topic, raw)]
+        frame = decode_compressed_image(raw)
+        half = np.asarray(cv2.resize(frame.image, (240, 150), interpolation=cv2.INTER_AREA), np.uint8)
+        return [(topic, compressed_image_msg(frame.stamp_ns, frame.frame_id, half))]
+
+    bag, rig = rewrite(tmp_path / "bag", keep)
+    with open_bags([bag]) as bags:
+        log_ns = next(m.log_ns for j, m in enumerate(bags.messages(topics=[LOWER])) if j == 8)
+    sec, nsec = divmod(log_ns, 1_000_000_000)
+    with pytest.raises(BagError) as err:
+        ingest([bag], IngestConfig(rig=rig, out=tmp_path / "ds", **FAST))  # type: ignore[arg-type]
+    assert str(err.value) == (
+        f"{bag}: {LOWER} at log time {sec}.{nsec:09d} s: the image is 240x150 but the rig's cam1 is 480x300 "
+        "(the wrong rig file for this bag, or a camera whose resolution changed during the recording)"
+    )
