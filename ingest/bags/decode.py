@@ -15,6 +15,7 @@ Public API:
   bgra8, rgba8, mono8, mono16, bayer_{rggb,bggr,gbrg,grbg}{8,16}).
 - `decode_compressed_image(raw, ros_version) -> Frame` (anything `cv2.imdecode` reads).
 - `decode_imu(raw, ros_version) -> ImuSample`.
+- `grey_as_bgr(image)`: a mono image as the grey BGR image the dataset writes.
 - `sweep_from_custom_msg(msg)`, `sweep_from_pointcloud(cloud) -> Sweep`.
 
 Conventions: times are int64 ns from the message header (never bag log time);
@@ -66,6 +67,7 @@ __all__ = [
     "decode_image",
     "decode_imu",
     "decode_pointcloud2",
+    "grey_as_bgr",
     "header_stamp_ns",
     "pointfield_dtype",
     "sweep_from_custom_msg",
@@ -410,6 +412,16 @@ def decode_image(raw: Raw, ros_version: RosVersion = 2, keep_bgra: bool = False)
     pixels = _pixels(msg)
     image = np.ascontiguousarray(pixels) if keep_bgra and encoding == "bgra8" else _to_bgr(pixels, encoding)
     return Frame(_stamp_ns(msg.header), str(msg.header.frame_id), image)
+
+
+def grey_as_bgr(image: Array) -> Array:
+    """A mono image (HxW uint8, or uint16 scaled to its high byte as bayer16 is) as grey BGR uint8 HxWx3;
+    a colour image as it is. The dataset's image folders hold RGB PNGs, whatever the camera sent."""
+    if image.ndim == 3:
+        return image
+    grey = np.right_shift(image, 8).astype(np.uint8) if image.dtype == np.uint16 else image
+    out: Array = cv2.cvtColor(np.ascontiguousarray(grey), cv2.COLOR_GRAY2BGR)
+    return out
 
 
 def decode_compressed_image(raw: Raw, ros_version: RosVersion = 2) -> Frame:

@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from calibration.types import I64
-from ingest.bags.decode import Frame, ImuSample, Sweep
+from ingest.bags.decode import Frame, ImuSample, Sweep, grey_as_bgr
 from ingest.bags.message import RawMessage
 from ingest.bags.reader import BagSet
 from ingest.dataset.layout import is_done, sample_id
@@ -182,8 +182,8 @@ def _check_size(image: Array, camera: Any, msg: RawMessage, where: str) -> None:
 
 
 def decode_images(job: StreamedJob, shared: Shared) -> tuple[list[Array], list[tuple[str, int, str]]]:
-    """The upper and lower images (BGR; a raw bgra8 image as recorded, BGRA), and (topic, log ns, why) of
-    each message that did not decode.
+    """The upper and lower images (BGR, a mono one grey; a raw bgra8 image as recorded, BGRA), and (topic,
+    log ns, why) of each message that did not decode.
 
     Images of another size than the rig's cameras stop the run (`BagError`):
     the rig file does not belong to the bag.
@@ -199,7 +199,7 @@ def decode_images(job: StreamedJob, shared: Shared) -> tuple[list[Array], list[t
             continue
         assert isinstance(frame, Frame)  # the camera topics hold Image or CompressedImage messages
         _check_size(frame.image, camera, msg, job.where)
-        images.append(frame.image)
+        images.append(grey_as_bgr(frame.image))  # the dataset's image folders are RGB
     return images, errors
 
 

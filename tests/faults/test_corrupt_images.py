@@ -18,12 +18,14 @@ import pytest
 
 from ingest.bags.decode import decode_compressed_image
 from ingest.bags.reader import open_bags
-from ingest.bags.rostypes import COMPRESSED_IMAGE_TYPE, typestore
+from ingest.bags.rostypes import COMPRESSED_IMAGE_TYPE, IMAGE_TYPE, typestore
+from ingest.dataset.layout import IMAGE_DIRS
 from ingest.errors import BagError, MessageDecodeError
 from ingest.train.pipeline import UNDECODABLE_IMAGE, IngestConfig, ingest
 from sensorbox.messages import compressed_image_msg
-from tests.faults.bags import INDOOR, LOWER, rewrite
+from tests.faults.bags import INDOOR, LOWER, UPPER, rewrite
 
+RAW_LOWER = LOWER.removesuffix("/compressed")
 FAST = {"workers": 1, "every": 4, "height_full": 64}
 
 
@@ -101,3 +103,50 @@ def test_a_frame_that_shrinks_mid_bag_is_refused_naming_bag_topic_and_time(tmp_p
         f"{bag}: {LOWER} at log time {sec}.{nsec:09d} s: the image is 240x150 but the rig's cam1 is 480x300 "
         "(the wrong rig file for this bag, or a camera whose resolution changed during the recording)"
     )
+
+
+def _mono(raw: bytes, encoding: str) -> bytes:
+    """The fixture's CompressedImage as a raw mono8 or mono16 `Image` of its grey."""
+    frame = decode_compressed_image(raw)
+    grey = cv2.cvtColor(frame.image, cv2.COLOR_BGR2GRAY)
+    pixels = grey if encoding == "mono8" else grey.astype(np.uint16) * 257  # the grey in both bytes
+    h, w = grey.shape
+    ts = typestore(2)
+    msg: Any = ts.deserialize_cdr(raw, COMPRESSED_IMAGE_TYPE)
+    image = ts.types[IMAGE_TYPE](
+        header=msg.header, height=h, width=w, encoding=encoding, is_bigendian=0,
+        step=w * pixels.itemsize, data=np.frombuffer(pixels.tobytes(), np.uint8),
+    )  # fmt: skip
+    return bytes(ts.serialize_cdr(image, IMAGE_TYPE))
+
+
+def _read(png: Path) -> Any:
+    image = cv2.imread(str(png), cv2.IMREAD_UNCHANGED)
+    assert image is not None, png
+    return image
+
+
+def test_mono8_and_mono16_cameras_give_grey_rgb_pngs(tmp_path: Path) -> None:
+    greys: dict[str, list[Any]] = {"upper": [], "lower": []}
+
+    def keep(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        if topic.startswith("/zed_upper"):
+            greys["upper"].append(cv2.cvtColor(decode_compressed_image(raw).image, cv2.COLOR_BGR2GRAY))
+            return [(UPPER, _mono(raw, "mono8"))]
+        if topic == LOWER:
+            greys["lower"].append(cv2.cvtColor(decode_compressed_image(raw).image, cv2.COLOR_BGR2GRAY))
+            return [(RAW_LOWER, _mono(raw, "mono16"))]
+        return [(topic, raw)]
+
+    bag, rig = rewrite(tmp_path / "bag", keep, declare={RAW_LOWER: IMAGE_TYPE})
+    out = tmp_path / "ds"
+    summary = ingest([bag], IngestConfig(rig=rig, out=out, **FAST))  # type: ignore[arg-type]
+    assert summary.written == 6
+    for folder in IMAGE_DIRS:
+        for png in sorted((out / folder).glob("*.png")):
+            image = _read(png)
+            assert image.dtype == np.uint8 and image.shape[2] == 3, (png, image.shape, image.dtype)
+            assert (image[..., 0] == image[..., 1]).all() and (image[..., 1] == image[..., 2]).all()
+    for side, folder in (("upper", "left_fisheye"), ("lower", "right_fisheye")):
+        written = _read(out / folder / "000001.png")
+        assert np.array_equal(written[..., 0], greys[side][4])  # frame 4 is sample 1; mono16's high byte
