@@ -61,6 +61,7 @@ from ingest.raster.visibility import backend_problem
 from ingest.runtime.executor import Executor, Handoff, share_cores
 from ingest.runtime.heap import retain_freed_memory
 from ingest.runtime.jit import compiling
+from ingest.topic_map import check_rig
 from ingest.train.bad_messages import BadMessages
 from ingest.train.block_planes import BlockPlanes, PlaneSettings
 from ingest.train.dense import DenseParams, free_space_settings
@@ -287,6 +288,11 @@ def _resolve_topics(rig: Rig, bag_topics: dict[str, Any], where: str) -> Topics:
     lidars = {find(li.topic, f"lidar {li.name}"): li.name for li in rig.lidars}
     # every IMU the rig names must be there: a silent fallback skews the motion model
     imu_topics = [find(i.topic, f"imu {i.name}") for i in rig.imus]
+    # a topic of another type, or of two (a LiDAR topic that also carries Imu messages), was skipped unsaid
+    problems = check_rig(rig, {t: s.msgtype for t, s in bag_topics.items()})
+    if problems:
+        first = problems[0]
+        raise BagError(f"{where}: {first.topic} (the rig's {first.sensor}) {first.problem}")
     imu = rig.imus[0] if rig.imus else None
     return Topics(
         upper, lower, lidars, imu_topics[0] if imu else None, imu.T_cam0_imu[:3, :3] if imu else None,

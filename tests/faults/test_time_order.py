@@ -1,4 +1,5 @@
-"""Issue 49: stamps that run backwards in the bag's log order are refused, naming the topic and the stamps.
+"""Issue 49: stamps that run backwards in the bag's log order, and a topic carrying two kinds of messages,
+are refused, naming the topic and the stamps or types.
 
 The passes read a bag in log order and take it for time order: with the log
 order reversed (every stamp unchanged) a sparse run kept 11,808 of 21,809
@@ -20,7 +21,7 @@ from ingest.errors import BagError
 from ingest.train.pipeline import IngestConfig, ingest
 from sensorbox.live.bagwriter import BagWriter
 from sensorbox.sim.truth import truth_dir
-from tests.faults.bags import INDOOR, LOWER, rewrite
+from tests.faults.bags import INDOOR, LIDAR_TOP, LOWER, rewrite
 
 FAST = {"workers": 1, "every": 3, "height_full": 64}
 IMU = "/livox/imu_192_168_1_12"
@@ -84,3 +85,32 @@ def test_an_imu_reading_or_two_delivered_late_are_taken(tmp_path: Path) -> None:
     bag, rig = rewrite(tmp_path / "bag", late)
     summary = ingest([bag], IngestConfig(rig=rig, out=tmp_path / "ds", **FAST))  # type: ignore[arg-type]
     assert summary.written == 7
+
+
+def test_a_lidar_topic_that_also_carries_imu_messages_is_refused(tmp_path: Path) -> None:
+    """Ingest read only the topic's LiDAR messages and skipped the others without a word."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    from ingest.bags.rostypes import IMU_TYPE, typestore
+
+    with open_bags([INDOOR]) as bags:
+        messages = [(m.topic, m.msgtype, m.log_ns, bytes(m.raw)) for m in bags.messages()]
+    dst = tmp_path / "mixed"
+    with Writer(dst, version=8, storage_plugin=StoragePlugin.MCAP) as out:
+        conns = {
+            (t, ty): out.add_connection(t, ty, typestore=typestore(2))
+            for t, ty in {(t, ty) for t, ty, _, _ in messages}
+        }
+        conns[(LIDAR_TOP, IMU_TYPE)] = out.add_connection(LIDAR_TOP, IMU_TYPE, typestore=typestore(2))
+        for topic, msgtype, log_ns, raw in messages:
+            out.write(conns[(topic, msgtype)], log_ns, raw)
+            if topic == IMU:
+                out.write(conns[(LIDAR_TOP, IMU_TYPE)], log_ns, raw)
+    shutil.copytree(truth_dir(INDOOR), truth_dir(dst))
+    with pytest.raises(BagError) as err:
+        ingest([dst], IngestConfig(rig=truth_dir(dst) / "rig.yaml", out=tmp_path / "ds", **FAST))  # type: ignore[arg-type]
+    assert str(err.value) == (
+        f"{dst}: {LIDAR_TOP} (the rig's lidar lidar_top) has type livox_ros_driver2/msg/CustomMsg | "
+        "sensor_msgs/msg/Imu; expected a LiDAR type (livox_ros_driver/msg/CustomMsg or "
+        "livox_ros_driver2/msg/CustomMsg or sensor_msgs/msg/PointCloud2)"
+    )
