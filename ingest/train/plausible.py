@@ -8,8 +8,10 @@ whole window of points; a far point's range does not fit the uint16 PNG and
 its pixel is written empty). Each is dropped as the message enters the
 ingest (`screen`, called by `BadMessages.decoded` in every pass), and
 counted once per message by topic and reason (`Dropped`) for the summary
-and `dataset.yaml`. The rig's IMU rate is checked against the readings'
-(`check_imu_rate`).
+and `dataset.yaml`; a LiDAR whose sweeps carry no point time (a PointCloud2
+without a time field: every point at the header stamp) is said once. The
+rig's IMU rate is checked against the readings' (`check_imu_rate`), and each
+topic's stamps against the bag's log order (`check_time_order`).
 
 Bounds (notes/livox.md): the Mid-360's IMU (ICM-40609) measures at most
 +-2000 deg/s and +-32 g (its largest full scales; the driver publishes g,
@@ -27,7 +29,8 @@ from typing import Any
 import numpy as np
 
 from calibration.types import I64
-from ingest.bags.decode import Frame, ImuSample, Sweep
+from ingest.bags.decode import NO_POINT_TIME, Frame, ImuSample, Sweep
+from ingest.bags.point_time import TIME_FIELDS
 from ingest.errors import BagError
 
 GYRO_LIMIT_RAD_S = math.radians(2000.0) * 1.1
@@ -140,6 +143,7 @@ class Dropped:
     """
 
     by_message: dict[tuple[str, int], dict[str, int]] = field(default_factory=dict)
+    untimed: set[tuple[str, int]] = field(default_factory=set)  # sweeps without a point time (kept)
 
     def screen(
         self, topic: str, log_ns: int, decoded: Sweep | Frame | ImuSample
@@ -153,6 +157,8 @@ class Dropped:
             self.by_message[(topic, log_ns)] = {why: 1}
             return None
         if isinstance(decoded, Sweep):
+            if decoded.time_layout == NO_POINT_TIME and len(decoded.stamps_ns):
+                self.untimed.add((topic, log_ns))
             sweep, counts = screened_sweep(decoded)
             if counts:
                 self.by_message[(topic, log_ns)] = counts
@@ -169,8 +175,16 @@ class Dropped:
         return {t: {why: c[why] for why in REASONS if why in c} for t, c in totals.items()}
 
     def lines(self) -> list[str]:
-        """One warning line per topic and reason: how many, and the first message's log time."""
+        """One warning line per topic and reason: how many, and the first message's log time; and one per
+        topic whose sweeps carry no point time (a PointCloud2 without a time field)."""
         out = []
+        for topic in sorted({t for t, _ in self.untimed}):
+            n = sum(1 for t, _ in self.untimed if t == topic)
+            out.append(
+                f"{topic}: {n:,} sweep{'' if n == 1 else 's'} without a point-time field (PointCloud2 fields "
+                f"{'/'.join(TIME_FIELDS)}): every point taken at its sweep's header stamp, so no motion "
+                "within a sweep is compensated"
+            )
         for topic, counts in self.by_topic().items():
             for why, n in counts.items():
                 first = min(log for (t, log), c in self.by_message.items() if t == topic and why in c)

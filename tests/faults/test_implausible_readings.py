@@ -19,6 +19,7 @@ import yaml
 from ingest.bags.decode import decode_imu
 from ingest.bags.livox_msg import decode_custom_msg, encode_custom_msg
 from ingest.bags.reader import open_bags
+from ingest.bags.rostypes import POINTCLOUD2_TYPE, typestore
 from ingest.dataset.layout import GT_DIRS
 from ingest.errors import BagError
 from ingest.train.pipeline import IngestConfig, IngestSummary, ingest
@@ -189,3 +190,40 @@ def test_lidar_points_beyond_their_sweep_or_range_are_dropped_counted_and_change
 def _messages(bag: Path, topic: str) -> list[bytes]:
     with open_bags([bag]) as bags:
         return [bytes(m.raw) for m in bags.messages(topics=[topic])]
+
+
+def _untimed_cloud(raw: bytes) -> bytes:
+    """The CustomMsg as a PointCloud2 of x, y, z and intensity alone: no point-time field."""
+    msg = decode_custom_msg(raw)
+    ts = typestore(2)
+    cloud = np.zeros(len(msg.points), [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4")])
+    for name in "xyz":
+        cloud[name] = msg.points[name]
+    cloud["intensity"] = msg.points["reflectivity"]
+    field = ts.types["sensor_msgs/msg/PointField"]
+    header = ts.types["std_msgs/msg/Header"](
+        stamp=ts.types["builtin_interfaces/msg/Time"](
+            sec=msg.stamp_ns // 10**9, nanosec=msg.stamp_ns % 10**9
+        ),
+        frame_id=msg.frame_id,
+    )
+    out = ts.types[POINTCLOUD2_TYPE](
+        header=header, height=1, width=len(cloud),
+        fields=[field(name=n, offset=4 * i, datatype=7, count=1) for i, n in enumerate(("x", "y", "z", "intensity"))],
+        is_bigendian=False, point_step=16, row_step=16 * len(cloud),
+        data=np.frombuffer(cloud.tobytes(), np.uint8), is_dense=True,
+    )  # fmt: skip
+    return bytes(ts.serialize_cdr(out, POINTCLOUD2_TYPE))
+
+
+def test_a_pointcloud2_without_point_times_is_said_once(tmp_path: Path) -> None:
+    def untimed(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        return [(topic, _untimed_cloud(raw) if topic == LIDAR_TOP else raw)]
+
+    bag, rig = rewrite(tmp_path / "bag", untimed, src=INDOOR, declare={LIDAR_TOP: POINTCLOUD2_TYPE})
+    summary = ingest([bag], IngestConfig(rig=rig, out=tmp_path / "ds", **FAST))  # type: ignore[arg-type]
+    assert summary.written > 0
+    assert [w for w in summary.warnings if "point-time" in w] == [
+        f"{LIDAR_TOP}: 7 sweeps without a point-time field (PointCloud2 fields timestamp/offset_time/time/t): "
+        "every point taken at its sweep's header stamp, so no motion within a sweep is compensated"
+    ]
