@@ -42,6 +42,7 @@ class PointMeta:
     silent_lidars: list[str] = field(default_factory=list)  # rig LiDARs with no point in the window
     thin_lidars: list[str] = field(default_factory=list)  # far fewer than their rate: ingest.train.lidar_rate
     off_trajectory: int = 0  # dense: points without a registered pose near the frame (a gap, the ends)
+    off_imu: int = 0  # sparse: points outside the IMU readings' span (their rotation unknown), left out
 
 
 @dataclass(frozen=True)

@@ -230,8 +230,8 @@ class IngestSummary:
             for why, n in (
                 ("total", p.total), ("zero", p.zero), ("non-finite", p.non_finite),
                 ("nearer than --min-range", p.too_close), ("noise-tagged", p.noise_tag),
-                ("out of view", p.out_of_view), ("occluded", p.occluded),
-                ("visible", p.kept - p.out_of_view - p.occluded),
+                ("outside the IMU's span", p.off_imu), ("out of view", p.out_of_view),
+                ("occluded", p.occluded), ("visible", p.kept - p.out_of_view - p.occluded),
                 (OVER_UINT16, meta.dropped.get("depth_over_uint16", 0)),
             ):  # fmt: skip
                 self.without_gt_points[why] = self.without_gt_points.get(why, 0) + n

@@ -91,3 +91,21 @@ def test_the_density_is_that_of_the_written_depth_png(tmp_path: Path) -> None:
         densities.append(meta.gt.density)
     assert over > 1000  # ranges beyond 65.535 m were computed, and left out of the PNG and the counts
     assert summary.density == densities
+
+
+def test_points_outside_the_imus_span_are_counted_and_the_counts_add_up(tmp_path: Path) -> None:
+    """The rig's IMU stops at 0.3 s: points of later windows have no known rotation and are left out,
+    counted (they were taken off `kept` with every filter's counter at 0)."""
+    imu = "/livox/imu_192_168_1_12"
+
+    def imu_stops(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        return [] if topic == imu and k >= 60 else [(topic, raw)]
+
+    bag, rig = rewrite(tmp_path / "bag", imu_stops)
+    out = tmp_path / "ds"
+    summary = ingest([bag], IngestConfig(rig=rig, out=out, workers=1, every=1, height_full=64))
+    assert summary.written > 10
+    points = [read_meta(out, p.stem).points for p in sorted((out / "meta").glob("*.json"))]
+    for p in points:
+        assert p.total == p.zero + p.non_finite + p.too_close + p.noise_tag + p.off_imu + p.kept
+    assert sum(p.off_imu > 0 for p in points) >= 1
