@@ -34,10 +34,11 @@ from ingest.bags.point_time import TIME_FIELDS
 from ingest.errors import BagError
 
 GYRO_LIMIT_RAD_S = math.radians(2000.0) * 1.1
-"""|angular rate| beyond this is no reading: the largest full scale (2000 deg/s) and 10 % for scale error."""
+"""An angular rate beyond this on any axis is no reading: the largest full scale (2000 deg/s) and 10 % for
+scale error."""
 ACC_LIMIT = 32 * 9.80665 * 1.1
-"""|acceleration| beyond this is no reading: 32 g (the largest full scale) in m/s^2, the larger of the two
-units drivers publish, and 10 % for scale error."""
+"""An acceleration beyond this on any axis is no reading: 32 g (the largest full scale) in m/s^2, the larger
+of the two units drivers publish, and 10 % for scale error."""
 RANGE_LIMIT_M = 500.0
 """A LiDAR point farther than this is no return: the Mid-360 ranges to 70 m, other LiDARs to ~300 m."""
 SWEEP_MAX_NS = 3_000_000_000
@@ -67,9 +68,9 @@ def imu_problem(sample: ImuSample) -> str | None:
     values = np.concatenate([sample.gyro_rad_s, sample.acc])
     if not np.isfinite(values).all():
         return IMU_NON_FINITE
-    if float(np.linalg.norm(sample.gyro_rad_s)) > GYRO_LIMIT_RAD_S:
+    if float(np.abs(sample.gyro_rad_s).max()) > GYRO_LIMIT_RAD_S:  # the full scale bounds each axis
         return IMU_GYRO
-    if float(np.linalg.norm(sample.acc)) > ACC_LIMIT:
+    if float(np.abs(sample.acc).max()) > ACC_LIMIT:
         return IMU_ACC
     return None
 

@@ -227,3 +227,24 @@ def test_a_pointcloud2_without_point_times_is_said_once(tmp_path: Path) -> None:
         f"{LIDAR_TOP}: 7 sweeps without a point-time field (PointCloud2 fields timestamp/offset_time/time/t): "
         "every point taken at its sweep's header stamp, so no motion within a sweep is compensated"
     ]
+
+
+def test_the_bounds_hold_per_axis_and_per_sweep() -> None:
+    from ingest.bags.decode import ImuSample
+    from ingest.train.plausible import beyond_sweep, imu_problem
+
+    def reading(gyro_deg_s: float, acc: float = 1.0) -> ImuSample:
+        return ImuSample(0, "imu", np.radians(np.full(3, gyro_deg_s)), np.array([0.0, 0.0, acc]))
+
+    assert imu_problem(reading(1900.0)) is None  # 3290 deg/s in norm, each axis within the full scale
+    assert imu_problem(reading(2300.0)) == IMU_GYRO
+    assert imu_problem(reading(0.0, acc=9.81 * 16)) is None  # 16 g in m/s^2
+    assert imu_problem(reading(0.0, acc=9.81 * 40)) == IMU_ACC
+    stamp = 1_700_000_000_000_000_000
+    times = stamp + np.linspace(0, 100_000_000, 20_000).astype(np.int64)  # a 10 Hz sweep
+    late = times.copy()
+    late[::97] += 0xFFFFFFFF  # 4.3 s late
+    late[5::97] += 100_000_000  # up to a period past the sweep: within 2 periods of its median, kept
+    assert np.array_equal(np.flatnonzero(beyond_sweep(late, stamp)), np.arange(0, 20_000, 97))
+    assert not beyond_sweep(times, stamp).any()
+    assert not beyond_sweep(times + 123_000_000_000, stamp).any()  # all on another clock: the survey's to say
