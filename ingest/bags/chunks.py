@@ -626,9 +626,12 @@ class CheckedRos1Reader(Ros1Reader):
         """
         self._check_open()
         by_id = {c.id: c for c in self.connections}
-        entries = heapq.merge(*(self.indexes[c.id] for c in (connections or self.connections)))
+        entries = heapq.merge(
+            *([(e, c) for e in self.indexes[c.id]] for c in (connections or self.connections)),
+            key=lambda ec: ec[0].time,
+        )
         pos, records = -1, None
-        for entry in entries:
+        for entry, indexed in entries:
             if start is not None and entry.time < start:
                 continue
             if stop is not None and entry.time >= stop:
@@ -637,10 +640,24 @@ class CheckedRos1Reader(Ros1Reader):
                 pos, records = entry.chunk_pos, self._records(entry.chunk_pos)
             if records is not None:
                 stream, view = records
-                connection = _message_at(stream, entry.offset, by_id)  # leaves the stream at the data
+                try:
+                    connection = _message_at(stream, entry.offset, by_id)  # leaves the stream at the data
+                    data = _data(stream, view)
+                except (Ros1ReaderError, UnicodeDecodeError, struct.error, KeyError) as err:
+                    raise _damaged_record(indexed.topic, entry, err) from err
                 # rosbags' reader protocol says bytes; a large message is a memoryview, which every
                 # consumer here takes (`ingest.bags.decode.Raw`, `RawMessage.raw`)
-                yield connection, entry.time, cast(bytes, _data(stream, view))
+                yield connection, entry.time, cast(bytes, data)
+
+
+def _damaged_record(topic: str, entry: Any, err: BaseException) -> Ros1ReaderError:
+    """The error of a message record its chunk's index points at but that does not parse (a zeroed or
+    overwritten record header in an uncompressed chunk), naming its topic, log time and place."""
+    sec, nsec = divmod(int(entry.time), 1_000_000_000)
+    return Ros1ReaderError(
+        f"the message record of {topic} at log time {sec}.{nsec:09d} s (chunk at byte {entry.chunk_pos}, "
+        f"record at chunk offset {entry.offset}) is damaged: {type(err).__name__}: {err}"
+    )
 
 
 def _message_at(records: BytesIO, offset: int, by_id: Mapping[int, Any]) -> Any:

@@ -15,6 +15,7 @@ Public API:
   bgra8, rgba8, mono8, mono16, bayer_{rggb,bggr,gbrg,grbg}{8,16}).
 - `decode_compressed_image(raw, ros_version) -> Frame` (anything `cv2.imdecode` reads).
 - `decode_imu(raw, ros_version) -> ImuSample`.
+- `grey_as_bgr(image)`: a mono image as the grey BGR image the dataset writes.
 - `sweep_from_custom_msg(msg)`, `sweep_from_pointcloud(cloud) -> Sweep`.
 
 Conventions: times are int64 ns from the message header (never bag log time);
@@ -35,6 +36,7 @@ from typing import Any, Literal
 import cv2
 import numpy as np
 
+from ingest.bags.jpeg_warnings import jpeg_warnings
 from ingest.bags.livox_msg import CustomMsg, decode_custom_msg
 from ingest.bags.point_time import point_times_ns
 from ingest.bags.rostypes import (
@@ -65,6 +67,7 @@ __all__ = [
     "decode_image",
     "decode_imu",
     "decode_pointcloud2",
+    "grey_as_bgr",
     "header_stamp_ns",
     "pointfield_dtype",
     "sweep_from_custom_msg",
@@ -363,10 +366,11 @@ def _pixels(msg: Any) -> Array:
         raise MessageDecodeError(
             f"Image {encoding} {width}x{height}: step {step} < {row_bytes} bytes per row"
         )
-    need = (height - 1) * step + row_bytes
-    if msg.data.size < need:
+    need = (height - 1) * step + row_bytes  # the last row's padding may be left out
+    if not need <= msg.data.size <= height * step:
+        expected = f"{need}" if need == height * step else f"{need}..{height * step}"
         raise MessageDecodeError(
-            f"Image {encoding} {width}x{height} step {step} needs {need} data bytes, has {msg.data.size}"
+            f"Image {encoding} {width}x{height} step {step} needs {expected} data bytes, has {msg.data.size}"
         )
     return np.ndarray(
         (height, width, channels),
@@ -410,24 +414,38 @@ def decode_image(raw: Raw, ros_version: RosVersion = 2, keep_bgra: bool = False)
     return Frame(_stamp_ns(msg.header), str(msg.header.frame_id), image)
 
 
+def grey_as_bgr(image: Array) -> Array:
+    """A mono image (HxW uint8, or uint16 scaled to its high byte as bayer16 is) as grey BGR uint8 HxWx3;
+    a colour image as it is. The dataset's image folders hold RGB PNGs, whatever the camera sent."""
+    if image.ndim == 3:
+        return image
+    grey = np.right_shift(image, 8).astype(np.uint8) if image.dtype == np.uint16 else image
+    out: Array = cv2.cvtColor(np.ascontiguousarray(grey), cv2.COLOR_GRAY2BGR)
+    return out
+
+
 def decode_compressed_image(raw: Raw, ros_version: RosVersion = 2) -> Frame:
     """Decode a `sensor_msgs/CompressedImage` (jpeg, png, ...) with `cv2.imdecode`.
 
-    Colour comes back BGR uint8 HxWx3, greyscale HxW uint8.
+    Colour comes back BGR uint8 HxWx3, greyscale HxW uint8. A JPEG whose data
+    libjpeg finds corrupt (`ingest.bags.jpeg_warnings`) raises
+    `MessageDecodeError` with libjpeg's words, though OpenCV decodes it.
     """
     _check_version(ros_version)
     msg = _deserialize(raw, COMPRESSED_IMAGE_TYPE, ros_version)
     data = np.asarray(msg.data, np.uint8)
     image = None
-    if data.size:
-        try:
-            image = cv2.imdecode(data, cv2.IMREAD_ANYCOLOR)
-        except cv2.error:
-            image = None
+    with jpeg_warnings() as corrupt:
+        if data.size:
+            try:
+                image = cv2.imdecode(data, cv2.IMREAD_ANYCOLOR)
+            except cv2.error:
+                image = None
+    what = f"CompressedImage (format {str(msg.format)!r}, {data.size} bytes)"
     if image is None:
-        raise MessageDecodeError(
-            f"CompressedImage (format {str(msg.format)!r}, {data.size} bytes) could not be decoded"
-        )
+        raise MessageDecodeError(f"{what} could not be decoded")
+    if corrupt:  # decoded, with blocks of grey or smeared pixels where the data was damaged
+        raise MessageDecodeError(f"{what}: {'; '.join(corrupt)}")
     return Frame(_stamp_ns(msg.header), str(msg.header.frame_id), image)
 
 

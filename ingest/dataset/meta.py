@@ -42,11 +42,16 @@ class PointMeta:
     silent_lidars: list[str] = field(default_factory=list)  # rig LiDARs with no point in the window
     thin_lidars: list[str] = field(default_factory=list)  # far fewer than their rate: ingest.train.lidar_rate
     off_trajectory: int = 0  # dense: points without a registered pose near the frame (a gap, the ends)
+    off_imu: int = 0  # sparse: points outside the IMU readings' span (their rotation unknown), left out
 
 
 @dataclass(frozen=True)
 class GtMeta:
-    """Ground-truth pixels: fisheye range, equirect disparity, unstable (pole) pixels, density (0..1)."""
+    """Ground-truth pixels: fisheye range, equirect disparity, unstable (pole) pixels, density (0..1).
+
+    Once written (`SampleMeta.written`) the counts and the density are the PNGs': a value that did not
+    fit uint16 is counted in `SampleMeta.dropped` instead.
+    """
 
     depth_pixels: int
     disp_pixels: int
@@ -78,7 +83,15 @@ class SampleMeta:
     clock_offset_ms: float = 0.0  # exposure_ns - stamp_ns: the rig's timeshift_cam_imu for the upper camera
 
     def written(self, sid: str, dropped: dict[str, int]) -> SampleMeta:
-        return replace(self, id=sid, dropped=dict(dropped))
+        """The metadata of the files as written: `dropped` (per image, values over uint16, left 0 in the
+        PNG) taken off the GT pixel counts and the density (a range over 65.535 m is no GT pixel)."""
+        gt = self.gt
+        depth_over, disp_over = dropped.get("depth_over_uint16", 0), dropped.get("disp_over_uint16", 0)
+        if depth_over or disp_over:
+            depth = gt.depth_pixels - depth_over
+            density = gt.density * depth / gt.depth_pixels if gt.depth_pixels else gt.density
+            gt = replace(gt, depth_pixels=depth, disp_pixels=gt.disp_pixels - disp_over, density=density)
+        return replace(self, id=sid, dropped=dict(dropped), gt=gt)
 
     def to_json(self) -> str:
         return json.dumps(asdict(self), indent=1, sort_keys=True) + "\n"

@@ -13,6 +13,10 @@ a message counts once, keyed by topic and log time.
 What a skipped message costs: a camera frame makes its sample "skipped:
 undecodable image"; a LiDAR sweep leaves its samples with fewer points (see
 `PointMeta.thin_lidars`); an IMU reading is one gyro sample fewer.
+
+A message that decodes goes through `ingest.train.plausible` (`dropped`):
+IMU readings and LiDAR points no sensor can produce are dropped and
+counted by reason, never skipped silently.
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ from dataclasses import dataclass, field
 from ingest.bags.decode import Frame, ImuSample, Sweep
 from ingest.bags.message import RawMessage
 from ingest.errors import MessageDecodeError
+from ingest.train.plausible import Dropped
 
 
 @dataclass
@@ -32,14 +37,17 @@ class BadMessages:
     limit: int = 0
     warn: Callable[[str], None] | None = None
     errors: dict[tuple[str, int], str] = field(default_factory=dict)  # (topic, log ns) -> message
+    dropped: Dropped = field(default_factory=Dropped)  # implausible readings and points, by reason
 
     def decoded(self, msg: RawMessage, where: str) -> Sweep | Frame | ImuSample | None:
-        """`msg.decoded(where)`, or None for a message skipped as undecodable."""
+        """`msg.decoded(where)` without what no sensor measures (`Dropped.screen`), or None for a message
+        skipped as undecodable or an implausible IMU reading."""
         try:
-            return msg.decoded(where)
+            decoded = msg.decoded(where)
         except MessageDecodeError as err:
             self._add(msg.topic, msg.log_ns, err)
             return None
+        return self.dropped.screen(msg.topic, msg.log_ns, decoded)
 
     def stamp(self, msg: RawMessage, where: str) -> int | None:
         """`msg.stamp(where)` (header stamp, ns), or None for a message skipped as undecodable."""

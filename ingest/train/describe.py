@@ -5,7 +5,10 @@ asked, versions) must match for a rerun or a second recording to write into
 the same folder. `sources` lists every recording with its sample-id range and
 the ground truth chosen for it (method, decision, window, trajectory) and,
 when `--salvage` skipped corrupt chunks, the messages lost per topic and one
-line per chunk (`lost_in_corrupt_chunks`).
+line per chunk (`lost_in_corrupt_chunks`), the undecodable messages skipped
+per topic (`undecodable_messages`) and the IMU readings and LiDAR points no
+sensor can produce, dropped per topic and reason (`dropped_implausible`,
+`ingest.train.plausible`).
 """
 
 from __future__ import annotations
@@ -173,6 +176,7 @@ def write_dataset_yaml(
         "trajectory": run.trajectory.as_dict() if run.trajectory else None,
     }
     mine["undecodable_messages"] = dict(run.undecodable)  # per topic, skipped under --max-bad
+    mine["dropped_implausible"] = {t: dict(c) for t, c in run.dropped.items()}  # per topic, reason
     if run.lost_chunks:
         mine["lost_in_corrupt_chunks"] = {"messages": run.lost, "chunks": run.lost_chunks}
     else:
@@ -269,12 +273,15 @@ def copy_rig(geometry: Geometry, rig_dir: Path) -> None:
             shutil.rmtree(staging, ignore_errors=True)
 
 
-def record_undecodable(out: Path, bags: list[Path], counts: dict[str, int]) -> None:
-    """Set `undecodable_messages` (per topic) of the recording `bags` in `out/dataset.yaml`.
+def record_undecodable(
+    out: Path, bags: list[Path], counts: dict[str, int], dropped: dict[str, dict[str, int]]
+) -> None:
+    """Set `undecodable_messages` (per topic) and `dropped_implausible` (per topic and reason) of the
+    recording `bags` in `out/dataset.yaml`.
 
     The stream pass finds the undecodable images only after the description
-    was written (the plan pass reads no pixels), so the count is set again
-    at the end of the run.
+    was written (the plan pass reads no pixels, and a sparse run decodes the
+    IMU readings only there), so the counts are set again at the end of the run.
     """
     path = out / "dataset.yaml"
     doc = _read_dataset_yaml(path)
@@ -282,6 +289,7 @@ def record_undecodable(out: Path, bags: list[Path], counts: dict[str, int]) -> N
     for source in doc.get("sources") or []:
         if source.get("bags") == names:
             source["undecodable_messages"] = dict(counts)
+            source["dropped_implausible"] = {t: dict(c) for t, c in dropped.items()}
     write_atomic(path, (HEADER + yaml.safe_dump(doc, sort_keys=False)).encode())
 
 

@@ -61,12 +61,14 @@ from ingest.raster.visibility import backend_problem
 from ingest.runtime.executor import Executor, Handoff, share_cores
 from ingest.runtime.heap import retain_freed_memory
 from ingest.runtime.jit import compiling
+from ingest.topic_map import check_rig
 from ingest.train.bad_messages import BadMessages
 from ingest.train.block_planes import BlockPlanes, PlaneSettings
 from ingest.train.dense import DenseParams, free_space_settings
 from ingest.train.describe import check_existing, record_undecodable, write_dataset_yaml
 from ingest.train.lidar_rate import THIN_FRACTION
 from ingest.train.plan import LOST_REASON, Plan, plan, survey
+from ingest.train.plausible import check_imu_rate, check_time_order
 from ingest.train.rig_trajectory import RigTrajectory
 from ingest.train.sample import GAP_FALLBACK, Geometry, SampleParams, SampleResult
 from ingest.train.stream import (
@@ -150,6 +152,9 @@ class IngestConfig:
             raise DatasetError(f"--min-range must be >= 0 m, got {self.sample.min_range_m:g}")
 
 
+OVER_UINT16 = "over the depth PNG's 65.535 m, left empty"
+
+
 @dataclass
 class IngestSummary:
     """What an ingest run did, for the CLI's summary table."""
@@ -159,6 +164,7 @@ class IngestSummary:
     skipped: dict[str, int] = field(default_factory=dict)
     flagged: dict[str, int] = field(default_factory=dict)  # written, with a warning in their meta
     undecodable: dict[str, int] = field(default_factory=dict)  # per topic: messages skipped (--max-bad)
+    dropped: dict[str, dict[str, int]] = field(default_factory=dict)  # per topic, reason: `plausible`
     frames: int = 0
     pairs: int = 0
     planned: int = 0
@@ -184,6 +190,26 @@ class IngestSummary:
     imu_gaps_ms: list[float] = field(default_factory=list)  # IMU intervals over 5 periods (plan.imu_gaps)
     warnings: list[str] = field(default_factory=list)  # about the inputs, one line each (the rig's layout)
     stale_temporaries: int = 0  # left in the output by a killed run, removed (`ingest.dataset.lock`)
+    without_gt: int = 0  # samples written with no GT pixel in their depth PNG
+    without_gt_points: dict[str, int] = field(default_factory=dict)  # their windows' points, by filter
+
+    def without_gt_line(self) -> str:
+        """One warning line when written samples hold no GT pixel, with their points by filter ('' if none).
+
+        A recording whose points are all NaN, zero, noise-tagged or out of every view writes samples with
+        an empty depth PNG, which a training set must not take for ground truth without a word.
+        """
+        if not self.without_gt:
+            return ""
+        counts = self.without_gt_points
+        points = {why: n for why, n in counts.items() if why not in ("total", OVER_UINT16) and n}
+        reasons = ", ".join(f"{n:,} {why}" for why, n in points.items())
+        over = counts.get(OVER_UINT16, 0)
+        return (
+            f"{self.without_gt} of {self.written} samples written hold no ground truth pixel; their windows' "
+            f"LiDAR points: {counts.get('total', 0):,}{f' ({reasons})' if reasons else ''}"
+            + (f"; {over:,} GT pixels {OVER_UINT16}" if over else "")
+        )
 
     @property
     def density(self) -> list[float]:
@@ -198,6 +224,17 @@ class IngestSummary:
         meta = result.meta
         assert meta is not None  # written samples carry their metadata
         self.density_by_method.setdefault(meta.gt.method, []).append(meta.gt.density)
+        if meta.gt.depth_pixels == 0:
+            self.without_gt += 1
+            p = meta.points
+            for why, n in (
+                ("total", p.total), ("zero", p.zero), ("non-finite", p.non_finite),
+                ("nearer than --min-range", p.too_close), ("noise-tagged", p.noise_tag),
+                ("outside the IMU's span", p.off_imu), ("out of view", p.out_of_view),
+                ("occluded", p.occluded), ("visible", p.kept - p.out_of_view - p.occluded),
+                (OVER_UINT16, meta.dropped.get("depth_over_uint16", 0)),
+            ):  # fmt: skip
+                self.without_gt_points[why] = self.without_gt_points.get(why, 0) + n
         self.skew_ms.extend(meta.lidar_skew_ms.values())
         self.stereo_dt_ms.append(meta.stereo_dt_ms)
         for name in meta.points.silent_lidars:
@@ -232,6 +269,8 @@ class Topics:
     lidars: dict[str, str]  # topic -> rig lidar name
     imu: str | None
     R_cam0_imu: Any
+    imu_name: str = ""  # the rig's name of the IMU on `imu`
+    imu_rate_hz: float | None = None  # its rate as the rig states it
     upper_shift_ns: int = 0  # the rig's timeshift_cam_imu: header stamp + shift = exposure on the LiDAR clock
     lower_shift_ns: int = 0
 
@@ -251,10 +290,15 @@ def _resolve_topics(rig: Rig, bag_topics: dict[str, Any], where: str) -> Topics:
     lidars = {find(li.topic, f"lidar {li.name}"): li.name for li in rig.lidars}
     # every IMU the rig names must be there: a silent fallback skews the motion model
     imu_topics = [find(i.topic, f"imu {i.name}") for i in rig.imus]
+    # a topic of another type, or of two (a LiDAR topic that also carries Imu messages), was skipped unsaid
+    problems = check_rig(rig, {t: s.msgtype for t, s in bag_topics.items()})
+    if problems:
+        first = problems[0]
+        raise BagError(f"{where}: {first.topic} (the rig's {first.sensor}) {first.problem}")
     imu = rig.imus[0] if rig.imus else None
     return Topics(
         upper, lower, lidars, imu_topics[0] if imu else None, imu.T_cam0_imu[:3, :3] if imu else None,
-        rig.upper.timeshift_ns, rig.lower.timeshift_ns,
+        imu.name if imu else "", imu.rate_hz if imu else None, rig.upper.timeshift_ns, rig.lower.timeshift_ns,
     )  # fmt: skip
 
 
@@ -421,9 +465,13 @@ def ingest(
             _run(bag_paths, cfg, rig, geometry, summary, bad, executor, progress, held, passes)
         finally:
             executor.close()
-        if bad.by_topic() != summary.undecodable:  # the stream pass found more (images): update dataset.yaml
-            summary.undecodable = bad.by_topic()
-            record_undecodable(cfg.out, [Path(p) for p in bag_paths], summary.undecodable)
+        # the stream pass found more (images; IMU readings of a sparse run): update dataset.yaml
+        if bad.by_topic() != summary.undecodable or bad.dropped.by_topic() != summary.dropped:
+            summary.undecodable, summary.dropped = bad.by_topic(), bad.dropped.by_topic()
+            record_undecodable(cfg.out, [Path(p) for p in bag_paths], summary.undecodable, summary.dropped)
+        summary.warnings += bad.dropped.lines()
+        if summary.without_gt_line():
+            summary.warnings.append(summary.without_gt_line())
     summary.seconds = time.perf_counter() - t_start
     summary.compile_s = compile_s[0]
     return summary
@@ -465,6 +513,13 @@ def _run(
         reach = _dense_reach_ns(cfg)
         read = partial(passes, PASS_READ) if passes else None
         surveyed = survey(bags, topics, max(cfg.lidar_window_ns, reach), bad, read)  # before any write
+        for topic, rows in surveyed.seen.items():
+            check_time_order(
+                bags.label, topic, "first point times" if topic in topics.lidars else "header stamps", rows
+            )
+        if topics.imu:
+            stamps_ns = surveyed.seen[topics.imu][:, 1]
+            check_imu_rate(bags.label, topics.imu, topics.imu_name, topics.imu_rate_hz, stamps_ns)
         summary.imu_gaps_ms = [float(g) / 1e6 for g in surveyed.imu_gaps_ns]
         summary.warnings += surveyed.warnings
         summary.stale_temporaries = held.enter_context(_held_output(cfg.out))
@@ -473,7 +528,7 @@ def _run(
         odometry = partial(passes, PASS_TRAJECTORY) if passes else None
         cfg, traj = _gt_method(bags, topics, rig, cfg, summary, bad, (first - reach, last + reach), odometry)
         the_plan = plan(bags, topics, cfg, bad, surveyed)
-        summary.undecodable = bad.by_topic()
+        summary.undecodable, summary.dropped = bad.by_topic(), bad.dropped.by_topic()
         summary.frames, summary.pairs, summary.planned = (
             the_plan.frames,
             the_plan.pairs,

@@ -318,10 +318,12 @@ def _process_sparse(job: SampleJob, images: Background[Equirects], start_ms: flo
     geo, prm = job.geometry, job.params
     pts, stamps, counts, skew_ms = _points_in_cam0(job)
     gyro = None
+    off_imu = 0
     if job.imu is not None and len(job.imu.stamps_ns) >= 2:
         gyro = integrate_gyro(job.imu.stamps_ns, job.imu.gyro_rad_s, job.imu.R_cam0_imu)
         covered = gyro.covers(stamps)  # rotations outside the IMU's span are unknown: drop those points
-        counts = replace(counts, kept=counts.kept - int((~covered).sum()))
+        off_imu = int((~covered).sum())  # counted in the meta: the filters' counts add up to the total
+        counts = replace(counts, kept=counts.kept - off_imu)
         pts, stamps = rows(pts, covered), stamps[covered]
     dt_s = (stamps - job.exposure_ns) / 1e9
     use_gyro = gyro is not None and prm.motion != "off"
@@ -371,7 +373,7 @@ def _process_sparse(job: SampleJob, images: Background[Equirects], start_ms: flo
         points=PointMeta(
             total=counts.total, zero=counts.zero, non_finite=counts.non_finite, too_close=counts.too_close,
             noise_tag=counts.noise_tag, kept=counts.kept, out_of_view=int(len(seen) - seen.sum()),
-            occluded=int(seen.sum() - visible.sum()), silent_lidars=_silent(job),
+            occluded=int(seen.sum() - visible.sum()), silent_lidars=_silent(job), off_imu=off_imu,
         ),
         gt=GtMeta(
             depth_pixels=range_img.count, disp_pixels=disp_img.count, disp_unstable=unstable,

@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from calibration.types import I64
-from ingest.bags.decode import Frame, ImuSample, Sweep
+from ingest.bags.decode import Frame, ImuSample, Sweep, grey_as_bgr
 from ingest.bags.message import RawMessage
 from ingest.bags.reader import BagSet
 from ingest.dataset.layout import is_done, sample_id
@@ -173,18 +173,19 @@ def handoff_bytes_bound(geometry: Geometry, job: StreamedJob, rates: LidarRates,
     return images + points * per_point + ALIGN * (2 + len(_LIDAR_FIELDS) * len(job.lidars))
 
 
-def _check_size(image: Array, camera: Any, topic: str) -> None:
+def _check_size(image: Array, camera: Any, msg: RawMessage, where: str) -> None:
     h, w = image.shape[:2]
     if (w, h) != (camera.model.width, camera.model.height):
         raise BagError(
-            f"{topic}: images are {w}x{h} but the rig's {camera.name} is "
-            f"{camera.model.width}x{camera.model.height}; wrong rig file for this bag?"
+            f"{where}: {msg.topic} at log time {msg.log_time}: the image is {w}x{h} but the rig's "
+            f"{camera.name} is {camera.model.width}x{camera.model.height} (the wrong rig file for this bag, "
+            "or a camera whose resolution changed during the recording)"
         )
 
 
 def decode_images(job: StreamedJob, shared: Shared) -> tuple[list[Array], list[tuple[str, int, str]]]:
-    """The upper and lower images (BGR; a raw bgra8 image as recorded, BGRA), and (topic, log ns, why) of
-    each message that did not decode.
+    """The upper and lower images (BGR, a mono one grey; a raw bgra8 image as recorded, BGRA), and (topic,
+    log ns, why) of each message that did not decode.
 
     Images of another size than the rig's cameras stop the run (`BagError`):
     the rig file does not belong to the bag.
@@ -199,8 +200,8 @@ def decode_images(job: StreamedJob, shared: Shared) -> tuple[list[Array], list[t
             errors.append((msg.topic, msg.log_ns, str(err)))
             continue
         assert isinstance(frame, Frame)  # the camera topics hold Image or CompressedImage messages
-        _check_size(frame.image, camera, msg.topic)
-        images.append(frame.image)
+        _check_size(frame.image, camera, msg, job.where)
+        images.append(grey_as_bgr(frame.image))  # the dataset's image folders are RGB
     return images, errors
 
 

@@ -123,10 +123,16 @@ def summary_table(summary: IngestSummary, out: Path) -> Table:
             else []
         ),
         ("written / already done (resumed)", f"{summary.written} / {summary.resumed}"),
+        *([("written without any GT pixel", str(summary.without_gt))] if summary.without_gt else []),
         ("ground truth", f"{summary.method} ({summary.decision})"),
         *((f"skipped: {reason}", str(n)) for reason, n in summary.skipped.items()),
         *((f"written, flagged in meta: {what}", str(n)) for what, n in summary.flagged.items()),
         *((f"undecodable messages skipped: {topic}", str(n)) for topic, n in summary.undecodable.items()),
+        *(
+            (f"dropped, {why}: {topic}", f"{n:,}")
+            for topic, counts in summary.dropped.items()
+            for why, n in counts.items()
+        ),
         *((f"lost in corrupt chunks: {topic}", str(n)) for topic, n in summary.lost.items()),
         *((f"repeated messages, read once: {topic}", str(n)) for topic, n in summary.duplicates.items()),
         *(

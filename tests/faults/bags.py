@@ -35,7 +35,8 @@ def rewrite(
 ) -> tuple[Path, Path]:  # fmt: skip
     """The fixture rewritten through `keep` into the mcap `dst`, its truth beside it; (bag, rig).
 
-    `declare` (topic -> type) adds topics to the bag even when no message is written on them.
+    `declare` (topic -> type) adds topics to the bag even when no message is written on them, and sets the
+    type of a topic `keep` writes to.
     A message on a topic of `flush_after` closes its mcap chunk (it is the chunk's last).
     """
     types: dict[str, str] = dict(declare or {})
@@ -46,7 +47,8 @@ def rewrite(
     for topic, msgtype, log_ns, raw in messages:
         k = seen[topic] = seen.get(topic, -1) + 1
         for new_topic, new_raw in keep(topic, k, raw):
-            types[new_topic] = IMAGE_TYPE if new_topic == UPPER else msgtype
+            declared = (declare or {}).get(new_topic)
+            types[new_topic] = declared or (IMAGE_TYPE if new_topic == UPPER else msgtype)
             out_msgs.append((new_topic, log_ns, new_raw))
     with BagWriter(dst, "mcap") as out:
         for topic, msgtype in types.items():

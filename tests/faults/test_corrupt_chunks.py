@@ -237,3 +237,55 @@ def test_ingest_stops_before_writing_or_salvages_only_intact_samples(damaged, tm
     lost_doc = source["lost_in_corrupt_chunks"]
     assert lost_doc["messages"] == part.lost
     assert len(lost_doc["chunks"]) == 1 and f"corrupt chunk at byte {chunk[0]} " in lost_doc["chunks"][0]
+
+
+@pytest.mark.parametrize(
+    ("damage", "why"),
+    [
+        ("zeroed", "ReaderError: Header field could not be parsed."),
+        (
+            "not utf-8",
+            "UnicodeDecodeError: 'utf-8' codec can't decode byte 0xff in position 0: invalid start byte",
+        ),
+    ],
+)
+def test_a_damaged_ros1_message_record_is_named_by_topic_and_time(
+    tmp_path: Path, damage: str, why: str
+) -> None:
+    """An uncompressed ROS 1 chunk has no checksum: a message record whose header was zeroed or overwritten
+    stopped the run with rosbags' words alone (`UnicodeDecodeError ... position 4149`), naming no topic."""
+    import struct
+
+    from ingest.errors import BagError
+    from sensorbox.live.bagwriter import BagWriter
+
+    src = FIXTURES_DIR / "outdoor_static_bag.bag"
+    with open_bags([src]) as bags:
+        messages = [(m.topic, m.msgtype, m.log_ns, bytes(m.raw)) for m in bags.messages()]
+    bag = tmp_path / "plain.bag"
+    with BagWriter(bag, "bag", compress=False) as out:
+        for topic, msgtype in {t: ty for t, ty, _, _ in messages}.items():
+            out.add(topic, msgtype)
+        for topic, _, log_ns, raw in messages:
+            out.write(topic, log_ns, raw)
+    imu = "/livox/imu_192_168_1_12"
+    _, _, log_ns, raw = [m for m in messages if m[0] == imu][50]
+    data = bytearray(bag.read_bytes())
+    at = data.find(raw)  # the record: header length, header (op, conn, time: 38 bytes), data length, data
+    header = at - 4 - 38
+    assert data.find(raw, at + 1) == -1 and struct.unpack_from("<I", data, header - 4) == (38,)
+    if damage == "zeroed":
+        data[header : header + 38] = bytes(38)
+    else:  # one field whose name is not UTF-8
+        data[header : header + 38] = struct.pack("<I", 34) + b"\xff" * 10 + b"=" + bytes(23)
+    bag.write_bytes(bytes(data))
+    shutil.copytree(truth_dir(src), truth_dir(bag))
+    with pytest.raises(BagError) as err:
+        ingest([bag], IngestConfig(rig=truth_dir(bag) / "rig.yaml", out=tmp_path / "ds", workers=1))
+    sec, nsec = divmod(log_ns, 1_000_000_000)
+    assert str(err.value).startswith(
+        f"{bag}: reading messages failed: ReaderError: the message record of {imu} at log time {sec}.{nsec:09d} s "
+        "(chunk at byte "
+    )
+    assert str(err.value).endswith(f") is damaged: {why}")
+    assert not (tmp_path / "ds").exists()

@@ -351,6 +351,16 @@ def test_bad_images():
     msg.step = 12
     with pytest.raises(MessageDecodeError, match="needs 48 data bytes, has 40"):
         decode_image(serialize(2, msg, IMAGE_TYPE), 2)
+    msg.data = np.zeros(96, np.uint8)  # twice too long: another size or encoding than the header says
+    with pytest.raises(MessageDecodeError, match="needs 48 data bytes, has 96"):
+        decode_image(serialize(2, msg, IMAGE_TYPE), 2)
+    msg.step = 16  # padded rows: the last row's padding may be left out, nothing more
+    for size in (60, 64):
+        msg.data = np.zeros(size, np.uint8)
+        assert decode_image(serialize(2, msg, IMAGE_TYPE), 2).image.shape == (4, 4, 3)
+    msg.data = np.zeros(65, np.uint8)
+    with pytest.raises(MessageDecodeError, match=r"Image bgr8 4x4 step 16 needs 60\.\.64 data bytes, has 65"):
+        decode_image(serialize(2, msg, IMAGE_TYPE), 2)
     with pytest.raises(MessageDecodeError, match="not a valid ROS 2 sensor_msgs/msg/Image"):
         decode_image(b"\x00\x01\x00\x00\x01", 2)
 

@@ -326,7 +326,7 @@ def test_rig_that_does_not_match_the_bag(tmp_path: Path) -> None:
     The output it leaves holds no sample, so the same --out takes the right rig afterwards."""
     from calibration.rig import REFERENCE_RIG
 
-    with pytest.raises(BagError, match=r"images are 480x300 but the rig's cam0 is 1920x1200"):
+    with pytest.raises(BagError, match=r"the image is 480x300 but the rig's cam0 is 1920x1200"):
         ingest([INDOOR], IngestConfig(rig=REFERENCE_RIG, out=tmp_path / "ds", workers=1, every=10))
     assert not list((tmp_path / "ds" / "meta").glob("*.json"))
     summary = ingest([INDOOR], IngestConfig(rig=_rig(INDOOR), out=tmp_path / "ds", workers=1, every=10))

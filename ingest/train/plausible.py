@@ -1,0 +1,255 @@
+"""Readings and points no sensor can produce: dropped where a message enters ingest, counted by reason.
+
+A decodable message can still carry values no sensor of the rig measures: a
+gyro rate of 1e6 rad/s, a NaN acceleration, a Livox point whose `offset_time`
+is 0xFFFFFFFF (4.3 s after its sweep began), a point 1e30 m away. Taken as
+given they make wrong ground truth without a word (a gyro spike rotates a
+whole window of points; a far point's range does not fit the uint16 PNG and
+its pixel is written empty). Each is dropped as the message enters the
+ingest (`screen`, called by `BadMessages.decoded` in every pass), and
+counted once per message by topic and reason (`Dropped`) for the summary
+and `dataset.yaml`; a LiDAR whose sweeps carry no point time (a PointCloud2
+without a time field: every point at the header stamp) is said once. The
+rig's IMU rate is checked against the readings' (`check_imu_rate`), and each
+topic's stamps against the bag's log order (`check_time_order`).
+
+Bounds (notes/livox.md): the Mid-360's IMU (ICM-40609) measures at most
++-2000 deg/s and +-32 g (its largest full scales; the driver publishes g,
+the sensor_msgs contract m/s^2, so the acceleration bound is 32 g in m/s^2,
+which holds in either unit); its LiDAR ranges to 70 m; a Livox driver
+publishes 0.5..100 sweeps a second, so a sweep lasts 10 ms..2 s.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from calibration.types import I64
+from ingest.bags.decode import NO_POINT_TIME, Frame, ImuSample, Sweep
+from ingest.bags.point_time import TIME_FIELDS
+from ingest.errors import BagError
+
+GYRO_LIMIT_RAD_S = math.radians(2000.0) * 1.1
+"""An angular rate beyond this on any axis is no reading: the largest full scale (2000 deg/s) and 10 % for
+scale error."""
+ACC_LIMIT = 32 * 9.80665 * 1.1
+"""An acceleration beyond this on any axis is no reading: 32 g (the largest full scale) in m/s^2, the larger
+of the two units drivers publish, and 10 % for scale error."""
+RANGE_LIMIT_M = 500.0
+"""A LiDAR point farther than this is no return: the Mid-360 ranges to 70 m, other LiDARs to ~300 m."""
+SWEEP_MAX_NS = 3_000_000_000
+"""A point stamped farther than this from its sweep's header stamp lies beyond any sweep (the slowest
+Livox rate, 0.5 Hz, makes 2 s sweeps; `ingest.bags.point_time.MAX_OFFSET_NS` is the same bound)."""
+SWEEP_SPREAD_MADS = 8.0
+"""A point stamped farther than this many median absolute deviations from its sweep's median point
+time lies beyond it: point times spread evenly over a sweep of period P have a MAD of P/4, so this is 2 P."""
+SWEEP_SPREAD_MIN_NS = 20_000_000
+"""The least that bound may be: two periods of the fastest Livox rate (100 Hz)."""
+SPREAD_SAMPLE = 1024
+"""Points `beyond_sweep` takes its robust statistics over (about)."""
+IMU_RATE_TOLERANCE = 0.2
+"""The IMU's measured rate may differ from the rig's `rate_hz` by this fraction."""
+
+IMU_NON_FINITE = "IMU reading with NaN or inf"
+IMU_GYRO = f"IMU gyro beyond {math.degrees(GYRO_LIMIT_RAD_S):.0f} deg/s"
+IMU_ACC = f"IMU acceleration beyond {ACC_LIMIT:.0f} (32 g in m/s^2)"
+POINT_TIME = "LiDAR point time beyond its sweep"
+POINT_FAR = f"LiDAR point beyond {RANGE_LIMIT_M:g} m"
+REASONS = (IMU_NON_FINITE, IMU_GYRO, IMU_ACC, POINT_TIME, POINT_FAR)
+"""Why a reading or point was dropped, in the order the summary lists them."""
+
+
+def imu_problem(sample: ImuSample) -> str | None:
+    """Why the IMU reading is no measurement (one of `REASONS`), or None for a plausible one."""
+    values = np.concatenate([sample.gyro_rad_s, sample.acc])
+    if not np.isfinite(values).all():
+        return IMU_NON_FINITE
+    if float(np.abs(sample.gyro_rad_s).max()) > GYRO_LIMIT_RAD_S:  # the full scale bounds each axis
+        return IMU_GYRO
+    if float(np.abs(sample.acc).max()) > ACC_LIMIT:
+        return IMU_ACC
+    return None
+
+
+def beyond_sweep(stamps_ns: I64, stamp_ns: int) -> np.ndarray[Any, np.dtype[np.bool_]]:
+    """Which point times (int64 ns) lie beyond the sweep stamped `stamp_ns`.
+
+    A point is beyond it when it is more than `SWEEP_SPREAD_MADS` median
+    absolute deviations (at least `SWEEP_SPREAD_MIN_NS`) from the sweep's
+    median point time, or, when that median lies within `SWEEP_MAX_NS` of the
+    header stamp, more than `SWEEP_MAX_NS` from the header stamp. A sweep
+    whose points all lie far from its header stamp is left whole: a LiDAR on
+    another clock than its header's, which the survey names
+    (`ingest.train.plan.survey`). The median and the deviation are taken over
+    about `SPREAD_SAMPLE` evenly strided points (a 20k-point sweep in a tenth
+    of the time; robust statistics of 1000 points move by a few per cent, far
+    inside the bound).
+    """
+    sample = stamps_ns[:: max(1, len(stamps_ns) // SPREAD_SAMPLE)]
+    if len(sample) == 0:
+        return np.zeros(0, bool)
+    median = int(np.median(sample))
+    mad = float(np.median(np.abs(sample - np.int64(median))))
+    bound = int(max(SWEEP_SPREAD_MADS * mad, SWEEP_SPREAD_MIN_NS))
+    out: np.ndarray[Any, np.dtype[np.bool_]] = np.abs(stamps_ns - np.int64(median)) > bound
+    if abs(median - stamp_ns) <= SWEEP_MAX_NS:
+        out |= np.abs(stamps_ns - np.int64(stamp_ns)) > SWEEP_MAX_NS
+    return out
+
+
+def too_far(xyz_m: np.ndarray[Any, Any]) -> np.ndarray[Any, np.dtype[np.bool_]]:
+    """Which points lie beyond `RANGE_LIMIT_M` (NaN coordinates do not: `filter_points` counts those).
+
+    Squared ranges in the points' own float type, per column (an overflow to inf is beyond too).
+    """
+    x, y, z = xyz_m[:, 0], xyz_m[:, 1], xyz_m[:, 2]
+    with np.errstate(over="ignore", invalid="ignore"):
+        out: np.ndarray[Any, np.dtype[np.bool_]] = x * x + y * y + z * z > RANGE_LIMIT_M**2
+    return out
+
+
+def screened_sweep(sweep: Sweep) -> tuple[Sweep, dict[str, int]]:
+    """`sweep` without the points no LiDAR measures, and how many were dropped by reason (none: {})."""
+    late = beyond_sweep(sweep.stamps_ns, sweep.stamp_ns)
+    far = too_far(sweep.xyz_m) & ~late
+    drop = late | far
+    if not drop.any():
+        return sweep, {}
+    keep = ~drop
+
+    def kept(a: np.ndarray[Any, Any] | None) -> np.ndarray[Any, Any] | None:
+        return None if a is None else np.ascontiguousarray(a[keep])
+
+    out = replace(
+        sweep,
+        xyz_m=np.ascontiguousarray(sweep.xyz_m[keep]),
+        stamps_ns=np.ascontiguousarray(sweep.stamps_ns[keep]),
+        reflectivity=kept(sweep.reflectivity),
+        tag=kept(sweep.tag),
+        line=kept(sweep.line),
+    )
+    counts = {POINT_TIME: int(late.sum()), POINT_FAR: int(far.sum())}
+    return out, {k: n for k, n in counts.items() if n}
+
+
+@dataclass
+class Dropped:
+    """What `screen` dropped in one run: per (topic, log ns) of a message, the count by reason.
+
+    Every pass reads a message again; keyed by message it counts once.
+    """
+
+    by_message: dict[tuple[str, int], dict[str, int]] = field(default_factory=dict)
+    untimed: set[tuple[str, int]] = field(default_factory=set)  # sweeps without a point time (kept)
+
+    def screen(
+        self, topic: str, log_ns: int, decoded: Sweep | Frame | ImuSample
+    ) -> Sweep | Frame | ImuSample | None:
+        """`decoded` without what no sensor measures: None for an implausible IMU reading, a sweep
+        without its implausible points; a frame as it is."""
+        if isinstance(decoded, ImuSample):
+            why = imu_problem(decoded)
+            if why is None:
+                return decoded
+            self.by_message[(topic, log_ns)] = {why: 1}
+            return None
+        if isinstance(decoded, Sweep):
+            if decoded.time_layout == NO_POINT_TIME and len(decoded.stamps_ns):
+                self.untimed.add((topic, log_ns))
+            sweep, counts = screened_sweep(decoded)
+            if counts:
+                self.by_message[(topic, log_ns)] = counts
+            return sweep
+        return decoded
+
+    def by_topic(self) -> dict[str, dict[str, int]]:
+        """Per topic (sorted), per reason (in `REASONS` order): readings or points dropped."""
+        totals: dict[str, dict[str, int]] = {}
+        for (topic, _), counts in sorted(self.by_message.items()):
+            mine = totals.setdefault(topic, {})
+            for why, n in counts.items():
+                mine[why] = mine.get(why, 0) + n
+        return {t: {why: c[why] for why in REASONS if why in c} for t, c in totals.items()}
+
+    def lines(self) -> list[str]:
+        """One warning line per topic and reason: how many, and the first message's log time; and one per
+        topic whose sweeps carry no point time (a PointCloud2 without a time field)."""
+        out = []
+        for topic in sorted({t for t, _ in self.untimed}):
+            n = sum(1 for t, _ in self.untimed if t == topic)
+            out.append(
+                f"{topic}: {n:,} sweep{'' if n == 1 else 's'} without a point-time field (PointCloud2 fields "
+                f"{'/'.join(TIME_FIELDS)}): every point taken at its sweep's header stamp, so no motion "
+                "within a sweep is compensated"
+            )
+        for topic, counts in self.by_topic().items():
+            for why, n in counts.items():
+                first = min(log for (t, log), c in self.by_message.items() if t == topic and why in c)
+                what = "reading" if why.startswith("IMU") else "point"
+                sec, nsec = divmod(first, 1_000_000_000)
+                out.append(
+                    f"{topic}: dropped {n:,} {what}{'' if n == 1 else 's'}: {why} "
+                    f"(first at log time {sec}.{nsec:09d} s)"
+                )
+        return out
+
+
+def check_imu_rate(where: str, topic: str, name: str, rate_hz: float | None, stamps_ns: I64) -> None:
+    """Raise `BagError` when the IMU's readings come at a rate more than `IMU_RATE_TOLERANCE` from the
+    rig's `rate_hz` (`stamps_ns`: its header stamps; no check without a rate or with fewer than 3).
+
+    The median interval measures the rate, so gaps and repeats do not move it.
+    """
+    stamps = np.unique(stamps_ns)
+    if rate_hz is None or len(stamps) < 3:
+        return
+    period_ns = float(np.median(np.diff(stamps)))
+    measured_hz = 1e9 / period_ns
+    if abs(measured_hz - rate_hz) > IMU_RATE_TOLERANCE * rate_hz:
+        raise BagError(
+            f"{where}: {topic}: IMU readings at {measured_hz:.3g} Hz (median interval"
+            f" {period_ns / 1e6:.3g} ms) but the rig's {name} says rate_hz {rate_hz:g};"
+            f" more than {IMU_RATE_TOLERANCE:.0%} apart"
+            " (the wrong rig file, or the IMU set to another rate: correct rate_hz)"
+        )
+
+
+BACKWARDS_FRACTION = 0.1
+"""A topic whose header stamps step back, in log order, in more than this fraction of its steps (and at
+least twice) is refused: a message delivered late steps back once, a clock or a bag running backwards
+in every step."""
+
+
+def _seconds(ns: int) -> str:
+    return f"{ns / 1e9:.3f} s"
+
+
+def check_time_order(where: str, topic: str, what: str, seen: I64) -> None:
+    """Raise `BagError` when `topic`'s stamps run backwards in log order.
+
+    `seen` is the survey's (N, 3) rows of (log ns, first stamp, last stamp) per
+    message, in log order (`ingest.train.plan.survey`); `what` names the stamps
+    ("header stamps", "first point times"). The passes read the bags in log
+    order and take it for time order (a sample is handed on once the
+    messages up to its window's end have arrived): with the order reversed, a
+    sparse run kept half the points of each window and every drop counter
+    read 0. A message or two delivered late are ordered by their stamps.
+    """
+    if len(seen) < 3:
+        return
+    stamps = seen[:, 1]
+    back = np.flatnonzero(np.diff(stamps) < 0)
+    steps = len(stamps) - 1
+    if len(back) < 2 or len(back) <= BACKWARDS_FRACTION * steps:
+        return
+    k = int(back[0])
+    raise BagError(
+        f"{where}: {topic}: {what} run backwards in {len(back)} of {steps} steps of the bag's log order "
+        f"(the first: {_seconds(int(stamps[k + 1]))} logged at {_seconds(int(seen[k + 1, 0]))}, after "
+        f"{_seconds(int(stamps[k]))}); expected stamps that rise with log time (a sensor clock running "
+        "backwards, or a bag rewritten out of order)"
+    )

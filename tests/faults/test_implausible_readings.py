@@ -1,0 +1,250 @@
+"""Issue 49: IMU readings and LiDAR points no sensor can produce are dropped and counted, never taken as given.
+
+Each bag is the fixture with a few readings or points rewritten; the ground
+truth it gives must equal the ground truth of the same bag without them
+(dropped, not used), and the summary, `dataset.yaml` and one warning line per
+topic and reason must count them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import yaml
+
+from ingest.bags.decode import decode_imu
+from ingest.bags.livox_msg import decode_custom_msg, encode_custom_msg
+from ingest.bags.reader import open_bags
+from ingest.bags.rostypes import POINTCLOUD2_TYPE, typestore
+from ingest.dataset.layout import GT_DIRS
+from ingest.errors import BagError
+from ingest.train.pipeline import IngestConfig, IngestSummary, ingest
+from ingest.train.plausible import IMU_ACC, IMU_GYRO, IMU_NON_FINITE, POINT_FAR, POINT_TIME
+from sensorbox.messages import imu_msg
+from tests.faults.bags import INDOOR, LIDAR_BOTTOM, LIDAR_TOP, Keep, rewrite
+from tests.faults.cli import sensorbox
+from tests.paths import FIXTURES_DIR
+
+WALK = FIXTURES_DIR / "outdoor_walk_mcap"  # the rig turns: a wrong gyro reading moves the points
+IMU = "/livox/imu_192_168_1_12"  # the rig's first IMU: the one ingest integrates
+FAST = {"workers": 1, "every": 3, "height_full": 64}
+
+
+def _gt_files(out: Path) -> dict[str, bytes]:
+    return {f"{d}/{p.name}": p.read_bytes() for d in GT_DIRS for p in sorted((out / d).glob("*.png"))}
+
+
+def _run(
+    tmp_path: Path, name: str, keep: Keep, src: Path = WALK, **cfg: object
+) -> tuple[IngestSummary, Path]:
+    bag, rig = rewrite(tmp_path / name, keep, src=src)
+    out = tmp_path / f"{name}-ds"
+    return ingest([bag], IngestConfig(rig=rig, out=out, **{**FAST, **cfg})), out  # type: ignore[arg-type]
+
+
+def _imu_reading(
+    gyro: tuple[float, float, float] | None, acc: tuple[float, float, float] | None
+) -> Callable[[bytes], bytes]:
+    def change(raw: bytes) -> bytes:
+        s = decode_imu(raw)
+        return imu_msg(s.stamp_ns, np.array(gyro if gyro else s.gyro_rad_s), np.array(acc if acc else s.acc))
+
+    return change
+
+
+BAD_IMU = {
+    30: _imu_reading((1e6, 0.0, 0.0), None),  # a gyro spike
+    50: _imu_reading((float("nan"), 0.0, 0.0), None),
+    70: _imu_reading(None, (0.0, float("inf"), 0.0)),
+    90: _imu_reading(None, (0.0, 0.0, 1e4)),  # 10,000 g
+}
+
+
+@pytest.mark.parametrize("gt", ["sparse", "dense"])
+def test_impossible_imu_readings_are_dropped_counted_and_change_no_gt(tmp_path: Path, gt: str) -> None:
+    def bad(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        return [(topic, BAD_IMU[k](raw) if topic == IMU and k in BAD_IMU else raw)]
+
+    def without(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        return [] if topic == IMU and k in BAD_IMU else [(topic, raw)]
+
+    summary, out = _run(tmp_path, "bad", bad, gt=gt)
+    clean, clean_out = _run(tmp_path, "without", without, gt=gt)
+    assert summary.written == clean.written > 0
+    assert _gt_files(out) == _gt_files(clean_out)  # the same GT as a bag without those readings
+    counts = {IMU_GYRO: 1, IMU_NON_FINITE: 2, IMU_ACC: 1}
+    assert summary.dropped == {IMU: counts}
+    assert clean.dropped == {}
+    source = yaml.safe_load((out / "dataset.yaml").read_text())["sources"][0]
+    assert source["dropped_implausible"] == {IMU: counts}
+
+
+def test_the_dropped_readings_are_one_warning_line_each_reason(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    def bad(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        return [(topic, BAD_IMU[k](raw) if topic == IMU and k in (30, 50) else raw)]
+
+    bag, rig = rewrite(tmp_path / "bad", bad, src=WALK)
+    args = ["ingest", str(bag), "--rig", str(rig), "--out", str(tmp_path / "ds"), "--workers", "1"]
+    code, out, err = sensorbox(
+        capsys, *args, "--every", "3", "--height-full", "64", "--gt", "sparse", "--no-preview"
+    )
+    assert code == 0
+    warnings = [line for line in err if "dropped" in line]
+    assert [w.split(" (first at log time")[0] for w in warnings] == [
+        f"warning: {IMU}: dropped 1 reading: IMU reading with NaN or inf",
+        f"warning: {IMU}: dropped 1 reading: IMU gyro beyond 2200 deg/s",
+    ]
+    assert "dropped, IMU gyro beyond 2200 deg/s" in out
+
+
+def test_an_imu_at_another_rate_than_the_rig_says_is_refused_naming_both(tmp_path: Path) -> None:
+    def tenth(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        return [(topic, raw)] if topic != IMU or k % 20 == 0 else []  # 200 Hz -> 10 Hz
+
+    with pytest.raises(BagError) as err:
+        _run(tmp_path, "slow", tenth)
+    assert str(err.value) == (
+        f"{tmp_path / 'slow'}: {IMU}: IMU readings at 10 Hz (median interval 100 ms) but the rig's imu_top says "
+        "rate_hz 200; more than 20% apart (the wrong rig file, or the IMU set to another rate: correct rate_hz)"
+    )
+    assert not (tmp_path / "slow-ds").exists()  # refused before anything is written
+
+    def every_other_gone_once(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        return [] if topic == IMU and k in (11, 13, 15) else [(topic, raw)]  # gaps, not another rate
+
+    summary, _ = _run(tmp_path, "gaps", every_other_gone_once)
+    assert summary.written > 0
+
+
+def _points(change: Callable[[Any], Any]) -> Callable[[bytes], bytes]:
+    """A CustomMsg rewrite: `change(points)` -> the points to encode."""
+
+    def rewrite_points(raw: bytes) -> bytes:
+        msg = decode_custom_msg(raw)
+        pts = change(msg.points.copy())
+        return encode_custom_msg(msg.stamp_ns, msg.frame_id, msg.timebase_ns, pts, msg.lidar_id)
+
+    return rewrite_points
+
+
+def _late(pts: Any) -> Any:
+    pts["offset_time"][::7] = 0xFFFFFFFF  # 4.3 s after the sweep began
+    return pts
+
+
+def _far(pts: Any) -> Any:
+    pts["x"][3::11] = 1e30
+    pts["y"][5::11] = -5000.0
+    return pts
+
+
+def _half_late(pts: Any) -> Any:
+    pts["offset_time"][::2] = 0xFFFFFFFF  # too many for the spread: beyond the header stamp's 3 s
+    return pts
+
+
+def _gone(mark: Callable[[Any], Any]) -> Callable[[Any], Any]:
+    """The points `mark` changes, left out instead."""
+
+    def without(pts: Any) -> Any:
+        return pts[(mark(pts.copy()) == pts)]
+
+    return without
+
+
+def test_lidar_points_beyond_their_sweep_or_range_are_dropped_counted_and_change_no_gt(
+    tmp_path: Path,
+) -> None:
+    """Every 7th point of the top LiDAR 4.3 s late, half the points of one sweep of the bottom LiDAR 4.3 s
+    late, 2 points in 11 of the bottom LiDAR's other sweeps 1e30 m or 5 km away."""
+    changes = {LIDAR_TOP: lambda k: _late, LIDAR_BOTTOM: lambda k: _half_late if k == 3 else _far}
+
+    def bad(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        return [(topic, _points(changes[topic](k))(raw) if topic in changes else raw)]
+
+    def without(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        return [(topic, _points(_gone(changes[topic](k)))(raw) if topic in changes else raw)]
+
+    summary, out = _run(tmp_path, "bad", bad, src=INDOOR)
+    clean, clean_out = _run(tmp_path, "without", without, src=INDOOR)
+    assert summary.written == clean.written > 0
+    assert _gt_files(out) == _gt_files(clean_out)
+    sizes = {t: [len(decode_custom_msg(m).points) for m in _messages(INDOOR, t)] for t in changes}
+    late_top = sum(len(range(0, n, 7)) for n in sizes[LIDAR_TOP])
+    bottom = sizes[LIDAR_BOTTOM]
+    far = sum(len(range(3, n, 11)) + len(range(5, n, 11)) for k, n in enumerate(bottom) if k != 3)
+    late_bottom = len(range(0, bottom[3], 2))
+    expected = {LIDAR_TOP: {POINT_TIME: late_top}, LIDAR_BOTTOM: {POINT_TIME: late_bottom, POINT_FAR: far}}
+    assert summary.dropped == expected
+    assert clean.dropped == {}
+    source = yaml.safe_load((out / "dataset.yaml").read_text())["sources"][0]
+    assert source["dropped_implausible"] == expected
+
+
+def _messages(bag: Path, topic: str) -> list[bytes]:
+    with open_bags([bag]) as bags:
+        return [bytes(m.raw) for m in bags.messages(topics=[topic])]
+
+
+def _untimed_cloud(raw: bytes) -> bytes:
+    """The CustomMsg as a PointCloud2 of x, y, z and intensity alone: no point-time field."""
+    msg = decode_custom_msg(raw)
+    ts = typestore(2)
+    cloud = np.zeros(len(msg.points), [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4")])
+    for name in "xyz":
+        cloud[name] = msg.points[name]
+    cloud["intensity"] = msg.points["reflectivity"]
+    field = ts.types["sensor_msgs/msg/PointField"]
+    header = ts.types["std_msgs/msg/Header"](
+        stamp=ts.types["builtin_interfaces/msg/Time"](
+            sec=msg.stamp_ns // 10**9, nanosec=msg.stamp_ns % 10**9
+        ),
+        frame_id=msg.frame_id,
+    )
+    out = ts.types[POINTCLOUD2_TYPE](
+        header=header, height=1, width=len(cloud),
+        fields=[field(name=n, offset=4 * i, datatype=7, count=1) for i, n in enumerate(("x", "y", "z", "intensity"))],
+        is_bigendian=False, point_step=16, row_step=16 * len(cloud),
+        data=np.frombuffer(cloud.tobytes(), np.uint8), is_dense=True,
+    )  # fmt: skip
+    return bytes(ts.serialize_cdr(out, POINTCLOUD2_TYPE))
+
+
+def test_a_pointcloud2_without_point_times_is_said_once(tmp_path: Path) -> None:
+    def untimed(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        return [(topic, _untimed_cloud(raw) if topic == LIDAR_TOP else raw)]
+
+    bag, rig = rewrite(tmp_path / "bag", untimed, src=INDOOR, declare={LIDAR_TOP: POINTCLOUD2_TYPE})
+    summary = ingest([bag], IngestConfig(rig=rig, out=tmp_path / "ds", **FAST))  # type: ignore[arg-type]
+    assert summary.written > 0
+    assert [w for w in summary.warnings if "point-time" in w] == [
+        f"{LIDAR_TOP}: 7 sweeps without a point-time field (PointCloud2 fields timestamp/offset_time/time/t): "
+        "every point taken at its sweep's header stamp, so no motion within a sweep is compensated"
+    ]
+
+
+def test_the_bounds_hold_per_axis_and_per_sweep() -> None:
+    from ingest.bags.decode import ImuSample
+    from ingest.train.plausible import beyond_sweep, imu_problem
+
+    def reading(gyro_deg_s: float, acc: float = 1.0) -> ImuSample:
+        return ImuSample(0, "imu", np.radians(np.full(3, gyro_deg_s)), np.array([0.0, 0.0, acc]))
+
+    assert imu_problem(reading(1900.0)) is None  # 3290 deg/s in norm, each axis within the full scale
+    assert imu_problem(reading(2300.0)) == IMU_GYRO
+    assert imu_problem(reading(0.0, acc=9.81 * 16)) is None  # 16 g in m/s^2
+    assert imu_problem(reading(0.0, acc=9.81 * 40)) == IMU_ACC
+    stamp = 1_700_000_000_000_000_000
+    times = stamp + np.linspace(0, 100_000_000, 20_000).astype(np.int64)  # a 10 Hz sweep
+    late = times.copy()
+    late[::97] += 0xFFFFFFFF  # 4.3 s late
+    late[5::97] += 100_000_000  # up to a period past the sweep: within 2 periods of its median, kept
+    assert np.array_equal(np.flatnonzero(beyond_sweep(late, stamp)), np.arange(0, 20_000, 97))
+    assert not beyond_sweep(times, stamp).any()
+    assert not beyond_sweep(times + 123_000_000_000, stamp).any()  # all on another clock: the survey's to say

@@ -1,0 +1,116 @@
+"""Issue 49: stamps that run backwards in the bag's log order, and a topic carrying two kinds of messages,
+are refused, naming the topic and the stamps or types.
+
+The passes read a bag in log order and take it for time order: with the log
+order reversed (every stamp unchanged) a sparse run kept 11,808 of 21,809
+points of a window with every drop counter at 0; a camera whose header stamps
+run backwards paired each image with another time's points without a word.
+One message delivered late is still taken (`tests/ingest/test_pipeline.py`).
+"""
+
+from __future__ import annotations
+
+import shutil
+import struct
+from pathlib import Path
+
+import pytest
+
+from ingest.bags.reader import open_bags
+from ingest.errors import BagError
+from ingest.train.pipeline import IngestConfig, ingest
+from sensorbox.live.bagwriter import BagWriter
+from sensorbox.sim.truth import truth_dir
+from tests.faults.bags import INDOOR, LIDAR_TOP, LOWER, rewrite
+
+FAST = {"workers": 1, "every": 3, "height_full": 64}
+IMU = "/livox/imu_192_168_1_12"
+
+
+def _at(ns: int) -> str:
+    return f"{ns / 1e9:.3f} s"
+
+
+def test_a_bag_in_reversed_log_order_is_refused_naming_the_first_topic_and_stamps(tmp_path: Path) -> None:
+    with open_bags([INDOOR]) as bags:
+        messages = [(m.topic, m.msgtype, m.log_ns, bytes(m.raw)) for m in bags.messages()]
+    first, last = messages[0][2], messages[-1][2]
+    dst = tmp_path / "reversed"
+    with BagWriter(dst, "mcap") as out:
+        for topic, msgtype in dict((t, ty) for t, ty, _, _ in messages).items():
+            out.add(topic, msgtype)
+        for topic, _, log_ns, raw in reversed(messages):
+            out.write(topic, first + last - log_ns, raw)
+    shutil.copytree(truth_dir(INDOOR), truth_dir(dst))
+    upper = [m for m in messages if m[0].startswith("/zed_upper")]
+    stamps = [struct.unpack_from("<iI", raw, 4) for _, _, _, raw in upper]
+    stamps_ns = [s * 1_000_000_000 + n for s, n in stamps]
+    with pytest.raises(BagError) as err:
+        ingest([dst], IngestConfig(rig=truth_dir(dst) / "rig.yaml", out=tmp_path / "ds", **FAST))  # type: ignore[arg-type]
+    topic = upper[0][0]
+    assert str(err.value) == (
+        f"{dst}: {topic}: header stamps run backwards in 20 of 20 steps of the bag's log order (the first: "
+        f"{_at(stamps_ns[-2])} logged at {_at(first + last - upper[-2][2])}, after {_at(stamps_ns[-1])}); "
+        "expected stamps that rise with log time (a sensor clock running backwards, or a bag rewritten out "
+        "of order)"
+    )
+    assert not (tmp_path / "ds").exists()
+
+
+def test_a_camera_whose_stamps_run_backwards_is_refused(tmp_path: Path) -> None:
+    with open_bags([INDOOR]) as bags:
+        heads = [bytes(m.raw[4:12]) for m in bags.messages(topics=[LOWER])]
+
+    def backwards(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        if topic != LOWER:
+            return [(topic, raw)]
+        return [(topic, raw[:4] + heads[len(heads) - 1 - k] + raw[12:])]  # frame k stamped as frame 20 - k
+
+    bag, rig = rewrite(tmp_path / "bag", backwards)
+    with pytest.raises(BagError, match=rf"^{bag}: {LOWER}: header stamps run backwards in 20 of 20 steps "):
+        ingest([bag], IngestConfig(rig=rig, out=tmp_path / "ds", **FAST))  # type: ignore[arg-type]
+
+
+def test_an_imu_reading_or_two_delivered_late_are_taken(tmp_path: Path) -> None:
+    held: list[bytes] = []
+
+    def late(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        if topic == IMU and k in (40, 90):
+            held.append(raw)
+            return []
+        if topic == IMU and k in (42, 92):
+            return [(topic, raw), (topic, held.pop())]
+        return [(topic, raw)]
+
+    bag, rig = rewrite(tmp_path / "bag", late)
+    summary = ingest([bag], IngestConfig(rig=rig, out=tmp_path / "ds", **FAST))  # type: ignore[arg-type]
+    assert summary.written == 7
+
+
+def test_a_lidar_topic_that_also_carries_imu_messages_is_refused(tmp_path: Path) -> None:
+    """Ingest read only the topic's LiDAR messages and skipped the others without a word."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    from ingest.bags.rostypes import IMU_TYPE, typestore
+
+    with open_bags([INDOOR]) as bags:
+        messages = [(m.topic, m.msgtype, m.log_ns, bytes(m.raw)) for m in bags.messages()]
+    dst = tmp_path / "mixed"
+    with Writer(dst, version=8, storage_plugin=StoragePlugin.MCAP) as out:
+        conns = {
+            (t, ty): out.add_connection(t, ty, typestore=typestore(2))
+            for t, ty in {(t, ty) for t, ty, _, _ in messages}
+        }
+        conns[(LIDAR_TOP, IMU_TYPE)] = out.add_connection(LIDAR_TOP, IMU_TYPE, typestore=typestore(2))
+        for topic, msgtype, log_ns, raw in messages:
+            out.write(conns[(topic, msgtype)], log_ns, raw)
+            if topic == IMU:
+                out.write(conns[(LIDAR_TOP, IMU_TYPE)], log_ns, raw)
+    shutil.copytree(truth_dir(INDOOR), truth_dir(dst))
+    with pytest.raises(BagError) as err:
+        ingest([dst], IngestConfig(rig=truth_dir(dst) / "rig.yaml", out=tmp_path / "ds", **FAST))  # type: ignore[arg-type]
+    assert str(err.value) == (
+        f"{dst}: {LIDAR_TOP} (the rig's lidar lidar_top) has type livox_ros_driver2/msg/CustomMsg | "
+        "sensor_msgs/msg/Imu; expected a LiDAR type (livox_ros_driver/msg/CustomMsg or "
+        "livox_ros_driver2/msg/CustomMsg or sensor_msgs/msg/PointCloud2)"
+    )
