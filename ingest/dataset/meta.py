@@ -61,6 +61,14 @@ class GtMeta:
 
 
 @dataclass(frozen=True)
+class FileMeta:
+    """One file a sample wrote, as written: its size and SHA-256 (hex), for a rerun to check it is whole."""
+
+    bytes: int
+    sha256: str
+
+
+@dataclass(frozen=True)
 class SampleMeta:
     """One written sample; `id` and `dropped` (values too large for uint16, per image) come with the write."""
 
@@ -74,9 +82,13 @@ class SampleMeta:
     gt: GtMeta
     id: str = ""
     dropped: dict[str, int] = field(default_factory=dict)
+    frames_sha256: str = ""  # the frame's identity: `ingest.dataset.identity.frame_digest` of both images
+    files: dict[str, FileMeta] = field(default_factory=dict)  # path in the dataset -> as written
 
-    def written(self, sid: str, dropped: dict[str, int]) -> SampleMeta:
-        return replace(self, id=sid, dropped=dict(dropped))
+    def written(
+        self, sid: str, dropped: dict[str, int], files: dict[str, FileMeta] | None = None
+    ) -> SampleMeta:
+        return replace(self, id=sid, dropped=dict(dropped), files=dict(files or {}))
 
     def to_json(self) -> str:
         return json.dumps(asdict(self), indent=1, sort_keys=True) + "\n"
@@ -89,6 +101,9 @@ class SampleMeta:
             lidar_skew_ms={str(k): float(v) for k, v in d["lidar_skew_ms"].items()},
             motion=MotionMeta(**d["motion"]), points=PointMeta(**d["points"]), gt=GtMeta(**d["gt"]),
             id=str(d.get("id", "")), dropped={str(k): int(v) for k, v in d.get("dropped", {}).items()},
+            frames_sha256=str(d.get("frames_sha256", "")),
+            files={str(k): FileMeta(int(f["bytes"]), str(f["sha256"])) for k, f in
+                   d.get("files", {}).items()},
         )  # fmt: skip
 
 
@@ -99,5 +114,5 @@ def read_meta(out: Path, sid: str) -> SampleMeta:
         return SampleMeta.from_dict(json.loads(path.read_text()))
     except OSError as err:
         raise DatasetError(f"{path}: cannot read: {err.strerror or err}") from err
-    except (ValueError, KeyError, TypeError) as err:
+    except (ValueError, KeyError, TypeError, AttributeError) as err:
         raise DatasetError(f"{path}: not SensorBox sample metadata ({type(err).__name__}: {err})") from err
