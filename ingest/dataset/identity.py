@@ -108,8 +108,9 @@ def _stamp(ns: int) -> str:
 def resume_state(out: Path, sids: list[str], stamps_ns: list[tuple[int, int]]) -> Resume:
     """The planned samples `sids` (upper and lower header stamps `stamps_ns`) against what `out` holds.
 
-    A planned sample with metadata is done when it is whole and records the
-    planned stamps, damaged otherwise. One without is compared, by stamps,
+    A planned sample with metadata is done when it is whole, damaged
+    otherwise; one that records other stamps is another frame's, which no
+    run overwrites (DatasetError). One without is compared, by stamps,
     with every other sample of the folder (whose content the worker then
     compares: `frame_digest`). A sample with the same stamps that records no
     digest (an older SensorBox) cannot be told apart: DatasetError naming it.
@@ -132,12 +133,12 @@ def resume_state(out: Path, sids: list[str], stamps_ns: list[tuple[int, int]]) -
         if sid not in own:
             by_stamps.setdefault((meta.stamp_ns, meta.lower_stamp_ns), []).append((sid, meta))
             continue
-        if (meta.stamp_ns, meta.lower_stamp_ns) != own[sid]:
-            damaged[sid] = (
-                f"{path}: records the frame at {_stamp(meta.stamp_ns)}, but this recording's sample {sid} "
-                f"is the frame at {_stamp(own[sid][0])}"
+        if (meta.stamp_ns, meta.lower_stamp_ns) != own[sid]:  # another recording's: never overwritten
+            raise DatasetError(
+                f"{path}: sample {sid} is the frame at {_stamp(meta.stamp_ns)}, but this recording's sample "
+                f"{sid} is the frame at {_stamp(own[sid][0])}: dataset.yaml's id ranges do not describe "
+                "the folder; choose a new --out"
             )
-            continue
         problem = sample_problem(out, sid, meta)
         if problem:
             damaged[sid] = problem

@@ -84,6 +84,7 @@ class SampleMeta:
     dropped: dict[str, int] = field(default_factory=dict)
     frames_sha256: str = ""  # the frame's identity: `ingest.dataset.identity.frame_digest` of both images
     files: dict[str, FileMeta] = field(default_factory=dict)  # path in the dataset -> as written
+    settings: dict[str, Any] = field(default_factory=dict)  # what made it: dataset.yaml's compared keys
 
     def written(
         self, sid: str, dropped: dict[str, int], files: dict[str, FileMeta] | None = None
@@ -104,6 +105,7 @@ class SampleMeta:
             frames_sha256=str(d.get("frames_sha256", "")),
             files={str(k): FileMeta(int(f["bytes"]), str(f["sha256"])) for k, f in
                    d.get("files", {}).items()},
+            settings=dict(d.get("settings", {})),
         )  # fmt: skip
 
 

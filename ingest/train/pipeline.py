@@ -70,7 +70,7 @@ from ingest.runtime.jit import compiling
 from ingest.train.bad_messages import BadMessages
 from ingest.train.block_planes import BlockPlanes, PlaneSettings
 from ingest.train.dense import DenseParams, free_space_settings
-from ingest.train.describe import check_existing, record_undecodable, write_dataset_yaml
+from ingest.train.describe import check_existing, record_undecodable, sample_settings, write_dataset_yaml
 from ingest.train.lidar_rate import THIN_FRACTION
 from ingest.train.plan import LOST_REASON, Plan, plan, survey
 from ingest.train.rig_trajectory import RigTrajectory
@@ -516,7 +516,8 @@ def _run(
 
         def jobs() -> Iterator[StreamedJob]:
             """The jobs to run; resumed and skipped samples are counted here, in stream order."""
-            for item in stream_jobs(bags, topics, the_plan, cfg, first_id, bad, planes, resume):
+            settings = sample_settings(asked, geometry, [Path(p) for p in bag_paths])
+            for item in stream_jobs(bags, topics, the_plan, cfg, first_id, bad, planes, resume, settings):
                 if not isinstance(item, tuple):
                     yield item
                     continue

@@ -173,6 +173,7 @@ class SampleJob:
     trajectory: RigTrajectory | None = None  # the recording's (dense GT)
     thin_lidars: tuple[str, ...] = ()  # LiDARs with far fewer points than their rate (lidar_rate)
     thin_lidars_sparse: tuple[str, ...] = ()  # the same over sparse GT's window (`sparse_window`)
+    settings: dict[str, Any] = field(default_factory=dict)  # the dataset's settings, for the meta
 
 
 @dataclass(frozen=True)
@@ -381,6 +382,7 @@ def _finish(
         meta,
         points=replace(meta.points, thin_lidars=list(job.thin_lidars)),
         frames_sha256=frame_digest(job.upper_bgr, job.lower_bgr),
+        settings=job.settings,
     )
     files = SampleFiles(job.upper_bgr, job.lower_bgr, up, down, gt[1], gt[0], meta)
     drops = write_sample(job.out, job.sid, files, job.params.exr, job.params.png_level)

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -93,13 +93,14 @@ class StreamedJob:
     thin_lidars: tuple[str, ...] = ()
     thin_lidars_sparse: tuple[str, ...] = ()  # over sparse GT's window, for a dense frame in a gap
     same_stamps: tuple[HeldFrame, ...] = ()  # samples of the folder with this frame's stamps (other ids)
+    settings: dict[str, Any] = field(default_factory=dict)  # the dataset's (`describe.sample_settings`)
 
     def sample_job(self, shared: Shared, upper_bgr: Array, lower_bgr: Array) -> SampleJob:
         """The `process_sample` job of this sample, with its decoded images."""
         return SampleJob(
             self.out, self.sid, self.source, self.upper_stamp_ns, self.lower_stamp_ns, upper_bgr, lower_bgr,
             self.lidars, self.imu, None, shared.geometry, self.params, shared.trajectory, self.thin_lidars,
-            self.thin_lidars_sparse,
+            self.thin_lidars_sparse, self.settings,
         )  # fmt: skip
 
 
@@ -328,6 +329,7 @@ def planned_stamps(the_plan: Plan) -> list[tuple[int, int]]:
 def stream_jobs(
     bags: BagSet, topics: Topics, the_plan: Plan, cfg: IngestConfig, first_id: int = 0,
     bad: BadMessages | None = None, planes: BlockPlanes | None = None, resume: Resume | None = None,
+    settings: dict[str, Any] | None = None,
 ) -> Iterator[StreamedJob | tuple[str, str]]:  # fmt: skip
     """Second pass: a StreamedJob per planned sample, or (sid, why): "done" earlier, "missing image".
 
@@ -336,6 +338,7 @@ def stream_jobs(
     are done. `resume` is what the output folder holds of the planned samples
     (`resume_state` of it when not given): a whole one is "done", a damaged
     one goes again, and a job carries the folder's samples with its stamps.
+    `settings` go into every sample's meta (`describe.sample_settings`).
     """
     where = bags.label
     bad = bad or BadMessages()
@@ -385,6 +388,7 @@ def stream_jobs(
         return StreamedJob(
             cfg.out, sids[k], source, where, tc, int(the_plan.lower_ns[k]), f["upper"], f["lower"],
             lidars, imu, cfg.sample, thin, thin_sparse, resume.same_stamps.get(sids[k], ()),
+            dict(settings or {}),
         )  # fmt: skip
 
     wanted = [topics.upper, topics.lower, *topics.lidars, *([topics.imu] if topics.imu else [])]

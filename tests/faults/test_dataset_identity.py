@@ -12,10 +12,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from ingest.bags.decode import decode_compressed_image
 from ingest.bags.reader import open_bags
 from ingest.dataset.meta import read_meta
+from ingest.errors import DatasetError
 from ingest.train.pipeline import IngestConfig, ingest
 from sensorbox.live.bagwriter import BagWriter
 from sensorbox.messages import image_msg
@@ -160,3 +162,46 @@ def test_a_damaged_finished_sample_is_written_again_and_named(
     code, stdout, err = sensorbox(capsys, *args)
     assert (code, [line for line in err if "damaged" in line]) == (0, [])
     assert _row(stdout, "written / already done (resumed)") == "0 / 5"
+
+
+def test_a_lost_dataset_yaml_is_not_rewritten_to_describe_samples_made_otherwise(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """dataset.yaml deleted, a rerun with --window-ms 20 over samples made with 50 ms: refused, naming the
+    setting and both values (it wrote a dataset.yaml claiming 20 ms)."""
+    out = tmp_path / "ds"
+    args = ["ingest", str(INDOOR), "--rig", str(RIG), "--out", str(out), "--workers", "1", "--every", "5"]
+    args += ["--height-full", "64", "--gt", "sparse", "--no-preview"]
+    assert sensorbox(capsys, *args)[0] == 0
+    (out / "dataset.yaml").unlink()
+    code, _, err = sensorbox(capsys, *args, "--window-ms", "20")
+    assert (code, err) == (
+        2,
+        [
+            f"error: {out}/meta/000000.json: the folder's samples were made with a different 'params' "
+            f"(lidar_window_ns: 50000000 -> 20000000) and {out}/dataset.yaml is missing; choose a new --out "
+            "or the settings they were made with"
+        ],
+    )
+    assert not (out / "dataset.yaml").exists()
+    code, stdout, _ = sensorbox(capsys, *args)  # the settings they were made with: described again
+    assert code == 0 and _row(stdout, "written / already done (resumed)") == "0 / 5"
+    assert len(list((out / "meta").glob("*.json"))) == 5
+    doc = yaml.safe_load((out / "dataset.yaml").read_text())
+    assert doc["params"]["lidar_window_ns"] == 50_000_000
+    assert [(s["first_id"], s["samples"]) for s in doc["sources"]] == [(5, 5)]  # after the ids in use
+
+
+def test_a_sample_id_holding_another_frame_is_never_overwritten(tmp_path: Path) -> None:
+    """dataset.yaml's ranges that do not describe the folder: refused, the other frame's files kept."""
+    out = tmp_path / "ds"
+    ingest([INDOOR], _cfg(out, every=5))
+    meta = out / "meta" / "000001.json"
+    doc = json.loads(meta.read_text())
+    doc["stamp_ns"] += 1
+    meta.write_text(json.dumps(doc))
+    with pytest.raises(
+        DatasetError, match=r"000001.json: sample 000001 is the frame at 1700000000\.\d{9} s, but "
+    ):
+        ingest([INDOOR], _cfg(out, every=5))
+    assert json.loads(meta.read_text()) == doc
