@@ -41,8 +41,8 @@ def frame_digest(upper: Array, lower: Array) -> str:
     return digest.hexdigest()
 
 
-def _file_problem(path: Path, size: int, sha256: str) -> str:
-    """Why `path` is not the file of `size` bytes and SHA-256 `sha256` a sample wrote ('' when it is)."""
+def file_problem(path: Path, size: int, sha256: str) -> str:
+    """Why `path` is not the file of `size` bytes and SHA-256 `sha256` that was written ('' when it is)."""
     try:
         data = path.read_bytes()
     except FileNotFoundError:
@@ -50,9 +50,9 @@ def _file_problem(path: Path, size: int, sha256: str) -> str:
     except OSError as err:
         return f"{path}: cannot be read ({err.strerror or err})"
     if len(data) != size:
-        return f"{path}: {len(data)} bytes, the sample wrote {size}"
+        return f"{path}: {len(data)} bytes, {size} were written"
     if hashlib.sha256(data).hexdigest() != sha256:
-        return f"{path}: not the file the sample wrote (its SHA-256 differs)"
+        return f"{path}: not the file written (its SHA-256 differs)"
     return ""
 
 
@@ -76,7 +76,7 @@ def sample_problem(out: Path, sid: str, meta: SampleMeta) -> str:
     if not meta.files:
         return _unrecorded_problem(out, sid)
     for name, written in meta.files.items():
-        problem = _file_problem(out / name, written.bytes, written.sha256)
+        problem = file_problem(out / name, written.bytes, written.sha256)
         if problem:
             return problem
     return ""

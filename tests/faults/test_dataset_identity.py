@@ -151,8 +151,8 @@ def test_a_damaged_finished_sample_is_written_again_and_named(
     size = len(kept[Path("depth_fisheye/000001.png")])
     assert [line for line in err if "damaged" in line] == [
         f"warning: damaged sample written again: {out}/left_fisheye/000000.png: missing",
-        f"warning: damaged sample written again: {out}/depth_fisheye/000001.png: 100 bytes, the sample wrote {size}",
-        f"warning: damaged sample written again: {out}/equirect_up/000002.png: not the file the sample wrote "
+        f"warning: damaged sample written again: {out}/depth_fisheye/000001.png: 100 bytes, {size} were written",
+        f"warning: damaged sample written again: {out}/equirect_up/000002.png: not the file written "
         "(its SHA-256 differs)",
         f"warning: damaged sample written again: {out}/meta/000003.json: not SensorBox sample metadata "
         "(JSONDecodeError: Expecting property name enclosed in double quotes: line 1 column 2 (char 1))",
