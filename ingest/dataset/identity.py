@@ -18,6 +18,7 @@ metadata unreadable) again instead of keeping the damage.
 from __future__ import annotations
 
 import hashlib
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -30,6 +31,8 @@ from ingest.dataset.png import read_image
 from ingest.errors import DatasetError
 
 Array = np.ndarray[Any, Any]
+VERIFY_THREADS = 4
+"""Finished samples checked at once on a rerun: a full-resolution sample is ~40 MB to read and hash."""
 
 
 def frame_digest(upper: Array, lower: Array) -> str:
@@ -88,7 +91,11 @@ class HeldFrame:
 
     sid: str
     frames_sha256: str
-    intact: bool  # its files are whole; if not, the frame is written again under its id
+    problem: str = ""  # why its files are not whole ('' when they are): the frame is written again there
+
+    @property
+    def intact(self) -> bool:
+        return not self.problem
 
 
 @dataclass(frozen=True)
@@ -119,8 +126,8 @@ def resume_state(out: Path, sids: list[str], stamps_ns: list[tuple[int, int]]) -
     if not meta_dir.is_dir():
         return Resume()
     own = dict(zip(sids, stamps_ns, strict=True))
-    done: set[str] = set()
     damaged: dict[str, str] = {}
+    finished: dict[str, SampleMeta] = {}
     by_stamps: dict[tuple[int, int], list[tuple[str, SampleMeta]]] = {}
     for path in sorted(meta_dir.glob("*.json")):
         sid = path.stem
@@ -139,11 +146,12 @@ def resume_state(out: Path, sids: list[str], stamps_ns: list[tuple[int, int]]) -
                 f"{sid} is the frame at {_stamp(own[sid][0])}: dataset.yaml's id ranges do not describe "
                 "the folder; choose a new --out"
             )
-        problem = sample_problem(out, sid, meta)
-        if problem:
-            damaged[sid] = problem
-        else:
-            done.add(sid)
+        finished[sid] = meta
+    with ThreadPoolExecutor(VERIFY_THREADS) as pool:  # reads and hashes: hashlib and reads free the GIL
+        checked = pool.map(lambda sid: sample_problem(out, sid, finished[sid]), finished)
+        problems = dict(zip(finished, checked, strict=True))
+    damaged.update({sid: problem for sid, problem in problems.items() if problem})
+    done = {sid for sid, problem in problems.items() if not problem}
     same: dict[str, tuple[HeldFrame, ...]] = {}
     for sid, key in own.items():
         if sid in done or sid in damaged or key not in by_stamps:
@@ -156,6 +164,6 @@ def resume_state(out: Path, sids: list[str], stamps_ns: list[tuple[int, int]]) -
                     f"SensorBox without frames_sha256, and this run's sample {sid} has its stamps; cannot "
                     "tell whether it is the same frame: choose a new --out"
                 )
-            held.append(HeldFrame(other, meta.frames_sha256, not sample_problem(out, other, meta)))
+            held.append(HeldFrame(other, meta.frames_sha256, sample_problem(out, other, meta)))
         same[sid] = tuple(held)
-    return Resume(frozenset(done), damaged, same)
+    return Resume(frozenset(done), dict(sorted(damaged.items())), same)

@@ -513,6 +513,8 @@ def _run(
         sids = [sample_id(first_id + k) for k in range(len(the_plan.upper_ns))]
         resume = resume_state(cfg.out, sids, planned_stamps(the_plan))
         summary.damaged = list(resume.damaged.values())
+        # damaged samples of other ids whose frame this run has: the worker writes it again under their id
+        damaged_held = {h.sid: h.problem for held in resume.same_stamps.values() for h in held if h.problem}
 
         def jobs() -> Iterator[StreamedJob]:
             """The jobs to run; resumed and skipped samples are counted here, in stream order."""
@@ -543,6 +545,8 @@ def _run(
                 for topic, log_ns, why in result.undecodable:  # decoded in the worker, counted here
                     bad.add(topic, log_ns, why)
                 summary.add(result)
+                if result.written and result.sid in damaged_held:
+                    summary.damaged.append(damaged_held[result.sid])
                 tick()
         finally:
             results.close()

@@ -205,3 +205,18 @@ def test_a_sample_id_holding_another_frame_is_never_overwritten(tmp_path: Path) 
     ):
         ingest([INDOOR], _cfg(out, every=5))
     assert json.loads(meta.read_text()) == doc
+
+
+def test_a_damaged_frame_found_under_another_name_is_written_again_under_its_id(tmp_path: Path) -> None:
+    """The frame is the folder's sample 000003, whose image was cut: the run under another name writes it
+    again there, not a second copy under a new id."""
+    out = tmp_path / "ds"
+    ingest([INDOOR], _cfg(out, every=5))
+    cut = out / "right_fisheye" / "000003.png"
+    whole = cut.read_bytes()
+    cut.write_bytes(whole[:10])
+    again = ingest([INDOOR / f"{INDOOR.name}.mcap"], _cfg(out, every=5))
+    assert (again.written, again.held_elsewhere) == (1, 4)
+    assert again.damaged == [f"{cut}: 10 bytes, {len(whole)} were written"]
+    assert sorted(p.stem for p in (out / "meta").glob("*.json")) == [f"00000{k}" for k in range(5)]
+    assert cut.read_bytes() == whole
