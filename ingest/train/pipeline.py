@@ -192,9 +192,7 @@ class IngestSummary:
     imu_gaps_ms: list[float] = field(default_factory=list)  # IMU intervals over 5 periods (plan.imu_gaps)
     warnings: list[str] = field(default_factory=list)  # about the inputs, one line each (the rig's layout)
     stale_temporaries: int = 0  # left in the output by a killed run, removed (`ingest.dataset.lock`)
-    held_elsewhere: int = (
-        0  # of `resumed`: frames another sample of the folder holds (`ingest.dataset.identity`)
-    )
+    held_elsewhere: int = 0  # of `resumed`: frames that samples of other ids hold (`ingest.dataset.identity`)
     damaged: list[str] = field(default_factory=list)  # finished samples found damaged, written again: why
 
     @property
@@ -515,10 +513,10 @@ def _run(
         summary.damaged = list(resume.damaged.values())
         # damaged samples of other ids whose frame this run has: the worker writes it again under their id
         damaged_held = {h.sid: h.problem for held in resume.same_stamps.values() for h in held if h.problem}
+        settings = sample_settings(asked, geometry, [Path(p) for p in bag_paths])  # into every sample's meta
 
         def jobs() -> Iterator[StreamedJob]:
             """The jobs to run; resumed and skipped samples are counted here, in stream order."""
-            settings = sample_settings(asked, geometry, [Path(p) for p in bag_paths])
             for item in stream_jobs(bags, topics, the_plan, cfg, first_id, bad, planes, resume, settings):
                 if not isinstance(item, tuple):
                     yield item
