@@ -74,6 +74,7 @@ def test_bags_ingested_apart_then_together_or_overlapping_hold_each_frame_once(t
     after_a = set(_stamps(out))
     second = ingest([b], _cfg(out))
     assert second.held_elsewhere > 0  # the overlap, written by A's run
+    assert len(_stamps(out)) == len(set(_stamps(out)))  # (it wrote the overlap's frames twice)
     both = ingest([a, b], _cfg(out))
     assert both.written + both.resumed + sum(both.skipped.values()) == both.planned
     stamps = _stamps(out)
