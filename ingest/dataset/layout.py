@@ -14,15 +14,18 @@ OUT/
 ```
 
 Every file is written to a temporary name in its folder and renamed into
-place; `meta/<id>.json` is written last, so its presence marks a finished
-sample and a rerun skips it. Values that do not fit uint16 are dropped (0)
-and counted, never wrapped.
+place; `meta/<id>.json` is written last, with the size and SHA-256 of every
+other file of the sample: a rerun skips a sample whose metadata is there
+and whose files are whole (`ingest.dataset.identity`), and writes a damaged
+one again. Values that do not fit uint16 are dropped (0) and counted, never
+wrapped.
 """
 
 from __future__ import annotations
 
 import contextlib
 import errno
+import hashlib
 import os
 import tempfile
 from collections.abc import Sequence
@@ -34,7 +37,7 @@ import numpy as np
 import OpenEXR
 
 from calibration.types import F32, U8
-from ingest.dataset.meta import SampleMeta
+from ingest.dataset.meta import FileMeta, SampleMeta
 from ingest.dataset.png import encode_png, read_image
 from ingest.dataset.sparse import SparseImage
 from ingest.errors import DatasetError, OutputError
@@ -160,24 +163,29 @@ def prepare_dirs(out: Path, exr: bool) -> None:
         raise OutputError(f"cannot create the dataset folders in {out}: {err.strerror or err}") from err
 
 
-def is_done(out: Path, sid: str) -> bool:
-    """A sample is finished when its metadata exists (written last)."""
-    return (out / "meta" / f"{sid}.json").exists()
-
-
 def write_sample(out: Path, sid: str, files: SampleFiles, exr: bool, png_level: int = 1) -> dict[str, int]:
-    """Write one sample's files atomically, metadata last; returns the uint16 overflow drops."""
+    """Write one sample's files atomically, metadata last; returns the uint16 overflow drops.
+
+    The metadata records every other file's size and SHA-256 (`SampleMeta.files`), by its path in the
+    dataset, so that a rerun can tell a finished sample from a damaged one (`ingest.dataset.identity`).
+    """
     disp_u16, disp_drop = to_uint16(files.disp_px, DISP_SCALE)
     depth_u16, depth_drop = to_uint16(files.range_m, DEPTH_SCALE)
+    records: dict[str, FileMeta] = {}
+
+    def put(name: str, data: bytes) -> None:
+        write_atomic(out / name, data)
+        records[name] = FileMeta(len(data), hashlib.sha256(data).hexdigest())
+
     for name in IMAGE_DIRS:
-        write_atomic(out / name / f"{sid}.png", encode_png(getattr(files, name), png_level))
-    write_atomic(out / "disp_equirect" / f"{sid}.png", encode_png(disp_u16, png_level))
-    write_atomic(out / "depth_fisheye" / f"{sid}.png", encode_png(depth_u16, png_level))
+        put(f"{name}/{sid}.png", encode_png(getattr(files, name), png_level))
+    put(f"disp_equirect/{sid}.png", encode_png(disp_u16, png_level))
+    put(f"depth_fisheye/{sid}.png", encode_png(depth_u16, png_level))
     if exr:
-        write_atomic(out / "disp_equirect_exr" / f"{sid}.exr", encode_exr(files.disp_px.dense()))
-        write_atomic(out / "depth_fisheye_exr" / f"{sid}.exr", encode_exr(files.range_m.dense()))
+        put(f"disp_equirect_exr/{sid}.exr", encode_exr(files.disp_px.dense()))
+        put(f"depth_fisheye_exr/{sid}.exr", encode_exr(files.range_m.dense()))
     drops = {"disp_over_uint16": disp_drop, "depth_over_uint16": depth_drop}
-    write_atomic(out / "meta" / f"{sid}.json", files.meta.written(sid, drops).to_json().encode())
+    write_atomic(out / "meta" / f"{sid}.json", files.meta.written(sid, drops, records).to_json().encode())
     return drops
 
 

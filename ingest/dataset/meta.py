@@ -66,6 +66,14 @@ class GtMeta:
 
 
 @dataclass(frozen=True)
+class FileMeta:
+    """One file a sample wrote, as written: its size and SHA-256 (hex), for a rerun to check it is whole."""
+
+    bytes: int
+    sha256: str
+
+
+@dataclass(frozen=True)
 class SampleMeta:
     """One written sample; `id` and `dropped` (values too large for uint16, per image) come with the write."""
 
@@ -79,19 +87,25 @@ class SampleMeta:
     gt: GtMeta
     id: str = ""
     dropped: dict[str, int] = field(default_factory=dict)
+    frames_sha256: str = ""  # the frame's identity: `ingest.dataset.identity.frame_digest` of both images
+    files: dict[str, FileMeta] = field(default_factory=dict)  # path in the dataset -> as written
+    settings: dict[str, Any] = field(default_factory=dict)  # what made it: dataset.yaml's compared keys
     exposure_ns: int = 0  # the sample's time: the upper camera's mid-exposure on the LiDAR clock
     clock_offset_ms: float = 0.0  # exposure_ns - stamp_ns: the rig's timeshift_cam_imu for the upper camera
 
-    def written(self, sid: str, dropped: dict[str, int]) -> SampleMeta:
+    def written(
+        self, sid: str, dropped: dict[str, int], files: dict[str, FileMeta] | None = None
+    ) -> SampleMeta:
         """The metadata of the files as written: `dropped` (per image, values over uint16, left 0 in the
-        PNG) taken off the GT pixel counts and the density (a range over 65.535 m is no GT pixel)."""
+        PNG) taken off the GT pixel counts and the density (a range over 65.535 m is no GT pixel), and
+        `files` (each file's size and SHA-256)."""
         gt = self.gt
         depth_over, disp_over = dropped.get("depth_over_uint16", 0), dropped.get("disp_over_uint16", 0)
         if depth_over or disp_over:
             depth = gt.depth_pixels - depth_over
             density = gt.density * depth / gt.depth_pixels if gt.depth_pixels else gt.density
             gt = replace(gt, depth_pixels=depth, disp_pixels=gt.disp_pixels - disp_over, density=density)
-        return replace(self, id=sid, dropped=dict(dropped), gt=gt)
+        return replace(self, id=sid, dropped=dict(dropped), gt=gt, files=dict(files or {}))
 
     def to_json(self) -> str:
         return json.dumps(asdict(self), indent=1, sort_keys=True) + "\n"
@@ -104,6 +118,10 @@ class SampleMeta:
             lidar_skew_ms={str(k): float(v) for k, v in d["lidar_skew_ms"].items()},
             motion=MotionMeta(**d["motion"]), points=PointMeta(**d["points"]), gt=GtMeta(**d["gt"]),
             id=str(d.get("id", "")), dropped={str(k): int(v) for k, v in d.get("dropped", {}).items()},
+            frames_sha256=str(d.get("frames_sha256", "")),
+            files={str(k): FileMeta(int(f["bytes"]), str(f["sha256"])) for k, f in
+                   d.get("files", {}).items()},
+            settings=dict(d.get("settings", {})),
             exposure_ns=int(d.get("exposure_ns", d["stamp_ns"])),
             clock_offset_ms=float(d.get("clock_offset_ms", 0.0)),
         )  # fmt: skip
@@ -116,5 +134,5 @@ def read_meta(out: Path, sid: str) -> SampleMeta:
         return SampleMeta.from_dict(json.loads(path.read_text()))
     except OSError as err:
         raise DatasetError(f"{path}: cannot read: {err.strerror or err}") from err
-    except (ValueError, KeyError, TypeError) as err:
+    except (ValueError, KeyError, TypeError, AttributeError) as err:
         raise DatasetError(f"{path}: not SensorBox sample metadata ({type(err).__name__}: {err})") from err

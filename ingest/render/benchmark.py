@@ -40,11 +40,16 @@ images to every folder.
 Work is one task per rendered camera; tasks run in a local process pool
 (forked, so the scans' level-of-detail index is shared, not copied). A scene
 whose scene.yaml exists is skipped on a rerun when it was rendered with the
-same cameras, baselines and render settings; otherwise the run is refused.
+same cameras, baselines and render settings, from the same scans at the same
+poses and view; otherwise the run is refused, naming what differs. scene.yaml
+lists every file of its scene with its size and SHA-256: a finished scene
+with a file deleted, cut short or overwritten is rendered again, as ingest
+writes a damaged sample again.
 """
 
 from __future__ import annotations
 
+import hashlib
 import math
 import multiprocessing
 import time
@@ -67,9 +72,10 @@ from calibration.virtual import (
     partner_pose,
 )
 from ingest.dataset.compare import first_difference
+from ingest.dataset.identity import file_problem
 from ingest.dataset.layout import DEPTH_SCALE, DISP_SCALE, encode_exr, to_uint16, write_atomic
 from ingest.dataset.lock import hold_folder
-from ingest.dataset.png import encode_png
+from ingest.dataset.png import encode_png, read_image
 from ingest.dataset.sparse import SparseImage
 from ingest.errors import BenchmarkError
 from ingest.raster.lod import ScanIndex, build_index
@@ -124,6 +130,7 @@ class BenchmarkSummary:
     empty: dict[str, list[str]] = field(default_factory=dict)  # scene -> renders showing (almost) nothing
     warnings: list[str] = field(default_factory=list)  # one line per scene with empty renders
     stale_temporaries: int = 0  # left by a killed run, removed (`ingest.dataset.lock`)
+    damaged: list[str] = field(default_factory=list)  # finished scenes found damaged, rendered again: why
 
 
 @dataclass
@@ -142,7 +149,8 @@ class _Writer:
     """Writes one task's files into every folder they belong to (encode once, write many)."""
 
     def __init__(self, state: RenderState, task: Task) -> None:
-        self.state, self.task, self.files, self.dropped = state, task, 0, 0
+        self.state, self.task, self.dropped = state, task, 0
+        self.files: dict[str, dict[str, Any]] = {}  # path in the scene -> its bytes and SHA-256
         cfg, t = state.cfg, task
         fovs = [f for f in cfg.pinhole_fovs if f in cfg.fovs_deg] if t.fov_deg is None else [t.fov_deg]
         bases = cfg.baselines_mm if t.baseline_mm is None else (t.baseline_mm,)
@@ -183,7 +191,8 @@ class _Writer:
     def _write(self, path: Path, data: bytes) -> None:
         path.parent.mkdir(parents=True, exist_ok=True)
         write_atomic(path, data)
-        self.files += 1
+        name = path.relative_to(self.state.out / self.task.scene).as_posix()
+        self.files[name] = {"bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()}
 
 
 def _pad_full(crop: Equirectangular, img: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
@@ -221,8 +230,9 @@ def _pinhole_disparity(z_m: F32, focal_px: float) -> Callable[[float], F32]:
     return lambda b_mm: pinhole_depth_to_disparity(z_m, focal_px, b_mm / 1000.0).astype(np.float32)
 
 
-def run_task(s: RenderState, task: Task) -> tuple[Task, dict[str, int], int]:
-    """Render one camera and write its files; returns (task, render counts, files written)."""
+def run_task(s: RenderState, task: Task) -> tuple[Task, dict[str, int], dict[str, dict[str, Any]]]:
+    """Render one camera and write its files; returns (task, render counts, the files written: path in
+    the scene -> bytes and SHA-256)."""
     view = s.views[task.scene]
     T = view.T_world_center if task.baseline_mm is None else \
         partner_pose(view.T_world_center, task.camera, task.baseline_mm / 1000.0)  # fmt: skip
@@ -328,43 +338,66 @@ def _setup_doc(
     return out
 
 
-def _same_setup(path: Path, setup: dict[str, Any]) -> None:
-    """A BenchmarkError naming the first difference when the finished scene `path` was rendered otherwise."""
+def _read_scene(path: Path) -> dict[str, Any]:
+    """A finished scene's scene.yaml ({} when it holds no mapping); BenchmarkError when it cannot be read."""
     try:
         doc = yaml.safe_load(path.read_text())
     except yaml.YAMLError as err:
         raise BenchmarkError(f"finished scene {yaml_error_line(path, err)}") from err
     except (OSError, ValueError) as err:
         raise BenchmarkError(f"{path}: cannot read the finished scene's description: {err}") from err
-    stored = {key: doc.get(key) for key in setup} if isinstance(doc, dict) else {}
-    found = first_difference(stored, setup)
+    return doc if isinstance(doc, dict) else {}
+
+
+def _same_setup(path: Path, doc: dict[str, Any], setup: dict[str, Any], source: dict[str, Any]) -> None:
+    """A BenchmarkError naming the first difference when the finished scene `path` (its scene.yaml `doc`)
+    was rendered otherwise: other cameras, baselines or render settings (`setup`), or from other scans, scan
+    poses or another view (`source`)."""
+    found = first_difference({key: doc.get(key) for key in setup}, setup)
     if found:
         raise BenchmarkError(
             f"{path}: this scene was rendered with other settings{found}; choose a new --out or delete "
             f"{path.parent}"
         )
+    found = _source_difference(doc, source)
+    if found:
+        raise BenchmarkError(
+            f"{path.parent}: this scene was rendered from other scans or another view{found}; choose a new "
+            f"--out or delete {path.parent}"
+        )
 
 
-def _scene_doc(
-    state: RenderState, view: View, scans: list[Scan], stats: dict[str, dict[str, int]]
-) -> dict[str, Any]:
-    cfg = state.cfg
-    cams = _cameras_doc(cfg, state.fovs, state.pinhole)
-    T = view.T_world_center
-    partners = {
-        cam: {baseline_label(b): partner_pose(np.eye(4), cam, b / 1000.0).tolist() for b in cfg.baselines_mm}
-        for cam in ("DOWN", "RIGHT")
-    }
-    return {
-        "sensorbox_benchmark": BENCHMARK_VERSION,
-        "scene": view.scene,
+def _scene_problem(folder: Path, doc: dict[str, Any]) -> str:
+    """Why finished scene `folder` is not whole, naming the file ('' when it is): every file its
+    scene.yaml lists with the bytes and SHA-256 written; a scene.yaml listing none (an older SensorBox):
+    every PNG in the folder decodes."""
+    files = doc.get("files")
+    if not isinstance(files, dict):
+        for path in sorted(folder.rglob("*.png")):
+            if read_image(path) is None:
+                return f"{path}: cannot be decoded ({path.stat().st_size} bytes)"
+        return ""
+    for name, written in files.items():
+        try:
+            problem = file_problem(folder / name, int(written["bytes"]), str(written["sha256"]))
+        except (TypeError, KeyError, ValueError):
+            problem = f"{folder / 'scene.yaml'}: files.{name}: expected bytes and sha256"
+        if problem:
+            return problem
+    return ""
+
+
+def _source_doc(view: View, scans: list[Scan], cfg: BenchmarkConfig) -> dict[str, Any]:
+    """scene.yaml's `view` and `scans`: what a scene was rendered from (as scene.yaml holds them, so that
+    a read-back file compares equal)."""
+    doc = {
         "view": {
             "center_scan": scans[view.center].name,
             "bundle": [scans[i].name for i in view.bundle],
             "yaw_deg": view.yaw_deg,
             "pitch_deg": cfg.pitch_deg,
             "height_m": view.height_m,
-            "T_world_center": np.round(T, 12).tolist(),
+            "T_world_center": np.round(view.T_world_center, 12).tolist(),
         },
         "scans": [
             {
@@ -376,6 +409,56 @@ def _scene_doc(
             }
             for i in view.bundle
         ],
+    }
+    out: dict[str, Any] = yaml.safe_load(yaml.safe_dump(doc, sort_keys=False))
+    return out
+
+
+def _pose_change(old: Any, new: Any) -> str:
+    """How far pose `new` (4x4) lies from `old`: 'moved by X m and turned by Y deg'."""
+    a, b = np.asarray(old, np.float64), np.asarray(new, np.float64)
+    if a.shape != (4, 4) or b.shape != (4, 4):
+        return f"{old} -> {new}"
+    cos = (np.trace(a[:3, :3].T @ b[:3, :3]) - 1.0) / 2.0
+    turn = math.degrees(math.acos(min(1.0, max(-1.0, cos))))
+    return f"moved by {np.linalg.norm(b[:3, 3] - a[:3, 3]):.6g} m and turned by {turn:.6g} deg"
+
+
+def _source_difference(old: dict[str, Any], new: dict[str, Any]) -> str:
+    """' (what: old -> new)' for the first difference between two `_source_doc`s ('' when equal)."""
+    old_scans, new_scans = old.get("scans"), new["scans"]
+    if isinstance(old_scans, list) and len(old_scans) == len(new_scans):
+        for was, now in zip(old_scans, new_scans, strict=True):
+            if not isinstance(was, dict):
+                break
+            name = now["name"]
+            for key, value in now.items():
+                if was.get(key) == value:
+                    continue
+                if key == "T_world_scan":
+                    return f" (scan {name}: T_world_scan {_pose_change(was.get(key), value)})"
+                return f" (scan {name}: {key}: {was.get(key, 'absent')} -> {value})"
+    found = first_difference({"scans": old_scans, "view": old.get("view")}, new)
+    if found.startswith(" (view.T_world_center:"):
+        was, now = old["view"]["T_world_center"], new["view"]["T_world_center"]
+        return f" (view.T_world_center {_pose_change(was, now)})"
+    return found
+
+
+def _scene_doc(
+    state: RenderState, view: View, scans: list[Scan], stats: dict[str, dict[str, int]],
+    files: dict[str, dict[str, Any]],
+) -> dict[str, Any]:  # fmt: skip
+    cfg = state.cfg
+    cams = _cameras_doc(cfg, state.fovs, state.pinhole)
+    partners = {
+        cam: {baseline_label(b): partner_pose(np.eye(4), cam, b / 1000.0).tolist() for b in cfg.baselines_mm}
+        for cam in ("DOWN", "RIGHT")
+    }
+    return {
+        "sensorbox_benchmark": BENCHMARK_VERSION,
+        "scene": view.scene,
+        **_source_doc(view, scans, cfg),
         "T_center_partner": partners,
         "conventions": {
             "camera_frame": "x right, y down, z forward; metres",
@@ -397,6 +480,7 @@ def _scene_doc(
         "baselines_mm": list(cfg.baselines_mm),
         "render": asdict(cfg.render),
         "stats": stats,
+        "files": dict(sorted(files.items())),  # every file of the scene: bytes, SHA-256 (a rerun checks them)
     }
 
 
@@ -427,10 +511,19 @@ def run_benchmark(
     summary = BenchmarkSummary(out)
     views = plan_views(scans, cfg)
     ph = pinhole_camera(cfg)
-    done_before = {v.scene for v in views if (out / v.scene / "scene.yaml").exists()}
     setup = _setup_doc(cfg, fovs, ph)
-    for scene in sorted(done_before):  # a finished scene is skipped only when it was rendered as asked now
-        _same_setup(out / scene / "scene.yaml", setup)
+    done_before: set[str] = set()
+    for view in views:  # a finished scene is skipped only when it was rendered as asked now, and is whole
+        path = out / view.scene / "scene.yaml"
+        if not path.exists():
+            continue
+        doc = _read_scene(path)
+        _same_setup(path, doc, setup, _source_doc(view, scans, cfg))
+        problem = _scene_problem(path.parent, doc)
+        if problem:
+            summary.damaged.append(problem)
+        else:
+            done_before.add(view.scene)
     todo = [v for v in views if v.scene not in done_before]
     summary.skipped = [v.scene for v in views if v.scene in done_before]
     used = sorted({i for v in todo for i in v.bundle})
@@ -472,19 +565,21 @@ def _render_tasks(
     """
     out = state.out
     stats: dict[str, dict[str, dict[str, int]]] = {scene: {} for scene in state.views}
+    written: dict[str, dict[str, dict[str, Any]]] = {scene: {} for scene in state.views}
     remaining = {scene: sum(t.scene == scene for t in tasks) for scene in state.views}
     done = 0
 
-    def finished(task: Task, st: dict[str, int], files: int) -> None:
+    def finished(task: Task, st: dict[str, int], files: dict[str, dict[str, Any]]) -> None:
         nonlocal done
         done += 1
         summary.renders += 1
-        summary.files += files
+        summary.files += len(files)
         stats[task.scene][task_key(task)] = st
+        written[task.scene].update(files)
         remaining[task.scene] -= 1
         if remaining[task.scene] == 0:  # scene.yaml last: it marks the scene finished
             view = state.views[task.scene]
-            doc = _scene_doc(state, view, scans, dict(sorted(stats[task.scene].items())))
+            doc = _scene_doc(state, view, scans, dict(sorted(stats[task.scene].items())), written[task.scene])
             empty = empty_renders(stats[task.scene])
             if empty:
                 summary.empty[task.scene] = empty

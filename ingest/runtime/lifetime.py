@@ -10,7 +10,10 @@ the fork and this call). Elsewhere nothing is set.
 `sigint_blocked` starts spawned children with SIGINT blocked, for children
 that their parent stops through a pipe: Ctrl-C reaches the whole process
 group, and a child still importing (a second or more) would otherwise die
-there with a KeyboardInterrupt traceback on the terminal.
+there with a KeyboardInterrupt traceback on the terminal. Such a child whose
+parent was killed (SIGKILL) finds out when its next report meets the closed
+pipe (`BrokenPipeError`): it stops and says so in one line, `orphaned`,
+instead of a traceback.
 """
 
 from __future__ import annotations
@@ -81,3 +84,12 @@ def die_with_parent(parent_pid: int) -> bool:
     if os.getppid() != parent_pid:  # the parent died before the request took effect
         os._exit(1)
     return bool(ok)
+
+
+def orphaned(what: str) -> None:
+    """Say on stderr, in one line, that `what` (a spawned child) stopped because its parent is gone."""
+    try:
+        sys.stderr.write(f"{what}: stopped; the process that started it is gone (killed)\n")
+        sys.stderr.flush()
+    except (OSError, ValueError):  # a closed stderr: nothing left to tell
+        pass

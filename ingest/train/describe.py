@@ -14,6 +14,7 @@ sensor can produce, dropped per topic and reason (`dropped_implausible`,
 from __future__ import annotations
 
 import hashlib
+import json
 import shutil
 import tempfile
 from dataclasses import asdict
@@ -26,6 +27,7 @@ import yaml
 from calibration.opencv_yaml import yaml_error_line
 from ingest.dataset.compare import first_difference
 from ingest.dataset.layout import DEPTH_SCALE, DISP_SCALE, write_atomic
+from ingest.dataset.meta import read_meta
 from ingest.errors import DatasetError, OutputError
 from ingest.train.sample import Geometry
 
@@ -93,6 +95,46 @@ def _clock_offsets(rig: Any) -> dict[str, Any]:
     }
 
 
+SETTINGS = ("R_cam0_rect", "height_full", "baseline_m", "params", "fisheye_size")
+"""The keys of dataset.yaml a dataset is extended or resumed with only when equal; every sample's meta
+records them too (`settings`), so that a folder whose dataset.yaml is lost still knows what made it."""
+
+
+def sample_settings(asked: IngestConfig, geometry: Geometry, bags: list[Path]) -> dict[str, Any]:
+    """`SETTINGS` of the configuration as asked, as JSON gives them back (for each sample's meta)."""
+    doc = _fingerprint(asked, geometry, bags)
+    settings: dict[str, Any] = json.loads(json.dumps({key: doc[key] for key in SETTINGS}))
+    return settings
+
+
+def _check_samples(asked: IngestConfig, geometry: Geometry, bags: list[Path]) -> None:
+    """DatasetError when a sample of `asked.out` was made with other settings than `asked` (its meta's
+    `settings`; metadata without them, from an older SensorBox, by its sparse GT window alone).
+
+    For a folder whose dataset.yaml is missing: a run must not describe samples it did not make.
+    """
+    want = sample_settings(asked, geometry, bags)
+    window_ms = asked.lidar_window_ns / 1e6
+    for path in sorted((asked.out / "meta").glob("*.json")):
+        try:
+            meta = read_meta(asked.out, path.stem)
+        except DatasetError:
+            continue  # damaged: the resume writes it again, or another recording's run does
+        if meta.settings:
+            differs = [(k, first_difference(meta.settings.get(k), want[k])) for k in SETTINGS]
+        else:
+            differs = [("gt", f" (window_ms: {meta.gt.window_ms:g} -> {window_ms:g})")]
+            if meta.gt.method != "sparse" or meta.gt.window_ms == window_ms:
+                continue
+        key, where = next(((k, w) for k, w in differs if w), ("", ""))
+        if not where:
+            continue
+        raise DatasetError(
+            f"{path}: the folder's samples were made with a different {key!r}{where} and "
+            f"{asked.out / 'dataset.yaml'} is missing; choose a new --out or the settings they were made with"
+        )
+
+
 def check_existing(asked: IngestConfig, geometry: Geometry, bags: list[Path]) -> dict[str, Any]:
     """The existing dataset.yaml of `asked.out` ({} when none), or DatasetError naming what differs.
 
@@ -102,13 +144,19 @@ def check_existing(asked: IngestConfig, geometry: Geometry, bags: list[Path]) ->
     it writes dataset.yaml. A dataset without a sample (a run that stopped
     before its first, say on images of another size than the rig's) has
     nothing to differ from: it is started afresh, as if `asked.out` were empty.
+    Samples without a dataset.yaml (deleted) are checked against their
+    metadata's settings instead: a new dataset.yaml describes them only when
+    they were made as this run asks.
     """
     path = asked.out / "dataset.yaml"
-    if not path.exists() or not any((asked.out / "meta").glob("*.json")):
+    if not any((asked.out / "meta").glob("*.json")):
+        return {}
+    if not path.exists():
+        _check_samples(asked, geometry, bags)
         return {}
     doc = _fingerprint(asked, geometry, bags)
     old = _read_dataset_yaml(path)
-    for key in ("R_cam0_rect", "height_full", "baseline_m", "params", "fisheye_size"):
+    for key in SETTINGS:
         if old.get(key) != doc[key]:
             where = first_difference(old.get(key), doc[key])
             raise DatasetError(
@@ -163,8 +211,11 @@ def write_dataset_yaml(
             f"+-{gt_then['window_ms']:g} ms, now {run.method} GT over +-{gt_now['window_ms']:g} ms "
             f"({run.decision}); choose a new --out or delete it"
         )
-    if mine is None:
-        first = max((int(s["first_id"]) + int(s["samples"]) for s in sources), default=0)
+    if mine is None:  # after every id in use: dataset.yaml's ranges, and the samples (it may be missing)
+        held = [int(m.stem) for m in (cfg.out / "meta").glob("*.json") if m.stem.isdigit()]
+        first = max(
+            [*(int(s["first_id"]) + int(s["samples"]) for s in sources), *(i + 1 for i in held)], default=0
+        )
         mine = {"bags": names, "first_id": first, "samples": run.planned}
         sources.append(mine)
     mine["identity"] = identity

@@ -15,7 +15,11 @@ Recipe:
    `ingest.train.sample.process_sample` (clouds -> GT -> images -> files); a
    local process pool by default, or a Dask cluster. The rig's geometry and
    the trajectory go to each worker once, not with every job.
-Finished samples (their meta/<id>.json exists) are skipped on a rerun.
+Finished samples (their meta/<id>.json exists, every file they wrote is
+whole) are skipped on a rerun, damaged ones written again, and a frame that
+another sample of the folder holds (the same stamps and images: a recording
+given again under another name, or in overlapping bags) is not written twice
+(`ingest.dataset.identity`).
 
 Why two passes over the bags, not one: the plan needs the whole recording
 before the first sample can be decided exactly as it is now (the stereo
@@ -52,8 +56,10 @@ from typing import Any
 from calibration.rectify import stereo_warnings
 from calibration.rig import Rig, read_rig
 from ingest.bags.reader import BagSet, Progress, given_once, open_bags
+from ingest.dataset.identity import resume_state
 from ingest.dataset.layout import (
     prepare_dirs,
+    sample_id,
 )
 from ingest.dataset.lock import hold_folder
 from ingest.errors import BagError, DatasetError, OdometryError, OutputError
@@ -65,18 +71,20 @@ from ingest.topic_map import check_rig
 from ingest.train.bad_messages import BadMessages
 from ingest.train.block_planes import BlockPlanes, PlaneSettings
 from ingest.train.dense import DenseParams, free_space_settings
-from ingest.train.describe import check_existing, record_undecodable, write_dataset_yaml
+from ingest.train.describe import check_existing, record_undecodable, sample_settings, write_dataset_yaml
 from ingest.train.lidar_rate import THIN_FRACTION
 from ingest.train.plan import LOST_REASON, Plan, plan, survey
 from ingest.train.plausible import check_imu_rate, check_time_order
 from ingest.train.rig_trajectory import RigTrajectory
 from ingest.train.sample import GAP_FALLBACK, Geometry, SampleParams, SampleResult
 from ingest.train.stream import (
+    ALREADY_HELD,
     UNDECODABLE_IMAGE,
     Shared,
     StreamedJob,
     give_arrays,
     handoff_bytes_bound,
+    planned_stamps,
     run_streamed,
     stream_jobs,
     take_arrays,
@@ -211,12 +219,19 @@ class IngestSummary:
             + (f"; {over:,} GT pixels {OVER_UINT16}" if over else "")
         )
 
+    held_elsewhere: int = 0  # of `resumed`: frames that samples of other ids hold (`ingest.dataset.identity`)
+    damaged: list[str] = field(default_factory=list)  # finished samples found damaged, written again: why
+
     @property
     def density(self) -> list[float]:
         """GT density (fisheye) of every written sample, grouped by GT method."""
         return [d for by_method in self.density_by_method.values() for d in by_method]
 
     def add(self, result: SampleResult) -> None:
+        if result.reason == ALREADY_HELD:
+            self.resumed += 1
+            self.held_elsewhere += 1
+            return
         if not result.written:
             self.skipped[result.reason] = self.skipped.get(result.reason, 0) + 1
             return
@@ -552,10 +567,16 @@ def _run(
                 progress(done, summary.planned)
 
         planes = _block_planes(rig, topics, the_plan, cfg, traj, executor.every_core_busy)
+        sids = [sample_id(first_id + k) for k in range(len(the_plan.upper_ns))]
+        resume = resume_state(cfg.out, sids, planned_stamps(the_plan))
+        summary.damaged = list(resume.damaged.values())
+        # damaged samples of other ids whose frame this run has: the worker writes it again under their id
+        damaged_held = {h.sid: h.problem for held in resume.same_stamps.values() for h in held if h.problem}
+        settings = sample_settings(asked, geometry, [Path(p) for p in bag_paths])  # into every sample's meta
 
         def jobs() -> Iterator[StreamedJob]:
             """The jobs to run; resumed and skipped samples are counted here, in stream order."""
-            for item in stream_jobs(bags, topics, the_plan, cfg, first_id, bad, planes):
+            for item in stream_jobs(bags, topics, the_plan, cfg, first_id, bad, planes, resume, settings):
                 if not isinstance(item, tuple):
                     yield item
                     continue
@@ -581,6 +602,8 @@ def _run(
                 for topic, log_ns, why in result.undecodable:  # decoded in the worker, counted here
                     bad.add(topic, log_ns, why)
                 summary.add(result)
+                if result.written and result.sid in damaged_held:
+                    summary.damaged.append(damaged_held[result.sid])
                 tick()
         finally:
             results.close()

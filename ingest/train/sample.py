@@ -19,6 +19,7 @@ from calibration.rig import Rig
 from calibration.spherical import Equirectangular
 from calibration.types import F64, I64, U64
 from calibration.warp import build_maps, check_height_full, check_source, default_height_full, remap_spans
+from ingest.dataset.identity import frame_digest
 from ingest.dataset.layout import SampleFiles, write_sample
 from ingest.dataset.meta import GtMeta, MotionMeta, PointMeta, SampleMeta
 from ingest.dataset.sparse import SparseImage
@@ -172,6 +173,7 @@ class SampleJob:
     trajectory: RigTrajectory | None = None  # the recording's (dense GT)
     thin_lidars: tuple[str, ...] = ()  # LiDARs with far fewer points than their rate (lidar_rate)
     thin_lidars_sparse: tuple[str, ...] = ()  # the same over sparse GT's window (`sparse_window`)
+    settings: dict[str, Any] = field(default_factory=dict)  # the dataset's settings, for the meta
     upper_shift_ns: int = 0  # the rig's camera clock offsets: stamp + shift = exposure on the LiDAR clock
     lower_shift_ns: int = 0
 
@@ -397,7 +399,12 @@ def _finish(
     up, down = images.result()
     t3 = time.perf_counter()
     ms["images"] = start_ms + (t3 - t2) * 1e3
-    meta = replace(meta, points=replace(meta.points, thin_lidars=list(job.thin_lidars)))
+    meta = replace(
+        meta,
+        points=replace(meta.points, thin_lidars=list(job.thin_lidars)),
+        frames_sha256=frame_digest(job.upper_bgr, job.lower_bgr),
+        settings=job.settings,
+    )
     files = SampleFiles(job.upper_bgr, job.lower_bgr, up, down, gt[1], gt[0], meta)
     drops = write_sample(job.out, job.sid, files, job.params.exr, job.params.png_level)
     ms["write"] = (time.perf_counter() - t3) * 1e3

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -35,7 +35,8 @@ from calibration.types import I64
 from ingest.bags.decode import Frame, ImuSample, Sweep, grey_as_bgr
 from ingest.bags.message import RawMessage
 from ingest.bags.reader import BagSet
-from ingest.dataset.layout import is_done, sample_id
+from ingest.dataset.identity import HeldFrame, Resume, frame_digest, resume_state
+from ingest.dataset.layout import sample_id
 from ingest.errors import BagError, MessageDecodeError
 from ingest.rows import rows
 from ingest.runtime.transport import ALIGN
@@ -60,6 +61,8 @@ if TYPE_CHECKING:
 
 UNDECODABLE_IMAGE = "undecodable image (--max-bad)"
 """Why a sample was skipped when one of its camera images could not be decoded."""
+ALREADY_HELD = "frame already in the dataset (another id)"
+"""Why a sample was not written: another sample of the folder holds its frame (`ingest.dataset.identity`)."""
 
 Array = np.ndarray[Any, Any]
 
@@ -91,13 +94,16 @@ class StreamedJob:
     thin_lidars_sparse: tuple[str, ...] = ()  # over sparse GT's window, for a dense frame in a gap
     upper_shift_ns: int = 0  # the rig's camera clock offsets (`Plan.upper_shift_ns`)
     lower_shift_ns: int = 0
+    same_stamps: tuple[HeldFrame, ...] = ()  # samples of the folder with this frame's stamps (other ids)
+    settings: dict[str, Any] = field(default_factory=dict)  # the dataset's (`describe.sample_settings`)
 
     def sample_job(self, shared: Shared, upper_bgr: Array, lower_bgr: Array) -> SampleJob:
         """The `process_sample` job of this sample, with its decoded images."""
         return SampleJob(
             self.out, self.sid, self.source, self.upper_stamp_ns, self.lower_stamp_ns, upper_bgr, lower_bgr,
             self.lidars, self.imu, None, shared.geometry, self.params, shared.trajectory, self.thin_lidars,
-            self.thin_lidars_sparse, self.upper_shift_ns, self.lower_shift_ns,
+            self.thin_lidars_sparse, settings=self.settings, upper_shift_ns=self.upper_shift_ns,
+            lower_shift_ns=self.lower_shift_ns,
         )  # fmt: skip
 
 
@@ -209,13 +215,23 @@ def run_streamed(shared: Shared, job: StreamedJob) -> SampleResult:
     """Decode the sample's two camera messages, then `process_sample` (the executor's job function).
 
     A message that does not decode skips the sample (`UNDECODABLE_IMAGE`) and
-    is named in the result for the main process to count. The decoding time
-    is stage "decode".
+    is named in the result for the main process to count. A frame that a
+    sample of the folder with the same stamps holds already (the same
+    `frame_digest`) is not written again (`ALREADY_HELD`, that sample's id),
+    or, when that sample is damaged, written again under its id. The decoding
+    time is stage "decode".
     """
     t0 = time.perf_counter()
     images, errors = decode_images(job, shared)
     if errors:
         return SampleResult(job.sid, False, UNDECODABLE_IMAGE, None, {}, undecodable=tuple(errors))
+    if job.same_stamps:
+        digest = frame_digest(images[0], images[1])
+        held = next((h for h in job.same_stamps if h.frames_sha256 == digest), None)
+        if held is not None and held.intact:
+            return SampleResult(held.sid, False, ALREADY_HELD, None, {})
+        if held is not None:
+            job = replace(job, sid=held.sid)
     decode_ms = (time.perf_counter() - t0) * 1e3
     result = process_sample(job.sample_job(shared, images[0], images[1]))
     return replace(result, stage_ms={"decode": decode_ms, **result.stage_ms}) if result.written else result
@@ -309,15 +325,24 @@ def _forget_readings(imu_t: list[int], imu_g: list[Any], before_ns: int) -> None
         imu_g[:] = [imu_g[k] for k in keep]
 
 
+def planned_stamps(the_plan: Plan) -> list[tuple[int, int]]:
+    """The upper and lower header stamps (ns) of every planned sample, in plan order."""
+    return [(int(u), int(lo)) for u, lo in zip(the_plan.upper_ns, the_plan.lower_ns, strict=True)]
+
+
 def stream_jobs(
     bags: BagSet, topics: Topics, the_plan: Plan, cfg: IngestConfig, first_id: int = 0,
-    bad: BadMessages | None = None, planes: BlockPlanes | None = None,
+    bad: BadMessages | None = None, planes: BlockPlanes | None = None, resume: Resume | None = None,
+    settings: dict[str, Any] | None = None,
 ) -> Iterator[StreamedJob | tuple[str, str]]:  # fmt: skip
     """Second pass: a StreamedJob per planned sample, or (sid, why): "done" earlier, "missing image".
 
     With `planes` (dense GT) every job's points carry their world normals (and
     free-space bits), and a job waits until the blocks its window overlaps
-    are done.
+    are done. `resume` is what the output folder holds of the planned samples
+    (`resume_state` of it when not given): a whole one is "done", a damaged
+    one goes again, and a job carries the folder's samples with its stamps.
+    `settings` go into every sample's meta (`describe.sample_settings`).
     """
     where = bags.label
     bad = bad or BadMessages()
@@ -335,7 +360,9 @@ def stream_jobs(
     imu_max = -(1 << 62)
     next_k = 0
     sids = [sample_id(first_id + k) for k in range(len(the_plan.upper_ns))]
-    done = {sid for sid in sids if is_done(cfg.out, sid)}  # finished by an earlier run (one stat each)
+    if resume is None:
+        resume = resume_state(cfg.out, sids, planned_stamps(the_plan))
+    done = resume.done  # finished, whole, by an earlier run
     source = ",".join(p.name for p in bags.paths)
 
     exposure_ns = the_plan.upper_exposure_ns
@@ -367,7 +394,7 @@ def stream_jobs(
         return StreamedJob(
             cfg.out, sids[k], source, where, int(the_plan.upper_ns[k]), int(the_plan.lower_ns[k]), f["upper"],
             f["lower"], lidars, imu, cfg.sample, thin, thin_sparse, the_plan.upper_shift_ns,
-            the_plan.lower_shift_ns,
+            the_plan.lower_shift_ns, resume.same_stamps.get(sids[k], ()), dict(settings or {}),
         )  # fmt: skip
 
     wanted = [topics.upper, topics.lower, *topics.lidars, *([topics.imu] if topics.imu else [])]

@@ -22,8 +22,9 @@ from rich.table import Table
 from rich.text import Text
 
 from calibration.errors import SensorboxError
-from sensorbox.cli.common import LidarMsgOpt, console, err_console, human_bytes
+from sensorbox.cli.common import LidarMsgOpt, console, err_console, human_bytes, print_warning
 from sensorbox.live.bus import GraphResult, GraphSnapshot, Shutdown, stop_on_signals
+from sensorbox.live.livox_node import silent_lidars
 
 if TYPE_CHECKING:
     from sensorbox.live.launch import LaunchPlan
@@ -91,6 +92,8 @@ def _summary(result: GraphResult, title: str) -> None:
             sum(f.stat().st_size for f in Path(path).rglob("*") if f.is_file()) if Path(path).exists() else 0
         )
         console.print(f"Bag: {path} ({human_bytes(size)})", highlight=False)
+    for line in silent_lidars(snap.nodes, snap.elapsed_s):
+        print_warning(line)
     # node errors other than the run's own (that one is the `error:` line `_finish` ends with)
     errors = [
         f"{name}: {st.error}" for name, st in snap.nodes.items() if st.error and st.error != result.error

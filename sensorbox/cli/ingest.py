@@ -124,6 +124,16 @@ def summary_table(summary: IngestSummary, out: Path) -> Table:
         ),
         ("written / already done (resumed)", f"{summary.written} / {summary.resumed}"),
         *([("written without any GT pixel", str(summary.without_gt))] if summary.without_gt else []),
+        *(
+            [("already done: frames another sample holds (not written twice)", str(summary.held_elsewhere))]
+            if summary.held_elsewhere
+            else []
+        ),
+        *(
+            [("finished samples found damaged, written again", str(len(summary.damaged)))]
+            if summary.damaged
+            else []
+        ),
         ("ground truth", f"{summary.method} ({summary.decision})"),
         *((f"skipped: {reason}", str(n)) for reason, n in summary.skipped.items()),
         *((f"written, flagged in meta: {what}", str(n)) for what, n in summary.flagged.items()),
@@ -238,6 +248,8 @@ def ingest_cmd(
     console.print(summary_table(summary, out))
     for line in summary.warnings:
         print_warning(line)
+    for line in summary.damaged:
+        print_warning(f"damaged sample written again: {line}")
     metas = sorted((out / "meta").glob("*.json")) if preview else []
     if metas:
         from sensorbox.analysis.plots import plot_sample

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 from rich.table import Table
 
-from sensorbox.cli.common import check_out_folder, console, progress_bar
+from sensorbox.cli.common import check_out_folder, console, print_warning, progress_bar
 
 if TYPE_CHECKING:
     from ingest.render.benchmark import BenchmarkSummary
@@ -148,6 +148,8 @@ def render_benchmark_cmd(
         console.print(f"Renders showing (almost) nothing: {n} in {scenes} scenes (scene.yaml: warnings)")
     if summary.skipped:
         console.print(f"Already done (scene.yaml present, skipped): {', '.join(summary.skipped)}")
+    for line in summary.damaged:
+        print_warning(f"damaged scene rendered again: {line}")
     if summary.stale_temporaries:
         console.print(f"Removed {summary.stale_temporaries} unfinished temporary files of a killed run")
     console.print(f"Benchmark: {out} (each <scene>/scene.yaml lists cameras, poses and counts)")

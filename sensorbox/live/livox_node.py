@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 from typing import Any
 
 from sensorbox.live.bus import PRIORITY_SOURCE, NodeStatus, Publish
@@ -10,6 +11,30 @@ from sensorbox.live.bus import PRIORITY_SOURCE, NodeStatus, Publish
 log = logging.getLogger(__name__)
 
 LIDAR_COUNTERS = ("sweeps", "points", "packets", "duplicates", "imu_packets", "counter_jumps", "time_jumps")
+
+
+def silent_lidars(nodes: Mapping[str, NodeStatus], elapsed_s: float) -> list[str]:
+    """One line per LiDAR a driver node received no point or no IMU packet from in the whole run.
+
+    A recording of such a run holds no LiDAR (or IMU) message of it, yet
+    every drop counter is 0; an emulator that never sent (`loop_s:=0` once
+    listed 1e8 sweep windows before its first) looks like a quiet success.
+    """
+    lines = []
+    for name, status in nodes.items():
+        for key, packets in status.counters.items():
+            if not key.endswith(".packets"):
+                continue
+            ip = key.removesuffix(".packets")
+            imu = status.counters.get(f"{ip}.imu_packets")
+            none = [what for what, n in (("point", packets), ("IMU", imu)) if n == 0]
+            if none:
+                lines.append(
+                    f"{name}: lidar {ip} sent no {' and no '.join(none)} packet in {elapsed_s:.1f} s; the "
+                    f"recording holds no {' or '.join('LiDAR' if w == 'point' else w for w in none)} message "
+                    "from it"
+                )
+    return lines
 
 
 class LivoxDriverNode:

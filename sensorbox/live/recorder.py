@@ -429,6 +429,13 @@ class Recorder:
     def _open_bag(self, recv_ns: int) -> BagWriter:
         path = self._bag_dir(self._bag_index)
         self._bag_index += 1
+        if path.exists():  # made since `start` looked: another recorder (a second launch) writes into it
+            raise BagWriteError(
+                f"{path} exists already: another recorder started into it meanwhile; choose another recorder "
+                "name or out folder",
+                {},
+                False,
+            )
         bag = BagWriter(path, "mcap", compress=self.cfg.compress, in_place=True)
         try:
             bag.__enter__()

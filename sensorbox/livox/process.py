@@ -33,7 +33,7 @@ from multiprocessing.connection import Connection
 from types import TracebackType
 from typing import Any
 
-from ingest.runtime.lifetime import sigint_blocked
+from ingest.runtime.lifetime import orphaned, sigint_blocked
 from sensorbox.errors import DriverError
 from sensorbox.livox.config import DriverConfig, DriverStats
 from sensorbox.livox.discovery import discover
@@ -60,22 +60,30 @@ def _child(
     pending: queue.SimpleQueue[tuple[str, Any] | None] = queue.SimpleQueue()
 
     def sender() -> None:
-        while (item := pending.get()) is not None:
-            msgs.send(item)
+        with contextlib.suppress(OSError):  # the parent is gone (killed): the main thread says so, once
+            while (item := pending.get()) is not None:
+                msgs.send(item)
 
     thread = threading.Thread(target=sender, name="livox-ipc", daemon=True)
     thread.start()
     driver = Mid360Driver(config, lambda *msg: pending.put(("msg", msg)))
     try:
-        driver.start()
-    except Exception as err:  # DriverError (a bound port, a silent lidar) or worse: one line to the parent
-        status.send(("error", str(err) if isinstance(err, DriverError) else f"{type(err).__name__}: {err}"))
-    else:
-        status.send(("started", os.getpriority(os.PRIO_PROCESS, 0)))
-        while not control.poll(STATS_S):
+        try:
+            driver.start()
+        except (
+            Exception
+        ) as err:  # DriverError (a bound port, a silent lidar) or worse: one line to the parent
+            why = str(err) if isinstance(err, DriverError) else f"{type(err).__name__}: {err}"
+            status.send(("error", why))
+        else:
+            status.send(("started", os.getpriority(os.PRIO_PROCESS, 0)))
+            while not control.poll(STATS_S):  # a parent gone (killed) reads as a stop: the pipe's end
+                status.send(("stats", driver.stats()))
+            driver.stop()
             status.send(("stats", driver.stats()))
+    except OSError:  # BrokenPipeError: the parent was killed (SIGKILL) and reads nothing any more
         driver.stop()
-        status.send(("stats", driver.stats()))
+        orphaned("livox driver process")
     pending.put(("end", None))
     pending.put(None)
     thread.join()

@@ -20,7 +20,7 @@ from dataclasses import dataclass, replace
 from multiprocessing.connection import Connection
 from typing import Any
 
-from ingest.runtime.lifetime import sigint_blocked
+from ingest.runtime.lifetime import orphaned, sigint_blocked
 
 STATS_S = 0.2
 START_S = 120.0  # spawning imports the simulator and builds its scene: slow on a busy machine
@@ -74,11 +74,15 @@ def _child(spec: EmulatorSpec, status: Connection, control: Connection) -> None:
     except Exception as err:  # GraphError (a bad lidar name), an occupied port, ...: one line to the parent
         status.send(("error", str(err)))
         return
-    status.send(("started", os.getpid()))
-    while not control.poll(STATS_S):
+    try:
+        status.send(("started", os.getpid()))
+        while not control.poll(STATS_S):  # a parent gone (killed) reads as a stop: the pipe's end
+            status.send(("stats", counters_of(emulator)))
+        emulator.stop()
         status.send(("stats", counters_of(emulator)))
-    emulator.stop()
-    status.send(("stats", counters_of(emulator)))
+    except OSError:  # BrokenPipeError: the parent was killed (SIGKILL) and reads nothing any more
+        emulator.stop()
+        orphaned(f"emulator {spec.name}")
 
 
 class EmulatorProcess:

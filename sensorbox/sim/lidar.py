@@ -37,6 +37,7 @@ Two switches bring the real sensor's main range errors in (both off by default):
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -106,16 +107,19 @@ def packet_times_ns(lidar: LidarSim, start_ns: int, end_ns: int) -> I64:
     return lidar.first_packet_ns + np.arange(k0, max(k0, k1), dtype=np.int64) * PACKET_PERIOD_NS
 
 
-def sweep_windows(lidar: LidarSim, t0_ns: int, duration_ns: int) -> list[tuple[int, int]]:
-    """Sim-time [start, end) of every 100 ms sensor-clock window that starts inside the run."""
-    first = -(-(t0_ns + lidar.clock_offset_ns) // SWEEP_PERIOD_NS) * SWEEP_PERIOD_NS
-    out = []
-    k = first
+def iter_sweep_windows(lidar: LidarSim, t0_ns: int, duration_ns: int) -> Iterator[tuple[int, int]]:
+    """Sim-time [start, end) of each 100 ms sensor-clock window that starts inside the run, one at a time
+    (a live emulator's run is 1e7 s long: 1e8 windows, never listed)."""
+    k = -(-(t0_ns + lidar.clock_offset_ns) // SWEEP_PERIOD_NS) * SWEEP_PERIOD_NS
     while k - lidar.clock_offset_ns - t0_ns < duration_ns:
         s = k - lidar.clock_offset_ns - t0_ns
-        out.append((s, s + SWEEP_PERIOD_NS))
+        yield s, s + SWEEP_PERIOD_NS
         k += SWEEP_PERIOD_NS
-    return out
+
+
+def sweep_windows(lidar: LidarSim, t0_ns: int, duration_ns: int) -> list[tuple[int, int]]:
+    """Sim-time [start, end) of every 100 ms sensor-clock window that starts inside the run."""
+    return list(iter_sweep_windows(lidar, t0_ns, duration_ns))
 
 
 def simulate_sweep(

@@ -9,7 +9,7 @@ from typing import Protocol
 import numpy as np
 
 from calibration.types import F64, I64
-from sensorbox.sim.lidar import LidarSim, Sweep, simulate_sweep, sweep_windows
+from sensorbox.sim.lidar import LidarSim, Sweep, iter_sweep_windows, simulate_sweep, sweep_windows
 from sensorbox.sim.run import SimSetup
 from sensorbox.sim.trajectory import imu_readings
 
@@ -72,7 +72,7 @@ class SimScan:
 
     def sweeps(self) -> Iterator[Sweep]:
         s = self.setup
-        for win in self.windows():
+        for win in iter_sweep_windows(self.lidar, s.cfg.start_ns, s.duration_ns):  # lazily: live runs 1e7 s
             sweep = simulate_sweep(self.lidar, s.scene, s.texture, s.traj, s.cfg.start_ns, win)
             if sweep is not None:
                 yield sweep

@@ -412,6 +412,41 @@ def test_a_y_up_scan_renders_nothing_and_says_why(tmp_path):
     assert doc["warnings"] == [line]
 
 
+def test_a_damaged_finished_scene_is_rendered_again_and_another_scan_pose_refused(tmp_path):
+    """Issue 49: a deleted or cut view of a finished scene is rendered again and named (it was kept as
+    'Already done'); a rerun with the scan at another pose is one line naming the folder and the change
+    (it printed 'Already done' and kept the stale views)."""
+    cfg = BenchmarkConfig(fovs_deg=(120.0,), baselines_mm=(65.0,), width=48, height=32, height_full=64,
+                          yaws_deg=(90.0,), workers=1, exr=False)  # fmt: skip
+    ref = read_rig(RIG).camera("cam0").model
+    scan, out = _ground_scan(2), tmp_path / "b"
+    first = run_benchmark([scan], ref, out, cfg)
+    scene = out / "000_000_000"
+    kept = {p: p.read_bytes() for p in scene.rglob("*.png")}
+    doc = yaml.safe_load((scene / "scene.yaml").read_text())
+    assert len(doc["files"]) == len(kept) == first.files - 1  # every file but scene.yaml itself
+    gone = scene / "120FOV" / "65mm" / "DOWN" / "fisheye.png"
+    cut = scene / "120FOV" / "65mm" / "CENTER" / "depth" / "pano.png"
+    gone.unlink()
+    cut.write_bytes(kept[cut][:50])
+    again = run_benchmark([scan], ref, out, cfg)
+    assert (again.skipped, again.damaged) == ([], [f"{scene}/120FOV/65mm/CENTER/depth/pano.png: 50 bytes, "
+                                                   f"{len(kept[cut])} were written"])  # fmt: skip
+    assert again.renders == first.renders
+    assert {p: p.read_bytes() for p in scene.rglob("*.png")} == kept
+    assert run_benchmark([scan], ref, out, cfg).skipped == ["000_000_000"]
+    moved = np.eye(4)
+    moved[0, 3] = 0.5
+    with pytest.raises(BenchmarkError) as refused:
+        run_benchmark([replace(scan, T_world_scan=moved)], ref, out, cfg)
+    assert str(refused.value) == (
+        f"{scene}: this scene was rendered from other scans or another view (scan ground: T_world_scan moved "
+        f"by 0.5 m and turned by 0 deg); choose a new --out or delete {scene}"
+    )
+    with pytest.raises(BenchmarkError, match=r"\(scan ground: source: ground.ply -> other.ply\)"):
+        run_benchmark([replace(scan, source="other.ply")], ref, out, cfg)
+
+
 def test_an_equirect_beyond_memory_is_refused_before_any_work(tmp_path):
     """--height-full 100000 (a 1.8 TB sphere): one line suggesting a smaller --height-full, in both commands;
     0 is refused as a value, not taken for the default."""

@@ -8,7 +8,9 @@ import json
 import os
 import subprocess
 import sys
+import threading
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -237,3 +239,39 @@ def test_status_line_rates_drops_and_disk():
         "   3.0 s  imu_192_168_1_12 200.0 | zed_upper 30.0 msg/s  drops queue 2  3.0 MiB written  5.0 GiB free"
     )
     assert status_line(None, GraphSnapshot(0.5, {}, {}, {}, {}, {})) == "   0.5 s  no messages yet  drops 0"
+
+
+def test_a_lidar_that_sent_nothing_is_a_warning_after_the_recording():
+    """Issue 49: `loop_s:=0` recorded a bag with no LiDAR or IMU message and every counter 0, silently."""
+    from sensorbox.live.bus import NodeStatus
+    from sensorbox.live.livox_node import silent_lidars
+
+    driver = NodeStatus({"127.0.0.12.packets": 0.0, "127.0.0.12.imu_packets": 0.0, "127.0.0.13.packets": 0.0,
+                         "127.0.0.13.imu_packets": 40.0, "foreign": 0.0})  # fmt: skip
+    heard = NodeStatus({"127.0.0.14.packets": 5.0, "127.0.0.14.imu_packets": 40.0})
+    assert silent_lidars({"livox": driver, "other": heard, "rec": NodeStatus()}, 19.54) == [
+        "livox: lidar 127.0.0.12 sent no point and no IMU packet in 19.5 s; the recording holds no LiDAR or IMU "
+        "message from it",
+        "livox: lidar 127.0.0.13 sent no point packet in 19.5 s; the recording holds no LiDAR message from it",
+    ]
+
+
+@pytest.mark.realtime
+def test_a_live_emulator_sweeps_without_listing_its_run_first():
+    """`loop_s:=0` simulates live over a 1e7 s run: its first sweep comes at once (it listed 1e8 windows
+    first, and the emulator never sent)."""
+    from sensorbox.sim.lidar import iter_sweep_windows, sweep_windows
+    from sensorbox.sim.run import SimConfig, setup_sim
+    from sensorbox.sim.scan_source import SimScan
+
+    setup = setup_sim(SimConfig(scene="indoor", duration_s=0.35, scale=0.1))
+    lidar = setup.lidars[0]
+    assert list(iter_sweep_windows(lidar, setup.cfg.start_ns, setup.duration_ns)) == sweep_windows(
+        lidar, setup.cfg.start_ns, setup.duration_ns
+    )
+    live = setup_sim(SimConfig(scene="indoor", duration_s=1e7, scale=0.1))
+    first: list[Any] = []
+    sweeping = threading.Thread(target=lambda: first.append(next(SimScan(live, 0).sweeps())), daemon=True)
+    sweeping.start()
+    sweeping.join(60.0)  # it takes a second; listing the windows first took minutes and gigabytes
+    assert first and first[0].timebase_ns == next(SimScan(setup, 0).sweeps()).timebase_ns

@@ -237,6 +237,29 @@ def test_existing_bag_and_bad_config_are_errors(tmp_path):
         Recorder(RecorderConfig(tmp_path, name="a/b"))
 
 
+def test_a_bag_made_by_another_recorder_after_the_start_is_one_line(tmp_path, caplog):
+    """Issue 49: a second launch into the same out:= and name:=, started while the first had not yet
+    opened its bag, printed the recorder's traceback before its error line."""
+    sd = Shutdown()
+    rec = Recorder(RecorderConfig(tmp_path, name="x", min_free_bytes=NO_DISK_GUARD), shutdown=sd)
+    rec.start()
+    (tmp_path / "x_000").mkdir()  # the other launch's recorder opened its bag first
+    rec.enqueue("/chatter", STRING, 0, string_msg("a"))
+    assert sd.event.wait(HANG_S)
+    rec.stop()
+    assert all(r.exc_info is None for r in caplog.records)  # no traceback
+    assert [r for r in caplog.records if r.levelname == "ERROR"] == []
+    assert (
+        sd.error
+        == rec.error
+        == (
+            f"recorder: {tmp_path}/x_000 exists already: another recorder started into it meanwhile; choose "
+            "another recorder name or out folder; recording stopped"
+        )
+    )
+    assert rec.status().drops["write"] == 1 and list((tmp_path / "x_000").iterdir()) == []
+
+
 def test_bus_subscription_with_topic_filter(tmp_path):
     bus = Bus()
     rec = Recorder(RecorderConfig(tmp_path, name="f", topics=("/keep",), min_free_bytes=NO_DISK_GUARD))

@@ -1,0 +1,169 @@
+"""Which frames a dataset folder holds already, and whether each finished sample is whole.
+
+A frame is known by its content, not by the name of the bag it came from:
+its two camera header stamps and `frame_digest`, a SHA-256 of both decoded
+images, which every sample records in its metadata (`frames_sha256`). The
+same recording given under another name (a rosbag2 folder, then its .mcap
+file), two recordings given together after each on its own, or split bags
+that overlap: a frame some sample of the folder holds is not written again.
+Stamps alone would not do: recordings made by the simulator (or by a rig
+whose clock starts at zero) share them, with other images.
+
+Each sample's metadata also records every other file it wrote (`files`:
+size and SHA-256), so a rerun checks each sample it would skip as finished
+and writes a damaged one (a file deleted, cut short or overwritten, the
+metadata unreadable) again instead of keeping the damage.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ingest.dataset.layout import GT_DIRS, IMAGE_DIRS
+from ingest.dataset.meta import SampleMeta, read_meta
+from ingest.dataset.png import read_image
+from ingest.errors import DatasetError
+
+Array = np.ndarray[Any, Any]
+VERIFY_THREADS = 4
+"""Finished samples checked at once on a rerun: a full-resolution sample is ~40 MB to read and hash."""
+
+
+def frame_digest(upper: Array, lower: Array) -> str:
+    """SHA-256 (hex) of the two decoded camera images of a frame: each one's shape, dtype and pixels."""
+    digest = hashlib.sha256()
+    for image in (upper, lower):
+        digest.update(f"{image.shape}:{image.dtype.str}:".encode())
+        digest.update(np.ascontiguousarray(image).data)
+    return digest.hexdigest()
+
+
+def file_problem(path: Path, size: int, sha256: str) -> str:
+    """Why `path` is not the file of `size` bytes and SHA-256 `sha256` that was written ('' when it is)."""
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        return f"{path}: missing"
+    except OSError as err:
+        return f"{path}: cannot be read ({err.strerror or err})"
+    if len(data) != size:
+        return f"{path}: {len(data)} bytes, {size} were written"
+    if hashlib.sha256(data).hexdigest() != sha256:
+        return f"{path}: not the file written (its SHA-256 differs)"
+    return ""
+
+
+def _unrecorded_problem(out: Path, sid: str) -> str:
+    """For metadata without `files` (an older SensorBox): the first PNG of the sample that does not decode."""
+    for name in (*IMAGE_DIRS, *GT_DIRS):
+        path = out / name / f"{sid}.png"
+        if not path.is_file():
+            return f"{path}: missing"
+        if read_image(path) is None:
+            return f"{path}: cannot be decoded ({path.stat().st_size} bytes)"
+    return ""
+
+
+def sample_problem(out: Path, sid: str, meta: SampleMeta) -> str:
+    """Why written sample `sid` of dataset `out` is not whole, naming the file ('' when it is).
+
+    Every file its metadata records must have the size and SHA-256 written;
+    metadata that records none (an older SensorBox) needs each PNG to decode.
+    """
+    if not meta.files:
+        return _unrecorded_problem(out, sid)
+    for name, written in meta.files.items():
+        problem = file_problem(out / name, written.bytes, written.sha256)
+        if problem:
+            return problem
+    return ""
+
+
+@dataclass(frozen=True)
+class HeldFrame:
+    """A sample of the dataset with the stamps of a frame a run is about to write: is it the same frame?"""
+
+    sid: str
+    frames_sha256: str
+    problem: str = ""  # why its files are not whole ('' when they are): the frame is written again there
+
+    @property
+    def intact(self) -> bool:
+        return not self.problem
+
+
+@dataclass(frozen=True)
+class Resume:
+    """What a run finds in its output folder for its planned samples (by their ids in its range)."""
+
+    done: frozenset[str] = frozenset()  # finished and whole: skipped
+    damaged: dict[str, str] = field(default_factory=dict)  # finished but damaged (why): written again
+    same_stamps: dict[str, tuple[HeldFrame, ...]] = field(default_factory=dict)  # other ids, same stamps
+
+
+def _stamp(ns: int) -> str:
+    sec, nsec = divmod(ns, 1_000_000_000)
+    return f"{sec}.{nsec:09d} s"
+
+
+def resume_state(out: Path, sids: list[str], stamps_ns: list[tuple[int, int]]) -> Resume:
+    """The planned samples `sids` (upper and lower header stamps `stamps_ns`) against what `out` holds.
+
+    A planned sample with metadata is done when it is whole, damaged
+    otherwise; one that records other stamps is another frame's, which no
+    run overwrites (DatasetError). One without is compared, by stamps,
+    with every other sample of the folder (whose content the worker then
+    compares: `frame_digest`). A sample with the same stamps that records no
+    digest (an older SensorBox) cannot be told apart: DatasetError naming it.
+    """
+    meta_dir = out / "meta"
+    if not meta_dir.is_dir():
+        return Resume()
+    own = dict(zip(sids, stamps_ns, strict=True))
+    damaged: dict[str, str] = {}
+    finished: dict[str, SampleMeta] = {}
+    by_stamps: dict[tuple[int, int], list[tuple[str, SampleMeta]]] = {}
+    for path in sorted(meta_dir.glob("*.json")):
+        sid = path.stem
+        try:
+            meta = read_meta(out, sid)
+        except DatasetError as err:
+            if sid in own:
+                damaged[sid] = str(err)
+            continue
+        if sid not in own:
+            by_stamps.setdefault((meta.stamp_ns, meta.lower_stamp_ns), []).append((sid, meta))
+            continue
+        if (meta.stamp_ns, meta.lower_stamp_ns) != own[sid]:  # another recording's: never overwritten
+            raise DatasetError(
+                f"{path}: sample {sid} is the frame at {_stamp(meta.stamp_ns)}, but this recording's sample "
+                f"{sid} is the frame at {_stamp(own[sid][0])}: dataset.yaml's id ranges do not describe "
+                "the folder; choose a new --out"
+            )
+        finished[sid] = meta
+    with ThreadPoolExecutor(VERIFY_THREADS) as pool:  # reads and hashes: hashlib and reads free the GIL
+        checked = pool.map(lambda sid: sample_problem(out, sid, finished[sid]), finished)
+        problems = dict(zip(finished, checked, strict=True))
+    damaged.update({sid: problem for sid, problem in problems.items() if problem})
+    done = {sid for sid, problem in problems.items() if not problem}
+    same: dict[str, tuple[HeldFrame, ...]] = {}
+    for sid, key in own.items():
+        if sid in done or sid in damaged or key not in by_stamps:
+            continue
+        held = []
+        for other, meta in by_stamps[key]:
+            if not meta.frames_sha256:
+                raise DatasetError(
+                    f"{meta_dir / f'{other}.json'}: the frame at {_stamp(key[0])} was written by an older "
+                    f"SensorBox without frames_sha256, and this run's sample {sid} has its stamps; cannot "
+                    "tell whether it is the same frame: choose a new --out"
+                )
+            held.append(HeldFrame(other, meta.frames_sha256, sample_problem(out, other, meta)))
+        same[sid] = tuple(held)
+    return Resume(frozenset(done), dict(sorted(damaged.items())), same)

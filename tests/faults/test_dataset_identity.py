@@ -1,0 +1,223 @@
+"""Issue 49: a dataset knows its frames by their content, and a rerun checks what it calls done.
+
+A frame is written once whatever the bags are named or however they are
+split and combined over runs; a finished sample whose files were damaged
+is written again (and said so), never kept as done.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from ingest.bags.decode import decode_compressed_image
+from ingest.bags.reader import open_bags
+from ingest.dataset.meta import read_meta
+from ingest.errors import DatasetError
+from ingest.train.pipeline import IngestConfig, ingest
+from sensorbox.live.bagwriter import BagWriter
+from sensorbox.messages import image_msg
+from sensorbox.sim.truth import truth_dir
+from tests.faults.bags import INDOOR, UPPER, rewrite
+from tests.faults.cli import sensorbox
+
+RIG = truth_dir(INDOOR) / "rig.yaml"
+
+
+def _cfg(out: Path, every: int = 1) -> IngestConfig:
+    return IngestConfig(rig=RIG, out=out, workers=1, every=every, height_full=64)
+
+
+def _stamps(out: Path) -> list[int]:
+    """The upper stamps of every sample in `out`, one per sample (duplicates kept)."""
+    return sorted(read_meta(out, p.stem).stamp_ns for p in (out / "meta").glob("*.json"))
+
+
+def _split(tmp: Path, overlap_s: float) -> tuple[Path, Path]:
+    """The fixture cut at the middle of its log time into two mcap bags that share +-`overlap_s`."""
+    with open_bags([INDOOR]) as bags:
+        messages = [(m.topic, m.msgtype, m.log_ns, bytes(m.raw)) for m in bags.messages()]
+    mid = (messages[0][2] + messages[-1][2]) // 2
+    halves = []
+    for name, keep in (
+        ("first", lambda t: t < mid + overlap_s * 1e9),
+        ("second", lambda t: t >= mid - overlap_s * 1e9),
+    ):
+        with BagWriter(tmp / name, "mcap") as out:
+            for topic, msgtype in {m[0]: m[1] for m in messages}.items():
+                out.add(topic, msgtype)
+            for topic, _, log_ns, raw in messages:
+                if keep(log_ns):
+                    out.write(topic, log_ns, raw)
+        halves.append(tmp / name)
+    return halves[0], halves[1]
+
+
+def test_the_same_recording_under_another_name_is_not_written_twice(tmp_path: Path) -> None:
+    """The rosbag2 folder, then its .mcap file: 21 frames, 21 samples (it was 42)."""
+    out = tmp_path / "ds"
+    first = ingest([INDOOR], _cfg(out))
+    again = ingest([INDOOR / f"{INDOOR.name}.mcap"], _cfg(out))
+    assert len(_stamps(out)) == len(set(_stamps(out))) == 21
+    assert (first.written, again.written, again.resumed, again.held_elsewhere) == (21, 0, 21, 21)
+
+
+def test_bags_ingested_apart_then_together_or_overlapping_hold_each_frame_once(tmp_path: Path) -> None:
+    """Bag A, bag B (sharing 0.15 s of frames with A), then both together: every frame once (it was 2x)."""
+    a, b = _split(tmp_path, 0.15)
+    out = tmp_path / "ds"
+    ingest([a], _cfg(out))
+    after_a = set(_stamps(out))
+    second = ingest([b], _cfg(out))
+    assert second.held_elsewhere > 0  # the overlap, written by A's run
+    assert len(_stamps(out)) == len(set(_stamps(out)))  # (it wrote the overlap's frames twice)
+    both = ingest([a, b], _cfg(out))
+    assert both.written + both.resumed + sum(both.skipped.values()) == both.planned
+    stamps = _stamps(out)
+    assert len(stamps) == len(set(stamps))  # no frame twice
+    assert after_a < set(stamps)
+    whole = tmp_path / "whole"
+    ingest([INDOOR], _cfg(whole))
+    assert set(stamps) <= set(_stamps(whole)) | after_a
+
+
+def _as_raw(tmp: Path, name: str, brighter: int) -> Path:
+    """The fixture with its upper images as raw bgra8 `Image`s, `brighter` added to every pixel."""
+
+    def keep(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        if topic != UPPER + "/compressed":
+            return [(topic, raw)]
+        frame = decode_compressed_image(raw)
+        image = np.ascontiguousarray(frame.image.astype(np.int16) + brighter).clip(0, 255).astype(np.uint8)
+        return [(UPPER, image_msg(frame.stamp_ns, frame.frame_id, image))]
+
+    return rewrite(tmp / name, keep)[0]
+
+
+def test_a_frame_with_the_stamps_of_another_but_other_images_is_written(tmp_path: Path) -> None:
+    """Stamps alone do not identify a frame: simulated recordings share them, with other images."""
+    out = tmp_path / "ds"
+    first = ingest([_as_raw(tmp_path, "plain", 0)], _cfg(out, every=10))
+    other = ingest([_as_raw(tmp_path, "brighter", 9)], _cfg(out, every=10))
+    assert (other.written, other.held_elsewhere) == (first.written, 0)
+    stamps = _stamps(out)
+    assert len(stamps) == 2 * len(set(stamps)) == 2 * first.written
+    again = ingest([_as_raw(tmp_path, "plain_again", 0)], _cfg(out, every=10))
+    assert (again.written, again.held_elsewhere) == (0, first.written)
+
+
+def test_frame_digest_covers_shape_and_every_pixel() -> None:
+    from ingest.dataset.identity import frame_digest
+
+    up, lo = np.zeros((4, 6, 3), np.uint8), np.zeros((4, 6, 3), np.uint8)
+    base = frame_digest(up, lo)
+    changed = lo.copy()
+    changed[3, 5, 2] = 1
+    assert frame_digest(up, changed) != base
+    assert frame_digest(up.reshape(6, 4, 3), lo) != base
+    assert frame_digest(up, lo) == base
+
+
+def _row(table: str, item: str) -> str:
+    """The value of the summary table's row `item`."""
+    line = next(line for line in table.splitlines() if f"│ {item} " in line)
+    return line.split("│")[2].strip()
+
+
+def test_a_damaged_finished_sample_is_written_again_and_named(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A deleted, cut, overwritten image or an invalid meta JSON: written again, one line each (was '0 / 5')."""
+    out = tmp_path / "ds"
+    args = ["ingest", str(INDOOR), "--rig", str(RIG), "--out", str(out), "--workers", "1", "--every", "5"]
+    args += ["--height-full", "64", "--gt", "sparse", "--no-preview"]
+    assert sensorbox(capsys, *args)[0] == 0
+    kept = {p.relative_to(out): p.read_bytes() for p in out.rglob("*.png")}
+    (out / "left_fisheye" / "000000.png").unlink()
+    cut = out / "depth_fisheye" / "000001.png"
+    cut.write_bytes(cut.read_bytes()[:100])
+    over = out / "equirect_up" / "000002.png"
+    data = bytearray(over.read_bytes())
+    data[len(data) // 2] ^= 0xFF  # overwritten in place: the same size, other content
+    over.write_bytes(bytes(data))
+    (out / "meta" / "000003.json").write_text("{not json")
+    code, stdout, err = sensorbox(capsys, *args)
+    assert code == 0
+    assert _row(stdout, "written / already done (resumed)") == "4 / 1"
+    assert _row(stdout, "finished samples found damaged, written again") == "4"
+    size = len(kept[Path("depth_fisheye/000001.png")])
+    assert [line for line in err if "damaged" in line] == [
+        f"warning: damaged sample written again: {out}/left_fisheye/000000.png: missing",
+        f"warning: damaged sample written again: {out}/depth_fisheye/000001.png: 100 bytes, {size} were written",
+        f"warning: damaged sample written again: {out}/equirect_up/000002.png: not the file written "
+        "(its SHA-256 differs)",
+        f"warning: damaged sample written again: {out}/meta/000003.json: not SensorBox sample metadata "
+        "(JSONDecodeError: Expecting property name enclosed in double quotes: line 1 column 2 (char 1))",
+    ]
+    assert {p.relative_to(out): p.read_bytes() for p in out.rglob("*.png")} == kept  # the damage is gone
+    assert json.loads((out / "meta" / "000003.json").read_text())["id"] == "000003"
+    code, stdout, err = sensorbox(capsys, *args)
+    assert (code, [line for line in err if "damaged" in line]) == (0, [])
+    assert _row(stdout, "written / already done (resumed)") == "0 / 5"
+
+
+def test_a_lost_dataset_yaml_is_not_rewritten_to_describe_samples_made_otherwise(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """dataset.yaml deleted, a rerun with --window-ms 20 over samples made with 50 ms: refused, naming the
+    setting and both values (it wrote a dataset.yaml claiming 20 ms)."""
+    out = tmp_path / "ds"
+    args = ["ingest", str(INDOOR), "--rig", str(RIG), "--out", str(out), "--workers", "1", "--every", "5"]
+    args += ["--height-full", "64", "--gt", "sparse", "--no-preview"]
+    assert sensorbox(capsys, *args)[0] == 0
+    (out / "dataset.yaml").unlink()
+    code, _, err = sensorbox(capsys, *args, "--window-ms", "20")
+    assert (code, err) == (
+        2,
+        [
+            f"error: {out}/meta/000000.json: the folder's samples were made with a different 'params' "
+            f"(lidar_window_ns: 50000000 -> 20000000) and {out}/dataset.yaml is missing; choose a new --out "
+            "or the settings they were made with"
+        ],
+    )
+    assert not (out / "dataset.yaml").exists()
+    code, stdout, _ = sensorbox(capsys, *args)  # the settings they were made with: described again
+    assert code == 0 and _row(stdout, "written / already done (resumed)") == "0 / 5"
+    assert len(list((out / "meta").glob("*.json"))) == 5
+    doc = yaml.safe_load((out / "dataset.yaml").read_text())
+    assert doc["params"]["lidar_window_ns"] == 50_000_000
+    assert [(s["first_id"], s["samples"]) for s in doc["sources"]] == [(5, 5)]  # after the ids in use
+
+
+def test_a_sample_id_holding_another_frame_is_never_overwritten(tmp_path: Path) -> None:
+    """dataset.yaml's ranges that do not describe the folder: refused, the other frame's files kept."""
+    out = tmp_path / "ds"
+    ingest([INDOOR], _cfg(out, every=5))
+    meta = out / "meta" / "000001.json"
+    doc = json.loads(meta.read_text())
+    doc["stamp_ns"] += 1
+    meta.write_text(json.dumps(doc))
+    with pytest.raises(
+        DatasetError, match=r"000001.json: sample 000001 is the frame at 1700000000\.\d{9} s, but "
+    ):
+        ingest([INDOOR], _cfg(out, every=5))
+    assert json.loads(meta.read_text()) == doc
+
+
+def test_a_damaged_frame_found_under_another_name_is_written_again_under_its_id(tmp_path: Path) -> None:
+    """The frame is the folder's sample 000003, whose image was cut: the run under another name writes it
+    again there, not a second copy under a new id."""
+    out = tmp_path / "ds"
+    ingest([INDOOR], _cfg(out, every=5))
+    cut = out / "right_fisheye" / "000003.png"
+    whole = cut.read_bytes()
+    cut.write_bytes(whole[:10])
+    again = ingest([INDOOR / f"{INDOOR.name}.mcap"], _cfg(out, every=5))
+    assert (again.written, again.held_elsewhere) == (1, 4)
+    assert again.damaged == [f"{cut}: 10 bytes, {len(whole)} were written"]
+    assert sorted(p.stem for p in (out / "meta").glob("*.json")) == [f"00000{k}" for k in range(5)]
+    assert cut.read_bytes() == whole
