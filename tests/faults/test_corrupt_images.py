@@ -63,14 +63,20 @@ def test_a_corrupt_jpeg_raises_with_libjpegs_words_and_prints_nothing(
     decode_compressed_image(_lower(16))  # the intact one decodes
 
 
+def _log_time(bag: Path, topic: str, k: int) -> tuple[int, int]:
+    """(seconds, nanoseconds) of the log time of message `k` of `topic` in `bag`."""
+    with open_bags([bag]) as bags:
+        log_ns = next(m.log_ns for j, m in enumerate(bags.messages(topics=[topic])) if j == k)
+    sec, nsec = divmod(log_ns, 1_000_000_000)
+    return sec, nsec
+
+
 def test_a_corrupt_jpeg_in_a_bag_is_named_and_skipped_under_max_bad(tmp_path: Path) -> None:
     def keep(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
         return [(topic, _flipped(raw, 4, 5) if topic == LOWER and k == 16 else raw)]
 
     bag, rig = rewrite(tmp_path / "bag", keep)
-    with open_bags([bag]) as bags:
-        log_ns = next(m.log_ns for j, m in enumerate(bags.messages(topics=[LOWER])) if j == 16)
-    sec, nsec = divmod(log_ns, 1_000_000_000)
+    sec, nsec = _log_time(bag, LOWER, 16)
     with pytest.raises(MessageDecodeError) as err:
         ingest([bag], IngestConfig(rig=rig, out=tmp_path / "ds0", **FAST))  # type: ignore[arg-type]
     line = str(err.value)
@@ -94,9 +100,7 @@ def test_a_frame_that_shrinks_mid_bag_is_refused_naming_bag_topic_and_time(tmp_p
         return [(topic, compressed_image_msg(frame.stamp_ns, frame.frame_id, half))]
 
     bag, rig = rewrite(tmp_path / "bag", keep)
-    with open_bags([bag]) as bags:
-        log_ns = next(m.log_ns for j, m in enumerate(bags.messages(topics=[LOWER])) if j == 8)
-    sec, nsec = divmod(log_ns, 1_000_000_000)
+    sec, nsec = _log_time(bag, LOWER, 8)
     with pytest.raises(BagError) as err:
         ingest([bag], IngestConfig(rig=rig, out=tmp_path / "ds", **FAST))  # type: ignore[arg-type]
     assert str(err.value) == (
