@@ -51,7 +51,7 @@ def _fingerprint(cfg: IngestConfig, geometry: Geometry, bags: list[Path]) -> dic
         "rig": {
             "name": rig.name,
             "source": str(Path(rig.source).resolve()) if rig.source else None,
-            "camera_clock_offsets": _clock_offsets(rig),
+            "camera_clock_offsets": _clock_offsets(rig, cfg.refine),
         },
         "R_cam0_rect": geometry.rect.R_cam0_rect.tolist(),
         "R_cam1_rect": geometry.rect.R_cam1_rect.tolist(),
@@ -81,14 +81,17 @@ def _fingerprint(cfg: IngestConfig, geometry: Geometry, bags: list[Path]) -> dic
     }
 
 
-def _clock_offsets(rig: Any) -> dict[str, Any]:
+def _clock_offsets(rig: Any, refined: bool) -> dict[str, Any]:
     """Each camera's offset to the LiDAR clock as ingest applied it (ms), and where it came from."""
     chain = str(rig.camchain.source) if rig.camchain is not None and rig.camchain.source else "the rig"
+    given = f"timeshift_cam_imu in {chain}"
+    if refined:
+        given = f"--refine: estimated from the recording where observable (see the summary), else {given}"
     return {
         c.name: {
             "timeshift_cam_imu_ms": (c.timeshift_cam_imu or 0.0) * 1e3,
-            "from": f"timeshift_cam_imu in {chain}"
-            if c.timeshift_cam_imu is not None
+            "from": given
+            if c.timeshift_cam_imu is not None or refined
             else "none in the rig: header stamps taken as exposure times",
         }
         for c in rig.cameras

@@ -75,6 +75,7 @@ from ingest.train.describe import check_existing, record_undecodable, sample_set
 from ingest.train.lidar_rate import THIN_FRACTION
 from ingest.train.plan import LOST_REASON, Plan, plan, survey
 from ingest.train.plausible import check_imu_rate, check_time_order
+from ingest.train.refine import Refinement, refine
 from ingest.train.rig_trajectory import RigTrajectory
 from ingest.train.sample import GAP_FALLBACK, Geometry, SampleParams, SampleResult
 from ingest.train.stream import (
@@ -114,6 +115,9 @@ class IngestConfig:
     max_bad: int = 0  # undecodable messages skipped and counted before the run stops (bad_messages)
     sample: SampleParams = field(default_factory=SampleParams)
     widen_static: bool = True  # --gt auto may widen the default dense window for a rig that stood still
+    refine: bool = (
+        False  # --refine: the cameras' clock offsets and LiDAR rotations refined from the bags first
+    )
 
     def validate(self) -> None:
         """Values a run cannot start with, named as the CLI options that set them."""
@@ -220,6 +224,7 @@ class IngestSummary:
         )
 
     held_elsewhere: int = 0  # of `resumed`: frames that samples of other ids hold (`ingest.dataset.identity`)
+    refinement: Refinement | None = None  # --refine: what `ingest.train.refine` found and the rig it made
     damaged: list[str] = field(default_factory=list)  # finished samples found damaged, written again: why
 
     @property
@@ -429,6 +434,8 @@ def _held_output(out: Path) -> Iterator[int]:
         raise
 
 
+PASS_REFINE = "refining the rig's clocks and rotations"
+"""`passes` name of `--refine`'s read of the cameras and IMUs."""
 PASS_READ = "reading the bags"
 """`ingest`'s first pass: every message of the rig's topics read, every chunk checked (unit: messages)."""
 PASS_TRAJECTORY = "trajectory"
@@ -463,11 +470,20 @@ def ingest(
     retain_freed_memory()  # chunks and images: ~20 MB per sample pass through this process too
     cfg = replace(cfg, sample=replace(cfg.sample, window_ns=cfg.lidar_window_ns))
     rig = read_rig(cfg.rig)
+    refinement = None
+    if (
+        cfg.refine
+    ):  # before the output is touched: a recording refine cannot read is one line, nothing written
+        refine_pass = partial(passes, PASS_REFINE) if passes else None
+        refinement = refine([Path(p) for p in bag_paths], rig, refine_pass)
+        rig = refinement.rig
     if not rig.lidars:
         raise DatasetError(f"{cfg.rig}: the rig has no LiDAR under 'lidars'; ingest needs at least one")
     geometry = Geometry.from_rig(rig, cfg.height_full)
     check_existing(cfg, geometry, [Path(p) for p in bag_paths])  # settings, rig, data: before the passes
-    summary = IngestSummary(out=cfg.out, warnings=stereo_warnings(rig))
+    summary = IngestSummary(out=cfg.out, warnings=stereo_warnings(rig), refinement=refinement)
+    if refinement is not None:
+        summary.warnings += refinement.unobserved_lines()
     bad = BadMessages(cfg.max_bad, warn)
     executor = Executor(cfg.workers, dask=cfg.dask, worker_init=partial(_init_worker, cfg.workers))
     try:

@@ -78,6 +78,19 @@ class Refinement:
     frames: dict[str, int]  # per camera: frames read
     imu_readings: dict[str, int]  # per IMU
 
+    def unobserved_lines(self) -> list[str]:
+        """One line per camera offset the recording could not reveal: what was kept and what to record."""
+        lines = []
+        for cam in self.cameras:
+            e = cam.estimate
+            if not e.observable:
+                lines.append(
+                    f"{cam.camera}: clock offset not observable from this recording (rate change "
+                    f"{e.excitation_deg_s:.1f} deg/s, 1-sigma {e.sigma_ms:.2f} ms); the rig's "
+                    f"{cam.rig_timeshift_ms:+.3f} ms is kept: record the rig turned by hand for a few seconds"
+                )
+        return lines
+
 
 @dataclass
 class _Recording:

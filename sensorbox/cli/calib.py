@@ -184,15 +184,8 @@ def calib_refine(bags: BagsArg, rig: RigOpt, out: RefinedOpt, plot: ChartOpt = N
     frames = ", ".join(f"{n} {k}" for k, n in refinement.frames.items())
     readings = ", ".join(f"{n} {k}" for k, n in refinement.imu_readings.items())
     console.print(f"Read {frames} frames and {readings} gyro readings. LiDAR translations are not refined.")
-    for cam in refinement.cameras:
-        if not cam.estimate.observable:
-            e = cam.estimate
-            print_warning(
-                f"{cam.camera}: clock offset not observable from this recording (rate change "
-                f"{e.excitation_deg_s:.1f} deg/s, 1-sigma {e.sigma_ms:.2f} ms); the rig's "
-                f"{cam.rig_timeshift_ms:+.3f} ms is kept: record the rig turned by hand for a few seconds",
-                console,
-            )
+    for line in refinement.unobserved_lines():
+        print_warning(line, console)
     out.parent.mkdir(parents=True, exist_ok=True)
     write_rig(refinement.rig, out)
     console.print(f"Refined rig written to {out}")

@@ -80,6 +80,15 @@ MaxBadOpt = Annotated[
         "one more stops the run (exit code 2). The count goes to the summary and dataset.yaml."
     ),
 ]
+RefineOpt = Annotated[
+    bool,
+    typer.Option(
+        "--refine",
+        help="First estimate each camera's clock offset and each LiDAR's rotation from the bags "
+        "(`sensorbox calib refine`) and ingest with the refined rig; what the recording cannot reveal "
+        "(a rig that stood still) keeps the rig's value, with a warning.",
+    ),
+]
 PreviewOpt = Annotated[
     bool, typer.Option(help="After the summary, draw preview.png of the middle sample (matplotlib).")
 ]
@@ -205,11 +214,12 @@ def ingest_cmd(
     height_full: HeightFullOpt = None, min_range: MinRangeOpt = 0.3, motion: MotionOpt = "full",
     salvage: SalvageOpt = False, gt: GtOpt = "auto", gt_window_ms: GtWindowOpt = None,
     max_bad: MaxBadOpt = 0, preview: PreviewOpt = True, backend: BackendOpt = "numba",
+    refine: RefineOpt = False,
 ) -> None:  # fmt: skip
     """Turn recorded bags into the WideDepth training set (rectified equirect pairs + depth/disparity GT)."""
     from ingest.errors import DatasetError
     from ingest.train.dense import DenseParams
-    from ingest.train.pipeline import PASS_READ, PASS_TRAJECTORY, IngestConfig, ingest
+    from ingest.train.pipeline import PASS_READ, PASS_REFINE, PASS_TRAJECTORY, IngestConfig, ingest
     from ingest.train.sample import SampleParams
 
     if gt_window_ms is not None and gt == "sparse":
@@ -226,10 +236,10 @@ def ingest_cmd(
     cfg = IngestConfig(
         rig=rig, out=out, workers=workers, every=every, lidar_window_ns=round(window_ms * 1e6),
         height_full=height_full, salvage=salvage, dask=dask, gt=gt, max_bad=max_bad, sample=sample,
-        widen_static=gt_window_ms is None,
+        widen_static=gt_window_ms is None, refine=refine,
     )  # fmt: skip
     cfg.validate()  # before the progress bar: a bad value is one line
-    units = {PASS_READ: "messages", PASS_TRAJECTORY: "LiDAR sweeps"}
+    units = {PASS_REFINE: "messages", PASS_READ: "messages", PASS_TRAJECTORY: "LiDAR sweeps"}
     try:
         with progress_bar("ingesting", "samples") as update:
             summary = ingest(
@@ -245,6 +255,11 @@ def ingest_cmd(
         raise typer.Exit(130) from None
     for line in summary.lost_chunks:
         console.print(f"skipped {line}", markup=False, highlight=False, soft_wrap=True)
+    if summary.refinement is not None:
+        from sensorbox.cli.calib import imu_table, refine_table
+
+        console.print(refine_table(summary.refinement))
+        console.print(imu_table(summary.refinement))
     console.print(summary_table(summary, out))
     for line in summary.warnings:
         print_warning(line)

@@ -7,11 +7,13 @@ walk at 480x300 (tracking on images, much coarser than the full-resolution bench
 
 from __future__ import annotations
 
+import json
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from scipy.spatial.transform import Rotation
 
 from calibration.rig import REFERENCE_RIG, read_rig, with_timeshifts
@@ -172,3 +174,31 @@ def test_refine_cli_writes_the_refined_rig_and_says_what_it_could_not_see(
     assert code == 2
     assert len(err) == 1 and "a 480x300 image; camera cam" in err[0] and "is 1920x1200" in err[0], err
     assert not (tmp_path / "x.yaml").exists()
+
+
+def test_ingest_refine_times_the_samples_with_the_offsets_it_found(late_walk: Path, tmp_path: Path) -> None:
+    """`ingest --refine` with a rig that has no offsets: every sample's exposure is its stamp plus the
+    estimate (within 1.5 ms of the truth), the summary carries the refinement, dataset.yaml says where
+    the offsets came from, and the dataset's rig is the refined one."""
+    from calibration.rig import write_rig
+    from ingest.train.pipeline import IngestConfig, ingest
+
+    exact = Truth.load(late_walk).rig
+    rig = tmp_path / "rig" / "plain.yaml"
+    rig.parent.mkdir()
+    write_rig(with_timeshifts(exact, {c.name: 0.0 for c in exact.cameras}), rig)
+    out = tmp_path / "ds"
+    summary = ingest([late_walk], IngestConfig(rig=rig, out=out, workers=1, every=5, refine=True))
+    assert summary.refinement is not None
+    found_ms = summary.refinement.cameras[0].estimate.timeshift_ms
+    assert abs(found_ms + 10.0) <= 1.5
+    metas = [json.loads(p.read_text()) for p in sorted((out / "meta").glob("*.json"))]
+    assert len(metas) == summary.written >= 10
+    for m in metas:
+        assert m["clock_offset_ms"] == pytest.approx(found_ms, abs=1e-6)
+        assert m["exposure_ns"] - m["stamp_ns"] == round(found_ms * 1e6)
+    doc = yaml.safe_load((out / "dataset.yaml").read_text())
+    assert doc["rig"]["camera_clock_offsets"]["cam0"]["from"].startswith(
+        "--refine: estimated from the recording"
+    )
+    assert read_rig(out / "rig" / "rig.yaml").upper.timeshift_cam_imu == pytest.approx(found_ms / 1e3)
