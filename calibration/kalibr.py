@@ -44,6 +44,7 @@ import yaml
 from calibration.camera import CameraModel
 from calibration.distortion import Fov, RadTan
 from calibration.errors import CalibrationError
+from calibration.files import read_text
 from calibration.fisheye import DoubleSphere, ExtendedUnified, KannalaBrandt, Unified
 from calibration.opencv_yaml import load_opencv_yaml, yaml_error_line
 from calibration.pinhole import Omni, Pinhole
@@ -69,6 +70,10 @@ EXTRINSIC_TOL_DEG = 0.05
 """Largest rotation (degrees) between a given ``T_cn_cnm1`` and the one ``T_cam_imu`` implies."""
 EXTRINSIC_TOL_M = 0.001
 """Largest translation difference (metres) between a given ``T_cn_cnm1`` and the one ``T_cam_imu`` implies."""
+
+MAX_IMAGE_SIDE_PX = 16384
+"""Widest or tallest camera image read (pixels): 4 times a 4K camera's width. The warp maps and
+rectified images of a camera are sized from its resolution, so 1e9 pixels would ask for exabytes."""
 
 log = logging.getLogger(__name__)
 
@@ -180,18 +185,9 @@ def _number_list(value: object, where: str, count: int | None) -> list[float]:
 
 
 def load_yaml(path: Path, what: str) -> Any:
-    """Read a YAML file, turning I/O and syntax errors into `CalibrationError`."""
-    try:
-        text = path.read_text()
-    except FileNotFoundError as err:
-        raise CalibrationError(f"{path}: {what} file not found") from err
-    except OSError as err:
-        raise CalibrationError(f"{path}: cannot read {what} file: {err.strerror}") from err
-    except UnicodeDecodeError as err:
-        raise CalibrationError(
-            f"{path}: not a YAML {what} file "
-            f"(byte {err.start} is {err.object[err.start]:#04x}, not UTF-8 text)"
-        ) from err
+    """Read a YAML file (`calibration.files.read_text`: a regular file of at most 4 MiB), turning
+    I/O and syntax errors into `CalibrationError`."""
+    text = read_text(path, what)
     try:
         return load_opencv_yaml(text)
     except yaml.YAMLError as err:
@@ -239,9 +235,12 @@ def _parse_camera(name: str, block: object, where: str) -> dict[str, Any]:
     if (
         not isinstance(res, list)
         or len(res) != 2
-        or not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in res)
+        or not all(isinstance(v, int) and not isinstance(v, bool) and 0 < v <= MAX_IMAGE_SIDE_PX for v in res)
     ):
-        raise CalibrationError(f"{where}.resolution: expected [width, height] positive ints, got {res!r}")
+        raise CalibrationError(
+            f"{where}.resolution: expected [width, height] positive ints of at most {MAX_IMAGE_SIDE_PX}, "
+            f"got {res!r}"
+        )
     given = dict(zip(names, intr, strict=True))
     pu, pv = given["pu"], given["pv"]
     if not (0.0 <= pu <= res[0] and 0.0 <= pv <= res[1]):

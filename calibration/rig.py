@@ -45,6 +45,7 @@ import yaml
 
 from calibration.camera import CameraModel
 from calibration.errors import CalibrationError
+from calibration.files import read_text
 from calibration.kalibr import (
     CameraChain,
     KalibrCamera,
@@ -205,16 +206,11 @@ def read_livox_config(path: str | Path) -> dict[str, F64]:
     degrees and x/y/z in millimetres (R = Rz(yaw) Ry(pitch) Rx(roll)).
     """
     p = Path(path)
+    text = read_text(p, "Livox config", "JSON")  # a BOM, as some Windows editors save, is dropped
     try:
-        data = json.loads(p.read_text(encoding="utf-8-sig"))  # a BOM, as some Windows editors save
-    except FileNotFoundError as err:
-        raise CalibrationError(f"{p}: Livox config file not found") from err
-    except OSError as err:  # a folder, no permission
-        raise CalibrationError(f"{p}: cannot read the Livox config file: {err.strerror or err}") from err
-    except UnicodeDecodeError as err:
-        raise CalibrationError(
-            f"{p}: not a JSON Livox config (byte {err.start} is {err.object[err.start]:#04x}, not UTF-8 text)"
-        ) from err
+        data = json.loads(text)
+    except RecursionError as err:  # json's decoder recurses once per [ or {
+        raise CalibrationError(f"{p}: malformed JSON: nested too deeply for a Livox config") from err
     except json.JSONDecodeError as err:
         raise CalibrationError(f"{p}: line {err.lineno}: malformed JSON: {err.msg}") from err
     configs = data.get("lidar_configs") if isinstance(data, dict) else None

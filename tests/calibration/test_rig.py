@@ -98,7 +98,7 @@ def test_livox_config_json(tmp_path):
     assert np.array_equal(read_rig(tmp_path / "rig.yaml").lidar("bottom").T_cam0_lidar, T)
     where = f"{tmp_path / 'rig.yaml'}: lidars.bottom"
     for bad, message in (
-        ({"livox_config": "."}, f"{where}.livox_config: {tmp_path}: cannot read the Livox config file: Is a directory"),
+        ({"livox_config": "."}, f"{where}.livox_config: {tmp_path}: is a folder, not a Livox config file"),
         ({"ip": None}, f"{where}: missing key 'ip' (which LiDAR of the livox_config it is)"),
     ):  # fmt: skip
         doc = yaml.safe_load(yaml.safe_dump(rig_doc))
@@ -117,7 +117,7 @@ def test_livox_config_json(tmp_path):
     path.write_bytes(b'{"lidar_configs": [{"ip": "caf\xe9"}]}')
     with pytest.raises(
         CalibrationError,
-        match=r"MID360_config\.json: not a JSON Livox config \(byte 30 is 0xe9, not UTF-8 text\)$",
+        match=r"MID360_config\.json: not a JSON Livox config file \(byte 30 is 0xe9, not UTF-8 text\)$",
     ):
         read_livox_config(path)
 

@@ -1,0 +1,193 @@
+"""Issue 49: rig and calibration files, special files and bounds: refused in one line, never silent wrong GT.
+
+Each case is run as a user would (`sensorbox ...` in this process, or in a
+child process with a memory and time limit where the fault, unfixed, would
+read without end or wait forever) with its fixture written to tmp_path.
+"""
+
+from __future__ import annotations
+
+import os
+import resource
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from calibration import CalibrationError, read_kalibr_camchain, read_rig
+from tests.faults.bags import INDOOR
+from tests.faults.cli import sensorbox
+from tests.paths import ROOT
+
+TRUTH = INDOOR.parent / "indoor_static_mcap.truth"
+
+
+def _rig(tmp: Path, edit: dict[str, object] | None = None, camchain: str = "camchain.yaml") -> Path:
+    """The indoor fixture's rig (480x300 cameras) in `tmp`, its top-level keys updated by `edit`
+    (None drops a key), its camchain copied beside it and named `camchain`."""
+    shutil.copy(TRUTH / "camchain.yaml", tmp / "camchain.yaml")
+    doc = yaml.safe_load((TRUTH / "rig.yaml").read_text())
+    doc["camchain"] = camchain
+    for key, value in (edit or {}).items():
+        if value is None:
+            del doc[key]
+        else:
+            doc[key] = value
+    path = tmp / "rig.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    return path
+
+
+def test_a_misspelt_rig_key_is_refused_not_ignored(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`imu:` for `imus:` dropped both IMUs without a word (dense GT p95 29.2 mm against 1.7 mm)."""
+    imus = yaml.safe_load((TRUTH / "rig.yaml").read_text())["imus"]
+    rig = _rig(tmp_path, {"imus": None, "imu": imus})
+    code, _, err = sensorbox(capsys, "calib", "check", str(rig))
+    assert (code, err) == (
+        2,
+        [
+            f"error: {rig}: unknown key 'imu' (did you mean 'imus'?); "
+            "known keys: sensorbox_rig, name, camchain, cameras, lidars, imus"
+        ],
+    )
+    out = tmp_path / "ds"
+    code, _, err = sensorbox(capsys, "ingest", str(INDOOR), "--rig", str(rig), "--out", str(out))
+    assert code == 2 and err[0].startswith(f"error: {rig}: unknown key 'imu'") and len(err) == 1
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(("scale", "shown"), [(1000.0, "89.5"), (1e12 / 0.0895, "1e+12")])
+def test_a_lidar_lever_arm_in_millimetres_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], scale: float, shown: str
+) -> None:
+    """87 mm written as 87 (or 1e12 m) passed calib check, inspect and ingest; density fell 10.4 -> 4.4 %."""
+    lidars = yaml.safe_load((TRUTH / "rig.yaml").read_text())["lidars"]
+    T = np.array(lidars["lidar_top"]["T_cam0_lidar"], float)
+    T[:3, 3] *= scale
+    lidars["lidar_top"]["T_cam0_lidar"] = T.tolist()
+    rig = _rig(tmp_path, {"lidars": lidars})
+    line = (
+        f"error: {rig}: lidars.lidar_top.T_cam0_lidar: translation {shown} m from cam0: expected <= 2 m "
+        "on a handheld rig (millimetres written as metres?)"
+    )
+    for command in (["calib", "check", str(rig)], ["inspect", str(INDOOR), "--rig", str(rig)]):
+        code, _, err = sensorbox(capsys, *command)
+        assert (code, err) == (2, [line]), command
+
+
+def test_a_100k_deep_yaml_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A RecursionError traceback in calib check, inspect and ingest."""
+    deep = tmp_path / "deep.yaml"
+    deep.write_text("cam0: " + "[" * 100_000 + "]" * 100_000 + "\n")
+    line = f"error: {deep}: line 1, column 70: malformed YAML: nested more than 64 levels deep"
+    out = tmp_path / "ds"
+    for command in (
+        ["calib", "check", str(deep)],
+        ["inspect", str(INDOOR), "--rig", str(deep)],
+        ["ingest", str(INDOOR), "--rig", str(deep), "--out", str(out)],
+    ):
+        code, _, err = sensorbox(capsys, *command)
+        assert (code, err) == (2, [line]), command
+    assert not out.exists()
+
+
+def _limited() -> None:
+    """In the child: 3 GiB of address space, so reading /dev/zero unbounded ends in a MemoryError."""
+    resource.setrlimit(resource.RLIMIT_AS, (3 << 30, 3 << 30))
+
+
+def _guarded(*args: str) -> tuple[int, list[str]]:
+    """(exit code, stderr lines) of `sensorbox ARGS` in a child with a memory limit and a 60 s timeout."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    try:
+        res = subprocess.run(
+            [sys.executable, "-m", "sensorbox.cli", *args],
+            capture_output=True, text=True, timeout=60, env=env, preexec_fn=_limited,
+        )  # fmt: skip
+    except subprocess.TimeoutExpired:
+        return -1, ["timed out: the read blocked"]
+    return res.returncode, res.stderr.splitlines()
+
+
+def _special(kind: str, path: Path) -> str:
+    """Make `path` a `kind` of special file; return how the error line names it."""
+    if kind == "fifo":
+        os.mkfifo(path)
+        return "is a FIFO (named pipe)"
+    if kind == "folder":
+        path.mkdir()
+        return "is a folder"
+    path.symlink_to(f"/dev/{kind}")
+    return f"is a character device (a link to /dev/{kind})"
+
+
+@pytest.mark.parametrize("kind", ["zero", "urandom", "fifo", "folder"])
+def test_a_camchain_that_is_not_a_regular_file_is_refused_before_reading(tmp_path: Path, kind: str) -> None:
+    """A camchain linked to /dev/zero or /dev/urandom was read until the OOM killer came (24 GB); a FIFO
+    blocked forever."""
+    rig = _rig(tmp_path, camchain="chain.yaml")
+    chain = tmp_path / "chain.yaml"
+    what = _special(kind, chain)
+    assert _guarded("calib", "check", str(rig)) == (
+        2,
+        [f"error: {chain}: {what}, not a Kalibr camchain (referenced by rig.yaml) file"],
+    )
+
+
+def test_a_rig_that_is_a_fifo_is_refused(tmp_path: Path) -> None:
+    rig = tmp_path / "rig.yaml"
+    os.mkfifo(rig)
+    assert _guarded("calib", "check", str(rig)) == (
+        2,
+        [f"error: {rig}: is a FIFO (named pipe), not a rig file"],
+    )
+
+
+def test_a_yaml_file_over_4_mib_is_refused_unread(tmp_path: Path) -> None:
+    rig = _rig(tmp_path)
+    with rig.open("a") as f:
+        f.write("#" * (4 << 20))
+    with pytest.raises(CalibrationError) as err:
+        read_rig(rig)
+    assert (
+        str(err.value)
+        == f"{rig}: {rig.stat().st_size} bytes; a rig file is at most 4 MiB (is this the right file?)"
+    )
+
+
+def _camchain_with(tmp: Path, edit: str, to: str) -> Path:
+    path = tmp / "camchain.yaml"
+    text = (TRUTH / "camchain.yaml").read_text()
+    assert edit in text
+    path.write_text(text.replace(edit, to, 1))
+    return path
+
+
+def test_a_double_sphere_xi_of_1e9_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Ingest ended in a ZeroDivisionError: the valid image circle of such a camera is a few pixels."""
+    chain = _camchain_with(tmp_path, "intrinsics: [-0.18153,", "intrinsics: [1.0e9,")
+    code, _, err = sensorbox(capsys, "calib", "check", str(chain))
+    assert (code, err) == (
+        2,
+        [
+            f"error: {chain}: cam0: DoubleSphere: xi must be in [-1, 1], got 1000000000.0 (beyond it the "
+            "valid image circle shrinks to a few pixels; a fitted fisheye's xi is about -0.3..0.3)"
+        ],
+    )
+
+
+def test_a_resolution_of_1e9_is_refused_before_any_map_is_sized(tmp_path: Path) -> None:
+    """Ingest asked numpy for 6.94 EiB. Asserted on the reader, which allocates nothing either way."""
+    chain = _camchain_with(tmp_path, "resolution: [480, 300]", "resolution: [1000000000, 1000000000]")
+    with pytest.raises(CalibrationError) as err:
+        read_kalibr_camchain(chain)
+    assert str(err.value) == (
+        f"{chain}: cam0.resolution: expected [width, height] positive ints of at most 16384, "
+        "got [1000000000, 1000000000]"
+    )
