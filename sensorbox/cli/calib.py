@@ -9,13 +9,18 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 from rich.table import Table
 
-from sensorbox.cli.common import check_out_file, console, print_warning
+from sensorbox.cli.common import check_out_file, console, path_param, print_warning
 
 if TYPE_CHECKING:
     from calibration.report import RigReport
 
-PathArg = Annotated[Path, typer.Argument(help="Rig file (sensorbox_rig YAML) or Kalibr camchain.")]
-PlotOpt = Annotated[Path | None, typer.Option("--plot", help="Write a top/side drawing of the rig (PNG).")]
+PathArg = Annotated[
+    Path, typer.Argument(help="Rig file (sensorbox_rig YAML) or Kalibr camchain.", **path_param("RIG"))
+]
+PlotOpt = Annotated[
+    Path | None,
+    typer.Option("--plot", help="Write a top/side drawing of the rig (PNG).", **path_param("--plot")),
+]
 
 
 def _fmt(value: object) -> str:

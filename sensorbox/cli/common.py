@@ -4,16 +4,17 @@ checks of an output path given on the command line (before any long work)."""
 from __future__ import annotations
 
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Annotated, Protocol
+from typing import Annotated, Any, Protocol
 
 import typer
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 from rich.text import Text
 
+from calibration.errors import SensorboxError
 from ingest.errors import DatasetError
 
 console = Console(width=None if sys.stdout.isatty() else 140, highlight=False)
@@ -21,6 +22,29 @@ err_console = Console(stderr=True, width=None if sys.stderr.isatty() else 200)
 
 LidarMsgOpt = Annotated[str, typer.Option(help="custom (livox CustomMsg) | pointcloud2.")]
 """The LiDAR message type of a written bag (simulate, capture)."""
+
+
+def _nonempty_path(flag: str) -> Callable[[str], Path]:
+    """The parser of the path given to `flag`: an empty one is refused in one line naming `flag`.
+
+    Typer reads "" as Path("."), so `ingest --out ""` wrote the dataset into
+    the current folder.
+    """
+
+    def parse(value: str) -> Path:
+        if not str(value).strip():
+            raise SensorboxError(f"{flag} {value!r}: empty path (that is the current folder); give a path")
+        return Path(value)
+
+    return parse
+
+
+def path_param(flag: str, many: bool = False) -> dict[str, Any]:
+    """`typer.Option` (`flag` "--out") or `typer.Argument` (`flag` "BAGS") keywords of a path, `many`
+    for a list of them: an empty value is refused (`_nonempty_path`), the help shows what it did."""
+    if not flag.startswith("-"):  # an argument: its usage name stays the parameter's
+        return {"parser": _nonempty_path(flag)}
+    return {"parser": _nonempty_path(flag), "metavar": "<list[Path]>" if many else "<path>"}
 
 
 class Update(Protocol):

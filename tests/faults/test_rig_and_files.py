@@ -191,3 +191,83 @@ def test_a_resolution_of_1e9_is_refused_before_any_map_is_sized(tmp_path: Path) 
         f"{chain}: cam0.resolution: expected [width, height] positive ints of at most 16384, "
         "got [1000000000, 1000000000]"
     )
+
+
+def test_an_emptied_launch_argument_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """`out:=` wrote /rig.yaml and /rig-camchain.yaml at the filesystem root (write_rig = $(var out)/rig.yaml)."""
+    launch = ROOT / "sensorbox" / "share" / "launch" / "sim.launch.yaml"
+    code, out, err = sensorbox(capsys, "launch", str(launch), "out:=", "--dry-run")
+    assert (code, out, err) == (
+        2,
+        "",
+        [
+            f"error: {launch}: launch argument out:= is empty (its default is 'bags/sim'); "
+            "give a value, or leave it out for the default"
+        ],
+    )
+    code, out, _ = sensorbox(capsys, "launch", str(launch), "name:=", "--dry-run")  # its default is empty
+    assert code == 0 and "param name = ''" in out
+
+
+@pytest.mark.parametrize("option", ["--out", "--rig"])
+def test_an_empty_path_option_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, option: str
+) -> None:
+    """`ingest --out ""` wrote the dataset into the current folder (typer reads "" as ".")."""
+    monkeypatch.chdir(tmp_path)
+    args = {"--out": str(tmp_path / "ds"), "--rig": str(TRUTH / "rig.yaml"), option: ""}
+    code, _, err = sensorbox(capsys, "ingest", str(INDOOR), *(s for kv in args.items() for s in kv))
+    assert (code, err) == (2, [f"error: {option} '': empty path (that is the current folder); give a path"])
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_empty_paths_of_other_commands_are_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    rig = str(TRUTH / "rig.yaml")
+    for command, flag in (
+        (["ingest", "", "--rig", rig, "--out", str(tmp_path / "ds")], "BAGS"),
+        (["calib", "check", rig, "--plot", ""], "--plot"),
+        (["stats", ""], "DATASET"),
+        (["simulate", "--out", ""], "--out"),
+        (["render-benchmark", "x.ply", "--rig", rig, "--out", ""], "--out"),
+        (["bench", "--out", ""], "--out"),
+        (["eval", "--dataset", str(tmp_path), "--pred", "", "--task", "stereo"], "--pred"),
+    ):
+        code, _, err = sensorbox(capsys, *command)
+        assert (code, err) == (2, [f"error: {flag} '': empty path (that is the current folder); give a path"])
+
+
+def test_bad_launch_files_are_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A binary launch file was a UnicodeDecodeError traceback, 400 nested groups a RecursionError."""
+    binary = tmp_path / "bin.launch.yaml"
+    binary.write_bytes(b'launch:\n- arg: {name: a, default: "\x89PNG"}\n')
+    groups = tmp_path / "groups.launch.yaml"
+    groups.write_text(
+        "launch:\n" + "".join("  " * i + "- group:\n" for i in range(400)) + "  " * 400 + "- log: {}\n"
+    )
+    chain = [tmp_path / f"inc{i}.launch.yaml" for i in range(40)]
+    for i, path in enumerate(chain[:-1]):
+        path.write_text(f"launch:\n- include: {{file: {chain[i + 1].name}}}\n")
+    chain[-1].write_text("launch: []\n")
+    for path, line in (
+        (binary, f"{binary}: not a YAML launch file (byte 35 is 0x89, not UTF-8 text)"),
+        (groups, f"{groups}: line 33, column 65: malformed YAML: nested more than 64 levels deep"),
+        (chain[0], f"{chain[32]}: included more than 32 files deep (from {chain[0]})"),
+    ):
+        code, _, err = sensorbox(capsys, "launch", str(path), "--dry-run")
+        assert (code, err) == (2, [f"error: {line}"])
+
+
+def test_a_launch_substitution_growing_to_gigabytes_is_refused(tmp_path: Path) -> None:
+    """`let`s that each double the last: a MemoryError traceback (run with a memory limit)."""
+    launch = tmp_path / "grow.launch.yaml"
+    lets = "".join(f'- let: {{name: a{i}, value: "$(var a{i - 1})$(var a{i - 1})"}}\n' for i in range(1, 40))
+    launch.write_text("launch:\n- let: {name: a0, value: " + "x" * 64 + "}\n" + lets)
+    assert _guarded("launch", str(launch), "--dry-run") == (
+        2,
+        [
+            f"error: {launch}:13: a substituted value longer than 100000 characters "
+            "(a substitution that grows with each use?)"
+        ],
+    )
