@@ -20,7 +20,7 @@ MAX_TEXT_FILE_BYTES = 4 * 1024 * 1024
 a launch file a few KiB: a file a thousand times over them is not one of them."""
 
 
-def _kind(mode: int) -> str:
+def file_kind(mode: int) -> str:
     """What a non-regular file is, in words."""
     for test, name in (
         (stat.S_ISDIR, "a folder"),
@@ -51,7 +51,7 @@ def check_regular_file(
     if not stat.S_ISREG(st.st_mode):
         target = os.path.realpath(path)
         via = f" (a link to {target})" if target != str(path.absolute()) else ""
-        raise error(f"{path}: is {_kind(st.st_mode)}{via}, not a {what} file")
+        raise error(f"{path}: is {file_kind(st.st_mode)}{via}, not a {what} file")
     if st.st_size > max_bytes:
         raise error(
             f"{path}: {st.st_size} bytes; a {what} file is at most {max_bytes // (1024 * 1024)} MiB "

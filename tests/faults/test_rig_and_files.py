@@ -271,3 +271,22 @@ def test_a_launch_substitution_growing_to_gigabytes_is_refused(tmp_path: Path) -
             "(a substitution that grows with each use?)"
         ],
     )
+
+
+def test_a_bag_that_is_a_fifo_is_refused(tmp_path: Path) -> None:
+    """A FIFO named x.mcap (or a rosbag2 folder's data file) made inspect and ingest wait forever."""
+    fifo = tmp_path / "x.mcap"
+    os.mkfifo(fifo)
+    line = f"error: {fifo}: is a FIFO (named pipe), not a bag file or rosbag2 folder"
+    assert _guarded("inspect", str(fifo)) == (2, [line])
+    folder = tmp_path / "rec"
+    folder.mkdir()
+    shutil.copy(INDOOR / "metadata.yaml", folder)
+    os.mkfifo(folder / "rec_0.mcap")
+    out = tmp_path / "ds"
+    rig = str(TRUTH / "rig.yaml")
+    assert _guarded("ingest", str(folder), "--rig", rig, "--out", str(out)) == (
+        2,
+        [f"error: {folder / 'rec_0.mcap'}: is a FIFO (named pipe), not a bag file or rosbag2 folder"],
+    )
+    assert not out.exists()
