@@ -290,3 +290,23 @@ def test_a_bag_that_is_a_fifo_is_refused(tmp_path: Path) -> None:
         [f"error: {folder / 'rec_0.mcap'}: is a FIFO (named pipe), not a bag file or rosbag2 folder"],
     )
     assert not out.exists()
+
+
+def test_a_npy_header_claiming_1e10_values_is_refused_before_allocation(tmp_path: Path) -> None:
+    """`sensorbox eval` asked numpy for 37.3 GiB (run with a memory limit: unfixed, it is a MemoryError)."""
+    from tests.ingest.test_evaluate import make_benchmark, write_predictions
+
+    bench = make_benchmark(tmp_path / "bench")
+    pred = tmp_path / "pred"
+    npy = next(p for p in write_predictions(bench, pred, "stereo") if p.suffix == ".npy")
+    with npy.open("wb") as f:  # the magic string and a header, no data
+        np.lib.format.write_array_header_1_0(
+            f, {"descr": "<f4", "fortran_order": False, "shape": (100000, 100000)}
+        )
+    assert _guarded("eval", "--dataset", str(bench), "--pred", str(pred), "--task", "stereo") == (
+        2,
+        [
+            f"error: {npy}: the .npy header claims shape (100000, 100000) of float32 (40000000000 bytes), "
+            "but the file holds 0 bytes of data"
+        ],
+    )
