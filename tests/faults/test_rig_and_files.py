@@ -310,3 +310,36 @@ def test_a_npy_header_claiming_1e10_values_is_refused_before_allocation(tmp_path
             "but the file holds 0 bytes of data"
         ],
     )
+
+
+@pytest.mark.parametrize(
+    ("args", "line"),
+    [
+        (
+            ["--scale", "100"],
+            "--scale 100 makes camera cam0 192000x120000 px; expected <= 16,777,216 px (--scale <= 2.698)",
+        ),
+        (
+            ["--supersample", "1000"],
+            "--supersample 1000 casts 2,304,000,000,000 rays a frame for camera cam0 (1920x1200 px at --scale 1); "
+            "expected <= 16,777,216 (--supersample <= 2)",
+        ),
+    ],
+)
+def test_a_simulation_too_big_for_memory_is_refused_before_allocation(
+    tmp_path: Path, args: list[str], line: str
+) -> None:
+    """--scale 100 asked numpy for 172 GiB, --supersample 1000 for more (run with a memory limit)."""
+    out = tmp_path / "sim"
+    assert _guarded("simulate", "--out", str(out), *args) == (2, [f"error: {line}"])
+    assert not out.exists()
+
+
+def test_a_negative_seed_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A ValueError traceback from numpy's generator."""
+    out = tmp_path / "sim"
+    assert sensorbox(capsys, "simulate", "--out", str(out), "--seed", "-1")[::2] == (
+        2,
+        ["error: --seed must be an integer >= 0, got -1"],
+    )
+    assert not out.exists()
