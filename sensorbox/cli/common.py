@@ -3,6 +3,8 @@ checks of an output path given on the command line (before any long work)."""
 
 from __future__ import annotations
 
+import errno
+import os
 import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -15,7 +17,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.text import Text
 
 from calibration.errors import SensorboxError
-from ingest.errors import DatasetError
+from ingest.errors import DatasetError, OutputError
 
 console = Console(width=None if sys.stdout.isatty() else 140, highlight=False)
 err_console = Console(stderr=True, width=None if sys.stderr.isatty() else 200)
@@ -91,27 +93,46 @@ def progress_bar(verb: str, unit: str) -> Iterator[Update]:
 
 
 def check_out_folder(flag: str, folder: Path, holds: str) -> None:
-    """Refuse, before any work, an output folder that is a file or lies under a file.
+    """Refuse, before any work, an output folder that is a file, lies under a file or cannot be written.
 
     One line naming the option and the path ("--out X: is a file; give a folder
     for HOLDS"), where mkdir would fail only after the work with a bare
-    "File exists" or "Not a directory". Nothing is created.
+    "File exists" or "Not a directory". A folder the operating system will not
+    let this process write into (a read-only file system, no permission: the
+    nearest existing one decides) is an `OutputError`, exit code 3, as the
+    write itself would be: `bench` found out only after its 25 s run.
+    Nothing is created.
     """
     if folder.exists() and not folder.is_dir():
         raise DatasetError(f"{flag} {folder}: is a file; give a folder for {holds}")
-    _check_parents(flag, folder)
+    _check_parents(flag, folder, (folder,))
 
 
 def check_out_file(flag: str, path: Path) -> None:
-    """Refuse, before any work, an output file whose folder would have to be made where a file is."""
+    """Refuse, before any work, an output file whose folder would have to be made where a file is,
+    or cannot be written into."""
     _check_parents(flag, path)
 
 
-def _check_parents(flag: str, path: Path) -> None:
-    for parent in path.parents:  # the nearest one that exists decides
+def _write_refused(folder: Path) -> str | None:
+    """Why this process may not create files in `folder` (an existing one), or None when it may."""
+    if os.access(folder, os.W_OK | os.X_OK):
+        return None
+    try:
+        read_only = bool(os.statvfs(folder).f_flag & os.ST_RDONLY)
+    except OSError:
+        read_only = False
+    return os.strerror(errno.EROFS if read_only else errno.EACCES)
+
+
+def _check_parents(flag: str, path: Path, also: tuple[Path, ...] = ()) -> None:
+    for parent in (*also, *path.parents):  # the nearest one that exists decides
         if parent.exists():
             if not parent.is_dir():
                 raise DatasetError(f"{flag} {path}: {parent} is a file, not a folder")
+            if (why := _write_refused(parent)) is not None:
+                where = "" if parent == path else f" (in {parent})"
+                raise OutputError(f"{flag} {path}: cannot write{where}: {why}")
             return
 
 

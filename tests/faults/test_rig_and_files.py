@@ -7,11 +7,13 @@ read without end or wait forever) with its fixture written to tmp_path.
 
 from __future__ import annotations
 
+import errno
 import os
 import resource
 import shutil
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -343,3 +345,45 @@ def test_a_negative_seed_is_refused(tmp_path: Path, capsys: pytest.CaptureFixtur
         ["error: --seed must be an integer >= 0, got -1"],
     )
     assert not out.exists()
+
+
+@pytest.fixture
+def read_only_folder(tmp_path: Path) -> Iterator[Path]:
+    """A folder this process cannot write into: mode 0555, or as root (who ignores modes) a read-only
+    tmpfs mounted there; skipped where neither can be had."""
+    folder = tmp_path / "ro"
+    folder.mkdir()
+    if os.geteuid() != 0:
+        folder.chmod(0o555)
+        yield folder
+        folder.chmod(0o755)
+        return
+    mount = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", "ro,size=1m", "tmpfs", str(folder)], capture_output=True
+    )
+    if mount.returncode != 0:
+        pytest.skip(f"cannot mount a read-only tmpfs: {mount.stderr.decode().strip()}")
+    try:
+        yield folder
+    finally:
+        subprocess.run(["umount", str(folder)], check=True)
+
+
+@pytest.mark.parametrize("under", [False, True])
+@pytest.mark.parametrize(
+    "command",
+    [
+        ["bench"],
+        ["render-benchmark", "site.yaml", "--rig", str(ROOT / "calibration" / "sensorbox.yaml")],
+        ["stats", str(TRUTH)],
+    ],
+)
+def test_a_read_only_out_is_refused_before_the_work_with_exit_3(
+    read_only_folder: Path, capsys: pytest.CaptureFixture[str], command: list[str], under: bool
+) -> None:
+    """bench failed only after its whole 25 s run; render-benchmark exited 2 (3 is an OS-refused write)."""
+    out = read_only_folder / "b" if under else read_only_folder
+    why = os.strerror(errno.EROFS if os.geteuid() == 0 else errno.EACCES)
+    where = f" (in {read_only_folder})" if under else ""
+    code, _, err = sensorbox(capsys, *command, "--out", str(out))
+    assert (code, err) == (3, [f"error: --out {out}: cannot write{where}: {why}"])
