@@ -252,6 +252,7 @@ def _parse_camera(name: str, block: object, where: str) -> dict[str, Any]:
         camera = model_from_kalibr(model, intr, dist, coeffs, res)
     except CalibrationError as err:
         raise CalibrationError(f"{where}: {err}") from err
+    _require_rays(camera, where)
     out: dict[str, Any] = {"model": camera}
     if "T_cn_cnm1" in block:
         out["T_cn_cnm1"] = as_transform(block["T_cn_cnm1"], f"{where}.T_cn_cnm1")
@@ -277,6 +278,29 @@ def _parse_camera(name: str, block: object, where: str) -> dict[str, Any]:
             raise CalibrationError(f"{where}.cam_overlaps: expected a list of camera indices, got {ov!r}")
         out["cam_overlaps"] = tuple(ov)
     return out
+
+
+MIN_RAY_FRACTION = 0.05
+"""Least share of a camera's image (sampled on a 32 x 20 grid of pixels) that must unproject to rays."""
+
+
+def _require_rays(camera: CameraModel, where: str) -> None:
+    """Refuse a model that maps (almost) no pixel to a ray: it would see nothing.
+
+    Such parameters are valid numbers but not a lens: an omni xi of 1e3, an
+    eucm beta of 1e3 shrink the valid image circle to a few pixels, and
+    ingest divided by its zero valid pixels. A real fisheye's circle covers
+    most of its image.
+    """
+    cols = (np.arange(32) + 0.5) * camera.width / 32 - 0.5
+    rows = (np.arange(20) + 0.5) * camera.height / 20 - 0.5
+    grid = np.stack(np.meshgrid(cols, rows), axis=-1).reshape(-1, 2)
+    _, valid = camera.unproject(grid)
+    if valid.mean() < MIN_RAY_FRACTION:
+        raise CalibrationError(
+            f"{where}: the {type(camera).__name__} model maps only {int(valid.sum())} of {len(grid)} sampled "
+            f"pixels (a 32 x 20 grid) to rays; a lens sees through most of its image: check the intrinsics"
+        )
 
 
 def _require_agreement(given: F64, implied: F64, what: str) -> None:

@@ -387,3 +387,30 @@ def test_a_read_only_out_is_refused_before_the_work_with_exit_3(
     where = f" (in {read_only_folder})" if under else ""
     code, _, err = sensorbox(capsys, *command, "--out", str(out))
     assert (code, err) == (3, [f"error: --out {out}: cannot write{where}: {why}"])
+
+
+@pytest.mark.parametrize(
+    ("model", "intrinsics", "name"),
+    [
+        ("omni", [1000.0, 125.0, 125.0, 240.0, 150.0], "Omni"),
+        ("eucm", [0.6, 1000.0, 125.0, 125.0, 240.0, 150.0], "ExtendedUnified"),
+    ],
+)
+def test_a_camera_that_sees_through_no_pixel_is_refused(
+    tmp_path: Path, model: str, intrinsics: list[float], name: str
+) -> None:
+    """Valid numbers that are no lens (the image circle a few pixels wide): ingest divided by its zero
+    valid pixels, as with a ds xi of 1e9."""
+    chain = tmp_path / "camchain.yaml"
+    cam = {"camera_model": model, "intrinsics": intrinsics, "distortion_model": "none", "distortion_coeffs": [],
+           "resolution": [480, 300]}  # fmt: skip
+    chain.write_text(yaml.safe_dump({"cam0": cam}))
+    with pytest.raises(CalibrationError) as err:
+        read_kalibr_camchain(chain)
+    assert str(err.value) == (
+        f"{chain}: cam0: the {name} model maps only 0 of 640 sampled pixels (a 32 x 20 grid) to rays; "
+        "a lens sees through most of its image: check the intrinsics"
+    )
+    cam["intrinsics"] = [0.5, *intrinsics[1:]] if model == "omni" else [0.6, 1.0, *intrinsics[2:]]
+    chain.write_text(yaml.safe_dump({"cam0": cam}))
+    assert read_kalibr_camchain(chain).cameras[0].model.width == 480  # the same lens with sane parameters
