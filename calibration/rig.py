@@ -318,7 +318,9 @@ def _parse_lidar(name: str, block: object, where: str, base_dir: Path) -> Lidar:
         _check_lever_arm(T, f"{where}.T_cam0_lidar", "millimetres written as metres?")
     else:
         if given[0] == "livox_extrinsic":
-            T_base_lidar = _livox_block(block["livox_extrinsic"], f"{where}.livox_extrinsic")
+            inline = _require_mapping(block["livox_extrinsic"], f"{where}.livox_extrinsic")
+            _known_keys(inline, _LIVOX_KEYS, f"{where}.livox_extrinsic")  # the driver's JSON may hold more
+            T_base_lidar = _livox_block(inline, f"{where}.livox_extrinsic")
         else:
             cfg_path = base_dir / str(block["livox_config"])
             if ip is None:

@@ -192,6 +192,7 @@ def _rig_with(tmp_path, **changes):
         ({"calibration": "x"}, r"rig\.yaml: unknown key 'calibration'; known keys: sensorbox_rig, name, camchain, cameras, lidars, imus$"),
         ({"lidars__lidar_top__T_cam0_base": np.eye(4).tolist()}, r"rig\.yaml: lidars\.lidar_top\.T_cam0_base: places a livox_extrinsic or livox_config in cam0; with T_cam0_lidar it would be ignored \(give T_cam0_lidar = T_cam0_base @ T_base_lidar alone\)$"),
         ({"lidars__lidar_top__T_cam_lidar": np.eye(4).tolist()}, r"rig\.yaml: lidars\.lidar_top: unknown key 'T_cam_lidar' \(did you mean 'T_cam0_lidar'\?\); known keys: topic, ip, T_cam0_lidar, livox_extrinsic, livox_config, T_cam0_base$"),
+        ({"lidars__lidar_top__T_cam0_lidar": None, "lidars__lidar_top__livox_extrinsic": {"roll": 0.0, "pitch": 0.0, "yaw": 0.0, "x": 0, "y": 0, "z": 100, "z_mm": 100}}, r"rig\.yaml: lidars\.lidar_top\.livox_extrinsic: unknown key 'z_mm'; known keys: roll, pitch, yaw, x, y, z$"),
         ({"imus__imu_top__rate": 200}, r"rig\.yaml: imus\.imu_top: unknown key 'rate' \(did you mean 'rate_hz'\?\); known keys: topic, T_cam0_imu, rate_hz$"),
         ({"cameras__cam0__roll": "upper"}, r"rig\.yaml: cameras\.cam0: unknown key 'roll' \(did you mean 'role'\?\); known keys: role, topic$"),
     ],
