@@ -414,3 +414,27 @@ def test_a_camera_that_sees_through_no_pixel_is_refused(
     cam["intrinsics"] = [0.5, *intrinsics[1:]] if model == "omni" else [0.6, 1.0, *intrinsics[2:]]
     chain.write_text(yaml.safe_dump({"cam0": cam}))
     assert read_kalibr_camchain(chain).cameras[0].model.width == 480  # the same lens with sane parameters
+
+
+def test_a_site_manifest_or_livox_user_config_that_is_a_fifo_is_refused(tmp_path: Path) -> None:
+    """Both were read with a bare read_text: a FIFO waited forever."""
+    site = tmp_path / "site.yaml"
+    os.mkfifo(site)
+    rig = str(ROOT / "calibration" / "sensorbox.yaml")
+    assert _guarded("render-benchmark", str(site), "--rig", rig, "--out", str(tmp_path / "b")) == (
+        2,
+        [f"error: {site}: is a FIFO (named pipe), not a site manifest file"],
+    )
+    config = tmp_path / "MID360_config.json"
+    os.mkfifo(config)
+    code = f"from sensorbox.live.nodes import read_livox_json; read_livox_json({str(config)!r})"
+    try:
+        res = subprocess.run(
+            [sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
+            env={**os.environ, "PYTHONPATH": str(ROOT)},
+        )  # fmt: skip
+    except subprocess.TimeoutExpired:
+        pytest.fail("read_livox_json blocked on a FIFO")
+    assert res.stderr.splitlines()[-1] == (
+        f"sensorbox.errors.GraphError: {config}: is a FIFO (named pipe), not a Livox user config file"
+    )
