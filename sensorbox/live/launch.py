@@ -495,7 +495,7 @@ def _refuse_emptied(path: Path, args: Mapping[str, str], declared: Sequence[Laun
         if args.get(arg.name) == "" and arg.default:
             raise LaunchError(
                 f"{path}: launch argument {arg.name}:= is empty (its default is {arg.default!r}); "
-                f"give a value, or leave it out for the default"
+                "give a value, or leave it out for the default"
             )
 
 
