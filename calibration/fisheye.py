@@ -18,6 +18,7 @@ from functools import cached_property
 import numpy as np
 
 from calibration.camera import FocalModel
+from calibration.errors import CalibrationError
 from calibration.types import F64, Bool
 
 KB_TOL = 1e-13
@@ -53,6 +54,11 @@ class DoubleSphere(FocalModel):
 
     def _check_params(self) -> None:
         self._require_unit_interval("alpha")
+        if not -1.0 <= self.xi <= 1.0:  # the second sphere's centre lies within the first's radius
+            raise CalibrationError(
+                f"DoubleSphere: xi must be in [-1, 1], got {self.xi!r} (beyond it the valid image circle "
+                "shrinks to a few pixels; a fitted fisheye's xi is about -0.3..0.3)"
+            )
 
     @cached_property
     def w2(self) -> float:

@@ -44,6 +44,7 @@ import yaml
 from calibration.camera import CameraModel
 from calibration.distortion import Fov, RadTan
 from calibration.errors import CalibrationError
+from calibration.files import read_text
 from calibration.fisheye import DoubleSphere, ExtendedUnified, KannalaBrandt, Unified
 from calibration.opencv_yaml import load_opencv_yaml, yaml_error_line
 from calibration.pinhole import Omni, Pinhole
@@ -69,6 +70,10 @@ EXTRINSIC_TOL_DEG = 0.05
 """Largest rotation (degrees) between a given ``T_cn_cnm1`` and the one ``T_cam_imu`` implies."""
 EXTRINSIC_TOL_M = 0.001
 """Largest translation difference (metres) between a given ``T_cn_cnm1`` and the one ``T_cam_imu`` implies."""
+
+MAX_IMAGE_SIDE_PX = 16384
+"""Widest or tallest camera image read (pixels): 4 times a 4K camera's width. The warp maps and
+rectified images of a camera are sized from its resolution, so 1e9 pixels would ask for exabytes."""
 
 log = logging.getLogger(__name__)
 
@@ -180,18 +185,9 @@ def _number_list(value: object, where: str, count: int | None) -> list[float]:
 
 
 def load_yaml(path: Path, what: str) -> Any:
-    """Read a YAML file, turning I/O and syntax errors into `CalibrationError`."""
-    try:
-        text = path.read_text()
-    except FileNotFoundError as err:
-        raise CalibrationError(f"{path}: {what} file not found") from err
-    except OSError as err:
-        raise CalibrationError(f"{path}: cannot read {what} file: {err.strerror}") from err
-    except UnicodeDecodeError as err:
-        raise CalibrationError(
-            f"{path}: not a YAML {what} file "
-            f"(byte {err.start} is {err.object[err.start]:#04x}, not UTF-8 text)"
-        ) from err
+    """Read a YAML file (`calibration.files.read_text`: a regular file of at most 4 MiB), turning
+    I/O and syntax errors into `CalibrationError`."""
+    text = read_text(path, what)
     try:
         return load_opencv_yaml(text)
     except yaml.YAMLError as err:
@@ -239,9 +235,12 @@ def _parse_camera(name: str, block: object, where: str) -> dict[str, Any]:
     if (
         not isinstance(res, list)
         or len(res) != 2
-        or not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in res)
+        or not all(isinstance(v, int) and not isinstance(v, bool) and 0 < v <= MAX_IMAGE_SIDE_PX for v in res)
     ):
-        raise CalibrationError(f"{where}.resolution: expected [width, height] positive ints, got {res!r}")
+        raise CalibrationError(
+            f"{where}.resolution: expected [width, height] positive ints of at most {MAX_IMAGE_SIDE_PX}, "
+            f"got {res!r}"
+        )
     given = dict(zip(names, intr, strict=True))
     pu, pv = given["pu"], given["pv"]
     if not (0.0 <= pu <= res[0] and 0.0 <= pv <= res[1]):
@@ -253,6 +252,7 @@ def _parse_camera(name: str, block: object, where: str) -> dict[str, Any]:
         camera = model_from_kalibr(model, intr, dist, coeffs, res)
     except CalibrationError as err:
         raise CalibrationError(f"{where}: {err}") from err
+    _require_rays(camera, where)
     out: dict[str, Any] = {"model": camera}
     if "T_cn_cnm1" in block:
         out["T_cn_cnm1"] = as_transform(block["T_cn_cnm1"], f"{where}.T_cn_cnm1")
@@ -278,6 +278,29 @@ def _parse_camera(name: str, block: object, where: str) -> dict[str, Any]:
             raise CalibrationError(f"{where}.cam_overlaps: expected a list of camera indices, got {ov!r}")
         out["cam_overlaps"] = tuple(ov)
     return out
+
+
+MIN_RAY_FRACTION = 0.05
+"""Least share of a camera's image (sampled on a 32 x 20 grid of pixels) that must unproject to rays."""
+
+
+def _require_rays(camera: CameraModel, where: str) -> None:
+    """Refuse a model that maps (almost) no pixel to a ray: it would see nothing.
+
+    Such parameters are valid numbers but not a lens: an omni xi of 1e3, an
+    eucm beta of 1e3 shrink the valid image circle to a few pixels, and
+    ingest divided by its zero valid pixels. A real fisheye's circle covers
+    most of its image.
+    """
+    cols = (np.arange(32) + 0.5) * camera.width / 32 - 0.5
+    rows = (np.arange(20) + 0.5) * camera.height / 20 - 0.5
+    grid = np.stack(np.meshgrid(cols, rows), axis=-1).reshape(-1, 2)
+    _, valid = camera.unproject(grid)
+    if valid.mean() < MIN_RAY_FRACTION:
+        raise CalibrationError(
+            f"{where}: the {type(camera).__name__} model maps only {int(valid.sum())} of {len(grid)} sampled "
+            f"pixels (a 32 x 20 grid) to rays; a lens sees through most of its image: check the intrinsics"
+        )
 
 
 def _require_agreement(given: F64, implied: F64, what: str) -> None:

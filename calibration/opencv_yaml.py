@@ -34,7 +34,33 @@ def strip_opencv_directive(text: str) -> str:
     return _OPENCV_DIRECTIVE.sub("", text, count=1)
 
 
-class OpenCvSafeLoader(yaml.SafeLoader):
+MAX_YAML_DEPTH = 64
+"""Deepest nesting of mappings and lists read: the reference camchain nests 4 levels, the rig file 5,
+the shipped launch files 7 and 8. PyYAML composes recursively; a RecursionError came between 400
+and 500 levels."""
+
+
+class BoundedSafeLoader(yaml.SafeLoader):
+    """`yaml.SafeLoader` that refuses nesting deeper than `MAX_YAML_DEPTH` as a YAML error at its line."""
+
+    def __init__(self, stream: str) -> None:
+        super().__init__(stream)
+        self._depth = 0
+
+    def compose_node(self, parent: yaml.Node | None, index: int) -> yaml.Node | None:
+        self._depth += 1
+        try:
+            if self._depth > MAX_YAML_DEPTH:
+                mark = self.peek_event().start_mark  # type: ignore[no-untyped-call]
+                raise yaml.composer.ComposerError(
+                    None, None, f"nested more than {MAX_YAML_DEPTH} levels deep", mark
+                )
+            return super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
+
+
+class OpenCvSafeLoader(BoundedSafeLoader):
     """`yaml.SafeLoader` that also constructs ``!!opencv-matrix`` nodes (see the module doc).
 
     Two more differences from PyYAML's YAML 1.1 reading, for files other

@@ -23,10 +23,14 @@ A rig file is YAML::
 A LiDAR's pose is either ``T_cam0_lidar`` or the Livox driver's extrinsic
 (``livox_extrinsic`` inline, or ``livox_config: FILE.json`` + ``ip``), which maps
 the LiDAR into a base frame, placed in cam0 by ``T_cam0_base``.
+
+Keys other than these are refused (a misspelt ``imu:`` would drop both IMUs),
+as is a LiDAR or IMU more than `MAX_LEVER_ARM_M` from cam0.
 """
 
 from __future__ import annotations
 
+import difflib
 import importlib.resources
 import ipaddress
 import json
@@ -41,6 +45,7 @@ import yaml
 
 from calibration.camera import CameraModel
 from calibration.errors import CalibrationError
+from calibration.files import read_text
 from calibration.kalibr import (
     CameraChain,
     KalibrCamera,
@@ -58,6 +63,18 @@ REFERENCE_RIG = Path(str(importlib.resources.files("calibration") / "sensorbox.y
 RIG_VERSION = 1
 ROLES = ("upper", "lower")
 _LIVOX_KEYS = ("roll", "pitch", "yaw", "x", "y", "z")
+_RIG_KEYS = ("sensorbox_rig", "name", "camchain", "cameras", "lidars", "imus")
+_CAMERA_KEYS = ("role", "topic")
+_LIDAR_KEYS = ("topic", "ip", "T_cam0_lidar", "livox_extrinsic", "livox_config", "T_cam0_base")
+_IMU_KEYS = ("topic", "T_cam0_imu", "rate_hz")
+
+MAX_LEVER_ARM_M = 2.0
+"""Farthest a LiDAR or IMU may sit from cam0 (m). The rig is handheld: the
+reference rig's sensors are 0.02-0.21 m from cam0, and 2 m leaves room for any
+pole or backpack mount, while a lever arm written in millimetres (87 mm as 87)
+is 40 times over it. It is the bound the camera baseline is held to
+(`calibration.rectify.MAX_PLAUSIBLE_BASELINE_M`). A LiDAR pose is the ground
+truth's frame: a wrong one moves every GT point, so it is refused, not warned about."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -162,6 +179,29 @@ def _require_mapping(value: object, where: str) -> Mapping[str, Any]:
     return value
 
 
+def _known_keys(block: Mapping[Any, Any], known: tuple[str, ...], where: str) -> None:
+    """Refuse a key not in `known`: a misspelt one (``imu`` for ``imus``) would drop its sensors silently.
+
+    The rig file is SensorBox's own, versioned format (unlike a camchain,
+    which other tools extend), so an unknown key is a mistake, never data to skip.
+    """
+    for key in block:
+        if key not in known:
+            near = difflib.get_close_matches(str(key), known, n=1)
+            hint = f" (did you mean '{near[0]}'?)" if near else ""
+            raise CalibrationError(f"{where}: unknown key {key!r}{hint}; known keys: {', '.join(known)}")
+
+
+def _check_lever_arm(T: F64, where: str, hint: str) -> None:
+    """Refuse a sensor pose whose translation puts it over `MAX_LEVER_ARM_M` from cam0."""
+    distance_m = float(np.linalg.norm(T[:3, 3]))
+    if not distance_m <= MAX_LEVER_ARM_M:
+        raise CalibrationError(
+            f"{where}: translation {distance_m:.4g} m from cam0: expected <= {MAX_LEVER_ARM_M:g} m "
+            f"on a handheld rig ({hint})"
+        )
+
+
 def _require_str(block: Mapping[str, Any], key: str, where: str) -> str:
     if key not in block:
         raise CalibrationError(f"{where}: missing key '{key}'")
@@ -178,16 +218,11 @@ def read_livox_config(path: str | Path) -> dict[str, F64]:
     degrees and x/y/z in millimetres (R = Rz(yaw) Ry(pitch) Rx(roll)).
     """
     p = Path(path)
+    text = read_text(p, "Livox config", "JSON")  # a BOM, as some Windows editors save, is dropped
     try:
-        data = json.loads(p.read_text(encoding="utf-8-sig"))  # a BOM, as some Windows editors save
-    except FileNotFoundError as err:
-        raise CalibrationError(f"{p}: Livox config file not found") from err
-    except OSError as err:  # a folder, no permission
-        raise CalibrationError(f"{p}: cannot read the Livox config file: {err.strerror or err}") from err
-    except UnicodeDecodeError as err:
-        raise CalibrationError(
-            f"{p}: not a JSON Livox config (byte {err.start} is {err.object[err.start]:#04x}, not UTF-8 text)"
-        ) from err
+        data = json.loads(text)
+    except RecursionError as err:  # json's decoder recurses once per [ or {
+        raise CalibrationError(f"{p}: malformed JSON: nested too deeply for a Livox config") from err
     except json.JSONDecodeError as err:
         raise CalibrationError(f"{p}: line {err.lineno}: malformed JSON: {err.msg}") from err
     configs = data.get("lidar_configs") if isinstance(data, dict) else None
@@ -274,6 +309,7 @@ def _each_once(values: list[tuple[str, str | None]], field: str, where: str, why
 
 def _parse_lidar(name: str, block: object, where: str, base_dir: Path) -> Lidar:
     block = _require_mapping(block, where)
+    _known_keys(block, _LIDAR_KEYS, where)
     topic = _topic(_require_str(block, "topic", where))
     ip = block.get("ip")
     if ip is not None and not _is_ipv4(ip):
@@ -285,10 +321,18 @@ def _parse_lidar(name: str, block: object, where: str, base_dir: Path) -> Lidar:
             f"got {given or 'none'}"
         )
     if given[0] == "T_cam0_lidar":
+        if "T_cam0_base" in block:
+            raise CalibrationError(
+                f"{where}.T_cam0_base: places a livox_extrinsic or livox_config in cam0; with T_cam0_lidar "
+                "it would be ignored (give T_cam0_lidar = T_cam0_base @ T_base_lidar alone)"
+            )
         T = as_transform(block["T_cam0_lidar"], f"{where}.T_cam0_lidar")
+        _check_lever_arm(T, f"{where}.T_cam0_lidar", "millimetres written as metres?")
     else:
         if given[0] == "livox_extrinsic":
-            T_base_lidar = _livox_block(block["livox_extrinsic"], f"{where}.livox_extrinsic")
+            inline = _require_mapping(block["livox_extrinsic"], f"{where}.livox_extrinsic")
+            _known_keys(inline, _LIVOX_KEYS, f"{where}.livox_extrinsic")  # the driver's JSON may hold more
+            T_base_lidar = _livox_block(inline, f"{where}.livox_extrinsic")
         else:
             cfg_path = base_dir / str(block["livox_config"])
             if ip is None:
@@ -308,11 +352,15 @@ def _parse_lidar(name: str, block: object, where: str, base_dir: Path) -> Lidar:
             else np.eye(4)
         )
         T = T_cam0_base @ T_base_lidar
+        placed = " @ T_cam0_base" if "T_cam0_base" in block else ""
+        units = "the Livox x, y, z are millimetres, T_cam0_base metres"
+        _check_lever_arm(T, f"{where}.{given[0]}{placed}", units)
     return Lidar(name=name, topic=topic, T_cam0_lidar=T, ip=ip)
 
 
 def _parse_imu(name: str, block: object, where: str) -> Imu:
     block = _require_mapping(block, where)
+    _known_keys(block, _IMU_KEYS, where)
     topic = _topic(_require_str(block, "topic", where))
     if "T_cam0_imu" not in block:
         raise CalibrationError(f"{where}: missing key 'T_cam0_imu'")
@@ -321,10 +369,12 @@ def _parse_imu(name: str, block: object, where: str) -> Imu:
         not isinstance(rate, int | float) or isinstance(rate, bool) or not (rate > 0 and _finite(rate))
     ):
         raise CalibrationError(f"{where}.rate_hz: expected a positive number, got {rate!r}")
+    T_cam0_imu = as_transform(block["T_cam0_imu"], f"{where}.T_cam0_imu")
+    _check_lever_arm(T_cam0_imu, f"{where}.T_cam0_imu", "millimetres written as metres?")
     return Imu(
         name=name,
         topic=topic,
-        T_cam0_imu=as_transform(block["T_cam0_imu"], f"{where}.T_cam0_imu"),
+        T_cam0_imu=T_cam0_imu,
         rate_hz=None if rate is None else float(rate),
     )
 
@@ -350,6 +400,7 @@ def _parse_cameras(block: object, chain: CameraChain, where: str) -> tuple[Camer
     cams: list[Camera] = []
     for kc in chain.cameras:
         entry = _require_mapping(block.get(kc.name, {}), f"{where}.{kc.name}")
+        _known_keys(entry, _CAMERA_KEYS, f"{where}.{kc.name}")
         role = entry.get("role")
         if role is not None and role not in ROLES:
             raise CalibrationError(f"{where}.{kc.name}.role: expected one of {ROLES}, got {role!r}")
@@ -385,6 +436,7 @@ def read_rig(path: str | Path) -> Rig:
             f"{where}: sensorbox_rig: expected version {RIG_VERSION} "
             f"(or a Kalibr camchain with cam0, cam1, ...), got {version!r}"
         )
+    _known_keys(data, _RIG_KEYS, where)
     chain_name = _require_str(data, "camchain", where)
     chain_path = p.parent / chain_name
     chain_data = load_yaml(chain_path, f"Kalibr camchain (referenced by {p.name})")

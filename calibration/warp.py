@@ -287,11 +287,13 @@ def memory_budget_bytes() -> int:
     return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE") // 2
 
 
-def check_height_full(height_full: int, budget_bytes: int | None = None) -> int:
+def check_height_full(height_full: int, budget_bytes: int | None = None, given_by: str | None = None) -> int:
     """``height_full`` if a full sphere of it fits the memory budget, else a CalibrationError.
 
     The cost is SPHERE_BYTES_PER_PX per full-sphere pixel (remap maps, images,
     range, disparity and masks; measured: 6 GB RSS for ingest at 5888 rows).
+    `given_by` names what chose ``height_full`` when no --height-full did
+    (an image size, through `default_height_full`), so the message blames it.
     """
     budget = memory_budget_bytes() if budget_bytes is None else budget_bytes
     if height_full < 2:
@@ -300,7 +302,8 @@ def check_height_full(height_full: int, budget_bytes: int | None = None) -> int:
     if need > budget:
         most = max(2, int(math.sqrt(budget / (2 * SPHERE_BYTES_PER_PX))) // 256 * 256)
         raise CalibrationError(
-            f"--height-full {height_full}: a full-sphere equirect of {height_full} x {2 * height_full} "
+            f"{given_by or f'--height-full {height_full}'}: a full-sphere equirect of {height_full} x "
+            f"{2 * height_full} "
             f"needs about {need / 1e9:.1f} GB, over the budget of {budget / 1e9:.1f} GB (half this "
             f"machine's memory); pass --height-full {most} or less"
         )

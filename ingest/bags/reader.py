@@ -50,6 +50,7 @@ import contextlib
 import heapq
 import logging
 import sqlite3
+import stat
 from collections.abc import Callable, Collection, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from functools import cache
@@ -62,6 +63,7 @@ import zstandard
 from rosbags.interfaces import MessageDefinition, MessageDefinitionFormat
 
 from calibration.errors import SensorboxError
+from calibration.files import file_kind
 from calibration.opencv_yaml import yaml_error_line
 from ingest.bags.chunks import ChunkGuard, CorruptChunkError, DeferredData, LostChunk, guard_readers
 from ingest.bags.decode import RosVersion
@@ -227,6 +229,22 @@ def _salvage_targets(path: Path) -> list[Path]:
 # ---------------------------------------------------------------- opening
 
 
+def _refuse_special(path: Path) -> None:
+    """Refuse a bag (or a rosbag2 folder's metadata.yaml or data file) that is no regular file.
+
+    A FIFO named `x.mcap` made the reader wait forever; a link to /dev/zero
+    would be read without end. Symlinks are followed.
+    """
+    items = [path / "metadata.yaml", *path.glob("*.mcap"), *path.glob("*.db3")] if path.is_dir() else [path]
+    for item in items:
+        try:
+            mode = item.stat().st_mode
+        except FileNotFoundError:
+            continue  # a folder without metadata.yaml: said later, by what reads it
+        if not stat.S_ISREG(mode):
+            raise BagError(f"{item}: is {file_kind(mode)}, not a bag file or rosbag2 folder")
+
+
 def _ros_version(paths: Sequence[Path]) -> RosVersion:
     """1 for `.bag` files, 2 for `.mcap`/`.db3` files and directories; mixing is an error."""
     kinds: set[RosVersion] = set()
@@ -238,6 +256,7 @@ def _ros_version(paths: Sequence[Path]) -> RosVersion:
                 f"{path}: unfinished ROS 1 recording (.bag.active, the recorder was interrupted);"
                 " run `rosbag reindex` on it and rename it to .bag"
             )
+        _refuse_special(path)
         if path.is_dir() or path.suffix in (".mcap", ".db3"):
             kinds.add(2)
         elif path.suffix == ".bag":

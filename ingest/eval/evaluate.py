@@ -173,6 +173,44 @@ def _read_exr(path: Path) -> np.ndarray[Any, Any]:
     raise EvalError(f"{path}: expected one channel (or 'Y'), found {sorted(channels)}")
 
 
+def _npy_layout(path: Path) -> tuple[tuple[int, ...], np.dtype[Any], int]:
+    """The shape and dtype a .npy file's header declares, and the bytes of data after the header."""
+    try:
+        with path.open("rb") as f:
+            version = np.lib.format.read_magic(f)
+            read = (
+                np.lib.format.read_array_header_1_0
+                if version == (1, 0)
+                else np.lib.format.read_array_header_2_0
+            )
+            shape, _, dtype = read(f)
+            offset = f.tell()
+        return tuple(shape), dtype, path.stat().st_size - offset
+    except (OSError, ValueError, EOFError) as err:  # an empty file: EOFError, which click reads as Ctrl-D
+        raise EvalError(f"{path}: cannot read the .npy file ({err})") from err
+
+
+def _read_npy(path: Path) -> np.ndarray[Any, Any]:
+    """A .npy prediction, its header checked against the file's size before any array is allocated.
+
+    A header may claim more than the file holds (1e10 values: numpy
+    allocated 37 GiB before finding the data missing).
+    """
+    dims, dtype, have = _npy_layout(path)
+    need = math.prod(dims) * dtype.itemsize
+    if need > have:
+        raise EvalError(
+            f"{path}: the .npy header claims shape {dims} of {dtype} ({need} bytes), but the file holds "
+            f"{have} bytes of data"
+        )
+    try:
+        values = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError) as err:
+        raise EvalError(f"{path}: cannot read the .npy file ({err})") from err
+    squeezed: np.ndarray[Any, Any] = np.squeeze(values)
+    return squeezed
+
+
 def read_prediction(path: Path, scale: float) -> F32:
     """A prediction in metres or px (float32), NaN where there is none (0, negative, non-finite)."""
     ext = path.suffix.lower()
@@ -185,11 +223,7 @@ def read_prediction(path: Path, scale: float) -> F32:
     elif ext == ".exr":
         values = _read_exr(path)
     elif ext == ".npy":
-        try:
-            values = np.load(path, allow_pickle=False)
-        except (OSError, ValueError, EOFError) as err:  # an empty file: EOFError, which click reads as Ctrl-D
-            raise EvalError(f"{path}: cannot read the .npy file ({err})") from err
-        values = np.squeeze(values)
+        values = _read_npy(path)
         if not (np.issubdtype(values.dtype, np.floating) or np.issubdtype(values.dtype, np.integer)):
             raise EvalError(f"{path}: expected a real-valued array, got dtype {values.dtype}")
     else:

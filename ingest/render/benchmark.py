@@ -77,7 +77,7 @@ from ingest.dataset.layout import DEPTH_SCALE, DISP_SCALE, encode_exr, to_uint16
 from ingest.dataset.lock import hold_folder
 from ingest.dataset.png import encode_png, read_image
 from ingest.dataset.sparse import SparseImage
-from ingest.errors import BenchmarkError
+from ingest.errors import BenchmarkError, OutputError
 from ingest.raster.lod import ScanIndex, build_index
 from ingest.raster.scan import Scan
 from ingest.raster.view import pixel_geometry, render_view
@@ -543,7 +543,7 @@ def run_benchmark(
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as err:
-        raise BenchmarkError(f"cannot create {out}: {err.strerror or err}") from err
+        raise OutputError(f"cannot create {out}: {err.strerror or err}") from err
     with hold_folder(out) as stale:  # one run at a time into `out`; a killed run's temporaries are removed
         summary.stale_temporaries = stale
         state = RenderState(out, cfg, indexes, {v.scene: v for v in todo}, fovs, ph)

@@ -10,6 +10,7 @@ import numpy as np
 
 from calibration.camera import CameraModel
 from calibration.fisheye import DoubleSphere
+from calibration.kalibr import MAX_IMAGE_SIDE_PX
 from calibration.pinhole import Pinhole
 from calibration.spherical import Cassini, Equirectangular, pinhole_for_fov
 from calibration.types import F64, Bool
@@ -83,6 +84,10 @@ class BenchmarkConfig:
             raise BenchmarkError(f"--site-id must be >= 0, got {self.site_id}")
         if self.width < 8 or self.height < 8:
             raise BenchmarkError(f"image size {self.width}x{self.height}: both must be >= 8 px")
+        if max(self.width, self.height) > MAX_IMAGE_SIDE_PX:
+            raise BenchmarkError(
+                f"--size {self.width}x{self.height}: expected at most {MAX_IMAGE_SIDE_PX} px a side"
+            )
         if self.bundle < 1 or self.workers < 1:
             raise BenchmarkError(f"--bundle {self.bundle} and --workers {self.workers} must be >= 1")
         if not 0.0 < self.pinhole_crop <= 1.0 or not 0.0 < self.pinhole_fov_deg < 180.0:
@@ -158,10 +163,20 @@ def check_reference(reference: CameraModel) -> DoubleSphere:
     return reference
 
 
+def sphere_rows(fisheye: CameraModel, fov_deg: float, cfg: BenchmarkConfig) -> int:
+    """Rows of the full sphere for a fisheye of `fov_deg`: --height-full, else its centre's resolution;
+    refused when over the memory budget, naming what chose it (--height-full or --size)."""
+    if cfg.height_full is not None:
+        return check_height_full(cfg.height_full)
+    rows = default_height_full(fisheye)
+    given_by = f"--size {cfg.width}x{cfg.height} (the {fov_deg:g} deg fisheye's default --height-full {rows})"
+    return check_height_full(rows, given_by=given_by)
+
+
 def fov_cameras(reference: DoubleSphere, fov_deg: float, cfg: BenchmarkConfig) -> FovCameras:
     """The fisheye of ``fov_deg`` and the equirect/Cassini windows covering it."""
     fish = virtual_fisheye(reference, fov_deg, cfg.width, cfg.height)
-    hf = check_height_full(default_height_full(fish.model) if cfg.height_full is None else cfg.height_full)
+    hf = sphere_rows(fish.model, fov_deg, cfg)
     pano = covering_crop(fish.model, np.eye(3), hf)
     c0, r0, w, h = _window_mask(fish.model, Cassini(hf))
     cas = CroppedModel(Cassini(hf), c0, r0, w, h)

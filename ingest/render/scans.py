@@ -37,7 +37,8 @@ import numpy as np
 import yaml
 
 from calibration.errors import SensorboxError
-from calibration.opencv_yaml import yaml_error_line
+from calibration.files import read_text
+from calibration.opencv_yaml import BoundedSafeLoader, yaml_error_line
 from calibration.transforms import as_transform
 from calibration.types import F32, F64, U8, Bool
 from ingest.errors import ScanError
@@ -79,12 +80,11 @@ def _unique_names(scans: list[Scan]) -> list[Scan]:
 
 def read_site(manifest: Path, mask_label: str | None = "label") -> list[Scan]:
     """The scans of a site manifest (`site.yaml`)."""
+    text = read_text(manifest, "site manifest", error=ScanError)  # a regular file of at most 4 MiB
     try:
-        doc = yaml.safe_load(manifest.read_text())
+        doc = yaml.load(text, Loader=BoundedSafeLoader)
     except yaml.YAMLError as err:
         raise ScanError(f"site manifest {yaml_error_line(manifest, err)}") from err
-    except (OSError, ValueError) as err:  # ValueError: not UTF-8 text
-        raise ScanError(f"{manifest}: cannot read the site manifest: {err}") from err
     if not isinstance(doc, dict) or doc.get("sensorbox_site") != SITE_VERSION:
         raise ScanError(f"{manifest}: not a site manifest (expected 'sensorbox_site: {SITE_VERSION}')")
     entries = doc.get("scans")

@@ -12,12 +12,15 @@ from typing import Annotated
 
 import typer
 
-from sensorbox.cli.common import check_out_folder, progress_bar
+from sensorbox.cli.common import check_out_folder, path_param, progress_bar
 
-OutOpt = Annotated[Path, typer.Option(help="Folder for the CSVs and charts.")]
+OutOpt = Annotated[Path, typer.Option(help="Folder for the CSVs and charts.", **path_param("--out"))]
 BagOpt = Annotated[
     list[Path] | None,
-    typer.Option(help="Simulator bag(s) with BAG.truth/ (repeatable; default: simulate two)."),
+    typer.Option(
+        help="Simulator bag(s) with BAG.truth/ (repeatable; default: simulate two).",
+        **path_param("--bag", many=True),
+    ),
 ]
 QuickOpt = Annotated[
     bool, typer.Option("--quick", help="A small run: five alternatives, every 3rd frame, 0.25 scale.")

@@ -10,14 +10,19 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 from rich.table import Table
 
-from sensorbox.cli.common import check_out_file, console, print_warning, progress_bar
+from sensorbox.cli.common import check_out_file, console, path_param, print_warning, progress_bar
 
 if TYPE_CHECKING:
     from calibration.report import RigReport
     from ingest.train.refine import Refinement
 
-PathArg = Annotated[Path, typer.Argument(help="Rig file (sensorbox_rig YAML) or Kalibr camchain.")]
-PlotOpt = Annotated[Path | None, typer.Option("--plot", help="Write a top/side drawing of the rig (PNG).")]
+PathArg = Annotated[
+    Path, typer.Argument(help="Rig file (sensorbox_rig YAML) or Kalibr camchain.", **path_param("RIG"))
+]
+PlotOpt = Annotated[
+    Path | None,
+    typer.Option("--plot", help="Write a top/side drawing of the rig (PNG).", **path_param("--plot")),
+]
 
 
 def _fmt(value: object) -> str:
@@ -111,15 +116,27 @@ def calib_check(path: PathArg, plot: PlotOpt = None) -> None:
         console.print(f"Rig drawing written to {out}")
 
 
-BagsArg = Annotated[list[Path], typer.Argument(help="The recording: bag files or rosbag2 folders.")]
+BagsArg = Annotated[
+    list[Path],
+    typer.Argument(help="The recording: bag files or rosbag2 folders.", **path_param("BAGS", many=True)),
+]
 RigOpt = Annotated[
-    Path, typer.Option("--rig", help="The rig file to refine (sensorbox_rig YAML or camchain).")
+    Path,
+    typer.Option(
+        "--rig", help="The rig file to refine (sensorbox_rig YAML or camchain).", **path_param("--rig")
+    ),
 ]
 RefinedOpt = Annotated[
-    Path, typer.Option("--out", help="Refined rig file to write (its camchain is written beside it).")
+    Path,
+    typer.Option(
+        "--out", help="Refined rig file to write (its camchain is written beside it).", **path_param("--out")
+    ),
 ]
 ChartOpt = Annotated[
-    Path | None, typer.Option("--plot", help="Chart of the residual against the clock offset (PNG).")
+    Path | None,
+    typer.Option(
+        "--plot", help="Chart of the residual against the clock offset (PNG).", **path_param("--plot")
+    ),
 ]
 
 

@@ -22,7 +22,7 @@ from rich.table import Table
 from rich.text import Text
 
 from calibration.errors import SensorboxError
-from sensorbox.cli.common import LidarMsgOpt, console, err_console, human_bytes, print_warning
+from sensorbox.cli.common import LidarMsgOpt, console, err_console, human_bytes, path_param, print_warning
 from sensorbox.live.bus import GraphResult, GraphSnapshot, Shutdown, stop_on_signals
 from sensorbox.live.livox_node import silent_lidars
 
@@ -151,7 +151,10 @@ def _finish(result: GraphResult, title: str) -> None:
 
 
 FileArg = Annotated[
-    Path, typer.Argument(help="Launch file (ROS 2 YAML launch syntax), e.g. launch/sim.launch.yaml.")
+    Path,
+    typer.Argument(
+        help="Launch file (ROS 2 YAML launch syntax), e.g. launch/sim.launch.yaml.", **path_param("FILE")
+    ),
 ]
 ArgsArg = Annotated[
     list[str] | None, typer.Argument(help="Launch arguments NAME:=VALUE, e.g. out:=bags duration:=10.")
@@ -208,8 +211,12 @@ def launch_cmd(
     _finish(result, str(file))
 
 
-RigOpt = Annotated[Path, typer.Option(help="Rig file: lidar IPs and topics, camera topics.")]
-OutOpt = Annotated[Path, typer.Option(help="Folder the bags go to (NAME_000, NAME_001, ...).")]
+RigOpt = Annotated[
+    Path, typer.Option(help="Rig file: lidar IPs and topics, camera topics.", **path_param("--rig"))
+]
+OutOpt = Annotated[
+    Path, typer.Option(help="Folder the bags go to (NAME_000, NAME_001, ...).", **path_param("--out"))
+]
 CameraOpt = Annotated[str, typer.Option(help="zed (ZED SDK) | opencv (V4L2).")]
 UpperOpt = Annotated[str, typer.Option(help="Upper camera: ZED serial or V4L2 device.")]
 LowerOpt = Annotated[str, typer.Option(help="Lower camera: ZED serial or V4L2 device.")]

@@ -3,24 +3,50 @@ checks of an output path given on the command line (before any long work)."""
 
 from __future__ import annotations
 
+import errno
+import os
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Annotated, Protocol
+from typing import Annotated, Any, Protocol
 
 import typer
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 from rich.text import Text
 
-from ingest.errors import DatasetError
+from calibration.errors import SensorboxError
+from ingest.errors import DatasetError, OutputError
 
 console = Console(width=None if sys.stdout.isatty() else 140, highlight=False)
 err_console = Console(stderr=True, width=None if sys.stderr.isatty() else 200)
 
 LidarMsgOpt = Annotated[str, typer.Option(help="custom (livox CustomMsg) | pointcloud2.")]
 """The LiDAR message type of a written bag (simulate, capture)."""
+
+
+def _nonempty_path(flag: str) -> Callable[[str], Path]:
+    """The parser of the path given to `flag`: an empty one is refused in one line naming `flag`.
+
+    Typer reads "" as Path("."), so `ingest --out ""` wrote the dataset into
+    the current folder.
+    """
+
+    def parse(value: str) -> Path:
+        if not str(value).strip():
+            raise SensorboxError(f"{flag} {value!r}: empty path (that is the current folder); give a path")
+        return Path(value)
+
+    return parse
+
+
+def path_param(flag: str, many: bool = False) -> dict[str, Any]:
+    """`typer.Option` (`flag` "--out") or `typer.Argument` (`flag` "BAGS") keywords of a path, `many`
+    for a list of them: an empty value is refused (`_nonempty_path`), the help shows what it did."""
+    if not flag.startswith("-"):  # an argument: its usage name stays the parameter's
+        return {"parser": _nonempty_path(flag)}
+    return {"parser": _nonempty_path(flag), "metavar": "<list[Path]>" if many else "<path>"}
 
 
 class Update(Protocol):
@@ -67,27 +93,46 @@ def progress_bar(verb: str, unit: str) -> Iterator[Update]:
 
 
 def check_out_folder(flag: str, folder: Path, holds: str) -> None:
-    """Refuse, before any work, an output folder that is a file or lies under a file.
+    """Refuse, before any work, an output folder that is a file, lies under a file or cannot be written.
 
     One line naming the option and the path ("--out X: is a file; give a folder
     for HOLDS"), where mkdir would fail only after the work with a bare
-    "File exists" or "Not a directory". Nothing is created.
+    "File exists" or "Not a directory". A folder the operating system will not
+    let this process write into (a read-only file system, no permission: the
+    nearest existing one decides) is an `OutputError`, exit code 3, as the
+    write itself would be: `bench` found out only after its 25 s run.
+    Nothing is created.
     """
     if folder.exists() and not folder.is_dir():
         raise DatasetError(f"{flag} {folder}: is a file; give a folder for {holds}")
-    _check_parents(flag, folder)
+    _check_parents(flag, folder, (folder,))
 
 
 def check_out_file(flag: str, path: Path) -> None:
-    """Refuse, before any work, an output file whose folder would have to be made where a file is."""
+    """Refuse, before any work, an output file whose folder would have to be made where a file is,
+    or cannot be written into."""
     _check_parents(flag, path)
 
 
-def _check_parents(flag: str, path: Path) -> None:
-    for parent in path.parents:  # the nearest one that exists decides
+def _write_refused(folder: Path) -> str | None:
+    """Why this process may not create files in `folder` (an existing one), or None when it may."""
+    if os.access(folder, os.W_OK | os.X_OK):
+        return None
+    try:
+        read_only = bool(os.statvfs(folder).f_flag & os.ST_RDONLY)
+    except OSError:
+        read_only = False
+    return os.strerror(errno.EROFS if read_only else errno.EACCES)
+
+
+def _check_parents(flag: str, path: Path, also: tuple[Path, ...] = ()) -> None:
+    for parent in (*also, *path.parents):  # the nearest one that exists decides
         if parent.exists():
             if not parent.is_dir():
                 raise DatasetError(f"{flag} {path}: {parent} is a file, not a folder")
+            if (why := _write_refused(parent)) is not None:
+                where = "" if parent == path else f" (in {parent})"
+                raise OutputError(f"{flag} {path}: cannot write{where}: {why}")
             return
 
 

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from sensorbox.cli.common import check_out_file, check_out_folder, progress_bar
+from sensorbox.cli.common import check_out_file, check_out_folder, path_param, progress_bar
 
 if TYPE_CHECKING:
     from ingest.eval.evaluate import EvalReport
@@ -29,12 +29,19 @@ def _echo(text: str = "") -> None:
 
 
 DatasetOpt = Annotated[
-    Path, typer.Option("--dataset", help="Dataset root: WideDepth train layout or benchmark layout.")
+    Path,
+    typer.Option(
+        "--dataset",
+        help="Dataset root: WideDepth train layout or benchmark layout.",
+        **path_param("--dataset"),
+    ),
 ]
 PredOpt = Annotated[
     Path,
     typer.Option(
-        "--pred", help="Predictions: the GT's relative path and stem, as .png (uint16), .exr or .npy."
+        "--pred",
+        help="Predictions: the GT's relative path and stem, as .png (uint16), .exr or .npy.",
+        **path_param("--pred"),
     ),
 ]
 TaskOpt = Annotated[str, typer.Option("--task", help="stereo (disparity) | mono | completion (depth).")]
@@ -46,14 +53,16 @@ CompareOpt = Annotated[
     typer.Option("--compare", help="A,B: percentage change of A vs B, e.g. 195FOV,120FOV or 200mm,65mm."),
 ]
 HeatmapOpt = Annotated[
-    Path | None, typer.Option("--heatmap", help="Write a PNG of --metric over FOV x baseline.")
+    Path | None,
+    typer.Option("--heatmap", help="Write a PNG of --metric over FOV x baseline.", **path_param("--heatmap")),
 ]
 MetricOpt = Annotated[
     str | None, typer.Option(help="Metric of the heatmap (default epe_px for stereo, abs_rel for depth).")
 ]
 RegionOpt = Annotated[str, typer.Option(help="Region of --compare and --heatmap: all | edges | a mask.")]
 JsonOpt = Annotated[
-    Path | None, typer.Option("--json", help="JSON report (default: <pred>/eval_<task>.json).")
+    Path | None,
+    typer.Option("--json", help="JSON report (default: <pred>/eval_<task>.json).", **path_param("--json")),
 ]
 ImageTypeOpt = Annotated[
     str | None,
@@ -169,10 +178,16 @@ def _print_stats(stats: DatasetStats, dataset: Path) -> None:
 
 def stats_cmd(
     dataset: Annotated[
-        Path, typer.Argument(help="Dataset root: WideDepth train layout or benchmark layout.")
+        Path,
+        typer.Argument(
+            help="Dataset root: WideDepth train layout or benchmark layout.", **path_param("DATASET")
+        ),
     ],
     out: Annotated[
-        Path | None, typer.Option("--out", help="Folder for stats.json and stats.png (default: DATASET).")
+        Path | None,
+        typer.Option(
+            "--out", help="Folder for stats.json and stats.png (default: DATASET).", **path_param("--out")
+        ),
     ] = None,
     image_type: Annotated[
         str | None,

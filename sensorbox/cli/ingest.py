@@ -16,16 +16,23 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 from rich.table import Table
 
-from sensorbox.cli.common import console, err_console, print_warning, progress_bar
+from sensorbox.cli.common import console, err_console, path_param, print_warning, progress_bar
 
 if TYPE_CHECKING:
     from ingest.train.pipeline import IngestSummary
 
 BagsArg = Annotated[
-    list[Path], typer.Argument(help="Bags: ROS 1 .bag, ROS 2 .mcap/.db3 files or rosbag2 folders.")
+    list[Path],
+    typer.Argument(
+        help="Bags: ROS 1 .bag, ROS 2 .mcap/.db3 files or rosbag2 folders.", **path_param("BAGS", many=True)
+    ),
 ]
-RigOpt = Annotated[Path, typer.Option(help="Rig file (cameras, LiDARs, IMUs and their topics).")]
-OutOpt = Annotated[Path, typer.Option(help="Output folder (WideDepth train layout); reruns resume.")]
+RigOpt = Annotated[
+    Path, typer.Option(help="Rig file (cameras, LiDARs, IMUs and their topics).", **path_param("--rig"))
+]
+OutOpt = Annotated[
+    Path, typer.Option(help="Output folder (WideDepth train layout); reruns resume.", **path_param("--out"))
+]
 WorkersOpt = Annotated[int, typer.Option(help="Local worker processes (1 = in this process).")]
 DaskOpt = Annotated[
     str | None,

@@ -17,7 +17,7 @@ from rich.table import Table
 
 from ingest.bag_report import BagReport, LidarCoverage, StereoReport, TopicStats
 from ingest.inspect import inspect_bags
-from sensorbox.cli.common import console, print_error, print_warning, progress_bar
+from sensorbox.cli.common import console, path_param, print_error, print_warning, progress_bar
 
 
 def _num(value: float | None, fmt: str = ".3f") -> str:
@@ -160,7 +160,8 @@ def inspect_cmd(
     bags: Annotated[
         list[Path],
         typer.Argument(
-            help="ROS 1 .bag files, or ROS 2 .mcap/.db3 files or rosbag2 folders (one recording)."
+            help="ROS 1 .bag files, or ROS 2 .mcap/.db3 files or rosbag2 folders (one recording).",
+            **path_param("BAGS", many=True),
         ),
     ],
     rig: Annotated[
@@ -169,6 +170,7 @@ def inspect_cmd(
             "--rig",
             help="Rig file (or Kalibr camchain): check its topics and pair its cameras (exit code 2 when a "
             "sensor's topic is missing or of another type).",
+            **path_param("--rig"),
         ),
     ] = None,
     salvage: Annotated[

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 from rich.table import Table
 
-from sensorbox.cli.common import check_out_folder, console, print_warning, progress_bar
+from sensorbox.cli.common import check_out_folder, console, path_param, print_warning, progress_bar
 
 if TYPE_CHECKING:
     from ingest.render.benchmark import BenchmarkSummary
@@ -21,10 +21,21 @@ if TYPE_CHECKING:
 
 ScansArg = Annotated[
     list[Path],
-    typer.Argument(help="Scans: site.yaml manifests, .e57 (with poses), .pcd (VIEWPOINT pose), .ply."),
+    typer.Argument(
+        help="Scans: site.yaml manifests, .e57 (with poses), .pcd (VIEWPOINT pose), .ply.",
+        **path_param("SCANS", many=True),
+    ),
 ]
-RigOpt = Annotated[Path, typer.Option(help="Rig file; its cam0 is the reference Double Sphere calibration.")]
-OutOpt = Annotated[Path, typer.Option(help="Output folder (WideDepth benchmark layout); reruns resume.")]
+RigOpt = Annotated[
+    Path,
+    typer.Option(
+        help="Rig file; its cam0 is the reference Double Sphere calibration.", **path_param("--rig")
+    ),
+]
+OutOpt = Annotated[
+    Path,
+    typer.Option(help="Output folder (WideDepth benchmark layout); reruns resume.", **path_param("--out")),
+]
 FovOpt = Annotated[
     list[float] | None,
     typer.Option("--fov", help="Fisheye FOVs in degrees (repeat; default 120 140 165 195)."),

@@ -9,13 +9,16 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 from rich.table import Table
 
-from sensorbox.cli.common import LidarMsgOpt, console, human_bytes, progress_bar
+from sensorbox.cli.common import LidarMsgOpt, console, human_bytes, path_param, progress_bar
 
 if TYPE_CHECKING:
     from sensorbox.sim.run import SimSummary
 
 OutOpt = Annotated[
-    Path, typer.Option("--out", help="Bag to write: a rosbag2 folder, or NAME.bag for --format bag.")
+    Path,
+    typer.Option(
+        "--out", help="Bag to write: a rosbag2 folder, or NAME.bag for --format bag.", **path_param("--out")
+    ),
 ]
 SceneOpt = Annotated[str, typer.Option(help="Procedural scene: indoor | outdoor.")]
 TrajectoryOpt = Annotated[str, typer.Option(help="static | walk (1.2 m/s handheld) | custom (--tum).")]

@@ -48,7 +48,8 @@ from typing import Any, ClassVar
 
 import yaml
 
-from calibration.opencv_yaml import yaml_error_line
+from calibration.files import read_text
+from calibration.opencv_yaml import BoundedSafeLoader, yaml_error_line
 from sensorbox.errors import LaunchError
 from sensorbox.live.bus import Bus, GraphResult, GraphSnapshot, Shutdown, run_graph
 from sensorbox.live.substitutions import Scope, bool_word, evaluate_parts, parse_substitutions
@@ -62,8 +63,8 @@ class _Map(dict[str, Any]):
     line = 0
 
 
-class _Loader(yaml.SafeLoader):
-    pass
+class _Loader(BoundedSafeLoader):
+    """A SafeLoader (no arbitrary objects) whose mappings remember their line; nesting is bounded."""
 
 
 def _construct_map(loader: _Loader, node: yaml.MappingNode) -> _Map:
@@ -84,14 +85,9 @@ _Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _constru
 
 
 def _load_yaml(path: Path) -> Any:
+    text = read_text(path, "launch", error=LaunchError)  # a regular file of at most 4 MiB, UTF-8
     try:
-        text = path.read_text()
-    except FileNotFoundError as err:
-        raise LaunchError(f"{path}: launch file not found") from err
-    except OSError as err:
-        raise LaunchError(f"{path}: cannot read launch file: {err}") from err
-    try:
-        return yaml.load(text, Loader=_Loader)  # a SafeLoader: no arbitrary objects
+        return yaml.load(text, Loader=_Loader)
     except LaunchError as err:
         raise LaunchError(f"{path}:{err}") from err
     except yaml.YAMLError as err:
@@ -206,6 +202,11 @@ def _condition(body: Any, scope: Scope, where: str) -> bool:
     return True
 
 
+MAX_INCLUDE_DEPTH = 32
+"""Deepest chain of `include`s followed: each file is parsed recursively, as each nested group is
+(whose depth the YAML reader bounds)."""
+
+
 class _Parser:
     def __init__(self, plan: LaunchPlan) -> None:
         self.plan = plan
@@ -216,6 +217,10 @@ class _Parser:
         if path in self.stack:
             chain = " -> ".join(str(p) for p in [*self.stack, path])
             raise LaunchError(f"launch files include each other in a cycle: {chain}")
+        if len(self.stack) >= MAX_INCLUDE_DEPTH:
+            raise LaunchError(
+                f"{path}: included more than {MAX_INCLUDE_DEPTH} files deep (from {self.stack[0]})"
+            )
         doc = _load_yaml(path)
         if not isinstance(doc, dict) or set(doc) != {"launch"}:
             keys = ", ".join(map(str, doc)) if isinstance(doc, dict) else type(doc).__name__
@@ -417,9 +422,11 @@ def _param_value(value: Any, scope: Scope, where: str, name: str, kind: Any) -> 
 def _param_file(path: Path, node: str, ns: str, where: str) -> dict[str, Any]:
     """`ros__parameters` for `node` (or `/**`) in a ROS 2 parameter file, nested keys dotted."""
     try:
-        doc = yaml.safe_load(path.read_text())
-    except FileNotFoundError as err:
-        raise LaunchError(f"{where}: parameter file {path} not found") from err
+        text = read_text(path, "parameter", error=LaunchError)
+    except LaunchError as err:
+        raise LaunchError(f"{where}: {err}") from err
+    try:
+        doc = yaml.load(text, Loader=BoundedSafeLoader)
     except yaml.YAMLError as err:
         raise LaunchError(f"{where}: parameter file {yaml_error_line(path, err)}") from err
     if not isinstance(doc, dict):
@@ -472,8 +479,24 @@ def parse_launch(path: str | Path, args: Mapping[str, str] | None = None) -> Lau
         raise LaunchError(
             f"{path}: launch argument(s) {', '.join(extra)} not declared; its arguments: {known}"
         )
+    _refuse_emptied(path, args, plan.arguments)
     plan.configurations = scope.configs
     return plan
+
+
+def _refuse_emptied(path: Path, args: Mapping[str, str], declared: Sequence[LaunchArgument]) -> None:
+    """Refuse `NAME:=` (empty) for an argument whose default is not empty.
+
+    Such a value is a path or a setting left out by mistake: sim.launch.yaml's
+    `out:=` made the recorder's folder "" and the rig "/rig.yaml", at the
+    filesystem root. An argument whose default is empty (`name`) may be given empty.
+    """
+    for arg in declared:
+        if args.get(arg.name) == "" and arg.default:
+            raise LaunchError(
+                f"{path}: launch argument {arg.name}:= is empty (its default is {arg.default!r}); "
+                "give a value, or leave it out for the default"
+            )
 
 
 def run_launch(

@@ -52,6 +52,7 @@ from pathlib import Path
 from typing import Any
 
 from calibration.errors import SensorboxError
+from calibration.files import read_text
 from ingest.train.sync import pair_tolerance_ns
 from sensorbox.errors import GraphError
 from sensorbox.live.bus import (
@@ -156,10 +157,11 @@ class Params:
 def read_livox_json(path: Path) -> dict[str, Any]:
     """host_ip, ports (dict of Ports fields), lidars [(ip, extrinsic | None)] and data_type from a
     livox_ros_driver2 user config (MID360_config.json)."""
+    text = read_text(Path(path), "Livox user config", "JSON", error=GraphError)  # a regular file, <= 4 MiB
     try:
-        doc = json.loads(Path(path).read_text())
-    except FileNotFoundError as err:
-        raise GraphError(f"{path}: Livox user config not found") from err
+        doc = json.loads(text)
+    except RecursionError as err:  # json's decoder recurses once per [ or {
+        raise GraphError(f"{path}: malformed JSON: nested too deeply for a Livox user config") from err
     except json.JSONDecodeError as err:
         raise GraphError(f"{path}: line {err.lineno}: malformed JSON: {err.msg}") from err
     try:

@@ -136,6 +136,8 @@ class SimConfig:
             raise SensorboxError(f"--range-noise must be a finite number >= 0 m, got {self.range_noise_m}")
         if self.supersample < 1:
             raise SensorboxError(f"--supersample must be >= 1, got {self.supersample}")
+        if self.seed < 0:  # numpy's generators take non-negative seeds only
+            raise SensorboxError(f"--seed must be an integer >= 0, got {self.seed}")
         if self.range_noise_model not in NOISE_MODELS:
             raise SensorboxError(
                 f"--range-noise-model {self.range_noise_model!r}: expected one of {', '.join(NOISE_MODELS)}"
@@ -172,6 +174,35 @@ class SimSummary:
 
 MIN_IMAGE_PX = 8
 """Smallest camera image side: `render-benchmark` refuses smaller images too."""
+
+
+MAX_RAYS_PER_FRAME = 1 << 24
+"""Rays cast for one camera frame (pixels x supersample^2). Both cameras render at once, about 450
+bytes a ray in all: the reference rig at --supersample 2 (9.2M rays a frame) peaked at 4.5 GB, so
+this bound (16.8M) is about 8 GB; it takes the reference camera up to --scale 2.7, or
+--supersample 2 at --scale 1."""
+
+
+def check_rays(rig: Rig, scale: float, supersample: int) -> None:
+    """Refuse, before any array is made, a --scale or --supersample whose frames would not fit in memory.
+
+    `rig` is already scaled. `--scale 100` asked for 172 GiB at the first
+    allocation; `--supersample 1000` for far more.
+    """
+    for cam in rig.cameras:
+        w, h = cam.model.width, cam.model.height
+        if w * h > MAX_RAYS_PER_FRAME:
+            largest = math.floor(1000 * scale * math.sqrt(MAX_RAYS_PER_FRAME / (w * h))) / 1000
+            raise SensorboxError(
+                f"--scale {scale:g} makes camera {cam.name} {w}x{h} px; expected <= {MAX_RAYS_PER_FRAME:,} "
+                f"px (--scale <= {largest:g})"
+            )
+        if (rays := w * h * supersample * supersample) > MAX_RAYS_PER_FRAME:
+            largest_s = math.isqrt(MAX_RAYS_PER_FRAME // (w * h))
+            raise SensorboxError(
+                f"--supersample {supersample} casts {rays:,} rays a frame for camera {cam.name} ({w}x{h} px "
+                f"at --scale {scale:g}); expected <= {MAX_RAYS_PER_FRAME:,} (--supersample <= {largest_s})"
+            )
 
 
 def scaled_rig(rig: Rig, scale: float) -> Rig:
@@ -283,6 +314,7 @@ def setup_sim(cfg: SimConfig) -> SimSetup:
         # the truth rig carries the exact offsets, in Kalibr's convention: t_lidar = stamp + shift
         names = (rig.upper.name, rig.lower.name)
         rig = with_timeshifts(rig, {n: -ns / 1e9 for n, ns in zip(names, cfg.camera_offset_ns, strict=True)})
+    check_rays(rig, cfg.scale, cfg.supersample)
     if not rig.lidars:
         raise SensorboxError(f"{cfg.rig}: the rig has no lidars to simulate")
     scene = build_scene(cfg.scene, cfg.seed)

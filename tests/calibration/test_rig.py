@@ -98,7 +98,7 @@ def test_livox_config_json(tmp_path):
     assert np.array_equal(read_rig(tmp_path / "rig.yaml").lidar("bottom").T_cam0_lidar, T)
     where = f"{tmp_path / 'rig.yaml'}: lidars.bottom"
     for bad, message in (
-        ({"livox_config": "."}, f"{where}.livox_config: {tmp_path}: cannot read the Livox config file: Is a directory"),
+        ({"livox_config": "."}, f"{where}.livox_config: {tmp_path}: is a folder, not a Livox config file"),
         ({"ip": None}, f"{where}: missing key 'ip' (which LiDAR of the livox_config it is)"),
     ):  # fmt: skip
         doc = yaml.safe_load(yaml.safe_dump(rig_doc))
@@ -117,7 +117,7 @@ def test_livox_config_json(tmp_path):
     path.write_bytes(b'{"lidar_configs": [{"ip": "caf\xe9"}]}')
     with pytest.raises(
         CalibrationError,
-        match=r"MID360_config\.json: not a JSON Livox config \(byte 30 is 0xe9, not UTF-8 text\)$",
+        match=r"MID360_config\.json: not a JSON Livox config file \(byte 30 is 0xe9, not UTF-8 text\)$",
     ):
         read_livox_config(path)
 
@@ -182,12 +182,33 @@ def _rig_with(tmp_path, **changes):
         ({"lidars__lidar_bottom__topic": "/livox/lidar_192_168_1_12"}, r"rig\.yaml: lidars\.lidar_bottom\.topic and lidars\.lidar_top\.topic are both /livox/lidar_192_168_1_12: each sensor needs its own topic \(for Livox LiDARs, livox_ros_driver2's multi_topic: 1\)$"),
         ({"imus__imu_top__topic": "/livox/lidar_192_168_1_12"}, r"lidars\.lidar_top\.topic and imus\.imu_top\.topic are both /livox/lidar_192_168_1_12: each sensor needs its own topic$"),
         ({"lidars__lidar_bottom__ip": "192.168.1.12"}, r"rig\.yaml: lidars\.lidar_bottom\.ip and lidars\.lidar_top\.ip are both 192\.168\.1\.12: each LiDAR has its own address$"),
+        ({"lidars__lidar_top__T_cam0_lidar": [[1.0, 0, 0, 4.3], [0, 1, 0, -86.8], [0, 0, 1, -21.4], [0, 0, 0, 1]]}, r"rig\.yaml: lidars\.lidar_top\.T_cam0_lidar: translation 89\.5 m from cam0: expected <= 2 m on a handheld rig \(millimetres written as metres\?\)$"),
+        ({"lidars__lidar_top__T_cam0_lidar": [[1.0, 0, 0, 1e12], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}, r"lidars\.lidar_top\.T_cam0_lidar: translation 1e\+12 m from cam0: expected <= 2 m on a handheld rig"),
+        ({"lidars__lidar_top__T_cam0_lidar": None, "lidars__lidar_top__livox_extrinsic": {"roll": 0.0, "pitch": 0.0, "yaw": 0.0, "x": 0, "y": 0, "z": 2500}}, r"rig\.yaml: lidars\.lidar_top\.livox_extrinsic: translation 2\.5 m from cam0: expected <= 2 m on a handheld rig \(the Livox x, y, z are millimetres, T_cam0_base metres\)$"),
+        ({"lidars__lidar_top__T_cam0_lidar": None, "lidars__lidar_top__livox_extrinsic": {"roll": 0.0, "pitch": 0.0, "yaw": 0.0, "x": 0, "y": 0, "z": 100}, "lidars__lidar_top__T_cam0_base": [[1.0, 0, 0, 0], [0, 1, 0, 3.0], [0, 0, 1, 0], [0, 0, 0, 1]]}, r"lidars\.lidar_top\.livox_extrinsic @ T_cam0_base: translation 3\.002 m from cam0"),
+        ({"imus__imu_top__T_cam0_imu": [[1.0, 0, 0, -18.7], [0, 1, 0, -42.6], [0, 0, 1, -10.1], [0, 0, 0, 1]]}, r"rig\.yaml: imus\.imu_top\.T_cam0_imu: translation 47\.61 m from cam0: expected <= 2 m on a handheld rig \(millimetres written as metres\?\)$"),
+        ({"imus": None, "imu": {"imu_top": {"topic": "/livox/imu_192_168_1_12", "T_cam0_imu": np.eye(4).tolist()}}}, r"rig\.yaml: unknown key 'imu' \(did you mean 'imus'\?\); known keys: sensorbox_rig, name, camchain, cameras, lidars, imus$"),
+        ({"lidar": {}}, r"rig\.yaml: unknown key 'lidar' \(did you mean 'lidars'\?\); known keys: "),
+        ({"calibration": "x"}, r"rig\.yaml: unknown key 'calibration'; known keys: sensorbox_rig, name, camchain, cameras, lidars, imus$"),
+        ({"lidars__lidar_top__T_cam0_base": np.eye(4).tolist()}, r"rig\.yaml: lidars\.lidar_top\.T_cam0_base: places a livox_extrinsic or livox_config in cam0; with T_cam0_lidar it would be ignored \(give T_cam0_lidar = T_cam0_base @ T_base_lidar alone\)$"),
+        ({"lidars__lidar_top__T_cam_lidar": np.eye(4).tolist()}, r"rig\.yaml: lidars\.lidar_top: unknown key 'T_cam_lidar' \(did you mean 'T_cam0_lidar'\?\); known keys: topic, ip, T_cam0_lidar, livox_extrinsic, livox_config, T_cam0_base$"),
+        ({"lidars__lidar_top__T_cam0_lidar": None, "lidars__lidar_top__livox_extrinsic": {"roll": 0.0, "pitch": 0.0, "yaw": 0.0, "x": 0, "y": 0, "z": 100, "z_mm": 100}}, r"rig\.yaml: lidars\.lidar_top\.livox_extrinsic: unknown key 'z_mm'; known keys: roll, pitch, yaw, x, y, z$"),
+        ({"imus__imu_top__rate": 200}, r"rig\.yaml: imus\.imu_top: unknown key 'rate' \(did you mean 'rate_hz'\?\); known keys: topic, T_cam0_imu, rate_hz$"),
+        ({"cameras__cam0__roll": "upper"}, r"rig\.yaml: cameras\.cam0: unknown key 'roll' \(did you mean 'role'\?\); known keys: role, topic$"),
     ],
 )  # fmt: skip
 def test_bad_rig_messages(tmp_path, changes, message):
     path = _rig_with(tmp_path, **changes)
     with pytest.raises(CalibrationError, match=message):
         read_rig(path)
+
+
+def test_the_largest_plausible_lever_arm_is_read(tmp_path):
+    """2 m from cam0 is still a handheld rig: the bound refuses only what is over it."""
+    T = np.eye(4)
+    T[:3, 3] = [0.0, -2.0, 0.0]
+    rig = read_rig(_rig_with(tmp_path, lidars__lidar_top__T_cam0_lidar=T.tolist()))
+    assert np.array_equal(rig.lidar("lidar_top").T_cam0_lidar, T)
 
 
 def test_relative_topics_are_the_absolute_ones_a_bag_stores(tmp_path):

@@ -463,6 +463,20 @@ def test_an_equirect_beyond_memory_is_refused_before_any_work(tmp_path):
         Geometry.from_rig(read_rig(RIG), 0)  # 0 is a value, not "the default"
 
 
+def test_an_image_size_whose_sphere_is_over_the_memory_budget_is_named_as_the_cause(tmp_path, monkeypatch):
+    """--size chose the equirect's rows; the message blamed --height-full, which was not given."""
+    from ingest.render.request import BenchmarkRequest, prepare
+
+    monkeypatch.setattr("calibration.warp.memory_budget_bytes", lambda: 4 * 10**9)
+    with pytest.raises(CalibrationError) as err:
+        prepare(BenchmarkRequest([tmp_path / "missing.e57"], RIG, tmp_path / "out", size="16000x16000"))
+    assert str(err.value) == (
+        "--size 16000x16000 (the 120 deg fisheye's default --height-full 29184): a full-sphere equirect of "
+        "29184 x 58368 needs about 153.3 GB, over the budget of 4.0 GB (half this machine's memory); pass "
+        "--height-full 4608 or less"
+    )
+
+
 @pytest.mark.parametrize(
     ("changes", "pattern"),
     [
@@ -473,6 +487,7 @@ def test_an_equirect_beyond_memory_is_refused_before_any_work(tmp_path):
         ),
         ({"height_full": 100_000}, r"^--height-full 100000: .* pass --height-full \d+ or less$"),
         ({"points_per_px": float("inf")}, r"^--points-per-px inf: must be a finite number > 0$"),
+        ({"size": "100000x100000"}, r"^--size 100000x100000: expected at most 16384 px a side$"),
         ({"pitch_deg": 200.0}, r"^--pitch 200\.0: must be within -90\.\.90 degrees \(up > 0\)$"),
         (
             {"fovs_deg": (140.0, 195.0), "pinhole_fovs": (120.0,)},

@@ -1,0 +1,440 @@
+"""Issue 49: rig and calibration files, special files and bounds: refused in one line, never silent wrong GT.
+
+Each case is run as a user would (`sensorbox ...` in this process, or in a
+child process with a memory and time limit where the fault, unfixed, would
+read without end or wait forever) with its fixture written to tmp_path.
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+import resource
+import shutil
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from calibration import CalibrationError, read_kalibr_camchain, read_rig
+from tests.faults.bags import INDOOR
+from tests.faults.cli import sensorbox
+from tests.paths import ROOT
+
+TRUTH = INDOOR.parent / "indoor_static_mcap.truth"
+
+
+def _rig(tmp: Path, edit: dict[str, object] | None = None, camchain: str = "camchain.yaml") -> Path:
+    """The indoor fixture's rig (480x300 cameras) in `tmp`, its top-level keys updated by `edit`
+    (None drops a key), its camchain copied beside it and named `camchain`."""
+    shutil.copy(TRUTH / "camchain.yaml", tmp / "camchain.yaml")
+    doc = yaml.safe_load((TRUTH / "rig.yaml").read_text())
+    doc["camchain"] = camchain
+    for key, value in (edit or {}).items():
+        if value is None:
+            del doc[key]
+        else:
+            doc[key] = value
+    path = tmp / "rig.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    return path
+
+
+def test_a_misspelt_rig_key_is_refused_not_ignored(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`imu:` for `imus:` dropped both IMUs without a word (dense GT p95 29.2 mm against 1.7 mm)."""
+    imus = yaml.safe_load((TRUTH / "rig.yaml").read_text())["imus"]
+    rig = _rig(tmp_path, {"imus": None, "imu": imus})
+    code, _, err = sensorbox(capsys, "calib", "check", str(rig))
+    assert (code, err) == (
+        2,
+        [
+            f"error: {rig}: unknown key 'imu' (did you mean 'imus'?); "
+            "known keys: sensorbox_rig, name, camchain, cameras, lidars, imus"
+        ],
+    )
+    out = tmp_path / "ds"
+    code, _, err = sensorbox(capsys, "ingest", str(INDOOR), "--rig", str(rig), "--out", str(out))
+    assert code == 2 and err[0].startswith(f"error: {rig}: unknown key 'imu'") and len(err) == 1
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(("scale", "shown"), [(1000.0, "89.5"), (1e12 / 0.0895, "1e+12")])
+def test_a_lidar_lever_arm_in_millimetres_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], scale: float, shown: str
+) -> None:
+    """87 mm written as 87 (or 1e12 m) passed calib check, inspect and ingest; density fell 10.4 -> 4.4 %."""
+    lidars = yaml.safe_load((TRUTH / "rig.yaml").read_text())["lidars"]
+    T = np.array(lidars["lidar_top"]["T_cam0_lidar"], float)
+    T[:3, 3] *= scale
+    lidars["lidar_top"]["T_cam0_lidar"] = T.tolist()
+    rig = _rig(tmp_path, {"lidars": lidars})
+    line = (
+        f"error: {rig}: lidars.lidar_top.T_cam0_lidar: translation {shown} m from cam0: expected <= 2 m "
+        "on a handheld rig (millimetres written as metres?)"
+    )
+    for command in (["calib", "check", str(rig)], ["inspect", str(INDOOR), "--rig", str(rig)]):
+        code, _, err = sensorbox(capsys, *command)
+        assert (code, err) == (2, [line]), command
+
+
+def test_a_100k_deep_yaml_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A RecursionError traceback in calib check, inspect and ingest."""
+    deep = tmp_path / "deep.yaml"
+    deep.write_text("cam0: " + "[" * 100_000 + "]" * 100_000 + "\n")
+    line = f"error: {deep}: line 1, column 70: malformed YAML: nested more than 64 levels deep"
+    out = tmp_path / "ds"
+    for command in (
+        ["calib", "check", str(deep)],
+        ["inspect", str(INDOOR), "--rig", str(deep)],
+        ["ingest", str(INDOOR), "--rig", str(deep), "--out", str(out)],
+    ):
+        code, _, err = sensorbox(capsys, *command)
+        assert (code, err) == (2, [line]), command
+    assert not out.exists()
+
+
+def _limited() -> None:
+    """In the child: 3 GiB of address space, so reading /dev/zero unbounded ends in a MemoryError."""
+    resource.setrlimit(resource.RLIMIT_AS, (3 << 30, 3 << 30))
+
+
+def _guarded(*args: str) -> tuple[int, list[str]]:
+    """(exit code, stderr lines) of `sensorbox ARGS` in a child with a memory limit and a 60 s timeout."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    try:
+        res = subprocess.run(
+            [sys.executable, "-m", "sensorbox.cli", *args],
+            capture_output=True, text=True, timeout=60, env=env, preexec_fn=_limited,
+        )  # fmt: skip
+    except subprocess.TimeoutExpired:
+        return -1, ["timed out: the read blocked"]
+    return res.returncode, res.stderr.splitlines()
+
+
+def _special(kind: str, path: Path) -> str:
+    """Make `path` a `kind` of special file; return how the error line names it."""
+    if kind == "fifo":
+        os.mkfifo(path)
+        return "is a FIFO (named pipe)"
+    if kind == "folder":
+        path.mkdir()
+        return "is a folder"
+    path.symlink_to(f"/dev/{kind}")
+    return f"is a character device (a link to /dev/{kind})"
+
+
+@pytest.mark.parametrize("kind", ["zero", "urandom", "fifo", "folder"])
+def test_a_camchain_that_is_not_a_regular_file_is_refused_before_reading(tmp_path: Path, kind: str) -> None:
+    """A camchain linked to /dev/zero or /dev/urandom was read until the OOM killer came (24 GB); a FIFO
+    blocked forever."""
+    rig = _rig(tmp_path, camchain="chain.yaml")
+    chain = tmp_path / "chain.yaml"
+    what = _special(kind, chain)
+    assert _guarded("calib", "check", str(rig)) == (
+        2,
+        [f"error: {chain}: {what}, not a Kalibr camchain (referenced by rig.yaml) file"],
+    )
+
+
+def test_a_rig_that_is_a_fifo_is_refused(tmp_path: Path) -> None:
+    rig = tmp_path / "rig.yaml"
+    os.mkfifo(rig)
+    assert _guarded("calib", "check", str(rig)) == (
+        2,
+        [f"error: {rig}: is a FIFO (named pipe), not a rig file"],
+    )
+
+
+def test_a_yaml_file_over_4_mib_is_refused_unread(tmp_path: Path) -> None:
+    rig = _rig(tmp_path)
+    with rig.open("a") as f:
+        f.write("#" * (4 << 20))
+    with pytest.raises(CalibrationError) as err:
+        read_rig(rig)
+    assert (
+        str(err.value)
+        == f"{rig}: {rig.stat().st_size} bytes; a rig file is at most 4 MiB (is this the right file?)"
+    )
+
+
+def _camchain_with(tmp: Path, edit: str, to: str) -> Path:
+    path = tmp / "camchain.yaml"
+    text = (TRUTH / "camchain.yaml").read_text()
+    assert edit in text
+    path.write_text(text.replace(edit, to, 1))
+    return path
+
+
+def test_a_double_sphere_xi_of_1e9_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Ingest ended in a ZeroDivisionError: the valid image circle of such a camera is a few pixels."""
+    chain = _camchain_with(tmp_path, "intrinsics: [-0.18153,", "intrinsics: [1.0e9,")
+    code, _, err = sensorbox(capsys, "calib", "check", str(chain))
+    assert (code, err) == (
+        2,
+        [
+            f"error: {chain}: cam0: DoubleSphere: xi must be in [-1, 1], got 1000000000.0 (beyond it the "
+            "valid image circle shrinks to a few pixels; a fitted fisheye's xi is about -0.3..0.3)"
+        ],
+    )
+
+
+def test_a_resolution_of_1e9_is_refused_before_any_map_is_sized(tmp_path: Path) -> None:
+    """Ingest asked numpy for 6.94 EiB. Asserted on the reader, which allocates nothing either way."""
+    chain = _camchain_with(tmp_path, "resolution: [480, 300]", "resolution: [1000000000, 1000000000]")
+    with pytest.raises(CalibrationError) as err:
+        read_kalibr_camchain(chain)
+    assert str(err.value) == (
+        f"{chain}: cam0.resolution: expected [width, height] positive ints of at most 16384, "
+        "got [1000000000, 1000000000]"
+    )
+
+
+def test_an_emptied_launch_argument_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """`out:=` wrote /rig.yaml and /rig-camchain.yaml at the filesystem root (write_rig = $(var out)/rig.yaml)."""
+    launch = ROOT / "sensorbox" / "share" / "launch" / "sim.launch.yaml"
+    code, out, err = sensorbox(capsys, "launch", str(launch), "out:=", "--dry-run")
+    assert (code, out, err) == (
+        2,
+        "",
+        [
+            f"error: {launch}: launch argument out:= is empty (its default is 'bags/sim'); "
+            "give a value, or leave it out for the default"
+        ],
+    )
+    code, out, _ = sensorbox(capsys, "launch", str(launch), "name:=", "--dry-run")  # its default is empty
+    assert code == 0 and "param name = ''" in out
+
+
+@pytest.mark.parametrize("option", ["--out", "--rig"])
+def test_an_empty_path_option_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, option: str
+) -> None:
+    """`ingest --out ""` wrote the dataset into the current folder (typer reads "" as ".")."""
+    monkeypatch.chdir(tmp_path)
+    args = {"--out": str(tmp_path / "ds"), "--rig": str(TRUTH / "rig.yaml"), option: ""}
+    code, _, err = sensorbox(capsys, "ingest", str(INDOOR), *(s for kv in args.items() for s in kv))
+    assert (code, err) == (2, [f"error: {option} '': empty path (that is the current folder); give a path"])
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_empty_paths_of_other_commands_are_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    rig = str(TRUTH / "rig.yaml")
+    for command, flag in (
+        (["ingest", "", "--rig", rig, "--out", str(tmp_path / "ds")], "BAGS"),
+        (["calib", "check", rig, "--plot", ""], "--plot"),
+        (["stats", ""], "DATASET"),
+        (["simulate", "--out", ""], "--out"),
+        (["render-benchmark", "x.ply", "--rig", rig, "--out", ""], "--out"),
+        (["bench", "--out", ""], "--out"),
+        (["eval", "--dataset", str(tmp_path), "--pred", "", "--task", "stereo"], "--pred"),
+    ):
+        code, _, err = sensorbox(capsys, *command)
+        assert (code, err) == (2, [f"error: {flag} '': empty path (that is the current folder); give a path"])
+
+
+def test_bad_launch_files_are_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A binary launch file was a UnicodeDecodeError traceback, 400 nested groups a RecursionError."""
+    binary = tmp_path / "bin.launch.yaml"
+    binary.write_bytes(b'launch:\n- arg: {name: a, default: "\x89PNG"}\n')
+    groups = tmp_path / "groups.launch.yaml"
+    groups.write_text(
+        "launch:\n" + "".join("  " * i + "- group:\n" for i in range(400)) + "  " * 400 + "- log: {}\n"
+    )
+    chain = [tmp_path / f"inc{i}.launch.yaml" for i in range(40)]
+    for i, path in enumerate(chain[:-1]):
+        path.write_text(f"launch:\n- include: {{file: {chain[i + 1].name}}}\n")
+    chain[-1].write_text("launch: []\n")
+    for path, line in (
+        (binary, f"{binary}: not a YAML launch file (byte 35 is 0x89, not UTF-8 text)"),
+        (groups, f"{groups}: line 33, column 65: malformed YAML: nested more than 64 levels deep"),
+        (chain[0], f"{chain[32]}: included more than 32 files deep (from {chain[0]})"),
+    ):
+        code, _, err = sensorbox(capsys, "launch", str(path), "--dry-run")
+        assert (code, err) == (2, [f"error: {line}"])
+
+
+def test_a_launch_substitution_growing_to_gigabytes_is_refused(tmp_path: Path) -> None:
+    """`let`s that each double the last: a MemoryError traceback (run with a memory limit)."""
+    launch = tmp_path / "grow.launch.yaml"
+    lets = "".join(f'- let: {{name: a{i}, value: "$(var a{i - 1})$(var a{i - 1})"}}\n' for i in range(1, 40))
+    launch.write_text("launch:\n- let: {name: a0, value: " + "x" * 64 + "}\n" + lets)
+    assert _guarded("launch", str(launch), "--dry-run") == (
+        2,
+        [
+            f"error: {launch}:13: a substituted value longer than 100000 characters "
+            "(a substitution that grows with each use?)"
+        ],
+    )
+
+
+def test_a_bag_that_is_a_fifo_is_refused(tmp_path: Path) -> None:
+    """A FIFO named x.mcap (or a rosbag2 folder's data file) made inspect and ingest wait forever."""
+    fifo = tmp_path / "x.mcap"
+    os.mkfifo(fifo)
+    line = f"error: {fifo}: is a FIFO (named pipe), not a bag file or rosbag2 folder"
+    assert _guarded("inspect", str(fifo)) == (2, [line])
+    folder = tmp_path / "rec"
+    folder.mkdir()
+    shutil.copy(INDOOR / "metadata.yaml", folder)
+    os.mkfifo(folder / "rec_0.mcap")
+    out = tmp_path / "ds"
+    rig = str(TRUTH / "rig.yaml")
+    assert _guarded("ingest", str(folder), "--rig", rig, "--out", str(out)) == (
+        2,
+        [f"error: {folder / 'rec_0.mcap'}: is a FIFO (named pipe), not a bag file or rosbag2 folder"],
+    )
+    assert not out.exists()
+
+
+def test_a_npy_header_claiming_1e10_values_is_refused_before_allocation(tmp_path: Path) -> None:
+    """`sensorbox eval` asked numpy for 37.3 GiB (run with a memory limit: unfixed, it is a MemoryError)."""
+    from tests.ingest.test_evaluate import make_benchmark, write_predictions
+
+    bench = make_benchmark(tmp_path / "bench")
+    pred = tmp_path / "pred"
+    npy = next(p for p in write_predictions(bench, pred, "stereo") if p.suffix == ".npy")
+    with npy.open("wb") as f:  # the magic string and a header, no data
+        np.lib.format.write_array_header_1_0(
+            f, {"descr": "<f4", "fortran_order": False, "shape": (100000, 100000)}
+        )
+    assert _guarded("eval", "--dataset", str(bench), "--pred", str(pred), "--task", "stereo") == (
+        2,
+        [
+            f"error: {npy}: the .npy header claims shape (100000, 100000) of float32 (40000000000 bytes), "
+            "but the file holds 0 bytes of data"
+        ],
+    )
+
+
+@pytest.mark.parametrize(
+    ("args", "line"),
+    [
+        (
+            ["--scale", "100"],
+            "--scale 100 makes camera cam0 192000x120000 px; expected <= 16,777,216 px (--scale <= 2.698)",
+        ),
+        (
+            ["--supersample", "1000"],
+            "--supersample 1000 casts 2,304,000,000,000 rays a frame for camera cam0 (1920x1200 px at --scale 1); "
+            "expected <= 16,777,216 (--supersample <= 2)",
+        ),
+    ],
+)
+def test_a_simulation_too_big_for_memory_is_refused_before_allocation(
+    tmp_path: Path, args: list[str], line: str
+) -> None:
+    """--scale 100 asked numpy for 172 GiB, --supersample 1000 for more (run with a memory limit)."""
+    out = tmp_path / "sim"
+    assert _guarded("simulate", "--out", str(out), *args) == (2, [f"error: {line}"])
+    assert not out.exists()
+
+
+def test_a_negative_seed_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A ValueError traceback from numpy's generator."""
+    out = tmp_path / "sim"
+    assert sensorbox(capsys, "simulate", "--out", str(out), "--seed", "-1")[::2] == (
+        2,
+        ["error: --seed must be an integer >= 0, got -1"],
+    )
+    assert not out.exists()
+
+
+@pytest.fixture
+def read_only_folder(tmp_path: Path) -> Iterator[Path]:
+    """A folder this process cannot write into: mode 0555, or as root (who ignores modes) a read-only
+    tmpfs mounted there; skipped where neither can be had."""
+    folder = tmp_path / "ro"
+    folder.mkdir()
+    if os.geteuid() != 0:
+        folder.chmod(0o555)
+        yield folder
+        folder.chmod(0o755)
+        return
+    mount = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", "ro,size=1m", "tmpfs", str(folder)], capture_output=True
+    )
+    if mount.returncode != 0:
+        pytest.skip(f"cannot mount a read-only tmpfs: {mount.stderr.decode().strip()}")
+    try:
+        yield folder
+    finally:
+        subprocess.run(["umount", str(folder)], check=True)
+
+
+@pytest.mark.parametrize("under", [False, True])
+@pytest.mark.parametrize(
+    "command",
+    [
+        ["bench"],
+        ["render-benchmark", "site.yaml", "--rig", str(ROOT / "calibration" / "sensorbox.yaml")],
+        ["stats", str(TRUTH)],
+    ],
+)
+def test_a_read_only_out_is_refused_before_the_work_with_exit_3(
+    read_only_folder: Path, capsys: pytest.CaptureFixture[str], command: list[str], under: bool
+) -> None:
+    """bench failed only after its whole 25 s run; render-benchmark exited 2 (3 is an OS-refused write)."""
+    out = read_only_folder / "b" if under else read_only_folder
+    why = os.strerror(errno.EROFS if os.geteuid() == 0 else errno.EACCES)
+    where = f" (in {read_only_folder})" if under else ""
+    code, _, err = sensorbox(capsys, *command, "--out", str(out))
+    assert (code, err) == (3, [f"error: --out {out}: cannot write{where}: {why}"])
+
+
+@pytest.mark.parametrize(
+    ("model", "intrinsics", "name"),
+    [
+        ("omni", [1000.0, 125.0, 125.0, 240.0, 150.0], "Omni"),
+        ("eucm", [0.6, 1000.0, 125.0, 125.0, 240.0, 150.0], "ExtendedUnified"),
+    ],
+)
+def test_a_camera_that_sees_through_no_pixel_is_refused(
+    tmp_path: Path, model: str, intrinsics: list[float], name: str
+) -> None:
+    """Valid numbers that are no lens (the image circle a few pixels wide): ingest divided by its zero
+    valid pixels, as with a ds xi of 1e9."""
+    chain = tmp_path / "camchain.yaml"
+    cam = {"camera_model": model, "intrinsics": intrinsics, "distortion_model": "none", "distortion_coeffs": [],
+           "resolution": [480, 300]}  # fmt: skip
+    chain.write_text(yaml.safe_dump({"cam0": cam}))
+    with pytest.raises(CalibrationError) as err:
+        read_kalibr_camchain(chain)
+    assert str(err.value) == (
+        f"{chain}: cam0: the {name} model maps only 0 of 640 sampled pixels (a 32 x 20 grid) to rays; "
+        "a lens sees through most of its image: check the intrinsics"
+    )
+    cam["intrinsics"] = [0.5, *intrinsics[1:]] if model == "omni" else [0.6, 1.0, *intrinsics[2:]]
+    chain.write_text(yaml.safe_dump({"cam0": cam}))
+    assert read_kalibr_camchain(chain).cameras[0].model.width == 480  # the same lens with sane parameters
+
+
+def test_a_site_manifest_or_livox_user_config_that_is_a_fifo_is_refused(tmp_path: Path) -> None:
+    """Both were read with a bare read_text: a FIFO waited forever."""
+    site = tmp_path / "site.yaml"
+    os.mkfifo(site)
+    rig = str(ROOT / "calibration" / "sensorbox.yaml")
+    assert _guarded("render-benchmark", str(site), "--rig", rig, "--out", str(tmp_path / "b")) == (
+        2,
+        [f"error: {site}: is a FIFO (named pipe), not a site manifest file"],
+    )
+    config = tmp_path / "MID360_config.json"
+    os.mkfifo(config)
+    code = f"from sensorbox.live.nodes import read_livox_json; read_livox_json({str(config)!r})"
+    try:
+        res = subprocess.run(
+            [sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
+            env={**os.environ, "PYTHONPATH": str(ROOT)},
+        )  # fmt: skip
+    except subprocess.TimeoutExpired:
+        pytest.fail("read_livox_json blocked on a FIFO")
+    assert res.stderr.splitlines()[-1] == (
+        f"sensorbox.errors.GraphError: {config}: is a FIFO (named pipe), not a Livox user config file"
+    )
