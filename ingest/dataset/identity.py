@@ -36,9 +36,15 @@ VERIFY_THREADS = 4
 
 
 def frame_digest(upper: Array, lower: Array) -> str:
-    """SHA-256 (hex) of the two decoded camera images of a frame: each one's shape, dtype and pixels."""
+    """SHA-256 (hex) of the two decoded camera images of a frame: each one's shape, dtype and pixels.
+
+    A BGRA image counts by its three colour channels, which is all the dataset stores of it: a raw
+    bgra8 frame decoded as BGRA or converted to BGR first is the same frame.
+    """
     digest = hashlib.sha256()
     for image in (upper, lower):
+        if image.ndim == 3 and image.shape[2] == 4:
+            image = image[..., :3]
         digest.update(f"{image.shape}:{image.dtype.str}:".encode())
         digest.update(np.ascontiguousarray(image).data)
     return digest.hexdigest()
