@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 import matplotlib
+import matplotlib.ticker
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
@@ -166,6 +167,8 @@ def _chart(rows: list[dict[str, Any]], path: Path, args: argparse.Namespace) -> 
     ax.set_xticks(np.arange(len(cases)), cases)
     ax.set_ylabel("sparse GT range error, median [mm]")
     ax.set_yscale("log")
+    ax.yaxis.set_major_formatter(matplotlib.ticker.ScalarFormatter())
+    ax.yaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
     ax.set_title(
         f"calib refine: GT before and after ({args.seconds:g} s, {args.scale:g} x 1920x1200)", fontsize=9
     )
