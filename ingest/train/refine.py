@@ -32,7 +32,9 @@ from ingest.train.timeshift import (
     TIMING_ROTATION_SIGMA_DEG,
     FrameRotations,
     ImuRotation,
+    StereoCheck,
     TimeshiftEstimate,
+    check_stereo_rotation,
     corners,
     estimate_imu_rotation,
     estimate_timeshift,
@@ -77,6 +79,7 @@ class Refinement:
     rig: Rig
     frames: dict[str, int]  # per camera: frames read
     imu_readings: dict[str, int]  # per IMU
+    stereo: StereoCheck  # the camchain's stereo rotation against the cameras' own motion (not changed)
 
     def unobserved_lines(self) -> list[str]:
         """One line per camera offset the recording could not reveal: what was kept and what to record."""
@@ -89,6 +92,12 @@ class Refinement:
                     f"{e.excitation_deg_s:.1f} deg/s, 1-sigma {e.sigma_ms:.2f} ms); the rig's "
                     f"{cam.rig_timeshift_ms:+.3f} ms is kept: record the rig turned by hand for a few seconds"
                 )
+        if self.stereo.disagrees:
+            s = self.stereo
+            lines.append(
+                f"the cameras' motion puts cam1 {s.angle_deg:.2f} deg (1-sigma {s.sigma_deg:.2f}) away from "
+                "the camchain's stereo rotation; recalibrate the stereo pair (kalibr_calibrate_cameras)"
+            )
         return lines
 
 
@@ -270,4 +279,5 @@ def refine(bags: Sequence[Path], rig: Rig, progress: Callable[[int, int], None] 
     refined = replace(refined, imus=tuple(imus), lidars=tuple(lidars))
     frames = {c.name: n for c, n in zip((rig.upper, rig.lower), rec.frames, strict=True)}
     readings = {name: len(v[0]) for name, v in rec.gyro.items()}
-    return Refinement(tuple(cams), tuple(found_imus), refined, frames, readings)
+    stereo = check_stereo_rotation(cam0_rot, _rotations(rec.pairs[1]), rig.lower.T_cam_cam0[:3, :3])
+    return Refinement(tuple(cams), tuple(found_imus), refined, frames, readings, stereo)

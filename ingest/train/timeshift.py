@@ -297,3 +297,66 @@ def estimate_imu_rotation(
         R, correction, sigma_deg, observable, int((w > 0).sum()),
         _rms_deg(before), _rms_deg(e_after),
     )  # fmt: skip
+
+
+STEREO_MATCH_NS = 5_000_000
+"""A lower-camera frame pair stands beside an upper one when both its frames lie this close (ns) to the
+upper pair's: the two cameras expose together, 0.1 ms and their jitter apart."""
+
+
+@dataclass(frozen=True)
+class StereoCheck:
+    """The stereo rotation the two cameras' own motion implies, against the rig's R_cam1_cam0."""
+
+    angle_deg: float  # between the rig's R_cam1_cam0 and the one the images imply
+    sigma_deg: float  # 1-sigma, largest axis
+    observable: bool
+    pairs: int
+    residual_before_deg: float  # RMS per pair with the rig's stereo rotation
+    residual_after_deg: float
+
+    @property
+    def disagrees(self) -> bool:
+        """The rig's stereo rotation is off by more than 3 sigma and 0.1 deg (a camchain to redo)."""
+        return self.observable and self.angle_deg > max(3 * self.sigma_deg, 0.1)
+
+
+def check_stereo_rotation(upper: FrameRotations, lower: FrameRotations, R_cam1_cam0_rig: F64) -> StereoCheck:
+    """Both cameras turn together, so each lower-camera rotation between two frames is the upper one's
+    seen from cam1: phi_cam1 = R_cam1_cam0 phi_cam0. The best R_cam1_cam0 over the frame pairs of both
+    cameras taken at the same times (`STEREO_MATCH_NS`) checks the camchain's stereo rotation; the
+    baseline is not observable this way (rotations carry no translation)."""
+    key = {(int(a) // STEREO_MATCH_NS, int(b) // STEREO_MATCH_NS): k for k, (a, b) in
+           enumerate(zip(upper.t0_ns, upper.t1_ns, strict=True))}  # fmt: skip
+    iu, il = [], []
+    for j, (a, b) in enumerate(zip(lower.t0_ns, lower.t1_ns, strict=True)):
+        for da in (-1, 0, 1):
+            k = key.get((int(a) // STEREO_MATCH_NS + da, int(b) // STEREO_MATCH_NS + da))
+            if k is not None and abs(int(upper.t0_ns[k]) - int(a)) <= STEREO_MATCH_NS:
+                iu.append(k)
+                il.append(j)
+                break
+    src, dst = upper.rotvec[iu].reshape(-1, 3), lower.rotvec[il].reshape(-1, 3)
+    n = len(src)
+    nan = float("nan")
+    if n < 3:
+        return StereoCheck(nan, nan, False, n, nan, nan)
+    R = _kabsch(src, dst, np.ones(n))
+    r = np.linalg.norm(dst - src @ R.T, axis=1)
+    w = (r <= 3 * np.median(r)).astype(np.float64)
+    R = _kabsch(src, dst, w)
+    e_after = (dst - src @ R.T)[w > 0]
+    info = np.zeros((3, 3))
+    for x in (src @ R.T)[w > 0]:
+        K = np.array([[0.0, -x[2], x[1]], [x[2], 0.0, -x[0]], [-x[1], x[0], 0.0]])
+        info += K.T @ K
+    sigma_r = 1.4826 * float(np.median(np.abs(e_after.ravel())))
+    eig = np.linalg.eigvalsh(info)
+    frames = len(np.union1d(upper.t0_ns[iu], upper.t1_ns[iu]))
+    overlap = float(np.sqrt(max(1.0, n / max(frames, 1))))
+    sigma_deg = float(np.degrees(sigma_r / np.sqrt(eig[0]))) * overlap if eig[0] > 0 else float("inf")
+    angle = float(np.degrees(np.linalg.norm(Rotation.from_matrix(R @ R_cam1_cam0_rig.T).as_rotvec())))
+    return StereoCheck(
+        angle, sigma_deg, sigma_deg <= MAX_ROTATION_SIGMA_DEG, int((w > 0).sum()),
+        _rms_deg(dst - src @ R_cam1_cam0_rig.T), _rms_deg(e_after),
+    )  # fmt: skip

@@ -179,6 +179,17 @@ def imu_table(refinement: Refinement) -> Table:
     return table
 
 
+def stereo_line(refinement: Refinement) -> str:
+    """One line: the stereo rotation the cameras' own motion implies against the camchain's."""
+    s = refinement.stereo
+    if not s.observable:
+        return f"Stereo rotation check: not observable from this recording ({s.pairs} frame pairs)."
+    return (
+        f"Stereo rotation check: the cameras' motion puts cam1 {s.angle_deg:.3f} deg from the camchain's "
+        f"stereo rotation (1-sigma {s.sigma_deg:.3f} deg, {s.pairs} frame pairs; not changed by refine)."
+    )
+
+
 def calib_refine(bags: BagsArg, rig: RigOpt, out: RefinedOpt, plot: ChartOpt = None) -> None:
     """Estimate the cameras' clock offsets and the LiDARs' rotations from a recording; write the refined rig.
 
@@ -198,6 +209,7 @@ def calib_refine(bags: BagsArg, rig: RigOpt, out: RefinedOpt, plot: ChartOpt = N
         refinement = refine(bags, given, progress=update)
     console.print(refine_table(refinement))
     console.print(imu_table(refinement))
+    console.print(stereo_line(refinement))
     frames = ", ".join(f"{n} {k}" for k, n in refinement.frames.items())
     readings = ", ".join(f"{n} {k}" for k, n in refinement.imu_readings.items())
     console.print(f"Read {frames} frames and {readings} gyro readings. LiDAR translations are not refined.")

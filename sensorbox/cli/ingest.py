@@ -263,10 +263,11 @@ def ingest_cmd(
     for line in summary.lost_chunks:
         console.print(f"skipped {line}", markup=False, highlight=False, soft_wrap=True)
     if summary.refinement is not None:
-        from sensorbox.cli.calib import imu_table, refine_table
+        from sensorbox.cli.calib import imu_table, refine_table, stereo_line
 
         console.print(refine_table(summary.refinement))
         console.print(imu_table(summary.refinement))
+        console.print(stereo_line(summary.refinement))
     console.print(summary_table(summary, out))
     for line in summary.warnings:
         print_warning(line)

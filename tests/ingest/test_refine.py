@@ -23,6 +23,7 @@ from ingest.train.refine import PAIR_GAPS, refine
 from ingest.train.timeshift import (
     MAX_ROTATION_SIGMA_DEG,
     FrameRotations,
+    check_stereo_rotation,
     estimate_imu_rotation,
     estimate_timeshift,
 )
@@ -80,6 +81,24 @@ def test_an_imu_rotation_off_by_a_degree_comes_back() -> None:
     error_deg = np.degrees(np.linalg.norm(Rotation.from_matrix(found.R_cam0_imu @ R_true.T).as_rotvec()))
     assert error_deg < 0.05
     assert error_deg <= 3 * found.sigma_deg
+
+
+def test_a_stereo_rotation_off_by_half_a_degree_is_found_and_an_exact_one_is_not() -> None:
+    """cam1's rotations are cam0's seen through the true R_cam1_cam0 (0.1 deg of noise, stamps 0.1 ms
+    later): a camchain whose stereo rotation is 0.5 deg off is flagged, the exact one is not."""
+    upper, _, _ = _exact("walk", 6.0, 0)
+    R_true = read_rig(REFERENCE_RIG).lower.T_cam_cam0[:3, :3]
+    noise = np.random.default_rng(9).normal(0, np.radians(0.1) / np.sqrt(3), upper.rotvec.shape)
+    lower = FrameRotations(upper.t0_ns + 100_000, upper.t1_ns + 100_000, upper.rotvec @ R_true.T + noise,
+                           upper.tracks)  # fmt: skip
+    exact = check_stereo_rotation(upper, lower, R_true)
+    assert exact.observable and exact.pairs >= 0.95 * len(upper.t0_ns)
+    assert exact.angle_deg <= 3 * exact.sigma_deg and not exact.disagrees
+    off = check_stereo_rotation(
+        upper, lower, Rotation.from_rotvec([0.0, np.radians(0.5), 0.0]).as_matrix() @ R_true
+    )
+    assert off.disagrees
+    assert off.angle_deg == pytest.approx(0.5, abs=3 * off.sigma_deg)
 
 
 def test_a_rig_that_stood_still_reveals_neither() -> None:
