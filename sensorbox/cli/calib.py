@@ -193,10 +193,7 @@ def stereo_line(refinement: Refinement) -> str:
 def calib_refine(bags: BagsArg, rig: RigOpt, out: RefinedOpt, plot: ChartOpt = None) -> None:
     """Estimate the cameras' clock offsets and the LiDARs' rotations from a recording; write the refined rig.
 
-    The offset is where the cameras' own rotation between frames (tracked corners) agrees with the
-    gyro's, and each Mid-360 IMU's rotation in cam0 (and so its LiDAR's) is the one that maps its
-    gyro's rotations onto cam0's. Both need a recording in which the rig turned (a rig that stood
-    still cannot reveal them, and the report says so). LiDAR translations are not refined.
+    Needs a recording in which the rig turned; what it cannot reveal keeps the rig's value (docs/refine.md).
     """
     from calibration.rig import read_rig, write_rig
     from ingest.train.refine import refine
