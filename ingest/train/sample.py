@@ -14,6 +14,7 @@ from typing import Any, Literal
 import cv2
 import numpy as np
 
+from calibration.errors import CalibrationError
 from calibration.rectify import StereoRectification, rectify_rig
 from calibration.rig import Rig
 from calibration.spherical import Equirectangular
@@ -76,6 +77,12 @@ class Geometry:
         model = rig.upper.model
         h = check_height_full(default_height_full(model) if height_full is None else height_full)
         valid = int(pixel_rays(model)[1].sum())  # cached: dense GT's warm-up and renderer reuse the rays
+        if valid == 0:  # GT density's denominator
+            where = rig.source or rig.name
+            raise CalibrationError(
+                f"{where}: camera {rig.upper.name} maps none of its {model.width}x{model.height} pixels to a "
+                "ray; expected a camera model that sees"
+            )
         return cls(rig, rectify_rig(rig), Equirectangular(h), px_per_rad(model), valid)
 
     def warm_maps(self) -> None:

@@ -545,3 +545,17 @@ def test_passes_report_every_message_and_sweep_they_read(
         assert done[-1] == (n, n), what
         assert [d for d, _ in done[:-1]] == list(range(every, n, every))
         assert all(t == n for _, t in done)
+
+
+def test_a_camera_that_maps_no_pixel_to_a_ray_is_one_line(monkeypatch: pytest.MonkeyPatch) -> None:
+    """GT density is GT pixels over the pixels with a ray: a model with none would divide by zero."""
+    from calibration.errors import CalibrationError
+    from calibration.rig import REFERENCE_RIG, read_rig
+    from ingest.raster.view import pixel_rays
+    from ingest.train.sample import Geometry
+
+    rig = read_rig(REFERENCE_RIG)
+    rays, valid = pixel_rays(rig.upper.model)
+    monkeypatch.setattr("ingest.train.sample.pixel_rays", lambda model: (rays, np.zeros_like(valid)))
+    with pytest.raises(CalibrationError, match=r"camera cam0 maps none of its 1920x1200 pixels to a ray"):
+        Geometry.from_rig(rig)
