@@ -195,7 +195,10 @@ def calib_refine(bags: BagsArg, rig: RigOpt, out: RefinedOpt, plot: ChartOpt = N
 
     Needs a recording in which the rig turned; what it cannot reveal keeps the rig's value (docs/refine.md).
     """
+    import tempfile
+
     from calibration.rig import read_rig, write_rig
+    from ingest.dataset.layout import write_atomic_set
     from ingest.train.refine import refine
 
     check_out_file("--out", out)
@@ -212,8 +215,11 @@ def calib_refine(bags: BagsArg, rig: RigOpt, out: RefinedOpt, plot: ChartOpt = N
     console.print(f"Read {frames} frames and {readings} gyro readings. LiDAR translations are not refined.")
     for line in refinement.unobserved_lines():
         print_warning(line, console)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    write_rig(refinement.rig, out)
+    with tempfile.TemporaryDirectory() as tmp:  # the rig and its camchain written as one set, or neither
+        chain = write_rig(refinement.rig, Path(tmp) / out.name)
+        write_atomic_set(
+            [(out, (Path(tmp) / out.name).read_bytes()), (out.parent / chain.name, chain.read_bytes())]
+        )
     console.print(f"Refined rig written to {out}")
     if plot is not None:
         from sensorbox.analysis.plots import plot_timeshift
