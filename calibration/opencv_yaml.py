@@ -23,14 +23,15 @@ from typing import Any
 
 import yaml
 
-_OPENCV_DIRECTIVE = re.compile(r"\A(?:\ufeff)?%YAML:\d+\.\d+[ \t]*(?=\r?\n|\Z)")
+_OPENCV_DIRECTIVE = re.compile(r"\A(?:\ufeff)?%YAML:\d+\.\d+[ \t]*(?:#[^\r\n]*)?(?=\r?\n|\Z)")
 _FLOAT_DT = frozenset("fdh")  # float32, float64, float16
 _INT_DT = frozenset("ucwsi")  # uint8, int8, uint16, int16, int32
 OPENCV_MATRIX_TAG = "tag:yaml.org,2002:opencv-matrix"
 
 
 def strip_opencv_directive(text: str) -> str:
-    """Blank out a leading ``%YAML:1.0`` line, keeping the line count."""
+    """Blank out a leading ``%YAML:1.0`` line (and a comment after it, as OpenVINS writes:
+    ``%YAML:1.0 # need to specify the file type at the top!``), keeping the line count."""
     return _OPENCV_DIRECTIVE.sub("", text, count=1)
 
 

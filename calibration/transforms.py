@@ -6,6 +6,7 @@
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Sequence
 
@@ -14,11 +15,17 @@ import numpy as np
 from calibration.errors import CalibrationError
 from calibration.types import F64
 
+log = logging.getLogger(__name__)
+
 # A rotation printed to 6 decimals (C++ streams' default precision, many tools' output) is off
-# orthonormal by up to about 3e-6; 1e-5 accepts those and refuses a 4-decimal one (about 1e-4) or a
-# wrong matrix. Accepted rotations are used as written: 1e-5 rad is 0.1 mm at 10 m.
+# orthonormal by up to about 3e-6 and is used as written (1e-5 rad is 0.1 mm at 10 m). Published
+# extrinsics with 5 or 4 decimals (KAIST's camchain: 2.1e-5) are off by up to about 3e-4: those are
+# replaced by their nearest rotation, with a warning. Beyond 1e-3 the matrix is no printed rotation.
 ORTHONORMAL_TOL = 1e-5
-"""Largest |R^T R - I| entry accepted for a rotation read from a file."""
+"""Largest |R^T R - I| entry of a rotation read from a file that is used as written."""
+ROUNDED_TOL = 1e-3
+"""Largest |R^T R - I| entry of a rotation read from a file that is taken as a rounded one (and
+re-orthonormalised); beyond it the matrix is refused."""
 
 
 def as_transform(value: object, what: str) -> F64:
@@ -28,8 +35,10 @@ def as_transform(value: object, what: str) -> F64:
     (as OpenCV and several calibration tools write them). ``what`` names the
     source (file, camera, key) for the error message. Raises `CalibrationError`
     if the shape is neither, an entry is not a finite number, the bottom row is
-    not [0, 0, 0, 1], or the rotation block is not orthonormal with determinant
-    +1 (tolerance `ORTHONORMAL_TOL`).
+    not [0, 0, 0, 1], or the rotation block is no rotation (determinant -1, or off
+    orthonormal by more than `ROUNDED_TOL`). A rotation off by more than
+    `ORTHONORMAL_TOL` (printed with 4 or 5 decimals) is replaced by its nearest
+    rotation, with a logged warning naming `what`.
     """
     try:
         T = np.array(value, dtype=np.float64)
@@ -51,13 +60,23 @@ def as_transform(value: object, what: str) -> F64:
         raise CalibrationError(f"{what}: bottom row must be [0, 0, 0, 1], got {T[3].tolist()}{hint}")
     R = T[:3, :3]
     ortho_err = float(np.max(np.abs(R.T @ R - np.eye(3))))
-    if ortho_err > ORTHONORMAL_TOL:
+    if ortho_err > ROUNDED_TOL:
         raise CalibrationError(
             f"{what}: rotation is not orthonormal (max |R^T R - I| = {ortho_err:.2e}, "
-            f"expected <= {ORTHONORMAL_TOL:.0e})"
+            f"expected <= {ROUNDED_TOL:.0e})"
         )
     if np.linalg.det(R) < 0.0:
         raise CalibrationError(f"{what}: rotation has determinant -1 (a reflection)")
+    if ortho_err > ORTHONORMAL_TOL:  # printed with few decimals: its nearest rotation
+        U, _, Vt = np.linalg.svd(R)
+        nearest = U @ Vt
+        moved = float(np.max(np.abs(nearest - R)))
+        log.warning(
+            "%s: rotation off orthonormal by %.1e (printed with few decimals?); its nearest rotation is "
+            "used (entries moved by up to %.1e)", what, ortho_err, moved,
+        )  # fmt: skip
+        T = T.copy()
+        T[:3, :3] = nearest
     return T
 
 

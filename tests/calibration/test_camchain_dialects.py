@@ -86,12 +86,51 @@ def assert_same_chain(a, b, atol=0.0):
 # -- %YAML:1.0 and !!opencv-matrix ---------------------------------------------------------------
 
 
-@pytest.mark.parametrize("header", ["%YAML:1.0\n", "%YAML:1.0\n---\n", "%YAML:1.0\r\n\r\n"])
+@pytest.mark.parametrize(
+    "header",
+    [
+        "%YAML:1.0\n",
+        "%YAML:1.0\n---\n",
+        "%YAML:1.0\r\n\r\n",
+        "%YAML:1.0 # need to specify the file type at the top!\n",
+    ],
+)
 def test_opencv_yaml_header_is_read(tmp_path, header):
     plain = read(tmp_path, kalibr_with_T_cn_cnm1(), "plain.yaml")
     chain = read(tmp_path, header + kalibr_with_T_cn_cnm1())
     assert_same_chain(chain, plain)
     assert chain.cameras[0].model == Pinhole(458.654, 457.296, 367.215, 248.375, 752, 480, RADTAN0)
+
+
+def test_an_extrinsic_printed_with_five_decimals_is_used_as_its_nearest_rotation(tmp_path, caplog):
+    """KAIST's OpenVINS camchain prints five decimals: |R^T R - I| = 2.1e-5 was refused (tolerance 1e-5).
+    Such a rotation is replaced by its nearest one with a warning naming it; beyond 1e-3 it is refused."""
+    from scipy.spatial.transform import Rotation
+
+    def chain_with(T):
+        return camera("cam0", "") + camera("cam1", f"T_cn_cnm1:\n{rows(T, 2)}\n")
+
+    R = Rotation.random(
+        random_state=2018
+    ).as_matrix()  # of 3000 random rotations, the farthest off at 5 decimals
+    T = np.eye(4)
+    T[:3, :3] = np.round(R, 5)
+    T[:3, 3] = T_C1_C0_KALIBR[:3, 3]
+    assert 1e-5 < np.abs(T[:3, :3].T @ T[:3, :3] - np.eye(3)).max() < 1e-4
+    with caplog.at_level(logging.WARNING):
+        chain = read(tmp_path, chain_with(T), "five.yaml")
+    R_read = chain.cameras[1].T_cam_cam0[:3, :3]
+    assert np.abs(R_read.T @ R_read - np.eye(3)).max() < 1e-12
+    assert np.abs(R_read - R).max() < 1e-5
+    assert any(
+        "cam1.T_cn_cnm1: rotation off orthonormal by 1.6e-05" in r.getMessage() for r in caplog.records
+    )
+    bad = T.copy()
+    bad[0, 1] += 0.01
+    with pytest.raises(
+        CalibrationError, match=r"cam1\.T_cn_cnm1: rotation is not orthonormal .* expected <= 1e-03"
+    ):
+        read(tmp_path, chain_with(bad), "bad.yaml")
 
 
 def test_exponents_without_a_dot_are_numbers_and_a_repeated_key_is_refused(tmp_path):

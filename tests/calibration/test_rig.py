@@ -233,8 +233,8 @@ def test_unknown_role_lookup_lists_cameras():
 
 
 def test_rotations_printed_to_six_decimals_are_accepted_and_coarser_ones_refused():
-    """Many tools print 6 decimals: those rotations are off orthonormal by up to ~3e-6 and must be read;
-    4 decimals (~1e-4) are refused, as is any matrix that is not a rotation."""
+    """Many tools print 6 decimals: those rotations are off orthonormal by up to ~3e-6 and are read as
+    written; 4 decimals (~1e-4) are used as their nearest rotation; beyond 1e-3 a matrix is refused."""
     from scipy.spatial.transform import Rotation
 
     from calibration.transforms import as_transform
@@ -243,12 +243,16 @@ def test_rotations_printed_to_six_decimals_are_accepted_and_coarser_ones_refused
     for R in Rotation.random(2000, random_state=3).as_matrix():
         T[:3, :3] = np.round(R, 6)
         as_transform(T.tolist(), "six decimals")
-    T[:3, :3] = np.round(Rotation.from_euler("xyz", [0.3, -1.1, 2.0]).as_matrix(), 4)
+    R = Rotation.from_euler("xyz", [0.3, -1.1, 2.0]).as_matrix()
+    T[:3, :3] = np.round(R, 4)
+    nearest = as_transform(T.tolist(), "four")[:3, :3]
+    assert np.abs(nearest.T @ nearest - np.eye(3)).max() < 1e-12 and np.abs(nearest - R).max() < 1e-4
+    T[:3, :3] = np.round(R, 2)
     with pytest.raises(
         CalibrationError,
-        match=r"^four: rotation is not orthonormal \(max \|R\^T R - I\| = .*, expected <= 1e-05\)$",
+        match=r"^two: rotation is not orthonormal \(max \|R\^T R - I\| = .*, expected <= 1e-03\)$",
     ):
-        as_transform(T.tolist(), "four")
+        as_transform(T.tolist(), "two")
 
 
 def _rig_with_chain(tmp_path, scale: float):
