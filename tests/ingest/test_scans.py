@@ -326,3 +326,18 @@ def test_site_entry_keys_of_the_wrong_type_name_the_key(tmp_path, entry, problem
     with pytest.raises(ScanError) as err:
         read_scans([manifest])
     assert str(err.value) == f"{manifest}: {problem}"
+
+
+def test_an_ascii_pcd_whose_last_line_has_no_newline_is_whole(tmp_path):
+    """PCL's test/nhood_test.pcd ends its last point without a newline: it was called truncated
+    ('header declares 36 points, the file has 35 lines'). One line short is still named."""
+    header = (b"# .PCD v0.7\nVERSION 0.7\nFIELDS x y z rgb\nSIZE 4 4 4 4\nTYPE F F F U\nCOUNT 1 1 1 1\nWIDTH 3\n"
+              b"HEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS 3\nDATA ascii\n")  # fmt: skip
+    (tmp_path / "whole.pcd").write_bytes(header + b"1 2 3 16711680\n4 5 6 65280\n7 8 9 255")
+    xyz = read_scans([tmp_path / "whole.pcd"])[0].xyz
+    np.testing.assert_array_equal(np.asarray(xyz), [[1, 2, 3], [4, 5, 6], [7, 8, 9]])
+    (tmp_path / "short.pcd").write_bytes(header + b"1 2 3 16711680\n4 5 6 65280")
+    with pytest.raises(
+        ScanError, match=r"short\.pcd: truncated: its header declares 3 points, the file has 2 lines"
+    ):
+        read_scans([tmp_path / "short.pcd"])
