@@ -256,6 +256,9 @@ def _parse_camera(name: str, block: object, where: str) -> dict[str, Any]:
     out: dict[str, Any] = {"model": camera}
     if "T_cn_cnm1" in block:
         out["T_cn_cnm1"] = as_transform(block["T_cn_cnm1"], f"{where}.T_cn_cnm1")
+    elif OLD_T_CN_CNM1 in block:  # early Kalibr camchains (EuRoC's era) name the same pose so
+        out["T_cn_cnm1"] = as_transform(block[OLD_T_CN_CNM1], f"{where}.{OLD_T_CN_CNM1}")
+        log.warning("%s: %s read as T_cn_cnm1 (its name in early Kalibr camchains)", where, OLD_T_CN_CNM1)
     if "T_cam_imu" in block:
         out["T_cam_imu"] = as_transform(block["T_cam_imu"], f"{where}.T_cam_imu")
     if "T_imu_cam" in block:  # OpenVINS writes the inverse
@@ -329,6 +332,10 @@ def _camera_names(data: Mapping[Any, Any], source: str) -> list[str]:
     if others:
         log.warning("%s: ignoring top-level keys %s (not cameras cam0, cam1, ...)", source, ", ".join(others))
     return names
+
+
+OLD_T_CN_CNM1 = "baseline_last_to_this_cam"
+"""What early Kalibr camchains (those shipped with EuRoC-era datasets) call T_cn_cnm1: cam n-1 -> cam n."""
 
 
 def _T_cn_cnm1(parsed: dict[str, Any], prev: dict[str, Any], name: str, prev_name: str, where: str) -> F64:

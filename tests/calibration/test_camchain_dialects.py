@@ -337,3 +337,15 @@ def test_merge_keys_are_read_and_a_list_as_key_is_one_line() -> None:
     assert yaml.load(doc, Loader=OpenCvSafeLoader)["cam0"] == {"model": "ds", "rate_hz": 60}
     with pytest.raises(yaml.constructor.ConstructorError, match="found unhashable key"):
         yaml.load("? [a, b]\n: 1\n", Loader=OpenCvSafeLoader)
+
+
+def test_an_early_kalibr_camchains_baseline_last_to_this_cam_is_its_t_cn_cnm1(tmp_path, caplog):
+    """Early Kalibr camchains (EuRoC's era) name cam n-1 -> cam n `baseline_last_to_this_cam`; it was
+    refused as "missing key 'T_cn_cnm1'"."""
+    plain = read(tmp_path, kalibr_with_T_cn_cnm1(), "plain.yaml")
+    with caplog.at_level(logging.WARNING):
+        old = read(
+            tmp_path, kalibr_with_T_cn_cnm1().replace("T_cn_cnm1:", "baseline_last_to_this_cam:"), "old.yaml"
+        )
+    assert_same_chain(old, plain)
+    assert any("cam1: baseline_last_to_this_cam read as T_cn_cnm1" in r.getMessage() for r in caplog.records)
