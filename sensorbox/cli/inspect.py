@@ -88,7 +88,9 @@ def _lidar_table(lidars: tuple[LidarCoverage, ...]) -> Table:
         "topic", "sweeps", "points", "zero points", "duration [ms]", "1°x1° coverage of 360 x [-7, 52]°",
         "elevation [°]", "point time",
     ):  # fmt: skip
-        table.add_column(escape(col), justify="left" if col == "topic" else "right", overflow="fold")
+        # a topic is never folded: two LiDARs' topics differ in their last characters (..._12, ..._13)
+        topic = col == "topic"
+        table.add_column(escape(col), justify="left" if topic else "right", overflow="fold", no_wrap=topic)
     for li in lidars:
         zero = "-" if li.zero_fraction is None else f"{li.zero_fraction * 100:.1f} %"
         cover = "-" if li.coverage_median is None else f"{li.coverage_median * 100:.1f} %"

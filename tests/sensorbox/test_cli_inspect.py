@@ -119,3 +119,21 @@ def test_help_describes_the_command_and_options():
     assert res.exit_code == 0
     for text in ("stereo pairing", "LiDAR coverage", "--rig", "--salvage", "Rig file", "truncated"):
         assert text in res.stdout
+
+
+def test_the_lidar_table_never_folds_a_topic_on_a_narrow_terminal():
+    """Both LiDAR topics were folded after '/livox/lidar_192_168_1' on an 80-column terminal, so the two
+    rows began the same; each topic now stays on one line and the other columns wrap."""
+    import io
+
+    from rich.console import Console
+
+    from ingest.inspect import inspect_bags
+    from sensorbox.cli.inspect import _lidar_table
+
+    report = inspect_bags([fixture_bag("indoor_static_mcap", FIXTURES_DIR)])
+    out = io.StringIO()
+    Console(file=out, width=80).print(_lidar_table(report.lidars))
+    lines = out.getvalue().splitlines()
+    for topic in ("/livox/lidar_192_168_1_12", "/livox/lidar_192_168_1_13"):
+        assert any(topic in line for line in lines), (topic, out.getvalue())
