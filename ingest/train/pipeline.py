@@ -55,6 +55,7 @@ from typing import Any
 
 from calibration.rectify import stereo_warnings
 from calibration.rig import Rig, read_rig
+from ingest.bags.decode import Frame
 from ingest.bags.reader import BagSet, Progress, given_once, open_bags
 from ingest.dataset.identity import resume_state
 from ingest.dataset.layout import (
@@ -62,7 +63,7 @@ from ingest.dataset.layout import (
     sample_id,
 )
 from ingest.dataset.lock import hold_folder
-from ingest.errors import BagError, DatasetError, OdometryError, OutputError
+from ingest.errors import BagError, DatasetError, MessageDecodeError, OdometryError, OutputError
 from ingest.raster.visibility import backend_problem
 from ingest.runtime.executor import Executor, Handoff, share_cores
 from ingest.runtime.heap import retain_freed_memory
@@ -83,6 +84,7 @@ from ingest.train.stream import (
     UNDECODABLE_IMAGE,
     Shared,
     StreamedJob,
+    check_image_size,
     give_arrays,
     handoff_bytes_bound,
     planned_stamps,
@@ -524,6 +526,26 @@ def _block_planes(
     return BlockPlanes(traj, {t: the_plan.spans[t] for t in topics.lidars}, settings, 1 if busy else None)
 
 
+FIRST_FRAMES_TRIED = 10
+"""Camera messages tried for a decodable first frame (undecodable ones are counted by the passes)."""
+
+
+def _check_first_frames(bags: BagSet, topics: Topics, rig: Rig) -> None:
+    """Each camera's first decodable frame has the size of the rig's camera (`check_image_size`), so a
+    rig file of another rig stops the run before the passes (a dense run's trajectory pass takes minutes)."""
+    for topic, camera in ((topics.upper, rig.upper), (topics.lower, rig.lower)):
+        for k, msg in enumerate(bags.messages(topics=[topic])):
+            if k >= FIRST_FRAMES_TRIED:
+                break
+            try:
+                frame = msg.decoded(bags.label, keep_bgra=True)
+            except MessageDecodeError:
+                continue
+            if isinstance(frame, Frame):
+                check_image_size(frame.image, camera, msg, bags.label)
+                break
+
+
 def _run(
     bag_paths: list[Path],
     cfg: IngestConfig,
@@ -543,6 +565,7 @@ def _run(
         asked = cfg
         reach = _dense_reach_ns(cfg)
         read = partial(passes, PASS_READ) if passes else None
+        _check_first_frames(bags, topics, rig)  # the wrong rig file: one line before minutes of passes
         surveyed = survey(bags, topics, max(cfg.lidar_window_ns, reach), bad, read)  # before any write
         for topic, rows in surveyed.seen.items():
             check_time_order(

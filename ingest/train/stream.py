@@ -179,7 +179,8 @@ def handoff_bytes_bound(geometry: Geometry, job: StreamedJob, rates: LidarRates,
     return images + points * per_point + ALIGN * (2 + len(_LIDAR_FIELDS) * len(job.lidars))
 
 
-def _check_size(image: Array, camera: Any, msg: RawMessage, where: str) -> None:
+def check_image_size(image: Array, camera: Any, msg: RawMessage, where: str) -> None:
+    """`BagError` naming bag, topic and log time when `image` is not the size of the rig's `camera`."""
     h, w = image.shape[:2]
     if (w, h) != (camera.model.width, camera.model.height):
         raise BagError(
@@ -206,7 +207,7 @@ def decode_images(job: StreamedJob, shared: Shared) -> tuple[list[Array], list[t
             errors.append((msg.topic, msg.log_ns, str(err)))
             continue
         assert isinstance(frame, Frame)  # the camera topics hold Image or CompressedImage messages
-        _check_size(frame.image, camera, msg, job.where)
+        check_image_size(frame.image, camera, msg, job.where)
         images.append(grey_as_bgr(frame.image))  # the dataset's image folders are RGB
     return images, errors
 
