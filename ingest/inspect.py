@@ -397,6 +397,7 @@ def inspect_bags(
         if readable:
             _read(bag, readable, sweeps, imus, total, progress)
         salvaged, lost_chunks, lost = bag.salvaged, bag.lost_chunks, bag.lost_counts()
+        span = bag.log_span_ns()  # topics refused as undecodable count towards the duration too
     for topic, acc in accs.items():
         if topic not in readable:
             acc.count = summary[topic].count  # refused: the bag's own count
@@ -404,8 +405,8 @@ def inspect_bags(
     types = {t.topic: t.msgtype for t in stats}
     mapping = suggest_mapping(stats, _imu_up_z(imus))
     pair = stereo_topics(rig, mapping, types)
-    firsts = [a.first_log for a in accs.values() if a.first_log is not None]
-    lasts = [a.last_log for a in accs.values() if a.last_log is not None]
+    firsts = [a.first_log for a in accs.values() if a.first_log is not None] + ([span[0]] if span else [])
+    lasts = [a.last_log for a in accs.values() if a.last_log is not None] + ([span[1]] if span else [])
     return BagReport(
         paths=tuple(path_list),
         ros_version=ros,

@@ -599,6 +599,13 @@ class BagSet:
                 counts[channel.topic] = counts.get(channel.topic, 0) + n
         return {t: TopicSummary(" | ".join(sorted(types[t])), counts[t]) for t in sorted(types)}
 
+    def log_span_ns(self) -> tuple[int, int] | None:
+        """First and last log time (ns) of every message in the bags, whatever its type (the readers'
+        indexes; salvaged files are not indexed: None when there is no reader)."""
+        if self._reader is None or not self._reader.message_count:
+            return None
+        return int(self._reader.start_time), int(self._reader.end_time) - 1  # rosbags' end is exclusive
+
     def _missing_topic(self, topic: str) -> BagError:
         have = "; ".join(f"{t} ({s.msgtype}, {s.count})" for t, s in self.topics().items()) or "none"
         return BagError(f"topic {topic!r} is not in {self._where}; its topics are: {have}")

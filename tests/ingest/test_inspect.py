@@ -466,3 +466,28 @@ def test_truncated_mcap_needs_salvage(tmp_path):
 def test_missing_bag_is_a_bag_error(tmp_path):
     with pytest.raises(BagError, match="no such file"):
         inspect_bags(tmp_path / "nothing.mcap")
+
+
+def test_the_duration_counts_topics_inspect_cannot_decode(tmp_path: Path) -> None:
+    """A bag whose only topic has an unknown type and no embedded definition: inspect refuses the topic
+    but counts its messages; its log time span was 0.00 s (from the decoded topics alone)."""
+    from mcap.writer import Writer
+
+    from ingest.inspect import inspect_bags
+
+    path = tmp_path / "unknown.mcap"
+    with path.open("wb") as f:
+        writer = Writer(f)
+        writer.start(profile="ros2")
+        schema = writer.register_schema(name="foo_msgs/msg/Bar", encoding="ros2msg", data=b"")
+        channel = writer.register_channel(topic="/foo", message_encoding="cdr", schema_id=schema)
+        for k, log_ns in enumerate((1_000_000_000, 2_000_000_000, 3_500_000_000)):
+            writer.add_message(
+                channel, log_time=log_ns, data=b"\x00\x01\x00\x00", publish_time=log_ns, sequence=k
+            )
+        writer.finish()
+    report = inspect_bags([path])
+    assert report.message_count == 3
+    (foo,) = report.topics
+    assert foo.error is not None and "refusing to guess its layout" in foo.error
+    assert report.duration_s == 2.5
