@@ -14,7 +14,7 @@
 from __future__ import annotations
 
 from functools import cache
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from rosbags.highlevel import AnyReader, AnyReaderError
 from rosbags.interfaces import MessageDefinition, MessageDefinitionFormat
@@ -101,6 +101,26 @@ def check_definition(
         )
 
 
+def _match_folder_qos(folder: Any) -> list[str]:
+    """Let a rosbag2 folder's storage files yield the messages of topics whose QoS in metadata.yaml
+    differs from the QoS the file stores; the topics, for a warning.
+
+    rosbags pairs a folder's metadata topics with its files' channels by topic, type and QoS, so a
+    difference (rosbag2's own test bags have them: the file's QoS written by a newer recorder)
+    silently dropped every message of the topic. A channel with no equal metadata entry takes the
+    QoS of the metadata entry of its topic and type.
+    """
+    topics: list[str] = []
+    for storage in getattr(folder, "storages", ()):  # a rosbag2 folder's files (a single file: none)
+        conns = storage.connections
+        for idx, x in enumerate(conns):
+            same = [y for y in folder.connections if y.topic == x.topic and y.msgtype == x.msgtype]
+            if same and all(y.ext != x.ext for y in same):
+                conns[idx] = x._replace(ext=same[0].ext)
+                topics.append(x.topic)
+    return sorted(set(topics))
+
+
 class TolerantAnyReader(AnyReader):
     """`AnyReader` whose `open()` sets aside connections with unparsable definitions.
 
@@ -112,6 +132,8 @@ class TolerantAnyReader(AnyReader):
     """
 
     unparsable: list[tuple[Connection, str]]
+    qos_mismatches: list[str]
+    """Topics of a rosbag2 folder whose metadata.yaml QoS differs from their storage file's (read anyway)."""
     message_compressed: set[int]
     """`id` of each rosbag2 storage (a connection's `owner`) whose messages are zstd-compressed one by
     one (compression_mode 'message'): this reader yields them compressed, and `BagSet` decompresses
@@ -121,6 +143,9 @@ class TolerantAnyReader(AnyReader):
         assert self.stack is not None
         for reader in self.readers:
             self.stack.enter_context(reader)
+        self.qos_mismatches = []
+        for reader in self.readers:
+            self.qos_mismatches += _match_folder_qos(getattr(reader, "storage", None))
         self.message_compressed = set()
         for reader in self.readers:
             storage = getattr(reader, "storage", None)  # a rosbag2 reader's; a ROS 1 reader has none

@@ -521,6 +521,11 @@ class BagSet:
         self.skipped: dict[str, str] = {}
         """Topics left out when reading all topics -> why (one line): an embedded definition
         that cannot be parsed, or, in salvaged files, any reason a topic cannot be decoded safely."""
+        if reader is not None and reader.qos_mismatches:
+            log.warning(
+                "%s: metadata.yaml gives other QoS profiles than the storage file for %s; their messages "
+                "are read all the same", self._where, ", ".join(reader.qos_mismatches),
+            )  # fmt: skip
         if reader is not None:
             for conn, problem in reader.unparsable:
                 where = str(getattr(conn.owner, "path", self._where))

@@ -564,3 +564,38 @@ def test_a_camera_that_maps_no_pixel_to_a_ray_is_one_line(monkeypatch: pytest.Mo
     monkeypatch.setattr("ingest.train.sample.pixel_rays", lambda model: (rays, np.zeros_like(valid)))
     with pytest.raises(CalibrationError, match=r"camera cam0 maps none of its 1920x1200 pixels to a ray"):
         Geometry.from_rig(rig)
+
+
+QOS = (
+    "- history: 3\n  depth: 0\n  reliability: 1\n  durability: 2\n  deadline:\n    sec: 9223372036\n"
+    "    nsec: 854775807\n  lifespan:\n    sec: 9223372036\n    nsec: 854775807\n  liveliness: 1\n"
+    "  liveliness_lease_duration:\n    sec: 9223372036\n    nsec: 854775807\n  avoid_ros_namespace_conventions: false"
+)
+
+
+def test_a_folder_whose_metadata_qos_differs_from_its_file_loses_no_message(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """rosbags pairs a rosbag2 folder's metadata topics with its file's channels by QoS too: a QoS that
+    differs (rosbag2's own mcap/talker and sqlite3/talker test bags) read the topic as 0 messages, without
+    a word, in inspect and ingest. Here the upper camera's 21 frames: now read, with one warning."""
+    import logging
+
+    folder = tmp_path / "qos"
+    shutil.copytree(INDOOR, folder)
+    meta = folder / "metadata.yaml"
+    meta.write_text(
+        meta.read_text().replace("offered_qos_profiles: ''", f"offered_qos_profiles: {json.dumps(QOS)}", 1)
+    )
+    with caplog.at_level(logging.WARNING), open_bags([folder]) as bags:
+        read = sum(1 for _ in bags.messages())
+    with open_bags([folder / "indoor_static_mcap.mcap"]) as bags:
+        assert read == sum(1 for _ in bags.messages()) == 336
+    warning = [r.getMessage() for r in caplog.records if "QoS" in r.getMessage()]
+    assert warning == [
+        f"{folder}: metadata.yaml gives other QoS profiles than the storage file for "
+        "/zed_upper/zed_node/rgb/color/rect/image/compressed; their messages are read all the same"
+    ]
+    summary = ingest([folder], IngestConfig(rig=_rig(INDOOR), out=tmp_path / "ds", workers=1, every=7))
+    clean = ingest([INDOOR], IngestConfig(rig=_rig(INDOOR), out=tmp_path / "clean", workers=1, every=7))
+    assert summary.written == clean.written > 0
