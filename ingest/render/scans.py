@@ -99,10 +99,23 @@ def read_site(manifest: Path, mask_label: str | None = "label") -> list[Scan]:
             )
         except SensorboxError as err:
             raise ScanError(str(err)) from err
-        scan = read_cloud(manifest.parent / e["file"], T, mask_label, name=e.get("name"))
+        path = manifest.parent / e["file"]
+        if path.suffix.lower() == ".e57":  # each scan at the entry's pose composed with its own
+            entry_scans = read_e57(path)
+            if e.get("name") is not None:
+                names = (
+                    [e["name"]]
+                    if len(entry_scans) == 1
+                    else [f"{e['name']}_{i}" for i in range(len(entry_scans))]
+                )
+                entry_scans = [replace(sc, name=n) for sc, n in zip(entry_scans, names, strict=True)]
+            entry_scans = [replace(sc, T_world_scan=T @ sc.T_world_scan) for sc in entry_scans]
+        else:
+            entry_scans = [read_cloud(path, T, mask_label, name=e.get("name"))]
         if e.get("mask") is not None:
-            scan = replace(scan, mask_xyz=read_mask_points(manifest.parent / e["mask"]))
-        scans.append(scan)
+            mask = read_mask_points(manifest.parent / e["mask"])
+            entry_scans = [replace(sc, mask_xyz=mask) for sc in entry_scans]
+        scans += entry_scans
     return scans
 
 
@@ -382,6 +395,8 @@ def read_e57(path: Path, chunk: int = E57_CHUNK) -> list[Scan]:
         raise ScanError(f"{where}: libE57 cannot read it: {_first_line(err)}") from err
     finally:
         e57.close()
+    if not scans:  # libE57's empty.e57, or an E57 of images alone (PinholeImageWithDistortionParameters)
+        raise ScanError(f"{path}: holds no scan (no data3D section; an E57 of images alone?)")
     return scans
 
 

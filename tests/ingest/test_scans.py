@@ -341,3 +341,37 @@ def test_an_ascii_pcd_whose_last_line_has_no_newline_is_whole(tmp_path):
         ScanError, match=r"short\.pcd: truncated: its header declares 3 points, the file has 2 lines"
     ):
         read_scans([tmp_path / "short.pcd"])
+
+
+def test_an_e57_in_a_site_manifest_is_read_with_its_poses_composed(tmp_path):
+    """An E57 listed in a site manifest was read as a PLY/PCD ('no points (or not a PLY/PCD file Open3D
+    can read)', libE57's bunnyDouble.e57 too): each of its scans now takes the entry's pose composed
+    with its own, and the entry's name with an index; an E57 without a scan is named."""
+    import yaml
+
+    rng = np.random.default_rng(5)
+    scans = []
+    for k in range(2):
+        xyz = rng.uniform(-5, 5, (500, 3)).astype(np.float32)
+        rgb = rng.integers(0, 256, (500, 3)).astype(np.uint8)
+        q = Rotation.from_euler("z", 40 * (k + 1), degrees=True).as_quat()
+        scans.append((f"s{k}", xyz, rgb, [q[3], q[0], q[1], q[2]], [1.0 + k, 0.0, 0.0]))
+    _write_e57(tmp_path / "two.e57", scans)
+    T_site = np.eye(4)
+    T_site[:3, :3] = Rotation.from_euler("x", 90, degrees=True).as_matrix()
+    T_site[:3, 3] = [10.0, 0.0, 0.0]
+    site = {
+        "sensorbox_site": 1,
+        "scans": [{"file": "two.e57", "name": "hall", "T_world_scan": T_site.tolist()}],
+    }
+    (tmp_path / "site.yaml").write_text(yaml.safe_dump(site))
+    got = read_scans([tmp_path / "site.yaml"])
+    direct = read_e57(tmp_path / "two.e57")
+    assert [g.name for g in got] == ["hall_0", "hall_1"]
+    for g, d in zip(got, direct, strict=True):
+        np.testing.assert_array_equal(g.xyz, d.xyz)
+        np.testing.assert_allclose(g.T_world_scan, T_site @ d.T_world_scan)
+    with pye57.E57(str(tmp_path / "empty.e57"), mode="w"):
+        pass
+    with pytest.raises(ScanError, match=r"empty\.e57: holds no scan \(no data3D section"):
+        read_scans([tmp_path / "empty.e57"])
