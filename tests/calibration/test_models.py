@@ -366,3 +366,25 @@ def test_field_of_view_of_reference_lens():
 def test_bad_parameters_raise(make, message):
     with pytest.raises(CalibrationError, match=message):
         make()
+
+
+@pytest.mark.parametrize(
+    "k",
+    [
+        (0.271, 0.0282, -0.223, -0.1843),
+        (0.5405, 0.3945, 0.1072, -0.2417),
+        (-0.1309, -0.3509, 0.5218, -0.0992),
+    ],
+)
+def test_kannala_brandt_unprojects_every_ray_it_projects_up_to_its_limit(k):
+    """Plain Newton overshot where theta_d's slope nears 0 towards theta_max: rays `project` accepted
+    (from 46-73 deg for these coefficients; 48-63 deg of a PADRL camchain's 63.4 deg) came back invalid,
+    and `calib check` reported a smaller FOV than the lens has."""
+    m = KannalaBrandt(150.0, 150.0, 1000.0, 1000.0, k[0], k[1], k[2], k[3], 2000, 2000)
+    theta = np.linspace(0.01, m.theta_max * 0.999, 500)
+    rays = np.stack([np.sin(theta) * np.cos(1.0), np.sin(theta) * np.sin(1.0), np.cos(theta)], axis=1)
+    uv, ok = m.project(rays)
+    assert ok.all()
+    back, ok2 = m.unproject(uv)
+    assert ok2.all()
+    np.testing.assert_allclose(back, rays, atol=1e-9)
