@@ -24,7 +24,7 @@ import numpy as np
 from calibration.camera import CameraModel
 from calibration.rig import Imu, Lidar, Rig, with_timeshifts
 from calibration.types import F64, U8
-from ingest.bags.decode import Frame, ImuSample, decode
+from ingest.bags.decode import Frame, ImuSample
 from ingest.bags.reader import open_bags
 from ingest.errors import BagError
 from ingest.train.clouds import GyroTrack, integrate_gyro
@@ -166,7 +166,7 @@ def _read(bags: Sequence[Path], rig: Rig, progress: Callable[[int, int], None] |
         # next frames are read and decoded; at most IN_FLIGHT pairs wait, so memory stays bounded
         with ThreadPoolExecutor(2) as pool:
             for msg in bagset.messages(topics=[*topics, *imu_of], progress=progress):
-                decoded = decode(msg.msgtype, msg.data(), bagset.ros_version)
+                decoded = msg.decoded(bagset.label)  # a failure names the bags, the topic and the log time
                 if isinstance(decoded, ImuSample):
                     stamps, readings = rec.gyro[imu_of[msg.topic]]
                     stamps.append(decoded.stamp_ns)

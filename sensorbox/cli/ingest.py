@@ -110,6 +110,9 @@ SalvageOpt = Annotated[
     ),
 ]
 
+MAX_WINDOW_MS = 3_600_000.0
+"""Largest LiDAR window (+- ms) an option may ask for: an hour."""
+
 
 def summary_table(summary: IngestSummary, out: Path) -> Table:
     """Frames, pairs, samples written/resumed/skipped, GT density, skew, motion and time per stage."""
@@ -237,6 +240,8 @@ def ingest_cmd(
     for name, value in (("--window-ms", window_ms), ("--gt-window-ms", given)):  # before round()
         if not math.isfinite(value):
             raise DatasetError(f"{name} must be a finite number, got {value:g}")
+        if abs(value) > MAX_WINDOW_MS:  # int nanoseconds overflowed at 1e300; 1e12 asked for all memory
+            raise DatasetError(f"{name} {value:g}: expected at most {MAX_WINDOW_MS:g} ms (an hour)")
     dense = DenseParams(window_ns=round(given * 1e6))
     dense = replace(dense, render=replace(dense.render, backend=backend))  # type: ignore[arg-type]  # validated
     sample = SampleParams(min_range_m=min_range, exr=exr, png_level=png_level, motion=motion, dense=dense)  # type: ignore[arg-type]

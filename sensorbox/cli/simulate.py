@@ -93,8 +93,10 @@ def simulate_cmd(
     from calibration.errors import SensorboxError
     from sensorbox.sim.run import SimConfig, simulate, with_mid360_imu_noise
 
-    if not math.isfinite(lidar_offset_ms):
-        raise SensorboxError(f"--lidar-offset-ms must be a finite number, got {lidar_offset_ms}")
+    if not math.isfinite(lidar_offset_ms) or abs(lidar_offset_ms) > 1000:
+        raise SensorboxError(
+            f"--lidar-offset-ms must be a finite number within +-1000 ms, got {lidar_offset_ms}"
+        )
     cfg = SimConfig(
         scene=scene, trajectory=trajectory, tum=tum, duration_s=duration, seed=seed, format=fmt,  # type: ignore[arg-type]
         lidar_msg=lidar_msg, image=image, scale=scale, range_noise_m=range_noise,  # type: ignore[arg-type]

@@ -51,6 +51,9 @@ LIDAR_LATENCY_NS = 2_000_000  # after the sweep's end
 IMU_LATENCY_NS = 1_000_000
 LIVOX_IMU_T_LIDAR_IMU_M = (0.011, 0.02329, -0.04412)
 MAX_CAMERA_OFFSET_NS = 1_000_000_000
+"""Largest camera or LiDAR clock offset simulated (ns): a second."""
+MAX_DURATION_S = 86_400.0
+"""Longest simulated recording (s): a day."""
 MID360_IMU_GYRO_NOISE_DENSITY = np.radians(4.5e-3)
 """The Mid-360's IMU (TDK ICM-40609-D) gyro noise density, rad/s/sqrt(Hz) (datasheet: 4.5 mdps/sqrt(Hz))."""
 MID360_IMU_ACC_NOISE_DENSITY_G = 100e-6
@@ -132,6 +135,13 @@ class SimConfig:
         for name, value, lo in (("duration", self.duration_s, 0.0), ("scale", self.scale, 0.0)):
             if not (value > lo and math.isfinite(value)):
                 raise SensorboxError(f"--{name} must be a finite number > {lo}, got {value}")
+        if self.duration_s > MAX_DURATION_S:  # int nanoseconds overflowed at 1e300
+            raise SensorboxError(f"--duration {self.duration_s:g}: expected at most {MAX_DURATION_S:g} s")
+        if abs(self.lidar_clock_offset_ns) > MAX_CAMERA_OFFSET_NS:
+            raise SensorboxError(
+                f"--lidar-offset-ms {self.lidar_clock_offset_ns / 1e6:g}: expected within "
+                f"+-{MAX_CAMERA_OFFSET_NS / 1e6:g} ms"
+            )
         if not (self.range_noise_m >= 0 and math.isfinite(self.range_noise_m)):
             raise SensorboxError(f"--range-noise must be a finite number >= 0 m, got {self.range_noise_m}")
         if self.supersample < 1:

@@ -288,3 +288,39 @@ def test_a_damaged_ground_truth_png_is_our_one_line_only(
                 + "; ground truth must be a 16-bit single-channel PNG"
             ],
         ), err
+
+
+def test_a_window_of_1e300_ms_is_one_line_naming_the_option(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`--window-ms 1e300` ended in an OverflowError traceback (nanoseconds as a C long), 1e12 in 'Cannot
+    allocate memory' naming no option."""
+    from tests.faults.cli import sensorbox
+    from tests.paths import FIXTURES_DIR
+
+    bag = FIXTURES_DIR / "indoor_static_mcap"
+    for value in ("1e300", "1e12"):
+        code, _, err = sensorbox(
+            capsys, "ingest", str(bag), "--rig", str(bag.with_name(bag.name + ".truth") / "rig.yaml"),
+            "--out", str(tmp_path / "o"), "--window-ms", value,
+        )  # fmt: skip
+        assert code == 2
+        assert err == [f"error: --window-ms {float(value):g}: expected at most 3.6e+06 ms (an hour)"]
+        assert not (tmp_path / "o").exists()
+
+
+def test_refine_names_the_bag_topic_and_time_of_an_imu_message_it_cannot_decode(tmp_path: Path) -> None:
+    """`calib refine` said only '162 bytes are not a valid ROS 2 sensor_msgs/msg/Imu'; ingest named all three."""
+    from calibration.rig import read_rig
+    from ingest.errors import MessageDecodeError
+    from ingest.train.refine import refine
+    from tests.faults.bags import rewrite
+
+    def keep(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        return [(topic, raw[: len(raw) // 2] if "imu" in topic and k == 3 else raw)]
+
+    bag, rig = rewrite(tmp_path / "bag", keep)
+    with pytest.raises(
+        MessageDecodeError, match=rf"^{bag}: /livox/imu_192_168_1_1[23] at log time \d+\.\d{{9}} s: "
+    ):
+        refine([bag], read_rig(rig))
