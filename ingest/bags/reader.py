@@ -268,9 +268,26 @@ def _ros_version(paths: Sequence[Path]) -> RosVersion:
     return kinds.pop() if kinds else 2
 
 
+_MAGIC = {b"SQLite format 3\x00": "a SQLite database (a rosbag2 .db3)", b"#ROSBAG V2.0": "a ROS 1 bag (.bag)"}
+
+
+def _other_format(path: Path) -> str | None:
+    """What a file named .mcap is when its first bytes are another bag format's, else None."""
+    try:
+        with path.open("rb") as f:
+            head = f.read(16)
+    except OSError:
+        return None
+    if head.startswith(MCAP_MAGIC):
+        return None
+    return next((what for magic, what in _MAGIC.items() if head.startswith(magic)), None)
+
+
 def _explain(path: Path, err: BaseException) -> str:
     """A one-line diagnosis of why rosbags could not open `path`."""
     text = str(err)
+    if path.suffix == ".mcap" and path.is_file() and (other := _other_format(path)) is not None:
+        return f"{path}: not an MCAP file: it starts like {other} (renamed?); give it that suffix"
     if path.suffix == ".mcap" and path.is_file() and not _mcap_is_complete(path):
         return f"{path}: MCAP file is truncated or still being written (no closing magic); {SALVAGE_HINT}"
     if path.is_dir():

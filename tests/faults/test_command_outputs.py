@@ -324,3 +324,26 @@ def test_refine_names_the_bag_topic_and_time_of_an_imu_message_it_cannot_decode(
         MessageDecodeError, match=rf"^{bag}: /livox/imu_192_168_1_1[23] at log time \d+\.\d{{9}} s: "
     ):
         refine([bag], read_rig(rig))
+
+
+@pytest.mark.parametrize(
+    ("source", "what"), [("indoor_walk_db3", "a SQLite database"), ("outdoor_static_bag.bag", "a ROS 1 bag")]
+)
+def test_another_bag_format_named_mcap_is_called_by_its_name(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], source: str, what: str
+) -> None:
+    """A .db3 or ROS 1 bag renamed x.mcap was 'MCAP file is truncated or still being written; rerun with
+    --salvage': the wrong cause and advice."""
+    import shutil
+
+    from tests.faults.cli import sensorbox
+    from tests.paths import FIXTURES_DIR
+
+    src = FIXTURES_DIR / source
+    data = next(src.glob("*.db3")) if src.is_dir() else src
+    shutil.copyfile(data, tmp_path / "x.mcap")
+    code, _, err = sensorbox(capsys, "inspect", str(tmp_path / "x.mcap"))
+    assert code == 2
+    assert len(err) == 1 and err[0].startswith(
+        f"error: {tmp_path / 'x.mcap'}: not an MCAP file: it starts like {what}"
+    )
