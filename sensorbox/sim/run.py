@@ -52,8 +52,9 @@ IMU_LATENCY_NS = 1_000_000
 LIVOX_IMU_T_LIDAR_IMU_M = (0.011, 0.02329, -0.04412)
 MAX_CAMERA_OFFSET_NS = 1_000_000_000
 """Largest camera or LiDAR clock offset simulated (ns): a second."""
-MAX_DURATION_S = 86_400.0
-"""Longest simulated recording (s): a day."""
+MAX_DURATION_S = 1e8
+"""Longest simulated run (s), about three years: the live emulators run "forever" as 1e7 s, and a
+run's nanoseconds must stay far inside int64 (1e300 s overflowed)."""
 MID360_IMU_GYRO_NOISE_DENSITY = np.radians(4.5e-3)
 """The Mid-360's IMU (TDK ICM-40609-D) gyro noise density, rad/s/sqrt(Hz) (datasheet: 4.5 mdps/sqrt(Hz))."""
 MID360_IMU_ACC_NOISE_DENSITY_G = 100e-6
