@@ -74,7 +74,7 @@ from ingest.train.block_planes import BlockPlanes, PlaneSettings
 from ingest.train.dense import DenseParams, free_space_settings
 from ingest.train.describe import check_existing, record_undecodable, sample_settings, write_dataset_yaml
 from ingest.train.lidar_rate import THIN_FRACTION
-from ingest.train.plan import LOST_REASON, Plan, plan, survey
+from ingest.train.plan import LOST_REASON, Plan, Survey, plan, survey
 from ingest.train.plausible import check_imu_rate, check_time_order
 from ingest.train.refine import Refinement, refine
 from ingest.train.rig_trajectory import RigTrajectory
@@ -546,6 +546,34 @@ def _check_first_frames(bags: BagSet, topics: Topics, rig: Rig) -> None:
                 break
 
 
+def _checked_survey(
+    bags: BagSet, topics: Topics, rig: Rig, window_ns: int, bad: BadMessages, read: Progress | None
+) -> Survey:
+    """The first pass (`survey`) and the checks on what it read, all before any write: the first frames'
+    size against the rig (before the pass: one line instead of minutes of reading), every topic's time
+    order and the IMU's rate against the rig's."""
+    _check_first_frames(bags, topics, rig)
+    surveyed = survey(bags, topics, window_ns, bad, read)
+    for topic, rows in surveyed.seen.items():
+        what = "first point times" if topic in topics.lidars else "header stamps"
+        check_time_order(bags.label, topic, what, rows)
+    if topics.imu:
+        stamps_ns = surveyed.seen[topics.imu][:, 1]
+        check_imu_rate(bags.label, topics.imu, topics.imu_name, topics.imu_rate_hz, stamps_ns)
+    return surveyed
+
+
+def _count_plan(summary: IngestSummary, the_plan: Plan, bags: BagSet, bad: BadMessages) -> None:
+    """The plan pass's counts into the summary: frames, pairs, planned samples, undecodable and dropped
+    messages, messages lost in corrupt chunks, repeats, uncovered pairs and lost samples."""
+    summary.undecodable, summary.dropped = bad.by_topic(), bad.dropped.by_topic()
+    summary.frames, summary.pairs, summary.planned = the_plan.frames, the_plan.pairs, len(the_plan.upper_ns)
+    summary.lost, summary.lost_chunks = bags.lost_counts(), [c.describe() for c in bags.lost_chunks]
+    summary.duplicates, summary.uncovered = the_plan.duplicates, the_plan.uncovered
+    if the_plan.lost_samples:
+        summary.skipped[LOST_REASON] = the_plan.lost_samples
+
+
 def _run(
     bag_paths: list[Path],
     cfg: IngestConfig,
@@ -565,15 +593,7 @@ def _run(
         asked = cfg
         reach = _dense_reach_ns(cfg)
         read = partial(passes, PASS_READ) if passes else None
-        _check_first_frames(bags, topics, rig)  # the wrong rig file: one line before minutes of passes
-        surveyed = survey(bags, topics, max(cfg.lidar_window_ns, reach), bad, read)  # before any write
-        for topic, rows in surveyed.seen.items():
-            check_time_order(
-                bags.label, topic, "first point times" if topic in topics.lidars else "header stamps", rows
-            )
-        if topics.imu:
-            stamps_ns = surveyed.seen[topics.imu][:, 1]
-            check_imu_rate(bags.label, topics.imu, topics.imu_name, topics.imu_rate_hz, stamps_ns)
+        surveyed = _checked_survey(bags, topics, rig, max(cfg.lidar_window_ns, reach), bad, read)
         summary.imu_gaps_ms = [float(g) / 1e6 for g in surveyed.imu_gaps_ns]
         summary.warnings += surveyed.warnings
         summary.stale_temporaries = held.enter_context(_held_output(cfg.out))
@@ -582,16 +602,7 @@ def _run(
         odometry = partial(passes, PASS_TRAJECTORY) if passes else None
         cfg, traj = _gt_method(bags, topics, rig, cfg, summary, bad, (first - reach, last + reach), odometry)
         the_plan = plan(bags, topics, cfg, bad, surveyed)
-        summary.undecodable, summary.dropped = bad.by_topic(), bad.dropped.by_topic()
-        summary.frames, summary.pairs, summary.planned = (
-            the_plan.frames,
-            the_plan.pairs,
-            len(the_plan.upper_ns),
-        )
-        summary.lost, summary.lost_chunks = bags.lost_counts(), [c.describe() for c in bags.lost_chunks]
-        summary.duplicates, summary.uncovered = the_plan.duplicates, the_plan.uncovered
-        if the_plan.lost_samples:
-            summary.skipped[LOST_REASON] = the_plan.lost_samples
+        _count_plan(summary, the_plan, bags, bad)
         prepare_dirs(cfg.out, cfg.sample.exr)
         first_id = write_dataset_yaml(asked, cfg, geometry, [Path(p) for p in bag_paths], summary)
         if executor.every_core_busy:

@@ -114,106 +114,93 @@ MAX_WINDOW_MS = 3_600_000.0
 """Largest LiDAR window (+- ms) an option may ask for: an hour."""
 
 
-def summary_table(summary: IngestSummary, out: Path) -> Table:
-    """Frames, pairs, samples written/resumed/skipped, GT density, skew, motion and time per stage."""
-    import numpy as np
+Rows = list[tuple[str, str]]
 
-    table = Table(title=f"{out}: {summary.written} samples written in {summary.seconds:.1f} s")
-    table.add_column("item")
-    table.add_column("value", justify="right")
-    rows = [
-        (
-            "upper frames / stereo pairs / planned samples",
-            f"{summary.frames} / {summary.pairs} / {summary.planned}",
-        ),
-        *(
-            [("stereo pairs without LiDAR points in their window (not planned)", str(summary.uncovered))]
-            if summary.uncovered
-            else []
-        ),
-        *(
-            [
-                (
-                    "IMU gaps over 5 periods (longest)",
-                    f"{len(summary.imu_gaps_ms)} ({max(summary.imu_gaps_ms):.0f} ms)",
-                )
-            ]
-            if summary.imu_gaps_ms
-            else []
-        ),
-        ("written / already done (resumed)", f"{summary.written} / {summary.resumed}"),
-        *([("written without any GT pixel", str(summary.without_gt))] if summary.without_gt else []),
-        *(
-            [("already done: frames another sample holds (not written twice)", str(summary.held_elsewhere))]
-            if summary.held_elsewhere
-            else []
-        ),
-        *(
-            [("finished samples found damaged, written again", str(len(summary.damaged)))]
-            if summary.damaged
-            else []
-        ),
-        ("ground truth", f"{summary.method} ({summary.decision})"),
-        *((f"skipped: {reason}", str(n)) for reason, n in summary.skipped.items()),
-        *((f"written, flagged in meta: {what}", str(n)) for what, n in summary.flagged.items()),
-        *((f"undecodable messages skipped: {topic}", str(n)) for topic, n in summary.undecodable.items()),
-        *(
-            (f"dropped, {why}: {topic}", f"{n:,}")
-            for topic, counts in summary.dropped.items()
-            for why, n in counts.items()
-        ),
-        *((f"lost in corrupt chunks: {topic}", str(n)) for topic, n in summary.lost.items()),
-        *((f"repeated messages, read once: {topic}", str(n)) for topic, n in summary.duplicates.items()),
-        *(
-            [("unfinished temporary files of a killed run, removed", str(summary.stale_temporaries))]
-            if summary.stale_temporaries
-            else []
-        ),
-    ]
-    if summary.trajectory is not None:
-        t = summary.trajectory
+
+def _when(shown: object, item: str, value: str) -> Rows:
+    """[(item, value)] when `shown` is truthy: a row the table holds only when it has something to say."""
+    return [(item, value)] if shown else []
+
+
+def _count_rows(s: IngestSummary) -> Rows:
+    """What the passes found and the samples came to: frames, pairs, written, resumed, skipped, dropped."""
+    gaps = s.imu_gaps_ms
+    return [
+        ("upper frames / stereo pairs / planned samples", f"{s.frames} / {s.pairs} / {s.planned}"),
+        *_when(s.uncovered, "stereo pairs without LiDAR points in their window (not planned)",
+               str(s.uncovered)),
+        *_when(gaps, "IMU gaps over 5 periods (longest)", f"{len(gaps)} ({max(gaps, default=0):.0f} ms)"),
+        ("written / already done (resumed)", f"{s.written} / {s.resumed}"),
+        *_when(s.without_gt, "written without any GT pixel", str(s.without_gt)),
+        *_when(s.held_elsewhere, "already done: frames another sample holds (not written twice)",
+               str(s.held_elsewhere)),
+        *_when(s.damaged, "finished samples found damaged, written again", str(len(s.damaged))),
+        ("ground truth", f"{s.method} ({s.decision})"),
+        *((f"skipped: {reason}", str(n)) for reason, n in s.skipped.items()),
+        *((f"written, flagged in meta: {what}", str(n)) for what, n in s.flagged.items()),
+        *((f"undecodable messages skipped: {topic}", str(n)) for topic, n in s.undecodable.items()),
+        *((f"dropped, {why}: {topic}", f"{n:,}")
+          for topic, counts in s.dropped.items() for why, n in counts.items()),
+        *((f"lost in corrupt chunks: {topic}", str(n)) for topic, n in s.lost.items()),
+        *((f"repeated messages, read once: {topic}", str(n)) for topic, n in s.duplicates.items()),
+        *_when(s.stale_temporaries, "unfinished temporary files of a killed run, removed",
+               str(s.stale_temporaries)),
+    ]  # fmt: skip
+
+
+def _pass_rows(s: IngestSummary) -> Rows:
+    """The trajectory pass and the one-off start-up costs (compiling, dense GT's warm-up and blocks)."""
+    rows: Rows = []
+    if s.trajectory is not None:
+        t = s.trajectory
         residual = f"{t.residual_median_mm:.2f} / {t.residual_p95_mm:.2f} mm"
         took = f"{t.seconds:.1f} s" + (", the earlier run's pass reused" if t.reused else "")
         rows.append(("trajectory (knots, residual median / p95, time)", f"{t.knots}, {residual}, {took}"))
-        if t.gaps:
-            rows.append(("trajectory gaps: knots carried by prediction (too few LiDAR points)", str(t.gaps)))
+        rows += _when(
+            t.gaps, "trajectory gaps: knots carried by prediction (too few LiDAR points)", str(t.gaps)
+        )
         rows.append(("trajectory file (TUM, T_world_cam0)", t.file))
-    if summary.compile_s >= 0.5:  # the first run of a checkout: the stage times above and below include it
-        what = "numba kernels compiled (once: cached on disk for later runs)"
-        rows.append((what, f"{summary.compile_s:.1f} s"))
-    if summary.dense_warm_up_s is not None:  # the first run of a checkout compiles the kernels here
-        rows.append(("dense GT start-up: kernels and pixel rays, once", f"{summary.dense_warm_up_s:.1f} s"))
-    if summary.dense_planes is not None:  # fitted and tested in the stream pass, beside the workers
-        blocks, seconds = summary.dense_planes
+    # the first run of a checkout compiles the kernels: the stage times include it
+    rows += _when(s.compile_s >= 0.5, "numba kernels compiled (once: cached on disk for later runs)",
+                  f"{s.compile_s:.1f} s")  # fmt: skip
+    if s.dense_warm_up_s is not None:
+        rows.append(("dense GT start-up: kernels and pixel rays, once", f"{s.dense_warm_up_s:.1f} s"))
+    if s.dense_planes is not None:  # fitted and tested in the stream pass, beside the workers
+        blocks, seconds = s.dense_planes
         rows.append(("dense GT blocks: planes and free space once, time", f"{blocks}, {seconds:.1f} s"))
-    if summary.density:
-        rows += [
-            ("GT density (fisheye, median)", f"{np.median(summary.density) * 100:.2f} %"),
-            *(
-                (
-                    f"GT density of the {method} GT samples (median, samples)",
-                    f"{np.median(d) * 100:.2f} %, {len(d)}",
-                )
-                for method, d in summary.density_by_method.items()
-                if len(summary.density_by_method) > 1
-            ),
-            (
-                "LiDAR skew |t_point - t_frame| max (median of samples)",
-                f"{np.median(summary.skew_ms):.1f} ms",
-            ),
-            (  # hardware-synced cameras: 0; a constant offset means unsynced exposures
-                "stereo stamp offset lower - upper (median, max |.|)",
-                f"{np.median(summary.stereo_dt_ms):.2f} ms, {np.max(np.abs(summary.stereo_dt_ms)):.2f} ms",
-            ),
-            ("motion compensation applied", f"{summary.motion_applied} / {summary.written}"),
-            *((f"dense GT points (all samples): {k}", f"{n:,}") for k, n in summary.dense_points.items()),
-            *((f"time: {k}", f"{np.mean(v):.0f} ms/sample") for k, v in summary.stage_ms.items()),
-            *(
-                (f"time: {k} (helper thread, beside clouds + GT)", f"{np.mean(v):.0f} ms/sample")
-                for k, v in summary.overlapped_ms.items()
-            ),
-        ]
-    for item, value in rows:
+    return rows
+
+
+def _sample_rows(s: IngestSummary) -> Rows:
+    """Medians over the written samples: GT density, LiDAR skew, stereo offset, motion, time per stage."""
+    import numpy as np
+
+    if not s.density:
+        return []
+    by_method = s.density_by_method if len(s.density_by_method) > 1 else {}
+    dt = s.stereo_dt_ms
+    return [
+        ("GT density (fisheye, median)", f"{np.median(s.density) * 100:.2f} %"),
+        *((f"GT density of the {method} GT samples (median, samples)",
+           f"{np.median(d) * 100:.2f} %, {len(d)}") for method, d in by_method.items()),
+        ("LiDAR skew |t_point - t_frame| max (median of samples)", f"{np.median(s.skew_ms):.1f} ms"),
+        # hardware-synced cameras: 0; a constant offset means unsynced exposures
+        ("stereo stamp offset lower - upper (median, max |.|)",
+         f"{np.median(dt):.2f} ms, {np.max(np.abs(dt)):.2f} ms"),
+        ("motion compensation applied", f"{s.motion_applied} / {s.written}"),
+        *((f"dense GT points (all samples): {k}", f"{n:,}") for k, n in s.dense_points.items()),
+        *((f"time: {k}", f"{np.mean(v):.0f} ms/sample") for k, v in s.stage_ms.items()),
+        *((f"time: {k} (helper thread, beside clouds + GT)", f"{np.mean(v):.0f} ms/sample")
+          for k, v in s.overlapped_ms.items()),
+    ]  # fmt: skip
+
+
+def summary_table(summary: IngestSummary, out: Path) -> Table:
+    """Frames, pairs, samples written/resumed/skipped, GT density, skew, motion and time per stage."""
+    table = Table(title=f"{out}: {summary.written} samples written in {summary.seconds:.1f} s")
+    table.add_column("item")
+    table.add_column("value", justify="right")
+    for item, value in (*_count_rows(summary), *_pass_rows(summary), *_sample_rows(summary)):
         table.add_row(item, value)
     return table
 
