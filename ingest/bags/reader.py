@@ -46,11 +46,8 @@ in `lost_chunks` (`ingest.bags.chunks` says what each format lets us check).
 
 from __future__ import annotations
 
-import contextlib
 import heapq
 import logging
-import sqlite3
-import stat
 from collections.abc import Callable, Collection, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from functools import cache
@@ -58,17 +55,20 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any
 
-import yaml
 import zstandard
 from rosbags.interfaces import MessageDefinition, MessageDefinitionFormat
 
 from calibration.errors import SensorboxError
-from calibration.files import file_kind
-from calibration.opencv_yaml import yaml_error_line
 from ingest.bags.chunks import ChunkGuard, CorruptChunkError, DeferredData, LostChunk, guard_readers
 from ingest.bags.decode import RosVersion
 from ingest.bags.definitions import TolerantAnyReader, check_definition
-from ingest.bags.mcap_records import MCAP_MAGIC, McapChannel, SalvageReport, mcap_messages
+from ingest.bags.diagnose import (
+    bag_ros_version,
+    check_bare_db3,
+    check_metadata,
+    explain,
+)
+from ingest.bags.mcap_records import McapChannel, SalvageReport, mcap_messages
 from ingest.bags.message import RawMessage
 from ingest.bags.rostypes import typestore
 from ingest.errors import BagError
@@ -85,8 +85,6 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
-
-SALVAGE_HINT = "rerun with --salvage to read its complete chunks"
 
 
 READAHEAD_THREADS = 8
@@ -207,18 +205,6 @@ def _channel_problem(path: Path, channel: _Channel) -> str | None:
     return None
 
 
-def _mcap_is_complete(path: Path) -> bool:
-    """True when an MCAP file ends with the closing magic (it was closed properly)."""
-    try:
-        with path.open("rb") as f:
-            if f.seek(0, 2) < 2 * len(MCAP_MAGIC):
-                return False
-            f.seek(-len(MCAP_MAGIC), 2)
-            return f.read() == MCAP_MAGIC
-    except OSError:
-        return False
-
-
 def _salvage_targets(path: Path) -> list[Path]:
     """The MCAP files of `path` (a file or a rosbag2 directory); `--salvage` walks them record by record."""
     if path.is_file():
@@ -227,183 +213,6 @@ def _salvage_targets(path: Path) -> list[Path]:
 
 
 # ---------------------------------------------------------------- opening
-
-
-def _refuse_special(path: Path) -> None:
-    """Refuse a bag (or a rosbag2 folder's metadata.yaml or data file) that is no regular file.
-
-    A FIFO named `x.mcap` made the reader wait forever; a link to /dev/zero
-    would be read without end. Symlinks are followed.
-    """
-    items = [path / "metadata.yaml", *path.glob("*.mcap"), *path.glob("*.db3")] if path.is_dir() else [path]
-    for item in items:
-        try:
-            mode = item.stat().st_mode
-        except FileNotFoundError:
-            continue  # a folder without metadata.yaml: said later, by what reads it
-        if not stat.S_ISREG(mode):
-            raise BagError(f"{item}: is {file_kind(mode)}, not a bag file or rosbag2 folder")
-
-
-def _ros_version(paths: Sequence[Path]) -> RosVersion:
-    """1 for `.bag` files, 2 for `.mcap`/`.db3` files and directories; mixing is an error."""
-    kinds: set[RosVersion] = set()
-    for path in paths:
-        if not path.exists():
-            raise BagError(f"{path}: no such file or directory")
-        if path.name.endswith(".bag.active"):
-            raise BagError(
-                f"{path}: unfinished ROS 1 recording (.bag.active, the recorder was interrupted);"
-                " run `rosbag reindex` on it and rename it to .bag"
-            )
-        _refuse_special(path)
-        if path.is_dir() or path.suffix in (".mcap", ".db3"):
-            kinds.add(2)
-        elif path.suffix == ".bag":
-            kinds.add(1)
-        else:
-            raise BagError(f"{path}: expected a ROS 1 .bag, a ROS 2 .mcap/.db3 file or a rosbag2 directory")
-    if len(kinds) > 1:
-        raise BagError(f"cannot read ROS 1 and ROS 2 bags together: {', '.join(map(str, paths))}")
-    return kinds.pop() if kinds else 2
-
-
-_MAGIC = {b"SQLite format 3\x00": "a SQLite database (a rosbag2 .db3)", b"#ROSBAG V2.0": "a ROS 1 bag (.bag)"}
-
-
-def _other_format(path: Path) -> str | None:
-    """What a file named .mcap is when its first bytes are another bag format's, else None."""
-    try:
-        with path.open("rb") as f:
-            head = f.read(16)
-    except OSError:
-        return None
-    if head.startswith(MCAP_MAGIC):
-        return None
-    return next((what for magic, what in _MAGIC.items() if head.startswith(magic)), None)
-
-
-def _explain(path: Path, err: BaseException) -> str:
-    """A one-line diagnosis of why rosbags could not open `path`."""
-    text = str(err)
-    if path.suffix == ".mcap" and path.is_file() and (other := _other_format(path)) is not None:
-        return f"{path}: not an MCAP file: it starts like {other} (renamed?); give it that suffix"
-    if path.suffix == ".mcap" and path.is_file() and not _mcap_is_complete(path):
-        return f"{path}: MCAP file is truncated or still being written (no closing magic); {SALVAGE_HINT}"
-    if path.is_dir():
-        mcaps = sorted(path.glob("*.mcap"))
-        if not (path / "metadata.yaml").exists():
-            if mcaps:
-                return (
-                    f"{path}: rosbag2 directory has no metadata.yaml (the recording was interrupted"
-                    f" or is still running); {SALVAGE_HINT}"
-                )
-            return f"{path}: not a rosbag2 directory (no metadata.yaml)"
-        try:
-            yaml.safe_load((path / "metadata.yaml").read_bytes())
-        except yaml.YAMLError as bad:
-            return f"rosbag2 {yaml_error_line(path / 'metadata.yaml', bad)}"
-        except OSError:
-            pass  # rosbags' own error below names it
-        if isinstance(err, KeyError) and (odd := _odd_definition_encodings(path)):
-            name, msgtype, encoding = odd[0]
-            return (
-                f"{path}: {name}: the definition of {msgtype} is stored with encoding {encoding!r} (rosbag2 "
-                "writes that for a type it could not find while recording), which rosbags cannot open; "
-                "record with that type's package sourced, or leave its topic out (ros2 bag convert, "
-                "exclude_topics)"
-            )
-        cut = [m.name for m in mcaps if not _mcap_is_complete(m)]
-        if cut:
-            return f"{path}: {', '.join(cut)} truncated or still being written; {SALVAGE_HINT}"
-    if "not indexed" in text:
-        return (
-            f"{path}: ROS 1 bag is not indexed (recording was interrupted); run `rosbag reindex` on it first"
-        )
-    if "index looks damaged" in text:
-        return (
-            f"{path}: ROS 1 bag is truncated or its index is damaged ({text});"
-            " run `rosbag reindex` on it first"
-        )
-    return f"{path}: cannot read bag: {type(err).__name__}: {' '.join(text.split())}"
-
-
-def _odd_definition_encodings(path: Path) -> list[tuple[str, str, str]]:
-    """(file, type, encoding) of each .db3 message definition rosbags cannot read (not ros2msg/ros2idl)."""
-    found: list[tuple[str, str, str]] = []
-    for db3 in sorted(path.glob("*.db3")):
-        try:
-            with contextlib.closing(sqlite3.connect(f"file:{db3}?mode=ro", uri=True)) as db:
-                rows = db.execute(
-                    "SELECT topic_type, encoding FROM message_definitions "
-                    "WHERE encoding NOT IN ('ros2msg', 'ros2idl')"
-                ).fetchall()
-        except sqlite3.Error:  # no such table (an older rosbag2), not a database: rosbags' own error stands
-            continue
-        found += [(db3.name, str(t), str(e)) for t, e in rows]
-    return found
-
-
-_METADATA_INTEGERS = (
-    "message_count", "duration.nanoseconds", "starting_time.nanoseconds_since_epoch",
-    "files[].message_count", "files[].duration.nanoseconds", "files[].starting_time.nanoseconds_since_epoch",
-    "topics_with_message_count[].message_count",
-)  # fmt: skip
-"""Keys of rosbag2's metadata.yaml (under `rosbag2_bagfile_information`) that hold integers."""
-
-
-def _metadata_values(node: Any, key: str, where: str) -> Iterator[tuple[str, Any]]:
-    """(dotted name with list indexes, value) of each value at `key` ("a.b", "list[].c") below `node`."""
-    head, _, rest = key.partition(".")
-    if head.endswith("[]"):
-        items = node.get(head[:-2]) if isinstance(node, dict) else None
-        for i, item in enumerate(items if isinstance(items, list) else []):
-            yield from _metadata_values(item, rest, f"{where}.{head[:-2]}[{i}]")
-    elif isinstance(node, dict) and head in node:
-        if rest:
-            yield from _metadata_values(node[head], rest, f"{where}.{head}")
-        else:
-            yield f"{where}.{head}", node[head]
-
-
-def check_metadata(path: Path) -> None:
-    """`BagError` naming the key and value when a rosbag2 folder's metadata.yaml holds a non-integer
-    count, duration or start time (rosbags would fail later with a bare TypeError). Keys that are
-    missing, and a file that is missing or not YAML, are left to rosbags' own errors (`_explain`)."""
-    meta = path / "metadata.yaml"
-    try:
-        doc = yaml.safe_load(meta.read_bytes())
-    except (OSError, yaml.YAMLError):
-        return
-    info = doc.get("rosbag2_bagfile_information") if isinstance(doc, dict) else None
-    if not isinstance(info, dict):
-        return
-    for key in _METADATA_INTEGERS:
-        for name, value in _metadata_values(info, key, "rosbag2_bagfile_information"):
-            if not isinstance(value, int) or isinstance(value, bool):
-                raise BagError(f"{meta}: {name} is {value!r}, expected an integer")
-
-
-ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
-
-
-def check_bare_db3(path: Path) -> None:
-    """`BagError` when the .db3 file `path`, given without its rosbag2 folder, holds zstd-compressed
-    messages: only the folder's metadata.yaml says so (compression_mode 'message'), and read without
-    it every message would fail to decode as CDR."""
-    try:
-        with contextlib.closing(sqlite3.connect(f"file:{path}?mode=ro", uri=True)) as db:
-            row = db.execute("SELECT data FROM messages LIMIT 1").fetchone()
-    except sqlite3.Error:  # not a database, no messages table: rosbags' own error names it
-        return
-    if row is not None and bytes(row[0][:4]) == ZSTD_MAGIC:
-        folder = path.parent
-        known = (folder / "metadata.yaml").is_file()
-        where = f"pass the folder {folder}" if known else "pass its rosbag2 folder"
-        raise BagError(
-            f"{path}: its messages are zstd-compressed, which only the rosbag2 folder's metadata.yaml "
-            f"declares (compression_mode 'message'); {where}, not the .db3 file"
-        )
 
 
 def _decompressed(msg: RawMessage, dctx: zstandard.ZstdDecompressor) -> RawMessage:
@@ -433,13 +242,13 @@ def _open_reader(paths: list[Path], ros_version: RosVersion, guard: ChunkGuard) 
         reader.open()
     except Exception as err:  # rosbags raises its own errors, OSError, KeyError, ...
         if len(paths) == 1:
-            raise BagError(_explain(paths[0], err)) from err
+            raise BagError(explain(paths[0], err)) from err
         for path in paths:  # which one is it?
             try:
                 with TolerantAnyReader([path], default_typestore=typestore(ros_version)):
                     pass
             except Exception as single:
-                raise BagError(_explain(path, single)) from err
+                raise BagError(explain(path, single)) from err
         names = ", ".join(map(str, paths))
         raise BagError(f"cannot read these bags together ({names}): {type(err).__name__}: {err}") from err
     return reader
@@ -476,7 +285,7 @@ def open_bags(paths: str | Path | Sequence[str | Path], salvage: bool = False) -
         raise BagError("no bag paths given")
     bag_paths = [Path(p) for p in items]
     given_once(bag_paths)
-    ros_version = _ros_version(bag_paths)
+    ros_version = bag_ros_version(bag_paths)
     salvaged: list[Path] = []
     direct = bag_paths
     if salvage and ros_version == 2:

@@ -1,0 +1,211 @@
+"""Why a path is not a bag SensorBox can read, before and after rosbags tried: what the path is
+(`ros_version`, special files), what its metadata or data holds that rosbags would fail on later
+(`check_metadata`, `check_bare_db3`), and one line for rosbags' own failure (`explain`)."""
+
+from __future__ import annotations
+
+import contextlib
+import sqlite3
+import stat
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from calibration.files import file_kind
+from calibration.opencv_yaml import yaml_error_line
+from ingest.bags.decode import RosVersion
+from ingest.bags.mcap_records import MCAP_MAGIC
+from ingest.errors import BagError
+
+SALVAGE_HINT = "rerun with --salvage to read its complete chunks"
+
+
+def mcap_is_complete(path: Path) -> bool:
+    """True when an MCAP file ends with the closing magic (it was closed properly)."""
+    try:
+        with path.open("rb") as f:
+            if f.seek(0, 2) < 2 * len(MCAP_MAGIC):
+                return False
+            f.seek(-len(MCAP_MAGIC), 2)
+            return f.read() == MCAP_MAGIC
+    except OSError:
+        return False
+
+
+def refuse_special(path: Path) -> None:
+    """Refuse a bag (or a rosbag2 folder's metadata.yaml or data file) that is no regular file.
+
+    A FIFO named `x.mcap` made the reader wait forever; a link to /dev/zero
+    would be read without end. Symlinks are followed.
+    """
+    items = [path / "metadata.yaml", *path.glob("*.mcap"), *path.glob("*.db3")] if path.is_dir() else [path]
+    for item in items:
+        try:
+            mode = item.stat().st_mode
+        except FileNotFoundError:
+            continue  # a folder without metadata.yaml: said later, by what reads it
+        if not stat.S_ISREG(mode):
+            raise BagError(f"{item}: is {file_kind(mode)}, not a bag file or rosbag2 folder")
+
+
+def bag_ros_version(paths: Sequence[Path]) -> RosVersion:
+    """1 for `.bag` files, 2 for `.mcap`/`.db3` files and directories; mixing is an error."""
+    kinds: set[RosVersion] = set()
+    for path in paths:
+        if not path.exists():
+            raise BagError(f"{path}: no such file or directory")
+        if path.name.endswith(".bag.active"):
+            raise BagError(
+                f"{path}: unfinished ROS 1 recording (.bag.active, the recorder was interrupted);"
+                " run `rosbag reindex` on it and rename it to .bag"
+            )
+        refuse_special(path)
+        if path.is_dir() or path.suffix in (".mcap", ".db3"):
+            kinds.add(2)
+        elif path.suffix == ".bag":
+            kinds.add(1)
+        else:
+            raise BagError(f"{path}: expected a ROS 1 .bag, a ROS 2 .mcap/.db3 file or a rosbag2 directory")
+    if len(kinds) > 1:
+        raise BagError(f"cannot read ROS 1 and ROS 2 bags together: {', '.join(map(str, paths))}")
+    return kinds.pop() if kinds else 2
+
+
+_MAGIC = {b"SQLite format 3\x00": "a SQLite database (a rosbag2 .db3)", b"#ROSBAG V2.0": "a ROS 1 bag (.bag)"}
+
+
+def other_format(path: Path) -> str | None:
+    """What a file named .mcap is when its first bytes are another bag format's, else None."""
+    try:
+        with path.open("rb") as f:
+            head = f.read(16)
+    except OSError:
+        return None
+    if head.startswith(MCAP_MAGIC):
+        return None
+    return next((what for magic, what in _MAGIC.items() if head.startswith(magic)), None)
+
+
+def explain(path: Path, err: BaseException) -> str:
+    """A one-line diagnosis of why rosbags could not open `path`."""
+    text = str(err)
+    if path.suffix == ".mcap" and path.is_file() and (other := other_format(path)) is not None:
+        return f"{path}: not an MCAP file: it starts like {other} (renamed?); give it that suffix"
+    if path.suffix == ".mcap" and path.is_file() and not mcap_is_complete(path):
+        return f"{path}: MCAP file is truncated or still being written (no closing magic); {SALVAGE_HINT}"
+    if path.is_dir():
+        mcaps = sorted(path.glob("*.mcap"))
+        if not (path / "metadata.yaml").exists():
+            if mcaps:
+                return (
+                    f"{path}: rosbag2 directory has no metadata.yaml (the recording was interrupted"
+                    f" or is still running); {SALVAGE_HINT}"
+                )
+            return f"{path}: not a rosbag2 directory (no metadata.yaml)"
+        try:
+            yaml.safe_load((path / "metadata.yaml").read_bytes())
+        except yaml.YAMLError as bad:
+            return f"rosbag2 {yaml_error_line(path / 'metadata.yaml', bad)}"
+        except OSError:
+            pass  # rosbags' own error below names it
+        if isinstance(err, KeyError) and (odd := odd_definition_encodings(path)):
+            name, msgtype, encoding = odd[0]
+            return (
+                f"{path}: {name}: the definition of {msgtype} is stored with encoding {encoding!r} (rosbag2 "
+                "writes that for a type it could not find while recording), which rosbags cannot open; "
+                "record with that type's package sourced, or leave its topic out (ros2 bag convert, "
+                "exclude_topics)"
+            )
+        cut = [m.name for m in mcaps if not mcap_is_complete(m)]
+        if cut:
+            return f"{path}: {', '.join(cut)} truncated or still being written; {SALVAGE_HINT}"
+    if "not indexed" in text:
+        return (
+            f"{path}: ROS 1 bag is not indexed (recording was interrupted); run `rosbag reindex` on it first"
+        )
+    if "index looks damaged" in text:
+        return (
+            f"{path}: ROS 1 bag is truncated or its index is damaged ({text});"
+            " run `rosbag reindex` on it first"
+        )
+    return f"{path}: cannot read bag: {type(err).__name__}: {' '.join(text.split())}"
+
+
+def odd_definition_encodings(path: Path) -> list[tuple[str, str, str]]:
+    """(file, type, encoding) of each .db3 message definition rosbags cannot read (not ros2msg/ros2idl)."""
+    found: list[tuple[str, str, str]] = []
+    for db3 in sorted(path.glob("*.db3")):
+        try:
+            with contextlib.closing(sqlite3.connect(f"file:{db3}?mode=ro", uri=True)) as db:
+                rows = db.execute(
+                    "SELECT topic_type, encoding FROM message_definitions "
+                    "WHERE encoding NOT IN ('ros2msg', 'ros2idl')"
+                ).fetchall()
+        except sqlite3.Error:  # no such table (an older rosbag2), not a database: rosbags' own error stands
+            continue
+        found += [(db3.name, str(t), str(e)) for t, e in rows]
+    return found
+
+
+_METADATA_INTEGERS = (
+    "message_count", "duration.nanoseconds", "starting_time.nanoseconds_since_epoch",
+    "files[].message_count", "files[].duration.nanoseconds", "files[].starting_time.nanoseconds_since_epoch",
+    "topics_with_message_count[].message_count",
+)  # fmt: skip
+"""Keys of rosbag2's metadata.yaml (under `rosbag2_bagfile_information`) that hold integers."""
+
+
+def _metadata_values(node: Any, key: str, where: str) -> Iterator[tuple[str, Any]]:
+    """(dotted name with list indexes, value) of each value at `key` ("a.b", "list[].c") below `node`."""
+    head, _, rest = key.partition(".")
+    if head.endswith("[]"):
+        items = node.get(head[:-2]) if isinstance(node, dict) else None
+        for i, item in enumerate(items if isinstance(items, list) else []):
+            yield from _metadata_values(item, rest, f"{where}.{head[:-2]}[{i}]")
+    elif isinstance(node, dict) and head in node:
+        if rest:
+            yield from _metadata_values(node[head], rest, f"{where}.{head}")
+        else:
+            yield f"{where}.{head}", node[head]
+
+
+def check_metadata(path: Path) -> None:
+    """`BagError` naming the key and value when a rosbag2 folder's metadata.yaml holds a non-integer
+    count, duration or start time (rosbags would fail later with a bare TypeError). Keys that are
+    missing, and a file that is missing or not YAML, are left to rosbags' own errors (`explain`)."""
+    meta = path / "metadata.yaml"
+    try:
+        doc = yaml.safe_load(meta.read_bytes())
+    except (OSError, yaml.YAMLError):
+        return
+    info = doc.get("rosbag2_bagfile_information") if isinstance(doc, dict) else None
+    if not isinstance(info, dict):
+        return
+    for key in _METADATA_INTEGERS:
+        for name, value in _metadata_values(info, key, "rosbag2_bagfile_information"):
+            if not isinstance(value, int) or isinstance(value, bool):
+                raise BagError(f"{meta}: {name} is {value!r}, expected an integer")
+
+
+ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
+
+
+def check_bare_db3(path: Path) -> None:
+    """`BagError` when the .db3 file `path`, given without its rosbag2 folder, holds zstd-compressed
+    messages: only the folder's metadata.yaml says so (compression_mode 'message'), and read without
+    it every message would fail to decode as CDR."""
+    try:
+        with contextlib.closing(sqlite3.connect(f"file:{path}?mode=ro", uri=True)) as db:
+            row = db.execute("SELECT data FROM messages LIMIT 1").fetchone()
+    except sqlite3.Error:  # not a database, no messages table: rosbags' own error names it
+        return
+    if row is not None and bytes(row[0][:4]) == ZSTD_MAGIC:
+        folder = path.parent
+        known = (folder / "metadata.yaml").is_file()
+        where = f"pass the folder {folder}" if known else "pass its rosbag2 folder"
+        raise BagError(
+            f"{path}: its messages are zstd-compressed, which only the rosbag2 folder's metadata.yaml "
+            f"declares (compression_mode 'message'); {where}, not the .db3 file"
+        )
