@@ -1,12 +1,13 @@
-"""`sensorbox calib refine`: what a recording says about its rig's clocks, and the rig it implies.
+"""`sensorbox calib refine`: what a recording says about its rig's clocks and rotations, and the rig it implies.
 
-One pass over the bags reads both cameras and the rig's first IMU: each camera's
-rotation between consecutive frames (`timeshift.frame_rotations`, streamed: two
-frames in memory per camera) and the gyro. Each camera's offset to the IMU's
-(= LiDAR's) clock is then estimated (`timeshift.estimate_timeshift`) and, where
-the motion made it observable, written to the refined rig as Kalibr's
-`timeshift_cam_imu`; where it did not, the rig's value is kept and the report
-says why.
+One pass over the bags reads both cameras and every IMU of the rig: each camera's
+rotation between frames (`timeshift.pair_rotation`, streamed: a few frames in
+memory per camera) and the gyros. Then, where the motion made them observable:
+each camera's offset to the first IMU's (= LiDAR's) clock, written as Kalibr's
+`timeshift_cam_imu`; each IMU's rotation in cam0 (`timeshift.estimate_imu_rotation`),
+applied to it and to the LiDAR of its housing; and a check of the stereo rotation
+(`timeshift.check_stereo_rotation`), reported only. What the motion did not reveal
+keeps the rig's value, and the report says why.
 """
 
 from __future__ import annotations

@@ -104,21 +104,6 @@ def pair_rotation(
     return rv, int(inl.sum())
 
 
-def frame_rotations(model: CameraModel, stamps_ns: I64, grays: list[U8]) -> FrameRotations:
-    """`pair_rotation` of every pair of consecutive frames (sorted by stamp) that tracks."""
-    t0, t1, rv, n = [], [], [], []
-    for k in range(len(grays) - 1):
-        got = pair_rotation(model, grays[k], grays[k + 1])
-        if got is not None:
-            t0.append(int(stamps_ns[k]))
-            t1.append(int(stamps_ns[k + 1]))
-            rv.append(got[0])
-            n.append(got[1])
-    return FrameRotations(
-        np.array(t0, np.int64), np.array(t1, np.int64), np.array(rv).reshape(-1, 3), np.array(n, np.int64)
-    )
-
-
 def gyro_rotations(track: GyroTrack, t0_ns: I64, t1_ns: I64, R_cam_cam0: F64) -> F64:
     """Rotation vectors (N, 3, camera frame) of R_cam(t0)^T R_cam(t1) that the gyro track integrates."""
     R0, R1 = track.at(t0_ns), track.at(t1_ns)
@@ -192,7 +177,7 @@ def estimate_timeshift(
     jac = (change * 1e-3).ravel()
     sigma_r = 1.4826 * np.median(np.abs(e_best.ravel() - np.median(e_best.ravel())))
     info = float(jac @ jac)
-    sigma_ms = float(sigma_r / np.sqrt(info)) * _overlap(rot) if info > 0 else float("inf")
+    sigma_ms = float(sigma_r / np.sqrt(info)) * _overlap(rot.t0_ns, rot.t1_ns) if info > 0 else float("inf")
     excitation = float(np.degrees(np.sqrt((change**2).sum(1).mean())))
     observable = sigma_ms <= OBSERVABLE_SIGMA_MS and excitation >= MIN_EXCITATION_DEG_S
     return TimeshiftEstimate(
@@ -201,11 +186,24 @@ def estimate_timeshift(
     )  # fmt: skip
 
 
-def _overlap(rot: FrameRotations) -> float:
-    """How much pairs that share frames inflate a standard error: sqrt(pairs / frames). A frame's
-    tracking error enters every pair it is in, so the pairs are not independent samples."""
-    frames = len(np.union1d(rot.t0_ns, rot.t1_ns))
-    return float(np.sqrt(max(1.0, len(rot.t0_ns) / max(frames, 1))))
+def _overlap(t0_ns: I64, t1_ns: I64) -> float:
+    """How much frame pairs (t0, t1) that share frames inflate a standard error: sqrt(pairs / frames).
+    A frame's tracking error enters every pair it is in, so the pairs are not independent samples."""
+    frames = len(np.union1d(t0_ns, t1_ns))
+    return float(np.sqrt(max(1.0, len(t0_ns) / max(frames, 1))))
+
+
+def _rotation_sigma_deg(rotated: F64, residuals: F64) -> float:
+    """1-sigma (deg, the worst-constrained axis) of a rotation fitted to map vectors onto `rotated` (N, 3)
+    with `residuals` (N, 3, rad) left: Gauss-Newton with J = -[v]x per pair, the residuals' robust
+    spread; infinite when the vectors leave an axis unconstrained (a rig that did not turn)."""
+    info = np.zeros((3, 3))
+    for x in rotated:
+        K = np.array([[0.0, -x[2], x[1]], [x[2], 0.0, -x[0]], [-x[1], x[0], 0.0]])
+        info += K.T @ K
+    sigma_r = 1.4826 * float(np.median(np.abs(residuals.ravel())))
+    eig = np.linalg.eigvalsh(info)
+    return float(np.degrees(sigma_r / np.sqrt(eig[0]))) if eig[0] > 0 else float("inf")
 
 
 def _rms_deg(e: F64) -> float:
@@ -284,13 +282,7 @@ def estimate_imu_rotation(
             w = (r <= 3 * np.median(r)).astype(np.float64)
     e_after = residual(R, bias)[w > 0]
     v = (phi_imu - bias * dt)[w > 0] @ R.T
-    info = np.zeros((3, 3))
-    for x in v:  # J = -[v]x per pair; sum J^T J
-        K = np.array([[0.0, -x[2], x[1]], [x[2], 0.0, -x[0]], [-x[1], x[0], 0.0]])
-        info += K.T @ K
-    sigma_r = 1.4826 * float(np.median(np.abs(e_after.ravel())))
-    eig = np.linalg.eigvalsh(info)
-    sigma_deg = float(np.degrees(sigma_r / np.sqrt(eig[0]))) * _overlap(rot) if eig[0] > 0 else float("inf")
+    sigma_deg = _rotation_sigma_deg(v, e_after) * _overlap(rot.t0_ns, rot.t1_ns)
     observable = sigma_deg <= MAX_ROTATION_SIGMA_DEG
     correction = float(np.degrees(np.linalg.norm(Rotation.from_matrix(R @ R_cam0_imu_rig.T).as_rotvec())))
     return ImuRotation(
@@ -346,15 +338,7 @@ def check_stereo_rotation(upper: FrameRotations, lower: FrameRotations, R_cam1_c
     w = (r <= 3 * np.median(r)).astype(np.float64)
     R = _kabsch(src, dst, w)
     e_after = (dst - src @ R.T)[w > 0]
-    info = np.zeros((3, 3))
-    for x in (src @ R.T)[w > 0]:
-        K = np.array([[0.0, -x[2], x[1]], [x[2], 0.0, -x[0]], [-x[1], x[0], 0.0]])
-        info += K.T @ K
-    sigma_r = 1.4826 * float(np.median(np.abs(e_after.ravel())))
-    eig = np.linalg.eigvalsh(info)
-    frames = len(np.union1d(upper.t0_ns[iu], upper.t1_ns[iu]))
-    overlap = float(np.sqrt(max(1.0, n / max(frames, 1))))
-    sigma_deg = float(np.degrees(sigma_r / np.sqrt(eig[0]))) * overlap if eig[0] > 0 else float("inf")
+    sigma_deg = _rotation_sigma_deg((src @ R.T)[w > 0], e_after) * _overlap(upper.t0_ns[iu], upper.t1_ns[iu])
     angle = float(np.degrees(np.linalg.norm(Rotation.from_matrix(R @ R_cam1_cam0_rig.T).as_rotvec())))
     return StereoCheck(
         angle, sigma_deg, sigma_deg <= MAX_ROTATION_SIGMA_DEG, int((w > 0).sum()),
