@@ -1,4 +1,4 @@
-"""`sensorbox calib refine`: what a recording says about its rig's clocks and rotations, and the rig it implies.
+"""`sensorbox calib refine`: the clocks and rotations a recording reveals, and the rig they imply.
 
 One pass over the bags reads both cameras and every IMU of the rig: each camera's
 rotation between frames (`timeshift.pair_rotation`, streamed: a few frames in
