@@ -8,18 +8,38 @@ the other core (dense ingest of a full-resolution walk, 2 workers: 87.1 s ->
 78.8 s; the odometry used 12.5 s of CPU for 4 s of data with them, 9.0 without).
 """
 
+import contextlib
 import os
 import sys
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 
+INTERRUPTED = 130  # the shell's code for a command stopped by SIGINT
+
+
 def run() -> None:
     """The `sensorbox` console script: `sensorbox.cli.main.main`, and Ctrl-C while its modules are still
-    being imported (numpy, OpenCV, Open3D: about 2 s) as the same one line and exit code 130."""
+    being imported (numpy, OpenCV, Open3D: about 2 s) as the same one line and exit code 130.
+
+    After a Ctrl-C the process ends at once (`os._exit`) once the command has
+    said its line and unwound: a helper thread may still be inside OpenCV or
+    numba then, and the interpreter's normal shutdown would run C++ static
+    destructors under it and abort ("terminate called without an active
+    exception", SIGABRT instead of 130). Nothing is lost: every file a command
+    writes is whole when written (atomic renames), and the streams are flushed.
+    """
     try:
-        from sensorbox.cli.main import main
-    except KeyboardInterrupt:
-        sys.stderr.write("interrupted\n")
-        raise SystemExit(130) from None
-    main()
+        try:
+            from sensorbox.cli.main import main
+        except KeyboardInterrupt:
+            sys.stderr.write("interrupted\n")
+            raise SystemExit(INTERRUPTED) from None
+        main()
+    except SystemExit as done:
+        if done.code != INTERRUPTED:
+            raise
+        for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(OSError, ValueError):  # a closed pipe or stream: nothing can reach it
+                stream.flush()
+        os._exit(INTERRUPTED)

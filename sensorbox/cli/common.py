@@ -5,10 +5,12 @@ from __future__ import annotations
 
 import errno
 import os
+import signal
 import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from types import FrameType
 from typing import Annotated, Any, Protocol
 
 import typer
@@ -59,15 +61,66 @@ class Update(Protocol):
     ) -> None: ...
 
 
+_DEFERRED: list[int] = []  # SIGINTs noted but not yet raised (see `ctrl_c`)
+
+
+def _on_ctrl_c(signum: int, frame: FrameType | None) -> None:
+    """SIGINT as KeyboardInterrupt, except inside llvmlite (numba compiling or loading its cache).
+
+    There the handler runs within a ctypes callback, and ctypes prints a
+    KeyboardInterrupt raised in a callback and drops it: the Ctrl-C was lost
+    and the run went on to the end. It is noted instead, and the next
+    progress update raises it (`raise_deferred_ctrl_c`).
+    """
+    if frame is not None and "llvmlite" in frame.f_code.co_filename:
+        _DEFERRED.append(signum)
+        return
+    raise KeyboardInterrupt
+
+
+def raise_deferred_ctrl_c() -> None:
+    """Raise KeyboardInterrupt for a Ctrl-C `_on_ctrl_c` noted and has not raised yet."""
+    if _DEFERRED:
+        _DEFERRED.clear()
+        raise KeyboardInterrupt
+
+
+@contextmanager
+def ctrl_c() -> Iterator[None]:
+    """Within the block, Ctrl-C raises KeyboardInterrupt where it can be caught (`_on_ctrl_c`).
+
+    Only where Python's own handler is in place: a SIGINT ignored (a
+    background job of a shell) or handled by the caller stays as it is.
+    """
+    if signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        yield
+        return
+    signal.signal(signal.SIGINT, _on_ctrl_c)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        _DEFERRED.clear()
+
+
 @contextmanager
 def progress_bar(verb: str, unit: str) -> Iterator[Update]:
     """A transient progress bar on stderr ("VERB [bar] done/total UNIT, time left"); yields the callback.
+
+    The callback also raises a Ctrl-C that arrived where it could not be
+    raised (`raise_deferred_ctrl_c`).
 
     Only on a terminal: rich leaves an empty line behind in a log or a pipe,
     where a bar cannot be redrawn anyway, so there the callback does nothing.
     """
     if not err_console.is_terminal:
-        yield lambda done, total, verb=None, unit=None, note=None: None
+
+        def quiet(
+            done: int, total: int, verb: str | None = None, unit: str | None = None, note: str | None = None
+        ) -> None:
+            raise_deferred_ctrl_c()
+
+        yield quiet
         return
     columns = (
         TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
@@ -81,6 +134,7 @@ def progress_bar(verb: str, unit: str) -> Iterator[Update]:
             done: int, total: int, verb: str | None = None, unit: str | None = None, note: str | None = None
         ) -> None:
             nonlocal task, words
+            raise_deferred_ctrl_c()
             stage = (verb or words[0], unit or words[1])
             if stage != words:
                 bar.remove_task(task)

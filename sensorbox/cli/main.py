@@ -23,7 +23,7 @@ from ingest.errors import OutputError
 from sensorbox.cli.bench import bench_cmd
 from sensorbox.cli.calib import calib_check, calib_refine
 from sensorbox.cli.capture import capture_cmd, launch_cmd
-from sensorbox.cli.common import err_console, print_error, print_warning
+from sensorbox.cli.common import ctrl_c, err_console, print_error, print_warning
 from sensorbox.cli.eval import eval_cmd, stats_cmd
 from sensorbox.cli.ingest import ingest_cmd
 from sensorbox.cli.inspect import inspect_cmd
@@ -56,7 +56,8 @@ def _interruptible(command: Callable[P, None]) -> Callable[P, None]:
     @functools.wraps(command)
     def run(*args: P.args, **kwargs: P.kwargs) -> None:
         try:
-            command(*args, **kwargs)
+            with ctrl_c():
+                command(*args, **kwargs)
         except KeyboardInterrupt:
             err_console.print("interrupted", markup=False, highlight=False)
             raise typer.Exit(130) from None

@@ -18,11 +18,11 @@ pytestmark = pytest.mark.realtime  # a signal to a subprocess at a moment of its
 
 BAG = FIXTURES_DIR / "indoor_static_mcap"
 
-# Python's own Ctrl-C handler, whatever the disposition this test runs under (a shell's background job
+# the console script's entry point with Python's own Ctrl-C handler, whatever the disposition this test runs under (a shell's background job
 # inherits SIGINT ignored)
 RUN = (
     "import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
-    "from sensorbox.cli.main import main; sys.argv[0] = 'sensorbox'; main()"
+    "from sensorbox.cli import run; sys.argv[0] = 'sensorbox'; run()"
 )
 
 
