@@ -74,6 +74,25 @@ class FileMeta:
 
 
 @dataclass(frozen=True)
+class AlignmentMeta:
+    """One LiDAR's photometric alignment with cam0's image (`ingest.train.align`), a quality score that
+    needs no truth: the correction that lays its points best onto the image (rotation vector in deg and
+    translation in mm, both in cam0), their 1-sigmas (largest axis), `shift_deg` the median angle by
+    which the correction moves the points as cam0 sees them (the GT's misalignment), the points used,
+    the correlation of image intensity and reflectivity, and the information matrix of (rotation rad,
+    translation m) that `sensorbox calib refine` combines over samples."""
+
+    rotation_deg: list[float]
+    translation_mm: list[float]
+    sigma_rotation_deg: float
+    sigma_translation_mm: float
+    shift_deg: float
+    points: int
+    correlation: float
+    information: list[list[float]]
+
+
+@dataclass(frozen=True)
 class SampleMeta:
     """One written sample; `id` and `dropped` (values too large for uint16, per image) come with the write."""
 
@@ -92,6 +111,8 @@ class SampleMeta:
     settings: dict[str, Any] = field(default_factory=dict)  # what made it: dataset.yaml's compared keys
     exposure_ns: int = 0  # the sample's time: the upper camera's mid-exposure on the LiDAR clock
     clock_offset_ms: float = 0.0  # exposure_ns - stamp_ns: the rig's timeshift_cam_imu for the upper camera
+    alignment: dict[str, AlignmentMeta] = field(default_factory=dict)  # per LiDAR topic, with reflectivity
+    twist_cam0: list[float] | None = None  # cam0's angular (rad/s) and linear (m/s) velocity in cam0
 
     def written(
         self, sid: str, dropped: dict[str, int], files: dict[str, FileMeta] | None = None
@@ -124,6 +145,8 @@ class SampleMeta:
             settings=dict(d.get("settings", {})),
             exposure_ns=int(d.get("exposure_ns", d["stamp_ns"])),
             clock_offset_ms=float(d.get("clock_offset_ms", 0.0)),
+            alignment={str(k): AlignmentMeta(**v) for k, v in d.get("alignment", {}).items()},
+            twist_cam0=None if d.get("twist_cam0") is None else [float(v) for v in d["twist_cam0"]],
         )  # fmt: skip
 
 

@@ -22,11 +22,12 @@ from calibration.types import F64, I64, U64
 from calibration.warp import build_maps, check_height_full, check_source, default_height_full, remap_spans
 from ingest.dataset.identity import frame_digest
 from ingest.dataset.layout import SampleFiles, write_sample
-from ingest.dataset.meta import GtMeta, MotionMeta, PointMeta, SampleMeta
+from ingest.dataset.meta import AlignmentMeta, GtMeta, MotionMeta, PointMeta, SampleMeta
 from ingest.dataset.sparse import SparseImage
 from ingest.raster.view import pixel_rays
 from ingest.rows import rows
 from ingest.runtime.background import Background
+from ingest.train.align import ImageLevels, align_points
 from ingest.train.block_planes import cleared_for
 from ingest.train.clouds import (
     REFERENCE_RANGE_M,
@@ -115,6 +116,7 @@ class LidarPoints:
     tag: np.ndarray[Any, Any] | None
     normal_world: np.ndarray[Any, Any] | None = None  # dense GT: (N, 3) float16, NaN: none (`block_planes`)
     clear_bits: U64 | None = None  # dense GT: (N, words), the slices that saw through each (`block_planes`)
+    reflectivity: np.ndarray[Any, Any] | None = None  # (N,) as the driver stored it (`ingest.train.align`)
 
     def within(self, t0_ns: int, t1_ns: int) -> LidarPoints:
         """The points stamped in [t0_ns, t1_ns], in their order."""
@@ -122,7 +124,8 @@ class LidarPoints:
         tag = None if self.tag is None else self.tag[keep]
         normal = None if self.normal_world is None else rows(self.normal_world, keep)
         bits = None if self.clear_bits is None else rows(self.clear_bits, keep)
-        return LidarPoints(self.name, rows(self.xyz_m, keep), self.stamps_ns[keep], tag, normal, bits)
+        refl = None if self.reflectivity is None else self.reflectivity[keep]
+        return LidarPoints(self.name, rows(self.xyz_m, keep), self.stamps_ns[keep], tag, normal, bits, refl)
 
 
 @dataclass(frozen=True)
@@ -221,12 +224,6 @@ def _silent(job: SampleJob) -> list[str]:
     return [lp.name for lp in job.lidars if len(lp.stamps_ns) == 0]
 
 
-def _points_in_cam0(job: SampleJob) -> tuple[F64, I64, FilterCounts, dict[str, float]]:
-    """Filtered points of every LiDAR in cam0 (at their own times), their stamps, counts, skews."""
-    c = _points_by_lidar(job)
-    return c.pts, c.stamps_ns, c.counts, c.skew_ms
-
-
 @dataclass(frozen=True)
 class WindowPoints:
     """A job's filtered points of every LiDAR, in cam0 at their own times, and what they carry."""
@@ -238,11 +235,13 @@ class WindowPoints:
     skew_ms: dict[str, float]  # per LiDAR: the farthest point time from the frame's
     normal_world: F64 | None  # (N, 3), when every LiDAR's points carry them
     clear_bits: U64 | None  # (N, words), when every LiDAR's points carry them
+    reflectivity: F64 | None  # (N,), when every LiDAR's points carry it
 
 
 def _points_by_lidar(job: SampleJob) -> WindowPoints:
-    """`_points_in_cam0`, with each point's LiDAR and the block fits' normals and free-space bits."""
-    pts, stamps, which, total, skew, normals, bits = [], [], [], FilterCounts(), {}, [], []
+    """Filtered points of every LiDAR in cam0 (at their own times), their stamps, LiDAR, counts and skews,
+    with the block fits' normals, free-space bits and reflectivity where every LiDAR has them."""
+    pts, stamps, which, total, skew, normals, bits, refl = [], [], [], FilterCounts(), {}, [], [], []
     for i, lp in enumerate(job.lidars):
         keep, counts = filter_points(lp.xyz_m, lp.tag, job.params.min_range_m)
         T = job.geometry.rig.lidar(lp.name).T_cam0_lidar
@@ -254,6 +253,8 @@ def _points_by_lidar(job: SampleJob) -> WindowPoints:
             normals.append(np.asarray(rows(lp.normal_world, keep), np.float64))
         if lp.clear_bits is not None:
             bits.append(rows(lp.clear_bits, keep))
+        if lp.reflectivity is not None:
+            refl.append(np.asarray(lp.reflectivity[keep], np.float64))
         total = total + counts
         dt = (stamps[-1] - job.exposure_ns) / 1e6
         skew[lp.name] = float(np.abs(dt).max()) if len(dt) else 0.0
@@ -262,6 +263,7 @@ def _points_by_lidar(job: SampleJob) -> WindowPoints:
         np.concatenate(pts), np.concatenate(stamps), np.concatenate(which), total, skew,
         np.concatenate(normals) if len(normals) == every else None,
         np.concatenate(bits) if len(bits) == every else None,
+        np.concatenate(refl) if len(refl) == every else None,
     )  # fmt: skip
 
 
@@ -325,7 +327,15 @@ def _process_sparse(job: SampleJob, images: Background[Equirects], start_ms: flo
     ms: dict[str, float] = {}
     t0 = time.perf_counter()
     geo, prm = job.geometry, job.params
-    pts, stamps, counts, skew_ms = _points_in_cam0(job)
+    cloud = _points_by_lidar(job)
+    pts, stamps, counts, skew_ms, which, refl = (
+        cloud.pts,
+        cloud.stamps_ns,
+        cloud.counts,
+        cloud.skew_ms,
+        cloud.lidar,
+        cloud.reflectivity,
+    )
     gyro = None
     off_imu = 0
     if job.imu is not None and len(job.imu.stamps_ns) >= 2:
@@ -333,7 +343,8 @@ def _process_sparse(job: SampleJob, images: Background[Equirects], start_ms: flo
         covered = gyro.covers(stamps)  # rotations outside the IMU's span are unknown: drop those points
         off_imu = int((~covered).sum())  # counted in the meta: the filters' counts add up to the total
         counts = replace(counts, kept=counts.kept - off_imu)
-        pts, stamps = rows(pts, covered), stamps[covered]
+        pts, stamps, which = rows(pts, covered), stamps[covered], which[covered]
+        refl = None if refl is None else refl[covered]
     dt_s = (stamps - job.exposure_ns) / 1e9
     use_gyro = gyro is not None and prm.motion != "off"
     rotated = gyro.rotate(stamps, job.exposure_ns, pts) if gyro is not None and use_gyro else None
@@ -371,8 +382,12 @@ def _process_sparse(job: SampleJob, images: Background[Equirects], start_ms: flo
         geo.equirect, R_rect_cam0, pts[visible], kept, geo.rect.baseline_m, prm.gt
     )
     ms["ground_truth"] = (time.perf_counter() - t1) * 1e3
+    t2 = time.perf_counter()
+    twist = _gyro_twist(job, velocity if motion.applied else None)
+    alignment = _alignments(job, pts, refl, which)
+    ms["alignment"] = (time.perf_counter() - t2) * 1e3
     meta = SampleMeta(
-        **job.timing(), source_bag=job.source,
+        **job.timing(), source_bag=job.source, alignment=alignment, twist_cam0=twist,
         lidar_skew_ms=skew_ms,
         motion=MotionMeta(
             applied=motion.applied, source=motion.source, max_rotation_deg=motion.max_rotation_deg,
@@ -391,6 +406,53 @@ def _process_sparse(job: SampleJob, images: Background[Equirects], start_ms: flo
         ),
     )  # fmt: skip
     return _finish(job, images, start_ms, ms, (range_img, disp_img), meta)
+
+
+def _alignments(
+    job: SampleJob, pts_cam0: F64, reflectivity: F64 | None, which: I64
+) -> dict[str, AlignmentMeta]:
+    """Each LiDAR's photometric alignment with the upper image (`ingest.train.align`), of the points
+    placed in cam0 at the exposure (`pts_cam0`, from LiDAR `which`); none without reflectivity."""
+    if reflectivity is None:
+        return {}
+    levels = ImageLevels.from_bgr(job.upper_bgr)
+    model = job.geometry.rig.upper.model
+    out = {}
+    for i, lp in enumerate(job.lidars):
+        mine = which == i
+        found = align_points(model, levels, rows(pts_cam0, mine), reflectivity[mine])
+        if found is not None:
+            out[lp.name] = found.to_meta()
+    return out
+
+
+TWIST_STEP_NS = 5_000_000
+
+
+def _trajectory_twist(traj: RigTrajectory, t_ns: int) -> list[float]:
+    """cam0's angular velocity (rad/s) and velocity (m/s), both in cam0, at `t_ns` (central differences
+    over +-`TWIST_STEP_NS`)."""
+    R, p = traj.pose(np.array([t_ns - TWIST_STEP_NS, t_ns, t_ns + TWIST_STEP_NS], np.int64))
+    turn, _ = cv2.Rodrigues(R[0].T @ R[2])
+    h_s = 2 * TWIST_STEP_NS / 1e9
+    # the turn between the two ends is in the frame at the first; at these rates the difference is 1e-5
+    omega = turn.ravel() / h_s
+    velocity = R[1].T @ (p[2] - p[0]) / h_s
+    return [round(float(v), 6) for v in (*omega, *velocity)]
+
+
+def _gyro_twist(job: SampleJob, velocity_cam0_mps: F64 | None) -> list[float] | None:
+    """cam0's angular velocity (rad/s, the gyro's readings within +-`TWIST_STEP_NS` of the exposure,
+    averaged, in cam0) and the velocity motion compensation used (m/s, 0 when none); None without
+    gyro readings there."""
+    if job.imu is None:
+        return None
+    near = np.abs(job.imu.stamps_ns - job.exposure_ns) <= TWIST_STEP_NS
+    if not near.any():
+        return None
+    omega = job.imu.R_cam0_imu @ job.imu.gyro_rad_s[near].mean(axis=0)
+    velocity = np.zeros(3) if velocity_cam0_mps is None else np.asarray(velocity_cam0_mps, np.float64)
+    return [round(float(v), 6) for v in (*omega, *velocity)]
 
 
 def _finish(
@@ -459,6 +521,7 @@ def _process_dense(job: SampleJob, images: Background[Equirects], start_ms: floa
     if not covered.any():
         return SampleResult(job.sid, False, "outside the trajectory", None, {})
     pts, stamps, which = rows(cloud.pts, covered), stamps[covered], cloud.lidar[covered]
+    refl = None if cloud.reflectivity is None else cloud.reflectivity[covered]
     turn_rad, shift_m = traj.motion_from(tc, int(stamps.min()), int(stamps.max()))
     placed = traj.to_frame(pts, stamps, tc)
     normals = None
@@ -476,7 +539,8 @@ def _process_dense(job: SampleJob, images: Background[Equirects], start_ms: floa
             keep = ~(test & cleared_for(bits, stamps, tc, fs, block_ns))
         else:
             keep = free_space_filter(placed, *_slices(job, traj, stamps, which), prm.dense, test)
-        moving, placed = rows(placed, ~keep), rows(placed, keep)
+        moving, placed, which = rows(placed, ~keep), rows(placed, keep), which[keep]
+        refl = None if refl is None else refl[keep]
         normals = None if normals is None else Normals(rows(normals.normal, keep), normals.planar[keep])
     t1 = time.perf_counter()
     ms["clouds"] = (t1 - t0) * 1e3
@@ -486,11 +550,15 @@ def _process_dense(job: SampleJob, images: Background[Equirects], start_ms: floa
         normals,
     )  # fmt: skip
     ms["ground_truth"] = (time.perf_counter() - t1) * 1e3
+    t2 = time.perf_counter()
+    alignment = _alignments(job, placed, refl, which)
+    ms["alignment"] = (time.perf_counter() - t2) * 1e3
     in_window = (traj.stamps_ns >= tc - prm.dense.window_ns) & (traj.stamps_ns <= tc + prm.dense.window_ns)
     residual = traj.residual_m[in_window]
     residual = residual[np.isfinite(residual)]
     meta = SampleMeta(
-        **job.timing(), source_bag=job.source, lidar_skew_ms=cloud.skew_ms,
+        **job.timing(), source_bag=job.source, lidar_skew_ms=cloud.skew_ms, alignment=alignment,
+        twist_cam0=_trajectory_twist(traj, tc),
         motion=MotionMeta(
             applied=True, source="trajectory", max_rotation_deg=float(np.degrees(turn_rad)),
             speed_mps=traj.speed_mps(tc), velocity_cam0_mps=None,

@@ -119,20 +119,23 @@ def _with_payload(msg: RawMessage, payload: bytes) -> RawMessage:
     return msg._replace(deferred=replace(msg.deferred, compressed=payload))
 
 
-_LIDAR_FIELDS = ("xyz_m", "stamps_ns", "tag", "normal_world", "clear_bits")
+_LIDAR_FIELDS = ("xyz_m", "stamps_ns", "tag", "normal_world", "clear_bits", "reflectivity")
 
 
 def _lidar_arrays(points: LidarPoints) -> list[Array]:
-    """A window's arrays in `_LIDAR_FIELDS` order, those it has (tags, normals and bits may be None)."""
+    """A window's arrays in `_LIDAR_FIELDS` order, those it has (tags, normals, bits and reflectivity may
+    be None)."""
     return [a for a in (getattr(points, f) for f in _LIDAR_FIELDS) if a is not None]
 
 
 def _refilled(points: LidarPoints, arrays: list[Array]) -> LidarPoints:
     """`points` with the arrays it has replaced by `arrays`, in `_LIDAR_FIELDS` order (None stays None)."""
     it = iter(arrays)
-    xyz, stamps, tag, normal, bits = (None if getattr(points, f) is None else next(it) for f in _LIDAR_FIELDS)
+    xyz, stamps, tag, normal, bits, refl = (
+        None if getattr(points, f) is None else next(it) for f in _LIDAR_FIELDS
+    )
     assert xyz is not None and stamps is not None  # never None
-    return LidarPoints(points.name, xyz, stamps, tag, normal, bits)
+    return LidarPoints(points.name, xyz, stamps, tag, normal, bits, refl)
 
 
 def take_arrays(job: StreamedJob) -> tuple[StreamedJob, tuple[Array, ...]]:
@@ -253,6 +256,8 @@ def lidar_window(sweeps: list[Sweep], name: str, t_c: int, w: int, planes: Block
     st = np.concatenate([_rows(s.stamps_ns, m) for s, m in parts]) if parts else np.zeros(0, np.int64)
     tags = [_rows(s.tag, m) for s, m in parts if s.tag is not None]
     tag = np.concatenate(tags) if tags and len(tags) == len(parts) else None
+    refls = [_rows(s.reflectivity, m) for s, m in parts if s.reflectivity is not None]
+    refl = np.concatenate(refls) if refls and len(refls) == len(parts) else None
     normal = bits = None
     if planes is not None:
         normals = [_rows(planes.normals(s), m) for s, m in parts]
@@ -260,7 +265,7 @@ def lidar_window(sweeps: list[Sweep], name: str, t_c: int, w: int, planes: Block
         if planes.settings.free_space is not None:
             words = [_rows(planes.clear_bits(s), m) for s, m in parts]
             bits = np.concatenate(words) if words else planes.clear_bits_empty()
-    return LidarPoints(name, xyz, st, tag, normal, bits)
+    return LidarPoints(name, xyz, st, tag, normal, bits, refl)
 
 
 def _rows(a: np.ndarray[Any, Any], which: slice | I64) -> np.ndarray[Any, Any]:

@@ -132,6 +132,12 @@ RefinedOpt = Annotated[
         "--out", help="Refined rig file to write (its camchain is written beside it).", **path_param("--out")
     ),
 ]
+WorkersOpt = Annotated[
+    int,
+    typer.Option(
+        help="Local worker processes of the LiDAR alignment's sparse ingests (1 = in this process)."
+    ),
+]
 ChartOpt = Annotated[
     Path | None,
     typer.Option(
@@ -179,6 +185,23 @@ def imu_table(refinement: Refinement) -> Table:
     return table
 
 
+def lidar_table(refinement: Refinement) -> Table:
+    """Per LiDAR: the correction of its pose from its points on cam0's images, and the misalignment
+    before and after."""
+    table = Table(title="LiDAR poses in cam0 (points laid onto cam0's images)", title_justify="left")
+    for col in ("lidar", "correction [deg, mm]", "1-sigma [deg, mm]",
+                "median misalignment before -> after [deg]", "samples", "refined rig"):  # fmt: skip
+        table.add_column(col, justify="left" if col in ("lidar", "refined rig") else "right")
+    for lidar in refinement.lidars:
+        table.add_row(
+            lidar.lidar, f"{lidar.rotation_deg:.3f}, {lidar.translation_mm:.1f}",
+            f"{lidar.sigma_rotation_deg:.3f}, {lidar.sigma_translation_mm:.1f}",
+            f"{lidar.shift_before_deg:.3f} -> {lidar.shift_after_deg:.3f}", str(lidar.samples),
+            "pose refined" if lidar.applied else "rig's pose kept (too uncertain)",
+        )  # fmt: skip
+    return table
+
+
 def stereo_line(refinement: Refinement) -> str:
     """One line: the stereo rotation the cameras' own motion implies against the camchain's."""
     s = refinement.stereo
@@ -190,29 +213,44 @@ def stereo_line(refinement: Refinement) -> str:
     )
 
 
-def calib_refine(bags: BagsArg, rig: RigOpt, out: RefinedOpt, plot: ChartOpt = None) -> None:
-    """Estimate the cameras' clock offsets and the LiDARs' rotations from a recording; write the refined rig.
+def calib_refine(
+    bags: BagsArg, rig: RigOpt, out: RefinedOpt, plot: ChartOpt = None, workers: WorkersOpt = 2
+) -> None:
+    """Estimate the cameras' clock offsets and each LiDAR's pose in cam0 from a recording; write the refined
+    rig.
 
-    Needs a recording in which the rig turned; what it cannot reveal keeps the rig's value (docs/refine.md).
+    Needs a recording in which the rig turned for the clocks; what it cannot reveal keeps the rig's value
+    (docs/refine.md).
     """
     import tempfile
 
     from calibration.rig import read_rig, write_rig
     from ingest.dataset.layout import write_atomic_set
-    from ingest.train.refine import refine
+    from ingest.train.pipeline import refine_rig
 
     check_out_file("--out", out)
     if plot is not None:
         check_out_file("--plot", plot)
     given = read_rig(rig)
     with progress_bar("reading frames and gyro", "messages") as update:
-        refinement = refine(bags, given, progress=update)
+        refinement = refine_rig(
+            bags, given, workers, progress=update,
+            aligning=lambda done, total: update(done, total, "aligning LiDAR points to cam0", "samples"),
+        )  # fmt: skip
     console.print(refine_table(refinement))
     console.print(imu_table(refinement))
+    if refinement.lidars:
+        console.print(lidar_table(refinement))
     console.print(stereo_line(refinement))
     frames = ", ".join(f"{n} {k}" for k, n in refinement.frames.items())
     readings = ", ".join(f"{n} {k}" for k, n in refinement.imu_readings.items())
-    console.print(f"Read {frames} frames and {readings} gyro readings. LiDAR translations are not refined.")
+    console.print(f"Read {frames} frames and {readings} gyro readings.")
+    if refinement.image_clock_ms is not None:
+        ms, sigma = refinement.image_clock_ms
+        console.print(
+            f"Check: the LiDAR points on cam0's images put its refined clock {ms:+.3f} ms "
+            f"(1-sigma {sigma:.3f}) off."
+        )
     for line in refinement.unobserved_lines():
         print_warning(line, console)
     with tempfile.TemporaryDirectory() as tmp:  # the rig and its camchain written as one set, or neither

@@ -152,6 +152,10 @@ def test_refine_recovers_the_camera_offsets_of_a_rendered_walk(late_walk: Path) 
         np.testing.assert_array_equal(found.rig.imus[0].T_cam0_imu, turned_imu.T_cam0_imu)
 
 
+def _angle_deg(Ra: F64, Rb: F64) -> float:
+    return float(np.degrees(Rotation.from_matrix(Ra @ Rb.T).magnitude()))
+
+
 def _turned(T: F64) -> F64:
     out = T.copy()
     out[:3, :3] = TURN @ T[:3, :3]
@@ -161,8 +165,9 @@ def _turned(T: F64) -> F64:
 def test_refine_cli_writes_the_refined_rig_and_says_what_it_could_not_see(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    """A static room with cameras 8 ms late: nothing observable; the refined rig equals the given one,
-    and one warning line per camera says why and what to record."""
+    """A static room with cameras 8 ms late: the clocks are not observable and keep the rig's values, one
+    warning line per camera says why and what to record; the LiDAR poses, exact here, come back within
+    the issue's targets (0.05 deg, 5 mm): a negative control of the alignment."""
     bag = tmp_path / "room"
     simulate(SimConfig(duration_s=1.2, scale=0.25, camera_offset_ns=(8_000_000, 8_000_000)), bag)
     rig = tmp_path / "rig" / "plain.yaml"
@@ -179,7 +184,9 @@ def test_refine_cli_writes_the_refined_rig_and_says_what_it_could_not_see(
     refined = read_rig(tmp_path / "refined.yaml")
     assert [c.timeshift_cam_imu for c in refined.cameras] == [0.002, 0.002]
     for a, b in zip(refined.lidars, read_rig(rig).lidars, strict=True):
-        np.testing.assert_array_equal(a.T_cam0_lidar, b.T_cam0_lidar)
+        assert _angle_deg(a.T_cam0_lidar[:3, :3], b.T_cam0_lidar[:3, :3]) < 0.05
+        assert np.linalg.norm(a.T_cam0_lidar[:3, 3] - b.T_cam0_lidar[:3, 3]) < 0.005
+    assert "LiDAR poses in cam0" in out
     warnings = [line for line in out.splitlines() if line.startswith("warning: cam")]
     assert len(warnings) == 2
     assert "clock offset not observable from this recording" in warnings[0]

@@ -1,0 +1,383 @@
+"""How well one LiDAR's points lie on cam0's image: a photometric alignment that needs no truth.
+
+A LiDAR point carries its return strength (reflectivity), and a surface that
+returns more light looks brighter to the camera: painted marks, textures and
+material borders appear in both. Placed in cam0 through the rig file and the
+clocks, a point should land where the image shows its surface; when the rig
+or the clocks are off, it lands beside it. `align_points` finds the small
+rigid motion of the points (rotation vector and translation in cam0) that lays
+their reflectivity best onto the image intensity:
+
+    min over (w, t, a, b)  sum_i rho( I(pi(R(w) p_i + t)) - (a * refl_i + b) )
+
+Gauss-Newton on the image's gradients, the affine intensity model (a, b)
+fitted with the pose and then marginalised out, Cauchy weights against what
+the model cannot explain (shading, occlusions, mixed returns), coarse to fine
+(the image blurred by 4, 2 and 1 pixels, so that corrections of a few
+degrees or centimetres are inside the basin). Only points that are the
+nearest in their 2-pixel cell are used: a point hidden from the camera behind
+a nearer one (the LiDAR sits beside the camera) shows the wrong surface's
+intensity. This is direct_visual_lidar_calibration's idea with a plain least
+squares cost on a fisheye model.
+
+The result is the correction itself, its information matrix (from the
+residuals' spread) and how far the correction moves the points on the image
+(`shift_deg`): a sample whose points lie on the image within its noise has a
+correction indistinguishable from zero. A camera clock offset `dt` shows up
+as a correction equal to `dt` times the rig's motion (`twist`), a rig-file
+error as the same correction in every sample: `combine` separates them over
+many samples.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from calibration.camera import CameraModel
+from calibration.types import F64
+from ingest.dataset.meta import AlignmentMeta
+
+SIGMAS_PX = (8.0, 4.0, 2.0, 1.0)
+"""The image blur of each coarse-to-fine level (Gaussian sigma, pixels of a 1920-wide image)."""
+ITERATIONS_PER_LEVEL = 3
+MAX_POINTS = 20_000
+"""Points used per LiDAR and sample: beyond this the correction's noise is below what the model explains."""
+MIN_POINTS = 500
+CELL_PX = 2.0
+NEAREST_TOLERANCE = 0.03
+"""A point is visible when its range is within 3 % of the nearest point's in its cell."""
+CAUCHY_SCALE = 2.0
+"""The Cauchy weights' scale, in robust standard deviations of the residual."""
+REFERENCE_WIDTH_PX = 1920.0
+JACOBIAN_STEP_M = 1e-5
+
+
+@dataclass(frozen=True)
+class Alignment:
+    """The correction that lays one LiDAR's points best onto cam0's image: p' = R(rotation) p + translation.
+
+    `rotation_rad` is a rotation vector in cam0 (rad), `translation_m` in cam0
+    (m), `information` the inverse covariance of (rotation, translation)
+    (1/rad^2, 1/m^2), `points` how many were used, `correlation` the
+    correlation of image intensity and reflectivity at the solution, and
+    `shift_deg` the median angle by which the correction moves the points
+    as cam0 sees them (the misalignment the GT would carry).
+    """
+
+    rotation_rad: F64
+    translation_m: F64
+    information: F64
+    points: int
+    correlation: float
+    shift_deg: float
+
+    @property
+    def covariance(self) -> F64:
+        """The 6x6 covariance of (rotation rad, translation m)."""
+        return np.asarray(np.linalg.pinv(self.information), np.float64)
+
+    @property
+    def sigma_rotation_deg(self) -> float:
+        """1-sigma of the rotation's largest axis (deg)."""
+        return float(np.degrees(np.sqrt(np.max(np.diag(self.covariance)[:3]))))
+
+    @property
+    def sigma_translation_mm(self) -> float:
+        """1-sigma of the translation's largest axis (mm)."""
+        return float(np.sqrt(np.max(np.diag(self.covariance)[3:])) * 1e3)
+
+    def to_meta(self) -> AlignmentMeta:
+        """As `meta/<id>.json` keeps it (deg and mm; the information matrix in rad and m)."""
+        return AlignmentMeta(
+            rotation_deg=[round(float(v), 5) for v in np.degrees(self.rotation_rad)],
+            translation_mm=[round(float(v), 3) for v in self.translation_m * 1e3],
+            sigma_rotation_deg=round(self.sigma_rotation_deg, 5),
+            sigma_translation_mm=round(self.sigma_translation_mm, 3),
+            shift_deg=round(self.shift_deg, 5), points=self.points, correlation=round(self.correlation, 4),
+            information=[[float(f"{v:.6g}") for v in row] for row in self.information],
+        )  # fmt: skip
+
+    @classmethod
+    def from_meta(cls, meta: AlignmentMeta) -> Alignment:
+        """The alignment a sample's meta recorded."""
+        return cls(
+            np.radians(meta.rotation_deg), np.asarray(meta.translation_mm) / 1e3,
+            np.asarray(meta.information, np.float64), meta.points, meta.correlation, meta.shift_deg,
+        )  # fmt: skip
+
+    @property
+    def vector(self) -> F64:
+        """(rotation rad, translation m) as one 6-vector."""
+        out: F64 = np.concatenate([self.rotation_rad, self.translation_m])
+        return out
+
+
+def rotation_matrix(rotvec: F64) -> F64:
+    """The rotation matrix of a rotation vector (rad)."""
+    R, _ = cv2.Rodrigues(np.asarray(rotvec, np.float64).reshape(3, 1))
+    return np.asarray(R, np.float64)
+
+
+def apply(rotation_rad: F64, translation_m: F64, pts: F64) -> F64:
+    """R(rotation) p + translation for each row of `pts` (N, 3)."""
+    out: F64 = pts @ rotation_matrix(rotation_rad).T + translation_m
+    return out
+
+
+@dataclass(frozen=True)
+class ImageLevels:
+    """cam0's image as the alignment reads it: per coarse-to-fine level the blurred intensity and its
+    x and y gradients (float32, intensity per pixel)."""
+
+    levels: tuple[tuple[np.ndarray, np.ndarray, np.ndarray], ...]
+
+    @classmethod
+    def from_bgr(cls, image: np.ndarray) -> ImageLevels:
+        """The levels of a BGR, BGRA or grey uint8 image (sigmas scaled to its width)."""
+        if image.ndim == 3:
+            code = cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY
+            image = cv2.cvtColor(image, code)
+        grey = image.astype(np.float32)
+        scale = grey.shape[1] / REFERENCE_WIDTH_PX
+        levels = []
+        for sigma in SIGMAS_PX:
+            blurred = cv2.GaussianBlur(grey, (0, 0), max(0.5, sigma * scale))
+            gx = cv2.Sobel(blurred, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8)
+            gy = cv2.Sobel(blurred, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)
+            levels.append((blurred, gx, gy))
+        return cls(tuple(levels))
+
+
+def _sample(image: np.ndarray, px: F64) -> F64:
+    """Bilinear samples of a float32 image at pixel positions (N, 2)."""
+    x = np.ascontiguousarray(px[:, 0], np.float32).reshape(-1, 1)
+    y = np.ascontiguousarray(px[:, 1], np.float32).reshape(-1, 1)
+    out: F64 = (
+        cv2.remap(image, x, y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).ravel().astype(np.float64)
+    )
+    return out
+
+
+def nearest_in_cell(px: F64, range_m: F64) -> np.ndarray:
+    """Whether each projected point is within `NEAREST_TOLERANCE` of the nearest range in its
+    `CELL_PX` cell (a z-buffer: the others are hidden from the camera or lie on a mixed edge)."""
+    if len(px) == 0:
+        return np.zeros(0, bool)
+    cell = np.floor(px / CELL_PX).astype(np.int64)
+    key = cell[:, 1] * (1 << 20) + cell[:, 0]
+    order = np.lexsort((range_m, key))
+    k = key[order]
+    first = np.r_[True, k[1:] != k[:-1]]
+    nearest = range_m[order][np.maximum.accumulate(np.where(first, np.arange(len(k)), 0))]
+    keep = np.zeros(len(px), bool)
+    keep[order] = range_m[order] <= nearest * (1 + NEAREST_TOLERANCE)
+    return keep
+
+
+def _projected(model: CameraModel, pts: F64) -> tuple[F64, F64, np.ndarray]:
+    """Pixels of `pts`, the projection's Jacobian d(pixel)/d(point) (N, 2, 3) by forward differences,
+    and which points project into the image."""
+    px, ok = model.project(pts)
+    ok &= model.in_image(px)
+    J = np.empty((len(pts), 2, 3))
+    for k in range(3):
+        step = np.zeros(3)
+        step[k] = JACOBIAN_STEP_M
+        moved, _ = model.project(pts + step)
+        J[:, :, k] = (moved - px) / JACOBIAN_STEP_M
+    ok &= np.isfinite(J).all(axis=(1, 2))
+    return px, J, ok
+
+
+def _thinned(pts: F64, reflectivity: F64, limit: int) -> tuple[F64, F64]:
+    """At most `limit` of the points, evenly spread over their order (deterministic)."""
+    if len(pts) <= limit:
+        return pts, reflectivity
+    pick = np.linspace(0, len(pts) - 1, limit).round().astype(np.int64)
+    return pts[pick], reflectivity[pick]
+
+
+def align_points(
+    model: CameraModel, image: ImageLevels, pts_cam0: F64, reflectivity: F64, max_points: int = MAX_POINTS
+) -> Alignment | None:
+    """The correction that lays `pts_cam0` (N, 3, m, in cam0 at the image's exposure) with their
+    `reflectivity` best onto `image` (see the module docstring); None with fewer than `MIN_POINTS`
+    visible points or no texture to align on."""
+    finite = np.isfinite(pts_cam0).all(axis=1) & np.isfinite(reflectivity)
+    pts, refl = _thinned(pts_cam0[finite], np.asarray(reflectivity, np.float64)[finite], max_points)
+    w_rad, t_m = np.zeros(3), np.zeros(3)
+    gain, offset = 1.0, 0.0
+    step: _Step | None = None
+    for level in range(len(SIGMAS_PX)):
+        for _ in range(ITERATIONS_PER_LEVEL):
+            step = _gauss_newton(model, image.levels[level], apply(w_rad, t_m, pts), refl, gain, offset)
+            if step is None:
+                return None
+            dR = rotation_matrix(step.delta[:3])
+            w_rad = np.asarray(cv2.Rodrigues(dR @ rotation_matrix(w_rad))[0], np.float64).ravel()
+            t_m = dR @ t_m + step.delta[3:6]
+            gain, offset = gain + step.delta[6], offset + step.delta[7]
+    assert step is not None
+    shift = np.arccos(np.clip(np.einsum("ij,ij->i", _unit(apply(w_rad, t_m, pts)), _unit(pts)), -1.0, 1.0))
+    return Alignment(
+        w_rad, t_m, step.information, len(step.points), step.correlation, float(np.degrees(np.median(shift)))
+    )
+
+
+def _unit(v: F64) -> F64:
+    out: F64 = v / np.linalg.norm(v, axis=1, keepdims=True)
+    return out
+
+
+@dataclass(frozen=True)
+class _Step:
+    delta: F64  # (rotation, translation, gain, offset) increments
+    information: F64  # 6x6, the affine intensity model marginalised out
+    points: F64  # the visible points the step used (cam0, m)
+    correlation: float
+
+
+def _gauss_newton(
+    model: CameraModel,
+    level: tuple[np.ndarray, np.ndarray, np.ndarray],
+    pts: F64,
+    refl: F64,
+    gain: float,
+    offset: float,
+) -> _Step | None:
+    """One robust Gauss-Newton step of the photometric cost at `pts` (already corrected)."""
+    blurred, gx, gy = level
+    px, J, ok = _projected(model, pts)
+    ok[ok] = nearest_in_cell(px[ok], np.linalg.norm(pts[ok], axis=1))
+    if ok.sum() < MIN_POINTS:
+        return None
+    p, px, J, rf = pts[ok], px[ok], J[ok], refl[ok]
+    intensity = _sample(blurred, px)
+    grad_px = np.stack([_sample(gx, px), _sample(gy, px)], axis=1)
+    grad_p = np.einsum("ni,nik->nk", grad_px, J)  # dI/dp
+    # d(R(dw) p)/d(dw) = -[p]x, so dI/d(dw) = grad_p . (dw x p) / dw = p x grad_p
+    rows = np.concatenate([np.cross(p, grad_p), grad_p, -rf[:, None], -np.ones((len(p), 1))], axis=1)
+    residual = intensity - (gain * rf + offset)
+    spread = 1.4826 * float(np.median(np.abs(residual - np.median(residual))))
+    if not spread > 0:
+        return None
+    weight = 1.0 / (1.0 + (residual / (CAUCHY_SCALE * spread)) ** 2)
+    H = (rows * weight[:, None]).T @ rows
+    g = (rows * weight[:, None]).T @ residual
+    try:
+        delta = -np.linalg.solve(H, g)
+    except np.linalg.LinAlgError:
+        return None
+    variance = float(np.sum(weight * residual**2) / max(1, len(p) - 8))
+    pose, affine = H[:6, :6], H[:6, 6:]
+    try:
+        info = (pose - affine @ np.linalg.solve(H[6:, 6:], affine.T)) / variance
+    except np.linalg.LinAlgError:
+        return None
+    corr = float(np.corrcoef(intensity, rf)[0, 1]) if np.std(rf) > 0 and np.std(intensity) > 0 else 0.0
+    return _Step(delta, info, p, corr)
+
+
+MAX_OFFSET_SIGMA_MS = 1.0
+"""A clock offset whose 1-sigma exceeds this is reported as unobservable (the rig hardly moved)."""
+CAUCHY_D2 = 4.0 * 6
+"""The Cauchy scale of a sample's squared Mahalanobis distance (6 degrees of freedom) to the model."""
+
+
+@dataclass(frozen=True)
+class Combined:
+    """What many samples' alignments say together (`combine`).
+
+    `corrections` per LiDAR: the correction of its rig-file pose (as an
+    `Alignment`: rotation and translation in cam0, with the information of
+    the combined estimate). `clock_offset_ms`: how much later than the truth
+    the exposure times were taken (the upper camera's `timeshift_cam_imu`
+    should be that much smaller); None when the motion did not reveal it.
+    `spread` is the residuals' scale over the per-sample information (1 when
+    each sample's stated uncertainty is right); the stated sigmas include it.
+    """
+
+    corrections: dict[str, Alignment]
+    clock_offset_ms: float | None
+    sigma_clock_ms: float
+    samples: int
+    spread: float
+
+
+def combine(samples: list[tuple[dict[str, Alignment], F64 | None]], iterations: int = 5) -> Combined | None:
+    """The rig-file correction of each LiDAR and the upper camera's clock offset from the per-sample
+    alignments and cam0's twist at each sample (`(alignments by LiDAR, twist)` pairs).
+
+    Each sample's correction is modelled as its LiDAR's constant correction
+    plus the clock offset times the rig's motion (a sample taken at a time
+    off by dt sees the points moved by dt times cam0's angular and linear
+    velocity), weighted by its information; samples far from the model
+    (a mover, a bad frame) are down-weighted (Cauchy on the Mahalanobis
+    distance). The offset is solved only when the motion varied enough to
+    tell it from a constant correction (`MAX_OFFSET_SIGMA_MS`). None without
+    any alignment.
+    """
+    names = sorted({name for found, _ in samples for name in found})
+    if not names:
+        return None
+    with_twist = all(twist is not None for _, twist in samples)
+    result = _solve(samples, names, with_twist, iterations)
+    if with_twist and result.sigma_clock_ms > MAX_OFFSET_SIGMA_MS:
+        result = _solve(samples, names, False, iterations)
+    return result
+
+
+def _solve(
+    samples: list[tuple[dict[str, Alignment], F64 | None]], names: list[str], offset: bool, iterations: int
+) -> Combined:
+    """`combine` with (`offset`) or without the clock offset among the unknowns."""
+    n = 6 * len(names) + (1 if offset else 0)
+    terms = []  # (design (6, n), observed (6,), information (6, 6))
+    for found, twist in samples:
+        for name, al in found.items():
+            design = np.zeros((6, n))
+            k = names.index(name)
+            design[:, 6 * k : 6 * k + 6] = np.eye(6)
+            if offset:
+                assert twist is not None
+                design[:, -1] = twist
+            terms.append((design, al.vector, al.information))
+    weights = np.ones(len(terms))
+    x: F64 = np.zeros(n)
+    H: F64 = np.eye(n)
+    d2: F64 = np.zeros(len(terms))
+    for _ in range(iterations):
+        H = sum(
+            (w * D.T @ info @ D for w, (D, _, info) in zip(weights, terms, strict=True)), np.zeros((n, n))
+        )
+        g = sum((w * D.T @ info @ obs for w, (D, obs, info) in zip(weights, terms, strict=True)), np.zeros(n))
+        x = np.asarray(np.linalg.lstsq(H, g, rcond=None)[0], np.float64)
+        d2 = np.array([float((obs - D @ x) @ info @ (obs - D @ x)) for D, obs, info in terms])
+        scale = max(float(np.median(d2)) / 5.35, 1.0)  # 5.35: the median of chi-square with 6 dof
+        weights = 1.0 / (1.0 + d2 / (CAUCHY_D2 * scale))
+    spread = max(float(np.median(d2)) / 5.35, 1.0)
+    cov = np.linalg.pinv(H) * spread
+    corrections = {}
+    for k, name in enumerate(names):
+        block = slice(6 * k, 6 * k + 6)
+        info = np.linalg.pinv(cov[block, block])
+        corrections[name] = Alignment(
+            x[block][:3], x[block][3:], info, len(samples), float("nan"), float("nan")
+        )
+    sigma_ms = float(np.sqrt(cov[-1, -1]) * 1e3) if offset else float("inf")
+    return Combined(
+        corrections, float(x[-1] * 1e3) if offset else None, sigma_ms, len(samples), float(np.sqrt(spread))
+    )
+
+
+def corrected(T_cam0_sensor: F64, correction: Alignment) -> F64:
+    """A sensor's pose in cam0 (4x4) with a LiDAR's `correction` applied: points it measured, placed in
+    cam0 through the result, land where the correction moved them."""
+    delta = np.eye(4)
+    delta[:3, :3] = rotation_matrix(correction.rotation_rad)
+    delta[:3, 3] = correction.translation_m
+    out: F64 = delta @ T_cam0_sensor
+    return out
