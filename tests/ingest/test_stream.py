@@ -244,7 +244,9 @@ def test_dense_jobs_travel_through_the_shared_slots_whole(tmp_path: Path) -> Non
         for job in run.jobs:
             light, arrays = take_arrays(job)
             assert all(len(a) == 0 for p in light.lidars for a in _lidar_arrays(p))
-            assert len(arrays) == 2 + 6 * len(job.lidars)  # tags, normals, bits and reflectivity all present here
+            assert len(arrays) == 2 + 6 * len(
+                job.lidars
+            )  # tags, normals, bits and reflectivity all present here
             ref = slots.put(arrays)
             assert ref is not None, f"{job.sid}: {sum(a.nbytes for a in arrays)} bytes, slot {bound}"
             back = give_arrays(light, slot_views(ref))
