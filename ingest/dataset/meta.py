@@ -79,8 +79,9 @@ class AlignmentMeta:
     needs no truth: the correction that lays its points best onto the image (rotation vector in deg and
     translation in mm, both in cam0), their 1-sigmas (largest axis), `shift_deg` the median angle by
     which the correction moves the points as cam0 sees them (the GT's misalignment), the points used,
-    the correlation of image intensity and reflectivity, and the information matrix of (rotation rad,
-    translation m) that `sensorbox calib refine` combines over samples."""
+    the correlation of image intensity and reflectivity, the information matrix of (rotation rad,
+    translation m) that `sensorbox calib refine` combines over samples, the points' median range and
+    the angle of one pixel."""
 
     rotation_deg: list[float]
     translation_mm: list[float]
@@ -90,6 +91,8 @@ class AlignmentMeta:
     points: int
     correlation: float
     information: list[list[float]]
+    range_m: float  # the median range of the points used
+    pixel_deg: float  # cam0's pixel at its centre: the scale of what the alignment can resolve
 
 
 @dataclass(frozen=True)

@@ -347,6 +347,18 @@ def record_undecodable(
     write_atomic(path, (HEADER + yaml.safe_dump(doc, sort_keys=False)).encode())
 
 
+def record_calibration(out: Path, bags: list[Path], check: dict[str, Any]) -> None:
+    """Set `calibration_check` of the recording `bags` in `out/dataset.yaml`: its samples' LiDAR points
+    on cam0's images summed up (`ingest.train.align.CalibrationCheck.as_yaml`), known only at the end."""
+    path = out / "dataset.yaml"
+    doc = _read_dataset_yaml(path)
+    names = [p.name for p in bags]
+    for source in doc.get("sources") or []:
+        if source.get("bags") == names:
+            source["calibration_check"] = check
+    write_atomic(path, (HEADER + yaml.safe_dump(doc, sort_keys=False)).encode())
+
+
 def _read_dataset_yaml(path: Path) -> dict[str, Any]:
     try:
         doc = yaml.safe_load(path.read_text())

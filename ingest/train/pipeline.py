@@ -74,11 +74,17 @@ from ingest.runtime.executor import Executor, Handoff, share_cores
 from ingest.runtime.heap import retain_freed_memory
 from ingest.runtime.jit import compiling
 from ingest.topic_map import check_rig
-from ingest.train.align import Alignment
+from ingest.train.align import Alignment, CalibrationCheck, check_calibration
 from ingest.train.bad_messages import BadMessages
 from ingest.train.block_planes import BlockPlanes, PlaneSettings
 from ingest.train.dense import DenseParams, free_space_settings
-from ingest.train.describe import check_existing, record_undecodable, sample_settings, write_dataset_yaml
+from ingest.train.describe import (
+    check_existing,
+    record_calibration,
+    record_undecodable,
+    sample_settings,
+    write_dataset_yaml,
+)
 from ingest.train.lidar_rate import THIN_FRACTION
 from ingest.train.plan import LOST_REASON, Plan, Survey, plan, survey
 from ingest.train.plausible import check_imu_rate, check_time_order
@@ -233,6 +239,8 @@ class IngestSummary:
 
     held_elsewhere: int = 0  # of `resumed`: frames that samples of other ids hold (`ingest.dataset.identity`)
     refinement: Refinement | None = None  # --refine: what `ingest.train.refine` found and the rig it made
+    alignments: list[tuple[dict[str, Alignment], F64 | None]] = field(default_factory=list)  # per sample
+    calibration: CalibrationCheck | None = None  # the samples' alignments summed up (`ingest.train.align`)
     damaged: list[str] = field(default_factory=list)  # finished samples found damaged, written again: why
 
     @property
@@ -263,6 +271,9 @@ class IngestSummary:
                 (OVER_UINT16, meta.dropped.get("depth_over_uint16", 0)),
             ):  # fmt: skip
                 self.without_gt_points[why] = self.without_gt_points.get(why, 0) + n
+        if meta.alignment:
+            twist = None if meta.twist_cam0 is None else np.asarray(meta.twist_cam0, np.float64)
+            self.alignments.append(({k: Alignment.from_meta(a) for k, a in meta.alignment.items()}, twist))
         self.skew_ms.extend(meta.lidar_skew_ms.values())
         self.stereo_dt_ms.append(meta.stereo_dt_ms)
         for name in meta.points.silent_lidars:
@@ -509,6 +520,10 @@ def ingest(
             summary.undecodable, summary.dropped = bad.by_topic(), bad.dropped.by_topic()
             record_undecodable(cfg.out, [Path(p) for p in bag_paths], summary.undecodable, summary.dropped)
         summary.warnings += bad.dropped.lines()
+        summary.calibration = check_calibration(summary.alignments)
+        if summary.calibration is not None:
+            record_calibration(cfg.out, [Path(p) for p in bag_paths], summary.calibration.as_yaml())
+            summary.warnings += summary.calibration.warnings(cfg.rig)
         if summary.without_gt_line():
             summary.warnings.append(summary.without_gt_line())
     summary.seconds = time.perf_counter() - t_start

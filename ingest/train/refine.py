@@ -28,7 +28,7 @@ from calibration.types import F64, U8
 from ingest.bags.decode import Frame, ImuSample
 from ingest.bags.reader import open_bags
 from ingest.errors import BagError
-from ingest.train.align import Alignment, combine, corrected
+from ingest.train.align import Alignment, check_calibration, corrected
 from ingest.train.clouds import GyroTrack, integrate_gyro
 from ingest.train.timeshift import (
     TIMING_ROTATION_SIGMA_DEG,
@@ -299,10 +299,11 @@ def _refine_lidars(found: Refinement, align: Aligner) -> Refinement:
     clock: tuple[float, float] | None = None
     for _ in range(ALIGN_ROUNDS):
         samples = align(rig, found.frames.get(rig.upper.name, 0))
-        shifts.append({n: _median_shift(samples, n) for n in total})
-        combined = combine(samples)
-        if combined is None:
+        check = check_calibration(samples)
+        if check is None:
             break
+        shifts.append(check.median_shift_deg)
+        combined = check.combined
         clock = (
             None if combined.clock_offset_ms is None else (combined.clock_offset_ms, combined.sigma_clock_ms)
         )
@@ -328,12 +329,6 @@ def _refine_lidars(found: Refinement, align: Aligner) -> Refinement:
             applied,
         ))  # fmt: skip
     return replace(found, rig=rig, lidars=tuple(lidars), image_clock_ms=clock)
-
-
-def _median_shift(samples: list[tuple[dict[str, Alignment], F64 | None]], name: str) -> float:
-    """The median misalignment (deg) of LiDAR `name` over the samples that aligned it (NaN: none)."""
-    shifts = [found[name].shift_deg for found, _ in samples if name in found]
-    return float(np.median(shifts)) if shifts else float("nan")
 
 
 def _with_lidar_corrected(rig: Rig, name: str, correction: Alignment) -> Rig:

@@ -188,11 +188,31 @@ def _sample_rows(s: IngestSummary) -> Rows:
         ("stereo stamp offset lower - upper (median, max |.|)",
          f"{np.median(dt):.2f} ms, {np.max(np.abs(dt)):.2f} ms"),
         ("motion compensation applied", f"{s.motion_applied} / {s.written}"),
+        *_alignment_rows(s),
         *((f"dense GT points (all samples): {k}", f"{n:,}") for k, n in s.dense_points.items()),
         *((f"time: {k}", f"{np.mean(v):.0f} ms/sample") for k, v in s.stage_ms.items()),
         *((f"time: {k} (helper thread, beside clouds + GT)", f"{np.mean(v):.0f} ms/sample")
           for k, v in s.overlapped_ms.items()),
     ]  # fmt: skip
+
+
+def _alignment_rows(s: IngestSummary) -> Rows:
+    """Per LiDAR: how far its points sit from where cam0's images show them (median over the samples),
+    and the upper camera's clock offset they imply (`ingest.train.align.CalibrationCheck`)."""
+    check = s.calibration
+    if check is None:
+        return []
+    rows = [(f"{name} points on cam0's images: misalignment (median)", f"{deg:.3f} deg")
+            for name, deg in check.median_shift_deg.items()]  # fmt: skip
+    ms = check.combined.clock_offset_ms
+    if ms is not None:
+        rows.append(
+            (
+                "upper camera clock vs LiDAR points (1-sigma)",
+                f"{ms:+.2f} ms ({check.combined.sigma_clock_ms:.2f})",
+            )
+        )
+    return rows
 
 
 def summary_table(summary: IngestSummary, out: Path) -> Table:
