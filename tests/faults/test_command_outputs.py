@@ -22,6 +22,7 @@ from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2.storage_sqlite3 import Sqlite3Writer
 
 from ingest.errors import OutputError
+from tests.faults.bags import INDOOR
 from tests.faults.cli import sensorbox
 from tests.faults.test_output_errors import ENOSPC, RIG, _files, _fill_disk_at
 from tests.ingest.test_evaluate import make_benchmark, write_predictions
@@ -150,6 +151,44 @@ def test_output_paths_that_are_files_are_refused_before_the_work(
         "afile",
         "bench",
         "pred",
+    ]
+
+
+@pytest.mark.parametrize(
+    "kind", ["file", "under a file", "symlink loop", "under a symlink loop", "/dev/null"]
+)
+def test_an_out_that_cannot_be_a_folder_is_exit_2_for_ingest_as_for_stats(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], kind: str
+) -> None:
+    """ingest said "cannot open X: Not a directory" with exit code 3 (a refused write) where stats said
+    "is a file" with 2; a symbolic link loop passed stats' check and ingest's read the bags first."""
+    f = _afile(tmp_path)
+    (tmp_path / "loop").symlink_to(tmp_path / "loop")
+    out, why = {
+        "file": (f, "is a file; give a folder for {holds}"),
+        "under a file": (f / "sub", f"{f} is a file, not a folder"),
+        "symlink loop": (
+            tmp_path / "loop",
+            "is a symbolic link that leads nowhere (Too many levels of symbolic links); give a folder",
+        ),
+        "under a symlink loop": (
+            tmp_path / "loop" / "sub",
+            f"{tmp_path / 'loop'} is a symbolic link that leads nowhere (Too many levels of symbolic links); "
+            "give a folder",
+        ),
+        "/dev/null": (Path("/dev/null"), "is a file; give a folder for {holds}"),
+    }[kind]
+    bench = make_benchmark(tmp_path / "bench")
+    for args, holds in (
+        (["ingest", str(INDOOR), "--rig", str(RIG), "--out", str(out)], "the dataset"),
+        (["stats", str(bench), "--out", str(out)], "stats.json and stats.png"),
+    ):
+        code, stdout, err = sensorbox(capsys, *args)
+        assert (code, stdout, err) == (2, "", [f"error: --out {out}: {why.format(holds=holds)}"]), args
+    assert f.read_text() == "mine\n" and sorted(p.name for p in tmp_path.iterdir()) == [
+        "afile",
+        "bench",
+        "loop",
     ]
 
 
