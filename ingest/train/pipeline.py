@@ -72,7 +72,13 @@ from ingest.topic_map import check_rig
 from ingest.train.bad_messages import BadMessages
 from ingest.train.block_planes import BlockPlanes, PlaneSettings
 from ingest.train.dense import DenseParams, free_space_settings
-from ingest.train.describe import check_existing, record_undecodable, sample_settings, write_dataset_yaml
+from ingest.train.describe import (
+    check_existing,
+    check_format,
+    record_undecodable,
+    sample_settings,
+    write_dataset_yaml,
+)
 from ingest.train.lidar_rate import THIN_FRACTION
 from ingest.train.plan import LOST_REASON, Plan, Survey, plan, survey
 from ingest.train.plausible import check_imu_rate, check_time_order
@@ -469,6 +475,7 @@ def ingest(
     t_start = time.perf_counter()
     cfg.validate()
     given_once(bag_paths)  # before the rig and the output are touched
+    check_format(cfg.out)  # another tool's dataset.yaml is never overwritten
     retain_freed_memory()  # chunks and images: ~20 MB per sample pass through this process too
     cfg = replace(cfg, sample=replace(cfg.sample, window_ns=cfg.lidar_window_ns))
     rig = read_rig(cfg.rig)
