@@ -66,6 +66,13 @@ _DISTORTIONS: dict[str, dict[str, int]] = {
 _FLOAT_ONLY = {"fu", "fv", "pu", "pv"}
 _CAMERA_KEY = re.compile(r"cam(?:0|[1-9][0-9]*)")
 
+MAX_TIMESHIFT_S = 1.0
+"""Largest ``timeshift_cam_imu`` (s) taken as a camera's clock offset. Kalibr's estimates are
+milliseconds (the reference rig's: a few ms); the simulator's camera offsets are held to the same
++-1 s (`sensorbox.sim.run.MAX_CAMERA_OFFSET_NS`). A shift beyond it is a value in the wrong unit (ms
+or ns written as seconds) or a clock that was never synchronised: every stamp moved by it puts the
+frames outside the LiDAR data, and ingest planned no sample without saying why."""
+
 EXTRINSIC_TOL_DEG = 0.05
 """Largest rotation (degrees) between a given ``T_cn_cnm1`` and the one ``T_cam_imu`` implies."""
 EXTRINSIC_TOL_M = 0.001
@@ -270,6 +277,11 @@ def _parse_camera(name: str, block: object, where: str) -> dict[str, Any]:
         ts = block["timeshift_cam_imu"]
         if not isinstance(ts, int | float) or isinstance(ts, bool) or not math.isfinite(ts):
             raise CalibrationError(f"{where}.timeshift_cam_imu: expected seconds as a number, got {ts!r}")
+        if abs(ts) > MAX_TIMESHIFT_S:
+            raise CalibrationError(
+                f"{where}.timeshift_cam_imu: {ts:g} s; expected within +-{MAX_TIMESHIFT_S:g} s (Kalibr's are "
+                "milliseconds, 0.0042 for 4.2 ms: a value in ms or ns, or an unsynchronised clock?)"
+            )
         out["timeshift_cam_imu"] = float(ts)
     if "rostopic" in block:
         if not isinstance(block["rostopic"], str):

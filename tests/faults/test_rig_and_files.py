@@ -438,3 +438,26 @@ def test_a_site_manifest_or_livox_user_config_that_is_a_fifo_is_refused(tmp_path
     assert res.stderr.splitlines()[-1] == (
         f"sensorbox.errors.GraphError: {config}: is a FIFO (named pipe), not a Livox user config file"
     )
+
+
+@pytest.mark.parametrize(("shift", "shown"), [("1000000.0", "1e+06"), ("-4.2", "-4.2")])
+def test_a_timeshift_beyond_a_second_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], shift: str, shown: str
+) -> None:
+    """`timeshift_cam_imu: 1e6` (or 4.2 ms written as 4.2): ingest planned 0 samples and said no why."""
+    rig = _rig(tmp_path)
+    chain = tmp_path / "camchain.yaml"
+    topic = "  rostopic: /zed_lower/zed_node/rgb/color/rect/image\n"
+    chain.write_text(chain.read_text().replace(topic, f"{topic}  timeshift_cam_imu: {shift}\n"))
+    line = (
+        f"error: {chain}: cam1.timeshift_cam_imu: {shown} s; expected within +-1 s (Kalibr's are milliseconds, "
+        "0.0042 for 4.2 ms: a value in ms or ns, or an unsynchronised clock?)"
+    )
+    out = tmp_path / "ds"
+    for command in (
+        ["calib", "check", str(rig)],
+        ["ingest", str(INDOOR), "--rig", str(rig), "--out", str(out), "--height-full", "64"],
+    ):
+        code, stdout, err = sensorbox(capsys, *command)
+        assert (code, stdout, err) == (2, "", [line]), command
+    assert not out.exists()
