@@ -461,3 +461,29 @@ def test_a_timeshift_beyond_a_second_is_refused(
         code, stdout, err = sensorbox(capsys, *command)
         assert (code, stdout, err) == (2, "", [line]), command
     assert not out.exists()
+
+
+@pytest.mark.parametrize(("scale", "shown"), [(1000.0, "120.3"), (1e6 / 0.120309, "1e+06")])
+def test_a_camera_baseline_over_10_m_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], scale: float, shown: str
+) -> None:
+    """cam1's T_cn_cnm1 at 1e6 m (or 120 mm written as 120) was only warned about; ingest went on."""
+    rig = _rig(tmp_path)
+    chain = tmp_path / "camchain.yaml"
+    doc = yaml.safe_load(chain.read_text())
+    T = np.array(doc["cam1"]["T_cn_cnm1"], float)
+    T[:3, 3] *= scale
+    doc["cam1"]["T_cn_cnm1"] = T.tolist()
+    chain.write_text(yaml.safe_dump(doc))
+    line = (
+        f"error: {chain}: cam1.T_cn_cnm1: translation {shown} m from cam0: expected <= 10 m between two "
+        "cameras of a rig (millimetres written as metres?)"
+    )
+    out = tmp_path / "ds"
+    for command in (
+        ["calib", "check", str(rig)],
+        ["ingest", str(INDOOR), "--rig", str(rig), "--out", str(out), "--height-full", "64"],
+    ):
+        code, stdout, err = sensorbox(capsys, *command)
+        assert (code, stdout, err) == (2, "", [line]), command
+    assert not out.exists()
