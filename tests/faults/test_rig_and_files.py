@@ -487,3 +487,58 @@ def test_a_camera_baseline_over_10_m_is_refused(
         code, stdout, err = sensorbox(capsys, *command)
         assert (code, stdout, err) == (2, "", [line]), command
     assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    ("args", "line"),
+    [
+        (
+            ["duration:=nan"],
+            "node 'recorder' (sensorbox/recorder) at {sim}:85: parameter 'duration_s' = 'nan': expected a "
+            "finite number",
+        ),
+        (
+            ["loop_s:=-3"],
+            "node 'lidar_top_emulator' (sensorbox/mid360_emulator) at {sim}:27: loop_s must be >= 0 "
+            "(0 = simulate live), got -3.0",
+        ),
+        (
+            ["scale:=0"],
+            "node 'zed_sim' (sensorbox/sim_camera) at {sim}:72: --scale must be a finite number > 0.0, got 0.0",
+        ),
+        (
+            ["port_base:=70000"],
+            "node 'lidar_top_emulator' (sensorbox/mid360_emulator) at {sim}:27: parameter 'port_base' = 70000: "
+            "expected 1..65527 (the first of nine UDP ports, each <= 65535)",
+        ),
+        (
+            ["--talker"],
+            "node 'talker' (sensorbox/talker) at {talker}:2: parameter(s) colour not used by this node (with "
+            "these settings); it reads: count, payload_bytes, rate_hz, topic",
+        ),
+    ],
+)
+def test_a_dry_run_refuses_what_the_run_refuses(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], args: list[str], line: str
+) -> None:
+    """`launch --dry-run` printed the nodes of values the run refuses (nan, -3, scale 0, port 70000, a
+    parameter no node reads), exit 0; it now builds the nodes as the run does, starting none."""
+    sim = ROOT / "sensorbox" / "share" / "launch" / "sim.launch.yaml"
+    talker = tmp_path / "talker.launch.yaml"
+    talker.write_text(
+        "launch:\n- node: {pkg: sensorbox, exec: talker, param: [{name: colour, value: red}]}\n"
+    )
+    out = tmp_path / "bags"
+    command = ["launch", str(talker)] if args == ["--talker"] else ["launch", str(sim), f"out:={out}", *args]
+    expected = (2, "", [f"error: {line.format(sim=sim, talker=talker)}"])
+    assert sensorbox(capsys, *command, "--dry-run") == expected
+    assert sensorbox(capsys, *command) == expected  # the run: refused the same, before any node started
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["talker.launch.yaml"]  # nothing written
+
+
+def test_a_dry_run_writes_no_rig(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The simulated camera's `write_rig` is written when the node starts, not when the dry run builds it."""
+    sim = ROOT / "sensorbox" / "share" / "launch" / "sim.launch.yaml"
+    code, out, err = sensorbox(capsys, "launch", str(sim), f"out:={tmp_path / 'bags'}", "--dry-run")
+    assert (code, err) == (0, []) and f"param write_rig = '{tmp_path / 'bags'}/rig.yaml'" in out
+    assert list(tmp_path.iterdir()) == []
