@@ -542,3 +542,36 @@ def test_a_dry_run_writes_no_rig(tmp_path: Path, capsys: pytest.CaptureFixture[s
     code, out, err = sensorbox(capsys, "launch", str(sim), f"out:={tmp_path / 'bags'}", "--dry-run")
     assert (code, err) == (0, []) and f"param write_rig = '{tmp_path / 'bags'}/rig.yaml'" in out
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_camchain_with_one_rostopic_twice_is_named(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Both cameras on one rostopic in the camchain (the rig giving no topic): the error named rig.yaml's
+    cameras.cam0.topic, a key the rig file does not hold."""
+    doc = yaml.safe_load((TRUTH / "rig.yaml").read_text())
+    rig = _rig(tmp_path, {"cameras": {n: {"role": c["role"]} for n, c in doc["cameras"].items()}})
+    chain = tmp_path / "camchain.yaml"
+    upper, lower = "/zed_upper/zed_node/rgb/color/rect/image", "/zed_lower/zed_node/rgb/color/rect/image"
+    chain.write_text(chain.read_text().replace(lower, upper))
+    for path in (rig, chain):  # the rig, and the camchain given as a rig on its own
+        code, stdout, err = sensorbox(capsys, "calib", "check", str(path))
+        assert (code, stdout, err) == (
+            2,
+            "",
+            [
+                f"error: {chain}: cam0.rostopic and cam1.rostopic are both {upper}: each sensor needs its own topic"
+            ],
+        )
+    cameras = {n: {"role": c["role"]} for n, c in doc["cameras"].items()}
+    cameras["cam1"]["topic"] = upper  # one topic from each file
+    rig = _rig(tmp_path, {"cameras": cameras})
+    chain.write_text(chain.read_text().replace(lower, upper))
+    code, _, err = sensorbox(capsys, "calib", "check", str(rig))
+    assert (code, err) == (
+        2,
+        [
+            f"error: {chain}: cam0.rostopic and {rig}: cameras.cam1.topic are both {upper}: each sensor needs "
+            "its own topic"
+        ],
+    )
