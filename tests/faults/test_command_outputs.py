@@ -386,3 +386,25 @@ def test_another_bag_format_named_mcap_is_called_by_its_name(
     assert len(err) == 1 and err[0].startswith(
         f"error: {tmp_path / 'x.mcap'}: not an MCAP file: it starts like {what}"
     )
+
+
+def test_a_depth_map_of_another_size_than_its_image_or_dataset_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """stats counted a 7x5 depth map beside 10x6 images (density and depth shares of another picture)."""
+    bench = make_benchmark(tmp_path / "bench")
+    cfg = bench / "001_057_000" / "120FOV" / "65mm" / "CENTER"
+    gt = cfg / "depth" / "pano_crop.png"
+    cv2.imwrite(str(gt), np.full((5, 7), 2000, np.uint16))
+    code, out, err = sensorbox(capsys, "stats", str(bench), "--image-type", "pano_crop")
+    line = f"error: {gt}: depth map 7x5 px, expected 10x6 (the size of its image {cfg / 'pano_crop.png'})"
+    assert (code, out, err) == (2, "", [line])
+    ds = _train_dataset(tmp_path / "ds")  # 10x6 depth maps, no image: dataset.yaml gives the size
+    (ds / "dataset.yaml").write_text("format: widedepth-train\nfisheye_size: [300, 480]\n")
+    code, out, err = sensorbox(capsys, "stats", str(ds))
+    line = (
+        f"error: {ds / 'depth_fisheye' / '000000.png'}: depth map 10x6 px, expected 480x300 (the size of "
+        f"{ds / 'dataset.yaml'}'s fisheye_size)"
+    )
+    assert (code, out, err) == (2, "", [line])
+    assert not (ds / "stats.json").exists() and not (bench / "stats.json").exists()
