@@ -55,6 +55,7 @@ from typing import Any
 
 from calibration.rectify import stereo_warnings
 from calibration.rig import Rig, read_rig
+from calibration.warp import height_full_problem
 from ingest.bags.decode import Frame
 from ingest.bags.reader import BagSet, Progress, given_once, open_bags
 from ingest.dataset.identity import resume_state
@@ -149,6 +150,8 @@ class IngestConfig:
             raise DatasetError(f"--workers must be >= 1, got {self.workers}")
         if self.every < 1:
             raise DatasetError(f"--every must be >= 1, got {self.every}")
+        if self.height_full is not None and (problem := height_full_problem(self.height_full)) is not None:
+            raise DatasetError(problem)
         if not 0 <= self.sample.png_level <= 3:
             raise DatasetError(f"--png-level must be 0..3, got {self.sample.png_level}")
         if self.dask:

@@ -408,3 +408,36 @@ def test_a_depth_map_of_another_size_than_its_image_or_dataset_is_refused(
     )
     assert (code, out, err) == (2, "", [line])
     assert not (ds / "stats.json").exists() and not (bench / "stats.json").exists()
+
+
+@pytest.mark.parametrize(
+    ("args", "line"),
+    [
+        (
+            ["ingest", str(INDOOR), "--rig", str(RIG), "--height-full", "7"],
+            "--height-full must be >= 64 rows (a pixel of 2.8 degrees; fewer leave no image a network can "
+            "downsample, nor disparity), got 7",
+        ),
+        (
+            ["render-benchmark", "scan.ply", "--rig", str(RIG), "--height-full", "7"],
+            "--height-full must be >= 64 rows (a pixel of 2.8 degrees; fewer leave no image a network can "
+            "downsample, nor disparity), got 7",
+        ),
+        (
+            ["render-benchmark", "scan.ply", "--rig", str(RIG), "--yaw", "1e300"],
+            "--yaw [1e+300]: each yaw must be within -360..360 degrees",
+        ),
+        (
+            ["render-benchmark", "scan.ply", "--rig", str(RIG), "--yaw", "90", "--yaw", "-361"],
+            "--yaw [90.0, -361.0]: each yaw must be within -360..360 degrees",
+        ),
+    ],
+)
+def test_a_sphere_of_7_rows_or_a_yaw_of_1e300_is_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], args: list[str], line: str
+) -> None:
+    """ingest --height-full 7 wrote 7x14 equirects with no disparity pixel; --yaw 1e300 rendered some
+    arbitrary heading and recorded 1e300 degrees."""
+    code, out, err = sensorbox(capsys, *args, "--out", str(tmp_path / "o"))
+    assert (code, out, err) == (2, "", [f"error: {line}"])
+    assert not (tmp_path / "o").exists()
