@@ -66,6 +66,20 @@ _DISTORTIONS: dict[str, dict[str, int]] = {
 _FLOAT_ONLY = {"fu", "fv", "pu", "pv"}
 _CAMERA_KEY = re.compile(r"cam(?:0|[1-9][0-9]*)")
 
+MAX_TIMESHIFT_S = 1.0
+"""Largest ``timeshift_cam_imu`` (s) taken as a camera's clock offset. Kalibr's estimates are
+milliseconds (the reference rig's: a few ms); the simulator's camera offsets are held to the same
++-1 s (`sensorbox.sim.run.MAX_CAMERA_OFFSET_NS`). A shift beyond it is a value in the wrong unit (ms
+or ns written as seconds) or a clock that was never synchronised: every stamp moved by it puts the
+frames outside the LiDAR data, and ingest planned no sample without saying why."""
+
+MAX_CAMERA_SEPARATION_M = 10.0
+"""Farthest two consecutive cameras of a camchain may be apart (m, ``T_cn_cnm1``'s translation). The
+rig is handheld: its baseline is 0.12 m, and over 2 m is warned about
+(`calibration.rectify.MAX_PLAUSIBLE_BASELINE_M`) as most likely millimetres. 10 m is past any stereo
+pair on a person or a vehicle (a car roof is 1.5 m wide) and a baseline of 10 mm or more written in
+millimetres lands beyond it: such a pose, refused, would otherwise scale every disparity of the GT."""
+
 EXTRINSIC_TOL_DEG = 0.05
 """Largest rotation (degrees) between a given ``T_cn_cnm1`` and the one ``T_cam_imu`` implies."""
 EXTRINSIC_TOL_M = 0.001
@@ -270,6 +284,11 @@ def _parse_camera(name: str, block: object, where: str) -> dict[str, Any]:
         ts = block["timeshift_cam_imu"]
         if not isinstance(ts, int | float) or isinstance(ts, bool) or not math.isfinite(ts):
             raise CalibrationError(f"{where}.timeshift_cam_imu: expected seconds as a number, got {ts!r}")
+        if abs(ts) > MAX_TIMESHIFT_S:
+            raise CalibrationError(
+                f"{where}.timeshift_cam_imu: {ts:g} s; expected within +-{MAX_TIMESHIFT_S:g} s (Kalibr's are "
+                "milliseconds, 0.0042 for 4.2 ms: a value in ms or ns, or an unsynchronised clock?)"
+            )
         out["timeshift_cam_imu"] = float(ts)
     if "rostopic" in block:
         if not isinstance(block["rostopic"], str):
@@ -346,14 +365,25 @@ def _T_cn_cnm1(parsed: dict[str, Any], prev: dict[str, Any], name: str, prev_nam
             raise CalibrationError(
                 f"{where}: missing key 'T_cn_cnm1' (or T_cam_imu in both {prev_name} and {name} to derive it)"
             )
-        return given
+        return _require_near(given, f"{where}.T_cn_cnm1", prev_name)
     implied: F64 = parsed["T_cam_imu"] @ invert(prev["T_cam_imu"])
     if given is None:
-        return implied
+        return _require_near(implied, f"{where}.T_cn_cnm1 (from T_cam_imu)", prev_name)
     _require_agreement(
         given, implied, f"{where}: T_cn_cnm1 and T_{name}_imu @ inv(T_{prev_name}_imu) (from T_cam_imu)"
     )
-    return given
+    return _require_near(given, f"{where}.T_cn_cnm1", prev_name)
+
+
+def _require_near(T_cn_cnm1: F64, where: str, prev_name: str) -> F64:
+    """`T_cn_cnm1`, or CalibrationError when its translation exceeds `MAX_CAMERA_SEPARATION_M`."""
+    apart_m = float(np.linalg.norm(T_cn_cnm1[:3, 3]))
+    if apart_m > MAX_CAMERA_SEPARATION_M:
+        raise CalibrationError(
+            f"{where}: translation {apart_m:.4g} m from {prev_name}: expected <= "
+            f"{MAX_CAMERA_SEPARATION_M:g} m between two cameras of a rig (millimetres written as metres?)"
+        )
+    return T_cn_cnm1
 
 
 def parse_kalibr_camchain(data: object, source: str) -> CameraChain:

@@ -284,27 +284,26 @@ def _is_ipv4(value: object) -> bool:
     return True
 
 
-def _each_once(values: list[tuple[str, str | None]], field: str, where: str, why: str) -> None:
-    """Refuse a `field` value (a topic, an IP) that two sensors share, naming both keys; None is unset.
+def _each_once(values: list[tuple[str, str, str | None]], why: str) -> None:
+    """Refuse a value (a topic, an IP) that two sensors share, naming both files and keys; None is unset.
 
-    A topic belongs to one sensor: messages on a shared one cannot be told
-    apart (two Mid-360s on livox_ros_driver2's multi_topic 0 share
-    /livox/lidar, and their CustomMsg.lidar_id is the first octet of the IP,
-    the same for both).
+    Each of `values` is (file, key, value), the key with its field
+    ("lidars.lidar_top.topic", "cam1.rostopic"). A topic belongs to one
+    sensor: messages on a shared one cannot be told apart (two Mid-360s on
+    livox_ros_driver2's multi_topic 0 share /livox/lidar, and their
+    CustomMsg.lidar_id is the first octet of the IP, the same for both).
     """
-    owner: dict[str, str] = {}
-    for key, value in values:
+    owner: dict[str, tuple[str, str]] = {}
+    for file, key, value in values:
         if value is None:
             continue
         if value in owner:
-            both_lidars = (
-                field == "topic" and owner[value].startswith("lidars.") and key.startswith("lidars.")
-            )
+            first_file, first = owner[value]
+            both_lidars = all(k.startswith("lidars.") and k.endswith(".topic") for k in (first, key))
             hint = " (for Livox LiDARs, livox_ros_driver2's multi_topic: 1)" if both_lidars else ""
-            raise CalibrationError(
-                f"{where}: {owner[value]}.{field} and {key}.{field} are both {value}: {why}{hint}"
-            )
-        owner[value] = key
+            second = key if file == first_file else f"{file}: {key}"
+            raise CalibrationError(f"{first_file}: {first} and {second} are both {value}: {why}{hint}")
+        owner[value] = (file, key)
 
 
 def _parse_lidar(name: str, block: object, where: str, base_dir: Path) -> Lidar:
@@ -427,6 +426,8 @@ def read_rig(path: str | Path) -> Rig:
     data = load_yaml(p, "rig")
     if isinstance(data, Mapping) and "cam0" in data and "sensorbox_rig" not in data:
         chain = parse_kalibr_camchain(data, str(p))
+        topics = [(str(p), f"{c.name}.rostopic", c.rostopic) for c in chain.cameras]
+        _each_once(topics, "each sensor needs its own topic")
         return rig_from_camchain(CameraChain(chain.cameras, source=p), name=p.stem)
     where = str(p)
     data = _require_mapping(data, where)
@@ -450,11 +451,20 @@ def read_rig(path: str | Path) -> Rig:
         _parse_imu(str(n), b, f"{where}: imus.{n}")
         for n, b in _require_mapping(data.get("imus", {}), f"{where}: imus").items()
     )
-    topics = [(f"cameras.{c.name}", c.topic) for c in cameras] + [
-        (f"{kind}.{s.name}", s.topic) for kind, group in (("lidars", lidars), ("imus", imus)) for s in group
+    given = _require_mapping(data.get("cameras", {}), where)
+    topics = [
+        (where, f"cameras.{c.name}.topic", c.topic)
+        if "topic" in given.get(c.name, {})
+        else (str(chain_path), f"{c.name}.rostopic", c.topic)  # the camchain's, the rig giving none
+        for c in cameras
     ]
-    _each_once(topics, "topic", where, "each sensor needs its own topic")
-    _each_once([(f"lidars.{li.name}", li.ip) for li in lidars], "ip", where, "each LiDAR has its own address")
+    topics += [
+        (where, f"{kind}.{s.name}.topic", s.topic)
+        for kind, group in (("lidars", lidars), ("imus", imus))
+        for s in group
+    ]
+    _each_once(topics, "each sensor needs its own topic")
+    _each_once([(where, f"lidars.{li.name}.ip", li.ip) for li in lidars], "each LiDAR has its own address")
     name = data.get("name", p.stem)
     return Rig(cameras, lidars, imus, name=str(name), source=p, camchain=chain)
 

@@ -34,6 +34,12 @@ from calibration.types import F64, Bool
 MAP_CACHE_SIZE = 8
 INVALID_COORD = -1000.0
 MAP_BLOCK_ROWS = 64  # rows of the target computed at once by build_maps
+MIN_HEIGHT_FULL = 64
+"""Fewest full-sphere rows a dataset or benchmark is made at (a pixel of 2.8 degrees). A network that
+downsamples 32 times (five stride-2 stages, as common depth encoders do) keeps 2 rows of a 64-row
+sphere, none of less; and the disparity of the 0.12 m baseline shrinks with the rows (1.2 px at 2 m
+at 64 rows), below what the GT's stability mask keeps: `--height-full 7` wrote samples with no
+disparity pixel and said nothing. 64 is also the smallest the tests' quick runs use."""
 SPAN_ROWS = 32  # rows per span: the row block and the columns holding its valid pixels
 SPHERE_PX_PER_CAMERA_PX = 16  # default equirect: full-sphere pixels per camera pixel, at most
 SPHERE_BYTES_PER_PX = 90  # memory per full-sphere pixel of a train sample or a benchmark pano
@@ -287,6 +293,16 @@ def memory_budget_bytes() -> int:
     return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE") // 2
 
 
+def height_full_problem(height_full: int) -> str | None:
+    """Why ``height_full`` rows are too few for a dataset (`MIN_HEIGHT_FULL`), in one line; None if not."""
+    if height_full >= MIN_HEIGHT_FULL:
+        return None
+    return (
+        f"--height-full must be >= {MIN_HEIGHT_FULL} rows (a pixel of 2.8 degrees; fewer leave no image a "
+        f"network can downsample, nor disparity), got {height_full}"
+    )
+
+
 def check_height_full(height_full: int, budget_bytes: int | None = None, given_by: str | None = None) -> int:
     """``height_full`` if a full sphere of it fits the memory budget, else a CalibrationError.
 
@@ -296,8 +312,8 @@ def check_height_full(height_full: int, budget_bytes: int | None = None, given_b
     (an image size, through `default_height_full`), so the message blames it.
     """
     budget = memory_budget_bytes() if budget_bytes is None else budget_bytes
-    if height_full < 2:
-        raise CalibrationError(f"--height-full must be >= 2 rows, got {height_full}")
+    if (problem := height_full_problem(height_full)) is not None:
+        raise CalibrationError(problem)
     need = 2 * height_full * height_full * SPHERE_BYTES_PER_PX
     if need > budget:
         most = max(2, int(math.sqrt(budget / (2 * SPHERE_BYTES_PER_PX))) // 256 * 256)

@@ -11,6 +11,9 @@ benchmark: `.../CENTER/depth/<view>.png` with `.../CENTER/<view>.png`):
   window, as skimage.filters.rank.entropy computes it: 256 bins, base 2, and
   at the border only the window's pixels inside the image count.
 
+A depth map of another size than its image, or than the fisheye size of a
+training set's dataset.yaml, is refused naming it and the size expected.
+
 Pooled numbers weigh every pixel the same (depth shares) or every sample the
 same (density, entropy).
 """
@@ -25,6 +28,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+import yaml
 
 from calibration.types import F32, U8
 from ingest.dataset.png import read_image
@@ -120,9 +124,51 @@ def image_for(root: Path, layout: Layout, gt: GtFile) -> Path:
     return gt.path.parent.parent / f"{gt.path.stem}.png"  # CENTER/depth/<view>.png -> CENTER/<view>.png
 
 
-def sample_stats(root: Path, layout: Layout, gt: GtFile, window: int = ENTROPY_WINDOW) -> SampleStats:
-    """Depth bins, density and mean local entropy of one sample."""
+Size = tuple[int, int]
+"""An image's (height, width), px."""
+
+
+def fisheye_size(root: Path) -> tuple[Size, Path] | None:
+    """The fisheye image size a training set's dataset.yaml gives (`fisheye_size`), and that file; None
+    without one (a folder of PNGs alone, or the benchmark layout)."""
+    path = root / "dataset.yaml"
+    if not path.is_file():
+        return None
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except (OSError, ValueError, yaml.YAMLError) as err:  # ValueError: not UTF-8 text
+        raise EvalError(f"{path}: cannot read the dataset description: {err}") from err
+    size = doc.get("fisheye_size") if isinstance(doc, dict) else None
+    if not (isinstance(size, list) and len(size) == 2 and all(isinstance(v, int) and v > 0 for v in size)):
+        raise EvalError(f"{path}: fisheye_size: expected [height, width] in px, got {size!r}")
+    return (size[0], size[1]), path
+
+
+def _check_size(gt: GtFile, shape: tuple[int, ...], expected: Size, source: str) -> None:
+    """EvalError naming the GT map when its size is not `expected` (from `source`): the sample's pixels
+    would be counted against another image's."""
+    if shape[:2] != expected:
+        raise EvalError(
+            f"{gt.path}: depth map {shape[1]}x{shape[0]} px, expected {expected[1]}x{expected[0]} "
+            f"(the size of {source})"
+        )
+
+
+def sample_stats(
+    root: Path,
+    layout: Layout,
+    gt: GtFile,
+    window: int = ENTROPY_WINDOW,
+    expected: tuple[Size, Path] | None = None,
+) -> SampleStats:
+    """Depth bins, density and mean local entropy of one sample.
+
+    The depth map must have the size `expected` gives (the dataset's fisheye
+    size, from its dataset.yaml) and that of its image: EvalError otherwise.
+    """
     depth = read_gt(gt)
+    if expected is not None:
+        _check_size(gt, depth.shape, expected[0], f"{expected[1]}'s fisheye_size")
     valid = np.isfinite(depth)
     n_valid = int(valid.sum())
     image_path = image_for(root, layout, gt)
@@ -132,6 +178,7 @@ def sample_stats(root: Path, layout: Layout, gt: GtFile, window: int = ENTROPY_W
         if raw is None:
             raise EvalError(f"{image_path}: unreadable image")
         gray = np.asarray(raw, np.uint8)
+        _check_size(gt, depth.shape, (gray.shape[0], gray.shape[1]), f"its image {image_path}")
     entropy = float(local_entropy(gray, window).mean(dtype=np.float64)) if gray is not None else math.nan
     return SampleStats(
         gt.rel,
@@ -152,9 +199,10 @@ def dataset_stats(
 ) -> DatasetStats:
     """Statistics of every depth GT map under `root` (either layout); `progress(done, total)`."""
     layout, gts = discover_gt(root, "mono", image_type)
+    expected = fisheye_size(root) if layout == "train" else None
     samples = []
     for k, gt in enumerate(gts):
-        samples.append(sample_stats(root, layout, gt, window))
+        samples.append(sample_stats(root, layout, gt, window, expected))
         if progress:
             progress(k + 1, len(gts))
     counts = np.zeros(len(DEPTH_BIN_LABELS), np.int64)

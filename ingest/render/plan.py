@@ -21,7 +21,13 @@ from calibration.virtual import (
     crop_bounds,
     virtual_fisheye,
 )
-from calibration.warp import build_maps, check_height_full, covering_crop, default_height_full
+from calibration.warp import (
+    build_maps,
+    check_height_full,
+    covering_crop,
+    default_height_full,
+    height_full_problem,
+)
 from ingest.errors import BenchmarkError
 from ingest.raster.lod import VOXEL_M
 from ingest.raster.scan import Scan
@@ -31,6 +37,10 @@ FOVS_DEG = (120.0, 140.0, 165.0, 195.0)
 
 
 BASELINES_MM = (20.0, 65.0, 120.0, 200.0, 300.0)
+MAX_YAW_DEG = 360.0
+"""Largest |--yaw| (degrees): one turn either way names every heading. Beyond it a value is a typo or
+another unit, and far beyond it the float's rounding picks the heading: 1e300 was rendered at
+some arbitrary yaw (sin -0.75, cos -0.67) and recorded as 1e300 degrees."""
 
 
 @dataclass(frozen=True)
@@ -73,13 +83,18 @@ class BenchmarkConfig:
         ):
             if not all(math.isfinite(v) for v in values):
                 raise BenchmarkError(f"{option} {list(values)}: each value must be a finite number")
+        if any(abs(yaw) > MAX_YAW_DEG for yaw in self.yaws_deg):
+            raise BenchmarkError(
+                f"--yaw {list(self.yaws_deg)}: each yaw must be within -{MAX_YAW_DEG:g}..{MAX_YAW_DEG:g} "
+                "degrees"
+            )
         if not -90.0 <= self.pitch_deg <= 90.0:
             raise BenchmarkError(f"--pitch {self.pitch_deg}: must be within -90..90 degrees (up > 0)")
         clip = self.render.clip_m
         if clip is not None and not (clip > 0.0 and math.isfinite(clip)):
             raise BenchmarkError(f"--clip {clip}: must be a finite number > 0 m")
-        if self.height_full is not None and self.height_full < 2:
-            raise BenchmarkError(f"--height-full must be >= 2 rows, got {self.height_full}")
+        if self.height_full is not None and (problem := height_full_problem(self.height_full)) is not None:
+            raise BenchmarkError(problem)
         if self.site_id < 0:
             raise BenchmarkError(f"--site-id must be >= 0, got {self.site_id}")
         if self.width < 8 or self.height < 8:

@@ -31,6 +31,7 @@ many samples.
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -298,6 +299,10 @@ CAUCHY_D2 = 4.0 * 6
 """The Cauchy scale of a sample's squared Mahalanobis distance (6 degrees of freedom) to the model."""
 
 
+SampleAlignments = Sequence[tuple[Mapping[str, "Alignment"], F64 | None]]
+"""Per sample: its alignment per LiDAR and cam0's twist (angular rad/s, linear m/s, in cam0) or None."""
+
+
 @dataclass(frozen=True)
 class Combined:
     """What many samples' alignments say together (`combine`).
@@ -318,7 +323,7 @@ class Combined:
     spread: float
 
 
-def combine(samples: list[tuple[dict[str, Alignment], F64 | None]], iterations: int = 5) -> Combined | None:
+def combine(samples: SampleAlignments, iterations: int = 5) -> Combined | None:
     """The rig-file correction of each LiDAR and the upper camera's clock offset from the per-sample
     alignments and cam0's twist at each sample (`(alignments by LiDAR, twist)` pairs).
 
@@ -341,9 +346,7 @@ def combine(samples: list[tuple[dict[str, Alignment], F64 | None]], iterations: 
     return result
 
 
-def _solve(
-    samples: list[tuple[dict[str, Alignment], F64 | None]], names: list[str], offset: bool, iterations: int
-) -> Combined:
+def _solve(samples: SampleAlignments, names: list[str], offset: bool, iterations: int) -> Combined:
     """`combine` with (`offset`) or without the clock offset among the unknowns."""
     n = 6 * len(names) + (1 if offset else 0)
     terms = []  # (design (6, n), observed (6,), information (6, 6))
@@ -463,7 +466,7 @@ class CalibrationCheck:
         }
 
 
-def check_calibration(samples: list[tuple[dict[str, Alignment], F64 | None]]) -> CalibrationCheck | None:
+def check_calibration(samples: SampleAlignments) -> CalibrationCheck | None:
     """`CalibrationCheck` of a recording's samples; None when none aligned."""
     combined = combine(samples)
     if combined is None:

@@ -35,6 +35,8 @@ if TYPE_CHECKING:
     from ingest.train.pipeline import IngestConfig, IngestSummary
 
 HEADER = "# WideDepth training set written by SensorBox\n"
+FORMAT = "widedepth-train"
+"""dataset.yaml's `format`: what marks a folder as a training set ingest wrote (and may extend)."""
 PER_SOURCE = ("gt", "overlap_images", "method", "decision", "gap_fallback", "window_ns")
 """SampleParams fields resolved per recording (dataset.yaml keeps them with each source), not config."""
 
@@ -46,7 +48,7 @@ def _fingerprint(cfg: IngestConfig, geometry: Geometry, bags: list[Path]) -> dic
 
     rig = geometry.rig
     return {
-        "format": "widedepth-train",
+        "format": FORMAT,
         "sensorbox_version": version("sensorbox"),
         "rig": {
             "name": rig.name,
@@ -138,6 +140,25 @@ def _check_samples(asked: IngestConfig, geometry: Geometry, bags: list[Path]) ->
         )
 
 
+def check_format(out: Path) -> None:
+    """DatasetError when `out` holds a dataset.yaml that is not a training set's (`FORMAT`).
+
+    Ingest replaces dataset.yaml with its own; another tool's, or a
+    benchmark's, would be overwritten with no word. Checked before any work.
+    """
+    path = out / "dataset.yaml"
+    if not path.exists():
+        return
+    doc = _read_dataset_yaml(path)
+    if doc.get("format") != FORMAT:
+        found = f"format {doc['format']!r}" if "format" in doc else "no 'format'"
+        by = f" (SensorBox {doc['sensorbox_version']})" if "sensorbox_version" in doc else ""
+        raise DatasetError(
+            f"{path}: {found}{by}, expected format {FORMAT!r} (a SensorBox training set); "
+            "ingest would overwrite it: choose another --out"
+        )
+
+
 def check_existing(asked: IngestConfig, geometry: Geometry, bags: list[Path]) -> dict[str, Any]:
     """The existing dataset.yaml of `asked.out` ({} when none), or DatasetError naming what differs.
 
@@ -152,6 +173,7 @@ def check_existing(asked: IngestConfig, geometry: Geometry, bags: list[Path]) ->
     they were made as this run asks.
     """
     path = asked.out / "dataset.yaml"
+    check_format(asked.out)
     if not any((asked.out / "meta").glob("*.json")):
         return {}
     if not path.exists():

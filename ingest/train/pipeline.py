@@ -59,6 +59,7 @@ import numpy as np
 from calibration.rectify import stereo_warnings
 from calibration.rig import Rig, read_rig, write_rig
 from calibration.types import F64
+from calibration.warp import height_full_problem
 from ingest.bags.decode import Frame
 from ingest.bags.reader import BagSet, Progress, given_once, open_bags
 from ingest.dataset.identity import resume_state
@@ -80,6 +81,7 @@ from ingest.train.block_planes import BlockPlanes, PlaneSettings
 from ingest.train.dense import DenseParams, free_space_settings
 from ingest.train.describe import (
     check_existing,
+    check_format,
     record_calibration,
     record_undecodable,
     sample_settings,
@@ -155,6 +157,8 @@ class IngestConfig:
             raise DatasetError(f"--workers must be >= 1, got {self.workers}")
         if self.every < 1:
             raise DatasetError(f"--every must be >= 1, got {self.every}")
+        if self.height_full is not None and (problem := height_full_problem(self.height_full)) is not None:
+            raise DatasetError(problem)
         if not 0 <= self.sample.png_level <= 3:
             raise DatasetError(f"--png-level must be 0..3, got {self.sample.png_level}")
         if self.dask:
@@ -486,6 +490,7 @@ def ingest(
     t_start = time.perf_counter()
     cfg.validate()
     given_once(bag_paths)  # before the rig and the output are touched
+    check_format(cfg.out)  # another tool's dataset.yaml is never overwritten
     retain_freed_memory()  # chunks and images: ~20 MB per sample pass through this process too
     cfg = replace(cfg, sample=replace(cfg.sample, window_ns=cfg.lidar_window_ns))
     rig = read_rig(cfg.rig)

@@ -161,7 +161,11 @@ ArgsArg = Annotated[
 ]
 ShowArgsOpt = Annotated[bool, typer.Option("--show-args", "-s", help="List the file's arguments and exit.")]
 DryRunOpt = Annotated[
-    bool, typer.Option("--dry-run", help="Print the nodes it would start, with parameters, and exit.")
+    bool,
+    typer.Option(
+        "--dry-run",
+        help="Check the nodes as the run does (starting none), print them with their parameters, and exit.",
+    ),
 ]
 VerboseOpt = Annotated[bool, typer.Option("--verbose", "-v", help="Log what each node does.")]
 
@@ -198,12 +202,16 @@ def launch_cmd(
     verbose: VerboseOpt = False,
 ) -> None:  # fmt: skip
     """Start the nodes a launch file names (drivers, cameras, emulators, recorder) until Ctrl-C."""
-    from sensorbox.live.launch import parse_cli_args, parse_launch, run_launch
+    from sensorbox.live.launch import check_launch, parse_cli_args, parse_launch, run_launch
 
     _setup_logging(verbose)
     plan = parse_launch(file, parse_cli_args(args or []))
-    if show_args or dry_run:
-        (_print_arguments if show_args else _print_nodes)(plan, file)
+    if show_args:
+        _print_arguments(plan, file)
+        return
+    if dry_run:
+        check_launch(plan)  # what the run refuses before it starts, the dry run refuses
+        _print_nodes(plan, file)
         return
     for message in plan.messages:
         err_console.print(message, highlight=False)

@@ -147,7 +147,8 @@ def progress_bar(verb: str, unit: str) -> Iterator[Update]:
 
 
 def check_out_folder(flag: str, folder: Path, holds: str) -> None:
-    """Refuse, before any work, an output folder that is a file, lies under a file or cannot be written.
+    """Refuse, before any work, an output folder that is a file, lies under a file or a symbolic link
+    that leads nowhere (a loop), or cannot be written.
 
     One line naming the option and the path ("--out X: is a file; give a folder
     for HOLDS"), where mkdir would fail only after the work with a bare
@@ -160,6 +161,19 @@ def check_out_folder(flag: str, folder: Path, holds: str) -> None:
     if folder.exists() and not folder.is_dir():
         raise DatasetError(f"{flag} {folder}: is a file; give a folder for {holds}")
     _check_parents(flag, folder, (folder,))
+
+
+def _unresolved_link(path: Path) -> str | None:
+    """Why `path`, a symbolic link, leads to no file (a loop, a missing target), or None when it is
+    none or leads somewhere: mkdir would then fail with "File exists" or "Too many levels of symbolic
+    links" only after the work."""
+    if not path.is_symlink():
+        return None
+    try:
+        path.stat()
+    except OSError as err:
+        return f"is a symbolic link that leads nowhere ({err.strerror or err})"
+    return None
 
 
 def check_out_file(flag: str, path: Path) -> None:
@@ -181,6 +195,9 @@ def _write_refused(folder: Path) -> str | None:
 
 def _check_parents(flag: str, path: Path, also: tuple[Path, ...] = ()) -> None:
     for parent in (*also, *path.parents):  # the nearest one that exists decides
+        if (why := _unresolved_link(parent)) is not None:
+            where = "" if parent == path else f" {parent}"
+            raise DatasetError(f"{flag} {path}:{where} {why}; give a folder")
         if parent.exists():
             if not parent.is_dir():
                 raise DatasetError(f"{flag} {path}: {parent} is a file, not a folder")

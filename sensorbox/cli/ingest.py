@@ -16,7 +16,14 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 from rich.table import Table
 
-from sensorbox.cli.common import console, err_console, path_param, print_warning, progress_bar
+from sensorbox.cli.common import (
+    check_out_folder,
+    console,
+    err_console,
+    path_param,
+    print_warning,
+    progress_bar,
+)
 
 if TYPE_CHECKING:
     from ingest.train.pipeline import IngestSummary
@@ -239,6 +246,7 @@ def ingest_cmd(
     from ingest.train.pipeline import PASS_READ, PASS_REFINE, PASS_TRAJECTORY, IngestConfig, ingest
     from ingest.train.sample import SampleParams
 
+    check_out_folder("--out", out, "the dataset")
     if gt_window_ms is not None and gt == "sparse":
         raise DatasetError(
             "--gt-window-ms sets the window of dense GT (--gt dense or auto); sparse GT's is --window-ms"

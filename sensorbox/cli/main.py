@@ -1,5 +1,8 @@
 """The ``sensorbox`` command line: one module per command, each parses, calls one library function, prints.
 
+A command line click cannot parse (an unknown option or command, "abc"
+for a number, a missing argument) is one line too, "error: MESSAGE (see
+'sensorbox CMD --help')", exit code 2, instead of click's boxed usage.
 Every `SensorboxError` (a user mistake: a file, key, topic or value named)
 becomes one plain line on stderr and exit code 2; a write the operating
 system refused (disk full, permissions, a missing folder), as an
@@ -101,10 +104,32 @@ def _root() -> None:
         root.addHandler(_WarningLines(logging.WARNING))
 
 
+def _usage_line(err: typer.TyperException) -> str:
+    """Click's refusal of a command line as one line: its message and where the help is.
+
+    Typer prints it as the usage, a hint and the message in a box (five
+    lines and more); a user mistake is one "error: ..." line here as
+    everywhere else.
+    """
+    command_path = getattr(getattr(err, "ctx", None), "command_path", None)
+    where = f" (see '{command_path} --help')" if command_path else ""
+    return f"{err.format_message()}{where}"
+
+
 def main() -> None:
-    """Console-script entry point: run the app, mapping SensorboxError to exit code 2."""
+    """Console-script entry point: run the app, mapping SensorboxError and click's usage errors to exit
+    code 2, a refused write to 3 (one line each)."""
     try:
-        app()
+        done = app(prog_name="sensorbox", standalone_mode=False)
+    except typer.TyperException as err:
+        # `sensorbox`, `sensorbox calib`: typer has printed the help (its class is in typer's private
+        # copy of click, hence the name)
+        if type(err).__name__ != "NoArgsIsHelpError":
+            print_error(_usage_line(err))
+        sys.exit(err.exit_code)
+    except typer.Abort:  # end of input where a prompt waited
+        print_error("aborted: no input")
+        sys.exit(1)
     except OutputError as err:  # the operating system refused a write: as an OSError, named
         print_error(str(err))
         sys.exit(3)
@@ -115,6 +140,7 @@ def main() -> None:
         where = f"{err.filename}: " if err.filename else ""
         print_error(f"{where}{err.strerror or err}")
         sys.exit(3)
+    sys.exit(done if isinstance(done, int) else 0)  # a typer.Exit's code, else the command's return value
 
 
 if __name__ == "__main__":

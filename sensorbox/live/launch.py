@@ -507,11 +507,28 @@ def run_launch(
     tick_s: float = 0.5,
 ) -> GraphResult:
     """Build the plan's nodes in one process and run them until shutdown (see `bus.run_graph`)."""
-    from sensorbox.live.nodes import build_node
-
     bus = Bus()
     shutdown = shutdown or Shutdown()
+    return run_graph(_build_nodes(plan, bus, shutdown), bus, shutdown, on_tick=on_tick, tick_s=tick_s)
+
+
+def check_launch(plan: LaunchPlan) -> None:
+    """Refuse what `run_launch` would refuse before starting a node (a parameter value, an unused
+    parameter, an unknown node type, no node), starting none: `launch --dry-run`.
+
+    The nodes are built as the run builds them, then dropped; building a node
+    starts nothing and writes nothing (devices open, processes start and
+    files are written when the graph starts it). A simulated node sets up its
+    scene, so this takes a few seconds.
+    """
+    _build_nodes(plan, Bus(), Shutdown())
+
+
+def _build_nodes(plan: LaunchPlan, bus: Bus, shutdown: Shutdown) -> list[Any]:
+    """Every node of the plan, built on `bus` (not started); LaunchError when the file starts none."""
+    from sensorbox.live.nodes import build_node
+
     nodes = [build_node(spec, bus, shutdown) for spec in plan.nodes]
     if not nodes:
         raise LaunchError(f"{plan.file}: the launch file starts no node")
-    return run_graph(nodes, bus, shutdown, on_tick=on_tick, tick_s=tick_s)
+    return nodes

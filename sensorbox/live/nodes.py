@@ -30,7 +30,11 @@
 "sim" parameters: scene (indoor), trajectory (static), seed (0), rig (reference
 rig), scale (1.0), supersample (1); cameras also prerender (auto | always |
 never), loop_frames (30), write_rig ("" = no; a path gets the rig at render
-resolution, rig file + camchain).
+resolution, rig file + camchain, when the camera node starts).
+
+Building a node (`build_node`) reads and checks its parameters and starts
+nothing, writes nothing: `launch --dry-run` builds every node to refuse what
+the run would.
 
 The Livox driver publishes relative topics (`livox/lidar_<ip>`, as
 livox_ros_driver2 does), so a node namespace applies; remap them to the rig's
@@ -273,10 +277,10 @@ def camera_node(ctx: NodeContext, p: Params) -> Node:
     from sensorbox.live.cameras import CameraNode, CameraOutput
 
     kind = p.choice("source", ("zed", "opencv", "sim"), "zed")
-    sim = None
+    sim, on_open = None, None
     cam = 0
     if kind == "sim":
-        sim = _sim("sim_cameras")(p)
+        sim, on_open = _sim("sim_cameras")(p)
         cam = {"upper": 0, "lower": 1, "0": 0, "1": 1}.get(p.text("camera", "upper"), -1)
         if cam < 0:
             raise GraphError(f"{p.where}: camera: expected upper or lower")
@@ -285,7 +289,9 @@ def camera_node(ctx: NodeContext, p: Params) -> Node:
     out = CameraOutput(
         ctx.resolve(p.text("topic", default_topic)), p.text("frame_id", f"{ctx.name}_optical_frame")
     )
-    return CameraNode(ctx.name, [source], [out], ctx.bus.publish, ctx.shutdown, **_image_opts(p))
+    return CameraNode(
+        ctx.name, [source], [out], ctx.bus.publish, ctx.shutdown, on_open=on_open, **_image_opts(p)
+    )
 
 
 def stereo_camera_node(ctx: NodeContext, p: Params, source: str | None = None) -> Node:
@@ -293,7 +299,7 @@ def stereo_camera_node(ctx: NodeContext, p: Params, source: str | None = None) -
     from sensorbox.live.cameras import CameraNode, CameraOutput
 
     kind = source or p.choice("source", ("zed", "opencv", "sim"), "zed")
-    sim = _sim("sim_cameras")(p) if kind == "sim" else None
+    sim, on_open = _sim("sim_cameras")(p) if kind == "sim" else (None, None)
     if sim is not None:
         defaults = [sim.topic(0), sim.topic(1)]
     else:
@@ -308,7 +314,7 @@ def stereo_camera_node(ctx: NodeContext, p: Params, source: str | None = None) -
     tol_ms = p.number("pair_tolerance_ms", pair_tolerance_ns(1e9 / fps) / 1e6)
     return CameraNode(
         ctx.name, sources, outputs, ctx.bus.publish, ctx.shutdown, pair_tolerance_ns=round(tol_ms * 1e6),
-        **_image_opts(p),
+        on_open=on_open, **_image_opts(p),
     )  # fmt: skip
 
 

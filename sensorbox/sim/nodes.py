@@ -7,7 +7,7 @@ factories; their parameters are documented there.
 from __future__ import annotations
 
 import itertools
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -113,12 +113,18 @@ def mid360_emulator_node(ctx: NodeContext, p: Params) -> Node:
     return EmulatorNode(ctx.name, sim, p.text("lidar", "lidar_top"), ip, loop_s, options)
 
 
-def sim_cameras(p: Params) -> Any:
+def sim_cameras(p: Params) -> tuple[SimCameras, Callable[[], None] | None]:
+    """The simulated pair, and what its camera node does once open: write the rig at render
+    resolution where `write_rig` names a path (at start, so that building the node writes nothing)."""
     sim = SimCameras(_sim_config(p, camera_rate_hz=p.number("fps", 30.0)))
     rig_out = p.text("write_rig", "")
-    if rig_out:
+    if not rig_out:
+        return sim, None
+
+    def write_rig() -> None:
         sim.write_rig(Path(rig_out))
-    return sim
+
+    return sim, write_rig
 
 
 def sim_camera_source(p: Params, sim: SimCameras, cam: int, name: str) -> SimCameraSource:

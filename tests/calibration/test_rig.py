@@ -276,9 +276,10 @@ def test_stereo_layout_warnings_and_a_zero_baseline(tmp_path):
     (line,) = stereo_warnings(swapped)
     assert "rig.yaml: the lower camera cam0 is not below the upper camera cam1 (its centre at [" in line
     assert line.endswith("are the roles swapped?")
-    (line,) = stereo_warnings(read_rig(_rig_with_chain(tmp_path / "b", 1000.0)))  # a camchain in mm
+    # 4.8 m: over 2 m, a warning; a camchain in millimetres (120 m) is refused (MAX_CAMERA_SEPARATION_M)
+    (line,) = stereo_warnings(read_rig(_rig_with_chain(tmp_path / "b", 40.0)))
     assert line.endswith(
-        "rig.yaml: stereo baseline 120.309 m; is the camchain in millimetres? (Kalibr writes metres)"
+        "rig.yaml: stereo baseline 4.812 m; is the camchain in millimetres? (Kalibr writes metres)"
     )
     zero = read_rig(_rig_with_chain(tmp_path / "c", 0.0))
     assert stereo_warnings(zero) == [

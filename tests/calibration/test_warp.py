@@ -251,5 +251,5 @@ def test_default_height_full_is_held_by_the_camera_pixels_and_a_budget_refuses_m
         "4.0 GB (half this machine's memory); pass --height-full 4608 or less"
     )
     assert check_height_full(4608, budget_bytes=4 * 10**9) == 4608  # the suggestion fits
-    with pytest.raises(CalibrationError, match=r"^--height-full must be >= 2 rows, got -4$"):
+    with pytest.raises(CalibrationError, match=r"^--height-full must be >= 64 rows \(.*\), got -4$"):
         check_height_full(-4)

@@ -22,6 +22,7 @@ from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2.storage_sqlite3 import Sqlite3Writer
 
 from ingest.errors import OutputError
+from tests.faults.bags import INDOOR
 from tests.faults.cli import sensorbox
 from tests.faults.test_output_errors import ENOSPC, RIG, _files, _fill_disk_at
 from tests.ingest.test_evaluate import make_benchmark, write_predictions
@@ -150,6 +151,44 @@ def test_output_paths_that_are_files_are_refused_before_the_work(
         "afile",
         "bench",
         "pred",
+    ]
+
+
+@pytest.mark.parametrize(
+    "kind", ["file", "under a file", "symlink loop", "under a symlink loop", "/dev/null"]
+)
+def test_an_out_that_cannot_be_a_folder_is_exit_2_for_ingest_as_for_stats(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], kind: str
+) -> None:
+    """ingest said "cannot open X: Not a directory" with exit code 3 (a refused write) where stats said
+    "is a file" with 2; a symbolic link loop passed stats' check and ingest's read the bags first."""
+    f = _afile(tmp_path)
+    (tmp_path / "loop").symlink_to(tmp_path / "loop")
+    out, why = {
+        "file": (f, "is a file; give a folder for {holds}"),
+        "under a file": (f / "sub", f"{f} is a file, not a folder"),
+        "symlink loop": (
+            tmp_path / "loop",
+            "is a symbolic link that leads nowhere (Too many levels of symbolic links); give a folder",
+        ),
+        "under a symlink loop": (
+            tmp_path / "loop" / "sub",
+            f"{tmp_path / 'loop'} is a symbolic link that leads nowhere (Too many levels of symbolic links); "
+            "give a folder",
+        ),
+        "/dev/null": (Path("/dev/null"), "is a file; give a folder for {holds}"),
+    }[kind]
+    bench = make_benchmark(tmp_path / "bench")
+    for args, holds in (
+        (["ingest", str(INDOOR), "--rig", str(RIG), "--out", str(out)], "the dataset"),
+        (["stats", str(bench), "--out", str(out)], "stats.json and stats.png"),
+    ):
+        code, stdout, err = sensorbox(capsys, *args)
+        assert (code, stdout, err) == (2, "", [f"error: --out {out}: {why.format(holds=holds)}"]), args
+    assert f.read_text() == "mine\n" and sorted(p.name for p in tmp_path.iterdir()) == [
+        "afile",
+        "bench",
+        "loop",
     ]
 
 
@@ -347,3 +386,58 @@ def test_another_bag_format_named_mcap_is_called_by_its_name(
     assert len(err) == 1 and err[0].startswith(
         f"error: {tmp_path / 'x.mcap'}: not an MCAP file: it starts like {what}"
     )
+
+
+def test_a_depth_map_of_another_size_than_its_image_or_dataset_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """stats counted a 7x5 depth map beside 10x6 images (density and depth shares of another picture)."""
+    bench = make_benchmark(tmp_path / "bench")
+    cfg = bench / "001_057_000" / "120FOV" / "65mm" / "CENTER"
+    gt = cfg / "depth" / "pano_crop.png"
+    cv2.imwrite(str(gt), np.full((5, 7), 2000, np.uint16))
+    code, out, err = sensorbox(capsys, "stats", str(bench), "--image-type", "pano_crop")
+    line = f"error: {gt}: depth map 7x5 px, expected 10x6 (the size of its image {cfg / 'pano_crop.png'})"
+    assert (code, out, err) == (2, "", [line])
+    ds = _train_dataset(tmp_path / "ds")  # 10x6 depth maps, no image: dataset.yaml gives the size
+    (ds / "dataset.yaml").write_text("format: widedepth-train\nfisheye_size: [300, 480]\n")
+    code, out, err = sensorbox(capsys, "stats", str(ds))
+    line = (
+        f"error: {ds / 'depth_fisheye' / '000000.png'}: depth map 10x6 px, expected 480x300 (the size of "
+        f"{ds / 'dataset.yaml'}'s fisheye_size)"
+    )
+    assert (code, out, err) == (2, "", [line])
+    assert not (ds / "stats.json").exists() and not (bench / "stats.json").exists()
+
+
+@pytest.mark.parametrize(
+    ("args", "line"),
+    [
+        (
+            ["ingest", str(INDOOR), "--rig", str(RIG), "--height-full", "7"],
+            "--height-full must be >= 64 rows (a pixel of 2.8 degrees; fewer leave no image a network can "
+            "downsample, nor disparity), got 7",
+        ),
+        (
+            ["render-benchmark", "scan.ply", "--rig", str(RIG), "--height-full", "7"],
+            "--height-full must be >= 64 rows (a pixel of 2.8 degrees; fewer leave no image a network can "
+            "downsample, nor disparity), got 7",
+        ),
+        (
+            ["render-benchmark", "scan.ply", "--rig", str(RIG), "--yaw", "1e300"],
+            "--yaw [1e+300]: each yaw must be within -360..360 degrees",
+        ),
+        (
+            ["render-benchmark", "scan.ply", "--rig", str(RIG), "--yaw", "90", "--yaw", "-361"],
+            "--yaw [90.0, -361.0]: each yaw must be within -360..360 degrees",
+        ),
+    ],
+)
+def test_a_sphere_of_7_rows_or_a_yaw_of_1e300_is_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], args: list[str], line: str
+) -> None:
+    """ingest --height-full 7 wrote 7x14 equirects with no disparity pixel; --yaw 1e300 rendered some
+    arbitrary heading and recorded 1e300 degrees."""
+    code, out, err = sensorbox(capsys, *args, "--out", str(tmp_path / "o"))
+    assert (code, out, err) == (2, "", [f"error: {line}"])
+    assert not (tmp_path / "o").exists()

@@ -221,3 +221,33 @@ def test_a_damaged_frame_found_under_another_name_is_written_again_under_its_id(
     assert again.damaged == [f"{cut}: 10 bytes, {len(whole)} were written"]
     assert sorted(p.stem for p in (out / "meta").glob("*.json")) == [f"00000{k}" for k in range(5)]
     assert cut.read_bytes() == whole
+
+
+@pytest.mark.parametrize(
+    ("doc", "found"),
+    [
+        (
+            "format: widedepth-benchmark\nsensorbox_version: 0.1.0\n",
+            "format 'widedepth-benchmark' (SensorBox 0.1.0)",
+        ),
+        ("name: another tool's dataset\nsplits: [train, val]\n", "no 'format'"),
+    ],
+)
+def test_a_dataset_yaml_of_another_format_is_refused_not_overwritten(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], doc: str, found: str
+) -> None:
+    """With no sample beside it, ingest replaced another format's dataset.yaml with its own, silently."""
+    out = tmp_path / "ds"
+    out.mkdir()
+    (out / "dataset.yaml").write_text(doc)
+    args = ["ingest", str(INDOOR), "--rig", str(RIG), "--out", str(out), "--workers", "1", "--every", "5"]
+    code, stdout, err = sensorbox(capsys, *args, "--height-full", "64", "--gt", "sparse", "--no-preview")
+    assert (code, stdout, err) == (
+        2,
+        "",
+        [
+            f"error: {out}/dataset.yaml: {found}, expected format 'widedepth-train' (a SensorBox training "
+            "set); ingest would overwrite it: choose another --out"
+        ],
+    )
+    assert [p.name for p in out.iterdir()] == ["dataset.yaml"] and (out / "dataset.yaml").read_text() == doc

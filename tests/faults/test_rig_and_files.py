@@ -438,3 +438,140 @@ def test_a_site_manifest_or_livox_user_config_that_is_a_fifo_is_refused(tmp_path
     assert res.stderr.splitlines()[-1] == (
         f"sensorbox.errors.GraphError: {config}: is a FIFO (named pipe), not a Livox user config file"
     )
+
+
+@pytest.mark.parametrize(("shift", "shown"), [("1000000.0", "1e+06"), ("-4.2", "-4.2")])
+def test_a_timeshift_beyond_a_second_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], shift: str, shown: str
+) -> None:
+    """`timeshift_cam_imu: 1e6` (or 4.2 ms written as 4.2): ingest planned 0 samples and said no why."""
+    rig = _rig(tmp_path)
+    chain = tmp_path / "camchain.yaml"
+    topic = "  rostopic: /zed_lower/zed_node/rgb/color/rect/image\n"
+    chain.write_text(chain.read_text().replace(topic, f"{topic}  timeshift_cam_imu: {shift}\n"))
+    line = (
+        f"error: {chain}: cam1.timeshift_cam_imu: {shown} s; expected within +-1 s (Kalibr's are milliseconds, "
+        "0.0042 for 4.2 ms: a value in ms or ns, or an unsynchronised clock?)"
+    )
+    out = tmp_path / "ds"
+    for command in (
+        ["calib", "check", str(rig)],
+        ["ingest", str(INDOOR), "--rig", str(rig), "--out", str(out), "--height-full", "64"],
+    ):
+        code, stdout, err = sensorbox(capsys, *command)
+        assert (code, stdout, err) == (2, "", [line]), command
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(("scale", "shown"), [(1000.0, "120.3"), (1e6 / 0.120309, "1e+06")])
+def test_a_camera_baseline_over_10_m_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], scale: float, shown: str
+) -> None:
+    """cam1's T_cn_cnm1 at 1e6 m (or 120 mm written as 120) was only warned about; ingest went on."""
+    rig = _rig(tmp_path)
+    chain = tmp_path / "camchain.yaml"
+    doc = yaml.safe_load(chain.read_text())
+    T = np.array(doc["cam1"]["T_cn_cnm1"], float)
+    T[:3, 3] *= scale
+    doc["cam1"]["T_cn_cnm1"] = T.tolist()
+    chain.write_text(yaml.safe_dump(doc))
+    line = (
+        f"error: {chain}: cam1.T_cn_cnm1: translation {shown} m from cam0: expected <= 10 m between two "
+        "cameras of a rig (millimetres written as metres?)"
+    )
+    out = tmp_path / "ds"
+    for command in (
+        ["calib", "check", str(rig)],
+        ["ingest", str(INDOOR), "--rig", str(rig), "--out", str(out), "--height-full", "64"],
+    ):
+        code, stdout, err = sensorbox(capsys, *command)
+        assert (code, stdout, err) == (2, "", [line]), command
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    ("args", "line"),
+    [
+        (
+            ["duration:=nan"],
+            "node 'recorder' (sensorbox/recorder) at {sim}:85: parameter 'duration_s' = 'nan': expected a "
+            "finite number",
+        ),
+        (
+            ["loop_s:=-3"],
+            "node 'lidar_top_emulator' (sensorbox/mid360_emulator) at {sim}:27: loop_s must be >= 0 "
+            "(0 = simulate live), got -3.0",
+        ),
+        (
+            ["scale:=0"],
+            "node 'zed_sim' (sensorbox/sim_camera) at {sim}:72: --scale must be a finite number > 0.0, got 0.0",
+        ),
+        (
+            ["port_base:=70000"],
+            "node 'lidar_top_emulator' (sensorbox/mid360_emulator) at {sim}:27: parameter 'port_base' = 70000: "
+            "expected 1..65527 (the first of nine UDP ports, each <= 65535)",
+        ),
+        (
+            ["--talker"],
+            "node 'talker' (sensorbox/talker) at {talker}:2: parameter(s) colour not used by this node (with "
+            "these settings); it reads: count, payload_bytes, rate_hz, topic",
+        ),
+    ],
+)
+def test_a_dry_run_refuses_what_the_run_refuses(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], args: list[str], line: str
+) -> None:
+    """`launch --dry-run` printed the nodes of values the run refuses (nan, -3, scale 0, port 70000, a
+    parameter no node reads), exit 0; it now builds the nodes as the run does, starting none."""
+    sim = ROOT / "sensorbox" / "share" / "launch" / "sim.launch.yaml"
+    talker = tmp_path / "talker.launch.yaml"
+    talker.write_text(
+        "launch:\n- node: {pkg: sensorbox, exec: talker, param: [{name: colour, value: red}]}\n"
+    )
+    out = tmp_path / "bags"
+    command = ["launch", str(talker)] if args == ["--talker"] else ["launch", str(sim), f"out:={out}", *args]
+    expected = (2, "", [f"error: {line.format(sim=sim, talker=talker)}"])
+    assert sensorbox(capsys, *command, "--dry-run") == expected
+    assert sensorbox(capsys, *command) == expected  # the run: refused the same, before any node started
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["talker.launch.yaml"]  # nothing written
+
+
+def test_a_dry_run_writes_no_rig(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The simulated camera's `write_rig` is written when the node starts, not when the dry run builds it."""
+    sim = ROOT / "sensorbox" / "share" / "launch" / "sim.launch.yaml"
+    code, out, err = sensorbox(capsys, "launch", str(sim), f"out:={tmp_path / 'bags'}", "--dry-run")
+    assert (code, err) == (0, []) and f"param write_rig = '{tmp_path / 'bags'}/rig.yaml'" in out
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_camchain_with_one_rostopic_twice_is_named(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Both cameras on one rostopic in the camchain (the rig giving no topic): the error named rig.yaml's
+    cameras.cam0.topic, a key the rig file does not hold."""
+    doc = yaml.safe_load((TRUTH / "rig.yaml").read_text())
+    rig = _rig(tmp_path, {"cameras": {n: {"role": c["role"]} for n, c in doc["cameras"].items()}})
+    chain = tmp_path / "camchain.yaml"
+    upper, lower = "/zed_upper/zed_node/rgb/color/rect/image", "/zed_lower/zed_node/rgb/color/rect/image"
+    chain.write_text(chain.read_text().replace(lower, upper))
+    for path in (rig, chain):  # the rig, and the camchain given as a rig on its own
+        code, stdout, err = sensorbox(capsys, "calib", "check", str(path))
+        assert (code, stdout, err) == (
+            2,
+            "",
+            [
+                f"error: {chain}: cam0.rostopic and cam1.rostopic are both {upper}: each sensor needs its own topic"
+            ],
+        )
+    cameras = {n: {"role": c["role"]} for n, c in doc["cameras"].items()}
+    cameras["cam1"]["topic"] = upper  # one topic from each file
+    rig = _rig(tmp_path, {"cameras": cameras})
+    chain.write_text(chain.read_text().replace(lower, upper))
+    code, _, err = sensorbox(capsys, "calib", "check", str(rig))
+    assert (code, err) == (
+        2,
+        [
+            f"error: {chain}: cam0.rostopic and {rig}: cameras.cam1.topic are both {upper}: each sensor needs "
+            "its own topic"
+        ],
+    )

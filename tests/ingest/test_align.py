@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -121,7 +122,7 @@ def test_combine_tells_a_pose_error_from_a_clock_offset() -> None:
     assert np.allclose(c.corrections["top"].vector, top, atol=5e-4)
 
 
-def _ingest(bag: Path, out: Path, R_top: F64 | None) -> tuple[dict, list[str]]:
+def _ingest(bag: Path, out: Path, R_top: F64 | None) -> tuple[dict[str, Any], list[str]]:
     rig = Truth.load(bag).rig
     if R_top is not None:
         T = rig.lidars[0].T_cam0_lidar.copy()
@@ -147,7 +148,9 @@ def test_ingest_flags_a_lidar_turned_by_a_quarter_degree_and_not_the_exact_rig(t
 
     turned = Rotation.from_rotvec(np.radians(0.25) * AXIS / np.linalg.norm(AXIS)).as_matrix()
     check, warnings = _ingest(bag, tmp_path / "turned", turned)
-    assert len(check["suspects"]) == 1 and check["suspects"][0].startswith("lidar_top's pose in cam0 looks off")
+    assert len(check["suspects"]) == 1 and check["suspects"][0].startswith(
+        "lidar_top's pose in cam0 looks off"
+    )
     assert abs(check["lidars"]["lidar_top"]["pose_correction_deg"] - 0.25) < 0.05
     assert check["lidars"]["lidar_top"]["median_misalignment_deg"] > 0.15
     line = next(w for w in warnings if "calib refine" in w)

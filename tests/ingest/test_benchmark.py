@@ -349,7 +349,7 @@ def test_rerun_skips_finished_scenes_and_bad_setups_are_refused(bench):
         ({"yaws_deg": (inf,)}, r"--yaw \[inf\]: each value must be a finite number"),
         ({"heights_m": (nan,)}, r"--height \[nan\]: each value must be a finite number"),
         ({"render": replace(CFG.render, clip_m=0.0)}, r"--clip 0.0: must be a finite number > 0 m"),
-        ({"height_full": 0}, r"--height-full must be >= 2 rows, got 0"),
+        ({"height_full": 0}, r"--height-full must be >= 64 rows \(.*\), got 0"),
         ({"site_id": -1}, r"--site-id must be >= 0, got -1"),
     )
     for change, message in bad:
@@ -459,7 +459,7 @@ def test_an_equirect_beyond_memory_is_refused_before_any_work(tmp_path):
         run_benchmark([_ground_scan(2)], read_rig(RIG).camera("cam0").model, tmp_path / "b",
                       replace(CFG, height_full=100_000, centers=()))  # fmt: skip
     assert not (tmp_path / "b").exists()
-    with pytest.raises(CalibrationError, match=r"^--height-full must be >= 2 rows, got 0$"):
+    with pytest.raises(CalibrationError, match=r"^--height-full must be >= 64 rows \(.*\), got 0$"):
         Geometry.from_rig(read_rig(RIG), 0)  # 0 is a value, not "the default"
 
 

@@ -1,0 +1,46 @@
+"""Issue 49: a command line click cannot parse is one line, `error: ...`, exit code 2, like every other
+user mistake; `--help` and a bare group still print the help."""
+
+from __future__ import annotations
+
+import pytest
+
+from tests.faults.cli import sensorbox
+
+
+@pytest.mark.parametrize(
+    ("args", "line"),
+    [
+        (
+            ["stats", "--every", "abc"],
+            "error: No such option: --every (see 'sensorbox stats --help')",
+        ),
+        (
+            ["ingest", "--workers", "abc"],
+            "error: Invalid value for '--workers': Input should be a valid integer, unable to parse string "
+            "as an integer (see 'sensorbox ingest --help')",
+        ),
+        (["stats"], "error: Missing argument 'dataset'. (see 'sensorbox stats --help')"),
+        (["nosuch"], "error: No such command 'nosuch'. (see 'sensorbox --help')"),
+        (
+            ["calib", "chek"],
+            "error: No such command 'chek'. Did you mean 'check'? (see 'sensorbox calib --help')",
+        ),
+    ],
+)
+def test_a_command_line_click_refuses_is_one_line_and_exit_2(
+    args: list[str], line: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Typer printed the usage, a hint and the message in a box: seven lines on stderr."""
+    code, out, err = sensorbox(capsys, *args)
+    assert (code, out, err) == (2, "", [line])
+
+
+@pytest.mark.parametrize("group", [[], ["calib"]])
+def test_help_and_a_bare_group_still_print_the_help(
+    group: list[str], capsys: pytest.CaptureFixture[str]
+) -> None:
+    code, out, err = sensorbox(capsys, *group, "--help")
+    assert (code, err) == (0, []) and "Usage: sensorbox" in out
+    code, out, err = sensorbox(capsys, *group)  # no_args_is_help: the help, and click's exit code 2
+    assert (code, err) == (2, []) and "Usage: sensorbox" in out
