@@ -1,16 +1,25 @@
-"""`calib refine` against the simulator's exact truth, and the GT it buys back.
+"""`calib refine` against the simulator's exact truth, and the GT it buys back; the per-sample scores.
 
 Each case simulates a recording with real-world errors switched on (cameras
 stamped late or early, the Mid-360 IMU's noise and bias, range noise that grows
-with range), gives `refine` a rig that is wrong the way real ones are (no
-clock offsets, the top LiDAR and its IMU turned by 1 deg), and prints:
+with range; one case with mixed returns at depth edges), gives `refine` a rig
+that is wrong the way real ones are (no clock offsets, lidar_top turned by 1 deg
+and moved by 30 mm, lidar_bottom by 0.5 deg and 20 mm, each with its IMU), and
+prints:
 
-1. what refine recovered against the truth (offset per camera, rotation per
-   LiDAR), with its stated uncertainty and whether it was observable;
+1. what refine recovered against the truth (offset per camera, rotation and
+   translation per LiDAR), with its stated uncertainty and whether it was
+   observable;
 2. sparse GT from the exact rig, the given (wrong) rig and the refined rig:
-   range median and outliers against truth, and density.
+   range median and outliers against truth, and density;
+3. with `--scores`: the truth-free alignment score of every sample (the median
+   angle its LiDAR points sit off cam0's image, `ingest.train.align`) for the
+   exact rig and for one error at a time (both cameras 5 ms late, lidar_top
+   turned 0.25 deg), against each sample's true GT error: ROC AUC of the score
+   between exact and wrong samples, and whether ingest's warning fired.
 
-Writes out/bench/refine.csv and out/bench/refine.png (GT error per rig and case).
+Writes out/bench/refine.csv, refine.png (GT error per rig and case) and, with
+`--scores`, refine_scores.png (score against true GT error).
 The bags are cached in out/bench/refine/ (delete it to simulate afresh).
 """
 
@@ -34,8 +43,8 @@ from scipy.spatial.transform import Rotation
 
 from calibration.rig import Rig, with_timeshifts, write_rig
 from calibration.types import F64
-from ingest.train.pipeline import IngestConfig, ingest
-from ingest.train.refine import refine
+from ingest.dataset.meta import read_meta
+from ingest.train.pipeline import IngestConfig, ingest, refine_rig
 from sensorbox.sim.run import SimConfig, simulate, with_mid360_imu_noise
 from sensorbox.sim.score import score_dataset
 from sensorbox.sim.truth import Truth
@@ -43,27 +52,35 @@ from sensorbox.sim.truth import Truth
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import OUT_DIR, machine_line, markdown_table
 
-TURN = Rotation.from_rotvec(np.radians(1.0) * np.array([0.6, -0.48, 0.64])).as_matrix()
 CASES = {
     "walk outdoor": dict(scene="outdoor", trajectory="walk", seed=2),
     "walk indoor": dict(scene="indoor", trajectory="walk", seed=5),
     "static room": dict(scene="indoor", trajectory="static", seed=1),
+    "walk outdoor, mixed returns": dict(scene="outdoor", trajectory="walk", seed=2, mixed_returns=True),
 }
 OFFSETS_NS = (23_000_000, -14_000_000)  # upper, lower: header stamp minus true exposure
+ERRORS = (  # per LiDAR (and its IMU): rotation vector (deg), translation (m), in cam0
+    (np.array([0.6, -0.48, 0.64]), np.array([0.02, -0.015, 0.0158])),  # 1 deg, 29.6 mm
+    (np.array([-0.2, 0.3, 0.3464]), np.array([-0.01, 0.012, -0.0126])),  # 0.5 deg, 20.0 mm
+)
 
 
-def _turned(T: F64) -> F64:
+def _moved(T: F64, rotvec_deg: F64, shift_m: F64) -> F64:
+    """`T` (cam0 <- sensor) turned about cam0's origin by `rotvec_deg` and moved by `shift_m`."""
     out = T.copy()
-    out[:3, :3] = TURN @ T[:3, :3]
+    out[:3, :3] = Rotation.from_rotvec(np.radians(rotvec_deg)).as_matrix() @ T[:3, :3]
+    out[:3, 3] = T[:3, 3] + shift_m
     return out
 
 
 def wrong_rig(exact: Rig) -> Rig:
-    """The exact rig without its clock offsets and with lidar_top and imu_top turned by 1 deg."""
+    """The exact rig without its clock offsets and with each LiDAR and its IMU moved by `ERRORS`."""
     plain = with_timeshifts(exact, {c.name: 0.0 for c in exact.cameras})
-    imu = replace(plain.imus[0], T_cam0_imu=_turned(plain.imus[0].T_cam0_imu))
-    lidar = replace(plain.lidars[0], T_cam0_lidar=_turned(plain.lidars[0].T_cam0_lidar))
-    return replace(plain, imus=(imu, *plain.imus[1:]), lidars=(lidar, *plain.lidars[1:]))
+    lidars = tuple(replace(lidar, T_cam0_lidar=_moved(lidar.T_cam0_lidar, *err))
+                   for lidar, err in zip(plain.lidars, ERRORS, strict=False))  # fmt: skip
+    imus = tuple(replace(imu, T_cam0_imu=_moved(imu.T_cam0_imu, *err))
+                 for imu, err in zip(plain.imus, ERRORS, strict=False))  # fmt: skip
+    return replace(plain, lidars=lidars, imus=imus)
 
 
 def _angle_deg(Ra: F64, Rb: F64) -> float:
@@ -94,13 +111,14 @@ def main() -> None:
     parser.add_argument("--scale", type=float, default=1.0, help="image scale (1.0 = 1920x1200)")
     parser.add_argument("--every", type=int, default=6, help="ingest every n-th frame for the GT rows")
     parser.add_argument("--cases", default=",".join(CASES), help="comma-separated: " + ", ".join(CASES))
+    parser.add_argument("--scores", action="store_true", help="also the per-sample score study (part 3)")
     args = parser.parse_args()
     work = OUT_DIR / "refine" / f"{args.seconds:g}s_x{args.scale:g}"
     work.mkdir(parents=True, exist_ok=True)
     print(machine_line())
     rec_rows, gt_rows, csv_rows = [], [], []
     for name in args.cases.split(","):
-        bag = work / name.replace(" ", "_")
+        bag = work / name.replace(" ", "_").replace(",", "")
         if not (bag.with_name(bag.name + ".truth") / "sim.yaml").exists():
             cfg = SimConfig(**CASES[name], duration_s=args.seconds, scale=args.scale,  # type: ignore[arg-type]
                             camera_offset_ns=OFFSETS_NS, range_noise_model="mid360")  # fmt: skip
@@ -110,7 +128,7 @@ def main() -> None:
         truth = Truth.load(bag)
         given = wrong_rig(truth.rig)
         t0 = time.perf_counter()
-        found = refine([bag], given)
+        found = refine_rig([bag], given)
         seconds = time.perf_counter() - t0
         for cam, true_ns in zip(found.cameras, OFFSETS_NS, strict=True):
             e = cam.estimate
@@ -118,17 +136,22 @@ def main() -> None:
             rec_rows.append([f"{name}: {cam.camera} offset [ms]", f"{-true_ns / 1e6:+.3f}",
                              f"{e.timeshift_ms:+.3f}" if e.observable else "not observable", err,
                              f"{e.sigma_ms:.3f}", f"{seconds:.0f}"])  # fmt: skip
-        for imu in found.imus:
-            true_R = truth.rig.lidar(imu.lidar or "").T_cam0_lidar[:3, :3]
-            given_R = given.lidar(imu.lidar or "").T_cam0_lidar[:3, :3]
-            refined_R = found.rig.lidar(imu.lidar or "").T_cam0_lidar[:3, :3]
-            r = imu.rotation
-            after = _angle_deg(refined_R, true_R)
-            rec_rows.append([
-                f"{name}: {imu.lidar} rotation error [deg]", f"{_angle_deg(given_R, true_R):.3f}",
-                f"{after:.3f}" if r.observable else "not observable (rig's kept)", f"{after:.3f}",
-                f"{r.sigma_deg:.3f}", f"{seconds:.0f}",
-            ])  # fmt: skip
+        for lidar in truth.rig.lidars:
+            T_true = lidar.T_cam0_lidar
+            T_given, T_found = given.lidar(lidar.name).T_cam0_lidar, found.rig.lidar(lidar.name).T_cam0_lidar
+            mine = next((r for r in found.lidars if r.lidar == lidar.name), None)
+            applied = mine is not None and mine.applied
+            angles = [_angle_deg(T[:3, :3], T_true[:3, :3]) for T in (T_given, T_found)]
+            shifts = [float(np.linalg.norm(T[:3, 3] - T_true[:3, 3]) * 1e3) for T in (T_given, T_found)]
+            sigmas = (None, None) if mine is None else (mine.sigma_rotation_deg, mine.sigma_translation_mm)
+            for what, (before, after), sigma in zip(
+                ("rotation error [deg]", "translation error [mm]"), (angles, shifts), sigmas, strict=True
+            ):
+                rec_rows.append([
+                    f"{name}: {lidar.name} {what}", f"{before:.3f}",
+                    f"{after:.3f}" if applied else "not applied (rig's kept)", f"{after:.3f}",
+                    "-" if sigma is None else f"{sigma:.3f}", f"{seconds:.0f}",
+                ])  # fmt: skip
         for label, rig in (("exact rig", truth.rig), ("given rig", given), ("refined rig", found.rig)):
             med, outl, dens = _gt(bag, rig, work / f"{bag.name}_{label.split()[0]}", truth, args.every)
             gt_rows.append([f"{name}: {label}", f"{med:.2f}", f"{outl:.2f}", f"{dens:.2f}"])
@@ -136,8 +159,9 @@ def main() -> None:
                 {"case": name, "rig": label, "median_mm": med, "outliers_pct": outl, "density_pct": dens}
             )
     print(f"\n{args.seconds:g} s recordings at {args.scale:g} x 1920x1200, cameras stamped "
-          f"{OFFSETS_NS[0] / 1e6:+g} / {OFFSETS_NS[1] / 1e6:+g} ms, lidar_top and imu_top turned 1 deg, "
-          "Mid-360 IMU noise and bias, mid360 range noise:\n")  # fmt: skip
+          f"{OFFSETS_NS[0] / 1e6:+g} / {OFFSETS_NS[1] / 1e6:+g} ms, lidar_top (and its IMU) off by 1 deg "
+          "and 30 mm, lidar_bottom by 0.5 deg and 20 mm, Mid-360 IMU noise and bias, mid360 range "
+          "noise:\n")  # fmt: skip
     markdown_table(["what", "truth (given error)", "refined", "error", "1-sigma", "refine s"], rec_rows)
     print()
     markdown_table(["sparse GT", "range median [mm]", "outliers [%]", "density [%]"], gt_rows)
@@ -148,6 +172,88 @@ def main() -> None:
         writer.writerows(csv_rows)
     _chart(csv_rows, OUT_DIR / "refine.png", args)
     print(f"\nchart: {OUT_DIR / 'refine.png'}; table: {OUT_DIR / 'refine.csv'}")
+    if args.scores:
+        _score_study(args, work)
+
+
+SCORE_VARIANTS = ("exact rig", "cameras 5 ms late", "lidar_top turned 0.25 deg")
+
+
+def _variant(exact: Rig, variant: str) -> Rig:
+    """The exact rig with one error of `SCORE_VARIANTS`."""
+    if variant == "cameras 5 ms late":
+        return with_timeshifts(exact, {c.name: (c.timeshift_cam_imu or 0.0) + 0.005 for c in exact.cameras})
+    if variant == "lidar_top turned 0.25 deg":
+        T = _moved(
+            exact.lidars[0].T_cam0_lidar, ERRORS[0][0] / np.linalg.norm(ERRORS[0][0]) * 0.25, np.zeros(3)
+        )
+        return replace(exact, lidars=(replace(exact.lidars[0], T_cam0_lidar=T), *exact.lidars[1:]))
+    return exact
+
+
+def _auc(negatives: list[float], positives: list[float]) -> float:
+    """ROC AUC: the chance that a positive's score exceeds a negative's (ties count half)."""
+    neg, pos = np.asarray(negatives), np.asarray(positives)
+    greater = (pos[:, None] > neg[None, :]).sum() + 0.5 * (pos[:, None] == neg[None, :]).sum()
+    return float(greater / (len(pos) * len(neg)))
+
+
+def _score_study(args: argparse.Namespace, work: Path) -> None:
+    """Part 3: per-sample scores for the exact rig and one error at a time, against the true GT error."""
+    rows, points = [], []
+    for name in args.cases.split(","):
+        bag = work / name.replace(" ", "_").replace(",", "")
+        truth = Truth.load(bag)
+        by_variant: dict[str, list[float]] = {}
+        for variant in SCORE_VARIANTS:
+            out = work / f"{bag.name}_scores_{'_'.join(variant.split()[:2])}"
+            rig_file = out.with_suffix(".rig") / "rig.yaml"
+            rig_file.parent.mkdir(parents=True, exist_ok=True)
+            write_rig(replace(_variant(truth.rig, variant), camchain=None), rig_file)
+            warned = ""
+            if not (out / "dataset.yaml").exists():
+                summary = ingest([bag], IngestConfig(rig=rig_file, out=out, workers=2, every=args.every))
+                warned = "yes" if any("calib refine" in w for w in summary.warnings) else "no"
+            truth_scores = {s.sid: s for s in score_dataset(out, truth)}
+            scores = []
+            for sid, true in truth_scores.items():
+                meta = read_meta(out, sid)
+                score = max((a.shift_deg for a in meta.alignment.values()), default=float("nan"))
+                scores.append(score)
+                points.append((name, variant, score, true.depth_median_abs_m * 1e3))
+            by_variant[variant] = scores
+            auc = (
+                "-" if variant == SCORE_VARIANTS[0] else f"{_auc(by_variant[SCORE_VARIANTS[0]], scores):.3f}"
+            )
+            rows.append([f"{name}: {variant}", f"{np.median(scores):.3f}", f"{np.max(scores):.3f}", auc,
+                         warned or "(cached)"])  # fmt: skip
+    print()
+    markdown_table(["samples", "score median [deg]", "score max [deg]", "ROC AUC vs exact", "warned"], rows)
+    _score_chart(points, OUT_DIR / "refine_scores.png", args)
+    print(f"\nchart: {OUT_DIR / 'refine_scores.png'}")
+
+
+def _score_chart(points: list[tuple[str, str, float, float]], path: Path, args: argparse.Namespace) -> None:
+    fig, ax = plt.subplots(figsize=(7, 4))
+    colors = dict(zip(SCORE_VARIANTS, ("tab:green", "tab:orange", "tab:red"), strict=True))
+    markers = dict(zip(CASES, "os^D", strict=True))
+    for case, variant, score, err in points:
+        ax.scatter(score, err, s=12, color=colors[variant], marker=markers[case], alpha=0.7)
+    for variant, color in colors.items():
+        ax.scatter([], [], color=color, label=variant, s=12)
+    for case, marker in markers.items():
+        if any(p[0] == case for p in points):
+            ax.scatter([], [], color="grey", marker=marker, label=case, s=12)
+    ax.set_xlabel("alignment score: LiDAR points off cam0's image, median [deg] (no truth)")
+    ax.set_ylabel("true sparse GT range error, median [mm]")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_title(f"per-sample score against true GT error ({args.seconds:g} s, {args.scale:g} x 1920x1200)",
+                 fontsize=9)  # fmt: skip
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
 
 
 def _chart(rows: list[dict[str, Any]], path: Path, args: argparse.Namespace) -> None:
