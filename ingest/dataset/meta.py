@@ -116,6 +116,7 @@ class SampleMeta:
     clock_offset_ms: float = 0.0  # exposure_ns - stamp_ns: the rig's timeshift_cam_imu for the upper camera
     alignment: dict[str, AlignmentMeta] = field(default_factory=dict)  # per LiDAR topic, with reflectivity
     twist_cam0: list[float] | None = None  # cam0's angular (rad/s) and linear (m/s) velocity in cam0
+    alignment_lower: dict[str, AlignmentMeta] = field(default_factory=dict)  # onto the lower image, in cam1
 
     def written(
         self, sid: str, dropped: dict[str, int], files: dict[str, FileMeta] | None = None
@@ -149,6 +150,7 @@ class SampleMeta:
             exposure_ns=int(d.get("exposure_ns", d["stamp_ns"])),
             clock_offset_ms=float(d.get("clock_offset_ms", 0.0)),
             alignment={str(k): AlignmentMeta(**v) for k, v in d.get("alignment", {}).items()},
+            alignment_lower={str(k): AlignmentMeta(**v) for k, v in d.get("alignment_lower", {}).items()},
             twist_cam0=None if d.get("twist_cam0") is None else [float(v) for v in d["twist_cam0"]],
         )  # fmt: skip
 

@@ -39,7 +39,7 @@ import numpy as np
 
 from calibration.camera import CameraModel
 from calibration.types import F64
-from ingest.dataset.meta import AlignmentMeta
+from ingest.dataset.meta import AlignmentMeta, SampleMeta
 from ingest.train.groundtruth import px_per_rad
 
 SIGMAS_PX = (8.0, 4.0, 2.0, 1.0)
@@ -484,3 +484,15 @@ def _offset_sigma_s(H: F64, spread: float) -> float:
     poses, across = H[:-1, :-1], H[:-1, -1]
     own = float(H[-1, -1] - across @ np.linalg.lstsq(poses, across, rcond=None)[0])
     return float(np.sqrt(spread / own)) if own > 1e-12 * max(float(H[-1, -1]), 1e-300) else float("inf")
+
+
+def from_metas(metas: Sequence[SampleMeta]) -> tuple[SampleAlignments, SampleAlignments]:
+    """The samples' alignments as their metadata recorded them: onto the upper images (with cam0's
+    twist) and onto the lower ones."""
+    upper = [
+        ({name: Alignment.from_meta(a) for name, a in m.alignment.items()},
+         None if m.twist_cam0 is None else np.asarray(m.twist_cam0, np.float64))
+        for m in metas
+    ]  # fmt: skip
+    lower = [({name: Alignment.from_meta(a) for name, a in m.alignment_lower.items()}, None) for m in metas]
+    return upper, lower

@@ -75,7 +75,7 @@ from ingest.runtime.executor import Executor, Handoff, share_cores
 from ingest.runtime.heap import retain_freed_memory
 from ingest.runtime.jit import compiling
 from ingest.topic_map import check_rig
-from ingest.train.align import Alignment, CalibrationCheck, check_calibration
+from ingest.train.align import Alignment, CalibrationCheck, SampleAlignments, check_calibration, from_metas
 from ingest.train.bad_messages import BadMessages
 from ingest.train.block_planes import BlockPlanes, PlaneSettings
 from ingest.train.dense import DenseParams, free_space_settings
@@ -552,21 +552,18 @@ def refine_rig(
     (`progress` over the messages read), then each LiDAR's pose from sparse ingests of `ALIGN_SAMPLES`
     frames in a temporary folder, removed (`aligning` over each round's samples)."""
 
-    def align(candidate: Rig, frames: int) -> list[tuple[dict[str, Alignment], F64 | None]]:
+    def align(candidate: Rig, frames: int) -> tuple[SampleAlignments, SampleAlignments]:
         every = max(1, frames // ALIGN_SAMPLES)
         with tempfile.TemporaryDirectory(prefix="sensorbox-align-") as tmp:
             rig_file = Path(tmp) / "rig" / "rig.yaml"
             rig_file.parent.mkdir()
             write_rig(replace(candidate, camchain=None), rig_file)
             out = Path(tmp) / "out"
+            sample = SampleParams(align_lower=True)
             cfg = IngestConfig(rig=rig_file, out=out, workers=workers, every=every, gt="sparse")
+            cfg = replace(cfg, sample=sample)
             ingest(bags, cfg, progress=aligning)
-            metas = [read_meta(out, p.stem) for p in sorted((out / "meta").glob("*.json"))]
-        return [
-            ({name: Alignment.from_meta(a) for name, a in m.alignment.items()},
-             None if m.twist_cam0 is None else np.asarray(m.twist_cam0, np.float64))
-            for m in metas
-        ]  # fmt: skip
+            return from_metas([read_meta(out, p.stem) for p in sorted((out / "meta").glob("*.json"))])
 
     return refine(bags, rig, progress, align)
 

@@ -28,7 +28,7 @@ from calibration.types import F64, U8
 from ingest.bags.decode import Frame, ImuSample
 from ingest.bags.reader import open_bags
 from ingest.errors import BagError
-from ingest.train.align import Alignment, check_calibration, corrected
+from ingest.train.align import Alignment, Combined, SampleAlignments, check_calibration, combine, corrected
 from ingest.train.clouds import GyroTrack, integrate_gyro
 from ingest.train.timeshift import (
     TIMING_ROTATION_SIGMA_DEG,
@@ -95,6 +95,49 @@ class LidarRefinement:
 
 
 @dataclass(frozen=True)
+class StereoAlignment:
+    """The camchain's stereo pose checked through the LiDAR points: laid onto both images, a LiDAR's
+    correction in cam1 should be its correction in cam0 seen from cam1. What it is not is the error of
+    T_cam1_cam0: its rotation (deg) and the change of cam1's position (mm), with 1-sigmas, from the
+    LiDAR whose estimate is the surest. Reported, not applied."""
+
+    lidar: str
+    rotation_deg: float
+    translation_mm: float
+    sigma_rotation_deg: float
+    sigma_translation_mm: float
+
+    @property
+    def disagrees(self) -> bool:
+        """Beyond `STEREO_WARN_DEG` or `STEREO_WARN_MM`, and three sigma."""
+        turned = self.rotation_deg > max(STEREO_WARN_DEG, 3 * self.sigma_rotation_deg)
+        return turned or self.translation_mm > max(STEREO_WARN_MM, 3 * self.sigma_translation_mm)
+
+
+def stereo_alignment(rig: Rig, upper: Combined, lower: Combined | None) -> StereoAlignment | None:
+    """The stereo pose's error implied by each LiDAR's corrections onto cam0 (`upper`) and cam1
+    (`lower`): true T_cam1_cam0 = C1 T_cam1_cam0 C0^-1; the LiDAR with the smallest rotation sigma
+    speaks (None without a LiDAR aligned onto both)."""
+    if lower is None:
+        return None
+    T10 = rig.lower.T_cam_cam0
+    best: StereoAlignment | None = None
+    for name, c0 in upper.corrections.items():
+        c1 = lower.corrections.get(name)
+        if c1 is None:
+            continue
+        true = corrected(np.eye(4), c1) @ T10 @ np.linalg.inv(corrected(np.eye(4), c0))
+        error = true @ np.linalg.inv(T10)
+        angle = float(np.degrees(np.linalg.norm(cv2.Rodrigues(error[:3, :3])[0])))
+        moved = float(np.linalg.norm(true[:3, 3] - T10[:3, 3]) * 1e3)
+        sigma_deg = float(np.hypot(c0.sigma_rotation_deg, c1.sigma_rotation_deg))
+        sigma_mm = float(np.hypot(c0.sigma_translation_mm, c1.sigma_translation_mm))
+        if best is None or sigma_deg < best.sigma_rotation_deg:
+            best = StereoAlignment(name, angle, moved, sigma_deg, sigma_mm)
+    return best
+
+
+@dataclass(frozen=True)
 class Refinement:
     """What `refine` found; `rig` is the refined rig (the input's where nothing was observable)."""
 
@@ -107,6 +150,7 @@ class Refinement:
     lidars: tuple[LidarRefinement, ...] = ()  # with an `align` run: each LiDAR's pose from the images
     image_clock_ms: tuple[float, float] | None = None  # the alignment's own check of cam0's offset: the
     # exposure times were this much late after refining (ms, 1-sigma); None: not observable or not run
+    stereo_alignment: StereoAlignment | None = None  # the stereo pose checked by the LiDAR points
 
     def unobserved_lines(self) -> list[str]:
         """One line per camera offset the recording could not reveal: what was kept and what to record."""
@@ -119,6 +163,13 @@ class Refinement:
                     f"{e.excitation_deg_s:.1f} deg/s, 1-sigma {e.sigma_ms:.2f} ms); the rig's "
                     f"{cam.rig_timeshift_ms:+.3f} ms is kept: record the rig turned by hand for a few seconds"
                 )
+        if self.stereo_alignment is not None and self.stereo_alignment.disagrees:
+            a = self.stereo_alignment
+            lines.append(
+                f"{a.lidar}'s points on both images put the camchain's stereo pose {a.rotation_deg:.2f} deg "
+                f"and {a.translation_mm:.1f} mm off (1-sigma {a.sigma_rotation_deg:.2f} deg, "
+                f"{a.sigma_translation_mm:.1f} mm); recalibrate the stereo pair (kalibr_calibrate_cameras)"
+            )
         if self.stereo.disagrees:
             s = self.stereo
             lines.append(
@@ -263,9 +314,12 @@ def _rotated(T: F64, R_new: F64, R_old: F64) -> F64:
     return out
 
 
-Aligner = Callable[[Rig, int], list[tuple[dict[str, Alignment], F64 | None]]]
-"""Per-sample LiDAR-to-image alignments (and cam0's twist) of the recording under a rig, given how many
-frames cam0 recorded: a sparse ingest of some of them (`ingest.train.pipeline.refine_rig`)."""
+Aligner = Callable[[Rig, int], tuple[SampleAlignments, SampleAlignments]]
+"""Per-sample LiDAR-to-image alignments of the recording under a rig, given how many frames cam0
+recorded: onto the upper images (with cam0's twist) and onto the lower ones (in cam1); a sparse ingest
+of some of the frames (`ingest.train.pipeline.refine_rig`)."""
+STEREO_WARN_DEG = 0.1
+STEREO_WARN_MM = 5.0
 ALIGN_ROUNDS = 2
 """Alignment rounds: the second starts from the first's rig, where each sample's linearisation and its
 visibility test are closer to the truth (a 1 deg, 3 cm error: 6.4 mm left after one round outdoors)."""
@@ -297,11 +351,13 @@ def _refine_lidars(found: Refinement, align: Aligner) -> Refinement:
     counts: dict[str, int] = {}
     sigmas: dict[str, tuple[float, float]] = {}
     clock: tuple[float, float] | None = None
+    stereo: StereoAlignment | None = None
     for _ in range(ALIGN_ROUNDS):
-        samples = align(rig, found.frames.get(rig.upper.name, 0))
+        samples, lower = align(rig, found.frames.get(rig.upper.name, 0))
         check = check_calibration(samples)
         if check is None:
             break
+        stereo = stereo_alignment(rig, check.combined, combine([(found_, None) for found_, _ in lower]))
         shifts.append(check.median_shift_deg)
         combined = check.combined
         clock = (
@@ -328,7 +384,7 @@ def _refine_lidars(found: Refinement, align: Aligner) -> Refinement:
             name, angle, float(np.linalg.norm(T[:3, 3]) * 1e3), *sigmas[name], before, after, counts[name],
             applied,
         ))  # fmt: skip
-    return replace(found, rig=rig, lidars=tuple(lidars), image_clock_ms=clock)
+    return replace(found, rig=rig, lidars=tuple(lidars), image_clock_ms=clock, stereo_alignment=stereo)
 
 
 def _with_lidar_corrected(rig: Rig, name: str, correction: Alignment) -> Rig:

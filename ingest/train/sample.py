@@ -162,6 +162,7 @@ class SampleParams:
     decision: str = "asked"  # why `method` (written to every sample's meta)
     gap_fallback: bool = False  # dense: a frame in a trajectory gap gets sparse GT (--gt auto), not skipped
     dense: DenseParams = field(default_factory=DenseParams)
+    align_lower: bool = False  # also lay the points onto the lower image (`calib refine`'s stereo check)
 
 
 @dataclass(frozen=True)
@@ -385,9 +386,10 @@ def _process_sparse(job: SampleJob, images: Background[Equirects], start_ms: flo
     t2 = time.perf_counter()
     twist = _gyro_twist(job, velocity if motion.applied else None)
     alignment = _alignments(job, pts, refl, which)
+    lower = _lower_alignments(job, pts, refl, which)
     ms["alignment"] = (time.perf_counter() - t2) * 1e3
     meta = SampleMeta(
-        **job.timing(), source_bag=job.source, alignment=alignment, twist_cam0=twist,
+        **job.timing(), source_bag=job.source, alignment=alignment, twist_cam0=twist, alignment_lower=lower,
         lidar_skew_ms=skew_ms,
         motion=MotionMeta(
             applied=motion.applied, source=motion.source, max_rotation_deg=motion.max_rotation_deg,
@@ -415,12 +417,30 @@ def _alignments(
     placed in cam0 at the exposure (`pts_cam0`, from LiDAR `which`); none without reflectivity."""
     if reflectivity is None:
         return {}
-    levels = ImageLevels.from_bgr(job.upper_bgr)
-    model = job.geometry.rig.upper.model
+    return _aligned(job, job.upper_bgr, job.geometry.rig.upper.model, pts_cam0, reflectivity, which)
+
+
+def _lower_alignments(
+    job: SampleJob, pts_cam0: F64, reflectivity: F64 | None, which: I64
+) -> dict[str, AlignmentMeta]:
+    """`_alignments` onto the lower image, the points moved into cam1 by the camchain's stereo pose
+    (`SampleParams.align_lower`; none without it)."""
+    if reflectivity is None or not job.params.align_lower:
+        return {}
+    lower = job.geometry.rig.lower
+    pts_cam1 = pts_cam0 @ lower.T_cam_cam0[:3, :3].T + lower.T_cam_cam0[:3, 3]
+    return _aligned(job, job.lower_bgr, lower.model, pts_cam1, reflectivity, which)
+
+
+def _aligned(
+    job: SampleJob, image: np.ndarray[Any, Any], model: Any, pts: F64, reflectivity: F64, which: I64
+) -> dict[str, AlignmentMeta]:
+    """Each LiDAR's `align_points` of `pts` (in the camera of `image` and `model`)."""
+    levels = ImageLevels.from_bgr(image)
     out = {}
     for i, lp in enumerate(job.lidars):
         mine = which == i
-        found = align_points(model, levels, rows(pts_cam0, mine), reflectivity[mine])
+        found = align_points(model, levels, rows(pts, mine), reflectivity[mine])
         if found is not None:
             out[lp.name] = found.to_meta()
     return out
@@ -552,12 +572,14 @@ def _process_dense(job: SampleJob, images: Background[Equirects], start_ms: floa
     ms["ground_truth"] = (time.perf_counter() - t1) * 1e3
     t2 = time.perf_counter()
     alignment = _alignments(job, placed, refl, which)
+    lower = _lower_alignments(job, placed, refl, which)
     ms["alignment"] = (time.perf_counter() - t2) * 1e3
     in_window = (traj.stamps_ns >= tc - prm.dense.window_ns) & (traj.stamps_ns <= tc + prm.dense.window_ns)
     residual = traj.residual_m[in_window]
     residual = residual[np.isfinite(residual)]
     meta = SampleMeta(
         **job.timing(), source_bag=job.source, lidar_skew_ms=cloud.skew_ms, alignment=alignment,
+        alignment_lower=lower,
         twist_cam0=_trajectory_twist(traj, tc),
         motion=MotionMeta(
             applied=True, source="trajectory", max_rotation_deg=float(np.degrees(turn_rad)),

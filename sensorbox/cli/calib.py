@@ -245,6 +245,13 @@ def calib_refine(
     frames = ", ".join(f"{n} {k}" for k, n in refinement.frames.items())
     readings = ", ".join(f"{n} {k}" for k, n in refinement.imu_readings.items())
     console.print(f"Read {frames} frames and {readings} gyro readings.")
+    if refinement.stereo_alignment is not None:
+        a = refinement.stereo_alignment
+        console.print(
+            f"Stereo pose check (LiDAR points on both images, {a.lidar}): the camchain's T_cam1_cam0 is "
+            f"{a.rotation_deg:.3f} deg and {a.translation_mm:.1f} mm from what they say (1-sigma "
+            f"{a.sigma_rotation_deg:.3f} deg, {a.sigma_translation_mm:.1f} mm; not changed by refine)."
+        )
     if refinement.image_clock_ms is not None:
         ms, sigma = refinement.image_clock_ms
         console.print(

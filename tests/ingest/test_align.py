@@ -159,3 +159,37 @@ def test_ingest_flags_a_lidar_turned_by_a_quarter_degree_and_not_the_exact_rig(t
 
 def test_check_calibration_of_no_alignment_is_none() -> None:
     assert check_calibration([({}, None), ({}, np.zeros(6))]) is None
+
+
+def _correction(T: F64) -> Alignment:
+    """An `Alignment` holding the rigid motion `T` (4x4), with a tight information matrix."""
+    rotvec = Rotation.from_matrix(T[:3, :3]).as_rotvec()
+    return Alignment(rotvec, T[:3, 3].copy(), np.eye(6) * 1e10, 40, float("nan"), float("nan"), 3.0, 1e-3)
+
+
+def test_the_stereo_pose_error_comes_back_from_both_images_corrections() -> None:
+    """A LiDAR off by X in cam0 and a stereo pose off by E: the corrections onto cam0 (X) and onto cam1
+    (E T10 X T10^-1) give E back, 0.3 deg and 5 mm; an exact stereo pose gives nothing."""
+    from calibration.rig import REFERENCE_RIG, read_rig
+    from ingest.train.align import Combined
+    from ingest.train.refine import stereo_alignment
+
+    rig = read_rig(REFERENCE_RIG)
+    T10 = rig.lower.T_cam_cam0
+
+    def motion(rotvec_deg: list[float], shift_m: list[float]) -> F64:
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_rotvec(np.radians(rotvec_deg)).as_matrix()
+        T[:3, 3] = shift_m
+        return T
+
+    X = motion([0.6, -0.48, 0.64], [0.02, -0.015, 0.0158])
+    for E, deg, mm in ((motion([0.0, 0.3, 0.0], [0.005, 0.0, 0.0]), 0.3, 5.0), (np.eye(4), 0.0, 0.0)):
+        upper = Combined({"top": _correction(X)}, None, float("inf"), 40, 1.0)
+        lower = Combined({"top": _correction(E @ T10 @ X @ np.linalg.inv(T10))}, None, float("inf"), 40, 1.0)
+        found = stereo_alignment(rig, upper, lower)
+        assert found is not None and found.lidar == "top"
+        assert found.rotation_deg == pytest.approx(deg, abs=1e-6)
+        moved = np.linalg.norm((E @ T10)[:3, 3] - T10[:3, 3]) * 1e3
+        assert found.translation_mm == pytest.approx(moved, abs=1e-6) and moved == pytest.approx(mm, abs=0.5)
+        assert found.disagrees == (deg > 0)
