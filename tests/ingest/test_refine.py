@@ -250,8 +250,8 @@ def test_lidar_poses_come_back_through_two_alignment_rounds() -> None:
     errors = (([0.6, -0.48, 0.64], [0.02, -0.015, 0.0158]), ([-0.2, 0.3, 0.3464], [-0.01, 0.012, -0.0126]))
     given = replace(
         truth,
-        lidars=tuple(replace(x, T_cam0_lidar=moved(x.T_cam0_lidar, *e)) for x, e in zip(truth.lidars, errors)),
-        imus=tuple(replace(x, T_cam0_imu=moved(x.T_cam0_imu, *e)) for x, e in zip(truth.imus, errors)),
+        lidars=tuple(replace(x, T_cam0_lidar=moved(x.T_cam0_lidar, *e)) for x, e in zip(truth.lidars, errors, strict=True)),
+        imus=tuple(replace(x, T_cam0_imu=moved(x.T_cam0_imu, *e)) for x, e in zip(truth.imus, errors, strict=True)),
     )  # fmt: skip
     rng = np.random.default_rng(3)
 
@@ -270,7 +270,7 @@ def test_lidar_poses_come_back_through_two_alignment_rounds() -> None:
 
     stereo = StereoCheck(0.0, 1.0, False, 0, 0.0, 0.0)
     found = _refine_lidars(Refinement((), (), given, {"cam0": 400, "cam1": 400}, {}, stereo), align)
-    for lidar, imu, (rotvec, shift) in zip(found.rig.lidars, found.rig.imus, errors, strict=True):
+    for lidar, imu, (rotvec, _) in zip(found.rig.lidars, found.rig.imus, errors, strict=True):
         exact = truth.lidar(lidar.name)
         assert _angle_deg(lidar.T_cam0_lidar[:3, :3], exact.T_cam0_lidar[:3, :3]) < 0.02
         assert np.linalg.norm(lidar.T_cam0_lidar[:3, 3] - exact.T_cam0_lidar[:3, 3]) < 0.001
