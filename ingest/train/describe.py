@@ -54,6 +54,7 @@ def _fingerprint(cfg: IngestConfig, geometry: Geometry, bags: list[Path]) -> dic
             "name": rig.name,
             "source": str(Path(rig.source).resolve()) if rig.source else None,
             "camera_clock_offsets": _clock_offsets(rig, cfg.refine),
+            "lidar_poses": _lidar_poses(rig, cfg.refine),
         },
         "R_cam0_rect": geometry.rect.R_cam0_rect.tolist(),
         "R_cam1_rect": geometry.rect.R_cam1_rect.tolist(),
@@ -98,6 +99,14 @@ def _clock_offsets(rig: Any, refined: bool) -> dict[str, Any]:
         }
         for c in rig.cameras
     }
+
+
+def _lidar_poses(rig: Any, refined: bool) -> dict[str, Any]:
+    """Each LiDAR's pose in cam0 as ingest used it (4x4, m), and where it came from."""
+    given = f"the rig file {rig.source}" if rig.source else "the rig"
+    if refined:
+        given = f"--refine: its points laid onto cam0's images where certain (see the summary), else {given}"
+    return {lidar.name: {"T_cam0_lidar": lidar.T_cam0_lidar.tolist(), "from": given} for lidar in rig.lidars}
 
 
 SETTINGS = ("R_cam0_rect", "height_full", "baseline_m", "params", "fisheye_size")

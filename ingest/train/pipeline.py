@@ -553,7 +553,7 @@ def refine_rig(
     frames in a temporary folder, removed (`aligning` over each round's samples)."""
 
     def align(candidate: Rig, frames: int) -> tuple[SampleAlignments, SampleAlignments]:
-        every = max(1, frames // ALIGN_SAMPLES)
+        every = max(1, -(-frames // ALIGN_SAMPLES))  # at most ALIGN_SAMPLES frames
         with tempfile.TemporaryDirectory(prefix="sensorbox-align-") as tmp:
             rig_file = Path(tmp) / "rig" / "rig.yaml"
             rig_file.parent.mkdir()

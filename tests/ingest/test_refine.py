@@ -228,6 +228,11 @@ def test_ingest_refine_times_the_samples_with_the_offsets_it_found(late_walk: Pa
         "--refine: estimated from the recording"
     )
     assert read_rig(out / "rig" / "rig.yaml").upper.timeshift_cam_imu == pytest.approx(found_ms / 1e3)
+    poses = doc["rig"]["lidar_poses"]
+    assert set(poses) == {lidar.name for lidar in summary.refinement.rig.lidars}
+    for lidar in summary.refinement.rig.lidars:
+        np.testing.assert_allclose(poses[lidar.name]["T_cam0_lidar"], lidar.T_cam0_lidar, atol=1e-12)
+        assert poses[lidar.name]["from"].startswith("--refine: its points laid onto cam0's images")
 
 
 def test_lidar_poses_come_back_through_two_alignment_rounds() -> None:
