@@ -136,9 +136,10 @@ def apply(rotation_rad: F64, translation_m: F64, pts: F64) -> F64:
 @dataclass(frozen=True)
 class ImageLevels:
     """cam0's image as the alignment reads it: per coarse-to-fine level the blurred intensity and its
-    x and y gradients (float32, intensity per pixel)."""
+    x and y gradients (float32, intensity per pixel), as the channels of one image (one remap reads
+    all three)."""
 
-    levels: tuple[tuple[np.ndarray, np.ndarray, np.ndarray], ...]
+    levels: tuple[np.ndarray, ...]  # per level (H, W, 3) float32: intensity, d/dx, d/dy
 
     @classmethod
     def from_bgr(cls, image: np.ndarray) -> ImageLevels:
@@ -153,18 +154,16 @@ class ImageLevels:
             blurred = cv2.GaussianBlur(grey, (0, 0), max(0.5, sigma * scale))
             gx = cv2.Sobel(blurred, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8)
             gy = cv2.Sobel(blurred, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)
-            levels.append((blurred, gx, gy))
+            levels.append(cv2.merge([blurred, gx, gy]))
         return cls(tuple(levels))
 
 
 def _sample(image: np.ndarray, px: F64) -> F64:
-    """Bilinear samples of a float32 image at pixel positions (N, 2)."""
+    """Bilinear samples (N, channels) of a float32 image at pixel positions (N, 2)."""
     x = np.ascontiguousarray(px[:, 0], np.float32).reshape(-1, 1)
     y = np.ascontiguousarray(px[:, 1], np.float32).reshape(-1, 1)
-    out: F64 = (
-        cv2.remap(image, x, y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).ravel().astype(np.float64)
-    )
-    return out
+    sampled = cv2.remap(image, x, y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return np.asarray(sampled, np.float64).reshape(len(px), -1)
 
 
 def nearest_in_cell(px: F64, range_m: F64) -> np.ndarray:
@@ -211,26 +210,37 @@ def align_points(
 ) -> Alignment | None:
     """The correction that lays `pts_cam0` (N, 3, m, in cam0 at the image's exposure) with their
     `reflectivity` best onto `image` (see the module docstring); None with fewer than `MIN_POINTS`
-    visible points or no texture to align on."""
+    visible points or no texture to align on.
+
+    Which points are visible and the projection's Jacobian are taken once per
+    level, at the level's start: within a level the points move by a fraction
+    of its blur, and Gauss-Newton converges to the same minimum with them.
+    """
     finite = np.isfinite(pts_cam0).all(axis=1) & np.isfinite(reflectivity)
     pts, refl = _thinned(pts_cam0[finite], np.asarray(reflectivity, np.float64)[finite], max_points)
     w_rad, t_m = np.zeros(3), np.zeros(3)
-    gain, offset = 1.0, 0.0
+    affine = np.array([1.0, 0.0])  # intensity = gain * reflectivity + offset
     step: _Step | None = None
-    for level in range(len(SIGMAS_PX)):
+    for level in image.levels:
+        px, J, ok = _projected(model, apply(w_rad, t_m, pts))
+        ok[ok] = nearest_in_cell(px[ok], np.linalg.norm(pts[ok], axis=1))
+        if ok.sum() < MIN_POINTS:
+            return None
+        visible, J, rf = pts[ok], J[ok], refl[ok]
         for _ in range(ITERATIONS_PER_LEVEL):
-            step = _gauss_newton(model, image.levels[level], apply(w_rad, t_m, pts), refl, gain, offset)
+            step = _gauss_newton(model, level, apply(w_rad, t_m, visible), J, rf, affine)
             if step is None:
                 return None
             dR = rotation_matrix(step.delta[:3])
             w_rad = np.asarray(cv2.Rodrigues(dR @ rotation_matrix(w_rad))[0], np.float64).ravel()
             t_m = dR @ t_m + step.delta[3:6]
-            gain, offset = gain + step.delta[6], offset + step.delta[7]
+            affine = affine + step.delta[6:]
     assert step is not None
     shift = np.arccos(np.clip(np.einsum("ij,ij->i", _unit(apply(w_rad, t_m, pts)), _unit(pts)), -1.0, 1.0))
+    corr = np.corrcoef(step.intensity, step.reflectivity)[0, 1] if np.std(step.reflectivity) > 0 else 0.0
     return Alignment(
-        w_rad, t_m, step.information, len(step.points), step.correlation, float(np.degrees(np.median(shift))),
-        float(np.median(np.linalg.norm(step.points, axis=1))), 1.0 / px_per_rad(model),
+        w_rad, t_m, step.information, step.points, float(np.nan_to_num(corr)),
+        float(np.degrees(np.median(shift))), step.range_m, 1.0 / px_per_rad(model),
     )  # fmt: skip
 
 
@@ -243,49 +253,43 @@ def _unit(v: F64) -> F64:
 class _Step:
     delta: F64  # (rotation, translation, gain, offset) increments
     information: F64  # 6x6, the affine intensity model marginalised out
-    points: F64  # the visible points the step used (cam0, m)
-    correlation: float
+    points: int  # the points the step used
+    range_m: float  # their median range
+    intensity: F64  # the image at them, and their reflectivity (for the correlation)
+    reflectivity: F64
 
 
 def _gauss_newton(
-    model: CameraModel,
-    level: tuple[np.ndarray, np.ndarray, np.ndarray],
-    pts: F64,
-    refl: F64,
-    gain: float,
-    offset: float,
+    model: CameraModel, level: np.ndarray, p: F64, J: F64, refl: F64, affine: F64
 ) -> _Step | None:
-    """One robust Gauss-Newton step of the photometric cost at `pts` (already corrected)."""
-    blurred, gx, gy = level
-    px, J, ok = _projected(model, pts)
-    ok[ok] = nearest_in_cell(px[ok], np.linalg.norm(pts[ok], axis=1))
+    """One robust Gauss-Newton step of the photometric cost at the corrected points `p`, with the
+    projection's Jacobian `J` (N, 2, 3) and the intensity model `affine` (gain, offset)."""
+    px, ok = model.project(p)
+    ok &= model.in_image(px)
     if ok.sum() < MIN_POINTS:
         return None
-    p, px, J, rf = pts[ok], px[ok], J[ok], refl[ok]
-    intensity = _sample(blurred, px)
-    grad_px = np.stack([_sample(gx, px), _sample(gy, px)], axis=1)
-    grad_p = np.einsum("ni,nik->nk", grad_px, J)  # dI/dp
+    p, px, J, rf = p[ok], px[ok], J[ok], refl[ok]
+    sampled = _sample(level, px)
+    intensity = sampled[:, 0]
+    grad_p = np.einsum("ni,nik->nk", sampled[:, 1:], J)  # dI/dp
     # d(R(dw) p)/d(dw) = -[p]x, so dI/d(dw) = grad_p . (dw x p) / dw = p x grad_p
     rows = np.concatenate([np.cross(p, grad_p), grad_p, -rf[:, None], -np.ones((len(p), 1))], axis=1)
-    residual = intensity - (gain * rf + offset)
+    residual = intensity - (affine[0] * rf + affine[1])
     spread = 1.4826 * float(np.median(np.abs(residual - np.median(residual))))
     if not spread > 0:
         return None
     weight = 1.0 / (1.0 + (residual / (CAUCHY_SCALE * spread)) ** 2)
-    H = (rows * weight[:, None]).T @ rows
-    g = (rows * weight[:, None]).T @ residual
+    weighted = rows * weight[:, None]
+    H, g = weighted.T @ rows, weighted.T @ residual
     try:
         delta = -np.linalg.solve(H, g)
+        pose, across = H[:6, :6], H[:6, 6:]
+        variance = float(np.sum(weight * residual**2) / max(1, len(p) - 8))
+        info = (pose - across @ np.linalg.solve(H[6:, 6:], across.T)) / variance
     except np.linalg.LinAlgError:
         return None
-    variance = float(np.sum(weight * residual**2) / max(1, len(p) - 8))
-    pose, affine = H[:6, :6], H[:6, 6:]
-    try:
-        info = (pose - affine @ np.linalg.solve(H[6:, 6:], affine.T)) / variance
-    except np.linalg.LinAlgError:
-        return None
-    corr = float(np.corrcoef(intensity, rf)[0, 1]) if np.std(rf) > 0 and np.std(intensity) > 0 else 0.0
-    return _Step(delta, info, p, corr)
+    range_m = float(np.median(np.linalg.norm(p, axis=1)))
+    return _Step(delta, info, len(p), range_m, intensity, rf)
 
 
 SYSTEMATIC_PX = 0.15
