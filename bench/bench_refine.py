@@ -56,7 +56,7 @@ CASES = {
     "walk outdoor": dict(scene="outdoor", trajectory="walk", seed=2),
     "walk indoor": dict(scene="indoor", trajectory="walk", seed=5),
     "static room": dict(scene="indoor", trajectory="static", seed=1),
-    "walk outdoor, mixed returns": dict(scene="outdoor", trajectory="walk", seed=2, mixed_returns=True),
+    "walk outdoor mixed returns": dict(scene="outdoor", trajectory="walk", seed=2, mixed_returns=True),
 }
 OFFSETS_NS = (23_000_000, -14_000_000)  # upper, lower: header stamp minus true exposure
 ERRORS = (  # per LiDAR (and its IMU): rotation vector (deg), translation (m), in cam0
@@ -118,7 +118,7 @@ def main() -> None:
     print(machine_line())
     rec_rows, gt_rows, csv_rows = [], [], []
     for name in args.cases.split(","):
-        bag = work / name.replace(" ", "_").replace(",", "")
+        bag = work / name.replace(" ", "_")
         if not (bag.with_name(bag.name + ".truth") / "sim.yaml").exists():
             cfg = SimConfig(**CASES[name], duration_s=args.seconds, scale=args.scale,  # type: ignore[arg-type]
                             camera_offset_ns=OFFSETS_NS, range_noise_model="mid360")  # fmt: skip
@@ -152,6 +152,9 @@ def main() -> None:
                     f"{after:.3f}" if applied else "not applied (rig's kept)", f"{after:.3f}",
                     "-" if sigma is None else f"{sigma:.3f}", f"{seconds:.0f}",
                 ])  # fmt: skip
+        print(f"{name}: refine took {seconds:.0f} s", *(" | ".join(r[:5]) for r in rec_rows if r[0].startswith(name)),
+              f"stereo check: {found.stereo_alignment}", f"clock check: {found.image_clock_ms}",
+              sep="\n  ", flush=True)  # fmt: skip
         for label, rig in (("exact rig", truth.rig), ("given rig", given), ("refined rig", found.rig)):
             med, outl, dens = _gt(bag, rig, work / f"{bag.name}_{label.split()[0]}", truth, args.every)
             gt_rows.append([f"{name}: {label}", f"{med:.2f}", f"{outl:.2f}", f"{dens:.2f}"])
@@ -202,7 +205,7 @@ def _score_study(args: argparse.Namespace, work: Path) -> None:
     """Part 3: per-sample scores for the exact rig and one error at a time, against the true GT error."""
     rows, points = [], []
     for name in args.cases.split(","):
-        bag = work / name.replace(" ", "_").replace(",", "")
+        bag = work / name.replace(" ", "_")
         truth = Truth.load(bag)
         by_variant: dict[str, list[float]] = {}
         for variant in SCORE_VARIANTS:
