@@ -152,9 +152,9 @@ def main() -> None:
                     f"{after:.3f}" if applied else "not applied (rig's kept)", f"{after:.3f}",
                     "-" if sigma is None else f"{sigma:.3f}", f"{seconds:.0f}",
                 ])  # fmt: skip
-        print(f"{name}: refine took {seconds:.0f} s", *(" | ".join(r[:5]) for r in rec_rows if r[0].startswith(name)),
-              f"stereo check: {found.stereo_alignment}", f"clock check: {found.image_clock_ms}",
-              sep="\n  ", flush=True)  # fmt: skip
+        mine_rows = [" | ".join(r[:5]) for r in rec_rows if r[0].startswith(f"{name}:")]
+        print(f"{name}: refine took {seconds:.0f} s", *mine_rows, f"stereo check: {found.stereo_alignment}",
+              f"clock check: {found.image_clock_ms}", sep="\n  ", flush=True)  # fmt: skip
         for label, rig in (("exact rig", truth.rig), ("given rig", given), ("refined rig", found.rig)):
             med, outl, dens = _gt(bag, rig, work / f"{bag.name}_{label.split()[0]}", truth, args.every)
             gt_rows.append([f"{name}: {label}", f"{med:.2f}", f"{outl:.2f}", f"{dens:.2f}"])
