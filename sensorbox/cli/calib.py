@@ -197,7 +197,7 @@ def lidar_table(refinement: Refinement) -> Table:
             lidar.lidar, f"{lidar.rotation_deg:.3f}, {lidar.translation_mm:.1f}",
             f"{lidar.sigma_rotation_deg:.3f}, {lidar.sigma_translation_mm:.1f}",
             f"{lidar.shift_before_deg:.3f} -> {lidar.shift_after_deg:.3f}", str(lidar.samples),
-            "pose refined" if lidar.applied else "rig's pose kept (too uncertain)",
+            "pose refined" if lidar.applied else "rig's pose kept (uncertain and insignificant)",
         )  # fmt: skip
     return table
 
