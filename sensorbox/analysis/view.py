@@ -20,7 +20,8 @@ Benchmark layout (`sensorbox render-benchmark`), one row per scene on
 camera under `<FOV>FOV/<B>mm/<CAMERA>/<image>`, CENTER's depth and disparity
 as depth images beside them, `world/center` (T_world_center) with
 `world/center/<B>mm/<PARTNER>` and every number of scene.yaml's `stats` and
-`scans` as scalars (`stats/<view>/<field>`, `scans/<scan>/points`).
+`scans` as scalars (`scene/stats/<FOV>FOV/<B>mm/<CAMERA>/<image>/<field>`,
+`scene/scans/<scan>/points`).
 
 Images are shrunk by a whole factor until their longest side is at most
 `max_side_px` (960 by default; `None` keeps them whole): colour by area
@@ -395,8 +396,9 @@ def benchmark_scalars(doc: Mapping[str, Any]) -> dict[tuple[str, ...], float]:
     """The numbers of a scene.yaml: each view's render `stats` and each scan's point counts."""
     out: dict[tuple[str, ...], float] = {}
     stats = doc.get("stats")
-    if isinstance(stats, Mapping):
-        out.update(meta_scalars(stats, ("stats",)))
+    for view, counts in (stats or {}).items() if isinstance(stats, Mapping) else ():
+        if isinstance(counts, Mapping):  # "120FOV/65mm/DOWN/fisheye" as four levels of the entity tree
+            out.update(meta_scalars(counts, ("stats", *str(view).split("/"))))
     for scan in doc.get("scans") or []:
         if isinstance(scan, Mapping) and isinstance(scan.get("name"), str):
             counts = {k: scan[k] for k in ("points", "dropped_points") if k in scan}
