@@ -39,6 +39,8 @@ import json
 import math
 import os
 import re
+import shutil
+import sys
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -54,12 +56,14 @@ from ingest.dataset.layout import DEPTH_SCALE, DISP_SCALE
 from ingest.dataset.png import read_image
 from ingest.errors import DatasetError, OutputError
 from ingest.eval.evaluate import Layout, detect_layout
+from sensorbox.errors import ViewerError
 
 if TYPE_CHECKING:
     import rerun as rr
 
 MAX_SIDE_PX = 960
 JPEG_QUALITY = 90
+VIEWER_FLUSH_S = 120.0  # a spawned viewer that takes nothing for this long did not start
 TIMELINE_TIME = "time"  # train: the sample's exposure (ns since the epoch)
 TIMELINE_SAMPLE = "sample"  # train: the sample's id
 TIMELINE_SCENE = "scene"  # benchmark: the scene's index in name order
@@ -468,7 +472,10 @@ def view_dataset(
 
     The .rrd is written to a temporary name beside `save` and renamed when
     complete, so a failed run leaves no partial recording. A folder that is
-    neither layout is an `EvalError` naming it; a damaged file a `DatasetError`.
+    neither layout is an `EvalError` naming it; a damaged file a `DatasetError`;
+    a viewer that cannot be started (no display, no `rerun` executable) or
+    does not take the recording within `VIEWER_FLUSH_S` a `ViewerError`,
+    before any file is read in the first two cases.
     """
     import rerun
 
@@ -478,12 +485,12 @@ def view_dataset(
     if tmp is not None:
         rec.save(tmp)
     else:
-        rec.spawn()
+        _spawn(rec)
     try:
         rec.send_recording_name(root.resolve().name)
         log = log_train if layout == "train" else log_benchmark
         summary = log(rec, root, max_side_px, progress)
-        rec.flush()
+        _flush(rec, streamed=tmp is None)
     except BaseException:
         rec.disconnect()
         if tmp is not None:
@@ -497,6 +504,49 @@ def view_dataset(
             tmp.unlink(missing_ok=True)
             raise OutputError(f"cannot write {save}: {err.strerror or err}") from err
     return summary
+
+
+def display_problem(env: Mapping[str, str], platform: str) -> str | None:
+    """Why no viewer window can open here (Linux without X11 or Wayland), or None when one can."""
+    if platform.startswith("linux") and not (env.get("DISPLAY") or env.get("WAYLAND_DISPLAY")):
+        return "no display for the Rerun viewer (DISPLAY and WAYLAND_DISPLAY are unset)"
+    return None
+
+
+def viewer_executable(path_env: str, python: Path) -> Path | None:
+    """The `rerun` viewer rerun-sdk installs: on PATH, else beside the Python running this (a virtual
+    environment used without activating it); None when neither has one."""
+    found = shutil.which("rerun", path=os.pathsep.join(p for p in (path_env, str(python.parent)) if p))
+    return Path(found) if found else None
+
+
+def _spawn(rec: rr.RecordingStream) -> None:
+    """Start a Rerun viewer and stream `rec` to it; refused in one line where it cannot start."""
+    hint = "; save the recording with --save FILE.rrd and open it where there is one ('rerun FILE.rrd')"
+    if (problem := display_problem(os.environ, sys.platform)) is not None:
+        raise ViewerError(problem + hint)
+    exe = viewer_executable(os.environ.get("PATH", ""), Path(sys.executable))
+    if exe is None:
+        raise ViewerError(f"no Rerun viewer executable 'rerun' on PATH nor beside {sys.executable}{hint}")
+    path_env = os.environ.get("PATH", "")
+    os.environ["PATH"] = os.pathsep.join(p for p in (str(exe.parent), path_env) if p)  # rerun looks there
+    try:
+        rec.spawn()
+    finally:
+        os.environ["PATH"] = path_env
+
+
+def _flush(rec: rr.RecordingStream, streamed: bool) -> None:
+    """Wait until everything logged is written (a file) or taken by the viewer (at most VIEWER_FLUSH_S)."""
+    if not streamed:
+        rec.flush()
+        return
+    try:
+        rec.flush(timeout_sec=VIEWER_FLUSH_S)
+    except Exception as err:  # the binding raises a plain RuntimeError-like error on its timeout
+        raise ViewerError(
+            f"the Rerun viewer did not take the recording within {VIEWER_FLUSH_S:g} s ({err})"
+        ) from err
 
 
 def _staging(save: Path) -> Path:

@@ -32,7 +32,7 @@ def summary_line(summary: ViewSummary, dataset: Path, save: Path | None) -> str:
         parts.append(f"{summary.poses} on the trajectory")
     parts.append(f"{summary.frames} rig frames")
     if summary.missing_files:
-        parts.append(f"{len(summary.missing_files)} files missing (first: {summary.missing_files[0]})")
+        parts.append(f"missing files: {len(summary.missing_files)} (first: {summary.missing_files[0]})")
     where = f"saved {save} ({human_bytes(save.stat().st_size)})" if save else "sent to the Rerun viewer"
     return "; ".join(parts) + f"; {where}"
 

@@ -8,6 +8,7 @@ The train dataset is the indoor static fixture ingested with dense GT
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -23,12 +24,14 @@ import yaml
 from calibration import read_rig
 from ingest.train.pipeline import IngestConfig, ingest
 from sensorbox.analysis.view import (
+    display_problem,
     downscale_factor,
     downscale_nearest_surface,
     meta_scalars,
     pose_at,
     read_tum,
     view_dataset,
+    viewer_executable,
 )
 from tests.paths import FIXTURES_DIR, ROOT
 
@@ -90,9 +93,14 @@ def _jpeg_shape(row: dict[str, Any]) -> tuple[int, ...]:
     return tuple(image.shape)
 
 
-def _cli(*args: str) -> subprocess.CompletedProcess[str]:
+def _cli(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
-        [sys.executable, "-m", "sensorbox.cli", *args], capture_output=True, text=True, cwd=ROOT, check=False
+        [sys.executable, "-m", "sensorbox.cli", *args],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        check=False,
+        env=env,
     )
 
 
@@ -197,6 +205,17 @@ def test_a_damaged_image_is_named_and_no_recording_is_left(dense_ds: Path, tmp_p
         "(12 bytes: empty, cut short or not an image)"
     ]
     assert list((tmp_path / "out").iterdir()) == []
+
+
+def test_a_missing_image_is_counted_and_named(dense_ds: Path, tmp_path: Path) -> None:
+    thin = tmp_path / "ds"
+    shutil.copytree(dense_ds, thin)
+    (thin / "right_fisheye" / "000001.png").unlink()
+    res = _cli("view", str(thin), "--save", str(tmp_path / "x.rrd"))
+    assert res.returncode == 0, res.stderr
+    assert ": 4 samples; 15 images; 8 depth images; " in res.stdout
+    assert "; missing files: 1 (first: right_fisheye/000001.png); saved " in res.stdout
+    assert sorted(_one_per_sample(_rows(tmp_path / "x.rrd", "sample")["cam1/fisheye"])) == [0, 2, 3]
 
 
 def test_save_onto_a_folder_is_refused(dense_ds: Path, tmp_path: Path) -> None:
@@ -370,3 +389,25 @@ def test_a_rendered_benchmark_has_every_view_and_number(rendered: Path, tmp_path
     assert summary.scalars == len(summary.series) == numbers
     valid = _one_per_sample(rows["scene/stats/120FOV/120mm/DOWN/fisheye/valid_px"])[0]
     assert valid["Scalars:scalars"] == [float(doc["stats"]["120FOV/120mm/DOWN/fisheye"]["valid_px"])]
+
+
+def test_without_a_display_the_viewer_is_refused_in_one_line(dense_ds: Path) -> None:
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    res = _cli("view", str(dense_ds), env=env)
+    assert res.returncode == 2 and res.stdout == ""
+    assert res.stderr.strip().splitlines() == [
+        "error: no display for the Rerun viewer (DISPLAY and WAYLAND_DISPLAY are unset); save the recording "
+        "with --save FILE.rrd and open it where there is one ('rerun FILE.rrd')"
+    ]
+    assert display_problem({"DISPLAY": ":0"}, "linux") is None
+    assert display_problem({"WAYLAND_DISPLAY": "wayland-0"}, "linux") is None
+    assert display_problem({}, "darwin") is None
+
+
+def test_the_viewer_executable_is_found_beside_the_python_running(tmp_path: Path) -> None:
+    venv_bin = tmp_path / "venv" / "bin"
+    venv_bin.mkdir(parents=True)
+    (venv_bin / "rerun").write_text("#!/bin/sh\n")
+    (venv_bin / "rerun").chmod(0o755)
+    assert viewer_executable("/nonexistent", venv_bin / "python") == venv_bin / "rerun"
+    assert viewer_executable("", tmp_path / "python") is None
