@@ -41,7 +41,7 @@ import os
 import re
 import shutil
 import sys
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -380,6 +380,7 @@ def log_train(
         summary.samples += 1
         if progress is not None:
             progress(n + 1, len(ids))
+    _send_train_blueprint(log)
     return summary
 
 
@@ -431,6 +432,53 @@ def _log_scene_poses(log: _Logger, doc: Mapping[str, Any], where: Path) -> None:
             T_c = _matrix(T, f"{where}: T_center_partner.{partner}.{baseline}")
             log.rec.log(entity, _transform(log.rr, T_c), log.rr.TransformAxes3D(0.05))
             log.summary.frames += 1
+
+
+def train_layout(series: Iterable[str]) -> list[tuple[str, list[str]]]:
+    """The time-series panels of the train layout's default viewer layout: (title, entity paths) of the
+    numbers a bad stretch shows in first, from the series logged; every other series stays one click
+    away in the viewer's entity tree."""
+    logged = sorted(series)
+    picks = (
+        ("GT density", lambda e: e == "/meta/gt/density"),
+        (
+            "misalignment per LiDAR (shift_deg)",
+            lambda e: e.startswith("/meta/alignment/") and e.endswith("/shift_deg"),
+        ),
+        ("points per filter", lambda e: e.startswith("/meta/points/")),
+        (
+            "motion and trajectory residual",
+            lambda e: e in ("/meta/motion/predicted_motion_px", "/meta/gt/trajectory_residual_mm"),
+        ),
+    )
+    panels = [(title, [e for e in logged if keep(e)]) for title, keep in picks]
+    return [(title, entities) for title, entities in panels if entities]
+
+
+def _send_train_blueprint(log: _Logger) -> None:
+    """The default layout of a train recording: cam0 with its GT depth over it, cam1, the equirects
+    with the disparity over the upper one, the rig in 3D and the panels of `train_layout`."""
+    import rerun.blueprint as rrb
+
+    images = rrb.Grid(
+        rrb.Spatial2DView(origin="cam0", name="cam0 + GT depth"),
+        rrb.Spatial2DView(origin="cam1", name="cam1"),
+        rrb.Spatial2DView(
+            origin="equirect", contents=["equirect/up", "equirect/disparity"], name="equirect up + disparity"
+        ),
+        rrb.Spatial2DView(origin="equirect/down_virt", name="equirect down (virtual)"),
+    )
+    charts = [
+        rrb.TimeSeriesView(origin="/", contents=entities, name=title)
+        for title, entities in train_layout(log.summary.series)
+    ]
+    rig = rrb.Spatial3DView(origin="world", name="rig and trajectory")
+    right = rrb.Vertical(rig, *charts, row_shares=[2.0] + [1.0] * len(charts))
+    log.rec.send_blueprint(
+        rrb.Blueprint(
+            rrb.Horizontal(images, right, column_shares=[3, 2]), auto_views=False, collapse_panels=True
+        )
+    )
 
 
 def log_benchmark(

@@ -30,6 +30,7 @@ from sensorbox.analysis.view import (
     meta_scalars,
     pose_at,
     read_tum,
+    train_layout,
     view_dataset,
     viewer_executable,
 )
@@ -115,6 +116,7 @@ def test_train_dataset_saved_and_read_back(dense_ds: Path, tmp_path: Path) -> No
         "4 on the trajectory; 5 rig frames; saved "
     )
     assert not list(tmp_path.glob(".*.tmp"))
+    assert len(rerun_chunk.RrdReader(rrd).blueprints()) == 1  # the default layout travels with the data
     rows = _rows(rrd, "sample")
     metas = {int(p.stem): json.loads(p.read_text()) for p in sorted((dense_ds / "meta").glob("*.json"))}
     assert sorted(metas) == [0, 1, 2, 3]
@@ -411,3 +413,21 @@ def test_the_viewer_executable_is_found_beside_the_python_running(tmp_path: Path
     (venv_bin / "rerun").chmod(0o755)
     assert viewer_executable("/nonexistent", venv_bin / "python") == venv_bin / "rerun"
     assert viewer_executable("", tmp_path / "python") is None
+
+
+def test_the_default_layout_charts_density_misalignment_points_and_motion() -> None:
+    series = {
+        "/meta/gt/density", "/meta/gt/depth_pixels", "/meta/alignment/lidar_top/shift_deg",
+        "/meta/alignment/lidar_top/correlation", "/meta/alignment/lidar_bottom/shift_deg",
+        "/meta/points/kept", "/meta/points/zero", "/meta/motion/predicted_motion_px",
+    }  # fmt: skip
+    assert train_layout(series) == [
+        ("GT density", ["/meta/gt/density"]),
+        (
+            "misalignment per LiDAR (shift_deg)",
+            ["/meta/alignment/lidar_bottom/shift_deg", "/meta/alignment/lidar_top/shift_deg"],
+        ),
+        ("points per filter", ["/meta/points/kept", "/meta/points/zero"]),
+        ("motion and trajectory residual", ["/meta/motion/predicted_motion_px"]),
+    ]
+    assert train_layout({"/meta/stereo_dt_ms"}) == []
