@@ -65,10 +65,12 @@ def view_cmd(
     also 'sample' by id). Benchmark layout: one step per scene (timeline
     'scene'). Without --save the Rerun viewer is spawned.
     """
+    from ingest.eval.evaluate import detect_layout
     from sensorbox.analysis.view import MAX_SIDE_PX, view_dataset
 
+    unit = "samples" if detect_layout(dataset) == "train" else "scenes"
     if save is not None:
         check_out_file("--save", save)
-    with progress_bar("viewing", "samples") as update:
+    with progress_bar("viewing", unit) as update:
         summary = view_dataset(dataset, save, None if full_res else MAX_SIDE_PX, progress=update)
     typer.echo(summary_line(summary, dataset, save))

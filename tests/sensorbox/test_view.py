@@ -431,3 +431,18 @@ def test_the_default_layout_charts_density_misalignment_points_and_motion() -> N
         ("motion and trajectory residual", ["/meta/motion/predicted_motion_px"]),
     ]
     assert train_layout({"/meta/stereo_dt_ms"}) == []
+
+
+def test_help_and_a_missing_argument() -> None:
+    res = _cli("view", "--help")
+    assert res.returncode == 0 and "--save" in res.stdout and "--full-res" in res.stdout
+    res = _cli("view")
+    assert res.returncode == 2
+    assert res.stderr.strip().splitlines() == [
+        "error: Missing argument 'dataset'. (see 'sensorbox view --help')"
+    ]
+    res = _cli("view", str(ROOT), "--save", "")
+    assert res.returncode == 2
+    assert res.stderr.strip().splitlines() == [
+        "error: --save '': empty path (that is the current folder); give a path"
+    ]
