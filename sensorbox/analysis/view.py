@@ -104,6 +104,7 @@ class ViewSummary:
     poses: int = 0  # samples placed on the trajectory
     frames: int = 0  # static rig frames (cam1, LiDARs, IMUs; benchmark: partners per scene)
     missing_files: list[str] = field(default_factory=list)  # relative paths of a sample's absent files
+    image_entities: set[str] = field(default_factory=set)  # entity paths of the images and depth images
     off_trajectory: int = 0  # train samples outside their trajectory's knots (or with none)
 
 
@@ -295,6 +296,7 @@ class _Logger:
         small = downscale_colour(rgb, downscale_factor(rgb.shape, self.max_side_px))
         self.rec.log(entity, self.rr.Image(small).compress(jpeg_quality=JPEG_QUALITY))
         self.summary.images += 1
+        self.summary.image_entities.add(entity)
 
     def depth(self, entity: str, path: Path, root: Path, units_per_metre: float) -> None:
         if not path.is_file():
@@ -304,6 +306,7 @@ class _Logger:
         small = downscale_nearest_surface(values, downscale_factor(values.shape, self.max_side_px))
         self.rec.log(entity, self.rr.DepthImage(small, meter=units_per_metre))
         self.summary.depth_images += 1
+        self.summary.image_entities.add(entity)
 
     def scalars(self, prefix: str, values: Mapping[tuple[str, ...], float]) -> None:
         for keys, value in values.items():
@@ -506,7 +509,52 @@ def log_benchmark(
         summary.samples += 1
         if progress is not None:
             progress(n + 1, len(scenes))
+    _send_benchmark_blueprint(log)
     return summary
+
+
+BENCHMARK_CHARTS = ("hole_px", "valid_px", "masked_px", "filled_px")  # render stats charted per view
+
+
+def benchmark_layout(images: Iterable[str]) -> dict[str, list[tuple[str, list[str]]]]:
+    """The image panels of the benchmark layout's default viewer layout: per `<FOV>FOV/<B>mm`, (title,
+    entity paths) of each camera image, CENTER's with its depth over it, and of each disparity map."""
+    logged = set(images)
+    tabs: dict[str, list[tuple[str, list[str]]]] = {}
+    for entity in sorted(logged):
+        parts = entity.split("/")  # <FOV>FOV, <B>mm, <CAMERA>, then <image> or depth|disparity, <image>
+        pair, camera, rest = "/".join(parts[:2]), parts[2], parts[3:]
+        if len(rest) == 1:  # a camera's image: <pair>/<CAMERA>/<image>
+            depth = f"{pair}/{camera}/depth/{rest[0]}"
+            title = f"{camera} {rest[0]}" + (" + depth" if depth in logged else "")
+            tabs.setdefault(pair, []).append((title, [entity] + ([depth] if depth in logged else [])))
+        elif rest[0] == "disparity":
+            tabs.setdefault(pair, []).append((f"{camera} {rest[1]} disparity", [entity]))
+    # per camera its images first, then its disparity maps
+    return {
+        pair: sorted(panels, key=lambda p: (p[0].split()[0], p[0].endswith(" disparity")))
+        for pair, panels in tabs.items()
+    }
+
+
+def _send_benchmark_blueprint(log: _Logger) -> None:
+    """The default layout of a benchmark recording: a tab per FOV and baseline with a view per image
+    (`benchmark_layout`), one with the scene's cameras in 3D and one with the render stats' charts."""
+    import rerun.blueprint as rrb
+
+    tabs: list[Any] = [
+        rrb.Grid(*(rrb.Spatial2DView(origin="/", contents=c, name=t) for t, c in panels), name=pair)
+        for pair, panels in benchmark_layout(log.summary.image_entities).items()
+    ]
+    tabs.append(rrb.Spatial3DView(origin="world", name="cameras"))
+    charts = [
+        rrb.TimeSeriesView(origin="/", contents=entities, name=field)
+        for field in BENCHMARK_CHARTS
+        if (entities := sorted(e for e in log.summary.series if e.endswith(f"/{field}")))
+    ]
+    if charts:
+        tabs.append(rrb.Grid(*charts, name="render stats"))
+    log.rec.send_blueprint(rrb.Blueprint(rrb.Tabs(*tabs), auto_views=False, collapse_panels=True))
 
 
 def view_dataset(

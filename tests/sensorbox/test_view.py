@@ -24,6 +24,7 @@ import yaml
 from calibration import read_rig
 from ingest.train.pipeline import IngestConfig, ingest
 from sensorbox.analysis.view import (
+    benchmark_layout,
     display_problem,
     downscale_factor,
     downscale_nearest_surface,
@@ -370,6 +371,7 @@ def rendered(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def test_a_rendered_benchmark_has_every_view_and_number(rendered: Path, tmp_path: Path) -> None:
     summary = view_dataset(rendered, tmp_path / "r.rrd")
+    assert len(rerun_chunk.RrdReader(tmp_path / "r.rrd").blueprints()) == 1
     scene = rendered / "000_000_000"
     pngs = sorted(p.relative_to(scene).with_suffix("").as_posix() for p in scene.rglob("*.png"))
     gt = [p for p in pngs if "/depth/" in p or "/disparity/" in p]
@@ -446,3 +448,19 @@ def test_help_and_a_missing_argument() -> None:
     assert res.stderr.strip().splitlines() == [
         "error: --save '': empty path (that is the current folder); give a path"
     ]
+
+
+def test_the_benchmark_layout_has_a_view_per_image_with_the_depth_over_centers() -> None:
+    images = [
+        "120FOV/65mm/CENTER/fisheye", "120FOV/65mm/CENTER/depth/fisheye", "120FOV/65mm/CENTER/disparity/pano",
+        "120FOV/65mm/CENTER/pano", "120FOV/65mm/DOWN/fisheye", "195FOV/65mm/RIGHT/cassini_crop",
+    ]  # fmt: skip
+    assert benchmark_layout(images) == {
+        "120FOV/65mm": [
+            ("CENTER fisheye + depth", ["120FOV/65mm/CENTER/fisheye", "120FOV/65mm/CENTER/depth/fisheye"]),
+            ("CENTER pano", ["120FOV/65mm/CENTER/pano"]),
+            ("CENTER pano disparity", ["120FOV/65mm/CENTER/disparity/pano"]),
+            ("DOWN fisheye", ["120FOV/65mm/DOWN/fisheye"]),
+        ],
+        "195FOV/65mm": [("RIGHT cassini_crop", ["195FOV/65mm/RIGHT/cassini_crop"])],
+    }
