@@ -318,7 +318,7 @@ class _Logger:
 
 def _train_ids(root: Path) -> list[str]:
     """Sample ids of the finished samples (their `meta/<id>.json`, written last), in order."""
-    return sorted(p.stem for p in (root / "meta").glob("*.json") if SAMPLE_ID.match(p.stem))
+    return sorted((p.stem for p in (root / "meta").glob("*.json") if SAMPLE_ID.match(p.stem)), key=int)
 
 
 def _log_rig(log: _Logger, root: Path) -> None:
@@ -576,7 +576,7 @@ def view_dataset(
     import rerun
 
     layout = detect_layout(root)
-    rec = rerun.RecordingStream("sensorbox", recording_id=f"sensorbox-view:{root.resolve()}")
+    rec = rerun.RecordingStream("sensorbox")  # a fresh recording id: a second view is not merged in
     tmp = _staging(save) if save is not None else None
     if tmp is not None:
         rec.save(tmp)

@@ -22,6 +22,7 @@ import pytest
 import yaml
 
 from calibration import read_rig
+from ingest.errors import DatasetError
 from ingest.train.pipeline import IngestConfig, ingest
 from sensorbox.analysis.view import (
     benchmark_layout,
@@ -219,6 +220,17 @@ def test_a_missing_image_is_counted_and_named(dense_ds: Path, tmp_path: Path) ->
     assert ": 4 samples; 15 images; 8 depth images; " in res.stdout
     assert "; missing files: 1 (first: right_fisheye/000001.png); saved " in res.stdout
     assert sorted(_one_per_sample(_rows(tmp_path / "x.rrd", "sample")["cam1/fisheye"])) == [0, 2, 3]
+
+
+def test_a_sample_whose_metadata_is_not_json_is_named(dense_ds: Path, tmp_path: Path) -> None:
+    broken = tmp_path / "ds"
+    shutil.copytree(dense_ds, broken)
+    (broken / "meta" / "000003.json").write_text('{"gt": ')
+    with pytest.raises(
+        DatasetError, match=r"^.*/meta/000003\.json: cannot be read as JSON \(Expecting value"
+    ):
+        view_dataset(broken, tmp_path / "x.rrd")
+    assert not (tmp_path / "x.rrd").exists() and not (tmp_path / ".x.rrd.tmp").exists()
 
 
 def test_save_onto_a_folder_is_refused(dense_ds: Path, tmp_path: Path) -> None:
