@@ -1,4 +1,4 @@
-"""Errors of the box (drivers, protocol, graphs, launch files, recorder); the root is in `calibration`."""
+"""Errors of the box (drivers, protocol, graphs, launch files, recorder, viewer); the root: `calibration`."""
 
 from calibration.errors import CalibrationError, SensorboxError
 
@@ -23,6 +23,10 @@ class RecorderError(SensorboxError):
     """The recorder's configuration or output folder is unusable."""
 
 
+class ViewerError(SensorboxError):
+    """The Rerun viewer `sensorbox view` streams to cannot be started or does not take the recording."""
+
+
 __all__ = [
     "CalibrationError",
     "DriverError",
@@ -31,4 +35,5 @@ __all__ = [
     "ProtocolError",
     "RecorderError",
     "SensorboxError",
+    "ViewerError",
 ]

@@ -32,6 +32,7 @@ from sensorbox.cli.ingest import ingest_cmd
 from sensorbox.cli.inspect import inspect_cmd
 from sensorbox.cli.render import render_benchmark_cmd
 from sensorbox.cli.simulate import simulate_cmd
+from sensorbox.cli.view import view_cmd
 
 P = ParamSpec("P")
 
@@ -73,7 +74,7 @@ calib_app.command("refine")(_interruptible(calib_refine))
 for name, command in (
     ("simulate", simulate_cmd), ("inspect", inspect_cmd), ("ingest", ingest_cmd), ("eval", eval_cmd),
     ("stats", stats_cmd), ("bench", bench_cmd), ("launch", launch_cmd), ("capture", capture_cmd),
-    ("render-benchmark", render_benchmark_cmd),
+    ("render-benchmark", render_benchmark_cmd), ("view", view_cmd),
 ):  # fmt: skip
     app.command(name)(_interruptible(command))
 
