@@ -112,8 +112,11 @@ def snap_to_pixel_rays(
     holds a point or lies in a gap between points that a `close_px` square
     closes (so a surfel never reaches past the outline of the points, into
     the sky beside a silhouette). Rays grazing
-    the plane (|n . ray| < `min_cos`) give nothing; non-planar points stay as
-    they are. Values on pixel-centre rays need no range gradient in the
+    the plane (|n . ray| < `min_cos`) give nothing; non-planar points, and
+    planar ones whose own ray grazes their plane, stay as they are (a
+    surface seen edge-on still holds its pixels: a nearer surface's surfels
+    do not spread over its silhouette onto them, where the edge band then
+    drops them). Values on pixel-centre rays need no range gradient in the
     renderer: they are exact on planes.
     """
     uv, ok = model.project(pts)
@@ -128,7 +131,11 @@ def snap_to_pixel_rays(
     near = cv2.dilate(occupied, np.ones((reach, reach), np.uint8))
     closed = cv2.morphologyEx(occupied, cv2.MORPH_CLOSE, np.ones((close_px, close_px), np.uint8))
     allowed = (closed > 0) & (near > 0)
-    snap = ok & normals.planar
+    # a plane seen edge-on stays as its points: snapped it would give no value and leave its pixels
+    # empty, for a nearer surface's surfels to spread over its silhouette into
+    range_m = np.maximum(np.linalg.norm(pts, axis=1), 1e-12)
+    facing = np.abs(np.einsum("ij,ij->i", normals.normal, pts)) >= min_cos * range_m
+    snap = ok & normals.planar & facing
     idx = np.flatnonzero(snap)
     rays, ray_ok = pixel_rays(model)
     snapped = snap_planar(

@@ -386,6 +386,24 @@ def test_away_from_edges_drops_pixels_next_to_a_range_step_or_a_hole():
     np.testing.assert_array_equal(away_from_edges(rend, 0).reshape(shape), range_m > 0)
 
 
+def test_a_plane_seen_edge_on_keeps_its_points():
+    """Planar points whose own ray grazes their plane (|n . ray| < min_cos) are not snapped (their pixels'
+    rays would meet the plane nowhere near them) but kept as they are: their pixels still hold a surface.
+    A wall x = 1 seen from the origin at 84-87 deg from its normal, beside a facing one at z = 3."""
+    from calibration.fisheye import DoubleSphere
+
+    model = DoubleSphere(120.0, 120.0, 160.0, 100.0, -0.2, 0.6, 320, 200)
+    rng = np.random.default_rng(2)
+    z = rng.uniform(10.0, 19.0, 500)
+    edge_on = np.c_[np.ones(500), rng.uniform(-0.5, 0.5, 500), z]  # cos to the normal: 1 / |p| < 0.1
+    facing = np.c_[rng.uniform(-0.5, 0.5, (500, 2)), np.full(500, 3.0)]
+    pts = np.concatenate([edge_on, facing])
+    normal = np.r_[np.tile([1.0, 0.0, 0.0], (500, 1)), np.tile([0.0, 0.0, 1.0], (500, 1))]
+    snapped = snap_to_pixel_rays(model, pts, Normals(normal, np.ones(1000, bool)), 1, 0.2)
+    np.testing.assert_array_equal(snapped[:500], edge_on)  # first, as they were
+    assert len(snapped) > 500 + 3 * 500 and np.allclose(snapped[500:, 2], 3.0)
+
+
 def test_near_movers_is_a_disc_of_the_margin_in_pixels():
     """The mover margin is an angle: 0.035 rad at this model's 150 px/rad is round(5.25) = 5 px.
 
