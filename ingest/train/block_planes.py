@@ -27,15 +27,15 @@ A block's points are tested, in the world, against every slice some sample
 holding them can use: those within the window plus the reference reach of
 the block (`FreeSpaceSettings.reach_ns`), and each point keeps one bit per
 such slice time that saw through it (`LidarPoints.clear_bits`). The worker
-removes the points whose bits name one of its sample's slices
-(`cleared_for`). Points of one stretch are tested only by slices of it.
+removes the points whose bits name at least `FreeSpaceSettings.min_slices`
+of its sample's slices (`cleared_for`). Points of one stretch are tested only by slices of it.
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -46,7 +46,7 @@ from ingest.bags.decode import Sweep
 from ingest.raster.z_order import z_order
 from ingest.rows import rows
 from ingest.train.clouds import filter_points
-from ingest.train.free_space import free_space_bits
+from ingest.train.free_space import RayTest, free_space_bits, slices_agreeing
 from ingest.train.planes import plane_normals
 from ingest.train.rig_trajectory import RigTrajectory
 
@@ -61,9 +61,8 @@ class FreeSpaceSettings:
     window_ns: int  # a sample's +- window
     reference_ns: int  # a sample's references: slices within this of its frame time (0: its window)
     slice_ns: int
-    cell_deg: float
-    voxel_m: float
-    margin_m: float
+    ray_test: RayTest = field(default_factory=RayTest)
+    min_slices: int = 1  # a point is removed once this many slice times of its sample saw through it
 
     @property
     def reach_ns(self) -> int:
@@ -147,7 +146,8 @@ def _kept_in_cam0(xyz: np.ndarray[Any, Any], tag: np.ndarray[Any, Any] | None, T
 
 
 def cleared_for(bits: U64, stamps_ns: I64, t_ns: int, settings: FreeSpaceSettings, block_ns: int) -> Bool:
-    """Which points a reference slice of the sample at `t_ns` saw through, from their blocks' bits.
+    """Which points `settings.min_slices` reference slices of the sample at `t_ns` saw through,
+    from their blocks' bits.
 
     `bits` (N, words) are the points' `BlockPlanes.clear_bits`, `stamps_ns`
     their times; the sample's references are the slices overlapping
@@ -162,7 +162,8 @@ def cleared_for(bits: U64, stamps_ns: I64, t_ns: int, settings: FreeSpaceSetting
         k0 = int(settings.first_slice(int(j) * block_ns))
         lo, hi = max(first - k0, 0), min(last - k0, bits.shape[1] * 64 - 1)
         if lo <= hi:
-            out[sel] = (rows(bits, sel) & _bit_range(lo, hi, bits.shape[1])).any(axis=1)
+            agree = slices_agreeing(rows(bits, sel) & _bit_range(lo, hi, bits.shape[1]))
+            out[sel] = agree >= settings.min_slices
     return out
 
 
@@ -329,7 +330,7 @@ class BlockPlanes:
         assert fs is not None
         t0 = time.perf_counter()
         S, n_topics = fs.slice_ns, len(sweeps)
-        pts, stamps, lidar, stretch, targets = [], [], [], [], []
+        pts, stamps, lidar, stretch, normal, targets = [], [], [], [], [], []
         for i, (topic, v) in enumerate(sweeps.items()):
             for s in v:
                 if s.span_ns[1] < a or s.span_ns[0] > z:
@@ -337,6 +338,7 @@ class BlockPlanes:
                 world, on = self._placed(topic, s)
                 m = np.flatnonzero((s.stamps_ns >= a) & (s.stamps_ns <= z) & (on >= 0))
                 pts.append(rows(world, m))
+                normal.append(np.asarray(rows(self.normals(s), m), np.float64))
                 stamps.append(s.stamps_ns[m])
                 lidar.append(np.full(len(m), i, np.int64))
                 stretch.append(on[m])
@@ -344,21 +346,22 @@ class BlockPlanes:
         if not pts:
             return
         all_pts, all_st, all_stretch = np.concatenate(pts), np.concatenate(stamps), np.concatenate(stretch)
-        slice_id = (all_st // S) * n_topics + np.concatenate(lidar)
+        all_lidar, all_normal = np.concatenate(lidar), np.concatenate(normal)
+        slice_id = (all_st // S) * n_topics + all_lidar
         tested = (all_st >= lo) & (all_st <= hi)
         bits = np.zeros((len(all_st), fs.words(self.settings.block_ns)), np.uint64)
-        origin_cam0 = {i: self.settings.T_cam0_lidar[t][:3, 3] for i, t in enumerate(sweeps)}
+        origin_cam0 = np.array([self.settings.T_cam0_lidar[t][:3, 3] for t in sweeps]).reshape(-1, 3)
         for st in np.unique(all_stretch[tested]):
             sel = np.flatnonzero(all_stretch == st)
             sids = np.unique(slice_id[sel])
             k, which = sids // n_topics, sids % n_topics
             t_mid = k * S + S // 2
-            lidar_at = np.array([origin_cam0[int(w)] for w in which]).reshape(-1, 3)
-            origins = self.traj.transform(lidar_at, t_mid)
+            origins = self.traj.transform(origin_cam0[which], t_mid)
             refs = [(int(sid), o, int(kk - k0)) for sid, o, kk in zip(sids, origins, k, strict=True)]
+            ray_origin = self.traj.transform(origin_cam0[all_lidar[sel]], all_st[sel])  # each ray's own time
             bits[sel] = free_space_bits(
-                rows(all_pts, sel), slice_id[sel], refs, fs.n_bits(self.settings.block_ns), fs.cell_deg,
-                fs.voxel_m, fs.margin_m, tested[sel],
+                rows(all_pts, sel), slice_id[sel], refs, fs.n_bits(self.settings.block_ns), fs.ray_test,
+                tested[sel], ray_origin, rows(all_normal, sel),
             )  # fmt: skip
         offset = 0
         for s, m in targets:

@@ -19,9 +19,11 @@ GT pixel and meets it (`rect_ranges`). That is exact on planes, as the
 snapped values are, and costs about 80 ms at full resolution against about
 450 ms for a second render of the 3.4 M-pixel window.
 
-Moving objects: a point is kept only where the window's slices do not see
-through it: a mover's earlier positions are free space once it has left, so
-its stale points are removed and counted. The ingest tests each block of
+Moving objects: a point is kept unless the rays of two of the window's
+slice times saw through it (`ingest.train.free_space`): a mover's earlier
+positions are free space once it has left, so its stale points are removed
+and counted, and GT within a margin sized from each mover's extent around
+them is dropped (`mover_margins`, `near_movers`). The ingest tests each block of
 points once for every sample (`ingest.train.block_planes`); without those
 bits a sample runs the test itself (`free_space_filter`).
 """
@@ -33,6 +35,9 @@ from functools import lru_cache
 
 import cv2
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
 
 from calibration.camera import CameraModel
 from calibration.spherical import Equirectangular
@@ -48,6 +53,7 @@ from ingest.raster.visibility import RenderParams
 from ingest.raster.z_order import z_order
 from ingest.rows import rows
 from ingest.train.block_planes import FreeSpaceSettings
+from ingest.train.free_space import RayTest
 from ingest.train.free_space import free_space_filter as free_space_mask
 from ingest.train.groundtruth import px_per_rad
 from ingest.train.planes import Normals, plane_normals
@@ -79,11 +85,20 @@ class DenseParams:
     edge_px: int = 1  # GT pixels this close to a range step or to empty sky are dropped
     free_space: bool = True  # remove points the frame's own sweeps saw through (movers)
     free_cell_deg: float = 1.0  # angular cell of the free-space test (around each LiDAR)
-    mover_margin_rad: float = 0.035  # GT this close (2 deg) to a removed point's direction is dropped
+    mover_margin_rad: float = (
+        0.035  # GT this close (2 deg) to a removed point's direction is dropped, at most:
+    )
+    mover_margin_rel: float = 0.25  # ... this fraction of its mover's angular extent (`mover_margins`),
+    mover_margin_min_rad: float = 0.005  # ... at least this
+    mover_link_m: float = 0.5  # removed points this close belong to one mover
     free_voxel_m: float = 0.05  # points are tested a voxel at a time
     free_slice_ns: int = 50_000_000  # one LiDAR's points over this long share one origin
     free_reference_ns: int = 0  # only slices this near the frame time test the others (0: every slice)
     free_margin_m: float = 0.1  # a ray must pass a point by this much (plus 3 % of range) to clear it
+    free_pass_m: float = 0.03  # ... and pass within this of it, or within its beam's footprint:
+    free_footprint_rad: float = 0.0035  # ... this x range (the Mid-360's 0.2 deg divergence)
+    free_min_cos: float = 0.1  # ... meeting its plane no more grazing than this (cosine to the normal)
+    free_min_slices: int = 2  # a point is removed once this many slice times saw through it
     resample_flat_m: float = 0.01  # cam0 GT pixels giving an equirect ray its plane must lie on it
     resample_flat_rel: float = 0.01  # ... within this much plus this fraction of the range (the render's tau)
     resample_max_change: float = 0.05  # ... and the plane may move the range by at most this fraction
@@ -112,8 +127,11 @@ def snap_to_pixel_rays(
     holds a point or lies in a gap between points that a `close_px` square
     closes (so a surfel never reaches past the outline of the points, into
     the sky beside a silhouette). Rays grazing
-    the plane (|n . ray| < `min_cos`) give nothing; non-planar points stay as
-    they are. Values on pixel-centre rays need no range gradient in the
+    the plane (|n . ray| < `min_cos`) give nothing; non-planar points, and
+    planar ones whose own ray grazes their plane, stay as they are (a
+    surface seen edge-on still holds its pixels: a nearer surface's surfels
+    do not spread over its silhouette onto them, where the edge band then
+    drops them). Values on pixel-centre rays need no range gradient in the
     renderer: they are exact on planes.
     """
     uv, ok = model.project(pts)
@@ -128,7 +146,11 @@ def snap_to_pixel_rays(
     near = cv2.dilate(occupied, np.ones((reach, reach), np.uint8))
     closed = cv2.morphologyEx(occupied, cv2.MORPH_CLOSE, np.ones((close_px, close_px), np.uint8))
     allowed = (closed > 0) & (near > 0)
-    snap = ok & normals.planar
+    # a plane seen edge-on stays as its points: snapped it would give no value and leave its pixels
+    # empty, for a nearer surface's surfels to spread over its silhouette into
+    range_m = np.maximum(np.linalg.norm(pts, axis=1), 1e-12)
+    facing = np.abs(np.einsum("ij,ij->i", normals.normal, pts)) >= min_cos * range_m
+    snap = ok & normals.planar & facing
     idx = np.flatnonzero(snap)
     rays, ray_ok = pixel_rays(model)
     snapped = snap_planar(
@@ -166,27 +188,69 @@ def away_from_edges(rend: Rendering, edge_px: int) -> Bool:
     return flat
 
 
-def near_movers(model: CameraModel, moving_pts: F64, radius_rad: float) -> Bool:
-    """(H, W) pixels within `radius_rad` of view of any point the free-space test removed.
+def mover_margins(moving_pts: F64, params: DenseParams) -> F64:
+    """Per removed point (N, 3), the angle (rad) around it whose GT `near_movers` drops.
+
+    Removed points within `mover_link_m` of each other (a chain of them) are
+    one mover; its extent is its points' largest distance from their centre,
+    seen from the camera at the centre's range. A point's margin is
+    `mover_margin_rel` x its mover's angular extent, within
+    `mover_margin_min_rad`..`mover_margin_rad`: a person or a car that left
+    a trail of removed points gets the full margin, a few points cleared
+    beside a static edge only the least.
+    """
+    if len(moving_pts) == 0:
+        return np.zeros(0)
+    cell = params.mover_link_m / 2
+    keys = np.floor(moving_pts / cell).astype(np.int64)
+    cells, voxel = np.unique(keys, axis=0, return_inverse=True)
+    voxel = voxel.reshape(-1)
+    pairs = cKDTree(cells * cell).query_pairs(params.mover_link_m, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(cells), len(cells)))
+    _, label = connected_components(graph, directed=False)
+    mover = label[voxel]
+    n = int(mover.max()) + 1
+    count = np.bincount(mover, minlength=n).astype(np.float64)
+    centre = np.stack([np.bincount(mover, moving_pts[:, k], n) for k in range(3)], 1) / count[:, None]
+    extent = np.zeros(n)
+    np.maximum.at(extent, mover, np.linalg.norm(moving_pts - centre[mover], axis=1))
+    angle = extent / np.maximum(np.linalg.norm(centre, axis=1), 1e-9)
+    margin = np.clip(params.mover_margin_rel * angle, params.mover_margin_min_rad, params.mover_margin_rad)
+    out: F64 = margin[mover]
+    return out
+
+
+def near_movers(model: CameraModel, moving_pts: F64, radius_rad: F64 | float) -> Bool:
+    """(H, W) pixels within `radius_rad` (per point, or one for all) of view of any point the
+    free-space test removed.
 
     A removed point is a mover's earlier (or later) position; where the mover
     is at the frame time the LiDAR may not have looked (below its field of
     view, say), and the background accumulated there would show through it.
     Ground truth near a mover's path is therefore dropped.
     """
-    mask = np.zeros((model.height, model.width), np.uint8)
-    if len(moving_pts) == 0 or radius_rad <= 0:
-        return mask > 0
+    mask = np.zeros((model.height, model.width), bool)
+    radius = np.broadcast_to(np.asarray(radius_rad, np.float64), (len(moving_pts),))
+    if len(moving_pts) == 0:
+        return mask
     uv, ok = model.project(moving_pts)
-    pix = np.floor(np.nan_to_num(uv[ok]) + 0.5).astype(np.int64)
-    inside = (pix[:, 0] >= 0) & (pix[:, 0] < model.width) & (pix[:, 1] >= 0) & (pix[:, 1] < model.height)
-    mask[pix[inside, 1], pix[inside, 0]] = 1
-    radius_px = max(1, round(radius_rad * px_per_rad(model)))
-    # a disc of radius_px around every such pixel: a 5x5-mask distance transform (within 1 % of the
-    # pixels of a dilation by a disc of that radius, at a third of its cost)
-    dist = cv2.distanceTransform(1 - mask, cv2.DIST_L2, cv2.DIST_MASK_5)
-    out: Bool = dist <= radius_px
-    return out
+    pix = np.floor(np.nan_to_num(uv) + 0.5).astype(np.int64)
+    inside = ok & (pix[:, 0] >= 0) & (pix[:, 0] < model.width) & (pix[:, 1] >= 0) & (pix[:, 1] < model.height)
+    radius_px = np.where(radius > 0, np.maximum(1, np.round(radius * px_per_rad(model))), 0).astype(np.int64)
+    for r in np.unique(radius_px[inside & (radius_px > 0)]):
+        sel = inside & (radius_px == r)
+        # a disc of r px around every such pixel, within their bounding box grown by r: a 5x5-mask distance
+        # transform (within 1 % of the pixels of a dilation by a disc of that radius, at a third of its cost)
+        c0, r0 = max(int(pix[sel, 0].min()) - r, 0), max(int(pix[sel, 1].min()) - r, 0)
+        c1, r1 = (
+            min(int(pix[sel, 0].max()) + r + 1, model.width),
+            min(int(pix[sel, 1].max()) + r + 1, model.height),
+        )
+        seed = np.ones((r1 - r0, c1 - c0), np.uint8)
+        seed[pix[sel, 1] - r0, pix[sel, 0] - c0] = 0
+        dist = cv2.distanceTransform(seed, cv2.DIST_L2, cv2.DIST_MASK_5)
+        mask[r0:r1, c0:c1] |= dist <= r
+    return mask
 
 
 def _view_gt(
@@ -198,7 +262,7 @@ def _view_gt(
     )
     rend = render_points(model, snapped, np.eye(4), params.render)
     keep = away_from_edges(rend, params.edge_px) & ~near_movers(
-        model, moving, params.mover_margin_rad
+        model, moving, mover_margins(moving, params)
     ).reshape(-1)
     return rend, np.flatnonzero(keep)
 
@@ -343,20 +407,35 @@ def cam0_window(model: CameraModel, eq: Equirectangular, R_cam0_rect: F64) -> Eq
     return _cam0_window_cached(model, eq, np.ascontiguousarray(R_cam0_rect, np.float64).tobytes())
 
 
+def ray_test(params: DenseParams) -> RayTest:
+    """The free-space test's ray rule of `params`."""
+    return RayTest(
+        params.free_cell_deg, params.free_voxel_m, params.free_margin_m, pass_m=params.free_pass_m,
+        footprint_rad=params.free_footprint_rad, min_cos=params.free_min_cos,
+    )  # fmt: skip
+
+
 def free_space_settings(params: DenseParams) -> FreeSpaceSettings:
     """The free-space test of `params` as the stream pass's blocks run it (`ingest.train.block_planes`)."""
     return FreeSpaceSettings(
-        params.window_ns, params.free_reference_ns, params.free_slice_ns, params.free_cell_deg,
-        params.free_voxel_m, params.free_margin_m,
+        params.window_ns, params.free_reference_ns, params.free_slice_ns, ray_test(params),
+        params.free_min_slices,
     )  # fmt: skip
 
 
 def free_space_filter(
-    pts: F64, slice_id: I64, references: list[tuple[int, F64]], params: DenseParams, test: Bool | None = None
+    pts: F64,
+    slice_id: I64,
+    references: list[tuple[int, F64]],
+    params: DenseParams,
+    test: Bool | None = None,
+    ray_origin: F64 | None = None,
+    normal: F64 | None = None,
+    lidars: int = 1,
 ) -> Bool:
     """`ingest.train.free_space.free_space_filter` with the dense-GT settings of `params`."""
     return free_space_mask(
-        pts, slice_id, references, params.free_cell_deg, params.free_voxel_m, params.free_margin_m, test
+        pts, slice_id, references, ray_test(params), test, ray_origin, normal, params.free_min_slices, lidars
     )
 
 

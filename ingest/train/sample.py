@@ -558,7 +558,11 @@ def _process_dense(job: SampleJob, images: Background[Equirects], start_ms: floa
             fs, block_ns = free_space_settings(prm.dense), prm.dense.plane_block_ns
             keep = ~(test & cleared_for(bits, stamps, tc, fs, block_ns))
         else:
-            keep = free_space_filter(placed, *_slices(job, traj, stamps, which), prm.dense, test)
+            slice_id, refs, ray_origin = _slices(job, traj, stamps, which)
+            normal = None if normals is None else np.where(normals.planar[:, None], normals.normal, np.nan)
+            keep = free_space_filter(
+                placed, slice_id, refs, prm.dense, test, ray_origin, normal, max(len(job.lidars), 1)
+            )
         moving, placed, which = rows(placed, ~keep), rows(placed, keep), which[keep]
         refl = None if refl is None else refl[keep]
         normals = None if normals is None else Normals(rows(normals.normal, keep), normals.planar[keep])
@@ -615,8 +619,9 @@ def _in_gap(job: SampleJob, images: Background[Equirects], start_ms: float) -> S
 
 def _slices(
     job: SampleJob, traj: RigTrajectory, stamps: I64, which: I64
-) -> tuple[I64, list[tuple[int, F64]]]:
-    """Slice id per point (LiDAR x `free_slice_ns`) and the frame's own slices with their LiDAR origins.
+) -> tuple[I64, list[tuple[int, F64]], F64]:
+    """Slice id per point (LiDAR x `free_slice_ns`), the frame's own slices with their LiDAR origins,
+    and each point's ray origin (its LiDAR at the point's time).
 
     Origins are in cam0 at the frame time, where `traj.to_frame` put the points.
     """
@@ -625,13 +630,14 @@ def _slices(
     n_lidars = max(len(job.lidars), 1)
     slice_id = k * n_lidars + which
     own = slice_id if not prm.free_reference_ns else slice_id[np.abs(stamps - tc) <= prm.free_reference_ns]
+    origins_lidar = np.array([job.geometry.rig.lidar(lidar.name).T_cam0_lidar[:3, 3] for lidar in job.lidars])
+    ray_origin = traj.to_frame(origins_lidar[which], stamps, tc)
     if len(own) == 0:
-        return slice_id, []
+        return slice_id, [], ray_origin
     # the window spans a few dozen slices: a bincount finds them without sorting every point
     lo = int(own.min())
     sids = lo + np.flatnonzero(np.bincount(own - lo))
     t_mid = tc + (sids // n_lidars) * prm.free_slice_ns + prm.free_slice_ns // 2
-    origins_lidar = np.array([job.geometry.rig.lidar(lidar.name).T_cam0_lidar[:3, 3] for lidar in job.lidars])
     origins = traj.to_frame(origins_lidar[sids % n_lidars], t_mid, tc)
     refs = [(int(sid), origin) for sid, origin in zip(sids, origins, strict=True)]
-    return slice_id, refs
+    return slice_id, refs, ray_origin

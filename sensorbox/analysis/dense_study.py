@@ -164,7 +164,11 @@ def job(rec: Recording, geo: Geometry, tc: int, method: Method, out: Path, sid: 
 
 
 def evaluate(rec: Recording, geo: Geometry, method: Method, stamps: list[int], out: Path) -> dict[str, float]:
-    """Mean scores over the samples, and seconds per sample."""
+    """Mean scores over the samples, and seconds per sample.
+
+    `removed` is the share of the window's accumulated points the free-space
+    test removed as movers (0 with the test off).
+    """
     prepare_dirs(out, False)
     (out / "dataset.yaml").write_text(f"height_full: {geo.equirect.height_full}\n")
     truth = replace(rec.truth, rig=geo.rig)
@@ -179,10 +183,13 @@ def evaluate(rec: Recording, geo: Geometry, method: Method, stamps: list[int], o
         assert res.meta is not None
         wrong = s.depth_outlier_rate + s.depth_no_surface_rate  # GT on the sky counts as an outlier
         disp_per_depth = s.disp_pixels / max(1, s.depth_pixels)
-        rows.append((res.meta.gt.density, s.depth_median_abs_m * 1e3, wrong, s.disp_median_abs_px,
-                     s.disp_over_1px_rate, s.mover_trail_rate, disp_per_depth))  # fmt: skip
+        gt = res.meta.gt
+        removed = gt.removed_moving / max(1, gt.accumulated_points + gt.removed_moving)
+        rows.append((gt.density, s.depth_median_abs_m * 1e3, wrong, s.disp_median_abs_px,
+                     s.disp_over_1px_rate, s.mover_trail_rate, disp_per_depth, removed))  # fmt: skip
     a = np.array(rows)
-    keys = ("density", "median_mm", "outliers", "disp_median_px", "disp_over_1px", "trail", "disp_per_depth")
+    keys = ("density", "median_mm", "outliers", "disp_median_px", "disp_over_1px", "trail", "disp_per_depth",
+            "removed")  # fmt: skip
     return {
         **{k: float(np.mean(a[:, i])) for i, k in enumerate(keys)},
         "s_per_sample": statistics.median(secs),

@@ -16,7 +16,7 @@ from ingest.train.block_planes import (
     world_normals,
 )
 from ingest.train.clouds import NOISE_TAG_BITS
-from ingest.train.free_space import free_space_filter
+from ingest.train.free_space import RayTest, free_space_filter
 from ingest.train.rig_trajectory import RigTrajectory
 
 KNOT_NS = 50_000_000
@@ -200,7 +200,7 @@ SLICE_NS = 50_000_000
 
 
 def _free_settings(window_ns: int, reference_ns: int = 0) -> FreeSpaceSettings:
-    return FreeSpaceSettings(window_ns, reference_ns, SLICE_NS, cell_deg=1.0, voxel_m=0.05, margin_m=0.1)
+    return FreeSpaceSettings(window_ns, reference_ns, SLICE_NS, RayTest(), min_slices=2)
 
 
 def _still(seconds: float) -> RigTrajectory:
@@ -238,9 +238,23 @@ def _room_with_a_walker(seconds: float, seed: int = 0) -> dict[str, list[Sweep]]
     return out
 
 
+def _lattice_normals(parts, traj, settings):
+    """`world_normals` of `_room_with_a_walker`'s still rig, exact and a function of position alone: the
+    floor's (y = 1.4 m) and the wall's and walker's (constant z). Points sharing a voxel share a normal,
+    whichever block fitted it, as they share a position."""
+    out = []
+    for xyz, _, _, T in parts:
+        cam0 = np.asarray(xyz, np.float64) @ T[:3, :3].T + T[:3, 3]
+        floor = np.abs(cam0[:, 1] - 1.4) < 1e-3
+        out.append(np.where(floor[:, None], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]).astype(np.float16))
+    return out
+
+
 @pytest.mark.parametrize("reference_ns", [0, 100_000_000])
-def test_a_blocks_free_space_bits_give_each_sample_what_its_own_test_gives(reference_ns):
-    """For every frame time, the points the block bits clear are those the per-sample test clears."""
+def test_a_blocks_free_space_bits_give_each_sample_what_its_own_test_gives(reference_ns, monkeypatch):
+    """For every frame time, the points the block bits clear are those the per-sample test clears
+    (the same rays, planes and number of agreeing slices)."""
+    monkeypatch.setattr(block_planes, "world_normals", _lattice_normals)
     seconds, window_ns, block_ns = 3.0, 500_000_000, 1_000_000_000
     traj, sweeps = _still(seconds), _room_with_a_walker(seconds)
     fs = _free_settings(window_ns, reference_ns)
@@ -255,6 +269,7 @@ def test_a_blocks_free_space_bits_give_each_sample_what_its_own_test_gives(refer
     st = np.concatenate([s.stamps_ns for t in topics for s in sweeps[t]])
     lidar = np.concatenate([np.full(len(s.stamps_ns), i) for i, t in enumerate(topics) for s in sweeps[t]])
     bits = np.concatenate([planes.clear_bits(s) for t in topics for s in sweeps[t]])
+    normal = np.concatenate([planes.normals(s) for t in topics for s in sweeps[t]]).astype(np.float64)
     cleared_somewhere = 0
     for tc in T0 + np.arange(600, 2500, 150) * 1_000_000:
         w = np.flatnonzero(np.abs(st - tc) <= window_ns)
@@ -262,7 +277,9 @@ def test_a_blocks_free_space_bits_give_each_sample_what_its_own_test_gives(refer
         sid = k * 2 + lidar[w]
         near = sid[np.abs(st[w] - tc) <= reference_ns] if reference_ns else sid
         refs = [(int(s), LIDARS[topics[s % 2]][:3, 3].astype(float)) for s in np.unique(near)]
-        keep = free_space_filter(xyz[w].astype(np.float64), sid, refs, 1.0, 0.05, 0.1)
+        keep = free_space_filter(
+            xyz[w].astype(np.float64), sid, refs, fs.ray_test, normal=normal[w], min_slices=2, lidars=2
+        )
         cleared = cleared_for(bits[w], st[w], int(tc), fs, block_ns)
         np.testing.assert_array_equal(cleared, ~keep, err_msg=str(tc - T0))
         cleared_somewhere += int(cleared.sum())
@@ -287,11 +304,15 @@ def test_free_space_waits_for_the_slices_beyond_its_block():
 def test_free_space_rays_start_where_each_lidar_was_in_the_middle_of_its_slice(monkeypatch):
     """Walking at 1 m/s and turning: each slice's reference origin is its LiDAR's position at the slice's
     middle, T_world_cam0(k S + S / 2) applied to the LiDAR's origin in cam0 (its start would be
-    2.5 cm behind), taken from the trajectory's exact pose."""
+    2.5 cm behind), taken from the trajectory's exact pose; that groups its rays, each of which starts
+    where its LiDAR was at its point's own time (within the 2.5 cm of half a slice of the middle)."""
     refs: list[tuple[int, np.ndarray, int]] = []
+    spread: list[float] = []
 
-    def spy(pts, slice_id, references, n_bits, *args):
+    def spy(pts, slice_id, references, n_bits, ray_test, test, ray_origin, normal):
         refs.extend(references)
+        for sid, origin, _ in references:
+            spread.append(float(np.linalg.norm(ray_origin[slice_id == sid] - origin, axis=1).max()))
         return np.zeros((len(pts), -(-n_bits // 64)), np.uint64)
 
     monkeypatch.setattr(block_planes, "free_space_bits", spy)
@@ -306,3 +327,4 @@ def test_free_space_rays_start_where_each_lidar_was_in_the_middle_of_its_slice(m
         t_mid = (sid // 2) * SLICE_NS + SLICE_NS // 2
         R, p = traj.pose(np.array([t_mid]))
         np.testing.assert_allclose(origin, R[0] @ LIDARS[topics[sid % 2]][:3, 3] + p[0], atol=1e-9)
+    assert 0.015 < max(spread) <= 0.026

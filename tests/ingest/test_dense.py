@@ -8,6 +8,7 @@ resolution that fits CI (bench/bench_dense.py measures full resolution).
 
 import math
 from collections.abc import Iterator
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -49,6 +50,27 @@ def walk(tmp_path_factory):
         [bag], IngestConfig(rig=truth.path / "rig.yaml", out=out, workers=1, every=16, gt="auto")
     )
     return {"bag": bag, "truth": truth, "out": out, "summary": summary}
+
+
+@pytest.fixture(scope="module")
+def still_walk(tmp_path_factory):
+    """The same walk with nothing moving, ingested with the free-space test and without it."""
+    root = tmp_path_factory.mktemp("dense_static")
+    cfg = SimConfig(
+        scene="outdoor", trajectory="walk", duration_s=2.2, scale=0.125, range_noise_m=0.0, image="jpeg",
+        seed=7,
+    )  # fmt: skip
+    bag = simulate(cfg, root / "walk").bag
+    truth = Truth.load(bag)
+    outs = {}
+    for name, free in (("on", True), ("off", False)):
+        params = SampleParams(dense=DenseParams(free_space=free))
+        cfg_i = IngestConfig(
+            rig=truth.path / "rig.yaml", out=root / name, workers=1, every=16, gt="dense", sample=params
+        )
+        ingest([bag], cfg_i)
+        outs[name] = root / name
+    return {"truth": truth, **outs}
 
 
 def _read_tum(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -136,8 +158,11 @@ def test_dense_gt_is_exact_where_it_is_and_dense(walk):
         # the equirect keeps cam0's GT: at this resolution the crop and the stability mask leave a quarter
         # to a half of it (about 1.1 at full resolution, bench/bench_dense.py)
         assert s.disp_pixels >= 0.2 * s.depth_pixels, s
-        assert s.depth_no_surface_rate <= 0.005, s  # no GT on the sky beside silhouettes
-        assert s.mover_trail_rate <= 0.001, s  # no GT on a mover's earlier positions
+        # little GT on the sky beside silhouettes: at 240x150 one sample's roof line against the sky holds
+        # 0.53 % (its pixels' centre rays pass over the roof its points lie on; the movers filter no
+        # longer removes those static points, and 2 degrees of GT around them, as it did)
+        assert s.depth_no_surface_rate <= 0.006, s
+        assert s.mover_trail_rate <= 0.0001, s  # no GT on a mover's earlier positions (<= 0.01 %)
 
 
 def test_without_the_free_space_test_movers_leave_trails(walk):
@@ -156,19 +181,39 @@ def test_without_the_free_space_test_movers_leave_trails(walk):
     assert worst_off > 0.005 and worst_off > 20 * max(max(s.mover_trail_rate for s in on), 1e-4)
 
 
-def test_free_space_filter_clears_what_a_reference_saw_through():
-    """A wall at 5 m seen by the reference; a stale point 3 m out in front of it goes, one behind stays."""
+def test_where_nothing_moves_the_free_space_test_removes_almost_nothing(still_walk):
+    """No movers: at most 1 % of each sample's accumulated points are removed as movers (5-8 % when one
+    ray's cell said so, its nearest return beyond a point by the margin) and the GT keeps >= 95 % of its
+    density without the test (91-95 % then), every sample scored against the truth."""
+    on = score_dataset(still_walk["on"], still_walk["truth"])
+    off = score_dataset(still_walk["off"], still_walk["truth"])
+    assert [s.sid for s in on] == [s.sid for s in off] and len(on) >= 4
+    for s_on, s_off in zip(on, off, strict=True):
+        gt_on, gt_off = read_meta(still_walk["on"], s_on.sid).gt, read_meta(still_walk["off"], s_on.sid).gt
+        removed = gt_on.removed_moving / (gt_on.accumulated_points + gt_on.removed_moving)
+        assert 0 < removed <= 0.01, (s_on.sid, removed)
+        assert gt_on.density >= 0.95 * gt_off.density, (s_on.sid, gt_on.density, gt_off.density)
+        assert s_on.depth_outlier_rate <= s_off.depth_outlier_rate + 1e-4, (s_on, s_off)
+
+
+def test_free_space_filter_clears_what_two_references_saw_through():
+    """A wall at 5 m seen by two slices; a stale point 3 m out in front of it goes, one behind stays,
+    one where no ray went stays; and one slice alone is not enough (`free_min_slices` 2)."""
     rng = np.random.default_rng(0)
-    d = rng.normal(size=(20_000, 3))
-    d[:, 0] = np.abs(d[:, 0]) + 2.0
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    wall = d * (5.0 / d[:, 0])[:, None]  # the plane x = 5
+
+    def wall(n: int) -> np.ndarray:
+        d = rng.normal(size=(n, 3))
+        d[:, 0] = np.abs(d[:, 0]) + 2.0
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        return d * (5.0 / d[:, 0])[:, None]  # the plane x = 5
+
     probe = np.array([[3.0, 0.1, 0.05], [6.0, 0.12, 0.06], [3.0, 0.0, 30.0]])  # before, behind, unseen
-    pts = np.concatenate([wall, probe])
-    slice_id = np.r_[np.zeros(len(wall), np.int64), np.ones(3, np.int64)]
-    keep = free_space_filter(pts, slice_id, [(0, np.zeros(3))], DenseParams())
-    assert keep[-3:].tolist() == [False, True, True]
-    assert keep[: len(wall)].all()
+    pts = np.concatenate([wall(20_000), wall(20_000), probe])
+    slice_id = np.r_[np.zeros(20_000, np.int64), np.ones(20_000, np.int64), np.full(3, 2, np.int64)]
+    refs = [(0, np.zeros(3)), (1, np.zeros(3))]
+    keep = free_space_filter(pts, slice_id, refs, DenseParams())
+    assert keep[-3:].tolist() == [False, True, True] and keep[:-3].all()
+    assert free_space_filter(pts, slice_id, refs[:1], DenseParams())[-3:].all()
 
 
 def test_snapped_points_lie_on_pixel_rays_and_on_the_plane():
@@ -386,6 +431,24 @@ def test_away_from_edges_drops_pixels_next_to_a_range_step_or_a_hole():
     np.testing.assert_array_equal(away_from_edges(rend, 0).reshape(shape), range_m > 0)
 
 
+def test_a_plane_seen_edge_on_keeps_its_points():
+    """Planar points whose own ray grazes their plane (|n . ray| < min_cos) are not snapped (their pixels'
+    rays would meet the plane nowhere near them) but kept as they are: their pixels still hold a surface.
+    A wall x = 1 seen from the origin at 84-87 deg from its normal, beside a facing one at z = 3."""
+    from calibration.fisheye import DoubleSphere
+
+    model = DoubleSphere(120.0, 120.0, 160.0, 100.0, -0.2, 0.6, 320, 200)
+    rng = np.random.default_rng(2)
+    z = rng.uniform(10.0, 19.0, 500)
+    edge_on = np.c_[np.ones(500), rng.uniform(-0.5, 0.5, 500), z]  # cos to the normal: 1 / |p| < 0.1
+    facing = np.c_[rng.uniform(-0.5, 0.5, (500, 2)), np.full(500, 3.0)]
+    pts = np.concatenate([edge_on, facing])
+    normal = np.r_[np.tile([1.0, 0.0, 0.0], (500, 1)), np.tile([0.0, 0.0, 1.0], (500, 1))]
+    snapped = snap_to_pixel_rays(model, pts, Normals(normal, np.ones(1000, bool)), 1, 0.2)
+    np.testing.assert_array_equal(snapped[:500], edge_on)  # first, as they were
+    assert len(snapped) > 500 + 3 * 500 and np.allclose(snapped[500:, 2], 3.0)
+
+
 def test_near_movers_is_a_disc_of_the_margin_in_pixels():
     """The mover margin is an angle: 0.035 rad at this model's 150 px/rad is round(5.25) = 5 px.
 
@@ -469,59 +532,39 @@ def test_auto_widens_the_window_for_a_static_rig(tmp_path):
     assert read_meta(tmp_path / "b", "000000").gt.window_ms == 500.0
 
 
-def test_free_space_clears_exactly_the_voxels_a_reference_saw_through():
-    # a reference at the origin sees a wall at 10 m along +x; a stale point at 5 m in front of the wall
-    # (another slice) is cleared, one behind the wall (12 m) and one beside it (no return there) stay
+def test_free_space_clears_exactly_the_voxels_the_references_saw_through():
+    # two slices at the origin see a wall at 10 m along +x (a 5 cm grid); a stale point at 5 m in front of
+    # the wall (another slice) is cleared, one behind the wall (12 m) and one beside it (no ray there) stay
     from ingest.train.dense import DenseParams, free_space_filter
 
     ys, zs = np.meshgrid(np.linspace(-1, 1, 41), np.linspace(-1, 1, 41))
     wall = np.c_[np.full(ys.size, 10.0), ys.ravel(), zs.ravel()]
     stale = np.array([[5.0, 0.0, 0.0], [12.0, 0.2, 0.1], [0.0, 5.0, 0.0]])
-    pts = np.concatenate([wall, stale])
-    slice_id = np.r_[np.zeros(len(wall), np.int64), np.ones(3, np.int64)]
-    keep = free_space_filter(pts, slice_id, [(0, np.zeros(3))], DenseParams())
-    assert keep[: len(wall)].all()
-    assert keep[len(wall) :].tolist() == [False, True, True]
-    # a return beyond the wall (12 m, as the stale slice has) says the wall's voxels in its cell were
-    # seen through: as a reference it clears exactly those
-    keep2 = free_space_filter(pts, slice_id, [(1, np.zeros(3))], DenseParams())
-    wall_cleared = ~keep2[: len(wall)]
-    assert 0 < wall_cleared.sum() <= 16 and keep2[len(wall) :].all()  # one 1-degree cell: 17 cm at 10 m
-    d = wall[wall_cleared] / np.linalg.norm(wall[wall_cleared], axis=1)[:, None]
-    toward = stale[1] / np.linalg.norm(stale[1])
-    assert np.degrees(np.arccos(d @ toward)).max() < 2.0  # within a cell or two of its direction
+    pts = np.concatenate([wall, wall, stale])
+    slice_id = np.r_[np.zeros(len(wall), np.int64), np.ones(len(wall), np.int64), np.full(3, 2, np.int64)]
+    refs = [(0, np.zeros(3)), (1, np.zeros(3))]
+    keep = free_space_filter(pts, slice_id, refs, DenseParams())
+    assert keep[: 2 * len(wall)].all()
+    assert keep[2 * len(wall) :].tolist() == [False, True, True]
+    # the ray to the return beyond the wall (12 m) crosses it at (10, 0.167, 0.083): as a reference it
+    # clears the one wall point within its footprint (0.035 m at 10 m), (10, 0.15, 0.10) 2.4 cm away,
+    # not the 1-degree cell around it (17 cm at 10 m) the test once cleared
+    keep2 = free_space_filter(pts, slice_id, [(2, np.zeros(3))], replace(DenseParams(), free_min_slices=1))
+    for copy in (keep2[: len(wall)], keep2[len(wall) : 2 * len(wall)]):  # one voxel: both slices' points
+        np.testing.assert_allclose(wall[~copy], [[10.0, 0.15, 0.1]], atol=1e-12)
+    assert keep2[2 * len(wall) :].all()
 
 
 def test_free_space_tests_only_the_voxels_asked_about():
     """A stale point outside the tested set is kept; the same point tested is cleared."""
     ys, zs = np.meshgrid(np.linspace(-1, 1, 41), np.linspace(-1, 1, 41))
     wall = np.c_[np.full(ys.size, 10.0), ys.ravel(), zs.ravel()]
-    pts = np.concatenate([wall, [[5.0, 0.0, 0.0], [5.0, 0.5, 0.0]]])
-    slice_id = np.r_[np.zeros(len(wall), np.int64), np.ones(2, np.int64)]
+    pts = np.concatenate([wall, wall, [[5.0, 0.0, 0.0], [5.0, 0.5, 0.0]]])
+    slice_id = np.r_[np.zeros(len(wall), np.int64), np.ones(len(wall), np.int64), np.full(2, 2, np.int64)]
     test = np.zeros(len(pts), bool)
     test[-1] = True
-    keep = free_space_filter(pts, slice_id, [(0, np.zeros(3))], DenseParams(), test)
+    keep = free_space_filter(pts, slice_id, [(0, np.zeros(3)), (1, np.zeros(3))], DenseParams(), test)
     assert keep[:-2].all() and keep[-2:].tolist() == [True, False]
-
-
-def test_the_branchless_cells_are_the_cells_of_the_per_point_rule():
-    """`_cells` (the voxels' loop) bins every direction as `_cell` does, ties between axes and zeros included."""
-    from ingest.train.free_space import _cell, _cells
-
-    rng = np.random.default_rng(7)
-    ties = np.array([[a, b, c] for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)], np.float64)
-    edges = np.array([[1.0, 1.0, 0.5], [0.5, -2.0, 2.0], [-3.0, 0.0, 3.0], [1e-13, 0.0, -1e-13]])
-    d = np.concatenate([ties, edges, rng.normal(size=(5000, 3)) * 10.0])
-    origin = np.array([0.25, -0.5, 1.0])
-    p = d + origin
-    n = 115
-    cell, range2 = np.empty(len(p), np.int64), np.empty(len(p))
-    _cells(p[:, 0].copy(), p[:, 1].copy(), p[:, 2].copy(), *origin, n, cell, range2)  # type: ignore[call-arg]
-    expected = [_cell(*(q - origin), n) for q in p]  # type: ignore[call-arg]
-    assert cell.tolist() == [c for c, _ in expected]
-    assert np.sqrt(range2).tolist() == [r for _, r in expected]
-    assert len(set(cell.tolist())) > 3000  # the random directions fill many cells of all six faces
-    assert set((cell // (n * n)).tolist()) == set(range(6))
 
 
 def _trajectory_without_lidar(

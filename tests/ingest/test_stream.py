@@ -210,7 +210,7 @@ def test_dense_jobs_carry_each_points_free_space_bits_from_every_slice_that_can_
     """The free-space bits a job's points carry are those of their blocks tested against every slice
     within a window and a reference span of them, as if the whole recording were at hand: the stream
     pass keeps the sweeps before a block that can test it and waits for those after it."""
-    free = FreeSpaceSettings(window_ns, 0, 50_000_000, 1.0, 0.05, 0.1)
+    free = FreeSpaceSettings(window_ns, 0, 50_000_000)
     run = _dense_jobs(tmp_path, every, window_ns, block_ns, free)
     assert len(run.jobs) == n_jobs
     want = {
@@ -234,9 +234,7 @@ def test_dense_jobs_travel_through_the_shared_slots_whole(tmp_path: Path) -> Non
     fit the slots sized from the first job and the LiDARs' fastest sweep, and come back out of them
     equal to what was taken: the job itself carries none of their rows."""
     window_ns = 300_000_000
-    run = _dense_jobs(
-        tmp_path, 1, window_ns, 400_000_000, FreeSpaceSettings(window_ns, 0, 50_000_000, 1.0, 0.05, 0.1)
-    )
+    run = _dense_jobs(tmp_path, 1, window_ns, 400_000_000, FreeSpaceSettings(window_ns, 0, 50_000_000))
     geometry = Geometry.from_rig(read_rig(_rig(INDOOR)), 64)
     bound = handoff_bytes_bound(geometry, run.jobs[0], run.the_plan.rates, window_ns)
     slots = ArraySlots(2, bound)
