@@ -28,6 +28,7 @@ from __future__ import annotations
 import argparse
 import csv
 import sys
+import textwrap
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -273,7 +274,7 @@ def _chart(rows: list[dict[str, Any]], path: Path, args: argparse.Namespace) -> 
         ax.bar(xs, values, width, color=color, label=rig)
         for x, v in zip(xs, values, strict=True):
             ax.text(x, v, f"{v:.1f}", ha="center", va="bottom", fontsize=7)
-    ax.set_xticks(np.arange(len(cases)), cases)
+    ax.set_xticks(np.arange(len(cases)), [textwrap.fill(c, 14) for c in cases])
     ax.set_ylabel("sparse GT range error, median [mm]")
     ax.set_yscale("log")
     ax.yaxis.set_major_formatter(matplotlib.ticker.ScalarFormatter())
