@@ -64,24 +64,8 @@ class RayTest:
 
 
 @njit(cache=True, nogil=True)
-def _cell(dx, dy, dz, n):  # type: ignore[no-untyped-def]  # pragma: no cover
-    """Cube-map cell (face, row, col flattened) of a direction and its length."""
-    ax, ay, az = abs(dx), abs(dy), abs(dz)
-    if ax >= ay and ax >= az:
-        face, m, u, v = (0 if dx > 0 else 1), ax, dy, dz
-    elif ay >= az:
-        face, m, u, v = (2 if dy > 0 else 3), ay, dx, dz
-    else:
-        face, m, u, v = (4 if dz > 0 else 5), az, dx, dy
-    m = max(m, 1e-12)
-    iu = min(int((u / m + 1.0) * 0.5 * n), n - 1)
-    iv = min(int((v / m + 1.0) * 0.5 * n), n - 1)
-    return (face * n + iv) * n + iu, math.sqrt(dx * dx + dy * dy + dz * dz)
-
-
-@njit(cache=True, nogil=True)
 def _face_tangents(dx, dy, dz):  # type: ignore[no-untyped-def]  # pragma: no cover
-    """Cube face of a direction and its two tangents on it (each in -1..1), as `_cell` picks them."""
+    """Cube face of a direction and its two tangents on it (each in -1..1)."""
     ax, ay, az = abs(dx), abs(dy), abs(dz)
     if ax >= ay and ax >= az:
         face, m, u, v = (0 if dx > 0 else 1), ax, dy, dz
@@ -91,6 +75,15 @@ def _face_tangents(dx, dy, dz):  # type: ignore[no-untyped-def]  # pragma: no co
         face, m, u, v = (4 if dz > 0 else 5), az, dx, dy
     m = max(m, 1e-12)
     return face, u / m, v / m
+
+
+@njit(cache=True, nogil=True)
+def _cell(dx, dy, dz, n):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """Cube-map cell (face, row, col flattened) of a direction and its length."""
+    face, u, v = _face_tangents(dx, dy, dz)
+    iu = min(int((u + 1.0) * 0.5 * n), n - 1)
+    iv = min(int((v + 1.0) * 0.5 * n), n - 1)
+    return (face * n + iv) * n + iu, math.sqrt(dx * dx + dy * dy + dz * dz)
 
 
 @njit(cache=True, nogil=True)
