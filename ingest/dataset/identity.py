@@ -18,6 +18,7 @@ metadata unreadable) again instead of keeping the damage.
 from __future__ import annotations
 
 import hashlib
+import stat
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from calibration.files import file_kind
 from ingest.dataset.layout import GT_DIRS, IMAGE_DIRS
 from ingest.dataset.meta import SampleMeta, read_meta
 from ingest.dataset.png import read_image
@@ -51,14 +53,32 @@ def frame_digest(upper: Array, lower: Array) -> str:
 
 
 def file_problem(path: Path, size: int, sha256: str) -> str:
-    """Why `path` is not the file of `size` bytes and SHA-256 `sha256` that was written ('' when it is)."""
+    """Why `path` is not the file of `size` bytes and SHA-256 `sha256` that was written ('' when it is).
+
+    Only a regular file of exactly `size` bytes is read, and no more than
+    that: a file of another size is damaged by its size alone. A path that
+    is no regular file (a device, a FIFO, a folder, or a symlink to one: a
+    link to /dev/zero was read until memory ran out) is no sample damage a
+    rerun may write over: a `DatasetError` naming it.
+    """
     try:
-        data = path.read_bytes()
+        st = path.stat()
     except FileNotFoundError:
         return f"{path}: missing"
     except OSError as err:
         return f"{path}: cannot be read ({err.strerror or err})"
-    if len(data) != size:
+    if not stat.S_ISREG(st.st_mode):
+        raise DatasetError(
+            f"{path}: is {file_kind(st.st_mode)}, not a file of the dataset; remove it, or give another --out"
+        )
+    if st.st_size != size:
+        return f"{path}: {st.st_size} bytes, {size} were written"
+    try:
+        with path.open("rb") as f:
+            data = f.read(size + 1)
+    except OSError as err:
+        return f"{path}: cannot be read ({err.strerror or err})"
+    if len(data) != size:  # changed since the stat
         return f"{path}: {len(data)} bytes, {size} were written"
     if hashlib.sha256(data).hexdigest() != sha256:
         return f"{path}: not the file written (its SHA-256 differs)"

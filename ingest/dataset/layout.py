@@ -27,6 +27,7 @@ import contextlib
 import errno
 import hashlib
 import os
+import stat
 import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -36,6 +37,7 @@ from typing import Any
 import numpy as np
 import OpenEXR
 
+from calibration.files import file_kind
 from calibration.types import F32, U8
 from ingest.dataset.meta import FileMeta, SampleMeta
 from ingest.dataset.png import encode_png, read_image
@@ -60,8 +62,11 @@ def write_atomic(path: Path, data: bytes) -> None:
 
     Any failure (a read-only or missing folder, a full disk, `path` a folder)
     is an `OutputError` naming `path`, and leaves neither `path` changed nor
-    the temporary file behind.
+    the temporary file behind. An existing `path` that is neither a regular
+    file nor a folder (a device, a FIFO, a socket, or a symlink to one) is
+    refused before anything is written (`refuse_special_target`).
     """
+    refuse_special_target(path)
     try:
         tmp = _staged(path, data)
         try:
@@ -71,6 +76,23 @@ def write_atomic(path: Path, data: bytes) -> None:
             raise
     except OSError as err:
         raise OutputError(f"cannot write {path}: {err.strerror or err}") from err
+
+
+def refuse_special_target(path: Path) -> None:
+    """Refuse an output `path` that exists as a device, FIFO or socket (symlinks followed).
+
+    The rename of an atomic write would replace the node itself (`--plot
+    /dev/full` made /dev/full a PNG), and writing into it instead would send a
+    whole output to a device. One line naming the path and what it is, an
+    `OutputError` (exit code 3). A missing path, a regular file and a folder
+    pass (a folder is refused by the write, "Is a directory").
+    """
+    try:
+        mode = path.stat().st_mode
+    except OSError:  # missing, or a dangling link: the write itself decides
+        return
+    if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+        raise OutputError(f"{path}: is not a regular file ({file_kind(mode)}); give a file path")
 
 
 def _staged(path: Path, data: bytes) -> str:
@@ -95,8 +117,11 @@ def write_atomic_set(files: Sequence[tuple[Path, bytes]]) -> None:
     failure (a full disk, a read-only or missing folder, a folder where a file
     belongs) is an `OutputError` naming the file, leaves every target as it
     was, no temporary file, and no folder this call made. Folders are made as
-    needed.
+    needed. A target that is a device, FIFO or socket is refused before any
+    file is written (`refuse_special_target`).
     """
+    for target, _ in files:
+        refuse_special_target(target)
     made: list[Path] = []
     staged: list[tuple[str, Path]] = []
     path = files[0][0] if files else Path()

@@ -26,6 +26,7 @@ import logging
 import math
 import os
 import re
+import stat
 import sys
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -37,7 +38,7 @@ import numpy as np
 import yaml
 
 from calibration.errors import SensorboxError
-from calibration.files import read_text
+from calibration.files import file_kind, read_text
 from calibration.opencv_yaml import BoundedSafeLoader, yaml_error_line
 from calibration.transforms import as_transform
 from calibration.types import F32, F64, U8, Bool
@@ -184,8 +185,7 @@ def _read_open3d(path: Path) -> Any:
     """An Open3D tensor point cloud with at least one point, or a ScanError naming the file."""
     import open3d as o3d
 
-    if not path.exists():
-        raise ScanError(f"{path}: no such point cloud")
+    _check_cloud_file(path)
     short = _short_file(path)
     if short:  # Open3D zero-fills a short PLY
         raise ScanError(f"{path}: truncated: {short}")
@@ -197,6 +197,23 @@ def _read_open3d(path: Path) -> Any:
     if "positions" not in pc.point or len(pc.point.positions) == 0:
         raise ScanError(f"{path}: no points (or not a PLY/PCD file Open3D can read)")
     return pc
+
+
+def _check_cloud_file(path: Path) -> None:
+    """Refuse a point cloud path that is missing or no regular file (symlinks followed).
+
+    A link to /dev/zero given as `--mask` was read line by line without end
+    (a header that never ends) until memory ran out; a FIFO would wait
+    forever. One `ScanError` line naming the path and what it is.
+    """
+    try:
+        mode = path.stat().st_mode
+    except FileNotFoundError:
+        raise ScanError(f"{path}: no such point cloud") from None
+    except OSError as err:
+        raise ScanError(f"{path}: cannot read the point cloud: {err.strerror or err}") from err
+    if not stat.S_ISREG(mode):
+        raise ScanError(f"{path}: is {file_kind(mode)}, not a point cloud file")
 
 
 @contextmanager

@@ -178,7 +178,11 @@ def _unresolved_link(path: Path) -> str | None:
 
 def check_out_file(flag: str, path: Path) -> None:
     """Refuse, before any work, an output file whose folder would have to be made where a file is,
-    or cannot be written into."""
+    or cannot be written into, or that exists as a device, FIFO or socket (the write would refuse it
+    only after the work, `ingest.dataset.layout.refuse_special_target`)."""
+    from ingest.dataset.layout import refuse_special_target
+
+    refuse_special_target(path)
     _check_parents(flag, path)
 
 

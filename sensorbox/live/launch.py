@@ -186,6 +186,18 @@ def _fields(entity: str, body: Any, where: str, allowed: Sequence[str], required
     return out
 
 
+def _entries(f: _Map, key: str, entity: str, of: str, where: str) -> list[Any]:
+    """The list under `key` of entity `f` ([] when absent or empty), or a LaunchError naming `entity`
+    and `key`: a scalar (`param: 5`) was a TypeError traceback, a string was iterated by character."""
+    raw = f.get(key)
+    if raw is None:
+        return []
+    if not isinstance(raw, list):
+        got = "a mapping" if isinstance(raw, dict) else repr(raw)
+        raise LaunchError(f"{where}: {entity} `{key}` must be a list of {of}, got {got}")
+    return raw
+
+
 def _condition(body: Any, scope: Scope, where: str) -> bool:
     """False when the entity's `if` is false or its `unless` is true."""
     if not isinstance(body, dict):
@@ -314,7 +326,7 @@ class _Parser:
             self.entities(children, scope)
             return
         inner = scope.child(keep_configs=forwarding)
-        for k in f.get("keep") or []:
+        for k in _entries(f, "keep", "group", "arguments", where):
             kf = _fields("keep", k, where, ("name", "value"), ("name", "value"))
             inner.configs[_text(kf["name"], scope, where, "name")] = _text(kf["value"], scope, where, "value")
         self.entities(children, inner)
@@ -329,7 +341,7 @@ class _Parser:
         if not target.exists():
             raise LaunchError(f"{where}: included launch file {target} not found")
         inner = scope.child()
-        for a in f.get("arg") or []:
+        for a in _entries(f, "arg", "include", "arguments", where):
             af = _fields("include arg", a, where, ("name", "value"), ("name", "value"))
             inner.configs[_text(af["name"], scope, where, "name")] = _text(af["value"], scope, where, "value")
         self.file(target, inner)
@@ -349,10 +361,10 @@ class _Parser:
         ns = _text(f.get("namespace", ""), scope, where, "namespace")
         namespace = ns if ns.startswith("/") else _join_ns(scope.namespace, ns)
         params: dict[str, Any] = {}
-        for entry in f.get("param") or []:
+        for entry in _entries(f, "param", "node", "parameters", where):
             self._param(entry, "", params, scope, where, name or exe, namespace)
         remaps = list(scope.remaps)
-        for entry in f.get("remap") or []:
+        for entry in _entries(f, "remap", "node", "remappings", where):
             rf = _fields("remap", entry, where, ("from", "to"), ("from", "to"))
             remaps.append((_text(rf["from"], scope, where, "from"), _text(rf["to"], scope, where, "to")))
         self.plan.nodes.append(NodeSpec(pkg, exe, name, namespace, params, tuple(remaps), where))
@@ -370,7 +382,7 @@ class _Parser:
         if ("value" in f) == ("param" in f):
             raise LaunchError(f"{where}: param {name!r} needs exactly one of `value` or nested `param`")
         if "param" in f:
-            for sub in f["param"] or []:
+            for sub in _entries(f, "param", f"param {name!r}", "parameters", where):
                 self._param(sub, name + ".", out, scope, where, node, ns)
             return
         kind = f.get("type")

@@ -21,6 +21,7 @@ from scipy.interpolate import CubicSpline
 from scipy.spatial.transform import Rotation, RotationSpline
 
 from calibration.errors import SensorboxError
+from calibration.files import read_text
 from calibration.types import F64
 
 GRAVITY_MPS2 = 9.80665
@@ -139,6 +140,8 @@ def walk(start_world: F64, seed: int, speed_mps: float = 1.2) -> Handheld:
 
 
 TUM_COLUMNS = ("t", "tx", "ty", "tz", "qx", "qy", "qz", "qw")
+MAX_TUM_BYTES = 256 * 1024 * 1024
+"""Largest TUM file read (256 MiB): a pose at 1 kHz for an hour is ~3.6 M rows of ~70 bytes."""
 
 
 def read_tum(path: Path) -> F64:
@@ -147,12 +150,11 @@ def read_tum(path: Path) -> F64:
     Blank lines and `#` comments are skipped. A row that is not 8 finite
     numbers, whose quaternion has zero norm or whose time is not after the
     previous row's is refused with its line number: the spline through it
-    would fail deep in scipy or be NaN.
+    would fail deep in scipy or be NaN. What is no regular UTF-8 text file of
+    at most `MAX_TUM_BYTES` (a link to /dev/zero, a FIFO, a folder) is refused
+    before it is read (`calibration.files.read_text`).
     """
-    try:
-        text = path.read_text()
-    except (OSError, ValueError) as err:  # ValueError: not UTF-8 text
-        raise SensorboxError(f"{path}: cannot read as a TUM trajectory ({err})") from err
+    text = read_text(path, "TUM trajectory", "text", MAX_TUM_BYTES, SensorboxError)
     rows: list[list[float]] = []
     previous_t = ""  # the previous row's time as written
     for line_no, line in enumerate(text.splitlines(), start=1):

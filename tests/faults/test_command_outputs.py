@@ -12,6 +12,7 @@ writer's own exception. Nothing here needs root.
 from __future__ import annotations
 
 import errno
+import os
 import sqlite3
 from pathlib import Path
 
@@ -152,6 +153,30 @@ def test_output_paths_that_are_files_are_refused_before_the_work(
         "bench",
         "pred",
     ]
+
+
+def test_output_files_that_are_a_device_or_fifo_are_refused_before_the_work(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """eval --json and --heatmap renamed their file over a FIFO or a link to /dev/null (calib check --plot
+    /dev/full replaced the device node with a PNG): exit 3 naming it, before any work printed anything."""
+    bench = make_benchmark(tmp_path / "bench")
+    pred = tmp_path / "pred"
+    write_predictions(bench, pred, "stereo")
+    fifo, link = tmp_path / "e.json", tmp_path / "h.png"
+    os.mkfifo(fifo)
+    link.symlink_to("/dev/null")
+    eval_args = ["eval", "--dataset", str(bench), "--pred", str(pred), "--task", "stereo"]
+    cases = [
+        ([*eval_args, "--json", str(fifo)], f"error: {fifo}: is not a regular file (a FIFO (named pipe)); give a file path"),
+        ([*eval_args, "--heatmap", str(link)], f"error: {link}: is not a regular file (a character device); give a file path"),
+        (["calib", "check", str(RIG), "--plot", str(link)], f"error: {link}: is not a regular file (a character device); give a file path"),
+    ]  # fmt: skip
+    for args, message in cases:
+        code, out, err = sensorbox(capsys, *args)
+        assert (code, out, err) == (3, "", [message]), args
+    assert fifo.lstat().st_mode & 0o170000 == 0o010000 and link.readlink() == Path("/dev/null")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bench", "e.json", "h.png", "pred"]
 
 
 @pytest.mark.parametrize(

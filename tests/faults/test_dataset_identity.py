@@ -8,6 +8,7 @@ is written again (and said so), never kept as done.
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -163,6 +164,32 @@ def test_a_damaged_finished_sample_is_written_again_and_named(
     code, stdout, err = sensorbox(capsys, *args)
     assert (code, [line for line in err if "damaged" in line]) == (0, [])
     assert _row(stdout, "written / already done (resumed)") == "0 / 5"
+
+
+@pytest.mark.parametrize("kind", ["link to /dev/zero", "fifo"])
+def test_a_sample_file_that_is_a_device_or_fifo_is_refused_not_read(
+    kind: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A sample's file a symlink to /dev/zero was read until memory ran out (MemoryError traceback); a
+    FIFO would wait forever: one line naming it, exit 2, the node left as it is."""
+    out = tmp_path / "ds"
+    args = ["ingest", str(INDOOR), "--rig", str(RIG), "--out", str(out), "--workers", "1", "--every", "5"]
+    args += ["--height-full", "64", "--gt", "sparse", "--no-preview"]
+    assert sensorbox(capsys, *args)[0] == 0
+    odd = out / "depth_fisheye" / "000001.png"
+    odd.unlink()
+    if kind == "fifo":
+        os.mkfifo(odd)
+        what = "a FIFO (named pipe)"
+    else:
+        odd.symlink_to("/dev/zero")
+        what = "a character device"
+    code, _, err = sensorbox(capsys, *args)
+    assert (code, err) == (
+        2,
+        [f"error: {odd}: is {what}, not a file of the dataset; remove it, or give another --out"],
+    )
+    assert odd.is_symlink() == (kind != "fifo") and not odd.is_file()
 
 
 def test_a_lost_dataset_yaml_is_not_rewritten_to_describe_samples_made_otherwise(

@@ -18,6 +18,7 @@ from ingest.bags.reader import open_bags
 from ingest.render.scans import read_site
 from ingest.train.describe import _read_dataset_yaml
 from sensorbox.sim.fixtures import fixture_bag
+from tests.faults.cli import sensorbox
 from tests.paths import FIXTURES_DIR
 
 BROKEN = "version: [5\n  foo: : bar\n"  # an unclosed flow sequence
@@ -115,3 +116,28 @@ def test_a_bare_db3_of_compressed_messages_asks_for_its_folder(tmp_path: Path) -
         open_bags(alone)
     with open_bags(bag) as bags:  # the folder reads
         assert sum(t.count for t in bags.topics().values()) == 336
+
+
+ROS1_EXPECTED = "not a ROS 1 bag: a .bag file starts with '#ROSBAG V2.0', this one"
+
+
+@pytest.mark.parametrize(
+    ("head", "size", "problem"),
+    [
+        (b"", 5 * 1024**3, ROS1_EXPECTED + " starts with " + repr(b"\0" * 13)),  # sparse: read whole, 5 GB
+        (b"", 0, ROS1_EXPECTED + " is empty"),
+        (b"\x89MCAP0\r\n", 4096, "not a ROS 1 bag: it starts like an MCAP file (renamed?); give it the .mcap suffix"),
+        (b"SQLite format 3\0", 4096, "not a ROS 1 bag: it starts like a SQLite database (a rosbag2 .db3) "
+         "(renamed?); give it that suffix"),
+    ],
+    ids=["5 GB of zeros", "empty", "an MCAP file", "a db3 file"],
+)  # fmt: skip
+def test_a_bag_file_without_the_ros1_header_is_refused_from_its_first_bytes(
+    head: bytes, size: int, problem: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    bag = tmp_path / "x.bag"
+    with bag.open("wb") as f:
+        f.write(head)
+        f.truncate(size)
+    code, _, err = sensorbox(capsys, "inspect", str(bag))
+    assert (code, err) == (2, [f"error: {bag}: {problem}"])

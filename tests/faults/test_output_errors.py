@@ -12,6 +12,7 @@ import builtins
 import errno
 import io
 import os
+import stat
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -247,3 +248,44 @@ def test_output_side_os_errors_are_one_line_and_leave_no_partial_file(
     exit_code, _, err = sensorbox(capsys, *args)
     assert (exit_code, err) == (code, [message])
     no_partial_file()
+
+
+def _special_target(tmp: Path, kind: str) -> tuple[Path, str]:
+    """An output path that is a FIFO, or a symlink to /dev/null (a character device a test can reach
+    without root); what the refusal calls it."""
+    path = tmp / "out.png"
+    if kind == "fifo":
+        os.mkfifo(path)
+        return path, "a FIFO (named pipe)"
+    path.symlink_to("/dev/null")
+    return path, "a character device"
+
+
+@pytest.mark.parametrize("kind", ["fifo", "link to /dev/null"])
+def test_an_output_file_that_is_a_device_or_fifo_is_refused_not_replaced(
+    kind: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    plot, what = _special_target(tmp_path, kind)
+    before = os.lstat(plot)
+    code, _, err = sensorbox(capsys, "calib", "check", str(RIG), "--plot", str(plot))
+    assert (code, err) == (3, [f"error: {plot}: is not a regular file ({what}); give a file path"])
+    after = os.lstat(plot)
+    assert (after.st_mode, after.st_ino) == (before.st_mode, before.st_ino)  # the node itself, untouched
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.png"]  # no temporary file beside it
+
+
+@pytest.mark.parametrize("kind", ["fifo", "link to /dev/null"])
+def test_atomic_writes_refuse_a_special_target_before_writing_any_file(kind: str, tmp_path: Path) -> None:
+    from ingest.dataset.layout import write_atomic, write_atomic_set
+    from ingest.errors import OutputError
+
+    target, what = _special_target(tmp_path, kind)
+    line = f"{target}: is not a regular file ({what}); give a file path"
+    with pytest.raises(OutputError) as single:
+        write_atomic(target, b"{}")
+    first = tmp_path / "eval.csv"  # `eval --json X` writes its report and CSV as one set
+    with pytest.raises(OutputError) as pair:
+        write_atomic_set([(first, b"a,b\n"), (target, b"{}")])
+    assert (str(single.value), str(pair.value)) == (line, line)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.png"]  # nothing written, not even eval.csv
+    assert not stat.S_ISREG(target.stat().st_mode)

@@ -1,5 +1,6 @@
 """Scan input: PLY/PCD through Open3D, E57 through pye57 (poses), site manifests, masks, bad input."""
 
+import os
 import re
 import struct
 import uuid
@@ -12,7 +13,7 @@ from pye57 import libe57
 from scipy.spatial.transform import Rotation
 
 from ingest.errors import ScanError
-from ingest.render.scans import read_e57, read_scans
+from ingest.render.scans import read_cloud, read_e57, read_mask_points, read_scans
 from sensorbox.sim.appearance import Texture
 from sensorbox.sim.scenes import build_scene
 from sensorbox.sim.tls import TlsParams, bundle_poses, simulate_scan, write_site
@@ -375,3 +376,23 @@ def test_an_e57_in_a_site_manifest_is_read_with_its_poses_composed(tmp_path):
         pass
     with pytest.raises(ScanError, match=r"empty\.e57: holds no scan \(no data3D section"):
         read_scans([tmp_path / "empty.e57"])
+
+
+@pytest.mark.parametrize("kind", ["link to /dev/zero", "fifo", "folder"])
+def test_a_cloud_path_that_is_no_regular_file_is_one_line_before_a_byte_is_read(tmp_path, kind):
+    """render-benchmark --mask /dev/zero read a header without end until a MemoryError traceback; a FIFO
+    would wait forever."""
+    path = tmp_path / "mask.ply"
+    if kind == "fifo":
+        os.mkfifo(path)
+        what = "a FIFO (named pipe)"
+    elif kind == "folder":
+        path.mkdir()
+        what = "a folder"
+    else:
+        path.symlink_to("/dev/zero")
+        what = "a character device"
+    for read in (read_mask_points, lambda p: read_cloud(p, None)):
+        with pytest.raises(ScanError) as err:
+            read(path)
+        assert str(err.value) == f"{path}: is {what}, not a point cloud file"

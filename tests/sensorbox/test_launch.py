@@ -341,3 +341,23 @@ def test_shipped_launch_files_parse_with_their_defaults():
     assert [n.name for n in real.nodes] == ["livox_lidar_publisher", "v4l2_stereo", "recorder"]
     with pytest.raises(LaunchError, match="camera:='usb' is not one of zed, opencv"):
         parse_launch(ROOT / "launch" / "sensorbox.launch.yaml", {"camera": "usb"})
+
+
+@pytest.mark.parametrize(
+    ("entity", "message"),
+    [
+        ("node: {exec: talker, param: 5}", "node `param` must be a list of parameters, got 5"),
+        ("node: {exec: talker, param: rate}", "node `param` must be a list of parameters, got 'rate'"),
+        ("node: {exec: talker, remap: {from: a, to: b}}", "node `remap` must be a list of remappings, got a mapping"),
+        ("node: {exec: talker, param: [{name: a, param: 5}]}", "param 'a' `param` must be a list of parameters, got 5"),
+        ("group: {keep: 5, children: []}", "group `keep` must be a list of arguments, got 5"),
+        ("include: {file: b.launch.yaml, arg: 5}", "include `arg` must be a list of arguments, got 5"),
+    ],
+)  # fmt: skip
+def test_a_scalar_where_a_list_belongs_is_one_line_naming_the_key(tmp_path, entity, message):
+    """`param: 5` was `TypeError: 'int' object is not iterable`; `param: rate` was iterated by character."""
+    write(tmp_path / "b.launch.yaml", "launch: []\n")
+    f = write(tmp_path / "a.launch.yaml", f"launch:\n- {entity}\n")
+    with pytest.raises(LaunchError) as info:
+        parse_launch(f)
+    assert str(info.value) == f"{f}:2: {message}"

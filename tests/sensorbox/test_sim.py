@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +33,7 @@ from sensorbox.sim.trajectory import (
     walk,
 )
 from sensorbox.sim.truth import Truth
+from tests.faults.cli import sensorbox
 
 
 @pytest.fixture(scope="module")
@@ -415,3 +417,22 @@ def test_a_tum_file_shorter_than_the_duration_is_refused(tmp_path: Path) -> None
         "expected a TUM file covering the whole simulation (which starts at its first row)"
     )
     assert not (tmp_path / "bag").exists()
+
+
+@pytest.mark.parametrize("kind", ["link to /dev/zero", "fifo"])
+def test_a_tum_path_that_is_no_regular_file_is_one_line_before_a_byte_is_read(
+    kind: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """--tum /dev/zero was read whole until a MemoryError traceback; a FIFO would wait forever."""
+    tum = tmp_path / "t.tum"
+    if kind == "fifo":
+        os.mkfifo(tum)
+        what = "a FIFO (named pipe)"
+    else:
+        tum.symlink_to("/dev/zero")
+        what = f"a character device (a link to {Path('/dev/zero').resolve()})"
+    out = tmp_path / "out" / "t.mcap"
+    args = ["simulate", "--duration", "0.2", "--scale", "0.25", "--trajectory", "custom", "--tum", str(tum)]
+    code, _, err = sensorbox(capsys, *args, "--out", str(out))
+    assert (code, err) == (2, [f"error: {tum}: is {what}, not a TUM trajectory file"])
+    assert not (tmp_path / "out").exists()
