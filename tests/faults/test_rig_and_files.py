@@ -184,6 +184,18 @@ def test_a_double_sphere_xi_of_1e9_is_refused(tmp_path: Path, capsys: pytest.Cap
     )
 
 
+def test_an_integer_of_5000_digits_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A traceback (ValueError: Exceeds the limit (4300 digits) for integer string conversion)
+    in calib check and inspect."""
+    chain = _camchain_with(tmp_path, "resolution: [480, 300]", "resolution: [480" + "0" * 5000 + ", 300]")
+    line = (
+        f"error: {chain}: line 6, column 16: malformed YAML: an integer of 5003 digits; at most 4300 are read"
+    )
+    for command in (["calib", "check", str(chain)], ["inspect", str(INDOOR), "--rig", str(chain)]):
+        code, _, err = sensorbox(capsys, *command)
+        assert (code, err) == (2, [line]), command
+
+
 def test_a_resolution_of_1e9_is_refused_before_any_map_is_sized(tmp_path: Path) -> None:
     """Ingest asked numpy for 6.94 EiB. Asserted on the reader, which allocates nothing either way."""
     chain = _camchain_with(tmp_path, "resolution: [480, 300]", "resolution: [1000000000, 1000000000]")
