@@ -265,6 +265,28 @@ def require_finite(name: str, value: float, model: str) -> None:
         raise CalibrationError(f"{model}: {name} must be a finite number, got {value!r}")
 
 
+FOCAL_PER_SIDE_RANGE = (1e-3, 1e3)
+"""Bounds on a focal length in pixels over the image side it spans (fx / width, fy / height).
+
+A pinhole with f = 1e3 sides sees 2 atan(1 / 2e3) = 0.03 deg across the image, a telescope
+rather than a lens; one with f = 1e-3 sides sees 179.9 deg, and a fisheye's f is about 0.3
+sides. Beyond these a camera covers no useful field of view: fu = 1e300 passed as an HFOV of
+0.0 deg and ingest then failed sizing an occlusion grid."""
+
+
+def require_focal(name: str, value: float, side_px: int, model: str) -> None:
+    """Raise `CalibrationError` unless ``value`` (pixels) is a finite focal length within
+    `FOCAL_PER_SIDE_RANGE` times ``side_px``, the image side it spans."""
+    require_positive(name, value, model)
+    low, high = (k * side_px for k in FOCAL_PER_SIDE_RANGE)
+    if not low <= value <= high:
+        raise CalibrationError(
+            f"{model}: {name} must be within {low:g}..{high:g} px ({FOCAL_PER_SIDE_RANGE[0]:g}.."
+            f"{FOCAL_PER_SIDE_RANGE[1]:g} times the image's {side_px} px) for a useful field of view, "
+            f"got {value!r}"
+        )
+
+
 def require_size(width: int, height: int, model: str) -> None:
     """Raise `CalibrationError` unless width and height are positive integers."""
     for name, value in (("width", width), ("height", height)):
@@ -290,11 +312,11 @@ class FocalModel(CameraModel):
 
     def __post_init__(self) -> None:
         name = type(self).__name__
-        for key in ("fx", "fy"):
-            require_positive(key, getattr(self, key), name)
+        require_size(self.width, self.height, name)
+        require_focal("fx", self.fx, self.width, name)
+        require_focal("fy", self.fy, self.height, name)
         for key in ("cx", "cy"):
             require_finite(key, getattr(self, key), name)
-        require_size(self.width, self.height, name)
         for key in self.FINITE:
             require_finite(key, getattr(self, key), name)
         for key in self.POSITIVE:

@@ -19,6 +19,7 @@ one row or one column (a vector such as intrinsics or distortion coefficients).
 from __future__ import annotations
 
 import re
+import sys
 from typing import Any
 
 import yaml
@@ -59,6 +60,24 @@ class BoundedSafeLoader(yaml.SafeLoader):
             return super().compose_node(parent, index)
         finally:
             self._depth -= 1
+
+    def construct_yaml_int(self, node: yaml.ScalarNode) -> int:
+        """An integer, or a YAML error at its line when it has more digits than Python converts
+        (`sys.get_int_max_str_digits`, 4300 by default), where PyYAML lets the ValueError escape."""
+        try:
+            return super().construct_yaml_int(node)
+        except ValueError as err:
+            digits = sum(c.isdigit() for c in str(node.value))
+            limit = sys.get_int_max_str_digits()
+            problem = (
+                f"an integer of {digits} digits; at most {limit} are read"
+                if digits > limit
+                else f"not an integer: {str(node.value)[:40]!r}"
+            )
+            raise yaml.constructor.ConstructorError(None, None, problem, node.start_mark) from err
+
+
+BoundedSafeLoader.add_constructor("tag:yaml.org,2002:int", BoundedSafeLoader.construct_yaml_int)
 
 
 class OpenCvSafeLoader(BoundedSafeLoader):

@@ -14,7 +14,7 @@ from typing import Any
 import yaml
 
 from calibration.files import file_kind
-from calibration.opencv_yaml import yaml_error_line
+from calibration.opencv_yaml import BoundedSafeLoader, yaml_error_line
 from ingest.bags.decode import RosVersion
 from ingest.bags.mcap_records import MCAP_MAGIC
 from ingest.errors import BagError
@@ -133,7 +133,7 @@ def explain(path: Path, err: BaseException) -> str:
                 )
             return f"{path}: not a rosbag2 directory (no metadata.yaml)"
         try:
-            yaml.safe_load((path / "metadata.yaml").read_bytes())
+            yaml.load((path / "metadata.yaml").read_bytes(), Loader=BoundedSafeLoader)
         except yaml.YAMLError as bad:
             return f"rosbag2 {yaml_error_line(path / 'metadata.yaml', bad)}"
         except OSError:
@@ -205,7 +205,7 @@ def check_metadata(path: Path) -> None:
     missing, and a file that is missing or not YAML, are left to rosbags' own errors (`explain`)."""
     meta = path / "metadata.yaml"
     try:
-        doc = yaml.safe_load(meta.read_bytes())
+        doc = yaml.load(meta.read_bytes(), Loader=BoundedSafeLoader)
     except (OSError, yaml.YAMLError):
         return
     info = doc.get("rosbag2_bagfile_information") if isinstance(doc, dict) else None

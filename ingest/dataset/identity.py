@@ -12,7 +12,7 @@ whose clock starts at zero) share them, with other images.
 Each sample's metadata also records every other file it wrote (`files`:
 size and SHA-256), so a rerun checks each sample it would skip as finished
 and writes a damaged one (a file deleted, cut short or overwritten, the
-metadata unreadable) again instead of keeping the damage.
+metadata unreadable or recording no files) again instead of keeping the damage.
 """
 
 from __future__ import annotations
@@ -27,9 +27,7 @@ from typing import Any
 import numpy as np
 
 from calibration.files import file_kind
-from ingest.dataset.layout import GT_DIRS, IMAGE_DIRS
 from ingest.dataset.meta import SampleMeta, read_meta
-from ingest.dataset.png import read_image
 from ingest.errors import DatasetError
 
 Array = np.ndarray[Any, Any]
@@ -85,25 +83,16 @@ def file_problem(path: Path, size: int, sha256: str) -> str:
     return ""
 
 
-def _unrecorded_problem(out: Path, sid: str) -> str:
-    """For metadata without `files` (an older SensorBox): the first PNG of the sample that does not decode."""
-    for name in (*IMAGE_DIRS, *GT_DIRS):
-        path = out / name / f"{sid}.png"
-        if not path.is_file():
-            return f"{path}: missing"
-        if read_image(path) is None:
-            return f"{path}: cannot be decoded ({path.stat().st_size} bytes)"
-    return ""
-
-
 def sample_problem(out: Path, sid: str, meta: SampleMeta) -> str:
     """Why written sample `sid` of dataset `out` is not whole, naming the file ('' when it is).
 
-    Every file its metadata records must have the size and SHA-256 written;
-    metadata that records none (an older SensorBox) needs each PNG to decode.
+    Every file its metadata records must have the size and SHA-256 written.
+    Metadata that records none (`files` absent or emptied) cannot vouch for
+    any file: a PNG that decodes may still be zeroed or another sample's, so
+    such a sample counts as damaged and is written again.
     """
     if not meta.files:
-        return _unrecorded_problem(out, sid)
+        return f"{out / 'meta' / f'{sid}.json'}: records no files (size and SHA-256) to check the sample by"
     for name, written in meta.files.items():
         problem = file_problem(out / name, written.bytes, written.sha256)
         if problem:

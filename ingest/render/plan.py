@@ -42,6 +42,13 @@ MAX_YAW_DEG = 360.0
 another unit, and far beyond it the float's rounding picks the heading: 1e300 was rendered at
 some arbitrary yaw (sin -0.75, cos -0.67) and recorded as 1e300 degrees."""
 
+MAX_BASELINE_MM = 2000.0
+"""Largest --baseline (mm): two metres, the most a handheld rig spans (the rig's lever arms are bounded
+alike). 1e300 was rendered with float overflow warnings into a folder named `1e+300mm`."""
+MAX_VIEW_HEIGHT_M = 100.0
+"""Largest |--height| (m) of a view above its scan centre: a terrestrial scan sees a few tens of metres
+up or down, so a view beyond 100 m is outside the scanned space (1e300 overflowed as --baseline did)."""
+
 
 @dataclass(frozen=True)
 class BenchmarkConfig:
@@ -83,6 +90,15 @@ class BenchmarkConfig:
         ):
             if not all(math.isfinite(v) for v in values):
                 raise BenchmarkError(f"{option} {list(values)}: each value must be a finite number")
+        if any(b > MAX_BASELINE_MM for b in self.baselines_mm):
+            raise BenchmarkError(
+                f"--baseline {list(self.baselines_mm)}: each baseline must be at most {MAX_BASELINE_MM:g} mm"
+            )
+        if any(abs(h) > MAX_VIEW_HEIGHT_M for h in self.heights_m):
+            raise BenchmarkError(
+                f"--height {list(self.heights_m)}: each height must be within -{MAX_VIEW_HEIGHT_M:g}.."
+                f"{MAX_VIEW_HEIGHT_M:g} m"
+            )
         if any(abs(yaw) > MAX_YAW_DEG for yaw in self.yaws_deg):
             raise BenchmarkError(
                 f"--yaw {list(self.yaws_deg)}: each yaw must be within -{MAX_YAW_DEG:g}..{MAX_YAW_DEG:g} "

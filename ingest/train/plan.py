@@ -168,7 +168,8 @@ def survey(
     bags: BagSet, topics: Topics, window_ns: int, bad: BadMessages | None = None,
     progress: Progress | None = None,
 ) -> Survey:  # fmt: skip
-    """The first pass (`_seen`) and its checks: points on every LiDAR, two camera stamps, one clock.
+    """The first pass (`_seen`) and its checks: points on every LiDAR, readings on the IMU, frames on
+    both cameras (two stamps on the upper), one clock.
 
     Runs before anything is written, and before the trajectory pass, which
     would otherwise walk a LiDAR on its own clock knot by knot across years.
@@ -181,6 +182,11 @@ def survey(
             raise BagError(f"{bags.paths[0]}: no points on {topic} (the rig's lidar {name}) in the whole bag")
     if topics.imu and not len(seen[topics.imu]):  # the rig names it: motion and odometry rely on it
         raise BagError(f"{bags.paths[0]}: no readings on {topics.imu} (the rig's IMU) in the whole bag")
+    for topic, role in ((topics.upper, "upper"), (topics.lower, "lower")):
+        if not len(seen[topic]):  # every sample needs a frame of each
+            raise BagError(
+                f"{bags.paths[0]}: no frames on {topic} (the rig's {role} camera) in the whole bag"
+            )
     up = np.unique(seen[topics.upper][:, 1])  # duplicated stamps count once
     lo = np.unique(seen[topics.lower][:, 1])
     if len(up) < 2:

@@ -42,11 +42,14 @@ FovOpt = Annotated[
 ]
 BaselineOpt = Annotated[
     list[float] | None,
-    typer.Option("--baseline", help="Stereo baselines in mm (repeat; default 20 65 120 200 300)."),
+    typer.Option(
+        "--baseline", help="Stereo baselines in mm, at most 2000 (repeat; default 20 65 120 200 300)."
+    ),
 ]
 YawOpt = Annotated[list[float] | None, typer.Option("--yaw", help="View yaw(s) in degrees (repeat).")]
 HeightOpt = Annotated[
-    list[float] | None, typer.Option("--height", help="View height(s) above the scan centre, m (repeat).")
+    list[float] | None,
+    typer.Option("--height", help="View height(s) above the scan centre, m, within +-100 (repeat)."),
 ]
 PitchOpt = Annotated[float, typer.Option(help="View pitch in degrees (up > 0).")]
 CenterOpt = Annotated[

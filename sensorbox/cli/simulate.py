@@ -32,7 +32,9 @@ SeedOpt = Annotated[int, typer.Option(help="Seed of the scene layout, texture, p
 FormatOpt = Annotated[str, typer.Option("--format", help="mcap | db3 (ROS 2 sqlite3) | bag (ROS 1).")]
 ImageOpt = Annotated[str, typer.Option(help="raw (Image bgra8) | jpeg (CompressedImage).")]
 ScaleOpt = Annotated[float, typer.Option(help="Image resolution scale (0.25 -> 480x300).")]
-RangeNoiseOpt = Annotated[float, typer.Option(help="LiDAR range noise, 1-sigma metres (0 = exact).")]
+RangeNoiseOpt = Annotated[
+    float, typer.Option(help="LiDAR range noise, 1-sigma metres (0 = exact; at most 10).")
+]
 LidarOffsetOpt = Annotated[float, typer.Option(help="Clock offset of the second LiDAR (ms).")]
 SupersampleOpt = Annotated[int, typer.Option(help="Rays per pixel per axis (anti-aliasing).")]
 CameraOffsetOpt = Annotated[

@@ -55,6 +55,9 @@ MAX_CAMERA_OFFSET_NS = 1_000_000_000
 MAX_DURATION_S = 1e8
 """Longest simulated run (s), about three years: the live emulators run "forever" as 1e7 s, and a
 run's nanoseconds must stay far inside int64 (1e300 s overflowed)."""
+MAX_RANGE_NOISE_M = 10.0
+"""Largest range noise simulated (1-sigma, m): the Mid-360 measures to 40 m with about 2 cm; noise
+of metres already drowns every scene, and 1e300 turned every point into a point at 0."""
 MID360_IMU_GYRO_NOISE_DENSITY = np.radians(4.5e-3)
 """The Mid-360's IMU (TDK ICM-40609-D) gyro noise density, rad/s/sqrt(Hz) (datasheet: 4.5 mdps/sqrt(Hz))."""
 MID360_IMU_ACC_NOISE_DENSITY_G = 100e-6
@@ -145,6 +148,10 @@ class SimConfig:
             )
         if not (self.range_noise_m >= 0 and math.isfinite(self.range_noise_m)):
             raise SensorboxError(f"--range-noise must be a finite number >= 0 m, got {self.range_noise_m}")
+        if self.range_noise_m > MAX_RANGE_NOISE_M:
+            raise SensorboxError(
+                f"--range-noise {self.range_noise_m:g}: expected at most {MAX_RANGE_NOISE_M:g} m (1-sigma)"
+            )
         if self.supersample < 1:
             raise SensorboxError(f"--supersample must be >= 1, got {self.supersample}")
         if self.seed < 0:  # numpy's generators take non-negative seeds only

@@ -338,6 +338,22 @@ def test_an_imu_topic_without_readings_is_refused(tmp_path: Path) -> None:
         assert not (tmp_path / "ds").exists()
 
 
+def test_a_camera_topic_without_frames_is_refused(tmp_path: Path) -> None:
+    """The lower camera's topic in the bag with no message: a dataset of 0 samples was written with
+    exit 0 and nothing said, where an empty LiDAR or IMU topic is refused."""
+
+    def no_lower(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        return [] if topic == LOWER else [(topic, raw)]
+
+    bag, rig = rewrite(tmp_path / "bag.mcap", no_lower, declare={LOWER: "sensor_msgs/msg/CompressedImage"})
+    with open_bags([bag]) as bags:
+        assert LOWER in bags.topics()
+    with pytest.raises(BagError) as err:
+        ingest([bag], _config(tmp_path / "ds", rig))
+    assert str(err.value) == f"{bag}: no frames on {LOWER} (the rig's lower camera) in the whole bag"
+    assert not (tmp_path / "ds").exists()
+
+
 def test_an_imu_gap_is_shown_in_the_summary(tmp_path: Path) -> None:
     """40 IMU readings (200 ms at 200 Hz) missing: one gap, its length measured on the stamps."""
 

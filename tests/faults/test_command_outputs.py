@@ -456,13 +456,22 @@ def test_a_depth_map_of_another_size_than_its_image_or_dataset_is_refused(
             ["render-benchmark", "scan.ply", "--rig", str(RIG), "--yaw", "90", "--yaw", "-361"],
             "--yaw [90.0, -361.0]: each yaw must be within -360..360 degrees",
         ),
+        (
+            ["render-benchmark", "scan.ply", "--rig", str(RIG), "--baseline", "1e300"],
+            "--baseline [1e+300]: each baseline must be at most 2000 mm",
+        ),
+        (
+            ["render-benchmark", "scan.ply", "--rig", str(RIG), "--height", "1.5", "--height", "1e300"],
+            "--height [1.5, 1e+300]: each height must be within -100..100 m",
+        ),
     ],
 )
 def test_a_sphere_of_7_rows_or_a_yaw_of_1e300_is_one_line(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], args: list[str], line: str
 ) -> None:
     """ingest --height-full 7 wrote 7x14 equirects with no disparity pixel; --yaw 1e300 rendered some
-    arbitrary heading and recorded 1e300 degrees."""
+    arbitrary heading and recorded 1e300 degrees; --baseline and --height 1e300 rendered with overflow
+    warnings (a `1e+300mm` folder)."""
     code, out, err = sensorbox(capsys, *args, "--out", str(tmp_path / "o"))
     assert (code, out, err) == (2, "", [f"error: {line}"])
     assert not (tmp_path / "o").exists()

@@ -11,6 +11,7 @@ import json
 import os
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import yaml
@@ -190,6 +191,34 @@ def test_a_sample_file_that_is_a_device_or_fifo_is_refused_not_read(
         [f"error: {odd}: is {what}, not a file of the dataset; remove it, or give another --out"],
     )
     assert odd.is_symlink() == (kind != "fifo") and not odd.is_file()
+
+
+def test_a_finished_sample_whose_meta_records_no_files_is_written_again(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Meta without `files` was taken as done when its PNGs decoded: a zeroed depth PNG stayed ('0 / 5')."""
+    out = tmp_path / "ds"
+    args = ["ingest", str(INDOOR), "--rig", str(RIG), "--out", str(out), "--workers", "1", "--every", "5"]
+    args += ["--height-full", "64", "--gt", "sparse", "--no-preview"]
+    assert sensorbox(capsys, *args)[0] == 0
+    depth = out / "depth_fisheye" / "000001.png"
+    kept = depth.read_bytes()
+    image = cv2.imread(str(depth), cv2.IMREAD_UNCHANGED)
+    assert image is not None and image.dtype == np.uint16
+    assert cv2.imwrite(str(depth), np.zeros_like(image))
+    meta_path = out / "meta" / "000001.json"
+    meta = json.loads(meta_path.read_text())
+    del meta["files"]
+    meta_path.write_text(json.dumps(meta))
+    code, stdout, err = sensorbox(capsys, *args)
+    assert code == 0
+    assert _row(stdout, "written / already done (resumed)") == "1 / 4"
+    assert [line for line in err if "damaged" in line] == [
+        f"warning: damaged sample written again: {meta_path}: records no files (size and SHA-256) "
+        "to check the sample by"
+    ]
+    assert depth.read_bytes() == kept
+    assert "files" in json.loads(meta_path.read_text())
 
 
 def test_a_lost_dataset_yaml_is_not_rewritten_to_describe_samples_made_otherwise(

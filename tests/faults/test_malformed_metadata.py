@@ -42,6 +42,23 @@ def test_rosbag2_metadata(tmp_path: Path) -> None:
         open_bags(bag)
 
 
+def test_rosbag2_metadata_with_an_integer_of_5000_digits(tmp_path: Path) -> None:
+    """A traceback (ValueError: Exceeds the limit (4300 digits) for integer string conversion) in inspect
+    and ingest: PyYAML converts a count of 5000 digits with int()."""
+    bag = tmp_path / "bag"
+    shutil.copytree(fixture_bag("indoor_walk_db3", FIXTURES_DIR), bag)
+    text = (bag / "metadata.yaml").read_text()
+    old = "    message_count: 336\n"
+    assert text.count(old) == 1
+    (bag / "metadata.yaml").write_text(text.replace(old, "    message_count: 336" + "0" * 5000 + "\n"))
+    with pytest.raises(SensorboxError) as err:
+        open_bags(bag)
+    assert _one_line(err) == (
+        f"rosbag2 {bag / 'metadata.yaml'}: line 10, column 20: malformed YAML: an integer of 5003 digits; "
+        "at most 4300 are read"
+    )
+
+
 def test_site_manifest_and_dataset_description(tmp_path: Path) -> None:
     path = tmp_path / "site.yaml"
     path.write_text(BROKEN)

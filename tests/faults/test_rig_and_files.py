@@ -184,6 +184,34 @@ def test_a_double_sphere_xi_of_1e9_is_refused(tmp_path: Path, capsys: pytest.Cap
     )
 
 
+def test_an_integer_of_5000_digits_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A traceback (ValueError: Exceeds the limit (4300 digits) for integer string conversion)
+    in calib check and inspect."""
+    chain = _camchain_with(tmp_path, "resolution: [480, 300]", "resolution: [480" + "0" * 5000 + ", 300]")
+    line = (
+        f"error: {chain}: line 6, column 16: malformed YAML: an integer of 5003 digits; at most 4300 are read"
+    )
+    for command in (["calib", "check", str(chain)], ["inspect", str(INDOOR), "--rig", str(chain)]):
+        code, _, err = sensorbox(capsys, *command)
+        assert (code, err) == (2, [line]), command
+
+
+def test_a_focal_length_of_1e300_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """fu = 1e300 passed calib check (HFOV 0.0 deg); ingest then failed in the occlusion filter
+    (ValueError: Maximum allowed dimension exceeded), leaving a dataset.yaml and empty folders."""
+    chain = _camchain_with(tmp_path, "0.59021, 125.05785,", "0.59021, 1e300,")
+    line = (
+        f"error: {chain}: cam0: DoubleSphere: fx must be within 0.48..480000 px (0.001..1000 times the "
+        "image's 480 px) for a useful field of view, got 1e+300"
+    )
+    code, _, err = sensorbox(capsys, "calib", "check", str(chain))
+    assert (code, err) == (2, [line])
+    out = tmp_path / "ds"
+    code, _, err = sensorbox(capsys, "ingest", str(INDOOR), "--rig", str(chain), "--out", str(out))
+    assert (code, err) == (2, [line])
+    assert not out.exists()
+
+
 def test_a_resolution_of_1e9_is_refused_before_any_map_is_sized(tmp_path: Path) -> None:
     """Ingest asked numpy for 6.94 EiB. Asserted on the reader, which allocates nothing either way."""
     chain = _camchain_with(tmp_path, "resolution: [480, 300]", "resolution: [1000000000, 1000000000]")

@@ -351,6 +351,10 @@ def test_movers_are_where_their_truth_says_at_each_points_own_time(tmp_path: Pat
             r"--scale 0.001 makes camera cam0 2x1 px; expected >= 8 px on each side \(--scale >= 0.007\)$",
         ),
         ({"range_noise_m": math.nan}, r"--range-noise must be a finite number >= 0 m, got nan"),
+        (
+            {"range_noise_m": 1e300},
+            r"--range-noise 1e\+300: expected at most 10 m \(1-sigma\)$",
+        ),  # points at 0
         ({"duration_s": 1e300}, r"--duration 1e\+300: expected at most 1e\+08 s"),  # was an OverflowError
         ({"lidar_clock_offset_ns": 2_000_000_000}, r"--lidar-offset-ms 2000: expected within \+-1000 ms"),
         ({"tum": Path("t.tum")}, r"--tum is read only with --trajectory custom \(got --trajectory static\)"),
