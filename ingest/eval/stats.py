@@ -109,6 +109,7 @@ class DatasetStats:
     entropy_mean_bits: float  # over the samples that have an image
     missing_images: tuple[str, ...]
     samples: tuple[SampleStats, ...]
+    missing_gt: tuple[str, ...] = ()  # train layout: finished samples (meta/<id>.json) without a depth map
 
     def to_json(self) -> dict[str, Any]:
         """A JSON-ready dict (NaN -> null)."""
@@ -220,4 +221,12 @@ def dataset_stats(
         float(np.mean(entropies)) if entropies else math.nan,
         tuple(s.rel for s in samples if s.image is None),
         tuple(samples),
+        _missing_gt(root, gts) if layout == "train" else (),
     )
+
+
+def _missing_gt(root: Path, gts: list[GtFile]) -> tuple[str, ...]:
+    """The ids of a training set's finished samples (`meta/<id>.json`) that have no depth map: left out
+    of the statistics, which must say so rather than describe fewer samples than the dataset holds."""
+    have = {gt.path.stem for gt in gts}
+    return tuple(sorted(p.stem for p in (root / "meta").glob("*.json") if p.stem not in have))

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from sensorbox.cli.common import check_out_file, check_out_folder, path_param, progress_bar
+from sensorbox.cli.common import check_out_file, check_out_folder, path_param, print_warning, progress_bar
 
 if TYPE_CHECKING:
     from ingest.eval.evaluate import EvalReport
@@ -174,6 +174,12 @@ def _print_stats(stats: DatasetStats, dataset: Path) -> None:
     if stats.missing_images:
         listed = ", ".join(stats.missing_images[:MISSING_LISTED])
         _echo(f"\nNo image for {len(stats.missing_images)} depth map(s), entropy left out: {listed}")
+    if stats.missing_gt:
+        listed = ", ".join(stats.missing_gt[:MISSING_LISTED])
+        print_warning(
+            f"{dataset}: {len(stats.missing_gt)} finished sample(s) (meta/<id>.json) have no depth map "
+            f"(depth_fisheye/<id>.png), left out of these statistics: {listed}"
+        )
 
 
 def stats_cmd(

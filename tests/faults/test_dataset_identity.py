@@ -307,3 +307,24 @@ def test_a_dataset_yaml_of_another_format_is_refused_not_overwritten(
         ],
     )
     assert [p.name for p in out.iterdir()] == ["dataset.yaml"] and (out / "dataset.yaml").read_text() == doc
+
+
+def test_stats_says_which_finished_samples_have_no_depth_map(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A training set whose depth_fisheye/000001.png is gone: stats described the other samples as the
+    whole dataset without a word ('4 depth maps', exit 0); it still does, and one warning names it."""
+    out = tmp_path / "ds"
+    args = ["ingest", str(INDOOR), "--rig", str(RIG), "--out", str(out), "--workers", "1", "--every", "5"]
+    assert sensorbox(capsys, *args, "--height-full", "64", "--gt", "sparse", "--no-preview")[0] == 0
+    held = len(list((out / "meta").glob("*.json")))
+    (out / "depth_fisheye" / "000001.png").unlink()
+    code, stdout, err = sensorbox(capsys, "stats", str(out), "--out", str(tmp_path / "stats"))
+    assert code == 0
+    assert f"{held - 1} depth maps" in stdout
+    assert err == [
+        f"warning: {out}: 1 finished sample(s) (meta/<id>.json) have no depth map (depth_fisheye/<id>.png), "
+        "left out of these statistics: 000001"
+    ]
+    doc = json.loads(next((tmp_path / "stats").glob("*.json")).read_text())
+    assert doc["missing_gt"] == ["000001"]
