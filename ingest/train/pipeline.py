@@ -45,7 +45,7 @@ from __future__ import annotations
 import math
 import tempfile
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field, replace
@@ -53,8 +53,6 @@ from functools import partial
 from itertools import chain, islice
 from pathlib import Path
 from typing import Any
-
-import numpy as np
 
 from calibration.rectify import stereo_warnings
 from calibration.rig import Rig, read_rig, write_rig
@@ -243,7 +241,7 @@ class IngestSummary:
 
     held_elsewhere: int = 0  # of `resumed`: frames that samples of other ids hold (`ingest.dataset.identity`)
     refinement: Refinement | None = None  # --refine: what `ingest.train.refine` found and the rig it made
-    alignments: list[tuple[dict[str, Alignment], F64 | None]] = field(default_factory=list)  # per sample
+    alignments: list[tuple[Mapping[str, Alignment], F64 | None]] = field(default_factory=list)  # per sample
     calibration: CalibrationCheck | None = None  # the samples' alignments summed up (`ingest.train.align`)
     damaged: list[str] = field(default_factory=list)  # finished samples found damaged, written again: why
 
@@ -276,8 +274,7 @@ class IngestSummary:
             ):  # fmt: skip
                 self.without_gt_points[why] = self.without_gt_points.get(why, 0) + n
         if meta.alignment:
-            twist = None if meta.twist_cam0 is None else np.asarray(meta.twist_cam0, np.float64)
-            self.alignments.append(({k: Alignment.from_meta(a) for k, a in meta.alignment.items()}, twist))
+            self.alignments.extend(from_metas([meta])[0])
         self.skew_ms.extend(meta.lidar_skew_ms.values())
         self.stereo_dt_ms.append(meta.stereo_dt_ms)
         for name in meta.points.silent_lidars:

@@ -238,6 +238,15 @@ class WindowPoints:
     clear_bits: U64 | None  # (N, words), when every LiDAR's points carry them
     reflectivity: F64 | None  # (N,), when every LiDAR's points carry it
 
+    def where(self, keep: np.ndarray[Any, Any]) -> WindowPoints:
+        """The points `keep` selects with all they carry (the counts and skews stay the window's)."""
+        return replace(
+            self, pts=rows(self.pts, keep), stamps_ns=self.stamps_ns[keep], lidar=self.lidar[keep],
+            normal_world=None if self.normal_world is None else rows(self.normal_world, keep),
+            clear_bits=None if self.clear_bits is None else rows(self.clear_bits, keep),
+            reflectivity=None if self.reflectivity is None else self.reflectivity[keep],
+        )  # fmt: skip
+
 
 def _points_by_lidar(job: SampleJob) -> WindowPoints:
     """Filtered points of every LiDAR in cam0 (at their own times), their stamps, LiDAR, counts and skews,
@@ -329,23 +338,14 @@ def _process_sparse(job: SampleJob, images: Background[Equirects], start_ms: flo
     t0 = time.perf_counter()
     geo, prm = job.geometry, job.params
     cloud = _points_by_lidar(job)
-    pts, stamps, counts, skew_ms, which, refl = (
-        cloud.pts,
-        cloud.stamps_ns,
-        cloud.counts,
-        cloud.skew_ms,
-        cloud.lidar,
-        cloud.reflectivity,
-    )
-    gyro = None
-    off_imu = 0
+    counts, gyro, off_imu = cloud.counts, None, 0
     if job.imu is not None and len(job.imu.stamps_ns) >= 2:
         gyro = integrate_gyro(job.imu.stamps_ns, job.imu.gyro_rad_s, job.imu.R_cam0_imu)
-        covered = gyro.covers(stamps)  # rotations outside the IMU's span are unknown: drop those points
+        covered = gyro.covers(cloud.stamps_ns)  # rotations outside the IMU's span are unknown: dropped
         off_imu = int((~covered).sum())  # counted in the meta: the filters' counts add up to the total
         counts = replace(counts, kept=counts.kept - off_imu)
-        pts, stamps, which = rows(pts, covered), stamps[covered], which[covered]
-        refl = None if refl is None else refl[covered]
+        cloud = cloud.where(covered)
+    pts, stamps = cloud.pts, cloud.stamps_ns
     dt_s = (stamps - job.exposure_ns) / 1e9
     use_gyro = gyro is not None and prm.motion != "off"
     rotated = gyro.rotate(stamps, job.exposure_ns, pts) if gyro is not None and use_gyro else None
@@ -383,14 +383,10 @@ def _process_sparse(job: SampleJob, images: Background[Equirects], start_ms: flo
         geo.equirect, R_rect_cam0, pts[visible], kept, geo.rect.baseline_m, prm.gt
     )
     ms["ground_truth"] = (time.perf_counter() - t1) * 1e3
-    t2 = time.perf_counter()
-    twist = _gyro_twist(job, velocity if motion.applied else None)
-    alignment = _alignments(job, pts, refl, which)
-    lower = _lower_alignments(job, pts, refl, which)
-    ms["alignment"] = (time.perf_counter() - t2) * 1e3
     meta = SampleMeta(
-        **job.timing(), source_bag=job.source, alignment=alignment, twist_cam0=twist, alignment_lower=lower,
-        lidar_skew_ms=skew_ms,
+        **job.timing(), source_bag=job.source, lidar_skew_ms=cloud.skew_ms,
+        twist_cam0=_gyro_twist(job, velocity if motion.applied else None),
+        **_alignment_fields(job, pts, cloud, ms),
         motion=MotionMeta(
             applied=motion.applied, source=motion.source, max_rotation_deg=motion.max_rotation_deg,
             speed_mps=motion.speed_mps, predicted_motion_px=motion.motion_px,
@@ -408,6 +404,20 @@ def _process_sparse(job: SampleJob, images: Background[Equirects], start_ms: flo
         ),
     )  # fmt: skip
     return _finish(job, images, start_ms, ms, (range_img, disp_img), meta)
+
+
+def _alignment_fields(
+    job: SampleJob, pts_cam0: F64, cloud: WindowPoints, ms: dict[str, float]
+) -> dict[str, Any]:
+    """The meta's `alignment` and `alignment_lower` of the points `pts_cam0` (those of `cloud`, placed in
+    cam0 at the exposure), timed as stage "alignment" in `ms`."""
+    t0 = time.perf_counter()
+    fields = {
+        "alignment": _alignments(job, pts_cam0, cloud.reflectivity, cloud.lidar),
+        "alignment_lower": _lower_alignments(job, pts_cam0, cloud.reflectivity, cloud.lidar),
+    }
+    ms["alignment"] = (time.perf_counter() - t0) * 1e3
+    return fields
 
 
 def _alignments(
@@ -540,31 +550,29 @@ def _process_dense(job: SampleJob, images: Background[Equirects], start_ms: floa
     covered = (stamps >= span[0]) & (stamps <= span[1])  # no point placed across a gap
     if not covered.any():
         return SampleResult(job.sid, False, "outside the trajectory", None, {})
-    pts, stamps, which = rows(cloud.pts, covered), stamps[covered], cloud.lidar[covered]
-    refl = None if cloud.reflectivity is None else cloud.reflectivity[covered]
+    cloud = cloud.where(covered)
+    stamps = cloud.stamps_ns
     turn_rad, shift_m = traj.motion_from(tc, int(stamps.min()), int(stamps.max()))
-    placed = traj.to_frame(pts, stamps, tc)
+    placed = traj.to_frame(cloud.pts, stamps, tc)
     normals = None
     if cloud.normal_world is not None:  # the stream pass's block planes, turned into cam0 at the frame time
         R_world_cam0, _ = traj.pose(np.array([tc]))
-        normal = rows(cloud.normal_world, covered) @ R_world_cam0[0]
+        normal = cloud.normal_world @ R_world_cam0[0]
         planar = np.isfinite(normal[:, 0])
         normals = Normals(np.where(planar[:, None], normal, 0.0), planar)
     moving = np.zeros((0, 3))
     if prm.dense.free_space:
         test = may_matter(geo.rig.upper.model, placed, prm.dense)
         if cloud.clear_bits is not None:  # the stream pass's blocks were tested: look the sample's slices up
-            bits = rows(cloud.clear_bits, covered)
             fs, block_ns = free_space_settings(prm.dense), prm.dense.plane_block_ns
-            keep = ~(test & cleared_for(bits, stamps, tc, fs, block_ns))
+            keep = ~(test & cleared_for(cloud.clear_bits, stamps, tc, fs, block_ns))
         else:
-            slice_id, refs, ray_origin = _slices(job, traj, stamps, which)
+            slice_id, refs, ray_origin = _slices(job, traj, stamps, cloud.lidar)
             normal = None if normals is None else np.where(normals.planar[:, None], normals.normal, np.nan)
             keep = free_space_filter(
                 placed, slice_id, refs, prm.dense, test, ray_origin, normal, max(len(job.lidars), 1)
             )
-        moving, placed, which = rows(placed, ~keep), rows(placed, keep), which[keep]
-        refl = None if refl is None else refl[keep]
+        moving, placed, cloud = rows(placed, ~keep), rows(placed, keep), cloud.where(keep)
         normals = None if normals is None else Normals(rows(normals.normal, keep), normals.planar[keep])
     t1 = time.perf_counter()
     ms["clouds"] = (t1 - t0) * 1e3
@@ -574,16 +582,12 @@ def _process_dense(job: SampleJob, images: Background[Equirects], start_ms: floa
         normals,
     )  # fmt: skip
     ms["ground_truth"] = (time.perf_counter() - t1) * 1e3
-    t2 = time.perf_counter()
-    alignment = _alignments(job, placed, refl, which)
-    lower = _lower_alignments(job, placed, refl, which)
-    ms["alignment"] = (time.perf_counter() - t2) * 1e3
+    alignment = _alignment_fields(job, placed, cloud, ms)
     in_window = (traj.stamps_ns >= tc - prm.dense.window_ns) & (traj.stamps_ns <= tc + prm.dense.window_ns)
     residual = traj.residual_m[in_window]
     residual = residual[np.isfinite(residual)]
     meta = SampleMeta(
-        **job.timing(), source_bag=job.source, lidar_skew_ms=cloud.skew_ms, alignment=alignment,
-        alignment_lower=lower,
+        **job.timing(), source_bag=job.source, lidar_skew_ms=cloud.skew_ms, **alignment,
         twist_cam0=_trajectory_twist(traj, tc),
         motion=MotionMeta(
             applied=True, source="trajectory", max_rotation_deg=float(np.degrees(turn_rad)),
