@@ -493,10 +493,19 @@ def _offset_sigma_s(H: F64, spread: float) -> float:
 def from_metas(metas: Sequence[SampleMeta]) -> tuple[SampleAlignments, SampleAlignments]:
     """The samples' alignments as their metadata recorded them: onto the upper images (with cam0's
     twist) and onto the lower ones."""
+    return from_records([(m.alignment, m.alignment_lower, m.twist_cam0) for m in metas])
+
+
+AlignmentRecord = tuple[Mapping[str, AlignmentMeta], Mapping[str, AlignmentMeta], Sequence[float] | None]
+"""A sample's recorded alignments: per LiDAR onto the upper image, onto the lower one, and cam0's twist."""
+
+
+def from_records(records: Sequence[AlignmentRecord]) -> tuple[SampleAlignments, SampleAlignments]:
+    """`from_metas` of the samples' recorded alignments (`AlignmentRecord`)."""
     upper = [
-        ({name: Alignment.from_meta(a) for name, a in m.alignment.items()},
-         None if m.twist_cam0 is None else np.asarray(m.twist_cam0, np.float64))
-        for m in metas
+        ({name: Alignment.from_meta(a) for name, a in up.items()},
+         None if twist is None else np.asarray(twist, np.float64))
+        for up, _, twist in records
     ]  # fmt: skip
-    lower = [({name: Alignment.from_meta(a) for name, a in m.alignment_lower.items()}, None) for m in metas]
+    lower = [({name: Alignment.from_meta(a) for name, a in low.items()}, None) for _, low, _ in records]
     return upper, lower

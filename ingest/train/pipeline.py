@@ -66,14 +66,20 @@ from ingest.dataset.layout import (
     sample_id,
 )
 from ingest.dataset.lock import hold_folder
-from ingest.dataset.meta import read_meta
 from ingest.errors import BagError, DatasetError, MessageDecodeError, OdometryError, OutputError
 from ingest.raster.visibility import backend_problem
 from ingest.runtime.executor import Executor, Handoff, share_cores
 from ingest.runtime.heap import retain_freed_memory
 from ingest.runtime.jit import compiling
 from ingest.topic_map import check_rig
-from ingest.train.align import Alignment, CalibrationCheck, SampleAlignments, check_calibration, from_metas
+from ingest.train.align import (
+    Alignment,
+    CalibrationCheck,
+    SampleAlignments,
+    check_calibration,
+    from_metas,
+    from_records,
+)
 from ingest.train.bad_messages import BadMessages
 from ingest.train.block_planes import BlockPlanes, PlaneSettings
 from ingest.train.dense import DenseParams, free_space_settings
@@ -90,7 +96,7 @@ from ingest.train.plan import LOST_REASON, Plan, Survey, plan, survey
 from ingest.train.plausible import check_imu_rate, check_time_order
 from ingest.train.refine import Refinement, refine
 from ingest.train.rig_trajectory import RigTrajectory
-from ingest.train.sample import GAP_FALLBACK, Geometry, SampleParams, SampleResult
+from ingest.train.sample import ALIGNED, GAP_FALLBACK, Geometry, SampleAlignment, SampleParams, SampleResult
 from ingest.train.stream import (
     ALREADY_HELD,
     UNDECODABLE_IMAGE,
@@ -244,6 +250,7 @@ class IngestSummary:
     alignments: list[tuple[Mapping[str, Alignment], F64 | None]] = field(default_factory=list)  # per sample
     calibration: CalibrationCheck | None = None  # the samples' alignments summed up (`ingest.train.align`)
     damaged: list[str] = field(default_factory=list)  # finished samples found damaged, written again: why
+    aligned: dict[str, SampleAlignment] = field(default_factory=dict)  # per sample id: alignment_only's
 
     @property
     def density(self) -> list[float]:
@@ -251,6 +258,9 @@ class IngestSummary:
         return [d for by_method in self.density_by_method.values() for d in by_method]
 
     def add(self, result: SampleResult) -> None:
+        if result.reason == ALIGNED and result.aligned is not None:
+            self.aligned[result.sid] = result.aligned
+            return
         if result.reason == ALREADY_HELD:
             self.resumed += 1
             self.held_elsewhere += 1
@@ -546,8 +556,9 @@ def refine_rig(
     aligning: Callable[[int, int], None] | None = None,
 ) -> Refinement:
     """`ingest.train.refine.refine` with every step: the clocks and IMU rotations from the gyros
-    (`progress` over the messages read), then each LiDAR's pose from sparse ingests of `ALIGN_SAMPLES`
-    frames in a temporary folder, removed (`aligning` over each round's samples)."""
+    (`progress` over the messages read), then each LiDAR's pose from the alignments of `ALIGN_SAMPLES`
+    frames, found by sparse ingests that write no sample (`SampleParams.alignment_only`) into a temporary
+    folder, removed (`aligning` over each round's samples)."""
 
     def align(candidate: Rig, frames: int) -> tuple[SampleAlignments, SampleAlignments]:
         every = max(1, -(-frames // ALIGN_SAMPLES))  # at most ALIGN_SAMPLES frames
@@ -556,11 +567,12 @@ def refine_rig(
             rig_file.parent.mkdir()
             write_rig(replace(candidate, camchain=None), rig_file)
             out = Path(tmp) / "out"
-            sample = SampleParams(align_lower=True)
+            sample = SampleParams(align_lower=True, alignment_only=True)
             cfg = IngestConfig(rig=rig_file, out=out, workers=workers, every=every, gt="sparse")
             cfg = replace(cfg, sample=sample)
-            ingest(bags, cfg, progress=aligning)
-            return from_metas([read_meta(out, p.stem) for p in sorted((out / "meta").glob("*.json"))])
+            summary = ingest(bags, cfg, progress=aligning)
+            found = [summary.aligned[sid] for sid in sorted(summary.aligned)]
+            return from_records([(a.upper, a.lower, a.twist_cam0) for a in found])
 
     return refine(bags, rig, progress, align)
 

@@ -163,6 +163,7 @@ class SampleParams:
     gap_fallback: bool = False  # dense: a frame in a trajectory gap gets sparse GT (--gt auto), not skipped
     dense: DenseParams = field(default_factory=DenseParams)
     align_lower: bool = False  # also lay the points onto the lower image (`calib refine`'s stereo check)
+    alignment_only: bool = False  # `calib refine`'s rounds: the alignments only (no GT, warps or files)
 
 
 @dataclass(frozen=True)
@@ -218,6 +219,21 @@ class SampleResult:
     stage_ms: dict[str, float]  # sequential stages of the calling thread: they add up to its wall time
     overlapped_ms: dict[str, float] = field(default_factory=dict)  # helper-thread work beside them
     undecodable: tuple[tuple[str, int, str], ...] = ()  # (topic, log ns, why) per image that did not decode
+    aligned: SampleAlignment | None = None  # `SampleParams.alignment_only`: what it found (reason ALIGNED)
+
+
+ALIGNED = "aligned only (calib refine)"
+"""The reason of a `SampleParams.alignment_only` result: nothing written, its alignments in the result."""
+
+
+@dataclass(frozen=True)
+class SampleAlignment:
+    """A sample's LiDAR points laid onto its images, as the meta would record them: per LiDAR topic onto
+    the upper image and onto the lower one, and cam0's twist (`SampleMeta.twist_cam0`)."""
+
+    upper: dict[str, AlignmentMeta]
+    lower: dict[str, AlignmentMeta]
+    twist_cam0: list[float] | None
 
 
 def _silent(job: SampleJob) -> list[str]:
@@ -317,6 +333,8 @@ def process_sample(job: SampleJob) -> SampleResult:
     stages; stage "images" is what the calling thread spends on them: starting
     them (building the remap maps, once per process) and waiting at the end.
     """
+    if job.params.alignment_only:
+        return _process_sparse(job, None, 0.0)
     t0 = time.perf_counter()
     images = start_equirects(job)
     try:
@@ -332,8 +350,9 @@ def _process(job: SampleJob, images: Background[Equirects], start_ms: float) -> 
     return _process_sparse(job, images, start_ms)
 
 
-def _process_sparse(job: SampleJob, images: Background[Equirects], start_ms: float) -> SampleResult:
-    """Sparse GT: the frame's own sweeps, motion-compensated to the frame time."""
+def _process_sparse(job: SampleJob, images: Background[Equirects] | None, start_ms: float) -> SampleResult:
+    """Sparse GT: the frame's own sweeps, motion-compensated to the frame time; without `images` (the
+    warps), the points' alignments only (`SampleParams.alignment_only`)."""
     ms: dict[str, float] = {}
     t0 = time.perf_counter()
     geo, prm = job.geometry, job.params
@@ -368,6 +387,11 @@ def _process_sparse(job: SampleJob, images: Background[Equirects], start_ms: flo
         return SampleResult(job.sid, False, "moving, LiDAR window one-sided (bag start/end or gap)", None, {})
     t1 = time.perf_counter()
     ms["clouds"] = (t1 - t0) * 1e3
+    if images is None:
+        fields = _alignment_fields(job, pts, cloud, ms)
+        twist = _gyro_twist(job, velocity if motion.applied else None)
+        aligned = SampleAlignment(fields["alignment"], fields["alignment_lower"], twist)
+        return SampleResult(job.sid, False, ALIGNED, None, ms, aligned=aligned)
     model = geo.rig.upper.model
     view = in_view(model, pts)
     seen = view[0]

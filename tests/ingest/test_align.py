@@ -193,3 +193,38 @@ def test_the_stereo_pose_error_comes_back_from_both_images_corrections() -> None
         moved = np.linalg.norm((E @ T10)[:3, 3] - T10[:3, 3]) * 1e3
         assert found.translation_mm == pytest.approx(moved, abs=1e-6) and moved == pytest.approx(mm, abs=0.5)
         assert found.disagrees == (deg > 0)
+
+
+def test_an_alignment_only_run_writes_no_sample_and_finds_what_the_metas_record(tmp_path: Path) -> None:
+    """`calib refine`'s rounds (`SampleParams.alignment_only`) on the indoor walk fixture: no image,
+    GT or meta file is written, and each sample's alignments onto both images and cam0's twist are the
+    ones a sparse ingest that writes the samples records in its metas (to JSON's rounding)."""
+    from ingest.dataset.meta import read_meta
+    from ingest.train.align import from_metas, from_records
+    from ingest.train.sample import SampleParams
+
+    bag = FIXTURES_DIR / "indoor_walk_db3"
+    rig_file = tmp_path / "rig" / "rig.yaml"
+    rig_file.parent.mkdir()
+    write_rig(replace(Truth.load(bag).rig, camchain=None), rig_file)
+    runs = {}
+    for name, only in (("written", False), ("aligned", True)):
+        cfg = IngestConfig(rig=rig_file, out=tmp_path / name, workers=1, gt="sparse")
+        runs[name] = ingest([bag], replace(cfg, sample=SampleParams(align_lower=True, alignment_only=only)))
+    files = [p for p in (tmp_path / "aligned").rglob("*") if p.is_file() and p.name != "dataset.yaml"]
+    assert runs["aligned"].written == 0 and not [p for p in files if p.suffix in (".png", ".json", ".exr")]
+    metas = [
+        read_meta(tmp_path / "written", p.stem) for p in sorted((tmp_path / "written/meta").glob("*.json"))
+    ]
+    assert len(metas) == runs["written"].written == len(runs["aligned"].aligned) >= 15
+    aligned = [runs["aligned"].aligned[sid] for sid in sorted(runs["aligned"].aligned)]
+    got = from_records([(a.upper, a.lower, a.twist_cam0) for a in aligned])
+    for mine, theirs in zip(got, from_metas(metas), strict=True):
+        assert len(mine) == len(theirs)
+        for (found, twist), (recorded, twist_recorded) in zip(mine, theirs, strict=True):
+            assert set(found) == set(recorded) and found
+            for name, a in found.items():
+                np.testing.assert_allclose(a.vector, recorded[name].vector, atol=1e-6)
+            assert (twist is None) == (twist_recorded is None)
+            if twist is not None:
+                np.testing.assert_allclose(twist, twist_recorded, atol=1e-6)
