@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import os
 import sys
 import textwrap
 import time
@@ -113,6 +114,7 @@ def main() -> None:
     parser.add_argument("--every", type=int, default=6, help="ingest every n-th frame for the GT rows")
     parser.add_argument("--cases", default=",".join(CASES), help="comma-separated: " + ", ".join(CASES))
     parser.add_argument("--scores", action="store_true", help="also the per-sample score study (part 3)")
+    parser.add_argument("--tag", default="", help="suffix of the output files (refine<TAG>.csv, ...)")
     args = parser.parse_args()
     work = OUT_DIR / "refine" / f"{args.seconds:g}s_x{args.scale:g}"
     work.mkdir(parents=True, exist_ok=True)
@@ -128,15 +130,17 @@ def main() -> None:
             print(f"{name}: simulated {args.seconds:g} s in {time.perf_counter() - t0:.0f} s", flush=True)
         truth = Truth.load(bag)
         given = wrong_rig(truth.rig)
-        t0 = time.perf_counter()
+        t0, cpu0 = time.perf_counter(), os.times()
         found = refine_rig([bag], given)
-        seconds = time.perf_counter() - t0
+        seconds, cpu1 = time.perf_counter() - t0, os.times()
+        cpu_s = sum(cpu1[:4]) - sum(cpu0[:4])  # this process and its workers (user + system)
+        took = f"{seconds:.0f} ({cpu_s:.0f} CPU)"
         for cam, true_ns in zip(found.cameras, OFFSETS_NS, strict=True):
             e = cam.estimate
             err = f"{abs(e.timeshift_ms + true_ns / 1e6):.3f}" if e.observable else "-"
             rec_rows.append([f"{name}: {cam.camera} offset [ms]", f"{-true_ns / 1e6:+.3f}",
                              f"{e.timeshift_ms:+.3f}" if e.observable else "not observable", err,
-                             f"{e.sigma_ms:.3f}", f"{seconds:.0f}"])  # fmt: skip
+                             f"{e.sigma_ms:.3f}", took])  # fmt: skip
         for lidar in truth.rig.lidars:
             T_true = lidar.T_cam0_lidar
             T_given, T_found = given.lidar(lidar.name).T_cam0_lidar, found.rig.lidar(lidar.name).T_cam0_lidar
@@ -151,11 +155,12 @@ def main() -> None:
                 rec_rows.append([
                     f"{name}: {lidar.name} {what}", f"{before:.3f}",
                     f"{after:.3f}" if applied else "not applied (rig's kept)", f"{after:.3f}",
-                    "-" if sigma is None else f"{sigma:.3f}", f"{seconds:.0f}",
+                    "-" if sigma is None else f"{sigma:.3f}", took,
                 ])  # fmt: skip
         mine_rows = [" | ".join(r[:5]) for r in rec_rows if r[0].startswith(f"{name}:")]
-        print(f"{name}: refine took {seconds:.0f} s", *mine_rows, f"stereo check: {found.stereo_alignment}",
-              f"clock check: {found.image_clock_ms}", sep="\n  ", flush=True)  # fmt: skip
+        print(f"{name}: refine took {seconds:.0f} s ({cpu_s:.0f} CPU s)", *mine_rows,
+              f"stereo check: {found.stereo_alignment}", f"clock check: {found.image_clock_ms}",
+              sep="\n  ", flush=True)  # fmt: skip
         for label, rig in (("exact rig", truth.rig), ("given rig", given), ("refined rig", found.rig)):
             med, outl, dens = _gt(bag, rig, work / f"{bag.name}_{label.split()[0]}", truth, args.every)
             gt_rows.append([f"{name}: {label}", f"{med:.2f}", f"{outl:.2f}", f"{dens:.2f}"])
@@ -166,16 +171,17 @@ def main() -> None:
           f"{OFFSETS_NS[0] / 1e6:+g} / {OFFSETS_NS[1] / 1e6:+g} ms, lidar_top (and its IMU) off by 1 deg "
           "and 30 mm, lidar_bottom by 0.5 deg and 20 mm, Mid-360 IMU noise and bias, mid360 range "
           "noise:\n")  # fmt: skip
-    markdown_table(["what", "truth (given error)", "refined", "error", "1-sigma", "refine s"], rec_rows)
+    header = ["what", "truth (given error)", "refined", "error", "1-sigma", "refine s (CPU s)"]
+    markdown_table(header, rec_rows)
     print()
     markdown_table(["sparse GT", "range median [mm]", "outliers [%]", "density [%]"], gt_rows)
     OUT_DIR.mkdir(parents=True, exist_ok=True)
-    with (OUT_DIR / "refine.csv").open("w", newline="") as f:
+    with (OUT_DIR / f"refine{args.tag}.csv").open("w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(csv_rows[0]))
         writer.writeheader()
         writer.writerows(csv_rows)
-    _chart(csv_rows, OUT_DIR / "refine.png", args)
-    print(f"\nchart: {OUT_DIR / 'refine.png'}; table: {OUT_DIR / 'refine.csv'}")
+    _chart(csv_rows, OUT_DIR / f"refine{args.tag}.png", args)
+    print(f"\nchart: {OUT_DIR / f'refine{args.tag}.png'}; table: {OUT_DIR / f'refine{args.tag}.csv'}")
     if args.scores:
         _score_study(args, work)
 
@@ -233,8 +239,8 @@ def _score_study(args: argparse.Namespace, work: Path) -> None:
                          warned or "(cached)"])  # fmt: skip
     print()
     markdown_table(["samples", "score median [deg]", "score max [deg]", "ROC AUC vs exact", "warned"], rows)
-    _score_chart(points, OUT_DIR / "refine_scores.png", args)
-    print(f"\nchart: {OUT_DIR / 'refine_scores.png'}")
+    _score_chart(points, OUT_DIR / f"refine_scores{args.tag}.png", args)
+    print(f"\nchart: {OUT_DIR / f'refine_scores{args.tag}.png'}")
 
 
 def _score_chart(points: list[tuple[str, str, float, float]], path: Path, args: argparse.Namespace) -> None:

@@ -28,7 +28,8 @@ from calibration.types import F64, U8
 from ingest.bags.decode import Frame, ImuSample
 from ingest.bags.reader import open_bags
 from ingest.errors import BagError
-from ingest.train.align import Alignment, Combined, SampleAlignments, check_calibration, combine, corrected
+from ingest.train.align import Alignment
+from ingest.train.align_check import Combined, SampleAlignments, check_calibration, combine, corrected
 from ingest.train.clouds import GyroTrack, integrate_gyro
 from ingest.train.timeshift import (
     TIMING_ROTATION_SIGMA_DEG,
@@ -43,9 +44,11 @@ from ingest.train.timeshift import (
     pair_rotation,
 )
 
-PAIR_GAPS = (1, 3, 6, 12)
+PAIR_GAPS = (3, 6, 12)
 """Frames are paired with the ones this many frames before: the offset's signal, the change of the angular
-rate between the two, grows with the gap while the rotation's error does not."""
+rate between the two, grows with the gap while the rotation's error does not, so a pair's information
+grows with the gap squared and a gap of one frame would add 0.5 % of it for a quarter of the tracking
+(8 s walk at 960x600: the same 1-sigma, 0.10 ms, with 17 % less CPU)."""
 IN_FLIGHT = 32
 """Frame pairs queued for tracking at most (each holds two grey images)."""
 TRACK_WIDTH_PX = 1000
