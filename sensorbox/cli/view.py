@@ -16,7 +16,7 @@ import typer
 from sensorbox.cli.common import check_out_file, human_bytes, path_param, progress_bar
 
 if TYPE_CHECKING:
-    from sensorbox.analysis.view import ViewSummary
+    from sensorbox.analysis.view_files import ViewSummary
 
 
 def summary_line(summary: ViewSummary, dataset: Path, save: Path | None) -> str:
@@ -66,7 +66,8 @@ def view_cmd(
     'scene'). Without --save the Rerun viewer is spawned.
     """
     from ingest.eval.evaluate import detect_layout
-    from sensorbox.analysis.view import MAX_SIDE_PX, view_dataset
+    from sensorbox.analysis.view import view_dataset
+    from sensorbox.analysis.view_files import MAX_SIDE_PX
 
     unit = "samples" if detect_layout(dataset) == "train" else "scenes"
     if save is not None:

@@ -24,18 +24,16 @@ import yaml
 from calibration import read_rig
 from ingest.errors import DatasetError
 from ingest.train.pipeline import IngestConfig, ingest
-from sensorbox.analysis.view import (
-    benchmark_layout,
-    display_problem,
+from sensorbox.analysis.view import display_problem, view_dataset, viewer_executable
+from sensorbox.analysis.view_benchmark import benchmark_layout
+from sensorbox.analysis.view_files import (
     downscale_factor,
     downscale_nearest_surface,
     meta_scalars,
     pose_at,
     read_tum,
-    train_layout,
-    view_dataset,
-    viewer_executable,
 )
+from sensorbox.analysis.view_train import train_layout
 from tests.paths import FIXTURES_DIR, ROOT
 
 rerun_chunk = pytest.importorskip("rerun.chunk")
