@@ -72,8 +72,8 @@ from ingest.runtime.executor import Executor, Handoff, share_cores
 from ingest.runtime.heap import retain_freed_memory
 from ingest.runtime.jit import compiling
 from ingest.topic_map import check_rig
-from ingest.train.align import (
-    Alignment,
+from ingest.train.align import Alignment
+from ingest.train.align_check import (
     CalibrationCheck,
     SampleAlignments,
     check_calibration,
