@@ -20,10 +20,12 @@ from calibration import read_rig
 from calibration.spherical import Equirectangular, pinhole_for_fov
 from calibration.virtual import R_up_cam, partner_pose, virtual_ds
 from ingest.raster import compiled_view
+from ingest.raster.geometry import ViewPoints
 from ingest.raster.lod import build_index, point_index
+from ingest.raster.params import RenderParams
 from ingest.raster.synthetic import room_scan
 from ingest.raster.view import Rendering, render_view
-from ingest.raster.visibility import RenderParams, ViewPoints, zbuffer
+from ingest.raster.visibility import zbuffer
 from tests.calibration.test_virtual import RIG
 
 W, H = 160, 96
