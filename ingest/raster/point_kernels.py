@@ -1,6 +1,6 @@
 """Compiled (numba, parallel) per-point stages of the renderer: transform, view test, z-buffer, average.
 
-Each kernel does in one pass over the points what `ingest.raster.view` and
+Each kernel does in one pass over the points what `ingest.raster.reference` and
 `ingest.raster.visibility` do in numpy with one full-length temporary per
 operation: the numpy path reads and writes every point's arrays a dozen
 times, a fused loop once. The arithmetic is the numpy path's, operation by
