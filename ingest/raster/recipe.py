@@ -115,13 +115,17 @@ class Stages(Protocol):
         params: RenderParams, pixel_mask: Bool | None,
     ) -> InView: ...  # fmt: skip
 
-    def ppr(self, geo: PixelGeometry) -> Any: ...
+    def ppr(self, geo: PixelGeometry) -> Any:
+        """Pixels per radian of every pixel (float32, flat), on the backend."""
 
-    def winners(self, view: Any, H: int, W: int) -> Winners: ...
+    def winners(self, view: Any, H: int, W: int) -> Winners:
+        """Both z-buffers of the view's points and their nearest points."""
 
-    def leaking(self, view: Any, win: Winners, ppr: Any, params: RenderParams, W: int, K: int) -> Any: ...
+    def leaking(self, view: Any, win: Winners, ppr: Any, params: RenderParams, W: int, K: int) -> Any:
+        """Which own points are background seen through a gap (bool), nearer points looked for within K px."""
 
-    def own_samples(self, view: Any, win: Winners, leak: Any, W: int) -> OwnSamples: ...
+    def own_samples(self, view: Any, win: Winners, leak: Any, W: int) -> OwnSamples:
+        """The own points that are not leaks."""
 
     def gradient_value(self, own: OwnSamples, ppr: Any, params: RenderParams, W: int) -> tuple[Any, Any, Any]:
         """(gu, gv, value): the range gradient per pixel (m per pixel along u, v; 0 without a fit) and
@@ -129,7 +133,8 @@ class Stages(Protocol):
 
     def average(
         self, view: Any, own: OwnSamples, gu: Any, gv: Any, value: Any, ppr: Any, params: RenderParams, W: int
-    ) -> Any: ...
+    ) -> Any:
+        """Each pixel's value: the mean of its same-surface points moved to the centre (in ``value``)."""
 
     def nonzero(self, mask: Any) -> Any:
         """Flat indices where ``mask`` holds."""
@@ -142,9 +147,11 @@ class Stages(Protocol):
     def finish(
         self, view: Any, value: Any, win: Winners, own: OwnSamples, rays: Bool, ppr: Any,
         params: RenderParams, W: int,
-    ) -> Finished: ...  # fmt: skip
+    ) -> Finished:  # fmt: skip
+        """Masks, clipping, the valid ranges and the colours of the pixels with a ray (``rays``, host)."""
 
-    def host(self, a: Any) -> np.ndarray[Any, Any]: ...
+    def host(self, a: Any) -> np.ndarray[Any, Any]:
+        """A backend array as a numpy array on the host."""
 
 
 def render(
