@@ -134,7 +134,8 @@ class Stages(Protocol):
     def average(
         self, view: Any, own: OwnSamples, gu: Any, gv: Any, value: Any, ppr: Any, params: RenderParams, W: int
     ) -> Any:
-        """Each pixel's value: the mean of its same-surface points moved to the centre (in ``value``)."""
+        """Each pixel's value: the mean of its same-surface points moved to the centre (written into
+        ``value`` or a new array)."""
 
     def nonzero(self, mask: Any) -> Any:
         """Flat indices where ``mask`` holds."""
