@@ -40,9 +40,9 @@ from calibration import CameraModel, DoubleSphere, read_rig
 from calibration.spherical import Equirectangular, pinhole_for_fov
 from calibration.virtual import R_up_cam, partner_pose, virtual_ds
 from ingest.raster.lod import build_index
+from ingest.raster.params import RenderParams
 from ingest.raster.synthetic import room_scan
 from ingest.raster.view import Rendering, pixel_geometry, render_view
-from ingest.raster.visibility import RenderParams
 
 RIG = Path(__file__).resolve().parents[1] / "calibration" / "sensorbox.yaml"
 

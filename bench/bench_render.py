@@ -48,9 +48,9 @@ from calibration.virtual import R_up_cam, partner_pose, virtual_ds
 from ingest.dataset.layout import DISP_SCALE, read_png_u16
 from ingest.eval.metrics import score_range
 from ingest.raster.lod import ScanIndex, build_index
+from ingest.raster.params import RenderParams
 from ingest.raster.scan import Scan
 from ingest.raster.view import Rendering, pixel_geometry, render_view
-from ingest.raster.visibility import RenderParams
 from ingest.render.benchmark import run_benchmark
 from ingest.render.plan import BenchmarkConfig
 from ingest.render.scans import read_scans

@@ -4,7 +4,8 @@ calibration <- ingest <- sensorbox. Inside ingest, train, render and eval share 
 raster (the point renderer) and runtime but never import each other; those shared rooms import
 none of the three. Inside sensorbox,
 live reaches the simulator only through the node registry (by name), and the CLI imports only
-public names.
+public names. Inside the rooms of ACYCLIC no module imports itself back through others (an import
+inside a function counts).
 """
 
 import ast
@@ -89,6 +90,57 @@ def test_the_cli_imports_only_public_names_of_the_library():
     for f in sorted((ROOT / "sensorbox" / "cli").glob("*.py")):
         for module, names in _imports(f):
             assert not any(n.startswith("_") for n in names), (f.name, module, names)
+
+
+ACYCLIC = ("ingest.raster",)
+
+
+def _room_graph(room: str) -> dict[str, set[str]]:
+    """Module -> the modules of ``room`` it imports (at the top or inside a function)."""
+    files = sorted((ROOT / Path(*room.split("."))).rglob("*.py"))
+    modules = {_module(f): f for f in files}
+    graph: dict[str, set[str]] = {}
+    for name, f in modules.items():
+        deps: set[str] = set()
+        for m, names in _imports(f):
+            subs = {f"{m}.{n}" for n in names} & modules.keys()  # `from package import module`
+            deps |= subs or ({m} & modules.keys())
+        graph[name] = deps - {name}
+    return graph
+
+
+def _circle(graph: dict[str, set[str]]) -> list[str]:
+    """One import circle of ``graph`` as the modules along it, first repeated at the end ([] when none)."""
+    state: dict[str, int] = {}  # 1: on the current path, 2: done
+    path: list[str] = []
+
+    def visit(node: str) -> list[str]:
+        state[node] = 1
+        path.append(node)
+        for dep in sorted(graph.get(node, ())):
+            if state.get(dep) == 1:
+                return [*path[path.index(dep) :], dep]
+            if dep not in state and (found := visit(dep)):
+                return found
+        path.pop()
+        state[node] = 2
+        return []
+
+    for node in sorted(graph):
+        if node not in state and (found := visit(node)):
+            return found
+    return []
+
+
+@pytest.mark.parametrize("room", ACYCLIC)
+def test_no_import_circle(room):
+    assert _circle(_room_graph(room)) == []
+
+
+def test_circle_finder_names_the_circle():
+    graph = {"a": {"b"}, "b": {"c"}, "c": {"a", "d"}, "d": set()}
+    assert _circle(graph) == ["a", "b", "c", "a"]
+    assert _circle({"a": {"b"}, "b": set(), "c": {"a", "b"}}) == []
 
 
 def test_checker_detects_a_violation(tmp_path):

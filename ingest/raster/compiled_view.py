@@ -1,19 +1,20 @@
-"""`render_view` with compiled kernels: the recipe of `ingest.raster.view`, each stage one parallel pass.
+"""The renderer's stages as compiled kernels (`RenderParams.backend="numba"`), each one parallel pass.
 
-Same stages, same numbers as the numpy recipe (`RenderParams.backend="numpy"`):
-level-of-detail selection and the camera model's projection stay numpy (one
-vectorised call each); the transform, view test and footprints of the points
-(`ingest.raster.point_kernels`), the z-buffers, the leak test, the gradient
-fit, the same-surface average, the gap fill and the masks
-(`ingest.raster.pixel_kernels`) are numba loops that touch each point or pixel
-once instead of once per numpy operation.
+Same stages (`ingest.raster.recipe`), same numbers as the numpy reference
+(`ingest.raster.reference`): level-of-detail selection and the camera
+model's projection stay numpy (one vectorised call each); the transform,
+view test and footprints of the points (`ingest.raster.point_kernels`), the
+z-buffers, the leak test, the gradient fit, the same-surface average, the
+gap fill and the masks (`ingest.raster.pixel_kernels`) are numba loops that
+touch each point or pixel once instead of once per numpy operation. The
+recipe's thresholds reach the kernels as arguments, from `RenderParams`.
 """
 
 from __future__ import annotations
 
-import math
 from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from typing import Any
 
 import numba
@@ -22,45 +23,39 @@ import numpy as np
 from calibration.camera import CameraModel
 from calibration.fisheye import DoubleSphere
 from calibration.kernels import fork_safe_numba_threads
-from calibration.spherical import Equirectangular
 from calibration.transforms import invert
 from calibration.types import F32, F64, I64, Bool
 from calibration.virtual import project_f32
 from ingest.raster import pixel_kernels as px
 from ingest.raster import point_kernels as pk
+from ingest.raster import recipe
+from ingest.raster.geometry import (
+    PixelGeometry,
+    Rendering,
+    ViewPoints,
+    coarse_mask,
+    concat_points,
+    points_in_view,
+)
 from ingest.raster.kernels import ellipse_offsets
 from ingest.raster.lod import ScanIndex, select
-from ingest.raster.view import PixelGeometry, Rendering, coarse_mask, pixel_geometry, points_in_view
-from ingest.raster.visibility import (
-    EMPTY_KEY,
-    IDX_BITS,
-    KEY_BASE,
-    Q_MAX,
-    RANGE_QUANTUM_M,
-    RenderParams,
-    ViewPoints,
-    concat_points,
-)
+from ingest.raster.params import EMPTY_KEY, IDX_BITS, IDX_MASK, KEY_BASE, Q_MAX, RANGE_QUANTUM_M, RenderParams
+from ingest.raster.recipe import Finished, OwnSamples, Winners
 
 fork_safe_numba_threads()  # before any parallel kernel runs in this process
 
 f32 = np.float32
-IDX_MASK = (1 << IDX_BITS) - 1
 # Smaller views run their kernels on one thread: starting a parallel region costs tens of
 # microseconds on an idle machine and milliseconds on a busy one, more than such a view saves.
 SMALL_VIEW_PX = 250_000
 SMALL_VIEW_POINTS = 1_000_000
 
 
-def _slope(params: RenderParams) -> float:
-    return math.tan(math.radians(params.max_incidence_deg))
-
-
 def _selected_in_view(
     src: ScanIndex, idx: I64, sp: F32, model: CameraModel, geo: PixelGeometry, T_cam_scan: F64,
     params: RenderParams,
 ) -> tuple[Any, ...]:  # fmt: skip
-    """`view.points_in_view` of ``src.xyz[idx]`` in compiled passes, packed by row group.
+    """`geometry.points_in_view` of ``src.xyz[idx]`` in compiled passes, packed by row group.
 
     Returns (pix, u, v, r, ku, kv, rgb, kept scan index, index in selection
     order, where each row group starts, points per footprint class (ku, kv)).
@@ -78,12 +73,8 @@ def _selected_in_view(
         ds = np.array([c.xi, c.alpha, 1.0 - c.alpha, -c.w2, c.fx, c.fy, c.cx, c.cy], np.float32)
         u, v, ok = np.empty(n, np.float32), np.empty(n, np.float32), np.empty(n, bool)
         pk.transform_ds(src.xyz, idx, R, t, ds, u, v, ok, r, pn)
-    elif type(model) is Equirectangular and model.pole_axis == "y":  # projected in the same pass
-        e = model
-        eq = np.array([math.pi, e.pitch_rad, 0.5, e.col_offset, e.row_offset], np.float32)
-        u, v, ok = np.empty(n, np.float32), np.empty(n, np.float32), np.empty(n, bool)
-        pk.transform_equirect(src.xyz, idx, R, t, eq, u, v, ok, r, pn)
-    else:
+    else:  # the reference's numpy projection: a float32 arctan2 (equirect, Cassini) in a numba kernel is
+        # libm's, an ulp off numpy's for ~40 % of points, which moves some across a pixel edge
         x, y, z = (np.empty(n, np.float32) for _ in range(3))
         pk.transform(src.xyz, idx, R, t, x, y, z, r, pn)
         u, v, ok = project_f32(model, x, y, z)
@@ -103,11 +94,35 @@ def _selected_in_view(
     return pix, u_k, v_k, r_k, ku, kv, rgb, kept, order, group_start, hist.sum(axis=0).reshape(K + 1, K + 1)
 
 
-def _gather(
+@dataclass(frozen=True, eq=False)
+class CompiledView:
+    """The points of a view packed by row group, and its mask points.
+
+    ``order``: each point's index in selection order; ``seg`` (sources, groups + 1): where each
+    source's points of each row group start; ``classes[ku, kv]``: points per footprint.
+    """
+
+    pts: ViewPoints
+    order: I64
+    seg: I64
+    classes: I64
+    mask_pts: ViewPoints
+    stats: dict[str, int]
+
+    @property
+    def n(self) -> int:
+        return len(self.pts.r)
+
+    @property
+    def k_max(self) -> int:
+        return k_max_of(self.classes)
+
+
+def gather(
     sources: list[ScanIndex], model: CameraModel, geo: PixelGeometry, T_world_cam: F64, params: RenderParams,
     pixel_mask: Bool | None,
-) -> tuple[ViewPoints, I64, I64, I64, ViewPoints, dict[str, int]]:  # fmt: skip
-    """`view._gather`: every scan's selected points (by row group), their order, group starts and
+) -> CompiledView:  # fmt: skip
+    """`reference.gather`: every scan's selected points (by row group), their order, group starts and
     footprint class counts (ku, kv); the mask points."""
     T_cam_world = invert(T_world_cam)
     coarse = None if pixel_mask is None else coarse_mask(pixel_mask, geo.stride)
@@ -145,7 +160,7 @@ def _gather(
             mask_parts.append((*mproj, np.zeros((len(mkept), 3), np.uint8), np.ones(len(mkept), bool)))
     order_all = orders[0] if len(orders) == 1 else np.concatenate(orders) if orders else np.zeros(0, np.int64)
     seg = np.stack(segs) if segs else np.zeros((0, pk.n_groups(model.height) + 1), np.int64)
-    return concat_points(parts), order_all, seg, classes, concat_points(mask_parts), stats
+    return CompiledView(concat_points(parts), order_all, seg, classes, concat_points(mask_parts), stats)
 
 
 def zbuffer(
@@ -154,7 +169,7 @@ def zbuffer(
 ) -> tuple[I64, I64]:  # fmt: skip
     """`visibility.zbuffer` in parallel bands: the same (own, splat) key images, indices from ``order``.
 
-    ``seg`` (sources, groups + 1): where each source's points of each row group start (`_gather`);
+    ``seg`` (sources, groups + 1): where each source's points of each row group start (`gather`);
     points not packed by rows need one band (``bands=1``) whose segment holds them all.
     ``classes[ku, kv]`` counts the points per footprint.
     """
@@ -202,27 +217,6 @@ def _dense_classes(classes: I64, k_max: int, P: int) -> tuple[I64, I64]:
     return layer_of, layer_cls
 
 
-def _fill(value: F32, gu: F32, gv: F32, need: I64, ppr: F32, W: int, params: RenderParams) -> Bool:
-    """`visibility.fill_gaps` in place on flat images; which pixels of ``need`` got a value."""
-    got_all = np.zeros(len(need), bool)
-    todo = np.arange(len(need))
-    weight = np.array([1.0] * 4 + [1.0 / math.sqrt(2.0)] * 4, np.float32)
-    c = (f32(params.tau_m), f32(params.tau_rel), f32(_slope(params) * 1.5))
-    for _ in range(params.fill_passes):
-        if todo.size == 0:
-            break
-        pixels = need[todo]
-        m = len(pixels)
-        pred, gnu, gnv = (np.empty((m, 8), np.float32) for _ in range(3))
-        new, got = np.empty((m, 3), np.float32), np.empty(m, bool)
-        px.fill_pass(pixels, value, gu, gv, ppr, W, *c, weight, pred, gnu, gnv, new, got)
-        done = pixels[got]
-        value[done], gu[done], gv[done] = new[got, 0], new[got, 1], new[got, 2]
-        got_all[todo[got]] = True
-        todo = todo[~got]
-    return got_all
-
-
 def _mask_buffer(mask_pts: ViewPoints, H: int, W: int) -> I64:
     """The mask points' splat keys (empty array: no mask point)."""
     if not len(mask_pts.pix):
@@ -245,78 +239,136 @@ def threads_at_most(n: int) -> Iterator[None]:
         numba.set_num_threads(old)
 
 
-def render_compiled(
-    sources: list[ScanIndex], model: CameraModel, T_world_cam: F64, params: RenderParams,
-    pixel_mask: Bool | None = None,
-) -> Rendering:  # fmt: skip
-    """`ingest.raster.view.render_view` with compiled kernels (see module doc); the same `Rendering`."""
-    n_points = sum(s.n_points for s in sources)
-    small = model.width * model.height < SMALL_VIEW_PX and n_points < SMALL_VIEW_POINTS
-    with threads_at_most(1 if small else numba.get_num_threads()):
-        return _render(sources, model, T_world_cam, params, pixel_mask)
-
-
-def _render(
-    sources: list[ScanIndex], model: CameraModel, T_world_cam: F64, params: RenderParams,
-    pixel_mask: Bool | None,
-) -> Rendering:  # fmt: skip
-    H, W = model.height, model.width
+def winners(view: CompiledView, H: int, W: int) -> Winners:
+    """Both z-buffers in parallel bands, decoded: nearest points (index n, range inf: none)."""
     P = H * W
-    geo = pixel_geometry(model)
-    ppr = geo.ppr.reshape(-1)
-    pts, order, seg, classes, mask_pts, stats = _gather(sources, model, geo, T_world_cam, params, pixel_mask)
-    own_key, splat_key = zbuffer(pts, order, seg, classes, H, W)
-    inv = np.empty(len(order), np.int64)
-    pk.invert_order(order, inv)
-    own_ok, leak = np.empty(P, bool), np.empty(P, bool)
+    own_key, splat_key = zbuffer(view.pts, view.order, view.seg, view.classes, H, W)
+    inv = np.empty(len(view.order), np.int64)
+    pk.invert_order(view.order, inv)
+    own_ok = np.empty(P, bool)
     own_i, splat_i = np.empty(P, np.int64), np.empty(P, np.int64)
     r_own, r_splat = np.empty(P, np.float32), np.empty(P, np.float32)
-    px.decode(own_key, splat_key, inv, pts.r, EMPTY_KEY, IDX_MASK, own_ok, own_i, splat_i, r_own, r_splat)
-    surface = splat_key != EMPTY_KEY
-    del own_key, splat_key
-    tau_m, tau_rel, slope = f32(params.tau_m), f32(params.tau_rel), _slope(params)
-    K = min(3, max(1, k_max_of(classes)))
-    px.leaking(own_ok, r_own, r_splat, splat_i, pts.u, pts.v, ppr, W, K, tau_m, tau_rel, slope,
-               f32(slope * 1.0), f32(slope * (K + 0.5)), leak)  # fmt: skip
-    own2 = np.empty(P, bool)
+    r = view.pts.r
+    px.decode(own_key, splat_key, inv, r, EMPTY_KEY, IDX_MASK, own_ok, own_i, splat_i, r_own, r_splat)
+    return Winners(own_ok, own_i, splat_i, r_own, r_splat, splat_key != EMPTY_KEY)
+
+
+def leaking(view: CompiledView, win: Winners, ppr: F32, params: RenderParams, W: int, K: int) -> Bool:
+    """`reference.leaking` per pixel (`pixel_kernels.leaking`)."""
+    leak = np.empty(len(ppr), bool)
+    slope = params.incidence_slope
+    px.leaking(win.own_ok, win.r_own, win.r_splat, win.splat_i, view.pts.u, view.pts.v, ppr, W, K,
+               f32(params.tau_m), f32(params.tau_rel), slope, f32(slope * params.LEAK_MIN_PX),
+               f32(slope * (K + params.HALF_PX)), params.HALF_PX, leak)  # fmt: skip
+    return leak
+
+
+def own_samples(view: CompiledView, win: Winners, leak: Bool, W: int) -> OwnSamples:
+    """`reference.own_samples` per pixel (`pixel_kernels.own_samples`)."""
+    P = len(leak)
+    ok = np.empty(P, bool)
     R, U, V = (np.empty(P, np.float32) for _ in range(3))
-    px.own_samples(own_ok, leak, own_i, pts.r, pts.u, pts.v, W, own2, R, U, V)
-    del r_own
+    px.own_samples(win.own_ok, leak, win.own_i, view.pts.r, view.pts.u, view.pts.v, W, ok, R, U, V)
+    return OwnSamples(ok, R, U, V)
 
-    # values on the pixel-centre rays: own points moved along the fitted gradient, averaged, gaps filled
-    gu, gv, value = (np.empty(P, np.float32) for _ in range(3))
-    px.gradient_value(R, U, V, ppr, W, tau_m, tau_rel, f32(slope * 1.0), params.fit_gradient, gu, gv, value)
-    if params.average_samples and len(pts.r):
-        pk.average_bands(pts.pix, pts.u, pts.v, pts.r, seg, own2, R, gu, gv, ppr, tau_m, tau_rel,
-                         f32(slope * 1.0), W, pk.n_bands(seg.shape[1] - 1), value)  # fmt: skip
-    need = np.flatnonzero(surface & ~own2)
-    got = _fill(value, gu, gv, need, ppr, W, params)
-    raw_px = need[~got]  # a surface but no own point and no neighbour: the splat's nearest range
-    value[raw_px] = r_splat[raw_px] if params.raw_fallback else np.float32(np.nan)
 
-    # masks, clipping, colour
-    rays = geo.valid if pixel_mask is None else geo.valid & pixel_mask
+def gradient_value(own: OwnSamples, ppr: F32, params: RenderParams, W: int) -> tuple[F32, F32, F32]:
+    """`reference.gradient_value` per pixel (`pixel_kernels.gradient_value`)."""
+    gu, gv, value = (np.empty(len(ppr), np.float32) for _ in range(3))
+    gates = (f32(params.GATE_DIRECT_PX), f32(params.GATE_DIAGONAL_PX))
+    fit_min = (params.FIT_MIN_DET, params.FIT_MIN_AXIS)
+    tol = (f32(params.tau_m), f32(params.tau_rel), f32(params.incidence_slope))
+    px.gradient_value(own.R, own.U, own.V, ppr, W, *tol, *gates, *fit_min, params.fit_gradient, gu, gv, value)
+    return gu, gv, value
+
+
+def average(
+    view: CompiledView, own: OwnSamples, gu: F32, gv: F32, value: F32, ppr: F32, params: RenderParams, W: int
+) -> F32:
+    """`reference.average` in bands of row groups (`point_kernels.average_bands`), in place."""
+    slope = f32(params.incidence_slope * params.SAME_SURFACE_PX)
+    pts, seg = view.pts, view.seg
+    pk.average_bands(pts.pix, pts.u, pts.v, pts.r, seg, own.ok, own.R, gu, gv, ppr, f32(params.tau_m),
+                     f32(params.tau_rel), slope, W, pk.n_bands(seg.shape[1] - 1), value)  # fmt: skip
+    return value
+
+
+def fill(
+    value: F32, own: OwnSamples, gu: F32, gv: F32, need: I64, ppr: F32, params: RenderParams, W: int
+) -> tuple[F32, Bool]:
+    """`reference.fill` in place on flat images (`pixel_kernels.fill_pass`); which pixels of ``need`` got a
+    value."""
+    got_all = np.zeros(len(need), bool)
+    todo = np.arange(len(need))
+    weight = np.array(params.fill_weights, np.float32)
+    c = (f32(params.tau_m), f32(params.tau_rel), f32(params.incidence_slope * params.FILL_TOLERANCE_PX))
+    for _ in range(params.fill_passes):
+        if todo.size == 0:
+            break
+        pixels = need[todo]
+        m = len(pixels)
+        pred, gnu, gnv = (np.empty((m, 8), np.float32) for _ in range(3))
+        new, got = np.empty((m, 3), np.float32), np.empty(m, bool)
+        px.fill_pass(pixels, value, gu, gv, ppr, W, *c, weight, pred, gnu, gnv, new, got)
+        done = pixels[got]
+        value[done], gu[done], gv[done] = new[got, 0], new[got, 1], new[got, 2]
+        got_all[todo[got]] = True
+        todo = todo[~got]
+    return value, got_all
+
+
+def finish(
+    view: CompiledView, value: F32, win: Winners, own: OwnSamples, rays: Bool, ppr: F32, params: RenderParams,
+    W: int,
+) -> Finished:  # fmt: skip
+    """`reference.finish` per pixel (`pixel_kernels.finish`)."""
+    P = len(value)
+    H = P // W
     surf, masked, clipped, good = (np.empty(P, bool) for _ in range(4))
     range_m = np.empty(P, np.float32)
     bgr = np.empty((P, 3), np.uint8) if params.colour else np.zeros((P, 3), np.uint8)
     clip = f32(np.inf) if params.clip_m is None else f32(params.clip_m)
-    rgb = pts.rgb if len(pts.rgb) else np.zeros((1, 3), np.uint8)
+    rgb = view.pts.rgb if len(view.pts.rgb) else np.zeros((1, 3), np.uint8)
+    mask_pts = view.mask_pts
     mask_key = _mask_buffer(mask_pts, H, W)
-    px.finish(value, surface, own2, own_i, splat_i, rays.reshape(-1), rgb, params.colour, ppr, W, mask_key,
-              mask_pts.r, mask_pts.u, mask_pts.v, EMPTY_KEY, IDX_MASK, tau_m, tau_rel, f32(slope), clip, surf,
-              masked, clipped, good, range_m, bgr)  # fmt: skip
-    stats.update(
-        pixels_with_ray=int(rays.sum()),
-        surface_px=int(surf.sum()),
-        own_px=int((own2 & surf).sum()),
-        filled_px=int(surf[need[got]].sum()),
-        raw_px=int(surf[raw_px].sum()),
-        leak_rejected_px=int((leak & surf).sum()),
-        masked_px=int(masked.sum()),
-        clipped_px=int(clipped.sum()),
-        hole_px=int((rays.reshape(-1) & ~surf).sum()),
-        valid_px=int(good.sum()),
-    )
-    shape = (H, W)
-    return Rendering(bgr.reshape(H, W, 3), range_m.reshape(shape), surf.reshape(shape), masked.reshape(shape),
-                     clipped.reshape(shape), rays, stats)  # fmt: skip
+    tol = (f32(params.tau_m), f32(params.tau_rel), f32(params.incidence_slope), f32(params.HALF_PX))
+    px.finish(value, win.surface, own.ok, win.own_i, win.splat_i, rays.reshape(-1), rgb, params.colour, ppr,
+              W, mask_key, mask_pts.r, mask_pts.u, mask_pts.v, EMPTY_KEY, IDX_MASK, *tol, clip, surf, masked,
+              clipped, good, range_m, bgr)  # fmt: skip
+    return Finished(surf, masked, clipped, good, range_m, bgr)
+
+
+class CompiledStages:
+    """The compiled stages as `ingest.raster.recipe.Stages`."""
+
+    gather = staticmethod(gather)
+    winners = staticmethod(winners)
+    leaking = staticmethod(leaking)
+    own_samples = staticmethod(own_samples)
+    gradient_value = staticmethod(gradient_value)
+    average = staticmethod(average)
+    fill = staticmethod(fill)
+    finish = staticmethod(finish)
+
+    @staticmethod
+    def ppr(geo: PixelGeometry) -> F32:
+        return geo.ppr.reshape(-1)
+
+    @staticmethod
+    def nonzero(mask: Bool) -> I64:
+        return np.flatnonzero(mask)
+
+    @staticmethod
+    def host(a: Any) -> np.ndarray[Any, Any]:
+        return np.asarray(a)
+
+
+def render_compiled(
+    sources: list[ScanIndex], model: CameraModel, T_world_cam: F64, params: RenderParams,
+    pixel_mask: Bool | None = None,
+) -> Rendering:  # fmt: skip
+    """`ingest.raster.recipe.render` with the compiled stages; small views on one thread."""
+    n_points = sum(s.n_points for s in sources)
+    small = model.width * model.height < SMALL_VIEW_PX and n_points < SMALL_VIEW_POINTS
+    with threads_at_most(1 if small else numba.get_num_threads()):
+        return recipe.render(CompiledStages(), sources, model, T_world_cam, params, pixel_mask)

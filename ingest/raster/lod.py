@@ -252,7 +252,7 @@ def select(
 
     ``ppr`` is the camera's coarse pixels-per-radian maps (along u, along v),
     their stride, maximum and the cap of the level of detail
-    (`ingest.raster.view.PixelGeometry.coarse`). ``coarse_mask`` (one cell per
+    (`ingest.raster.geometry.PixelGeometry.coarse`). ``coarse_mask`` (one cell per
     stride x stride pixels, already grown by a cell) drops voxels that land
     only where the view draws nothing.
     """

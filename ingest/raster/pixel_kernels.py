@@ -1,11 +1,12 @@
 """Compiled (numba, parallel) per-pixel stages of the renderer: winners, leaks, gradient, gap fill, masks.
 
-The numpy path (`ingest.raster.view`, `ingest.raster.visibility`) gathers
+The numpy reference (`ingest.raster.reference`, `ingest.raster.visibility`) gathers
 whole images per step; here each pixel is one loop iteration that reads its
 few neighbours. The arithmetic is the numpy path's, in the same order and
 precision: tolerances in float32 as numpy computes them (Python constants
 rounded to float32), the leak distance and the weak-gradient solve in
-float64 where numpy promotes to it. Images are flat (H*W,) arrays.
+float64 where numpy promotes to it. Images are flat (H*W,) arrays. The
+recipe's thresholds (`RenderParams`) come in as arguments.
 """
 
 from __future__ import annotations
@@ -15,10 +16,12 @@ import math
 import numpy as np
 from numba import njit, prange
 
-AX_DR = np.array([0, 1, 1, 1], np.int64)  # `visibility.AXES`
-AX_DC = np.array([1, 0, 1, -1], np.int64)
-NB_DR = np.array([0, 0, 1, -1, 1, -1, 1, -1], np.int64)  # `visibility.NB8`: opposite pairs adjacent
-NB_DC = np.array([1, -1, 0, 0, 1, -1, -1, 1], np.int64)
+from ingest.raster.params import AXES, NB8
+
+AX_DR = np.array([dr for dr, _ in AXES], np.int64)  # the leak test's axes
+AX_DC = np.array([dc for _, dc in AXES], np.int64)
+NB_DR = np.array([dr for dr, _ in NB8], np.int64)  # the 8-neighbours, opposite pairs adjacent
+NB_DC = np.array([dc for _, dc in NB8], np.int64)
 
 
 @njit(parallel=True, cache=True, nogil=True)
@@ -39,9 +42,12 @@ def decode(own_key, splat_key, inv, r, empty, idx_mask, own_ok, own_i, splat_i, 
 
 @njit(parallel=True, cache=True, nogil=True)
 def leaking(  # type: ignore[no-untyped-def]  # pragma: no cover
-    own_ok, r_own, r_splat, splat_i, u, v, ppr, W, K, tau_m, tau_rel, slope, slope1, slope_k, leak
+    own_ok, r_own, r_splat, splat_i, u, v, ppr, W, K, tau_m, tau_rel, slope, slope1, slope_k, half, leak
 ):  # fmt: skip
-    """`view._leaking` per pixel: an own point behind a nearer splat, nearer own points on opposite sides."""
+    """`reference.leaking` per pixel: an own point behind a nearer splat, nearer own points on opposite sides.
+
+    ``slope1``, ``slope_k``: the slope times `LEAK_MIN_PX` and K + `HALF_PX` (float32); ``half``: `HALF_PX`.
+    """
     P = own_ok.shape[0]
     H = P // W
     inv_w = 1.0 / W
@@ -58,7 +64,7 @@ def leaking(  # type: ignore[no-untyped-def]  # pragma: no cover
         s = splat_i[p]
         d = math.hypot(np.float64(u[s]) - col, np.float64(v[s]) - row)
         rs64 = np.float64(rs)
-        if not (np.float64(ro) > rs64 + (tm64 + rs64 * (tr64 + sl64 * (d + 0.5) / np.float64(pp)))):
+        if not (np.float64(ro) > rs64 + (tm64 + rs64 * (tr64 + sl64 * (d + half) / np.float64(pp)))):
             continue
         thr = ro - (tau_m + ro * (tau_rel + slope_k / pp))
         for a in range(4):
@@ -96,16 +102,16 @@ def own_samples(own_ok, leak, own_i, r, u, v, W, ok2, R, U, V):  # type: ignore[
 
 
 @njit(cache=True, nogil=True)
-def _solve(a11, a12, a22, b1, b2, one, zero):  # type: ignore[no-untyped-def]  # pragma: no cover
+def _solve(a11, a12, a22, b1, b2, one, zero, min_det, min_axis):  # type: ignore[no-untyped-def]  # pragma: no cover
     """`visibility.solve_gradient` for one pixel, in the type of ``one``."""
     det = a11 * a22 - a12 * a12
-    full = det > 0.25
+    full = det > min_det
     inv = one / det if full else zero
     gu = (a22 * b1 - a12 * b2) * inv
     gv = (a11 * b2 - a12 * b1) * inv
-    if not full and a11 > 0.25:
+    if not full and a11 > min_axis:
         gu = b1 / a11
-    if not full and a22 > 0.25:
+    if not full and a22 > min_axis:
         gv = b2 / a22
     return gu, gv, full
 
@@ -148,11 +154,14 @@ def _neighbour_sums(R, U, V, W, H, row, col, gate, k0, k1, a11, a12, a22, b1, b2
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def gradient_value(R, U, V, ppr, W, tau_m, tau_rel, slope1, fit, gu, gv, value):  # type: ignore[no-untyped-def]  # pragma: no cover
+def gradient_value(  # type: ignore[no-untyped-def]  # pragma: no cover
+    R, U, V, ppr, W, tau_m, tau_rel, slope1, gate1, gate2, min_det, min_axis, fit, gu, gv, value
+):  # fmt: skip
     """`visibility.fit_gradient` per pixel, then the value on the pixel-centre ray, R - gu U - gv V.
 
-    A pixel without an own point (R NaN) has no neighbour on its surface:
-    gradient 0, value NaN, as in numpy.
+    ``slope1``: the incidence slope (float32); ``gate1``, ``gate2``: `GATE_DIRECT_PX`, `GATE_DIAGONAL_PX`
+    (float32); ``min_det``, ``min_axis``: `FIT_MIN_DET`, `FIT_MIN_AXIS`. A pixel without an own point
+    (R NaN) has no neighbour on its surface: gradient 0, value NaN, as in numpy.
     """
     H = R.shape[0] // W
     one32, zero32 = np.float32(1.0), np.float32(0.0)
@@ -165,17 +174,17 @@ def gradient_value(R, U, V, ppr, W, tau_m, tau_rel, slope1, fit, gu, gv, value):
                 value[p] = Rc - zero32 * Uc - zero32 * Vc
                 continue
             sl = (tau_m + (tau_rel + slope1 / ppr[p])) - tau_m
-            gate = tau_m + Rc * sl * np.float32(1.6)
+            gate = tau_m + Rc * sl * gate1
             z = zero32  # the four direct neighbours, summed in float32
             a11, a12, a22, b1, b2 = _neighbour_sums(R, U, V, W, H, row, col, gate, 0, 4, z, z, z, z, z)
-            g_u, g_v, full = _solve(a11, a12, a22, b1, b2, one32, zero32)
+            g_u, g_v, full = _solve(a11, a12, a22, b1, b2, one32, zero32, min_det, min_axis)
             if not full:  # the diagonal neighbours join, in float64
-                g = tau_m + Rc * sl * np.float32(2.2)
+                g = tau_m + Rc * sl * gate2
                 s11, s12, s22, t1, t2 = _neighbour_sums(
                     R, U, V, W, H, row, col, g, 4, 8, np.float64(a11), np.float64(a12), np.float64(a22),
                     np.float64(b1), np.float64(b2),
                 )  # fmt: skip
-                w_u, w_v, _ = _solve(s11, s12, s22, t1, t2, 1.0, 0.0)
+                w_u, w_v, _ = _solve(s11, s12, s22, t1, t2, 1.0, 0.0, min_det, min_axis)
                 g_u, g_v = np.float32(w_u), np.float32(w_v)
             gu[p] = g_u
             gv[p] = g_v
@@ -194,7 +203,7 @@ def _finite(x):  # type: ignore[no-untyped-def]  # pragma: no cover
 
 @njit(parallel=True, cache=True, nogil=True)
 def fill_pass(  # type: ignore[no-untyped-def]  # pragma: no cover
-    todo, val, gu, gv, ppr, W, tau_m, tau_rel, slope15, weight, pred, gnu, gnv, new, got
+    todo, val, gu, gv, ppr, W, tau_m, tau_rel, slope_fill, weight, pred, gnu, gnv, new, got
 ):  # fmt: skip
     """One pass of `visibility.fill_gaps` over flat pixels ``todo``: ``new`` (v, gu, gv) and ``got``.
 
@@ -220,7 +229,7 @@ def fill_pass(  # type: ignore[no-untyped-def]  # pragma: no cover
             pred[j, k] = vq - gnu[j, k] * np.float32(NB_DC[k]) - gnv[j, k] * np.float32(NB_DR[k])
             if np.isfinite(pred[j, k]) and pred[j, k] < nearest:
                 nearest = pred[j, k]
-        lim = nearest + (tau_m + nearest * (tau_rel + slope15 / ppr[p]))
+        lim = nearest + (tau_m + nearest * (tau_rel + slope_fill / ppr[p]))
         pairs = False
         any_far = False
         far = inf
@@ -233,7 +242,7 @@ def fill_pass(  # type: ignore[no-untyped-def]  # pragma: no cover
                     any_far = True
                     far = min(far, pred[j, kk])
         use_far = not pairs and any_far
-        lim_far = far + (tau_m + far * (tau_rel + slope15 / ppr[p]))
+        lim_far = far + (tau_m + far * (tau_rel + slope_fill / ppr[p]))
         wsum = sv = su = sg = np.float32(0.0)
         for k in range(8):
             x = pred[j, k]
@@ -255,11 +264,11 @@ def fill_pass(  # type: ignore[no-untyped-def]  # pragma: no cover
 @njit(parallel=True, cache=True, nogil=True)
 def finish(  # type: ignore[no-untyped-def]  # pragma: no cover
     value, surface, own_ok, own_i, splat_i, rays, rgb, colour, ppr, W, mask_key, mask_r, mask_u, mask_v,
-    empty, idx_mask, tau_m, tau_rel, slope, clip, surf, masked, clipped, good, range_m, bgr,
+    empty, idx_mask, tau_m, tau_rel, slope, half, clip, surf, masked, clipped, good, range_m, bgr,
 ):  # fmt: skip
     """Masks (a mask surface not behind the value), clipping, valid range and colour of every pixel
-    (``bgr`` left as it is when ``colour`` is off)."""
-    half, zero = np.float32(0.5), np.float32(0.0)
+    (``bgr`` left as it is when ``colour`` is off); ``half``: `HALF_PX` (float32)."""
+    zero = np.float32(0.0)
     inv_w = 1.0 / W
     for p in prange(value.shape[0]):
         s = surface[p] and rays[p]

@@ -1,6 +1,6 @@
 """Compiled (numba, parallel) per-point stages of the renderer: transform, view test, z-buffer, average.
 
-Each kernel does in one pass over the points what `ingest.raster.view` and
+Each kernel does in one pass over the points what `ingest.raster.reference` and
 `ingest.raster.visibility` do in numpy with one full-length temporary per
 operation: the numpy path reads and writes every point's arrays a dozen
 times, a fused loop once. The arithmetic is the numpy path's, operation by
@@ -85,28 +85,6 @@ def transform_ds(xyz, idx, R, t, ds, u, v, ok, r, pn):  # type: ignore[no-untype
         u[i] = ui
         v[i] = vi
         ok[i] = valid & np.isfinite(ui) & np.isfinite(vi)
-
-
-@njit(parallel=True, cache=True, nogil=True)
-def transform_equirect(xyz, idx, R, t, eq, u, v, ok, r, pn):  # type: ignore[no-untyped-def]  # pragma: no cover
-    """`transform` and the equirectangular projection (pole on -y) in one pass, float32 as numpy.
-
-    ``eq`` = float32 (pi, pitch, 0.5, col_offset, row_offset): the operations
-    of `Equirectangular._project`, validity as `calibration.virtual.project_f32`
-    gives it.
-    """
-    pi, pitch, half, c0, r0 = eq[0], eq[1], eq[2], eq[3], eq[4]
-    for i in prange(idx.shape[0]):
-        x, y, z, pn[i] = _to_camera(xyz, idx[i], R, t)
-        ri = np.sqrt(x * x + y * y + z * z)
-        r[i] = ri
-        theta = np.arctan2(np.hypot(x, z), -y)
-        phi = np.arctan2(x, z)
-        ui = (phi + pi) / pitch - half - c0
-        vi = theta / pitch - half - r0
-        u[i] = ui
-        v[i] = vi
-        ok[i] = (ri > 0) & np.isfinite(ui) & np.isfinite(vi)  # sqrt(s) > 0 exactly where s > 0
 
 
 @njit(parallel=True, cache=True, nogil=True)

@@ -1,12 +1,13 @@
-"""`render_view` in PyTorch: the renderer's recipe on tensors of any device (CPU in CI, CUDA on a GPU).
+"""The renderer's stages in PyTorch: the recipe on tensors of any device (CPU in CI, CUDA on a GPU).
 
 `RenderParams.backend` "torch" runs it on the CPU, "cuda" on the GPU. The
 level-of-detail selection stays on the host (numpy, voxel level: small);
 the points' transform, projection, view test and footprints, the z-buffers
 (int64 keys reduced by ``scatter_reduce(amin)``), the leak test, gradient
 fit, same-surface average, gap fill, masks and colour run on the device as
-whole-tensor operations, the numpy recipe's (`ingest.raster.view`) step by
-step and in its precisions. A scan's arrays go to the device once per
+whole-tensor operations, the numpy reference's (`ingest.raster.reference`)
+step by step and in its precisions; the recipe that composes them is
+`ingest.raster.recipe`'s. A scan's arrays go to the device once per
 `ScanIndex` (kept while the index lives). Double Sphere cameras project on
 the device; other models project on the host in numpy float32.
 
@@ -21,6 +22,7 @@ from __future__ import annotations
 
 import math
 import weakref
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -31,19 +33,22 @@ from calibration.fisheye import DoubleSphere
 from calibration.transforms import invert
 from calibration.types import F64, Bool
 from calibration.virtual import project_f32
+from ingest.raster import recipe
+from ingest.raster.geometry import PixelGeometry, Rendering, coarse_mask
 from ingest.raster.kernels import ellipse_offsets
 from ingest.raster.lod import ScanIndex, select
-from ingest.raster.view import PixelGeometry, Rendering, coarse_mask, pixel_geometry
-from ingest.raster.visibility import (
+from ingest.raster.params import (
     AXES,
     EMPTY_KEY,
     IDX_BITS,
+    IDX_MASK,
     KEY_BASE,
     NB8,
     Q_MAX,
     RANGE_QUANTUM_M,
     RenderParams,
 )
+from ingest.raster.recipe import Finished, OwnSamples, Winners
 
 T = torch.Tensor
 _ON_DEVICE: weakref.WeakKeyDictionary[ScanIndex, dict[str, Any]] = weakref.WeakKeyDictionary()
@@ -89,7 +94,7 @@ def _project(model: CameraModel, x: T, y: T, z: T) -> tuple[T, T, T]:
 def _in_view(
     xyz: T, sp: T, model: CameraModel, geo: PixelGeometry, T_cam_scan: F64, params: RenderParams
 ) -> tuple[T, ...]:
-    """`view.points_in_view` on tensors: (pix, u, v, r, ku, kv, kept row of ``xyz``)."""
+    """`geometry.points_in_view` on tensors: (pix, u, v, r, ku, kv, kept row of ``xyz``)."""
     dev = xyz.device
     R = torch.from_numpy(T_cam_scan[:3, :3].astype(np.float32)).to(dev)
     t = torch.from_numpy(T_cam_scan[:3, 3].astype(np.float32)).to(dev)
@@ -115,11 +120,28 @@ def _in_view(
     return row_i * model.width + col_i, u[keep], v[keep], r_k, ku, kv, keep
 
 
+@dataclass(frozen=True, eq=False)
+class TorchView:
+    """The points of a view and its mask points (pix, u, v, r, ku, kv, rgb, masked), in selection order."""
+
+    pts: dict[str, T]
+    mask_pts: dict[str, T]
+    stats: dict[str, int]
+
+    @property
+    def n(self) -> int:
+        return len(self.pts["r"])
+
+    @property
+    def k_max(self) -> int:
+        return int(max(int(self.pts["ku"].max()), int(self.pts["kv"].max()))) if self.n else 0
+
+
 def _gather(
     sources: list[ScanIndex], model: CameraModel, geo: PixelGeometry, T_world_cam: F64, params: RenderParams,
     pixel_mask: Bool | None, dev: torch.device,
-) -> tuple[dict[str, T], dict[str, T], dict[str, int]]:  # fmt: skip
-    """`view._gather` on tensors: every scan's selected points and the mask points, in the camera."""
+) -> TorchView:  # fmt: skip
+    """`reference.gather` on tensors: every scan's selected points and the mask points, in the camera."""
     T_cam_world = invert(T_world_cam)
     coarse = None if pixel_mask is None else coarse_mask(pixel_mask, geo.stride)
     names = ("pix", "u", "v", "r", "ku", "kv", "rgb", "masked")
@@ -156,7 +178,7 @@ def _gather(
             n_m = len(mkept)
             mask_parts.append((*mproj, torch.zeros((n_m, 3), dtype=torch.uint8, device=dev),
                                torch.ones(n_m, dtype=torch.bool, device=dev)))  # fmt: skip
-    return _concat(parts, names, dev), _concat(mask_parts, names, dev), stats
+    return TorchView(_concat(parts, names, dev), _concat(mask_parts, names, dev), stats)
 
 
 def _concat(parts: list[tuple[T, ...]], names: tuple[str, ...], dev: torch.device) -> dict[str, T]:
@@ -207,20 +229,32 @@ def _shift(img: T, dr: int, dc: int, fill: float) -> T:
     return out
 
 
-def _leaking(pts: dict[str, T], r_own: T, r_splat: T, own_ok: T, splat_i: T, ppr: T, params: RenderParams,
-             W: int, K: int) -> T:  # fmt: skip
-    """`view._leaking` on whole images: own points behind a nearer splat, nearer own points on two sides."""
+def _winners(view: TorchView, H: int, W: int) -> Winners:
+    """Both z-buffers and their nearest points (index n, range inf: none)."""
+    n = view.n
+    own_key, splat_key = zbuffer(view.pts, H, W)
+    own_ok, surface = own_key != EMPTY_KEY, splat_key != EMPTY_KEY
+    r_all = torch.cat([view.pts["r"], torch.tensor([math.inf], device=own_key.device)])
+    own_i = torch.where(own_ok, own_key & IDX_MASK, n)
+    splat_i = torch.where(surface, splat_key & IDX_MASK, n)
+    return Winners(own_ok, own_i, splat_i, r_all[own_i], r_all[splat_i], surface)
+
+
+def _leaking(view: TorchView, win: Winners, ppr: T, params: RenderParams, W: int, K: int) -> T:
+    """`reference.leaking` on whole images: own points behind a nearer splat, nearer points on two sides."""
+    pts, r_own, r_splat, own_ok = view.pts, win.r_own, win.r_splat, win.own_ok
     H = len(own_ok) // W
-    cand = own_ok & (r_own > r_splat + params.tolerance(r_splat, 1.0, ppr))
+    cand = own_ok & (r_own > r_splat + params.tolerance(r_splat, params.LEAK_MIN_PX, ppr))
     n = len(pts["u"])
-    s = torch.clamp(splat_i, max=max(n - 1, 0))
+    s = torch.clamp(win.splat_i, max=max(n - 1, 0))
     p = torch.arange(H * W, device=ppr.device)
     if n:
         d = torch.hypot(pts["u"][s].double() - (p % W).double(), pts["v"][s].double() - (p // W).double())
     else:
         d = torch.zeros(H * W, dtype=torch.float64, device=ppr.device)
-    cand &= r_own.double() > r_splat.double() + params.tolerance(r_splat.double(), d + 0.5, ppr.double())
-    thr = (r_own - params.tolerance(r_own, K + 0.5, ppr)).reshape(H, W)
+    tol = params.tolerance(r_splat.double(), d + params.HALF_PX, ppr.double())
+    cand &= r_own.double() > r_splat.double() + tol
+    thr = (r_own - params.tolerance(r_own, K + params.HALF_PX, ppr)).reshape(H, W)
     img = torch.where(own_ok, r_own, torch.inf).reshape(H, W)
     out = torch.zeros((H, W), dtype=torch.bool, device=ppr.device)
     for dr, dc in AXES:
@@ -234,14 +268,28 @@ def _leaking(pts: dict[str, T], r_own: T, r_splat: T, own_ok: T, splat_i: T, ppr
     return leak
 
 
+def _own_samples(view: TorchView, win: Winners, leak: T, W: int) -> OwnSamples:
+    """`reference.own_samples` on flat tensors."""
+    ok = win.own_ok & ~leak
+    own_i = torch.where(ok, win.own_i, view.n)
+    dev = ok.device
+    u_all = torch.cat([view.pts["u"], torch.zeros(1, device=dev)])
+    v_all = torch.cat([view.pts["v"], torch.zeros(1, device=dev)])
+    p = torch.arange(len(ok), device=dev)
+    R = torch.where(ok, win.r_own, torch.nan)
+    U = torch.where(ok, u_all[own_i] - (p % W).float(), 0.0)
+    V = torch.where(ok, v_all[own_i] - (p // W).float(), 0.0)
+    return OwnSamples(ok, R, U, V)
+
+
 def _solve(a11: T, a12: T, a22: T, b1: T, b2: T) -> tuple[T, T, T]:
     """`visibility.solve_gradient` on tensors (their dtype)."""
     det = a11 * a22 - a12 * a12
-    full = det > 0.25
+    full = det > RenderParams.FIT_MIN_DET
     inv = torch.where(full, 1.0 / torch.where(full, det, 1.0), 0.0)
     gu = (a22 * b1 - a12 * b2) * inv
     gv = (a11 * b2 - a12 * b1) * inv
-    only_u, only_v = ~full & (a11 > 0.25), ~full & (a22 > 0.25)
+    only_u, only_v = ~full & (a11 > RenderParams.FIT_MIN_AXIS), ~full & (a22 > RenderParams.FIT_MIN_AXIS)
     gu = torch.where(only_u, b1 / torch.where(only_u, a11, 1.0), gu)
     gv = torch.where(only_v, b2 / torch.where(only_v, a22, 1.0), gv)
     return gu, gv, full
@@ -249,7 +297,7 @@ def _solve(a11: T, a12: T, a22: T, b1: T, b2: T) -> tuple[T, T, T]:
 
 def _fit_gradient(R: T, U: T, V: T, ppr: T, params: RenderParams) -> tuple[T, T]:
     """`visibility.fit_gradient` on (H, W) tensors; the diagonal neighbours join in float64 where needed."""
-    slope = params.tolerance(1.0, 1.0, ppr) - params.tau_m
+    slope = params.gate_slope(ppr)
     acc = [torch.zeros_like(R) for _ in range(5)]
 
     def terms(dr: int, dc: int, gate: T) -> tuple[T, T, T]:
@@ -259,7 +307,7 @@ def _fit_gradient(R: T, U: T, V: T, ppr: T, params: RenderParams) -> tuple[T, T]
         dv = (dr + _shift(V, dr, dc, 0.0) - V) * ok
         return du, dv, torch.where(ok > 0, dR, 0.0)
 
-    gate = params.tau_m + R * slope * np.float32(1.6)
+    gate = params.tau_m + R * slope * np.float32(params.GATE_DIRECT_PX)
     for dr, dc in NB8[:4]:
         du, dv, dR = terms(dr, dc, gate)
         for a, term in zip(acc, (du * du, du * dv, dv * dv, du * dR, dv * dR), strict=True):
@@ -268,7 +316,7 @@ def _fit_gradient(R: T, U: T, V: T, ppr: T, params: RenderParams) -> tuple[T, T]
     weak = ~full & torch.isfinite(R)
     if bool(weak.any()):
         sub = [a.double() for a in acc]
-        g = params.tau_m + R * slope * np.float32(2.2)
+        g = params.tau_m + R * slope * np.float32(params.GATE_DIAGONAL_PX)
         for dr, dc in NB8[4:]:
             du, dv, dR = terms(dr, dc, g)
             for a, term in zip(sub, (du * du, du * dv, dv * dv, du * dR, dv * dR), strict=True):
@@ -279,37 +327,51 @@ def _fit_gradient(R: T, U: T, V: T, ppr: T, params: RenderParams) -> tuple[T, T]
     return gu, gv
 
 
-def _average(pts: dict[str, T], value: T, own_ok: T, R: T, gu: T, gv: T, ppr: T, params: RenderParams) -> T:
+def _gradient_value(own: OwnSamples, ppr: T, params: RenderParams, W: int) -> tuple[T, T, T]:
+    """`reference.gradient_value` on flat tensors."""
+    R, U, V = (a.reshape(-1, W) for a in (own.R, own.U, own.V))
+    flat = torch.zeros_like(R)
+    gu, gv = _fit_gradient(R, U, V, ppr.reshape(-1, W), params) if params.fit_gradient else (flat, flat)
+    value = R - gu * U - gv * V
+    return gu.reshape(-1), gv.reshape(-1), value.reshape(-1)
+
+
+def _average(
+    view: TorchView, own: OwnSamples, gu: T, gv: T, value: T, ppr: T, params: RenderParams, W: int
+) -> T:
     """`visibility.average_surface` on flat tensors."""
+    pts = view.pts
     pix = pts["pix"]
-    W = value.shape[1]
-    ref = R.reshape(-1)[pix]
-    ok = own_ok[pix] & (pts["r"] <= ref + params.tolerance(ref, 1.0, ppr[pix]))
+    ref = own.R[pix]
+    ok = own.ok[pix] & (pts["r"] <= ref + params.tolerance(ref, params.SAME_SURFACE_PX, ppr[pix]))
     pix, r, u, v = pix[ok], pts["r"][ok], pts["u"][ok], pts["v"][ok]
     row, col = (pix // W).double(), (pix % W).double()
-    g_u, g_v = gu.reshape(-1)[pix].double(), gv.reshape(-1)[pix].double()
+    g_u, g_v = gu[pix].double(), gv[pix].double()
     corrected = r.double() - g_u * (u.double() - col) - g_v * (v.double() - row)
     P = value.numel()
     sums = torch.zeros(P, dtype=torch.float64, device=pix.device).index_add_(0, pix, corrected)
     counts = torch.bincount(pix, minlength=P)
-    out = torch.where(counts > 0, (sums / torch.clamp(counts, min=1)).float(), value.reshape(-1))
-    return out.reshape(value.shape)
+    out: T = torch.where(counts > 0, (sums / torch.clamp(counts, min=1)).float(), value)
+    return out
 
 
-def _fill(value: T, has: T, gu: T, gv: T, need: T, ppr: T, params: RenderParams) -> tuple[T, T]:
+def _fill(
+    value: T, own: OwnSamples, gu: T, gv: T, need: T, ppr: T, params: RenderParams, W: int
+) -> tuple[T, T]:
     """`visibility.fill_gaps` on tensors: values of the flat pixels ``need`` from their neighbours."""
-    H, W = value.shape
+    H = len(value) // W
     dev = value.device
-    vp = torch.nn.functional.pad(torch.where(has, value, torch.nan), (1, 1, 1, 1), value=math.nan).reshape(-1)
-    gup = torch.nn.functional.pad(gu, (1, 1, 1, 1)).reshape(-1)
-    gvp = torch.nn.functional.pad(gv, (1, 1, 1, 1)).reshape(-1)
+    pad = torch.nn.functional.pad
+    vp = pad(torch.where(own.ok, value, torch.nan).reshape(H, W), (1, 1, 1, 1), value=math.nan).reshape(-1)
+    gup = pad(gu.reshape(H, W), (1, 1, 1, 1)).reshape(-1)
+    gvp = pad(gv.reshape(H, W), (1, 1, 1, 1)).reshape(-1)
     pn = (need // W + 1) * (W + 2) + need % W + 1
     got_all = torch.zeros(len(need), dtype=torch.bool, device=dev)
     todo = torch.arange(len(need), device=dev)
     offs = torch.tensor([dr * (W + 2) + dc for dr, dc in NB8], device=dev)[:, None]
     drs = torch.tensor([dr for dr, _ in NB8], dtype=torch.float32, device=dev)[:, None]
     dcs = torch.tensor([dc for _, dc in NB8], dtype=torch.float32, device=dev)[:, None]
-    weight = torch.tensor([1.0] * 4 + [1.0 / math.sqrt(2.0)] * 4, dtype=torch.float32, device=dev)[:, None]
+    weight = torch.tensor(params.fill_weights, dtype=torch.float32, device=dev)[:, None]
     ppr_n = ppr[need]
     for _ in range(params.fill_passes):
         if len(todo) == 0:
@@ -319,12 +381,12 @@ def _fill(value: T, has: T, gu: T, gv: T, need: T, ppr: T, params: RenderParams)
         pred = vp[nb] - gnu * dcs - gnv * drs
         fin = torch.isfinite(pred)
         nearest = torch.where(fin, pred, torch.inf).min(dim=0).values
-        in_near = fin & (pred <= nearest + params.tolerance(nearest, 1.5, ppr_n[todo]))
+        in_near = fin & (pred <= nearest + params.tolerance(nearest, params.FILL_TOLERANCE_PX, ppr_n[todo]))
         in_far = fin & ~in_near
         pairs = (in_near[0::2] & in_near[1::2]).any(dim=0)
         use_far = ~pairs & in_far.any(dim=0)
         far = torch.where(in_far, pred, torch.inf).min(dim=0).values
-        in_far &= pred <= far + params.tolerance(far, 1.5, ppr_n[todo])
+        in_far &= pred <= far + params.tolerance(far, params.FILL_TOLERANCE_PX, ppr_n[todo])
         w = weight * torch.where(use_far, in_far, in_near)
         wsum = w.sum(dim=0)
         got = wsum > 0
@@ -336,91 +398,83 @@ def _fill(value: T, has: T, gu: T, gv: T, need: T, ppr: T, params: RenderParams)
         vp[pn[done]], gup[pn[done]], gvp[pn[done]] = new_v[got], new_gu[got], new_gv[got]
         got_all[done] = True
         todo = todo[~got]
-    # a copy, not the padded buffer's strided view: callers write into it through `reshape(-1)`,
-    # which on a view would write into a temporary
-    return vp.reshape(H + 2, W + 2)[1:-1, 1:-1].contiguous(), got_all
+    # a copy, not the padded buffer's strided view: the recipe writes into the flat result
+    return vp.reshape(H + 2, W + 2)[1:-1, 1:-1].contiguous().reshape(-1), got_all
 
 
-def _masked(mask_pts: dict[str, T], surf: T, value: T, ppr: T, params: RenderParams) -> T:
-    """`view._masked` on tensors: surface pixels on or behind a mask surface."""
-    H, W = surf.shape
+def _masked(mask_pts: dict[str, T], surf: T, value: T, ppr: T, params: RenderParams, W: int) -> T:
+    """`reference.masked` on flat tensors: surface pixels on or behind a mask surface."""
+    P = len(surf)
     if not len(mask_pts["pix"]):
         return torch.zeros_like(surf)
-    _, key = zbuffer(mask_pts, H, W)
+    _, key = zbuffer(mask_pts, P // W, W)
     has = key != EMPTY_KEY
-    i = torch.where(has, key & ((1 << IDX_BITS) - 1), 0)
-    p = torch.arange(H * W, device=surf.device)
-    r_mask = torch.where(has, mask_pts["r"][i], torch.inf).reshape(H, W)
+    i = torch.where(has, key & IDX_MASK, 0)
+    p = torch.arange(P, device=surf.device)
+    r_mask = torch.where(has, mask_pts["r"][i], torch.inf)
     du = (torch.where(has, mask_pts["u"][i], 0.0) - (p % W).float()).double()
     dv = (torch.where(has, mask_pts["v"][i], 0.0) - (p // W).float()).double()
-    d = torch.sqrt(du * du + dv * dv).float().reshape(H, W)  # hypot in float32, correctly rounded
-    out: T = surf & (r_mask <= value + params.tolerance(value, d + 0.5, ppr))
+    d = torch.sqrt(du * du + dv * dv).float()  # hypot in float32, correctly rounded
+    out: T = surf & (r_mask <= value + params.tolerance(value, d + params.HALF_PX, ppr))
     return out
+
+
+def _finish(
+    view: TorchView, value: T, win: Winners, own: OwnSamples, rays: Bool, ppr: T, params: RenderParams, W: int
+) -> Finished:
+    """`reference.finish` on flat tensors."""
+    dev = value.device
+    surf = win.surface & torch.from_numpy(np.ascontiguousarray(rays.reshape(-1))).to(dev)
+    masked = _masked(view.mask_pts, surf, value, ppr, params, W)
+    clipped = torch.zeros_like(surf)
+    if params.clip_m is not None:
+        clipped = surf & ~masked & (value > params.clip_m)
+    good = surf & ~masked & ~clipped & torch.isfinite(value) & (value > 0)
+    range_m = torch.where(good, value, 0.0)
+    bgr = torch.zeros((len(value), 3), dtype=torch.uint8, device=dev)
+    if view.n and params.colour:
+        src = torch.where(own.ok, win.own_i, win.splat_i)
+        show = torch.nonzero(surf).squeeze(1)
+        bgr[show] = view.pts["rgb"][src[show]].flip(1)
+    return Finished(surf, masked, clipped, good, range_m, bgr)
+
+
+class TorchStages:
+    """The PyTorch stages on ``device`` as `ingest.raster.recipe.Stages`."""
+
+    winners = staticmethod(_winners)
+    leaking = staticmethod(_leaking)
+    own_samples = staticmethod(_own_samples)
+    gradient_value = staticmethod(_gradient_value)
+    average = staticmethod(_average)
+    fill = staticmethod(_fill)
+    finish = staticmethod(_finish)
+
+    def __init__(self, device: str) -> None:
+        self.dev = torch.device(device)
+
+    def gather(
+        self, sources: list[ScanIndex], model: CameraModel, geo: PixelGeometry, T_world_cam: F64,
+        params: RenderParams, pixel_mask: Bool | None,
+    ) -> TorchView:  # fmt: skip
+        return _gather(sources, model, geo, T_world_cam, params, pixel_mask, self.dev)
+
+    def ppr(self, geo: PixelGeometry) -> T:
+        return torch.from_numpy(geo.ppr.reshape(-1)).to(self.dev)
+
+    @staticmethod
+    def nonzero(mask: T) -> T:
+        return torch.nonzero(mask).squeeze(1)
+
+    @staticmethod
+    def host(a: T) -> np.ndarray[Any, Any]:
+        out: np.ndarray[Any, Any] = a.cpu().numpy()
+        return out
 
 
 def render_torch(
     sources: list[ScanIndex], model: CameraModel, T_world_cam: F64, params: RenderParams,
     pixel_mask: Bool | None = None, device: str = "cpu",
 ) -> Rendering:  # fmt: skip
-    """`ingest.raster.view.render_view` on ``device`` (see module doc); a host `Rendering`."""
-    dev = torch.device(device)
-    H, W = model.height, model.width
-    geo = pixel_geometry(model)
-    ppr = torch.from_numpy(geo.ppr.reshape(-1)).to(dev)
-    pts, mask_pts, stats = _gather(sources, model, geo, T_world_cam, params, pixel_mask, dev)
-    n = len(pts["r"])
-    own_key, splat_key = zbuffer(pts, H, W)
-    idx_mask = (1 << IDX_BITS) - 1
-    own_ok, surface = own_key != EMPTY_KEY, splat_key != EMPTY_KEY
-    r_all = torch.cat([pts["r"], torch.tensor([math.inf], device=dev)])
-    own_i = torch.where(own_ok, own_key & idx_mask, n)
-    splat_i = torch.where(surface, splat_key & idx_mask, n)
-    del own_key, splat_key
-    r_splat = r_all[splat_i]
-    K = min(3, max(1, int(pts["ku"].max()), int(pts["kv"].max()))) if n else 1
-    leak = _leaking(pts, r_all[own_i], r_splat, own_ok, splat_i, ppr, params, W, K)
-    own_ok &= ~leak
-    own_i = torch.where(own_ok, own_i, n)
-    u_all = torch.cat([pts["u"], torch.zeros(1, device=dev)])
-    v_all = torch.cat([pts["v"], torch.zeros(1, device=dev)])
-    cols = torch.arange(W, dtype=torch.float32, device=dev)[None, :]
-    rows = torch.arange(H, dtype=torch.float32, device=dev)[:, None]
-    own2, ppr2 = own_ok.reshape(H, W), ppr.reshape(H, W)
-    R = torch.where(own2, r_all[own_i].reshape(H, W), torch.nan)
-    U = torch.where(own2, u_all[own_i].reshape(H, W) - cols, 0.0)
-    V = torch.where(own2, v_all[own_i].reshape(H, W) - rows, 0.0)
-
-    flat = torch.zeros((H, W), dtype=torch.float32, device=dev)
-    gu, gv = _fit_gradient(R, U, V, ppr2, params) if params.fit_gradient else (flat, flat)
-    value = R - gu * U - gv * V
-    if params.average_samples and n:
-        value = _average(pts, value, own_ok, R, gu, gv, ppr, params)
-    need = torch.nonzero(surface & ~own_ok).squeeze(1)
-    value, got = _fill(value, own2, gu, gv, need, ppr, params)
-    raw_px = need[~got]
-    value.reshape(-1)[raw_px] = r_splat[raw_px] if params.raw_fallback else torch.nan
-
-    rays_np = geo.valid if pixel_mask is None else geo.valid & pixel_mask
-    rays = torch.from_numpy(np.ascontiguousarray(rays_np)).to(dev)
-    surf = surface.reshape(H, W) & rays
-    masked = _masked(mask_pts, surf, value, ppr2, params)
-    clipped = torch.zeros_like(surf)
-    if params.clip_m is not None:
-        clipped = surf & ~masked & (value > params.clip_m)
-    good = surf & ~masked & ~clipped & torch.isfinite(value) & (value > 0)
-    range_m = torch.where(good, value, 0.0)
-    bgr = torch.zeros((H * W, 3), dtype=torch.uint8, device=dev)
-    if n and params.colour:
-        src = torch.where(own_ok, own_i, splat_i)
-        show = torch.nonzero(surf.reshape(-1)).squeeze(1)
-        bgr[show] = pts["rgb"][src[show]].flip(1)
-    sflat = surf.reshape(-1)
-    stats.update({k: int(v) for k, v in {
-        "pixels_with_ray": rays.sum(), "surface_px": surf.sum(), "own_px": (own2 & surf).sum(),
-        "filled_px": sflat[need[got]].sum(), "raw_px": sflat[raw_px].sum(),
-        "leak_rejected_px": (leak & sflat).sum(), "masked_px": masked.sum(), "clipped_px": clipped.sum(),
-        "hole_px": (rays & ~surf).sum(), "valid_px": good.sum()}.items()})  # fmt: skip
-    bgr_h, range_h, surf_h, masked_h, clipped_h = (
-        a.cpu().numpy() for a in (bgr.reshape(H, W, 3), range_m, surf, masked, clipped)
-    )
-    return Rendering(bgr_h, range_h, surf_h, masked_h, clipped_h, rays_np, stats)
+    """`ingest.raster.recipe.render` with the PyTorch stages on ``device``; a host `Rendering`."""
+    return recipe.render(TorchStages(device), sources, model, T_world_cam, params, pixel_mask)

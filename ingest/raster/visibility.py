@@ -1,119 +1,31 @@
-"""The renderer's visibility machinery, shared by benchmark views and dense ground truth.
+"""The renderer's per-pixel algorithms in numpy: the reference backend's (`ingest.raster.reference`) parts.
 
 A z-buffer on range over point footprints (splats), the two-sided occlusion
 test that rejects points seen through a nearer surface, a local plane fit of
 range over the pixel grid, same-surface averaging and moving each value onto
-its pixel-centre ray, and gap filling along that plane (see `ingest.raster.view`)."""
+its pixel-centre ray, and gap filling along that plane (see `ingest.raster.recipe`)."""
 
 from __future__ import annotations
 
-import math
-import os
-from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any
 
 import cv2
 import numpy as np
 
-from calibration.types import F32, I64, U8, Bool
+from calibration.types import F32, I64, Bool
+from ingest.raster.geometry import ViewPoints
 from ingest.raster.kernels import zbuffer_keys
-
-I16 = np.ndarray[Any, np.dtype[np.int16]]
-
-
-RANGE_QUANTUM_M = 1e-4  # z-buffer key resolution
-
-
-IDX_BITS = 28  # points per buffer per view < 2^28
-
-
-Q_MAX = (1 << 25) - 1  # ranges up to 3.3 km
-
-
-# Keys sit above the bit pattern of 1.0 so, viewed as float64, they are normal positive numbers
-# ordered like the integers; the empty key is the pattern of +inf.
-KEY_BASE = 0x3FF0_0000_0000_0000
-
-
-EMPTY_KEY = 0x7FF0_0000_0000_0000
-
-
-BACKENDS = ("numba", "numpy", "torch", "cuda")
-
-
-def backend_problem(backend: str) -> str | None:
-    """Why `backend` (`RenderParams.backend`) cannot render here, or None: torch for torch and cuda, a GPU
-    for cuda.
-
-    The GPU is looked for through NVML, without starting CUDA in this process,
-    so that forked workers can still start it themselves.
-    """
-    if backend not in BACKENDS:
-        return f"expected {', '.join(BACKENDS[:-1])} or {BACKENDS[-1]}"
-    if backend in ("torch", "cuda"):
-        try:
-            import torch
-        except ImportError:
-            return "PyTorch is not installed (pip install torch)"
-        os.environ.setdefault("PYTORCH_NVML_BASED_CUDA_CHECK", "1")
-        if backend == "cuda" and not torch.cuda.is_available():
-            return f"torch {torch.__version__} sees no CUDA GPU"
-    return None
-
-
-@dataclass(frozen=True)
-class RenderParams:
-    """Renderer settings (metres, pixels)."""
-
-    points_per_px: float | None = 2.0  # LOD density target; None = every point in the frustum
-    splat_scale: float = 1.5  # footprint half-width = scale x point spacing in the image (random points)
-    max_splat_px: int = 6
-    near_m: float = 0.05  # points nearer to the camera centre are ignored
-    tau_m: float = 0.01  # same-surface tolerance, see `tolerance`
-    tau_rel: float = 0.01
-    max_incidence_deg: float = 80.0
-    clip_m: float | None = None
-    clip_mode: Literal["invalid", "drop"] = "invalid"
-    fill_passes: int = 3
-    average_samples: bool = True  # mean of a pixel's same-surface samples, not just the nearest
-    frustum_culling: bool = True  # False: project every point of every scan (the naive baseline)
-    raw_fallback: bool = True  # a surface pixel with no own point and no planar fill takes the splat's range
-    fit_gradient: bool = True  # False: points already lie on pixel-centre rays (dense GT snaps them there)
-    colour: bool = True  # False: a black colour image, for callers that need only the ranges (dense GT)
-    # compiled kernels, the numpy reference, or PyTorch on the CPU / a CUDA GPU (same output)
-    backend: Literal["numba", "numpy", "torch", "cuda"] = "numba"
-
-    def tolerance(self, range_m: Any, dist_px: Any, ppr: Any) -> Any:
-        """Largest range difference (m) between two samples of one surface ``dist_px`` apart.
-
-        tau_m + range * (tau_rel + tan(max_incidence) * dist_px / ppr): the
-        slope term admits surfaces up to `max_incidence_deg` from the view ray.
-        """
-        slope = math.tan(math.radians(self.max_incidence_deg))
-        return self.tau_m + range_m * (self.tau_rel + slope * dist_px / ppr)
-
-
-@dataclass(frozen=True, eq=False)
-class ViewPoints:
-    """Points in the image: flat pixel, sub-pixel position, range, footprint half-widths, colour, mask."""
-
-    pix: I64
-    u: F32
-    v: F32
-    r: F32
-    ku: I16
-    kv: I16
-    rgb: U8
-    masked: Bool
-
-
-def concat_points(parts: list[tuple[Any, ...]]) -> ViewPoints:
-    if not parts:
-        f, i, k = np.zeros(0, np.float32), np.zeros(0, np.int64), np.zeros(0, np.int16)
-        return ViewPoints(i, f, f, f, k, k, np.zeros((0, 3), np.uint8), np.zeros(0, bool))
-    if len(parts) == 1:
-        return ViewPoints(*parts[0])
-    return ViewPoints(*(np.concatenate([p[k] for p in parts]) for k in range(8)))
+from ingest.raster.params import (
+    AXES,
+    EMPTY_KEY,
+    IDX_BITS,
+    IDX_MASK,
+    KEY_BASE,
+    NB8,
+    Q_MAX,
+    RANGE_QUANTUM_M,
+    RenderParams,
+)
 
 
 def zbuffer(pts: ViewPoints, H: int, W: int) -> tuple[I64, I64]:
@@ -184,7 +96,7 @@ def zbuffer_erode(pts: ViewPoints, H: int, W: int) -> tuple[I64, I64]:
 
 def winner(key: I64) -> tuple[Bool, I64]:
     """(has a point, index of the point) per pixel of a key image."""
-    return key != EMPTY_KEY, key & ((1 << IDX_BITS) - 1)
+    return key != EMPTY_KEY, key & IDX_MASK
 
 
 def pad(img: np.ndarray[Any, Any], k: int, fill: Any) -> np.ndarray[Any, Any]:
@@ -195,12 +107,6 @@ def padded_index(flat: I64, W: int, k: int) -> I64:
     row, col = np.divmod(flat, W)
     out: I64 = (row + k) * (W + 2 * k) + col + k
     return out
-
-
-AXES = ((0, 1), (1, 0), (1, 1), (1, -1))  # 4 axes through a pixel (drow, dcol)
-
-
-NB8 = ((0, 1), (0, -1), (1, 0), (-1, 0), (1, 1), (-1, -1), (1, -1), (-1, 1))  # opposite pairs adjacent
 
 
 def leaks(r_own: F32, candidates: I64, thr: F32, K: int) -> Bool:
@@ -222,15 +128,16 @@ def leaks(r_own: F32, candidates: I64, thr: F32, K: int) -> Bool:
 
 
 def solve_gradient(a11: Any, a12: Any, a22: Any, b1: Any, b2: Any) -> tuple[Any, Any, Any]:
-    """2x2 least squares per pixel; one axis alone where only it is determined. Returns (gu, gv, solved)."""
+    """2x2 least squares per pixel; one axis alone where only it is determined (`RenderParams.FIT_MIN_DET`,
+    `FIT_MIN_AXIS`). Returns (gu, gv, solved)."""
     with np.errstate(invalid="ignore", divide="ignore"):
         det = a11 * a22 - a12 * a12
-        full = det > 0.25
+        full = det > RenderParams.FIT_MIN_DET
         inv = np.where(full, 1.0 / np.where(full, det, 1.0), 0.0)
         gu = (a22 * b1 - a12 * b2) * inv
         gv = (a11 * b2 - a12 * b1) * inv
-        only_u = ~full & (a11 > 0.25)
-        only_v = ~full & (a22 > 0.25)
+        only_u = ~full & (a11 > RenderParams.FIT_MIN_AXIS)
+        only_v = ~full & (a22 > RenderParams.FIT_MIN_AXIS)
         gu = np.where(only_u, b1 / np.where(only_u, a11, 1.0), gu)
         gv = np.where(only_v, b2 / np.where(only_v, a22, 1.0), gv)
     return gu, gv, full
@@ -247,9 +154,8 @@ def fit_gradient(R: F32, U: F32, V: F32, ppr: F32, params: RenderParams) -> tupl
     H, W = R.shape
     Rp, Up, Vp = pad(R, 1, np.nan), pad(U, 1, 0.0), pad(V, 1, 0.0)
     acc = [np.zeros((H, W), np.float32) for _ in range(5)]  # a11, a12, a22, b1, b2
-    # same-surface gate: a generous bound on the neighbour distance (offsets are within +-0.5 px)
-    slope = (params.tolerance(1.0, 1.0, ppr) - params.tau_m).astype(np.float32)  # per metre and pixel
-    gate = params.tau_m + R * slope * np.float32(1.6)
+    slope = params.gate_slope(ppr).astype(np.float32)  # same-surface gate per metre and pixel
+    gate = params.tau_m + R * slope * np.float32(params.GATE_DIRECT_PX)
     with np.errstate(invalid="ignore"):
         for dr, dc in NB8[:4]:
             win = (slice(1 + dr, H + 1 + dr), slice(1 + dc, W + 1 + dc))
@@ -267,7 +173,7 @@ def fit_gradient(R: F32, U: F32, V: F32, ppr: F32, params: RenderParams) -> tupl
         Rf, Uf, Vf = Rp.reshape(-1), Up.reshape(-1), Vp.reshape(-1)
         r0, u0, v0 = Rf[pw], Uf[pw], Vf[pw]
         sub = [a.reshape(-1)[weak].astype(np.float64) for a in acc]
-        g = params.tau_m + r0 * slope.reshape(-1)[weak] * 2.2
+        g = params.tau_m + r0 * slope.reshape(-1)[weak] * params.GATE_DIAGONAL_PX
         with np.errstate(invalid="ignore"):
             for dr, dc in NB8[4:]:
                 q = pw + dr * (W + 2) + dc
@@ -295,7 +201,7 @@ def average_surface(pts: ViewPoints, value: F32, own_ok: Bool, R: F32, gu: F32, 
     pix = pts.pix[idx]
     ref = R.reshape(-1)[pix]
     r = pts.r[idx]
-    same = r <= ref + params.tolerance(ref, 1.0, ppr.reshape(-1)[pix])
+    same = r <= ref + params.tolerance(ref, params.SAME_SURFACE_PX, ppr.reshape(-1)[pix])
     pix, r, idx = pix[same], r[same], idx[same]
     row, col = np.divmod(pix, W)
     corrected = r - gu.reshape(-1)[pix] * (pts.u[idx] - col) - gv.reshape(-1)[pix] * (pts.v[idx] - row)
@@ -327,7 +233,7 @@ def fill_gaps(value: F32, has: Bool, gu: F32, gv: F32, need: I64, ppr: F32,
     offs = np.array([dr * Wp + dc for dr, dc in NB8])
     drs = np.array([dr for dr, _ in NB8], np.float32)[:, None]
     dcs = np.array([dc for _, dc in NB8], np.float32)[:, None]
-    weight = np.array([1.0] * 4 + [1.0 / math.sqrt(2.0)] * 4, np.float32)[:, None]
+    weight = np.array(params.fill_weights, np.float32)[:, None]
     ppr_n = ppr.reshape(-1)[need]
     for _ in range(params.fill_passes):
         if todo.size == 0:
@@ -337,7 +243,7 @@ def fill_gaps(value: F32, has: Bool, gu: F32, gv: F32, need: I64, ppr: F32,
         pred = vp[nb] - gnu * dcs - gnv * drs
         fin = np.isfinite(pred)
         nearest = np.min(np.where(fin, pred, np.inf), axis=0)
-        tol = params.tolerance(nearest, 1.5, ppr_n[todo])
+        tol = params.tolerance(nearest, params.FILL_TOLERANCE_PX, ppr_n[todo])
         with np.errstate(invalid="ignore"):
             in_near = fin & (pred <= nearest + tol)
             in_far = fin & ~in_near
@@ -345,7 +251,7 @@ def fill_gaps(value: F32, has: Bool, gu: F32, gv: F32, need: I64, ppr: F32,
             use_far = ~pairs & in_far.any(axis=0)
             if use_far.any():
                 far = np.min(np.where(in_far, pred, np.inf), axis=0)
-                in_far &= pred <= far + params.tolerance(far, 1.5, ppr_n[todo])
+                in_far &= pred <= far + params.tolerance(far, params.FILL_TOLERANCE_PX, ppr_n[todo])
         w = weight * np.where(use_far, in_far, in_near)
         wsum = w.sum(axis=0)
         got = wsum > 0

@@ -30,8 +30,8 @@ from calibration.warp import (
 )
 from ingest.errors import BenchmarkError
 from ingest.raster.lod import VOXEL_M
+from ingest.raster.params import RenderParams
 from ingest.raster.scan import Scan
-from ingest.raster.visibility import RenderParams
 
 FOVS_DEG = (120.0, 140.0, 165.0, 195.0)
 

@@ -21,8 +21,8 @@ from calibration.rig import read_rig
 from calibration.types import F32, F64
 from calibration.virtual import virtual_fisheye
 from ingest.errors import BenchmarkError
+from ingest.raster.params import RenderParams, backend_problem
 from ingest.raster.scan import Scan
-from ingest.raster.visibility import RenderParams, backend_problem
 from ingest.render.plan import BASELINES_MM, FOVS_DEG, BenchmarkConfig, check_reference, sphere_rows
 from ingest.render.scans import read_mask_points, read_scans
 
@@ -65,7 +65,7 @@ def parse_size(text: str) -> tuple[int, int]:
 
 
 def _check_backend(backend: str) -> None:
-    """--backend: a known renderer whose requirements are here (`visibility.backend_problem`)."""
+    """--backend: a known renderer whose requirements are here (`ingest.raster.params.backend_problem`)."""
     problem = backend_problem(backend)
     if problem is not None:
         raise BenchmarkError(f"--backend {backend!r}: {problem}")

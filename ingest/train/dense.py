@@ -47,9 +47,9 @@ from ingest.dataset.sparse import SparseImage
 from ingest.raster.edges import edge_band
 from ingest.raster.kernels import I32, nearest_pixel_groups, planar_resample, snap_planar
 from ingest.raster.lod import point_index
+from ingest.raster.params import RenderParams
 from ingest.raster.scan import Scan
 from ingest.raster.view import Rendering, pixel_rays, render_view
-from ingest.raster.visibility import RenderParams
 from ingest.raster.z_order import z_order
 from ingest.rows import rows
 from ingest.train.block_planes import FreeSpaceSettings

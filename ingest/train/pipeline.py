@@ -67,7 +67,7 @@ from ingest.dataset.layout import (
 )
 from ingest.dataset.lock import hold_folder
 from ingest.errors import BagError, DatasetError, MessageDecodeError, OdometryError, OutputError
-from ingest.raster.visibility import backend_problem
+from ingest.raster.params import backend_problem
 from ingest.runtime.executor import Executor, Handoff, share_cores
 from ingest.runtime.heap import retain_freed_memory
 from ingest.runtime.jit import compiling

@@ -6,8 +6,10 @@ import cv2
 import numpy as np
 import pytest
 
+from ingest.raster.geometry import ViewPoints
 from ingest.raster.kernels import ellipse_offsets
-from ingest.raster.visibility import EMPTY_KEY, ViewPoints, winner, zbuffer, zbuffer_erode
+from ingest.raster.params import EMPTY_KEY
+from ingest.raster.visibility import winner, zbuffer, zbuffer_erode
 
 
 def _view_points(pix: list[int], u: list[float], v: list[float], r: list[float], ku: list[int],

@@ -17,9 +17,9 @@ from calibration.virtual import CroppedModel, R_up_cam, partner_pose, virtual_ds
 from ingest.errors import ScanError
 from ingest.eval.metrics import score_range
 from ingest.raster.lod import build_index
+from ingest.raster.params import RenderParams
 from ingest.raster.scan import Scan
 from ingest.raster.view import render_view
-from ingest.raster.visibility import RenderParams
 from sensorbox.sim.appearance import Texture
 from sensorbox.sim.scenes import build_scene
 from sensorbox.sim.tls import TlsParams, bundle_poses, simulate_scan, true_range

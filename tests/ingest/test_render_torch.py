@@ -18,9 +18,11 @@ torch = pytest.importorskip("torch")
 from calibration.spherical import Equirectangular, pinhole_for_fov  # noqa: E402
 from calibration.virtual import partner_pose, virtual_ds  # noqa: E402
 from ingest.raster import torch_view  # noqa: E402
+from ingest.raster.geometry import ViewPoints  # noqa: E402
 from ingest.raster.lod import point_index  # noqa: E402
+from ingest.raster.params import RenderParams  # noqa: E402
 from ingest.raster.view import render_view  # noqa: E402
-from ingest.raster.visibility import RenderParams, ViewPoints, zbuffer  # noqa: E402
+from ingest.raster.visibility import zbuffer  # noqa: E402
 from tests.ingest.test_render_compiled import CASES, H, W, assert_same, scans  # noqa: E402, F401
 
 TORCH = RenderParams(backend="torch")
