@@ -7,8 +7,8 @@ the ground truth chosen for it (method, decision, window, trajectory) and,
 when `--salvage` skipped corrupt chunks, the messages lost per topic and one
 line per chunk (`lost_in_corrupt_chunks`), the undecodable messages skipped
 per topic (`undecodable_messages`) and the IMU readings and LiDAR points no
-sensor can produce, dropped per topic and reason (`dropped_implausible`,
-`ingest.train.plausible`).
+sensor can produce, with the points the Livox tagged as noise, dropped per
+topic and reason (`dropped_implausible`, `ingest.train.plausible`).
 """
 
 from __future__ import annotations
