@@ -30,6 +30,7 @@ import cv2
 import numpy as np
 import yaml
 
+from calibration.files import read_text
 from calibration.types import F32, U8
 from ingest.dataset.png import read_image
 from ingest.errors import EvalError
@@ -133,11 +134,12 @@ def fisheye_size(root: Path) -> tuple[Size, Path] | None:
     """The fisheye image size a training set's dataset.yaml gives (`fisheye_size`), and that file; None
     without one (a folder of PNGs alone, or the benchmark layout)."""
     path = root / "dataset.yaml"
-    if not path.is_file():
+    if not path.exists():
         return None
+    text = read_text(path, "dataset description", error=EvalError)  # a device or FIFO: refused, not read
     try:
-        doc = yaml.safe_load(path.read_text())
-    except (OSError, ValueError, yaml.YAMLError) as err:  # ValueError: not UTF-8 text
+        doc = yaml.safe_load(text)
+    except yaml.YAMLError as err:
         raise EvalError(f"{path}: cannot read the dataset description: {err}") from err
     size = doc.get("fisheye_size") if isinstance(doc, dict) else None
     if not (isinstance(size, list) and len(size) == 2 and all(isinstance(v, int) and v > 0 for v in size)):
@@ -174,8 +176,8 @@ def sample_stats(
     n_valid = int(valid.sum())
     image_path = image_for(root, layout, gt)
     gray: U8 | None = None
-    if image_path.is_file():
-        raw = read_image(image_path, cv2.IMREAD_GRAYSCALE)
+    if image_path.exists():  # a device or FIFO in its place is refused by `read_image`, not skipped
+        raw = read_image(image_path, cv2.IMREAD_GRAYSCALE, EvalError)
         if raw is None:
             raise EvalError(f"{image_path}: unreadable image")
         gray = np.asarray(raw, np.uint8)
