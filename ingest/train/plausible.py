@@ -220,24 +220,38 @@ class Dropped:
         return out
 
 
-def check_imu_rate(where: str, topic: str, name: str, rate_hz: float | None, stamps_ns: I64) -> None:
+def check_imu_rate(
+    where: str, topic: str, name: str, rate_hz: float | None, stamps_ns: I64, repeated: int = 0
+) -> None:
     """Raise `BagError` when the IMU's readings come at a rate more than `IMU_RATE_TOLERANCE` from the
-    rig's `rate_hz` (`stamps_ns`: its header stamps; no check without a rate or with fewer than 3).
+    rig's `rate_hz` (`stamps_ns`: its distinct header stamps; no check without a rate or with fewer than 3).
 
-    The median interval measures the rate, so gaps and repeats do not move it.
+    The median interval measures the rate, so gaps do not move it. `repeated` readings carried the
+    stamp of an earlier one and were left out (`ingest.train.repeats`): when all the readings would
+    come at the rig's rate, the stamps repeat, not the rate differs, and the error says so.
     """
     stamps = np.unique(stamps_ns)
     if rate_hz is None or len(stamps) < 3:
         return
     period_ns = float(np.median(np.diff(stamps)))
     measured_hz = 1e9 / period_ns
-    if abs(measured_hz - rate_hz) > IMU_RATE_TOLERANCE * rate_hz:
+    if abs(measured_hz - rate_hz) <= IMU_RATE_TOLERANCE * rate_hz:
+        return
+    readings = len(stamps) + repeated
+    all_hz = readings * 1e9 / (float(stamps[-1] - stamps[0]) + period_ns)  # the last batch lasts a period
+    if repeated and abs(all_hz - rate_hz) <= IMU_RATE_TOLERANCE * rate_hz:
         raise BagError(
-            f"{where}: {topic}: IMU readings at {measured_hz:.3g} Hz (median interval"
-            f" {period_ns / 1e6:.3g} ms) but the rig's {name} says rate_hz {rate_hz:g};"
-            f" more than {IMU_RATE_TOLERANCE:.0%} apart"
-            " (the wrong rig file, or the IMU set to another rate: correct rate_hz)"
+            f"{where}: {topic}: {repeated:,} of {readings:,} IMU readings repeat an earlier reading's header"
+            f" stamp: {len(stamps):,} distinct stamps, at {measured_hz:.3g} Hz, for readings at"
+            f" {all_hz:.3g} Hz (the rig's {name} says rate_hz {rate_hz:g}); readings stamped in batches"
+            " cannot be placed in time (a driver or clock that repeats stamps: fix the IMU's header stamps)"
         )
+    raise BagError(
+        f"{where}: {topic}: IMU readings at {measured_hz:.3g} Hz (median interval"
+        f" {period_ns / 1e6:.3g} ms) but the rig's {name} says rate_hz {rate_hz:g};"
+        f" more than {IMU_RATE_TOLERANCE:.0%} apart"
+        " (the wrong rig file, or the IMU set to another rate: correct rate_hz)"
+    )
 
 
 BACKWARDS_FRACTION = 0.1
