@@ -28,10 +28,9 @@ from typing import Any
 
 import cv2
 import numpy as np
-import yaml
 
-from calibration.files import read_text
 from calibration.types import F32, U8
+from ingest.dataset.description import read_description
 from ingest.dataset.png import read_image
 from ingest.errors import EvalError
 from ingest.eval.evaluate import GtFile, Layout, discover_gt, json_safe, read_gt
@@ -136,12 +135,8 @@ def fisheye_size(root: Path) -> tuple[Size, Path] | None:
     path = root / "dataset.yaml"
     if not path.exists():
         return None
-    text = read_text(path, "dataset description", error=EvalError)  # a device or FIFO: refused, not read
-    try:
-        doc = yaml.safe_load(text)
-    except yaml.YAMLError as err:
-        raise EvalError(f"{path}: cannot read the dataset description: {err}") from err
-    size = doc.get("fisheye_size") if isinstance(doc, dict) else None
+    doc = read_description(path, EvalError)  # a device or FIFO, malformed or cut short: one line
+    size = doc.get("fisheye_size")
     if not (isinstance(size, list) and len(size) == 2 and all(isinstance(v, int) and v > 0 for v in size)):
         raise EvalError(f"{path}: fisheye_size: expected [height, width] in px, got {size!r}")
     return (size[0], size[1]), path

@@ -24,8 +24,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import yaml
 
-from calibration.opencv_yaml import yaml_error_line
 from ingest.dataset.compare import first_difference
+from ingest.dataset.description import FORMAT, read_description
 from ingest.dataset.layout import DEPTH_SCALE, DISP_SCALE, write_atomic
 from ingest.dataset.meta import read_meta
 from ingest.errors import DatasetError, OutputError
@@ -35,8 +35,6 @@ if TYPE_CHECKING:
     from ingest.train.pipeline import IngestConfig, IngestSummary
 
 HEADER = "# WideDepth training set written by SensorBox\n"
-FORMAT = "widedepth-train"
-"""dataset.yaml's `format`: what marks a folder as a training set ingest wrote (and may extend)."""
 PER_SOURCE = ("gt", "overlap_images", "method", "decision", "gap_fallback", "window_ns")
 """SampleParams fields resolved per recording (dataset.yaml keeps them with each source), not config."""
 
@@ -391,12 +389,5 @@ def record_calibration(out: Path, bags: list[Path], check: dict[str, Any]) -> No
 
 
 def _read_dataset_yaml(path: Path) -> dict[str, Any]:
-    try:
-        doc = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as err:
-        raise DatasetError(f"existing dataset description {yaml_error_line(path, err)}") from err
-    except (OSError, ValueError) as err:  # ValueError: not UTF-8 text
-        raise DatasetError(f"{path}: cannot read the existing dataset description: {err}") from err
-    if not isinstance(doc, dict):
-        raise DatasetError(f"{path}: not a SensorBox dataset description (expected a mapping)")
-    return doc
+    """`read_description`: the existing dataset.yaml, or one line why not (cut short: the line it ends at)."""
+    return read_description(path, DatasetError)
