@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import shutil
 import tempfile
 from dataclasses import asdict
 from pathlib import Path
@@ -331,29 +330,15 @@ def _rig_difference(geometry: Geometry, rig_dir: Path) -> str:
 
 
 def copy_rig(geometry: Geometry, rig_dir: Path) -> None:
-    """`rig_dir/rig.yaml` and `rig_dir/camchain.yaml`, each whole or not at all.
+    """`rig_dir/rig.yaml` and `rig_dir/camchain.yaml`, both whole or neither.
 
-    Both are written into a staging folder beside `rig_dir` and renamed into
-    place, so a full disk or a read-only folder leaves no empty or cut file;
-    the error names the file it could not write.
+    `calibration.rig.write_rig` writes them as one set, so a full disk or a
+    read-only folder leaves no empty or cut file, and a target that is a
+    device or FIFO is refused; the `OutputError` names the file.
     """
     from calibration.rig import write_rig
 
-    staging: Path | None = None
-    target = rig_dir  # what the error names: the folder while staging, then each file
-    try:
-        rig_dir.mkdir(exist_ok=True)
-        staging = Path(tempfile.mkdtemp(dir=rig_dir.parent, prefix=".rig.", suffix=".tmp"))
-        write_rig(geometry.rig, staging / "rig.yaml", camchain_name="camchain.yaml")
-        for name in ("camchain.yaml", "rig.yaml"):
-            target = rig_dir / name
-            (staging / name).chmod(0o644)
-            (staging / name).replace(target)
-    except OSError as err:
-        raise OutputError(f"cannot write {target}: {err.strerror or err}") from err
-    finally:
-        if staging is not None:
-            shutil.rmtree(staging, ignore_errors=True)
+    write_rig(geometry.rig, rig_dir / "rig.yaml", camchain_name="camchain.yaml", error=OutputError)
 
 
 def record_undecodable(
