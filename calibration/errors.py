@@ -14,3 +14,8 @@ class SensorboxError(Exception):
 
 class CalibrationError(SensorboxError):
     """A camera model, Kalibr camchain or rig file is malformed or inconsistent."""
+
+
+class WriteError(SensorboxError):
+    """The operating system refused a write (disk full, read-only or missing folder, permissions), or an
+    output path is a device, FIFO or socket. The message names the file; the CLI exits 3 for it."""

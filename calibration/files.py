@@ -1,16 +1,27 @@
-"""Input files read whole (rig files, camchains, launch and parameter files): checked before reading.
+"""Files read whole and files written whole: inputs checked before reading, outputs renamed into place.
 
 A path given as a calibration or launch file may name anything: a symlink to
 ``/dev/zero`` or ``/dev/urandom`` (read without end until the process is
 killed for memory), a FIFO (a read that waits forever), a folder. `read_text`
 follows symlinks, accepts a regular file only and bounds its size before a
 byte is read, so each of these is one line naming the file.
+
+Every file SensorBox writes goes through `write_atomic` or `write_atomic_set`
+(a temporary file beside the target, then a rename), so a failed write leaves
+no empty or cut file; an output path that is a device, FIFO or socket is
+refused before anything is written (a rename would replace the node itself).
+They live here, at the bottom of the package tree, so that calibration's own
+writers (rig files, camchains, the remap cache) use them as ingest does.
 """
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import os
 import stat
+import tempfile
+from collections.abc import Sequence
 from pathlib import Path
 
 from calibration.errors import CalibrationError, SensorboxError
@@ -91,3 +102,93 @@ def read_text(
         raise error(
             f"{path}: not a {syntax} {what} file (byte {err.start} is {data[err.start]:#04x}, not UTF-8 text)"
         ) from err
+
+
+def refuse_special_target(path: Path, error: type[SensorboxError]) -> None:
+    """Refuse an output `path` that exists as a device, FIFO or socket (symlinks followed).
+
+    The rename of an atomic write would replace the node itself (`--plot
+    /dev/full` made /dev/full a PNG), and writing into it instead would send a
+    whole output to a device. One line naming the path and what it is, as
+    `error`. A missing path, a regular file and a folder pass (a folder is
+    refused by the write, "Is a directory").
+    """
+    try:
+        mode = path.stat().st_mode
+    except OSError:  # missing, or a dangling link: the write itself decides
+        return
+    if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+        raise error(f"{path}: is not a regular file ({file_kind(mode)}); give a file path")
+
+
+def staged_file(path: Path, data: bytes) -> str:
+    """`data` written to a new temporary file beside `path`, readable by all; its name. On an `OSError` no
+    temporary file is left."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            os.fchmod(fd, 0o644)  # mkstemp makes 0600; a dataset must be readable by its users
+            f.write(data)
+    except OSError:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return tmp
+
+
+def write_atomic(path: Path, data: bytes, error: type[SensorboxError]) -> None:
+    """Write `data` to `path` via a temporary file in the same folder and an atomic rename.
+
+    Any failure (a read-only or missing folder, a full disk, `path` a folder)
+    is `error` naming `path`, and leaves neither `path` changed nor the
+    temporary file behind. An existing `path` that is neither a regular file
+    nor a folder (a device, a FIFO, a socket, or a symlink to one) is refused
+    before anything is written (`refuse_special_target`).
+    """
+    refuse_special_target(path, error)
+    try:
+        tmp = staged_file(path, data)
+        try:
+            Path(tmp).replace(path)
+        except OSError:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+    except OSError as err:
+        raise error(f"cannot write {path}: {err.strerror or err}") from err
+
+
+def write_atomic_set(files: Sequence[tuple[Path, bytes]], error: type[SensorboxError]) -> None:
+    """Write several files as one set: all of them, or (after any failure) none changed.
+
+    Each file's bytes go to a temporary file beside it first; only when every
+    one is written are they renamed into place (a rename takes no room). A
+    failure (a full disk, a read-only or missing folder, a folder where a file
+    belongs) is `error` naming the file, leaves every target as it was, no
+    temporary file, and no folder this call made. Folders are made as needed.
+    A target that is a device, FIFO or socket is refused before any file is
+    written (`refuse_special_target`).
+    """
+    for target, _ in files:
+        refuse_special_target(target, error)
+    made: list[Path] = []
+    staged: list[tuple[str, Path]] = []
+    path = files[0][0] if files else Path()
+    try:
+        for path, _ in files:
+            for folder in reversed([path.parent, *path.parent.parents]):
+                if not folder.exists():
+                    folder.mkdir()
+                    made.append(folder)
+        for path, _ in files:
+            if path.is_dir():  # a rename over it would fail only after others were renamed
+                raise IsADirectoryError(errno.EISDIR, os.strerror(errno.EISDIR), str(path))
+        for path, data in files:
+            staged.append((staged_file(path, data), path))
+        for tmp, path in staged:
+            Path(tmp).replace(path)
+    except OSError as err:
+        for tmp, _ in staged:
+            Path(tmp).unlink(missing_ok=True)
+        for folder in reversed(made):
+            with contextlib.suppress(OSError):
+                folder.rmdir()
+        raise error(f"cannot write {path}: {err.strerror or err}") from err

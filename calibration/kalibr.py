@@ -43,8 +43,8 @@ import yaml
 
 from calibration.camera import CameraModel
 from calibration.distortion import Fov, RadTan
-from calibration.errors import CalibrationError
-from calibration.files import read_text
+from calibration.errors import CalibrationError, SensorboxError, WriteError
+from calibration.files import read_text, write_atomic
 from calibration.fisheye import DoubleSphere, ExtendedUnified, KannalaBrandt, Unified
 from calibration.opencv_yaml import load_opencv_yaml, yaml_error_line
 from calibration.pinhole import Omni, Pinhole
@@ -450,7 +450,14 @@ def camchain_to_dict(chain: CameraChain) -> dict[str, Any]:
     return out
 
 
-def write_kalibr_camchain(chain: CameraChain, path: str | Path) -> None:
-    """Write a camchain in Kalibr's YAML layout (floats written exactly, via repr)."""
-    text = yaml.safe_dump(camchain_to_dict(chain), default_flow_style=None, sort_keys=False)
-    Path(path).write_text(text)
+def camchain_text(chain: CameraChain) -> str:
+    """A camchain in Kalibr's YAML layout (floats written exactly, via repr)."""
+    return yaml.safe_dump(camchain_to_dict(chain), default_flow_style=None, sort_keys=False)
+
+
+def write_kalibr_camchain(
+    chain: CameraChain, path: str | Path, error: type[SensorboxError] = WriteError
+) -> None:
+    """Write a camchain in Kalibr's YAML layout, whole or not at all (`calibration.files.write_atomic`: a
+    refused write, or a path that is a device or FIFO, is `error` naming it)."""
+    write_atomic(Path(path), camchain_text(chain).encode(), error)

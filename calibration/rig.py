@@ -44,15 +44,15 @@ import numpy as np
 import yaml
 
 from calibration.camera import CameraModel
-from calibration.errors import CalibrationError
-from calibration.files import read_text
+from calibration.errors import CalibrationError, SensorboxError, WriteError
+from calibration.files import read_text, write_atomic_set
 from calibration.kalibr import (
     CameraChain,
     KalibrCamera,
+    camchain_text,
     load_yaml,
     matrix_to_list,
     parse_kalibr_camchain,
-    write_kalibr_camchain,
 )
 from calibration.transforms import as_transform, invert, livox_extrinsic_to_transform
 from calibration.types import F64
@@ -489,10 +489,15 @@ def with_timeshifts(rig: Rig, timeshift_cam_imu_s: Mapping[str, float]) -> Rig:
     return replace(rig, cameras=cams, camchain=chain)
 
 
-def write_rig(rig: Rig, path: str | Path, camchain_name: str | None = None) -> Path:
+def write_rig(
+    rig: Rig, path: str | Path, camchain_name: str | None = None, error: type[SensorboxError] = WriteError
+) -> Path:
     """Write ``rig`` as a rig file plus its camchain beside it; returns the camchain path.
 
-    LiDAR poses are written as ``T_cam0_lidar`` (the resolved form).
+    LiDAR poses are written as ``T_cam0_lidar`` (the resolved form). Both
+    files are written as one set (`calibration.files.write_atomic_set`): both
+    or neither, a refused write or a path that is a device or FIFO is `error`
+    naming the file, and no empty or cut file is left.
     """
     p = Path(path)
     camchain_name = camchain_name or f"{p.stem}-camchain.yaml"
@@ -503,7 +508,6 @@ def write_rig(rig: Rig, path: str | Path, camchain_name: str | None = None) -> P
         )
     )  # fmt: skip
     chain_path = p.parent / camchain_name
-    write_kalibr_camchain(chain, chain_path)
     doc: dict[str, Any] = {
         "sensorbox_rig": RIG_VERSION,
         "name": rig.name,
@@ -529,5 +533,6 @@ def write_rig(rig: Rig, path: str | Path, camchain_name: str | None = None) -> P
             for imu in rig.imus
         },
     }
-    p.write_text(yaml.safe_dump(doc, default_flow_style=None, sort_keys=False))
+    rig_text = yaml.safe_dump(doc, default_flow_style=None, sort_keys=False)
+    write_atomic_set([(chain_path, camchain_text(chain).encode()), (p, rig_text.encode())], error)
     return chain_path

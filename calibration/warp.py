@@ -11,8 +11,8 @@ kept on disk (`map_cache_dir`), so that a new process loads them instead.
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
+import io
 import logging
 import math
 import os
@@ -27,7 +27,8 @@ import cv2
 import numpy as np
 
 from calibration.camera import CameraModel
-from calibration.errors import CalibrationError
+from calibration.errors import CalibrationError, WriteError
+from calibration.files import check_regular_file, write_atomic
 from calibration.spherical import Equirectangular
 from calibration.types import F64, Bool
 
@@ -169,10 +170,16 @@ def maps_file(src: CameraModel, dst: CameraModel, R_src_dst: F64) -> Path | None
     return folder / f"{hashlib.sha256(text.encode()).hexdigest()[:32]}.npz"
 
 
+MAX_CACHE_FILE_BYTES = 1 << 32
+"""Largest remap map cache file read (4 GiB): two float32 maps and a mask of a 16k x 8k equirect."""
+
+
 def load_maps(path: Path, dst: CameraModel) -> RemapMaps | None:
-    """The maps stored at `path`, or None (with one warning line) when the file is not what was stored."""
+    """The maps stored at `path`, or None (with one warning line) when the file is not what was stored
+    (a device or FIFO in its place is not read: a FIFO would wait forever)."""
     shape = (dst.height, dst.width)
     try:
+        check_regular_file(path, "remap map cache", MAX_CACHE_FILE_BYTES)
         with np.load(path, allow_pickle=False) as data:
             map_x, map_y, valid, spans = (data[k] for k in ("map_x", "map_y", "valid", "spans"))
         ok = (
@@ -184,7 +191,7 @@ def load_maps(path: Path, dst: CameraModel) -> RemapMaps | None:
         )
         if not ok:
             raise ValueError(f"arrays are not {shape[1]}x{shape[0]} float32 maps, a mask and (n, 4) spans")
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as err:
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, CalibrationError) as err:
         log.warning("%s: unreadable remap map cache file (%s); building the maps again", path, err)
         return None
     boxes = tuple((int(r0), int(r1), int(c0), int(c1)) for r0, r1, c0, c1 in spans.tolist())
@@ -192,18 +199,16 @@ def load_maps(path: Path, dst: CameraModel) -> RemapMaps | None:
 
 
 def save_maps(path: Path, maps: RemapMaps) -> None:
-    """Store `maps` at `path` atomically (a temporary file, then a rename); a failure is one warning line."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
+    """Store `maps` at `path` whole (`calibration.files.write_atomic`); a failure, or a `path` that is a
+    device or FIFO (never written into nor replaced), is one warning line: the cache is only a cache."""
+    buffer = io.BytesIO()
+    spans = np.array(maps.spans, np.int64).reshape(-1, 4)
+    np.savez(buffer, map_x=maps.map_x, map_y=maps.map_y, valid=maps.valid, spans=spans)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        with tmp.open("wb") as f:
-            spans = np.array(maps.spans, np.int64).reshape(-1, 4)
-            np.savez(f, map_x=maps.map_x, map_y=maps.map_y, valid=maps.valid, spans=spans)
-        tmp.replace(path)
-    except OSError as err:
+        write_atomic(path, buffer.getvalue(), WriteError)
+    except (OSError, WriteError) as err:
         log.warning("%s: cannot store the remap maps (%s); they will be built again next time", path, err)
-        with contextlib.suppress(OSError):  # the folder itself may be what failed
-            tmp.unlink(missing_ok=True)
 
 
 def clear_map_cache() -> None:

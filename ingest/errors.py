@@ -11,7 +11,7 @@ room: scans and benchmark layouts, evaluation, the dataset on disk, PNGs.
 
 from __future__ import annotations
 
-from calibration.errors import SensorboxError
+from calibration.errors import SensorboxError, WriteError
 
 
 class BagError(SensorboxError):
@@ -38,10 +38,10 @@ class DatasetError(SensorboxError):
     """The output folder cannot be written (disk full, permissions, a foreign dataset)."""
 
 
-class OutputError(DatasetError):
+class OutputError(DatasetError, WriteError):
     """The operating system refused a write (disk full, read-only or missing folder, permissions).
 
-    The message names the file or folder; the CLI exits 3 for it, as for an
+    The message names the file or folder; the CLI exits 3 for it (a `WriteError`), as for an
     OSError that reaches the top unwrapped.
     """
 

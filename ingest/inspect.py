@@ -378,8 +378,9 @@ def inspect_bags(
     `paths` as for `open_bags` (ROS 1 `.bag` files, or ROS 2 `.mcap`/`.db3`
     files and rosbag2 directories); `salvage` reads truncated MCAP files'
     complete chunks. With `rig`, the stereo pair is the rig's upper/lower
-    cameras and `rig_problems` lists its topics the bags lack or carry with
-    the wrong type. `progress(done, total)` is called while reading.
+    cameras and `rig_problems` lists its topics the bags lack, carry with
+    the wrong type or declare without a message. `progress(done, total)`
+    is called while reading.
     Raises `BagError` when a bag cannot be opened or read (`CorruptChunkError`
     at a corrupt chunk unless `salvage`, which skips it and reports it in
     `lost_chunks` and `TopicStats.lost`); a topic whose type cannot be decoded
@@ -418,6 +419,6 @@ def inspect_bags(
         stereo=_stereo(*pair, accs) if pair else None,
         lidars=tuple(_lidar_coverage(t, a) for t, a in sweeps.items()),
         mapping=mapping,
-        rig_problems=check_rig(rig, types) if rig is not None else None,
+        rig_problems=check_rig(rig, types, {t.topic: t.count for t in stats}) if rig is not None else None,
         lost_chunks=lost_chunks,
     )

@@ -172,11 +172,16 @@ def _resolve_image_topic(topic: str | None, names: dict[str, str]) -> str | None
     return compressed if compressed in names else None
 
 
-def check_rig(rig: Rig, types: dict[str, str]) -> tuple[RigProblem, ...]:
-    """Rig topics missing from the bags (`types`: topic -> msgtype) or of the wrong type.
+def check_rig(
+    rig: Rig, types: dict[str, str], counts: dict[str, int] | None = None
+) -> tuple[RigProblem, ...]:
+    """Rig topics missing from the bags (`types`: topic -> msgtype), of the wrong type or, with `counts`
+    (topic -> messages), declared but empty.
 
     A camera topic is there when its image_transport `/compressed` variant is,
-    as ingest reads either.
+    as ingest reads either. A topic a bag declares without a message (a
+    sensor that never published) is as useless to ingest as a missing one,
+    which refuses it.
     """
     problems: list[RigProblem] = []
     wanted: list[tuple[str, str | None, frozenset[str], str]] = [
@@ -190,14 +195,17 @@ def check_rig(rig: Rig, types: dict[str, str]) -> tuple[RigProblem, ...]:
             problems.append(RigProblem(sensor, None, "has no topic in the rig file"))
         elif topic not in types:
             alt = _resolve_image_topic(topic, types) if allowed is IMAGE_TYPES else None
-            if alt is not None and types[alt] in allowed:
-                continue  # image_transport's compressed variant: ingest reads it, as it reads the rig's topic
-            problems.append(RigProblem(sensor, topic, "not in the bag"))
+            if alt is None or types[alt] not in allowed:
+                problems.append(RigProblem(sensor, topic, "not in the bag"))
+            elif counts is not None and counts.get(alt, 0) == 0:  # ingest reads the compressed variant
+                problems.append(RigProblem(sensor, alt, "in the bag but empty: 0 messages"))
         elif types[topic] not in allowed:
             expected = " or ".join(sorted(allowed))
             problems.append(
                 RigProblem(sensor, topic, f"has type {types[topic]}; expected {what} type ({expected})")
             )
+        elif counts is not None and counts.get(topic, 0) == 0:
+            problems.append(RigProblem(sensor, topic, "in the bag but empty: 0 messages"))
     return tuple(problems)
 
 

@@ -349,6 +349,12 @@ IMAGE_ENCODINGS: dict[str, tuple[int, str]] = {
 """Supported `sensor_msgs/Image` encodings -> (channels, numpy base type)."""
 
 
+ROW_ALIGN_BYTES = 64
+"""Row padding (`step` beyond a row's pixels) aligns rows to at most this many bytes (SIMD, DMA). Padding
+of this much and of a byte a pixel or more is no alignment: data of an encoding with more bytes a pixel
+(bgra8 data labelled rgb8 reads every pixel from the wrong bytes)."""
+
+
 def _pixels(msg: Any) -> Array:
     """The image data as an (H, W, C) view honouring `step` and byte order."""
     encoding = str(msg.encoding)
@@ -365,6 +371,13 @@ def _pixels(msg: Any) -> Array:
     if step < row_bytes:
         raise MessageDecodeError(
             f"Image {encoding} {width}x{height}: step {step} < {row_bytes} bytes per row"
+        )
+    pixel_bytes = channels * dtype.itemsize
+    if step - row_bytes >= max(width, ROW_ALIGN_BYTES):  # padding aligns rows: it adds no byte a pixel
+        raise MessageDecodeError(
+            f"Image {encoding} {width}x{height}: step {step} holds {step / width:g} bytes a pixel but "
+            f"{encoding} has {pixel_bytes}; data of another encoding (bgra8 labelled rgb8?) would be "
+            "read as wrong pixels"
         )
     need = (height - 1) * step + row_bytes  # the last row's padding may be left out
     if not need <= msg.data.size <= height * step:

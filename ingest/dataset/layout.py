@@ -23,11 +23,7 @@ wrapped.
 
 from __future__ import annotations
 
-import contextlib
-import errno
 import hashlib
-import os
-import stat
 import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -37,7 +33,7 @@ from typing import Any
 import numpy as np
 import OpenEXR
 
-from calibration.files import file_kind
+from calibration import files
 from calibration.types import F32, U8
 from ingest.dataset.meta import FileMeta, SampleMeta
 from ingest.dataset.png import encode_png, read_image
@@ -58,93 +54,20 @@ def sample_id(index: int) -> str:
 
 
 def write_atomic(path: Path, data: bytes) -> None:
-    """Write `data` to `path` via a temporary file in the same folder and an atomic rename.
-
-    Any failure (a read-only or missing folder, a full disk, `path` a folder)
-    is an `OutputError` naming `path`, and leaves neither `path` changed nor
-    the temporary file behind. An existing `path` that is neither a regular
-    file nor a folder (a device, a FIFO, a socket, or a symlink to one) is
-    refused before anything is written (`refuse_special_target`).
-    """
-    refuse_special_target(path)
-    try:
-        tmp = _staged(path, data)
-        try:
-            Path(tmp).replace(path)
-        except OSError:
-            Path(tmp).unlink(missing_ok=True)
-            raise
-    except OSError as err:
-        raise OutputError(f"cannot write {path}: {err.strerror or err}") from err
+    """`calibration.files.write_atomic` with `OutputError`: `path` whole or unchanged, a device, FIFO or
+    socket refused, one line naming the path (exit code 3)."""
+    files.write_atomic(path, data, OutputError)
 
 
 def refuse_special_target(path: Path) -> None:
-    """Refuse an output `path` that exists as a device, FIFO or socket (symlinks followed).
-
-    The rename of an atomic write would replace the node itself (`--plot
-    /dev/full` made /dev/full a PNG), and writing into it instead would send a
-    whole output to a device. One line naming the path and what it is, an
-    `OutputError` (exit code 3). A missing path, a regular file and a folder
-    pass (a folder is refused by the write, "Is a directory").
-    """
-    try:
-        mode = path.stat().st_mode
-    except OSError:  # missing, or a dangling link: the write itself decides
-        return
-    if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
-        raise OutputError(f"{path}: is not a regular file ({file_kind(mode)}); give a file path")
+    """`calibration.files.refuse_special_target` with `OutputError`: an output `path` that exists as a
+    device, FIFO or socket (symlinks followed) is one line naming it and what it is."""
+    files.refuse_special_target(path, OutputError)
 
 
-def _staged(path: Path, data: bytes) -> str:
-    """`data` written to a new temporary file beside `path`, readable by all; its name. On an `OSError` no
-    temporary file is left."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            os.fchmod(fd, 0o644)  # mkstemp makes 0600; a dataset must be readable by its users
-            f.write(data)
-    except OSError:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return tmp
-
-
-def write_atomic_set(files: Sequence[tuple[Path, bytes]]) -> None:
-    """Write several files as one set: all of them, or (after any failure) none changed.
-
-    Each file's bytes go to a temporary file beside it first; only when every
-    one is written are they renamed into place (a rename takes no room). A
-    failure (a full disk, a read-only or missing folder, a folder where a file
-    belongs) is an `OutputError` naming the file, leaves every target as it
-    was, no temporary file, and no folder this call made. Folders are made as
-    needed. A target that is a device, FIFO or socket is refused before any
-    file is written (`refuse_special_target`).
-    """
-    for target, _ in files:
-        refuse_special_target(target)
-    made: list[Path] = []
-    staged: list[tuple[str, Path]] = []
-    path = files[0][0] if files else Path()
-    try:
-        for path, _ in files:
-            for folder in reversed([path.parent, *path.parent.parents]):
-                if not folder.exists():
-                    folder.mkdir()
-                    made.append(folder)
-        for path, _ in files:
-            if path.is_dir():  # a rename over it would fail only after others were renamed
-                raise IsADirectoryError(errno.EISDIR, os.strerror(errno.EISDIR), str(path))
-        for path, data in files:
-            staged.append((_staged(path, data), path))
-        for tmp, path in staged:
-            Path(tmp).replace(path)
-    except OSError as err:
-        for tmp, _ in staged:
-            Path(tmp).unlink(missing_ok=True)
-        for folder in reversed(made):
-            with contextlib.suppress(OSError):
-                folder.rmdir()
-        raise OutputError(f"cannot write {path}: {err.strerror or err}") from err
+def write_atomic_set(targets: Sequence[tuple[Path, bytes]]) -> None:
+    """`calibration.files.write_atomic_set` with `OutputError`: all of `targets` written, or none changed."""
+    files.write_atomic_set(targets, OutputError)
 
 
 def to_uint16(values: SparseImage, scale: float) -> tuple[np.ndarray[Any, np.dtype[np.uint16]], int]:

@@ -11,8 +11,10 @@ and compare every pixel.
 
 `read_image` reads any image OpenCV decodes, without a line of OpenCV's or
 libpng's on stderr for a missing, cut-short or corrupt file (callers name the
-file in their own one-line error): OpenCV's log is silenced around the decode,
-and a PNG is walked chunk by chunk first (lengths, CRC-32s, IEND), because
+file in their own one-line error); a path that is no regular file (a device,
+a FIFO, a folder, or a link to one) is refused before a byte is read: a link
+to /dev/zero read as "0 bytes", a FIFO would wait forever. OpenCV's log is
+silenced around the decode, and a PNG is walked chunk by chunk first (lengths, CRC-32s, IEND), because
 libpng prints its own "libpng error: ..." straight to the C stderr, which no
 Python setting reaches. A PNG whose damage keeps every CRC right (made so on
 purpose) can still get libpng's line.
@@ -36,7 +38,9 @@ import cv2
 import numpy as np
 from isal import isal_zlib
 
-from ingest.errors import PngError
+from calibration.errors import SensorboxError
+from calibration.files import check_regular_file
+from ingest.errors import DatasetError, PngError
 
 SIGNATURE = b"\x89PNG\r\n\x1a\n"
 LEVELS = (0, 1, 2, 3)  # ISA-L deflate levels: 0 fastest, 3 smallest
@@ -127,9 +131,21 @@ _CV_LOG = threading.Lock()
 _cv_log = {"quiet": 0, "level": 0}  # decodes under way with OpenCV's log silenced; its level before them
 
 
-def read_image(path: Path, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray[Any, Any] | None:
+MAX_IMAGE_BYTES = 1 << 30
+"""Largest image file read (1 GiB): a 4096x2048 RGB equirect PNG is at most 25 MiB."""
+
+
+def read_image(
+    path: Path, flags: int = cv2.IMREAD_UNCHANGED, error: type[SensorboxError] = DatasetError
+) -> np.ndarray[Any, Any] | None:
     """`cv2.imread(path, flags)` in silence: None when the file is missing, unreadable, cut short, corrupt
-    (a PNG whose chunks do not check out) or not an image."""
+    (a PNG whose chunks do not check out) or not an image.
+
+    A path that exists but is no regular file of at most `MAX_IMAGE_BYTES` (a device, FIFO or folder,
+    or a link to one) raises `error` naming it and what it is, before a byte is read.
+    """
+    if path.exists():
+        check_regular_file(path, "PNG image", MAX_IMAGE_BYTES, error)
     try:
         data = np.fromfile(path, np.uint8)
     except (OSError, ValueError):

@@ -35,9 +35,10 @@ from typing import Any, Literal
 
 import numpy as np
 
+from calibration.files import check_regular_file, file_kind
 from calibration.types import F32
 from ingest.dataset.layout import DEPTH_SCALE, DISP_SCALE, read_png_u16, write_atomic
-from ingest.dataset.png import read_image
+from ingest.dataset.png import MAX_IMAGE_BYTES, read_image
 from ingest.errors import DatasetError, EvalError
 from ingest.eval.metrics import (
     Accumulator,
@@ -83,10 +84,20 @@ def _is_stereo(task: str) -> bool:
     return task == "stereo"
 
 
+def what_it_is(path: Path) -> str:
+    """What an existing path that is no folder is, in words: "a file", or "a character device (a link to
+    /dev/zero)" and the like (`calibration.files.file_kind`)."""
+    if path.is_file():
+        return "a file"
+    target = path.resolve()
+    via = f" (a link to {target})" if target != path.absolute() else ""
+    return f"{file_kind(path.stat().st_mode)}{via}"
+
+
 def detect_layout(root: Path) -> Layout:
     """'train' when the ingest folders exist, 'benchmark' when `<scene>/<FOV>FOV/<B>mm/CENTER` does."""
     if root.exists() and not root.is_dir():
-        raise EvalError(f"{root}: is a file; expected a dataset folder")
+        raise EvalError(f"{root}: is {what_it_is(root)}; expected a dataset folder")
     if not root.is_dir():
         raise EvalError(f"{root}: no such dataset folder")
     if (root / "disp_equirect").is_dir() or (root / "depth_fisheye").is_dir():
@@ -140,8 +151,11 @@ def discover_gt(root: Path, task: Task, image_type: str | None = None) -> tuple[
 
 
 def find_prediction(pred_root: Path, gt: GtFile) -> Path | None:
-    """The prediction file for `gt` (same relative path and stem), or None; two candidates are an error."""
-    hits = [p for ext in PRED_EXTS if (p := pred_root / f"{gt.rel}{ext}").is_file()]
+    """The prediction file for `gt` (same relative path and stem), or None; two candidates are an error.
+
+    Any path that exists counts (a device or FIFO too: `read_prediction` refuses it, never skips it).
+    """
+    hits = [p for ext in PRED_EXTS if (p := pred_root / f"{gt.rel}{ext}").exists()]
     if len(hits) > 1:
         raise EvalError(f"{', '.join(map(str, hits))}: several predictions for {gt.rel}; keep one")
     return hits[0] if hits else None
@@ -162,6 +176,7 @@ def read_gt(gt: GtFile) -> F32:
 def _read_exr(path: Path) -> np.ndarray[Any, Any]:
     import OpenEXR
 
+    check_regular_file(path, ".exr prediction", MAX_IMAGE_BYTES, EvalError)
     try:
         channels = OpenEXR.File(str(path)).channels()
     except Exception as err:  # OpenEXR raises plain Exceptions for unreadable files
@@ -194,8 +209,10 @@ def _read_npy(path: Path) -> np.ndarray[Any, Any]:
     """A .npy prediction, its header checked against the file's size before any array is allocated.
 
     A header may claim more than the file holds (1e10 values: numpy
-    allocated 37 GiB before finding the data missing).
+    allocated 37 GiB before finding the data missing). A device or FIFO is
+    refused before a byte is read.
     """
+    check_regular_file(path, ".npy prediction", MAX_IMAGE_BYTES, EvalError)
     dims, dtype, have = _npy_layout(path)
     need = math.prod(dims) * dtype.itemsize
     if need > have:
@@ -215,7 +232,7 @@ def read_prediction(path: Path, scale: float) -> F32:
     """A prediction in metres or px (float32), NaN where there is none (0, negative, non-finite)."""
     ext = path.suffix.lower()
     if ext == ".png":
-        raw = read_image(path)
+        raw = read_image(path, error=EvalError)
         if raw is None or raw.dtype != np.uint16 or raw.ndim != 2:
             got = "unreadable" if raw is None else f"{raw.dtype} with shape {raw.shape}"
             raise EvalError(f"{path}: expected a 16-bit single-channel PNG (value x {scale:g}), got {got}")
@@ -239,7 +256,7 @@ def read_prediction(path: Path, scale: float) -> F32:
 def read_mask(mask_root: Path, gt: GtFile, shape: tuple[int, ...]) -> np.ndarray[Any, np.dtype[np.bool_]]:
     """A region mask named like the GT (`<mask_root>/<rel>.png`), non-zero = inside."""
     path = mask_root / f"{gt.rel}.png"
-    raw = read_image(path)
+    raw = read_image(path, error=EvalError)
     if raw is None:
         raise EvalError(f"{path}: missing or unreadable mask for {gt.rel}")
     if raw.shape[:2] != shape:
@@ -389,7 +406,7 @@ def evaluate(
     layout, gts = discover_gt(dataset, opts.task, opts.image_type)
     _check_options(opts, layout)
     if pred.exists() and not pred.is_dir():
-        raise EvalError(f"--pred {pred}: is a file; expected a folder of predictions")
+        raise EvalError(f"--pred {pred}: is {what_it_is(pred)}; expected a folder of predictions")
     if not pred.is_dir():
         raise EvalError(f"{pred}: no such prediction folder")
     regions = _regions(opts)

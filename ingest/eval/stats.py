@@ -28,9 +28,9 @@ from typing import Any
 
 import cv2
 import numpy as np
-import yaml
 
 from calibration.types import F32, U8
+from ingest.dataset.description import read_description
 from ingest.dataset.png import read_image
 from ingest.errors import EvalError
 from ingest.eval.evaluate import GtFile, Layout, discover_gt, json_safe, read_gt
@@ -133,13 +133,10 @@ def fisheye_size(root: Path) -> tuple[Size, Path] | None:
     """The fisheye image size a training set's dataset.yaml gives (`fisheye_size`), and that file; None
     without one (a folder of PNGs alone, or the benchmark layout)."""
     path = root / "dataset.yaml"
-    if not path.is_file():
+    if not path.exists():
         return None
-    try:
-        doc = yaml.safe_load(path.read_text())
-    except (OSError, ValueError, yaml.YAMLError) as err:  # ValueError: not UTF-8 text
-        raise EvalError(f"{path}: cannot read the dataset description: {err}") from err
-    size = doc.get("fisheye_size") if isinstance(doc, dict) else None
+    doc = read_description(path, EvalError)  # a device or FIFO, malformed or cut short: one line
+    size = doc.get("fisheye_size")
     if not (isinstance(size, list) and len(size) == 2 and all(isinstance(v, int) and v > 0 for v in size)):
         raise EvalError(f"{path}: fisheye_size: expected [height, width] in px, got {size!r}")
     return (size[0], size[1]), path
@@ -174,8 +171,8 @@ def sample_stats(
     n_valid = int(valid.sum())
     image_path = image_for(root, layout, gt)
     gray: U8 | None = None
-    if image_path.is_file():
-        raw = read_image(image_path, cv2.IMREAD_GRAYSCALE)
+    if image_path.exists():  # a device or FIFO in its place is refused by `read_image`, not skipped
+        raw = read_image(image_path, cv2.IMREAD_GRAYSCALE, EvalError)
         if raw is None:
             raise EvalError(f"{image_path}: unreadable image")
         gray = np.asarray(raw, np.uint8)

@@ -7,15 +7,14 @@ the ground truth chosen for it (method, decision, window, trajectory) and,
 when `--salvage` skipped corrupt chunks, the messages lost per topic and one
 line per chunk (`lost_in_corrupt_chunks`), the undecodable messages skipped
 per topic (`undecodable_messages`) and the IMU readings and LiDAR points no
-sensor can produce, dropped per topic and reason (`dropped_implausible`,
-`ingest.train.plausible`).
+sensor can produce, with the points the Livox tagged as noise, dropped per
+topic and reason (`dropped_implausible`, `ingest.train.plausible`).
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
-import shutil
 import tempfile
 from dataclasses import asdict
 from pathlib import Path
@@ -24,8 +23,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import yaml
 
-from calibration.opencv_yaml import yaml_error_line
 from ingest.dataset.compare import first_difference
+from ingest.dataset.description import FORMAT, read_description
 from ingest.dataset.layout import DEPTH_SCALE, DISP_SCALE, write_atomic
 from ingest.dataset.meta import read_meta
 from ingest.errors import DatasetError, OutputError
@@ -35,8 +34,6 @@ if TYPE_CHECKING:
     from ingest.train.pipeline import IngestConfig, IngestSummary
 
 HEADER = "# WideDepth training set written by SensorBox\n"
-FORMAT = "widedepth-train"
-"""dataset.yaml's `format`: what marks a folder as a training set ingest wrote (and may extend)."""
 PER_SOURCE = ("gt", "overlap_images", "method", "decision", "gap_fallback", "window_ns")
 """SampleParams fields resolved per recording (dataset.yaml keeps them with each source), not config."""
 
@@ -333,29 +330,15 @@ def _rig_difference(geometry: Geometry, rig_dir: Path) -> str:
 
 
 def copy_rig(geometry: Geometry, rig_dir: Path) -> None:
-    """`rig_dir/rig.yaml` and `rig_dir/camchain.yaml`, each whole or not at all.
+    """`rig_dir/rig.yaml` and `rig_dir/camchain.yaml`, both whole or neither.
 
-    Both are written into a staging folder beside `rig_dir` and renamed into
-    place, so a full disk or a read-only folder leaves no empty or cut file;
-    the error names the file it could not write.
+    `calibration.rig.write_rig` writes them as one set, so a full disk or a
+    read-only folder leaves no empty or cut file, and a target that is a
+    device or FIFO is refused; the `OutputError` names the file.
     """
     from calibration.rig import write_rig
 
-    staging: Path | None = None
-    target = rig_dir  # what the error names: the folder while staging, then each file
-    try:
-        rig_dir.mkdir(exist_ok=True)
-        staging = Path(tempfile.mkdtemp(dir=rig_dir.parent, prefix=".rig.", suffix=".tmp"))
-        write_rig(geometry.rig, staging / "rig.yaml", camchain_name="camchain.yaml")
-        for name in ("camchain.yaml", "rig.yaml"):
-            target = rig_dir / name
-            (staging / name).chmod(0o644)
-            (staging / name).replace(target)
-    except OSError as err:
-        raise OutputError(f"cannot write {target}: {err.strerror or err}") from err
-    finally:
-        if staging is not None:
-            shutil.rmtree(staging, ignore_errors=True)
+    write_rig(geometry.rig, rig_dir / "rig.yaml", camchain_name="camchain.yaml", error=OutputError)
 
 
 def record_undecodable(
@@ -391,12 +374,5 @@ def record_calibration(out: Path, bags: list[Path], check: dict[str, Any]) -> No
 
 
 def _read_dataset_yaml(path: Path) -> dict[str, Any]:
-    try:
-        doc = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as err:
-        raise DatasetError(f"existing dataset description {yaml_error_line(path, err)}") from err
-    except (OSError, ValueError) as err:  # ValueError: not UTF-8 text
-        raise DatasetError(f"{path}: cannot read the existing dataset description: {err}") from err
-    if not isinstance(doc, dict):
-        raise DatasetError(f"{path}: not a SensorBox dataset description (expected a mapping)")
-    return doc
+    """`read_description`: the existing dataset.yaml, or one line why not (cut short: the line it ends at)."""
+    return read_description(path, DatasetError)

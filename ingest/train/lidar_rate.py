@@ -1,4 +1,4 @@
-"""Thin LiDAR windows: a sample whose LiDAR gave far fewer points than the LiDAR's own rate promises.
+"""Thin LiDAR windows: a sample whose LiDAR gave far fewer points than a Mid-360 sends.
 
 A sensor that drops packets, loses a sweep to a bad message or stops half
 way through a sample's window still gives *some* points, so the sample is
@@ -8,16 +8,18 @@ written, but with a hole nobody asked for. The rule (per LiDAR, per sample):
 
 - `n_window`: the LiDAR's raw points (before any filter) within the sample's
   +-window around the frame time;
-- `rate`: the LiDAR's nominal rate, the median over its sweeps in the
-  recording of points per second (the Mid-360 sends a fixed number of points
-  per second, returns or not, so the median of the sweeps is the rate the
-  sensor runs at);
+- `rate`: what the LiDAR sends per second: a Mid-360 sends a fixed
+  `MID360_POINTS_PER_S`, returns or not (the rig's LiDARs are Mid-360s), or
+  the median over its sweeps in the recording when that is more. The
+  sweeps alone do not set it: a LiDAR thin in every sweep (a driver that
+  publishes one point a sweep) would be thin against nothing;
 - `covered`: the part of the window inside the recording's LiDAR data (from
   the first to the last point of any LiDAR), so the first and last samples of a
   recording are not thin merely for lying at its ends.
 
 A window with no point at all is "silent" (`PointMeta.silent_lidars`), not
-thin. Thin LiDARs go to `PointMeta.thin_lidars` and the run's summary.
+thin. Thin LiDARs go to `PointMeta.thin_lidars` and the run's summary; a
+LiDAR thin over the whole recording is one warning line too (`thin_lines`).
 """
 
 from __future__ import annotations
@@ -30,6 +32,9 @@ from calibration.types import I64
 
 THIN_FRACTION = 0.5
 """A window holding fewer than this share of the points the LiDAR's rate promises is thin."""
+MID360_POINTS_PER_S = 200_000
+"""Points a Livox Mid-360 sends per second, whatever its publish rate (datasheet: 200,000 points/s, first
+return), 20,000 a sweep at the driver's 10 Hz."""
 
 
 @dataclass
@@ -39,6 +44,9 @@ class LidarRates:
     per_sweep: dict[str, list[float]] = field(default_factory=dict)
     first_ns: int | None = None
     last_ns: int | None = None
+    points: dict[str, int] = field(default_factory=dict)  # per topic: every point of its sweeps
+    sweeps: dict[str, int] = field(default_factory=dict)  # per topic: sweeps with a point
+    span_ns: dict[str, tuple[int, int]] = field(default_factory=dict)  # per topic: first and last point
 
     def add(self, topic: str, stamps_ns: I64) -> None:
         """Record one sweep's point stamps (absolute ns); an empty sweep only counts for nothing."""
@@ -47,13 +55,46 @@ class LidarRates:
         lo, hi = int(stamps_ns.min()), int(stamps_ns.max())
         self.first_ns = lo if self.first_ns is None else min(self.first_ns, lo)
         self.last_ns = hi if self.last_ns is None else max(self.last_ns, hi)
+        self.points[topic] = self.points.get(topic, 0) + len(stamps_ns)
+        self.sweeps[topic] = self.sweeps.get(topic, 0) + 1
+        first, last = self.span_ns.get(topic, (lo, hi))
+        self.span_ns[topic] = (min(first, lo), max(last, hi))
         if hi > lo:
             self.per_sweep.setdefault(topic, []).append((len(stamps_ns) - 1) * 1e9 / (hi - lo))
 
     def rate_per_s(self, topic: str) -> float:
-        """The LiDAR's nominal rate (points/s): the median of its sweeps; 0 without a sweep."""
+        """What the LiDAR sends (points/s): `MID360_POINTS_PER_S`, or the median of its sweeps when more."""
         rates = self.per_sweep.get(topic)
-        return float(np.median(rates)) if rates else 0.0
+        return max(float(np.median(rates)) if rates else 0.0, float(MID360_POINTS_PER_S))
+
+    def recorded_per_s(self, topic: str) -> float | None:
+        """The points per second the LiDAR gave over the recording (None with less than 1 ms of points).
+
+        Its points over the span from its first to its last point, plus one point spacing of the
+        rate (so a sweep of one point each 100 ms gives 10 points/s).
+        """
+        first, last = self.span_ns.get(topic, (0, 0))
+        n = self.points.get(topic, 0)
+        spacing_ns = (last - first) / max(n - 1, 1)
+        span_ns = last - first + spacing_ns
+        return n * 1e9 / span_ns if span_ns >= 1_000_000 else None
+
+    def thin_lines(self, names: dict[str, str]) -> list[str]:
+        """One warning line per LiDAR (topic -> rig name) whose recording holds fewer than `THIN_FRACTION`
+        of the points a Mid-360 sends: its every window is thin, its GT (nearly) empty."""
+        out = []
+        for topic, name in names.items():
+            got = self.recorded_per_s(topic)
+            if got is None or got >= THIN_FRACTION * MID360_POINTS_PER_S:
+                continue
+            n, sweeps = self.points[topic], self.sweeps[topic]
+            out.append(
+                f"{topic} (the rig's lidar {name}): {n:,} points in {sweeps:,} sweeps "
+                f"({n / sweeps:,.0f} a sweep, {got:,.0f} points/s) but a Mid-360 sends "
+                f"{MID360_POINTS_PER_S:,} points/s; every window of it is thin and its GT sparse "
+                "(a driver set to drop points, or lost packets?)"
+            )
+        return out
 
     def expected(self, topic: str, t_ns: int, window_ns: int) -> float:
         """Points the LiDAR's rate promises in [t - window, t + window] within the recording."""

@@ -219,7 +219,7 @@ class IngestSummary:
     trajectory: TrajectorySummary | None = None
     lost: dict[str, int] = field(default_factory=dict)  # topic -> messages in corrupt chunks (--salvage)
     lost_chunks: list[str] = field(default_factory=list)  # one line per corrupt chunk skipped
-    duplicates: dict[str, int] = field(default_factory=dict)  # per topic: repeated messages, read once
+    duplicates: dict[str, int] = field(default_factory=dict)  # per topic: repeated stamps, first read
     uncovered: int = 0  # stereo pairs without LiDAR points within the window: not planned
     imu_gaps_ms: list[float] = field(default_factory=list)  # IMU intervals over 5 periods (plan.imu_gaps)
     warnings: list[str] = field(default_factory=list)  # about the inputs, one line each (the rig's layout)
@@ -626,7 +626,8 @@ def _checked_survey(
         check_time_order(bags.label, topic, what, rows)
     if topics.imu:
         stamps_ns = surveyed.seen[topics.imu][:, 1]
-        check_imu_rate(bags.label, topics.imu, topics.imu_name, topics.imu_rate_hz, stamps_ns)
+        repeated = surveyed.duplicates.get(topics.imu, 0)
+        check_imu_rate(bags.label, topics.imu, topics.imu_name, topics.imu_rate_hz, stamps_ns, repeated)
     return surveyed
 
 

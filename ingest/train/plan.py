@@ -156,7 +156,7 @@ class Survey:
     upper_ns: I64  # the upper camera's distinct header stamps, ascending
     lower_ns: I64
     imu_gaps_ns: I64 = field(default_factory=lambda: np.zeros(0, np.int64))  # `imu_gaps` of the IMU
-    warnings: list[str] = field(default_factory=list)  # one line each (`lidar_clock_spread`)
+    warnings: list[str] = field(default_factory=list)  # one line each (`lidar_clock_spread`, `thin_lines`)
 
     @property
     def span_ns(self) -> tuple[int, int]:
@@ -200,7 +200,8 @@ def survey(
     gaps = imu_gaps(np.unique(seen[topics.imu][:, 1])) if topics.imu else np.zeros(0, np.int64)
     offsets_ms = {t: float(np.median(seen[t][:, 0] - seen[t][:, 1])) / 1e6 for t in topics.lidars}
     spread = lidar_clock_spread(offsets_ms)
-    return Survey(seen, rates, duplicates, up, lo, gaps, [spread] if spread else [])
+    warnings = [spread] if spread else []
+    return Survey(seen, rates, duplicates, up, lo, gaps, warnings + rates.thin_lines(topics.lidars))
 
 
 IMU_GAP_PERIODS = 5

@@ -9,7 +9,11 @@ its pixel is written empty). Each is dropped as the message enters the
 ingest (`screen`, called by `BadMessages.decoded` in every pass), and
 counted once per message by topic and reason (`Dropped`) for the summary
 and `dataset.yaml`; a LiDAR whose sweeps carry no point time (a PointCloud2
-without a time field: every point at the header stamp) is said once. The
+without a time field: every point at the header stamp) is said once. Points
+the Livox itself tags as noise (`NOISE_TAG`) are counted here too, by topic,
+once per message: `ingest.train.clouds.filter_points` leaves them out of
+every window, and a dust storm that empties a run must show in the summary
+and `dataset.yaml`, not only in each sample's meta. The
 rig's IMU rate is checked against the readings' (`check_imu_rate`), and each
 topic's stamps against the bag's log order (`check_time_order`).
 
@@ -32,6 +36,7 @@ from calibration.types import I64
 from ingest.bags.decode import NO_POINT_TIME, Frame, ImuSample, Sweep
 from ingest.bags.point_time import TIME_FIELDS
 from ingest.errors import BagError
+from ingest.train.clouds import NOISE_TAG_BITS
 
 GYRO_LIMIT_RAD_S = math.radians(2000.0) * 1.1
 """An angular rate beyond this on any axis is no reading: the largest full scale (2000 deg/s) and 10 % for
@@ -59,7 +64,10 @@ IMU_GYRO = f"IMU gyro beyond {math.degrees(GYRO_LIMIT_RAD_S):.0f} deg/s"
 IMU_ACC = f"IMU acceleration beyond {ACC_LIMIT:.0f} (32 g in m/s^2)"
 POINT_TIME = "LiDAR point time beyond its sweep"
 POINT_FAR = f"LiDAR point beyond {RANGE_LIMIT_M:g} m"
-REASONS = (IMU_NON_FINITE, IMU_GYRO, IMU_ACC, POINT_TIME, POINT_FAR)
+NOISE_TAG = "point with a Livox noise tag"
+"""A point whose Livox tag marks a doubtful echo (`NOISE_TAG_BITS`): the sensor's own verdict, counted but
+not warned about (a few per sweep are normal)."""
+REASONS = (IMU_NON_FINITE, IMU_GYRO, IMU_ACC, POINT_TIME, POINT_FAR, NOISE_TAG)
 """Why a reading or point was dropped, in the order the summary lists them."""
 
 
@@ -112,13 +120,24 @@ def too_far(xyz_m: np.ndarray[Any, Any]) -> np.ndarray[Any, np.dtype[np.bool_]]:
     return out
 
 
+def noise_tagged(tag: np.ndarray[Any, Any] | None) -> int:
+    """How many points a Livox tag array (uint8, or None without tags) marks as noise (`NOISE_TAG_BITS`)."""
+    return 0 if tag is None else int(np.count_nonzero(np.asarray(tag) & NOISE_TAG_BITS))
+
+
 def screened_sweep(sweep: Sweep) -> tuple[Sweep, dict[str, int]]:
-    """`sweep` without the points no LiDAR measures, and how many were dropped by reason (none: {})."""
+    """`sweep` without the points no LiDAR measures, and how many points were dropped by reason (none: {}).
+
+    The points the Livox tagged as noise are counted under `NOISE_TAG` among those kept here, but stay in
+    the sweep: `ingest.train.clouds.filter_points` leaves them out of each window (and counts them in its
+    meta), so every pass and GT method drops the same points.
+    """
     late = beyond_sweep(sweep.stamps_ns, sweep.stamp_ns)
     far = too_far(sweep.xyz_m) & ~late
     drop = late | far
     if not drop.any():
-        return sweep, {}
+        tagged = noise_tagged(sweep.tag)
+        return sweep, {NOISE_TAG: tagged} if tagged else {}
     keep = ~drop
 
     def kept(a: np.ndarray[Any, Any] | None) -> np.ndarray[Any, Any] | None:
@@ -132,7 +151,7 @@ def screened_sweep(sweep: Sweep) -> tuple[Sweep, dict[str, int]]:
         tag=kept(sweep.tag),
         line=kept(sweep.line),
     )
-    counts = {POINT_TIME: int(late.sum()), POINT_FAR: int(far.sum())}
+    counts = {POINT_TIME: int(late.sum()), POINT_FAR: int(far.sum()), NOISE_TAG: noise_tagged(out.tag)}
     return out, {k: n for k, n in counts.items() if n}
 
 
@@ -177,7 +196,8 @@ class Dropped:
 
     def lines(self) -> list[str]:
         """One warning line per topic and reason: how many, and the first message's log time; and one per
-        topic whose sweeps carry no point time (a PointCloud2 without a time field)."""
+        topic whose sweeps carry no point time (a PointCloud2 without a time field). Points tagged as noise
+        (`NOISE_TAG`) are counted, not warned about."""
         out = []
         for topic in sorted({t for t, _ in self.untimed}):
             n = sum(1 for t, _ in self.untimed if t == topic)
@@ -188,6 +208,8 @@ class Dropped:
             )
         for topic, counts in self.by_topic().items():
             for why, n in counts.items():
+                if why == NOISE_TAG:
+                    continue
                 first = min(log for (t, log), c in self.by_message.items() if t == topic and why in c)
                 what = "reading" if why.startswith("IMU") else "point"
                 sec, nsec = divmod(first, 1_000_000_000)
@@ -198,24 +220,38 @@ class Dropped:
         return out
 
 
-def check_imu_rate(where: str, topic: str, name: str, rate_hz: float | None, stamps_ns: I64) -> None:
+def check_imu_rate(
+    where: str, topic: str, name: str, rate_hz: float | None, stamps_ns: I64, repeated: int = 0
+) -> None:
     """Raise `BagError` when the IMU's readings come at a rate more than `IMU_RATE_TOLERANCE` from the
-    rig's `rate_hz` (`stamps_ns`: its header stamps; no check without a rate or with fewer than 3).
+    rig's `rate_hz` (`stamps_ns`: its distinct header stamps; no check without a rate or with fewer than 3).
 
-    The median interval measures the rate, so gaps and repeats do not move it.
+    The median interval measures the rate, so gaps do not move it. `repeated` readings carried the
+    stamp of an earlier one and were left out (`ingest.train.repeats`): when all the readings would
+    come at the rig's rate, the stamps repeat, not the rate differs, and the error says so.
     """
     stamps = np.unique(stamps_ns)
     if rate_hz is None or len(stamps) < 3:
         return
     period_ns = float(np.median(np.diff(stamps)))
     measured_hz = 1e9 / period_ns
-    if abs(measured_hz - rate_hz) > IMU_RATE_TOLERANCE * rate_hz:
+    if abs(measured_hz - rate_hz) <= IMU_RATE_TOLERANCE * rate_hz:
+        return
+    readings = len(stamps) + repeated
+    all_hz = readings * 1e9 / (float(stamps[-1] - stamps[0]) + period_ns)  # the last batch lasts a period
+    if repeated and abs(all_hz - rate_hz) <= IMU_RATE_TOLERANCE * rate_hz:
         raise BagError(
-            f"{where}: {topic}: IMU readings at {measured_hz:.3g} Hz (median interval"
-            f" {period_ns / 1e6:.3g} ms) but the rig's {name} says rate_hz {rate_hz:g};"
-            f" more than {IMU_RATE_TOLERANCE:.0%} apart"
-            " (the wrong rig file, or the IMU set to another rate: correct rate_hz)"
+            f"{where}: {topic}: {repeated:,} of {readings:,} IMU readings repeat an earlier reading's header"
+            f" stamp: {len(stamps):,} distinct stamps, at {measured_hz:.3g} Hz, for readings at"
+            f" {all_hz:.3g} Hz (the rig's {name} says rate_hz {rate_hz:g}); readings stamped in batches"
+            " cannot be placed in time (a driver or clock that repeats stamps: fix the IMU's header stamps)"
         )
+    raise BagError(
+        f"{where}: {topic}: IMU readings at {measured_hz:.3g} Hz (median interval"
+        f" {period_ns / 1e6:.3g} ms) but the rig's {name} says rate_hz {rate_hz:g};"
+        f" more than {IMU_RATE_TOLERANCE:.0%} apart"
+        " (the wrong rig file, or the IMU set to another rate: correct rate_hz)"
+    )
 
 
 BACKWARDS_FRACTION = 0.1

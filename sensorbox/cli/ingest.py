@@ -149,7 +149,7 @@ def _count_rows(s: IngestSummary) -> Rows:
         *((f"dropped, {why}: {topic}", f"{n:,}")
           for topic, counts in s.dropped.items() for why, n in counts.items()),
         *((f"lost in corrupt chunks: {topic}", str(n)) for topic, n in s.lost.items()),
-        *((f"repeated messages, read once: {topic}", str(n)) for topic, n in s.duplicates.items()),
+        *((f"messages repeating a stamp, first read: {topic}", str(n)) for topic, n in s.duplicates.items()),
         *_when(s.stale_temporaries, "unfinished temporary files of a killed run, removed",
                str(s.stale_temporaries)),
     ]  # fmt: skip

@@ -118,7 +118,8 @@ def _print_rig(report: BagReport, rig_path: Path) -> None:
     if problems is None:
         return
     if not problems:
-        console.print(f"Rig {rig_path}: every topic is in the bag with the expected type.", highlight=False)
+        line = f"Rig {rig_path}: every topic is in the bag with the expected type and has messages."
+        console.print(line, highlight=False)
         return
     table = Table(title=f"Rig {rig_path} vs the bag")
     for col in ("sensor", "topic", "problem"):
@@ -171,7 +172,7 @@ def inspect_cmd(
         typer.Option(
             "--rig",
             help="Rig file (or Kalibr camchain): check its topics and pair its cameras (exit code 2 when a "
-            "sensor's topic is missing or of another type).",
+            "sensor's topic is missing, of another type or empty).",
             **path_param("--rig"),
         ),
     ] = None,

@@ -21,8 +21,7 @@ from typing import ParamSpec
 
 import typer
 
-from calibration.errors import SensorboxError
-from ingest.errors import OutputError
+from calibration.errors import SensorboxError, WriteError
 from sensorbox.cli.bench import bench_cmd
 from sensorbox.cli.calib import calib_check, calib_refine
 from sensorbox.cli.capture import capture_cmd, launch_cmd
@@ -131,7 +130,7 @@ def main() -> None:
     except typer.Abort:  # end of input where a prompt waited
         print_error("aborted: no input")
         sys.exit(1)
-    except OutputError as err:  # the operating system refused a write: as an OSError, named
+    except WriteError as err:  # the operating system refused a write (an OutputError too): as an OSError
         print_error(str(err))
         sys.exit(3)
     except SensorboxError as err:

@@ -13,7 +13,6 @@ behind loses the oldest frames, counted as dropped.
 from __future__ import annotations
 
 import logging
-import tempfile
 import threading
 import time
 from collections.abc import Callable
@@ -25,6 +24,7 @@ import numpy as np
 
 from calibration.rig import write_rig
 from calibration.types import U8
+from ingest.errors import OutputError
 from sensorbox.errors import DriverError
 from sensorbox.live.cameras import Frame
 from sensorbox.sim.camera import render
@@ -63,15 +63,13 @@ class SimCameras:
         return self.setup.cam_topics[cam]
 
     def write_rig(self, path: Path) -> Path:
-        """Write the rig at render resolution (rig file + camchain beside it), atomically; its path."""
+        """Write the rig at render resolution (rig file + camchain beside it), both or neither; its path.
+
+        `calibration.rig.write_rig` writes them as one set: a refused write, or a path that is a device
+        or FIFO, is an `OutputError` naming the file (exit code 3), and no empty or cut file is left.
+        """
         path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        rig = replace(self.setup.rig, camchain=None)
-        with tempfile.TemporaryDirectory(dir=path.parent, prefix=".rig.") as tmp:
-            chain = write_rig(rig, Path(tmp) / path.name)
-            final_chain = path.parent / chain.name
-            chain.replace(final_chain)
-            (Path(tmp) / path.name).replace(path)
+        write_rig(replace(self.setup.rig, camchain=None), path, error=OutputError)
         return path
 
 

@@ -425,7 +425,7 @@ def test_a_depth_map_of_another_size_than_its_image_or_dataset_is_refused(
     line = f"error: {gt}: depth map 7x5 px, expected 10x6 (the size of its image {cfg / 'pano_crop.png'})"
     assert (code, out, err) == (2, "", [line])
     ds = _train_dataset(tmp_path / "ds")  # 10x6 depth maps, no image: dataset.yaml gives the size
-    (ds / "dataset.yaml").write_text("format: widedepth-train\nfisheye_size: [300, 480]\n")
+    (ds / "dataset.yaml").write_text("fisheye_size: [300, 480]\n")  # no 'format': not cut short, a part
     code, out, err = sensorbox(capsys, "stats", str(ds))
     line = (
         f"error: {ds / 'depth_fisheye' / '000000.png'}: depth map 10x6 px, expected 480x300 (the size of "

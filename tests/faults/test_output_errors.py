@@ -129,7 +129,7 @@ def _full_disk_copying_the_rig(
     _fill_disk_at(mp, "camchain.yaml")
     return (
         [*INGEST, "--out", str(out)],
-        f"error: cannot write {out}/rig: {ENOSPC}",
+        f"error: cannot write {out}/rig/camchain.yaml: {ENOSPC}",
         3,
         (
             lambda: _check(_files(out) == ["dataset.yaml"], _files(out))  # whole; no rig/, no staging folder

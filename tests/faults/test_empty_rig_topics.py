@@ -1,0 +1,40 @@
+"""Issue 49 (F14): `inspect --rig` names a rig topic the bag declares without a message, never "fine".
+
+A bag whose bottom LiDAR (or lower camera) topic is declared but empty was
+reported as "every topic is in the bag with the expected type", exit 0,
+while ingest refuses it. The rig check must name the topic, say it is
+empty, and fail like a missing topic (exit 2).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from ingest.bags.rostypes import COMPRESSED_IMAGE_TYPE
+from tests.faults.bags import LIDAR_BOTTOM, LOWER, rewrite
+from tests.faults.cli import sensorbox
+
+CUSTOM_MSG = "livox_ros_driver2/msg/CustomMsg"
+
+
+@pytest.mark.parametrize(
+    ("topic", "msgtype", "sensor"),
+    [(LIDAR_BOTTOM, CUSTOM_MSG, "lidar lidar_bottom"), (LOWER, COMPRESSED_IMAGE_TYPE, "camera cam1 (lower)")],
+)
+def test_a_rig_topic_declared_without_a_message_is_named_empty_exit_2(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], topic: str, msgtype: str, sensor: str
+) -> None:
+    def drop(t: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        return [] if t == topic else [(t, raw)]
+
+    bag, rig = rewrite(tmp_path / "bag", drop, declare={topic: msgtype})
+    code, out, err = sensorbox(capsys, "inspect", str(bag), "--rig", str(rig))
+    assert code == 2
+    assert err == [f"error: {rig}: 1 of its sensors does not match the bag (the table above)"]
+    problem = [line.split("│")[1:4] for line in out.splitlines() if "in the bag but empty" in line]
+    assert [[cell.strip() for cell in row] for row in problem] == [
+        [sensor, topic, "in the bag but empty: 0 messages"]
+    ]
+    assert "every topic is in the bag" not in out

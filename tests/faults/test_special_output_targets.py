@@ -1,0 +1,109 @@
+"""Issue 49: writers that renamed a file into place by themselves refuse device and FIFO targets too.
+
+`calibration.warp.save_maps` (the remap map cache), `calibration.rig.write_rig`
+(a rig file and its camchain: the simulated camera's `write_rig`, a dataset's
+`rig/` copy) wrote or renamed without the project's atomic-write helper: a
+FIFO in the cache was replaced by the maps, a rig path linked to /dev/null
+swallowed the rig with no error (and a FIFO one waited forever), a dataset's
+`rig/camchain.yaml` that was a FIFO was replaced. Each now goes through
+`calibration.files.write_atomic(_set)`: one line naming the file and what it
+is, nothing written, the node left as it was.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import stat
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from calibration.errors import WriteError
+from calibration.rig import read_rig, write_rig
+from calibration.spherical import Equirectangular
+from calibration.warp import RemapMaps, load_maps, save_maps
+from ingest.errors import OutputError
+from ingest.train.pipeline import IngestConfig, ingest
+from sensorbox.sim.camera_source import SimCameras
+from sensorbox.sim.fixtures import FIXTURES
+from tests.faults.bags import INDOOR
+from tests.faults.cli import sensorbox
+
+RIG = INDOOR.parent / "indoor_static_mcap.truth" / "rig.yaml"
+NULL = "a character device"
+FIFO = "a FIFO (named pipe)"
+
+
+def _null_link(path: Path) -> Path:
+    path.symlink_to("/dev/null")
+    return path
+
+
+def _fifo(path: Path) -> Path:
+    os.mkfifo(path)
+    return path
+
+
+def _is_fifo(path: Path) -> bool:
+    return stat.S_ISFIFO(path.lstat().st_mode)
+
+
+def test_the_remap_cache_neither_reads_nor_replaces_a_fifo(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    path = _fifo(tmp_path / "maps.npz")
+    maps = RemapMaps(np.zeros((2, 3), np.float32), np.zeros((2, 3), np.float32), np.ones((2, 3), bool), ())
+    with caplog.at_level(logging.WARNING, logger="calibration.warp"):
+        save_maps(path, maps)
+        assert load_maps(path, Equirectangular(8)) is None  # not read: a FIFO would wait forever
+    assert _is_fifo(path)  # not replaced by the maps
+    assert [r.getMessage() for r in caplog.records] == [
+        f"{path}: cannot store the remap maps ({path}: is not a regular file ({FIFO}); give a file path); "
+        "they will be built again next time",
+        f"{path}: unreadable remap map cache file ({path}: is {FIFO}, not a remap map cache file); "
+        "building the maps again",
+    ]
+
+
+@pytest.mark.parametrize(("make", "what"), [(_null_link, NULL), (_fifo, FIFO)])
+def test_write_rig_refuses_a_device_or_fifo_and_writes_neither_file(
+    tmp_path: Path, make: object, what: str
+) -> None:
+    rig = read_rig(RIG)
+    target = make(tmp_path / "rig.yaml")  # type: ignore[operator]
+    with pytest.raises(WriteError) as err:
+        write_rig(rig, target)
+    assert str(err.value) == f"{target}: is not a regular file ({what}); give a file path"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["rig.yaml"]  # no camchain, no temporary file
+    chain = make(tmp_path / "other-camchain.yaml")  # type: ignore[operator]
+    with pytest.raises(WriteError) as err:
+        write_rig(rig, tmp_path / "other.yaml")
+    assert str(err.value) == f"{chain}: is not a regular file ({what}); give a file path"
+    assert not (tmp_path / "other.yaml").exists()
+
+
+def test_the_simulated_cameras_rig_refuses_a_device(tmp_path: Path) -> None:
+    sim = SimCameras(FIXTURES["indoor_static_mcap"])
+    target = _null_link(tmp_path / "rig.yaml")
+    with pytest.raises(OutputError) as err:
+        sim.write_rig(target)
+    assert str(err.value) == f"{target}: is not a regular file ({NULL}); give a file path"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["rig.yaml"] and target.is_symlink()
+
+
+def test_a_dataset_rig_copy_that_is_a_fifo_is_refused_exit_3(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "ds"
+    (out / "rig").mkdir(parents=True)
+    chain = _fifo(out / "rig" / "camchain.yaml")
+    line = f"{chain}: is not a regular file ({FIFO}); give a file path"
+    fast = {"workers": 1, "every": 3, "height_full": 64, "gt": "sparse"}
+    with pytest.raises(OutputError) as err:
+        ingest([INDOOR], IngestConfig(rig=RIG, out=out, **fast))  # type: ignore[arg-type]
+    assert str(err.value) == line and _is_fifo(chain) and not (out / "rig" / "rig.yaml").exists()
+    args = ["ingest", str(INDOOR), "--rig", str(RIG), "--out", str(out), "--workers", "1", "--every", "3"]
+    code, _, stderr = sensorbox(capsys, *args, "--height-full", "64", "--gt", "sparse", "--no-preview")
+    assert (code, stderr) == (3, [f"error: {line}"])
