@@ -1,0 +1,134 @@
+"""The live monitor (`--monitor PORT`) against a real Foxglove WebSocket client on the emulated rig.
+
+The client (tests/foxglove_client.py) does the WebSocket handshake itself,
+subscribes to every channel the monitor advertises and decodes each channel's
+messages by its own schema; the monitor's books must balance against what the
+recorder wrote.
+"""
+
+from __future__ import annotations
+
+import socket
+import threading
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from calibration.rig import REFERENCE_RIG
+from sensorbox.live.launch import parse_launch, run_launch
+from sensorbox.live.monitor import REASONS, MonitorConfig
+from tests.foxglove_client import FoxgloveClient
+from tests.live import NO_DISK_GUARD
+from tests.sensorbox.test_capture import IMUS, LIDARS, LOWER, SIM_LAUNCH, UPPER, fresh_port_base
+
+CHANNELS = {
+    "/monitor/upper/image", "/monitor/lower/image", "/monitor/lidar_top/points", "/monitor/lidar_bottom/points",
+    "/monitor/imu_top", "/monitor/imu_bottom", "/monitor/status", "/monitor/coverage",
+}  # fmt: skip
+
+
+def free_tcp_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class ClientThread(threading.Thread):
+    """Connects while the graph starts, subscribes to every advertised channel, reads until told to stop."""
+
+    def __init__(self, port: int) -> None:
+        super().__init__(daemon=True)
+        self.port, self.stop = port, threading.Event()
+        self.client: FoxgloveClient | None = None
+        self.error: BaseException | None = None
+
+    def run(self) -> None:
+        try:
+            self.client = FoxgloveClient.connect("127.0.0.1", self.port, timeout_s=300)
+            while not self.stop.is_set() and self.client.closed is None:
+                self.client.poll(0.2)
+                self.client.subscribe_all()  # the monitor advertises all its channels at start
+        except BaseException as err:  # reported by the test
+            if not self.stop.is_set():
+                self.error = err
+
+
+def check_image(msg: dict, frame_id: str) -> np.ndarray:
+    assert msg["format"] == b"jpeg" and msg["frame_id"] == frame_id.encode()
+    image = cv2.imdecode(np.frombuffer(msg["data"], np.uint8), cv2.IMREAD_COLOR)
+    assert image is not None and image.shape == (300, 480, 3)  # scale 0.25 frames: 480 x 300, not reduced
+    return image
+
+
+def check_cloud(msg: dict) -> np.ndarray:
+    assert msg["frame_id"] == b"cam0" and msg["point_stride"] == 16
+    names = [f["name"] for f in msg["fields"]]
+    assert names == [b"x", b"y", b"z", b"intensity"]
+    pts = np.frombuffer(msg["data"], np.float32).reshape(-1, 4)
+    assert len(pts) > 1000 and np.isfinite(pts).all()
+    return pts
+
+
+@pytest.mark.realtime
+def test_monitor_serves_every_channel_to_a_foxglove_client_and_its_books_balance(tmp_path):
+    port = free_tcp_port()
+    args = {"out": str(tmp_path / "bags"), "duration": "4", "scale": "0.25", "name": "mon",
+            "port_base": str(fresh_port_base()), "min_free_mb": str(NO_DISK_GUARD), "trajectory": "walk"}  # fmt: skip
+    reader = ClientThread(port)
+    reader.start()
+    result = run_launch(
+        parse_launch(SIM_LAUNCH, args), tick_s=0.1, monitor=MonitorConfig(port, REFERENCE_RIG)
+    )
+    reader.stop.set()
+    reader.join(30)
+    assert reader.error is None, reader.error
+    assert result.error is None and result.reason == "recorder: recorded 4 s"
+    client = reader.client
+    assert client is not None and client.subprotocol == "foxglove.sdk.v1"
+    # the server closed the connection when the monitor stopped (no status code, or 1000: normal)
+    assert client.closed in (None, b"") or client.closed[:2] == b"\x03\xe8", client.closed
+    advertised = {c.topic for c in client.channels.values()}
+    assert advertised == CHANNELS
+
+    # every channel's messages decode: images, point clouds, IMU, status, coverage
+    got = client.messages
+    assert set(got) == CHANNELS, sorted(CHANNELS - set(got))
+    for msg in got["/monitor/upper/image"]:
+        check_image(msg, "cam0")
+    for msg in got["/monitor/lower/image"]:
+        check_image(msg, "cam1")
+    for topic in ("/monitor/lidar_top/points", "/monitor/lidar_bottom/points"):
+        for msg in got[topic]:
+            pts = check_cloud(msg)
+            assert np.median(np.linalg.norm(pts[:, :3], axis=1)) < 20  # indoor: metres, not millimetres
+    for msg in got["/monitor/imu_top"]:
+        assert set(msg) == {"stamp_ns", "gyro_rad_s", "acc"} and abs(msg["acc"]["z"]) > 0.5  # about 1 g
+    cover = [check_image(m, "cam0") for m in got["/monitor/coverage"]]
+    assert cover
+    status = got["/monitor/status"][-1]
+    fraction = status["coverage_fraction"]
+    assert fraction is not None and 0.05 < fraction < 1.0
+    rows = {row["topic"]: row for row in status["topics"]}
+    assert set(rows) >= {UPPER, LOWER, *LIDARS, *IMUS}
+    assert status["disk_free_bytes"] > 0 and status["bag_bytes"] > 0
+
+    # the books: every message on a monitored topic was sent or skipped for one reason, and the
+    # monitor saw every message the recorder wrote
+    snap = result.snapshot
+    c = snap.nodes["monitor"].counters
+    rec_drops = sum(v for k, v in snap.drops.items() if k.startswith("recorder."))
+    assert rec_drops == 0
+    for topic in (UPPER, LOWER, *LIDARS, *IMUS):
+        received = c[f"{topic}.received"]
+        skipped = {r: c.get(f"{topic}.skipped_{r}", 0) for r in REASONS}
+        assert received == snap.published[topic] == snap.written[topic], topic
+        assert received == c[f"{topic}.sent"] + sum(skipped.values()), (topic, c[f"{topic}.sent"], skipped)
+        assert skipped["decode"] == 0, topic
+    # what the client read was sent; the monitor sent sweeps and frames once it had a subscriber
+    for topic, channel in ((LIDARS[0], "/monitor/lidar_top/points"), (UPPER, "/monitor/upper/image")):
+        assert 0 < len(got[channel]) <= c[f"{topic}.sent"]
+    assert c.get(f"{LIDARS[0]}.skipped_rate", 0) == 0  # sweeps are never thinned by rate
+    assert c["sent"] == sum(c[f"{t}.sent"] for t in (UPPER, LOWER, *LIDARS, *IMUS))
+    assert sorted(Path(tmp_path / "bags").glob("mon_*")) == [tmp_path / "bags" / "mon_000"]
