@@ -21,7 +21,7 @@ from sensorbox.live.launch import parse_launch, run_launch
 from sensorbox.live.monitor import REASONS, MonitorConfig
 from tests.foxglove_client import FoxgloveClient
 from tests.live import NO_DISK_GUARD
-from tests.sensorbox.test_capture import IMUS, LIDARS, LOWER, SIM_LAUNCH, UPPER, fresh_port_base
+from tests.sensorbox.test_capture import IMUS, LIDARS, LOWER, SIM_LAUNCH, UPPER, fresh_port_base, run_cli
 
 CHANNELS = {
     "/monitor/upper/image", "/monitor/lower/image", "/monitor/lidar_top/points", "/monitor/lidar_bottom/points",
@@ -132,3 +132,37 @@ def test_monitor_serves_every_channel_to_a_foxglove_client_and_its_books_balance
     assert c.get(f"{LIDARS[0]}.skipped_rate", 0) == 0  # sweeps are never thinned by rate
     assert c["sent"] == sum(c[f"{t}.sent"] for t in (UPPER, LOWER, *LIDARS, *IMUS))
     assert sorted(Path(tmp_path / "bags").glob("mon_*")) == [tmp_path / "bags" / "mon_000"]
+
+
+TALKER_LAUNCH = """launch:
+- node: {pkg: sensorbox, exec: talker, name: talker, param: [{name: count, value: 3}]}
+"""
+
+
+def test_monitor_options_are_checked_before_anything_starts(tmp_path):
+    launch = tmp_path / "talker.launch.yaml"
+    launch.write_text(TALKER_LAUNCH)
+    res = run_cli("launch", str(SIM_LAUNCH), "--monitor", "0")
+    assert (res.returncode, res.stderr) == (2, "error: --monitor 0: expected a TCP port 1..65535\n")
+    res = run_cli("launch", str(launch), "--monitor", "8765")
+    assert res.returncode == 2
+    assert res.stderr == (
+        f"error: --monitor: no node of {launch} names a rig (a `rig` parameter); pass --monitor-rig RIG\n"
+    )
+    res = run_cli("capture", "--rig", str(REFERENCE_RIG), "--out", str(tmp_path / "o"), "--monitor", "70000")
+    assert (res.returncode, res.stderr) == (2, "error: --monitor 70000: expected a TCP port 1..65535\n")
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.realtime
+def test_a_taken_port_is_one_error_line_and_no_bag(tmp_path):
+    launch = tmp_path / "talker.launch.yaml"
+    launch.write_text(TALKER_LAUNCH)
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        res = run_cli("launch", str(launch), "--monitor", str(port), "--monitor-rig", str(REFERENCE_RIG))
+    assert res.returncode == 2
+    assert res.stderr.startswith(f"error: monitor: cannot serve on 127.0.0.1:{port}: ")
+    assert res.stderr.endswith("; choose another --monitor port\n") and res.stderr.count("\n") == 1
