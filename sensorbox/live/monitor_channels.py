@@ -26,6 +26,8 @@ from sensorbox.live.coverage import preview_factor
 
 F32 = np.ndarray[Any, np.dtype[np.float32]]
 U8 = np.ndarray[Any, np.dtype[np.uint8]]
+STATUS_TOPIC = "/monitor/status"
+COVERAGE_TOPIC = "/monitor/coverage"
 PREVIEW_MAX_WIDTH_PX = 640
 JPEG_QUALITY = 80
 _REDUCED = {1: cv2.IMREAD_COLOR, 2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4,
@@ -209,8 +211,8 @@ class Channels:
     _imu_sent_ns: dict[str, int] = field(default_factory=dict)
     _prev: GraphSnapshot | None = None
 
-    STATUS = "/monitor/status"
-    COVERAGE = "/monitor/coverage"
+    STATUS = STATUS_TOPIC
+    COVERAGE = COVERAGE_TOPIC
 
     def __post_init__(self) -> None:
         import foxglove

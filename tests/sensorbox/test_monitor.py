@@ -8,6 +8,8 @@ recorder wrote.
 
 from __future__ import annotations
 
+import json
+import re
 import socket
 import threading
 from pathlib import Path
@@ -21,7 +23,16 @@ from sensorbox.live.launch import parse_launch, run_launch
 from sensorbox.live.monitor import REASONS, MonitorConfig
 from tests.foxglove_client import FoxgloveClient
 from tests.live import NO_DISK_GUARD
-from tests.sensorbox.test_capture import IMUS, LIDARS, LOWER, SIM_LAUNCH, UPPER, fresh_port_base, run_cli
+from tests.sensorbox.test_capture import (
+    IMUS,
+    LIDARS,
+    LOWER,
+    ROOT,
+    SIM_LAUNCH,
+    UPPER,
+    fresh_port_base,
+    run_cli,
+)
 
 CHANNELS = {
     "/monitor/upper/image", "/monitor/lower/image", "/monitor/lidar_top/points", "/monitor/lidar_bottom/points",
@@ -166,3 +177,21 @@ def test_a_taken_port_is_one_error_line_and_no_bag(tmp_path):
     assert res.returncode == 2
     assert res.stderr.startswith(f"error: monitor: cannot serve on 127.0.0.1:{port}: ")
     assert res.stderr.endswith("; choose another --monitor port\n") and res.stderr.count("\n") == 1
+
+
+def test_the_shipped_foxglove_layout_is_the_monitors_and_shows_its_channels():
+    from calibration.rig import read_rig
+    from sensorbox.live.monitor_layout import LAYOUT_FILE, layout_text
+
+    assert LAYOUT_FILE == ROOT / "sensorbox" / "share" / "foxglove" / "monitor_layout.json"
+    assert LAYOUT_FILE.read_text() == layout_text(read_rig(REFERENCE_RIG))
+    text = LAYOUT_FILE.read_text()
+    layout = json.loads(text)
+    assert layout["version"] == 1 and layout["content"]["type"] == "split"
+    images = re.findall(r'"imageTopic": "([^"]+)"', text)
+    assert images == ["/monitor/upper/image", "/monitor/lower/image", "/monitor/coverage"]
+    panels = re.findall(r'"panelType": "([^"]+)"', text)
+    assert panels == ["Image", "Image", "Image", "ThreeDee", "Plot", "Plot", "RawMessages"]
+    shown = set(images) | set(re.findall(r'"(/monitor/[a-z_]+/points)"', text))
+    shown |= {m.split(".")[0] for m in re.findall(r'"value": "(/monitor/[^"]+)"', text)}
+    assert shown == CHANNELS
