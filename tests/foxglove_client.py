@@ -280,3 +280,24 @@ class FoxgloveClient:
             assert isinstance(ch.schema, bytes)
             return decode_proto(payload, ch.schema_name, schema_messages(ch.schema))
         raise ValueError(f"{ch.topic}: encoding {ch.encoding!r} not decoded by this client")
+
+
+def main() -> None:
+    """`python -m tests.foxglove_client PORT`: connect, subscribe to every channel, decode every message
+    until the server closes; print the messages decoded per channel as JSON (bench/bench_capture.py runs
+    it as its own process, as Foxglove's app would be)."""
+    import sys
+
+    client = FoxgloveClient.connect("127.0.0.1", int(sys.argv[1]), timeout_s=600)
+    counts: dict[str, int] = {}
+    while client.closed is None:
+        client.poll(0.2)
+        client.subscribe_all()
+        for topic, msgs in client.messages.items():
+            counts[topic] = counts.get(topic, 0) + len(msgs)
+        client.messages.clear()
+    print(json.dumps(counts))
+
+
+if __name__ == "__main__":
+    main()

@@ -109,18 +109,25 @@ def coverage(points_cam: F64, model: CameraModel) -> Coverage:
     return Coverage(pix, range_m, covered, float(covered.mean()))
 
 
-def draw_coverage(image_bgr: U8, cov: Coverage, window_s: float, max_range_m: float = 20.0) -> U8:
-    """The preview image with each covered pixel painted by range (near red, far blue) and a caption."""
+def draw_coverage(
+    image_bgr: U8, cov: Coverage, window_s: float, max_range_m: float = 12.0, note: str = ""
+) -> U8:
+    """The preview image with each covered pixel tinted by range (near red, `max_range_m` and beyond
+    blue; 70 % colour, 30 % image) under a banner: the covered fraction, then `note` on a second line."""
     out = image_bgr.copy()
     if len(cov.pixels):
         levels = 255 - np.clip(cov.range_m / max_range_m * 255.0, 0, 255).astype(np.uint8)
         colours = cv2.applyColorMap(levels.reshape(-1, 1), cv2.COLORMAP_TURBO).reshape(-1, 3)
-        out[cov.pixels[:, 1], cov.pixels[:, 0]] = colours
-    text = f"covered {100 * cov.fraction:.1f} % of pixels, last {window_s:g} s of both LiDARs"
-    scale = max(0.35, out.shape[1] / 1400)
-    org = (6, int(18 * scale / 0.45))
-    cv2.putText(out, text, org, cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), 3, cv2.LINE_AA)
-    cv2.putText(out, text, org, cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), 1, cv2.LINE_AA)
+        under = out[cov.pixels[:, 1], cov.pixels[:, 0]].astype(np.float32)
+        out[cov.pixels[:, 1], cov.pixels[:, 0]] = (0.3 * under + 0.7 * colours).astype(np.uint8)
+    lines = [f"covered {100 * cov.fraction:.1f} % of pixels (last {window_s:g} s, both LiDARs)"]
+    lines += [note] if note else []
+    scale = max(0.4, out.shape[1] / 1000)
+    step = int(20 * scale / 0.45)
+    cv2.rectangle(out, (0, 0), (out.shape[1] - 1, step * len(lines) + 6), (0, 0, 0), -1)
+    for k, text in enumerate(lines):
+        org = (6, step * (k + 1))
+        cv2.putText(out, text, org, cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), 1, cv2.LINE_AA)
     return out
 
 

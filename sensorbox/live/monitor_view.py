@@ -26,6 +26,10 @@ log = logging.getLogger(__name__)
 
 U8 = np.ndarray[Any, np.dtype[np.uint8]]
 GYRO_KEEP_S = 3.0  # gyro samples older than this before the newest are let go
+CLOCKS_APART_NS = 500_000_000
+"""A frame stamped this far from the newest sweep is on another clock (a camera without its
+timeshift, a simulator's camera started late): the points are placed at the newest sweep's time, and
+the caption says so, instead of turning them by a gyro integrated over the gap."""
 
 
 @dataclass(frozen=True)
@@ -49,6 +53,7 @@ class CoverageView:
         self._frame: Preview | None = None
         self._models: dict[tuple[int, int], CameraModel | None] = {}
         self.last: Rendered | None = None
+        self._warned = False
 
     def feed(self, stream: Stream, item: Preview | CloudCam0 | Gyro) -> None:
         """Keep what the preview needs of one decoded message of a stream that feeds it."""
@@ -97,8 +102,18 @@ class CoverageView:
         gyro = sorted(self._gyro, key=lambda s: s[0])
         stamps = np.array([t for t, _ in gyro], np.int64)
         rates = np.array([w for _, w in gyro], np.float64).reshape(-1, 3)
-        placed = place_sweeps(sweeps, stamps, rates, image_ns)
+        at_ns, note = image_ns, ""
+        if abs(image_ns - newest) > CLOCKS_APART_NS:  # no gyro between the frame and the sweeps
+            at_ns, note = newest, f"frame {(image_ns - newest) / 1e9:+.1f} s off the LiDAR clock"
+            if not self._warned:
+                self._warned = True
+                log.warning(
+                    "monitor: upper frames are stamped %+.1f s off the LiDARs' clock%s",
+                    (image_ns - newest) / 1e9,
+                    ": the coverage preview places the points at the newest sweep's time",
+                )
+        placed = place_sweeps(sweeps, stamps, rates, at_ns)
         T = self.upper.T_cam_cam0
         cov = coverage(placed @ T[:3, :3].T + T[:3, 3], model)
-        self.last = Rendered(draw_coverage(frame.image, cov, self.window_s), frame.stamp_ns, cov)
+        self.last = Rendered(draw_coverage(frame.image, cov, self.window_s, note=note), frame.stamp_ns, cov)
         return self.last
