@@ -168,6 +168,11 @@ class Monitor:
         if self._thread is not None:
             self._thread.join()
             self._thread = None
+        with self._lock:  # what no worker took (one that never started, or a frame parked at the end)
+            for item in [*self._queue, *self._slots.values()]:
+                self.tallies[item.topic].skip("stopped")
+            self._queue.clear()
+            self._slots.clear()
         if self._server is not None:
             self._server.stop()
             self._server = None

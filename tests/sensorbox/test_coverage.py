@@ -83,3 +83,38 @@ def test_preview_factor(width, factor):
     from sensorbox.live.coverage import preview_factor
 
     assert preview_factor(width) == factor
+
+
+def test_the_view_places_points_at_the_frame_time_or_at_the_newest_sweep_when_clocks_differ(caplog):
+    """A frame within 0.5 s of the newest sweep: the sweeps are turned to its time by the gyro; a frame
+    stamped 20 s off (a camera on another clock) would turn them by a gyro integrated over the gap, so
+    they are placed at the newest sweep's time and one warning names the offset."""
+    from sensorbox.live.monitor_channels import CloudCam0, Gyro, Preview, streams_of
+    from sensorbox.live.monitor_view import CoverageView
+
+    rig = read_rig(REFERENCE_RIG)
+    streams = {s.kind + s.name: s for s in streams_of(rig).values()}
+    t_sweep = 1_000_000_000
+    pixels = np.array([[240, 150], [100, 200]])
+    pts = plane_points(pixels, 2.0)
+    frame = np.zeros((300, 480, 3), np.uint8)
+    stamps, rates = gyro(0.0, 2.0)
+    cloud = CloudCam0(t_sweep, t_sweep, pts.astype(np.float32), np.zeros(2, np.float32))
+    views = []
+    for frame_ns in (t_sweep, t_sweep + 20_000_000_000):
+        view = CoverageView(rig, 1.0)
+        view.feed(streams["imageupper"], Preview(frame_ns, frame, 4))
+        view.feed(streams["lidarlidar_top"], cloud)
+        for t_ns, w in zip(stamps, rates, strict=True):
+            view.feed(streams["imuimu_top"], Gyro(int(t_ns), w, np.zeros(3)))
+        views.append(view)
+    on_time, off_clock = (v.render() for v in views)
+    assert on_time is not None and off_clock is not None
+    # same time: no turn, the points land on their pixels
+    assert {(int(u), int(v)) for u, v in on_time.coverage.pixels} == {(240, 150), (100, 200)}
+    # 20 s off: placed at the sweep's time as well (not turned by 20 s of gyro), the caption says so
+    assert {(int(u), int(v)) for u, v in off_clock.coverage.pixels} == {(240, 150), (100, 200)}
+    assert caplog.messages == [
+        "monitor: upper frames are stamped +20.0 s off the LiDARs' clock: the coverage preview places the "
+        "points at the newest sweep's time"
+    ]

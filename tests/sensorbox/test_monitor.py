@@ -195,3 +195,52 @@ def test_the_shipped_foxglove_layout_is_the_monitors_and_shows_its_channels():
     shown = set(images) | set(re.findall(r'"(/monitor/[a-z_]+/points)"', text))
     shown |= {m.split(".")[0] for m in re.findall(r'"value": "(/monitor/[^"]+)"', text)}
     assert shown == CHANNELS
+
+
+class Subscribed:
+    """Channels stand-in: every channel has a subscriber (the books, not the server, are under test)."""
+
+    COVERAGE = "/monitor/coverage"
+
+    def subscribed(self, channel: str) -> bool:
+        return True
+
+
+def test_offer_parks_without_waiting_for_the_worker_and_every_message_is_counted_once():
+    """With no worker taking anything (a stalled one), the publisher's calls still return at once: one
+    frame per camera parked (the rest above 10 Hz or superseded), sweeps and IMU samples queued up to
+    the bound then counted as backlog; at stop, what is parked counts as stopped."""
+    import time
+
+    from calibration.rig import read_rig
+    from sensorbox.live.bus import Bus
+    from sensorbox.live.monitor import Monitor
+
+    bus = Bus()
+    mon = Monitor(MonitorConfig(0, REFERENCE_RIG, image_hz=1e-3, queue_msgs=5), bus, read_rig(REFERENCE_RIG))
+    mon._channels = Subscribed()  # type: ignore[assignment]  # started, as far as offer is concerned
+    mon._running = True
+    t0 = time.perf_counter()
+    for k in range(3):
+        bus.publish(UPPER, "sensor_msgs/msg/CompressedImage", k, b"jpeg")  # 1 parked, 2 above the rate
+    for k in range(4):
+        bus.publish(LIDARS[0], "livox_ros_driver2/msg/CustomMsg", k, b"sweep")
+        bus.publish(IMUS[0], "sensor_msgs/msg/Imu", k, b"imu")  # 8 offered, 5 queued, 3 backlog
+    bus.publish("/chatter", "std_msgs/msg/String", 0, b"x")  # not a rig topic: not the monitor's
+    assert time.perf_counter() - t0 < 0.5  # nothing waited on a worker
+    mon.stop()
+    counts = mon.counts()
+    assert set(counts) == {UPPER, LIDARS[0], IMUS[0]}
+    assert (counts[UPPER].received, counts[UPPER].sent, counts[UPPER].skipped) == (
+        3,
+        0,
+        {"rate": 2, "stopped": 1},
+    )
+    sweeps, imu = counts[LIDARS[0]], counts[IMUS[0]]
+    assert (sweeps.received, imu.received) == (4, 4)
+    assert sweeps.skipped == {"stopped": 3, "backlog": 1} and imu.skipped == {"stopped": 2, "backlog": 2}
+    # after the stop, arrivals are counted as stopped, never parked
+    bus.publish(UPPER, "sensor_msgs/msg/CompressedImage", 9, b"jpeg")
+    assert mon.counts()[UPPER].skipped == {"rate": 2, "stopped": 2}
+    c = mon.status().counters
+    assert (c["sent"], c["skipped_stopped"], c["skipped_backlog"], c["skipped_rate"]) == (0, 7, 3, 2)
