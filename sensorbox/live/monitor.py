@@ -118,7 +118,7 @@ class Monitor:
         self._wake = threading.Condition(self._lock)
         self._slots: dict[str, _Item] = {}  # camera role -> the latest frame not yet taken
         self._queue: deque[_Item] = deque()  # sweeps and IMU samples in arrival order
-        self._last_taken: dict[str, float] = {}  # camera role -> monotonic time a frame was last parked
+        self._last_taken: dict[str, int] = {}  # channel -> header stamp (ns) of the last frame / IMU taken
         self._status: GraphSnapshot | None = None
         self.tallies: dict[str, Tally] = {}
         self._running = False
@@ -212,8 +212,7 @@ class Monitor:
 
     def offer(self, topic: str, msgtype: str, stamp_ns: int, raw: bytes) -> None:
         """Count one bus message and park it for the worker, or count why not; never blocks on the
-        worker (one short lock, no copies)."""
-        del stamp_ns
+        worker (one short lock, no copies). `stamp_ns` (the header stamp) paces frames and IMU samples."""
         stream = self._streams[topic]
         wanted = self._wanted(stream)
         with self._lock:
@@ -225,8 +224,10 @@ class Monitor:
                 tally.skip("stopped")
             elif not wanted:
                 tally.skip("no_client")
+            elif self._too_soon(stream, stamp_ns):
+                tally.skip("rate")
             elif stream.kind == "image":
-                self._park_frame(_Item(stream, topic, msgtype, raw), tally)
+                self._park_frame(_Item(stream, topic, msgtype, raw))
             elif len(self._queue) >= self.cfg.queue_msgs:
                 tally.skip("backlog")
             else:
@@ -240,14 +241,22 @@ class Monitor:
             return False
         return ch.subscribed(stream.channel) or (stream.feeds_coverage and ch.subscribed(ch.COVERAGE))
 
-    def _park_frame(self, item: _Item, tally: Tally) -> None:
-        """The frame into its camera's slot (caller holds the lock), unless above `image_hz`."""
+    def _too_soon(self, stream: Stream, stamp_ns: int) -> bool:
+        """Whether a frame (IMU sample) comes less than 1 / image_hz (imu_hz) after the last one of its
+        stream taken, by header stamps; sweeps are all taken. Caller holds the lock. A stamp that went
+        back (a clock reset) is taken and starts over."""
+        hz = {"image": self.cfg.image_hz, "imu": self.cfg.imu_hz}.get(stream.kind)
+        if hz is None:
+            return False
+        last = self._last_taken.get(stream.channel)
+        if last is not None and 0 <= stamp_ns - last < 1e9 / hz:
+            return True
+        self._last_taken[stream.channel] = stamp_ns
+        return False
+
+    def _park_frame(self, item: _Item) -> None:
+        """The frame into its camera's slot (caller holds the lock); the one it replaces is superseded."""
         role = item.stream.name
-        now = time.monotonic()
-        if now - self._last_taken.get(role, -math.inf) < 1.0 / self.cfg.image_hz:
-            tally.skip("rate")
-            return
-        self._last_taken[role] = now
         old = self._slots.get(role)
         if old is not None:
             self.tallies[old.topic].skip("superseded")
@@ -311,7 +320,7 @@ class Monitor:
             reason: str | None = "decode"
         else:
             self._view.feed(item.stream, decoded)
-            reason = self._channels.send(item.stream, decoded, self.cfg.imu_hz)
+            reason = self._channels.send(item.stream, decoded)
         with self._lock:
             tally = self.tallies[item.topic]
             if reason is None:

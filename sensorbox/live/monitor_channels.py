@@ -208,7 +208,6 @@ class Channels:
     context: Any
     rig: Rig
     by_topic: dict[str, Any] = field(default_factory=dict)
-    _imu_sent_ns: dict[str, int] = field(default_factory=dict)
     _prev: GraphSnapshot | None = None
 
     STATUS = STATUS_TOPIC
@@ -235,7 +234,7 @@ class Channels:
         """Whether a client subscribed to the channel (foxglove-sdk logs to subscribed clients only)."""
         return bool(self.by_topic[channel].has_sinks())
 
-    def send(self, stream: Stream, item: Preview | CloudCam0 | Gyro, imu_hz: float) -> str | None:
+    def send(self, stream: Stream, item: Preview | CloudCam0 | Gyro) -> str | None:
         """Send one decoded message on its stream's channel; None when sent, else the reason it was not."""
         if not self.subscribed(stream.channel):
             return "no_client"
@@ -245,10 +244,6 @@ class Channels:
         elif isinstance(item, CloudCam0):
             self._cloud(ch, item)
         else:
-            last = self._imu_sent_ns.get(stream.name)
-            if last is not None and 0 <= item.stamp_ns - last < 1e9 / imu_hz:
-                return "rate"
-            self._imu_sent_ns[stream.name] = item.stamp_ns
             w, a = item.gyro_cam0_rad_s, item.acc
             ch.log({"stamp_ns": item.stamp_ns, "gyro_rad_s": dict(zip("xyz", map(float, w), strict=True)),
                     "acc": dict(zip("xyz", map(float, a), strict=True))}, log_time=item.stamp_ns)  # fmt: skip

@@ -208,8 +208,9 @@ class Subscribed:
 
 def test_offer_parks_without_waiting_for_the_worker_and_every_message_is_counted_once():
     """With no worker taking anything (a stalled one), the publisher's calls still return at once: one
-    frame per camera parked (the rest above 10 Hz or superseded), sweeps and IMU samples queued up to
-    the bound then counted as backlog; at stop, what is parked counts as stopped."""
+    frame per camera parked (the rest above image_hz by their stamps), IMU samples above 50 Hz skipped,
+    sweeps and IMU samples queued up to the bound then counted as backlog; at stop, what is parked
+    counts as stopped."""
     import time
 
     from calibration.rig import read_rig
@@ -223,9 +224,10 @@ def test_offer_parks_without_waiting_for_the_worker_and_every_message_is_counted
     t0 = time.perf_counter()
     for k in range(3):
         bus.publish(UPPER, "sensor_msgs/msg/CompressedImage", k, b"jpeg")  # 1 parked, 2 above the rate
-    for k in range(4):
+    for k in range(4):  # 8 offered, 5 queued, 3 backlog
         bus.publish(LIDARS[0], "livox_ros_driver2/msg/CustomMsg", k, b"sweep")
-        bus.publish(IMUS[0], "sensor_msgs/msg/Imu", k, b"imu")  # 8 offered, 5 queued, 3 backlog
+        bus.publish(IMUS[0], "sensor_msgs/msg/Imu", k * 20_000_000, b"imu")  # 50 Hz: each one taken
+    bus.publish(IMUS[0], "sensor_msgs/msg/Imu", 65_000_000, b"imu")  # 5 ms after the last: above 50 Hz
     bus.publish("/chatter", "std_msgs/msg/String", 0, b"x")  # not a rig topic: not the monitor's
     assert time.perf_counter() - t0 < 0.5  # nothing waited on a worker
     mon.stop()
@@ -237,10 +239,11 @@ def test_offer_parks_without_waiting_for_the_worker_and_every_message_is_counted
         {"rate": 2, "stopped": 1},
     )
     sweeps, imu = counts[LIDARS[0]], counts[IMUS[0]]
-    assert (sweeps.received, imu.received) == (4, 4)
-    assert sweeps.skipped == {"stopped": 3, "backlog": 1} and imu.skipped == {"stopped": 2, "backlog": 2}
+    assert (sweeps.received, imu.received) == (4, 5)
+    assert sweeps.skipped == {"stopped": 3, "backlog": 1}
+    assert imu.skipped == {"stopped": 2, "backlog": 2, "rate": 1}
     # after the stop, arrivals are counted as stopped, never parked
     bus.publish(UPPER, "sensor_msgs/msg/CompressedImage", 9, b"jpeg")
     assert mon.counts()[UPPER].skipped == {"rate": 2, "stopped": 2}
     c = mon.status().counters
-    assert (c["sent"], c["skipped_stopped"], c["skipped_backlog"], c["skipped_rate"]) == (0, 7, 3, 2)
+    assert (c["sent"], c["skipped_stopped"], c["skipped_backlog"], c["skipped_rate"]) == (0, 7, 3, 3)
