@@ -29,8 +29,9 @@ The books: every message on a monitored topic ends once as sent (handed to
 the server) or skipped for one reason: `no_client` (nobody subscribed to its
 channel, nor to the coverage it feeds), `rate` (above the channel's rate),
 `superseded` (a newer frame replaced it before the worker took it), `backlog`
-(the queue was full), `decode` (not a message the monitor can read), `stopped`
-(arrived after the monitor stopped, or still parked then). `counts()` gives
+(the queue was full), `decode` (not a message the monitor can read), `error`
+(the monitor failed on it: logged once, the node's error, the recording goes
+on), `stopped` (arrived after the monitor stopped, or still parked then). `counts()` gives
 them per topic: received == sent + sum(skipped), exactly.
 """
 
@@ -56,7 +57,7 @@ from sensorbox.live.monitor_view import CoverageView
 
 log = logging.getLogger(__name__)
 
-REASONS = ("no_client", "rate", "superseded", "backlog", "decode", "stopped")
+REASONS = ("no_client", "rate", "superseded", "backlog", "decode", "error", "stopped")
 WORKER_NICE = 10  # the worker's niceness above the process's: the recording threads come first
 
 
@@ -291,14 +292,17 @@ class Monitor:
                 try:
                     self._handle(item)
                 except Exception as err:  # a monitor bug must not stop the recording: counted, logged once
-                    self._count(items[k:], "decode")
+                    self._count(items[k:], "error")
                     self._fail(f"monitor: {type(err).__name__}: {err}")
                     break
-            if snap is not None:
-                self._send_status(snap)
-            if time.monotonic() >= next_coverage:
-                next_coverage = time.monotonic() + 1.0 / self.cfg.coverage_hz
-                self._send_coverage()
+            try:
+                if snap is not None:
+                    self._send_status(snap)
+                if time.monotonic() >= next_coverage:
+                    next_coverage = time.monotonic() + 1.0 / self.cfg.coverage_hz
+                    self._send_coverage()
+            except Exception as err:
+                self._fail(f"monitor: {type(err).__name__}: {err}")
 
     def _count(self, items: list[_Item], reason: str) -> None:
         with self._lock:

@@ -130,13 +130,13 @@ def test_monitor_serves_every_channel_to_a_foxglove_client_and_its_books_balance
     snap = result.snapshot
     c = snap.nodes["monitor"].counters
     rec_drops = sum(v for k, v in snap.drops.items() if k.startswith("recorder."))
-    assert rec_drops == 0
+    assert rec_drops == 0 and snap.nodes["monitor"].error is None
     for topic in (UPPER, LOWER, *LIDARS, *IMUS):
         received = c[f"{topic}.received"]
         skipped = {r: c.get(f"{topic}.skipped_{r}", 0) for r in REASONS}
         assert received == snap.published[topic] == snap.written[topic], topic
         assert received == c[f"{topic}.sent"] + sum(skipped.values()), (topic, c[f"{topic}.sent"], skipped)
-        assert skipped["decode"] == 0, topic
+        assert skipped["decode"] == skipped["error"] == 0, topic
     # what the client read was sent; the monitor sent sweeps and frames once it had a subscriber
     for topic, channel in ((LIDARS[0], "/monitor/lidar_top/points"), (UPPER, "/monitor/upper/image")):
         assert 0 < len(got[channel]) <= c[f"{topic}.sent"]
