@@ -247,3 +247,36 @@ def test_offer_parks_without_waiting_for_the_worker_and_every_message_is_counted
     assert mon.counts()[UPPER].skipped == {"rate": 2, "stopped": 2}
     c = mon.status().counters
     assert (c["sent"], c["skipped_stopped"], c["skipped_backlog"], c["skipped_rate"]) == (0, 7, 3, 3)
+
+
+class Failing(Subscribed):
+    """Channels stand-in whose send fails: a bug in the monitor's sending path."""
+
+    STATUS = "/monitor/status"
+
+    def send(self, stream: object, item: object) -> str | None:
+        raise RuntimeError("send broke")
+
+
+@pytest.mark.realtime
+def test_a_failing_monitor_counts_its_messages_as_error_and_says_so_once():
+    from calibration.rig import read_rig
+    from sensorbox.live.bus import Bus
+    from sensorbox.live.monitor import Monitor
+    from sensorbox.messages import imu_msg
+    from tests.live import wait_for
+
+    bus = Bus()
+    mon = Monitor(MonitorConfig(0, REFERENCE_RIG), bus, read_rig(REFERENCE_RIG))
+    mon.start()
+    try:
+        mon._channels = Failing()  # type: ignore[assignment]  # the server runs; sending breaks
+        for k in range(3):
+            stamp_ns = 1_000_000_000 + k * 100_000_000
+            bus.publish(IMUS[0], "sensor_msgs/msg/Imu", stamp_ns, imu_msg(stamp_ns, np.zeros(3), np.ones(3)))
+            wait_for(lambda k=k: sum(mon.counts()[IMUS[0]].skipped.values()) == k + 1, "the worker took it")
+    finally:
+        mon.stop()
+    assert mon.counts()[IMUS[0]].skipped == {"error": 3}
+    assert mon.error == "monitor: RuntimeError: send broke"
+    assert mon.status().error == mon.error
