@@ -13,6 +13,7 @@ import re
 import socket
 import threading
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -66,14 +67,14 @@ class ClientThread(threading.Thread):
                 self.error = err
 
 
-def check_image(msg: dict, frame_id: str) -> np.ndarray:
+def check_image(msg: dict[str, Any], frame_id: str) -> np.ndarray:
     assert msg["format"] == b"jpeg" and msg["frame_id"] == frame_id.encode()
     image = cv2.imdecode(np.frombuffer(msg["data"], np.uint8), cv2.IMREAD_COLOR)
     assert image is not None and image.shape == (300, 480, 3)  # scale 0.25 frames: 480 x 300, not reduced
     return image
 
 
-def check_cloud(msg: dict) -> np.ndarray:
+def check_cloud(msg: dict[str, Any]) -> np.ndarray:
     assert msg["frame_id"] == b"cam0" and msg["point_stride"] == 16
     names = [f["name"] for f in msg["fields"]]
     assert names == [b"x", b"y", b"z", b"intensity"]
@@ -274,7 +275,11 @@ def test_a_failing_monitor_counts_its_messages_as_error_and_says_so_once():
         for k in range(3):
             stamp_ns = 1_000_000_000 + k * 100_000_000
             bus.publish(IMUS[0], "sensor_msgs/msg/Imu", stamp_ns, imu_msg(stamp_ns, np.zeros(3), np.ones(3)))
-            wait_for(lambda k=k: sum(mon.counts()[IMUS[0]].skipped.values()) == k + 1, "the worker took it")
+
+            def taken(n: int = k + 1) -> bool:
+                return sum(mon.counts()[IMUS[0]].skipped.values()) == n
+
+            wait_for(taken, "the worker took the sample")
     finally:
         mon.stop()
     assert mon.counts()[IMUS[0]].skipped == {"error": 3}
