@@ -22,7 +22,7 @@ from calibration.rig import Rig
 from ingest.bags.decode import Sweep, decode, decode_imu
 from ingest.bags.rostypes import typestore
 from sensorbox.live.bus import GraphSnapshot
-from sensorbox.live.coverage import preview_factor
+from sensorbox.live.coverage import preview_factor, rigid
 
 F32 = np.ndarray[Any, np.dtype[np.float32]]
 U8 = np.ndarray[Any, np.dtype[np.uint8]]
@@ -168,7 +168,7 @@ def decode_cloud(stream: Stream, msgtype: str, raw: bytes) -> CloudCam0:
     sweep = decode(msgtype, raw)
     assert isinstance(sweep, Sweep)
     T = stream.T_cam0_sensor
-    xyz = np.asarray(sweep.xyz_m, np.float64) @ T[:3, :3].T + T[:3, 3]
+    xyz = rigid(T[:3, :3], T[:3, 3], sweep.xyz_m)
     intensity = (
         np.asarray(sweep.reflectivity, np.float32)
         if sweep.reflectivity is not None

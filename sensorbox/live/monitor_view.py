@@ -26,6 +26,7 @@ log = logging.getLogger(__name__)
 
 U8 = np.ndarray[Any, np.dtype[np.uint8]]
 GYRO_KEEP_S = 3.0  # gyro samples older than this before the newest are let go
+GYRO_MARGIN_NS = 100_000_000  # gyro samples kept before the oldest sweep: the one whose rate it starts in
 CLOCKS_APART_NS = 500_000_000
 """A frame stamped this far from the newest sweep is on another clock (a camera without its
 timeshift, a simulator's camera started late): the points are placed at the newest sweep's time, and
@@ -112,8 +113,9 @@ class CoverageView:
                     (image_ns - newest) / 1e9,
                     ": the coverage preview places the points at the newest sweep's time",
                 )
-        placed = place_sweeps(sweeps, stamps, rates, at_ns)
-        T = self.upper.T_cam_cam0
-        cov = coverage(placed @ T[:3, :3].T + T[:3, 3], model)
+        first = min((t for t, _ in sweeps), default=at_ns)
+        keep = (stamps >= min(first, at_ns) - GYRO_MARGIN_NS) & (stamps <= max(newest, at_ns))
+        stamps, rates = stamps[keep], rates[keep]  # the gyro between the oldest sweep and the frame
+        cov = coverage(place_sweeps(sweeps, stamps, rates, at_ns, self.upper.T_cam_cam0), model)
         self.last = Rendered(draw_coverage(frame.image, cov, self.window_s, note=note), frame.stamp_ns, cov)
         return self.last
