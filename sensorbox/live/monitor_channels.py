@@ -11,8 +11,9 @@ foxglove.PointCloud, JSON for IMU and status).
 
 from __future__ import annotations
 
-import json
+import contextlib
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import cv2
@@ -44,7 +45,8 @@ STATUS_SCHEMA = {
             "monitor_sent, monitor_skipped",
         },
         "drops": {"type": "object", "description": "node.stage -> messages lost there"},
-        "bag_bytes": {"type": "number"},
+        "bag_bytes": {"type": "number", "description": "the bags' size on disk"},
+        "written_bytes": {"type": "number", "description": "serialised message bytes written"},
         "disk_free_bytes": {"type": "number"},
         "coverage_fraction": {"type": "number"},
         "monitor_skipped": {"type": "object", "description": "reason -> messages not sent to the monitor"},
@@ -71,6 +73,7 @@ class Stream:
     channel: str
     T_cam0_sensor: np.ndarray[Any, np.dtype[np.float64]]
     feeds_coverage: bool
+    frame_id: str = "cam0"  # the frame of what goes out: the camera's own, cam0 for points and gyro
     factor: int = 0  # images: the reduction, learnt from the first frame (0 = not yet)
 
 
@@ -109,7 +112,9 @@ def streams_of(rig: Rig) -> dict[str, Stream]:
     for cam in rig.cameras:
         if cam.role is None or not cam.topic:
             continue
-        s = Stream("image", cam.role, f"/monitor/{cam.role}/image", cam.T_cam0_cam, cam.role == "upper")
+        s = Stream(
+            "image", cam.role, f"/monitor/{cam.role}/image", cam.T_cam0_cam, cam.role == "upper", cam.name
+        )
         out[cam.topic] = out[cam.topic.rstrip("/") + "/compressed"] = s
     for lidar in rig.lidars:
         out[lidar.topic] = Stream(
@@ -188,6 +193,16 @@ def decode_for_monitor(stream: Stream, msgtype: str, raw: bytes) -> Preview | Cl
     return Gyro(sample.stamp_ns, stream.T_cam0_sensor[:3, :3] @ sample.gyro_rad_s, sample.acc)
 
 
+def bag_bytes(snap: GraphSnapshot) -> int:
+    """Bytes on disk of the bags the graph's recorders write (their folders' files), now."""
+    total = 0
+    for status in snap.nodes.values():
+        for folder in status.files:
+            with contextlib.suppress(OSError):  # a bag being split or removed meanwhile
+                total += sum(f.stat().st_size for f in Path(folder).iterdir() if f.is_file())
+    return total
+
+
 def _ts(stamp_ns: int) -> Any:
     from foxglove.messages import Timestamp
 
@@ -252,9 +267,8 @@ class Channels:
     def _image(self, ch: Any, item: Preview, stream: Stream) -> None:
         from foxglove.messages import CompressedImage
 
-        cam = "cam0" if stream.name == "upper" else "cam1"
         msg = CompressedImage(
-            timestamp=_ts(item.stamp_ns), frame_id=cam, data=jpeg(item.image), format="jpeg"
+            timestamp=_ts(item.stamp_ns), frame_id=stream.frame_id, data=jpeg(item.image), format="jpeg"
         )
         ch.log(msg, log_time=item.stamp_ns)
 
@@ -294,11 +308,12 @@ class Channels:
                 skipped[reason] = skipped.get(reason, 0) + n
         status = {
             "elapsed_s": snap.elapsed_s, "topics": topics, "drops": dict(snap.drops),
-            "total_drops": snap.total_drops(), "bag_bytes": snap.counter("bytes_written") or 0.0,
+            "total_drops": snap.total_drops(), "bag_bytes": bag_bytes(snap),
+            "written_bytes": snap.counter("bytes_written") or 0.0,
             "disk_free_bytes": snap.counter("disk_free_bytes") or -1.0,
             "coverage_fraction": coverage_fraction, "monitor_skipped": skipped,
         }  # fmt: skip
-        self.by_topic[self.STATUS].log(json.loads(json.dumps(status)))
+        self.by_topic[self.STATUS].log(status)
 
     def send_coverage(self, image: U8, stamp_ns: int) -> None:
         from foxglove.messages import CompressedImage

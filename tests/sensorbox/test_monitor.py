@@ -124,7 +124,9 @@ def test_monitor_serves_every_channel_to_a_foxglove_client_and_its_books_balance
     assert fraction is not None and 0.05 < fraction < 1.0
     rows = {row["topic"]: row for row in status["topics"]}
     assert set(rows) >= {UPPER, LOWER, *LIDARS, *IMUS}
-    assert status["disk_free_bytes"] > 0 and status["bag_bytes"] > 0
+    on_disk = sum(f.stat().st_size for f in (tmp_path / "bags" / "mon_000").iterdir())
+    assert status["disk_free_bytes"] > 0 and 0 < status["bag_bytes"] <= on_disk
+    assert status["written_bytes"] > 0
 
     # the books: every message on a monitored topic was sent or skipped for one reason, and the
     # monitor saw every message the recorder wrote
