@@ -244,11 +244,11 @@ def launch_cmd(
     if show_args:
         _print_arguments(plan, file)
         return
+    mon = None if monitor is None else _monitor_config(plan, file, monitor, monitor_host, monitor_rig)
     if dry_run:
         check_launch(plan)  # what the run refuses before it starts, the dry run refuses
         _print_nodes(plan, file)
         return
-    mon = None if monitor is None else _monitor_config(plan, file, monitor, monitor_host, monitor_rig)
     for message in plan.messages:
         err_console.print(message, highlight=False)
     result = _run_live(lambda sd, tick: run_launch(plan, shutdown=sd, on_tick=tick, monitor=mon))

@@ -158,7 +158,7 @@ def test_monitor_options_are_checked_before_anything_starts(tmp_path):
     launch.write_text(TALKER_LAUNCH)
     res = run_cli("launch", str(SIM_LAUNCH), "--monitor", "0")
     assert (res.returncode, res.stderr) == (2, "error: --monitor 0: expected a TCP port 1..65535\n")
-    res = run_cli("launch", str(launch), "--monitor", "8765")
+    res = run_cli("launch", str(launch), "--monitor", "8765", "--dry-run")  # the dry run refuses it too
     assert res.returncode == 2
     assert res.stderr == (
         f"error: --monitor: no node of {launch} names a rig (a `rig` parameter); pass --monitor-rig RIG\n"
