@@ -68,6 +68,21 @@ def status_line(prev: GraphSnapshot | None, now: GraphSnapshot) -> str:
     return "  ".join(parts)
 
 
+def monitor_line(snap: GraphSnapshot) -> str | None:
+    """`--monitor`'s books in one line (None without a monitor): sent, and skipped by reason."""
+    st = snap.nodes.get("monitor")
+    if st is None or "sent" not in st.counters:
+        return None
+    c = st.counters
+    skipped = [
+        f"{k.removeprefix('skipped_')} {c[k]:.0f}" for k in sorted(c) if k.startswith("skipped_") and c[k]
+    ]
+    return (
+        f"Monitor: {c['sent']:.0f} messages sent to Foxglove; skipped: {', '.join(skipped) or 'none'} "
+        "(the monitor's, not the recording's: the bags hold all the recorder wrote)"
+    )
+
+
 def _summary(result: GraphResult, title: str) -> None:
     snap = result.snapshot
     elapsed = max(snap.elapsed_s, 1e-9)
@@ -88,6 +103,9 @@ def _summary(result: GraphResult, title: str) -> None:
         drops.add_row(stage, str(n))
     if snap.drops:
         console.print(drops)
+    line = monitor_line(snap)
+    if line is not None:
+        console.print(line, highlight=False, soft_wrap=True)
     for path in result.files:
         size = (
             sum(f.stat().st_size for f in Path(path).rglob("*") if f.is_file()) if Path(path).exists() else 0
@@ -112,6 +130,7 @@ def _setup_logging(verbose: bool) -> None:
     handler = RichHandler(console=err_console, show_path=False, show_time=False)
     handler.setFormatter(logging.Formatter("%(message)s"))
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, handlers=[handler], force=True)
+    logging.getLogger("sensorbox.live.monitor").setLevel(logging.INFO)  # its one INFO line: where to connect
 
 
 def _run_live(run: Callable[[Shutdown, Callable[[GraphSnapshot], None]], GraphResult]) -> GraphResult:

@@ -41,6 +41,7 @@ import contextlib
 import logging
 import math
 import os
+import socket
 import threading
 import time
 from collections import deque
@@ -154,7 +155,11 @@ class Monitor:
                 f"monitor: cannot serve on {self.cfg.host}:{self.cfg.port}: {err}; "
                 "choose another --monitor port"
             ) from err
-        log.info("monitor: Foxglove WebSocket on ws://%s:%d", self.cfg.host, self.port)
+        where = socket.gethostname() if self.cfg.host in ("0.0.0.0", "::") else self.cfg.host
+        log.info(
+            "monitor: in Foxglove, Open connection > Foxglove WebSocket > ws://%s:%d (layout: %s)",
+            where, self.port, "sensorbox/share/foxglove/monitor_layout.json",
+        )  # fmt: skip
         with self._lock:
             self._running = True
         self._thread = threading.Thread(target=self._run, name=f"{self.name}-worker", daemon=True)

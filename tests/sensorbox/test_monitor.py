@@ -287,3 +287,32 @@ def test_a_failing_monitor_counts_its_messages_as_error_and_says_so_once():
     assert mon.counts()[IMUS[0]].skipped == {"error": 3}
     assert mon.error == "monitor: RuntimeError: send broke"
     assert mon.status().error == mon.error
+
+
+def test_the_run_summary_gives_the_monitors_books_in_one_line():
+    from sensorbox.cli.capture import monitor_line
+    from sensorbox.live.bus import GraphSnapshot, NodeStatus
+
+    def snap(nodes: dict[str, NodeStatus]) -> GraphSnapshot:
+        return GraphSnapshot(1.0, {}, {}, {}, {}, nodes)
+
+    counters = {"sent": 8533.0, "skipped_rate": 21710.0, "skipped_superseded": 131.0, "skipped_backlog": 0.0}
+    assert monitor_line(snap({"monitor": NodeStatus(counters)})) == (
+        "Monitor: 8533 messages sent to Foxglove; skipped: rate 21710, superseded 131 "
+        "(the monitor's, not the recording's: the bags hold all the recorder wrote)"
+    )
+    assert monitor_line(snap({"recorder": NodeStatus({"bytes_written": 5.0})})) is None
+
+
+@pytest.mark.realtime
+def test_the_cli_says_where_to_connect_once_the_server_listens(tmp_path):
+    launch = tmp_path / "talker.launch.yaml"
+    launch.write_text(TALKER_LAUNCH)
+    port = free_tcp_port()
+    res = run_cli("launch", str(launch), "--monitor", str(port), "--monitor-rig", str(REFERENCE_RIG))
+    assert res.returncode == 0, res.stderr
+    assert (
+        f"monitor: in Foxglove, Open connection > Foxglove WebSocket > ws://127.0.0.1:{port} (layout: "
+        "sensorbox/share/foxglove/monitor_layout.json)" in " ".join(res.stderr.split())
+    )
+    assert "Monitor: 0 messages sent to Foxglove; skipped: none" in res.stdout  # talker topics: not the rig's
