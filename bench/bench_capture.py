@@ -15,15 +15,27 @@ chart (rates over time, CPU and RSS over time, sent vs written) to
 out/bench/bench_capture.png or --out. `--hogs N` runs N CPU-bound processes on the
 same cores (contention). Target: zero drops; at least zero LiDAR datagrams lost
 with `--hogs 2` on 2 cores.
+
+`--monitor` measures the live monitor's cost in the same session: each repeat
+records twice, without the monitor and with it (`run_launch(monitor=...)`) and a
+Foxglove WebSocket client (tests/foxglove_client.py, its own process on the
+same cores) subscribed to every channel and decoding every message, in
+alternating order; both reports follow,
+then a comparison: per topic what each lost, CPU, what the monitor sent and
+skipped, what the client read. Target: the monitor loses nothing that
+recording without it keeps.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import multiprocessing
 import os
 import shutil
+import socket
 import statistics
+import subprocess
 import sys
 import tempfile
 import time
@@ -32,7 +44,7 @@ from itertools import pairwise
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import OUT_DIR
+from _common import OUT_DIR, machine_line
 
 from sensorbox.live.bus import GraphResult, GraphSnapshot
 from sensorbox.live.launch import parse_launch, run_launch
@@ -72,6 +84,25 @@ class Run:
     peak_rss: int = 0
     load: tuple[float, float, float] = (0.0, 0.0, 0.0)
     bytes_on_disk: int = 0
+    client_msgs: dict[str, int] = field(default_factory=dict)  # --monitor: messages the client decoded
+
+
+def start_client(port: int) -> subprocess.Popen[str]:
+    """A Foxglove client in its own process (as the app would be): subscribes to every channel, decodes
+    every message, prints what it decoded per channel when the server closes."""
+    root = Path(__file__).resolve().parents[1]
+    return subprocess.Popen(
+        [sys.executable, "-m", "tests.foxglove_client", str(port)],
+        cwd=root,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+
+
+def free_tcp_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
 
 
 def hog() -> None:
@@ -92,7 +123,7 @@ def start_hogs(n: int) -> list[multiprocessing.process.BaseProcess]:
     return procs
 
 
-def soak(seconds: float, scale: float, port_base: int, out: Path) -> Run:
+def soak(seconds: float, scale: float, port_base: int, out: Path, monitor: bool = False) -> Run:
     args = {"out": str(out), "duration": str(seconds), "scale": str(scale), "name": "soak",
             "port_base": str(port_base), "image": "jpeg"}  # fmt: skip
     plan = parse_launch(SIM_LAUNCH, args)
@@ -107,11 +138,21 @@ def soak(seconds: float, scale: float, port_base: int, out: Path) -> Run:
         line = f"\r{snap.elapsed_s:5.1f} s  CPU {pct:5.0f} %  drops {snap.total_drops()}"
         print(line, end="", file=sys.stderr)
 
+    mon, client = None, None
+    if monitor:
+        from calibration.rig import REFERENCE_RIG
+        from sensorbox.live.monitor import MonitorConfig
+
+        mon = MonitorConfig(free_tcp_port(), REFERENCE_RIG)
+        client = start_client(mon.port)
     t0, c0 = time.monotonic(), time.process_time()
-    result = run_launch(plan, on_tick=tick, tick_s=1.0)
+    result = run_launch(plan, on_tick=tick, tick_s=1.0, monitor=mon)
     print(file=sys.stderr)
     wall, cpu = time.monotonic() - t0, time.process_time() - c0
     run = Run(result, samples, wall, cpu, rss_bytes()[1], os.getloadavg())
+    if client is not None:
+        printed, _ = client.communicate(timeout=60)
+        run.client_msgs = json.loads(printed or "{}")
     run.bytes_on_disk = sum(f.stat().st_size for p in result.files for f in Path(p).rglob("*") if f.is_file())
     return run
 
@@ -229,6 +270,47 @@ def chart(run: Run, path: Path) -> None:
     fig.savefig(path, dpi=110)
 
 
+def compare(off: list[Run], on: list[Run]) -> str:
+    """Without vs with the monitor: per topic what each lost, drops, CPU, the monitor's books, the client."""
+    med = statistics.median
+    lost: dict[str, tuple[float, float]] = {}
+    topics = sorted(set().union(*(r.result.snapshot.published for r in off + on)))
+    lines = [
+        "### Without vs with --monitor (a client subscribed to every channel)",
+        "",
+        "| topic | lost without | lost with | written without | written with |",
+        "|---|---:|---:|---:|---:|",
+    ]
+    for t in topics:
+        lo = [r.result.snapshot.published.get(t, 0) - r.result.snapshot.written.get(t, 0) for r in off]
+        ln = [r.result.snapshot.published.get(t, 0) - r.result.snapshot.written.get(t, 0) for r in on]
+        lost[t] = (med(lo), med(ln))
+        wo = med([r.result.snapshot.written.get(t, 0) for r in off])
+        wn = med([r.result.snapshot.written.get(t, 0) for r in on])
+        lines.append(f"| {t} | {med(lo):.0f} | {med(ln):.0f} | {wo:.0f} | {wn:.0f} |")
+    steady = [
+        med([statistics.median([x.cpu_pct for x in r.samples[2:]] or [0.0]) for r in rs]) for rs in (off, on)
+    ]
+    drops = [med([r.result.snapshot.total_drops() for r in rs]) for rs in (off, on)]
+    lines += [
+        "",
+        "| | without | with |",
+        "|---|---:|---:|",
+        f"| drops, all stages | {drops[0]:.0f} | {drops[1]:.0f} |",
+        f"| CPU recording (median of 1 s samples, % of one core) | {steady[0]:.0f} % | {steady[1]:.0f} % |",
+    ]
+    mon = on[-1].result.snapshot.nodes["monitor"].counters
+    lines += ["", "| monitor (last run with it) | messages |", "|---|---:|"]
+    for key in ("sent", *(k for k in sorted(mon) if k.startswith("skipped_"))):
+        lines.append(f"| {key} | {mon[key]:.0f} |")
+    for channel, n in sorted(on[-1].client_msgs.items()):
+        lines.append(f"| client decoded {channel} | {n} |")
+    worse = [t for t, (a, b) in lost.items() if b > a]
+    verdict = "none" if not worse else ", ".join(worse)
+    lines += ["", f"Topics where recording with the monitor lost more than without: {verdict}"]
+    return "\n".join(lines)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seconds", type=float, default=60.0, help="recording time per run")
@@ -239,26 +321,40 @@ def main() -> None:
     ap.add_argument("--hogs", type=int, default=0, help="CPU-bound processes to run beside the rig")
     ap.add_argument("--out", type=Path, default=OUT_DIR / "bench_capture.png", help="chart path")
     ap.add_argument("--keep", type=Path, default=None, help="keep the bags in this folder")
+    ap.add_argument("--monitor", action="store_true", help="each repeat records without and with the monitor")
     a = ap.parse_args()
     if a.cores:
         cpus = sorted(os.sched_getaffinity(0))[: a.cores]
         os.sched_setaffinity(0, cpus)
     hogs = start_hogs(a.hogs)
-    runs = []
+    runs: dict[bool, list[Run]] = {False: [], True: []}
     try:
         for k in range(a.repeats):
-            tmp = Path(tempfile.mkdtemp(prefix="bench_capture_", dir=a.keep.parent if a.keep else None))
-            try:
-                runs.append(soak(a.seconds, a.scale, a.port_base + 10 * k, tmp))
-            finally:
-                if a.keep:
-                    shutil.copytree(tmp, a.keep / f"run{k}", dirs_exist_ok=True)
-                shutil.rmtree(tmp, ignore_errors=True)
+            modes = ([False, True] if k % 2 == 0 else [True, False]) if a.monitor else [False]
+            for j, monitor in enumerate(modes):
+                tmp = Path(tempfile.mkdtemp(prefix="bench_capture_", dir=a.keep.parent if a.keep else None))
+                try:
+                    runs[monitor].append(
+                        soak(a.seconds, a.scale, a.port_base + 20 * k + 10 * j, tmp, monitor)
+                    )
+                finally:
+                    if a.keep:
+                        shutil.copytree(
+                            tmp, a.keep / f"run{k}{'_monitor' if monitor else ''}", dirs_exist_ok=True
+                        )
+                    shutil.rmtree(tmp, ignore_errors=True)
     finally:
         for p in hogs:
             p.kill()
-    print(report(runs, a.seconds, a.hogs))
-    chart(runs[-1], a.out)
+    print(machine_line() + "\n")
+    if a.monitor:
+        print("## Without --monitor\n")
+    print(report(runs[False], a.seconds, a.hogs))
+    if a.monitor:
+        print("\n## With --monitor and a connected Foxglove client\n")
+        print(report(runs[True], a.seconds, a.hogs))
+        print("\n" + compare(runs[False], runs[True]))
+    chart(runs[False][-1], a.out)
     print(f"\nchart: {a.out}")
 
 

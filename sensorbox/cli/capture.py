@@ -28,6 +28,7 @@ from sensorbox.live.livox_node import silent_lidars
 
 if TYPE_CHECKING:
     from sensorbox.live.launch import LaunchPlan
+    from sensorbox.live.monitor import MonitorConfig
 
 PLAIN_STATUS_EVERY_S = 10.0  # without a terminal, one status line this often
 
@@ -67,6 +68,21 @@ def status_line(prev: GraphSnapshot | None, now: GraphSnapshot) -> str:
     return "  ".join(parts)
 
 
+def monitor_line(snap: GraphSnapshot) -> str | None:
+    """`--monitor`'s books in one line (None without a monitor): sent, and skipped by reason."""
+    st = snap.nodes.get("monitor")
+    if st is None or "sent" not in st.counters:
+        return None
+    c = st.counters
+    skipped = [
+        f"{k.removeprefix('skipped_')} {c[k]:.0f}" for k in sorted(c) if k.startswith("skipped_") and c[k]
+    ]
+    return (
+        f"Monitor: {c['sent']:.0f} messages sent to Foxglove; skipped: {', '.join(skipped) or 'none'} "
+        "(the monitor's, not the recording's: the bags hold all the recorder wrote)"
+    )
+
+
 def _summary(result: GraphResult, title: str) -> None:
     snap = result.snapshot
     elapsed = max(snap.elapsed_s, 1e-9)
@@ -87,6 +103,9 @@ def _summary(result: GraphResult, title: str) -> None:
         drops.add_row(stage, str(n))
     if snap.drops:
         console.print(drops)
+    line = monitor_line(snap)
+    if line is not None:
+        console.print(line, highlight=False, soft_wrap=True)
     for path in result.files:
         size = (
             sum(f.stat().st_size for f in Path(path).rglob("*") if f.is_file()) if Path(path).exists() else 0
@@ -111,6 +130,7 @@ def _setup_logging(verbose: bool) -> None:
     handler = RichHandler(console=err_console, show_path=False, show_time=False)
     handler.setFormatter(logging.Formatter("%(message)s"))
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, handlers=[handler], force=True)
+    logging.getLogger("sensorbox.live.monitor").setLevel(logging.INFO)  # its one INFO line: where to connect
 
 
 def _run_live(run: Callable[[Shutdown, Callable[[GraphSnapshot], None]], GraphResult]) -> GraphResult:
@@ -168,6 +188,25 @@ DryRunOpt = Annotated[
     ),
 ]
 VerboseOpt = Annotated[bool, typer.Option("--verbose", "-v", help="Log what each node does.")]
+MonitorOpt = Annotated[
+    int | None,
+    typer.Option(
+        "--monitor", metavar="PORT",
+        help="Serve a live view on this TCP port for Foxglove (Open connection > Foxglove WebSocket, "
+        "ws://HOST:PORT): both cameras, both LiDARs in cam0, the IMUs, status and a coverage preview; it "
+        "never slows the recording (docs/monitor.md).",
+    ),
+]  # fmt: skip
+MonitorHostOpt = Annotated[
+    str, typer.Option("--monitor-host", help="Address the monitor listens on; 0.0.0.0 for other computers.")
+]
+MonitorRigOpt = Annotated[
+    Path | None,
+    typer.Option(
+        help="--monitor: the rig file (camera models, LiDAR and IMU poses); default the one a node of the "
+        "launch file names in its `rig` parameter.", **path_param("--monitor-rig"),
+    ),
+]  # fmt: skip
 
 
 def _print_arguments(plan: LaunchPlan, file: Path) -> None:
@@ -197,9 +236,24 @@ def _print_nodes(plan: LaunchPlan, file: Path) -> None:
         console.print(message, highlight=False)
 
 
+def _monitor_config(plan: LaunchPlan, file: Path, port: int, host: str, rig: Path | None) -> MonitorConfig:
+    """`launch --monitor`'s settings: the port checked, the rig given or the launch file's."""
+    from sensorbox.live.monitor import MonitorConfig, plan_rig
+
+    if not 1 <= port <= 65535:
+        raise SensorboxError(f"--monitor {port}: expected a TCP port 1..65535")
+    rig = rig or plan_rig(plan.nodes)
+    if rig is None:
+        raise SensorboxError(
+            f"--monitor: no node of {file} names a rig (a `rig` parameter); pass --monitor-rig RIG"
+        )
+    return MonitorConfig(port, rig, host)
+
+
 def launch_cmd(
     file: FileArg, args: ArgsArg = None, show_args: ShowArgsOpt = False, dry_run: DryRunOpt = False,
-    verbose: VerboseOpt = False,
+    verbose: VerboseOpt = False, monitor: MonitorOpt = None, monitor_host: MonitorHostOpt = "127.0.0.1",
+    monitor_rig: MonitorRigOpt = None,
 ) -> None:  # fmt: skip
     """Start the nodes a launch file names (drivers, cameras, emulators, recorder) until Ctrl-C."""
     from sensorbox.live.launch import check_launch, parse_cli_args, parse_launch, run_launch
@@ -209,13 +263,14 @@ def launch_cmd(
     if show_args:
         _print_arguments(plan, file)
         return
+    mon = None if monitor is None else _monitor_config(plan, file, monitor, monitor_host, monitor_rig)
     if dry_run:
         check_launch(plan)  # what the run refuses before it starts, the dry run refuses
         _print_nodes(plan, file)
         return
     for message in plan.messages:
         err_console.print(message, highlight=False)
-    result = _run_live(lambda sd, tick: run_launch(plan, shutdown=sd, on_tick=tick))
+    result = _run_live(lambda sd, tick: run_launch(plan, shutdown=sd, on_tick=tick, monitor=mon))
     _finish(result, str(file))
 
 
@@ -253,6 +308,7 @@ def capture_cmd(
     lidar_msg: LidarMsgOpt = "custom", duration: DurationOpt = 0.0, split_size: SplitSizeOpt = 4096.0,
     min_free: MinFreeOpt = 2048.0, name: NameOpt = "", emulate: EmulateOpt = False,
     port_base: PortBaseOpt = 56000, scale: ScaleOpt = 1.0, verbose: VerboseOpt = False,
+    monitor: MonitorOpt = None, monitor_host: MonitorHostOpt = "127.0.0.1",
 ) -> None:  # fmt: skip
     """Record the rig (both Mid-360s, both cameras) into mcap bags; the rig file's form of
     launch/sensorbox.launch.yaml."""
@@ -265,7 +321,7 @@ def capture_cmd(
         rig=rig, out=out, name=name, host_ip=host_ip, camera=camera, upper=upper, lower=lower,  # type: ignore[arg-type]
         image=image, jpeg_quality=jpeg_quality, xfer_format=1 if lidar_msg == "custom" else 0,  # type: ignore[arg-type]
         duration_s=duration, split_size_mb=split_size, min_free_mb=min_free, emulate=emulate,
-        port_base=port_base, scale=scale,
+        port_base=port_base, scale=scale, monitor_port=monitor, monitor_host=monitor_host,
     )  # fmt: skip
     check_config(cfg)  # before the logging set-up, as the choices above: a refused option changes nothing
     _setup_logging(verbose)

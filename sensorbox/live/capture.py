@@ -45,6 +45,8 @@ class CaptureConfig:
     port_base: int = 56000
     scene: str = "indoor"  # emulate: the simulated scene
     scale: float = 1.0  # emulate: camera resolution scale
+    monitor_port: int | None = None  # serve the live monitor on this TCP port (None = no monitor)
+    monitor_host: str = "127.0.0.1"
 
 
 def check_config(cfg: CaptureConfig) -> None:
@@ -69,6 +71,8 @@ def check_config(cfg: CaptureConfig) -> None:
         raise SensorboxError(f"--name {cfg.name!r}: use letters, digits and _ . + - only (a folder name)")
     if cfg.emulate and not (math.isfinite(cfg.scale) and cfg.scale > 0):
         raise SensorboxError(f"--scale {cfg.scale:g}: expected a number > 0 (0.25 -> 480x300)")
+    if cfg.monitor_port is not None and not 1 <= cfg.monitor_port <= 65535:
+        raise SensorboxError(f"--monitor {cfg.monitor_port}: expected a TCP port 1..65535")
     if not 1 <= cfg.port_base <= 65535 - 8:
         raise SensorboxError(f"--port-base {cfg.port_base}: expected 1..65527 (the first of nine UDP ports)")
 
@@ -150,6 +154,12 @@ def capture(
 
     The settings are checked (`check_config`) before any node starts: a node
     writes into `out` as it starts (the simulated cameras copy the rig there).
+    `monitor_port` adds the live monitor (`sensorbox.live.monitor`) on the rig file.
     """
     check_config(cfg)
-    return run_launch(capture_plan(cfg), shutdown=shutdown, on_tick=on_tick)
+    monitor = None
+    if cfg.monitor_port is not None:
+        from sensorbox.live.monitor import MonitorConfig
+
+        monitor = MonitorConfig(cfg.monitor_port, cfg.rig, cfg.monitor_host)
+    return run_launch(capture_plan(cfg), shutdown=shutdown, on_tick=on_tick, monitor=monitor)

@@ -44,7 +44,7 @@ from __future__ import annotations
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import yaml
 
@@ -53,6 +53,9 @@ from calibration.opencv_yaml import BoundedSafeLoader, yaml_error_line
 from sensorbox.errors import LaunchError
 from sensorbox.live.bus import Bus, GraphResult, GraphSnapshot, Shutdown, run_graph
 from sensorbox.live.substitutions import Scope, bool_word, evaluate_parts, parse_substitutions
+
+if TYPE_CHECKING:
+    from sensorbox.live.monitor import MonitorConfig
 
 # ---------------------------------------------------------------- YAML with line numbers
 
@@ -517,11 +520,20 @@ def run_launch(
     shutdown: Shutdown | None = None,
     on_tick: Callable[[GraphSnapshot], None] | None = None,
     tick_s: float = 0.5,
+    monitor: MonitorConfig | None = None,
 ) -> GraphResult:
-    """Build the plan's nodes in one process and run them until shutdown (see `bus.run_graph`)."""
+    """Build the plan's nodes in one process and run them until shutdown (see `bus.run_graph`); with
+    `monitor`, a live monitor node beside them (`sensorbox.live.monitor`)."""
     bus = Bus()
     shutdown = shutdown or Shutdown()
-    return run_graph(_build_nodes(plan, bus, shutdown), bus, shutdown, on_tick=on_tick, tick_s=tick_s)
+    nodes = _build_nodes(plan, bus, shutdown)
+    if monitor is not None:
+        from sensorbox.live.monitor import Monitor
+
+        node = Monitor(monitor, bus)
+        nodes.append(node)
+        on_tick = node.ticker(on_tick)
+    return run_graph(nodes, bus, shutdown, on_tick=on_tick, tick_s=tick_s)
 
 
 def check_launch(plan: LaunchPlan) -> None:
