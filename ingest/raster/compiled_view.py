@@ -38,9 +38,9 @@ from ingest.raster.geometry import (
     points_in_view,
 )
 from ingest.raster.kernels import ellipse_offsets
-from ingest.raster.lod import ScanIndex, select
+from ingest.raster.lod import ScanIndex, candidates
 from ingest.raster.params import EMPTY_KEY, IDX_BITS, IDX_MASK, KEY_BASE, Q_MAX, RANGE_QUANTUM_M, RenderParams
-from ingest.raster.recipe import Finished, OwnSamples, Winners
+from ingest.raster.recipe import Finished, HostArrays, OwnSamples, Winners
 
 fork_safe_numba_threads()  # before any parallel kernel runs in this process
 
@@ -135,12 +135,9 @@ def gather(
     for src in sources:
         T_cam_scan = T_cam_world @ src.T_world_scan
         stats["points_total"] += src.n_points
-        if params.frustum_culling:
-            sel = select(src, model, T_cam_scan, geo.coarse, params.points_per_px, coarse)
-            idx, sp = sel.idx, sel.spacing_rad
-        else:
-            idx = np.arange(src.n_points)
-            sp = src.point_spacing_rad()
+        idx, sp = candidates(
+            src, model, T_cam_scan, geo.coarse, params.points_per_px, coarse, params.frustum_culling
+        )
         stats["points_touched"] += len(idx)
         *proj, rgb, kept, order, group_start, n_cls = _selected_in_view(src, idx, sp, model, geo, T_cam_scan,
                                                                          params)  # fmt: skip
@@ -338,7 +335,7 @@ def finish(
     return Finished(surf, masked, clipped, good, range_m, bgr)
 
 
-class CompiledStages:
+class CompiledStages(HostArrays):
     """The compiled stages as `ingest.raster.recipe.Stages`."""
 
     gather = staticmethod(gather)
@@ -349,18 +346,6 @@ class CompiledStages:
     average = staticmethod(average)
     fill = staticmethod(fill)
     finish = staticmethod(finish)
-
-    @staticmethod
-    def ppr(geo: PixelGeometry) -> F32:
-        return geo.ppr.reshape(-1)
-
-    @staticmethod
-    def nonzero(mask: Bool) -> I64:
-        return np.flatnonzero(mask)
-
-    @staticmethod
-    def host(a: Any) -> np.ndarray[Any, Any]:
-        return np.asarray(a)
 
 
 def render_compiled(

@@ -311,3 +311,21 @@ def select(
     offs = np.repeat(starts - np.r_[0, np.cumsum(take)[:-1]], take)
     idx = np.arange(total, dtype=np.int64) + offs
     return Selection(idx, np.repeat(sp.astype(np.float32), take), len(keep))
+
+
+def candidates(
+    index: ScanIndex,
+    model: CameraModel,
+    T_cam_scan: F64,
+    ppr: tuple[F32, F32, int, float, float],
+    points_per_px: float | None,
+    coarse_mask: Bool | None,
+    culling: bool,
+) -> tuple[I64, F32]:
+    """The point indices of ``index`` a view draws and their angular spacing (rad): `select`'s, or with
+    ``culling`` off (`RenderParams.frustum_culling`, the naive baseline) every point with its bucket's
+    spacing. Every backend starts from these."""
+    if culling:
+        sel = select(index, model, T_cam_scan, ppr, points_per_px, coarse_mask)
+        return sel.idx, sel.spacing_rad
+    return np.arange(index.n_points), index.point_spacing_rad()

@@ -155,6 +155,22 @@ class Stages(Protocol):
         """A backend array as a numpy array on the host."""
 
 
+class HostArrays:
+    """The array stages of a backend whose arrays are numpy arrays on the host (numpy, numba)."""
+
+    @staticmethod
+    def ppr(geo: PixelGeometry) -> Any:
+        return geo.ppr.reshape(-1)
+
+    @staticmethod
+    def nonzero(mask: Bool) -> Any:
+        return np.flatnonzero(mask)
+
+    @staticmethod
+    def host(a: Any) -> np.ndarray[Any, Any]:
+        return np.asarray(a)
+
+
 def render(
     stages: Stages, sources: list[ScanIndex], model: CameraModel, T_world_cam: F64, params: RenderParams,
     pixel_mask: Bool | None = None,

@@ -18,9 +18,9 @@ from calibration.camera import CameraModel
 from calibration.transforms import invert
 from calibration.types import F32, F64, I64, Bool
 from ingest.raster.geometry import PixelGeometry, ViewPoints, coarse_mask, concat_points, points_in_view
-from ingest.raster.lod import ScanIndex, select
+from ingest.raster.lod import ScanIndex, candidates
 from ingest.raster.params import RenderParams
-from ingest.raster.recipe import Finished, OwnSamples, Winners
+from ingest.raster.recipe import Finished, HostArrays, OwnSamples, Winners
 from ingest.raster.visibility import average_surface, fill_gaps, fit_gradient, leaks, winner, zbuffer
 
 
@@ -54,14 +54,10 @@ def gather(
     for src in sources:
         T_cam_scan = T_cam_world @ src.T_world_scan
         stats["points_total"] += src.n_points
-        if params.frustum_culling:
-            sel = select(src, model, T_cam_scan, geo.coarse, params.points_per_px, coarse)
-            idx, sp = sel.idx, sel.spacing_rad
-            xyz = src.xyz[idx]
-        else:  # the naive baseline: every point, with its bucket's spacing
-            idx = np.arange(src.n_points)
-            sp = src.point_spacing_rad()
-            xyz = src.xyz
+        idx, sp = candidates(
+            src, model, T_cam_scan, geo.coarse, params.points_per_px, coarse, params.frustum_culling
+        )
+        xyz = src.xyz[idx] if params.frustum_culling else src.xyz
         stats["points_touched"] += len(idx)
         *proj, kept = points_in_view(model, geo, T_cam_scan, xyz, sp, params)
         stats["points_in_image"] += len(kept)
@@ -186,7 +182,7 @@ def finish(
     return Finished(surf, mask, clipped, good, range_m, bgr)
 
 
-class NumpyStages:
+class NumpyStages(HostArrays):
     """The numpy stages as `ingest.raster.recipe.Stages`."""
 
     gather = staticmethod(gather)
@@ -197,15 +193,3 @@ class NumpyStages:
     average = staticmethod(average)
     fill = staticmethod(fill)
     finish = staticmethod(finish)
-
-    @staticmethod
-    def ppr(geo: PixelGeometry) -> F32:
-        return geo.ppr.reshape(-1)
-
-    @staticmethod
-    def nonzero(mask: Bool) -> I64:
-        return np.flatnonzero(mask)
-
-    @staticmethod
-    def host(a: Any) -> np.ndarray[Any, Any]:
-        return np.asarray(a)

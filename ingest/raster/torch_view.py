@@ -36,7 +36,7 @@ from calibration.virtual import project_f32
 from ingest.raster import recipe
 from ingest.raster.geometry import PixelGeometry, Rendering, coarse_mask
 from ingest.raster.kernels import ellipse_offsets
-from ingest.raster.lod import ScanIndex, select
+from ingest.raster.lod import ScanIndex, candidates
 from ingest.raster.params import (
     AXES,
     EMPTY_KEY,
@@ -152,13 +152,10 @@ def _gather(
         on = _scan_on(src, dev)
         T_cam_scan = T_cam_world @ src.T_world_scan
         stats["points_total"] += src.n_points
-        if params.frustum_culling:
-            sel = select(src, model, T_cam_scan, geo.coarse, params.points_per_px, coarse)
-            idx = torch.from_numpy(sel.idx).to(dev)
-            sp = torch.from_numpy(sel.spacing_rad).to(dev)
-        else:
-            idx = torch.arange(src.n_points, device=dev)
-            sp = torch.from_numpy(src.point_spacing_rad()).to(dev)
+        picked, spacing = candidates(
+            src, model, T_cam_scan, geo.coarse, params.points_per_px, coarse, params.frustum_culling
+        )
+        idx, sp = torch.from_numpy(picked).to(dev), torch.from_numpy(spacing).to(dev)
         stats["points_touched"] += len(idx)
         *proj, kept = _in_view(on["xyz"][idx], sp, model, geo, T_cam_scan, params)
         stats["points_in_image"] += len(kept)
