@@ -9,7 +9,8 @@ prints:
 
 1. what refine recovered against the truth (offset per camera, rotation and
    translation per LiDAR), with its stated uncertainty and whether it was
-   observable;
+   observable; with `--alone`, also from each kind of error alone (the clock
+   offsets with exact LiDAR poses, the LiDAR poses with exact clocks);
 2. sparse GT from the exact rig, the given (wrong) rig and the refined rig:
    range median and outliers against truth, and density;
 3. with `--scores`: the truth-free alignment score of every sample (the median
@@ -47,6 +48,7 @@ from calibration.rig import Rig, with_timeshifts, write_rig
 from calibration.types import F64
 from ingest.dataset.meta import read_meta
 from ingest.train.pipeline import IngestConfig, ingest, refine_rig
+from ingest.train.refine import Refinement
 from sensorbox.sim.run import SimConfig, simulate, with_mid360_imu_noise
 from sensorbox.sim.score import score_dataset
 from sensorbox.sim.truth import Truth
@@ -114,6 +116,11 @@ def main() -> None:
     parser.add_argument("--every", type=int, default=6, help="ingest every n-th frame for the GT rows")
     parser.add_argument("--cases", default=",".join(CASES), help="comma-separated: " + ", ".join(CASES))
     parser.add_argument("--scores", action="store_true", help="also the per-sample score study (part 3)")
+    parser.add_argument(
+        "--alone",
+        action="store_true",
+        help="also refine from each kind of error alone (clock offsets; LiDAR poses)",
+    )
     parser.add_argument("--tag", default="", help="suffix of the output files (refine<TAG>.csv, ...)")
     args = parser.parse_args()
     work = OUT_DIR / "refine" / f"{args.seconds:g}s_x{args.scale:g}"
@@ -130,37 +137,10 @@ def main() -> None:
             print(f"{name}: simulated {args.seconds:g} s in {time.perf_counter() - t0:.0f} s", flush=True)
         truth = Truth.load(bag)
         given = wrong_rig(truth.rig)
-        t0, cpu0 = time.perf_counter(), os.times()
-        found = refine_rig([bag], given)
-        seconds, cpu1 = time.perf_counter() - t0, os.times()
-        cpu_s = sum(cpu1[:4]) - sum(cpu0[:4])  # this process and its workers (user + system)
-        took = f"{seconds:.0f} ({cpu_s:.0f} CPU)"
-        for cam, true_ns in zip(found.cameras, OFFSETS_NS, strict=True):
-            e = cam.estimate
-            err = f"{abs(e.timeshift_ms + true_ns / 1e6):.3f}" if e.observable else "-"
-            rec_rows.append([f"{name}: {cam.camera} offset [ms]", f"{-true_ns / 1e6:+.3f}",
-                             f"{e.timeshift_ms:+.3f}" if e.observable else "not observable", err,
-                             f"{e.sigma_ms:.3f}", took])  # fmt: skip
-        for lidar in truth.rig.lidars:
-            T_true = lidar.T_cam0_lidar
-            T_given, T_found = given.lidar(lidar.name).T_cam0_lidar, found.rig.lidar(lidar.name).T_cam0_lidar
-            mine = next((r for r in found.lidars if r.lidar == lidar.name), None)
-            applied = mine is not None and mine.applied
-            angles = [_angle_deg(T[:3, :3], T_true[:3, :3]) for T in (T_given, T_found)]
-            shifts = [float(np.linalg.norm(T[:3, 3] - T_true[:3, 3]) * 1e3) for T in (T_given, T_found)]
-            sigmas = (None, None) if mine is None else (mine.sigma_rotation_deg, mine.sigma_translation_mm)
-            for what, (before, after), sigma in zip(
-                ("rotation error [deg]", "translation error [mm]"), (angles, shifts), sigmas, strict=True
-            ):
-                rec_rows.append([
-                    f"{name}: {lidar.name} {what}", f"{before:.3f}",
-                    f"{after:.3f}" if applied else "not applied (rig's kept)", f"{after:.3f}",
-                    "-" if sigma is None else f"{sigma:.3f}", took,
-                ])  # fmt: skip
-        mine_rows = [" | ".join(r[:5]) for r in rec_rows if r[0].startswith(f"{name}:")]
-        print(f"{name}: refine took {seconds:.0f} s ({cpu_s:.0f} CPU s)", *mine_rows,
-              f"stereo check: {found.stereo_alignment}", f"clock check: {found.image_clock_ms}",
-              sep="\n  ", flush=True)  # fmt: skip
+        found, rows = _recover(name, truth, given, bag)
+        rec_rows += rows
+        for what, alone in _alone_rigs(truth.rig, given) if args.alone else ():
+            rec_rows += _recover(f"{name} ({what})", truth, alone, bag)[1]
         for label, rig in (("exact rig", truth.rig), ("given rig", given), ("refined rig", found.rig)):
             med, outl, dens = _gt(bag, rig, work / f"{bag.name}_{label.split()[0]}", truth, args.every)
             gt_rows.append([f"{name}: {label}", f"{med:.2f}", f"{outl:.2f}", f"{dens:.2f}"])
@@ -184,6 +164,51 @@ def main() -> None:
     print(f"\nchart: {OUT_DIR / f'refine{args.tag}.png'}; table: {OUT_DIR / f'refine{args.tag}.csv'}")
     if args.scores:
         _score_study(args, work)
+
+
+def _alone_rigs(exact: Rig, given: Rig) -> tuple[tuple[str, Rig], ...]:
+    """The given rig's errors one kind at a time: the clock offsets alone (the LiDARs exact), the
+    LiDAR poses alone (the clock offsets exact)."""
+    offsets = with_timeshifts(exact, {c.name: c.timeshift_cam_imu or 0.0 for c in given.cameras})
+    poses = with_timeshifts(given, {c.name: c.timeshift_cam_imu or 0.0 for c in exact.cameras})
+    return (("clock offsets alone", offsets), ("LiDAR poses alone", poses))
+
+
+def _recover(name: str, truth: Truth, given: Rig, bag: Path) -> tuple[Refinement, list[list[str]]]:
+    """`refine_rig` of `bag` from the `given` rig, and the table's rows: what it recovered against the
+    truth, with its stated uncertainty, its wall and CPU time."""
+    t0, cpu0 = time.perf_counter(), os.times()
+    found = refine_rig([bag], given)
+    seconds, cpu1 = time.perf_counter() - t0, os.times()
+    cpu_s = sum(cpu1[:4]) - sum(cpu0[:4])  # this process and its workers (user + system)
+    took = f"{seconds:.0f} ({cpu_s:.0f} CPU)"
+    rows = []
+    for cam, true_ns in zip(found.cameras, OFFSETS_NS, strict=True):
+        e = cam.estimate
+        err = f"{abs(e.timeshift_ms + true_ns / 1e6):.3f}" if e.observable else "-"
+        rows.append([f"{name}: {cam.camera} offset [ms]", f"{-true_ns / 1e6:+.3f}",
+                     f"{e.timeshift_ms:+.3f}" if e.observable else "not observable", err,
+                     f"{e.sigma_ms:.3f}", took])  # fmt: skip
+    for lidar in truth.rig.lidars:
+        T_true = lidar.T_cam0_lidar
+        T_given, T_found = given.lidar(lidar.name).T_cam0_lidar, found.rig.lidar(lidar.name).T_cam0_lidar
+        mine = next((r for r in found.lidars if r.lidar == lidar.name), None)
+        applied = mine is not None and mine.applied
+        angles = [_angle_deg(T[:3, :3], T_true[:3, :3]) for T in (T_given, T_found)]
+        shifts = [float(np.linalg.norm(T[:3, 3] - T_true[:3, 3]) * 1e3) for T in (T_given, T_found)]
+        sigmas = (None, None) if mine is None else (mine.sigma_rotation_deg, mine.sigma_translation_mm)
+        for what, (before, after), sigma in zip(
+            ("rotation error [deg]", "translation error [mm]"), (angles, shifts), sigmas, strict=True
+        ):
+            rows.append([
+                f"{name}: {lidar.name} {what}", f"{before:.3f}",
+                f"{after:.3f}" if applied else "not applied (rig's kept)", f"{after:.3f}",
+                "-" if sigma is None else f"{sigma:.3f}", took,
+            ])  # fmt: skip
+    print(f"{name}: refine took {seconds:.0f} s ({cpu_s:.0f} CPU s)", *[" | ".join(r[:5]) for r in rows],
+          f"stereo check: {found.stereo_alignment}", f"clock check: {found.image_clock_ms}",
+          sep="\n  ", flush=True)  # fmt: skip
+    return found, rows
 
 
 SCORE_VARIANTS = ("exact rig", "cameras 5 ms late", "lidar_top turned 0.25 deg")
