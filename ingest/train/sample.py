@@ -55,9 +55,9 @@ from ingest.train.groundtruth import (
     splat_to_pixels,
     surface_normals,
 )
-from ingest.train.plan import IMU_MARGIN_NS
 from ingest.train.planes import Normals
 from ingest.train.rig_trajectory import RigTrajectory
+from ingest.train.sync import IMU_MARGIN_NS
 
 INTERPOLATION = {"linear": cv2.INTER_LINEAR, "cubic": cv2.INTER_CUBIC, "nearest": cv2.INTER_NEAREST}
 VELOCITY_SIGMAS = 4.0  # an estimated velocity counts when its norm exceeds this many standard errors

@@ -43,7 +43,7 @@ from ingest.runtime.transport import ALIGN
 from ingest.train.bad_messages import BadMessages
 from ingest.train.block_planes import NORMAL_DTYPE, BlockPlanes
 from ingest.train.lidar_rate import LidarRates
-from ingest.train.plan import IMU_MARGIN_NS, Plan
+from ingest.train.plan import Plan
 from ingest.train.repeats import FirstCopies
 from ingest.train.rig_trajectory import RigTrajectory
 from ingest.train.sample import (
@@ -55,9 +55,10 @@ from ingest.train.sample import (
     SampleResult,
     process_sample,
 )
+from ingest.train.sync import IMU_MARGIN_NS
 
 if TYPE_CHECKING:
-    from ingest.train.pipeline import IngestConfig, Topics
+    from ingest.train.settings import IngestConfig, Topics
 
 UNDECODABLE_IMAGE = "undecodable image (--max-bad)"
 """Why a sample was skipped when one of its camera images could not be decoded."""

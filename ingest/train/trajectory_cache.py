@@ -26,9 +26,9 @@ import numpy as np
 from calibration.rig import Rig
 from calibration.types import F64
 from ingest.bags.reader import BagSet
+from ingest.dataset.identity import bag_identity
 from ingest.dataset.layout import write_atomic
 from ingest.train.clouds import GyroTrack
-from ingest.train.describe import bag_identity
 from ingest.train.odometry import OdometryParams
 from ingest.train.rig_trajectory import RigTrajectory
 
