@@ -1,4 +1,4 @@
-"""Which frames a dataset folder holds already, and whether each finished sample is whole.
+"""Which frames a dataset folder holds, whether each finished sample is whole, which recording a bag is.
 
 A frame is known by its content, not by the name of the bag it came from:
 its two camera header stamps and `frame_digest`, a SHA-256 of both decoded

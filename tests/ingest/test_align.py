@@ -17,7 +17,8 @@ from calibration.rig import write_rig
 from calibration.types import F64
 from ingest.train.align import Alignment, ImageLevels, align_points
 from ingest.train.align_check import check_calibration, combine
-from ingest.train.pipeline import IngestConfig, ingest
+from ingest.train.pipeline import ingest
+from ingest.train.settings import IngestConfig
 from sensorbox.sim.camera import render
 from sensorbox.sim.lidar import simulate_sweep, sweep_windows
 from sensorbox.sim.run import SimConfig, setup_sim

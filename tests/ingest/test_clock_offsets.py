@@ -13,7 +13,8 @@ import yaml
 from rosbags.highlevel import AnyReader
 
 from calibration.rig import read_rig, with_timeshifts, write_rig
-from ingest.train.pipeline import IngestConfig, ingest
+from ingest.train.pipeline import ingest
+from ingest.train.settings import IngestConfig
 from sensorbox.sim.run import SimConfig, simulate
 from sensorbox.sim.score import score_dataset
 from sensorbox.sim.truth import Truth

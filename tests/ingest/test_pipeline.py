@@ -17,12 +17,13 @@ import yaml
 
 from calibration.stereo import rotate_for_stereo
 from ingest.bags.reader import open_bags
+from ingest.dataset.identity import bag_identity
 from ingest.dataset.layout import DEPTH_SCALE, DISP_SCALE, read_png_u16
 from ingest.dataset.meta import read_meta
 from ingest.errors import BagError, DatasetError, MessageDecodeError
-from ingest.train.describe import bag_identity
-from ingest.train.pipeline import IngestConfig, ingest
+from ingest.train.pipeline import ingest
 from ingest.train.sample import SampleParams
+from ingest.train.settings import IngestConfig
 from sensorbox.live.bagwriter import BagWriter
 from sensorbox.sim.run import SimConfig, simulate
 from sensorbox.sim.score import score_dataset

@@ -207,7 +207,8 @@ def test_ingest_refine_times_the_samples_with_the_offsets_it_found(late_walk: Pa
     estimate (within 1.5 ms of the truth), the summary carries the refinement, dataset.yaml says where
     the offsets came from, and the dataset's rig is the refined one."""
     from calibration.rig import write_rig
-    from ingest.train.pipeline import IngestConfig, ingest
+    from ingest.train.pipeline import ingest
+    from ingest.train.settings import IngestConfig
 
     exact = Truth.load(late_walk).rig
     rig = tmp_path / "rig" / "plain.yaml"
