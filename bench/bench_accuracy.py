@@ -19,9 +19,10 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from ingest.train.pipeline import ingest
-from ingest.train.sample import SampleParams
+from ingest.train.sample_job import SampleParams
 from ingest.train.settings import IngestConfig
-from sensorbox.sim.run import SimConfig, simulate
+from sensorbox.sim.config import SimConfig
+from sensorbox.sim.run import simulate
 from sensorbox.sim.score import SampleScore, score_dataset
 from sensorbox.sim.truth import Truth
 

@@ -39,7 +39,8 @@ from _common import OUT_DIR, cpu_s, machine_line
 from ingest.train.pipeline import ingest
 from ingest.train.settings import IngestConfig
 from ingest.train.summary import IngestSummary
-from sensorbox.sim.run import SimConfig, simulate
+from sensorbox.sim.config import SimConfig
+from sensorbox.sim.run import simulate
 from sensorbox.sim.score import score_dataset
 from sensorbox.sim.truth import Truth
 

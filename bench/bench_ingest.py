@@ -78,10 +78,11 @@ from ingest.dataset.layout import GT_DIRS, IMAGE_DIRS
 from ingest.dataset.png import encode_png
 from ingest.runtime.executor import Executor
 from ingest.train.pipeline import ingest
-from ingest.train.sample import Geometry, SampleParams
+from ingest.train.sample_job import Geometry, SampleParams
 from ingest.train.settings import IngestConfig, resolve_topics
 from ingest.train.summary import IngestSummary
-from sensorbox.sim.run import SimConfig, simulate
+from sensorbox.sim.config import SimConfig
+from sensorbox.sim.run import simulate
 from sensorbox.sim.truth import truth_dir
 
 PNG_LEVEL = 1

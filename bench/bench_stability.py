@@ -64,7 +64,8 @@ from sensorbox.analysis.stability import (
     time_offset_displacement_px,
     time_offset_range_error_m,
 )
-from sensorbox.sim.run import SimConfig, simulate
+from sensorbox.sim.config import SimConfig
+from sensorbox.sim.run import simulate
 from sensorbox.sim.truth import Truth
 
 DOCS = Path(__file__).resolve().parents[1] / "docs"

@@ -69,7 +69,7 @@ _CAMERA_KEY = re.compile(r"cam(?:0|[1-9][0-9]*)")
 MAX_TIMESHIFT_S = 1.0
 """Largest ``timeshift_cam_imu`` (s) taken as a camera's clock offset. Kalibr's estimates are
 milliseconds (the reference rig's: a few ms); the simulator's camera offsets are held to the same
-+-1 s (`sensorbox.sim.run.MAX_CAMERA_OFFSET_NS`). A shift beyond it is a value in the wrong unit (ms
++-1 s (`sensorbox.sim.config.MAX_CAMERA_OFFSET_NS`). A shift beyond it is a value in the wrong unit (ms
 or ns written as seconds) or a clock that was never synchronised: every stamp moved by it puts the
 frames outside the LiDAR data, and ingest planned no sample without saying why."""
 

@@ -28,7 +28,7 @@ from ingest.dataset.identity import bag_identity
 from ingest.dataset.layout import DEPTH_SCALE, DISP_SCALE, write_atomic
 from ingest.dataset.meta import read_meta
 from ingest.errors import DatasetError, OutputError
-from ingest.train.sample import Geometry
+from ingest.train.sample_job import Geometry
 
 if TYPE_CHECKING:
     from ingest.train.settings import IngestConfig

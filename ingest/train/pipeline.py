@@ -86,7 +86,7 @@ from ingest.train.plan import LOST_REASON, Plan, Survey, plan, survey
 from ingest.train.plausible import check_imu_rate, check_time_order
 from ingest.train.refine import Refinement, refine
 from ingest.train.rig_trajectory import RigTrajectory
-from ingest.train.sample import Geometry, SampleParams
+from ingest.train.sample_job import Geometry, SampleParams
 from ingest.train.settings import IngestConfig, Topics, resolve_topics
 from ingest.train.stream import (
     Shared,

@@ -13,7 +13,7 @@ from calibration.warp import height_full_problem
 from ingest.errors import BagError, DatasetError
 from ingest.raster.params import backend_problem
 from ingest.topic_map import check_rig
-from ingest.train.sample import SampleParams
+from ingest.train.sample_job import SampleParams
 from ingest.train.sync import DEFAULT_LIDAR_WINDOW_NS
 
 

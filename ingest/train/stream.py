@@ -46,15 +46,8 @@ from ingest.train.lidar_rate import LidarRates
 from ingest.train.plan import Plan
 from ingest.train.repeats import FirstCopies
 from ingest.train.rig_trajectory import RigTrajectory
-from ingest.train.sample import (
-    Geometry,
-    ImuWindow,
-    LidarPoints,
-    SampleJob,
-    SampleParams,
-    SampleResult,
-    process_sample,
-)
+from ingest.train.sample import process_sample
+from ingest.train.sample_job import Geometry, ImuWindow, LidarPoints, SampleJob, SampleParams, SampleResult
 from ingest.train.sync import IMU_MARGIN_NS
 
 if TYPE_CHECKING:

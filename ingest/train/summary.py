@@ -12,7 +12,8 @@ from ingest.train.align import Alignment
 from ingest.train.align_check import CalibrationCheck, from_metas
 from ingest.train.lidar_rate import THIN_FRACTION
 from ingest.train.refine import Refinement
-from ingest.train.sample import ALIGNED, GAP_FALLBACK, SampleAlignment, SampleResult
+from ingest.train.sample_dense import GAP_FALLBACK
+from ingest.train.sample_job import ALIGNED, SampleAlignment, SampleResult
 from ingest.train.stream import ALREADY_HELD
 from ingest.train.trajectory import TrajectorySummary
 

@@ -29,7 +29,7 @@ from ingest.bags.reader import BagSet
 from ingest.dataset.identity import bag_identity
 from ingest.dataset.layout import write_atomic
 from ingest.train.clouds import GyroTrack
-from ingest.train.odometry import OdometryParams
+from ingest.train.local_map import OdometryParams
 from ingest.train.rig_trajectory import RigTrajectory
 
 _PACKAGES = (Path(__file__).resolve().parents[1], Path(__file__).resolve().parents[2] / "calibration")

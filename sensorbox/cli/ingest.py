@@ -244,7 +244,7 @@ def ingest_cmd(
     from ingest.errors import DatasetError
     from ingest.train.dense import DenseParams
     from ingest.train.pipeline import PASS_READ, PASS_REFINE, PASS_TRAJECTORY, ingest
-    from ingest.train.sample import SampleParams
+    from ingest.train.sample_job import SampleParams
     from ingest.train.settings import IngestConfig
 
     check_out_folder("--out", out, "the dataset")

@@ -31,7 +31,7 @@ class EmulatorSpec:
     """What the child needs to build one emulator (all picklable)."""
 
     name: str
-    sim_cfg: Any  # sensorbox.sim.run.SimConfig
+    sim_cfg: Any  # sensorbox.sim.config.SimConfig
     lidar: str
     ip: str
     loop_s: float

@@ -15,9 +15,10 @@ from sensorbox.errors import GraphError
 from sensorbox.live.bus import PRIORITY_DEVICE, Node, NodeContext, NodeStatus
 from sensorbox.live.nodes import Params, stereo_camera_node
 from sensorbox.sim.camera_source import SimCameras, SimCameraSource
+from sensorbox.sim.config import SimConfig
 from sensorbox.sim.emulator_process import EmulatorProcess, EmulatorSpec
 from sensorbox.sim.mid360 import Mid360Emulator
-from sensorbox.sim.run import SimConfig, setup_sim
+from sensorbox.sim.run import setup_sim
 from sensorbox.sim.scan_source import SimScan
 
 

@@ -33,7 +33,7 @@ from ingest.inspect import inspect_bags
 from ingest.train import trajectory as trajectory_module
 from ingest.train import trajectory_cache
 from ingest.train.pipeline import ingest
-from ingest.train.sample import GAP_FALLBACK, GAP_REASON
+from ingest.train.sample_dense import GAP_FALLBACK, GAP_REASON
 from ingest.train.settings import IngestConfig
 from sensorbox.cli.ingest import summary_table
 from sensorbox.sim.truth import truth_dir

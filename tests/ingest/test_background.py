@@ -19,7 +19,8 @@ from ingest.dataset.layout import prepare_dirs
 from ingest.runtime.background import Background
 from ingest.train import sample
 from ingest.train.plan import plan
-from ingest.train.sample import Geometry, SampleJob, process_sample, start_equirects
+from ingest.train.sample import process_sample, start_equirects
+from ingest.train.sample_job import Geometry, SampleJob
 from ingest.train.settings import IngestConfig, resolve_topics
 from ingest.train.stream import Shared, StreamedJob, decode_images, stream_jobs
 from tests.ingest.test_pipeline import INDOOR, _rig

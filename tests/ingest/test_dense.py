@@ -23,14 +23,15 @@ from ingest.bags.message import RawMessage
 from ingest.bags.reader import BagSet, Progress, open_bags
 from ingest.dataset.meta import read_meta
 from ingest.train.dense import DenseParams, dense_ground_truth, free_space_filter, snap_to_pixel_rays
-from ingest.train.odometry import OdometryParams
+from ingest.train.local_map import OdometryParams
 from ingest.train.pipeline import ingest
 from ingest.train.planes import Normals
 from ingest.train.rig_trajectory import RigTrajectory
-from ingest.train.sample import SampleParams
+from ingest.train.sample_job import SampleParams
 from ingest.train.settings import IngestConfig, resolve_topics
 from ingest.train.trajectory import read_gyro, trajectory_pass
-from sensorbox.sim.run import SimConfig, simulate
+from sensorbox.sim.config import SimConfig
+from sensorbox.sim.run import simulate
 from sensorbox.sim.score import score_dataset
 from sensorbox.sim.truth import Truth
 
@@ -497,7 +498,7 @@ def test_the_warm_up_runs_beside_the_trajectory_pass_and_its_error_stops_the_run
     import threading
 
     from ingest.errors import OutputError
-    from ingest.train.sample import Geometry
+    from ingest.train.sample_job import Geometry
     from sensorbox.sim.fixtures import fixture_bag
     from tests.paths import FIXTURES_DIR
 
@@ -708,7 +709,7 @@ from numba.core.registry import CPUDispatcher
 from calibration.rig import read_rig
 from ingest.train.pipeline import ingest
 from ingest.train.settings import IngestConfig
-from ingest.train.sample import Geometry, SampleParams
+from ingest.train.sample_job import Geometry, SampleParams
 
 MODULES = [import_module(name) for name in ("calibration.kernels", "ingest.raster.kernels",
            "ingest.raster.pixel_kernels", "ingest.raster.point_kernels", "ingest.train.free_space")]

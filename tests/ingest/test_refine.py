@@ -27,7 +27,8 @@ from ingest.train.timeshift import (
     estimate_imu_rotation,
     estimate_timeshift,
 )
-from sensorbox.sim.run import SimConfig, simulate, with_mid360_imu_noise
+from sensorbox.sim.config import SimConfig, with_mid360_imu_noise
+from sensorbox.sim.run import simulate
 from sensorbox.sim.trajectory import imu_readings, static, walk
 from sensorbox.sim.truth import Truth
 from tests.faults.cli import sensorbox

@@ -17,7 +17,7 @@ from ingest.runtime.transport import ArraySlots, slot_views
 from ingest.train.block_planes import BlockPlanes, FreeSpaceSettings, PlaneSettings, world_normals
 from ingest.train.plan import Plan, plan
 from ingest.train.rig_trajectory import RigTrajectory
-from ingest.train.sample import Geometry
+from ingest.train.sample_job import Geometry
 from ingest.train.settings import IngestConfig, Topics, resolve_topics
 from ingest.train.stream import (
     Shared,

@@ -261,8 +261,9 @@ def test_a_lidar_that_sent_nothing_is_a_warning_after_the_recording():
 def test_a_live_emulator_sweeps_without_listing_its_run_first():
     """`loop_s:=0` simulates live over a 1e7 s run: its first sweep comes at once (it listed 1e8 windows
     first, and the emulator never sent)."""
+    from sensorbox.sim.config import SimConfig
     from sensorbox.sim.lidar import iter_sweep_windows, sweep_windows
-    from sensorbox.sim.run import SimConfig, setup_sim
+    from sensorbox.sim.run import setup_sim
     from sensorbox.sim.scan_source import SimScan
 
     setup = setup_sim(SimConfig(scene="indoor", duration_s=0.35, scale=0.1))
