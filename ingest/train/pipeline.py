@@ -44,7 +44,7 @@ from __future__ import annotations
 
 import tempfile
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import ExitStack, contextmanager
 from dataclasses import replace
@@ -86,7 +86,7 @@ from ingest.train.plan import LOST_REASON, Plan, Survey, plan, survey
 from ingest.train.plausible import check_imu_rate, check_time_order
 from ingest.train.refine import Refinement, refine
 from ingest.train.rig_trajectory import RigTrajectory
-from ingest.train.sample_job import Geometry, SampleParams
+from ingest.train.sample_job import Geometry, SampleParams, SampleResult
 from ingest.train.settings import IngestConfig, Topics, resolve_topics
 from ingest.train.stream import (
     Shared,
@@ -467,14 +467,26 @@ def _run(
             run_streamed, chain(head, queued), shared=Shared(geometry, traj), handoff=handoff
         )
         try:
-            for result in results:
-                for topic, log_ns, why in result.undecodable:  # decoded in the worker, counted here
-                    bad.add(topic, log_ns, why)
-                summary.add(result)
-                if result.written and result.sid in damaged_held:
-                    summary.damaged.append(damaged_held[result.sid])
-                tick()
+            _collect(results, summary, bad, damaged_held, tick)
         finally:
             results.close()
             if planes is not None:
                 summary.dense_planes = (planes.blocks_fitted, planes.seconds)
+
+
+def _collect(
+    results: Iterable[SampleResult],
+    summary: IngestSummary,
+    bad: BadMessages,
+    damaged_held: Mapping[str, str],
+    tick: Callable[[], None],
+) -> None:
+    """Count every finished sample into `summary` in job order (its undecodable images into `bad`); one
+    written under the id of a damaged sample (`damaged_held`: id -> its damage) records that damage."""
+    for result in results:
+        for topic, log_ns, why in result.undecodable:  # decoded in the worker, counted here
+            bad.add(topic, log_ns, why)
+        summary.add(result)
+        if result.written and result.sid in damaged_held:
+            summary.damaged.append(damaged_held[result.sid])
+        tick()
