@@ -32,7 +32,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from calibration.types import I64
-from ingest.bags.decode import Frame, ImuSample, Sweep, grey_as_bgr
+from ingest.bags.decode import Frame, ImuSample, Sweep
+from ingest.bags.image_pixels import grey_as_bgr
 from ingest.bags.message import RawMessage
 from ingest.bags.reader import BagSet
 from ingest.dataset.identity import HeldFrame, Resume, frame_digest, resume_state
