@@ -18,9 +18,11 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from ingest.train.pipeline import IngestConfig, ingest
-from ingest.train.sample import SampleParams
-from sensorbox.sim.run import SimConfig, simulate
+from ingest.train.pipeline import ingest
+from ingest.train.sample_job import SampleParams
+from ingest.train.settings import IngestConfig
+from sensorbox.sim.config import SimConfig
+from sensorbox.sim.run import simulate
 from sensorbox.sim.score import SampleScore, score_dataset
 from sensorbox.sim.truth import Truth
 

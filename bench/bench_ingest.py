@@ -77,9 +77,12 @@ from ingest.bags.reader import open_bags
 from ingest.dataset.layout import GT_DIRS, IMAGE_DIRS
 from ingest.dataset.png import encode_png
 from ingest.runtime.executor import Executor
-from ingest.train.pipeline import IngestConfig, IngestSummary, _resolve_topics, ingest
-from ingest.train.sample import Geometry, SampleParams
-from sensorbox.sim.run import SimConfig, simulate
+from ingest.train.pipeline import ingest
+from ingest.train.sample_job import Geometry, SampleParams
+from ingest.train.settings import IngestConfig, resolve_topics
+from ingest.train.summary import IngestSummary
+from sensorbox.sim.config import SimConfig
+from sensorbox.sim.run import simulate
 from sensorbox.sim.truth import truth_dir
 
 PNG_LEVEL = 1
@@ -204,7 +207,7 @@ def codec_floor_ms(bag: Path, rig_path: Path, out: Path) -> tuple[float, float]:
         stamps[meta.stem] = (int(doc["stamp_ns"]), int(doc["lower_stamp_ns"]))
     messages: dict[tuple[str, int], RawMessage] = {}
     with open_bags([bag]) as bags:
-        topics = _resolve_topics(rig, bags.topics(), str(bag))
+        topics = resolve_topics(rig, bags.topics(), str(bag))
         cameras = [topics.upper, topics.lower]
         for _ in bags.messages(topics=cameras):  # the plan pass's read: it checks every chunk
             pass

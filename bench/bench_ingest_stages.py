@@ -83,6 +83,9 @@ from _common import OUT_DIR, machine_line, markdown_table, median_seconds
 import ingest.dataset.layout as dataset
 import ingest.train.clouds as clouds_mod
 import ingest.train.sample as sample_mod
+import ingest.train.sample_dense as sample_dense_mod
+import ingest.train.sample_parts as sample_parts_mod
+import ingest.train.sample_sparse as sample_sparse_mod
 from calibration.linalg3 import sym3_smallest
 from calibration.rig import read_rig
 from calibration.warp import clear_map_cache
@@ -91,12 +94,15 @@ from ingest.bags.livox_msg import decode_custom_msg
 from ingest.bags.reader import open_bags
 from ingest.bags.rostypes import CUSTOM_MSG_TYPE, typestore
 from ingest.dataset.png import LEVELS, encode_png, opencv_silenced
-from ingest.train.pipeline import IngestConfig, _resolve_topics, ingest
+from ingest.train.pipeline import ingest
 from ingest.train.plan import plan
 from ingest.train.planes import knn_covariances, neighbour_covariances
-from ingest.train.sample import Geometry, SampleJob, SampleParams, process_sample
+from ingest.train.sample import process_sample
+from ingest.train.sample_job import Geometry, SampleJob, SampleParams
+from ingest.train.settings import IngestConfig, resolve_topics
 from ingest.train.stream import Shared, StreamedJob, decode_images, stream_jobs
-from sensorbox.sim.run import SimConfig, simulate
+from sensorbox.sim.config import SimConfig
+from sensorbox.sim.run import simulate
 from sensorbox.sim.truth import truth_dir
 
 T = TypeVar("T")
@@ -186,7 +192,7 @@ def load_jobs(bag: Path, rig_path: Path, out: Path) -> Jobs:
     geometry = timed(ms, "Geometry.from_rig", lambda: Geometry.from_rig(rig))
     cfg = IngestConfig(rig=rig_path, out=out, workers=1)
     with open_bags([bag]) as bags:
-        topics = _resolve_topics(rig, bags.topics(), str(bag))
+        topics = resolve_topics(rig, bags.topics(), str(bag))
         the_plan = timed(ms, "plan pass", lambda: plan(bags, topics, cfg))
         items = timed(ms, "stream_jobs pass", lambda: list(stream_jobs(bags, topics, the_plan, cfg)))
     shared = Shared(geometry)
@@ -242,6 +248,7 @@ def bench_decode(raw: bytes, runs: int) -> list[tuple[str, float]]:
 
 
 WRAPPED_MODULES = ("ingest.", "calibration.")
+SAMPLE_MODULES = (sample_mod, sample_sparse_mod, sample_dense_mod, sample_parts_mod)
 
 
 @dataclass
@@ -257,8 +264,8 @@ class Calls:
 def instrument(calls: Calls, capture: tuple[str, ...] = ()) -> Iterator[None]:
     """Time what process_sample calls directly, and write_sample's encode / convert / write helpers.
 
-    Every function of `ingest.train.sample`'s namespace that comes from SensorBox is
-    wrapped (so nested calls, e.g. filter_points inside _points_in_cam0, are in
+    Every function of the `ingest.train.sample*` modules' namespaces that comes from SensorBox is
+    wrapped (so nested calls, e.g. filter_points inside points_by_lidar, are in
     their caller's time too), plus the GyroTrack methods and `ingest.dataset.layout`'s
     encode_png (keyed by image kind), to_uint16 and write_atomic. Restored on exit.
     """
@@ -284,13 +291,14 @@ def instrument(calls: Calls, capture: tuple[str, ...] = ()) -> Iterator[None]:
         patches.append((owner, name, fn))
         setattr(owner, name, timed_fn)
 
-    for name, obj in list(vars(sample_mod).items()):
-        if (
-            inspect.isfunction(obj)
-            and obj.__module__.startswith(WRAPPED_MODULES)
-            and name not in ("process_sample", "_process")
-        ):
-            wrap(sample_mod, name, lambda a, n=name: n)  # type: ignore[misc]
+    for module in SAMPLE_MODULES:  # each call is wrapped once: in the namespace of the module that makes it
+        for name, obj in list(vars(module).items()):
+            if (
+                inspect.isfunction(obj)
+                and obj.__module__.startswith(WRAPPED_MODULES)
+                and name not in ("process_sample", "_process")
+            ):
+                wrap(module, name, lambda a, n=name: n)  # type: ignore[misc]
     for name in ("covers", "relative", "rotate"):
         if hasattr(clouds_mod.GyroTrack, name):
             wrap(clouds_mod.GyroTrack, name, lambda a, n=name: f"GyroTrack.{n}")  # type: ignore[misc]

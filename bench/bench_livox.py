@@ -165,7 +165,8 @@ def thread_cpu_s(native_ids: list[int]) -> float:
 
 def live_cpu(seconds: float, batch_wait_s: float) -> tuple[float, dict[str, int]]:
     """Two emulators streaming the simulator in real time; CPU of the driver's threads per wall second."""
-    from sensorbox.sim.run import SimConfig, setup_sim
+    from sensorbox.sim.config import SimConfig
+    from sensorbox.sim.run import setup_sim
     from sensorbox.sim.scan_source import SimScan, SweepList
 
     setup = setup_sim(SimConfig(scene="outdoor", trajectory="walk", duration_s=seconds, scale=0.1))

@@ -47,9 +47,11 @@ from scipy.spatial.transform import Rotation
 from calibration.rig import Rig, with_timeshifts, write_rig
 from calibration.types import F64
 from ingest.dataset.meta import read_meta
-from ingest.train.pipeline import IngestConfig, ingest, refine_rig
+from ingest.train.pipeline import ingest, refine_rig
 from ingest.train.refine import Refinement
-from sensorbox.sim.run import SimConfig, simulate, with_mid360_imu_noise
+from ingest.train.settings import IngestConfig
+from sensorbox.sim.config import SimConfig, with_mid360_imu_noise
+from sensorbox.sim.run import simulate
 from sensorbox.sim.score import score_dataset
 from sensorbox.sim.truth import Truth
 

@@ -31,8 +31,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import OUT_DIR
 
 from sensorbox.live.bagwriter import BagFormat
+from sensorbox.sim.config import SimConfig
 from sensorbox.sim.lidar import SWEEP_PERIOD_NS
-from sensorbox.sim.run import SimConfig, SimSummary, simulate
+from sensorbox.sim.run import SimSummary, simulate
 
 STAGES = ("cameras", "lidars", "imu", "write")
 THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS")  # echoed: they change the camera cost

@@ -49,7 +49,8 @@ from calibration.types import F64
 from ingest.dataset.layout import DEPTH_SCALE, read_png_u16
 from ingest.dataset.meta import SampleMeta, read_meta
 from ingest.train.groundtruth import GtParams, px_per_rad
-from ingest.train.pipeline import IngestConfig, ingest
+from ingest.train.pipeline import ingest
+from ingest.train.settings import IngestConfig
 from sensorbox.analysis.projection import compare_projections, num_disparities_for
 from sensorbox.analysis.stability import (
     disparity_range_error,
@@ -63,7 +64,8 @@ from sensorbox.analysis.stability import (
     time_offset_displacement_px,
     time_offset_range_error_m,
 )
-from sensorbox.sim.run import SimConfig, simulate
+from sensorbox.sim.config import SimConfig
+from sensorbox.sim.run import simulate
 from sensorbox.sim.truth import Truth
 
 DOCS = Path(__file__).resolve().parents[1] / "docs"

@@ -69,7 +69,7 @@ _CAMERA_KEY = re.compile(r"cam(?:0|[1-9][0-9]*)")
 MAX_TIMESHIFT_S = 1.0
 """Largest ``timeshift_cam_imu`` (s) taken as a camera's clock offset. Kalibr's estimates are
 milliseconds (the reference rig's: a few ms); the simulator's camera offsets are held to the same
-+-1 s (`sensorbox.sim.run.MAX_CAMERA_OFFSET_NS`). A shift beyond it is a value in the wrong unit (ms
++-1 s (`sensorbox.sim.config.MAX_CAMERA_OFFSET_NS`). A shift beyond it is a value in the wrong unit (ms
 or ns written as seconds) or a clock that was never synchronised: every stamp moved by it puts the
 frames outside the LiDAR data, and ingest planned no sample without saying why."""
 
@@ -220,6 +220,12 @@ def _parse_camera(name: str, block: object, where: str) -> dict[str, Any]:
     ):
         if key not in block:
             raise CalibrationError(f"{where}: missing key '{key}'")
+    return {"model": _camera_model(block, where), **_camera_extras(block, where)}
+
+
+def _camera_model(block: Mapping[str, Any], where: str) -> CameraModel:
+    """The camera model a camchain block states (model, intrinsics, distortion, resolution), checked as
+    Kalibr checks it and so that it maps pixels to rays."""
     model = block["camera_model"]
     if model not in _INTRINSIC_NAMES:
         raise CalibrationError(
@@ -267,7 +273,13 @@ def _parse_camera(name: str, block: object, where: str) -> dict[str, Any]:
     except CalibrationError as err:
         raise CalibrationError(f"{where}: {err}") from err
     _require_rays(camera, where)
-    out: dict[str, Any] = {"model": camera}
+    return camera
+
+
+def _camera_extras(block: Mapping[str, Any], where: str) -> dict[str, Any]:
+    """A camchain block's optional keys, checked: its poses (T_cn_cnm1, T_cam_imu or T_imu_cam), clock
+    offset (timeshift_cam_imu, s), rostopic and cam_overlaps."""
+    out: dict[str, Any] = {}
     if "T_cn_cnm1" in block:
         out["T_cn_cnm1"] = as_transform(block["T_cn_cnm1"], f"{where}.T_cn_cnm1")
     elif OLD_T_CN_CNM1 in block:  # early Kalibr camchains (EuRoC's era) name the same pose so

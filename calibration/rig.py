@@ -30,11 +30,8 @@ as is a LiDAR or IMU more than `MAX_LEVER_ARM_M` from cam0.
 
 from __future__ import annotations
 
-import difflib
 import importlib.resources
-import ipaddress
 import json
-import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -54,6 +51,16 @@ from calibration.kalibr import (
     matrix_to_list,
     parse_kalibr_camchain,
 )
+from calibration.rig_fields import (
+    bag_topic,
+    check_lever_arm,
+    each_once,
+    finite,
+    is_ipv4,
+    known_keys,
+    require_mapping,
+    require_str,
+)
 from calibration.transforms import as_transform, invert, livox_extrinsic_to_transform
 from calibration.types import F64
 
@@ -67,14 +74,6 @@ _RIG_KEYS = ("sensorbox_rig", "name", "camchain", "cameras", "lidars", "imus")
 _CAMERA_KEYS = ("role", "topic")
 _LIDAR_KEYS = ("topic", "ip", "T_cam0_lidar", "livox_extrinsic", "livox_config", "T_cam0_base")
 _IMU_KEYS = ("topic", "T_cam0_imu", "rate_hz")
-
-MAX_LEVER_ARM_M = 2.0
-"""Farthest a LiDAR or IMU may sit from cam0 (m). The rig is handheld: the
-reference rig's sensors are 0.02-0.21 m from cam0, and 2 m leaves room for any
-pole or backpack mount, while a lever arm written in millimetres (87 mm as 87)
-is 40 times over it. It is the bound the camera baseline is held to
-(`calibration.rectify.MAX_PLAUSIBLE_BASELINE_M`). A LiDAR pose is the ground
-truth's frame: a wrong one moves every GT point, so it is refused, not warned about."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -173,44 +172,6 @@ class Rig:
         return float(np.linalg.norm(cb - ca))
 
 
-def _require_mapping(value: object, where: str) -> Mapping[str, Any]:
-    if not isinstance(value, Mapping):
-        raise CalibrationError(f"{where}: expected a mapping, got {value!r}")
-    return value
-
-
-def _known_keys(block: Mapping[Any, Any], known: tuple[str, ...], where: str) -> None:
-    """Refuse a key not in `known`: a misspelt one (``imu`` for ``imus``) would drop its sensors silently.
-
-    The rig file is SensorBox's own, versioned format (unlike a camchain,
-    which other tools extend), so an unknown key is a mistake, never data to skip.
-    """
-    for key in block:
-        if key not in known:
-            near = difflib.get_close_matches(str(key), known, n=1)
-            hint = f" (did you mean '{near[0]}'?)" if near else ""
-            raise CalibrationError(f"{where}: unknown key {key!r}{hint}; known keys: {', '.join(known)}")
-
-
-def _check_lever_arm(T: F64, where: str, hint: str) -> None:
-    """Refuse a sensor pose whose translation puts it over `MAX_LEVER_ARM_M` from cam0."""
-    distance_m = float(np.linalg.norm(T[:3, 3]))
-    if not distance_m <= MAX_LEVER_ARM_M:
-        raise CalibrationError(
-            f"{where}: translation {distance_m:.4g} m from cam0: expected <= {MAX_LEVER_ARM_M:g} m "
-            f"on a handheld rig ({hint})"
-        )
-
-
-def _require_str(block: Mapping[str, Any], key: str, where: str) -> str:
-    if key not in block:
-        raise CalibrationError(f"{where}: missing key '{key}'")
-    value = block[key]
-    if not isinstance(value, str) or not value:
-        raise CalibrationError(f"{where}.{key}: expected a non-empty string, got {value!r}")
-    return value
-
-
 def read_livox_config(path: str | Path) -> dict[str, F64]:
     """Read a livox_ros_driver2 JSON config; return ``{ip: T_base_lidar}``.
 
@@ -232,8 +193,8 @@ def read_livox_config(path: str | Path) -> dict[str, F64]:
     index: dict[str, int] = {}
     for i, cfg in enumerate(configs):
         where = f"{p}: lidar_configs[{i}]"
-        cfg = _require_mapping(cfg, where)
-        ip = _require_str(cfg, "ip", where)
+        cfg = require_mapping(cfg, where)
+        ip = require_str(cfg, "ip", where)
         if ip in index:  # which extrinsic is meant cannot be told
             raise CalibrationError(f"{where}.ip: {ip} is also lidar_configs[{index[ip]}]'s")
         index[ip] = i
@@ -244,74 +205,25 @@ def read_livox_config(path: str | Path) -> dict[str, F64]:
     return out
 
 
-def _finite(v: float) -> bool:
-    """`math.isfinite`, False (not OverflowError) for an integer beyond float's range."""
-    try:
-        return math.isfinite(v)
-    except OverflowError:
-        return False
-
-
 def _livox_block(block: object, where: str) -> F64:
-    block = _require_mapping(block, where)
+    block = require_mapping(block, where)
     values = []
     for key in _LIVOX_KEYS:
         if key not in block:
             raise CalibrationError(f"{where}: missing key '{key}' (degrees for roll/pitch/yaw, mm for x/y/z)")
         v = block[key]
-        if not isinstance(v, int | float) or isinstance(v, bool) or not _finite(v):
+        if not isinstance(v, int | float) or isinstance(v, bool) or not finite(v):
             raise CalibrationError(f"{where}.{key}: expected a number, got {v!r}")
         values.append(float(v))
     return livox_extrinsic_to_transform(*values)
 
 
-def _topic(name: str) -> str:
-    """A rig topic as a bag stores it: fully qualified, no trailing slash.
-
-    Recorders write absolute names (`/livox/lidar_192_168_1_12`); a relative
-    one in a rig file means the same topic in the root namespace.
-    """
-    return "/" + name.strip("/")
-
-
-def _is_ipv4(value: object) -> bool:
-    if not isinstance(value, str):
-        return False
-    try:
-        ipaddress.IPv4Address(value)
-    except ValueError:
-        return False
-    return True
-
-
-def _each_once(values: list[tuple[str, str, str | None]], why: str) -> None:
-    """Refuse a value (a topic, an IP) that two sensors share, naming both files and keys; None is unset.
-
-    Each of `values` is (file, key, value), the key with its field
-    ("lidars.lidar_top.topic", "cam1.rostopic"). A topic belongs to one
-    sensor: messages on a shared one cannot be told apart (two Mid-360s on
-    livox_ros_driver2's multi_topic 0 share /livox/lidar, and their
-    CustomMsg.lidar_id is the first octet of the IP, the same for both).
-    """
-    owner: dict[str, tuple[str, str]] = {}
-    for file, key, value in values:
-        if value is None:
-            continue
-        if value in owner:
-            first_file, first = owner[value]
-            both_lidars = all(k.startswith("lidars.") and k.endswith(".topic") for k in (first, key))
-            hint = " (for Livox LiDARs, livox_ros_driver2's multi_topic: 1)" if both_lidars else ""
-            second = key if file == first_file else f"{file}: {key}"
-            raise CalibrationError(f"{first_file}: {first} and {second} are both {value}: {why}{hint}")
-        owner[value] = (file, key)
-
-
 def _parse_lidar(name: str, block: object, where: str, base_dir: Path) -> Lidar:
-    block = _require_mapping(block, where)
-    _known_keys(block, _LIDAR_KEYS, where)
-    topic = _topic(_require_str(block, "topic", where))
+    block = require_mapping(block, where)
+    known_keys(block, _LIDAR_KEYS, where)
+    topic = bag_topic(require_str(block, "topic", where))
     ip = block.get("ip")
-    if ip is not None and not _is_ipv4(ip):
+    if ip is not None and not is_ipv4(ip):
         raise CalibrationError(f"{where}.ip: expected a dotted IPv4 address such as 192.168.1.12, got {ip!r}")
     given = [k for k in ("T_cam0_lidar", "livox_extrinsic", "livox_config") if k in block]
     if len(given) != 1:
@@ -326,11 +238,11 @@ def _parse_lidar(name: str, block: object, where: str, base_dir: Path) -> Lidar:
                 "it would be ignored (give T_cam0_lidar = T_cam0_base @ T_base_lidar alone)"
             )
         T = as_transform(block["T_cam0_lidar"], f"{where}.T_cam0_lidar")
-        _check_lever_arm(T, f"{where}.T_cam0_lidar", "millimetres written as metres?")
+        check_lever_arm(T, f"{where}.T_cam0_lidar", "millimetres written as metres?")
     else:
         if given[0] == "livox_extrinsic":
-            inline = _require_mapping(block["livox_extrinsic"], f"{where}.livox_extrinsic")
-            _known_keys(inline, _LIVOX_KEYS, f"{where}.livox_extrinsic")  # the driver's JSON may hold more
+            inline = require_mapping(block["livox_extrinsic"], f"{where}.livox_extrinsic")
+            known_keys(inline, _LIVOX_KEYS, f"{where}.livox_extrinsic")  # the driver's JSON may hold more
             T_base_lidar = _livox_block(inline, f"{where}.livox_extrinsic")
         else:
             cfg_path = base_dir / str(block["livox_config"])
@@ -353,23 +265,23 @@ def _parse_lidar(name: str, block: object, where: str, base_dir: Path) -> Lidar:
         T = T_cam0_base @ T_base_lidar
         placed = " @ T_cam0_base" if "T_cam0_base" in block else ""
         units = "the Livox x, y, z are millimetres, T_cam0_base metres"
-        _check_lever_arm(T, f"{where}.{given[0]}{placed}", units)
+        check_lever_arm(T, f"{where}.{given[0]}{placed}", units)
     return Lidar(name=name, topic=topic, T_cam0_lidar=T, ip=ip)
 
 
 def _parse_imu(name: str, block: object, where: str) -> Imu:
-    block = _require_mapping(block, where)
-    _known_keys(block, _IMU_KEYS, where)
-    topic = _topic(_require_str(block, "topic", where))
+    block = require_mapping(block, where)
+    known_keys(block, _IMU_KEYS, where)
+    topic = bag_topic(require_str(block, "topic", where))
     if "T_cam0_imu" not in block:
         raise CalibrationError(f"{where}: missing key 'T_cam0_imu'")
     rate = block.get("rate_hz")
     if rate is not None and (
-        not isinstance(rate, int | float) or isinstance(rate, bool) or not (rate > 0 and _finite(rate))
+        not isinstance(rate, int | float) or isinstance(rate, bool) or not (rate > 0 and finite(rate))
     ):
         raise CalibrationError(f"{where}.rate_hz: expected a positive number, got {rate!r}")
     T_cam0_imu = as_transform(block["T_cam0_imu"], f"{where}.T_cam0_imu")
-    _check_lever_arm(T_cam0_imu, f"{where}.T_cam0_imu", "millimetres written as metres?")
+    check_lever_arm(T_cam0_imu, f"{where}.T_cam0_imu", "millimetres written as metres?")
     return Imu(
         name=name,
         topic=topic,
@@ -395,18 +307,18 @@ def rig_from_camchain(chain: CameraChain, name: str = "camchain") -> Rig:
 
 
 def _parse_cameras(block: object, chain: CameraChain, where: str) -> tuple[Camera, ...]:
-    block = _require_mapping(block, where)
+    block = require_mapping(block, where)
     cams: list[Camera] = []
     for kc in chain.cameras:
-        entry = _require_mapping(block.get(kc.name, {}), f"{where}.{kc.name}")
-        _known_keys(entry, _CAMERA_KEYS, f"{where}.{kc.name}")
+        entry = require_mapping(block.get(kc.name, {}), f"{where}.{kc.name}")
+        known_keys(entry, _CAMERA_KEYS, f"{where}.{kc.name}")
         role = entry.get("role")
         if role is not None and role not in ROLES:
             raise CalibrationError(f"{where}.{kc.name}.role: expected one of {ROLES}, got {role!r}")
         topic = entry.get("topic", kc.rostopic)
         if topic is not None and not isinstance(topic, str):
             raise CalibrationError(f"{where}.{kc.name}.topic: expected a string, got {topic!r}")
-        topic = None if topic is None else _topic(topic)
+        topic = None if topic is None else bag_topic(topic)
         cams.append(Camera(kc.name, kc.model, kc.T_cam_cam0, role, topic, kc.timeshift_cam_imu))
     unknown = set(block) - {c.name for c in chain.cameras}
     if unknown:
@@ -427,31 +339,31 @@ def read_rig(path: str | Path) -> Rig:
     if isinstance(data, Mapping) and "cam0" in data and "sensorbox_rig" not in data:
         chain = parse_kalibr_camchain(data, str(p))
         topics = [(str(p), f"{c.name}.rostopic", c.rostopic) for c in chain.cameras]
-        _each_once(topics, "each sensor needs its own topic")
+        each_once(topics, "each sensor needs its own topic")
         return rig_from_camchain(CameraChain(chain.cameras, source=p), name=p.stem)
     where = str(p)
-    data = _require_mapping(data, where)
+    data = require_mapping(data, where)
     version = data.get("sensorbox_rig")
     if version != RIG_VERSION:
         raise CalibrationError(
             f"{where}: sensorbox_rig: expected version {RIG_VERSION} "
             f"(or a Kalibr camchain with cam0, cam1, ...), got {version!r}"
         )
-    _known_keys(data, _RIG_KEYS, where)
-    chain_name = _require_str(data, "camchain", where)
+    known_keys(data, _RIG_KEYS, where)
+    chain_name = require_str(data, "camchain", where)
     chain_path = p.parent / chain_name
     chain_data = load_yaml(chain_path, f"Kalibr camchain (referenced by {p.name})")
     chain = CameraChain(parse_kalibr_camchain(chain_data, str(chain_path)).cameras, source=chain_path)
     cameras = _parse_cameras(data.get("cameras", {}), chain, f"{where}: cameras")
     lidars = tuple(
         _parse_lidar(str(n), b, f"{where}: lidars.{n}", p.parent)
-        for n, b in _require_mapping(data.get("lidars", {}), f"{where}: lidars").items()
+        for n, b in require_mapping(data.get("lidars", {}), f"{where}: lidars").items()
     )
     imus = tuple(
         _parse_imu(str(n), b, f"{where}: imus.{n}")
-        for n, b in _require_mapping(data.get("imus", {}), f"{where}: imus").items()
+        for n, b in require_mapping(data.get("imus", {}), f"{where}: imus").items()
     )
-    given = _require_mapping(data.get("cameras", {}), where)
+    given = require_mapping(data.get("cameras", {}), where)
     topics = [
         (where, f"cameras.{c.name}.topic", c.topic)
         if "topic" in given.get(c.name, {})
@@ -463,8 +375,8 @@ def read_rig(path: str | Path) -> Rig:
         for kind, group in (("lidars", lidars), ("imus", imus))
         for s in group
     ]
-    _each_once(topics, "each sensor needs its own topic")
-    _each_once([(where, f"lidars.{li.name}.ip", li.ip) for li in lidars], "each LiDAR has its own address")
+    each_once(topics, "each sensor needs its own topic")
+    each_once([(where, f"lidars.{li.name}.ip", li.ip) for li in lidars], "each LiDAR has its own address")
     name = data.get("name", p.stem)
     return Rig(cameras, lidars, imus, name=str(name), source=p, camchain=chain)
 

@@ -10,8 +10,8 @@ Public API:
   was told to skip them (`--salvage`); it carries the `LostChunk`.
 - `ChunkGuard`: what a reader does at a corrupt chunk: raise, or (skip=True)
   log one warning line and record the chunk in `lost`.
-- `guard_readers(readers, guard)`: make rosbags' readers of an `AnyReader`
-  (before `open()`) check chunk by chunk and report to `guard`.
+- `ingest.bags.checked_readers.guard_readers(readers, guard)`: make rosbags'
+  readers of an `AnyReader` (before `open()`) check chunk by chunk and report to `guard`.
 - `decompress_checked(data, compression, size, crc)`: an MCAP chunk's records,
   size- and CRC-checked (`ChunkDataError` when they do not match).
 - `chunk_messages(bio, chunk, channels, start, stop, ...)`: one MCAP chunk's
@@ -57,18 +57,12 @@ from collections import deque
 from collections.abc import Callable, Collection, Generator, Iterator, Mapping, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
-from io import BytesIO
 from pathlib import Path
-from typing import Any, cast
+from typing import Any
 
 import lz4.frame
 import zstandard
 from isal import isal_zlib
-from rosbags.rosbag1 import Reader as Ros1Reader
-from rosbags.rosbag1 import ReaderError as Ros1ReaderError
-from rosbags.rosbag1.reader import Header, RecordType, read_bytes, read_uint32
-from rosbags.rosbag2 import Reader as Ros2Reader
-from rosbags.rosbag2.reader import DirectoryReader
 from rosbags.rosbag2.storage_mcap import DECOMPRESSORS, ChunkInfo, McapReader, Msg, read_exact
 
 from ingest.errors import BagError, MessageDecodeError
@@ -88,7 +82,6 @@ __all__ = [
     "LostChunk",
     "chunk_messages",
     "decompress_checked",
-    "guard_readers",
 ]
 
 log = logging.getLogger(__name__)
@@ -153,7 +146,7 @@ class CorruptChunkError(BagError):
         self.chunk = chunk
 
 
-def _reason(err: BaseException) -> str:
+def reason_of(err: BaseException) -> str:
     text = " ".join(str(err).split()).rstrip(".")
     return f"{type(err).__name__}: {text}" if text else type(err).__name__
 
@@ -203,7 +196,7 @@ class CheckedMcapReader(McapReader):
             counts[topic] = counts.get(topic, 0) + n
         return LostChunk(
             Path(str(self.path)), chunk.chunk_start_offset, chunk.message_start_time, chunk.message_end_time,
-            counts, _reason(err), self.metadata.start_time,
+            counts, reason_of(err), self.metadata.start_time,
         )  # fmt: skip
 
     def _chunk(
@@ -511,7 +504,7 @@ class DeferredData:
         try:
             records = decompress_checked(self.compressed, self.compression, self.size, self.crc)
         except Exception as err:  # checksum, size and decompressor errors of bytes that changed
-            raise MessageDecodeError(f"{self.chunk}: {_reason(err)}") from err
+            raise MessageDecodeError(f"{self.chunk}: {reason_of(err)}") from err
         return memoryview(records).toreadonly()[self.start : self.start + self.length]
 
 
@@ -579,141 +572,3 @@ def _partial(
         return None
     found.sort(key=lambda m: m.timestamp)
     return found
-
-
-# ---------------------------------------------------------------- ROS 1
-
-
-class CheckedRos1Reader(Ros1Reader):
-    """rosbags' ROS 1 reader that reports a chunk that fails to decompress to `guard` and skips it."""
-
-    guard: ChunkGuard = ChunkGuard()  # raises; `guard_readers` gives each reader the run's guard
-
-    def _lost(self, pos: int, err: BaseException) -> LostChunk:
-        info = next(i for i in self.chunk_infos if i.pos == pos)
-        names = {c.id: c.topic for c in self.connections}
-        counts: dict[str, int] = {}
-        for cid, n in info.connection_counts.items():
-            topic = names.get(cid, f"connection {cid}")
-            counts[topic] = counts.get(topic, 0) + n
-        end = info.end_time - 1  # rosbags stores the end exclusive
-        return LostChunk(
-            Path(str(self.path)), pos, info.start_time, end, counts, _reason(err), self.start_time
-        )
-
-    def _records(self, pos: int) -> tuple[BytesIO, memoryview] | None:
-        """The decompressed records of the chunk at `pos` (as a stream, and a view of the same bytes);
-        None (after `guard.report`) when corrupt."""
-        if self.guard.is_lost(Path(str(self.path)), pos):
-            return None
-        assert self.bio is not None
-        chunk = self.chunks[pos]
-        self.bio.seek(chunk.datapos)
-        try:
-            raw = chunk.decompressor(read_bytes(self.bio, chunk.datasize))
-        except Exception as err:  # bz2 / lz4 errors of damaged bytes, a chunk cut short
-            self.guard.report(self._lost(pos, err))
-            return None
-        return BytesIO(raw), memoryview(raw)
-
-    def messages(
-        self, connections: Collection[Any] = (), start: int | None = None, stop: int | None = None
-    ) -> Generator[tuple[Any, int, bytes], None, None]:
-        """Messages of `connections` (empty: all) in log-time order, `stop` exclusive.
-
-        Walks the merged per-connection indexes like rosbags' reader; a chunk
-        that fails to decompress goes to `guard` and its entries are passed over.
-        """
-        self._check_open()
-        by_id = {c.id: c for c in self.connections}
-        entries = heapq.merge(
-            *([(e, c) for e in self.indexes[c.id]] for c in (connections or self.connections)),
-            key=lambda ec: ec[0].time,
-        )
-        pos, records = -1, None
-        for entry, indexed in entries:
-            if start is not None and entry.time < start:
-                continue
-            if stop is not None and entry.time >= stop:
-                return
-            if entry.chunk_pos != pos:
-                pos, records = entry.chunk_pos, self._records(entry.chunk_pos)
-            if records is not None:
-                stream, view = records
-                try:
-                    connection = _message_at(stream, entry.offset, by_id)  # leaves the stream at the data
-                    data = _data(stream, view)
-                except (Ros1ReaderError, UnicodeDecodeError, struct.error, KeyError) as err:
-                    raise _damaged_record(indexed.topic, entry, err) from err
-                # rosbags' reader protocol says bytes; a large message is a memoryview, which every
-                # consumer here takes (`ingest.bags.decode.Raw`, `RawMessage.raw`)
-                yield connection, entry.time, cast(bytes, data)
-
-
-def _damaged_record(topic: str, entry: Any, err: BaseException) -> Ros1ReaderError:
-    """The error of a message record its chunk's index points at but that does not parse (a zeroed or
-    overwritten record header in an uncompressed chunk), naming its topic, log time and place."""
-    sec, nsec = divmod(int(entry.time), 1_000_000_000)
-    return Ros1ReaderError(
-        f"the message record of {topic} at log time {sec}.{nsec:09d} s (chunk at byte {entry.chunk_pos}, "
-        f"record at chunk offset {entry.offset}) is damaged: {type(err).__name__}: {err}"
-    )
-
-
-def _message_at(records: BytesIO, offset: int, by_id: Mapping[int, Any]) -> Any:
-    """The connection of the message record at `offset` (connection records before it are skipped).
-
-    Leaves `records` at the record's data length field, for `_data`.
-    """
-    records.seek(offset)
-    header = Header.read(records)
-    while header.get_uint8("op") == RecordType.CONNECTION:
-        records.seek(read_uint32(records), 1)
-        header = Header.read(records)
-    if header.get_uint8("op") != RecordType.MSGDATA:
-        raise Ros1ReaderError(f"expected a message record at chunk offset {offset}")
-    return by_id[header.get_uint32("conn")]
-
-
-def _data(records: BytesIO, view: memoryview) -> bytes | memoryview:
-    """The message data at the record's length field: a view of the chunk when large (`chunk_messages`)."""
-    n = read_uint32(records)
-    if n < COPY_BELOW_BYTES:
-        return read_bytes(records, n)
-    start = records.tell()
-    if start + n > len(view):
-        raise Ros1ReaderError(f"message data of {n} bytes overruns its chunk at offset {start}")
-    records.seek(start + n)
-    return view[start : start + n]
-
-
-# ---------------------------------------------------------------- wiring
-
-
-def guard_readers(readers: Sequence[Any], guard: ChunkGuard) -> list[Any]:
-    """`readers` (an AnyReader's, not yet open) with checked MCAP / ROS 1 readers reporting to `guard`.
-
-    A rosbag2 directory's storage files are created when it opens; its plugin
-    table is pointed at `CheckedMcapReader` for that.
-    """
-    checked: list[Any] = []
-    for reader in readers:
-        if isinstance(reader, Ros1Reader):
-            reader = CheckedRos1Reader(reader.path)
-            reader.guard = guard
-        elif isinstance(reader, Ros2Reader) and isinstance(reader.storage, McapReader):
-            storage = CheckedMcapReader(reader.storage.path)
-            storage.guard = guard
-            reader.storage = storage
-        elif isinstance(reader, Ros2Reader) and isinstance(reader.storage, DirectoryReader):
-            reader.storage.STORAGE_PLUGINS = {
-                **DirectoryReader.STORAGE_PLUGINS,
-                "mcap": _guarded_mcap(guard),
-            }
-        checked.append(reader)
-    return checked
-
-
-def _guarded_mcap(guard: ChunkGuard) -> type[CheckedMcapReader]:
-    """A `CheckedMcapReader` class whose instances report to `guard` (storage plugins are classes)."""
-    return type("GuardedMcapReader", (CheckedMcapReader,), {"guard": guard})

@@ -15,7 +15,6 @@ Public API:
   bgra8, rgba8, mono8, mono16, bayer_{rggb,bggr,gbrg,grbg}{8,16}).
 - `decode_compressed_image(raw, ros_version) -> Frame` (anything `cv2.imdecode` reads).
 - `decode_imu(raw, ros_version) -> ImuSample`.
-- `grey_as_bgr(image)`: a mono image as the grey BGR image the dataset writes.
 - `sweep_from_custom_msg(msg)`, `sweep_from_pointcloud(cloud) -> Sweep`.
 
 Conventions: times are int64 ns from the message header (never bag log time);
@@ -36,6 +35,7 @@ from typing import Any, Literal
 import cv2
 import numpy as np
 
+from ingest.bags.image_pixels import image_pixels, to_bgr
 from ingest.bags.jpeg_warnings import jpeg_warnings
 from ingest.bags.livox_msg import CustomMsg, decode_custom_msg
 from ingest.bags.point_time import point_times_ns
@@ -55,7 +55,6 @@ Raw = bytes | memoryview
 
 __all__ = [
     "DECODED_TYPES",
-    "IMAGE_ENCODINGS",
     "Frame",
     "ImuSample",
     "MessageDecodeError",
@@ -67,7 +66,6 @@ __all__ = [
     "decode_image",
     "decode_imu",
     "decode_pointcloud2",
-    "grey_as_bgr",
     "header_stamp_ns",
     "pointfield_dtype",
     "sweep_from_custom_msg",
@@ -321,98 +319,9 @@ def sweep_from_custom_msg(msg: CustomMsg) -> Sweep:
 
 # ---------------------------------------------------------------- images
 
-_BAYER_CODES: dict[str, int] = {
-    # ROS names the pattern from the top-left pixel; OpenCV's classic names are
-    # shifted by one (cv_bridge's mapping): rggb -> BayerBG, etc.
-    "rggb": cv2.COLOR_BayerBG2BGR,
-    "bggr": cv2.COLOR_BayerRG2BGR,
-    "gbrg": cv2.COLOR_BayerGR2BGR,
-    "grbg": cv2.COLOR_BayerGB2BGR,
-}
-
-_COLOUR_CODES: dict[str, int] = {
-    "rgb8": cv2.COLOR_RGB2BGR,
-    "bgra8": cv2.COLOR_BGRA2BGR,
-    "rgba8": cv2.COLOR_RGBA2BGR,
-}
-
-IMAGE_ENCODINGS: dict[str, tuple[int, str]] = {
-    "bgr8": (3, "u1"),
-    "rgb8": (3, "u1"),
-    "bgra8": (4, "u1"),
-    "rgba8": (4, "u1"),
-    "mono8": (1, "u1"),
-    "mono16": (1, "u2"),
-    **{f"bayer_{p}8": (1, "u1") for p in _BAYER_CODES},
-    **{f"bayer_{p}16": (1, "u2") for p in _BAYER_CODES},
-}
-"""Supported `sensor_msgs/Image` encodings -> (channels, numpy base type)."""
-
-
-ROW_ALIGN_BYTES = 64
-"""Row padding (`step` beyond a row's pixels) aligns rows to at most this many bytes (SIMD, DMA). Padding
-of this much and of a byte a pixel or more is no alignment: data of an encoding with more bytes a pixel
-(bgra8 data labelled rgb8 reads every pixel from the wrong bytes)."""
-
-
-def _pixels(msg: Any) -> Array:
-    """The image data as an (H, W, C) view honouring `step` and byte order."""
-    encoding = str(msg.encoding)
-    if encoding not in IMAGE_ENCODINGS:
-        raise MessageDecodeError(
-            f"Image encoding {encoding!r} is not supported; expected one of {sorted(IMAGE_ENCODINGS)}"
-        )
-    channels, base = IMAGE_ENCODINGS[encoding]
-    dtype = np.dtype((">" if msg.is_bigendian else "<") + base)
-    height, width, step = int(msg.height), int(msg.width), int(msg.step)
-    if height <= 0 or width <= 0:
-        raise MessageDecodeError(f"Image {encoding} is empty ({width}x{height})")
-    row_bytes = width * channels * dtype.itemsize
-    if step < row_bytes:
-        raise MessageDecodeError(
-            f"Image {encoding} {width}x{height}: step {step} < {row_bytes} bytes per row"
-        )
-    pixel_bytes = channels * dtype.itemsize
-    if step - row_bytes >= max(width, ROW_ALIGN_BYTES):  # padding aligns rows: it adds no byte a pixel
-        raise MessageDecodeError(
-            f"Image {encoding} {width}x{height}: step {step} holds {step / width:g} bytes a pixel but "
-            f"{encoding} has {pixel_bytes}; data of another encoding (bgra8 labelled rgb8?) would be "
-            "read as wrong pixels"
-        )
-    need = (height - 1) * step + row_bytes  # the last row's padding may be left out
-    if not need <= msg.data.size <= height * step:
-        expected = f"{need}" if need == height * step else f"{need}..{height * step}"
-        raise MessageDecodeError(
-            f"Image {encoding} {width}x{height} step {step} needs {expected} data bytes, has {msg.data.size}"
-        )
-    return np.ndarray(
-        (height, width, channels),
-        dtype,
-        buffer=msg.data,
-        strides=(step, channels * dtype.itemsize, dtype.itemsize),
-    )
-
-
-def _to_bgr(pixels: Array, encoding: str) -> Array:
-    """Convert an (H, W, C) view in `encoding` to BGR uint8 HxWx3 or mono HxW."""
-    out: Array
-    if encoding == "bgr8":
-        out = pixels
-    elif encoding in _COLOUR_CODES:  # cv2 reads row-padded views directly, ~20x faster than numpy
-        out = cv2.cvtColor(pixels, _COLOUR_CODES[encoding])
-    elif encoding.startswith("mono"):
-        out = pixels[:, :, 0]
-    else:  # bayer_<pattern><bits>
-        pattern = encoding[len("bayer_") : len("bayer_") + 4]
-        mosaic = np.ascontiguousarray(pixels[:, :, 0], dtype=pixels.dtype.newbyteorder("="))
-        out = cv2.cvtColor(mosaic, _BAYER_CODES[pattern])
-        if out.dtype == np.uint16:
-            out = np.right_shift(out, 8).astype(np.uint8)
-    return np.ascontiguousarray(out, dtype=out.dtype.newbyteorder("="))
-
 
 def decode_image(raw: Raw, ros_version: RosVersion = 2, keep_bgra: bool = False) -> Frame:
-    """Decode a `sensor_msgs/Image` (see `IMAGE_ENCODINGS`), honouring `step` padding.
+    """Decode a `sensor_msgs/Image` (see `image_pixels.IMAGE_ENCODINGS`), honouring `step` padding.
 
     With `keep_bgra` a bgra8 image comes back as its recorded BGRA pixels
     (H, W, 4), a view of `raw` when its rows are not padded: the ingest's
@@ -422,19 +331,9 @@ def decode_image(raw: Raw, ros_version: RosVersion = 2, keep_bgra: bool = False)
     _check_version(ros_version)
     msg = _deserialize(raw, IMAGE_TYPE, ros_version)
     encoding = str(msg.encoding)
-    pixels = _pixels(msg)
-    image = np.ascontiguousarray(pixels) if keep_bgra and encoding == "bgra8" else _to_bgr(pixels, encoding)
+    pixels = image_pixels(msg)
+    image = np.ascontiguousarray(pixels) if keep_bgra and encoding == "bgra8" else to_bgr(pixels, encoding)
     return Frame(_stamp_ns(msg.header), str(msg.header.frame_id), image)
-
-
-def grey_as_bgr(image: Array) -> Array:
-    """A mono image (HxW uint8, or uint16 scaled to its high byte as bayer16 is) as grey BGR uint8 HxWx3;
-    a colour image as it is. The dataset's image folders hold RGB PNGs, whatever the camera sent."""
-    if image.ndim == 3:
-        return image
-    grey = np.right_shift(image, 8).astype(np.uint8) if image.dtype == np.uint16 else image
-    out: Array = cv2.cvtColor(np.ascontiguousarray(grey), cv2.COLOR_GRAY2BGR)
-    return out
 
 
 def decode_compressed_image(raw: Raw, ros_version: RosVersion = 2) -> Frame:

@@ -59,15 +59,11 @@ import zstandard
 from rosbags.interfaces import MessageDefinition, MessageDefinitionFormat
 
 from calibration.errors import SensorboxError
-from ingest.bags.chunks import ChunkGuard, CorruptChunkError, DeferredData, LostChunk, guard_readers
+from ingest.bags.checked_readers import guard_readers
+from ingest.bags.chunks import ChunkGuard, CorruptChunkError, DeferredData, LostChunk
 from ingest.bags.decode import RosVersion
 from ingest.bags.definitions import TolerantAnyReader, check_definition
-from ingest.bags.diagnose import (
-    bag_ros_version,
-    check_bare_db3,
-    check_metadata,
-    explain,
-)
+from ingest.bags.diagnose import bag_ros_version, check_bare_db3, check_metadata, explain
 from ingest.bags.mcap_records import McapChannel, SalvageReport, mcap_messages
 from ingest.bags.message import RawMessage
 from ingest.bags.rostypes import typestore

@@ -1,4 +1,4 @@
-"""Which frames a dataset folder holds already, and whether each finished sample is whole.
+"""Which frames a dataset folder holds, whether each finished sample is whole, which recording a bag is.
 
 A frame is known by its content, not by the name of the bag it came from:
 its two camera header stamps and `frame_digest`, a SHA-256 of both decoded
@@ -182,3 +182,32 @@ def resume_state(out: Path, sids: list[str], stamps_ns: list[tuple[int, int]]) -
             held.append(HeldFrame(other, meta.frames_sha256, sample_problem(out, other, meta)))
         same[sid] = tuple(held)
     return Resume(frozenset(done), dict(sorted(damaged.items())), same)
+
+
+IDENTITY_HEAD_BYTES = 1 << 20
+
+
+def bag_identity(bag: Path) -> dict[str, Any]:
+    """What tells two recordings of the same name apart: their size and a hash of each file's first MiB.
+
+    A bag is a file (ROS 1, MCAP) or a rosbag2 folder (its data files, by
+    name; not `metadata.yaml`, which tools such as `ros2 bag reindex` rewrite).
+    Reading a MiB per file costs milliseconds, and a different recording
+    differs in its header or index within it, or in size.
+    """
+    if bag.is_dir():
+        files = sorted(f for f in bag.rglob("*") if f.is_file() and f.name != "metadata.yaml")
+    else:
+        files = [bag]
+    digest = hashlib.sha256()
+    total = 0
+    try:
+        for f in files:
+            size = f.stat().st_size
+            total += size
+            digest.update(f"{f.relative_to(bag) if bag.is_dir() else f.name}:{size}:".encode())
+            with f.open("rb") as fh:
+                digest.update(fh.read(IDENTITY_HEAD_BYTES))
+    except OSError as err:
+        raise DatasetError(f"{bag}: cannot read it to identify the recording: {err.strerror or err}") from err
+    return {"bytes": total, "sha256_head": digest.hexdigest()}

@@ -396,6 +396,18 @@ def _check_options(opts: EvalOptions, layout: Layout) -> None:
         raise EvalError(f"align {opts.align!r}: 'none', or 'median' for depth tasks only")
 
 
+def _masks(
+    opts: EvalOptions, gt: GtFile, g: np.ndarray[Any, Any], step_abs: float, step_rel: float
+) -> dict[str, np.ndarray[Any, Any] | None]:
+    """Region -> the pixels of GT `g` it scores: "all" (None), "edges" (`opts.edges`), each `opts.masks`."""
+    masks: dict[str, np.ndarray[Any, Any] | None] = {"all": None}
+    if opts.edges:
+        masks["edges"] = edge_band(g, opts.edge_band_px, step_abs, step_rel)
+    for name, root in opts.masks:
+        masks[name] = read_mask(root, gt, g.shape)
+    return masks
+
+
 def evaluate(
     dataset: Path,
     pred: Path,
@@ -429,11 +441,7 @@ def evaluate(
             if opts.align == "median":
                 scale = median_scale(p, g)
                 p = (p * np.float32(scale)).astype(np.float32)
-            masks: dict[str, np.ndarray[Any, Any] | None] = {"all": None}
-            if opts.edges:
-                masks["edges"] = edge_band(g, opts.edge_band_px, step_abs, step_rel)
-            for name, root in opts.masks:
-                masks[name] = read_mask(root, gt, g.shape)
+            masks = _masks(opts, gt, g, step_abs, step_rel)
             key = tuple(gt.fov_deg if b == "fov" else gt.baseline_mm for b in opts.by)
             if key not in pools:
                 pools[key] = _Pool(

@@ -26,24 +26,24 @@ import logging
 import math
 import os
 import re
-import stat
 import sys
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any
 
 import numpy as np
 import yaml
 
 from calibration.errors import SensorboxError
-from calibration.files import file_kind, read_text
+from calibration.files import read_text
 from calibration.opencv_yaml import BoundedSafeLoader, yaml_error_line
 from calibration.transforms import as_transform
 from calibration.types import F32, F64, U8, Bool
 from ingest.errors import ScanError
 from ingest.raster.scan import Scan
+from ingest.render.cloud_files import check_cloud_file, short_file
 
 E57_CHUNK = 1_000_000
 SITE_VERSION = 1
@@ -185,8 +185,8 @@ def _read_open3d(path: Path) -> Any:
     """An Open3D tensor point cloud with at least one point, or a ScanError naming the file."""
     import open3d as o3d
 
-    _check_cloud_file(path)
-    short = _short_file(path)
+    check_cloud_file(path)
+    short = short_file(path)
     if short:  # Open3D zero-fills a short PLY
         raise ScanError(f"{path}: truncated: {short}")
     try:
@@ -197,23 +197,6 @@ def _read_open3d(path: Path) -> Any:
     if "positions" not in pc.point or len(pc.point.positions) == 0:
         raise ScanError(f"{path}: no points (or not a PLY/PCD file Open3D can read)")
     return pc
-
-
-def _check_cloud_file(path: Path) -> None:
-    """Refuse a point cloud path that is missing or no regular file (symlinks followed).
-
-    A link to /dev/zero given as `--mask` was read line by line without end
-    (a header that never ends) until memory ran out; a FIFO would wait
-    forever. One `ScanError` line naming the path and what it is.
-    """
-    try:
-        mode = path.stat().st_mode
-    except FileNotFoundError:
-        raise ScanError(f"{path}: no such point cloud") from None
-    except OSError as err:
-        raise ScanError(f"{path}: cannot read the point cloud: {err.strerror or err}") from err
-    if not stat.S_ISREG(mode):
-        raise ScanError(f"{path}: is {file_kind(mode)}, not a point cloud file")
 
 
 @contextmanager
@@ -264,80 +247,6 @@ def _open3d_message(err: RuntimeError) -> str:
     """Open3D's error text without its colour codes and C++ source location."""
     text = re.sub(r"\x1b\[[0-9;]*m", "", str(err)).strip()
     return re.sub(r"^\[Open3D Error\] \(.*?\) \S+:\d+: ", "", text)
-
-
-PLY_SIZES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2,
-             "uint16": 2, "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4,
-             "double": 8, "float64": 8}  # fmt: skip
-
-
-def _short_file(path: Path) -> str | None:
-    """What is missing from a PLY/PCD whose header promises more data than the file holds, else None.
-
-    Binary files: bytes (PLY with fixed-size rows only, uncompressed PCD);
-    ASCII files: lines. Other layouts are left to Open3D.
-    """
-    header: list[list[str]] = []
-    with path.open("rb") as f:
-        while raw := f.readline(4096):
-            header.append(raw.decode("ascii", "replace").split() or [""])
-            if header[-1][0] not in ("end_header", "DATA"):
-                continue
-            rows = _pcd_row_bytes(header) if path.suffix.lower() == ".pcd" else _ply_row_bytes(header)
-            if rows is None:
-                return None
-            if rows[1] == 0:  # ASCII: one line per point
-                lines = _ascii_lines(f)
-                short = lines < rows[0]
-                return f"its header declares {rows[0]} points, the file has {lines} lines" if short else None
-            need, have = f.tell() + rows[0] * rows[1], path.stat().st_size
-            return f"its header promises {need} bytes, the file has {have}" if have < need else None
-    return None
-
-
-def _ascii_lines(f: BinaryIO) -> int:
-    """Lines from the file position to its end, a last line without a newline included (PCL's own test
-    files end so)."""
-    lines, last = 0, b"\n"
-    for chunk in iter(lambda: f.read(1 << 24), b""):
-        lines += chunk.count(b"\n")
-        last = chunk[-1:]
-    return lines + (last != b"\n")
-
-
-def _ply_row_bytes(header: list[list[str]]) -> tuple[int, int] | None:
-    """(rows, bytes per row) of a PLY whose one non-empty element has scalar properties (0: ASCII)."""
-    formats = [w[1] for w in header if w[0] == "format" and len(w) > 1]
-    if formats not in (["ascii"], ["binary_little_endian"], ["binary_big_endian"]):
-        return None
-    rows, row_bytes, count = 0, 0, 0
-    for w in header:
-        if w[0] == "element":
-            if len(w) != 3 or not w[2].isdigit() or (rows and int(w[2])):
-                return None  # a second element with data is not worth modelling
-            count = int(w[2])
-            rows = rows or count
-        elif w[0] == "property" and count:
-            if len(w) != 3 or w[1] not in PLY_SIZES:
-                return None  # a list property: rows of varying size
-            row_bytes += PLY_SIZES[w[1]]
-    return rows, 0 if formats == ["ascii"] else row_bytes
-
-
-def _pcd_row_bytes(header: list[list[str]]) -> tuple[int, int] | None:
-    """(rows, bytes per row) of an uncompressed PCD (0 bytes: ASCII, a line per row)."""
-    fields = {w[0]: w[1:] for w in header}
-    sizes, counts, points = fields.get("SIZE", []), fields.get("COUNT", []), fields.get("POINTS", [])
-    data = fields.get("DATA")
-    if (
-        data not in (["binary"], ["ascii"])
-        or len(points) != 1
-        or not all(v.isdigit() for v in (*sizes, *counts, *points))
-    ):
-        return None
-    counts = counts or ["1"] * len(sizes)
-    row_bytes = sum(int(a) * int(b) for a, b in zip(sizes, counts, strict=False))
-    return int(points[0]), 0 if data == ["ascii"] else row_bytes
 
 
 def _to_u8(c: np.ndarray[Any, Any], path: Path) -> U8:

@@ -469,6 +469,6 @@ def warm_up(
     slice_id = np.r_[np.zeros(half, np.int64), np.ones(len(pts) - half, np.int64)]
     references = [(0, np.array([0.0, -0.1, 0.0])), (1, np.array([0.0, 0.1, 0.0]))]
     keep = np.ones(len(pts), bool)
-    if params.free_space:  # as `_process_dense` runs it
+    if params.free_space:  # as `ingest.train.sample_dense.process_dense` runs it
         keep = free_space_filter(pts, slice_id, references, params, may_matter(model, pts, params))
     dense_ground_truth(model, eq, R_cam0_rect, baseline_m, pts[keep], params, pts[~keep][:100] * 0.9)

@@ -13,7 +13,6 @@ topic and reason (`dropped_implausible`, `ingest.train.plausible`).
 
 from __future__ import annotations
 
-import hashlib
 import json
 import tempfile
 from dataclasses import asdict
@@ -25,13 +24,15 @@ import yaml
 
 from ingest.dataset.compare import first_difference
 from ingest.dataset.description import FORMAT, read_description
+from ingest.dataset.identity import bag_identity
 from ingest.dataset.layout import DEPTH_SCALE, DISP_SCALE, write_atomic
 from ingest.dataset.meta import read_meta
 from ingest.errors import DatasetError, OutputError
-from ingest.train.sample import Geometry
+from ingest.train.sample_job import Geometry
 
 if TYPE_CHECKING:
-    from ingest.train.pipeline import IngestConfig, IngestSummary
+    from ingest.train.settings import IngestConfig
+    from ingest.train.summary import IngestSummary
 
 HEADER = "# WideDepth training set written by SensorBox\n"
 PER_SOURCE = ("gt", "overlap_images", "method", "decision", "gap_fallback", "window_ns")
@@ -270,35 +271,6 @@ def write_dataset_yaml(
     )
     copy_rig(geometry, cfg.out / "rig")
     return int(mine["first_id"])
-
-
-IDENTITY_HEAD_BYTES = 1 << 20
-
-
-def bag_identity(bag: Path) -> dict[str, Any]:
-    """What tells two recordings of the same name apart: their size and a hash of each file's first MiB.
-
-    A bag is a file (ROS 1, MCAP) or a rosbag2 folder (its data files, by
-    name; not `metadata.yaml`, which tools such as `ros2 bag reindex` rewrite).
-    Reading a MiB per file costs milliseconds, and a different recording
-    differs in its header or index within it, or in size.
-    """
-    if bag.is_dir():
-        files = sorted(f for f in bag.rglob("*") if f.is_file() and f.name != "metadata.yaml")
-    else:
-        files = [bag]
-    digest = hashlib.sha256()
-    total = 0
-    try:
-        for f in files:
-            size = f.stat().st_size
-            total += size
-            digest.update(f"{f.relative_to(bag) if bag.is_dir() else f.name}:{size}:".encode())
-            with f.open("rb") as fh:
-                digest.update(fh.read(IDENTITY_HEAD_BYTES))
-    except OSError as err:
-        raise DatasetError(f"{bag}: cannot read it to identify the recording: {err.strerror or err}") from err
-    return {"bytes": total, "sha256_head": digest.hexdigest()}
 
 
 def _rig_difference(geometry: Geometry, rig_dir: Path) -> str:

@@ -34,8 +34,7 @@ of its solve, written next to the trajectory so a user sees where it is weak.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -43,103 +42,9 @@ from calibration.linalg3 import rotvec_to_matrix
 from calibration.types import F64, I64, Bool
 from ingest.errors import OdometryError
 from ingest.train.clouds import GyroTrack, estimate_velocity
-from ingest.train.odometry_kernels import (
-    chain_points,
-    covariances,
-    gyro_between,
-    log_rotations,
-    normal_equations,
-)
-from ingest.train.planes import normals_from_covariances
+from ingest.train.local_map import LocalMap, OdometryParams, voxel_subsample
+from ingest.train.odometry_kernels import chain_points, gyro_between, log_rotations, normal_equations
 from ingest.train.rig_trajectory import RigTrajectory
-from ingest.train.voxel_hash import VoxelHash, VoxelSet, first_free, voxel_keys
-
-
-@dataclass(frozen=True)
-class OdometryParams:
-    """Odometry settings (metres, nanoseconds)."""
-
-    knot_ns: int = 50_000_000
-    knots_per_chunk: int = 2
-    source_voxel_m: float = 0.2  # one point per voxel of a chunk takes part in the fit
-    max_source_points: int = 4000
-    map_voxel_m: float = 0.1
-    map_horizon_s: float = 2.0
-    map_range_m: float = 30.0  # what lies this close to the rig joins the map (far voxels hold few points)
-    map_neighbours: int = 10
-    map_normal_radius_m: float = 1.0  # a normal needs `map_neighbours` points this close
-    map_cell_m: float = 0.5  # cube of the map's search hash
-    map_max_flatness: float = 0.05
-    max_correspondence_m: float = 0.5
-    iterations: int = 15
-    tol_m: float = 5e-5  # stop when no knot moves by more than this (rotation: this at 1 m)
-    refine_start_s: float = 1.0  # then the start's knots are solved again against the map built since
-    min_segment_points: int = 50  # a knot is solved only when the knot interval before it has this many
-    max_jump_m: float = 0.5  # a solved knot this far from its predicted position is a failed solve
-
-
-def voxel_subsample(pts: F64, voxel_m: float) -> I64:
-    """Index of the first point in each occupied `voxel_m` cube (in input order)."""
-    return first_free(voxel_keys(pts, voxel_m), np.zeros(0, np.int64))
-
-
-@dataclass
-class LocalMap:
-    """World-frame points on a voxel grid, each remembering when and from where it joined.
-
-    Normals are computed when ICP first matches a point (`normals_at`), not
-    when it joins: most map points are never matched, and the k-neighbour
-    query and covariance of every new point were the odometry's largest
-    cost. A normal is the PCA normal of the point's neighbours in the map at
-    that time; "planar" is judged at its range from where the rig was when
-    it joined.
-    """
-
-    params: OdometryParams
-    xyz: F64 = field(default_factory=lambda: np.zeros((0, 3)))
-    normal: F64 = field(default_factory=lambda: np.zeros((0, 3)))
-    planar: Bool = field(default_factory=lambda: np.zeros(0, bool))
-    known: Bool = field(default_factory=lambda: np.zeros(0, bool))  # normal computed
-    origin: F64 = field(default_factory=lambda: np.zeros((0, 3)))  # the rig when the point joined
-    added_ns: I64 = field(default_factory=lambda: np.zeros(0, np.int64))
-    grid: VoxelHash | None = None
-    voxels: VoxelSet = field(default_factory=VoxelSet)  # the voxels the points hold; ids: dropped + index
-    dropped: int = 0  # points that left so far
-
-    def add(self, pts_world: F64, t_ns: int, origin_world: F64) -> None:
-        """A registered chunk joins (one point per free voxel); points older than the horizon leave.
-
-        Points join in time order, so the expired ones are a prefix of the arrays.
-        """
-        prm = self.params
-        first = int(np.searchsorted(self.added_ns, t_ns - int(prm.map_horizon_s * 1e9)))
-        rel = pts_world - origin_world
-        near = pts_world[np.einsum("ij,ij->i", rel, rel) <= prm.map_range_m**2]
-        near_keys = voxel_keys(near, prm.map_voxel_m)
-        self.dropped += first
-        fresh = self.voxels.claim(near_keys, self.dropped)  # one point per voxel the map does not hold yet
-        m = len(fresh)
-        self.xyz = np.concatenate([self.xyz[first:], near[fresh]])
-        self.normal = np.concatenate([self.normal[first:], np.zeros((m, 3))])
-        self.planar = np.concatenate([self.planar[first:], np.zeros(m, bool)])
-        self.known = np.concatenate([self.known[first:], np.zeros(m, bool)])
-        self.origin = np.concatenate([self.origin[first:], np.broadcast_to(origin_world, (m, 3))])
-        self.added_ns = np.concatenate([self.added_ns[first:], np.full(m, t_ns, np.int64)])
-        self.grid = VoxelHash.build(self.xyz, prm.map_cell_m, self.grid.buckets if self.grid else 0)
-
-    def normals_at(self, j: I64) -> None:
-        """Compute the normals of map points `j` that have none yet."""
-        assert self.grid is not None
-        prm = self.params
-        todo = np.unique(j[~self.known[j]])
-        self.known[todo] = True
-        _, idx = self.grid.query(self.xyz[todo], prm.map_neighbours, prm.map_normal_radius_m)
-        todo, idx = todo[idx[:, -1] >= 0], idx[idx[:, -1] >= 0]  # too few neighbours: never planar
-        if len(todo) == 0:
-            return
-        cov = covariances(self.xyz, idx)
-        fit = normals_from_covariances(cov, self.xyz[todo] - self.origin[todo], prm.map_max_flatness)
-        self.normal[todo], self.planar[todo] = fit.normal, fit.planar
 
 
 @dataclass
@@ -331,18 +236,6 @@ def _joined(chains: list[_Chain]) -> _Chain:
         out.p += [R_w @ q + p_w for q in c.p]
         out.residual += [math.nan, *c.residual[1:]]  # its first knot was not registered to the one before
     return out
-
-
-def estimate_trajectory(
-    chunks: Iterable[tuple[F64, I64]], gyro_track: GyroTrack | None, params: OdometryParams | None = None
-) -> RigTrajectory:
-    """The rig's trajectory from time-ordered chunks of (points in cam0 at their own times, stamps)."""
-    odo = Odometry(gyro_track, params)
-    for pts, t in chunks:
-        odo.add(pts, t)
-        if len(t):
-            odo.advance(int(t.max()))
-    return odo.result()
 
 
 def _start(

@@ -42,22 +42,18 @@ zstd bag that took the main process from about 240 to 165 ms of CPU a sample
 
 from __future__ import annotations
 
-import math
 import tempfile
 import time
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import ExitStack, contextmanager
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from functools import partial
 from itertools import chain, islice
 from pathlib import Path
-from typing import Any
 
 from calibration.rectify import stereo_warnings
 from calibration.rig import Rig, read_rig, write_rig
-from calibration.types import F64
-from calibration.warp import height_full_problem
 from ingest.bags.decode import Frame
 from ingest.bags.reader import BagSet, Progress, given_once, open_bags
 from ingest.dataset.identity import resume_state
@@ -66,18 +62,13 @@ from ingest.dataset.layout import (
     sample_id,
 )
 from ingest.dataset.lock import hold_folder
-from ingest.errors import BagError, DatasetError, MessageDecodeError, OdometryError, OutputError
-from ingest.raster.params import backend_problem
+from ingest.errors import DatasetError, MessageDecodeError, OdometryError, OutputError
 from ingest.runtime.executor import Executor, Handoff, share_cores
 from ingest.runtime.heap import retain_freed_memory
 from ingest.runtime.jit import compiling
-from ingest.topic_map import check_rig
-from ingest.train.align import Alignment
 from ingest.train.align_check import (
-    CalibrationCheck,
     SampleAlignments,
     check_calibration,
-    from_metas,
     from_records,
 )
 from ingest.train.bad_messages import BadMessages
@@ -91,15 +82,13 @@ from ingest.train.describe import (
     sample_settings,
     write_dataset_yaml,
 )
-from ingest.train.lidar_rate import THIN_FRACTION
 from ingest.train.plan import LOST_REASON, Plan, Survey, plan, survey
 from ingest.train.plausible import check_imu_rate, check_time_order
 from ingest.train.refine import Refinement, refine
 from ingest.train.rig_trajectory import RigTrajectory
-from ingest.train.sample import ALIGNED, GAP_FALLBACK, Geometry, SampleAlignment, SampleParams, SampleResult
+from ingest.train.sample_job import Geometry, SampleParams, SampleResult
+from ingest.train.settings import IngestConfig, Topics, resolve_topics
 from ingest.train.stream import (
-    ALREADY_HELD,
-    UNDECODABLE_IMAGE,
     Shared,
     StreamedJob,
     check_image_size,
@@ -110,246 +99,8 @@ from ingest.train.stream import (
     stream_jobs,
     take_arrays,
 )
-from ingest.train.sync import DEFAULT_LIDAR_WINDOW_NS
-from ingest.train.trajectory import STATIC_WINDOW_NS, TrajectorySummary, choose_method, run_trajectory_pass
-
-__all__ = ["UNDECODABLE_IMAGE", "IngestConfig", "IngestSummary", "Topics", "ingest", "stream_jobs"]
-
-
-@dataclass(frozen=True)
-class IngestConfig:
-    """Settings of one ingest run (times in ns)."""
-
-    rig: Path
-    out: Path
-    workers: int = 2
-    every: int = 1
-    lidar_window_ns: int = DEFAULT_LIDAR_WINDOW_NS
-    stereo_tolerance_ns: int | None = None  # default: half the median camera period
-    height_full: int | None = None
-    salvage: bool = False
-    dask: str | None = None
-    # sparse | dense | auto (see ingest.train.trajectory.choose_method); `sensorbox ingest` defaults to auto,
-    # the library to sparse (no trajectory pass unless asked)
-    gt: str = "sparse"
-    max_bad: int = 0  # undecodable messages skipped and counted before the run stops (bad_messages)
-    sample: SampleParams = field(default_factory=SampleParams)
-    widen_static: bool = True  # --gt auto may widen the default dense window for a rig that stood still
-    refine: bool = (
-        False  # --refine: the cameras' clock offsets and LiDAR rotations refined from the bags first
-    )
-
-    def validate(self) -> None:
-        """Values a run cannot start with, named as the CLI options that set them."""
-        if self.gt not in ("sparse", "dense", "auto"):
-            raise DatasetError(f"--gt {self.gt!r}: expected sparse, dense or auto")
-        if not self.sample.dense.window_ns > 0:
-            raise DatasetError(f"--gt-window-ms must be > 0, got {self.sample.dense.window_ns / 1e6:g}")
-        if self.sample.motion not in ("full", "rotation", "off"):
-            raise DatasetError(f"--motion {self.sample.motion!r}: expected full, rotation or off")
-        if self.gt == "dense" and self.sample.motion != "full":
-            raise DatasetError(
-                f"--motion {self.sample.motion} does not apply to --gt dense, which places every point with "
-                "the trajectory; it chooses the motion model of sparse GT (--gt sparse or auto)"
-            )
-        backend = self.sample.dense.render.backend
-        if (problem := backend_problem(backend)) is not None:
-            raise DatasetError(f"--backend {backend!r}: {problem}")
-        if self.max_bad < 0:
-            raise DatasetError(f"--max-bad must be >= 0, got {self.max_bad}")
-        if self.workers < 1:
-            raise DatasetError(f"--workers must be >= 1, got {self.workers}")
-        if self.every < 1:
-            raise DatasetError(f"--every must be >= 1, got {self.every}")
-        if self.height_full is not None and (problem := height_full_problem(self.height_full)) is not None:
-            raise DatasetError(problem)
-        if not 0 <= self.sample.png_level <= 3:
-            raise DatasetError(f"--png-level must be 0..3, got {self.sample.png_level}")
-        if self.dask:
-            from distributed.comm.addressing import get_address_host_port
-
-            try:
-                get_address_host_port(self.dask)
-            except ValueError as err:
-                raise DatasetError(
-                    f"--dask {self.dask!r}: expected a scheduler address tcp://HOST:PORT ({err})"
-                ) from err
-        if not self.lidar_window_ns > 0:
-            raise DatasetError(f"--window-ms must be > 0, got {self.lidar_window_ns / 1e6:g}")
-        if self.gt == "auto" and self.sample.dense.window_ns < self.lidar_window_ns:
-            raise DatasetError(
-                f"--gt auto: --gt-window-ms {self.sample.dense.window_ns / 1e6:g} is narrower than "
-                f"--window-ms {self.lidar_window_ns / 1e6:g}; the sparse GT it gives frames in trajectory "
-                "gaps reads --window-ms of points from the dense window"
-            )
-        if not (math.isfinite(self.sample.min_range_m) and self.sample.min_range_m >= 0):
-            raise DatasetError(f"--min-range must be >= 0 m, got {self.sample.min_range_m:g}")
-
-
-OVER_UINT16 = "over the depth PNG's 65.535 m, left empty"
-
-
-@dataclass
-class IngestSummary:
-    """What an ingest run did, for the CLI's summary table."""
-
-    written: int = 0
-    resumed: int = 0
-    skipped: dict[str, int] = field(default_factory=dict)
-    flagged: dict[str, int] = field(default_factory=dict)  # written, with a warning in their meta
-    undecodable: dict[str, int] = field(default_factory=dict)  # per topic: messages skipped (--max-bad)
-    dropped: dict[str, dict[str, int]] = field(default_factory=dict)  # per topic, reason: `plausible`
-    frames: int = 0
-    pairs: int = 0
-    planned: int = 0
-    density_by_method: dict[str, list[float]] = field(default_factory=dict)  # under --gt auto both occur
-    skew_ms: list[float] = field(default_factory=list)
-    stereo_dt_ms: list[float] = field(default_factory=list)  # lower minus upper header stamp, per sample
-    motion_applied: int = 0
-    dense_points: dict[str, int] = field(default_factory=dict)  # dense GT: totals over the samples
-    stage_ms: dict[str, list[float]] = field(default_factory=dict)  # sequential: they add up per sample
-    overlapped_ms: dict[str, list[float]] = field(default_factory=dict)  # helper threads beside them
-    seconds: float = 0.0
-    dense_warm_up_s: float | None = None  # dense GT's kernels and pixel rays, before the samples
-    compile_s: float = 0.0  # numba compiling in this process (`ingest.runtime.jit`): a checkout's first run
-    dense_planes: tuple[int, float] | None = None  # dense GT: (blocks fitted, seconds fitting and testing)
-    out: Path | None = None
-    method: str = "sparse"
-    decision: str = ""
-    trajectory: TrajectorySummary | None = None
-    lost: dict[str, int] = field(default_factory=dict)  # topic -> messages in corrupt chunks (--salvage)
-    lost_chunks: list[str] = field(default_factory=list)  # one line per corrupt chunk skipped
-    duplicates: dict[str, int] = field(default_factory=dict)  # per topic: repeated stamps, first read
-    uncovered: int = 0  # stereo pairs without LiDAR points within the window: not planned
-    imu_gaps_ms: list[float] = field(default_factory=list)  # IMU intervals over 5 periods (plan.imu_gaps)
-    warnings: list[str] = field(default_factory=list)  # about the inputs, one line each (the rig's layout)
-    stale_temporaries: int = 0  # left in the output by a killed run, removed (`ingest.dataset.lock`)
-    without_gt: int = 0  # samples written with no GT pixel in their depth PNG
-    without_gt_points: dict[str, int] = field(default_factory=dict)  # their windows' points, by filter
-
-    def without_gt_line(self) -> str:
-        """One warning line when written samples hold no GT pixel, with their points by filter ('' if none).
-
-        A recording whose points are all NaN, zero, noise-tagged or out of every view writes samples with
-        an empty depth PNG, which a training set must not take for ground truth without a word.
-        """
-        if not self.without_gt:
-            return ""
-        counts = self.without_gt_points
-        points = {why: n for why, n in counts.items() if why not in ("total", OVER_UINT16) and n}
-        reasons = ", ".join(f"{n:,} {why}" for why, n in points.items())
-        over = counts.get(OVER_UINT16, 0)
-        return (
-            f"{self.without_gt} of {self.written} samples written hold no ground truth pixel; their windows' "
-            f"LiDAR points: {counts.get('total', 0):,}{f' ({reasons})' if reasons else ''}"
-            + (f"; {over:,} GT pixels {OVER_UINT16}" if over else "")
-        )
-
-    held_elsewhere: int = 0  # of `resumed`: frames that samples of other ids hold (`ingest.dataset.identity`)
-    refinement: Refinement | None = None  # --refine: what `ingest.train.refine` found and the rig it made
-    alignments: list[tuple[Mapping[str, Alignment], F64 | None]] = field(default_factory=list)  # per sample
-    calibration: CalibrationCheck | None = None  # the samples' alignments summed up (`ingest.train.align`)
-    damaged: list[str] = field(default_factory=list)  # finished samples found damaged, written again: why
-    aligned: dict[str, SampleAlignment] = field(default_factory=dict)  # per sample id: alignment_only's
-
-    @property
-    def density(self) -> list[float]:
-        """GT density (fisheye) of every written sample, grouped by GT method."""
-        return [d for by_method in self.density_by_method.values() for d in by_method]
-
-    def add(self, result: SampleResult) -> None:
-        if result.reason == ALIGNED and result.aligned is not None:
-            self.aligned[result.sid] = result.aligned
-            return
-        if result.reason == ALREADY_HELD:
-            self.resumed += 1
-            self.held_elsewhere += 1
-            return
-        if not result.written:
-            self.skipped[result.reason] = self.skipped.get(result.reason, 0) + 1
-            return
-        self.written += 1
-        meta = result.meta
-        assert meta is not None  # written samples carry their metadata
-        self.density_by_method.setdefault(meta.gt.method, []).append(meta.gt.density)
-        if meta.gt.depth_pixels == 0:
-            self.without_gt += 1
-            p = meta.points
-            for why, n in (
-                ("total", p.total), ("zero", p.zero), ("non-finite", p.non_finite),
-                ("nearer than --min-range", p.too_close), ("noise-tagged", p.noise_tag),
-                ("outside the IMU's span", p.off_imu), ("out of view", p.out_of_view),
-                ("occluded", p.occluded), ("visible", p.kept - p.out_of_view - p.occluded),
-                (OVER_UINT16, meta.dropped.get("depth_over_uint16", 0)),
-            ):  # fmt: skip
-                self.without_gt_points[why] = self.without_gt_points.get(why, 0) + n
-        if meta.alignment:
-            self.alignments.extend(from_metas([meta])[0])
-        self.skew_ms.extend(meta.lidar_skew_ms.values())
-        self.stereo_dt_ms.append(meta.stereo_dt_ms)
-        for name in meta.points.silent_lidars:
-            key = f"{name} silent in the window"
-            self.flagged[key] = self.flagged.get(key, 0) + 1
-        for name in meta.points.thin_lidars:
-            key = f"{name} thin in the window (< {THIN_FRACTION:.0%} of its rate)"
-            self.flagged[key] = self.flagged.get(key, 0) + 1
-        self.motion_applied += meta.motion.applied
-        if meta.gt.decision == GAP_FALLBACK:
-            key = "sparse GT (frame in a trajectory gap)"
-            self.flagged[key] = self.flagged.get(key, 0) + 1
-        if meta.gt.method == "dense":
-            for key, n in (
-                ("accumulated", meta.gt.accumulated_points),
-                ("removed as movers", meta.gt.removed_moving),
-                ("left out: no registered pose near the frame", meta.points.off_trajectory),
-            ):
-                self.dense_points[key] = self.dense_points.get(key, 0) + n
-        for k, v in result.stage_ms.items():
-            self.stage_ms.setdefault(k, []).append(v)
-        for k, v in result.overlapped_ms.items():
-            self.overlapped_ms.setdefault(k, []).append(v)
-
-
-@dataclass(frozen=True)
-class Topics:
-    """The bag topics of the rig's sensors (images may be raw or `/compressed`)."""
-
-    upper: str
-    lower: str
-    lidars: dict[str, str]  # topic -> rig lidar name
-    imu: str | None
-    R_cam0_imu: Any
-    imu_name: str = ""  # the rig's name of the IMU on `imu`
-    imu_rate_hz: float | None = None  # its rate as the rig states it
-    upper_shift_ns: int = 0  # the rig's timeshift_cam_imu: header stamp + shift = exposure on the LiDAR clock
-    lower_shift_ns: int = 0
-
-
-def _resolve_topics(rig: Rig, bag_topics: dict[str, Any], where: str) -> Topics:
-    def find(topic: str | None, what: str) -> str:
-        for cand in (topic, f"{topic}/compressed"):
-            if cand in bag_topics:
-                return cand
-        if not bag_topics:
-            raise BagError(f"{where}: no messages at all (an empty bag, or cut before its first message)")
-        listing = ", ".join(sorted(bag_topics))
-        raise BagError(f"{where}: no topic {topic!r} for {what} (from the rig); the bag has: {listing}")
-
-    upper = find(rig.upper.topic, "the upper camera")
-    lower = find(rig.lower.topic, "the lower camera")
-    lidars = {find(li.topic, f"lidar {li.name}"): li.name for li in rig.lidars}
-    # every IMU the rig names must be there: a silent fallback skews the motion model
-    imu_topics = [find(i.topic, f"imu {i.name}") for i in rig.imus]
-    # a topic of another type, or of two (a LiDAR topic that also carries Imu messages), was skipped unsaid
-    problems = check_rig(rig, {t: s.msgtype for t, s in bag_topics.items()})
-    if problems:
-        first = problems[0]
-        raise BagError(f"{where}: {first.topic} (the rig's {first.sensor}) {first.problem}")
-    imu = rig.imus[0] if rig.imus else None
-    return Topics(
-        upper, lower, lidars, imu_topics[0] if imu else None, imu.T_cam0_imu[:3, :3] if imu else None,
-        imu.name if imu else "", imu.rate_hz if imu else None, rig.upper.timeshift_ns, rig.lower.timeshift_ns,
-    )  # fmt: skip
+from ingest.train.summary import IngestSummary
+from ingest.train.trajectory import STATIC_WINDOW_NS, choose_method, run_trajectory_pass
 
 
 def _gt_method(
@@ -657,7 +408,7 @@ def _run(
     """The passes over the bags (survey, trajectory, plan, stream), the samples run on `executor`; `held`
     keeps the output folder locked (`hold_folder`) from before its first write on."""
     with open_bags(bag_paths, salvage=cfg.salvage) as bags:
-        topics = _resolve_topics(rig, bags.topics(), ", ".join(str(p) for p in bag_paths))
+        topics = resolve_topics(rig, bags.topics(), ", ".join(str(p) for p in bag_paths))
         asked = cfg
         reach = _dense_reach_ns(cfg)
         read = partial(passes, PASS_READ) if passes else None
@@ -716,14 +467,26 @@ def _run(
             run_streamed, chain(head, queued), shared=Shared(geometry, traj), handoff=handoff
         )
         try:
-            for result in results:
-                for topic, log_ns, why in result.undecodable:  # decoded in the worker, counted here
-                    bad.add(topic, log_ns, why)
-                summary.add(result)
-                if result.written and result.sid in damaged_held:
-                    summary.damaged.append(damaged_held[result.sid])
-                tick()
+            _collect(results, summary, bad, damaged_held, tick)
         finally:
             results.close()
             if planes is not None:
                 summary.dense_planes = (planes.blocks_fitted, planes.seconds)
+
+
+def _collect(
+    results: Iterable[SampleResult],
+    summary: IngestSummary,
+    bad: BadMessages,
+    damaged_held: Mapping[str, str],
+    tick: Callable[[], None],
+) -> None:
+    """Count every finished sample into `summary` in job order (its undecodable images into `bad`); one
+    written under the id of a damaged sample (`damaged_held`: id -> its damage) records that damage."""
+    for result in results:
+        for topic, log_ns, why in result.undecodable:  # decoded in the worker, counted here
+            bad.add(topic, log_ns, why)
+        summary.add(result)
+        if result.written and result.sid in damaged_held:
+            summary.damaged.append(damaged_held[result.sid])
+        tick()

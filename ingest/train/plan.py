@@ -24,6 +24,7 @@ from ingest.train.lidar_rate import LidarRates
 from ingest.train.lost import lost_intervals, untouched
 from ingest.train.repeats import FirstCopies
 from ingest.train.sync import (
+    IMU_MARGIN_NS,
     lidar_clock_spread,
     lidar_covered,
     median_period_ns,
@@ -33,7 +34,7 @@ from ingest.train.sync import (
 )
 
 if TYPE_CHECKING:
-    from ingest.train.pipeline import IngestConfig, Topics
+    from ingest.train.settings import IngestConfig, Topics
 
 
 @dataclass(frozen=True)
@@ -61,8 +62,6 @@ class Plan:
 
 
 LOST_REASON = "LiDAR/IMU window overlaps a corrupt chunk (not planned)"
-IMU_MARGIN_NS = 20_000_000
-"""IMU readings are taken this far beyond a sample's LiDAR window (motion compensation)."""
 
 
 def _seen(

@@ -32,7 +32,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from calibration.types import I64
-from ingest.bags.decode import Frame, ImuSample, Sweep, grey_as_bgr
+from ingest.bags.decode import Frame, ImuSample, Sweep
+from ingest.bags.image_pixels import grey_as_bgr
 from ingest.bags.message import RawMessage
 from ingest.bags.reader import BagSet
 from ingest.dataset.identity import HeldFrame, Resume, frame_digest, resume_state
@@ -43,21 +44,15 @@ from ingest.runtime.transport import ALIGN
 from ingest.train.bad_messages import BadMessages
 from ingest.train.block_planes import NORMAL_DTYPE, BlockPlanes
 from ingest.train.lidar_rate import LidarRates
-from ingest.train.plan import IMU_MARGIN_NS, Plan
+from ingest.train.plan import Plan
 from ingest.train.repeats import FirstCopies
 from ingest.train.rig_trajectory import RigTrajectory
-from ingest.train.sample import (
-    Geometry,
-    ImuWindow,
-    LidarPoints,
-    SampleJob,
-    SampleParams,
-    SampleResult,
-    process_sample,
-)
+from ingest.train.sample import process_sample
+from ingest.train.sample_job import Geometry, ImuWindow, LidarPoints, SampleJob, SampleParams, SampleResult
+from ingest.train.sync import IMU_MARGIN_NS
 
 if TYPE_CHECKING:
-    from ingest.train.pipeline import IngestConfig, Topics
+    from ingest.train.settings import IngestConfig, Topics
 
 UNDECODABLE_IMAGE = "undecodable image (--max-bad)"
 """Why a sample was skipped when one of its camera images could not be decoded."""

@@ -13,6 +13,8 @@ import numpy as np
 from calibration.types import I64, Bool
 
 DEFAULT_LIDAR_WINDOW_NS = 50_000_000
+IMU_MARGIN_NS = 20_000_000
+"""IMU readings are taken this far beyond a sample's LiDAR window (motion compensation)."""
 
 
 @dataclass(frozen=True)

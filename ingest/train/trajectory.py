@@ -25,7 +25,8 @@ from ingest.errors import OutputError
 from ingest.train import trajectory_cache
 from ingest.train.bad_messages import BadMessages
 from ingest.train.clouds import GyroTrack, filter_points, integrate_gyro
-from ingest.train.odometry import Odometry, OdometryParams
+from ingest.train.local_map import OdometryParams
+from ingest.train.odometry import Odometry
 from ingest.train.repeats import FirstCopies
 from ingest.train.rig_trajectory import RigTrajectory, still
 

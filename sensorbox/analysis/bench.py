@@ -25,7 +25,7 @@ from calibration.errors import SensorboxError
 if TYPE_CHECKING:
     from sensorbox.analysis.projection import ProjectionResult
     from sensorbox.analysis.tradeoff import Alternative, Measurement
-    from sensorbox.sim.run import SimConfig
+    from sensorbox.sim.config import SimConfig
 
 FAMILY_COLORS = {
     "default": "black", "control": "tab:gray", "occlusion": "tab:red", "motion": "tab:blue",
@@ -35,7 +35,7 @@ FAMILY_COLORS = {
 
 def default_sims(scale: float, duration_s: float) -> list[tuple[str, SimConfig]]:
     """The bags the bench simulates: noise-free, jpeg images, fixed seeds."""
-    from sensorbox.sim.run import SimConfig
+    from sensorbox.sim.config import SimConfig
 
     common: dict[str, Any] = {"duration_s": duration_s, "scale": scale, "image": "jpeg", "range_noise_m": 0.0}
     return [
@@ -71,7 +71,7 @@ def run_bench(
     disk is one `OutputError` naming the file and leaves none of them.
     """
     from ingest.dataset.layout import write_atomic_set
-    from ingest.train.pipeline import IngestConfig
+    from ingest.train.settings import IngestConfig
     from sensorbox.analysis.tradeoff import csv_bytes, pool, run_alternatives
     from sensorbox.sim.score import score_dataset
     from sensorbox.sim.truth import Truth

@@ -45,10 +45,12 @@ from ingest.dataset.layout import prepare_dirs
 from ingest.train.block_planes import BlockPlanes, PlaneSettings
 from ingest.train.dense import DenseParams, free_space_settings
 from ingest.train.rig_trajectory import RigTrajectory
-from ingest.train.sample import Geometry, ImuWindow, SampleJob, SampleParams, process_sample
+from ingest.train.sample import process_sample
+from ingest.train.sample_job import Geometry, ImuWindow, SampleJob, SampleParams
 from ingest.train.stream import lidar_window
 from ingest.train.trajectory import run_trajectory_pass
-from sensorbox.sim.run import SimConfig, simulate
+from sensorbox.sim.config import SimConfig
+from sensorbox.sim.run import simulate
 from sensorbox.sim.score import score_sample
 from sensorbox.sim.truth import Truth
 

@@ -40,7 +40,9 @@ from calibration.rig import read_rig
 from calibration.types import ArrayLike, Bool
 from calibration.warp import default_height_full
 from ingest.dataset.layout import write_atomic
-from ingest.train.pipeline import IngestConfig, IngestSummary, ingest
+from ingest.train.pipeline import ingest
+from ingest.train.settings import IngestConfig
+from ingest.train.summary import IngestSummary
 
 # -- alternatives as data ----------------------------------------------------------------
 

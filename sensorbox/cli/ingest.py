@@ -1,6 +1,6 @@
 """`sensorbox ingest BAG... --rig RIG --out DIR`: recorded bags -> the WideDepth training set.
 
-Parses the options into an `ingest.train.pipeline.IngestConfig`, runs `ingest`
+Parses the options into an `ingest.train.settings.IngestConfig`, runs `ingest`
 with a progress bar, prints the summary and then draws a preview of the middle
 sample (after the run and its summary: not part of the run's time; a few seconds
 of matplotlib at full resolution, `--no-preview` skips it).
@@ -26,7 +26,7 @@ from sensorbox.cli.common import (
 )
 
 if TYPE_CHECKING:
-    from ingest.train.pipeline import IngestSummary
+    from ingest.train.summary import IngestSummary
 
 BagsArg = Annotated[
     list[Path],
@@ -243,8 +243,9 @@ def ingest_cmd(
     """Turn recorded bags into the WideDepth training set (rectified equirect pairs + depth/disparity GT)."""
     from ingest.errors import DatasetError
     from ingest.train.dense import DenseParams
-    from ingest.train.pipeline import PASS_READ, PASS_REFINE, PASS_TRAJECTORY, IngestConfig, ingest
-    from ingest.train.sample import SampleParams
+    from ingest.train.pipeline import PASS_READ, PASS_REFINE, PASS_TRAJECTORY, ingest
+    from ingest.train.sample_job import SampleParams
+    from ingest.train.settings import IngestConfig
 
     check_out_folder("--out", out, "the dataset")
     if gt_window_ms is not None and gt == "sparse":

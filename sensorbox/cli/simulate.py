@@ -93,7 +93,8 @@ def simulate_cmd(
 ) -> None:  # fmt: skip
     """Simulate the SensorBox in a procedural scene: write a bag plus its exact truth (<bag>.truth/)."""
     from calibration.errors import SensorboxError
-    from sensorbox.sim.run import SimConfig, simulate, with_mid360_imu_noise
+    from sensorbox.sim.config import SimConfig, with_mid360_imu_noise
+    from sensorbox.sim.run import simulate
 
     if not math.isfinite(lidar_offset_ms) or abs(lidar_offset_ms) > 1000:
         raise SensorboxError(

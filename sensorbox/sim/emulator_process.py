@@ -31,7 +31,7 @@ class EmulatorSpec:
     """What the child needs to build one emulator (all picklable)."""
 
     name: str
-    sim_cfg: Any  # sensorbox.sim.run.SimConfig
+    sim_cfg: Any  # sensorbox.sim.config.SimConfig
     lidar: str
     ip: str
     loop_s: float
@@ -42,9 +42,8 @@ def build_emulator(spec: EmulatorSpec) -> Any:
     """The `Mid360Emulator` of `spec`, on its looped (or live) simulated scan; GraphError for a bad lidar."""
     from sensorbox.errors import GraphError
     from sensorbox.sim.mid360 import Mid360Emulator
-    from sensorbox.sim.nodes import LoopedScan
     from sensorbox.sim.run import setup_sim
-    from sensorbox.sim.scan_source import SimScan
+    from sensorbox.sim.scan_source import LoopedScan, SimScan
 
     cfg = replace(spec.sim_cfg, duration_s=spec.loop_s if spec.loop_s > 0 else 1e7)
     setup = setup_sim(cfg)

@@ -11,7 +11,8 @@ import shutil
 from pathlib import Path
 
 from sensorbox.live.bagwriter import bag_path
-from sensorbox.sim.run import SimConfig, SimSummary, simulate
+from sensorbox.sim.config import SimConfig
+from sensorbox.sim.run import SimSummary, simulate
 from sensorbox.sim.truth import truth_dir
 
 FIXTURES_DIR = Path("tests") / "fixtures"

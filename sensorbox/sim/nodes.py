@@ -6,25 +6,20 @@ factories; their parameters are documented there.
 
 from __future__ import annotations
 
-import itertools
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
-from calibration.errors import SensorboxError
 from calibration.rig import REFERENCE_RIG
 from sensorbox.errors import GraphError
 from sensorbox.live.bus import PRIORITY_DEVICE, Node, NodeContext, NodeStatus
 from sensorbox.live.nodes import Params, stereo_camera_node
 from sensorbox.sim.camera_source import SimCameras, SimCameraSource
+from sensorbox.sim.config import SimConfig
 from sensorbox.sim.emulator_process import EmulatorProcess, EmulatorSpec
-from sensorbox.sim.lidar import SWEEP_PERIOD_NS, Sweep
 from sensorbox.sim.mid360 import Mid360Emulator
-from sensorbox.sim.run import SimConfig, setup_sim
-from sensorbox.sim.scan_source import IMU_PERIOD_NS, ImuSamples, SimScan
-from sensorbox.sim.trajectory import imu_readings
+from sensorbox.sim.run import setup_sim
+from sensorbox.sim.scan_source import SimScan
 
 
 def _sim_config(p: Params, **fixed: Any) -> Any:
@@ -35,40 +30,6 @@ def _sim_config(p: Params, **fixed: Any) -> Any:
     )  # fmt: skip
     cfg.validate()
     return cfg
-
-
-class LoopedScan:
-    """A simulated LiDAR's first `loop_s` seconds of sweeps, replayed forever with advancing stamps.
-
-    The simulator casts about 0.75 s of CPU per 1 s of one Mid-360's scan, too
-    slow to stream two live on a 2-core box; looping is exact for a static
-    trajectory (a moving one jumps back at every loop seam). IMU readings come
-    from the trajectory at the looped time.
-    """
-
-    def __init__(self, scan: Any, loop_s: float) -> None:
-        self.scan = scan
-        self.items = list(scan.sweeps())
-        if not self.items:
-            raise SensorboxError(f"emulator loop of {loop_s} s holds no sweep")
-        self.loop_ns = len(scan.windows()) * SWEEP_PERIOD_NS
-        self.base_ns = int(scan.setup.cfg.start_ns) + int(scan.lidar.clock_offset_ns)
-
-    def sweeps(self) -> Iterator[Any]:
-        for k in itertools.count():
-            for sw in self.items:
-                yield Sweep(sw.timebase_ns + k * self.loop_ns, sw.points)
-
-    def imu(self, start_ns: int, end_ns: int) -> Any:
-        first = self.base_ns + int(self.scan.lidar.first_packet_ns)
-        k0 = -(-(start_ns - first) // IMU_PERIOD_NS)
-        k1 = -(-(end_ns - first) // IMU_PERIOD_NS)
-        stamps = first + np.arange(max(k0, 0), max(k0, k1, 0), dtype=np.int64) * IMU_PERIOD_NS
-        if len(stamps) == 0:
-            return ImuSamples(stamps, np.zeros((0, 3)), np.zeros((0, 3)))
-        t_sim = (stamps - self.base_ns) % self.loop_ns
-        gyro, acc = imu_readings(self.scan.setup.traj, t_sim / 1e9, self.scan.T_cam0_imu)
-        return ImuSamples(stamps, gyro, acc)
 
 
 class EmulatorNode:

@@ -32,8 +32,9 @@ from ingest.errors import BagError, DatasetError
 from ingest.inspect import inspect_bags
 from ingest.train import trajectory as trajectory_module
 from ingest.train import trajectory_cache
-from ingest.train.pipeline import IngestConfig, ingest
-from ingest.train.sample import GAP_FALLBACK, GAP_REASON
+from ingest.train.pipeline import ingest
+from ingest.train.sample_dense import GAP_FALLBACK, GAP_REASON
+from ingest.train.settings import IngestConfig
 from sensorbox.cli.ingest import summary_table
 from sensorbox.sim.truth import truth_dir
 from tests.faults.bags import INDOOR, LIDAR_BOTTOM, LIDAR_TOP, LOWER, rewrite

@@ -21,8 +21,9 @@ from ingest.bags.livox_msg import decode_custom_msg, encode_custom_msg
 from ingest.dataset.layout import DEPTH_SCALE, read_png_u16
 from ingest.dataset.meta import read_meta
 from ingest.train.clouds import NOISE_TAG_BITS
-from ingest.train.pipeline import IngestConfig, ingest
-from ingest.train.sample import Geometry
+from ingest.train.pipeline import ingest
+from ingest.train.sample_job import Geometry
+from ingest.train.settings import IngestConfig
 from tests.faults.bags import LIDAR_BOTTOM, LIDAR_TOP, rewrite
 
 FAST = {"workers": 1, "every": 3, "height_full": 64}

@@ -15,7 +15,8 @@ import yaml
 
 from ingest.dataset.description import SOURCE_KEYS, TOP_KEYS
 from ingest.errors import DatasetError
-from ingest.train.pipeline import IngestConfig, ingest
+from ingest.train.pipeline import ingest
+from ingest.train.settings import IngestConfig
 from tests.faults.bags import INDOOR
 from tests.faults.cli import sensorbox
 

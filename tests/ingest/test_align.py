@@ -17,10 +17,12 @@ from calibration.rig import write_rig
 from calibration.types import F64
 from ingest.train.align import Alignment, ImageLevels, align_points
 from ingest.train.align_check import check_calibration, combine
-from ingest.train.pipeline import IngestConfig, ingest
+from ingest.train.pipeline import ingest
+from ingest.train.settings import IngestConfig
 from sensorbox.sim.camera import render
+from sensorbox.sim.config import SimConfig
 from sensorbox.sim.lidar import simulate_sweep, sweep_windows
-from sensorbox.sim.run import SimConfig, setup_sim
+from sensorbox.sim.run import setup_sim
 from sensorbox.sim.truth import Truth
 from tests.paths import FIXTURES_DIR
 
@@ -202,7 +204,7 @@ def test_an_alignment_only_run_writes_no_sample_and_finds_what_the_metas_record(
     ones a sparse ingest that writes the samples records in its metas (to JSON's rounding)."""
     from ingest.dataset.meta import read_meta
     from ingest.train.align_check import from_metas, from_records
-    from ingest.train.sample import SampleParams
+    from ingest.train.sample_job import SampleParams
 
     bag = FIXTURES_DIR / "indoor_walk_db3"
     rig_file = tmp_path / "rig" / "rig.yaml"

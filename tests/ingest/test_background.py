@@ -18,9 +18,10 @@ from ingest.bags.reader import open_bags
 from ingest.dataset.layout import prepare_dirs
 from ingest.runtime.background import Background
 from ingest.train import sample
-from ingest.train.pipeline import IngestConfig, _resolve_topics
 from ingest.train.plan import plan
-from ingest.train.sample import Geometry, SampleJob, process_sample, start_equirects
+from ingest.train.sample import process_sample, start_equirects
+from ingest.train.sample_job import Geometry, SampleJob
+from ingest.train.settings import IngestConfig, resolve_topics
 from ingest.train.stream import Shared, StreamedJob, decode_images, stream_jobs
 from tests.ingest.test_pipeline import INDOOR, _rig
 from tests.live import HANG_S
@@ -65,7 +66,7 @@ def _jobs(tmp_path: Path, n: int) -> list[SampleJob]:
     cfg = replace(cfg, sample=replace(cfg.sample, window_ns=cfg.lidar_window_ns))
     geometry = Geometry.from_rig(read_rig(cfg.rig), cfg.height_full)
     with open_bags([INDOOR]) as bags:
-        topics = _resolve_topics(geometry.rig, bags.topics(), str(INDOOR))
+        topics = resolve_topics(geometry.rig, bags.topics(), str(INDOOR))
         jobs = [j for j in stream_jobs(bags, topics, plan(bags, topics, cfg), cfg)]
     shared = Shared(geometry)
     out = [j.sample_job(shared, *decode_images(j, shared)[0]) for j in jobs if isinstance(j, StreamedJob)][:n]

@@ -27,7 +27,8 @@ from ingest.bags.reader import CorruptChunkError, open_bags
 from ingest.bags.rostypes import IMAGE_TYPE, typestore
 from ingest.dataset.layout import GT_DIRS, IMAGE_DIRS
 from ingest.errors import MessageDecodeError
-from ingest.train.pipeline import IngestConfig, ingest
+from ingest.train.pipeline import ingest
+from ingest.train.settings import IngestConfig
 from sensorbox.live.bagwriter import BagWriter
 from sensorbox.messages import image_msg
 from tests.faults.bags import LIDAR_BOTTOM, LIDAR_TOP, UPPER, raw_image, rewrite

@@ -13,8 +13,10 @@ import yaml
 from rosbags.highlevel import AnyReader
 
 from calibration.rig import read_rig, with_timeshifts, write_rig
-from ingest.train.pipeline import IngestConfig, ingest
-from sensorbox.sim.run import SimConfig, simulate
+from ingest.train.pipeline import ingest
+from ingest.train.settings import IngestConfig
+from sensorbox.sim.config import SimConfig
+from sensorbox.sim.run import simulate
 from sensorbox.sim.score import score_dataset
 from sensorbox.sim.truth import Truth
 

@@ -23,13 +23,15 @@ from ingest.bags.message import RawMessage
 from ingest.bags.reader import BagSet, Progress, open_bags
 from ingest.dataset.meta import read_meta
 from ingest.train.dense import DenseParams, dense_ground_truth, free_space_filter, snap_to_pixel_rays
-from ingest.train.odometry import OdometryParams
-from ingest.train.pipeline import IngestConfig, _resolve_topics, ingest
+from ingest.train.local_map import OdometryParams
+from ingest.train.pipeline import ingest
 from ingest.train.planes import Normals
 from ingest.train.rig_trajectory import RigTrajectory
-from ingest.train.sample import SampleParams
+from ingest.train.sample_job import SampleParams
+from ingest.train.settings import IngestConfig, resolve_topics
 from ingest.train.trajectory import read_gyro, trajectory_pass
-from sensorbox.sim.run import SimConfig, simulate
+from sensorbox.sim.config import SimConfig
+from sensorbox.sim.run import simulate
 from sensorbox.sim.score import score_dataset
 from sensorbox.sim.truth import Truth
 
@@ -496,7 +498,7 @@ def test_the_warm_up_runs_beside_the_trajectory_pass_and_its_error_stops_the_run
     import threading
 
     from ingest.errors import OutputError
-    from ingest.train.sample import Geometry
+    from ingest.train.sample_job import Geometry
     from sensorbox.sim.fixtures import fixture_bag
     from tests.paths import FIXTURES_DIR
 
@@ -574,7 +576,7 @@ def _trajectory_without_lidar(
     truth = walk["truth"]
     rig = read_rig(truth.path / "rig.yaml")
     with open_bags([walk["bag"]]) as bags:
-        topics = _resolve_topics(rig, bags.topics(), str(walk["bag"]))
+        topics = resolve_topics(rig, bags.topics(), str(walk["bag"]))
         gyro = read_gyro(bags, topics.imu, topics.R_cam0_imu)
         lost = _WithoutLidar(bags, topics.lidars, truth.start_ns + lo_ns, truth.start_ns + hi_ns)
         return trajectory_pass(lost, topics.lidars, rig, gyro, 0.3, prm)  # type: ignore[arg-type]
@@ -705,8 +707,9 @@ from importlib import import_module
 from numba.core.registry import CPUDispatcher
 
 from calibration.rig import read_rig
-from ingest.train.pipeline import IngestConfig, ingest
-from ingest.train.sample import Geometry, SampleParams
+from ingest.train.pipeline import ingest
+from ingest.train.settings import IngestConfig
+from ingest.train.sample_job import Geometry, SampleParams
 
 MODULES = [import_module(name) for name in ("calibration.kernels", "ingest.raster.kernels",
            "ingest.raster.pixel_kernels", "ingest.raster.point_kernels", "ingest.train.free_space")]

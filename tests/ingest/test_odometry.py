@@ -13,15 +13,8 @@ from ingest.bags.decode import Sweep
 from ingest.errors import OdometryError
 from ingest.train import trajectory
 from ingest.train.clouds import integrate_gyro
-from ingest.train.odometry import (
-    LocalMap,
-    Odometry,
-    OdometryParams,
-    _Chain,
-    _joined,
-    _register_chunk,
-    voxel_subsample,
-)
+from ingest.train.local_map import LocalMap, OdometryParams, voxel_subsample
+from ingest.train.odometry import Odometry, _Chain, _joined, _register_chunk
 from ingest.train.rig_trajectory import RigTrajectory, still
 from ingest.train.trajectory import AUTO_MAX_RESIDUAL_MM, TrajectorySummary, choose_method, summarize
 

@@ -17,14 +17,16 @@ import yaml
 
 from calibration.stereo import rotate_for_stereo
 from ingest.bags.reader import open_bags
+from ingest.dataset.identity import bag_identity
 from ingest.dataset.layout import DEPTH_SCALE, DISP_SCALE, read_png_u16
 from ingest.dataset.meta import read_meta
 from ingest.errors import BagError, DatasetError, MessageDecodeError
-from ingest.train.describe import bag_identity
-from ingest.train.pipeline import IngestConfig, ingest
-from ingest.train.sample import SampleParams
+from ingest.train.pipeline import ingest
+from ingest.train.sample_job import SampleParams
+from ingest.train.settings import IngestConfig
 from sensorbox.live.bagwriter import BagWriter
-from sensorbox.sim.run import SimConfig, simulate
+from sensorbox.sim.config import SimConfig
+from sensorbox.sim.run import simulate
 from sensorbox.sim.score import score_dataset
 from sensorbox.sim.truth import Truth, truth_dir
 from tests.paths import FIXTURES_DIR
@@ -557,11 +559,11 @@ def test_a_camera_that_maps_no_pixel_to_a_ray_is_one_line(monkeypatch: pytest.Mo
     from calibration.errors import CalibrationError
     from calibration.rig import REFERENCE_RIG, read_rig
     from ingest.raster.view import pixel_rays
-    from ingest.train.sample import Geometry
+    from ingest.train.sample_job import Geometry
 
     rig = read_rig(REFERENCE_RIG)
     rays, valid = pixel_rays(rig.upper.model)
-    monkeypatch.setattr("ingest.train.sample.pixel_rays", lambda model: (rays, np.zeros_like(valid)))
+    monkeypatch.setattr("ingest.train.sample_job.pixel_rays", lambda model: (rays, np.zeros_like(valid)))
     with pytest.raises(CalibrationError, match=r"camera cam0 maps none of its 1920x1200 pixels to a ray"):
         Geometry.from_rig(rig)
 

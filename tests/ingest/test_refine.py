@@ -27,7 +27,8 @@ from ingest.train.timeshift import (
     estimate_imu_rotation,
     estimate_timeshift,
 )
-from sensorbox.sim.run import SimConfig, simulate, with_mid360_imu_noise
+from sensorbox.sim.config import SimConfig, with_mid360_imu_noise
+from sensorbox.sim.run import simulate
 from sensorbox.sim.trajectory import imu_readings, static, walk
 from sensorbox.sim.truth import Truth
 from tests.faults.cli import sensorbox
@@ -207,7 +208,8 @@ def test_ingest_refine_times_the_samples_with_the_offsets_it_found(late_walk: Pa
     estimate (within 1.5 ms of the truth), the summary carries the refinement, dataset.yaml says where
     the offsets came from, and the dataset's rig is the refined one."""
     from calibration.rig import write_rig
-    from ingest.train.pipeline import IngestConfig, ingest
+    from ingest.train.pipeline import ingest
+    from ingest.train.settings import IngestConfig
 
     exact = Truth.load(late_walk).rig
     rig = tmp_path / "rig" / "plain.yaml"

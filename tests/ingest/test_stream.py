@@ -15,10 +15,10 @@ from ingest.bags.decode import Sweep
 from ingest.bags.reader import open_bags
 from ingest.runtime.transport import ArraySlots, slot_views
 from ingest.train.block_planes import BlockPlanes, FreeSpaceSettings, PlaneSettings, world_normals
-from ingest.train.pipeline import IngestConfig, Topics, _resolve_topics
-from ingest.train.plan import IMU_MARGIN_NS, Plan, plan
+from ingest.train.plan import Plan, plan
 from ingest.train.rig_trajectory import RigTrajectory
-from ingest.train.sample import Geometry
+from ingest.train.sample_job import Geometry
+from ingest.train.settings import IngestConfig, Topics, resolve_topics
 from ingest.train.stream import (
     Shared,
     StreamedJob,
@@ -30,6 +30,7 @@ from ingest.train.stream import (
     stream_jobs,
     take_arrays,
 )
+from ingest.train.sync import IMU_MARGIN_NS
 from tests.ingest.test_pipeline import INDOOR, _rig
 
 
@@ -38,7 +39,7 @@ def test_jobs_carry_the_stored_bytes_and_the_worker_decodes_them(tmp_path: Path)
     cfg = replace(cfg, sample=replace(cfg.sample, window_ns=cfg.lidar_window_ns))
     geometry = Geometry.from_rig(read_rig(cfg.rig), 64)
     with open_bags([INDOOR]) as bags:
-        topics = _resolve_topics(geometry.rig, bags.topics(), str(INDOOR))
+        topics = resolve_topics(geometry.rig, bags.topics(), str(INDOOR))
         stored = {
             (m.topic, m.stamp(bags.label)): m.raw for m in bags.messages(topics=[topics.upper, topics.lower])
         }
@@ -79,7 +80,7 @@ def test_every_job_holds_the_gyro_readings_its_points_need(tmp_path: Path) -> No
     cfg = replace(cfg, sample=replace(cfg.sample, window_ns=cfg.lidar_window_ns))
     rig = read_rig(cfg.rig)
     with open_bags([INDOOR]) as bags:
-        topics = _resolve_topics(rig, bags.topics(), str(INDOOR))
+        topics = resolve_topics(rig, bags.topics(), str(INDOOR))
         assert topics.imu is not None
         imu_stamps = [m.stamp(bags.label) for m in bags.messages(topics=[topics.imu])]
         imu_first, imu_last = min(imu_stamps), max(imu_stamps)
@@ -141,7 +142,7 @@ def _dense_jobs(
     cfg = replace(cfg, sample=replace(cfg.sample, window_ns=cfg.lidar_window_ns, method="dense"))
     rig = read_rig(cfg.rig)
     with open_bags([INDOOR]) as bags:
-        topics = _resolve_topics(rig, bags.topics(), str(INDOOR))
+        topics = resolve_topics(rig, bags.topics(), str(INDOOR))
         sweeps: dict[str, list[Sweep]] = {t: [] for t in topics.lidars}
         for msg in bags.messages(topics=list(topics.lidars)):
             sweep = msg.decoded(bags.label)

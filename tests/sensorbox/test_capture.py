@@ -21,7 +21,8 @@ from calibration.errors import SensorboxError
 from ingest.bags.decode import header_stamp_ns
 from ingest.bags.livox_msg import decode_custom_msg
 from ingest.bags.reader import open_bags
-from ingest.train.pipeline import IngestConfig, ingest
+from ingest.train.pipeline import ingest
+from ingest.train.settings import IngestConfig
 from sensorbox.live.capture import CaptureConfig, capture_plan, check_config
 from sensorbox.live.launch import parse_launch, run_launch
 from tests.live import HANG_S, NO_DISK_GUARD
@@ -260,8 +261,9 @@ def test_a_lidar_that_sent_nothing_is_a_warning_after_the_recording():
 def test_a_live_emulator_sweeps_without_listing_its_run_first():
     """`loop_s:=0` simulates live over a 1e7 s run: its first sweep comes at once (it listed 1e8 windows
     first, and the emulator never sent)."""
+    from sensorbox.sim.config import SimConfig
     from sensorbox.sim.lidar import iter_sweep_windows, sweep_windows
-    from sensorbox.sim.run import SimConfig, setup_sim
+    from sensorbox.sim.run import setup_sim
     from sensorbox.sim.scan_source import SimScan
 
     setup = setup_sim(SimConfig(scene="indoor", duration_s=0.35, scale=0.1))

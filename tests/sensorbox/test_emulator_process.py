@@ -11,8 +11,8 @@ import pytest
 
 from sensorbox.errors import GraphError
 from sensorbox.livox import DriverConfig, LidarEndpoint, Mid360Driver, Ports
+from sensorbox.sim.config import SimConfig
 from sensorbox.sim.emulator_process import EmulatorProcess, EmulatorSpec
-from sensorbox.sim.run import SimConfig
 from tests.live import HANG_S, wait_for
 from tests.paths import ROOT
 
@@ -60,7 +60,7 @@ import sys, time
 from sensorbox.livox import DriverConfig, LidarEndpoint, Ports
 from sensorbox.livox.process import DriverProcess
 from sensorbox.sim.emulator_process import EmulatorProcess, EmulatorSpec
-from sensorbox.sim.run import SimConfig
+from sensorbox.sim.config import SimConfig
 
 base = int(sys.argv[1])
 sim = SimConfig(scene="indoor", trajectory="static", scale=0.125, range_noise_m=0.0)

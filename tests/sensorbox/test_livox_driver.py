@@ -32,10 +32,11 @@ from sensorbox.livox import DriverConfig, LidarEndpoint, Mid360Driver, Ports, pa
 from sensorbox.livox import protocol as proto
 from sensorbox.livox.config import DriverStats, LidarStats
 from sensorbox.livox.sockets import udp_socket
+from sensorbox.sim.config import SimConfig
 from sensorbox.sim.lidar import Sweep, simulate_sweep
 from sensorbox.sim.mid360 import Mid360Emulator, credit_from
 from sensorbox.sim.nodes import sim_emulators
-from sensorbox.sim.run import SimConfig, setup_sim
+from sensorbox.sim.run import setup_sim
 from sensorbox.sim.scan_source import SimScan, SweepList
 from tests.live import HANG_S, ManualClock, wait_for
 

@@ -14,8 +14,9 @@ import pytest
 from ingest.bags.livox_msg import decode_custom_msg
 from sensorbox.errors import DriverError
 from sensorbox.livox.process import DriverProcess
+from sensorbox.sim.config import SimConfig
 from sensorbox.sim.mid360 import Mid360Emulator, credit_from
-from sensorbox.sim.run import SimConfig, setup_sim
+from sensorbox.sim.run import setup_sim
 from sensorbox.sim.scan_source import SimScan, SweepList
 from tests.live import HANG_S, wait_for
 from tests.sensorbox.test_livox_driver import WINDOW, Sink, config, fresh_ports, quantised_m, xyz_of

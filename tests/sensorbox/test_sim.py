@@ -19,8 +19,9 @@ from ingest.bags.livox_msg import decode_custom_msg
 from sensorbox.messages import PC2_DTYPE
 from sensorbox.sim.appearance import Texture
 from sensorbox.sim.camera import CameraSim, render
+from sensorbox.sim.config import SimConfig
 from sensorbox.sim.lidar import POINT_SPACING_NS, POINTS_PER_PACKET
-from sensorbox.sim.run import CAMERA_LATENCY_NS, IMU_LATENCY_NS, SimConfig, simulate
+from sensorbox.sim.run import CAMERA_LATENCY_NS, IMU_LATENCY_NS, simulate
 from sensorbox.sim.scenes import build_scene
 from sensorbox.sim.trajectory import (
     GRAVITY_MPS2,

@@ -13,8 +13,9 @@ from rosbags.highlevel import AnyReader
 from calibration.errors import SensorboxError
 from calibration.rig import read_rig
 from ingest.bags.decode import decode_imu
+from sensorbox.sim.config import SimConfig, with_mid360_imu_noise
 from sensorbox.sim.lidar import PULSE_SEPARATION_M, mixed_ranges, range_sigma_m
-from sensorbox.sim.run import SimConfig, imu_biases, simulate, with_mid360_imu_noise
+from sensorbox.sim.run import imu_biases, simulate
 from sensorbox.sim.trajectory import imu_readings
 from sensorbox.sim.truth import Truth
 

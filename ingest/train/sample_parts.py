@@ -1,0 +1,192 @@
+"""The stages sparse and dense GT share for one sample: the window's filtered points of every LiDAR in cam0,
+their alignments with the images, cam0's twist for the meta, and the sample's files written once the
+equirect warps are done.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, replace
+from typing import Any
+
+import cv2
+import numpy as np
+
+from calibration.types import F64, I64, U64
+from ingest.dataset.identity import frame_digest
+from ingest.dataset.layout import SampleFiles, write_sample
+from ingest.dataset.meta import AlignmentMeta, SampleMeta
+from ingest.dataset.sparse import SparseImage
+from ingest.rows import rows
+from ingest.runtime.background import Background
+from ingest.train.align import ImageLevels, align_points
+from ingest.train.clouds import FilterCounts, filter_points
+from ingest.train.rig_trajectory import RigTrajectory
+from ingest.train.sample_job import SampleJob, SampleResult
+
+
+def silent_lidars(job: SampleJob) -> list[str]:
+    """The rig's LiDARs that gave no point in the sample's window (a sensor that stopped)."""
+    return [lp.name for lp in job.lidars if len(lp.stamps_ns) == 0]
+
+
+@dataclass(frozen=True)
+class WindowPoints:
+    """A job's filtered points of every LiDAR, in cam0 at their own times, and what they carry."""
+
+    pts: F64  # (N, 3) m
+    stamps_ns: I64
+    lidar: I64  # index into `job.lidars`
+    counts: FilterCounts
+    skew_ms: dict[str, float]  # per LiDAR: the farthest point time from the frame's
+    normal_world: F64 | None  # (N, 3), when every LiDAR's points carry them
+    clear_bits: U64 | None  # (N, words), when every LiDAR's points carry them
+    reflectivity: F64 | None  # (N,), when every LiDAR's points carry it
+
+    def where(self, keep: np.ndarray[Any, Any]) -> WindowPoints:
+        """The points `keep` selects with all they carry (the counts and skews stay the window's)."""
+        return replace(
+            self, pts=rows(self.pts, keep), stamps_ns=self.stamps_ns[keep], lidar=self.lidar[keep],
+            normal_world=None if self.normal_world is None else rows(self.normal_world, keep),
+            clear_bits=None if self.clear_bits is None else rows(self.clear_bits, keep),
+            reflectivity=None if self.reflectivity is None else self.reflectivity[keep],
+        )  # fmt: skip
+
+
+def points_by_lidar(job: SampleJob) -> WindowPoints:
+    """Filtered points of every LiDAR in cam0 (at their own times), their stamps, LiDAR, counts and skews,
+    with the block fits' normals, free-space bits and reflectivity where every LiDAR has them."""
+    pts, stamps, which, total, skew, normals, bits, refl = [], [], [], FilterCounts(), {}, [], [], []
+    for i, lp in enumerate(job.lidars):
+        keep, counts = filter_points(lp.xyz_m, lp.tag, job.params.min_range_m)
+        T = job.geometry.rig.lidar(lp.name).T_cam0_lidar
+        xyz = np.asarray(rows(lp.xyz_m, keep), np.float64)
+        pts.append(xyz @ T[:3, :3].T + T[:3, 3])
+        stamps.append(lp.stamps_ns[keep])
+        which.append(np.full(int(keep.sum()), i, np.int64))
+        if lp.normal_world is not None:
+            normals.append(np.asarray(rows(lp.normal_world, keep), np.float64))
+        if lp.clear_bits is not None:
+            bits.append(rows(lp.clear_bits, keep))
+        if lp.reflectivity is not None:
+            refl.append(np.asarray(lp.reflectivity[keep], np.float64))
+        total = total + counts
+        dt = (stamps[-1] - job.exposure_ns) / 1e6
+        skew[lp.name] = float(np.abs(dt).max()) if len(dt) else 0.0
+    every = len(job.lidars)
+    return WindowPoints(
+        np.concatenate(pts), np.concatenate(stamps), np.concatenate(which), total, skew,
+        np.concatenate(normals) if len(normals) == every else None,
+        np.concatenate(bits) if len(bits) == every else None,
+        np.concatenate(refl) if len(refl) == every else None,
+    )  # fmt: skip
+
+
+Equirects = tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]
+"""`equirect_up` and `equirect_down_virt` of one sample (the full-sphere equirect's size, each with its
+source image's channels: BGR or BGRA)."""
+
+
+def alignment_fields(
+    job: SampleJob, pts_cam0: F64, cloud: WindowPoints, ms: dict[str, float]
+) -> dict[str, Any]:
+    """The meta's `alignment` and `alignment_lower` of the points `pts_cam0` (those of `cloud`, placed in
+    cam0 at the exposure), timed as stage "alignment" in `ms`."""
+    t0 = time.perf_counter()
+    fields = {
+        "alignment": _alignments(job, pts_cam0, cloud.reflectivity, cloud.lidar),
+        "alignment_lower": _lower_alignments(job, pts_cam0, cloud.reflectivity, cloud.lidar),
+    }
+    ms["alignment"] = (time.perf_counter() - t0) * 1e3
+    return fields
+
+
+def _alignments(
+    job: SampleJob, pts_cam0: F64, reflectivity: F64 | None, which: I64
+) -> dict[str, AlignmentMeta]:
+    """Each LiDAR's photometric alignment with the upper image (`ingest.train.align`), of the points
+    placed in cam0 at the exposure (`pts_cam0`, from LiDAR `which`); none without reflectivity."""
+    if reflectivity is None:
+        return {}
+    return _aligned(job, job.upper_bgr, job.geometry.rig.upper.model, pts_cam0, reflectivity, which)
+
+
+def _lower_alignments(
+    job: SampleJob, pts_cam0: F64, reflectivity: F64 | None, which: I64
+) -> dict[str, AlignmentMeta]:
+    """`_alignments` onto the lower image, the points moved into cam1 by the camchain's stereo pose
+    (`SampleParams.align_lower`; none without it)."""
+    if reflectivity is None or not job.params.align_lower:
+        return {}
+    lower = job.geometry.rig.lower
+    pts_cam1 = pts_cam0 @ lower.T_cam_cam0[:3, :3].T + lower.T_cam_cam0[:3, 3]
+    return _aligned(job, job.lower_bgr, lower.model, pts_cam1, reflectivity, which)
+
+
+def _aligned(
+    job: SampleJob, image: np.ndarray[Any, Any], model: Any, pts: F64, reflectivity: F64, which: I64
+) -> dict[str, AlignmentMeta]:
+    """Each LiDAR's `align_points` of `pts` (in the camera of `image` and `model`)."""
+    levels = ImageLevels.from_bgr(image)
+    out = {}
+    for i, lp in enumerate(job.lidars):
+        mine = which == i
+        found = align_points(model, levels, rows(pts, mine), reflectivity[mine])
+        if found is not None:
+            out[lp.name] = found.to_meta()
+    return out
+
+
+TWIST_STEP_NS = 5_000_000
+
+
+def trajectory_twist(traj: RigTrajectory, t_ns: int) -> list[float]:
+    """cam0's angular velocity (rad/s) and velocity (m/s), both in cam0, at `t_ns` (central differences
+    over +-`TWIST_STEP_NS`)."""
+    R, p = traj.pose(np.array([t_ns - TWIST_STEP_NS, t_ns, t_ns + TWIST_STEP_NS], np.int64))
+    turn, _ = cv2.Rodrigues(R[0].T @ R[2])
+    h_s = 2 * TWIST_STEP_NS / 1e9
+    # the turn between the two ends is in the frame at the first; at these rates the difference is 1e-5
+    omega = turn.ravel() / h_s
+    velocity = R[1].T @ (p[2] - p[0]) / h_s
+    return [round(float(v), 6) for v in (*omega, *velocity)]
+
+
+def gyro_twist(job: SampleJob, velocity_cam0_mps: F64 | None) -> list[float] | None:
+    """cam0's angular velocity (rad/s, the gyro's readings within +-`TWIST_STEP_NS` of the exposure,
+    averaged, in cam0) and the velocity motion compensation used (m/s, 0 when none); None without
+    gyro readings there."""
+    if job.imu is None:
+        return None
+    near = np.abs(job.imu.stamps_ns - job.exposure_ns) <= TWIST_STEP_NS
+    if not near.any():
+        return None
+    omega = job.imu.R_cam0_imu @ job.imu.gyro_rad_s[near].mean(axis=0)
+    velocity = np.zeros(3) if velocity_cam0_mps is None else np.asarray(velocity_cam0_mps, np.float64)
+    return [round(float(v), 6) for v in (*omega, *velocity)]
+
+
+def finish_sample(
+    job: SampleJob,
+    images: Background[Equirects],
+    start_ms: float,
+    ms: dict[str, float],
+    gt: tuple[SparseImage, SparseImage],
+    meta: SampleMeta,
+) -> SampleResult:
+    """Wait for the warps, write the sample's files, and time both."""
+    t2 = time.perf_counter()
+    up, down = images.result()
+    t3 = time.perf_counter()
+    ms["images"] = start_ms + (t3 - t2) * 1e3
+    meta = replace(
+        meta,
+        points=replace(meta.points, thin_lidars=list(job.thin_lidars)),
+        frames_sha256=frame_digest(job.upper_bgr, job.lower_bgr),
+        settings=job.settings,
+    )
+    files = SampleFiles(job.upper_bgr, job.lower_bgr, up, down, gt[1], gt[0], meta)
+    drops = write_sample(job.out, job.sid, files, job.params.exr, job.params.png_level)
+    ms["write"] = (time.perf_counter() - t3) * 1e3
+    helper = {"equirect warps": images.ms} if job.params.overlap_images else {}
+    return SampleResult(job.sid, True, "", meta.written(job.sid, drops), ms, helper)

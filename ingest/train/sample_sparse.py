@@ -1,0 +1,114 @@
+"""Sparse GT of one sample: the frame's own sweeps, motion-compensated to the frame time (gyro rotation,
+a constant velocity), splatted into the fisheye and the equirect.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import replace
+
+import numpy as np
+
+from ingest.dataset.meta import GtMeta, MotionMeta, PointMeta, SampleMeta
+from ingest.runtime.background import Background
+from ingest.train.clouds import compensate, estimate_velocity, integrate_gyro
+from ingest.train.groundtruth import (
+    equirect_disparity,
+    fisheye_range,
+    in_view,
+    occlusion_filter,
+    splat_to_pixels,
+    surface_normals,
+)
+from ingest.train.planes import Normals
+from ingest.train.sample_job import ALIGNED, SampleAlignment, SampleJob, SampleResult
+from ingest.train.sample_parts import (
+    Equirects,
+    alignment_fields,
+    finish_sample,
+    gyro_twist,
+    points_by_lidar,
+    silent_lidars,
+)
+
+VELOCITY_SIGMAS = 4.0  # an estimated velocity counts when its norm exceeds this many standard errors
+
+
+def process_sparse(job: SampleJob, images: Background[Equirects] | None, start_ms: float) -> SampleResult:
+    """Sparse GT: the frame's own sweeps, motion-compensated to the frame time; without `images` (the
+    warps), the points' alignments only (`SampleParams.alignment_only`)."""
+    ms: dict[str, float] = {}
+    t0 = time.perf_counter()
+    geo, prm = job.geometry, job.params
+    cloud = points_by_lidar(job)
+    counts, gyro, off_imu = cloud.counts, None, 0
+    if job.imu is not None and len(job.imu.stamps_ns) >= 2:
+        gyro = integrate_gyro(job.imu.stamps_ns, job.imu.gyro_rad_s, job.imu.R_cam0_imu)
+        covered = gyro.covers(cloud.stamps_ns)  # rotations outside the IMU's span are unknown: dropped
+        off_imu = int((~covered).sum())  # counted in the meta: the filters' counts add up to the total
+        counts = replace(counts, kept=counts.kept - off_imu)
+        cloud = cloud.where(covered)
+    pts, stamps = cloud.pts, cloud.stamps_ns
+    dt_s = (stamps - job.exposure_ns) / 1e9
+    use_gyro = gyro is not None and prm.motion != "off"
+    rotated = gyro.rotate(stamps, job.exposure_ns, pts) if gyro is not None and use_gyro else None
+    velocity, source = job.velocity_cam0_mps, ("imu" if use_gyro else "none")
+    if prm.motion != "full":
+        velocity = None
+    elif velocity is None and prm.estimate_velocity:
+        est = estimate_velocity(
+            rotated[0] if rotated is not None else pts, dt_s, significance=VELOCITY_SIGMAS
+        )
+        # use it only when it is significant: a static rig must not be "compensated" with fit noise
+        if est is not None and np.linalg.norm(est.velocity_cam0_mps) > VELOCITY_SIGMAS * est.weakest_m_s:
+            velocity = est.velocity_cam0_mps
+    if velocity is not None:
+        source += "+velocity"
+    pts, motion = compensate(pts, dt_s, rotated, velocity, geo.px_per_rad, prm.min_motion_px, source=source)
+    half = prm.window_ns / 2e9
+    if motion.applied and not (len(dt_s) and dt_s.min() <= -half and dt_s.max() >= half):
+        # a one-sided window (bag start/end, a LiDAR gap) leaves the velocity poorly determined
+        return SampleResult(job.sid, False, "moving, LiDAR window one-sided (bag start/end or gap)", None, {})
+    t1 = time.perf_counter()
+    ms["clouds"] = (t1 - t0) * 1e3
+    if images is None:
+        fields = alignment_fields(job, pts, cloud, ms)
+        twist = gyro_twist(job, velocity if motion.applied else None)
+        aligned = SampleAlignment(fields["alignment"], fields["alignment_lower"], twist)
+        return SampleResult(job.sid, False, ALIGNED, None, ms, aligned=aligned)
+    model = geo.rig.upper.model
+    view = in_view(model, pts)
+    seen = view[0]
+    normals = surface_normals(pts, prm.gt.plane_neighbours, prm.gt.plane_max_flatness, query=seen)
+    visible = occlusion_filter(model, pts, prm.gt, view)  # a subset of `seen`
+    in_seen = visible[seen]
+    kept = Normals(normals.normal[in_seen], normals.planar[in_seen])
+    seen_cols_rows = (seen[visible], view[1][visible], view[2][visible])
+    splat = splat_to_pixels(model, pts[visible], kept, prm.gt, seen_cols_rows)
+    range_img = fisheye_range(model, splat)
+    R_rect_cam0 = geo.rect.R_cam0_rect.T
+    disp_img, _, unstable = equirect_disparity(
+        geo.equirect, R_rect_cam0, pts[visible], kept, geo.rect.baseline_m, prm.gt
+    )
+    ms["ground_truth"] = (time.perf_counter() - t1) * 1e3
+    meta = SampleMeta(
+        **job.timing(), source_bag=job.source, lidar_skew_ms=cloud.skew_ms,
+        twist_cam0=gyro_twist(job, velocity if motion.applied else None),
+        **alignment_fields(job, pts, cloud, ms),
+        motion=MotionMeta(
+            applied=motion.applied, source=motion.source, max_rotation_deg=motion.max_rotation_deg,
+            speed_mps=motion.speed_mps, predicted_motion_px=motion.motion_px,
+            velocity_cam0_mps=motion.velocity_cam0_mps,
+        ),
+        points=PointMeta(
+            total=counts.total, zero=counts.zero, non_finite=counts.non_finite, too_close=counts.too_close,
+            noise_tag=counts.noise_tag, kept=counts.kept, out_of_view=int(len(seen) - seen.sum()),
+            occluded=int(seen.sum() - visible.sum()), silent_lidars=silent_lidars(job), off_imu=off_imu,
+        ),
+        gt=GtMeta(
+            depth_pixels=range_img.count, disp_pixels=disp_img.count, disp_unstable=unstable,
+            density=range_img.count / geo.fisheye_valid_px, window_ms=prm.window_ns / 1e6,
+            decision=prm.decision,
+        ),
+    )  # fmt: skip
+    return finish_sample(job, images, start_ms, ms, (range_img, disp_img), meta)

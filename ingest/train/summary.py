@@ -1,0 +1,141 @@
+"""What an ingest run did (`IngestSummary`): the counts, timings and decisions the CLI's summary table and
+dataset.yaml report, gathered sample by sample."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from calibration.types import F64
+from ingest.train.align import Alignment
+from ingest.train.align_check import CalibrationCheck, from_metas
+from ingest.train.lidar_rate import THIN_FRACTION
+from ingest.train.refine import Refinement
+from ingest.train.sample_dense import GAP_FALLBACK
+from ingest.train.sample_job import ALIGNED, SampleAlignment, SampleResult
+from ingest.train.stream import ALREADY_HELD
+from ingest.train.trajectory import TrajectorySummary
+
+OVER_UINT16 = "over the depth PNG's 65.535 m, left empty"
+
+
+@dataclass
+class IngestSummary:
+    """What an ingest run did, for the CLI's summary table."""
+
+    written: int = 0
+    resumed: int = 0
+    skipped: dict[str, int] = field(default_factory=dict)
+    flagged: dict[str, int] = field(default_factory=dict)  # written, with a warning in their meta
+    undecodable: dict[str, int] = field(default_factory=dict)  # per topic: messages skipped (--max-bad)
+    dropped: dict[str, dict[str, int]] = field(default_factory=dict)  # per topic, reason: `plausible`
+    frames: int = 0
+    pairs: int = 0
+    planned: int = 0
+    density_by_method: dict[str, list[float]] = field(default_factory=dict)  # under --gt auto both occur
+    skew_ms: list[float] = field(default_factory=list)
+    stereo_dt_ms: list[float] = field(default_factory=list)  # lower minus upper header stamp, per sample
+    motion_applied: int = 0
+    dense_points: dict[str, int] = field(default_factory=dict)  # dense GT: totals over the samples
+    stage_ms: dict[str, list[float]] = field(default_factory=dict)  # sequential: they add up per sample
+    overlapped_ms: dict[str, list[float]] = field(default_factory=dict)  # helper threads beside them
+    seconds: float = 0.0
+    dense_warm_up_s: float | None = None  # dense GT's kernels and pixel rays, before the samples
+    compile_s: float = 0.0  # numba compiling in this process (`ingest.runtime.jit`): a checkout's first run
+    dense_planes: tuple[int, float] | None = None  # dense GT: (blocks fitted, seconds fitting and testing)
+    out: Path | None = None
+    method: str = "sparse"
+    decision: str = ""
+    trajectory: TrajectorySummary | None = None
+    lost: dict[str, int] = field(default_factory=dict)  # topic -> messages in corrupt chunks (--salvage)
+    lost_chunks: list[str] = field(default_factory=list)  # one line per corrupt chunk skipped
+    duplicates: dict[str, int] = field(default_factory=dict)  # per topic: repeated stamps, first read
+    uncovered: int = 0  # stereo pairs without LiDAR points within the window: not planned
+    imu_gaps_ms: list[float] = field(default_factory=list)  # IMU intervals over 5 periods (plan.imu_gaps)
+    warnings: list[str] = field(default_factory=list)  # about the inputs, one line each (the rig's layout)
+    stale_temporaries: int = 0  # left in the output by a killed run, removed (`ingest.dataset.lock`)
+    without_gt: int = 0  # samples written with no GT pixel in their depth PNG
+    without_gt_points: dict[str, int] = field(default_factory=dict)  # their windows' points, by filter
+
+    def without_gt_line(self) -> str:
+        """One warning line when written samples hold no GT pixel, with their points by filter ('' if none).
+
+        A recording whose points are all NaN, zero, noise-tagged or out of every view writes samples with
+        an empty depth PNG, which a training set must not take for ground truth without a word.
+        """
+        if not self.without_gt:
+            return ""
+        counts = self.without_gt_points
+        points = {why: n for why, n in counts.items() if why not in ("total", OVER_UINT16) and n}
+        reasons = ", ".join(f"{n:,} {why}" for why, n in points.items())
+        over = counts.get(OVER_UINT16, 0)
+        return (
+            f"{self.without_gt} of {self.written} samples written hold no ground truth pixel; their windows' "
+            f"LiDAR points: {counts.get('total', 0):,}{f' ({reasons})' if reasons else ''}"
+            + (f"; {over:,} GT pixels {OVER_UINT16}" if over else "")
+        )
+
+    held_elsewhere: int = 0  # of `resumed`: frames that samples of other ids hold (`ingest.dataset.identity`)
+    refinement: Refinement | None = None  # --refine: what `ingest.train.refine` found and the rig it made
+    alignments: list[tuple[Mapping[str, Alignment], F64 | None]] = field(default_factory=list)  # per sample
+    calibration: CalibrationCheck | None = None  # the samples' alignments summed up (`ingest.train.align`)
+    damaged: list[str] = field(default_factory=list)  # finished samples found damaged, written again: why
+    aligned: dict[str, SampleAlignment] = field(default_factory=dict)  # per sample id: alignment_only's
+
+    @property
+    def density(self) -> list[float]:
+        """GT density (fisheye) of every written sample, grouped by GT method."""
+        return [d for by_method in self.density_by_method.values() for d in by_method]
+
+    def add(self, result: SampleResult) -> None:
+        if result.reason == ALIGNED and result.aligned is not None:
+            self.aligned[result.sid] = result.aligned
+            return
+        if result.reason == ALREADY_HELD:
+            self.resumed += 1
+            self.held_elsewhere += 1
+            return
+        if not result.written:
+            self.skipped[result.reason] = self.skipped.get(result.reason, 0) + 1
+            return
+        self.written += 1
+        meta = result.meta
+        assert meta is not None  # written samples carry their metadata
+        self.density_by_method.setdefault(meta.gt.method, []).append(meta.gt.density)
+        if meta.gt.depth_pixels == 0:
+            self.without_gt += 1
+            p = meta.points
+            for why, n in (
+                ("total", p.total), ("zero", p.zero), ("non-finite", p.non_finite),
+                ("nearer than --min-range", p.too_close), ("noise-tagged", p.noise_tag),
+                ("outside the IMU's span", p.off_imu), ("out of view", p.out_of_view),
+                ("occluded", p.occluded), ("visible", p.kept - p.out_of_view - p.occluded),
+                (OVER_UINT16, meta.dropped.get("depth_over_uint16", 0)),
+            ):  # fmt: skip
+                self.without_gt_points[why] = self.without_gt_points.get(why, 0) + n
+        if meta.alignment:
+            self.alignments.extend(from_metas([meta])[0])
+        self.skew_ms.extend(meta.lidar_skew_ms.values())
+        self.stereo_dt_ms.append(meta.stereo_dt_ms)
+        for name in meta.points.silent_lidars:
+            key = f"{name} silent in the window"
+            self.flagged[key] = self.flagged.get(key, 0) + 1
+        for name in meta.points.thin_lidars:
+            key = f"{name} thin in the window (< {THIN_FRACTION:.0%} of its rate)"
+            self.flagged[key] = self.flagged.get(key, 0) + 1
+        self.motion_applied += meta.motion.applied
+        if meta.gt.decision == GAP_FALLBACK:
+            key = "sparse GT (frame in a trajectory gap)"
+            self.flagged[key] = self.flagged.get(key, 0) + 1
+        if meta.gt.method == "dense":
+            for key, n in (
+                ("accumulated", meta.gt.accumulated_points),
+                ("removed as movers", meta.gt.removed_moving),
+                ("left out: no registered pose near the frame", meta.points.off_trajectory),
+            ):
+                self.dense_points[key] = self.dense_points.get(key, 0) + n
+        for k, v in result.stage_ms.items():
+            self.stage_ms.setdefault(k, []).append(v)
+        for k, v in result.overlapped_ms.items():
+            self.overlapped_ms.setdefault(k, []).append(v)
