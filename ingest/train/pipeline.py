@@ -89,6 +89,7 @@ from ingest.train.rig_trajectory import RigTrajectory
 from ingest.train.sample_job import Geometry, SampleParams, SampleResult
 from ingest.train.settings import IngestConfig, Topics, resolve_topics
 from ingest.train.stream import (
+    AlreadyDone,
     Shared,
     StreamedJob,
     check_image_size,
@@ -446,13 +447,13 @@ def _run(
         def jobs() -> Iterator[StreamedJob]:
             """The jobs to run; resumed and skipped samples are counted here, in stream order."""
             for item in stream_jobs(bags, topics, the_plan, cfg, first_id, bad, planes, resume, settings):
-                if not isinstance(item, tuple):
+                if isinstance(item, StreamedJob):
                     yield item
                     continue
-                if item[1] == "done":
+                if isinstance(item, AlreadyDone):
                     summary.resumed += 1
                 else:
-                    summary.skipped[item[1]] = summary.skipped.get(item[1], 0) + 1
+                    summary.skipped[item.reason] = summary.skipped.get(item.reason, 0) + 1
                 tick()
 
         # the first job (for dense GT: the first blocks' planes and free space) is made while the warm-up

@@ -331,107 +331,166 @@ def planned_stamps(the_plan: Plan) -> list[tuple[int, int]]:
     return [(int(u), int(lo)) for u, lo in zip(the_plan.upper_ns, the_plan.lower_ns, strict=True)]
 
 
+MISSING_IMAGE = "missing image"
+"""Why a planned sample is not run when the bag ended before one of its two frames came."""
+
+
+@dataclass(frozen=True)
+class AlreadyDone:
+    """A planned sample an earlier run finished whole (`Resume.done`): counted, not run again."""
+
+    sid: str
+
+
+@dataclass(frozen=True)
+class NotRun:
+    """A planned sample that cannot run, and why (`MISSING_IMAGE`)."""
+
+    sid: str
+    reason: str
+
+
+StreamEvent = StreamedJob | AlreadyDone | NotRun
+"""What the stream pass says of each planned sample, in plan order."""
+
+
 def stream_jobs(
     bags: BagSet, topics: Topics, the_plan: Plan, cfg: IngestConfig, first_id: int = 0,
     bad: BadMessages | None = None, planes: BlockPlanes | None = None, resume: Resume | None = None,
     settings: dict[str, Any] | None = None,
-) -> Iterator[StreamedJob | tuple[str, str]]:  # fmt: skip
-    """Second pass: a StreamedJob per planned sample, or (sid, why): "done" earlier, "missing image".
+) -> Iterator[StreamEvent]:  # fmt: skip
+    """Second pass: per planned sample, in plan order, a StreamedJob, or `AlreadyDone` or `NotRun`.
 
     With `planes` (dense GT) every job's points carry their world normals (and
     free-space bits), and a job waits until the blocks its window overlaps
     are done. `resume` is what the output folder holds of the planned samples
-    (`resume_state` of it when not given): a whole one is "done", a damaged
+    (`resume_state` of it when not given): a whole one is done, a damaged
     one goes again, and a job carries the folder's samples with its stamps.
     `settings` go into every sample's meta (`describe.sample_settings`).
     """
-    where = bags.label
-    bad = bad or BadMessages()
-    w = cfg.lidar_window_ns
-    index = {int(t): k for k, t in enumerate(the_plan.upper_ns)}
-    lower_index = {int(t): k for k, t in enumerate(the_plan.lower_ns)}
-    frames: dict[int, dict[str, RawMessage]] = {}  # as stored: the workers decode them
-    sweeps: dict[str, list[Sweep]] = {t: [] for t in topics.lidars}
-    need = _sweeps_needed(the_plan, topics, w)
-    imu_t: list[int] = []
-    imu_g: list[Any] = []
-    copies = FirstCopies()  # sweeps and IMU readings: each once
-    # a sweep is logged at its end, often before the gyro readings past it: a sample also waits for those
-    imu_last = the_plan.imu_last_ns if topics.imu else None
-    imu_max = -(1 << 62)
-    next_k = 0
     sids = [sample_id(first_id + k) for k in range(len(the_plan.upper_ns))]
     if resume is None:
         resume = resume_state(cfg.out, sids, planned_stamps(the_plan))
-    done = resume.done  # finished, whole, by an earlier run
-    source = ",".join(p.name for p in bags.paths)
+    stream = _Stream(bags, topics, the_plan, cfg, sids, bad or BadMessages(), planes, resume, settings or {})
+    wanted = [topics.upper, topics.lower, *topics.lidars, *([topics.imu] if topics.imu else [])]
+    for msg in bags.messages(topics=wanted, defer=(topics.upper, topics.lower)):
+        stream.take(msg)
+        yield from stream.released()
+    yield from stream.rest()
 
-    exposure_ns = the_plan.upper_exposure_ns
 
-    def ready(k: int) -> bool:
-        tc = int(exposure_ns[k])
+class _Stream:
+    """The stream pass's state: the frames, sweeps and gyro readings read so far, and the next planned
+    sample to release (`stream_jobs`)."""
+
+    def __init__(
+        self, bags: BagSet, topics: Topics, the_plan: Plan, cfg: IngestConfig, sids: list[str],
+        bad: BadMessages, planes: BlockPlanes | None, resume: Resume, settings: dict[str, Any],
+    ) -> None:  # fmt: skip
+        self.bags, self.topics, self.plan, self.cfg, self.sids = bags, topics, the_plan, cfg, sids
+        self.bad, self.planes, self.resume, self.settings = bad, planes, resume, settings
+        self.w = cfg.lidar_window_ns
+        self.index = {int(t): k for k, t in enumerate(the_plan.upper_ns)}
+        self.lower_index = {int(t): k for k, t in enumerate(the_plan.lower_ns)}
+        self.frames: dict[int, dict[str, RawMessage]] = {}  # as stored: the workers decode them
+        self.sweeps: dict[str, list[Sweep]] = {t: [] for t in topics.lidars}
+        self.need = _sweeps_needed(the_plan, topics, self.w)
+        self.imu_t: list[int] = []
+        self.imu_g: list[Any] = []
+        self.copies = FirstCopies()  # sweeps and IMU readings: each once
+        # a sweep is logged at its end, often before the gyro readings past it: a sample also waits for those
+        self.imu_last = the_plan.imu_last_ns if topics.imu else None
+        self.imu_max = -(1 << 62)
+        self.next_k = 0
+        self.source = ",".join(p.name for p in bags.paths)
+
+    def take(self, msg: RawMessage) -> None:
+        """Keep what `msg` brings: a planned frame (not decoded), a sweep, gyro readings."""
+        topics, where = self.topics, self.bags.label
+        if msg.topic in (topics.upper, topics.lower):
+            stamp = self.bad.stamp(msg, where)
+            side = "upper" if msg.topic == topics.upper else "lower"
+            k = None if stamp is None else (self.index if side == "upper" else self.lower_index).get(stamp)
+            if k is None or k < self.next_k:
+                return
+            self.frames.setdefault(k, {})
+            if self.sids[k] not in self.resume.done:
+                self.frames[k][side] = msg
+            return
+        _file_reading(
+            msg.topic, self.bad.decoded(msg, where), self.imu_t, self.imu_g, self.sweeps, self.copies
+        )
+        if msg.topic == topics.imu and self.imu_t:
+            self.imu_max = max(self.imu_max, self.imu_t[-1])
+
+    def released(self) -> Iterator[StreamEvent]:
+        """The next samples in plan order that are done already or have all they need, each followed by
+        forgetting the sweeps and readings no later sample can use."""
+        while self.next_k < len(self.sids) and (self.sids[self.next_k] in self.resume.done or self._ready()):
+            k = self.next_k
+            if self.sids[k] in self.resume.done:
+                self.frames.pop(k, None)
+                yield AlreadyDone(self.sids[k])
+            else:
+                yield self._job(k)
+            self.next_k += 1
+            if self.next_k < len(self.sids):
+                self._forget(int(self.plan.upper_exposure_ns[self.next_k]) - self.w)
+
+    def rest(self) -> Iterator[StreamEvent]:
+        """After the bag's end: whatever is complete still goes, the rest is `NotRun`."""
+        for k in range(self.next_k, len(self.sids)):
+            if self.sids[k] in self.resume.done:
+                yield AlreadyDone(self.sids[k])
+            elif len(self.frames.get(k, {})) != 2:
+                yield NotRun(self.sids[k], MISSING_IMAGE)
+            else:
+                if self.planes is not None:
+                    tc = int(self.plan.upper_exposure_ns[k])
+                    self.planes.complete(self.sweeps, tc - self.w, tc + self.w, final=True)
+                yield self._job(k)
+
+    def _ready(self) -> bool:
+        k, w = self.next_k, self.w
+        tc = int(self.plan.upper_exposure_ns[k])
         have = {
             t: sum(1 for s in v if s.span_ns[1] >= tc - w and s.span_ns[0] <= tc + w)
-            for t, v in sweeps.items()
+            for t, v in self.sweeps.items()
         }
         return (
-            len(frames.get(k, {})) == 2
-            and all(have[t] >= n for t, n in need[k].items())
-            and (imu_last is None or imu_max >= min(tc + w + IMU_MARGIN_NS, imu_last))
-            and (planes is None or planes.complete(sweeps, tc - w, tc + w))
+            len(self.frames.get(k, {})) == 2
+            and all(have[t] >= n for t, n in self.need[k].items())
+            and (self.imu_last is None or self.imu_max >= min(tc + w + IMU_MARGIN_NS, self.imu_last))
+            and (self.planes is None or self.planes.complete(self.sweeps, tc - w, tc + w))
         )
 
-    def job(k: int) -> StreamedJob:
-        tc = int(exposure_ns[k])
-        lidars = tuple(lidar_window(sweeps[t], name, tc, w, planes) for t, name in topics.lidars.items())
+    def _forget(self, horizon: int) -> None:
+        """Drop the sweeps and IMU readings that end before `horizon` (ns); a block is fitted whole, and
+        tested by slices around it: its sweeps and those stay."""
+        kept_from = horizon if self.planes is None else self.planes.keep_from(horizon)
+        for t in self.sweeps:
+            self.sweeps[t] = [s for s in self.sweeps[t] if s.span_ns[1] >= kept_from]
+        if self.planes is not None:
+            self.planes.forget(self.sweeps)
+        _forget_readings(self.imu_t, self.imu_g, horizon - IMU_MARGIN_NS)
+
+    def _job(self, k: int) -> StreamedJob:
+        the_plan, topics, cfg, w = self.plan, self.topics, self.cfg, self.w
+        tc = int(the_plan.upper_exposure_ns[k])
+        lidars = tuple(
+            lidar_window(self.sweeps[t], name, tc, w, self.planes) for t, name in topics.lidars.items()
+        )
         thin = _thin_lidars(the_plan.rates, topics, lidars, tc, w)
         thin_sparse: tuple[str, ...] = ()
         if cfg.sample.gap_fallback:
             ws = cfg.sample.window_ns
             narrow = tuple(lp.within(tc - ws, tc + ws) for lp in lidars)
             thin_sparse = _thin_lidars(the_plan.rates, topics, narrow, tc, ws)
-        imu = _imu_window(imu_t, imu_g, tc, w, topics.R_cam0_imu)
-        f = frames.pop(k)
+        imu = _imu_window(self.imu_t, self.imu_g, tc, w, topics.R_cam0_imu)
+        f = self.frames.pop(k)
+        sid = self.sids[k]
         return StreamedJob(
-            cfg.out, sids[k], source, where, int(the_plan.upper_ns[k]), int(the_plan.lower_ns[k]), f["upper"],
-            f["lower"], lidars, imu, cfg.sample, thin, thin_sparse, the_plan.upper_shift_ns,
-            the_plan.lower_shift_ns, resume.same_stamps.get(sids[k], ()), dict(settings or {}),
+            cfg.out, sid, self.source, self.bags.label, int(the_plan.upper_ns[k]), int(the_plan.lower_ns[k]),
+            f["upper"], f["lower"], lidars, imu, cfg.sample, thin, thin_sparse, the_plan.upper_shift_ns,
+            the_plan.lower_shift_ns, self.resume.same_stamps.get(sid, ()), dict(self.settings),
         )  # fmt: skip
-
-    wanted = [topics.upper, topics.lower, *topics.lidars, *([topics.imu] if topics.imu else [])]
-    for msg in bags.messages(topics=wanted, defer=(topics.upper, topics.lower)):
-        if msg.topic in (topics.upper, topics.lower):
-            stamp = bad.stamp(msg, where)
-            side = "upper" if msg.topic == topics.upper else "lower"
-            k = None if stamp is None else (index if side == "upper" else lower_index).get(stamp)
-            if k is None or k < next_k:
-                continue
-            frames.setdefault(k, {})
-            if sids[k] not in done:
-                frames[k][side] = msg
-        else:
-            _file_reading(msg.topic, bad.decoded(msg, where), imu_t, imu_g, sweeps, copies)
-            if msg.topic == topics.imu and imu_t:
-                imu_max = max(imu_max, imu_t[-1])
-        while next_k < len(sids) and (sids[next_k] in done or ready(next_k)):
-            if sids[next_k] in done:
-                frames.pop(next_k, None)
-                yield sids[next_k], "done"
-            else:
-                yield job(next_k)
-            next_k += 1
-            if next_k < len(sids):  # forget sweeps and IMU readings no later sample can use
-                horizon = int(exposure_ns[next_k]) - w
-                # a block is fitted whole, and tested by slices around it: its sweeps and those stay
-                kept_from = horizon if planes is None else planes.keep_from(horizon)
-                for t in sweeps:
-                    sweeps[t] = [s for s in sweeps[t] if s.span_ns[1] >= kept_from]
-                if planes is not None:
-                    planes.forget(sweeps)
-                _forget_readings(imu_t, imu_g, horizon - IMU_MARGIN_NS)
-    for k in range(next_k, len(sids)):  # the bag ended: whatever is complete still goes
-        why = "done" if sids[k] in done else ("" if len(frames.get(k, {})) == 2 else "missing image")
-        if not why and planes is not None:
-            tc = int(exposure_ns[k])
-            planes.complete(sweeps, tc - w, tc + w, final=True)
-        yield (sids[k], why) if why else job(k)
