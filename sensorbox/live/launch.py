@@ -41,61 +41,20 @@ process (`sensorbox.live.bus.run_graph`).
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar
 
 import yaml
 
-from calibration.files import read_text
-from calibration.opencv_yaml import BoundedSafeLoader, yaml_error_line
 from sensorbox.errors import LaunchError
 from sensorbox.live.bus import Bus, GraphResult, GraphSnapshot, Shutdown, run_graph
+from sensorbox.live.launch_yaml import LineMap, join_ns, load_launch_yaml, param_file
 from sensorbox.live.substitutions import Scope, bool_word, evaluate_parts, parse_substitutions
 
 if TYPE_CHECKING:
     from sensorbox.live.monitor import MonitorConfig
-
-# ---------------------------------------------------------------- YAML with line numbers
-
-
-class _Map(dict[str, Any]):
-    """A YAML mapping that remembers its line (1-based)."""
-
-    line = 0
-
-
-class _Loader(BoundedSafeLoader):
-    """A SafeLoader (no arbitrary objects) whose mappings remember their line; nesting is bounded."""
-
-
-def _construct_map(loader: _Loader, node: yaml.MappingNode) -> _Map:
-    out = _Map()
-    out.line = node.start_mark.line + 1
-    loader.flatten_mapping(node)
-    for key_node, value_node in node.value:
-        key = loader.construct_object(key_node, deep=True)
-        if not isinstance(key, str):
-            raise LaunchError(f"line {key_node.start_mark.line + 1}: keys must be strings, got {key!r}")
-        if key in out:
-            raise LaunchError(f"line {key_node.start_mark.line + 1}: key {key!r} given twice")
-        out[key] = loader.construct_object(value_node, deep=True)
-    return out
-
-
-_Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_map)
-
-
-def _load_yaml(path: Path) -> Any:
-    text = read_text(path, "launch", error=LaunchError)  # a regular file of at most 4 MiB, UTF-8
-    try:
-        return yaml.load(text, Loader=_Loader)
-    except LaunchError as err:
-        raise LaunchError(f"{path}:{err}") from err
-    except yaml.YAMLError as err:
-        raise LaunchError(yaml_error_line(path, err)) from err
-
 
 # ---------------------------------------------------------------- results
 
@@ -173,7 +132,9 @@ def _typed(text: str) -> Any:
     return text
 
 
-def _fields(entity: str, body: Any, where: str, allowed: Sequence[str], required: Sequence[str] = ()) -> _Map:
+def _fields(
+    entity: str, body: Any, where: str, allowed: Sequence[str], required: Sequence[str] = ()
+) -> LineMap:
     if not isinstance(body, dict):
         raise LaunchError(f"{where}: `{entity}` expects a mapping of keys, got {type(body).__name__}")
     unknown = sorted(set(body) - set(allowed) - {"if", "unless"})
@@ -184,12 +145,12 @@ def _fields(entity: str, body: Any, where: str, allowed: Sequence[str], required
     for key in required:
         if key not in body:
             raise LaunchError(f"{where}: `{entity}` is missing its {key!r} key")
-    out = _Map(body)
+    out = LineMap(body)
     out.line = getattr(body, "line", 0)
     return out
 
 
-def _entries(f: _Map, key: str, entity: str, of: str, where: str) -> list[Any]:
+def _entries(f: LineMap, key: str, entity: str, of: str, where: str) -> list[Any]:
     """The list under `key` of entity `f` ([] when absent or empty), or a LaunchError naming `entity`
     and `key`: a scalar (`param: 5`) was a TypeError traceback, a string was iterated by character."""
     raw = f.get(key)
@@ -236,7 +197,7 @@ class _Parser:
             raise LaunchError(
                 f"{path}: included more than {MAX_INCLUDE_DEPTH} files deep (from {self.stack[0]})"
             )
-        doc = _load_yaml(path)
+        doc = load_launch_yaml(path)
         if not isinstance(doc, dict) or set(doc) != {"launch"}:
             keys = ", ".join(map(str, doc)) if isinstance(doc, dict) else type(doc).__name__
             raise LaunchError(f"{path}: expected a single top-level key `launch:` (a list), got {keys}")
@@ -309,7 +270,7 @@ class _Parser:
     def push_ros_namespace(self, body: Any, scope: Scope, where: str) -> None:
         f = _fields("push_ros_namespace", body, where, ("namespace",), ("namespace",))
         ns = _text(f["namespace"], scope, where, "namespace")
-        scope.namespace = ns if ns.startswith("/") else _join_ns(scope.namespace, ns)
+        scope.namespace = ns if ns.startswith("/") else join_ns(scope.namespace, ns)
 
     def set_remap(self, body: Any, scope: Scope, where: str) -> None:
         f = _fields("set_remap", body, where, ("from", "to"), ("from", "to"))
@@ -336,7 +297,7 @@ class _Parser:
 
     def include(self, body: Any, scope: Scope, where: str) -> None:
         if isinstance(body, str):
-            body = _Map(file=body)
+            body = LineMap(file=body)
         f = _fields("include", body, where, ("file", "arg"), ("file",))
         target = Path(_text(f["file"], scope, where, "file"))
         if not target.is_absolute():
@@ -362,7 +323,7 @@ class _Parser:
             )
         name = _text(f["name"], scope, where, "name") if "name" in f else None
         ns = _text(f.get("namespace", ""), scope, where, "namespace")
-        namespace = ns if ns.startswith("/") else _join_ns(scope.namespace, ns)
+        namespace = ns if ns.startswith("/") else join_ns(scope.namespace, ns)
         params: dict[str, Any] = {}
         for entry in _entries(f, "param", "node", "parameters", where):
             self._param(entry, "", params, scope, where, name or exe, namespace)
@@ -378,7 +339,7 @@ class _Parser:
         if isinstance(entry, dict) and "from" in entry:
             f = _fields("param", entry, where, ("from",))
             path = Path(_text(f["from"], scope, where, "from"))
-            out.update(_param_file(path if path.is_absolute() else scope.file.parent / path, node, ns, where))
+            out.update(param_file(path if path.is_absolute() else scope.file.parent / path, node, ns, where))
             return
         f = _fields("param", entry, where, ("name", "value", "param", "type"), ("name",))
         name = prefix + _text(f["name"], scope, where, "name")
@@ -392,7 +353,7 @@ class _Parser:
         out[name] = _param_value(f["value"], scope, where, name, kind)
 
     @staticmethod
-    def _flag(f: _Map, key: str, default: bool, scope: Scope, where: str) -> bool:
+    def _flag(f: LineMap, key: str, default: bool, scope: Scope, where: str) -> bool:
         if key not in f:
             return default
         value = f[key]
@@ -403,11 +364,6 @@ class _Parser:
         "push_ros_namespace": push_ros_namespace, "push-ros-namespace": push_ros_namespace,
         "set_remap": set_remap, "set-remap": set_remap,
     }  # fmt: skip
-
-
-def _join_ns(base: str, ns: str) -> str:
-    parts = [p for p in (base + "/" + ns).split("/") if p]
-    return "/" + "/".join(parts)
 
 
 def _param_value(value: Any, scope: Scope, where: str, name: str, kind: Any) -> Any:
@@ -432,38 +388,6 @@ def _param_value(value: Any, scope: Scope, where: str, name: str, kind: Any) -> 
         return casts[kind](text)
     except ValueError as err:
         raise LaunchError(f"{where}: param {name!r}: {text!r} is not a {kind}") from err
-
-
-def _param_file(path: Path, node: str, ns: str, where: str) -> dict[str, Any]:
-    """`ros__parameters` for `node` (or `/**`) in a ROS 2 parameter file, nested keys dotted."""
-    try:
-        text = read_text(path, "parameter", error=LaunchError)
-    except LaunchError as err:
-        raise LaunchError(f"{where}: {err}") from err
-    try:
-        doc = yaml.load(text, Loader=BoundedSafeLoader)
-    except yaml.YAMLError as err:
-        raise LaunchError(f"{where}: parameter file {yaml_error_line(path, err)}") from err
-    if not isinstance(doc, dict):
-        raise LaunchError(f"{where}: parameter file {path}: expected a mapping of node names")
-    fqn = _join_ns(ns, node)
-    out: dict[str, Any] = {}
-    for key in ("/**", node, fqn, fqn.lstrip("/")):
-        block = doc.get(key)
-        if isinstance(block, dict):
-            params = block.get("ros__parameters")
-            if not isinstance(params, dict):
-                raise LaunchError(f"{where}: parameter file {path}: {key!r} has no `ros__parameters` mapping")
-            out.update(_flatten(params))
-    return out
-
-
-def _flatten(d: Mapping[str, Any], prefix: str = "") -> Iterator[tuple[str, Any]]:
-    for k, v in d.items():
-        if isinstance(v, dict):
-            yield from _flatten(v, f"{prefix}{k}.")
-        else:
-            yield f"{prefix}{k}", v
 
 
 # ---------------------------------------------------------------- public API
