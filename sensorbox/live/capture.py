@@ -56,7 +56,7 @@ def check_config(cfg: CaptureConfig) -> None:
     option and the value as given (`--split-size -5`, not the recorder's
     `split_bytes` in bytes, nor the rig file the plan is built from).
     """
-    from sensorbox.live.recorder import NAME_PATTERN
+    from sensorbox.live.recorder_config import NAME_PATTERN
 
     if not 1 <= cfg.jpeg_quality <= 100:
         raise SensorboxError(f"--jpeg-quality {cfg.jpeg_quality}: expected 1..100")

@@ -322,7 +322,8 @@ def stereo_camera_node(ctx: NodeContext, p: Params, source: str | None = None) -
 
 
 def recorder_node(ctx: NodeContext, p: Params) -> Node:
-    from sensorbox.live.recorder import Recorder, RecorderConfig
+    from sensorbox.live.recorder import Recorder
+    from sensorbox.live.recorder_config import RecorderConfig
 
     topics = tuple(ctx.resolve(t) for t in p.texts("topics", []))
     cfg = RecorderConfig(

@@ -36,7 +36,8 @@ from ingest.bags.rostypes import (
 )
 from sensorbox import messages
 from sensorbox.live.bagwriter import BagWriteError, BagWriter, bag_path
-from sensorbox.live.recorder import Recorder, RecorderConfig
+from sensorbox.live.recorder import Recorder
+from sensorbox.live.recorder_config import RecorderConfig
 from sensorbox.sim.fixtures import FIXTURES, fixture_bag
 from tests.live import NO_DISK_GUARD
 from tests.paths import FIXTURES_DIR

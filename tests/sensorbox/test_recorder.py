@@ -27,7 +27,8 @@ from ingest.bags.rostypes import IMU_TYPE, typestore
 from sensorbox import messages
 from sensorbox.errors import RecorderError
 from sensorbox.live.bus import Bus, NodeStatus, Shutdown, run_graph
-from sensorbox.live.recorder import Recorder, RecorderConfig
+from sensorbox.live.recorder import Recorder
+from sensorbox.live.recorder_config import RecorderConfig
 from tests.live import HANG_S, NO_DISK_GUARD, ManualClock, wait_for
 
 pytestmark = pytest.mark.realtime  # writer threads, clocks, signals to subprocesses: run serially (make test)
@@ -313,7 +314,8 @@ def test_sigint_sigterm_leave_a_readable_bag(tmp_path, sig):
 KILL_SCRIPT = """\
 import sys, time
 from pathlib import Path
-from sensorbox.live.recorder import Recorder, RecorderConfig
+from sensorbox.live.recorder import Recorder
+from sensorbox.live.recorder_config import RecorderConfig
 out, n, size, flush_s = Path(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]), float(sys.argv[4])
 rec = Recorder(RecorderConfig(out, name="k", flush_s=flush_s, queue_msgs=n, min_free_bytes=0))
 rec.start()
