@@ -48,7 +48,6 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Collection
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -65,11 +64,6 @@ from sensorbox.live.recorder_config import (
 )
 
 log = logging.getLogger(__name__)
-
-
-@dataclass
-class _Pending:
-    msgs: deque[tuple[int, int, str, str, bytes]] = field(default_factory=deque)  # (seq, recv_ns, ...)
 
 
 class Recorder:
