@@ -56,10 +56,13 @@ class DoubleSphere(FocalModel):
 
     def _check_params(self) -> None:
         self._require_unit_interval("alpha")
-        if not -1.0 <= self.xi <= 1.0:  # the second sphere's centre lies within the first's radius
+        # The second sphere's centre lies within the first's radius; at xi = -1 it sits on the
+        # optical axis' point of the first sphere, so the principal ray itself has no image.
+        if not -1.0 < self.xi <= 1.0:
             raise CalibrationError(
-                f"DoubleSphere: xi must be in [-1, 1], got {self.xi!r} (beyond it the valid image circle "
-                "shrinks to a few pixels; a fitted fisheye's xi is about -0.3..0.3)"
+                f"DoubleSphere: xi must be in (-1, 1], got {self.xi!r} (at -1 the optical axis has no "
+                "image, beyond 1 the valid image circle shrinks to a few pixels; a fitted fisheye's xi is "
+                "about -0.3..0.3)"
             )
 
     @cached_property

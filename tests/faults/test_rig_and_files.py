@@ -178,8 +178,9 @@ def test_a_double_sphere_xi_of_1e9_is_refused(tmp_path: Path, capsys: pytest.Cap
     assert (code, err) == (
         2,
         [
-            f"error: {chain}: cam0: DoubleSphere: xi must be in [-1, 1], got 1000000000.0 (beyond it the "
-            "valid image circle shrinks to a few pixels; a fitted fisheye's xi is about -0.3..0.3)"
+            f"error: {chain}: cam0: DoubleSphere: xi must be in (-1, 1], got 1000000000.0 (at -1 the optical "
+            "axis has no image, beyond 1 the valid image circle shrinks to a few pixels; a fitted fisheye's "
+            "xi is about -0.3..0.3)"
         ],
     )
 
@@ -603,3 +604,22 @@ def test_a_camchain_with_one_rostopic_twice_is_named(
             "its own topic"
         ],
     )
+
+
+def test_a_double_sphere_xi_of_minus_1_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Sweep 3: xi = -1 passed calib check (VFOV 0.0 deg); ingest then ended in a ValueError traceback
+    (default_height_full: the camera does not see along its optical axis)."""
+    chain = _camchain_with(tmp_path, "intrinsics: [-0.18153,", "intrinsics: [-1.0,")
+    line = (
+        f"error: {chain}: cam0: DoubleSphere: xi must be in (-1, 1], got -1.0 (at -1 the optical axis has no "
+        "image, beyond 1 the valid image circle shrinks to a few pixels; a fitted fisheye's xi is about -0.3..0.3)"
+    )
+    out = tmp_path / "out"
+    for command in (
+        ["calib", "check", str(chain)],
+        ["ingest", str(INDOOR), "--rig", str(chain), "--out", str(out), "--workers", "1", "--no-preview"],
+    ):
+        code, _, err = sensorbox(capsys, *command)
+        assert (code, err) == (2, [line]), command
+    assert not out.exists()
+
