@@ -8,7 +8,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from calibration.rig import Rig
+from calibration.errors import CalibrationError
+from calibration.rig import Camera, Rig
 from calibration.warp import height_full_problem
 from ingest.errors import BagError, DatasetError
 from ingest.raster.params import backend_problem
@@ -115,8 +116,16 @@ def resolve_topics(rig: Rig, bag_topics: dict[str, Any], where: str) -> Topics:
         listing = ", ".join(sorted(bag_topics))
         raise BagError(f"{where}: no topic {topic!r} for {what} (from the rig); the bag has: {listing}")
 
-    upper = find(rig.upper.topic, "the upper camera")
-    lower = find(rig.lower.topic, "the lower camera")
+    def camera_topic(camera: Camera, what: str) -> str:
+        if camera.topic is None:  # the rig's entry says null and the camchain names no rostopic
+            raise CalibrationError(
+                f"{rig.source or rig.name}: cameras.{camera.name}.topic: {what} has no topic (null in the "
+                "rig file and no rostopic in the camchain); expected the topic of its images in the bag"
+            )
+        return find(camera.topic, what)
+
+    upper = camera_topic(rig.upper, "the upper camera")
+    lower = camera_topic(rig.lower, "the lower camera")
     lidars = {find(li.topic, f"lidar {li.name}"): li.name for li in rig.lidars}
     # every IMU the rig names must be there: a silent fallback skews the motion model
     imu_topics = [find(i.topic, f"imu {i.name}") for i in rig.imus]

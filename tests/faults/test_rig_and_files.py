@@ -623,3 +623,26 @@ def test_a_double_sphere_xi_of_minus_1_is_refused(tmp_path: Path, capsys: pytest
         assert (code, err) == (2, [line]), command
     assert not out.exists()
 
+
+def test_a_camera_topic_of_null_is_named_by_ingest(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Sweep 3: `topic: null` passed calib check; ingest then said 'no topic None for the lower camera
+    (from the rig)', naming neither the rig file nor its key."""
+    upper = "/zed_upper/zed_node/rgb/color/rect/image"
+    rig = _rig(
+        tmp_path,
+        {"cameras": {"cam0": {"role": "upper", "topic": upper}, "cam1": {"role": "lower", "topic": None}}},
+    )
+    out = tmp_path / "out"
+    code, _, err = sensorbox(
+        capsys, "ingest", str(INDOOR), "--rig", str(rig), "--out", str(out), "--workers", "1"
+    )
+    assert (code, err) == (
+        2,
+        [
+            f"error: {rig}: cameras.cam1.topic: the lower camera has no topic (null in the rig file and no "
+            "rostopic in the camchain); expected the topic of its images in the bag"
+        ],
+    )
+    assert not out.exists()
