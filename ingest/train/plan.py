@@ -9,6 +9,7 @@ are not planned.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -22,6 +23,7 @@ from ingest.runtime.executor import usable_cpus
 from ingest.train.bad_messages import BadMessages
 from ingest.train.lidar_rate import LidarRates
 from ingest.train.lost import lost_intervals, untouched
+from ingest.train.plausible import NOISE_TAG, POINT_FAR
 from ingest.train.repeats import FirstCopies
 from ingest.train.sync import (
     IMU_MARGIN_NS,
@@ -163,6 +165,17 @@ class Survey:
         return int(self.upper_ns[0]), int(self.upper_ns[-1])
 
 
+def _all_dropped(counts: Mapping[str, int], what: str) -> str:
+    """The tail of a 'no points' or 'no readings' line when the topic had some, each dropped as implausible:
+    how many for each reason (`ingest.train.plausible.REASONS`), or '' when none was."""
+    counts = {why: n for why, n in counts.items() if why != NOISE_TAG}  # tagged points are kept
+    if not counts:
+        return ""
+    reasons = "; ".join(f"{n:,} {what}{'' if n == 1 else 's'}: {why}" for why, n in counts.items())
+    hint = ", millimetres written as metres?" if POINT_FAR in counts else ""
+    return f": every one was dropped as no sensor measures it ({reasons}{hint})"
+
+
 def survey(
     bags: BagSet, topics: Topics, window_ns: int, bad: BadMessages | None = None,
     progress: Progress | None = None,
@@ -175,12 +188,20 @@ def survey(
     It reads (and checks) every chunk of the bags: on a long recording it
     takes minutes: `progress` hears of the messages read (`BagSet.messages`).
     """
-    seen, rates, duplicates = _seen(bags, topics, bad or BadMessages(), progress)
+    bad = bad or BadMessages()
+    seen, rates, duplicates = _seen(bags, topics, bad, progress)
+    dropped = bad.dropped.by_topic()
     for topic, name in topics.lidars.items():
         if not len(seen[topic]):
-            raise BagError(f"{bags.paths[0]}: no points on {topic} (the rig's lidar {name}) in the whole bag")
+            raise BagError(
+                f"{bags.paths[0]}: no points on {topic} (the rig's lidar {name}) in the whole bag"
+                + _all_dropped(dropped.get(topic, {}), "point")
+            )
     if topics.imu and not len(seen[topics.imu]):  # the rig names it: motion and odometry rely on it
-        raise BagError(f"{bags.paths[0]}: no readings on {topics.imu} (the rig's IMU) in the whole bag")
+        raise BagError(
+            f"{bags.paths[0]}: no readings on {topics.imu} (the rig's IMU) in the whole bag"
+            + _all_dropped(dropped.get(topics.imu, {}), "reading")
+        )
     for topic, role in ((topics.upper, "upper"), (topics.lower, "lower")):
         if not len(seen[topic]):  # every sample needs a frame of each
             raise BagError(

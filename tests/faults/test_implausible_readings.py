@@ -250,3 +250,38 @@ def test_the_bounds_hold_per_axis_and_per_sweep() -> None:
     assert np.array_equal(np.flatnonzero(beyond_sweep(late, stamp)), np.arange(0, 20_000, 97))
     assert not beyond_sweep(times, stamp).any()
     assert not beyond_sweep(times + 123_000_000_000, stamp).any()  # all on another clock: the survey's to say
+
+
+def _in_mm(pts: Any) -> Any:
+    for axis in "xyz":
+        pts[axis] *= 1000.0
+    return pts
+
+
+def test_a_lidar_whose_every_point_is_dropped_says_why(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Sweep 3: a LiDAR publishing millimetres was 'no points on ... in the whole bag', though it sent
+    140k points, each dropped as beyond 500 m."""
+
+    def in_mm(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        return [(topic, _points(_in_mm)(raw) if topic == LIDAR_TOP else raw)]
+
+    bag, rig = rewrite(tmp_path / "mm.mcap", in_mm, src=INDOOR)
+    points = np.concatenate([decode_custom_msg(m).points for m in _messages(INDOOR, LIDAR_TOP)])
+    far = int(
+        np.count_nonzero(np.sqrt(points["x"] ** 2 + points["y"] ** 2 + points["z"] ** 2) * 1000.0 > 500.0)
+    )
+    assert far == len(points) > 100_000  # every point of the top LiDAR lies beyond 0.5 m
+    out = tmp_path / "ds"
+    code, _, err = sensorbox(
+        capsys, "ingest", str(bag), "--rig", str(rig), "--out", str(out), "--workers", "1"
+    )
+    assert (code, err) == (
+        2,
+        [
+            f"error: {bag}: no points on {LIDAR_TOP} (the rig's lidar lidar_top) in the whole bag: every one was "
+            f"dropped as no sensor measures it ({far:,} points: {POINT_FAR}, millimetres written as metres?)"
+        ],
+    )
+    assert not out.exists()
