@@ -250,6 +250,18 @@ def _open_reader(paths: list[Path], ros_version: RosVersion, guard: ChunkGuard) 
     return reader
 
 
+def _resolved(path: Path) -> Path:
+    """`path` with every link followed; one line when its links lead round in a loop (pathlib raises
+    RuntimeError for that before Python 3.13, OSError after)."""
+    try:
+        return path.resolve()
+    except (OSError, RuntimeError) as err:
+        raise BagError(
+            f"{path}: is a symbolic link that leads nowhere (a loop of links); "
+            "give a bag file or rosbag2 folder"
+        ) from err
+
+
 def given_once(bag_paths: Sequence[Path]) -> None:
     """One line when a recording is named twice: it would be read twice, its messages counted twice.
 
@@ -260,10 +272,10 @@ def given_once(bag_paths: Sequence[Path]) -> None:
     for p in bag_paths:
         path = Path(p)
         files = sorted(path.glob("*.mcap")) + sorted(path.glob("*.db3")) if path.is_dir() else []
-        for key in {f.resolve() for f in files} | {path.resolve()}:
+        for key in {_resolved(f) for f in files} | {_resolved(path)}:
             if key in owner:
                 first = owner[key]
-                same = "" if first.resolve() == path.resolve() else f" (as {first})"
+                same = "" if _resolved(first) == _resolved(path) else f" (as {first})"
                 raise BagError(f"{p}: the same recording is given twice{same}")
             owner[key] = path
 

@@ -323,6 +323,25 @@ def test_a_bag_that_is_a_fifo_is_refused(tmp_path: Path) -> None:
     assert not out.exists()
 
 
+def test_a_bag_that_is_a_loop_of_links_is_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Sweep 3: a bag path whose links lead round in a loop ended inspect and ingest in a traceback
+    (RuntimeError: Symlink loop from ...)."""
+    loop = tmp_path / "a.mcap"
+    loop.symlink_to(tmp_path / "b.mcap")
+    (tmp_path / "b.mcap").symlink_to(loop)
+    line = f"error: {loop}: is a symbolic link that leads nowhere (a loop of links); give a bag file or rosbag2 folder"
+    out = tmp_path / "ds"
+    for command in (
+        ["inspect", str(loop)],
+        ["ingest", str(loop), "--rig", str(TRUTH / "rig.yaml"), "--out", str(out)],
+    ):
+        code, _, err = sensorbox(capsys, *command)
+        assert (code, err) == (2, [line]), command
+    assert not out.exists()
+
+
 def test_a_npy_header_claiming_1e10_values_is_refused_before_allocation(tmp_path: Path) -> None:
     """`sensorbox eval` asked numpy for 37.3 GiB (run with a memory limit: unfixed, it is a MemoryError)."""
     from tests.ingest.test_evaluate import make_benchmark, write_predictions
