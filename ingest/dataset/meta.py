@@ -12,7 +12,11 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from calibration.files import check_regular_file
 from ingest.errors import DatasetError
+
+MAX_META_BYTES = 16 << 20
+"""A sample's metadata is a few KiB; a file beyond this is not one (a link to a device is refused before)."""
 
 
 @dataclass(frozen=True)
@@ -158,6 +162,7 @@ class SampleMeta:
 def read_meta(out: Path, sid: str) -> SampleMeta:
     """The metadata of written sample `sid` in dataset folder `out`."""
     path = out / "meta" / f"{sid}.json"
+    check_regular_file(path, "sample metadata", MAX_META_BYTES, DatasetError)  # a FIFO would block the read
     try:
         return SampleMeta.from_dict(json.loads(path.read_text()))
     except OSError as err:

@@ -342,6 +342,26 @@ def test_a_bag_that_is_a_loop_of_links_is_one_line(
     assert not out.exists()
 
 
+def test_a_rerun_over_a_sample_metadata_fifo_does_not_wait(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Sweep 3: a FIFO in place of a finished sample's meta/<id>.json made the rerun wait forever on its read;
+    the sample is damaged, and its rewrite refuses the FIFO (exit 3, one line)."""
+    out = tmp_path / "ds"
+    args = ["ingest", str(INDOOR), "--rig", str(TRUTH / "rig.yaml"), "--out", str(out), "--every", "7"]
+    code, _, _ = sensorbox(
+        capsys, *args, "--gt", "sparse", "--workers", "1", "--no-preview", "--height-full", "256"
+    )
+    assert code == 0
+    meta = out / "meta" / "000001.json"
+    meta.unlink()
+    os.mkfifo(meta)
+    assert _guarded(*args, "--gt", "sparse", "--workers", "1", "--no-preview", "--height-full", "256") == (
+        3,
+        [f"error: {meta}: is not a regular file (a FIFO (named pipe)); give a file path"],
+    )
+
+
 def test_a_npy_header_claiming_1e10_values_is_refused_before_allocation(tmp_path: Path) -> None:
     """`sensorbox eval` asked numpy for 37.3 GiB (run with a memory limit: unfixed, it is a MemoryError)."""
     from tests.ingest.test_evaluate import make_benchmark, write_predictions
