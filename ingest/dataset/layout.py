@@ -103,12 +103,33 @@ class SampleFiles:
 
 
 def prepare_dirs(out: Path, exr: bool) -> None:
-    """Create the layout's folders."""
+    """Create the layout's folders; refuse two of them that are one folder (`distinct_dirs`)."""
+    names = (*IMAGE_DIRS, *GT_DIRS, "meta", *(EXR_DIRS if exr else ()))
     try:
-        for name in (*IMAGE_DIRS, *GT_DIRS, "meta", *(EXR_DIRS if exr else ())):
+        for name in names:
             (out / name).mkdir(parents=True, exist_ok=True)
     except OSError as err:
         raise OutputError(f"cannot create the dataset folders in {out}: {err.strerror or err}") from err
+    distinct_dirs(out, names)
+
+
+def distinct_dirs(out: Path, names: Sequence[str]) -> None:
+    """Raise `DatasetError` when two of the layout's folders `names` in `out` are one folder (a symbolic
+    link to another): each sample would write one image over the other, and a rerun that finds them
+    damaged writes them again, one over the other."""
+    seen: dict[Path, str] = {}
+    for name in names:
+        real = (out / name).resolve()
+        if real in seen:
+            links = [n for n in (seen[real], name) if (out / n).is_symlink()]
+            how = (
+                f" ({', '.join(f'{n} is a link to {(out / n).readlink()}' for n in links)})" if links else ""
+            )
+            raise DatasetError(
+                f"{out}: {seen[real]} and {name} are one folder{how}; "
+                "each of a dataset's folders must be its own"
+            )
+        seen[real] = name
 
 
 def write_sample(out: Path, sid: str, files: SampleFiles, exr: bool, png_level: int = 1) -> dict[str, int]:

@@ -329,3 +329,22 @@ def test_stats_says_which_finished_samples_have_no_depth_map(
     ]
     doc = json.loads(next((tmp_path / "stats").glob("*.json")).read_text())
     assert doc["missing_gt"] == ["000001"]
+
+
+def test_a_dataset_folder_linked_to_another_is_refused_not_rewritten(tmp_path: Path) -> None:
+    """Sweep 3: with left_fisheye a link to right_fisheye, a rerun found the 5 left images damaged, wrote
+    them again (each right image then over it) and exited 0 with every left image a right one."""
+    out = tmp_path / "ds"
+    ingest([INDOOR], _cfg(out, every=7))
+    right = {p.name: p.read_bytes() for p in sorted((out / "right_fisheye").glob("*.png"))}
+    for p in (out / "left_fisheye").iterdir():
+        p.unlink()
+    (out / "left_fisheye").rmdir()
+    (out / "left_fisheye").symlink_to("right_fisheye")
+    with pytest.raises(DatasetError) as err:
+        ingest([INDOOR], _cfg(out, every=7))
+    assert str(err.value) == (
+        f"{out}: left_fisheye and right_fisheye are one folder (left_fisheye is a link to right_fisheye); "
+        "each of a dataset's folders must be its own"
+    )
+    assert {p.name: p.read_bytes() for p in sorted((out / "right_fisheye").glob("*.png"))} == right
