@@ -287,6 +287,22 @@ def require_focal(name: str, value: float, side_px: int, model: str) -> None:
         )
 
 
+PIXEL_ASPECT_RANGE = (0.5, 2.0)
+"""Bounds on fx / fy, a pixel's height over its width. A camera's pixels are square within a few per cent
+(a fitted fisheye: 500.23 / 500.07); 2 is a sensor read out with 2x1 binning. fy = 10 fx passed as a camera
+with a VFOV of 11 deg, whose GT landed 0.7 deg off the images."""
+
+
+def require_pixel_aspect(fx: float, fy: float, model: str) -> None:
+    """Raise `CalibrationError` unless fx / fy lies within `PIXEL_ASPECT_RANGE`."""
+    low, high = PIXEL_ASPECT_RANGE
+    if not low <= fx / fy <= high:
+        raise CalibrationError(
+            f"{model}: fx / fy = {fx / fy:.3g} (fx {fx!r}, fy {fy!r}): expected {low:g}..{high:g}, as a "
+            "camera's pixels are square within a few per cent (fx or fy mistyped?)"
+        )
+
+
 def require_size(width: int, height: int, model: str) -> None:
     """Raise `CalibrationError` unless width and height are positive integers."""
     for name, value in (("width", width), ("height", height)):
@@ -315,6 +331,7 @@ class FocalModel(CameraModel):
         require_size(self.width, self.height, name)
         require_focal("fx", self.fx, self.width, name)
         require_focal("fy", self.fy, self.height, name)
+        require_pixel_aspect(self.fx, self.fy, name)
         for key in ("cx", "cy"):
             require_finite(key, getattr(self, key), name)
         for key in self.FINITE:

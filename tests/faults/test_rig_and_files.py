@@ -685,3 +685,23 @@ def test_a_camera_topic_of_null_is_named_by_ingest(
         ],
     )
     assert not out.exists()
+
+
+def test_pixels_ten_times_taller_than_wide_are_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Sweep 3: fv = 10 fu passed calib check (VFOV 11.3 deg) and ingest wrote its 5 samples, exit 0, with
+    the LiDAR points 0.70 deg off the images (0.03 deg with the right fv) and the GT density 2.49 % (10.43 %)."""
+    chain = _camchain_with(tmp_path, "125.05785, 125.017325", "125.05785, 1250.17325")
+    line = (
+        f"error: {chain}: cam0: DoubleSphere: fx / fy = 0.1 (fx 125.05785, fy 1250.17325): expected 0.5..2, "
+        "as a camera's pixels are square within a few per cent (fx or fy mistyped?)"
+    )
+    out = tmp_path / "out"
+    for command in (
+        ["calib", "check", str(chain)],
+        ["ingest", str(INDOOR), "--rig", str(chain), "--out", str(out), "--workers", "1", "--no-preview"],
+    ):
+        code, _, err = sensorbox(capsys, *command)
+        assert (code, err) == (2, [line]), command
+    assert not out.exists()
