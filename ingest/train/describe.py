@@ -195,6 +195,11 @@ def check_existing(asked: IngestConfig, geometry: Geometry, bags: list[Path]) ->
                 f"{path}: an existing dataset was made with a different {key!r}{where}; "
                 "choose a new --out or delete it"
             )
+    if not (asked.out / "rig" / "rig.yaml").is_file():  # written before the first sample: deleted since
+        raise DatasetError(
+            f"{asked.out / 'rig' / 'rig.yaml'}: missing, so the rig the dataset's samples were made with "
+            "cannot be compared with this run's; put the dataset's rig/ back or choose a new --out"
+        )
     rig_differs = _rig_difference(geometry, asked.out / "rig")
     if rig_differs:
         raise DatasetError(
@@ -278,7 +283,8 @@ def _rig_difference(geometry: Geometry, rig_dir: Path) -> str:
 
     Both files are compared as YAML (rig.yaml's poses and topics, camchain.yaml's
     intrinsics and extrinsics); the rig's name is not part of it. A dataset
-    without a copy yet has nothing to differ from.
+    without a copy yet has nothing to differ from (`check_existing` refuses one
+    whose samples lost theirs).
     """
     from calibration.rig import write_rig
 

@@ -348,3 +348,28 @@ def test_a_dataset_folder_linked_to_another_is_refused_not_rewritten(tmp_path: P
         "each of a dataset's folders must be its own"
     )
     assert {p.name: p.read_bytes() for p in sorted((out / "right_fisheye").glob("*.png"))} == right
+
+
+def test_a_dataset_without_its_rig_copy_is_not_resumed_with_another_rig(tmp_path: Path) -> None:
+    """Sweep 3: after rig/ was deleted, a rerun with the top LiDAR moved 1 mm said '0 written / 5 already
+    done', exit 0, and wrote rig/ and dataset.yaml describing a rig the 5 samples were not made with."""
+    out = tmp_path / "ds"
+    ingest([INDOOR], _cfg(out, every=7))
+    yaml_before = (out / "dataset.yaml").read_bytes()
+    for p in (out / "rig").iterdir():
+        p.unlink()
+    (out / "rig").rmdir()
+    moved = tmp_path / "rig" / "rig.yaml"
+    moved.parent.mkdir()
+    (moved.parent / "camchain.yaml").write_bytes((RIG.parent / "camchain.yaml").read_bytes())
+    text = RIG.read_text()
+    assert "0.0043]" in text
+    moved.write_text(text.replace("0.0043]", "0.0053]", 1))
+    with pytest.raises(DatasetError) as err:
+        ingest([INDOOR], IngestConfig(rig=moved, out=out, workers=1, every=7, height_full=64))
+    assert str(err.value) == (
+        f"{out / 'rig' / 'rig.yaml'}: missing, so the rig the dataset's samples were made with cannot be "
+        "compared with this run's; put the dataset's rig/ back or choose a new --out"
+    )
+    assert (out / "dataset.yaml").read_bytes() == yaml_before
+    assert not (out / "rig").exists()
