@@ -148,11 +148,20 @@ def _check_samples(asked: IngestConfig, geometry: Geometry, bags: list[Path]) ->
 
 
 def check_format(out: Path) -> None:
-    """DatasetError when `out` holds a dataset.yaml that is not a training set's (`FORMAT`).
+    """DatasetError when `out` holds a benchmark (`<scene>/scene.yaml`) or a dataset.yaml that is not a
+    training set's (`FORMAT`).
 
     Ingest replaces dataset.yaml with its own; another tool's, or a
-    benchmark's, would be overwritten with no word. Checked before any work.
+    benchmark's, would be overwritten with no word, and a training set written
+    beside a benchmark's scenes hides them from stats and eval (they take the
+    folder for a training set). Checked before any work.
     """
+    scenes = sorted(out.glob("*/scene.yaml"))
+    if scenes:  # render-benchmark's layout: stats and eval would then see the training set alone
+        raise DatasetError(
+            f"{out}: holds a benchmark ({scenes[0].relative_to(out)}: the render-benchmark layout); "
+            "ingest would mix a training set into it: choose another --out"
+        )
     path = out / "dataset.yaml"
     if not path.exists():
         return

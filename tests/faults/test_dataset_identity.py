@@ -373,3 +373,22 @@ def test_a_dataset_without_its_rig_copy_is_not_resumed_with_another_rig(tmp_path
     )
     assert (out / "dataset.yaml").read_bytes() == yaml_before
     assert not (out / "rig").exists()
+
+
+def test_a_benchmark_folder_is_not_ingested_into(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Sweep 3: ingest --out a render-benchmark folder wrote 5 samples beside its scene, exit 0; stats then
+    described the folder as a 'train layout' of 5 depth maps, the benchmark's views out of sight."""
+    out = tmp_path / "bench"
+    (out / "000_000_000" / "120FOV").mkdir(parents=True)
+    (out / "000_000_000" / "scene.yaml").write_text("scene: 000_000_000\n")
+    code, _, err = sensorbox(
+        capsys, "ingest", str(INDOOR), "--rig", str(RIG), "--out", str(out), "--workers", "1"
+    )
+    assert (code, err) == (
+        2,
+        [
+            f"error: {out}: holds a benchmark (000_000_000/scene.yaml: the render-benchmark layout); "
+            "ingest would mix a training set into it: choose another --out"
+        ],
+    )
+    assert sorted(p.name for p in out.iterdir()) == ["000_000_000"]
