@@ -3,9 +3,12 @@ user mistake; `--help` and a bare group still print the help."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from tests.faults.cli import sensorbox
+from tests.paths import ROOT
 
 
 @pytest.mark.parametrize(
@@ -44,3 +47,24 @@ def test_help_and_a_bare_group_still_print_the_help(
     assert (code, err) == (0, []) and "Usage: sensorbox" in out
     code, out, err = sensorbox(capsys, *group)  # no_args_is_help: the help, and click's exit code 2
     assert (code, err) == (2, []) and "Usage: sensorbox" in out
+
+
+def test_a_launch_number_in_exponent_form_is_a_number(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Sweep 3: `loop_s:=1e-9` was "parameter 'loop_s' = '1e-9': expected a finite number" (YAML 1.1 reads
+    1e-9, without a dot, as text); text that is no number still names its value."""
+    launch = ROOT / "launch" / "sim.launch.yaml"
+    node_line = 1 + launch.read_text().splitlines().index("  - node:")  # the first emulator's
+    out = f"out:={tmp_path / 'bags'}"
+    code, _, err = sensorbox(capsys, "launch", "--dry-run", str(launch), out, "loop_s:=1e-9")
+    assert (code, err) == (0, [])
+    code, _, err = sensorbox(capsys, "launch", "--dry-run", str(launch), out, "loop_s:=1e-9s")
+    assert (code, err) == (
+        2,
+        [
+            "error: node 'lidar_top_emulator' (sensorbox/mid360_emulator) at "
+            f"{ROOT}/sensorbox/share/launch/sim.launch.yaml:{node_line}: parameter 'loop_s' = '1e-9s': "
+            "expected a finite number"
+        ],
+    )
