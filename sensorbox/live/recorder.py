@@ -51,6 +51,7 @@ from collections.abc import Callable, Collection
 from pathlib import Path
 from typing import Any
 
+from calibration.files import file_kind
 from sensorbox.errors import RecorderError
 from sensorbox.live.bagwriter import NO_SPACE, BagWriteError, BagWriter
 from sensorbox.live.bus import PRIORITY_SINK, NodeStatus, Shutdown
@@ -119,6 +120,10 @@ class Recorder:
     # ------------------------------------------------------------------ Node
 
     def start(self) -> None:
+        out = self.cfg.out
+        if out.exists() and not out.is_dir():  # mkdir would say only "File exists"
+            what = "a file" if out.is_file() else file_kind(out.stat().st_mode)
+            raise RecorderError(f"{out}: is {what}, not a folder; give out a folder for the bags")
         first = self._bag_dir(0)
         if first.exists():
             raise RecorderError(f"{first} exists already; choose another recorder name or out folder")

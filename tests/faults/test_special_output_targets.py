@@ -31,6 +31,7 @@ from sensorbox.sim.camera_source import SimCameras
 from sensorbox.sim.fixtures import FIXTURES
 from tests.faults.bags import INDOOR
 from tests.faults.cli import sensorbox
+from tests.paths import ROOT
 
 RIG = INDOOR.parent / "indoor_static_mcap.truth" / "rig.yaml"
 NULL = "a character device"
@@ -108,3 +109,15 @@ def test_a_dataset_rig_copy_that_is_a_fifo_is_refused_exit_3(
     args = ["ingest", str(INDOOR), "--rig", str(RIG), "--out", str(out), "--workers", "1", "--every", "3"]
     code, _, stderr = sensorbox(capsys, *args, "--height-full", "64", "--gt", "sparse", "--no-preview")
     assert (code, stderr) == (3, [f"error: {line}"])
+
+
+def test_a_launch_out_that_is_a_file_is_named_as_such(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Sweep 3: `launch sim.launch.yaml out:=/dev/null` was 'error: /dev/null: File exists' (exit 3)."""
+    out = tmp_path / "bags"
+    out.write_text("mine\n")
+    launch = ROOT / "launch" / "sim.launch.yaml"
+    code, _, err = sensorbox(capsys, "launch", str(launch), f"out:={out}", "duration:=1", "scale:=0.1")
+    assert (code, err) == (2, [f"error: {out}: is a file, not a folder; give out a folder for the bags"])
+    assert out.read_text() == "mine\n"
