@@ -258,6 +258,8 @@ def ingest_cmd(
             raise DatasetError(f"{name} must be a finite number, got {value:g}")
         if abs(value) > MAX_WINDOW_MS:  # int nanoseconds overflowed at 1e300; 1e12 asked for all memory
             raise DatasetError(f"{name} {value:g}: expected at most {MAX_WINDOW_MS:g} ms (an hour)")
+        if 0 < value < 0.5e-6:  # rounds to 0 ns, which the check after round() would call 0
+            raise DatasetError(f"{name} {value:g}: under 1 ns, the resolution of the stamps; expected > 0")
     dense = DenseParams(window_ns=round(given * 1e6))
     dense = replace(dense, render=replace(dense.render, backend=backend))  # type: ignore[arg-type]  # validated
     sample = SampleParams(min_range_m=min_range, exr=exr, png_level=png_level, motion=motion, dense=dense)  # type: ignore[arg-type]

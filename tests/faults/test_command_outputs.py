@@ -373,6 +373,34 @@ def test_a_window_of_1e300_ms_is_one_line_naming_the_option(
         assert not (tmp_path / "o").exists()
 
 
+def test_a_window_under_1_ns_is_named_as_given(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Sweep 3: `--window-ms 1e-9` was '--window-ms must be > 0, got 0' (1 ps rounded to 0 ns), naming a value
+    the user did not give."""
+    from tests.faults.cli import sensorbox
+    from tests.paths import FIXTURES_DIR
+
+    bag = FIXTURES_DIR / "indoor_static_mcap"
+    rig = bag.with_name(bag.name + ".truth") / "rig.yaml"
+    for option, extra in (("--window-ms", []), ("--gt-window-ms", ["--gt", "dense"])):
+        code, _, err = sensorbox(
+            capsys,
+            "ingest",
+            str(bag),
+            "--rig",
+            str(rig),
+            "--out",
+            str(tmp_path / "o"),
+            option,
+            "1e-9",
+            *extra,
+        )
+        assert (code, err) == (
+            2,
+            [f"error: {option} 1e-09: under 1 ns, the resolution of the stamps; expected > 0"],
+        )
+        assert not (tmp_path / "o").exists()
+
+
 def test_refine_names_the_bag_topic_and_time_of_an_imu_message_it_cannot_decode(tmp_path: Path) -> None:
     """`calib refine` said only '162 bytes are not a valid ROS 2 sensor_msgs/msg/Imu'; ingest named all three."""
     from calibration.rig import read_rig
