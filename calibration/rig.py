@@ -344,7 +344,7 @@ def read_rig(path: str | Path) -> Rig:
     where = str(p)
     data = require_mapping(data, where)
     version = data.get("sensorbox_rig")
-    if version != RIG_VERSION:
+    if isinstance(version, bool) or version != RIG_VERSION:  # YAML's true equals 1 in Python
         raise CalibrationError(
             f"{where}: sensorbox_rig: expected version {RIG_VERSION} "
             f"(or a Kalibr camchain with cam0, cam1, ...), got {version!r}"

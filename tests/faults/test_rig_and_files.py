@@ -705,3 +705,15 @@ def test_pixels_ten_times_taller_than_wide_are_refused(
         code, _, err = sensorbox(capsys, *command)
         assert (code, err) == (2, [line]), command
     assert not out.exists()
+
+
+def test_a_rig_version_of_true_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Sweep 3: `sensorbox_rig: true` passed calib check and ingest as version 1 (True == 1 in Python)."""
+    rig = _rig(tmp_path, {"sensorbox_rig": True})
+    code, _, err = sensorbox(capsys, "calib", "check", str(rig))
+    assert (code, err) == (
+        2,
+        [
+            f"error: {rig}: sensorbox_rig: expected version 1 (or a Kalibr camchain with cam0, cam1, ...), got True"
+        ],
+    )
