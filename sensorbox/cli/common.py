@@ -178,10 +178,12 @@ def _unresolved_link(path: Path) -> str | None:
 
 def check_out_file(flag: str, path: Path) -> None:
     """Refuse, before any work, an output file whose folder would have to be made where a file is,
-    or cannot be written into, or that exists as a device, FIFO or socket (the write would refuse it
-    only after the work, `ingest.dataset.layout.refuse_special_target`)."""
+    or cannot be written into, or that exists as a folder, device, FIFO or socket (the write would refuse
+    it only after the work, `ingest.dataset.layout.refuse_special_target`)."""
     from ingest.dataset.layout import refuse_special_target
 
+    if path.is_dir():  # the write would fail after the work with a bare "Is a directory"
+        raise DatasetError(f"{flag} {path}: is a folder; give a file path")
     refuse_special_target(path)
     _check_parents(flag, path)
 

@@ -216,8 +216,8 @@ def _plot_into_a_folder(tmp: Path, mp: pytest.MonkeyPatch) -> tuple[list[str], s
     cmd = ["calib", "check", str(RIG), "--plot", str(folder)]
     return (
         cmd,
-        f"error: cannot write {folder}: Is a directory",
-        3,
+        f"error: --plot {folder}: is a folder; give a file path",
+        2,
         (
             lambda: _check(_files(tmp) == [], _files(tmp))  # no plots.png beside it, no temp file in it
         ),

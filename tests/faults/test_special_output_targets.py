@@ -121,3 +121,31 @@ def test_a_launch_out_that_is_a_file_is_named_as_such(
     code, _, err = sensorbox(capsys, "launch", str(launch), f"out:={out}", "duration:=1", "scale:=0.1")
     assert (code, err) == (2, [f"error: {out}: is a file, not a folder; give out a folder for the bags"])
     assert out.read_text() == "mine\n"
+
+
+def test_eval_json_onto_a_folder_is_refused_before_the_scoring(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Sweep 3: `eval --json FOLDER` scored every sample, printed its tables, then said 'cannot write
+    FOLDER: Is a directory' (exit 3), naming no option."""
+    from tests.ingest.test_evaluate import make_benchmark, write_predictions
+
+    bench = make_benchmark(tmp_path / "bench")
+    pred = tmp_path / "pred"
+    write_predictions(bench, pred, "stereo")
+    folder = tmp_path / "reports"
+    folder.mkdir()
+    code, out, err = sensorbox(
+        capsys,
+        "eval",
+        "--dataset",
+        str(bench),
+        "--pred",
+        str(pred),
+        "--task",
+        "stereo",
+        "--json",
+        str(folder),
+    )
+    assert (code, out, err) == (2, "", [f"error: --json {folder}: is a folder; give a file path"])
+    assert list(folder.iterdir()) == []

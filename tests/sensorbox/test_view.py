@@ -234,8 +234,8 @@ def test_a_sample_whose_metadata_is_not_json_is_named(dense_ds: Path, tmp_path: 
 
 def test_save_onto_a_folder_is_refused(dense_ds: Path, tmp_path: Path) -> None:
     res = _cli("view", str(dense_ds), "--save", str(tmp_path))
-    assert res.returncode == 3
-    assert res.stderr.strip().splitlines() == [f"error: cannot write {tmp_path}: Is a directory"]
+    assert res.returncode == 2
+    assert res.stderr.strip().splitlines() == [f"error: --save {tmp_path}: is a folder; give a file path"]
 
 
 def test_nearest_surface_downscale_keeps_sparse_pixels_and_takes_the_nearest() -> None:
