@@ -27,7 +27,7 @@ TumOpt = Annotated[
     typer.Option(help="TUM file of T_world_cam0 for --trajectory custom; time 0 is its first row, "
                  "and it must span --duration."),
 ]  # fmt: skip
-DurationOpt = Annotated[float, typer.Option(help="Seconds to simulate.")]
+DurationOpt = Annotated[float, typer.Option(help="Seconds to simulate (at least one camera frame, 1/30 s).")]
 SeedOpt = Annotated[int, typer.Option(help="Seed of the scene layout, texture, pattern phases and noise.")]
 FormatOpt = Annotated[str, typer.Option("--format", help="mcap | db3 (ROS 2 sqlite3) | bag (ROS 1).")]
 ImageOpt = Annotated[str, typer.Option(help="raw (Image bgra8) | jpeg (CompressedImage).")]

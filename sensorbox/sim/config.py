@@ -106,6 +106,13 @@ class SimConfig:
         for name, value, lo in (("duration", self.duration_s, 0.0), ("scale", self.scale, 0.0)):
             if not (value > lo and math.isfinite(value)):
                 raise SensorboxError(f"--{name} must be a finite number > {lo}, got {value}")
+        period_s = 1.0 / self.camera_rate_hz  # the first frame lies at a random phase within one period
+        if self.duration_s < period_s:  # 1e-9 s wrote a bag without an image or an IMU reading, exit 0
+            raise SensorboxError(
+                f"--duration {self.duration_s:g}: shorter than one camera frame period "
+                f"({period_s * 1e3:.1f} ms at {self.camera_rate_hz:g} Hz), so the bag may hold no image; "
+                f"expected at least {period_s:.4g} s"
+            )
         if self.duration_s > MAX_DURATION_S:  # int nanoseconds overflowed at 1e300
             raise SensorboxError(f"--duration {self.duration_s:g}: expected at most {MAX_DURATION_S:g} s")
         if abs(self.lidar_clock_offset_ns) > MAX_CAMERA_OFFSET_NS:

@@ -68,3 +68,20 @@ def test_a_launch_number_in_exponent_form_is_a_number(
             "expected a finite number"
         ],
     )
+
+
+def test_a_simulation_shorter_than_a_camera_frame_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Sweep 3: `simulate --duration 1e-9` wrote a bag of no image and no IMU reading (one LiDAR message
+    a topic, 'rate 1000000000.0 Hz'), exit 0."""
+    out = tmp_path / "s.mcap"
+    code, _, err = sensorbox(capsys, "simulate", "--duration", "1e-9", "--scale", "0.1", "--out", str(out))
+    assert (code, err) == (
+        2,
+        [
+            "error: --duration 1e-09: shorter than one camera frame period (33.3 ms at 30 Hz), so the bag may "
+            "hold no image; expected at least 0.03333 s"
+        ],
+    )
+    assert list(tmp_path.iterdir()) == []
