@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from calibration.camera import CameraModel
+from calibration.errors import CalibrationError
 from calibration.fisheye import DoubleSphere
 from calibration.kalibr import MAX_IMAGE_SIDE_PX
 from calibration.pinhole import Pinhole
@@ -204,9 +205,20 @@ def sphere_rows(fisheye: CameraModel, fov_deg: float, cfg: BenchmarkConfig) -> i
     return check_height_full(rows, given_by=given_by)
 
 
+def fov_fisheye(reference: DoubleSphere, fov_deg: float, cfg: BenchmarkConfig) -> VirtualFisheye:
+    """The virtual fisheye of ``fov_deg`` at --size; BenchmarkError naming --fov when no camera of that
+    FOV fits the size (0.001 deg asked for a focal length of 7.5e6 px, beyond the models' bounds)."""
+    try:
+        return virtual_fisheye(reference, fov_deg, cfg.width, cfg.height)
+    except CalibrationError as err:
+        raise BenchmarkError(
+            f"--fov {fov_deg:g}: no {cfg.width}x{cfg.height} fisheye of that FOV ({err})"
+        ) from err
+
+
 def fov_cameras(reference: DoubleSphere, fov_deg: float, cfg: BenchmarkConfig) -> FovCameras:
     """The fisheye of ``fov_deg`` and the equirect/Cassini windows covering it."""
-    fish = virtual_fisheye(reference, fov_deg, cfg.width, cfg.height)
+    fish = fov_fisheye(reference, fov_deg, cfg)
     hf = sphere_rows(fish.model, fov_deg, cfg)
     pano = covering_crop(fish.model, np.eye(3), hf)
     c0, r0, w, h = _window_mask(fish.model, Cassini(hf))

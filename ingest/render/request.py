@@ -19,11 +19,17 @@ import numpy as np
 from calibration.camera import CameraModel
 from calibration.rig import read_rig
 from calibration.types import F32, F64
-from calibration.virtual import virtual_fisheye
 from ingest.errors import BenchmarkError
 from ingest.raster.params import RenderParams, backend_problem
 from ingest.raster.scan import Scan
-from ingest.render.plan import BASELINES_MM, FOVS_DEG, BenchmarkConfig, check_reference, sphere_rows
+from ingest.render.plan import (
+    BASELINES_MM,
+    FOVS_DEG,
+    BenchmarkConfig,
+    check_reference,
+    fov_fisheye,
+    sphere_rows,
+)
 from ingest.render.scans import read_mask_points, read_scans
 
 
@@ -108,7 +114,7 @@ def prepare(req: BenchmarkRequest) -> tuple[list[Scan], CameraModel, BenchmarkCo
     cfg.validate()  # every option and the rig before the scans, which may take minutes to read
     reference = check_reference(read_rig(req.rig).camera("cam0").model)
     for fov_deg in cfg.fovs_deg:  # each equirect within the memory budget, before the scans are read
-        sphere_rows(virtual_fisheye(reference, fov_deg, cfg.width, cfg.height).model, fov_deg, cfg)
+        sphere_rows(fov_fisheye(reference, fov_deg, cfg).model, fov_deg, cfg)
     site = read_scans(list(req.scans), req.mask_label or None)
     for m in req.masks or ():  # a world-frame mask cloud joins every scan, in that scan's frame
         world = read_mask_points(m).astype(np.float64)

@@ -492,6 +492,22 @@ def test_a_depth_map_of_another_size_than_its_image_or_dataset_is_refused(
             ["render-benchmark", "scan.ply", "--rig", str(RIG), "--height", "1.5", "--height", "1e300"],
             "--height [1.5, 1e+300]: each height must be within -100..100 m",
         ),
+        (  # sweep 3: the line named the DoubleSphere's fx, not the option
+            [
+                "render-benchmark",
+                "scan.ply",
+                "--rig",
+                str(RIG),
+                "--fov",
+                "120",
+                "--fov",
+                "0.001",
+                "--size",
+                "128x72",
+            ],
+            "--fov 0.001: no 128x72 fisheye of that FOV (DoubleSphere: fx must be within 0.128..128000 px "
+            "(0.001..1000 times the image's 128 px) for a useful field of view, got 7503470.999999999)",
+        ),
     ],
 )
 def test_a_sphere_of_7_rows_or_a_yaw_of_1e300_is_one_line(
