@@ -41,7 +41,7 @@ def _pair(compare: str | None) -> tuple[str, str] | None:
     if compare is None:
         return None
     a, sep, b = compare.partition(",")
-    if not sep:
+    if not sep or not a.strip() or not b.strip():  # ',' named no configuration at all
         raise EvalError(f"--compare {compare!r}: expected A,B (e.g. 195FOV,120FOV)")
     return a.strip(), b.strip()
 

@@ -85,3 +85,23 @@ def test_a_simulation_shorter_than_a_camera_frame_is_refused(
         ],
     )
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("compare", [",", "195FOV,", ",65mm"])
+def test_a_compare_without_both_configurations_names_the_option(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], compare: str
+) -> None:
+    """Sweep 3: `eval --compare ,` was "configuration '': expected <FOV>FOV ... or <B>mm", naming no option."""
+    code, out, err = sensorbox(
+        capsys,
+        "eval",
+        "--dataset",
+        str(tmp_path),
+        "--pred",
+        str(tmp_path),
+        "--task",
+        "stereo",
+        "--compare",
+        compare,
+    )
+    assert (code, out, err) == (2, "", [f"error: --compare {compare!r}: expected A,B (e.g. 195FOV,120FOV)"])
