@@ -48,8 +48,8 @@ from typing import TYPE_CHECKING, Any, ClassVar
 
 import yaml
 
-from sensorbox.errors import LaunchError
-from sensorbox.live.bus import Bus, GraphResult, GraphSnapshot, Shutdown, run_graph
+from sensorbox.errors import GraphError, LaunchError
+from sensorbox.live.bus import Bus, GraphResult, GraphSnapshot, Shutdown, resolve_name, run_graph
 from sensorbox.live.launch_yaml import LineMap, join_ns, load_launch_yaml, param_file
 from sensorbox.live.substitutions import Scope, bool_word, evaluate_parts, parse_substitutions
 
@@ -107,6 +107,18 @@ class LaunchPlan:
 def _where(scope: Scope, item: Any) -> str:
     line = getattr(item, "line", 0)
     return f"{scope.file}:{line}" if line else str(scope.file)
+
+
+def _remap(f: Mapping[str, Any], scope: Scope, where: str) -> tuple[str, str]:
+    """A remap's (from, to), each a valid topic name (`resolve_name`'s rules), else LaunchError at `where`:
+    the bus would refuse a bad one only when the node starts, naming neither file nor line."""
+    pair = (_text(f["from"], scope, where, "from"), _text(f["to"], scope, where, "to"))
+    for key, name in zip(("from", "to"), pair, strict=True):
+        try:
+            resolve_name(name, "/", "node")
+        except GraphError as err:
+            raise LaunchError(f"{where}: remap {key}: {err}") from err
+    return pair
 
 
 def _text(value: Any, scope: Scope, where: str, key: str) -> str:
@@ -274,7 +286,7 @@ class _Parser:
 
     def set_remap(self, body: Any, scope: Scope, where: str) -> None:
         f = _fields("set_remap", body, where, ("from", "to"), ("from", "to"))
-        scope.remaps.append((_text(f["from"], scope, where, "from"), _text(f["to"], scope, where, "to")))
+        scope.remaps.append(_remap(f, scope, where))
 
     def group(self, body: Any, scope: Scope, where: str) -> None:
         if isinstance(body, list):
@@ -330,7 +342,7 @@ class _Parser:
         remaps = list(scope.remaps)
         for entry in _entries(f, "remap", "node", "remappings", where):
             rf = _fields("remap", entry, where, ("from", "to"), ("from", "to"))
-            remaps.append((_text(rf["from"], scope, where, "from"), _text(rf["to"], scope, where, "to")))
+            remaps.append(_remap(rf, scope, where))
         self.plan.nodes.append(NodeSpec(pkg, exe, name, namespace, params, tuple(remaps), where))
 
     def _param(

@@ -105,3 +105,20 @@ def test_a_compare_without_both_configurations_names_the_option(
         compare,
     )
     assert (code, out, err) == (2, "", [f"error: --compare {compare!r}: expected A,B (e.g. 195FOV,120FOV)"])
+
+
+def test_a_launch_remap_to_an_empty_topic_names_its_file_and_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Sweep 3: `remap: [{from: /a, to: ""}]` was "invalid topic name ''", naming neither file nor line."""
+    launch = tmp_path / "x.launch.yaml"
+    launch.write_text(
+        'launch:\n- node: {pkg: sensorbox, exec: recorder, name: n1, remap: [{from: /a, to: ""}]}\n'
+    )
+    code, _, err = sensorbox(capsys, "launch", "--dry-run", str(launch))
+    assert (code, err) == (
+        2,
+        [
+            f"error: {launch}:2: remap to: invalid topic name '': expected e.g. '/livox/imu', 'imu' or '~/image'"
+        ],
+    )
