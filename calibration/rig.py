@@ -378,7 +378,9 @@ def read_rig(path: str | Path) -> Rig:
     each_once(topics, "each sensor needs its own topic")
     each_once([(where, f"lidars.{li.name}.ip", li.ip) for li in lidars], "each LiDAR has its own address")
     name = data.get("name", p.stem)
-    return Rig(cameras, lidars, imus, name=str(name), source=p, camchain=chain)
+    if not isinstance(name, str) or isinstance(name, bool):  # !!binary, a date: printed as b'...' or a date
+        raise CalibrationError(f"{where}: name: expected a string, got {name!r}")
+    return Rig(cameras, lidars, imus, name=name, source=p, camchain=chain)
 
 
 def with_timeshifts(rig: Rig, timeshift_cam_imu_s: Mapping[str, float]) -> Rig:

@@ -717,3 +717,12 @@ def test_a_rig_version_of_true_is_refused(tmp_path: Path, capsys: pytest.Capture
             f"error: {rig}: sensorbox_rig: expected version 1 (or a Kalibr camchain with cam0, cam1, ...), got True"
         ],
     )
+
+
+def test_a_rig_name_that_is_no_string_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Sweep 3: `name: !!binary aGVsbG8=` passed calib check as the rig "b'hello'"."""
+    rig = _rig(tmp_path)
+    rig.write_text(rig.read_text().replace("name: sensorbox-reference", "name: !!binary aGVsbG8="))
+    code, _, err = sensorbox(capsys, "calib", "check", str(rig))
+    assert (code, err) == (2, [f"error: {rig}: name: expected a string, got b'hello'"])
+
