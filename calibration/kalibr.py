@@ -408,8 +408,13 @@ def parse_kalibr_camchain(data: object, source: str) -> CameraChain:
     T_prev_cam0 = np.eye(4)
     for i, name in enumerate(names):
         parsed = _parse_camera(name, data[name], f"{source}: {name}")
-        if i == 0:
-            parsed.pop("T_cn_cnm1", None)
+        if i == 0:  # the chain's origin: a pose relative to a camera before it means nothing
+            T_first = parsed.pop("T_cn_cnm1", None)
+            if T_first is not None and not np.allclose(T_first, np.eye(4)):
+                log.warning(
+                    "%s: %s.T_cn_cnm1 ignored: the first camera of a chain is its origin, with no camera "
+                    "before it (Kalibr writes none for it; cameras in another order?)", source, name,
+                )  # fmt: skip
             T_cam_cam0 = np.eye(4)
         else:
             parsed["T_cn_cnm1"] = _T_cn_cnm1(parsed, prev, name, names[i - 1], f"{source}: {name}")

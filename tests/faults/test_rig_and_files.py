@@ -726,3 +726,19 @@ def test_a_rig_name_that_is_no_string_is_refused(tmp_path: Path, capsys: pytest.
     code, _, err = sensorbox(capsys, "calib", "check", str(rig))
     assert (code, err) == (2, [f"error: {rig}: name: expected a string, got b'hello'"])
 
+
+def test_a_first_camera_with_a_pose_to_a_camera_before_it_is_warned_about(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Sweep 3: cam0's T_cn_cnm1 was dropped without a word (the chain's origin has no camera before it)."""
+    chain = _camchain_with(
+        tmp_path,
+        "  rostopic: /zed_upper/zed_node/rgb/color/rect/image\n",
+        "  rostopic: /zed_upper/zed_node/rgb/color/rect/image\n"
+        "  T_cn_cnm1: [[1, 0, 0, 0.1], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]\n",
+    )
+    read_kalibr_camchain(chain)
+    assert [r.getMessage() for r in caplog.records if "T_cn_cnm1" in r.getMessage()] == [
+        f"{chain}: cam0.T_cn_cnm1 ignored: the first camera of a chain is its origin, with no camera before it "
+        "(Kalibr writes none for it; cameras in another order?)"
+    ]
