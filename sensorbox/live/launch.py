@@ -412,6 +412,10 @@ def parse_cli_args(items: Sequence[str]) -> dict[str, str]:
         name, sep, value = item.partition(":=")
         if not sep or not name or any(c.isspace() for c in name):
             raise LaunchError(f"launch argument {item!r}: expected NAME:=VALUE, e.g. duration:=10")
+        if name in out:  # the last would win without a word
+            raise LaunchError(
+                f"launch argument {name} given twice ({name}:={out[name]}, {item}); give it once"
+            )
         out[name] = value
     return out
 
@@ -491,4 +495,12 @@ def _build_nodes(plan: LaunchPlan, bus: Bus, shutdown: Shutdown) -> list[Any]:
     nodes = [build_node(spec, bus, shutdown) for spec in plan.nodes]
     if not nodes:
         raise LaunchError(f"{plan.file}: the launch file starts no node")
+    first: dict[str, str] = {}  # the graph refuses two of one name; the dry run names where they are
+    for spec, node in zip(plan.nodes, nodes, strict=True):
+        if node.name in first:
+            raise LaunchError(
+                f"{spec.where}: a second node named {node.name!r} (the first at {first[node.name]}); "
+                "give each node its own name"
+            )
+        first[node.name] = spec.where
     return nodes

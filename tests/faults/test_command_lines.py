@@ -122,3 +122,27 @@ def test_a_launch_remap_to_an_empty_topic_names_its_file_and_line(
             f"error: {launch}:2: remap to: invalid topic name '': expected e.g. '/livox/imu', 'imu' or '~/image'"
         ],
     )
+
+
+def test_two_launch_nodes_of_one_name_are_refused_by_the_dry_run(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Sweep 3: `launch --dry-run` passed two nodes named rec, which the run refuses when it starts."""
+    launch = tmp_path / "x.launch.yaml"
+    launch.write_text(
+        "launch:\n- node: {pkg: sensorbox, exec: recorder, name: rec}\n- node: {pkg: sensorbox, exec: recorder, name: rec}\n"
+    )
+    code, _, err = sensorbox(capsys, "launch", "--dry-run", str(launch))
+    assert (code, err) == (
+        2,
+        [
+            f"error: {launch}:3: a second node named 'rec' (the first at {launch}:2); give each node its own name"
+        ],
+    )
+
+
+def test_a_launch_argument_given_twice_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Sweep 3: `out:=a out:=b` ran into b without a word about a."""
+    launch = ROOT / "launch" / "sim.launch.yaml"
+    code, _, err = sensorbox(capsys, "launch", "--dry-run", str(launch), "out:=a", "out:=b")
+    assert (code, err) == (2, ["error: launch argument out given twice (out:=a, out:=b); give it once"])
