@@ -108,14 +108,15 @@ class Params:
     def number(self, key: str, default: float) -> float:
         """A finite float; text that Python reads as one counts too: YAML 1.1 types '1e-9' (no dot) as a
         string, and a launch argument substituted into a parameter arrives as text."""
-        v = self.raw(key, default)
+        given = self.raw(key, default)
+        v = given
         if isinstance(v, str):
             try:
                 v = float(v)
             except ValueError:
-                raise self._err(key, v, "a finite number") from None
+                raise self._err(key, given, "a finite number") from None
         if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
-            raise self._err(key, v, "a finite number")
+            raise self._err(key, given, "a finite number")  # as given: 'nan' stays text
         return float(v)
 
     def integer(self, key: str, default: int) -> int:
