@@ -80,19 +80,21 @@ def view_dataset(
     layout = detect_layout(root)
     rec = rerun.RecordingStream("sensorbox")  # a fresh recording id: a second view is not merged in
     tmp = _staging(save) if save is not None else None
-    if tmp is not None:
-        rec.save(tmp)
-    else:
+    if tmp is None:
         _spawn(rec)
     try:
+        if tmp is not None:
+            rec.save(tmp)
         rec.send_recording_name(root.resolve().name)
         log = log_train if layout == "train" else log_benchmark
         summary = log(rec, root, max_side_px, progress)
         _flush(rec, streamed=tmp is None)
-    except BaseException:
+    except BaseException as err:
         rec.disconnect()
         if tmp is not None:
             tmp.unlink(missing_ok=True)
+            if _write_failed(err):
+                raise OutputError(f"cannot write {save}: {err}") from err
         raise
     rec.disconnect()
     if save is not None and tmp is not None:
@@ -102,6 +104,12 @@ def view_dataset(
             tmp.unlink(missing_ok=True)
             raise OutputError(f"cannot write {save}: {err.strerror or err}") from err
     return summary
+
+
+def _write_failed(err: BaseException) -> bool:
+    """Whether Rerun's binding failed writing the .rrd: it reports an OS error (a full disk) as a plain
+    RuntimeError whose text names it ("... No space left on device (os error 28)")."""
+    return isinstance(err, RuntimeError) and "(os error " in str(err)
 
 
 def display_problem(env: Mapping[str, str], platform: str) -> str | None:

@@ -149,3 +149,24 @@ def test_eval_json_onto_a_folder_is_refused_before_the_scoring(
     )
     assert (code, out, err) == (2, "", [f"error: --json {folder}: is a folder; give a file path"])
     assert list(folder.iterdir()) == []
+
+
+def test_view_save_onto_a_full_disk_is_one_line_and_leaves_no_file(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Sweep 3: `view --save` onto a full disk (a 2 MiB tmpfs) ended in a traceback, RuntimeError: Failed to
+    encode LogMsg: Failed to write: No space left on device (os error 28), and left its .v.rrd.tmp."""
+    import rerun
+
+    full = "Failed to encode LogMsg: Failed to write: No space left on device (os error 28)"
+
+    def save(self: object, path: Path, *args: object, **kwargs: object) -> None:
+        Path(path).write_bytes(b"RRF2")  # the binding creates the file, then fails writing to it
+        raise RuntimeError(full)
+
+    monkeypatch.setattr(rerun.RecordingStream, "save", save)
+    (tmp_path / "ds" / "depth_fisheye").mkdir(parents=True)
+    out = tmp_path / "v.rrd"
+    code, _, err = sensorbox(capsys, "view", str(tmp_path / "ds"), "--save", str(out))
+    assert (code, err) == (3, [f"error: cannot write {out}: {full}"])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ds"]
