@@ -127,6 +127,18 @@ PASS_INDEX = "indexing the scans"
 index (unit: scans)."""
 
 
+def refuse_training_set(out: Path) -> None:
+    """BenchmarkError when `out` holds an ingest training set (a dataset.yaml or a meta/ folder): a
+    benchmark's scenes written beside it are hidden from stats and eval, which take the folder for the
+    training set."""
+    held = [name for name in ("dataset.yaml", "meta") if (out / name).exists()]
+    if held:
+        raise BenchmarkError(
+            f"{out}: holds a training set ({held[0]}: the ingest layout); render-benchmark would mix a "
+            "benchmark into it: choose another --out"
+        )
+
+
 def run_benchmark(
     scans: list[Scan],
     reference: CameraModel,
@@ -141,6 +153,7 @@ def run_benchmark(
     view, per scan indexed (seconds to minutes each for a large scan).
     """
     cfg.validate()
+    refuse_training_set(out)
     ds = check_reference(reference)
     if not scans:
         raise BenchmarkError("no scans given")

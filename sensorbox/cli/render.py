@@ -133,10 +133,11 @@ def render_benchmark_cmd(
 ) -> None:  # fmt: skip
     """Render benchmark views (virtual fisheye, pano, Cassini and pinhole cameras, DOWN/RIGHT stereo
     partners) from dense laser scans into the WideDepth benchmark layout."""
-    from ingest.render.benchmark import run_benchmark
+    from ingest.render.benchmark import refuse_training_set, run_benchmark
     from ingest.render.request import BenchmarkRequest, prepare
 
     check_out_folder("--out", out, "the benchmark layout")
+    refuse_training_set(out)  # before the scans are read
     request = BenchmarkRequest(
         scans, rig, out, fovs_deg=fov, baselines_mm=baseline, yaws_deg=yaw, heights_m=height, pitch_deg=pitch,
         centers=center, size=size, bundle=bundle, workers=workers, clip_m=clip, clip_mode=clip_mode,

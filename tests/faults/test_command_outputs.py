@@ -519,3 +519,27 @@ def test_a_sphere_of_7_rows_or_a_yaw_of_1e300_is_one_line(
     code, out, err = sensorbox(capsys, *args, "--out", str(tmp_path / "o"))
     assert (code, out, err) == (2, "", [f"error: {line}"])
     assert not (tmp_path / "o").exists()
+
+
+def test_render_benchmark_into_a_training_set_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Sweep 3: render-benchmark --out a training set wrote its scene beside the samples, exit 0; stats then
+    took the folder for the training set alone (5 depth maps), the benchmark out of sight."""
+    from tests.faults.cli import sensorbox
+
+    out = tmp_path / "ds"
+    (out / "meta").mkdir(parents=True)
+    (out / "dataset.yaml").write_text("format: widedepth-train\n")
+    code, stdout, err = sensorbox(
+        capsys, "render-benchmark", "scan.ply", "--rig", str(RIG), "--out", str(out)
+    )
+    assert (code, stdout, err) == (
+        2,
+        "",
+        [
+            f"error: {out}: holds a training set (dataset.yaml: the ingest layout); render-benchmark would mix "
+            "a benchmark into it: choose another --out"
+        ],
+    )
+    assert sorted(p.name for p in out.iterdir()) == ["dataset.yaml", "meta"]
