@@ -11,6 +11,7 @@ launch/sim.launch.yaml does, so the whole path runs without a rig.
 
 from __future__ import annotations
 
+import ipaddress
 import math
 import re
 from collections.abc import Callable
@@ -75,6 +76,12 @@ def check_config(cfg: CaptureConfig) -> None:
         raise SensorboxError(f"--monitor {cfg.monitor_port}: expected a TCP port 1..65535")
     if not 1 <= cfg.port_base <= 65535 - 8:
         raise SensorboxError(f"--port-base {cfg.port_base}: expected 1..65527 (the first of nine UDP ports)")
+    try:  # --emulate listens on loopback instead, but a mistyped address is still one
+        ipaddress.IPv4Address(cfg.host_ip)
+    except ValueError:
+        raise SensorboxError(
+            f"--host-ip {cfg.host_ip!r}: expected a dotted IPv4 address such as 192.168.1.5"
+        ) from None
 
 
 def _where(cfg: CaptureConfig) -> str:

@@ -146,3 +146,29 @@ def test_a_launch_argument_given_twice_is_refused(tmp_path: Path, capsys: pytest
     launch = ROOT / "launch" / "sim.launch.yaml"
     code, _, err = sensorbox(capsys, "launch", "--dry-run", str(launch), "out:=a", "out:=b")
     assert (code, err) == (2, ["error: launch argument out given twice (out:=a, out:=b); give it once"])
+
+
+def test_capture_refuses_a_host_ip_that_is_no_address(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Sweep 3: `capture --emulate --host-ip 999.1.1.1` recorded a bag, exit 0, the address taken without a word."""
+    out = tmp_path / "bags"
+    rig = ROOT / "tests" / "fixtures" / "indoor_static_mcap.truth" / "rig.yaml"
+    args = [
+        "capture",
+        "--emulate",
+        "--rig",
+        str(rig),
+        "--out",
+        str(out),
+        "--host-ip",
+        "999.1.1.1",
+        "--duration",
+        "1",
+    ]
+    code, _, err = sensorbox(capsys, *args)
+    assert (code, err) == (
+        2,
+        ["error: --host-ip '999.1.1.1': expected a dotted IPv4 address such as 192.168.1.5"],
+    )
+    assert not out.exists()
