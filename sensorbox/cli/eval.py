@@ -172,14 +172,20 @@ def _print_stats(stats: DatasetStats, dataset: Path) -> None:
     _echo("|---|---|")
     _echo(f"| {100.0 * stats.density_mean:.3f} | {entropy} |")
     if stats.missing_images:
-        listed = ", ".join(stats.missing_images[:MISSING_LISTED])
+        listed = ", ".join(map(_printable, stats.missing_images[:MISSING_LISTED]))
         _echo(f"\nNo image for {len(stats.missing_images)} depth map(s), entropy left out: {listed}")
     if stats.missing_gt:
-        listed = ", ".join(stats.missing_gt[:MISSING_LISTED])
+        listed = ", ".join(map(_printable, stats.missing_gt[:MISSING_LISTED]))
         print_warning(
             f"{dataset}: {len(stats.missing_gt)} finished sample(s) (meta/<id>.json) have no depth map "
             f"(depth_fisheye/<id>.png), left out of these statistics: {listed}"
         )
+
+
+def _printable(name: str) -> str:
+    """A file name as listed in one line: quoted with escapes when it holds a newline or another control
+    character (a name with a newline split the warning into two lines)."""
+    return name if name.isprintable() else repr(name)
 
 
 def stats_cmd(

@@ -97,3 +97,21 @@ def test_eval_refuses_a_prediction_that_is_a_device_or_fifo(
         capsys, "eval", "--dataset", str(ds), "--pred", str(pred.parent), "--task", "mono"
     )
     assert (code, err) == (2, [f"error: {bad}: {what}"])
+
+
+def test_a_sample_name_with_a_newline_stays_on_the_warning_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Sweep 3: meta/'00000\\n5.json' split stats' missing-depth warning into two lines."""
+    root = _dataset(tmp_path / "ds")
+    (root / "meta").mkdir()
+    (root / "meta" / "000000.json").write_text("{}")
+    (root / "meta" / "00000\n5.json").write_text("{}")
+    code, _, err = sensorbox(capsys, "stats", str(root), "--out", str(tmp_path / "st"))
+    assert (code, err) == (
+        0,
+        [
+            f"warning: {root}: 1 finished sample(s) (meta/<id>.json) have no depth map (depth_fisheye/<id>.png), "
+            "left out of these statistics: '00000\\n5'"
+        ],
+    )
