@@ -47,7 +47,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import OUT_DIR, machine_line
 
 from sensorbox.live.bus import GraphResult, GraphSnapshot
-from sensorbox.live.launch import parse_launch, run_launch
+from sensorbox.live.launch import parse_launch
+from sensorbox.live.launch_run import run_launch
 
 ROOT = Path(__file__).resolve().parents[1]
 SIM_LAUNCH = ROOT / "launch" / "sim.launch.yaml"

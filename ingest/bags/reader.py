@@ -50,13 +50,11 @@ import heapq
 import logging
 from collections.abc import Callable, Collection, Iterable, Iterator, Sequence
 from dataclasses import dataclass
-from functools import cache
 from pathlib import Path
 from types import TracebackType
 from typing import Any
 
 import zstandard
-from rosbags.interfaces import MessageDefinition, MessageDefinitionFormat
 
 from calibration.errors import SensorboxError
 from ingest.bags.checked_readers import guard_readers
@@ -64,9 +62,16 @@ from ingest.bags.chunks import ChunkGuard, CorruptChunkError, DeferredData, Lost
 from ingest.bags.decode import RosVersion
 from ingest.bags.definitions import TolerantAnyReader, check_definition
 from ingest.bags.diagnose import bag_ros_version, check_bare_db3, check_metadata, explain
-from ingest.bags.mcap_records import McapChannel, SalvageReport, mcap_messages
 from ingest.bags.message import RawMessage
 from ingest.bags.rostypes import typestore
+from ingest.bags.salvage import (
+    SalvageChannel,
+    channel_problem,
+    mcap_channel_messages,
+    salvage_mcap,
+    salvage_messages,
+    salvage_targets,
+)
 from ingest.errors import BagError
 
 __all__ = [
@@ -95,117 +100,6 @@ class TopicSummary:
 
     msgtype: str
     count: int
-
-
-# ---------------------------------------------------------------- salvage
-
-
-@dataclass(frozen=True)
-class _Channel:
-    topic: str
-    msgtype: str
-    msgdef: MessageDefinition
-    ros_version: RosVersion | None  # None: a message encoding SensorBox cannot decode
-    encoding: str
-
-
-_SCHEMA_FORMATS = {
-    "ros2msg": MessageDefinitionFormat.MSG,
-    "ros1msg": MessageDefinitionFormat.MSG,
-    "ros2idl": MessageDefinitionFormat.IDL,
-    "omgidl": MessageDefinitionFormat.IDL,
-}
-_ENCODING_VERSIONS: dict[str, RosVersion] = {"cdr": 2, "ros1": 1}
-
-
-@cache
-def _channel(mc: McapChannel) -> _Channel:
-    fmt = _SCHEMA_FORMATS.get(mc.schema_encoding, MessageDefinitionFormat.NONE)
-    msgdef = MessageDefinition(fmt, mc.schema_data if mc.schema_name else "")
-    version = _ENCODING_VERSIONS.get(mc.message_encoding)
-    return _Channel(mc.topic, mc.schema_name, msgdef, version, mc.message_encoding)
-
-
-def _mcap_messages(
-    path: Path, quiet: bool = False, lost: list[LostChunk] | None = None
-) -> Iterator[tuple[_Channel, int, bytes]]:
-    """(channel, log_ns, data) of every intact message record of an MCAP file; logs what was lost.
-
-    The chunks it lost are appended to `lost` and logged, one line each, once the file is read.
-    """
-    report = SalvageReport()
-    for mc, log_ns, data in mcap_messages(path, report):
-        yield _channel(mc), log_ns, data
-    if not report.has_magic and not report.intact_records:
-        raise BagError(f"{path}: not an MCAP file (no MCAP magic at its start and no intact record)")
-    level = logging.INFO if report.intact or quiet else logging.WARNING
-    log.log(level, "%s: %s", path, report.summary())
-    for chunk in report.lost_chunks:
-        log.log(
-            logging.INFO if quiet else logging.WARNING,
-            "%s; its messages are counted as lost",
-            chunk.describe(),
-        )
-    if lost is not None:
-        lost.extend(report.lost_chunks)
-
-
-def salvage_mcap(path: str | Path, topics: Collection[str] | None = None) -> Iterator[RawMessage]:
-    """Messages of every intact record of a truncated, unclosed or damaged MCAP file, in file order.
-
-    Walks the file record by record (`ingest.bags.mcap_records`); what is cut
-    or damaged is skipped and logged, never raised. A complete file yields all
-    its messages. `topics` limits the output (None: all). With `topics=None`
-    a topic that cannot be decoded safely (schema unparsable or missing,
-    foreign encoding, see the module docstring) is skipped with a warning
-    naming it; asked for by name it raises `BagError` when reached, as does a
-    missing or non-MCAP file.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise BagError(f"{path}: no such MCAP file")
-    wanted = None if topics is None else set(topics)
-    return _salvage(path, wanted)
-
-
-def _salvage(path: Path, wanted: set[str] | None, quiet: bool = False) -> Iterator[RawMessage]:
-    usable: dict[_Channel, bool] = {}
-    for channel, log_ns, data in _mcap_messages(path, quiet):
-        if wanted is not None and channel.topic not in wanted:
-            continue
-        if channel not in usable:
-            problem = _channel_problem(path, channel)
-            if problem is not None and wanted is not None:
-                raise BagError(problem)
-            if problem is not None and not quiet:
-                log.warning("%s; skipping that topic, the others are read", problem)
-            usable[channel] = problem is None
-        if usable[channel]:
-            assert channel.ros_version is not None  # _channel_problem
-            yield RawMessage(channel.topic, channel.msgtype, log_ns, data, channel.ros_version)
-
-
-def _channel_problem(path: Path, channel: _Channel) -> str | None:
-    """Why a salvaged channel's messages cannot be decoded safely (a `BagError` text), or None."""
-    if channel.ros_version is None:
-        return (
-            f"{path}: topic {channel.topic!r} uses message encoding {channel.encoding!r};"
-            " expected 'cdr' (ROS 2) or 'ros1'"
-        )
-    if not channel.msgtype:
-        return f"{path}: topic {channel.topic!r} has no schema, so its message type is unknown"
-    try:
-        check_definition(str(path), channel.topic, channel.msgtype, channel.msgdef, channel.ros_version)
-    except BagError as err:
-        return str(err)
-    return None
-
-
-def _salvage_targets(path: Path) -> list[Path]:
-    """The MCAP files of `path` (a file or a rosbag2 directory); `--salvage` walks them record by record."""
-    if path.is_file():
-        return [path] if path.suffix == ".mcap" else []
-    return sorted(path.glob("*.mcap"))
 
 
 # ---------------------------------------------------------------- opening
@@ -297,7 +191,7 @@ def open_bags(paths: str | Path | Sequence[str | Path], salvage: bool = False) -
     salvaged: list[Path] = []
     direct = bag_paths
     if salvage and ros_version == 2:
-        targets = {p: _salvage_targets(p) for p in bag_paths}
+        targets = {p: salvage_targets(p) for p in bag_paths}
         salvaged = [m for p in bag_paths for m in targets[p]]
         direct = [p for p in bag_paths if not targets[p]]
     guard = ChunkGuard(skip=salvage)
@@ -350,7 +244,7 @@ class BagSet:
         """MCAP files read record by record (`salvage_mcap`) rather than by rosbags."""
         self._reader = reader
         self._guard = guard or ChunkGuard()
-        self._salvage_index: dict[Path, dict[_Channel, int]] = {}
+        self._salvage_index: dict[Path, dict[SalvageChannel, int]] = {}
         self._salvage_lost: list[LostChunk] = []
         self.skipped: dict[str, str] = {}
         """Topics left out when reading all topics -> why (one line): an embedded definition
@@ -366,7 +260,7 @@ class BagSet:
                 self._skip(conn.topic, f"{where}: topic {conn.topic!r}: {problem}")
         for path in self.salvaged:
             for channel in self._index(path):
-                if (reason := _channel_problem(path, channel)) is not None:
+                if (reason := channel_problem(path, channel)) is not None:
                     self._skip(channel.topic, reason)
 
     def _skip(self, topic: str, reason: str) -> None:
@@ -396,11 +290,13 @@ class BagSet:
     def _where(self) -> str:
         return ", ".join(map(str, self.paths))
 
-    def _index(self, path: Path) -> dict[_Channel, int]:
+    def _index(self, path: Path) -> dict[SalvageChannel, int]:
         """Message count per channel of a salvaged file (one full read, cached)."""
         if path not in self._salvage_index:
-            counts: dict[_Channel, int] = {}
-            for channel, _, _ in _mcap_messages(path, lost=self._salvage_lost):  # logs what it lost, once
+            counts: dict[SalvageChannel, int] = {}
+            for channel, _, _ in mcap_channel_messages(
+                path, lost=self._salvage_lost
+            ):  # logs what it lost, once
                 counts[channel] = counts.get(channel, 0) + 1
             self._salvage_index[path] = counts
         return self._salvage_index[path]
@@ -492,7 +388,7 @@ class BagSet:
             if conns:
                 sources.append(self._read(conns, start_ns, stop_ns, frozenset(defer), readahead))
         for path in self.salvaged:  # skipped topics are not in `wanted`
-            sources.append(_time_window(_salvage(path, wanted, quiet=True), start_ns, stop_ns))
+            sources.append(_time_window(salvage_messages(path, wanted, quiet=True), start_ns, stop_ns))
         merged = sources[0] if len(sources) == 1 else heapq.merge(*sources, key=lambda m: m.log_ns)
         if progress is None:
             return merged

@@ -256,7 +256,8 @@ def launch_cmd(
     monitor_rig: MonitorRigOpt = None,
 ) -> None:  # fmt: skip
     """Start the nodes a launch file names (drivers, cameras, emulators, recorder) until Ctrl-C."""
-    from sensorbox.live.launch import check_launch, parse_cli_args, parse_launch, run_launch
+    from sensorbox.live.launch import parse_cli_args, parse_launch
+    from sensorbox.live.launch_run import check_launch, run_launch
 
     _setup_logging(verbose)
     plan = parse_launch(file, parse_cli_args(args or []))

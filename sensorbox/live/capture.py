@@ -22,7 +22,8 @@ from typing import Any, Literal
 from calibration.errors import SensorboxError
 from calibration.rig import Rig, read_rig
 from sensorbox.live.bus import GraphResult, GraphSnapshot, Shutdown
-from sensorbox.live.launch import LaunchPlan, NodeSpec, run_launch
+from sensorbox.live.launch import LaunchPlan, NodeSpec
+from sensorbox.live.launch_run import run_launch
 
 
 @dataclass(frozen=True)

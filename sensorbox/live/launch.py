@@ -1,4 +1,4 @@
-"""A parser of ROS 2 YAML launch files and the runner of what they describe.
+"""A parser of ROS 2 YAML launch files (`sensorbox.live.launch_run` runs what they describe).
 
 The syntax is launch_yaml's (ros2/launch, launch_ros): a top-level `launch:`
 list of entities, each a one-key mapping:
@@ -35,8 +35,8 @@ an error naming the file and line, never silently ignored.
 
 Nodes: `pkg`/`exec` name a SensorBox node type (`sensorbox.live.nodes.NODE_TYPES`;
 the real driver packages `livox_ros_driver2` and `zed_wrapper` are aliases); see
-`sensorbox.live.nodes` for their parameters. `run_launch` builds and runs them in one
-process (`sensorbox.live.bus.run_graph`).
+`sensorbox.live.nodes` for their parameters. `launch_run.run_launch` builds and runs them in
+one process (`sensorbox.live.bus.run_graph`).
 """
 
 from __future__ import annotations
@@ -49,12 +49,12 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import yaml
 
 from sensorbox.errors import GraphError, LaunchError
-from sensorbox.live.bus import Bus, GraphResult, GraphSnapshot, Shutdown, resolve_name, run_graph
+from sensorbox.live.bus import resolve_name
 from sensorbox.live.launch_yaml import LineMap, join_ns, load_launch_yaml, param_file
 from sensorbox.live.substitutions import Scope, bool_word, evaluate_parts, parse_substitutions
 
 if TYPE_CHECKING:
-    from sensorbox.live.monitor import MonitorConfig
+    pass
 
 # ---------------------------------------------------------------- results
 
@@ -452,55 +452,3 @@ def _refuse_emptied(path: Path, args: Mapping[str, str], declared: Sequence[Laun
                 f"{path}: launch argument {arg.name}:= is empty (its default is {arg.default!r}); "
                 "give a value, or leave it out for the default"
             )
-
-
-def run_launch(
-    plan: LaunchPlan,
-    *,
-    shutdown: Shutdown | None = None,
-    on_tick: Callable[[GraphSnapshot], None] | None = None,
-    tick_s: float = 0.5,
-    monitor: MonitorConfig | None = None,
-) -> GraphResult:
-    """Build the plan's nodes in one process and run them until shutdown (see `bus.run_graph`); with
-    `monitor`, a live monitor node beside them (`sensorbox.live.monitor`)."""
-    bus = Bus()
-    shutdown = shutdown or Shutdown()
-    nodes = _build_nodes(plan, bus, shutdown)
-    if monitor is not None:
-        from sensorbox.live.monitor import Monitor
-
-        node = Monitor(monitor, bus)
-        nodes.append(node)
-        on_tick = node.ticker(on_tick)
-    return run_graph(nodes, bus, shutdown, on_tick=on_tick, tick_s=tick_s)
-
-
-def check_launch(plan: LaunchPlan) -> None:
-    """Refuse what `run_launch` would refuse before starting a node (a parameter value, an unused
-    parameter, an unknown node type, no node), starting none: `launch --dry-run`.
-
-    The nodes are built as the run builds them, then dropped; building a node
-    starts nothing and writes nothing (devices open, processes start and
-    files are written when the graph starts it). A simulated node sets up its
-    scene, so this takes a few seconds.
-    """
-    _build_nodes(plan, Bus(), Shutdown())
-
-
-def _build_nodes(plan: LaunchPlan, bus: Bus, shutdown: Shutdown) -> list[Any]:
-    """Every node of the plan, built on `bus` (not started); LaunchError when the file starts none."""
-    from sensorbox.live.nodes import build_node
-
-    nodes = [build_node(spec, bus, shutdown) for spec in plan.nodes]
-    if not nodes:
-        raise LaunchError(f"{plan.file}: the launch file starts no node")
-    first: dict[str, str] = {}  # the graph refuses two of one name; the dry run names where they are
-    for spec, node in zip(plan.nodes, nodes, strict=True):
-        if node.name in first:
-            raise LaunchError(
-                f"{spec.where}: a second node named {node.name!r} (the first at {first[node.name]}); "
-                "give each node its own name"
-            )
-        first[node.name] = spec.where
-    return nodes

@@ -375,7 +375,7 @@ def test_truncated_mcap_fails_clearly_and_salvages_complete_chunks(blob_bag, tmp
     ):
         open_bags(cut)
 
-    with caplog.at_level(logging.INFO, logger="ingest.bags.reader"):
+    with caplog.at_level(logging.INFO, logger="ingest.bags.salvage"):
         salvaged = list(salvage_mcap(cut))
     assert 0 < len(salvaged) < N_BLOBS
     assert_blobs(salvaged)

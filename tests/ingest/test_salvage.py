@@ -113,7 +113,7 @@ def test_damage_is_logged_with_its_byte_range(tmp_path, caplog):
     first, second = chunk_offsets(bytes(data))[:2]
     data[first : first + 20] = bytes(20)  # the first chunk's header
     (tmp_path / "b.mcap").write_bytes(bytes(data))
-    with caplog.at_level(logging.WARNING, logger="ingest.bags.reader"):
+    with caplog.at_level(logging.WARNING, logger="ingest.bags.salvage"):
         got = values_of(salvage_mcap(tmp_path / "b.mcap"))
     assert got[0] > 0 and got[-1] == N - 1
     assert f"damaged bytes skipped: {first}..{second}" in caplog.text
@@ -139,7 +139,7 @@ def test_a_cut_between_chunks_is_logged_as_a_cut(tmp_path, caplog):
     data = write_mcap(tmp_path / "a.mcap", CompressionType.ZSTD, 512).read_bytes()
     third = chunk_offsets(data)[2]
     (tmp_path / "b.mcap").write_bytes(data[:third])  # two whole chunks, nothing after
-    with caplog.at_level(logging.WARNING, logger="ingest.bags.reader"):
+    with caplog.at_level(logging.WARNING, logger="ingest.bags.salvage"):
         got = values_of(salvage_mcap(tmp_path / "b.mcap"))
     assert 0 < len(got) < N and got == list(range(len(got)))
     assert f"b.mcap: salvaged {len(got)} messages" in caplog.text
@@ -151,7 +151,7 @@ def test_a_cut_magic_is_an_empty_file_and_garbage_is_not_mcap(tmp_path, caplog):
     with pytest.raises(BagError, match=r"m\.mcap: not an MCAP file"):
         list(salvage_mcap(tmp_path / "m.mcap"))
     (tmp_path / "e.mcap").write_bytes(b"")
-    with caplog.at_level(logging.WARNING, logger="ingest.bags.reader"):
+    with caplog.at_level(logging.WARNING, logger="ingest.bags.salvage"):
         assert list(salvage_mcap(tmp_path / "e.mcap")) == []
     warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert warned == [
@@ -220,7 +220,7 @@ def test_unparsable_topic_is_skipped_and_the_rest_reads(kind, tmp_path, caplog):
     make, salvage, why = UNPARSABLE[kind]
     path = make(tmp_path)
     with (
-        caplog.at_level(logging.WARNING, logger="ingest.bags.reader"),
+        caplog.at_level(logging.WARNING, logger="ingest.bags.salvage"),
         open_bags(path, salvage=salvage) as bags,
     ):
         assert bags.topics()["/n"] == TopicSummary(INT32, 5)
@@ -250,7 +250,7 @@ def test_inspect_reports_the_skipped_topic_and_reads_the_rest(tmp_path):
 
 
 def test_salvage_mcap_skips_an_unparsable_topic(tmp_path, caplog):
-    with caplog.at_level(logging.WARNING, logger="ingest.bags.reader"):
+    with caplog.at_level(logging.WARNING, logger="ingest.bags.salvage"):
         got = values_of(salvage_mcap(event_mcap(tmp_path / "ev.mcap")))
     assert got == list(range(5))
     assert f"topic '{EVENT_TOPIC}': its embedded definition" in caplog.text

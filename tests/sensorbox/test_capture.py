@@ -24,7 +24,8 @@ from ingest.bags.reader import open_bags
 from ingest.train.pipeline import ingest
 from ingest.train.settings import IngestConfig
 from sensorbox.live.capture import CaptureConfig, capture_plan, check_config
-from sensorbox.live.launch import parse_launch, run_launch
+from sensorbox.live.launch import parse_launch
+from sensorbox.live.launch_run import run_launch
 from tests.live import HANG_S, NO_DISK_GUARD
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -20,7 +20,8 @@ import numpy as np
 import pytest
 
 from calibration.rig import REFERENCE_RIG
-from sensorbox.live.launch import parse_launch, run_launch
+from sensorbox.live.launch import parse_launch
+from sensorbox.live.launch_run import run_launch
 from sensorbox.live.monitor import REASONS, MonitorConfig
 from tests.foxglove_client import FoxgloveClient
 from tests.live import NO_DISK_GUARD
