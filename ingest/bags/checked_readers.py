@@ -18,7 +18,8 @@ from rosbags.rosbag2 import Reader as Ros2Reader
 from rosbags.rosbag2.reader import DirectoryReader
 from rosbags.rosbag2.storage_mcap import McapReader
 
-from ingest.bags.chunks import COPY_BELOW_BYTES, CheckedMcapReader, ChunkGuard, LostChunk, reason_of
+from ingest.bags.chunk_guard import ChunkGuard, LostChunk, reason_of
+from ingest.bags.chunks import COPY_BELOW_BYTES, CheckedMcapReader
 
 # ---------------------------------------------------------------- ROS 1
 

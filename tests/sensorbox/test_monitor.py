@@ -215,8 +215,6 @@ def test_offer_parks_without_waiting_for_the_worker_and_every_message_is_counted
     frame per camera parked (the rest above image_hz by their stamps), IMU samples above 50 Hz skipped,
     sweeps and IMU samples queued up to the bound then counted as backlog; at stop, what is parked
     counts as stopped."""
-    import time
-
     from calibration.rig import read_rig
     from sensorbox.live.bus import Bus
     from sensorbox.live.monitor import Monitor
@@ -225,15 +223,13 @@ def test_offer_parks_without_waiting_for_the_worker_and_every_message_is_counted
     mon = Monitor(MonitorConfig(0, REFERENCE_RIG, image_hz=1e-3, queue_msgs=5), bus, read_rig(REFERENCE_RIG))
     mon._channels = Subscribed()  # type: ignore[assignment]  # started, as far as offer is concerned
     mon._running = True
-    t0 = time.perf_counter()
-    for k in range(3):
+    for k in range(3):  # no worker runs: each publish returns only because offer never waits
         bus.publish(UPPER, "sensor_msgs/msg/CompressedImage", k, b"jpeg")  # 1 parked, 2 above the rate
     for k in range(4):  # 8 offered, 5 queued, 3 backlog
         bus.publish(LIDARS[0], "livox_ros_driver2/msg/CustomMsg", k, b"sweep")
         bus.publish(IMUS[0], "sensor_msgs/msg/Imu", k * 20_000_000, b"imu")  # 50 Hz: each one taken
     bus.publish(IMUS[0], "sensor_msgs/msg/Imu", 65_000_000, b"imu")  # 5 ms after the last: above 50 Hz
     bus.publish("/chatter", "std_msgs/msg/String", 0, b"x")  # not a rig topic: not the monitor's
-    assert time.perf_counter() - t0 < 0.5  # nothing waited on a worker
     mon.stop()
     counts = mon.counts()
     assert set(counts) == {UPPER, LIDARS[0], IMUS[0]}
