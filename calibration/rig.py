@@ -306,6 +306,37 @@ def rig_from_camchain(chain: CameraChain, name: str = "camchain") -> Rig:
     return Rig(cameras=cams, name=name, source=chain.source, camchain=chain)
 
 
+def _check_crossed_topics(cams: list[Camera], chain: CameraChain, where: str) -> None:
+    """Refuse a rig topic that the camchain names for another of its cameras.
+
+    A rig file may give a camera another topic than the camchain's
+    `rostopic` (the calibration bag was recorded under other names), but a
+    topic the camchain gives to another camera says that the intrinsics and
+    extrinsics were calibrated on the other camera's images: cam0's model
+    would be applied to cam1's frames (the two swapped), every GT pixel
+    wrong, without a word.
+    """
+    owners: dict[str, list[str]] = {}
+    for kc in chain.cameras:
+        if kc.rostopic is not None:
+            owners.setdefault(bag_topic(kc.rostopic), []).append(kc.name)
+    for cam in cams:
+        names = owners.get(cam.topic, []) if cam.topic is not None else []
+        other = names[0] if names and cam.name not in names else None  # a topic twice is refused apart
+        if other is not None:
+            raise CalibrationError(
+                f"{where}.{cam.name}.topic: {cam.topic} is {other}'s rostopic in the camchain "
+                f"({chain.source}): {other}'s calibration was made on that topic's images; expected "
+                f"{cam.name}'s own topic (camchain: {_chain_topic(chain, cam.name)}), or the cameras named "
+                "to match the camchain"
+            )
+
+
+def _chain_topic(chain: CameraChain, name: str) -> str:
+    topic = next((kc.rostopic for kc in chain.cameras if kc.name == name), None)
+    return "none given" if topic is None else topic
+
+
 def _parse_cameras(block: object, chain: CameraChain, where: str) -> tuple[Camera, ...]:
     block = require_mapping(block, where)
     cams: list[Camera] = []
@@ -320,6 +351,7 @@ def _parse_cameras(block: object, chain: CameraChain, where: str) -> tuple[Camer
             raise CalibrationError(f"{where}.{kc.name}.topic: expected a string, got {topic!r}")
         topic = None if topic is None else bag_topic(topic)
         cams.append(Camera(kc.name, kc.model, kc.T_cam_cam0, role, topic, kc.timeshift_cam_imu))
+    _check_crossed_topics(cams, chain, where)
     unknown = set(block) - {c.name for c in chain.cameras}
     if unknown:
         raise CalibrationError(

@@ -116,9 +116,18 @@ def other_format(path: Path) -> str | None:
     return next((what for magic, what in _MAGIC.items() if head.startswith(magic)), None)
 
 
+def _size(path: Path) -> int | None:
+    try:
+        return path.stat().st_size
+    except OSError:
+        return None
+
+
 def explain(path: Path, err: BaseException) -> str:
     """A one-line diagnosis of why rosbags could not open `path`."""
     text = str(err)
+    if path.suffix in (".mcap", ".db3") and path.is_file() and _size(path) == 0:
+        return f"{path}: the file is empty (0 bytes): nothing was recorded into it, or it was cut to nothing"
     if path.suffix == ".mcap" and path.is_file() and (other := other_format(path)) is not None:
         return f"{path}: not an MCAP file: it starts like {other} (renamed?); give it that suffix"
     if path.suffix == ".mcap" and path.is_file() and not mcap_is_complete(path):

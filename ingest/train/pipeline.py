@@ -101,6 +101,7 @@ from ingest.train.stream import (
     take_arrays,
 )
 from ingest.train.summary import IngestSummary
+from ingest.train.sync import unsynced_line
 from ingest.train.trajectory import STATIC_WINDOW_NS, choose_method, run_trajectory_pass
 
 
@@ -375,7 +376,9 @@ def _checked_survey(
     surveyed = survey(bags, topics, window_ns, bad, read)
     for topic, rows in surveyed.seen.items():
         what = "first point times" if topic in topics.lidars else "header stamps"
-        check_time_order(bags.label, topic, what, rows)
+        line = check_time_order(bags.label, topic, what, rows)
+        if line is not None:
+            surveyed.warnings.append(line)
     if topics.imu:
         stamps_ns = surveyed.seen[topics.imu][:, 1]
         repeated = surveyed.duplicates.get(topics.imu, 0)
@@ -392,6 +395,8 @@ def _count_plan(summary: IngestSummary, the_plan: Plan, bags: BagSet, bad: BadMe
     summary.duplicates, summary.uncovered = the_plan.duplicates, the_plan.uncovered
     if the_plan.lost_samples:
         summary.skipped[LOST_REASON] = the_plan.lost_samples
+    if (line := unsynced_line(the_plan.stereo_dt_ns, the_plan.upper_ns)) is not None:
+        summary.warnings.append(line)
 
 
 def _run(

@@ -24,7 +24,7 @@ from ingest.train.bad_messages import BadMessages
 from ingest.train.lidar_rate import LidarRates
 from ingest.train.lost import lost_intervals, untouched
 from ingest.train.plausible import NOISE_TAG, POINT_FAR
-from ingest.train.repeats import FirstCopies
+from ingest.train.repeats import FirstCopies, fingerprint
 from ingest.train.sync import (
     IMU_MARGIN_NS,
     lidar_clock_spread,
@@ -62,13 +62,19 @@ class Plan:
         out: I64 = self.upper_ns + self.upper_shift_ns
         return out
 
+    @property
+    def stereo_dt_ns(self) -> I64:
+        """Each sample's lower minus upper camera exposure time (ns, on the LiDAR clock)."""
+        out: I64 = (self.lower_ns + self.lower_shift_ns) - self.upper_exposure_ns
+        return out
+
 
 LOST_REASON = "LiDAR/IMU window overlaps a corrupt chunk (not planned)"
 
 
 def _seen(
     bags: BagSet, topics: Topics, bad: BadMessages, progress: Progress | None = None
-) -> tuple[dict[str, I64], LidarRates, dict[str, int]]:
+) -> tuple[dict[str, I64], LidarRates, FirstCopies]:
     """Per camera, LiDAR and IMU topic: (log_ns, first stamp, last stamp) of each message, as (N, 3).
 
     A sweep's stamps are its first and last point's (empty sweeps are left
@@ -77,7 +83,8 @@ def _seen(
     before anything is written. Undecodable messages are left out and
     counted by `bad`; each LiDAR's point rate is measured on the way.
     A message seen before (the same sweep, or a frame or IMU reading with the
-    same stamp) is left out and counted per topic (the third value).
+    same stamp) is left out and counted per topic (the third value's
+    `repeats`; its `restamped` lists those whose bytes differ).
     """
     where = bags.label
     imu = [topics.imu] if topics.imu else []
@@ -90,14 +97,14 @@ def _seen(
     for msg in bags.messages(topics=list(seen), readahead=readahead, progress=progress):
         if msg.topic not in topics.lidars:
             stamp = bad.stamp(msg, where)
-            if stamp is not None and copies.stamped(msg.topic, stamp):
+            if stamp is not None and copies.stamped(msg.topic, stamp, fingerprint(msg.raw)):
                 seen[msg.topic].append((msg.log_ns, stamp, stamp))
             continue
         sweep = bad.decoded(msg, where)
         if isinstance(sweep, Sweep) and len(sweep.stamps_ns) and copies.sweep(msg.topic, sweep):
             seen[msg.topic].append((msg.log_ns, *sweep.span_ns))
             rates.add(msg.topic, sweep.stamps_ns)
-    return {t: np.array(v, np.int64).reshape(-1, 3) for t, v in seen.items()}, rates, copies.repeats
+    return {t: np.array(v, np.int64).reshape(-1, 3) for t, v in seen.items()}, rates, copies
 
 
 def _untouched(bags: BagSet, topics: Topics, seen: dict[str, I64], tc_ns: I64, cfg: IngestConfig) -> Any:
@@ -189,7 +196,8 @@ def survey(
     takes minutes: `progress` hears of the messages read (`BagSet.messages`).
     """
     bad = bad or BadMessages()
-    seen, rates, duplicates = _seen(bags, topics, bad, progress)
+    seen, rates, copies = _seen(bags, topics, bad, progress)
+    duplicates = copies.repeats
     dropped = bad.dropped.by_topic()
     for topic, name in topics.lidars.items():
         if not len(seen[topic]):
@@ -220,8 +228,21 @@ def survey(
     gaps = imu_gaps(np.unique(seen[topics.imu][:, 1])) if topics.imu else np.zeros(0, np.int64)
     offsets_ms = {t: float(np.median(seen[t][:, 0] - seen[t][:, 1])) / 1e6 for t in topics.lidars}
     spread = lidar_clock_spread(offsets_ms)
-    warnings = [spread] if spread else []
+    warnings = ([spread] if spread else []) + [
+        restamped_line(topic, stamps_ns) for topic, stamps_ns in copies.restamped.items()
+    ]
     return Survey(seen, rates, duplicates, up, lo, gaps, warnings + rates.thin_lines(topics.lidars))
+
+
+def restamped_line(topic: str, stamps_ns: list[int]) -> str:
+    """One line for the messages of `topic` that carry the header stamp of an earlier message with other
+    content (`FirstCopies.restamped`): each was left out, as its time is not known."""
+    n = len(stamps_ns)
+    return (
+        f"{topic}: {n} message{'' if n == 1 else 's'} carr{'ies' if n == 1 else 'y'} the header stamp of an "
+        f"earlier message with other content (the first: {_seconds(stamps_ns[0])}); left out, as "
+        f"{'its' if n == 1 else 'their'} time is not known (a sensor clock that stalled or stepped back)"
+    )
 
 
 IMU_GAP_PERIODS = 5

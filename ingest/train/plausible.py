@@ -64,10 +64,11 @@ IMU_GYRO = f"IMU gyro beyond {math.degrees(GYRO_LIMIT_RAD_S):.0f} deg/s"
 IMU_ACC = f"IMU acceleration beyond {ACC_LIMIT:.0f} (32 g in m/s^2)"
 POINT_TIME = "LiDAR point time beyond its sweep"
 POINT_FAR = f"LiDAR point beyond {RANGE_LIMIT_M:g} m"
+POINT_REPEATED = "LiDAR point repeated within its sweep (same time and coordinates)"
 NOISE_TAG = "point with a Livox noise tag"
 """A point whose Livox tag marks a doubtful echo (`NOISE_TAG_BITS`): the sensor's own verdict, counted but
 not warned about (a few per sweep are normal)."""
-REASONS = (IMU_NON_FINITE, IMU_GYRO, IMU_ACC, POINT_TIME, POINT_FAR, NOISE_TAG)
+REASONS = (IMU_NON_FINITE, IMU_GYRO, IMU_ACC, POINT_TIME, POINT_FAR, POINT_REPEATED, NOISE_TAG)
 """Why a reading or point was dropped, in the order the summary lists them."""
 
 
@@ -120,6 +121,45 @@ def too_far(xyz_m: np.ndarray[Any, Any]) -> np.ndarray[Any, np.dtype[np.bool_]]:
     return out
 
 
+_MIX = np.array([0x9E3779B97F4A7C15, 0xC2B2AE3D27D4EB4F, 0x165667B19E3779F9, 0x27D4EB2F165667C5], np.uint64)
+"""Odd 64-bit multipliers that mix a point's time and coordinate bits into one hash (`repeated_points`)."""
+
+
+def repeated_points(xyz_m: np.ndarray[Any, Any], stamps_ns: I64) -> np.ndarray[Any, np.dtype[np.bool_]]:
+    """Which points repeat an earlier point of the same sweep: the same time (ns) and the same coordinates.
+
+    No LiDAR measures one return twice: a driver or a recorder that wrote
+    the points twice would weigh their surfaces double in every fit and
+    render (a sweep's points doubled moved GT pixels by up to 157 disparity
+    units). The first of equal points is kept. Points at the origin (a
+    Livox's no-return) and NaN coordinates are not compared: other checks
+    drop them. One sort of a 64-bit hash per point finds the candidates; only
+    those are compared exactly.
+    """
+    out = np.zeros(len(stamps_ns), bool)
+    if len(stamps_ns) < 2:
+        return out
+    xyz = np.ascontiguousarray(xyz_m, np.float64)
+    bits = xyz.view(np.uint64)
+    mixed = np.asarray(stamps_ns, np.int64).view(np.uint64) * _MIX[0]
+    for axis in range(3):
+        mixed ^= bits[:, axis] * _MIX[axis + 1]
+    order = np.argsort(mixed, kind="stable")
+    same = np.flatnonzero(mixed[order][1:] == mixed[order][:-1])
+    if len(same) == 0:
+        return out
+    firsts: set[tuple[int, float, float, float]] = set()
+    for i in np.unique(np.concatenate([order[same], order[same + 1]])).tolist():
+        x, y, z = xyz[i].tolist()
+        if x == y == z == 0.0:
+            continue
+        key = (int(stamps_ns[i]), x, y, z)
+        if key in firsts:
+            out[i] = True
+        firsts.add(key)
+    return out
+
+
 def noise_tagged(tag: np.ndarray[Any, Any] | None) -> int:
     """How many points a Livox tag array (uint8, or None without tags) marks as noise (`NOISE_TAG_BITS`)."""
     return 0 if tag is None else int(np.count_nonzero(np.asarray(tag) & NOISE_TAG_BITS))
@@ -134,7 +174,8 @@ def screened_sweep(sweep: Sweep) -> tuple[Sweep, dict[str, int]]:
     """
     late = beyond_sweep(sweep.stamps_ns, sweep.stamp_ns)
     far = too_far(sweep.xyz_m) & ~late
-    drop = late | far
+    repeated = repeated_points(sweep.xyz_m, sweep.stamps_ns) & ~(late | far)
+    drop = late | far | repeated
     if not drop.any():
         tagged = noise_tagged(sweep.tag)
         return sweep, {NOISE_TAG: tagged} if tagged else {}
@@ -151,7 +192,12 @@ def screened_sweep(sweep: Sweep) -> tuple[Sweep, dict[str, int]]:
         tag=kept(sweep.tag),
         line=kept(sweep.line),
     )
-    counts = {POINT_TIME: int(late.sum()), POINT_FAR: int(far.sum()), NOISE_TAG: noise_tagged(out.tag)}
+    counts = {
+        POINT_TIME: int(late.sum()),
+        POINT_FAR: int(far.sum()),
+        POINT_REPEATED: int(repeated.sum()),
+        NOISE_TAG: noise_tagged(out.tag),
+    }
     return out, {k: n for k, n in counts.items() if n}
 
 
@@ -264,8 +310,9 @@ def _seconds(ns: int) -> str:
     return f"{ns / 1e9:.3f} s"
 
 
-def check_time_order(where: str, topic: str, what: str, seen: I64) -> None:
-    """Raise `BagError` when `topic`'s stamps run backwards in log order.
+def check_time_order(where: str, topic: str, what: str, seen: I64) -> str | None:
+    """Raise `BagError` when `topic`'s stamps run backwards in log order; one line when they step back
+    only now and then.
 
     `seen` is the survey's (N, 3) rows of (log ns, first stamp, last stamp) per
     message, in log order (`ingest.train.plan.survey`); `what` names the stamps
@@ -273,19 +320,31 @@ def check_time_order(where: str, topic: str, what: str, seen: I64) -> None:
     order and take it for time order (a sample is handed on once the
     messages up to its window's end have arrived): with the order reversed, a
     sparse run kept half the points of each window and every drop counter
-    read 0. A message or two delivered late are ordered by their stamps.
+    read 0. A message or two delivered late are ordered by their stamps, and
+    the returned line says so: a camera frame stamped early can lose its
+    stereo partner (counted among the unpaired frames) and move the samples
+    after it to other frames.
     """
-    if len(seen) < 3:
-        return
+    if len(seen) < 2:
+        return None
     stamps = seen[:, 1]
     back = np.flatnonzero(np.diff(stamps) < 0)
     steps = len(stamps) - 1
-    if len(back) < 2 or len(back) <= BACKWARDS_FRACTION * steps:
-        return
+    if len(back) == 0:
+        return None
     k = int(back[0])
+    first = (
+        f"(the first: {_seconds(int(stamps[k + 1]))} logged at {_seconds(int(seen[k + 1, 0]))}, after "
+        f"{_seconds(int(stamps[k]))})"
+    )
+    if len(back) < 2 or len(back) <= BACKWARDS_FRACTION * steps:
+        return (
+            f"{topic}: {what} step back in {len(back)} of {steps} steps of the bag's log order "
+            f"{first}; those messages are taken in stamp order (a message delivered late, or a sensor "
+            "clock that jumped)"
+        )
     raise BagError(
         f"{where}: {topic}: {what} run backwards in {len(back)} of {steps} steps of the bag's log order "
-        f"(the first: {_seconds(int(stamps[k + 1]))} logged at {_seconds(int(seen[k + 1, 0]))}, after "
-        f"{_seconds(int(stamps[k]))}); expected stamps that rise with log time (a sensor clock running "
+        f"{first}; expected stamps that rise with log time (a sensor clock running "
         "backwards, or a bag rewritten out of order)"
     )

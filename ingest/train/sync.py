@@ -89,6 +89,30 @@ def pair_stereo(upper_ns: I64, lower_ns: I64, tolerance_ns: int) -> StereoPairs:
     return StereoPairs(pu, pl, lo[pl] - up[pu], len(up) - len(pu), len(lo) - len(pl))
 
 
+STEREO_SYNC_MS = 2.0
+"""Stereo exposures further apart than this (ms) are said: the disparity GT is made for the upper
+camera's time, and the lower camera moves 2 mm in 2 ms at a walker's 1 m/s, twice the GT's error
+budget. Hardware-synchronised cameras expose within a millisecond of each other (the simulator: each
+within +-0.5 ms of its frame time)."""
+
+
+def unsynced_line(stereo_dt_ns: I64, upper_ns: I64) -> str | None:
+    """One line when some planned stereo pairs (`stereo_dt_ns`: lower minus upper exposure, per sample at
+    upper stamp `upper_ns`) are more than `STEREO_SYNC_MS` apart, else None. Each sample's meta records
+    its own `stereo_dt_ms`, so a dataset's user can leave them out."""
+    dt_ms = np.abs(np.asarray(stereo_dt_ns, np.int64)) / 1e6
+    apart = np.flatnonzero(dt_ms > STEREO_SYNC_MS)
+    if len(apart) == 0:
+        return None
+    k = int(apart[np.argmax(dt_ms[apart])])
+    return (
+        f"{len(apart)} of {len(dt_ms)} stereo pairs are exposed more than {STEREO_SYNC_MS:g} ms apart (the "
+        f"most: {dt_ms[k]:.1f} ms, at upper stamp {int(upper_ns[k]) / 1e9:.3f} s): with the rig moving, the "
+        "lower image shows another moment than the disparity GT (hardware-sync the cameras, or leave out "
+        "the samples by their meta's stereo_dt_ms)"
+    )
+
+
 def lidar_covered(frame_ns: I64, lidar_spans_ns: list[tuple[int, int]], window_ns: int) -> Bool:
     """Which frames have LiDAR points within +-`window_ns`: some sweep overlaps [t - window, t + window].
 

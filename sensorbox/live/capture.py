@@ -58,17 +58,19 @@ def check_config(cfg: CaptureConfig) -> None:
     option and the value as given (`--split-size -5`, not the recorder's
     `split_bytes` in bytes, nor the rig file the plan is built from).
     """
-    from sensorbox.live.recorder_config import NAME_PATTERN
+    from sensorbox.live.recorder_config import MAX_MIB, MAX_S, NAME_PATTERN
 
     if not 1 <= cfg.jpeg_quality <= 100:
         raise SensorboxError(f"--jpeg-quality {cfg.jpeg_quality}: expected 1..100")
-    for flag, value, what in (
-        ("--duration", cfg.duration_s, "seconds (0 = until Ctrl-C)"),
-        ("--split-size", cfg.split_size_mb, "MiB (0 = never split)"),
-        ("--min-free", cfg.min_free_mb, "MiB"),
+    for flag, value, what, (most, most_unit) in (
+        ("--duration", cfg.duration_s, "seconds (0 = until Ctrl-C)", MAX_S),
+        ("--split-size", cfg.split_size_mb, "MiB (0 = never split)", MAX_MIB),
+        ("--min-free", cfg.min_free_mb, "MiB", MAX_MIB),
     ):
         if not (math.isfinite(value) and value >= 0):
             raise SensorboxError(f"{flag} {value:g}: expected a finite number >= 0, in {what}")
+        if value > most:
+            raise SensorboxError(f"{flag} {value:g}: expected at most {most:g} {most_unit}")
     if cfg.name and not re.fullmatch(NAME_PATTERN, cfg.name):
         raise SensorboxError(f"--name {cfg.name!r}: use letters, digits and _ . + - only (a folder name)")
     if cfg.emulate and not (math.isfinite(cfg.scale) and cfg.scale > 0):

@@ -31,6 +31,12 @@ def default_bag_name() -> str:
     return datetime.now().strftime("capture_%Y%m%d-%H%M%S")
 
 
+MAX_MIB = (1e9, "MiB (about a petabyte)")
+"""The largest size a recorder parameter in MiB may state."""
+MAX_S = (1e8, "s (about three years)")
+"""The largest time a recorder parameter in seconds may state (`sensorbox.sim.config.MAX_DURATION_S`)."""
+
+
 @dataclass(frozen=True)
 class RecorderConfig:
     """Where and how to record; sizes in bytes, times in seconds (0 = off)."""

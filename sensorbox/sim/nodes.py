@@ -15,7 +15,7 @@ from sensorbox.errors import GraphError
 from sensorbox.live.bus import PRIORITY_DEVICE, Node, NodeContext, NodeStatus
 from sensorbox.live.nodes import Params, stereo_camera_node
 from sensorbox.sim.camera_source import SimCameras, SimCameraSource
-from sensorbox.sim.config import SimConfig
+from sensorbox.sim.config import MAX_DURATION_S, SimConfig
 from sensorbox.sim.emulator_process import EmulatorProcess, EmulatorSpec
 from sensorbox.sim.mid360 import Mid360Emulator
 from sensorbox.sim.run import setup_sim
@@ -68,7 +68,7 @@ def mid360_emulator_node(ctx: NodeContext, p: Params) -> Node:
     }  # fmt: skip
     noise = p.number("range_noise_m", 0.02)
     sim = _sim_config(p, range_noise_m=noise)
-    loop_s = p.number("loop_s", 1.0)
+    loop_s = p.number("loop_s", 1.0, (MAX_DURATION_S, "s (the longest simulated recording)"))
     if loop_s < 0:
         raise GraphError(f"{p.where}: loop_s must be >= 0 (0 = simulate live), got {loop_s}")
     return EmulatorNode(ctx.name, sim, p.text("lidar", "lidar_top"), ip, loop_s, options)

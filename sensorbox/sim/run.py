@@ -103,14 +103,15 @@ def scaled_rig(rig: Rig, scale: float) -> Rig:
     """
     if scale == 1.0:
         return rig
-    cams = tuple(replace(c, model=c.model.scaled(scale)) for c in rig.cameras)
-    for full, small in zip(rig.cameras, cams, strict=True):
-        if min(small.model.width, small.model.height) < MIN_IMAGE_PX:
-            smallest = math.ceil(1000 * MIN_IMAGE_PX / min(full.model.width, full.model.height)) / 1000
+    for cam in rig.cameras:  # before scaling: a tiny scale also takes the focal lengths out of range
+        width, height = max(1, round(cam.model.width * scale)), max(1, round(cam.model.height * scale))
+        if min(width, height) < MIN_IMAGE_PX:
+            smallest = math.ceil(1000 * MIN_IMAGE_PX / min(cam.model.width, cam.model.height)) / 1000
             raise SensorboxError(
-                f"--scale {scale:g} makes camera {small.name} {small.model.width}x{small.model.height} px; "
+                f"--scale {scale:g} makes camera {cam.name} {width}x{height} px; "
                 f"expected >= {MIN_IMAGE_PX} px on each side (--scale >= {smallest:g})"
             )
+    cams = tuple(replace(c, model=c.model.scaled(scale)) for c in rig.cameras)
     return replace(rig, cameras=cams, camchain=None)
 
 

@@ -194,6 +194,8 @@ def _rig_with(tmp_path, **changes):
         ({"lidars__lidar_top__T_cam_lidar": np.eye(4).tolist()}, r"rig\.yaml: lidars\.lidar_top: unknown key 'T_cam_lidar' \(did you mean 'T_cam0_lidar'\?\); known keys: topic, ip, T_cam0_lidar, livox_extrinsic, livox_config, T_cam0_base$"),
         ({"lidars__lidar_top__T_cam0_lidar": None, "lidars__lidar_top__livox_extrinsic": {"roll": 0.0, "pitch": 0.0, "yaw": 0.0, "x": 0, "y": 0, "z": 100, "z_mm": 100}}, r"rig\.yaml: lidars\.lidar_top\.livox_extrinsic: unknown key 'z_mm'; known keys: roll, pitch, yaw, x, y, z$"),
         ({"imus__imu_top__rate": 200}, r"rig\.yaml: imus\.imu_top: unknown key 'rate' \(did you mean 'rate_hz'\?\); known keys: topic, T_cam0_imu, rate_hz$"),
+        ({"cameras__cam0__topic": "/zed_lower/zed_node/rgb/color/rect/image", "cameras__cam1__topic": "/zed_upper/zed_node/rgb/color/rect/image"}, r"rig\.yaml: cameras\.cam0\.topic: /zed_lower/zed_node/rgb/color/rect/image is cam1's rostopic in the camchain \(.*sensorbox-camchain\.yaml\): cam1's calibration was made on that topic's images; expected cam0's own topic \(camchain: /zed_upper/zed_node/rgb/color/rect/image\), or the cameras named to match the camchain$"),
+        ({"cameras__cam1__topic": "zed_upper/zed_node/rgb/color/rect/image/", "cameras__cam0__topic": "/zed/left"}, r"rig\.yaml: cameras\.cam1\.topic: /zed_upper/zed_node/rgb/color/rect/image is cam0's rostopic in the camchain"),
         ({"cameras__cam0__roll": "upper"}, r"rig\.yaml: cameras\.cam0: unknown key 'roll' \(did you mean 'role'\?\); known keys: role, topic$"),
     ],
 )  # fmt: skip
@@ -201,6 +203,15 @@ def test_bad_rig_messages(tmp_path, changes, message):
     path = _rig_with(tmp_path, **changes)
     with pytest.raises(CalibrationError, match=message):
         read_rig(path)
+
+
+def test_a_rig_topic_the_camchain_gives_no_camera_is_taken(tmp_path):
+    """The calibration bag may have used other topic names: a topic of the rig's own overrides the
+    camchain's rostopic, as documented; only another camera's rostopic is refused."""
+    rig = read_rig(
+        _rig_with(tmp_path, cameras__cam0__topic="/left/image", cameras__cam1__topic="/right/image")
+    )
+    assert (rig.upper.topic, rig.lower.topic) == ("/left/image", "/right/image")
 
 
 def test_the_largest_plausible_lever_arm_is_read(tmp_path):

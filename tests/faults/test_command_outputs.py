@@ -281,6 +281,8 @@ CAPTURE = ["capture", "--rig", str(RIG), "--emulate", "--scale", "0.25"]
         (["--duration", "-1"], "--duration -1: expected a finite number >= 0, in seconds (0 = until Ctrl-C)"),
         (["--split-size", "-5"], "--split-size -5: expected a finite number >= 0, in MiB (0 = never split)"),
         (["--min-free", "nan"], "--min-free nan: expected a finite number >= 0, in MiB"),
+        (["--min-free", "1e300"], "--min-free 1e+300: expected at most 1e+09 MiB (about a petabyte)"),
+        (["--duration", "1e9"], "--duration 1e+09: expected at most 1e+08 s (about three years)"),
         (["--name", "a/b"], "--name 'a/b': use letters, digits and _ . + - only (a folder name)"),
         (["--scale", "0"], "--scale 0: expected a number > 0 (0.25 -> 480x300)"),
     ],

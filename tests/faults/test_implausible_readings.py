@@ -23,7 +23,7 @@ from ingest.bags.rostypes import POINTCLOUD2_TYPE, typestore
 from ingest.dataset.layout import GT_DIRS
 from ingest.errors import BagError
 from ingest.train.pipeline import ingest
-from ingest.train.plausible import IMU_ACC, IMU_GYRO, IMU_NON_FINITE, POINT_FAR, POINT_TIME
+from ingest.train.plausible import IMU_ACC, IMU_GYRO, IMU_NON_FINITE, POINT_FAR, POINT_REPEATED, POINT_TIME
 from ingest.train.settings import IngestConfig
 from ingest.train.summary import IngestSummary
 from sensorbox.messages import imu_msg
@@ -187,6 +187,39 @@ def test_lidar_points_beyond_their_sweep_or_range_are_dropped_counted_and_change
     assert clean.dropped == {}
     source = yaml.safe_load((out / "dataset.yaml").read_text())["sources"][0]
     assert source["dropped_implausible"] == expected
+
+
+def test_lidar_points_sent_twice_are_dropped_counted_and_change_no_gt(tmp_path: Path) -> None:
+    """Every point of the top LiDAR sent twice (the whole list again: point_num doubled), every 5th point
+    of the bottom LiDAR twice in a row: the GT is that of the bag sent once, each copy counted."""
+
+    def twice(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        if topic == LIDAR_TOP:
+            return [(topic, _points(lambda pts: np.concatenate([pts, pts]))(raw))]
+        if topic == LIDAR_BOTTOM:
+            return [(topic, _points(lambda pts: np.insert(pts, np.arange(0, len(pts), 5), pts[::5]))(raw))]
+        return [(topic, raw)]
+
+    summary, out = _run(tmp_path, "twice", twice, src=INDOOR)
+    clean, clean_out = _run(tmp_path, "once", lambda topic, k, raw: [(topic, raw)], src=INDOOR)
+    assert summary.written == clean.written > 0
+    assert _gt_files(out) == _gt_files(clean_out)
+    origin = {
+        t: [decode_custom_msg(m).points for m in _messages(INDOOR, t)] for t in (LIDAR_TOP, LIDAR_BOTTOM)
+    }
+
+    def counted(pts: Any, every: int) -> int:
+        """Copies of points not at the origin (a Livox's no-return points are not compared)."""
+        xyz = np.stack([pts["x"], pts["y"], pts["z"]], axis=1)[::every]
+        return int(np.count_nonzero(np.any(xyz != 0, axis=1)))
+
+    expected = {
+        LIDAR_TOP: {POINT_REPEATED: sum(counted(p, 1) for p in origin[LIDAR_TOP])},
+        LIDAR_BOTTOM: {POINT_REPEATED: sum(counted(p, 5) for p in origin[LIDAR_BOTTOM])},
+    }
+    assert summary.dropped == expected
+    top = f"{LIDAR_TOP}: dropped {expected[LIDAR_TOP][POINT_REPEATED]:,} points: {POINT_REPEATED} (first at "
+    assert sum(line.startswith(top) for line in summary.warnings) == 1
 
 
 def _messages(bag: Path, topic: str) -> list[bytes]:

@@ -575,6 +575,16 @@ def test_a_camera_baseline_over_10_m_is_refused(
             "node 'zed_sim' (sensorbox/sim_camera) at {sim}:72: --scale must be a finite number > 0.0, got 0.0",
         ),
         (
+            ["min_free_mb:=1e300"],
+            "node 'recorder' (sensorbox/recorder) at {sim}:85: parameter 'min_free_mb' = '1e300': expected at "
+            "most 1e+09 MiB (about a petabyte)",
+        ),
+        (
+            ["loop_s:=1e300"],
+            "node 'lidar_top_emulator' (sensorbox/mid360_emulator) at {sim}:27: parameter 'loop_s' = '1e300': "
+            "expected at most 1e+08 s (the longest simulated recording)",
+        ),
+        (
             ["port_base:=70000"],
             "node 'lidar_top_emulator' (sensorbox/mid360_emulator) at {sim}:27: parameter 'port_base' = 70000: "
             "expected 1..65527 (the first of nine UDP ports, each <= 65535)",

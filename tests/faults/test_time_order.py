@@ -22,7 +22,7 @@ from ingest.train.pipeline import ingest
 from ingest.train.settings import IngestConfig
 from sensorbox.live.bagwriter import BagWriter
 from sensorbox.sim.truth import truth_dir
-from tests.faults.bags import INDOOR, LIDAR_TOP, LOWER, rewrite
+from tests.faults.bags import INDOOR, LIDAR_TOP, LOWER, UPPER, rewrite
 
 FAST = {"workers": 1, "every": 3, "height_full": 64}
 IMU = "/livox/imu_192_168_1_12"
@@ -72,6 +72,68 @@ def test_a_camera_whose_stamps_run_backwards_is_refused(tmp_path: Path) -> None:
         ingest([bag], IngestConfig(rig=rig, out=tmp_path / "ds", **FAST))  # type: ignore[arg-type]
 
 
+def _lower_stamps(
+    frame: int, head: bytes, tmp_path: Path, other_image: bool = False
+) -> tuple[list[int], list[int], Path, Path]:
+    """The fixture with the lower camera's `frame` carrying header stamp bytes `head` (and with
+    `other_image`, one bit of its JPEG's entropy data flipped: the static fixture's frames are alike): the
+    lower stamps (ns) and log times before the change, the bag and its rig."""
+    with open_bags([INDOOR]) as bags:
+        msgs = list(bags.messages(topics=[LOWER]))
+    stamps_ns = [s * 1_000_000_000 + n for s, n in (struct.unpack_from("<iI", m.raw, 4) for m in msgs)]
+
+    def change(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        if topic != LOWER or k != frame:
+            return [(topic, raw)]
+        data = bytearray(raw[:4] + head + raw[12:])
+        data[-100] ^= 1 if other_image else 0
+        return [(topic, bytes(data))]
+
+    bag, rig = rewrite(tmp_path / "bag", change)
+    return stamps_ns, [m.log_ns for m in msgs], bag, rig
+
+
+def test_a_camera_frame_stamped_before_the_one_logged_before_it_is_said_and_its_lost_partner_counted(
+    tmp_path: Path,
+) -> None:
+    """One lower frame stamped 1 ms before the frame logged before it: one step back in 20. The run goes
+    on (a message delivered late is taken in stamp order), says so in one line naming the topic and
+    stamps, and counts the upper frame left without a partner."""
+    with open_bags([INDOOR]) as bags:
+        stamps_ns = [
+            s * 1_000_000_000 + n
+            for s, n in (struct.unpack_from("<iI", m.raw, 4) for m in bags.messages([LOWER]))
+        ]
+    early_ns = stamps_ns[9] - 1_000_000
+    stamps_ns, logs, bag, rig = _lower_stamps(
+        10, struct.pack("<iI", *divmod(early_ns, 1_000_000_000)), tmp_path
+    )
+    summary = ingest([bag], IngestConfig(rig=rig, out=tmp_path / "ds", **FAST))  # type: ignore[arg-type]
+    assert summary.warnings == [
+        f"{LOWER}: header stamps step back in 1 of {len(stamps_ns) - 1} steps of the bag's log order (the "
+        f"first: {_at(early_ns)} logged at {_at(logs[10])}, after {_at(stamps_ns[9])}); those messages are "
+        "taken in stamp order (a message delivered late, or a sensor clock that jumped)"
+    ]
+    assert (summary.frames, summary.pairs) == (len(stamps_ns), len(stamps_ns) - 1)
+
+
+def test_a_camera_frame_carrying_an_earlier_frames_stamp_is_left_out_and_said(tmp_path: Path) -> None:
+    """Lower frame 10 carries frame 8's header stamp and another image: not a copy of frame 8, so it is
+    not only counted as a repeated message: one line names the topic and stamp. (The same image under
+    the same stamp is a copy: `tests/faults/test_clocks_and_repeats.py`.)"""
+    with open_bags([INDOOR]) as bags:
+        heads = [bytes(m.raw[4:12]) for m in bags.messages(topics=[LOWER])]
+    stamps_ns, _, bag, rig = _lower_stamps(10, heads[8], tmp_path, other_image=True)
+    summary = ingest([bag], IngestConfig(rig=rig, out=tmp_path / "ds", **FAST))  # type: ignore[arg-type]
+    assert summary.warnings == [
+        f"{LOWER}: 1 message carries the header stamp of an earlier message with other content (the first: "
+        f"{_at(stamps_ns[8])}); left out, as its time is not known (a sensor clock that stalled or stepped "
+        "back)"
+    ]
+    assert summary.duplicates == {LOWER: 1}
+    assert (summary.frames, summary.pairs) == (len(stamps_ns), len(stamps_ns) - 1)
+
+
 def test_an_imu_reading_or_two_delivered_late_are_taken(tmp_path: Path) -> None:
     held: list[bytes] = []
 
@@ -115,3 +177,26 @@ def test_a_lidar_topic_that_also_carries_imu_messages_is_refused(tmp_path: Path)
         "sensor_msgs/msg/Imu; expected a LiDAR type (livox_ros_driver/msg/CustomMsg or "
         "livox_ros_driver2/msg/CustomMsg or sensor_msgs/msg/PointCloud2)"
     )
+
+
+def test_stereo_pairs_exposed_apart_are_said_with_the_largest(tmp_path: Path) -> None:
+    """The lower camera's frame 9 stamped 13 ms late: still its upper frame's partner (within half a
+    period), but the lower image shows another moment than the GT: one line says how many and the most."""
+    with open_bags([INDOOR]) as bags:
+        upper_ns, lower_ns = (
+            [
+                s * 1_000_000_000 + n
+                for s, n in (struct.unpack_from("<iI", m.raw, 4) for m in bags.messages([t]))
+            ]
+            for t in (UPPER + "/compressed", LOWER)
+        )
+    late_ns = lower_ns[9] + 13_000_000
+    most_ms = (late_ns - upper_ns[9]) / 1e6  # 13 ms and the fixture's own sync jitter (+-0.5 ms a camera)
+    _, _, bag, rig = _lower_stamps(9, struct.pack("<iI", *divmod(late_ns, 1_000_000_000)), tmp_path)
+    summary = ingest([bag], IngestConfig(rig=rig, out=tmp_path / "ds", **FAST))  # type: ignore[arg-type]
+    assert summary.warnings == [
+        f"1 of {summary.planned} stereo pairs are exposed more than 2 ms apart (the most: {most_ms:.1f} ms, at "
+        f"upper stamp {_at(upper_ns[9])}): with the rig moving, the lower image shows another moment than the "
+        "disparity GT (hardware-sync the cameras, or leave out the samples by their meta's stereo_dt_ms)"
+    ]
+    assert summary.pairs == summary.frames

@@ -534,3 +534,16 @@ def test_large_messages_are_views_of_their_chunk_with_the_written_bytes(tmp_path
     views = [isinstance(m.raw, memoryview) for m in blobs]
     assert views == [len(raw) >= COPY_BELOW_BYTES for _, raw in written]
     assert [bytes(m.raw) for m in msgs if m.topic == "/int"] == [raw for _, raw in ints]
+
+
+@pytest.mark.parametrize("name", ["empty.mcap", "empty.db3"])
+def test_an_empty_bag_file_is_called_empty(tmp_path, name):
+    """A 0-byte .mcap was called truncated ("rerun with --salvage"), a .db3 "missing tables"; with
+    --salvage an empty .mcap salvages 0 messages, said in its warning line."""
+    path = tmp_path / name
+    path.write_bytes(b"")
+    with pytest.raises(BagError) as err:
+        open_bags(path)
+    assert str(err.value) == (
+        f"{path}: the file is empty (0 bytes): nothing was recorded into it, or it was cut to nothing"
+    )

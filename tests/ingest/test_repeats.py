@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from ingest.train.repeats import FirstCopies
+from ingest.train.repeats import FirstCopies, fingerprint
 
 
 def test_first_copies_pass_and_repeats_are_counted_per_topic():
@@ -21,3 +21,22 @@ def test_keys_are_forgotten_only_far_behind_their_own_topic():
     assert not copies.first("/cam", 19_998, 1_019_998)  # recent: known
     assert copies.first("/cam", 0, 1_000_000)  # 19_998 behind /cam's newest: forgotten, taken as new
     assert copies.repeats == {"/imu": 1, "/cam": 1}
+
+
+def test_a_repeat_with_other_bytes_is_left_out_and_listed_by_its_stamp():
+    copies = FirstCopies()
+    frame = bytes(range(256)) * 40
+    other = frame[:-1] + b"\x00"  # another exposure under the same header stamp
+    assert copies.stamped("/cam", 5, fingerprint(frame))
+    assert not copies.stamped("/cam", 5, fingerprint(frame))  # a copy: counted only
+    assert not copies.stamped("/cam", 5, fingerprint(other))
+    assert not copies.stamped("/cam", 5)  # the passes that compare no bytes
+    assert copies.repeats == {"/cam": 3}
+    assert copies.restamped == {"/cam": [5]}
+
+
+def test_a_fingerprint_tells_apart_what_differs_in_length_or_in_the_last_bytes():
+    a = bytes(10_000)
+    assert fingerprint(a) == fingerprint(memoryview(a))
+    assert fingerprint(a) != fingerprint(a + b"\x00")
+    assert fingerprint(a) != fingerprint(a[:-1] + b"\x01")

@@ -351,6 +351,10 @@ def test_movers_are_where_their_truth_says_at_each_points_own_time(tmp_path: Pat
             {"scale": 0.001},
             r"--scale 0.001 makes camera cam0 2x1 px; expected >= 8 px on each side \(--scale >= 0.007\)$",
         ),
+        (
+            {"scale": 1e-6},  # the focal lengths out of range too: the size is said first
+            r"--scale 1e-06 makes camera cam0 1x1 px; expected >= 8 px on each side \(--scale >= 0.007\)$",
+        ),
         ({"range_noise_m": math.nan}, r"--range-noise must be a finite number >= 0 m, got nan"),
         (
             {"range_noise_m": 1e300},
