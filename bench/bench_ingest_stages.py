@@ -97,6 +97,7 @@ from ingest.dataset.png import LEVELS, encode_png, opencv_silenced
 from ingest.train.pipeline import ingest
 from ingest.train.plan import plan
 from ingest.train.planes import knn_covariances, neighbour_covariances
+from ingest.train.resolved import resolve_run
 from ingest.train.sample import process_sample
 from ingest.train.sample_job import Geometry, SampleJob, SampleParams
 from ingest.train.settings import IngestConfig, resolve_topics
@@ -193,8 +194,9 @@ def load_jobs(bag: Path, rig_path: Path, out: Path) -> Jobs:
     cfg = IngestConfig(rig=rig_path, out=out, workers=1)
     with open_bags([bag]) as bags:
         topics = resolve_topics(rig, bags.topics(), str(bag))
-        the_plan = timed(ms, "plan pass", lambda: plan(bags, topics, cfg))
-        items = timed(ms, "stream_jobs pass", lambda: list(stream_jobs(bags, topics, the_plan, cfg)))
+        run = resolve_run(cfg)
+        the_plan = timed(ms, "plan pass", lambda: plan(bags, topics, run))
+        items = timed(ms, "stream_jobs pass", lambda: list(stream_jobs(bags, topics, the_plan, run)))
     shared = Shared(geometry)
     streamed = [j for j in items if isinstance(j, StreamedJob)]
     jobs = [j.sample_job(shared, *decode_images(j, shared)[0]) for j in streamed]

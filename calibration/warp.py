@@ -298,14 +298,18 @@ def memory_budget_bytes() -> int:
     return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE") // 2
 
 
+HEIGHT_FULL_EXPECTED = (
+    f">= {MIN_HEIGHT_FULL} rows (a pixel of 2.8 degrees; fewer leave no image a network can downsample, "
+    "nor disparity)"
+)
+"""What a full sphere's height must be (`MIN_HEIGHT_FULL`), said in the error line."""
+
+
 def height_full_problem(height_full: int) -> str | None:
     """Why ``height_full`` rows are too few for a dataset (`MIN_HEIGHT_FULL`), in one line; None if not."""
     if height_full >= MIN_HEIGHT_FULL:
         return None
-    return (
-        f"--height-full must be >= {MIN_HEIGHT_FULL} rows (a pixel of 2.8 degrees; fewer leave no image a "
-        f"network can downsample, nor disparity), got {height_full}"
-    )
+    return f"--height-full must be {HEIGHT_FULL_EXPECTED}, got {height_full}"
 
 
 def check_height_full(height_full: int, budget_bytes: int | None = None, given_by: str | None = None) -> int:

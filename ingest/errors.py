@@ -11,6 +11,9 @@ room: scans and benchmark layouts, evaluation, the dataset on disk, PNGs.
 
 from __future__ import annotations
 
+import re
+from collections.abc import Callable
+
 from calibration.errors import SensorboxError, WriteError
 
 
@@ -36,6 +39,36 @@ class EvalError(SensorboxError):
 
 class DatasetError(SensorboxError):
     """The output folder cannot be written (disk full, permissions, a foreign dataset)."""
+
+
+class SettingError(DatasetError):
+    """A setting no run can start with, named as the library knows it.
+
+    `setting` is the `IngestConfig` field as a dotted path
+    (`sample.dense.window_ns`), `value` its value as given, `expected` what
+    a run needs; `expected` may name other settings as `{field}` (e.g.
+    `{lidar_window_ns}`), which `str()` fills with their field names. The
+    CLI names its options instead (`sensorbox.cli.ingest`'s `OPTIONS`):
+    the library does not know which flags set it.
+    """
+
+    def __init__(self, setting: str, value: object, expected: str) -> None:
+        self.setting, self.value, self.expected = setting, value, expected
+        super().__init__(self.line(lambda name: name, shown(value)))
+
+    def line(self, name_of: Callable[[str], str], value: object) -> str:
+        """The one line, each setting named by `name_of(field)` and this one's value shown as `value`."""
+        expected = re.sub(r"\{([\w.]+)\}", lambda m: name_of(m.group(1)), self.expected)
+        return f"{name_of(self.setting)} {value}: expected {expected}"
+
+
+def shown(value: object) -> str:
+    """A setting's value as an error line shows it: text quoted, numbers short (`:g`)."""
+    if isinstance(value, str):
+        return repr(value)
+    if isinstance(value, float):
+        return f"{value:g}"
+    return str(value)
 
 
 class OutputError(DatasetError, WriteError):

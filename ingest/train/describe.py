@@ -31,6 +31,7 @@ from ingest.errors import DatasetError, OutputError
 from ingest.train.sample_job import Geometry
 
 if TYPE_CHECKING:
+    from ingest.train.resolved import ResolvedRun
     from ingest.train.settings import IngestConfig
     from ingest.train.summary import IngestSummary
 
@@ -228,17 +229,18 @@ def check_existing(asked: IngestConfig, geometry: Geometry, bags: list[Path]) ->
 
 
 def write_dataset_yaml(
-    asked: IngestConfig, cfg: IngestConfig, geometry: Geometry, bags: list[Path], run: IngestSummary
+    resolved: ResolvedRun, geometry: Geometry, bags: list[Path], run: IngestSummary
 ) -> int:
     """dataset.yaml with this recording among its sources; the first sample id of this recording.
 
-    `asked` is the configuration as given (it must match the dataset's),
-    `cfg` as resolved for this recording (its GT method and window).
+    `resolved.asked` is the configuration as given (it must match the
+    dataset's); `resolved` has this recording's GT method and window.
     Sample ids are keyed by recording: a recording ingested before keeps its
     id range (a rerun resumes it), a new one is appended after the last.
     """
+    asked = resolved.asked
     doc = _fingerprint(asked, geometry, bags)
-    path = cfg.out / "dataset.yaml"
+    path = asked.out / "dataset.yaml"
     old = check_existing(asked, geometry, bags)
     sources: list[dict[str, Any]] = list(old.get("sources") or [])
     names = [p.name for p in bags]
@@ -249,7 +251,7 @@ def write_dataset_yaml(
             f"{path}: {', '.join(names)} was ingested here before with {mine.get('samples')} planned "
             f"samples, now {run.planned}; choose a new --out or delete it"
         )
-    gt_now = {"method": run.method, "window_ms": cfg.lidar_window_ns / 1e6}
+    gt_now = {"method": run.method, "window_ms": resolved.window_ns / 1e6}
     gt_then = {k: ((mine or {}).get("ground_truth") or {}).get(k, v) for k, v in gt_now.items()}
     if gt_then != gt_now:  # a resumed recording would mix samples of two kinds of GT
         raise DatasetError(
@@ -258,7 +260,7 @@ def write_dataset_yaml(
             f"({run.decision}); choose a new --out or delete it"
         )
     if mine is None:  # after every id in use: dataset.yaml's ranges, and the samples (it may be missing)
-        held = [int(m.stem) for m in (cfg.out / "meta").glob("*.json") if m.stem.isdigit()]
+        held = [int(m.stem) for m in (asked.out / "meta").glob("*.json") if m.stem.isdigit()]
         first = max(
             [*(int(s["first_id"]) + int(s["samples"]) for s in sources), *(i + 1 for i in held)], default=0
         )
@@ -269,7 +271,7 @@ def write_dataset_yaml(
     mine["ground_truth"] = {
         "method": run.method,
         "decision": run.decision,
-        "window_ms": cfg.lidar_window_ns / 1e6,
+        "window_ms": resolved.window_ns / 1e6,
         "trajectory": run.trajectory.as_dict() if run.trajectory else None,
     }
     mine["undecodable_messages"] = dict(run.undecodable)  # per topic, skipped under --max-bad
@@ -283,7 +285,7 @@ def write_dataset_yaml(
         path,
         (HEADER + yaml.safe_dump(doc, sort_keys=False)).encode(),
     )
-    copy_rig(geometry, cfg.out / "rig")
+    copy_rig(geometry, asked.out / "rig")
     return int(mine["first_id"])
 
 

@@ -62,7 +62,7 @@ from ingest.dataset.layout import (
     sample_id,
 )
 from ingest.dataset.lock import hold_folder
-from ingest.errors import DatasetError, MessageDecodeError, OdometryError, OutputError
+from ingest.errors import DatasetError, MessageDecodeError, OdometryError, OutputError, SettingError
 from ingest.runtime.executor import Executor, Handoff, share_cores
 from ingest.runtime.heap import retain_freed_memory
 from ingest.runtime.jit import compiling
@@ -73,7 +73,6 @@ from ingest.train.align_check import (
 )
 from ingest.train.bad_messages import BadMessages
 from ingest.train.block_planes import BlockPlanes, PlaneSettings
-from ingest.train.dense import DenseParams, free_space_settings
 from ingest.train.describe import (
     check_existing,
     check_format,
@@ -85,6 +84,7 @@ from ingest.train.describe import (
 from ingest.train.plan import LOST_REASON, Plan, Survey, plan, survey
 from ingest.train.plausible import check_imu_rate, check_time_order
 from ingest.train.refine import Refinement, refine
+from ingest.train.resolved import ResolvedRun, resolve_run
 from ingest.train.rig_trajectory import RigTrajectory
 from ingest.train.sample_job import Geometry, SampleParams, SampleResult
 from ingest.train.settings import IngestConfig, Topics, resolve_topics
@@ -107,10 +107,10 @@ from ingest.train.trajectory import STATIC_WINDOW_NS, choose_method, run_traject
 
 def _gt_method(
     bags: BagSet, topics: Topics, rig: Rig, cfg: IngestConfig, summary: IngestSummary, bad: BadMessages,
-    trajectory_span_ns: tuple[int, int], progress: Progress | None = None,
-) -> tuple[IngestConfig, RigTrajectory | None]:  # fmt: skip
-    """Run the trajectory pass when --gt dense/auto needs it (`progress`: its sweeps), decide the method,
-    set the window.
+    trajectory_span_ns: tuple[int, int], busy: bool, progress: Progress | None = None,
+) -> tuple[ResolvedRun, RigTrajectory | None]:  # fmt: skip
+    """Run the trajectory pass when --gt dense/auto needs it (`progress`: its sweeps), decide the method:
+    the run as resolved (`resolve_run`; `busy`: every core runs a worker) and the trajectory of a dense run.
 
     Dense GT streams every sweep within its window (`--gt-window-ms`); the
     trajectory goes to `trajectories/<first bag>.tum` in the output and
@@ -137,22 +137,10 @@ def _gt_method(
                 raise OdometryError(why) from err
             failure = str(err)
     method, decision = choose_method(cfg.gt, tsum, failure)
-    dense = cfg.sample.dense
-    default_window = cfg.widen_static and dense.window_ns == DenseParams().window_ns  # not the user's choice
-    if cfg.gt == "auto" and method == "dense" and tsum is not None and tsum.static and default_window:
-        dense = replace(dense, window_ns=STATIC_WINDOW_NS)
-        decision += f"; rig static: window +-{STATIC_WINDOW_NS / 1e6:.0f} ms"
-    summary.method, summary.decision, summary.trajectory = method, decision, tsum
-    fallback = cfg.gt == "auto"  # sparse GT for frames in trajectory gaps; --gt dense skips them
-    sample = replace(
-        cfg.sample,
-        method=method,  # type: ignore[arg-type]
-        decision=decision,
-        dense=dense,
-        gap_fallback=fallback,
-    )
-    window = dense.window_ns if method == "dense" else cfg.lidar_window_ns
-    return replace(cfg, sample=sample, lidar_window_ns=window), traj if method == "dense" else None
+    static = tsum is not None and tsum.static
+    run = resolve_run(cfg, method, decision, static, busy)
+    summary.method, summary.decision, summary.trajectory = method, run.sample.decision, tsum
+    return run, traj if method == "dense" else None
 
 
 @contextmanager
@@ -252,7 +240,6 @@ def ingest(
     given_once(bag_paths)  # before the rig and the output are touched
     check_format(cfg.out)  # another tool's dataset.yaml is never overwritten
     retain_freed_memory()  # chunks and images: ~20 MB per sample pass through this process too
-    cfg = replace(cfg, sample=replace(cfg.sample, window_ns=cfg.lidar_window_ns))
     rig = read_rig(cfg.rig)
     refinement = None
     if (
@@ -273,7 +260,7 @@ def ingest(
     try:
         executor.connect()  # an unreachable Dask scheduler fails here, before the output is touched
     except OSError as err:  # distributed's connect timeout is an OSError
-        raise DatasetError(f"--dask {cfg.dask!r}: cannot reach the scheduler ({err})") from err
+        raise SettingError("dask", cfg.dask, f"a scheduler that answers ({err})") from err
     with ExitStack() as held:  # the output folder, once it exists (`_run`), until dataset.yaml is final
         compile_s = held.enter_context(compiling())  # the passes and the samples: where numba compiles
         try:
@@ -321,8 +308,9 @@ def refine_rig(
             write_rig(replace(candidate, camchain=None), rig_file)
             out = Path(tmp) / "out"
             sample = SampleParams(align_lower=True, alignment_only=True)
-            cfg = IngestConfig(rig=rig_file, out=out, workers=workers, every=every, gt="sparse")
-            cfg = replace(cfg, sample=sample)
+            cfg = IngestConfig(
+                rig=rig_file, out=out, workers=workers, every=every, gt="sparse", sample=sample
+            )
             summary = ingest(bags, cfg, progress=aligning)
             found = [summary.aligned[sid] for sid in sorted(summary.aligned)]
             return from_records([(a.upper, a.lower, a.twist_cam0) for a in found])
@@ -331,17 +319,16 @@ def refine_rig(
 
 
 def _block_planes(
-    rig: Rig, topics: Topics, the_plan: Plan, cfg: IngestConfig, traj: RigTrajectory | None, busy: bool
+    rig: Rig, topics: Topics, the_plan: Plan, run: ResolvedRun, traj: RigTrajectory | None, busy: bool
 ) -> BlockPlanes | None:
     """Dense GT's plane fit and free-space test, once per point in the stream pass
     (`ingest.train.block_planes`); None: sparse."""
-    if cfg.sample.method != "dense" or traj is None:
+    if run.sample.method != "dense" or traj is None:
         return None
-    dense = cfg.sample.dense
+    dense = run.sample.dense
     settings = PlaneSettings(
         {t: rig.lidar(name).T_cam0_lidar for t, name in topics.lidars.items()}, dense.plane_block_ns,
-        dense.plane_neighbours, dense.plane_max_flatness, cfg.sample.min_range_m,
-        free_space_settings(dense) if dense.free_space else None,
+        dense.plane_neighbours, dense.plane_max_flatness, run.sample.min_range_m, run.free_space,
     )  # fmt: skip
     return BlockPlanes(traj, {t: the_plan.spans[t] for t in topics.lidars}, settings, 1 if busy else None)
 
@@ -415,7 +402,6 @@ def _run(
     keeps the output folder locked (`hold_folder`) from before its first write on."""
     with open_bags(bag_paths, salvage=cfg.salvage) as bags:
         topics = resolve_topics(rig, bags.topics(), ", ".join(str(p) for p in bag_paths))
-        asked = cfg
         reach = _dense_reach_ns(cfg)
         read = partial(passes, PASS_READ) if passes else None
         surveyed = _checked_survey(bags, topics, rig, max(cfg.lidar_window_ns, reach), bad, read)
@@ -425,14 +411,13 @@ def _run(
         first, last = surveyed.span_ns
         ready = held.enter_context(_warming_up(geometry, cfg))  # beside the trajectory pass
         odometry = partial(passes, PASS_TRAJECTORY) if passes else None
-        cfg, traj = _gt_method(bags, topics, rig, cfg, summary, bad, (first - reach, last + reach), odometry)
-        the_plan = plan(bags, topics, cfg, bad, surveyed)
+        span = (first - reach, last + reach)
+        busy = executor.every_core_busy
+        run, traj = _gt_method(bags, topics, rig, cfg, summary, bad, span, busy, odometry)
+        the_plan = plan(bags, topics, run, bad, surveyed)
         _count_plan(summary, the_plan, bags, bad)
-        prepare_dirs(cfg.out, cfg.sample.exr)
-        first_id = write_dataset_yaml(asked, cfg, geometry, [Path(p) for p in bag_paths], summary)
-        if executor.every_core_busy:
-            # every core runs a worker: a helper thread per worker would only add thread switches
-            cfg = replace(cfg, sample=replace(cfg.sample, overlap_images=False))
+        prepare_dirs(run.out, run.sample.exr)
+        first_id = write_dataset_yaml(run, geometry, [Path(p) for p in bag_paths], summary)
         done = 0
 
         def tick() -> None:
@@ -441,17 +426,17 @@ def _run(
             if progress:
                 progress(done, summary.planned)
 
-        planes = _block_planes(rig, topics, the_plan, cfg, traj, executor.every_core_busy)
+        planes = _block_planes(rig, topics, the_plan, run, traj, busy)
         sids = [sample_id(first_id + k) for k in range(len(the_plan.upper_ns))]
-        resume = resume_state(cfg.out, sids, planned_stamps(the_plan))
+        resume = resume_state(run.out, sids, planned_stamps(the_plan))
         summary.damaged = list(resume.damaged.values())
         # damaged samples of other ids whose frame this run has: the worker writes it again under their id
         damaged_held = {h.sid: h.problem for held in resume.same_stamps.values() for h in held if h.problem}
-        settings = sample_settings(asked, geometry, [Path(p) for p in bag_paths])  # into every sample's meta
+        settings = sample_settings(cfg, geometry, [Path(p) for p in bag_paths])  # into every sample's meta
 
         def jobs() -> Iterator[StreamedJob]:
             """The jobs to run; resumed and skipped samples are counted here, in stream order."""
-            for item in stream_jobs(bags, topics, the_plan, cfg, first_id, bad, planes, resume, settings):
+            for item in stream_jobs(bags, topics, the_plan, run, first_id, bad, planes, resume, settings):
                 if isinstance(item, StreamedJob):
                     yield item
                     continue
@@ -466,8 +451,8 @@ def _run(
         queued = jobs()
         head = list(islice(queued, 1))
         warm_up_s = ready()  # before the workers fork: they inherit what it built
-        summary.dense_warm_up_s = warm_up_s if cfg.sample.method == "dense" else None
-        bound = handoff_bytes_bound(geometry, head[0], the_plan.rates, cfg.lidar_window_ns) if head else 0
+        summary.dense_warm_up_s = warm_up_s if run.sample.method == "dense" else None
+        bound = handoff_bytes_bound(geometry, head[0], the_plan.rates, run.window_ns) if head else 0
         handoff = Handoff(take_arrays, give_arrays, bound)
         results = executor.run(
             run_streamed, chain(head, queued), shared=Shared(geometry, traj), handoff=handoff

@@ -36,7 +36,8 @@ from ingest.train.sync import (
 )
 
 if TYPE_CHECKING:
-    from ingest.train.settings import IngestConfig, Topics
+    from ingest.train.resolved import ResolvedRun
+    from ingest.train.settings import Topics
 
 
 @dataclass(frozen=True)
@@ -107,15 +108,15 @@ def _seen(
     return {t: np.array(v, np.int64).reshape(-1, 3) for t, v in seen.items()}, rates, copies
 
 
-def _untouched(bags: BagSet, topics: Topics, seen: dict[str, I64], tc_ns: I64, cfg: IngestConfig) -> Any:
+def _untouched(bags: BagSet, topics: Topics, seen: dict[str, I64], tc_ns: I64, run: ResolvedRun) -> Any:
     """Mask of samples whose LiDAR and (when motion uses it) IMU windows overlap no message lost
     in a corrupt chunk."""
     chunks = bags.lost_chunks
     if not chunks:
         return np.ones(len(tc_ns), bool)
-    w = cfg.lidar_window_ns
+    w = run.window_ns
     margins = {t: w for t in topics.lidars}
-    if topics.imu and cfg.sample.motion != "off":
+    if topics.imu and run.sample.motion != "off":
         margins[topics.imu] = w + IMU_MARGIN_NS
     intervals = {t: lost_intervals(chunks, t, *seen[t].T) for t in margins}
     return untouched(tc_ns, intervals, margins)
@@ -264,22 +265,22 @@ def imu_gaps(stamps_ns: I64) -> I64:
 
 
 def plan(
-    bags: BagSet, topics: Topics, cfg: IngestConfig, bad: BadMessages | None = None,
+    bags: BagSet, topics: Topics, run: ResolvedRun, bad: BadMessages | None = None,
     surveyed: Survey | None = None,
 ) -> Plan:  # fmt: skip
     """Pairs and samples on header stamps, from the first pass (`survey`; run here when not given)."""
-    sv = surveyed or survey(bags, topics, cfg.lidar_window_ns, bad)
+    sv = surveyed or survey(bags, topics, run.window_ns, bad)
     spans = {t: [(int(a), int(b)) for _, a, b in sv.seen[t]] for t in topics.lidars}
     up, lo = sv.upper_ns, sv.lower_ns
     # pairs and windows on exposure times (the rig's camera clock offsets applied), frames kept by stamp
     up_t, lo_t = up + topics.upper_shift_ns, lo + topics.lower_shift_ns
-    tol = cfg.stereo_tolerance_ns or pair_tolerance_ns(median_period_ns(up))
+    tol = run.stereo_tolerance_ns or pair_tolerance_ns(median_period_ns(up))
     pairs = pair_stereo(up_t, lo_t, tol)
     all_spans = [s for v in spans.values() for s in v]
-    chosen = select_samples(up_t[pairs.upper], all_spans, cfg.lidar_window_ns, cfg.every)
-    uncovered = int((~lidar_covered(up_t[pairs.upper], all_spans, cfg.lidar_window_ns)).sum())
+    chosen = select_samples(up_t[pairs.upper], all_spans, run.window_ns, run.every)
+    uncovered = int((~lidar_covered(up_t[pairs.upper], all_spans, run.window_ns)).sum())
     upper, lower = up[pairs.upper][chosen], lo[pairs.lower][chosen]
-    keep = _untouched(bags, topics, sv.seen, upper + topics.upper_shift_ns, cfg)
+    keep = _untouched(bags, topics, sv.seen, upper + topics.upper_shift_ns, run)
     lost = int(len(keep) - keep.sum())
     return Plan(
         upper[keep],

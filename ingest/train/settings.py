@@ -10,8 +10,8 @@ from typing import Any
 
 from calibration.errors import CalibrationError
 from calibration.rig import Camera, Rig
-from calibration.warp import height_full_problem
-from ingest.errors import BagError, DatasetError
+from calibration.warp import HEIGHT_FULL_EXPECTED, MIN_HEIGHT_FULL
+from ingest.errors import BagError, SettingError
 from ingest.raster.params import backend_problem
 from ingest.topic_map import check_rig
 from ingest.train.sample_job import SampleParams
@@ -42,50 +42,47 @@ class IngestConfig:
     )
 
     def validate(self) -> None:
-        """Values a run cannot start with, named as the CLI options that set them."""
-        if self.gt not in ("sparse", "dense", "auto"):
-            raise DatasetError(f"--gt {self.gt!r}: expected sparse, dense or auto")
-        if not self.sample.dense.window_ns > 0:
-            raise DatasetError(f"--gt-window-ms must be > 0, got {self.sample.dense.window_ns / 1e6:g}")
-        if self.sample.motion not in ("full", "rotation", "off"):
-            raise DatasetError(f"--motion {self.sample.motion!r}: expected full, rotation or off")
-        if self.gt == "dense" and self.sample.motion != "full":
-            raise DatasetError(
-                f"--motion {self.sample.motion} does not apply to --gt dense, which places every point with "
-                "the trajectory; it chooses the motion model of sparse GT (--gt sparse or auto)"
-            )
-        backend = self.sample.dense.render.backend
+        """Values a run cannot start with: a `SettingError` naming the field (`sensorbox ingest` names
+        its option instead)."""
+        sample, dense = self.sample, self.sample.dense
+        checks: list[tuple[bool, str, object, str]] = [
+            (self.gt in ("sparse", "dense", "auto"), "gt", self.gt, "sparse, dense or auto"),
+            (dense.window_ns > 0, "sample.dense.window_ns", dense.window_ns, "> 0"),
+            (sample.motion in ("full", "rotation", "off"), "sample.motion", sample.motion,
+             "full, rotation or off"),
+            (self.gt != "dense" or sample.motion == "full", "sample.motion", sample.motion,
+             "full with {gt} 'dense', which places every point with the trajectory ({sample.motion} "
+             "chooses the motion model of sparse GT: {gt} sparse or auto)"),
+            (self.max_bad >= 0, "max_bad", self.max_bad, ">= 0"),
+            (self.workers >= 1, "workers", self.workers, ">= 1"),
+            (self.every >= 1, "every", self.every, ">= 1"),
+            (0 <= sample.png_level <= 3, "sample.png_level", sample.png_level, "0..3"),
+            (self.lidar_window_ns > 0, "lidar_window_ns", self.lidar_window_ns, "> 0"),
+            (self.gt != "auto" or dense.window_ns >= self.lidar_window_ns, "sample.dense.window_ns",
+             dense.window_ns, "at least {lidar_window_ns} with {gt} 'auto': the sparse GT it gives frames "
+             "in trajectory gaps reads {lidar_window_ns} of points from the dense window"),
+            (math.isfinite(sample.min_range_m) and sample.min_range_m >= 0, "sample.min_range_m",
+             sample.min_range_m, ">= 0 m"),
+        ]  # fmt: skip
+        for ok, setting, value, expected in checks:
+            if not ok:
+                raise SettingError(setting, value, expected)
+        if self.height_full is not None and self.height_full < MIN_HEIGHT_FULL:
+            raise SettingError("height_full", self.height_full, HEIGHT_FULL_EXPECTED)
+        backend = dense.render.backend
         if (problem := backend_problem(backend)) is not None:
-            raise DatasetError(f"--backend {backend!r}: {problem}")
-        if self.max_bad < 0:
-            raise DatasetError(f"--max-bad must be >= 0, got {self.max_bad}")
-        if self.workers < 1:
-            raise DatasetError(f"--workers must be >= 1, got {self.workers}")
-        if self.every < 1:
-            raise DatasetError(f"--every must be >= 1, got {self.every}")
-        if self.height_full is not None and (problem := height_full_problem(self.height_full)) is not None:
-            raise DatasetError(problem)
-        if not 0 <= self.sample.png_level <= 3:
-            raise DatasetError(f"--png-level must be 0..3, got {self.sample.png_level}")
+            known = problem.startswith("expected ")  # an unknown name; else a known one this machine lacks
+            wanted = (
+                problem.removeprefix("expected ") if known else f"a renderer this machine runs ({problem})"
+            )
+            raise SettingError("sample.dense.render.backend", backend, wanted)
         if self.dask:
             from distributed.comm.addressing import get_address_host_port
 
             try:
                 get_address_host_port(self.dask)
             except ValueError as err:
-                raise DatasetError(
-                    f"--dask {self.dask!r}: expected a scheduler address tcp://HOST:PORT ({err})"
-                ) from err
-        if not self.lidar_window_ns > 0:
-            raise DatasetError(f"--window-ms must be > 0, got {self.lidar_window_ns / 1e6:g}")
-        if self.gt == "auto" and self.sample.dense.window_ns < self.lidar_window_ns:
-            raise DatasetError(
-                f"--gt auto: --gt-window-ms {self.sample.dense.window_ns / 1e6:g} is narrower than "
-                f"--window-ms {self.lidar_window_ns / 1e6:g}; the sparse GT it gives frames in trajectory "
-                "gaps reads --window-ms of points from the dense window"
-            )
-        if not (math.isfinite(self.sample.min_range_m) and self.sample.min_range_m >= 0):
-            raise DatasetError(f"--min-range must be >= 0 m, got {self.sample.min_range_m:g}")
+                raise SettingError("dask", self.dask, f"a scheduler address tcp://HOST:PORT ({err})") from err
 
 
 @dataclass(frozen=True)

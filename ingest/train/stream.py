@@ -52,7 +52,8 @@ from ingest.train.sample_job import Geometry, ImuWindow, LidarPoints, SampleJob,
 from ingest.train.sync import IMU_MARGIN_NS
 
 if TYPE_CHECKING:
-    from ingest.train.settings import IngestConfig, Topics
+    from ingest.train.resolved import ResolvedRun
+    from ingest.train.settings import Topics
 
 UNDECODABLE_IMAGE = "undecodable image (--max-bad)"
 """Why a sample was skipped when one of its camera images could not be decoded."""
@@ -355,7 +356,7 @@ StreamEvent = StreamedJob | AlreadyDone | NotRun
 
 
 def stream_jobs(
-    bags: BagSet, topics: Topics, the_plan: Plan, cfg: IngestConfig, first_id: int = 0,
+    bags: BagSet, topics: Topics, the_plan: Plan, run: ResolvedRun, first_id: int = 0,
     bad: BadMessages | None = None, planes: BlockPlanes | None = None, resume: Resume | None = None,
     settings: dict[str, Any] | None = None,
 ) -> Iterator[StreamEvent]:  # fmt: skip
@@ -370,8 +371,8 @@ def stream_jobs(
     """
     sids = [sample_id(first_id + k) for k in range(len(the_plan.upper_ns))]
     if resume is None:
-        resume = resume_state(cfg.out, sids, planned_stamps(the_plan))
-    stream = _Stream(bags, topics, the_plan, cfg, sids, bad or BadMessages(), planes, resume, settings or {})
+        resume = resume_state(run.out, sids, planned_stamps(the_plan))
+    stream = _Stream(bags, topics, the_plan, run, sids, bad or BadMessages(), planes, resume, settings or {})
     wanted = [topics.upper, topics.lower, *topics.lidars, *([topics.imu] if topics.imu else [])]
     for msg in bags.messages(topics=wanted, defer=(topics.upper, topics.lower)):
         stream.take(msg)
@@ -384,12 +385,12 @@ class _Stream:
     sample to release (`stream_jobs`)."""
 
     def __init__(
-        self, bags: BagSet, topics: Topics, the_plan: Plan, cfg: IngestConfig, sids: list[str],
+        self, bags: BagSet, topics: Topics, the_plan: Plan, run: ResolvedRun, sids: list[str],
         bad: BadMessages, planes: BlockPlanes | None, resume: Resume, settings: dict[str, Any],
     ) -> None:  # fmt: skip
-        self.bags, self.topics, self.plan, self.cfg, self.sids = bags, topics, the_plan, cfg, sids
+        self.bags, self.topics, self.plan, self.run, self.sids = bags, topics, the_plan, run, sids
         self.bad, self.planes, self.resume, self.settings = bad, planes, resume, settings
-        self.w = cfg.lidar_window_ns
+        self.w = run.window_ns
         self.index = {int(t): k for k, t in enumerate(the_plan.upper_ns)}
         self.lower_index = {int(t): k for k, t in enumerate(the_plan.lower_ns)}
         self.frames: dict[int, dict[str, RawMessage]] = {}  # as stored: the workers decode them
@@ -475,22 +476,22 @@ class _Stream:
         _forget_readings(self.imu_t, self.imu_g, horizon - IMU_MARGIN_NS)
 
     def _job(self, k: int) -> StreamedJob:
-        the_plan, topics, cfg, w = self.plan, self.topics, self.cfg, self.w
+        the_plan, topics, run, w = self.plan, self.topics, self.run, self.w
         tc = int(the_plan.upper_exposure_ns[k])
         lidars = tuple(
             lidar_window(self.sweeps[t], name, tc, w, self.planes) for t, name in topics.lidars.items()
         )
         thin = _thin_lidars(the_plan.rates, topics, lidars, tc, w)
         thin_sparse: tuple[str, ...] = ()
-        if cfg.sample.gap_fallback:
-            ws = cfg.sample.window_ns
+        if run.sample.gap_fallback:
+            ws = run.sample.window_ns
             narrow = tuple(lp.within(tc - ws, tc + ws) for lp in lidars)
             thin_sparse = _thin_lidars(the_plan.rates, topics, narrow, tc, ws)
         imu = _imu_window(self.imu_t, self.imu_g, tc, w, topics.R_cam0_imu)
         f = self.frames.pop(k)
         sid = self.sids[k]
         return StreamedJob(
-            cfg.out, sid, self.source, self.bags.label, int(the_plan.upper_ns[k]), int(the_plan.lower_ns[k]),
-            f["upper"], f["lower"], lidars, imu, cfg.sample, thin, thin_sparse, the_plan.upper_shift_ns,
+            run.out, sid, self.source, self.bags.label, int(the_plan.upper_ns[k]), int(the_plan.lower_ns[k]),
+            f["upper"], f["lower"], lidars, imu, run.sample, thin, thin_sparse, the_plan.upper_shift_ns,
             the_plan.lower_shift_ns, self.resume.same_stamps.get(sid, ()), dict(self.settings),
         )  # fmt: skip

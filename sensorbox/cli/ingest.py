@@ -26,6 +26,7 @@ from sensorbox.cli.common import (
 )
 
 if TYPE_CHECKING:
+    from ingest.errors import SettingError
     from ingest.train.summary import IngestSummary
 
 BagsArg = Annotated[
@@ -178,6 +179,35 @@ def _pass_rows(s: IngestSummary) -> Rows:
     return rows
 
 
+OPTIONS: dict[str, tuple[str, float | None]] = {
+    "gt": ("--gt", None),
+    "lidar_window_ns": ("--window-ms", 1e-6),
+    "sample.dense.window_ns": ("--gt-window-ms", 1e-6),
+    "sample.motion": ("--motion", None),
+    "sample.png_level": ("--png-level", None),
+    "sample.min_range_m": ("--min-range", None),
+    "sample.dense.render.backend": ("--backend", None),
+    "max_bad": ("--max-bad", None),
+    "workers": ("--workers", None),
+    "every": ("--every", None),
+    "height_full": ("--height-full", None),
+    "dask": ("--dask", None),
+}
+"""The option that sets each `IngestConfig` setting (a dotted field) and the factor from the field's unit
+to the option's (ns -> ms), so that an error names what the user typed."""
+
+
+def option_line(err: SettingError) -> str:
+    """`err`'s line with every setting named by its option and the value in the option's unit."""
+    from ingest.errors import shown
+
+    _, factor = OPTIONS.get(err.setting, (err.setting, None))
+    value = err.value
+    if factor is not None and isinstance(value, int | float):
+        value = value * factor
+    return err.line(lambda field: OPTIONS.get(field, (field, None))[0], shown(value))
+
+
 def _sample_rows(s: IngestSummary) -> Rows:
     """Medians over the written samples: GT density, LiDAR skew, stereo offset, motion, time per stage."""
     import numpy as np
@@ -241,7 +271,7 @@ def ingest_cmd(
     refine: RefineOpt = False,
 ) -> None:  # fmt: skip
     """Turn recorded bags into the WideDepth training set (rectified equirect pairs + depth/disparity GT)."""
-    from ingest.errors import DatasetError
+    from ingest.errors import DatasetError, SettingError
     from ingest.train.dense import DenseParams
     from ingest.train.pipeline import PASS_READ, PASS_REFINE, PASS_TRAJECTORY, ingest
     from ingest.train.sample_job import SampleParams
@@ -268,15 +298,17 @@ def ingest_cmd(
         height_full=height_full, salvage=salvage, dask=dask, gt=gt, max_bad=max_bad, sample=sample,
         widen_static=gt_window_ms is None, refine=refine,
     )  # fmt: skip
-    cfg.validate()  # before the progress bar: a bad value is one line
     units = {PASS_REFINE: "messages", PASS_READ: "messages", PASS_TRAJECTORY: "LiDAR sweeps"}
     try:
+        cfg.validate()  # before the progress bar: a bad value is one line
         with progress_bar("ingesting", "samples") as update:
             summary = ingest(
                 bags, cfg, warn=print_warning,
                 progress=lambda done, total: update(done, total, "ingesting", "samples"),
                 passes=lambda what, done, total: update(done, total, f"ingesting: {what}", units[what]),
             )  # fmt: skip
+    except SettingError as err:  # named as the library knows it: name the option instead
+        raise DatasetError(option_line(err)) from None
     except KeyboardInterrupt:  # Ctrl-C: every file written is whole (written atomically), a rerun resumes
         held = len(list((out / "meta").glob("*.json"))) if (out / "meta").is_dir() else 0
         samples = f"{held} sample{'' if held == 1 else 's'}"

@@ -470,8 +470,8 @@ def test_a_depth_map_of_another_size_than_its_image_or_dataset_is_refused(
     [
         (
             ["ingest", str(INDOOR), "--rig", str(RIG), "--height-full", "7"],
-            "--height-full must be >= 64 rows (a pixel of 2.8 degrees; fewer leave no image a network can "
-            "downsample, nor disparity), got 7",
+            "--height-full 7: expected >= 64 rows (a pixel of 2.8 degrees; fewer leave no image a network can "
+            "downsample, nor disparity)",
         ),
         (
             ["render-benchmark", "scan.ply", "--rig", str(RIG), "--height-full", "7"],

@@ -19,6 +19,7 @@ from ingest.dataset.layout import prepare_dirs
 from ingest.runtime.background import Background
 from ingest.train import sample
 from ingest.train.plan import plan
+from ingest.train.resolved import resolve_run
 from ingest.train.sample import process_sample, start_equirects
 from ingest.train.sample_job import Geometry, SampleJob
 from ingest.train.settings import IngestConfig, resolve_topics
@@ -63,11 +64,11 @@ def test_an_error_in_the_helper_is_raised_by_result_not_by_wait():
 
 def _jobs(tmp_path: Path, n: int) -> list[SampleJob]:
     cfg = IngestConfig(rig=_rig(INDOOR), out=tmp_path / "ds", workers=1, every=10)
-    cfg = replace(cfg, sample=replace(cfg.sample, window_ns=cfg.lidar_window_ns))
+    run = resolve_run(cfg)
     geometry = Geometry.from_rig(read_rig(cfg.rig), cfg.height_full)
     with open_bags([INDOOR]) as bags:
         topics = resolve_topics(geometry.rig, bags.topics(), str(INDOOR))
-        jobs = [j for j in stream_jobs(bags, topics, plan(bags, topics, cfg), cfg)]
+        jobs = [j for j in stream_jobs(bags, topics, plan(bags, topics, run), run)]
     shared = Shared(geometry)
     out = [j.sample_job(shared, *decode_images(j, shared)[0]) for j in jobs if isinstance(j, StreamedJob)][:n]
     assert len(out) == n

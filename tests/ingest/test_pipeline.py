@@ -20,7 +20,8 @@ from ingest.bags.reader import open_bags
 from ingest.dataset.identity import bag_identity
 from ingest.dataset.layout import DEPTH_SCALE, DISP_SCALE, read_png_u16
 from ingest.dataset.meta import read_meta
-from ingest.errors import BagError, DatasetError, MessageDecodeError
+from ingest.errors import BagError, DatasetError, MessageDecodeError, SettingError
+from ingest.train.dense import DenseParams
 from ingest.train.pipeline import ingest
 from ingest.train.sample_job import SampleParams
 from ingest.train.settings import IngestConfig
@@ -235,18 +236,29 @@ def test_a_recording_is_known_by_its_content_and_a_dataset_by_its_rig(tmp_path: 
 @pytest.mark.parametrize(
     ("change", "message"),
     [
-        ({"workers": 0}, r"--workers must be >= 1, got 0"),
-        ({"every": 0}, r"--every must be >= 1, got 0"),
-        ({"lidar_window_ns": 0}, r"--window-ms must be > 0, got 0"),
-        ({"lidar_window_ns": -5_000_000}, r"--window-ms must be > 0, got -5"),
-        ({"dask": "notanaddress"}, r"--dask 'notanaddress': expected a scheduler address tcp://HOST:PORT"),
-        ({"sample": SampleParams(png_level=9)}, r"--png-level must be 0..3, got 9"),
-        ({"sample": SampleParams(min_range_m=-1.0)}, r"--min-range must be >= 0 m, got -1"),
+        ({"workers": 0}, r"^workers 0: expected >= 1$"),
+        ({"every": 0}, r"^every 0: expected >= 1$"),
+        ({"lidar_window_ns": 0}, r"^lidar_window_ns 0: expected > 0$"),
+        ({"lidar_window_ns": -5_000_000}, r"^lidar_window_ns -5000000: expected > 0$"),
+        ({"dask": "notanaddress"}, r"^dask 'notanaddress': expected a scheduler address tcp://HOST:PORT"),
+        ({"sample": SampleParams(png_level=9)}, r"^sample\.png_level 9: expected 0\.\.3$"),
+        ({"sample": SampleParams(min_range_m=-1.0)}, r"^sample\.min_range_m -1: expected >= 0 m$"),
+        (
+            {
+                "gt": "auto",
+                "lidar_window_ns": 80_000_000,
+                "sample": SampleParams(dense=DenseParams(window_ns=40_000_000)),
+            },
+            r"^sample\.dense\.window_ns 40000000: expected at least lidar_window_ns with gt 'auto': the sparse GT "
+            r"it gives frames in trajectory gaps reads lidar_window_ns of points from the dense window$",
+        ),
     ],
 )
-def test_a_bad_option_is_one_line_naming_it(tmp_path: Path, change: dict[str, object], message: str) -> None:
+def test_a_bad_setting_is_one_line_naming_it(tmp_path: Path, change: dict[str, object], message: str) -> None:
+    """The library names its settings (the fields of `IngestConfig`); `sensorbox ingest` names its
+    options instead (`tests/sensorbox/test_cli.py`)."""
     cfg = IngestConfig(rig=_rig(INDOOR), out=tmp_path / "ds", **change)  # type: ignore[arg-type]
-    with pytest.raises(DatasetError, match=message):
+    with pytest.raises(SettingError, match=message):
         ingest([INDOOR], cfg)
     assert not (tmp_path / "ds").exists()
 
@@ -293,7 +305,7 @@ def test_an_unreachable_dask_scheduler_fails_before_anything_is_written(tmp_path
     with (
         dask.config.set({"distributed.comm.timeouts.connect": "1s"}),
         pytest.raises(
-            DatasetError, match=rf"^--dask 'tcp://127\.0\.0\.1:{port}': cannot reach the scheduler \("
+            SettingError, match=rf"^dask 'tcp://127\.0\.0\.1:{port}': expected a scheduler that answers \("
         ),
     ):
         ingest([INDOOR], IngestConfig(rig=_rig(INDOOR), out=out, dask=f"tcp://127.0.0.1:{port}"))

@@ -16,6 +16,7 @@ from ingest.bags.reader import open_bags
 from ingest.runtime.transport import ArraySlots, slot_views
 from ingest.train.block_planes import BlockPlanes, FreeSpaceSettings, PlaneSettings, world_normals
 from ingest.train.plan import Plan, plan
+from ingest.train.resolved import resolve_run
 from ingest.train.rig_trajectory import RigTrajectory
 from ingest.train.sample_job import Geometry
 from ingest.train.settings import IngestConfig, Topics, resolve_topics
@@ -36,7 +37,7 @@ from tests.ingest.test_pipeline import INDOOR, _rig
 
 def test_jobs_carry_the_stored_bytes_and_the_worker_decodes_them(tmp_path: Path) -> None:
     cfg = IngestConfig(rig=_rig(INDOOR), out=tmp_path / "ds", workers=1, every=10)
-    cfg = replace(cfg, sample=replace(cfg.sample, window_ns=cfg.lidar_window_ns))
+    run = resolve_run(cfg)
     geometry = Geometry.from_rig(read_rig(cfg.rig), 64)
     with open_bags([INDOOR]) as bags:
         topics = resolve_topics(geometry.rig, bags.topics(), str(INDOOR))
@@ -44,7 +45,7 @@ def test_jobs_carry_the_stored_bytes_and_the_worker_decodes_them(tmp_path: Path)
             (m.topic, m.stamp(bags.label)): m.raw for m in bags.messages(topics=[topics.upper, topics.lower])
         }
         jobs = [
-            j for j in stream_jobs(bags, topics, plan(bags, topics, cfg), cfg) if isinstance(j, StreamedJob)
+            j for j in stream_jobs(bags, topics, plan(bags, topics, run), run) if isinstance(j, StreamedJob)
         ]
     assert len(jobs) == 3
     for job in jobs:
@@ -77,7 +78,7 @@ def test_every_job_holds_the_gyro_readings_its_points_need(tmp_path: Path) -> No
     points the gyro does not cover. On the indoor fixture 7 of 21 jobs were handed out short of the
     margin (their points still covered); an IMU logged later than the sweeps would lose points."""
     cfg = IngestConfig(rig=_rig(INDOOR), out=tmp_path / "ds", workers=1, every=1)
-    cfg = replace(cfg, sample=replace(cfg.sample, window_ns=cfg.lidar_window_ns))
+    run = resolve_run(cfg)
     rig = read_rig(cfg.rig)
     with open_bags([INDOOR]) as bags:
         topics = resolve_topics(rig, bags.topics(), str(INDOOR))
@@ -85,7 +86,7 @@ def test_every_job_holds_the_gyro_readings_its_points_need(tmp_path: Path) -> No
         imu_stamps = [m.stamp(bags.label) for m in bags.messages(topics=[topics.imu])]
         imu_first, imu_last = min(imu_stamps), max(imu_stamps)
         jobs = [
-            j for j in stream_jobs(bags, topics, plan(bags, topics, cfg), cfg) if isinstance(j, StreamedJob)
+            j for j in stream_jobs(bags, topics, plan(bags, topics, run), run) if isinstance(j, StreamedJob)
         ]
     assert len(jobs) == 21
     for job in jobs:
@@ -138,8 +139,10 @@ def _dense_jobs(
 ) -> Streamed:
     """The indoor fixture's dense jobs, streamed with block planes on a still trajectory."""
     cfg = IngestConfig(rig=_rig(INDOOR), out=tmp_path / "ds", workers=1, every=every)
-    cfg = replace(cfg, lidar_window_ns=window_ns)
-    cfg = replace(cfg, sample=replace(cfg.sample, window_ns=cfg.lidar_window_ns, method="dense"))
+    dense = replace(cfg.sample.dense, window_ns=window_ns)
+    run = resolve_run(
+        replace(cfg, lidar_window_ns=window_ns, sample=replace(cfg.sample, dense=dense)), "dense"
+    )
     rig = read_rig(cfg.rig)
     with open_bags([INDOOR]) as bags:
         topics = resolve_topics(rig, bags.topics(), str(INDOOR))
@@ -154,11 +157,11 @@ def _dense_jobs(
                               np.zeros(len(knots)))  # fmt: skip
         T = {t: rig.lidar(name).T_cam0_lidar for t, name in topics.lidars.items()}
         settings = PlaneSettings(T, block_ns, 10, 0.02, cfg.sample.min_range_m, free)
-        the_plan = plan(bags, topics, cfg)
+        the_plan = plan(bags, topics, run)
         spans = {t: the_plan.spans[t] for t in topics.lidars}
         planes = BlockPlanes(still, spans, settings)
         jobs = [
-            j for j in stream_jobs(bags, topics, the_plan, cfg, planes=planes) if isinstance(j, StreamedJob)
+            j for j in stream_jobs(bags, topics, the_plan, run, planes=planes) if isinstance(j, StreamedJob)
         ]
     whole = BlockPlanes(still, spans, settings)
     whole.complete(sweeps, int(t_all.min()), int(t_all.max()), final=True)
