@@ -39,20 +39,6 @@ def edge_band(
     return out
 
 
-def edge_steps_numpy(gt: np.ndarray[Any, Any], step_abs: float = 0.05, step_rel: float = 0.03) -> Bool:
-    """`edge_band`'s discontinuities (H, W) in numpy: the reference of the compiled pass."""
-    ok = valid_gt(gt)
-    kernel = np.ones((3, 3), np.uint8)
-    g = np.where(ok, gt, np.float32(0.0)).astype(np.float32, copy=False)
-    hi = cv2.dilate(g, kernel)  # largest valid value around (0: none)
-    np.copyto(g, np.float32(np.inf), where=~ok)
-    lo = cv2.erode(g, kernel)  # smallest valid value around (inf: none, so hi - lo = -inf: no step)
-    threshold = lo * np.float32(step_rel)
-    np.maximum(threshold, np.float32(step_abs), out=threshold)
-    out: Bool = hi - lo > threshold
-    return out
-
-
 @njit(cache=True, nogil=True)
 def _steps(g, ok, step_abs, step_rel, rows_hi_lo, step):  # type: ignore[no-untyped-def]  # pragma: no cover
     """step[r, c] = 1 where the valid values of the 3x3 around (r, c) span more than max(abs, rel * min).

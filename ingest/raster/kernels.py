@@ -2,12 +2,11 @@
 
 The z-buffer writes every point's key into its own pixel and into each pixel
 of its footprint ellipse, keeping the minimum: one pass over the points,
-whose cost is the sum of the footprints. The numpy alternative
-(`ingest.raster.visibility.zbuffer_erode`) has to erode a full-image buffer
-once per footprint class instead, which costs the image size times the number
-of classes whatever the number of points, and dominated the dense GT render.
-The footprints are cv2's own elliptic structuring elements, so both give the
-same keys bit for bit.
+whose cost is the sum of the footprints. A numpy z-buffer (the tests'
+oracle, `tests/ingest/oracles.py`) has to erode a full-image buffer once per
+footprint class instead, which costs the image size times the number of
+classes whatever the number of points. The footprints are cv2's own elliptic
+structuring elements, so both give the same keys bit for bit.
 
 Kernels are compiled on first use and cached on disk (`cache=True`).
 """
@@ -125,14 +124,8 @@ def snap_planar(
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _resample(range_src, rays_src, pixels, start, order, rays_dst, min_cos, tol_m, tol_rel, max_change, out):  # type: ignore[no-untyped-def]  # pragma: no cover
-    """`planar_resample` per source pixel: its 3x3 points in a frame along its ray, their plane, its rays.
-
-    The frame (u, v across the ray e, e along it) has its origin at the
-    pixel's point: a neighbour at range r_k along ray d_k sits at
-    (u . d_k r_k, v . d_k r_k, e . d_k r_k - r_0), so the plane's fit and its
-    flatness test need no second pass over world coordinates.
-    """
-    H, W = range_src.shape
+    """`planar_resample` per source pixel: the plane of its 3x3 points (`_pixel_plane`), met by its rays."""
+    W = range_src.shape[1]
     inv_w = 1.0 / W
     xs, ys, ws = np.empty(9), np.empty(9), np.empty(9)
     for i in range(pixels.shape[0]):
@@ -144,65 +137,9 @@ def _resample(range_src, rays_src, pixels, start, order, rays_dst, min_cos, tol_
         rng0 = float(range_src[r, c])
         if not rng0 > 0.0:
             continue
-        ex, ey, ez = float(rays_src[r, c, 0]), float(rays_src[r, c, 1]), float(rays_src[r, c, 2])
-        if abs(ex) < 0.9:  # u = e x (1, 0, 0), normalised
-            ux, uy, uz = 0.0, ez, -ey
-        else:  # e x (0, 1, 0)
-            ux, uy, uz = -ez, 0.0, ex
-        un = np.sqrt(ux * ux + uy * uy + uz * uz)
-        ux, uy, uz = ux / un, uy / un, uz / un
-        vx, vy, vz = ey * uz - ez * uy, ez * ux - ex * uz, ex * uy - ey * ux
-        n_pts = 0
-        sx = sy = sw = 0.0
-        for rr in range(max(r - 1, 0), min(r + 2, H)):
-            for cc in range(max(c - 1, 0), min(c + 2, W)):
-                rk = float(range_src[rr, cc])
-                if not rk > 0.0:
-                    continue
-                dx, dy, dz = rays_src[rr, cc, 0] * rk, rays_src[rr, cc, 1] * rk, rays_src[rr, cc, 2] * rk
-                xs[n_pts] = x = ux * dx + uy * dy + uz * dz
-                ys[n_pts] = y = vx * dx + vy * dy + vz * dz
-                ws[n_pts] = w = ex * dx + ey * dy + ez * dz - rng0
-                sx += x
-                sy += y
-                sw += w
-                n_pts += 1
-        if n_pts < 4:  # three points always lie on a plane: at least one must check it
-            continue
-        mx, my, mw = sx / n_pts, sy / n_pts, sw / n_pts
-        # the least-squares plane w = w0 + b x + c y: range noise lies along the rays, as w does
-        sxx = sxy = syy = sxw = syw = 0.0
-        for k in range(n_pts):
-            x, y, w = xs[k] - mx, ys[k] - my, ws[k] - mw
-            xs[k], ys[k], ws[k] = x, y, w
-            sxx += x * x
-            sxy += x * y
-            syy += y * y
-            sxw += x * w
-            syw += y * w
-        det = sxx * syy - sxy * sxy
-        if not det > 1e-12 * (sxx + syy) * (sxx + syy):  # the points lie on a line: no plane
-            continue
-        b = (syy * sxw - sxy * syw) / det
-        c2 = (sxx * syw - sxy * sxw) / det
-        norm = np.sqrt(1.0 + b * b + c2 * c2)  # |e - b u - c v|: the plane's normal before normalising
-        # every point within the tolerance of the plane (measured along its normal, hence the norm)
-        lim = (tol_m + tol_rel * rng0) * norm
-        flat = True
-        for k in range(n_pts):
-            if abs(ws[k] - b * xs[k] - c2 * ys[k]) > lim:
-                flat = False
-                break
+        flat, nx, ny, nz, d0 = _pixel_plane(range_src, rays_src, r, c, tol_m + tol_rel * rng0, xs, ys, ws)
         if not flat:
             continue
-        nx, ny, nz = (
-            (ex - b * ux - c2 * vx) / norm,
-            (ey - b * uy - c2 * vy) / norm,
-            (ez - b * uz - c2 * vz) / norm,
-        )
-        # the plane passes the points' mean, rng0 e + mx u + my v + mw e
-        d0 = (mx * (nx * ux + ny * uy + nz * uz) + my * (nx * vx + ny * vy + nz * vz)
-              + (rng0 + mw) * (nx * ex + ny * ey + nz * ez))  # fmt: skip
         for k in range(start[q], start[q + 1]):
             j = order[k]
             cos = nx * rays_dst[j, 0] + ny * rays_dst[j, 1] + nz * rays_dst[j, 2]
@@ -211,6 +148,76 @@ def _resample(range_src, rays_src, pixels, start, order, rays_dst, min_cos, tol_
             t = d0 / cos
             if t > 0.0 and abs(t - rng0) <= max_change * rng0:
                 out[j] = t
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _pixel_plane(range_src, rays_src, r, c, tol, xs, ys, ws):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """(flat, nx, ny, nz, d0): the plane n . x = d0 of pixel (r, c)'s 3x3 points when every one lies
+    within `tol` (m) of it, found in a frame along the pixel's ray; flat is False without one.
+
+    The frame (u, v across the ray e, e along it) has its origin at the
+    pixel's point: a neighbour at range r_k along ray d_k sits at
+    (u . d_k r_k, v . d_k r_k, e . d_k r_k - r_0), so the plane's fit and its
+    flatness test need no second pass over world coordinates. `xs`, `ys`,
+    `ws` are scratch arrays of 9.
+    """
+    H, W = range_src.shape
+    rng0 = float(range_src[r, c])
+    ex, ey, ez = float(rays_src[r, c, 0]), float(rays_src[r, c, 1]), float(rays_src[r, c, 2])
+    if abs(ex) < 0.9:  # u = e x (1, 0, 0), normalised
+        ux, uy, uz = 0.0, ez, -ey
+    else:  # e x (0, 1, 0)
+        ux, uy, uz = -ez, 0.0, ex
+    un = np.sqrt(ux * ux + uy * uy + uz * uz)
+    ux, uy, uz = ux / un, uy / un, uz / un
+    vx, vy, vz = ey * uz - ez * uy, ez * ux - ex * uz, ex * uy - ey * ux
+    n_pts = 0
+    sx = sy = sw = 0.0
+    for rr in range(max(r - 1, 0), min(r + 2, H)):
+        for cc in range(max(c - 1, 0), min(c + 2, W)):
+            rk = float(range_src[rr, cc])
+            if not rk > 0.0:
+                continue
+            dx, dy, dz = rays_src[rr, cc, 0] * rk, rays_src[rr, cc, 1] * rk, rays_src[rr, cc, 2] * rk
+            xs[n_pts] = x = ux * dx + uy * dy + uz * dz
+            ys[n_pts] = y = vx * dx + vy * dy + vz * dz
+            ws[n_pts] = w = ex * dx + ey * dy + ez * dz - rng0
+            sx += x
+            sy += y
+            sw += w
+            n_pts += 1
+    if n_pts < 4:  # three points always lie on a plane: at least one must check it
+        return False, 0.0, 0.0, 0.0, 0.0
+    mx, my, mw = sx / n_pts, sy / n_pts, sw / n_pts
+    # the least-squares plane w = w0 + b x + c y: range noise lies along the rays, as w does
+    sxx = sxy = syy = sxw = syw = 0.0
+    for k in range(n_pts):
+        x, y, w = xs[k] - mx, ys[k] - my, ws[k] - mw
+        xs[k], ys[k], ws[k] = x, y, w
+        sxx += x * x
+        sxy += x * y
+        syy += y * y
+        sxw += x * w
+        syw += y * w
+    det = sxx * syy - sxy * sxy
+    if not det > 1e-12 * (sxx + syy) * (sxx + syy):  # the points lie on a line: no plane
+        return False, 0.0, 0.0, 0.0, 0.0
+    b = (syy * sxw - sxy * syw) / det
+    c2 = (sxx * syw - sxy * sxw) / det
+    norm = np.sqrt(1.0 + b * b + c2 * c2)  # |e - b u - c v|: the plane's normal before normalising
+    lim = tol * norm  # every point within the tolerance of the plane (along its normal, hence the norm)
+    for k in range(n_pts):
+        if abs(ws[k] - b * xs[k] - c2 * ys[k]) > lim:
+            return False, 0.0, 0.0, 0.0, 0.0
+    nx, ny, nz = (
+        (ex - b * ux - c2 * vx) / norm,
+        (ey - b * uy - c2 * vy) / norm,
+        (ez - b * uz - c2 * vz) / norm,
+    )
+    # the plane passes the points' mean, rng0 e + mx u + my v + mw e
+    d0 = (mx * (nx * ux + ny * uy + nz * uz) + my * (nx * vx + ny * vy + nz * vz)
+          + (rng0 + mw) * (nx * ex + ny * ey + nz * ez))  # fmt: skip
+    return True, nx, ny, nz, d0
 
 
 def nearest_pixel_groups(uv: F64, width: int, height: int) -> tuple[I64, I32]:

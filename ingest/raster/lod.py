@@ -87,19 +87,6 @@ def angular_spacing(xyz: F32, cells: tuple[int, int] = SPHERE_CELLS, smooth: int
     return cell_spacing(cell, counts, cells, smooth)
 
 
-def sphere_cells_numpy(xyz: F32, cells: tuple[int, int] = SPHERE_CELLS) -> tuple[I64, I64]:
-    """`point_kernels.sphere_cells` in numpy: each point's cell and the points per cell (the reference)."""
-    n_u, n_az = cells
-    r = np.sqrt(np.einsum("ij,ij->i", xyz, xyz))
-    with np.errstate(invalid="ignore"):  # NaN casts to int32's minimum: clipped into cell 0
-        cu = np.clip(((xyz[:, 2] / np.maximum(r, 1e-12) + 1.0) * (n_u / 2.0)).astype(np.int32), 0, n_u - 1)
-        az = np.arctan2(xyz[:, 1].astype(np.float64), xyz[:, 0].astype(np.float64)).astype(np.float32)
-        ca = np.clip(((az + math.pi) * (n_az / (2.0 * math.pi))).astype(np.int32), 0, n_az - 1)
-    cell: I64 = cu.astype(np.int64) * n_az + ca
-    counts: I64 = np.bincount(cell, minlength=n_u * n_az)
-    return cell, counts
-
-
 def cell_spacing(cell: I64, counts: I64, cells: tuple[int, int], smooth: int) -> F32:
     """Each point's angular spacing (rad) from its cell's count (`angular_spacing`)."""
     n_u, n_az = cells

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 from typing import Any
 
-import cv2
 import numpy as np
 
 from calibration.types import F32, I64, Bool
@@ -51,47 +50,6 @@ def _keys(pts: ViewPoints) -> I64:
     q = np.minimum(np.round(pts.r / np.float32(RANGE_QUANTUM_M)).astype(np.int64), Q_MAX)
     out: I64 = KEY_BASE + (q << IDX_BITS) + np.arange(n, dtype=np.int64)
     return out
-
-
-def zbuffer_erode(pts: ViewPoints, H: int, W: int) -> tuple[I64, I64]:
-    """`zbuffer` in numpy alone, the alternative the benchmark measures (same keys, bit for bit).
-
-    Points are grouped by footprint half-widths (ku, kv); each group's own
-    buffer is eroded (cv2.erode on the keys viewed as float64, which orders
-    positive keys the same) by its ellipse: one erode per group.
-    """
-    P = H * W
-    own = np.full(P, EMPTY_KEY, np.int64)
-    splat = np.full(P, EMPTY_KEY, np.int64)
-    if len(pts.pix) == 0:
-        return own, splat
-    key = _keys(pts)
-    K = int(max(pts.ku.max(), pts.kv.max())) + 1
-    cls = pts.ku * K + pts.kv
-    order = np.argsort(cls, kind="stable")
-    bounds = np.r_[0, np.cumsum(np.bincount(cls, minlength=K * K))]
-    layer = np.empty(P, np.int64)
-    for c in np.flatnonzero(np.diff(bounds)):
-        sel = order[bounds[c] : bounds[c + 1]]
-        pix = pts.pix[sel]
-        layer.fill(EMPTY_KEY)
-        np.minimum.at(layer, pix, key[sel])
-        np.minimum(own, layer, out=own)
-        ku, kv = divmod(int(c), K)
-        if ku == 0 and kv == 0:
-            np.minimum(splat, layer, out=splat)
-            continue
-        # erode only the window holding this group's points (plus the kernel)
-        rows = pix // W
-        cols = pix - rows * W
-        r0, r1 = max(0, int(rows.min()) - kv), min(H, int(rows.max()) + kv + 1)
-        c0, c1 = max(0, int(cols.min()) - ku), min(W, int(cols.max()) + ku + 1)
-        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * ku + 1, 2 * kv + 1))
-        win = layer.view(np.float64).reshape(H, W)[r0:r1, c0:c1]
-        eroded = cv2.erode(win, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=np.inf)
-        target = splat.reshape(H, W)[r0:r1, c0:c1]
-        np.minimum(target, eroded.view(np.int64), out=target)
-    return own, splat
 
 
 def winner(key: I64) -> tuple[Bool, I64]:

@@ -39,7 +39,6 @@ import numpy as np
 from calibration.rig import read_rig
 from calibration.types import ArrayLike, Bool
 from calibration.warp import default_height_full
-from ingest.dataset.layout import write_atomic
 from ingest.train.pipeline import ingest
 from ingest.train.settings import IngestConfig
 from ingest.train.summary import IngestSummary
@@ -347,10 +346,3 @@ def csv_bytes(rows: Sequence[Mapping[str, Any]]) -> bytes:
     for row in rows:
         writer.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items()})
     return buf.getvalue().encode()
-
-
-def write_csv(path: Path, rows: Sequence[Mapping[str, Any]]) -> Path:
-    """Rows as CSV (`csv_bytes`), written atomically."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    write_atomic(path, csv_bytes(rows))
-    return path

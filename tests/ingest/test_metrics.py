@@ -185,7 +185,8 @@ def test_edge_band_around_a_depth_step() -> None:
 def test_compiled_edge_steps_are_the_numpy_min_max_filters(shape: tuple[int, int]) -> None:
     """The separable compiled pass finds the steps that cv2's 3x3 dilate and erode find: at the borders,
     between valid pixels only (zeros, negatives, NaN and inf are not GT), float64 maps compared in float32."""
-    from ingest.raster.edges import _steps, edge_steps_numpy, valid_gt
+    from ingest.raster.edges import _steps, valid_gt
+    from tests.ingest.oracles import edge_steps_numpy
 
     rng = np.random.default_rng(7)
     gt = rng.uniform(0.5, 3.0, shape) * rng.choice([1.0, 1.02, 1.1], shape)

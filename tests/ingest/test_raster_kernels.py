@@ -9,7 +9,8 @@ import pytest
 from ingest.raster.geometry import ViewPoints
 from ingest.raster.kernels import ellipse_offsets
 from ingest.raster.params import EMPTY_KEY
-from ingest.raster.visibility import winner, zbuffer, zbuffer_erode
+from ingest.raster.visibility import winner, zbuffer
+from tests.ingest.oracles import zbuffer_erode
 
 
 def _view_points(pix: list[int], u: list[float], v: list[float], r: list[float], ku: list[int],

@@ -210,8 +210,9 @@ def _atan2_all(y: np.ndarray[Any, Any], x: np.ndarray[Any, Any]) -> np.ndarray[A
 
 
 def test_compiled_sphere_cells_count_what_numpy_counts() -> None:
-    from ingest.raster.lod import SPHERE_CELLS, angular_spacing, cell_spacing, sphere_cells_numpy
+    from ingest.raster.lod import SPHERE_CELLS, angular_spacing, cell_spacing
     from ingest.raster.point_kernels import sphere_cells
+    from tests.ingest.oracles import sphere_cells_numpy
 
     rng = np.random.default_rng(4)
     xyz = (rng.normal(size=(300_000, 3)) * 10.0 ** rng.uniform(-3, 3, (300_000, 1))).astype(np.float32)
