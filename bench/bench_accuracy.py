@@ -18,9 +18,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from ingest.train.pipeline import ingest
-from ingest.train.sample_job import SampleParams
-from ingest.train.settings import IngestConfig
+from ingest.train.run.pipeline import ingest
+from ingest.train.run.sample_job import SampleParams
+from ingest.train.run.settings import IngestConfig
 from sensorbox.sim.config import SimConfig
 from sensorbox.sim.run import simulate
 from sensorbox.sim.score import SampleScore, score_dataset

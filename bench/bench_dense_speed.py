@@ -36,9 +36,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import OUT_DIR, cpu_s, machine_line
 
-from ingest.train.pipeline import ingest
-from ingest.train.settings import IngestConfig
-from ingest.train.summary import IngestSummary
+from ingest.train.run.pipeline import ingest
+from ingest.train.run.settings import IngestConfig
+from ingest.train.run.summary import IngestSummary
 from sensorbox.sim.config import SimConfig
 from sensorbox.sim.run import simulate
 from sensorbox.sim.score import score_dataset

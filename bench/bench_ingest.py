@@ -77,10 +77,10 @@ from ingest.bags.reader import open_bags
 from ingest.dataset.layout import GT_DIRS, IMAGE_DIRS
 from ingest.dataset.png import encode_png
 from ingest.runtime.executor import Executor
-from ingest.train.pipeline import ingest
-from ingest.train.sample_job import Geometry, SampleParams
-from ingest.train.settings import IngestConfig, resolve_topics
-from ingest.train.summary import IngestSummary
+from ingest.train.run.pipeline import ingest
+from ingest.train.run.sample_job import Geometry, SampleParams
+from ingest.train.run.settings import IngestConfig, resolve_topics
+from ingest.train.run.summary import IngestSummary
 from sensorbox.sim.config import SimConfig
 from sensorbox.sim.run import simulate
 from sensorbox.sim.truth import truth_dir

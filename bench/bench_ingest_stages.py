@@ -81,11 +81,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import OUT_DIR, machine_line, markdown_table, median_seconds
 
 import ingest.dataset.layout as dataset
-import ingest.train.clouds as clouds_mod
-import ingest.train.sample as sample_mod
-import ingest.train.sample_dense as sample_dense_mod
-import ingest.train.sample_parts as sample_parts_mod
-import ingest.train.sample_sparse as sample_sparse_mod
+import ingest.train.run.sample as sample_mod
+import ingest.train.run.sample_dense as sample_dense_mod
+import ingest.train.run.sample_parts as sample_parts_mod
+import ingest.train.run.sample_sparse as sample_sparse_mod
+import ingest.train.trajectory.clouds as clouds_mod
 from calibration.linalg3 import sym3_smallest
 from calibration.rig import read_rig
 from calibration.warp import clear_map_cache
@@ -94,14 +94,14 @@ from ingest.bags.livox_msg import decode_custom_msg
 from ingest.bags.reader import open_bags
 from ingest.bags.rostypes import CUSTOM_MSG_TYPE, typestore
 from ingest.dataset.png import LEVELS, encode_png, opencv_silenced
-from ingest.train.pipeline import ingest
-from ingest.train.plan import plan
-from ingest.train.planes import knn_covariances, neighbour_covariances
-from ingest.train.resolved import resolve_run
-from ingest.train.sample import process_sample
-from ingest.train.sample_job import Geometry, SampleJob, SampleParams
-from ingest.train.settings import IngestConfig, resolve_topics
-from ingest.train.stream import Shared, StreamedJob, decode_images, stream_jobs
+from ingest.train.run.pipeline import ingest
+from ingest.train.run.plan import plan
+from ingest.train.run.resolved import resolve_run
+from ingest.train.run.sample import process_sample
+from ingest.train.run.sample_job import Geometry, SampleJob, SampleParams
+from ingest.train.run.settings import IngestConfig, resolve_topics
+from ingest.train.run.stream import Shared, StreamedJob, decode_images, stream_jobs
+from ingest.train.trajectory.planes import knn_covariances, neighbour_covariances
 from sensorbox.sim.config import SimConfig
 from sensorbox.sim.run import simulate
 from sensorbox.sim.truth import truth_dir
@@ -266,7 +266,7 @@ class Calls:
 def instrument(calls: Calls, capture: tuple[str, ...] = ()) -> Iterator[None]:
     """Time what process_sample calls directly, and write_sample's encode / convert / write helpers.
 
-    Every function of the `ingest.train.sample*` modules' namespaces that comes from SensorBox is
+    Every function of the `ingest.train.run.sample*` modules' namespaces that comes from SensorBox is
     wrapped (so nested calls, e.g. filter_points inside points_by_lidar, are in
     their caller's time too), plus the GyroTrack methods and `ingest.dataset.layout`'s
     encode_png (keyed by image kind), to_uint16 and write_atomic. Restored on exit.

@@ -27,7 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import OUT_DIR, machine_line, markdown_table
 
 from calibration.rig import REFERENCE_RIG, read_rig
-from ingest.train.sample_job import Geometry
+from ingest.train.run.sample_job import Geometry
 from sensorbox.analysis.dense_study import MS, Method, Recording, evaluate, record
 from sensorbox.sim.config import SimConfig
 from sensorbox.sim.run import scaled_rig

@@ -14,7 +14,7 @@ prints:
 2. sparse GT from the exact rig, the given (wrong) rig and the refined rig:
    range median and outliers against truth, and density;
 3. with `--scores`: the truth-free alignment score of every sample (the median
-   angle its LiDAR points sit off cam0's image, `ingest.train.align`) for the
+   angle its LiDAR points sit off cam0's image, `ingest.train.gt.align`) for the
    exact rig and for one error at a time (both cameras 5 ms late, lidar_top
    turned 0.25 deg), against each sample's true GT error: ROC AUC of the score
    between exact and wrong samples, and whether ingest's warning fired.
@@ -47,9 +47,9 @@ from scipy.spatial.transform import Rotation
 from calibration.rig import Rig, with_timeshifts, write_rig
 from calibration.types import F64
 from ingest.dataset.meta import read_meta
-from ingest.train.pipeline import ingest, refine_rig
-from ingest.train.refine import Refinement
-from ingest.train.settings import IngestConfig
+from ingest.train.run.pipeline import ingest, refine_rig
+from ingest.train.run.refine import Refinement
+from ingest.train.run.settings import IngestConfig
 from sensorbox.sim.config import SimConfig, with_mid360_imu_noise
 from sensorbox.sim.run import simulate
 from sensorbox.sim.score import score_dataset

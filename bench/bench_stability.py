@@ -48,9 +48,9 @@ from calibration.rig import REFERENCE_RIG, read_rig, write_rig
 from calibration.types import F64
 from ingest.dataset.layout import DEPTH_SCALE, read_png_u16
 from ingest.dataset.meta import SampleMeta, read_meta
-from ingest.train.groundtruth import GtParams, px_per_rad
-from ingest.train.pipeline import ingest
-from ingest.train.settings import IngestConfig
+from ingest.train.gt.groundtruth import GtParams, px_per_rad
+from ingest.train.run.pipeline import ingest
+from ingest.train.run.settings import IngestConfig
 from sensorbox.analysis.projection import compare_projections, num_disparities_for
 from sensorbox.analysis.stability import (
     disparity_range_error,

@@ -261,7 +261,7 @@ def warp(
     (INTER_NEAREST for label/depth images, INTER_LINEAR or INTER_CUBIC for
     colour). Only the maps' spans are remapped. A caller warping frame after
     frame can skip the output's allocation and fill with `remap_spans` into
-    `RemapMaps.scratch` (as `ingest.train.sample.start_equirects` does).
+    `RemapMaps.scratch` (as `ingest.train.run.sample.start_equirects` does).
     """
     check_source(image, src_model)
     maps = build_maps(src_model, dst_model, R_src_dst)

@@ -2,7 +2,9 @@
 
 calibration <- ingest <- sensorbox. Inside ingest, train, render and eval share bags, dataset,
 raster (the point renderer) and runtime but never import each other; those shared rooms import
-none of the three. Inside sensorbox,
+none of the three. Inside train, the run imports the ground truth and the trajectory, the ground
+truth the trajectory, and the trajectory neither; the modules every room reads messages with
+(bad_messages, plausible, repeats, sync) import no room. Inside sensorbox,
 live reaches the simulator only through the node registry (by name), and the CLI imports only
 public names. No module of the packages imports itself back through others (an import inside a
 function counts).
@@ -20,6 +22,12 @@ FORBIDDEN = {
     "calibration": {"ingest", "sensorbox"},
     "ingest": {"sensorbox"},
     "ingest.train": {"ingest.render", "ingest.eval", "ingest.inspect"},
+    "ingest.train.trajectory": {"ingest.train.gt", "ingest.train.run"},
+    "ingest.train.gt": {"ingest.train.run"},
+    **{
+        f"ingest.train.{m}": {"ingest.train.trajectory", "ingest.train.gt", "ingest.train.run"}
+        for m in ("bad_messages", "plausible", "repeats", "sync")
+    },
     "ingest.render": {"ingest.train", "ingest.eval", "ingest.inspect"},
     "ingest.eval": {"ingest.train", "ingest.render", "ingest.inspect"},
     "ingest.bags": {"ingest.train", "ingest.render", "ingest.eval", "ingest.dataset", "ingest.runtime"},

@@ -33,7 +33,7 @@ Public API:
   compressed bytes, comes this way: the reader decompresses only the records
   before it and the first bytes of its data (its header stamp), and whoever
   calls `data()` decompresses and checks the whole chunk. The ingest's
-  stream pass hands camera images to its workers so (`ingest.train.stream`).
+  stream pass hands camera images to its workers so (`ingest.train.run.stream`).
 
 What can be checked depends on the format. An MCAP chunk carries the CRC-32
 of its records (every mcap SensorBox writes sets it; 0 means "not computed")

@@ -44,7 +44,9 @@ class PointMeta:
     out_of_view: int
     occluded: int
     silent_lidars: list[str] = field(default_factory=list)  # rig LiDARs with no point in the window
-    thin_lidars: list[str] = field(default_factory=list)  # far fewer than their rate: ingest.train.lidar_rate
+    thin_lidars: list[str] = field(
+        default_factory=list
+    )  # far fewer than their rate: ingest.train.run.lidar_rate
     off_trajectory: int = 0  # dense: points without a registered pose near the frame (a gap, the ends)
     off_imu: int = 0  # sparse: points outside the IMU readings' span (their rotation unknown), left out
 
@@ -79,7 +81,7 @@ class FileMeta:
 
 @dataclass(frozen=True)
 class AlignmentMeta:
-    """One LiDAR's photometric alignment with cam0's image (`ingest.train.align`), a quality score that
+    """One LiDAR's photometric alignment with cam0's image (`ingest.train.gt.align`), a quality score that
     needs no truth: the correction that lays its points best onto the image (rotation vector in deg and
     translation in mm, both in cam0), their 1-sigmas (largest axis), `shift_deg` the median angle by
     which the correction moves the points as cam0 sees them (the GT's misalignment), the points used,

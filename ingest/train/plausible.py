@@ -11,7 +11,7 @@ counted once per message by topic and reason (`Dropped`) for the summary
 and `dataset.yaml`; a LiDAR whose sweeps carry no point time (a PointCloud2
 without a time field: every point at the header stamp) is said once. Points
 the Livox itself tags as noise (`NOISE_TAG`) are counted here too, by topic,
-once per message: `ingest.train.clouds.filter_points` leaves them out of
+once per message: `ingest.train.trajectory.clouds.filter_points` leaves them out of
 every window, and a dust storm that empties a run must show in the summary
 and `dataset.yaml`, not only in each sample's meta. The
 rig's IMU rate is checked against the readings' (`check_imu_rate`), and each
@@ -36,7 +36,6 @@ from calibration.types import I64
 from ingest.bags.decode import NO_POINT_TIME, Frame, ImuSample, Sweep
 from ingest.bags.point_time import TIME_FIELDS
 from ingest.errors import BagError
-from ingest.train.clouds import NOISE_TAG_BITS
 
 GYRO_LIMIT_RAD_S = math.radians(2000.0) * 1.1
 """An angular rate beyond this on any axis is no reading: the largest full scale (2000 deg/s) and 10 % for
@@ -56,6 +55,8 @@ SWEEP_SPREAD_MIN_NS = 20_000_000
 """The least that bound may be: two periods of the fastest Livox rate (100 Hz)."""
 SPREAD_SAMPLE = 1024
 """Points `beyond_sweep` takes its robust statistics over (about)."""
+NOISE_TAG_BITS = 0b0011_1100
+"""Livox tag fields rain/fog/dust (bits 2-3) and other (bits 4-5): non-zero means a doubtful echo."""
 IMU_RATE_TOLERANCE = 0.2
 """The IMU's measured rate may differ from the rig's `rate_hz` by this fraction."""
 
@@ -93,7 +94,7 @@ def beyond_sweep(stamps_ns: I64, stamp_ns: int) -> np.ndarray[Any, np.dtype[np.b
     header stamp, more than `SWEEP_MAX_NS` from the header stamp. A sweep
     whose points all lie far from its header stamp is left whole: a LiDAR on
     another clock than its header's, which the survey names
-    (`ingest.train.plan.survey`). The median and the deviation are taken over
+    (`ingest.train.run.plan.survey`). The median and the deviation are taken over
     about `SPREAD_SAMPLE` evenly strided points (a 20k-point sweep in a tenth
     of the time; robust statistics of 1000 points move by a few per cent, far
     inside the bound).
@@ -168,9 +169,9 @@ def noise_tagged(tag: np.ndarray[Any, Any] | None) -> int:
 def screened_sweep(sweep: Sweep) -> tuple[Sweep, dict[str, int]]:
     """`sweep` without the points no LiDAR measures, and how many points were dropped by reason (none: {}).
 
-    The points the Livox tagged as noise are counted under `NOISE_TAG` among those kept here, but stay in
-    the sweep: `ingest.train.clouds.filter_points` leaves them out of each window (and counts them in its
-    meta), so every pass and GT method drops the same points.
+    The points the Livox tagged as noise are counted under `NOISE_TAG` among those kept here, but stay
+    in the sweep: `ingest.train.trajectory.clouds.filter_points` leaves them out of each window (and
+    counts them in its meta), so every pass and GT method drops the same points.
     """
     late = beyond_sweep(sweep.stamps_ns, sweep.stamp_ns)
     far = too_far(sweep.xyz_m) & ~late
@@ -315,7 +316,7 @@ def check_time_order(where: str, topic: str, what: str, seen: I64) -> str | None
     only now and then.
 
     `seen` is the survey's (N, 3) rows of (log ns, first stamp, last stamp) per
-    message, in log order (`ingest.train.plan.survey`); `what` names the stamps
+    message, in log order (`ingest.train.run.plan.survey`); `what` names the stamps
     ("header stamps", "first point times"). The passes read the bags in log
     order and take it for time order (a sample is handed on once the
     messages up to its window's end have arrived): with the order reversed, a

@@ -71,7 +71,7 @@ def run_bench(
     disk is one `OutputError` naming the file and leaves none of them.
     """
     from ingest.dataset.layout import write_atomic_set
-    from ingest.train.settings import IngestConfig
+    from ingest.train.run.settings import IngestConfig
     from sensorbox.analysis.tradeoff import csv_bytes, pool, run_alternatives
     from sensorbox.sim.score import score_dataset
     from sensorbox.sim.truth import Truth

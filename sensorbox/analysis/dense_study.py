@@ -42,13 +42,13 @@ from calibration.rig import REFERENCE_RIG, read_rig
 from ingest.bags.decode import ImuSample, Sweep, decode
 from ingest.bags.reader import open_bags
 from ingest.dataset.layout import prepare_dirs
-from ingest.train.block_planes import BlockPlanes, PlaneSettings
-from ingest.train.dense import DenseParams, free_space_settings
-from ingest.train.rig_trajectory import RigTrajectory
-from ingest.train.sample import process_sample
-from ingest.train.sample_job import Geometry, ImuWindow, SampleJob, SampleParams
-from ingest.train.stream import lidar_window
-from ingest.train.trajectory import run_trajectory_pass
+from ingest.train.gt.block_planes import BlockPlanes, PlaneSettings
+from ingest.train.gt.dense import DenseParams, free_space_settings
+from ingest.train.run.sample import process_sample
+from ingest.train.run.sample_job import Geometry, ImuWindow, SampleJob, SampleParams
+from ingest.train.run.stream import lidar_window
+from ingest.train.trajectory.estimate import run_trajectory_pass
+from ingest.train.trajectory.rig_trajectory import RigTrajectory
 from sensorbox.sim.config import SimConfig
 from sensorbox.sim.run import simulate
 from sensorbox.sim.score import score_sample
@@ -104,7 +104,7 @@ class Recording:
 
 def block_planes(rec: Recording, geo: Geometry, params: SampleParams) -> BlockPlanes:
     """The recording's blocks (planes, free-space bits) as ingest's stream pass runs them
-    (`ingest.train.block_planes`), every block done; once per recording and settings."""
+    (`ingest.train.gt.block_planes`), every block done; once per recording and settings."""
     dense = params.dense
     free = free_space_settings(dense) if dense.free_space else None
     key = (dense.plane_block_ns, dense.plane_neighbours, dense.plane_max_flatness, params.min_range_m, free)

@@ -194,7 +194,7 @@ def plot_sample(dataset_dir: Path, sid: str, out: Path) -> Path:
 import typing  # noqa: E402  (this section is appended; its types are only for the checker)
 
 if typing.TYPE_CHECKING:
-    from ingest.train.refine import Refinement
+    from ingest.train.run.refine import Refinement
 
 
 def draw_heatmap(hm: Heatmap, path: str | Path, title: str) -> bytes:

@@ -26,7 +26,7 @@ from calibration.stereo import (
 from calibration.types import F64, Bool
 from calibration.warp import covering_crop, warp
 from ingest.eval.metrics import DepthAccumulator, DepthMetrics, StereoAccumulator, StereoMetrics
-from ingest.train.groundtruth import GtParams
+from ingest.train.gt.groundtruth import GtParams
 from sensorbox.analysis.stability import cubemap_seam_mask, cubemap_stereo_faces
 
 RangeAlong = Callable[[F64], F64]

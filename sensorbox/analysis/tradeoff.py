@@ -39,9 +39,9 @@ import numpy as np
 from calibration.rig import read_rig
 from calibration.types import ArrayLike, Bool
 from calibration.warp import default_height_full
-from ingest.train.pipeline import ingest
-from ingest.train.settings import IngestConfig
-from ingest.train.summary import IngestSummary
+from ingest.train.run.pipeline import ingest
+from ingest.train.run.settings import IngestConfig
+from ingest.train.run.summary import IngestSummary
 
 # -- alternatives as data ----------------------------------------------------------------
 

@@ -14,7 +14,7 @@ from sensorbox.cli.common import check_out_file, console, path_param, print_warn
 
 if TYPE_CHECKING:
     from calibration.report import RigReport
-    from ingest.train.refine import Refinement
+    from ingest.train.run.refine import Refinement
 
 PathArg = Annotated[
     Path, typer.Argument(help="Rig file (sensorbox_rig YAML) or Kalibr camchain.", **path_param("RIG"))
@@ -226,7 +226,7 @@ def calib_refine(
 
     from calibration.rig import read_rig, write_rig
     from ingest.dataset.layout import write_atomic_set
-    from ingest.train.pipeline import refine_rig
+    from ingest.train.run.pipeline import refine_rig
 
     check_out_file("--out", out)
     if plot is not None:

@@ -1,6 +1,6 @@
 """`sensorbox ingest BAG... --rig RIG --out DIR`: recorded bags -> the WideDepth training set.
 
-Parses the options into an `ingest.train.settings.IngestConfig`, runs `ingest`
+Parses the options into an `ingest.train.run.settings.IngestConfig`, runs `ingest`
 with a progress bar, prints the summary and then draws a preview of the middle
 sample (after the run and its summary: not part of the run's time; a few seconds
 of matplotlib at full resolution, `--no-preview` skips it).
@@ -27,7 +27,7 @@ from sensorbox.cli.common import (
 
 if TYPE_CHECKING:
     from ingest.errors import SettingError
-    from ingest.train.summary import IngestSummary
+    from ingest.train.run.summary import IngestSummary
 
 BagsArg = Annotated[
     list[Path],
@@ -235,7 +235,7 @@ def _sample_rows(s: IngestSummary) -> Rows:
 
 def _alignment_rows(s: IngestSummary) -> Rows:
     """Per LiDAR: how far its points sit from where cam0's images show them (median over the samples),
-    and the upper camera's clock offset they imply (`ingest.train.align.CalibrationCheck`)."""
+    and the upper camera's clock offset they imply (`ingest.train.gt.align.CalibrationCheck`)."""
     check = s.calibration
     if check is None:
         return []
@@ -272,10 +272,10 @@ def ingest_cmd(
 ) -> None:  # fmt: skip
     """Turn recorded bags into the WideDepth training set (rectified equirect pairs + depth/disparity GT)."""
     from ingest.errors import DatasetError, SettingError
-    from ingest.train.dense import DenseParams
-    from ingest.train.pipeline import PASS_READ, PASS_REFINE, PASS_TRAJECTORY, ingest
-    from ingest.train.sample_job import SampleParams
-    from ingest.train.settings import IngestConfig
+    from ingest.train.gt.dense import DenseParams
+    from ingest.train.run.pipeline import PASS_READ, PASS_REFINE, PASS_TRAJECTORY, ingest
+    from ingest.train.run.sample_job import SampleParams
+    from ingest.train.run.settings import IngestConfig
 
     check_out_folder("--out", out, "the dataset")
     if gt_window_ms is not None and gt == "sparse":

@@ -30,11 +30,11 @@ from ingest.dataset.layout import GT_DIRS
 from ingest.dataset.meta import read_meta
 from ingest.errors import BagError, DatasetError
 from ingest.inspect import inspect_bags
-from ingest.train import trajectory as trajectory_module
-from ingest.train import trajectory_cache
-from ingest.train.pipeline import ingest
-from ingest.train.sample_dense import GAP_FALLBACK, GAP_REASON
-from ingest.train.settings import IngestConfig
+from ingest.train.run.pipeline import ingest
+from ingest.train.run.sample_dense import GAP_FALLBACK, GAP_REASON
+from ingest.train.run.settings import IngestConfig
+from ingest.train.trajectory import cache as trajectory_cache
+from ingest.train.trajectory import estimate as trajectory_module
 from sensorbox.cli.ingest import summary_table
 from sensorbox.sim.truth import truth_dir
 from tests.faults.bags import INDOOR, LIDAR_BOTTOM, LIDAR_TOP, LOWER, rewrite

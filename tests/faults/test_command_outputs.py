@@ -407,7 +407,7 @@ def test_refine_names_the_bag_topic_and_time_of_an_imu_message_it_cannot_decode(
     """`calib refine` said only '162 bytes are not a valid ROS 2 sensor_msgs/msg/Imu'; ingest named all three."""
     from calibration.rig import read_rig
     from ingest.errors import MessageDecodeError
-    from ingest.train.refine import refine
+    from ingest.train.run.refine import refine
     from tests.faults.bags import rewrite
 
     def keep(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:

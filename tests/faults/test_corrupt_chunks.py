@@ -28,9 +28,9 @@ from ingest.bags.decode import Sweep, decode, header_stamp_ns
 from ingest.bags.reader import CorruptChunkError, open_bags, salvage_mcap
 from ingest.bags.rostypes import typestore
 from ingest.inspect import inspect_bags
-from ingest.train.pipeline import ingest
-from ingest.train.plan import LOST_REASON
-from ingest.train.settings import IngestConfig
+from ingest.train.run.pipeline import ingest
+from ingest.train.run.plan import LOST_REASON
+from ingest.train.run.settings import IngestConfig
 from sensorbox.cli.main import main
 from sensorbox.live.interop import Ros2Writer
 from sensorbox.sim.fixtures import fixture_bag

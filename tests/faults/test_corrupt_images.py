@@ -21,9 +21,9 @@ from ingest.bags.reader import open_bags
 from ingest.bags.rostypes import COMPRESSED_IMAGE_TYPE, IMAGE_TYPE, typestore
 from ingest.dataset.layout import IMAGE_DIRS
 from ingest.errors import BagError, MessageDecodeError
-from ingest.train.pipeline import ingest
-from ingest.train.settings import IngestConfig
-from ingest.train.stream import UNDECODABLE_IMAGE
+from ingest.train.run.pipeline import ingest
+from ingest.train.run.settings import IngestConfig
+from ingest.train.run.stream import UNDECODABLE_IMAGE
 from sensorbox.messages import compressed_image_msg
 from tests.faults.bags import INDOOR, LOWER, UPPER, rewrite
 

@@ -20,8 +20,8 @@ from ingest.bags.decode import decode_compressed_image
 from ingest.bags.reader import open_bags
 from ingest.dataset.meta import read_meta
 from ingest.errors import DatasetError
-from ingest.train.pipeline import ingest
-from ingest.train.settings import IngestConfig
+from ingest.train.run.pipeline import ingest
+from ingest.train.run.settings import IngestConfig
 from sensorbox.live.bagwriter import BagWriter
 from sensorbox.messages import image_msg
 from sensorbox.sim.truth import truth_dir

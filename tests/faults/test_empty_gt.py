@@ -20,10 +20,10 @@ from calibration.rig import read_rig
 from ingest.bags.livox_msg import decode_custom_msg, encode_custom_msg
 from ingest.dataset.layout import DEPTH_SCALE, read_png_u16
 from ingest.dataset.meta import read_meta
-from ingest.train.clouds import NOISE_TAG_BITS
-from ingest.train.pipeline import ingest
-from ingest.train.sample_job import Geometry
-from ingest.train.settings import IngestConfig
+from ingest.train.plausible import NOISE_TAG_BITS
+from ingest.train.run.pipeline import ingest
+from ingest.train.run.sample_job import Geometry
+from ingest.train.run.settings import IngestConfig
 from tests.faults.bags import LIDAR_BOTTOM, LIDAR_TOP, rewrite
 
 FAST = {"workers": 1, "every": 3, "height_full": 64}

@@ -22,10 +22,10 @@ from ingest.bags.reader import open_bags
 from ingest.bags.rostypes import POINTCLOUD2_TYPE, typestore
 from ingest.dataset.layout import GT_DIRS
 from ingest.errors import BagError
-from ingest.train.pipeline import ingest
 from ingest.train.plausible import IMU_ACC, IMU_GYRO, IMU_NON_FINITE, POINT_FAR, POINT_REPEATED, POINT_TIME
-from ingest.train.settings import IngestConfig
-from ingest.train.summary import IngestSummary
+from ingest.train.run.pipeline import ingest
+from ingest.train.run.settings import IngestConfig
+from ingest.train.run.summary import IngestSummary
 from sensorbox.messages import imu_msg
 from tests.faults.bags import INDOOR, LIDAR_BOTTOM, LIDAR_TOP, Keep, rewrite
 from tests.faults.cli import sensorbox

@@ -16,7 +16,7 @@ import pytest
 from calibration.errors import SensorboxError
 from ingest.bags.reader import open_bags
 from ingest.render.scans import read_site
-from ingest.train.describe import _read_dataset_yaml
+from ingest.train.run.describe import _read_dataset_yaml
 from sensorbox.sim.fixtures import fixture_bag
 from tests.faults.cli import sensorbox
 from tests.paths import FIXTURES_DIR

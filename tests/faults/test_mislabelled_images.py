@@ -20,8 +20,8 @@ from ingest.bags.decode import decode_image
 from ingest.bags.reader import open_bags
 from ingest.bags.rostypes import IMAGE_TYPE, typestore
 from ingest.errors import MessageDecodeError
-from ingest.train.pipeline import ingest
-from ingest.train.settings import IngestConfig
+from ingest.train.run.pipeline import ingest
+from ingest.train.run.settings import IngestConfig
 from sensorbox.messages import image_msg
 from tests.faults.bags import UPPER, raw_image, rewrite
 from tests.faults.cli import sensorbox

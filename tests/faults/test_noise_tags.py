@@ -17,9 +17,9 @@ import yaml
 
 from ingest.bags.livox_msg import decode_custom_msg, encode_custom_msg
 from ingest.dataset.meta import read_meta
-from ingest.train.pipeline import ingest
 from ingest.train.plausible import NOISE_TAG
-from ingest.train.settings import IngestConfig
+from ingest.train.run.pipeline import ingest
+from ingest.train.run.settings import IngestConfig
 from tests.faults.bags import LIDAR_TOP, Keep, rewrite
 from tests.faults.cli import sensorbox
 

@@ -15,8 +15,8 @@ import pytest
 
 from ingest.bags.decode import decode_imu
 from ingest.errors import BagError
-from ingest.train.pipeline import ingest
-from ingest.train.settings import IngestConfig
+from ingest.train.run.pipeline import ingest
+from ingest.train.run.settings import IngestConfig
 from sensorbox.messages import imu_msg
 from tests.faults.bags import Keep, rewrite
 from tests.faults.cli import sensorbox

@@ -25,8 +25,8 @@ from calibration.rig import read_rig, write_rig
 from calibration.spherical import Equirectangular
 from calibration.warp import RemapMaps, load_maps, save_maps
 from ingest.errors import OutputError
-from ingest.train.pipeline import ingest
-from ingest.train.settings import IngestConfig
+from ingest.train.run.pipeline import ingest
+from ingest.train.run.settings import IngestConfig
 from sensorbox.sim.camera_source import SimCameras
 from sensorbox.sim.fixtures import FIXTURES
 from tests.faults.bags import INDOOR

@@ -14,9 +14,9 @@ from pathlib import Path
 import pytest
 
 from ingest.bags.livox_msg import decode_custom_msg, encode_custom_msg
-from ingest.train.lidar_rate import THIN_FRACTION
-from ingest.train.pipeline import ingest
-from ingest.train.settings import IngestConfig
+from ingest.train.run.lidar_rate import THIN_FRACTION
+from ingest.train.run.pipeline import ingest
+from ingest.train.run.settings import IngestConfig
 from tests.faults.bags import INDOOR, LIDAR_BOTTOM, Keep, rewrite
 
 FAST = {"workers": 1, "every": 3, "height_full": 64, "gt": "sparse"}

@@ -13,9 +13,9 @@ import json
 from pathlib import Path
 
 from ingest.bags.livox_msg import decode_custom_msg, encode_custom_msg
-from ingest.train.lidar_rate import THIN_FRACTION
-from ingest.train.pipeline import ingest
-from ingest.train.settings import IngestConfig
+from ingest.train.run.lidar_rate import THIN_FRACTION
+from ingest.train.run.pipeline import ingest
+from ingest.train.run.settings import IngestConfig
 from tests.faults.bags import LIDAR_BOTTOM, rewrite
 
 STOP_NS = 80_000_000  # into sweep 3

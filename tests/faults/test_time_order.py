@@ -18,8 +18,8 @@ import pytest
 
 from ingest.bags.reader import open_bags
 from ingest.errors import BagError
-from ingest.train.pipeline import ingest
-from ingest.train.settings import IngestConfig
+from ingest.train.run.pipeline import ingest
+from ingest.train.run.settings import IngestConfig
 from sensorbox.live.bagwriter import BagWriter
 from sensorbox.sim.truth import truth_dir
 from tests.faults.bags import INDOOR, LIDAR_TOP, LOWER, UPPER, rewrite

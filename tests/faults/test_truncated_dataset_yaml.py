@@ -15,8 +15,8 @@ import yaml
 
 from ingest.dataset.description import SOURCE_KEYS, TOP_KEYS
 from ingest.errors import DatasetError
-from ingest.train.pipeline import ingest
-from ingest.train.settings import IngestConfig
+from ingest.train.run.pipeline import ingest
+from ingest.train.run.settings import IngestConfig
 from tests.faults.bags import INDOOR
 from tests.faults.cli import sensorbox
 

@@ -18,9 +18,9 @@ from ingest.bags.reader import open_bags
 from ingest.dataset.layout import GT_DIRS, IMAGE_DIRS
 from ingest.dataset.meta import read_meta
 from ingest.errors import MessageDecodeError
-from ingest.train.pipeline import ingest
-from ingest.train.settings import IngestConfig
-from ingest.train.stream import UNDECODABLE_IMAGE
+from ingest.train.run.pipeline import ingest
+from ingest.train.run.settings import IngestConfig
+from ingest.train.run.stream import UNDECODABLE_IMAGE
 from sensorbox.sim.truth import truth_dir
 from tests.faults.bags import (
     LIDAR_TOP,

@@ -1,4 +1,4 @@
-"""LiDAR points laid onto cam0's image (`ingest.train.align`), against the simulator's exact truth: one
+"""LiDAR points laid onto cam0's image (`ingest.train.gt.align`), against the simulator's exact truth: one
 rendered frame's points come back where they belong from a 1 deg, 30 mm error; `combine` tells a rig-file
 error from a clock offset; ingest flags a turned LiDAR and not an exact rig."""
 
@@ -15,10 +15,10 @@ from scipy.spatial.transform import Rotation
 
 from calibration.rig import write_rig
 from calibration.types import F64
-from ingest.train.align import Alignment, ImageLevels, align_points
-from ingest.train.align_check import check_calibration, combine
-from ingest.train.pipeline import ingest
-from ingest.train.settings import IngestConfig
+from ingest.train.gt.align import Alignment, ImageLevels, align_points
+from ingest.train.gt.align_check import check_calibration, combine
+from ingest.train.run.pipeline import ingest
+from ingest.train.run.settings import IngestConfig
 from sensorbox.sim.camera import render
 from sensorbox.sim.config import SimConfig
 from sensorbox.sim.lidar import simulate_sweep, sweep_windows
@@ -174,8 +174,8 @@ def test_the_stereo_pose_error_comes_back_from_both_images_corrections() -> None
     """A LiDAR off by X in cam0 and a stereo pose off by E: the corrections onto cam0 (X) and onto cam1
     (E T10 X T10^-1) give E back, 0.3 deg and 5 mm; an exact stereo pose gives nothing."""
     from calibration.rig import REFERENCE_RIG, read_rig
-    from ingest.train.align_check import Combined
-    from ingest.train.refine import stereo_alignment
+    from ingest.train.gt.align_check import Combined
+    from ingest.train.run.refine import stereo_alignment
 
     rig = read_rig(REFERENCE_RIG)
     T10 = rig.lower.T_cam_cam0
@@ -203,8 +203,8 @@ def test_an_alignment_only_run_writes_no_sample_and_finds_what_the_metas_record(
     GT or meta file is written, and each sample's alignments onto both images and cam0's twist are the
     ones a sparse ingest that writes the samples records in its metas (to JSON's rounding)."""
     from ingest.dataset.meta import read_meta
-    from ingest.train.align_check import from_metas, from_records
-    from ingest.train.sample_job import SampleParams
+    from ingest.train.gt.align_check import from_metas, from_records
+    from ingest.train.run.sample_job import SampleParams
 
     bag = FIXTURES_DIR / "indoor_walk_db3"
     rig_file = tmp_path / "rig" / "rig.yaml"

@@ -17,13 +17,13 @@ from calibration.warp import remap_spans, warp
 from ingest.bags.reader import open_bags
 from ingest.dataset.layout import prepare_dirs
 from ingest.runtime.background import Background
-from ingest.train import sample
-from ingest.train.plan import plan
-from ingest.train.resolved import resolve_run
-from ingest.train.sample import process_sample, start_equirects
-from ingest.train.sample_job import Geometry, SampleJob
-from ingest.train.settings import IngestConfig, resolve_topics
-from ingest.train.stream import Shared, StreamedJob, decode_images, stream_jobs
+from ingest.train.run import sample
+from ingest.train.run.plan import plan
+from ingest.train.run.resolved import resolve_run
+from ingest.train.run.sample import process_sample, start_equirects
+from ingest.train.run.sample_job import Geometry, SampleJob
+from ingest.train.run.settings import IngestConfig, resolve_topics
+from ingest.train.run.stream import Shared, StreamedJob, decode_images, stream_jobs
 from tests.ingest.test_pipeline import INDOOR, _rig
 from tests.live import HANG_S
 

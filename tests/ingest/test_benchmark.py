@@ -450,7 +450,7 @@ def test_a_damaged_finished_scene_is_rendered_again_and_another_scan_pose_refuse
 def test_an_equirect_beyond_memory_is_refused_before_any_work(tmp_path):
     """--height-full 100000 (a 1.8 TB sphere): one line suggesting a smaller --height-full, in both commands;
     0 is refused as a value, not taken for the default."""
-    from ingest.train.sample_job import Geometry
+    from ingest.train.run.sample_job import Geometry
 
     pattern = r"^--height-full 100000: .* needs about 1800\.0 GB, .* pass --height-full \d+ or less$"
     with pytest.raises(CalibrationError, match=pattern):

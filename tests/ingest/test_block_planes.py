@@ -7,17 +7,17 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from ingest.bags.decode import Sweep
-from ingest.train import block_planes
-from ingest.train.block_planes import (
+from ingest.train.gt import block_planes
+from ingest.train.gt.block_planes import (
     BlockPlanes,
     FreeSpaceSettings,
     PlaneSettings,
     cleared_for,
     world_normals,
 )
-from ingest.train.clouds import NOISE_TAG_BITS
-from ingest.train.free_space import RayTest, free_space_filter
-from ingest.train.rig_trajectory import RigTrajectory
+from ingest.train.gt.free_space import RayTest, free_space_filter
+from ingest.train.plausible import NOISE_TAG_BITS
+from ingest.train.trajectory.rig_trajectory import RigTrajectory
 
 KNOT_NS = 50_000_000
 SWEEP_NS = 100_000_000

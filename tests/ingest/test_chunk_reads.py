@@ -27,8 +27,8 @@ from ingest.bags.reader import CorruptChunkError, open_bags
 from ingest.bags.rostypes import IMAGE_TYPE, typestore
 from ingest.dataset.layout import GT_DIRS, IMAGE_DIRS
 from ingest.errors import MessageDecodeError
-from ingest.train.pipeline import ingest
-from ingest.train.settings import IngestConfig
+from ingest.train.run.pipeline import ingest
+from ingest.train.run.settings import IngestConfig
 from sensorbox.live.bagwriter import BagWriter
 from sensorbox.messages import image_msg
 from tests.faults.bags import LIDAR_BOTTOM, LIDAR_TOP, UPPER, raw_image, rewrite
@@ -341,8 +341,8 @@ def test_raw_bgra_images_are_warped_and_written_as_recorded_into_the_same_files(
     """Raw bgra8 upper images reach the sample as BGRA (no conversion to BGR) and give the files a BGR
     conversion first gives, byte for byte; the lower camera's JPEGs come as BGR."""
     from ingest.bags.message import RawMessage
-    from ingest.train import stream
-    from ingest.train.sample import process_sample
+    from ingest.train.run import stream
+    from ingest.train.run.sample import process_sample
 
     def keep(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
         return [(UPPER, raw_image(raw))] if topic.startswith("/zed_upper") else [(topic, raw)]

@@ -13,8 +13,8 @@ import yaml
 from rosbags.highlevel import AnyReader
 
 from calibration.rig import read_rig, with_timeshifts, write_rig
-from ingest.train.pipeline import ingest
-from ingest.train.settings import IngestConfig
+from ingest.train.run.pipeline import ingest
+from ingest.train.run.settings import IngestConfig
 from sensorbox.sim.config import SimConfig
 from sensorbox.sim.run import simulate
 from sensorbox.sim.score import score_dataset

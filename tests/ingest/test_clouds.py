@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ingest.train.clouds import NOISE_TAG_BITS, FilterCounts, compensate, filter_points
+from ingest.train.plausible import NOISE_TAG_BITS
+from ingest.train.trajectory.clouds import FilterCounts, compensate, filter_points
 
 
 def test_each_point_is_kept_or_counted_under_its_first_reason() -> None:

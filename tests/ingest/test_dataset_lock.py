@@ -11,8 +11,8 @@ import pytest
 from ingest.dataset.layout import write_atomic
 from ingest.dataset.lock import hold_folder
 from ingest.errors import DatasetError, OdometryError
-from ingest.train.pipeline import ingest
-from ingest.train.settings import IngestConfig
+from ingest.train.run.pipeline import ingest
+from ingest.train.run.settings import IngestConfig
 from tests.ingest.test_pipeline import INDOOR, _rig
 
 KILLED = (".000001.png.k3x_9QzA.tmp", "left_fisheye")  # write_atomic's name for left_fisheye/000001.png

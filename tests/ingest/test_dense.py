@@ -22,14 +22,14 @@ from ingest.bags.decode import Sweep
 from ingest.bags.message import RawMessage
 from ingest.bags.reader import BagSet, Progress, open_bags
 from ingest.dataset.meta import read_meta
-from ingest.train.dense import DenseParams, dense_ground_truth, free_space_filter, snap_to_pixel_rays
-from ingest.train.local_map import OdometryParams
-from ingest.train.pipeline import ingest
-from ingest.train.planes import Normals
-from ingest.train.rig_trajectory import RigTrajectory
-from ingest.train.sample_job import SampleParams
-from ingest.train.settings import IngestConfig, resolve_topics
-from ingest.train.trajectory import read_gyro, trajectory_pass
+from ingest.train.gt.dense import DenseParams, dense_ground_truth, free_space_filter, snap_to_pixel_rays
+from ingest.train.run.pipeline import ingest
+from ingest.train.run.sample_job import SampleParams
+from ingest.train.run.settings import IngestConfig, resolve_topics
+from ingest.train.trajectory.estimate import read_gyro, trajectory_pass
+from ingest.train.trajectory.local_map import OdometryParams
+from ingest.train.trajectory.planes import Normals
+from ingest.train.trajectory.rig_trajectory import RigTrajectory
 from sensorbox.sim.config import SimConfig
 from sensorbox.sim.run import simulate
 from sensorbox.sim.score import score_dataset
@@ -249,7 +249,7 @@ def test_equirect_ranges_meet_the_planes_of_cam0s_gt_and_stop_at_steps_and_holes
     from calibration.spherical import Equirectangular
     from ingest.dataset.sparse import SparseImage
     from ingest.raster.view import pixel_rays
-    from ingest.train.dense import cam0_window, rect_lookup, rect_ranges
+    from ingest.train.gt.dense import cam0_window, rect_lookup, rect_ranges
 
     model = DoubleSphere(120.0, 120.0, 160.0, 100.0, -0.2, 0.6, 320, 200)
     n = np.array([0.2, -0.1, 1.0]) / np.linalg.norm([0.2, -0.1, 1.0])
@@ -416,7 +416,7 @@ def test_away_from_edges_drops_pixels_next_to_a_range_step_or_a_hole():
     around them drops columns 8-11. The hole drops the 3 x 3 block around it.
     """
     from ingest.raster.view import Rendering
-    from ingest.train.dense import away_from_edges
+    from ingest.train.gt.dense import away_from_edges
 
     shape = (12, 20)
     range_m = np.full(shape, 2.0, np.float32)
@@ -458,7 +458,7 @@ def test_near_movers_is_a_disc_of_the_margin_in_pixels():
     disc of radius 5 around it (81 pixels), at 0.02 rad one of radius 3 (29 pixels).
     """
     from calibration.fisheye import DoubleSphere
-    from ingest.train.dense import near_movers
+    from ingest.train.gt.dense import near_movers
 
     model = DoubleSphere(120.0, 120.0, 160.0, 100.0, -0.2, 0.6, 320, 200)
     rows, cols = np.mgrid[: model.height, : model.width]
@@ -475,7 +475,7 @@ def test_near_view_and_may_matter_reach_their_margins_on_every_side():
     Points 5 m out on the rays of pixels beyond the border of the 320 x 200 model, on each side.
     """
     from calibration.fisheye import DoubleSphere
-    from ingest.train.dense import VIEW_MARGIN_PX, may_matter, near_view
+    from ingest.train.gt.dense import VIEW_MARGIN_PX, may_matter, near_view
 
     model = DoubleSphere(120.0, 120.0, 160.0, 100.0, -0.2, 0.6, 320, 200)
     assert VIEW_MARGIN_PX == 16
@@ -498,7 +498,7 @@ def test_the_warm_up_runs_beside_the_trajectory_pass_and_its_error_stops_the_run
     import threading
 
     from ingest.errors import OutputError
-    from ingest.train.sample_job import Geometry
+    from ingest.train.run.sample_job import Geometry
     from sensorbox.sim.fixtures import fixture_bag
     from tests.paths import FIXTURES_DIR
 
@@ -537,7 +537,7 @@ def test_auto_widens_the_window_for_a_static_rig(tmp_path):
 def test_free_space_clears_exactly_the_voxels_the_references_saw_through():
     # two slices at the origin see a wall at 10 m along +x (a 5 cm grid); a stale point at 5 m in front of
     # the wall (another slice) is cleared, one behind the wall (12 m) and one beside it (no ray there) stay
-    from ingest.train.dense import DenseParams, free_space_filter
+    from ingest.train.gt.dense import DenseParams, free_space_filter
 
     ys, zs = np.meshgrid(np.linspace(-1, 1, 41), np.linspace(-1, 1, 41))
     wall = np.c_[np.full(ys.size, 10.0), ys.ravel(), zs.ravel()]
@@ -707,12 +707,12 @@ from importlib import import_module
 from numba.core.registry import CPUDispatcher
 
 from calibration.rig import read_rig
-from ingest.train.pipeline import ingest
-from ingest.train.settings import IngestConfig
-from ingest.train.sample_job import Geometry, SampleParams
+from ingest.train.run.pipeline import ingest
+from ingest.train.run.settings import IngestConfig
+from ingest.train.run.sample_job import Geometry, SampleParams
 
 MODULES = [import_module(name) for name in ("calibration.kernels", "ingest.raster.kernels",
-           "ingest.raster.pixel_kernels", "ingest.raster.point_kernels", "ingest.train.free_space")]
+           "ingest.raster.pixel_kernels", "ingest.raster.point_kernels", "ingest.train.gt.free_space")]
 
 
 def signatures():

@@ -17,9 +17,9 @@ from ingest.errors import EvalError
 from ingest.eval.evaluate import EvalOptions, discover_gt, evaluate, write_report_json
 from ingest.eval.report import compare, heatmap, markdown_compare, markdown_table
 from ingest.eval.request import eval_request
-from ingest.train.pipeline import ingest
-from ingest.train.sample_job import SampleParams
-from ingest.train.settings import IngestConfig
+from ingest.train.run.pipeline import ingest
+from ingest.train.run.sample_job import SampleParams
+from ingest.train.run.settings import IngestConfig
 from sensorbox.sim.truth import truth_dir
 from tests.paths import FIXTURES_DIR
 

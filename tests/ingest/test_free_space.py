@@ -1,10 +1,10 @@
-"""The free-space test's ray rule (`ingest.train.free_space`) and the GT margin around what it removed."""
+"""The free-space test's ray rule (`ingest.train.gt.free_space`) and the GT margin around what it removed."""
 
 from dataclasses import replace
 
 import numpy as np
 
-from ingest.train.dense import DenseParams, free_space_filter, mover_margins, near_movers
+from ingest.train.gt.dense import DenseParams, free_space_filter, mover_margins, near_movers
 
 ORIGIN = np.zeros(3)
 

@@ -10,8 +10,8 @@ import pytest
 
 from calibration.rig import REFERENCE_RIG, read_rig
 from calibration.spherical import Equirectangular
-from ingest.train.groundtruth import GtParams, equirect_disparity, in_view, px_per_rad, splat_to_pixels
-from ingest.train.planes import Normals
+from ingest.train.gt.groundtruth import GtParams, equirect_disparity, in_view, px_per_rad, splat_to_pixels
+from ingest.train.trajectory.planes import Normals
 
 MODEL = read_rig(REFERENCE_RIG).upper.model.scaled(0.125)  # 240 x 150: many points per pixel
 

@@ -4,7 +4,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from calibration.linalg3 import apply_rotations, rotation_angle, rotvec_to_matrix, sym3_eigvals, sym3_smallest
-from ingest.train.clouds import integrate_gyro
+from ingest.train.trajectory.clouds import integrate_gyro
 
 
 def _covariances(rng: np.random.Generator, n: int) -> np.ndarray:

@@ -11,12 +11,12 @@ from scipy.spatial.transform import Rotation
 from calibration.linalg3 import rotvec_to_matrix
 from ingest.bags.decode import Sweep
 from ingest.errors import OdometryError
-from ingest.train import trajectory
-from ingest.train.clouds import integrate_gyro
-from ingest.train.local_map import LocalMap, OdometryParams, voxel_subsample
-from ingest.train.odometry import Odometry, _Chain, _joined, _register_chunk
-from ingest.train.rig_trajectory import RigTrajectory, still
-from ingest.train.trajectory import AUTO_MAX_RESIDUAL_MM, TrajectorySummary, choose_method, summarize
+from ingest.train.trajectory import estimate as trajectory
+from ingest.train.trajectory.clouds import integrate_gyro
+from ingest.train.trajectory.estimate import AUTO_MAX_RESIDUAL_MM, TrajectorySummary, choose_method, summarize
+from ingest.train.trajectory.local_map import LocalMap, OdometryParams, voxel_subsample
+from ingest.train.trajectory.odometry import Odometry, _Chain, _joined, _register_chunk
+from ingest.train.trajectory.rig_trajectory import RigTrajectory, still
 
 
 def _constant_rate_gyro(rate_rad_s, seconds=1.0, hz=200):
@@ -144,7 +144,7 @@ def test_auto_chooses_dense_only_with_a_sound_trajectory():
 
 
 def test_summary_measures_speed_and_turn_rate(tmp_path):
-    from ingest.train.trajectory import summarize
+    from ingest.train.trajectory.estimate import summarize
 
     stamps = np.arange(0, 500_000_001, 50_000_000, dtype=np.int64)
     R = rotvec_to_matrix(np.outer(stamps / 1e9, [0.0, 0.0, np.radians(30.0)]))  # 30 deg/s yaw
@@ -288,7 +288,7 @@ def test_many_points_take_the_pose_grid_within_a_tenth_of_a_millimetre():
 def test_node_fractions_are_the_integer_grid_of_the_numpy_formula():
     """The compiled node search gives j = (t - t_k) m // (t_k+1 - t_k) exactly: uneven knots whose spans
     the node count does not divide, times on knots and on nodes, clamped beyond the ends, in any order."""
-    from ingest.train.odometry_kernels import node_fractions
+    from ingest.train.trajectory.odometry_kernels import node_fractions
 
     rng = np.random.default_rng(5)
     m = 100

@@ -21,10 +21,10 @@ from ingest.dataset.identity import bag_identity
 from ingest.dataset.layout import DEPTH_SCALE, DISP_SCALE, read_png_u16
 from ingest.dataset.meta import read_meta
 from ingest.errors import BagError, DatasetError, MessageDecodeError, SettingError
-from ingest.train.dense import DenseParams
-from ingest.train.pipeline import ingest
-from ingest.train.sample_job import SampleParams
-from ingest.train.settings import IngestConfig
+from ingest.train.gt.dense import DenseParams
+from ingest.train.run.pipeline import ingest
+from ingest.train.run.sample_job import SampleParams
+from ingest.train.run.settings import IngestConfig
 from sensorbox.live.bagwriter import BagWriter
 from sensorbox.sim.config import SimConfig
 from sensorbox.sim.run import simulate
@@ -541,7 +541,7 @@ def test_passes_report_every_message_and_sweep_they_read(
 
     from calibration.rig import read_rig
     from ingest.bags import reader as bag_reader
-    from ingest.train.pipeline import PASS_READ, PASS_TRAJECTORY
+    from ingest.train.run.pipeline import PASS_READ, PASS_TRAJECTORY
 
     every = 4
     monkeypatch.setattr(bag_reader, "PROGRESS_EVERY", every)
@@ -571,11 +571,11 @@ def test_a_camera_that_maps_no_pixel_to_a_ray_is_one_line(monkeypatch: pytest.Mo
     from calibration.errors import CalibrationError
     from calibration.rig import REFERENCE_RIG, read_rig
     from ingest.raster.view import pixel_rays
-    from ingest.train.sample_job import Geometry
+    from ingest.train.run.sample_job import Geometry
 
     rig = read_rig(REFERENCE_RIG)
     rays, valid = pixel_rays(rig.upper.model)
-    monkeypatch.setattr("ingest.train.sample_job.pixel_rays", lambda model: (rays, np.zeros_like(valid)))
+    monkeypatch.setattr("ingest.train.run.sample_job.pixel_rays", lambda model: (rays, np.zeros_like(valid)))
     with pytest.raises(CalibrationError, match=r"camera cam0 maps none of its 1920x1200 pixels to a ray"):
         Geometry.from_rig(rig)
 

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from ingest.train.clouds import estimate_velocity
-from ingest.train.planes import (
+from ingest.train.trajectory.clouds import estimate_velocity
+from ingest.train.trajectory.planes import (
     extreme_eigenvalues,
     knn_covariances,
     knn_planes,

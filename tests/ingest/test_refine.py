@@ -18,15 +18,15 @@ from scipy.spatial.transform import Rotation
 
 from calibration.rig import REFERENCE_RIG, read_rig, with_timeshifts
 from calibration.types import F64, I64
-from ingest.train.clouds import integrate_gyro
-from ingest.train.refine import PAIR_GAPS, refine
-from ingest.train.timeshift import (
+from ingest.train.run.refine import PAIR_GAPS, refine
+from ingest.train.run.timeshift import (
     MAX_ROTATION_SIGMA_DEG,
     FrameRotations,
     check_stereo_rotation,
     estimate_imu_rotation,
     estimate_timeshift,
 )
+from ingest.train.trajectory.clouds import integrate_gyro
 from sensorbox.sim.config import SimConfig, with_mid360_imu_noise
 from sensorbox.sim.run import simulate
 from sensorbox.sim.trajectory import imu_readings, static, walk
@@ -208,8 +208,8 @@ def test_ingest_refine_times_the_samples_with_the_offsets_it_found(late_walk: Pa
     estimate (within 1.5 ms of the truth), the summary carries the refinement, dataset.yaml says where
     the offsets came from, and the dataset's rig is the refined one."""
     from calibration.rig import write_rig
-    from ingest.train.pipeline import ingest
-    from ingest.train.settings import IngestConfig
+    from ingest.train.run.pipeline import ingest
+    from ingest.train.run.settings import IngestConfig
 
     exact = Truth.load(late_walk).rig
     rig = tmp_path / "rig" / "plain.yaml"
@@ -242,9 +242,9 @@ def test_lidar_poses_come_back_through_two_alignment_rounds() -> None:
     would, with 0.01 deg / 0.5 mm of noise per sample): both LiDARs, off by 1 deg / 30 mm and 0.5 deg /
     20 mm, come back within 0.02 deg and 1 mm, each IMU moves with the LiDAR of its housing, and the
     table's numbers are the corrections applied."""
-    from ingest.train.align import Alignment
-    from ingest.train.refine import LidarRefinement, Refinement, _refine_lidars
-    from ingest.train.timeshift import StereoCheck
+    from ingest.train.gt.align import Alignment
+    from ingest.train.run.refine import LidarRefinement, Refinement, _refine_lidars
+    from ingest.train.run.timeshift import StereoCheck
 
     truth = read_rig(REFERENCE_RIG)
 

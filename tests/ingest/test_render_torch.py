@@ -102,7 +102,7 @@ def test_torch_zbuffer_gives_the_numpy_keys():
 
 def test_dense_gt_with_the_torch_backend_is_the_compiled_gt(scans):  # noqa: F811
     """`--backend torch|cuda` reaches the dense-GT renders: the same fisheye range and equirect disparity."""
-    from ingest.train.dense import DenseParams, dense_ground_truth
+    from ingest.train.gt.dense import DenseParams, dense_ground_truth
 
     scan = scans["scans"][0]
     T_world_cam = scans["T"]

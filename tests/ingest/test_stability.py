@@ -22,7 +22,7 @@ from calibration.rig import REFERENCE_RIG, read_rig
 from calibration.spherical import Cubemap
 from calibration.stereo import disparity_stability_mask, rotate_for_stereo, unrotate_from_stereo
 from calibration.types import F64
-from ingest.train.groundtruth import (
+from ingest.train.gt.groundtruth import (
     GtParams,
     in_view,
     occlusion_filter,
@@ -30,7 +30,7 @@ from ingest.train.groundtruth import (
     splat_to_pixels,
     surface_normals,
 )
-from ingest.train.planes import Normals
+from ingest.train.trajectory.planes import Normals
 from sensorbox.analysis.stability import (
     cubemap_seam_mask,
     cubemap_stereo_faces,

@@ -14,24 +14,15 @@ from calibration.rig import read_rig
 from ingest.bags.decode import Sweep
 from ingest.bags.reader import open_bags
 from ingest.runtime.transport import ArraySlots, slot_views
-from ingest.train.block_planes import BlockPlanes, FreeSpaceSettings, PlaneSettings, world_normals
-from ingest.train.plan import Plan, plan
-from ingest.train.resolved import resolve_run
-from ingest.train.rig_trajectory import RigTrajectory
-from ingest.train.sample_job import Geometry
-from ingest.train.settings import IngestConfig, Topics, resolve_topics
-from ingest.train.stream import (
-    Shared,
-    StreamedJob,
-    _lidar_arrays,
-    _sweeps_needed,
-    decode_images,
-    give_arrays,
-    handoff_bytes_bound,
-    stream_jobs,
-    take_arrays,
-)
+from ingest.train.gt.block_planes import BlockPlanes, FreeSpaceSettings, PlaneSettings, world_normals
+from ingest.train.run.handoff import _lidar_arrays, give_arrays, handoff_bytes_bound, take_arrays
+from ingest.train.run.plan import Plan, plan
+from ingest.train.run.resolved import resolve_run
+from ingest.train.run.sample_job import Geometry
+from ingest.train.run.settings import IngestConfig, Topics, resolve_topics
+from ingest.train.run.stream import Shared, StreamedJob, _sweeps_needed, decode_images, stream_jobs
 from ingest.train.sync import IMU_MARGIN_NS
+from ingest.train.trajectory.rig_trajectory import RigTrajectory
 from tests.ingest.test_pipeline import INDOOR, _rig
 
 

@@ -19,7 +19,7 @@ from calibration.rectify import rectify_rig
 from calibration.stereo import depth_to_disparity
 from calibration.warp import covering_crop, default_height_full
 from ingest.dataset.meta import read_meta
-from ingest.train.settings import IngestConfig
+from ingest.train.run.settings import IngestConfig
 from sensorbox.analysis.projection import Sgbm, compare_projections, num_disparities_for
 from sensorbox.analysis.tradeoff import (
     ALTERNATIVES,

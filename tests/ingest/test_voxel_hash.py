@@ -5,17 +5,17 @@ import pytest
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from ingest.train.clouds import integrate_gyro
-from ingest.train.odometry_kernels import (
+from ingest.train.trajectory.clouds import integrate_gyro
+from ingest.train.trajectory.odometry_kernels import (
     chain_points,
     covariances,
     gyro_between,
     log_rotations,
     normal_equations,
 )
-from ingest.train.planes import neighbour_covariances
-from ingest.train.rig_trajectory import RigTrajectory
-from ingest.train.voxel_hash import VoxelHash, VoxelSet, first_free, voxel_groups, voxel_keys
+from ingest.train.trajectory.planes import neighbour_covariances
+from ingest.train.trajectory.rig_trajectory import RigTrajectory
+from ingest.train.trajectory.voxel_hash import VoxelHash, VoxelSet, first_free, voxel_groups, voxel_keys
 
 
 def _scene(n=20_000, seed=0):

@@ -21,8 +21,8 @@ from calibration.errors import SensorboxError
 from ingest.bags.decode import header_stamp_ns
 from ingest.bags.livox_msg import decode_custom_msg
 from ingest.bags.reader import open_bags
-from ingest.train.pipeline import ingest
-from ingest.train.settings import IngestConfig
+from ingest.train.run.pipeline import ingest
+from ingest.train.run.settings import IngestConfig
 from sensorbox.live.capture import CaptureConfig, capture_plan, check_config
 from sensorbox.live.launch import parse_launch
 from sensorbox.live.launch_run import run_launch

@@ -23,8 +23,8 @@ import yaml
 
 from calibration import read_rig
 from ingest.errors import DatasetError
-from ingest.train.pipeline import ingest
-from ingest.train.settings import IngestConfig
+from ingest.train.run.pipeline import ingest
+from ingest.train.run.settings import IngestConfig
 from sensorbox.analysis.view import display_problem, view_dataset, viewer_executable
 from sensorbox.analysis.view_benchmark import benchmark_layout
 from sensorbox.analysis.view_files import (

@@ -2,7 +2,7 @@
 
 Steps, each a pure function:
 1. `surface_normals`: a local plane per point (PCA of its k nearest neighbours,
-   `ingest.train.planes`).
+   `ingest.train.trajectory.planes`).
 2. `occlusion_filter`: LiDAR-camera parallax lets a LiDAR see surfaces the camera
    cannot; such points land a few pixels beside a nearer foreground point. A
    point is dropped when a k x k window around its pixel (square splats of
@@ -34,7 +34,7 @@ from calibration.spherical import Equirectangular
 from calibration.stereo import disparity_and_stability
 from calibration.types import F64, Bool
 from ingest.dataset.sparse import SparseImage
-from ingest.train.planes import Normals, plane_normals
+from ingest.train.trajectory.planes import Normals, plane_normals
 
 VALID_FRACTION_DS = 0.9  # share of a fisheye image with valid rays (point spacing estimate only)
 

@@ -11,8 +11,7 @@ import numpy as np
 
 from ingest.dataset.meta import GtMeta, MotionMeta, PointMeta, SampleMeta
 from ingest.runtime.background import Background
-from ingest.train.clouds import compensate, estimate_velocity, integrate_gyro
-from ingest.train.groundtruth import (
+from ingest.train.gt.groundtruth import (
     equirect_disparity,
     fisheye_range,
     in_view,
@@ -20,9 +19,8 @@ from ingest.train.groundtruth import (
     splat_to_pixels,
     surface_normals,
 )
-from ingest.train.planes import Normals
-from ingest.train.sample_job import ALIGNED, SampleAlignment, SampleJob, SampleResult
-from ingest.train.sample_parts import (
+from ingest.train.run.sample_job import ALIGNED, SampleAlignment, SampleJob, SampleResult
+from ingest.train.run.sample_parts import (
     Equirects,
     alignment_fields,
     finish_sample,
@@ -30,6 +28,8 @@ from ingest.train.sample_parts import (
     points_by_lidar,
     silent_lidars,
 )
+from ingest.train.trajectory.clouds import compensate, estimate_velocity, integrate_gyro
+from ingest.train.trajectory.planes import Normals
 
 VELOCITY_SIGMAS = 4.0  # an estimated velocity counts when its norm exceeds this many standard errors
 

@@ -5,7 +5,7 @@ default) joined by the gyro: between knots k and k+1 the orientation is
 
     R(t) = R_k G_k^T G(t) Exp(f Log(E_k)),  f = (t - t_k) / (t_k+1 - t_k)
 
-where G is the integrated gyro (`ingest.train.clouds.GyroTrack`, G_k its
+where G is the integrated gyro (`ingest.train.trajectory.clouds.GyroTrack`, G_k its
 value at t_k) and E_k the gyro's mismatch with the next knot, spread evenly
 over the interval (without an IMU G is constant and this is the slerp of the
 two knots). Position is linear between knots: 50 ms keeps the chord error of
@@ -41,10 +41,15 @@ import numpy as np
 from calibration.linalg3 import rotvec_to_matrix
 from calibration.types import F64, I64, Bool
 from ingest.errors import OdometryError
-from ingest.train.clouds import GyroTrack, estimate_velocity
-from ingest.train.local_map import LocalMap, OdometryParams, voxel_subsample
-from ingest.train.odometry_kernels import chain_points, gyro_between, log_rotations, normal_equations
-from ingest.train.rig_trajectory import RigTrajectory
+from ingest.train.trajectory.clouds import GyroTrack, estimate_velocity
+from ingest.train.trajectory.local_map import LocalMap, OdometryParams, voxel_subsample
+from ingest.train.trajectory.odometry_kernels import (
+    chain_points,
+    gyro_between,
+    log_rotations,
+    normal_equations,
+)
+from ingest.train.trajectory.rig_trajectory import RigTrajectory
 
 
 @dataclass

@@ -1,4 +1,4 @@
-"""The rig's trajectory: T_world_cam0 at knots joined by the gyro (see `ingest.train.odometry`).
+"""The rig's trajectory: T_world_cam0 at knots joined by the gyro (see `ingest.train.trajectory.odometry`).
 
 Between knots k and k+1 the orientation is R(t) = R_k G_k^T G(t) Exp(f Log(E_k))
 with f = (t - t_k) / (t_k+1 - t_k), G the integrated gyro and E_k the gyro's
@@ -16,8 +16,8 @@ from scipy.spatial.transform import Rotation
 from calibration.linalg3 import rotation_angle, rotvec_to_matrix
 from calibration.types import F64, I64, Bool
 from ingest.dataset.layout import write_atomic
-from ingest.train.clouds import GyroTrack
-from ingest.train.odometry_kernels import blend_points, gyro_between, log_rotations, node_fractions
+from ingest.train.trajectory.clouds import GyroTrack
+from ingest.train.trajectory.odometry_kernels import blend_points, gyro_between, log_rotations, node_fractions
 
 STATIC_SPEED_MPS = 0.05
 STATIC_RATE_DEG_S = 2.0

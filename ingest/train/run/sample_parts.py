@@ -19,10 +19,10 @@ from ingest.dataset.meta import AlignmentMeta, SampleMeta
 from ingest.dataset.sparse import SparseImage
 from ingest.rows import rows
 from ingest.runtime.background import Background
-from ingest.train.align import ImageLevels, align_points
-from ingest.train.clouds import FilterCounts, filter_points
-from ingest.train.rig_trajectory import RigTrajectory
-from ingest.train.sample_job import SampleJob, SampleResult
+from ingest.train.gt.align import ImageLevels, align_points
+from ingest.train.run.sample_job import SampleJob, SampleResult
+from ingest.train.trajectory.clouds import FilterCounts, filter_points
+from ingest.train.trajectory.rig_trajectory import RigTrajectory
 
 
 def silent_lidars(job: SampleJob) -> list[str]:
@@ -104,7 +104,7 @@ def alignment_fields(
 def _alignments(
     job: SampleJob, pts_cam0: F64, reflectivity: F64 | None, which: I64
 ) -> dict[str, AlignmentMeta]:
-    """Each LiDAR's photometric alignment with the upper image (`ingest.train.align`), of the points
+    """Each LiDAR's photometric alignment with the upper image (`ingest.train.gt.align`), of the points
     placed in cam0 at the exposure (`pts_cam0`, from LiDAR `which`); none without reflectivity."""
     if reflectivity is None:
         return {}

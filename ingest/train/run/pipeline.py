@@ -5,14 +5,14 @@ Recipe:
    and each LiDAR sweep's time span; pair the stereo frames, pick the samples.
    A corrupt chunk stops the run here, before anything is written; with
    --salvage it is skipped, its messages are counted as lost, and samples
-   whose LiDAR/IMU window overlaps them are not planned (`ingest.train.lost`).
-2. Stream (second pass, log-time order, `ingest.train.stream`): keep the
+   whose LiDAR/IMU window overlaps them are not planned (`ingest.train.run.lost`).
+2. Stream (second pass, log-time order, `ingest.train.run.stream`): keep the
    planned camera messages as stored (compressed or raw bytes, not decoded;
    an image that ends its MCAP chunk as that chunk's compressed bytes)
    and a sliding buffer of sweeps and the IMU; a sample is handed to a worker
    as soon as every sweep overlapping its +-window has arrived.
 3. Each worker decodes the sample's two images and runs
-   `ingest.train.sample.process_sample` (clouds -> GT -> images -> files); a
+   `ingest.train.run.sample.process_sample` (clouds -> GT -> images -> files); a
    local process pool by default, or a Dask cluster. The rig's geometry and
    the trajectory go to each worker once, not with every job.
 Finished samples (their meta/<id>.json exists, every file they wrote is
@@ -66,14 +66,15 @@ from ingest.errors import DatasetError, MessageDecodeError, OdometryError, Outpu
 from ingest.runtime.executor import Executor, Handoff, share_cores
 from ingest.runtime.heap import retain_freed_memory
 from ingest.runtime.jit import compiling
-from ingest.train.align_check import (
+from ingest.train.bad_messages import BadMessages
+from ingest.train.gt.align_check import (
     SampleAlignments,
     check_calibration,
     from_records,
 )
-from ingest.train.bad_messages import BadMessages
-from ingest.train.block_planes import BlockPlanes, PlaneSettings
-from ingest.train.describe import (
+from ingest.train.gt.block_planes import BlockPlanes, PlaneSettings
+from ingest.train.plausible import check_imu_rate, check_time_order
+from ingest.train.run.describe import (
     check_existing,
     check_format,
     record_calibration,
@@ -81,28 +82,25 @@ from ingest.train.describe import (
     sample_settings,
     write_dataset_yaml,
 )
-from ingest.train.plan import LOST_REASON, Plan, Survey, plan, survey
-from ingest.train.plausible import check_imu_rate, check_time_order
-from ingest.train.refine import Refinement, refine
-from ingest.train.resolved import ResolvedRun, resolve_run
-from ingest.train.rig_trajectory import RigTrajectory
-from ingest.train.sample_job import Geometry, SampleParams, SampleResult
-from ingest.train.settings import IngestConfig, Topics, resolve_topics
-from ingest.train.stream import (
+from ingest.train.run.handoff import give_arrays, handoff_bytes_bound, take_arrays
+from ingest.train.run.plan import LOST_REASON, Plan, Survey, plan, survey
+from ingest.train.run.refine import Refinement, refine
+from ingest.train.run.resolved import ResolvedRun, resolve_run
+from ingest.train.run.sample_job import Geometry, SampleParams, SampleResult
+from ingest.train.run.settings import IngestConfig, Topics, resolve_topics
+from ingest.train.run.stream import (
     AlreadyDone,
     Shared,
     StreamedJob,
     check_image_size,
-    give_arrays,
-    handoff_bytes_bound,
     planned_stamps,
     run_streamed,
     stream_jobs,
-    take_arrays,
 )
-from ingest.train.summary import IngestSummary
+from ingest.train.run.summary import IngestSummary
 from ingest.train.sync import unsynced_line
-from ingest.train.trajectory import STATIC_WINDOW_NS, choose_method, run_trajectory_pass
+from ingest.train.trajectory.estimate import STATIC_WINDOW_NS, choose_method, run_trajectory_pass
+from ingest.train.trajectory.rig_trajectory import RigTrajectory
 
 
 def _gt_method(
@@ -295,7 +293,7 @@ def refine_rig(
     progress: Callable[[int, int], None] | None = None,
     aligning: Callable[[int, int], None] | None = None,
 ) -> Refinement:
-    """`ingest.train.refine.refine` with every step: the clocks and IMU rotations from the gyros
+    """`ingest.train.run.refine.refine` with every step: the clocks and IMU rotations from the gyros
     (`progress` over the messages read), then each LiDAR's pose from the alignments of `ALIGN_SAMPLES`
     frames, found by sparse ingests that write no sample (`SampleParams.alignment_only`) into a temporary
     folder, removed (`aligning` over each round's samples)."""
@@ -322,7 +320,7 @@ def _block_planes(
     rig: Rig, topics: Topics, the_plan: Plan, run: ResolvedRun, traj: RigTrajectory | None, busy: bool
 ) -> BlockPlanes | None:
     """Dense GT's plane fit and free-space test, once per point in the stream pass
-    (`ingest.train.block_planes`); None: sparse."""
+    (`ingest.train.gt.block_planes`); None: sparse."""
     if run.sample.method != "dense" or traj is None:
         return None
     dense = run.sample.dense

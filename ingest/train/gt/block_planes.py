@@ -1,7 +1,7 @@
 """Dense GT's per-point work, once per block of recording time in the world: planes, free space.
 
 Dense GT snaps every accumulated point onto its pixels' rays along the
-point's local plane (`ingest.train.dense.snap_to_pixel_rays`). Fitted per
+point's local plane (`ingest.train.gt.dense.snap_to_pixel_rays`). Fitted per
 sample, the k-NN plane fit of a +-500 ms window was the largest cost of a
 sample (about 220 ms of one core at full resolution), and consecutive
 samples fitted nearly the same planes again: at every frame a point lies in
@@ -18,7 +18,7 @@ Points of two stretches of the trajectory (`RigTrajectory.stretch_of`: a
 LiDAR gap between them) are never neighbours; points outside every
 stretch, and those `filter_points` drops, get no normal (NaN).
 
-The free-space test that removes movers (`ingest.train.free_space`) runs
+The free-space test that removes movers (`ingest.train.gt.free_space`) runs
 here too, once per block instead of once per sample (it was a sample's
 second largest cost). Every slice of `DenseParams.free_slice_ns` of one
 LiDAR (fixed in absolute time) is a reference; a sample's references are
@@ -45,10 +45,10 @@ from calibration.types import F64, I64, U64, Bool
 from ingest.bags.decode import Sweep
 from ingest.raster.z_order import z_order
 from ingest.rows import rows
-from ingest.train.clouds import filter_points
-from ingest.train.free_space import RayTest, free_space_bits, slices_agreeing
-from ingest.train.planes import plane_normals
-from ingest.train.rig_trajectory import RigTrajectory
+from ingest.train.gt.free_space import RayTest, free_space_bits, slices_agreeing
+from ingest.train.trajectory.clouds import filter_points
+from ingest.train.trajectory.planes import plane_normals
+from ingest.train.trajectory.rig_trajectory import RigTrajectory
 
 F16 = np.ndarray[Any, np.dtype[np.float16]]
 NORMAL_DTYPE = np.float16  # 1e-3 rad at worst (a snap moves a range by micrometres for it); 6 bytes a point

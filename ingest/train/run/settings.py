@@ -14,7 +14,7 @@ from calibration.warp import HEIGHT_FULL_EXPECTED, MIN_HEIGHT_FULL
 from ingest.errors import BagError, SettingError
 from ingest.raster.params import backend_problem
 from ingest.topic_map import check_rig
-from ingest.train.sample_job import SampleParams
+from ingest.train.run.sample_job import SampleParams
 from ingest.train.sync import DEFAULT_LIDAR_WINDOW_NS
 
 
@@ -31,8 +31,8 @@ class IngestConfig:
     height_full: int | None = None
     salvage: bool = False
     dask: str | None = None
-    # sparse | dense | auto (see ingest.train.trajectory.choose_method); `sensorbox ingest` defaults to auto,
-    # the library to sparse (no trajectory pass unless asked)
+    # sparse | dense | auto (see ingest.train.trajectory.estimate.choose_method); `sensorbox ingest`
+    # defaults to auto, the library to sparse (no trajectory pass unless asked)
     gt: str = "sparse"
     max_bad: int = 0  # undecodable messages skipped and counted before the run stops (bad_messages)
     sample: SampleParams = field(default_factory=SampleParams)

@@ -8,9 +8,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from calibration.types import F64, I64, Bool
-from ingest.train.odometry_kernels import covariances
-from ingest.train.planes import normals_from_covariances
-from ingest.train.voxel_hash import VoxelHash, VoxelSet, first_free, voxel_keys
+from ingest.train.trajectory.odometry_kernels import covariances
+from ingest.train.trajectory.planes import normals_from_covariances
+from ingest.train.trajectory.voxel_hash import VoxelHash, VoxelSet, first_free, voxel_keys
 
 
 @dataclass(frozen=True)

@@ -1,7 +1,7 @@
 """The ingest's stream pass and what travels to the workers: a sample's camera messages as stored.
 
 The main process reads the bags once more in log-time order (after the plan
-pass, `ingest.train.plan`), keeps a sliding buffer of sweeps and the IMU, and
+pass, `ingest.train.run.plan`), keeps a sliding buffer of sweeps and the IMU, and
 hands a `StreamedJob` to a worker as soon as every sweep overlapping the
 sample's +-window has arrived. The job carries the two camera messages as the
 bag stores them (a CompressedImage's JPEG/PNG bytes, or a raw Image's bytes),
@@ -40,20 +40,26 @@ from ingest.dataset.identity import HeldFrame, Resume, frame_digest, resume_stat
 from ingest.dataset.layout import sample_id
 from ingest.errors import BagError, MessageDecodeError
 from ingest.rows import rows
-from ingest.runtime.transport import ALIGN
 from ingest.train.bad_messages import BadMessages
-from ingest.train.block_planes import NORMAL_DTYPE, BlockPlanes
-from ingest.train.lidar_rate import LidarRates
-from ingest.train.plan import Plan
+from ingest.train.gt.block_planes import NORMAL_DTYPE, BlockPlanes
 from ingest.train.repeats import FirstCopies
-from ingest.train.rig_trajectory import RigTrajectory
-from ingest.train.sample import process_sample
-from ingest.train.sample_job import Geometry, ImuWindow, LidarPoints, SampleJob, SampleParams, SampleResult
+from ingest.train.run.lidar_rate import LidarRates
+from ingest.train.run.plan import Plan
+from ingest.train.run.sample import process_sample
+from ingest.train.run.sample_job import (
+    Geometry,
+    ImuWindow,
+    LidarPoints,
+    SampleJob,
+    SampleParams,
+    SampleResult,
+)
 from ingest.train.sync import IMU_MARGIN_NS
+from ingest.train.trajectory.rig_trajectory import RigTrajectory
 
 if TYPE_CHECKING:
-    from ingest.train.resolved import ResolvedRun
-    from ingest.train.settings import Topics
+    from ingest.train.run.resolved import ResolvedRun
+    from ingest.train.run.settings import Topics
 
 UNDECODABLE_IMAGE = "undecodable image (--max-bad)"
 """Why a sample was skipped when one of its camera images could not be decoded."""
@@ -101,81 +107,6 @@ class StreamedJob:
             self.thin_lidars_sparse, settings=self.settings, upper_shift_ns=self.upper_shift_ns,
             lower_shift_ns=self.lower_shift_ns,
         )  # fmt: skip
-
-
-def _payload(msg: RawMessage) -> Array:
-    """The bytes a message's trip to a worker carries: its data, or its chunk's compressed records."""
-    return np.frombuffer(msg.raw if msg.deferred is None else msg.deferred.compressed, np.uint8)
-
-
-def _with_payload(msg: RawMessage, payload: bytes) -> RawMessage:
-    """`msg` with `payload` (`_payload`'s bytes, or b"") in their place."""
-    if msg.deferred is None:
-        return msg._replace(raw=payload)
-    return msg._replace(deferred=replace(msg.deferred, compressed=payload))
-
-
-_LIDAR_FIELDS = ("xyz_m", "stamps_ns", "tag", "normal_world", "clear_bits", "reflectivity")
-
-
-def _lidar_arrays(points: LidarPoints) -> list[Array]:
-    """A window's arrays in `_LIDAR_FIELDS` order, those it has (tags, normals, bits and reflectivity may
-    be None)."""
-    return [a for a in (getattr(points, f) for f in _LIDAR_FIELDS) if a is not None]
-
-
-def _refilled(points: LidarPoints, arrays: list[Array]) -> LidarPoints:
-    """`points` with the arrays it has replaced by `arrays`, in `_LIDAR_FIELDS` order (None stays None)."""
-    it = iter(arrays)
-    xyz, stamps, tag, normal, bits, refl = (
-        None if getattr(points, f) is None else next(it) for f in _LIDAR_FIELDS
-    )
-    assert xyz is not None and stamps is not None  # never None
-    return LidarPoints(points.name, xyz, stamps, tag, normal, bits, refl)
-
-
-def take_arrays(job: StreamedJob) -> tuple[StreamedJob, tuple[Array, ...]]:
-    """The job without its two messages' bytes and its LiDAR windows' arrays, and those as arrays (the
-    executor's shared slots, instead of pickling ~15 MB of points through the task pipe per dense sample).
-
-    The light job keeps each window's arrays cut to no rows: their dtypes and columns, and which are None.
-    """
-    per_lidar = [_lidar_arrays(p) for p in job.lidars]
-    emptied = [_refilled(p, [a[:0] for a in own]) for p, own in zip(job.lidars, per_lidar, strict=True)]
-    light = replace(
-        job, upper=_with_payload(job.upper, b""), lower=_with_payload(job.lower, b""), lidars=tuple(emptied)
-    )
-    return light, (_payload(job.upper), _payload(job.lower), *(a for arrays in per_lidar for a in arrays))
-
-
-def give_arrays(job: StreamedJob, arrays: tuple[Array, ...]) -> StreamedJob:
-    """`take_arrays` undone in the worker, each array copied out of its slot (which the next job reuses)."""
-    upper, lower, *points = arrays
-    lidars, i = [], 0
-    for p in job.lidars:
-        n = len(_lidar_arrays(p))
-        lidars.append(_refilled(p, [np.array(a) for a in points[i : i + n]]))
-        i += n
-    return replace(
-        job, upper=_with_payload(job.upper, upper.tobytes()), lower=_with_payload(job.lower, lower.tobytes()),
-        lidars=tuple(lidars),
-    )  # fmt: skip
-
-
-def handoff_bytes_bound(geometry: Geometry, job: StreamedJob, rates: LidarRates, window_ns: int) -> int:
-    """An upper bound of any job's `take_arrays` bytes, with `job`'s LiDAR arrays' bytes per point.
-
-    The two camera messages: 4 bytes a pixel (bgra8) and a header each. The
-    points: each LiDAR's window of +-`window_ns` at the fastest sweep rate
-    of any LiDAR, plus 10 % and a sweep's end (a window over this bound, a
-    burst of points, travels pickled: slower, never wrong).
-    """
-    cams = (geometry.rig.upper, geometry.rig.lower)
-    images = sum(cam.model.width * cam.model.height * 4 + 65536 for cam in cams)
-    fastest = max((max(r) for r in rates.per_sweep.values() if r), default=0.0)
-    points = int(fastest * 2 * window_ns / 1e9 * 1.1) + 1000
-    per_point = sum(a.itemsize * int(np.prod(a.shape[1:])) for p in job.lidars for a in _lidar_arrays(p))
-    return images + points * per_point + ALIGN * (2 + len(_LIDAR_FIELDS) * len(job.lidars))
 
 
 def check_image_size(image: Array, camera: Any, msg: RawMessage, where: str) -> None:

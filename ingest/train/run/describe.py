@@ -28,12 +28,12 @@ from ingest.dataset.identity import bag_identity
 from ingest.dataset.layout import DEPTH_SCALE, DISP_SCALE, write_atomic
 from ingest.dataset.meta import read_meta
 from ingest.errors import DatasetError, OutputError
-from ingest.train.sample_job import Geometry
+from ingest.train.run.sample_job import Geometry
 
 if TYPE_CHECKING:
-    from ingest.train.resolved import ResolvedRun
-    from ingest.train.settings import IngestConfig
-    from ingest.train.summary import IngestSummary
+    from ingest.train.run.resolved import ResolvedRun
+    from ingest.train.run.settings import IngestConfig
+    from ingest.train.run.summary import IngestSummary
 
 HEADER = "# WideDepth training set written by SensorBox\n"
 PER_SOURCE = ("gt", "overlap_images", "method", "decision", "gap_fallback", "window_ns")
@@ -352,7 +352,7 @@ def record_undecodable(
 
 def record_calibration(out: Path, bags: list[Path], check: dict[str, Any]) -> None:
     """Set `calibration_check` of the recording `bags` in `out/dataset.yaml`: its samples' LiDAR points
-    on cam0's images summed up (`ingest.train.align.CalibrationCheck.as_yaml`), known only at the end."""
+    on cam0's images summed up (`ingest.train.gt.align.CalibrationCheck.as_yaml`), known only at the end."""
     path = out / "dataset.yaml"
     doc = _read_dataset_yaml(path)
     names = [p.name for p in bags]

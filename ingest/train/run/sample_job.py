@@ -20,9 +20,9 @@ from calibration.warp import build_maps, check_height_full, default_height_full
 from ingest.dataset.meta import AlignmentMeta, SampleMeta
 from ingest.raster.view import pixel_rays
 from ingest.rows import rows
-from ingest.train.dense import DenseParams, warm_up
-from ingest.train.groundtruth import GtParams, px_per_rad
-from ingest.train.rig_trajectory import RigTrajectory
+from ingest.train.gt.dense import DenseParams, warm_up
+from ingest.train.gt.groundtruth import GtParams, px_per_rad
+from ingest.train.trajectory.rig_trajectory import RigTrajectory
 
 
 @dataclass(frozen=True)
@@ -64,7 +64,7 @@ class Geometry:
             list(pool.map(lambda job: build_maps(job[0], self.equirect, job[1]), jobs))
 
     def warm_dense(self, params: DenseParams) -> None:
-        """Dense GT's per-camera caches and compiled kernels, built now (`ingest.train.dense.warm_up`)."""
+        """Dense GT's per-camera caches and compiled kernels, built now (`ingest.train.gt.dense.warm_up`)."""
         warm_up(self.rig.upper.model, self.equirect, self.rect.R_cam0_rect, self.rect.baseline_m, params)
 
 
@@ -78,7 +78,7 @@ class LidarPoints:
     tag: np.ndarray[Any, Any] | None
     normal_world: np.ndarray[Any, Any] | None = None  # dense GT: (N, 3) float16, NaN: none (`block_planes`)
     clear_bits: U64 | None = None  # dense GT: (N, words), the slices that saw through each (`block_planes`)
-    reflectivity: np.ndarray[Any, Any] | None = None  # (N,) as the driver stored it (`ingest.train.align`)
+    reflectivity: np.ndarray[Any, Any] | None = None  # (N,) as the driver stored it (`ingest.train.gt.align`)
 
     def within(self, t0_ns: int, t1_ns: int) -> LidarPoints:
         """The points stamped in [t0_ns, t1_ns], in their order."""

@@ -23,7 +23,7 @@ at the cells its tolerance reaches.
 
 `free_space_bits` says which references saw through each point (one bit
 each, so that the stream pass can test a block once for every sample that
-will hold it: `ingest.train.block_planes`); `free_space_filter` is the
+will hold it: `ingest.train.gt.block_planes`); `free_space_filter` is the
 test of one sample's own references.
 """
 
@@ -37,7 +37,7 @@ from numba import njit
 
 from calibration.types import F64, I64, U64, Bool
 from ingest.rows import rows
-from ingest.train.voxel_hash import voxel_groups
+from ingest.train.trajectory.voxel_hash import voxel_groups
 
 FREE_MARGIN_REL = 0.03  # a ray must pass a point by margin_m + 3 % of its range to clear it
 

@@ -8,14 +8,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from calibration.types import F64
-from ingest.train.align import Alignment
-from ingest.train.align_check import CalibrationCheck, from_metas
-from ingest.train.lidar_rate import THIN_FRACTION
-from ingest.train.refine import Refinement
-from ingest.train.sample_dense import GAP_FALLBACK
-from ingest.train.sample_job import ALIGNED, SampleAlignment, SampleResult
-from ingest.train.stream import ALREADY_HELD
-from ingest.train.trajectory import TrajectorySummary
+from ingest.train.gt.align import Alignment
+from ingest.train.gt.align_check import CalibrationCheck, from_metas
+from ingest.train.run.lidar_rate import THIN_FRACTION
+from ingest.train.run.refine import Refinement
+from ingest.train.run.sample_dense import GAP_FALLBACK
+from ingest.train.run.sample_job import ALIGNED, SampleAlignment, SampleResult
+from ingest.train.run.stream import ALREADY_HELD
+from ingest.train.trajectory.estimate import TrajectorySummary
 
 OVER_UINT16 = "over the depth PNG's 65.535 m, left empty"
 
@@ -77,9 +77,9 @@ class IngestSummary:
         )
 
     held_elsewhere: int = 0  # of `resumed`: frames that samples of other ids hold (`ingest.dataset.identity`)
-    refinement: Refinement | None = None  # --refine: what `ingest.train.refine` found and the rig it made
+    refinement: Refinement | None = None  # --refine: what `ingest.train.run.refine` found and the rig it made
     alignments: list[tuple[Mapping[str, Alignment], F64 | None]] = field(default_factory=list)  # per sample
-    calibration: CalibrationCheck | None = None  # the samples' alignments summed up (`ingest.train.align`)
+    calibration: CalibrationCheck | None = None  # the samples' alignments summed up (`ingest.train.gt.align`)
     damaged: list[str] = field(default_factory=list)  # finished samples found damaged, written again: why
     aligned: dict[str, SampleAlignment] = field(default_factory=dict)  # per sample id: alignment_only's
 

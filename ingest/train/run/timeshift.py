@@ -27,7 +27,7 @@ from scipy.spatial.transform import Rotation
 
 from calibration.camera import CameraModel
 from calibration.types import F64, I64, U8
-from ingest.train.clouds import GyroTrack
+from ingest.train.trajectory.clouds import GyroTrack
 
 MAX_CORNERS = 400
 MIN_TRACKS = 40

@@ -2,7 +2,7 @@
 
 The points of all sweeps within +-`window_ns` of the frame time are moved
 into cam0 at the frame time with the recording's trajectory
-(`ingest.train.odometry.RigTrajectory.to_frame`), then rendered with the
+(`ingest.train.trajectory.odometry.RigTrajectory.to_frame`), then rendered with the
 benchmark renderer's visibility machinery (`ingest.raster.view.render_view`:
 footprint splats, a z-buffer on range, the two-sided occlusion test, same-
 surface averaging and values moved onto pixel-centre rays). Accumulated
@@ -20,11 +20,11 @@ snapped values are, and costs about 80 ms at full resolution against about
 450 ms for a second render of the 3.4 M-pixel window.
 
 Moving objects: a point is kept unless the rays of two of the window's
-slice times saw through it (`ingest.train.free_space`): a mover's earlier
+slice times saw through it (`ingest.train.gt.free_space`): a mover's earlier
 positions are free space once it has left, so its stale points are removed
 and counted, and GT within a margin sized from each mover's extent around
 them is dropped (`mover_margins`, `near_movers`). The ingest tests each block of
-points once for every sample (`ingest.train.block_planes`); without those
+points once for every sample (`ingest.train.gt.block_planes`); without those
 bits a sample runs the test itself (`free_space_filter`).
 """
 
@@ -52,11 +52,11 @@ from ingest.raster.scan import Scan
 from ingest.raster.view import Rendering, pixel_rays, render_view
 from ingest.raster.z_order import z_order
 from ingest.rows import rows
-from ingest.train.block_planes import FreeSpaceSettings
-from ingest.train.free_space import RayTest
-from ingest.train.free_space import free_space_filter as free_space_mask
-from ingest.train.groundtruth import px_per_rad
-from ingest.train.planes import Normals, plane_normals
+from ingest.train.gt.block_planes import FreeSpaceSettings
+from ingest.train.gt.free_space import RayTest
+from ingest.train.gt.free_space import free_space_filter as free_space_mask
+from ingest.train.gt.groundtruth import px_per_rad
+from ingest.train.trajectory.planes import Normals, plane_normals
 
 VIEW_MARGIN_PX = 16  # dense GT draws the points this near cam0's image too (they may occlude rays inside it)
 
@@ -281,7 +281,7 @@ def dense_ground_truth(
 
     `moving_cam0` are the points the free-space test removed (see `near_movers`).
     `normals` are the points' local planes in cam0 (the ingest's block planes,
-    `ingest.train.block_planes`); without them each point's plane is fitted
+    `ingest.train.gt.block_planes`); without them each point's plane is fitted
     to its `plane_neighbours` nearest neighbours among `pts_cam0`.
     Only what cam0 sees is rendered: points outside its view (plus a margin
     of `VIEW_MARGIN_PX`) cannot occlude rays inside it. The equirect's ranges
@@ -416,7 +416,7 @@ def ray_test(params: DenseParams) -> RayTest:
 
 
 def free_space_settings(params: DenseParams) -> FreeSpaceSettings:
-    """The free-space test of `params` as the stream pass's blocks run it (`ingest.train.block_planes`)."""
+    """The free-space test of `params` as the stream pass's blocks run it (`ingest.train.gt.block_planes`)."""
     return FreeSpaceSettings(
         params.window_ns, params.free_reference_ns, params.free_slice_ns, ray_test(params),
         params.free_min_slices,
@@ -433,7 +433,7 @@ def free_space_filter(
     normal: F64 | None = None,
     lidars: int = 1,
 ) -> Bool:
-    """`ingest.train.free_space.free_space_filter` with the dense-GT settings of `params`."""
+    """`ingest.train.gt.free_space.free_space_filter` with the dense-GT settings of `params`."""
     return free_space_mask(
         pts, slice_id, references, ray_test(params), test, ray_origin, normal, params.free_min_slices, lidars
     )
@@ -469,6 +469,6 @@ def warm_up(
     slice_id = np.r_[np.zeros(half, np.int64), np.ones(len(pts) - half, np.int64)]
     references = [(0, np.array([0.0, -0.1, 0.0])), (1, np.array([0.0, 0.1, 0.0]))]
     keep = np.ones(len(pts), bool)
-    if params.free_space:  # as `ingest.train.sample_dense.process_dense` runs it
+    if params.free_space:  # as `ingest.train.run.sample_dense.process_dense` runs it
         keep = free_space_filter(pts, slice_id, references, params, may_matter(model, pts, params))
     dense_ground_truth(model, eq, R_cam0_rect, baseline_m, pts[keep], params, pts[~keep][:100] * 0.9)

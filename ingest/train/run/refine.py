@@ -28,10 +28,9 @@ from calibration.types import F64, U8
 from ingest.bags.decode import Frame, ImuSample
 from ingest.bags.reader import open_bags
 from ingest.errors import BagError
-from ingest.train.align import Alignment
-from ingest.train.align_check import Combined, SampleAlignments, check_calibration, combine, corrected
-from ingest.train.clouds import GyroTrack, integrate_gyro
-from ingest.train.timeshift import (
+from ingest.train.gt.align import Alignment
+from ingest.train.gt.align_check import Combined, SampleAlignments, check_calibration, combine, corrected
+from ingest.train.run.timeshift import (
     TIMING_ROTATION_SIGMA_DEG,
     FrameRotations,
     ImuRotation,
@@ -43,6 +42,7 @@ from ingest.train.timeshift import (
     estimate_timeshift,
     pair_rotation,
 )
+from ingest.train.trajectory.clouds import GyroTrack, integrate_gyro
 
 PAIR_GAPS = (3, 6, 12)
 """Frames are paired with the ones this many frames before: the offset's signal, the change of the angular
@@ -77,7 +77,7 @@ class ImuRefinement:
 
 @dataclass(frozen=True)
 class LidarRefinement:
-    """One LiDAR's pose in cam0 from its points laid onto cam0's image (`ingest.train.align`).
+    """One LiDAR's pose in cam0 from its points laid onto cam0's image (`ingest.train.gt.align`).
 
     `correction` is the total correction applied to the given rig's pose
     (rotation and translation in cam0), `sigma_*` its 1-sigma (largest axis).
@@ -320,7 +320,7 @@ def _rotated(T: F64, R_new: F64, R_old: F64) -> F64:
 Aligner = Callable[[Rig, int], tuple[SampleAlignments, SampleAlignments]]
 """Per-sample LiDAR-to-image alignments of the recording under a rig, given how many frames cam0
 recorded: onto the upper images (with cam0's twist) and onto the lower ones (in cam1); a sparse ingest
-of some of the frames (`ingest.train.pipeline.refine_rig`)."""
+of some of the frames (`ingest.train.run.pipeline.refine_rig`)."""
 STEREO_WARN_DEG = 0.1
 STEREO_WARN_MM = 5.0
 ALIGN_ROUNDS = 2

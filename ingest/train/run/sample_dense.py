@@ -13,13 +13,10 @@ from calibration.types import F64, I64
 from ingest.dataset.meta import GtMeta, MotionMeta, PointMeta, SampleMeta
 from ingest.rows import rows
 from ingest.runtime.background import Background
-from ingest.train.block_planes import cleared_for
-from ingest.train.clouds import REFERENCE_RANGE_M
-from ingest.train.dense import dense_ground_truth, free_space_filter, free_space_settings, may_matter
-from ingest.train.planes import Normals
-from ingest.train.rig_trajectory import RigTrajectory
-from ingest.train.sample_job import SampleJob, SampleResult
-from ingest.train.sample_parts import (
+from ingest.train.gt.block_planes import cleared_for
+from ingest.train.gt.dense import dense_ground_truth, free_space_filter, free_space_settings, may_matter
+from ingest.train.run.sample_job import SampleJob, SampleResult
+from ingest.train.run.sample_parts import (
     Equirects,
     alignment_fields,
     finish_sample,
@@ -27,8 +24,11 @@ from ingest.train.sample_parts import (
     silent_lidars,
     trajectory_twist,
 )
-from ingest.train.sample_sparse import process_sparse
+from ingest.train.run.sample_sparse import process_sparse
 from ingest.train.sync import IMU_MARGIN_NS
+from ingest.train.trajectory.clouds import REFERENCE_RANGE_M
+from ingest.train.trajectory.planes import Normals
+from ingest.train.trajectory.rig_trajectory import RigTrajectory
 
 GAP_REASON = "frame in a trajectory gap (LiDAR points missing around it)"
 GAP_FALLBACK = "auto: frame in a trajectory gap, sparse GT"

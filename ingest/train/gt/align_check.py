@@ -1,4 +1,4 @@
-"""Many samples' LiDAR-to-image alignments (`ingest.train.align`) summed up: each LiDAR's pose
+"""Many samples' LiDAR-to-image alignments (`ingest.train.gt.align`) summed up: each LiDAR's pose
 correction and the upper camera's clock offset (`combine`), the check ingest records and warns from
 (`check_calibration`), and the samples' alignments read back from their metadata."""
 
@@ -11,7 +11,7 @@ import numpy as np
 
 from calibration.types import F64
 from ingest.dataset.meta import AlignmentMeta, SampleMeta
-from ingest.train.align import Alignment, rotation_matrix
+from ingest.train.gt.align import Alignment, rotation_matrix
 
 SYSTEMATIC_PX = 0.15
 """What the combined correction cannot resolve however many samples agree (1-sigma, in pixels: in angle

@@ -12,10 +12,10 @@ import cv2
 
 from calibration.warp import build_maps, check_source, remap_spans
 from ingest.runtime.background import Background
-from ingest.train.sample_dense import process_dense
-from ingest.train.sample_job import SampleJob, SampleResult
-from ingest.train.sample_parts import Equirects
-from ingest.train.sample_sparse import process_sparse
+from ingest.train.run.sample_dense import process_dense
+from ingest.train.run.sample_job import SampleJob, SampleResult
+from ingest.train.run.sample_parts import Equirects
+from ingest.train.run.sample_sparse import process_sparse
 
 INTERPOLATION = {"linear": cv2.INTER_LINEAR, "cubic": cv2.INTER_CUBIC, "nearest": cv2.INTER_NEAREST}
 

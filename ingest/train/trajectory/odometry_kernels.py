@@ -1,11 +1,11 @@
 """Compiled (numba) per-point loops of the odometry's Gauss-Newton solve.
 
-Each iteration of `ingest.train.odometry` moves a chunk's few thousand points
+Each iteration of `ingest.train.trajectory.odometry` moves a chunk's few thousand points
 with the knot chain and accumulates the point-to-plane normal equations. In
 numpy that was a (N, 3, 3) rotation stack per iteration (`RigTrajectory.pose`)
 and a dense (N, 12) Jacobian, a dozen passes over the points; here it is one
 pass each. The chain's formula is the module doc's of
-`ingest.train.rig_trajectory`: R(t) p = R_k G_k^T G(t) Exp(f e_k) p with
+`ingest.train.trajectory.rig_trajectory`: R(t) p = R_k G_k^T G(t) Exp(f e_k) p with
 e_k = Log(E_k), position linear between the knots.
 
 Kernels are compiled on first use and cached on disk (`cache=True`).
@@ -20,7 +20,7 @@ from numba import njit
 from scipy.spatial.transform import Rotation
 
 from calibration.types import F64, I64
-from ingest.train.clouds import GyroTrack
+from ingest.train.trajectory.clouds import GyroTrack
 
 
 @njit(cache=True, nogil=True)
@@ -203,7 +203,7 @@ def _covariances(xyz, idx, out):  # type: ignore[no-untyped-def]  # pragma: no c
 def covariances(xyz: F64, idx: I64) -> F64:
     """Covariance (N, 3, 3, m^2) of each neighbourhood `xyz[idx[i]]` (idx: N x k), divided by k.
 
-    `ingest.train.planes.neighbour_covariances` in one pass, without the (N, k, 3) gather.
+    `ingest.train.trajectory.planes.neighbour_covariances` in one pass, without the (N, k, 3) gather.
     """
     out = np.empty((len(idx), 3, 3))
     if len(idx):

@@ -28,9 +28,9 @@ from calibration.types import F64
 from ingest.bags.reader import BagSet
 from ingest.dataset.identity import bag_identity
 from ingest.dataset.layout import write_atomic
-from ingest.train.clouds import GyroTrack
-from ingest.train.local_map import OdometryParams
-from ingest.train.rig_trajectory import RigTrajectory
+from ingest.train.trajectory.clouds import GyroTrack
+from ingest.train.trajectory.local_map import OdometryParams
+from ingest.train.trajectory.rig_trajectory import RigTrajectory
 
 _PACKAGES = (Path(__file__).resolve().parents[1], Path(__file__).resolve().parents[2] / "calibration")
 

@@ -14,11 +14,11 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-from ingest.train.block_planes import FreeSpaceSettings
-from ingest.train.dense import DenseParams, free_space_settings
-from ingest.train.sample_job import SampleParams
-from ingest.train.settings import IngestConfig
-from ingest.train.trajectory import STATIC_WINDOW_NS
+from ingest.train.gt.block_planes import FreeSpaceSettings
+from ingest.train.gt.dense import DenseParams, free_space_settings
+from ingest.train.run.sample_job import SampleParams
+from ingest.train.run.settings import IngestConfig
+from ingest.train.trajectory.estimate import STATIC_WINDOW_NS
 
 STATIC_WINDOW_NOTE = f"rig static: window +-{STATIC_WINDOW_NS / 1e6:.0f} ms"
 """What `resolve_run` adds to the decision when it widens dense GT's window for a static rig."""

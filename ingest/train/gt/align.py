@@ -25,7 +25,7 @@ residuals' spread) and how far the correction moves the points on the image
 (`shift_deg`): a sample whose points lie on the image within its noise has a
 correction indistinguishable from zero. A camera clock offset `dt` shows up
 as a correction equal to `dt` times the rig's motion (`twist`), a rig-file
-error as the same correction in every sample: `ingest.train.align_check.combine`
+error as the same correction in every sample: `ingest.train.gt.align_check.combine`
 separates them over many samples.
 """
 
@@ -39,7 +39,7 @@ import numpy as np
 from calibration.camera import CameraModel
 from calibration.types import F64
 from ingest.dataset.meta import AlignmentMeta
-from ingest.train.groundtruth import px_per_rad
+from ingest.train.gt.groundtruth import px_per_rad
 
 SIGMAS_PX = (8.0, 4.0, 2.0, 1.0)
 """The image blur of each coarse-to-fine level (Gaussian sigma, pixels of a 1920-wide image)."""

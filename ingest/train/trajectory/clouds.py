@@ -21,10 +21,8 @@ from scipy.spatial.transform import Rotation
 
 from calibration.linalg3 import rotvec_to_matrix
 from calibration.types import F64, I64, U8, Bool
-from ingest.train.planes import plane_normals
-
-NOISE_TAG_BITS = 0b0011_1100
-"""Livox tag fields rain/fog/dust (bits 2-3) and other (bits 4-5): non-zero means a doubtful echo."""
+from ingest.train.plausible import NOISE_TAG_BITS
+from ingest.train.trajectory.planes import plane_normals
 
 
 @dataclass(frozen=True)

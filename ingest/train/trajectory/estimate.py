@@ -2,8 +2,8 @@
 
 `read_gyro` collects the IMU's angular rates (small: 200 Hz); `trajectory_pass`
 streams every sweep of every LiDAR, filters it as the samples do
-(`ingest.train.clouds.filter_points`), puts it in cam0 with the rig's
-extrinsics and feeds `ingest.train.odometry.Odometry`. Sweeps of several
+(`ingest.train.trajectory.clouds.filter_points`), puts it in cam0 with the rig's
+extrinsics and feeds `ingest.train.trajectory.odometry.Odometry`. Sweeps of several
 LiDARs interleave in the bag; the odometry registers a chunk only once every
 LiDAR has delivered points past its end.
 """
@@ -22,13 +22,13 @@ from calibration.types import F64
 from ingest.bags.decode import ImuSample, Sweep
 from ingest.bags.reader import BagSet, Progress
 from ingest.errors import OutputError
-from ingest.train import trajectory_cache
 from ingest.train.bad_messages import BadMessages
-from ingest.train.clouds import GyroTrack, filter_points, integrate_gyro
-from ingest.train.local_map import OdometryParams
-from ingest.train.odometry import Odometry
 from ingest.train.repeats import FirstCopies
-from ingest.train.rig_trajectory import RigTrajectory, still
+from ingest.train.trajectory import cache as trajectory_cache
+from ingest.train.trajectory.clouds import GyroTrack, filter_points, integrate_gyro
+from ingest.train.trajectory.local_map import OdometryParams
+from ingest.train.trajectory.odometry import Odometry
+from ingest.train.trajectory.rig_trajectory import RigTrajectory, still
 
 
 @dataclass(frozen=True)

@@ -21,10 +21,10 @@ from ingest.bags.reader import READAHEAD_THREADS, BagSet, Progress
 from ingest.errors import BagError
 from ingest.runtime.executor import usable_cpus
 from ingest.train.bad_messages import BadMessages
-from ingest.train.lidar_rate import LidarRates
-from ingest.train.lost import lost_intervals, untouched
 from ingest.train.plausible import NOISE_TAG, POINT_FAR
 from ingest.train.repeats import FirstCopies, fingerprint
+from ingest.train.run.lidar_rate import LidarRates
+from ingest.train.run.lost import lost_intervals, untouched
 from ingest.train.sync import (
     IMU_MARGIN_NS,
     lidar_clock_spread,
@@ -36,8 +36,8 @@ from ingest.train.sync import (
 )
 
 if TYPE_CHECKING:
-    from ingest.train.resolved import ResolvedRun
-    from ingest.train.settings import Topics
+    from ingest.train.run.resolved import ResolvedRun
+    from ingest.train.run.settings import Topics
 
 
 @dataclass(frozen=True)
