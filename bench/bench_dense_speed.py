@@ -12,7 +12,7 @@ GT of the last run is scored against the simulator's exact truth. CPU
 seconds per sample are the main process's (start-up, trajectory pass, bag
 reading) and its reaped workers' over the whole run. numpy's BLAS runs on
 one thread, as under the `sensorbox` command. The
-issue's targets: >= 2 samples/s on 2 cores, trajectory pass included, and
+targets: >= 2 samples/s on 2 cores, trajectory pass included, and
 the trajectory alone faster than real time on one core.
 """
 

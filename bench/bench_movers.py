@@ -10,7 +10,7 @@ density, density with the filter as % of density without it, mover trail
 and outliers (GT on the sky included) as % of GT pixels, seconds per sample
 (a worker's: the free-space bits looked up, GT rendered) and the stream
 pass's free-space test per 1 s block (one process, numba's threads). The
-issue's targets: static scenes <= 1 % removed and >= 95 % of the density;
+targets: static scenes <= 1 % removed and >= 95 % of the density;
 movers: trail <= 0.01 %, outliers <= 0.05 %.
 """
 

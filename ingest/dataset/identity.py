@@ -56,7 +56,7 @@ def file_problem(path: Path, size: int, sha256: str) -> str:
     Only a regular file of exactly `size` bytes is read, and no more than
     that: a file of another size is damaged by its size alone. A path that
     is no regular file (a device, a FIFO, a folder, or a symlink to one: a
-    link to /dev/zero was read until memory ran out) is no sample damage a
+    link to /dev/zero would be read until memory runs out) is no sample damage a
     rerun may write over: a `DatasetError` naming it.
     """
     try:

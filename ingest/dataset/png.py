@@ -1,8 +1,8 @@
 """A fast PNG writer: numpy row filters + ISA-L deflate.
 
-PNG encoding was the largest cost of a training sample (bench_ingest): four RGB
-images of up to 2048x4096 per sample, and libpng with zlib 1.2 at level 1 takes
-~90 ms per equirect on one core. The bytes PNG needs are simple (signature,
+With libpng, PNG encoding would be the largest cost of a training sample
+(bench_ingest): four RGB images of up to 2048x4096 per sample, and libpng with
+zlib 1.2 at level 1 takes ~90 ms per equirect on one core. The bytes PNG needs are simple (signature,
 IHDR, one IDAT holding the zlib stream of filtered rows, IEND), so this module
 builds them itself: the row filter is one vectorised subtraction and the
 deflate runs in Intel's ISA-L (`isal`), about 5x faster than zlib at a similar

@@ -15,8 +15,8 @@ from ingest.errors import ScanError
 def check_cloud_file(path: Path) -> None:
     """Refuse a point cloud path that is missing or no regular file (symlinks followed).
 
-    A link to /dev/zero given as `--mask` was read line by line without end
-    (a header that never ends) until memory ran out; a FIFO would wait
+    A link to /dev/zero given as `--mask` would be read line by line without
+    end (a header that never ends) until memory runs out; a FIFO would wait
     forever. One `ScanError` line naming the path and what it is.
     """
     try:

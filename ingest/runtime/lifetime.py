@@ -37,7 +37,7 @@ def sigint_blocked() -> Iterator[None]:
 
     Ctrl-C goes to the whole process group. A spawned child needs a second or
     more to import before its own code can ignore SIGINT, and a
-    KeyboardInterrupt in that time was a traceback on the terminal. The
+    KeyboardInterrupt in that time would be a traceback on the terminal. The
     thread's signal mask survives fork and exec, so the child never sees
     SIGINT (its parent must stop it some other way, such as a control pipe).
     A Ctrl-C is directed at the process, and the kernel hands it to any

@@ -68,8 +68,8 @@ def _on_ctrl_c(signum: int, frame: FrameType | None) -> None:
     """SIGINT as KeyboardInterrupt, except inside llvmlite (numba compiling or loading its cache).
 
     There the handler runs within a ctypes callback, and ctypes prints a
-    KeyboardInterrupt raised in a callback and drops it: the Ctrl-C was lost
-    and the run went on to the end. It is noted instead, and the next
+    KeyboardInterrupt raised in a callback and drops it: the Ctrl-C would be
+    lost and the run would go on to the end. It is noted instead, and the next
     progress update raises it (`raise_deferred_ctrl_c`).
     """
     if frame is not None and "llvmlite" in frame.f_code.co_filename:

@@ -164,7 +164,7 @@ def _fields(
 
 def _entries(f: LineMap, key: str, entity: str, of: str, where: str) -> list[Any]:
     """The list under `key` of entity `f` ([] when absent or empty), or a LaunchError naming `entity`
-    and `key`: a scalar (`param: 5`) was a TypeError traceback, a string was iterated by character."""
+    and `key` when it is a scalar (`param: 5`), a string or a mapping rather than a list."""
     raw = f.get(key)
     if raw is None:
         return []

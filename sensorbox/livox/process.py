@@ -5,7 +5,7 @@ In one Python process the driver's point thread shares the interpreter lock
 with camera encoding, the recorder and (emulated rigs) the emulators: when the
 CPU is contended, a thread that holds the lock while the OS preempts it stalls
 every other one, the socket buffer fills and the kernel drops datagrams
-(issue 20, class 11: 32,134 lost in 14 s on 2 busy cores). Here the driver runs
+(32,134 lost in 14 s on 2 busy cores). Here the driver runs
 in a child process (spawned, not forked: the parent has threads) that only
 receives, decodes and frames; at startup it asks for a higher scheduling
 priority (`nice`, granted only with CAP_SYS_NICE or a raised RLIMIT_NICE; what

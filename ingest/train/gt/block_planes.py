@@ -2,9 +2,9 @@
 
 Dense GT snaps every accumulated point onto its pixels' rays along the
 point's local plane (`ingest.train.gt.dense.snap_to_pixel_rays`). Fitted per
-sample, the k-NN plane fit of a +-500 ms window was the largest cost of a
-sample (about 220 ms of one core at full resolution), and consecutive
-samples fitted nearly the same planes again: at every frame a point lies in
+sample, the k-NN plane fit of a +-500 ms window would be the largest cost of
+a sample (about 220 ms of one core at full resolution), and consecutive
+samples would fit nearly the same planes again: at every frame a point lies in
 30 windows. Here the stream pass fits them once: the recording is cut into
 blocks of `DenseParams.plane_block_ns` (1 s, as many points as a window
 holds), each block's points are placed in the world with the trajectory
@@ -19,8 +19,8 @@ LiDAR gap between them) are never neighbours; points outside every
 stretch, and those `filter_points` drops, get no normal (NaN).
 
 The free-space test that removes movers (`ingest.train.gt.free_space`) runs
-here too, once per block instead of once per sample (it was a sample's
-second largest cost). Every slice of `DenseParams.free_slice_ns` of one
+here too, once per block instead of once per sample (per sample, it would be
+a sample's second largest cost). Every slice of `DenseParams.free_slice_ns` of one
 LiDAR (fixed in absolute time) is a reference; a sample's references are
 the slices within +-`free_reference_ns` (0: its window) of its frame time.
 A block's points are tested, in the world, against every slice some sample

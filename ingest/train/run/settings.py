@@ -126,7 +126,8 @@ def resolve_topics(rig: Rig, bag_topics: dict[str, Any], where: str) -> Topics:
     lidars = {find(li.topic, f"lidar {li.name}"): li.name for li in rig.lidars}
     # every IMU the rig names must be there: a silent fallback skews the motion model
     imu_topics = [find(i.topic, f"imu {i.name}") for i in rig.imus]
-    # a topic of another type, or of two (a LiDAR topic that also carries Imu messages), was skipped unsaid
+    # a topic of another type, or of two (a LiDAR topic that also carries Imu messages), is refused here:
+    # its messages would otherwise be skipped without a word
     problems = check_rig(rig, {t: s.msgtype for t, s in bag_topics.items()})
     if problems:
         first = problems[0]

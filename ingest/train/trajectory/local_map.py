@@ -47,7 +47,7 @@ class LocalMap:
 
     Normals are computed when ICP first matches a point (`normals_at`), not
     when it joins: most map points are never matched, and the k-neighbour
-    query and covariance of every new point were the odometry's largest
+    query and covariance of every new point would be the odometry's largest
     cost. A normal is the PCA normal of the point's neighbours in the map at
     that time; "planar" is judged at its range from where the rig was when
     it joined.

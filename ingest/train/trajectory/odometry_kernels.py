@@ -2,9 +2,9 @@
 
 Each iteration of `ingest.train.trajectory.odometry` moves a chunk's few thousand points
 with the knot chain and accumulates the point-to-plane normal equations. In
-numpy that was a (N, 3, 3) rotation stack per iteration (`RigTrajectory.pose`)
-and a dense (N, 12) Jacobian, a dozen passes over the points; here it is one
-pass each. The chain's formula is the module doc's of
+numpy that would be a (N, 3, 3) rotation stack per iteration (as
+`RigTrajectory.pose` builds) and a dense (N, 12) Jacobian, a dozen passes over
+the points; here it is one pass each. The chain's formula is the module doc's of
 `ingest.train.trajectory.rig_trajectory`: R(t) p = R_k G_k^T G(t) Exp(f e_k) p with
 e_k = Log(E_k), position linear between the knots.
 

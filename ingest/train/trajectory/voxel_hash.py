@@ -1,7 +1,7 @@
 """Nearest neighbours in a hash of voxels (compiled, numba): the odometry's map search.
 
 The odometry's local map changes every 100 ms chunk (points join, old ones
-leave), and rebuilding a k-d tree of its ~120k points each time was the
+leave), and rebuilding a k-d tree of its ~120k points each time would be the
 largest cost of the trajectory pass. A voxel hash builds in one linear pass
 (KISS-ICP's idea): the points are bucketed by their `cell_m` cube, the buckets
 laid out contiguously (a counting sort), and an open-addressing table maps a
