@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from ingest.train.plausible import NOISE_TAG_BITS
-from ingest.train.trajectory.clouds import FilterCounts, compensate, filter_points
+from ingest.train.trajectory.clouds import FilterCounts, filter_points, motion_decision
+from ingest.train.trajectory.rig_trajectory import RigTrajectory
 
 
 def test_each_point_is_kept_or_counted_under_its_first_reason() -> None:
@@ -61,11 +62,15 @@ def test_compensation_predicts_translation_as_the_angle_seen_from_the_reference_
     0.125 px, below the 0.25 px threshold: the points stay as they are.
     """
     pts = np.array([[0.0, 0.0, 3.0], [1.0, 0.0, 0.0]])
-    out, d = compensate(pts, np.array([0.05, -0.02]), None, np.array([1.0, 0.0, 0.0]), 500.0)
+    d = motion_decision(np.array([0.05, -0.02]), 0.0, np.array([1.0, 0.0, 0.0]), 500.0)
     assert d.motion_px == pytest.approx(12.5, rel=1e-12)
     assert d.applied and d.speed_mps == 1.0 and d.max_rotation_deg == 0.0
-    np.testing.assert_allclose(out, [[0.05, 0.0, 3.0], [0.98, 0.0, 0.0]], rtol=0, atol=1e-15)
+    t_ns = np.array([50_000_000, -20_000_000], np.int64) + 10**9
+    moved = RigTrajectory.over_window(None, np.array([1.0, 0.0, 0.0]), 10**9, (t_ns.min(), t_ns.max()))
+    np.testing.assert_allclose(
+        moved.to_frame(pts, t_ns, 10**9), [[0.05, 0.0, 3.0], [0.98, 0.0, 0.0]], atol=1e-15
+    )
 
-    slow, d_slow = compensate(pts, np.array([0.005, 0.001]), None, np.array([0.0, 0.1, 0.0]), 500.0)
+    d_slow = motion_decision(np.array([0.005, 0.001]), 0.0, np.array([0.0, 0.1, 0.0]), 500.0)
     assert d_slow.motion_px == pytest.approx(0.125, rel=1e-12)
-    assert not d_slow.applied and slow is pts
+    assert not d_slow.applied

@@ -28,8 +28,9 @@ from ingest.train.run.sample_parts import (
     points_by_lidar,
     silent_lidars,
 )
-from ingest.train.trajectory.clouds import compensate, estimate_velocity, integrate_gyro
+from ingest.train.trajectory.clouds import estimate_velocity, integrate_gyro, motion_decision
 from ingest.train.trajectory.planes import Normals
+from ingest.train.trajectory.rig_trajectory import RigTrajectory
 
 VELOCITY_SIGMAS = 4.0  # an estimated velocity counts when its norm exceeds this many standard errors
 
@@ -48,23 +49,26 @@ def process_sparse(job: SampleJob, images: Background[Equirects] | None, start_m
         off_imu = int((~covered).sum())  # counted in the meta: the filters' counts add up to the total
         counts = replace(counts, kept=counts.kept - off_imu)
         cloud = cloud.where(covered)
-    pts, stamps = cloud.pts, cloud.stamps_ns
-    dt_s = (stamps - job.exposure_ns) / 1e9
-    use_gyro = gyro is not None and prm.motion != "off"
-    rotated = gyro.rotate(stamps, job.exposure_ns, pts) if gyro is not None and use_gyro else None
-    velocity, source = job.velocity_cam0_mps, ("imu" if use_gyro else "none")
+    pts, stamps, tc = cloud.pts, cloud.stamps_ns, job.exposure_ns
+    dt_s = (stamps - tc) / 1e9
+    turn = gyro if prm.motion != "off" else None
+    span = (int(stamps.min()), int(stamps.max())) if len(stamps) else (tc, tc)
+    turning = RigTrajectory.over_window(turn, None, tc, span)  # the gyro's turn alone
+    rotated = turning.to_frame(pts, stamps, tc) if turn is not None else pts
+    velocity, source = job.velocity_cam0_mps, ("imu" if turn is not None else "none")
     if prm.motion != "full":
         velocity = None
     elif velocity is None and prm.estimate_velocity:
-        est = estimate_velocity(
-            rotated[0] if rotated is not None else pts, dt_s, significance=VELOCITY_SIGMAS
-        )
+        est = estimate_velocity(rotated, dt_s, significance=VELOCITY_SIGMAS)
         # use it only when it is significant: a static rig must not be "compensated" with fit noise
         if est is not None and np.linalg.norm(est.velocity_cam0_mps) > VELOCITY_SIGMAS * est.weakest_m_s:
             velocity = est.velocity_cam0_mps
     if velocity is not None:
         source += "+velocity"
-    pts, motion = compensate(pts, dt_s, rotated, velocity, geo.px_per_rad, prm.min_motion_px, source=source)
+    angle = turning.motion_from(tc, *span)[0] if turn is not None else 0.0
+    motion = motion_decision(dt_s, angle, velocity, geo.px_per_rad, prm.min_motion_px, source=source)
+    if motion.applied:  # each point at its own time, in cam0 at the frame time
+        pts = RigTrajectory.over_window(turn, velocity, tc, span).to_frame(pts, stamps, tc)
     half = prm.window_ns / 2e9
     if motion.applied and not (len(dt_s) and dt_s.min() <= -half and dt_s.max() >= half):
         # a one-sided window (bag start/end, a LiDAR gap) leaves the velocity poorly determined

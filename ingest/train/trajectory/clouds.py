@@ -88,11 +88,6 @@ class GyroTrack:
         frac: F64 = (tc - t0).astype(np.float64) / (t1 - t0).astype(np.float64)
         return k, frac
 
-    def orientation(self, t_ns: int) -> F64:
-        """R_ref_cam0 (3, 3) at one time (clamped to the track)."""
-        out: F64 = self.at(np.array([t_ns], np.int64))[0]
-        return out
-
     def at(self, t_ns: I64) -> F64:
         """R_ref_cam0 (N, 3, 3) at times `t_ns` (clamped to the track)."""
         t = np.atleast_1d(np.asarray(t_ns, np.int64))
@@ -107,65 +102,6 @@ class GyroTrack:
         G0 = self.at(np.broadcast_to(np.asarray(t0_ns, np.int64), np.shape(np.atleast_1d(t1_ns))))
         out: F64 = np.matmul(np.swapaxes(G0, 1, 2), self.at(t1_ns))
         return out
-
-    def relative(self, t_ns: I64, t_ref_ns: int) -> F64:
-        """R_c_i (N, 3, 3): rotations taking cam0 at each t_i into cam0 at t_ref (clamped to the track).
-
-        Spherical-linear interpolation between the integrated samples, as
-        scipy's Slerp defines it (R_k exp(a log(R_k^T R_k+1))), in closed form:
-        one Rodrigues exponential per point instead of Rotation objects.
-        """
-        t = np.asarray(t_ns, np.int64)
-        R = self.rotations
-        if len(self.stamps_ns) == 1:
-            return np.broadcast_to(np.eye(3), (len(t), 3, 3)).copy()
-        steps = self.steps
-        R_ref = self.orientation(t_ref_ns)
-        k, frac = self._interval(t)
-        M = np.einsum("ji,kjl->kil", R_ref, R)  # R_ref^T R_k for every track sample (few)
-        out: F64 = np.einsum("nij,njl->nil", M[k], rotvec_to_matrix(steps[k] * frac[:, None]))
-        return out
-
-    def rotate(self, t_ns: I64, t_ref_ns: int, pts: F64) -> tuple[F64, F64]:
-        """Points measured in cam0 at t_i rotated into cam0 at t_ref (N, 3); each rotation's angle (N,) rad.
-
-        The same rotations as `relative` without forming them per point: the
-        points of one gyro interval k share R_ref^T R_k and the step axis, so
-        R_c_i p = R_ref^T R_k (p + a [s_k]p + b [s_k]^2 p) with per-point scalars
-        a = sin(f |s_k|) / |s_k| and b = (1 - cos(f |s_k|)) / |s_k|^2 (Rodrigues for
-        the fraction f of the step rotation vector s_k): three 3x3 products per
-        interval instead of a (N, 3, 3) stack.
-        """
-        t = np.asarray(t_ns, np.int64)
-        p = np.asarray(pts, np.float64)
-        if len(self.stamps_ns) == 1 or len(t) == 0:
-            return p.copy(), np.zeros(len(t))
-        R = self.rotations
-        steps = self.steps
-        R_ref = self.orientation(t_ref_ns)
-        k, frac = self._interval(t)
-        order = np.argsort(k, kind="stable")
-        starts = np.searchsorted(k[order], np.arange(len(R)))
-        out, angle = np.empty_like(p), np.empty(len(t))
-        for kk in np.unique(k):
-            sel = order[starts[kk] : starts[kk + 1]]
-            M = R_ref.T @ R[kk]
-            s = steps[kk]
-            S = np.array([[0.0, -s[2], s[1]], [s[2], 0.0, -s[0]], [-s[1], s[0], 0.0]])
-            theta = float(np.linalg.norm(s))
-            phi = frac[sel] * theta
-            if theta < 1e-4:  # series: a = f (1 - phi^2 / 6), b = f^2 (1/2 - phi^2 / 24)
-                a = frac[sel] * (1.0 - phi**2 / 6.0)
-                b = frac[sel] ** 2 * (0.5 - phi**2 / 24.0)
-            else:
-                a, b = np.sin(phi) / theta, (1.0 - np.cos(phi)) / theta**2
-            P = p[sel]
-            X = P @ S.T
-            out[sel] = (P + a[:, None] * X + b[:, None] * (X @ S.T)) @ M.T
-            MS = M @ S
-            cos = (np.trace(M) + a * np.trace(MS) + b * np.trace(MS @ S) - 1.0) / 2.0
-            angle[sel] = np.arccos(np.clip(cos, -1.0, 1.0))
-        return out, angle
 
 
 def integrate_gyro(stamps_ns: I64, gyro_imu_rad_s: F64, R_cam0_imu: F64) -> GyroTrack:
@@ -200,36 +136,32 @@ REFERENCE_RANGE_M = 2.0
 """The range (m) at which a translation of the rig is turned into predicted image motion."""
 
 
-def compensate(
-    pts_cam0: F64,
+def motion_decision(
     dt_s: F64,
-    rotated: tuple[F64, F64] | None,
+    max_rotation_rad: float,
     velocity_cam0_mps: F64 | None,
     px_per_rad: float,
     min_motion_px: float = 0.25,
     reference_range_m: float = REFERENCE_RANGE_M,
     source: str = "none",
-) -> tuple[F64, MotionDecision]:
-    """Move cam0-frame points measured `dt_s` after the frame time to cam0 at the frame time.
+) -> MotionDecision:
+    """Whether points measured `dt_s` (s) from the frame time move enough to be compensated.
 
-    `rotated` is (the points rotated by the gyro, each rotation's angle in rad)
-    from `GyroTrack.rotate`, `velocity_cam0_mps` the constant velocity. The
-    predicted image motion is the largest rotation angle times `px_per_rad`
-    plus the translation over the largest |dt| seen from `reference_range_m`;
-    below `min_motion_px` the points stay as they are.
+    The predicted image motion is the rig's largest rotation over the window
+    (`max_rotation_rad`) times `px_per_rad` plus the translation at
+    `velocity_cam0_mps` over the largest |dt| seen from `reference_range_m`;
+    below `min_motion_px` the points stay as they are (a still rig is not
+    "compensated" with the gyro's noise). The points are moved by the
+    window's trajectory (`RigTrajectory.over_window(...).to_frame`).
     """
     v = np.zeros(3) if velocity_cam0_mps is None else np.asarray(velocity_cam0_mps, np.float64)
-    angle = float(np.max(rotated[1])) if rotated is not None and len(dt_s) else 0.0
+    angle = max_rotation_rad if len(dt_s) else 0.0
     speed = float(np.linalg.norm(v))
     span_s = float(np.abs(dt_s).max()) if len(dt_s) else 0.0
     motion_px = angle * px_per_rad + speed * span_s / reference_range_m * px_per_rad
-    decision = MotionDecision(
+    return MotionDecision(
         motion_px > min_motion_px, float(np.degrees(angle)), speed, motion_px, source, v.tolist()
     )
-    if not decision.applied:
-        return pts_cam0, decision
-    out = rotated[0] if rotated is not None else np.array(pts_cam0, np.float64)
-    return out + np.asarray(dt_s)[:, None] * v, decision
 
 
 @dataclass(frozen=True)

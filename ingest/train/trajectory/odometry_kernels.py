@@ -111,41 +111,30 @@ def normal_equations(a: F64, n: F64, r: F64, w: F64, seg: I64, f: F64, free: I64
 
 
 @njit(cache=True, nogil=True)
-def _node_fractions(t, stamps, k_lo, k_hi, m, nodes, a, g):  # type: ignore[no-untyped-def]  # pragma: no cover
-    t_first, t_last = stamps[0], stamps[-1]
-    k = k_lo
+def _node_walk(t, nodes, a, g):  # type: ignore[no-untyped-def]  # pragma: no cover
+    j = 0
+    last = nodes.shape[0] - 2
     for i in range(t.shape[0]):
-        ti = min(max(t[i], t_first), t_last)
-        while k < k_hi and stamps[k + 1] <= ti:  # the knot at or before ti: walked from the last point's
-            k += 1
-        while k > k_lo and stamps[k] > ti:
-            k -= 1
-        s0 = stamps[k]
-        span = stamps[k + 1] - s0
-        num = (ti - s0) * m
-        j = np.int64(num / span)  # the float quotient is within one of the integer one: fixed below
-        while j * span > num:
-            j -= 1
-        while (j + 1) * span <= num:
+        ti = min(max(t[i], nodes[0]), nodes[-1])
+        while j < last and nodes[j + 1] <= ti:  # walked from the last point's node: points come in time
             j += 1
-        idx = (k - k_lo) * (m + 1) + min(j, m - 1)
-        a[i] = idx
-        g[i] = (ti - nodes[idx]) / max(nodes[idx + 1] - nodes[idx], 1)
+        while j > 0 and nodes[j] > ti:
+            j -= 1
+        a[i] = j
+        g[i] = (ti - nodes[j]) / max(nodes[j + 1] - nodes[j], 1)
 
 
-def node_fractions(t: I64, stamps: I64, k_lo: int, k_hi: int, m: int, nodes: I64) -> tuple[I64, F64]:
-    """Each time's node before it and its fraction to the next, on a grid of `m` nodes per knot interval.
+def node_fractions(t: I64, nodes: I64) -> tuple[I64, F64]:
+    """Each time's node before it and its fraction to the next, on the ascending node times `nodes`.
 
-    `nodes` ((k_hi - k_lo + 1) * (m + 1),) are the node times of the knot
-    intervals k_lo..k_hi, `m` + 1 per interval (knots included); times are
-    clamped to the knots and must fall in those intervals. A time in interval
-    k takes node j = (t - t_k) m // (t_k+1 - t_k) (at most m - 1), found here
-    from the float quotient and two integer checks (numpy's int64 division
-    costs about 15 ns a point; a cloud has millions).
+    Times are clamped to the nodes' span; a time on a node takes that node
+    (fraction 0), the last node's time the last interval's end (fraction 1).
+    The search walks from the previous point's node, so points that come
+    roughly in time (a cloud's sweeps) cost a step or two each.
     """
     a = np.empty(len(t), np.int64)
     g = np.empty(len(t), np.float64)
-    _node_fractions(np.ascontiguousarray(t, np.int64), stamps, k_lo, k_hi, m, nodes, a, g)
+    _node_walk(np.ascontiguousarray(t, np.int64), np.ascontiguousarray(nodes, np.int64), a, g)
     return a, g
 
 

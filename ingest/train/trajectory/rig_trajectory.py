@@ -43,6 +43,31 @@ class RigTrajectory:
     residual_m: F64  # (K,) RMS point-to-plane residual of the solve that placed each knot (0: the first)
     gyro: GyroTrack | None = None
 
+    @classmethod
+    def over_window(
+        cls, gyro: GyroTrack | None, velocity_cam0_mps: F64 | None, t_ref_ns: int, span_ns: tuple[int, int]
+    ) -> RigTrajectory:
+        """The motion sparse GT knows over one window as a trajectory: the gyro's turn (None: none) and a
+        constant velocity (m/s in cam0 at `t_ref_ns`; None: none); world = cam0 at `t_ref_ns`.
+
+        Two knots at the ends of `span_ns` (widened to hold `t_ref_ns`),
+        oriented by the gyro and placed on the velocity's line: between them
+        the chain turns as the gyro does (its mismatch with the second knot is
+        the identity) and moves linearly, so `to_frame` takes a point measured
+        at t by R(t_ref)^T R(t) and v (t - t_ref), through the same interface
+        as dense GT's trajectory of the whole recording.
+        """
+        lo, hi = min(span_ns[0], t_ref_ns), max(span_ns[1], t_ref_ns)
+        stamps = np.array([lo, max(hi, lo + 1)], np.int64)
+        R = (
+            np.tile(np.eye(3), (2, 1, 1))
+            if gyro is None
+            else gyro_between(gyro, np.array([t_ref_ns]), stamps)
+        )
+        v = np.zeros(3) if velocity_cam0_mps is None else np.asarray(velocity_cam0_mps, np.float64)
+        p = v[None, :] * ((stamps - t_ref_ns) / 1e9)[:, None]
+        return cls(stamps, R, p, np.zeros(2), gyro)
+
     def _segment(self, t_ns: I64) -> tuple[I64, F64]:
         t = np.clip(np.asarray(t_ns, np.int64), self.stamps_ns[0], self.stamps_ns[-1])
         k = np.clip(np.searchsorted(self.stamps_ns, t, side="right") - 1, 0, len(self.stamps_ns) - 2)
@@ -104,12 +129,15 @@ class RigTrajectory:
         """(R_world_cam0 (N, 3, 3), p_world_cam0 (N, 3)) at times `t_ns` (clamped to the knots).
 
         Many times (a cloud's points) take the exact pose at `POSE_NODES`
-        nodes per knot interval (0.5 ms at 50 ms knots; knots are nodes, so
-        the chain's kinks are kept), blended linearly per point: the rotation
-        turns by at most omega * 0.5 ms between nodes (5e-4 rad at 60 deg/s)
-        and the blend is off by about that squared over 8, well under a
-        micrometre at 10 m, at a fraction of the cost of three Rodrigues
-        exponentials per point.
+        nodes per knot interval (0.5 ms at 50 ms knots) and at every gyro
+        reading between (`_node_grid`), blended linearly per point. The chain's
+        kinks are at the knots and at the gyro's readings (its rate is constant
+        between two), so each node interval turns at one rate, by at most
+        omega * 0.5 ms (5e-4 rad at 60 deg/s), and the blend is off by about
+        that squared over 8, well under a micrometre at 10 m, at a fraction of
+        the cost of three Rodrigues exponentials per point. (Uniform nodes
+        alone put kinks inside node intervals: a first-order error, 6e-4 rad
+        with a gyro whose rate jumps by 1 rad/s between readings.)
         """
         t = np.atleast_1d(np.asarray(t_ns, np.int64))
         if len(self.stamps_ns) == 1:
@@ -145,7 +173,11 @@ class RigTrajectory:
         return blend_points(np.asarray(pts_cam0, np.float64), a, g, R_ref_n, p_ref_n)
 
     def _node_grid(self, t: I64) -> tuple[I64, F64, F64, F64] | None:
-        """For many times: (node before each a, blend g, node rotations, node positions); None for few."""
+        """For many times: (node before each a, blend g, node rotations, node positions); None for few.
+
+        The nodes are `POSE_NODES` per knot interval (knots included) and the
+        gyro's readings within them: the chain turns at one rate between two.
+        """
         if len(t) == 0:
             return None
         ends, _ = self._segment(np.array([t.min(), t.max()]))
@@ -154,9 +186,15 @@ class RigTrajectory:
             return None
         start = self.stamps_ns[k_lo : k_hi + 1, None]
         span = self.stamps_ns[k_lo + 1 : k_hi + 2, None] - start
-        nodes = start + (np.arange(POSE_NODES + 1, dtype=np.int64) * span) // POSE_NODES  # (S, M + 1)
-        R_n, p_n = self._pose_exact(nodes.reshape(-1))
-        a, g = node_fractions(t, self.stamps_ns, k_lo, k_hi, POSE_NODES, nodes.reshape(-1))
+        nodes = (start + (np.arange(POSE_NODES + 1, dtype=np.int64) * span) // POSE_NODES).reshape(-1)
+        if self.gyro is not None:
+            lo, hi = self.stamps_ns[k_lo], self.stamps_ns[k_hi + 1]
+            readings = self.gyro.stamps_ns[(self.gyro.stamps_ns > lo) & (self.gyro.stamps_ns < hi)]
+            nodes = np.union1d(nodes, readings)
+        else:
+            nodes = np.unique(nodes)
+        R_n, p_n = self._pose_exact(nodes)
+        a, g = node_fractions(t, nodes)
         return a, g, R_n, p_n
 
     def _pose_exact(self, t: I64) -> tuple[F64, F64]:
