@@ -20,9 +20,10 @@ snapped values are, and costs about 80 ms at full resolution against about
 450 ms for a second render of the 3.4 M-pixel window.
 
 Moving objects: a point is kept unless the rays of two of the window's
-slice times saw through it (`ingest.train.free_space`): a mover's earlier
+slice times saw through it, both before the first or after the last slice
+time that hit its spot (`ingest.train.free_space`): a mover's earlier
 positions are free space once it has left, so its stale points are removed
-and counted, and GT within a margin sized from each mover's extent around
+and counted, and GT within a margin sized from each mover's width around
 them is dropped (`mover_margins`, `near_movers`). The ingest tests each block of
 points once for every sample (`ingest.train.block_planes`); without those
 bits a sample runs the test itself (`free_space_filter`).
@@ -88,7 +89,7 @@ class DenseParams:
     mover_margin_rad: float = (
         0.035  # GT this close (2 deg) to a removed point's direction is dropped, at most:
     )
-    mover_margin_rel: float = 0.25  # ... this fraction of its mover's angular extent (`mover_margins`),
+    mover_margin_rel: float = 0.25  # ... this fraction of its mover's angular width (`mover_margins`),
     mover_margin_min_rad: float = 0.005  # ... at least this
     mover_link_m: float = 0.5  # removed points this close belong to one mover
     free_voxel_m: float = 0.05  # points are tested a voxel at a time
@@ -192,12 +193,15 @@ def mover_margins(moving_pts: F64, params: DenseParams) -> F64:
     """Per removed point (N, 3), the angle (rad) around it whose GT `near_movers` drops.
 
     Removed points within `mover_link_m` of each other (a chain of them) are
-    one mover; its extent is its points' largest distance from their centre,
-    seen from the camera at the centre's range. A point's margin is
-    `mover_margin_rel` x its mover's angular extent, within
-    `mover_margin_min_rad`..`mover_margin_rad`: a person or a car that left
-    a trail of removed points gets the full margin, a few points cleared
-    beside a static edge only the least.
+    one mover; its extent is its width, twice the spread of its points
+    across their longest axis (the second principal axis; at most their
+    largest distance from their centre), seen from the camera at the
+    centre's range. A point's margin is `mover_margin_rel` x its mover's
+    angular extent, within `mover_margin_min_rad`..`mover_margin_rad`: a
+    person or a car that left a trail of removed points gets the full
+    margin; a few points cleared beside a static edge, or a row of them
+    along a cable, only the least (by its length alone a 3 m cable got 2
+    degrees of GT dropped around each point).
     """
     if len(moving_pts) == 0:
         return np.zeros(0)
@@ -212,8 +216,17 @@ def mover_margins(moving_pts: F64, params: DenseParams) -> F64:
     n = int(mover.max()) + 1
     count = np.bincount(mover, minlength=n).astype(np.float64)
     centre = np.stack([np.bincount(mover, moving_pts[:, k], n) for k in range(3)], 1) / count[:, None]
+    off = moving_pts - centre[mover]
+    cov = (
+        np.stack(
+            [np.bincount(mover, off[:, a] * off[:, b], n) for a in range(3) for b in range(3)], 1
+        ).reshape(n, 3, 3)
+        / count[:, None, None]
+    )
+    width = 2.0 * np.sqrt(np.maximum(np.linalg.eigvalsh(cov)[:, 1], 0.0))  # across its longest axis
     extent = np.zeros(n)
-    np.maximum.at(extent, mover, np.linalg.norm(moving_pts - centre[mover], axis=1))
+    np.maximum.at(extent, mover, np.linalg.norm(off, axis=1))
+    extent = np.minimum(extent, width)
     angle = extent / np.maximum(np.linalg.norm(centre, axis=1), 1e-9)
     margin = np.clip(params.mover_margin_rel * angle, params.mover_margin_min_rad, params.mover_margin_rad)
     out: F64 = margin[mover]
