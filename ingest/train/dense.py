@@ -7,9 +7,13 @@ benchmark renderer's visibility machinery (`ingest.raster.view.render_view`:
 footprint splats, a z-buffer on range, the two-sided occlusion test, same-
 surface averaging and values moved onto pixel-centre rays). Accumulated
 points the camera cannot see never become ground truth: they lose the
-z-buffer or the occlusion test. A surface pixel gets a value only from a
-point inside it or a planar fill from its neighbours' points (never the raw
-splat range: `RenderParams.raw_fallback` off).
+z-buffer or the occlusion test; GT within `occlusion_margin_rad` behind a
+nearer point is dropped (`behind_near`: background the LiDARs saw past a
+pole or a tree from their other positions over the window, where the
+foreground's own points are too sparse to close its silhouette). A surface
+pixel gets a value only from a point inside it or a planar fill from its
+neighbours' points (never the raw splat range: `RenderParams.raw_fallback`
+off).
 
 Depth (fisheye range) and disparity (cam0's rectified equirect, DESIGN.md's
 formula and stability mask) come from the same points: the equirect is not
@@ -84,6 +88,7 @@ class DenseParams:
     surfel_px: int = 1  # each planar point also gives values on the rays of pixels this close
     outline_px: int = 7  # ... inside the points' outline: gaps up to this wide closed
     edge_px: int = 1  # GT pixels this close to a range step or to empty sky are dropped
+    occlusion_margin_rad: float = 0.01  # ... and those 0.57 deg from a nearer point (`behind_near`)
     free_space: bool = True  # remove points the frame's own sweeps saw through (movers)
     free_cell_deg: float = 1.0  # angular cell of the free-space test (around each LiDAR)
     mover_margin_rad: float = (
@@ -277,7 +282,39 @@ def _view_gt(
     keep = away_from_edges(rend, params.edge_px) & ~near_movers(
         model, moving, mover_margins(moving, params)
     ).reshape(-1)
+    radius_px = round(params.occlusion_margin_rad * px_per_rad(model))
+    keep &= ~behind_near(model, pts, rend.range_m, radius_px).reshape(-1)
     return rend, np.flatnonzero(keep)
+
+
+def behind_near(model: CameraModel, pts: F64, range_m: F32, radius_px: int) -> Bool:
+    """(H, W) pixels whose range lies behind a point within `radius_px` of them by more than a range step.
+
+    `pts` are the window's points in the model's frame, `range_m` the
+    rendered ranges (0: none). A step is 5 cm or 3 % of the pixel's range
+    (`ingest.raster.edges.edge_band`'s). The window's points were seen from
+    the LiDARs' positions over the window, not from the camera: past a thin
+    or narrow foreground (a pole, a tree, a cable) they saw background that
+    the camera at the frame time sees behind the foreground, where the
+    foreground's own points are too sparse (about one per ten pixels at
+    1920x1200) for the renderer's two-sided leak test to close its
+    silhouette. Such background GT is dropped.
+    """
+    h, w = model.height, model.width
+    out = np.zeros((h, w), bool)
+    if radius_px <= 0 or len(pts) == 0:
+        return out
+    uv, ok = model.project(pts)
+    pix = np.floor(np.nan_to_num(uv) + 0.5).astype(np.int64)
+    ok &= (pix[:, 0] >= 0) & (pix[:, 0] < w) & (pix[:, 1] >= 0) & (pix[:, 1] < h)
+    nearest = np.full((h, w), np.finfo(np.float32).max, np.float32)
+    np.minimum.at(nearest, (pix[ok, 1], pix[ok, 0]), np.linalg.norm(pts[ok], axis=1).astype(np.float32))
+    d = np.arange(-radius_px, radius_px + 1)
+    disc = (d[:, None] ** 2 + d[None, :] ** 2 <= radius_px**2).astype(np.uint8)
+    near = cv2.erode(nearest, disc)  # the nearest point within the disc around each pixel
+    valid = range_m > 0
+    out[valid] = near[valid] < range_m[valid] - np.maximum(0.05, 0.03 * range_m[valid])
+    return out
 
 
 def dense_ground_truth(
