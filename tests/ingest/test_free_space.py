@@ -121,3 +121,19 @@ def test_near_movers_draws_each_points_own_disc():
     want = ((cols - 160) ** 2 + (rows - 100) ** 2 <= 25) | ((cols - 200) ** 2 + (rows - 100) ** 2 <= 9)
     np.testing.assert_array_equal(near_movers(model, pts, np.array([0.035, 0.02])), want)
     assert not near_movers(model, pts, np.zeros(2)).any()
+
+
+def test_stale_slices_counts_the_saw_through_bits_outside_the_span_of_the_hits_across_words():
+    """Two words per half: hits at slices 10 and 70, seen through at 5, 40 and 100: 5 and 100 count (40
+    lies between the hits); with no hit all three count."""
+    from ingest.train.free_space import stale_slices
+
+    def row(seen: list[int], hit: list[int]) -> list[int]:
+        words = [0, 0, 0, 0]
+        for half, slices in ((0, seen), (2, hit)):
+            for b in slices:
+                words[half + b // 64] |= 1 << (b % 64)
+        return words
+
+    bits = np.array([row([5, 40, 100], [10, 70]), row([5, 40, 100], [])], np.uint64)
+    assert stale_slices(bits).tolist() == [2, 3]
