@@ -29,6 +29,7 @@ def main() -> None:
         args.out, args.samples, args.walk_s, lambda *row: print(format_row(*row), flush=True)
     )
     print(result.trajectory_line())
+    OUT_DIR.mkdir(parents=True, exist_ok=True)  # --out may lie elsewhere
     dense_chart(result.rows, OUT_DIR / "dense.png")
     print(f"chart: {OUT_DIR / 'dense.png'}")
 

@@ -451,6 +451,26 @@ def test_a_plane_seen_edge_on_keeps_its_points():
     assert len(snapped) > 500 + 3 * 500 and np.allclose(snapped[500:, 2], 3.0)
 
 
+def test_gt_behind_a_point_near_it_is_dropped():
+    """Background GT within the occlusion margin of a nearer point goes: a pole point 2 m out on the optical
+    axis (pixel 160, 100) in front of GT at 5 m drops the Euclidean disc of 3 px around it (0.02 rad at
+    150 px/rad, 29 pixels), except a pixel of its own surface (2.04 m: within 5 cm) and one without GT."""
+    from calibration.fisheye import DoubleSphere
+    from ingest.train.gt.dense import behind_near
+
+    model = DoubleSphere(120.0, 120.0, 160.0, 100.0, -0.2, 0.6, 320, 200)
+    range_m = np.full((model.height, model.width), 5.0, np.float32)
+    range_m[100, 162], range_m[101, 160] = 2.04, 0.0
+    pole = np.array([[0.0, 0.0, 2.0]])
+    rows, cols = np.mgrid[: model.height, : model.width]
+    want = (cols - 160) ** 2 + (rows - 100) ** 2 <= 9
+    want[100, 162] = want[101, 160] = False
+    assert want.sum() == 29 - 2
+    np.testing.assert_array_equal(behind_near(model, pole, range_m, 3), want)
+    assert not behind_near(model, pole, range_m, 0).any()
+    assert not behind_near(model, pole * 3.0, range_m, 3).any()  # 6 m: behind the GT, hides nothing
+
+
 def test_near_movers_is_a_disc_of_the_margin_in_pixels():
     """The mover margin is an angle: 0.035 rad at this model's 150 px/rad is round(5.25) = 5 px.
 

@@ -63,18 +63,51 @@ def test_rays_start_where_their_lidar_was_at_each_points_time():
     assert free_space_filter(pts, slice_id, refs, DenseParams())[-1]
 
 
-def test_a_movers_margin_follows_its_extent():
-    """A 0.6 m x 0.6 m patch of removed points 5 m out (extent 0.42 m, 0.085 rad) gets 0.25 x that; a lone
-    point, 0.005 rad; a 4 m row 4 m out (2 m from its centre, 0.5 rad), the cap of 0.035 rad."""
+def test_a_movers_margin_follows_its_width():
+    """A 0.6 m x 0.6 m patch of removed points 5 m out (width: twice its second principal spread, 0.4 m;
+    0.08 rad) gets 0.25 x that; a lone point, 0.005 rad; a 4 m x 4 m patch 7.2 m out (width 2.4 m,
+    0.33 rad), the cap of 0.035 rad; a 4 m row 4 m out (a cable cleared by rays passing beside it: no width), the
+    least, 0.005 rad (by its length alone it got the cap and 2 degrees of GT around it were dropped)."""
     g = np.linspace(-0.3, 0.3, 7)
     patch = np.array([[x, y, 5.0] for x in g for y in g])
     lone = np.array([[3.0, 0.0, 8.0]])
+    big = np.array([[x, y, 4.0] for x in 6.0 + np.linspace(-2, 2, 21) for y in np.linspace(-2, 2, 21)])
     row = np.c_[np.linspace(-2.0, 2.0, 41), np.zeros(41), np.full(41, 4.0)]
-    margin = mover_margins(np.concatenate([patch, lone, row]), DenseParams())
-    np.testing.assert_allclose(margin[: len(patch)], 0.25 * np.sqrt(0.18) / 5.0)
+    margin = mover_margins(np.concatenate([patch, lone, big, row]), DenseParams())
+    np.testing.assert_allclose(margin[: len(patch)], 0.25 * 0.4 / 5.0)
     assert margin[len(patch)] == 0.005
-    np.testing.assert_allclose(margin[len(patch) + 1 :], 0.035)
+    np.testing.assert_allclose(margin[len(patch) + 1 : len(patch) + 1 + len(big)], 0.035)
+    np.testing.assert_allclose(margin[len(patch) + 1 + len(big) :], 0.005)
     assert len(mover_margins(np.zeros((0, 3)), DenseParams())) == 0
+
+
+def test_a_thin_pole_that_rays_pass_beside_is_kept_while_they_also_hit_it():
+    """A 12 mm pole 3 m out: its point (slice 9) is passed 1.5 cm beside by a ray of each of slices 0-3 on
+    the way to a wall at 6 m (within the 3 cm tolerance, so each saw through it). Each of those slices
+    also returned from the pole 2.5 cm below the point (another voxel): the pole was there all along,
+    the point is kept. Without those returns (a mover's old position) it goes."""
+    beside, pole = [[6.0, 0.03, 0.0]] * 4, [[3.0, 0.0, -0.025]] * 4
+    point = np.array([[3.0, 0.0, 0.0]])
+    refs = [(k, ORIGIN) for k in range(4)]
+    pts, slice_id = np.concatenate([beside, pole, point]), np.r_[np.arange(4), np.arange(4), 9]
+    assert free_space_filter(pts, slice_id, refs, DenseParams())[-1]
+    pts, slice_id = np.concatenate([beside, point]), np.r_[np.arange(4), 9]
+    assert not free_space_filter(pts, slice_id, refs, DenseParams())[-1]
+
+
+def test_a_point_is_removed_only_by_slices_outside_the_times_its_spot_was_hit():
+    """A box face 4 m out hit at slices 2 and 7 (points in its voxel); rays of two slices pass 1 cm beside
+    its point of slice 3 to 12 m. Slices 4 and 5 (between the hits: the box was there, the rays passed
+    its edge) keep it; slices 8 and 9 (after its last hit: it has gone) remove it; so do slices 0 and 9
+    (before the first and after the last)."""
+    box = np.array([[4.0, 0.0, 0.0]] * 3)
+    rays = [[12.0, 0.03, 0.0], [12.0, 0.0, 0.03]]
+    for seen_by, removed in (((4, 5), False), ((8, 9), True), ((0, 9), True)):
+        pts = np.concatenate([rays, box])
+        slice_id = np.r_[seen_by, 2, 7, 3]
+        refs = [(k, ORIGIN) for k in (*seen_by, 2, 7)]
+        keep = free_space_filter(pts, slice_id, refs, DenseParams())
+        assert keep[-1] != removed, seen_by
 
 
 def test_near_movers_draws_each_points_own_disc():
@@ -88,3 +121,19 @@ def test_near_movers_draws_each_points_own_disc():
     want = ((cols - 160) ** 2 + (rows - 100) ** 2 <= 25) | ((cols - 200) ** 2 + (rows - 100) ** 2 <= 9)
     np.testing.assert_array_equal(near_movers(model, pts, np.array([0.035, 0.02])), want)
     assert not near_movers(model, pts, np.zeros(2)).any()
+
+
+def test_stale_slices_counts_the_saw_through_bits_outside_the_span_of_the_hits_across_words():
+    """Two words per half: hits at slices 10 and 70, seen through at 5, 40 and 100: 5 and 100 count (40
+    lies between the hits); with no hit all three count."""
+    from ingest.train.gt.free_space import stale_slices
+
+    def row(seen: list[int], hit: list[int]) -> list[int]:
+        words = [0, 0, 0, 0]
+        for half, slices in ((0, seen), (2, hit)):
+            for b in slices:
+                words[half + b // 64] |= 1 << (b % 64)
+        return words
+
+    bits = np.array([row([5, 40, 100], [10, 70]), row([5, 40, 100], [])], np.uint64)
+    assert stale_slices(bits).tolist() == [2, 3]

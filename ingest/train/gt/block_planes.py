@@ -26,9 +26,11 @@ the slices within +-`free_reference_ns` (0: its window) of its frame time.
 A block's points are tested, in the world, against every slice some sample
 holding them can use: those within the window plus the reference reach of
 the block (`FreeSpaceSettings.reach_ns`), and each point keeps one bit per
-such slice time that saw through it (`LidarPoints.clear_bits`). The worker
-removes the points whose bits name at least `FreeSpaceSettings.min_slices`
-of its sample's slices (`cleared_for`). Points of one stretch are tested only by slices of it.
+such slice time that saw through it and one per slice time that hit it
+(`LidarPoints.clear_bits`). The worker removes the points whose bits name
+at least `FreeSpaceSettings.min_slices` of its sample's slices that saw
+through them outside the span of those that hit them (`cleared_for`,
+`ingest.train.gt.free_space.stale_slices`). Points of one stretch are tested only by slices of it.
 """
 
 from __future__ import annotations
@@ -45,7 +47,7 @@ from calibration.types import F64, I64, U64, Bool
 from ingest.bags.decode import Sweep
 from ingest.raster.z_order import z_order
 from ingest.rows import rows
-from ingest.train.gt.free_space import RayTest, free_space_bits, slices_agreeing
+from ingest.train.gt.free_space import RayTest, free_space_bits, stale_slices
 from ingest.train.trajectory.clouds import filter_points
 from ingest.train.trajectory.planes import plane_normals
 from ingest.train.trajectory.rig_trajectory import RigTrajectory
@@ -74,8 +76,8 @@ class FreeSpaceSettings:
         return (block_ns + 2 * self.reach_ns) // self.slice_ns + 2
 
     def words(self, block_ns: int) -> int:
-        """uint64 words per point that hold `n_bits`."""
-        return -(-self.n_bits(block_ns) // 64)
+        """uint64 words per point: `n_bits` slices that saw through it, then as many that hit it."""
+        return 2 * -(-self.n_bits(block_ns) // 64)
 
     def first_slice(self, block_start_ns: I64 | int) -> I64:
         """The slice (`slice_ns` steps since t = 0) of bit 0 of the block starting at `block_start_ns`."""
@@ -146,8 +148,8 @@ def _kept_in_cam0(xyz: np.ndarray[Any, Any], tag: np.ndarray[Any, Any] | None, T
 
 
 def cleared_for(bits: U64, stamps_ns: I64, t_ns: int, settings: FreeSpaceSettings, block_ns: int) -> Bool:
-    """Which points `settings.min_slices` reference slices of the sample at `t_ns` saw through,
-    from their blocks' bits.
+    """Which points `settings.min_slices` reference slices of the sample at `t_ns` saw through before the
+    first or after the last of its references that hit them (`stale_slices`), from their blocks' bits.
 
     `bits` (N, words) are the points' `BlockPlanes.clear_bits`, `stamps_ns`
     their times; the sample's references are the slices overlapping
@@ -160,10 +162,10 @@ def cleared_for(bits: U64, stamps_ns: I64, t_ns: int, settings: FreeSpaceSetting
     for j in np.unique(block):
         sel = np.flatnonzero(block == j)
         k0 = int(settings.first_slice(int(j) * block_ns))
-        lo, hi = max(first - k0, 0), min(last - k0, bits.shape[1] * 64 - 1)
+        lo, hi = max(first - k0, 0), min(last - k0, bits.shape[1] // 2 * 64 - 1)
         if lo <= hi:
-            agree = slices_agreeing(rows(bits, sel) & _bit_range(lo, hi, bits.shape[1]))
-            out[sel] = agree >= settings.min_slices
+            mask = np.tile(_bit_range(lo, hi, bits.shape[1] // 2), 2)  # both halves: saw through, hit
+            out[sel] = stale_slices(rows(bits, sel) & mask) >= settings.min_slices
     return out
 
 
@@ -223,7 +225,8 @@ class BlockPlanes:
         return start if fs is None else int(fs.first_slice(start)) * fs.slice_ns
 
     def clear_bits(self, sweep: Sweep) -> U64:
-        """Per point of `sweep`, the slices that saw through it (`cleared_for`); zero rows until tested."""
+        """Per point of `sweep`, the slices that saw through it and those that hit it (`cleared_for`); zero
+        rows until tested."""
         fs = self.settings.free_space
         if fs is None:
             raise ValueError("these blocks run no free-space test (PlaneSettings.free_space is None)")

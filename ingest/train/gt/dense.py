@@ -7,9 +7,13 @@ benchmark renderer's visibility machinery (`ingest.raster.view.render_view`:
 footprint splats, a z-buffer on range, the two-sided occlusion test, same-
 surface averaging and values moved onto pixel-centre rays). Accumulated
 points the camera cannot see never become ground truth: they lose the
-z-buffer or the occlusion test. A surface pixel gets a value only from a
-point inside it or a planar fill from its neighbours' points (never the raw
-splat range: `RenderParams.raw_fallback` off).
+z-buffer or the occlusion test; GT within `occlusion_margin_rad` behind a
+nearer point is dropped (`behind_near`: background the LiDARs saw past a
+pole or a tree from their other positions over the window, where the
+foreground's own points are too sparse to close its silhouette). A surface
+pixel gets a value only from a point inside it or a planar fill from its
+neighbours' points (never the raw splat range: `RenderParams.raw_fallback`
+off).
 
 Depth (fisheye range) and disparity (cam0's rectified equirect, DESIGN.md's
 formula and stability mask) come from the same points: the equirect is not
@@ -20,9 +24,10 @@ snapped values are, and costs about 80 ms at full resolution against about
 450 ms for a second render of the 3.4 M-pixel window.
 
 Moving objects: a point is kept unless the rays of two of the window's
-slice times saw through it (`ingest.train.gt.free_space`): a mover's earlier
+slice times saw through it, both before the first or after the last slice
+time that hit its spot (`ingest.train.gt.free_space`): a mover's earlier
 positions are free space once it has left, so its stale points are removed
-and counted, and GT within a margin sized from each mover's extent around
+and counted, and GT within a margin sized from each mover's width around
 them is dropped (`mover_margins`, `near_movers`). The ingest tests each block of
 points once for every sample (`ingest.train.gt.block_planes`); without those
 bits a sample runs the test itself (`free_space_filter`).
@@ -83,12 +88,13 @@ class DenseParams:
     surfel_px: int = 1  # each planar point also gives values on the rays of pixels this close
     outline_px: int = 7  # ... inside the points' outline: gaps up to this wide closed
     edge_px: int = 1  # GT pixels this close to a range step or to empty sky are dropped
+    occlusion_margin_rad: float = 0.01  # ... and those 0.57 deg from a nearer point (`behind_near`)
     free_space: bool = True  # remove points the frame's own sweeps saw through (movers)
     free_cell_deg: float = 1.0  # angular cell of the free-space test (around each LiDAR)
     mover_margin_rad: float = (
         0.035  # GT this close (2 deg) to a removed point's direction is dropped, at most:
     )
-    mover_margin_rel: float = 0.25  # ... this fraction of its mover's angular extent (`mover_margins`),
+    mover_margin_rel: float = 0.25  # ... this fraction of its mover's angular width (`mover_margins`),
     mover_margin_min_rad: float = 0.005  # ... at least this
     mover_link_m: float = 0.5  # removed points this close belong to one mover
     free_voxel_m: float = 0.05  # points are tested a voxel at a time
@@ -192,12 +198,15 @@ def mover_margins(moving_pts: F64, params: DenseParams) -> F64:
     """Per removed point (N, 3), the angle (rad) around it whose GT `near_movers` drops.
 
     Removed points within `mover_link_m` of each other (a chain of them) are
-    one mover; its extent is its points' largest distance from their centre,
-    seen from the camera at the centre's range. A point's margin is
-    `mover_margin_rel` x its mover's angular extent, within
-    `mover_margin_min_rad`..`mover_margin_rad`: a person or a car that left
-    a trail of removed points gets the full margin, a few points cleared
-    beside a static edge only the least.
+    one mover; its extent is its width, twice the spread of its points
+    across their longest axis (the second principal axis; at most their
+    largest distance from their centre), seen from the camera at the
+    centre's range. A point's margin is `mover_margin_rel` x its mover's
+    angular extent, within `mover_margin_min_rad`..`mover_margin_rad`: a
+    person or a car that left a trail of removed points gets the full
+    margin; a few points cleared beside a static edge, or a row of them
+    along a cable, only the least (by its length alone a 3 m cable got 2
+    degrees of GT dropped around each point).
     """
     if len(moving_pts) == 0:
         return np.zeros(0)
@@ -212,8 +221,17 @@ def mover_margins(moving_pts: F64, params: DenseParams) -> F64:
     n = int(mover.max()) + 1
     count = np.bincount(mover, minlength=n).astype(np.float64)
     centre = np.stack([np.bincount(mover, moving_pts[:, k], n) for k in range(3)], 1) / count[:, None]
+    off = moving_pts - centre[mover]
+    cov = (
+        np.stack(
+            [np.bincount(mover, off[:, a] * off[:, b], n) for a in range(3) for b in range(3)], 1
+        ).reshape(n, 3, 3)
+        / count[:, None, None]
+    )
+    width = 2.0 * np.sqrt(np.maximum(np.linalg.eigvalsh(cov)[:, 1], 0.0))  # across its longest axis
     extent = np.zeros(n)
-    np.maximum.at(extent, mover, np.linalg.norm(moving_pts - centre[mover], axis=1))
+    np.maximum.at(extent, mover, np.linalg.norm(off, axis=1))
+    extent = np.minimum(extent, width)
     angle = extent / np.maximum(np.linalg.norm(centre, axis=1), 1e-9)
     margin = np.clip(params.mover_margin_rel * angle, params.mover_margin_min_rad, params.mover_margin_rad)
     out: F64 = margin[mover]
@@ -264,7 +282,39 @@ def _view_gt(
     keep = away_from_edges(rend, params.edge_px) & ~near_movers(
         model, moving, mover_margins(moving, params)
     ).reshape(-1)
+    radius_px = round(params.occlusion_margin_rad * px_per_rad(model))
+    keep &= ~behind_near(model, pts, rend.range_m, radius_px).reshape(-1)
     return rend, np.flatnonzero(keep)
+
+
+def behind_near(model: CameraModel, pts: F64, range_m: F32, radius_px: int) -> Bool:
+    """(H, W) pixels whose range lies behind a point within `radius_px` of them by more than a range step.
+
+    `pts` are the window's points in the model's frame, `range_m` the
+    rendered ranges (0: none). A step is 5 cm or 3 % of the pixel's range
+    (`ingest.raster.edges.edge_band`'s). The window's points were seen from
+    the LiDARs' positions over the window, not from the camera: past a thin
+    or narrow foreground (a pole, a tree, a cable) they saw background that
+    the camera at the frame time sees behind the foreground, where the
+    foreground's own points are too sparse (about one per ten pixels at
+    1920x1200) for the renderer's two-sided leak test to close its
+    silhouette. Such background GT is dropped.
+    """
+    h, w = model.height, model.width
+    out = np.zeros((h, w), bool)
+    if radius_px <= 0 or len(pts) == 0:
+        return out
+    uv, ok = model.project(pts)
+    pix = np.floor(np.nan_to_num(uv) + 0.5).astype(np.int64)
+    ok &= (pix[:, 0] >= 0) & (pix[:, 0] < w) & (pix[:, 1] >= 0) & (pix[:, 1] < h)
+    nearest = np.full((h, w), np.finfo(np.float32).max, np.float32)
+    np.minimum.at(nearest, (pix[ok, 1], pix[ok, 0]), np.linalg.norm(pts[ok], axis=1).astype(np.float32))
+    d = np.arange(-radius_px, radius_px + 1)
+    disc = (d[:, None] ** 2 + d[None, :] ** 2 <= radius_px**2).astype(np.uint8)
+    near = cv2.erode(nearest, disc)  # the nearest point within the disc around each pixel
+    valid = range_m > 0
+    out[valid] = near[valid] < range_m[valid] - np.maximum(0.05, 0.03 * range_m[valid])
+    return out
 
 
 def dense_ground_truth(

@@ -10,10 +10,17 @@ has a plane, the ray must cross that plane beside the point, not skim along
 it: a ray grazing a static surface (the ground far ahead, a wall seen
 edge-on) passes a point on it closely and returns from farther along the
 same surface, and a ray passing just past a static edge returns from
-behind it, so a single ray says little. A point is removed only when the
-rays of several slice times agree (`free_space_filter`'s `min_slices`,
-`FreeSpaceSettings.min_slices`): a mover's earlier position is crossed by
-the rays of every slice after it left, a static edge only now and then.
+behind it, so a single ray says little. A reference that also returned
+from within the tolerance of the point (a ray ending there, or a point in
+its voxel) hit its surface: rays of it passing beside the point are no
+evidence (a 12 mm cable or a table leg is passed within 3 cm by rays
+that miss it, while others of the same slice hit it). A point is removed
+only when the rays of several slice times agree (`free_space_filter`'s
+`min_slices`, `FreeSpaceSettings.min_slices`), and only slice times before
+the first or after the last that hit it count (`stale_slices`): a mover's
+earlier position is hit while the mover is there and crossed by the rays
+of the slices after it left, a thin static object is hit throughout the
+window and passed closely in between.
 
 The test runs per voxel (its first point stands for it), and only on the
 voxels a caller asks about: a reference's own points still come from every
@@ -21,10 +28,10 @@ direction. A reference's rays are grouped by direction on the faces of a
 cube around its origin (no trigonometry per test), and a point looks only
 at the cells its tolerance reaches.
 
-`free_space_bits` says which references saw through each point (one bit
-each, so that the stream pass can test a block once for every sample that
-will hold it: `ingest.train.gt.block_planes`); `free_space_filter` is the
-test of one sample's own references.
+`free_space_bits` says which references saw through each point and which
+hit it (one bit each, so that the stream pass can test a block once for
+every sample that will hold it: `ingest.train.gt.block_planes`);
+`free_space_filter` is the test of one sample's own references.
 """
 
 from __future__ import annotations
@@ -150,12 +157,22 @@ def _sees_through(ray, q, px, py, pz, nx, ny, nz, tol, margin_m, margin_rel, min
 
 
 @njit(cache=True, nogil=True)
+def _returns_near(ray, q, px, py, pz, tol):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """Whether ray `q` ended within `tol` of the point (px, py, pz): its reference hit the point's surface."""
+    ex = ray[q, 0] + ray[q, 3] * ray[q, 6] - px
+    ey = ray[q, 1] + ray[q, 4] * ray[q, 6] - py
+    ez = ray[q, 2] + ray[q, 5] * ray[q, 6] - pz
+    return ex * ex + ey * ey + ez * ez <= tol * tol
+
+
+@njit(cache=True, nogil=True)
 def _clearing(  # type: ignore[no-untyped-def]  # pragma: no cover
     pts, voxel, rep, candidate, own, own_start, origins, ray_origin, normal, ref_bit, n,
-    margin_m, margin_rel, pass_m, footprint_rad, min_cos, bits,
+    margin_m, margin_rel, pass_m, footprint_rad, min_cos, bits, hits,
 ):  # fmt: skip
-    """Set bit `ref_bit[r]` of `bits[v]` for every candidate voxel v that a ray of reference r saw through."""
-    hit_by = np.full(rep.shape[0], -1, np.int64)
+    """Set bit `ref_bit[r]` of `hits[v]` for every voxel v reference r hit (a point of r in it, or, for a
+    candidate, a ray of r ending within the tolerance of its representative), else of `bits[v]` for every
+    candidate voxel v that a ray of reference r saw through."""
     count = np.zeros(6 * n * n + 1, np.int64)
     tested = np.flatnonzero(candidate)
     for r in range(origins.shape[0]):
@@ -165,11 +182,11 @@ def _clearing(  # type: ignore[no-untyped-def]  # pragma: no cover
         word, bit = ref_bit[r] >> 6, np.uint64(1) << np.uint64(ref_bit[r] & 63)
         ox, oy, oz = origins[r, 0], origins[r, 1], origins[r, 2]
         for j in range(a, b):
-            hit_by[voxel[own[j]]] = r
+            hits[voxel[own[j]], word] |= bit
         start, ray, spread = _rays_by_cell(pts, own, a, b, ox, oy, oz, ray_origin, n, count)
         for t in range(tested.shape[0]):
             v = tested[t]
-            if bits[v, word] & bit or hit_by[v] == r:
+            if hits[v, word] & bit:  # hit by this reference's time (its voxel, or a ray ending near it)
                 continue
             i = rep[v]
             px, py, pz = pts[i, 0], pts[i, 1], pts[i, 2]
@@ -183,19 +200,26 @@ def _clearing(  # type: ignore[no-untyped-def]  # pragma: no cover
             k = min(int((tol + spread) / rng * (1.0 + u * u + w * w) * 0.5 * n) + 1, n)
             iu = min(int((u + 1.0) * 0.5 * n), n - 1)
             iw = min(int((w + 1.0) * 0.5 * n), n - 1)
-            found = False
+            cleared = hit = False
             for jw in range(max(iw - k, 0), min(iw + k, n - 1) + 1):
                 for ju in range(max(iu - k, 0), min(iu + k, n - 1) + 1):
                     c = (face * n + jw) * n + ju
                     for q in range(start[c], start[c + 1]):
-                        if _sees_through(ray, q, px, py, pz, nx, ny, nz, tol, margin_m, margin_rel, min_cos):
-                            found = True
+                        if _returns_near(ray, q, px, py, pz, tol):
+                            hit = True
                             break
-                    if found:
+                        if not cleared:
+                            cleared = _sees_through(
+                                ray, q, px, py, pz, nx, ny, nz, tol, margin_m, margin_rel, min_cos
+                            )
+                    if hit:
                         break
-                if found:
+                if hit:
                     break
-            if found:
+            if hit:  # the reference hit the point's surface too: a ray passing beside it is no evidence
+                hits[v, word] |= bit
+                bits[v, word] &= ~bit
+            elif cleared:
                 bits[v, word] |= bit
     return bits
 
@@ -204,24 +228,29 @@ def clearing_voxels(
     pts: F64, voxel: I64, rep: I64, candidate: Bool, own: I64, own_start: I64, origins: F64, ref_bit: I64,
     n_bits: int, test: RayTest, ray_origin: F64, normal: F64,
 ) -> U64:  # fmt: skip
-    """Per voxel, which references saw through it: bit `ref_bit[r]` of row v (V, ceil(n_bits / 64)).
+    """Per voxel, which references saw through it and which hit it: (V, 2 w), w = ceil(n_bits / 64).
 
-    `voxel` is each point's voxel, `rep` each voxel's representative point,
-    `candidate` the voxels to test (the others get no bit); reference r's
-    points are `own[own_start[r]:own_start[r + 1]]`, each the end of a ray
-    from its `ray_origin` (the LiDAR at the point's time), grouped by
-    direction from `origins[r]`. A candidate voxel the reference did not hit
-    is cleared when one of its rays saw through its representative
-    (`_sees_through`, with `normal`: (N, 3), NaN rows for points without a
-    plane). All positions in metres, in one frame. References may share a bit (the same time, two
-    LiDARs).
+    Bit `ref_bit[r]` of the first w words of row v: reference r saw through
+    voxel v; of the last w: reference r hit it (`stale_slices` weighs the
+    two). `voxel` is each point's voxel, `rep` each voxel's representative
+    point, `candidate` the voxels to test (the others get no saw-through
+    bit); reference r's points are `own[own_start[r]:own_start[r + 1]]`,
+    each the end of a ray from its `ray_origin` (the LiDAR at the point's
+    time), grouped by direction from `origins[r]`. A candidate voxel the
+    reference did not hit is seen through when one of its rays saw through
+    its representative (`_sees_through`, with `normal`: (N, 3), NaN rows for
+    points without a plane). All positions in metres, in one frame.
+    References may share a bit (the same time, two LiDARs).
     """
     n = max(1, math.ceil(2.0 / math.radians(test.cell_deg)))  # cells per face edge: 2/n rad at the centre
-    bits = np.zeros((len(rep), max(1, -(-n_bits // 64))), np.uint64)
-    out: U64 = _clearing(
+    words = max(1, -(-n_bits // 64))
+    bits = np.zeros((len(rep), words), np.uint64)
+    hits = np.zeros((len(rep), words), np.uint64)
+    _clearing(
         pts, voxel, rep, candidate, own, own_start, origins, ray_origin, normal, ref_bit, n, test.margin_m,
-        test.margin_rel, test.pass_m, test.footprint_rad, test.min_cos, bits,
+        test.margin_rel, test.pass_m, test.footprint_rad, test.min_cos, bits, hits,
     )  # fmt: skip
+    out: U64 = np.concatenate([bits, hits], axis=1)
     return out
 
 
@@ -252,7 +281,9 @@ def free_space_bits(
     LiDAR at the point's own time; default: the reference's origin). A point
     of another slice that such a ray passed (within the beam's footprint,
     `RayTest`) and went on beyond, by a margin, sat where the reference saw
-    empty space: its row (N, ceil(n_bits / 64)) gets the reference's bit.
+    empty space: its row (N, 2 ceil(n_bits / 64)) gets the reference's bit
+    in its first half; a point whose voxel the reference hit gets it in the
+    second (`clearing_voxels`' layout, weighed by `stale_slices`).
     With `normal` ((N, 3) unit, NaN rows: no plane) the ray must cross the
     point's plane beside it: a ray grazing a static surface past its edge or
     along it clears nothing. The test runs per `ray_test.voxel_m` voxel
@@ -290,9 +321,38 @@ def free_space_bits(
     return out
 
 
-def slices_agreeing(bits: U64) -> I64:
-    """Per row of free-space bits, how many of them are set: the slices that saw through the point."""
-    out: I64 = np.bitwise_count(bits).sum(axis=1, dtype=np.int64)
+@njit(cache=True, nogil=True)
+def _stale(bits, words):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """Per row: the saw-through bits (first `words` words) outside the span of the hit bits (the rest)."""
+    out = np.zeros(bits.shape[0], np.int64)
+    for i in range(bits.shape[0]):
+        first, last = -1, -1
+        for b in range(64 * words):
+            if bits[i, words + (b >> 6)] >> np.uint64(b & 63) & np.uint64(1):
+                if first < 0:
+                    first = b
+                last = b
+        count = 0
+        for b in range(64 * words):
+            if (b < first or b > last) and bits[i, b >> 6] >> np.uint64(b & 63) & np.uint64(1):
+                count += 1
+        out[i] = count
+    return out
+
+
+def stale_slices(bits: U64) -> I64:
+    """Per row of free-space bits (`clearing_voxels`' layout), the slice times that saw through the point
+    before the first or after the last slice time that hit it: how long it has been empty.
+
+    A mover's earlier position is hit while the mover is there and seen
+    through once it has left, so the slices seeing through it lie outside
+    the span of those hitting it. A thin static object (a cable, a table
+    leg, a board's edge) is hit throughout the window, and rays passing
+    just beside it, within the test's tolerance, see past it in between:
+    those count for nothing. Without any hit every saw-through bit counts.
+    """
+    words = bits.shape[1] // 2
+    out: I64 = _stale(np.ascontiguousarray(bits), words)
     return out
 
 
@@ -318,5 +378,5 @@ def free_space_filter(
     refs = [(sid, origin, int(k) - first) for (sid, origin), k in zip(references, times, strict=True)]
     n_bits = int(times.max()) - first + 1 if len(times) else 1
     bits = free_space_bits(pts, slice_id, refs, n_bits, ray_test, test, ray_origin, normal)
-    out: Bool = slices_agreeing(bits) < min_slices
+    out: Bool = stale_slices(bits) < min_slices
     return out

@@ -77,7 +77,7 @@ class LidarPoints:
     stamps_ns: I64
     tag: np.ndarray[Any, Any] | None
     normal_world: np.ndarray[Any, Any] | None = None  # dense GT: (N, 3) float16, NaN: none (`block_planes`)
-    clear_bits: U64 | None = None  # dense GT: (N, words), the slices that saw through each (`block_planes`)
+    clear_bits: U64 | None = None  # dense GT: (N, words), slices that saw through / hit each (`block_planes`)
     reflectivity: np.ndarray[Any, Any] | None = None  # (N,) as the driver stored it (`ingest.train.gt.align`)
 
     def within(self, t0_ns: int, t1_ns: int) -> LidarPoints:
