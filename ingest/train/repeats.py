@@ -46,7 +46,9 @@ class FirstCopies:
         self.horizon_ns = horizon_ns
         self.repeats: dict[str, int] = {}  # per topic: copies seen after the first
         self.restamped: dict[str, list[int]] = {}  # per topic: stamps of repeats whose bytes differ
+        self.overlapping: dict[str, list[int]] = {}  # per topic: first point times of sweeps left out
         self._seen: dict[tuple[str, object], tuple[int, object]] = {}
+        self._spans: dict[str, list[tuple[int, int]]] = {}  # per topic: the kept sweeps' point-time spans
         self._newest: dict[str, int] = {}
         self._bound = 4096  # entries before the next pruning
 
@@ -71,5 +73,24 @@ class FirstCopies:
         return self.first(topic, stamp_ns, stamp_ns, content)
 
     def sweep(self, topic: str, sweep: Sweep) -> bool:
-        """`first` for a sweep with points."""
-        return self.first(topic, sweep_key(sweep), int(sweep.span_ns[1]))
+        """`first` for a sweep with points; False too, listed in `overlapping`, for a sweep whose point
+        times lie mostly within a kept sweep's of the same LiDAR.
+
+        A LiDAR measures each moment once: its sweeps abut in time, whatever
+        order they are logged in. A sweep whose points cover an earlier one's
+        carries a stamp that is not its own (a driver that repeated the
+        previous sweep's timebase): placed there, its points stand where the
+        rig was not, and its own moment has none.
+        """
+        first, last = int(sweep.span_ns[0]), int(sweep.span_ns[1])
+        if not self.first(topic, sweep_key(sweep), last):
+            return False
+        spans = self._spans.setdefault(topic, [])
+        length = max(last - first, 1)
+        if any(min(last, b) - max(first, a) > length // 2 for a, b in spans):
+            self.overlapping.setdefault(topic, []).append(first)
+            return False
+        spans.append((first, last))
+        if len(spans) > 256:  # the recent ones: bags are read merged in time
+            del spans[: len(spans) - 128]
+        return True

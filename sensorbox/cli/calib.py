@@ -197,7 +197,9 @@ def lidar_table(refinement: Refinement) -> Table:
             lidar.lidar, f"{lidar.rotation_deg:.3f}, {lidar.translation_mm:.1f}",
             f"{lidar.sigma_rotation_deg:.3f}, {lidar.sigma_translation_mm:.1f}",
             f"{lidar.shift_before_deg:.3f} -> {lidar.shift_after_deg:.3f}", str(lidar.samples),
-            "pose refined" if lidar.applied else "rig's pose kept (uncertain and insignificant)",
+            "pose refined" if lidar.applied else "rig's pose kept (its points match far worse than another "
+            "LiDAR's: off beyond refine's reach)" if lidar.mismatch else "rig's pose kept (uncertain and "
+            "insignificant)",
         )  # fmt: skip
     return table
 

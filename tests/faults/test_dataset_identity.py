@@ -247,7 +247,10 @@ def test_a_lost_dataset_yaml_is_not_rewritten_to_describe_samples_made_otherwise
     assert len(list((out / "meta").glob("*.json"))) == 5
     doc = yaml.safe_load((out / "dataset.yaml").read_text())
     assert doc["params"]["lidar_window_ns"] == 50_000_000
-    assert [(s["first_id"], s["samples"]) for s in doc["sources"]] == [(5, 5)]  # after the ids in use
+    # the recording keeps the ids its samples were written under (sweep 5: it was given 5..9, which hold
+    # no files, and a second recording 10..14)
+    assert [(s["first_id"], s["samples"]) for s in doc["sources"]] == [(0, 5)]
+    assert sorted(p.stem for p in (out / "meta").glob("*.json")) == [f"{i:06d}" for i in range(5)]
 
 
 def test_a_sample_id_holding_another_frame_is_never_overwritten(tmp_path: Path) -> None:

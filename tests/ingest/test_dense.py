@@ -249,7 +249,7 @@ def test_equirect_ranges_meet_the_planes_of_cam0s_gt_and_stop_at_steps_and_holes
     from calibration.spherical import Equirectangular
     from ingest.dataset.sparse import SparseImage
     from ingest.raster.view import pixel_rays
-    from ingest.train.gt.dense import cam0_window, rect_lookup, rect_ranges
+    from ingest.train.gt.dense_rect import ResampleParams, cam0_window, rect_lookup, rect_ranges
 
     model = DoubleSphere(120.0, 120.0, 160.0, 100.0, -0.2, 0.6, 320, 200)
     n = np.array([0.2, -0.1, 1.0]) / np.linalg.norm([0.2, -0.1, 1.0])
@@ -278,7 +278,9 @@ def test_equirect_ranges_meet_the_planes_of_cam0s_gt_and_stop_at_steps_and_holes
     r[118:153, 58:93] = np.where(triples[118:153, 58:93], r[118:153, 58:93], 0.0)
     R_cam0_rect = Rotation.from_euler("x", 10, degrees=True).as_matrix()
     win = cam0_window(model, Equirectangular(256), R_cam0_rect)
-    got = rect_ranges(model, win, R_cam0_rect, SparseImage.from_dense(r), DenseParams())
+    p = DenseParams()
+    resample = ResampleParams(p.resample_flat_m, p.resample_flat_rel, p.resample_max_change, p.plane_min_cos)
+    got = rect_ranges(model, win, R_cam0_rect, SparseImage.from_dense(r), resample)
 
     rays_rect, _ = win.unproject(win.pixel_grid())
     rays_cam0 = rays_rect.reshape(-1, 3) @ R_cam0_rect.T  # p_cam0 = R_cam0_rect p_rect, as rows

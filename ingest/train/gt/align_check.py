@@ -5,7 +5,7 @@ correction and the upper camera's clock offset (`combine`), the check ingest rec
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -134,6 +134,12 @@ WARN_CLOCK_MS = 2.0
 `SIGNIFICANT` sigmas): on the simulated walks, an exact rig gives 0.01 deg, 1 mm and 0.05 ms, a
 0.25 deg or 5 ms error about 0.25 deg or 5 ms (bench/bench_refine.py)."""
 SIGNIFICANT = 3.0
+MATCH_RATIO = 0.6
+"""A LiDAR whose points match cam0's images (median correlation of image intensity and reflectivity at
+the alignment) below this fraction of the best-matching LiDAR's is off by more than the alignment can
+measure: it is a local search whose reach is about a degree, and it reports a LiDAR turned 5, 20 or
+45 deg as about 1 deg off. On the simulated fixtures the LiDARs of an exact rig match at 0.70 and
+0.79, one turned by 5 to 120 deg at 0.25 to 0.35."""
 
 
 @dataclass(frozen=True)
@@ -143,11 +149,33 @@ class CalibrationCheck:
 
     median_shift_deg: dict[str, float]
     combined: Combined
+    median_correlation: dict[str, float] = field(default_factory=dict)
+
+    def mismatched(self) -> dict[str, str]:
+        """The LiDARs whose points match cam0's images far worse than the best one's (`MATCH_RATIO`), each
+        with the best one's name; none with a single LiDAR (nothing to compare with)."""
+        known = {n: c for n, c in self.median_correlation.items() if np.isfinite(c)}
+        if len(known) < 2:
+            return {}
+        best = max(known, key=lambda n: known[n])
+        return {n: best for n, c in known.items() if c < MATCH_RATIO * known[best]}
+
+    def mismatch_phrase(self, name: str, best: str) -> str:
+        """What `mismatched` found about `name`, in words."""
+        mine, theirs = self.median_correlation[name], self.median_correlation[best]
+        return (
+            f"{name}'s points match cam0's images far worse than {best}'s (median correlation {mine:.2f} "
+            f"against {theirs:.2f}): its pose is off by more than this check measures (about 1 deg), or its "
+            "clock or IMU is"
+        )
 
     def suspects(self) -> list[str]:
         """One phrase per finding beyond the warning limits: a LiDAR's pose, the upper camera's clock."""
-        found = []
+        mismatched = self.mismatched()
+        found = [self.mismatch_phrase(name, best) for name, best in mismatched.items()]
         for name, corr in self.combined.corrections.items():
+            if name in mismatched:
+                continue
             angle = float(np.degrees(np.linalg.norm(corr.rotation_rad)))
             shift_mm = float(np.linalg.norm(corr.translation_m) * 1e3)
             turned = angle > max(WARN_ROTATION_DEG, SIGNIFICANT * corr.sigma_rotation_deg)
@@ -159,16 +187,24 @@ class CalibrationCheck:
             found.append(f"the upper camera's exposure times look {ms:+.1f} ms off the LiDAR clock")
         return found
 
-    def warnings(self, rig: object) -> list[str]:
-        """One line naming what looks off and the command that fixes it (none when nothing does)."""
+    def warnings(self, rig: object, refined: bool = False) -> list[str]:
+        """One line naming what looks off and the command that fixes it (none when nothing does); with
+        `refined` (the run refined the rig first), what is left is beyond refine's reach."""
         suspects = self.suspects()
         if not suspects:
             return []
-        return [
-            f"{'; '.join(suspects)} (from {self.combined.samples} samples' LiDAR points on cam0's images): "
-            f"refine the rig (sensorbox calib refine BAGS --rig {rig} --out REFINED.yaml) and ingest with "
-            "it, or ingest with --refine"
-        ]
+        if refined or self.mismatched():  # beyond what refine corrects
+            fix = (
+                f"check {rig}'s LiDAR and IMU poses and clocks by hand (refine corrects about a degree and "
+                "a few centimetres" + (", and this run refined the rig first)" if refined else ")")
+            )
+        else:
+            fix = (
+                f"refine the rig (sensorbox calib refine BAGS --rig {rig} --out REFINED.yaml) and ingest "
+                "with it, or ingest with --refine"
+            )
+        where = f"from {self.combined.samples} samples' LiDAR points on cam0's images"
+        return [f"{'; '.join(suspects)} ({where}): {fix}"]
 
     def as_yaml(self) -> dict[str, object]:
         """The check as dataset.yaml keeps it (deg, mm, ms)."""
@@ -180,6 +216,7 @@ class CalibrationCheck:
                 "pose_correction_mm": round(float(np.linalg.norm(corr.translation_m) * 1e3), 2),
                 "sigma_deg": round(corr.sigma_rotation_deg, 4),
                 "sigma_mm": round(corr.sigma_translation_mm, 2),
+                "median_correlation": round(self.median_correlation.get(name, float("nan")), 3),
             }
         ms = self.combined.clock_offset_ms
         return {
@@ -196,11 +233,12 @@ def check_calibration(samples: SampleAlignments) -> CalibrationCheck | None:
     combined = combine(samples)
     if combined is None:
         return None
-    shifts = {}
+    shifts, correlations = {}, {}
     for name in combined.corrections:
-        values = [found[name].shift_deg for found, _ in samples if name in found]
-        shifts[name] = float(np.median(values))
-    return CalibrationCheck(shifts, combined)
+        mine = [found[name] for found, _ in samples if name in found]
+        shifts[name] = float(np.median([a.shift_deg for a in mine]))
+        correlations[name] = float(np.median([a.correlation for a in mine]))
+    return CalibrationCheck(shifts, combined, correlations)
 
 
 def _offset_sigma_s(H: F64, spread: float) -> float:

@@ -36,7 +36,6 @@ bits a sample runs the test itself (`free_space_filter`).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -50,7 +49,7 @@ from calibration.stereo import disparity_and_stability
 from calibration.types import F32, F64, I64, Bool
 from ingest.dataset.sparse import SparseImage
 from ingest.raster.edges import edge_band
-from ingest.raster.kernels import I32, nearest_pixel_groups, planar_resample, snap_planar
+from ingest.raster.kernels import snap_planar
 from ingest.raster.lod import point_index
 from ingest.raster.params import RenderParams
 from ingest.raster.scan import Scan
@@ -58,6 +57,7 @@ from ingest.raster.view import Rendering, pixel_rays, render_view
 from ingest.raster.z_order import z_order
 from ingest.rows import rows
 from ingest.train.gt.block_planes import FreeSpaceSettings
+from ingest.train.gt.dense_rect import ResampleParams, cam0_window, rect_lookup, rect_ranges
 from ingest.train.gt.free_space import RayTest
 from ingest.train.gt.free_space import free_space_filter as free_space_mask
 from ingest.train.gt.groundtruth import px_per_rad
@@ -358,7 +358,10 @@ def dense_ground_truth(
     fish, pix = _view_gt(model, pts_cam0, normals, moving, params)
     range_img = SparseImage(fish.range_m.shape, pix, fish.range_m.reshape(-1)[pix])
     win = cam0_window(model, eq, R_cam0_rect)
-    r_win = rect_ranges(model, win, R_cam0_rect, range_img, params)
+    resample = ResampleParams(
+        params.resample_flat_m, params.resample_flat_rel, params.resample_max_change, params.plane_min_cos
+    )
+    r_win = rect_ranges(model, win, R_cam0_rect, range_img, resample)
     wpix = np.flatnonzero(r_win > 0)
     r = r_win[wpix].astype(np.float64)
     row, col = np.divmod(wpix, win.width)
@@ -373,48 +376,6 @@ def dense_ground_truth(
     )
     disp_img = SparseImage((eq.height, eq.width), epix[stable], disp[stable].astype(np.float32))
     return DenseGt(range_img, disp_img, int((~stable).sum()))
-
-
-def rect_ranges(
-    model: CameraModel, win: Equirectangular, R_cam0_rect: F64, range_img: SparseImage, params: DenseParams
-) -> F32:
-    """Range (m) along every ray of `win` (rectified frame; 0: none), from cam0's GT range image.
-
-    The rectified equirect and cam0 share their centre (`R_cam0_rect` is a
-    rotation), so what cam0 sees along a direction is what the equirect sees
-    along it: a ray's surface is the one of the GT pixel nearest to where it
-    projects in cam0, and its range is where it meets that pixel's plane (the
-    least-squares plane of the pixel's point and its GT neighbours, which
-    must lie on it within `resample_flat_m` + `resample_flat_rel` x range:
-    the renderer's same-surface tolerance, so a noisy surface keeps its GT
-    and a crease or step does not), exact on planes as the snapped values
-    are. Rays whose nearest cam0 pixel holds no GT (a hole, a silhouette, a
-    mover) get none: disparity is GT only where depth is.
-    """
-    rays, _ = pixel_rays(model)
-    start, order, rays_win = rect_lookup(model, win, R_cam0_rect)
-    tolerances = (params.resample_flat_m, params.resample_flat_rel, params.resample_max_change)
-    return planar_resample(
-        range_img.dense(), rays, range_img.pixel, start, order, rays_win, params.plane_min_cos, *tolerances,
-    )  # fmt: skip
-
-
-@lru_cache(maxsize=2)
-def _rect_lookup_cached(model: CameraModel, win: Equirectangular, R_bytes: bytes) -> tuple[I64, I32, F32]:
-    R_cam0_rect = np.frombuffer(R_bytes).reshape(3, 3)
-    rays_rect, ok = win.unproject(win.pixel_grid())
-    rays_cam0 = rays_rect.reshape(-1, 3) @ R_cam0_rect.T  # p_cam0 = R_cam0_rect p_rect
-    uv, good = model.project(rays_cam0)
-    good &= ok.reshape(-1)
-    start, order = nearest_pixel_groups(np.where(good[:, None], uv, np.nan), model.width, model.height)
-    return start, order, np.ascontiguousarray(np.nan_to_num(rays_cam0), np.float32)
-
-
-def rect_lookup(model: CameraModel, win: Equirectangular, R_cam0_rect: F64) -> tuple[I64, I32, F32]:
-    """Cached: the rays of `win` grouped by their nearest pixel of `model` (`nearest_pixel_groups`'
-    start and order) and the rays in cam0 ((N, 3) unit).
-    """
-    return _rect_lookup_cached(model, win, np.ascontiguousarray(R_cam0_rect, np.float64).tobytes())
 
 
 def may_matter(model: CameraModel, pts: F64, params: DenseParams) -> Bool:
@@ -435,26 +396,6 @@ def near_view(model: CameraModel, pts: F64, margin_px: float) -> Bool:
         ok &= (uv[:, 0] >= -margin_px) & (uv[:, 0] <= model.width - 1 + margin_px)
         ok &= (uv[:, 1] >= -margin_px) & (uv[:, 1] <= model.height - 1 + margin_px)
     return ok
-
-
-@lru_cache(maxsize=4)
-def _cam0_window_cached(model: CameraModel, eq: Equirectangular, R_bytes: bytes) -> Equirectangular:
-    R_cam0_rect = np.frombuffer(R_bytes).reshape(3, 3)
-    rays, ok = pixel_rays(model)
-    full = eq.full()
-    uv, good = full.project(rays[ok].astype(np.float64) @ R_cam0_rect)
-    uv = uv[good]
-    m = 1  # an equirect ray outside cam0's image has no GT pixel near it
-    c0 = max(0, int(np.floor(uv[:, 0].min())) - m)
-    c1 = min(full.width, int(np.ceil(uv[:, 0].max())) + m + 1)
-    r0 = max(0, int(np.floor(uv[:, 1].min())) - m)
-    r1 = min(full.height, int(np.ceil(uv[:, 1].max())) + m + 1)
-    return full.crop(r0, c0, r1 - r0, c1 - c0)
-
-
-def cam0_window(model: CameraModel, eq: Equirectangular, R_cam0_rect: F64) -> Equirectangular:
-    """The crop of `eq`'s full sphere holding every ray of `model` (plus a pixel), cached."""
-    return _cam0_window_cached(model, eq, np.ascontiguousarray(R_cam0_rect, np.float64).tobytes())
 
 
 def ray_test(params: DenseParams) -> RayTest:

@@ -25,7 +25,7 @@ import yaml
 from ingest.dataset.compare import first_difference
 from ingest.dataset.description import FORMAT, read_description
 from ingest.dataset.identity import bag_identity
-from ingest.dataset.layout import DEPTH_SCALE, DISP_SCALE, write_atomic
+from ingest.dataset.layout import DEPTH_SCALE, DISP_SCALE, sample_id, write_atomic
 from ingest.dataset.meta import read_meta
 from ingest.errors import DatasetError, OutputError
 from ingest.train.run.sample_job import Geometry
@@ -228,6 +228,20 @@ def check_existing(asked: IngestConfig, geometry: Geometry, bags: list[Path]) ->
     return old
 
 
+def _first_id_held(out: Path, held: list[int], source: str, otherwise: int) -> int:
+    """The first id of the samples in `out` made from the recording `source` (their meta's source_bag),
+    or `otherwise` when none is: a dataset.yaml rebuilt after it was deleted gives a recording its own
+    samples back, not new ids past them (the samples resume, and the file names where they are)."""
+    ids = []
+    for i in sorted(held):
+        try:
+            if read_meta(out, sample_id(i)).source_bag == source:
+                ids.append(i)
+        except DatasetError:
+            continue  # a damaged meta is rewritten by the run (`ingest.dataset.identity`)
+    return ids[0] if ids else otherwise
+
+
 def write_dataset_yaml(
     resolved: ResolvedRun, geometry: Geometry, bags: list[Path], run: IngestSummary
 ) -> int:
@@ -264,6 +278,8 @@ def write_dataset_yaml(
         first = max(
             [*(int(s["first_id"]) + int(s["samples"]) for s in sources), *(i + 1 for i in held)], default=0
         )
+        if not sources:  # dataset.yaml lost: this recording's samples keep the ids they were written under
+            first = _first_id_held(asked.out, held, ",".join(names), first)
         mine = {"bags": names, "first_id": first, "samples": run.planned}
         sources.append(mine)
     mine["identity"] = identity

@@ -272,7 +272,7 @@ def ingest(
         summary.calibration = check_calibration(summary.alignments)
         if summary.calibration is not None:
             record_calibration(cfg.out, [Path(p) for p in bag_paths], summary.calibration.as_yaml())
-            summary.warnings += summary.calibration.warnings(cfg.rig)
+            summary.warnings += summary.calibration.warnings(cfg.rig, refined=cfg.refine)
         if summary.without_gt_line():
             summary.warnings.append(summary.without_gt_line())
     summary.seconds = time.perf_counter() - t_start

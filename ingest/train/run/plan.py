@@ -229,9 +229,11 @@ def survey(
     gaps = imu_gaps(np.unique(seen[topics.imu][:, 1])) if topics.imu else np.zeros(0, np.int64)
     offsets_ms = {t: float(np.median(seen[t][:, 0] - seen[t][:, 1])) / 1e6 for t in topics.lidars}
     spread = lidar_clock_spread(offsets_ms)
-    warnings = ([spread] if spread else []) + [
-        restamped_line(topic, stamps_ns) for topic, stamps_ns in copies.restamped.items()
-    ]
+    warnings = (
+        ([spread] if spread else [])
+        + [restamped_line(topic, stamps_ns) for topic, stamps_ns in copies.restamped.items()]
+        + [overlapping_line(topic, firsts_ns) for topic, firsts_ns in copies.overlapping.items()]
+    )
     return Survey(seen, rates, duplicates, up, lo, gaps, warnings + rates.thin_lines(topics.lidars))
 
 
@@ -243,6 +245,17 @@ def restamped_line(topic: str, stamps_ns: list[int]) -> str:
         f"{topic}: {n} message{'' if n == 1 else 's'} carr{'ies' if n == 1 else 'y'} the header stamp of an "
         f"earlier message with other content (the first: {_seconds(stamps_ns[0])}); left out, as "
         f"{'its' if n == 1 else 'their'} time is not known (a sensor clock that stalled or stepped back)"
+    )
+
+
+def overlapping_line(topic: str, firsts_ns: list[int]) -> str:
+    """One line for the sweeps of `topic` whose point times cover an earlier sweep's
+    (`FirstCopies.overlapping`): each was left out, as its time is not known."""
+    n = len(firsts_ns)
+    return (
+        f"{topic}: {n} sweep{'' if n == 1 else 's'} with point times that cover an earlier sweep's (the "
+        f"first: {_seconds(firsts_ns[0])}); left out, as {'its' if n == 1 else 'their'} time is not known "
+        "(a driver that repeated a sweep's timebase, or a clock that stepped back)"
     )
 
 

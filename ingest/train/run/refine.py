@@ -95,6 +95,7 @@ class LidarRefinement:
     shift_after_deg: float
     samples: int
     applied: bool
+    mismatch: str = ""  # why the rig's pose was kept though off: its points match far worse than another's
 
 
 @dataclass(frozen=True)
@@ -166,6 +167,11 @@ class Refinement:
                     f"{e.excitation_deg_s:.1f} deg/s, 1-sigma {e.sigma_ms:.2f} ms); the rig's "
                     f"{cam.rig_timeshift_ms:+.3f} ms is kept: record the rig turned by hand for a few seconds"
                 )
+        lines += [
+            f"{lidar.lidar}: the rig's pose is kept: {lidar.mismatch}"
+            for lidar in self.lidars
+            if lidar.mismatch
+        ]
         if self.stereo_alignment is not None and self.stereo_alignment.disagrees:
             a = self.stereo_alignment
             lines.append(
@@ -367,11 +373,16 @@ def _refine_lidars(found: Refinement, align: Aligner) -> Refinement:
     sigmas: dict[str, tuple[float, float]] = {}
     clock: tuple[float, float] | None = None
     stereo: StereoAlignment | None = None
+    mismatch: dict[str, str] = {}
     for _ in range(ALIGN_ROUNDS):
         samples, lower = align(rig, found.frames.get(rig.upper.name, 0))
         check = check_calibration(samples)
         if check is None:
             break
+        mismatch = {name: check.mismatch_phrase(name, best) for name, best in check.mismatched().items()}
+        for name in mismatch:  # beyond the alignment's reach: its correction would be a wrong one
+            rig = _with_lidar_pose(rig, found.rig, name)
+            total[name] = np.eye(4)
         stereo = stereo_alignment(rig, check.combined, combine([(found_, None) for found_, _ in lower]))
         shifts.append(check.median_shift_deg)
         combined = check.combined
@@ -381,7 +392,7 @@ def _refine_lidars(found: Refinement, align: Aligner) -> Refinement:
         for name, corr in combined.corrections.items():
             counts[name] = sum(name in s for s, _ in samples)
             sigmas[name] = (corr.sigma_rotation_deg, corr.sigma_translation_mm)
-            if not _applies(corr):
+            if name in mismatch or not _applies(corr):
                 continue
             rig = _with_lidar_corrected(rig, name, corr)
             total[name] = corrected(total[name], corr)
@@ -394,9 +405,21 @@ def _refine_lidars(found: Refinement, align: Aligner) -> Refinement:
         before, after = shifts[0].get(name, float("nan")), shifts[-1].get(name, float("nan"))
         lidars.append(LidarRefinement(
             name, angle, float(np.linalg.norm(T[:3, 3]) * 1e3), *sigmas[name], before, after, counts[name],
-            applied,
+            applied, mismatch.get(name, ""),
         ))  # fmt: skip
     return replace(found, rig=rig, lidars=tuple(lidars), image_clock_ms=clock, stereo_alignment=stereo)
+
+
+def _with_lidar_pose(rig: Rig, given: Rig, name: str) -> Rig:
+    """`rig` with LiDAR `name` and the IMU of its housing back at their poses in `given`."""
+    lidars = tuple(given.lidar(name) if lidar.name == name else lidar for lidar in rig.lidars)
+    imus = tuple(
+        given.imus[k]
+        if (housing := _housing_lidar(rig, imu, k)) is not None and housing.name == name
+        else imu
+        for k, imu in enumerate(rig.imus)
+    )
+    return replace(rig, lidars=lidars, imus=imus)
 
 
 def _with_lidar_corrected(rig: Rig, name: str, correction: Alignment) -> Rig:

@@ -9,6 +9,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from calibration.types import F64, I64
 from ingest.dataset.meta import GtMeta, MotionMeta, PointMeta, SampleMeta
 from ingest.runtime.background import Background
 from ingest.train.gt.groundtruth import (
@@ -28,11 +29,50 @@ from ingest.train.run.sample_parts import (
     points_by_lidar,
     silent_lidars,
 )
-from ingest.train.trajectory.clouds import estimate_velocity, integrate_gyro, motion_decision
+from ingest.train.trajectory.clouds import (
+    GyroTrack,
+    MotionDecision,
+    estimate_velocity,
+    integrate_gyro,
+    motion_decision,
+)
 from ingest.train.trajectory.planes import Normals
 from ingest.train.trajectory.rig_trajectory import RigTrajectory
 
 VELOCITY_SIGMAS = 4.0  # an estimated velocity counts when its norm exceeds this many standard errors
+
+
+def _compensated(
+    job: SampleJob, pts: F64, stamps_ns: I64, gyro: GyroTrack | None
+) -> tuple[F64, F64 | None, MotionDecision]:
+    """The points (cam0, m) at the frame time when the rig moved enough to matter (`motion_decision`),
+    else as measured; the velocity used (m/s in cam0; None: none) and the decision.
+
+    The window's motion is a trajectory (`RigTrajectory.over_window`): the
+    gyro's turn, and the job's velocity or one estimated from the turned
+    points (used only when significant: a still rig is not "compensated"
+    with the fit's noise).
+    """
+    prm, tc = job.params, job.exposure_ns
+    dt_s = (stamps_ns - tc) / 1e9
+    turn = gyro if prm.motion != "off" else None
+    span = (int(stamps_ns.min()), int(stamps_ns.max())) if len(stamps_ns) else (tc, tc)
+    turning = RigTrajectory.over_window(turn, None, tc, span)  # the gyro's turn alone
+    velocity, source = job.velocity_cam0_mps, ("imu" if turn is not None else "none")
+    if prm.motion != "full":
+        velocity = None
+    elif velocity is None and prm.estimate_velocity:
+        rotated = turning.to_frame(pts, stamps_ns, tc) if turn is not None else pts
+        est = estimate_velocity(rotated, dt_s, significance=VELOCITY_SIGMAS)
+        if est is not None and np.linalg.norm(est.velocity_cam0_mps) > VELOCITY_SIGMAS * est.weakest_m_s:
+            velocity = est.velocity_cam0_mps
+    if velocity is not None:
+        source += "+velocity"
+    angle = turning.motion_from(tc, *span)[0] if turn is not None else 0.0
+    motion = motion_decision(dt_s, angle, velocity, job.geometry.px_per_rad, prm.min_motion_px, source=source)
+    if motion.applied:  # each point at its own time, in cam0 at the frame time
+        pts = RigTrajectory.over_window(turn, velocity, tc, span).to_frame(pts, stamps_ns, tc)
+    return pts, velocity, motion
 
 
 def process_sparse(job: SampleJob, images: Background[Equirects] | None, start_ms: float) -> SampleResult:
@@ -49,26 +89,8 @@ def process_sparse(job: SampleJob, images: Background[Equirects] | None, start_m
         off_imu = int((~covered).sum())  # counted in the meta: the filters' counts add up to the total
         counts = replace(counts, kept=counts.kept - off_imu)
         cloud = cloud.where(covered)
-    pts, stamps, tc = cloud.pts, cloud.stamps_ns, job.exposure_ns
-    dt_s = (stamps - tc) / 1e9
-    turn = gyro if prm.motion != "off" else None
-    span = (int(stamps.min()), int(stamps.max())) if len(stamps) else (tc, tc)
-    turning = RigTrajectory.over_window(turn, None, tc, span)  # the gyro's turn alone
-    rotated = turning.to_frame(pts, stamps, tc) if turn is not None else pts
-    velocity, source = job.velocity_cam0_mps, ("imu" if turn is not None else "none")
-    if prm.motion != "full":
-        velocity = None
-    elif velocity is None and prm.estimate_velocity:
-        est = estimate_velocity(rotated, dt_s, significance=VELOCITY_SIGMAS)
-        # use it only when it is significant: a static rig must not be "compensated" with fit noise
-        if est is not None and np.linalg.norm(est.velocity_cam0_mps) > VELOCITY_SIGMAS * est.weakest_m_s:
-            velocity = est.velocity_cam0_mps
-    if velocity is not None:
-        source += "+velocity"
-    angle = turning.motion_from(tc, *span)[0] if turn is not None else 0.0
-    motion = motion_decision(dt_s, angle, velocity, geo.px_per_rad, prm.min_motion_px, source=source)
-    if motion.applied:  # each point at its own time, in cam0 at the frame time
-        pts = RigTrajectory.over_window(turn, velocity, tc, span).to_frame(pts, stamps, tc)
+    dt_s = (cloud.stamps_ns - job.exposure_ns) / 1e9
+    pts, velocity, motion = _compensated(job, cloud.pts, cloud.stamps_ns, gyro)
     half = prm.window_ns / 2e9
     if motion.applied and not (len(dt_s) and dt_s.min() <= -half and dt_s.max() >= half):
         # a one-sided window (bag start/end, a LiDAR gap) leaves the velocity poorly determined
