@@ -141,12 +141,15 @@ def explain(path: Path, err: BaseException) -> str:
                     f" or is still running); {SALVAGE_HINT}"
                 )
             return f"{path}: not a rosbag2 directory (no metadata.yaml)"
+        meta: Any = None
         try:
-            yaml.load((path / "metadata.yaml").read_bytes(), Loader=BoundedSafeLoader)
+            meta = yaml.load((path / "metadata.yaml").read_bytes(), Loader=BoundedSafeLoader)
         except yaml.YAMLError as bad:
             return f"rosbag2 {yaml_error_line(path / 'metadata.yaml', bad)}"
         except OSError:
             pass  # rosbags' own error below names it
+        if (other := _storage_mismatch(meta)) is not None:
+            return f"{path / 'metadata.yaml'}: {other}"
         if isinstance(err, KeyError) and (odd := odd_definition_encodings(path)):
             name, msgtype, encoding = odd[0]
             return (
@@ -168,6 +171,32 @@ def explain(path: Path, err: BaseException) -> str:
             " run `rosbag reindex` on it first"
         )
     return f"{path}: cannot read bag: {type(err).__name__}: {' '.join(text.split())}"
+
+
+_STORAGE_SUFFIX = {"mcap": ".mcap", "sqlite3": ".db3"}
+
+
+def _storage_mismatch(meta: Any) -> str | None:
+    """What disagrees when metadata.yaml's storage_identifier names another format than its files'
+    suffix (a metadata.yaml copied from another recording), else None."""
+    info = meta.get("rosbag2_bagfile_information") if isinstance(meta, dict) else None
+    if not isinstance(info, dict):
+        return None
+    storage, files = info.get("storage_identifier"), info.get("relative_file_paths")
+    suffix = _STORAGE_SUFFIX.get(storage) if isinstance(storage, str) else None
+    if suffix is None or not isinstance(files, list):
+        return None
+    odd = [
+        f
+        for f in files
+        if isinstance(f, str) and Path(f).suffix in _STORAGE_SUFFIX.values() and Path(f).suffix != suffix
+    ]
+    if not odd:
+        return None
+    return (
+        f"storage_identifier {storage!r} (files {suffix}) but it lists {odd[0]}; expected the storage of its "
+        "files (a metadata.yaml of another recording?)"
+    )
 
 
 def odd_definition_encodings(path: Path) -> list[tuple[str, str, str]]:

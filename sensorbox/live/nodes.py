@@ -44,6 +44,7 @@ topics when the lidar IPs differ (emulated lidars on 127.0.0.x).
 from __future__ import annotations
 
 import importlib
+import ipaddress
 import itertools
 import json
 import logging
@@ -246,6 +247,11 @@ def livox_driver_node(ctx: NodeContext, p: Params) -> Node:
         raise GraphError(
             f"{p.where}: give host_ip and lidar_ips, or user_config_path (livox_ros_driver2 JSON)"
         )
+    for key, ip in (("host_ip", host_ip), *(("lidar_ips", lidar.ip) for lidar in lidars)):
+        try:  # the dry run builds this node too: a mistyped address is said before any socket opens
+            ipaddress.IPv4Address(ip)
+        except ValueError:
+            raise p._err(key, ip, "a dotted IPv4 address such as 192.168.1.5") from None
     config = DriverConfig(
         host_ip=host_ip, lidars=tuple(lidars), msg_format=fmt,  # type: ignore[arg-type]
         publish_interval_ns=round(1e9 / freq), multi_topic=p.flag("multi_topic", True),

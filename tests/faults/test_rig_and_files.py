@@ -614,6 +614,27 @@ def test_a_dry_run_refuses_what_the_run_refuses(
     assert sorted(p.name for p in tmp_path.iterdir()) == ["talker.launch.yaml"]  # nothing written
 
 
+@pytest.mark.parametrize(
+    ("arg", "key", "value"),
+    [("host_ip:=bogus", "host_ip", "bogus"), ("lidar_top_ip:=999.1.1.1", "lidar_ips", "999.1.1.1")],
+)
+def test_a_dry_run_refuses_an_address_that_is_no_ipv4(
+    capsys: pytest.CaptureFixture[str], arg: str, key: str, value: str
+) -> None:
+    """Sweep 5: `launch --dry-run host_ip:=bogus` printed the nodes, exit 0 (`capture --host-ip bogus`
+    refused it)."""
+    launch = ROOT / "sensorbox" / "share" / "launch" / "sensorbox.launch.yaml"
+    code, out, err = sensorbox(capsys, "launch", str(launch), "--dry-run", arg)
+    assert (code, out, err) == (
+        2,
+        "",
+        [
+            f"error: node 'livox_lidar_publisher' (livox_ros_driver2/livox_ros_driver2_node) at {launch}:25: "
+            f"parameter '{key}' = '{value}': expected a dotted IPv4 address such as 192.168.1.5"
+        ],
+    )
+
+
 def test_a_dry_run_writes_no_rig(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """The simulated camera's `write_rig` is written when the node starts, not when the dry run builds it."""
     sim = ROOT / "sensorbox" / "share" / "launch" / "sim.launch.yaml"

@@ -547,3 +547,29 @@ def test_an_empty_bag_file_is_called_empty(tmp_path, name):
     assert str(err.value) == (
         f"{path}: the file is empty (0 bytes): nothing was recorded into it, or it was cut to nothing"
     )
+
+
+def test_a_metadata_yaml_naming_another_storage_than_its_files_is_said(tmp_path):
+    """Sweep 5: a .db3 recording whose metadata.yaml says storage_identifier mcap was 'cannot read bag:
+    AnyReaderError: File magic is invalid.', naming neither the file nor the key."""
+    import shutil
+
+    import yaml
+
+    from tests.paths import FIXTURES_DIR
+
+    bag = tmp_path / "rec"
+    shutil.copytree(FIXTURES_DIR / "indoor_walk_db3", bag)
+    meta = bag / "metadata.yaml"
+    doc = yaml.safe_load(meta.read_text())
+    info = doc["rosbag2_bagfile_information"]
+    assert info["storage_identifier"] == "sqlite3"
+    info["storage_identifier"] = "mcap"
+    meta.write_text(yaml.safe_dump(doc))
+    name = info["relative_file_paths"][0]
+    with pytest.raises(BagError) as err:
+        open_bags(bag)
+    assert str(err.value) == (
+        f"{meta}: storage_identifier 'mcap' (files .mcap) but it lists {name}; expected the storage of its "
+        "files (a metadata.yaml of another recording?)"
+    )

@@ -242,7 +242,14 @@ def test_a_recording_is_known_by_its_content_and_a_dataset_by_its_rig(tmp_path: 
         ({"lidar_window_ns": -5_000_000}, r"^lidar_window_ns -5000000: expected > 0$"),
         ({"dask": "notanaddress"}, r"^dask 'notanaddress': expected a scheduler address tcp://HOST:PORT"),
         ({"sample": SampleParams(png_level=9)}, r"^sample\.png_level 9: expected 0\.\.3$"),
-        ({"sample": SampleParams(min_range_m=-1.0)}, r"^sample\.min_range_m -1: expected >= 0 m$"),
+        (
+            {"sample": SampleParams(min_range_m=-1.0)},
+            r"^sample\.min_range_m -1: expected a finite number >= 0 \(m\)$",
+        ),
+        (
+            {"sample": SampleParams(min_range_m=float("inf"))},
+            r"^sample\.min_range_m inf: expected a finite number >= 0 \(m\)$",
+        ),
         (
             {
                 "gt": "auto",

@@ -62,7 +62,7 @@ class IngestConfig:
              dense.window_ns, "at least {lidar_window_ns} with {gt} 'auto': the sparse GT it gives frames "
              "in trajectory gaps reads {lidar_window_ns} of points from the dense window"),
             (math.isfinite(sample.min_range_m) and sample.min_range_m >= 0, "sample.min_range_m",
-             sample.min_range_m, ">= 0 m"),
+             sample.min_range_m, "a finite number >= 0 (m)"),
         ]  # fmt: skip
         for ok, setting, value, expected in checks:
             if not ok:
