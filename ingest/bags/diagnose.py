@@ -132,6 +132,13 @@ def explain(path: Path, err: BaseException) -> str:
         return f"{path}: not an MCAP file: it starts like {other} (renamed?); give it that suffix"
     if path.suffix == ".mcap" and path.is_file() and not mcap_is_complete(path):
         return f"{path}: MCAP file is truncated or still being written (no closing magic); {SALVAGE_HINT}"
+    if path.suffix == ".mcap" and isinstance(err, KeyError) and (foreign := odd_mcap_encodings(path)):
+        topic, encoding = foreign[0]
+        return (
+            f"{path}: {topic}: its schema is stored with encoding {encoding!r}, which rosbags cannot open "
+            "(it reads ros2msg and ros2idl); leave the topic out of the recording (ros2 bag convert, "
+            "exclude_topics) or record it in a bag of its own"
+        )
     if path.is_dir():
         mcaps = sorted(path.glob("*.mcap"))
         if not (path / "metadata.yaml").exists():
@@ -197,6 +204,24 @@ def _storage_mismatch(meta: Any) -> str | None:
         f"storage_identifier {storage!r} (files {suffix}) but it lists {odd[0]}; expected the storage of its "
         "files (a metadata.yaml of another recording?)"
     )
+
+
+def odd_mcap_encodings(path: Path) -> list[tuple[str, str]]:
+    """(topic, schema encoding) of each channel of an .mcap whose schema rosbags cannot read (not
+    ros2msg/ros2idl: a JSON or protobuf topic beside the ROS ones); [] when the summary cannot be read."""
+    from mcap.reader import make_reader
+
+    try:
+        with path.open("rb") as f:
+            summary = make_reader(f).get_summary()
+    except Exception:  # any failure: rosbags' own error stands
+        return []
+    if summary is None:
+        return []
+    odd = {
+        sid: sc.encoding for sid, sc in summary.schemas.items() if sc.encoding not in ("ros2msg", "ros2idl")
+    }
+    return [(ch.topic, odd[ch.schema_id]) for ch in summary.channels.values() if ch.schema_id in odd]
 
 
 def odd_definition_encodings(path: Path) -> list[tuple[str, str, str]]:

@@ -573,3 +573,18 @@ def test_a_metadata_yaml_naming_another_storage_than_its_files_is_said(tmp_path)
         f"{meta}: storage_identifier 'mcap' (files .mcap) but it lists {name}; expected the storage of its "
         "files (a metadata.yaml of another recording?)"
     )
+
+
+def test_a_topic_whose_schema_rosbags_cannot_open_is_named(tmp_path):
+    """Sweep 5: an .mcap with a JSON topic beside the ROS ones was 'cannot read bag: KeyError:
+    'jsonschema'', naming neither the topic nor the encoding."""
+    path = mcap_with_schema(
+        tmp_path / "j.mcap", "Status", b"{}", [b"{}"], topic="/status", encoding="jsonschema"
+    )
+    with pytest.raises(BagError) as err:
+        open_bags(path)
+    assert str(err.value) == (
+        f"{path}: /status: its schema is stored with encoding 'jsonschema', which rosbags cannot open (it "
+        "reads ros2msg and ros2idl); leave the topic out of the recording (ros2 bag convert, exclude_topics) "
+        "or record it in a bag of its own"
+    )
