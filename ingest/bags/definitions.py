@@ -102,23 +102,32 @@ def check_definition(
 
 
 def _match_folder_qos(folder: Any) -> list[str]:
-    """Let a rosbag2 folder's storage files yield the messages of topics whose QoS in metadata.yaml
-    differs from the QoS the file stores; the topics, for a warning.
+    """Let a rosbag2 folder's storage files yield the messages of topics whose QoS or serialization
+    format in metadata.yaml differs from what the file stores; the topics and what differs, for a
+    warning (the file's bytes are read, as the file stores them).
 
     rosbags pairs a folder's metadata topics with its files' channels by topic, type and QoS, so a
     difference (rosbag2's own test bags have them: the file's QoS written by a newer recorder)
     silently dropped every message of the topic. A channel with no equal metadata entry takes the
     QoS of the metadata entry of its topic and type.
     """
-    topics: list[str] = []
+    topics: set[str] = set()
     for storage in getattr(folder, "storages", ()):  # a rosbag2 folder's files (a single file: none)
         conns = storage.connections
         for idx, x in enumerate(conns):
             same = [y for y in folder.connections if y.topic == x.topic and y.msgtype == x.msgtype]
             if same and all(y.ext != x.ext for y in same):
                 conns[idx] = x._replace(ext=same[0].ext)
-                topics.append(x.topic)
-    return sorted(set(topics))
+                given, stored = same[0].ext, x.ext
+                formats = (
+                    getattr(given, "serialization_format", None),
+                    getattr(stored, "serialization_format", None),
+                )
+                if formats[0] != formats[1]:  # which field differs, named
+                    topics.add(f"{x.topic} (serialization format {formats[0]!r}, the file's {formats[1]!r})")
+                else:
+                    topics.add(f"{x.topic} (QoS profiles)")
+    return sorted(topics)
 
 
 class TolerantAnyReader(AnyReader):
@@ -133,7 +142,8 @@ class TolerantAnyReader(AnyReader):
 
     unparsable: list[tuple[Connection, str]]
     qos_mismatches: list[str]
-    """Topics of a rosbag2 folder whose metadata.yaml QoS differs from their storage file's (read anyway)."""
+    """Topics of a rosbag2 folder whose metadata.yaml QoS or serialization format differs from their storage
+    file's, each with what differs (read anyway)."""
     message_compressed: set[int]
     """`id` of each rosbag2 storage (a connection's `owner`) whose messages are zstd-compressed one by
     one (compression_mode 'message'): this reader yields them compressed, and `BagSet` decompresses

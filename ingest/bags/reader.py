@@ -251,8 +251,8 @@ class BagSet:
         that cannot be parsed, or, in salvaged files, any reason a topic cannot be decoded safely."""
         if reader is not None and reader.qos_mismatches:
             log.warning(
-                "%s: metadata.yaml gives other QoS profiles than the storage file for %s; their messages "
-                "are read all the same", self._where, ", ".join(reader.qos_mismatches),
+                "%s: metadata.yaml describes %s otherwise than the storage file; their messages are "
+                "read all the same", self._where, ", ".join(reader.qos_mismatches),
             )  # fmt: skip
         if reader is not None:
             for conn, problem in reader.unparsable:

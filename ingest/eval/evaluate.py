@@ -141,6 +141,13 @@ def discover_gt(root: Path, task: Task, image_type: str | None = None) -> tuple[
             rel = p.relative_to(root).with_suffix("").as_posix()
             found.append(GtFile(rel, p, scale, m["scene"], float(m["fov"]), float(m["baseline"]), m["view"]))
         found.sort(key=lambda g: (g.scene or "", g.fov_deg or 0.0, g.baseline_mm or 0.0, g.view or ""))
+    if not found and layout == "benchmark" and image_type is not None:
+        kind = "disparity" if _is_stereo(task) else "depth"
+        views = sorted({p.stem for p in root.glob(f"*/*FOV/*mm/CENTER/{kind}/*.png")})
+        if views:  # the dataset has views, none of this name: the option's value is what is wrong
+            raise EvalError(
+                f"--image-type {image_type!r}: {root} has the views {', '.join(views)}; expected one"
+            )
     if not found:
         what = "disp_equirect/*.png" if _is_stereo(task) else "depth_fisheye/*.png"
         if layout == "benchmark":

@@ -91,9 +91,18 @@ def read_site(manifest: Path, mask_label: str | None = "label") -> list[Scan]:
     entries = doc.get("scans")
     if not isinstance(entries, list) or not entries:
         raise ScanError(f"{manifest}: 'scans' must be a non-empty list")
+    named: dict[str, int] = {}
+    for k, e in enumerate(entries):  # every entry checked before any scan is read
+        _check_site_entry(manifest, k, e)
+        if (name := e.get("name")) is not None:
+            if name in named:  # a view is chosen by its scan's name (--center): two would be one
+                raise ScanError(
+                    f"{manifest}: scans[{k}].name {name!r} is also scans[{named[name]}]'s; expected a name "
+                    "of its own for each scan"
+                )
+            named[name] = k
     scans = []
     for k, e in enumerate(entries):
-        _check_site_entry(manifest, k, e)
         try:
             T = as_transform(
                 e.get("T_world_scan", np.eye(4).tolist()), f"{manifest}: scans[{k}].T_world_scan"

@@ -145,6 +145,13 @@ class Monitor:
         context = foxglove.Context()
         self._channels = Channels(context, self.rig)
         self._view = CoverageView(self.rig, self.cfg.coverage_window_s)
+        try:  # a name that resolves nowhere is the host's fault, not the port's
+            socket.getaddrinfo(self.cfg.host, None)
+        except (socket.gaierror, UnicodeError) as err:
+            raise GraphError(
+                f"monitor: --monitor-host {self.cfg.host!r} is no address of this computer ({err}); expected "
+                "one of its addresses or names (0.0.0.0: every one)"
+            ) from err
         try:
             self._server = foxglove.start_server(
                 name="sensorbox monitor", host=self.cfg.host, port=self.cfg.port, context=context,

@@ -140,6 +140,16 @@ def test_a_dataset_that_is_a_file_or_lacks_depth_is_named_as_such(tmp_path):
         discover_gt(tmp_path / "ds", "mono")
 
 
+def test_an_image_type_the_benchmark_does_not_have_is_named_with_those_it_has(bench: Path) -> None:
+    """Sweep 5: `stats --image-type bogus` said "no depth ground truth (.../depth/bogus.png)", naming
+    neither the option nor the views there are."""
+    views = sorted({p.stem for p in bench.glob("*/*FOV/*mm/CENTER/depth/*.png")})
+    with pytest.raises(EvalError) as err:
+        discover_gt(bench, "mono", "bogus")
+    assert str(err.value) == f"--image-type 'bogus': {bench} has the views {', '.join(views)}; expected one"
+    assert len(views) >= 1
+
+
 def test_stereo_grouped_by_fov_and_baseline(bench: Path, tmp_path: Path) -> None:
     pred = tmp_path / "pred"
     files = write_predictions(bench, pred, "stereo")

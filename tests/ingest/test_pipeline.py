@@ -594,6 +594,29 @@ QOS = (
 )
 
 
+def test_a_db3_whose_topic_serialization_differs_from_its_metadata_is_said_so(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Sweep 5: a .db3 whose topics table says 'json' for a camera where metadata.yaml says 'cdr' was
+    warned about as "other QoS profiles"."""
+    import logging
+    import sqlite3
+
+    from tests.paths import FIXTURES_DIR
+
+    folder = tmp_path / "db3"
+    shutil.copytree(FIXTURES_DIR / "indoor_walk_db3", folder)
+    with sqlite3.connect(folder / "indoor_walk_db3.db3") as db:
+        topic = db.execute("SELECT name FROM topics WHERE name LIKE '/zed_upper%'").fetchone()[0]
+        db.execute("UPDATE topics SET serialization_format = 'json' WHERE name = ?", (topic,))
+    with caplog.at_level(logging.WARNING), open_bags([folder]) as bags:
+        assert sum(1 for m in bags.messages() if m.topic == topic) > 0
+    assert [r.getMessage() for r in caplog.records if "describes" in r.getMessage()] == [
+        f"{folder}: metadata.yaml describes {topic} (serialization format 'cdr', the file's 'json') otherwise "
+        "than the storage file; their messages are read all the same"
+    ]
+
+
 def test_a_folder_whose_metadata_qos_differs_from_its_file_loses_no_message(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
@@ -614,8 +637,8 @@ def test_a_folder_whose_metadata_qos_differs_from_its_file_loses_no_message(
         assert read == sum(1 for _ in bags.messages()) == 336
     warning = [r.getMessage() for r in caplog.records if "QoS" in r.getMessage()]
     assert warning == [
-        f"{folder}: metadata.yaml gives other QoS profiles than the storage file for "
-        "/zed_upper/zed_node/rgb/color/rect/image/compressed; their messages are read all the same"
+        f"{folder}: metadata.yaml describes /zed_upper/zed_node/rgb/color/rect/image/compressed (QoS "
+        "profiles) otherwise than the storage file; their messages are read all the same"
     ]
     summary = ingest([folder], IngestConfig(rig=_rig(INDOOR), out=tmp_path / "ds", workers=1, every=7))
     clean = ingest([INDOOR], IngestConfig(rig=_rig(INDOOR), out=tmp_path / "clean", workers=1, every=7))

@@ -396,3 +396,16 @@ def test_a_cloud_path_that_is_no_regular_file_is_one_line_before_a_byte_is_read(
         with pytest.raises(ScanError) as err:
             read(path)
         assert str(err.value) == f"{path}: is {what}, not a point cloud file"
+
+
+def test_a_site_naming_two_scans_alike_is_refused(tmp_path):
+    """Sweep 5: two scans named s0 in one site.yaml were read, the second silently renamed s0_2 (and
+    `--center s0` then chose one of them). Names given in a manifest are the user's: each its own."""
+    manifest = tmp_path / "site.yaml"
+    manifest.write_text("sensorbox_site: 1\nscans:\n- {name: s0, file: a.ply}\n- {name: s0, file: b.ply}\n")
+    with pytest.raises(ScanError) as err:
+        read_scans([manifest])
+    assert (
+        str(err.value)
+        == f"{manifest}: scans[1].name 's0' is also scans[0]'s; expected a name of its own for each scan"
+    )

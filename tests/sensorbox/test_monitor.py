@@ -183,6 +183,22 @@ def test_a_taken_port_is_one_error_line_and_no_bag(tmp_path):
     assert res.stderr.endswith("; choose another --monitor port\n") and res.stderr.count("\n") == 1
 
 
+@pytest.mark.realtime
+def test_a_host_that_resolves_nowhere_is_named_not_the_port(tmp_path):
+    """Sweep 5: `--monitor-host not.a.host.invalid` ended with "choose another --monitor port"."""
+    launch = tmp_path / "talker.launch.yaml"
+    launch.write_text(TALKER_LAUNCH)
+    res = run_cli(
+        "launch", str(launch), "--monitor", "8765", "--monitor-host", "not.a.host.invalid",
+        "--monitor-rig", str(REFERENCE_RIG),
+    )  # fmt: skip
+    assert res.returncode == 2 and res.stderr.count("\n") == 1
+    assert res.stderr.startswith(
+        "error: monitor: --monitor-host 'not.a.host.invalid' is no address of this computer ("
+    )
+    assert res.stderr.endswith("); expected one of its addresses or names (0.0.0.0: every one)\n")
+
+
 def test_the_shipped_foxglove_layout_is_the_monitors_and_shows_its_channels():
     from calibration.rig import read_rig
     from sensorbox.live.monitor_layout import LAYOUT_FILE, layout_text
