@@ -38,7 +38,7 @@ import numpy as np
 from ingest.bags.image_pixels import image_pixels, to_bgr
 from ingest.bags.jpeg_warnings import jpeg_warnings
 from ingest.bags.livox_msg import CustomMsg, decode_custom_msg
-from ingest.bags.point_time import point_times_ns
+from ingest.bags.point_time import MAX_OFFSET_NS, point_times_ns
 from ingest.bags.rostypes import (
     COMPRESSED_IMAGE_TYPE,
     IMAGE_TYPE,
@@ -94,6 +94,8 @@ class Sweep:
     tag: Array | None = None
     line: Array | None = None
     time_layout: str = ""
+    late: np.ndarray[Any, np.dtype[np.bool_]] | None = None  # points whose own time field lies beyond any
+    # sweep (a Livox offset_time over `MAX_OFFSET_NS`: 0xFFFFFFFF is 4.3 s), whatever the clocks; None: none
 
     @cached_property
     def span_ns(self) -> tuple[int, int]:
@@ -305,6 +307,7 @@ def sweep_from_custom_msg(msg: CustomMsg) -> Sweep:
     xyz = np.empty((len(pts), 3), np.float32)
     for i, n in enumerate("xyz"):
         xyz[:, i] = pts[n]
+    late = pts["offset_time"] > MAX_OFFSET_NS
     return Sweep(
         msg.stamp_ns,
         msg.frame_id,
@@ -314,6 +317,7 @@ def sweep_from_custom_msg(msg: CustomMsg) -> Sweep:
         np.ascontiguousarray(pts["tag"]),
         np.ascontiguousarray(pts["line"]),
         CUSTOM_MSG_TIME,
+        late if late.any() else None,
     )
 
 

@@ -174,6 +174,8 @@ def screened_sweep(sweep: Sweep) -> tuple[Sweep, dict[str, int]]:
     counts them in its meta), so every pass and GT method drops the same points.
     """
     late = beyond_sweep(sweep.stamps_ns, sweep.stamp_ns)
+    if sweep.late is not None:  # the decoder's own verdict: a time field beyond any sweep
+        late |= sweep.late
     far = too_far(sweep.xyz_m) & ~late
     repeated = repeated_points(sweep.xyz_m, sweep.stamps_ns) & ~(late | far)
     drop = late | far | repeated
@@ -192,6 +194,7 @@ def screened_sweep(sweep: Sweep) -> tuple[Sweep, dict[str, int]]:
         reflectivity=kept(sweep.reflectivity),
         tag=kept(sweep.tag),
         line=kept(sweep.line),
+        late=None,
     )
     counts = {
         POINT_TIME: int(late.sum()),

@@ -318,3 +318,29 @@ def test_a_lidar_whose_every_point_is_dropped_says_why(
         ],
     )
     assert not out.exists()
+
+
+def test_a_lidar_whose_every_point_time_is_0xffffffff_is_said_as_such(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Sweep 5: every Livox offset_time 0xFFFFFFFF (4.3 s after the timebase, beyond any sweep) was blamed
+    on the clocks ("point times ... do not overlap ...: sync it: PTP/gPTP"), as if the LiDAR ran on
+    another clock. An offset is relative to its own message's timebase: beyond 3 s it is no time."""
+
+    def all_max(pts: Any) -> Any:
+        pts["offset_time"][:] = 0xFFFFFFFF
+        return pts
+
+    def bad(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        return [(topic, _points(all_max)(raw) if topic == LIDAR_TOP else raw)]
+
+    bag, rig = rewrite(tmp_path / "late.mcap", bad, src=INDOOR)
+    n = sum(len(decode_custom_msg(m).points) for m in _messages(INDOOR, LIDAR_TOP))
+    code, _, err = sensorbox(capsys, "ingest", str(bag), "--rig", str(rig), "--out", str(tmp_path / "ds"))
+    assert (code, err) == (
+        2,
+        [
+            f"error: {bag}: no points on {LIDAR_TOP} (the rig's lidar lidar_top) in the whole bag: every one was "
+            f"dropped as no sensor measures it ({n:,} points: {POINT_TIME})"
+        ],
+    )
