@@ -172,6 +172,18 @@ def _resolve_image_topic(topic: str | None, names: dict[str, str]) -> str | None
     return compressed if compressed in names else None
 
 
+def _type_problem(msgtype: str, allowed: frozenset[str], what: str) -> str:
+    """'has type T; expected ...', with a hint when T is a ROS 1 name (pkg/Type) in a ROS 2 bag."""
+    expected = " or ".join(sorted(allowed))
+    ros1 = msgtype.count("/") == 1 and f"{msgtype.split('/')[0]}/msg/{msgtype.split('/')[1]}" in allowed
+    hint = (
+        f" (its schema names it the ROS 1 way: a ROS 2 bag names it {msgtype.replace('/', '/msg/')})"
+        if ros1
+        else ""
+    )
+    return f"has type {msgtype}; expected {what} type ({expected}){hint}"
+
+
 def check_rig(
     rig: Rig, types: dict[str, str], counts: dict[str, int] | None = None
 ) -> tuple[RigProblem, ...]:
@@ -195,15 +207,14 @@ def check_rig(
             problems.append(RigProblem(sensor, None, "has no topic in the rig file"))
         elif topic not in types:
             alt = _resolve_image_topic(topic, types) if allowed is IMAGE_TYPES else None
-            if alt is None or types[alt] not in allowed:
+            if alt is None:
                 problems.append(RigProblem(sensor, topic, "not in the bag"))
+            elif types[alt] not in allowed:  # the compressed variant is there, of another type
+                problems.append(RigProblem(sensor, alt, _type_problem(types[alt], allowed, what)))
             elif counts is not None and counts.get(alt, 0) == 0:  # ingest reads the compressed variant
                 problems.append(RigProblem(sensor, alt, "in the bag but empty: 0 messages"))
         elif types[topic] not in allowed:
-            expected = " or ".join(sorted(allowed))
-            problems.append(
-                RigProblem(sensor, topic, f"has type {types[topic]}; expected {what} type ({expected})")
-            )
+            problems.append(RigProblem(sensor, topic, _type_problem(types[topic], allowed, what)))
         elif counts is not None and counts.get(topic, 0) == 0:
             problems.append(RigProblem(sensor, topic, "in the bag but empty: 0 messages"))
     return tuple(problems)

@@ -491,3 +491,29 @@ def test_the_duration_counts_topics_inspect_cannot_decode(tmp_path: Path) -> Non
     (foo,) = report.topics
     assert foo.error is not None and "refusing to guess its layout" in foo.error
     assert report.duration_s == 2.5
+
+
+def test_a_rig_topic_whose_type_is_named_the_ros1_way_says_so_not_missing() -> None:
+    """Sweep 5: a ROS 2 mcap whose schemas are named sensor_msgs/CompressedImage (no /msg/) made ingest
+    say the rig's camera was "not in the bag", though its /compressed topic was there."""
+    from calibration.rig import REFERENCE_RIG, read_rig
+    from ingest.topic_map import check_rig
+
+    rig = read_rig(REFERENCE_RIG)
+    upper = f"{rig.upper.topic}/compressed"
+    types = {
+        upper: "sensor_msgs/CompressedImage",
+        f"{rig.lower.topic}/compressed": "sensor_msgs/msg/CompressedImage",
+    }
+    types |= {li.topic: "livox_ros_driver2/msg/CustomMsg" for li in rig.lidars}
+    types |= {i.topic: "sensor_msgs/msg/Imu" for i in rig.imus}
+    problems = check_rig(rig, types)
+    assert [(p.sensor, p.topic, p.problem) for p in problems] == [
+        (
+            "camera cam0 (upper)",
+            upper,
+            "has type sensor_msgs/CompressedImage; expected an image type (sensor_msgs/msg/CompressedImage or "
+            "sensor_msgs/msg/Image) (its schema names it the ROS 1 way: a ROS 2 bag names it "
+            "sensor_msgs/msg/CompressedImage)",
+        )
+    ]
