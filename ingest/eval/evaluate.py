@@ -40,12 +40,7 @@ from calibration.types import F32
 from ingest.dataset.layout import DEPTH_SCALE, DISP_SCALE, read_png_u16, write_atomic
 from ingest.dataset.png import MAX_IMAGE_BYTES, read_image
 from ingest.errors import DatasetError, EvalError
-from ingest.eval.metrics import (
-    Accumulator,
-    DepthAccumulator,
-    StereoAccumulator,
-    median_scale,
-)
+from ingest.eval.metrics import Accumulator, DepthAccumulator, StereoAccumulator, median_scale
 from ingest.raster.edges import edge_band
 
 Task = Literal["stereo", "mono", "completion"]
@@ -141,18 +136,14 @@ def discover_gt(root: Path, task: Task, image_type: str | None = None) -> tuple[
             rel = p.relative_to(root).with_suffix("").as_posix()
             found.append(GtFile(rel, p, scale, m["scene"], float(m["fov"]), float(m["baseline"]), m["view"]))
         found.sort(key=lambda g: (g.scene or "", g.fov_deg or 0.0, g.baseline_mm or 0.0, g.view or ""))
-    if not found and layout == "benchmark" and image_type is not None:
-        kind = "disparity" if _is_stereo(task) else "depth"
-        views = sorted({p.stem for p in root.glob(f"*/*FOV/*mm/CENTER/{kind}/*.png")})
-        if views:  # the dataset has views, none of this name: the option's value is what is wrong
-            raise EvalError(
-                f"--image-type {image_type!r}: {root} has the views {', '.join(views)}; expected one"
-            )
-    if not found:
-        what = "disp_equirect/*.png" if _is_stereo(task) else "depth_fisheye/*.png"
+    if not found:  # a view of another name than the benchmark's: the option is wrong, named with them
+        kind, views = ("disparity" if _is_stereo(task) else "depth"), ""
+        what = f"{'disp_equirect' if _is_stereo(task) else 'depth_fisheye'}/*.png"
         if layout == "benchmark":
-            kind = "disparity" if _is_stereo(task) else "depth"
+            views = ", ".join(sorted({p.stem for p in root.glob(f"*/*FOV/*mm/CENTER/{kind}/*.png")}))
             what = f"<scene>/<FOV>FOV/<B>mm/CENTER/{kind}/{image_type or '<view>'}.png"
+        if views and image_type is not None:
+            raise EvalError(f"--image-type {image_type!r}: {root} has {kind} GT of the views {views}")
         raise EvalError(f"{root}: no {'disparity' if _is_stereo(task) else 'depth'} ground truth ({what})")
     return layout, found
 
