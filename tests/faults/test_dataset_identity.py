@@ -231,6 +231,7 @@ def test_a_lost_dataset_yaml_is_not_rewritten_to_describe_samples_made_otherwise
     args = ["ingest", str(INDOOR), "--rig", str(RIG), "--out", str(out), "--workers", "1", "--every", "5"]
     args += ["--height-full", "64", "--gt", "sparse", "--no-preview"]
     assert sensorbox(capsys, *args)[0] == 0
+    check = yaml.safe_load((out / "dataset.yaml").read_text())["sources"][0]["calibration_check"]
     (out / "dataset.yaml").unlink()
     code, _, err = sensorbox(capsys, *args, "--window-ms", "20")
     assert (code, err) == (
@@ -250,6 +251,8 @@ def test_a_lost_dataset_yaml_is_not_rewritten_to_describe_samples_made_otherwise
     # the recording keeps the ids its samples were written under (sweep 5: it was given 5..9, which hold
     # no files, and a second recording 10..14)
     assert [(s["first_id"], s["samples"]) for s in doc["sources"]] == [(0, 5)]
+    # the calibration check covers the samples resumed, not only those this run wrote (none: it was gone)
+    assert doc["sources"][0]["calibration_check"] == check and check["samples"] == 5
     assert sorted(p.stem for p in (out / "meta").glob("*.json")) == [f"{i:06d}" for i in range(5)]
 
 

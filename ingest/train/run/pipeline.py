@@ -61,6 +61,7 @@ from ingest.dataset.layout import (
     sample_id,
 )
 from ingest.dataset.lock import hold_folder
+from ingest.dataset.meta import read_meta
 from ingest.errors import DatasetError, MessageDecodeError, OdometryError, OutputError, SettingError
 from ingest.runtime.executor import Executor, Handoff, share_cores
 from ingest.runtime.heap import retain_freed_memory
@@ -438,7 +439,7 @@ def _run(
                     yield item
                     continue
                 if isinstance(item, AlreadyDone):
-                    summary.resumed += 1
+                    summary.add_resumed(read_meta(run.out, item.sid))
                 else:
                     summary.skipped[item.reason] = summary.skipped.get(item.reason, 0) + 1
                 tick()

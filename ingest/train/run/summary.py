@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from calibration.types import F64
+from ingest.dataset.meta import SampleMeta
 from ingest.train.gt.align import Alignment
 from ingest.train.gt.align_check import CalibrationCheck, from_metas
 from ingest.train.run.lidar_rate import THIN_FRACTION
@@ -87,6 +88,13 @@ class IngestSummary:
     def density(self) -> list[float]:
         """GT density (fisheye) of every written sample, grouped by GT method."""
         return [d for by_method in self.density_by_method.values() for d in by_method]
+
+    def add_resumed(self, meta: SampleMeta) -> None:
+        """A sample an earlier run finished (`AlreadyDone`): counted, and its alignments join the
+        recording's calibration check, which covers every sample of it, not only this run's."""
+        self.resumed += 1
+        if meta.alignment:
+            self.alignments.extend(from_metas([meta])[0])
 
     def add(self, result: SampleResult) -> None:
         if result.reason == ALIGNED and result.aligned is not None:
