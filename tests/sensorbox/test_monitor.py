@@ -80,7 +80,10 @@ def check_cloud(msg: dict[str, Any]) -> np.ndarray:
     names = [f["name"] for f in msg["fields"]]
     assert names == [b"x", b"y", b"z", b"intensity"]
     pts = np.frombuffer(msg["data"], np.float32).reshape(-1, 4)
-    assert len(pts) > 1000 and np.isfinite(pts).all()
+    # how many points a message holds depends on when it was published (a sweep's first packets, or a
+    # whole one): only that it has some, every one finite and within the simulated scene, is checked
+    assert len(pts) > 0 and np.isfinite(pts).all()
+    assert float(np.abs(pts[:, :3]).max()) < 200.0
     return pts
 
 
