@@ -117,7 +117,7 @@ class HeldFrame:
 class Resume:
     """What a run finds in its output folder for its planned samples (by their ids in its range)."""
 
-    done: frozenset[str] = frozenset()  # finished and whole: skipped
+    done: dict[str, SampleMeta] = field(default_factory=dict)  # finished and whole (their metas): skipped
     damaged: dict[str, str] = field(default_factory=dict)  # finished but damaged (why): written again
     same_stamps: dict[str, tuple[HeldFrame, ...]] = field(default_factory=dict)  # other ids, same stamps
 
@@ -166,7 +166,7 @@ def resume_state(out: Path, sids: list[str], stamps_ns: list[tuple[int, int]]) -
         checked = pool.map(lambda sid: sample_problem(out, sid, finished[sid]), finished)
         problems = dict(zip(finished, checked, strict=True))
     damaged.update({sid: problem for sid, problem in problems.items() if problem})
-    done = {sid for sid, problem in problems.items() if not problem}
+    done = {sid: finished[sid] for sid, problem in problems.items() if not problem}
     same: dict[str, tuple[HeldFrame, ...]] = {}
     for sid, key in own.items():
         if sid in done or sid in damaged or key not in by_stamps:
@@ -181,7 +181,7 @@ def resume_state(out: Path, sids: list[str], stamps_ns: list[tuple[int, int]]) -
                 )
             held.append(HeldFrame(other, meta.frames_sha256, sample_problem(out, other, meta)))
         same[sid] = tuple(held)
-    return Resume(frozenset(done), dict(sorted(damaged.items())), same)
+    return Resume(done, dict(sorted(damaged.items())), same)
 
 
 IDENTITY_HEAD_BYTES = 1 << 20

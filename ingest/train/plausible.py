@@ -145,10 +145,11 @@ def repeated_points(xyz_m: np.ndarray[Any, Any], stamps_ns: I64) -> np.ndarray[A
     mixed = np.asarray(stamps_ns, np.int64).view(np.uint64) * _MIX[0]
     for axis in range(3):
         mixed ^= bits[:, axis] * _MIX[axis + 1]
+    ascending = np.sort(mixed)  # the common case, no repeat, costs one sort of the hashes
+    if not (ascending[1:] == ascending[:-1]).any():
+        return out
     order = np.argsort(mixed, kind="stable")
     same = np.flatnonzero(mixed[order][1:] == mixed[order][:-1])
-    if len(same) == 0:
-        return out
     firsts: set[tuple[int, float, float, float]] = set()
     for i in np.unique(np.concatenate([order[same], order[same + 1]])).tolist():
         x, y, z = xyz[i].tolist()

@@ -61,7 +61,6 @@ from ingest.dataset.layout import (
     sample_id,
 )
 from ingest.dataset.lock import hold_folder
-from ingest.dataset.meta import read_meta
 from ingest.errors import DatasetError, MessageDecodeError, OdometryError, OutputError, SettingError
 from ingest.runtime.executor import Executor, Handoff, share_cores
 from ingest.runtime.heap import retain_freed_memory
@@ -439,7 +438,7 @@ def _run(
                     yield item
                     continue
                 if isinstance(item, AlreadyDone):
-                    summary.add_resumed(read_meta(run.out, item.sid))
+                    summary.add_resumed(resume.done[item.sid])  # its meta, as resume_state read it
                 else:
                     summary.skipped[item.reason] = summary.skipped.get(item.reason, 0) + 1
                 tick()
