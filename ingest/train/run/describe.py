@@ -289,6 +289,7 @@ def write_dataset_yaml(
         "decision": run.decision,
         "window_ms": resolved.window_ns / 1e6,
         "trajectory": run.trajectory.as_dict() if run.trajectory else None,
+        "imu_check": run.imu_check.as_dict() if run.imu_check else None,
     }
     mine["undecodable_messages"] = dict(run.undecodable)  # per topic, skipped under --max-bad
     mine["dropped_implausible"] = {t: dict(c) for t, c in run.dropped.items()}  # per topic, reason

@@ -98,7 +98,7 @@ from ingest.train.run.stream import (
 )
 from ingest.train.run.summary import IngestSummary
 from ingest.train.sync import unsynced_line
-from ingest.train.trajectory.estimate import STATIC_WINDOW_NS, choose_method, run_trajectory_pass
+from ingest.train.trajectory.estimate import STATIC_WINDOW_NS, check_gyro, choose_method, run_trajectory_pass
 from ingest.train.trajectory.rig_trajectory import RigTrajectory
 
 
@@ -127,6 +127,7 @@ def _gt_method(
                 bad=bad,
                 span_ns=trajectory_span_ns,
                 progress=progress,
+                imu_name=topics.imu_name,
             )
         except OdometryError as err:
             if cfg.gt == "dense":
@@ -134,6 +135,15 @@ def _gt_method(
                 raise OdometryError(why) from err
             failure = str(err)
     method, decision = choose_method(cfg.gt, tsum, failure)
+    if tsum is not None:
+        summary.imu_check = tsum.imu_check
+    else:  # sparse GT: the IMU against the odometry of a few seconds of the recording
+        imu = (topics.imu, topics.R_cam0_imu)
+        summary.imu_check = check_gyro(
+            bags, topics.lidars, imu, topics.imu_name, rig, cfg.sample.min_range_m, bad
+        )
+    if summary.imu_check is not None and summary.imu_check.line():
+        summary.warnings.append(str(summary.imu_check.line()))
     static = tsum is not None and tsum.static
     run = resolve_run(cfg, method, decision, static, busy)
     summary.method, summary.decision, summary.trajectory = method, run.sample.decision, tsum

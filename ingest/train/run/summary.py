@@ -17,6 +17,7 @@ from ingest.train.run.sample_dense import GAP_FALLBACK
 from ingest.train.run.sample_job import ALIGNED, SampleAlignment, SampleResult
 from ingest.train.run.stream import ALREADY_HELD
 from ingest.train.trajectory.estimate import TrajectorySummary
+from ingest.train.trajectory.imu_check import GyroAgreement
 
 OVER_UINT16 = "over the depth PNG's 65.535 m, left empty"
 
@@ -49,6 +50,7 @@ class IngestSummary:
     method: str = "sparse"
     decision: str = ""
     trajectory: TrajectorySummary | None = None
+    imu_check: GyroAgreement | None = None  # the IMU's gyro against the LiDARs' odometry (`check_gyro`)
     lost: dict[str, int] = field(default_factory=dict)  # topic -> messages in corrupt chunks (--salvage)
     lost_chunks: list[str] = field(default_factory=list)  # one line per corrupt chunk skipped
     duplicates: dict[str, int] = field(default_factory=dict)  # per topic: repeated stamps, first read

@@ -17,15 +17,17 @@ from typing import Any
 
 import numpy as np
 
+from calibration.errors import CalibrationError
 from calibration.rig import Rig
 from calibration.types import F64
 from ingest.bags.decode import ImuSample, Sweep
 from ingest.bags.reader import BagSet, Progress
-from ingest.errors import OutputError
+from ingest.errors import OdometryError, OutputError
 from ingest.train.bad_messages import BadMessages
 from ingest.train.repeats import FirstCopies
 from ingest.train.trajectory import cache as trajectory_cache
 from ingest.train.trajectory.clouds import GyroTrack, filter_points, integrate_gyro
+from ingest.train.trajectory.imu_check import GyroAgreement, gyro_agreement, turning_stretch
 from ingest.train.trajectory.local_map import OdometryParams
 from ingest.train.trajectory.odometry import Odometry
 from ingest.train.trajectory.rig_trajectory import RigTrajectory, still
@@ -45,6 +47,7 @@ class TrajectorySummary:
     max_speed_mps: float = 0.0  # fastest knot interval
     max_rate_deg_s: float = 0.0  # fastest turn between knots
     reused: bool = False  # read from the pass an earlier run kept (`trajectory_cache`), not computed
+    imu_check: GyroAgreement | None = None  # the IMU's gyro against the knots (`check_gyro`)
 
     @property
     def static(self) -> bool:
@@ -52,7 +55,9 @@ class TrajectorySummary:
         return still(self.max_speed_mps, self.max_rate_deg_s)
 
     def as_dict(self) -> dict[str, Any]:
-        return dict(self.__dict__)
+        out = dict(self.__dict__)
+        out.pop("imu_check")  # dataset.yaml has it beside the trajectory (`ground_truth.imu_check`)
+        return out
 
 
 def read_gyro(
@@ -89,20 +94,23 @@ def trajectory_pass(
     progress: Progress | None = None,
     bad: BadMessages | None = None,
     span_ns: tuple[int, int] | None = None,
+    log_ns: tuple[int, int] | None = None,
 ) -> RigTrajectory:
     """Odometry over every sweep of `lidar_topics` (topic -> rig lidar name); `progress` hears of the
     sweeps read (`BagSet.messages`).
 
     With `span_ns` (first, last) only points within it take part (no sample
     can use the others, and a stray sweep stamped years away would make the
-    odometry step knot by knot across the gap).
+    odometry step knot by knot across the gap); with `log_ns` only the
+    messages logged within it are read.
     """
     bad = bad or BadMessages()
     odo = Odometry(gyro, params)
     where = bags.label
     last = {topic: -(2**62) for topic in lidar_topics}
     copies = FirstCopies()
-    for msg in bags.messages(topics=list(lidar_topics), progress=progress):
+    start, stop = log_ns if log_ns is not None else (None, None)
+    for msg in bags.messages(topics=list(lidar_topics), start_ns=start, stop_ns=stop, progress=progress):
         sweep = bad.decoded(msg, where)
         assert sweep is None or isinstance(sweep, Sweep)
         if sweep is None or not len(sweep.stamps_ns) or not copies.sweep(msg.topic, sweep):
@@ -112,14 +120,61 @@ def trajectory_pass(
             keep &= (sweep.stamps_ns >= span_ns[0]) & (sweep.stamps_ns <= span_ns[1])
         T = rig.lidar(lidar_topics[msg.topic]).T_cam0_lidar
         xyz = np.asarray(sweep.xyz_m, np.float64)[keep]
-        odo.add(xyz @ T[:3, :3].T + T[:3, 3], sweep.stamps_ns[keep])
+        if len(xyz):  # a sweep wholly outside `span_ns` adds nothing
+            odo.add(xyz @ T[:3, :3].T + T[:3, 3], sweep.stamps_ns[keep])
         latest = sweep.span_ns[1] if span_ns is None else min(sweep.span_ns[1], span_ns[1])
         last[msg.topic] = max(last[msg.topic], latest)
         odo.advance(min(last.values()))
     return odo.result()
 
 
-def summarize(traj: RigTrajectory, seconds: float, file: Path, reused: bool = False) -> TrajectorySummary:
+def judged(agreement: GyroAgreement) -> GyroAgreement:
+    """`agreement`, or a CalibrationError with its line where the IMU disagrees too far to ingest with."""
+    if agreement.refused:
+        raise CalibrationError(str(agreement.line()))
+    return agreement
+
+
+CHECK_SPAN_NS = 4_000_000_000
+"""The stretch of a recording (where its gyro turns most) whose LiDARs a run without a trajectory pass
+(sparse GT) registers to check the IMU (`check_gyro`): about a second of one core."""
+
+
+def check_gyro(
+    bags: BagSet,
+    lidar_topics: dict[str, str],
+    imu: tuple[str | None, F64 | None],
+    imu_name: str,
+    rig: Rig,
+    min_range_m: float,
+    bad: BadMessages | None = None,
+) -> GyroAgreement | None:
+    """The IMU's gyro against the odometry of the `CHECK_SPAN_NS` in which it turns most (`judged`: a
+    CalibrationError where it disagrees too far); None without an IMU, or where the rig hardly turns or
+    the stretch cannot be registered (nothing to judge)."""
+    gyro = read_gyro(bags, *imu, bad=bad)
+    stretch = turning_stretch(gyro, CHECK_SPAN_NS) if gyro is not None else None
+    if gyro is None or stretch is None or imu[0] is None:
+        return None
+    span, reach = None, None  # a recording not much longer than the stretch: all of it
+    if gyro.stamps_ns[-1] - gyro.stamps_ns[0] > CHECK_SPAN_NS + 1_000_000_000:
+        span, reach = stretch, (stretch[0] - 1_000_000_000, stretch[1] + 1_000_000_000)  # log times lag
+    try:
+        traj = trajectory_pass(
+            bags, lidar_topics, rig, gyro, min_range_m, bad=bad, span_ns=span, log_ns=reach
+        )
+    except OdometryError:
+        return None
+    return judged(gyro_agreement(traj, gyro, imu_name, imu[0]))
+
+
+def summarize(
+    traj: RigTrajectory,
+    seconds: float,
+    file: Path,
+    reused: bool = False,
+    imu_check: GyroAgreement | None = None,
+) -> TrajectorySummary:
     res = traj.residual_m[1:]
     ok = res[np.isfinite(res)]
     speed, rate = traj.peak_motion()
@@ -134,6 +189,7 @@ def summarize(traj: RigTrajectory, seconds: float, file: Path, reused: bool = Fa
         max_speed_mps=speed,
         max_rate_deg_s=rate,
         reused=reused,
+        imu_check=imu_check,
     )
 
 
@@ -148,12 +204,15 @@ def run_trajectory_pass(
     bad: BadMessages | None = None,
     span_ns: tuple[int, int] | None = None,
     progress: Progress | None = None,
+    imu_name: str = "",
 ) -> tuple[RigTrajectory, TrajectorySummary]:
     """Gyro, odometry (points within `span_ns`) and `out_file` (TUM, T_world_cam0), with the summary;
     `progress` hears of the odometry's sweeps (`trajectory_pass`).
 
     The pass is kept beside it (`out_file` with suffix .npz, `trajectory_cache`)
     and read back instead of computed when a rerun would compute the same.
+    The IMU (`imu_name`) is checked against the knots first (`judged`: a
+    CalibrationError, and no file, where it disagrees too far).
     """
     t0 = time.perf_counter()
     params = params or OdometryParams()
@@ -161,11 +220,14 @@ def run_trajectory_pass(
     key = trajectory_cache.cache_key(bags, lidar_topics, imu, rig, min_range_m, params, span_ns)
     traj = trajectory_cache.load(kept, key)
     reused = traj is not None
+    gyro = read_gyro(bags, *imu, bad=bad)
     if traj is None:
-        gyro = read_gyro(bags, *imu, bad=bad)
         traj = trajectory_pass(
             bags, lidar_topics, rig, gyro, min_range_m, params, progress, bad=bad, span_ns=span_ns
         )
+    agreement = None
+    if gyro is not None and imu[0] is not None:
+        agreement = judged(gyro_agreement(traj, gyro, imu_name or imu[0], imu[0]))
     try:
         out_file.parent.mkdir(parents=True, exist_ok=True)
     except OSError as err:
@@ -173,7 +235,7 @@ def run_trajectory_pass(
     traj.write_tum(out_file)
     if not reused:
         trajectory_cache.save(kept, key, traj)
-    return traj, summarize(traj, time.perf_counter() - t0, out_file, reused)
+    return traj, summarize(traj, time.perf_counter() - t0, out_file, reused, agreement)
 
 
 STATIC_WINDOW_NS = 1_000_000_000

@@ -205,12 +205,12 @@ class Odometry:
         than `refine_start_s` (its start never solved again) is all gap knots
         unless the rig stood still through it.
         """
-        if self._t and self._chain is not None:
-            end = int(np.concatenate(self._t).max())
-
+        pending = np.concatenate(self._t) if self._t else np.zeros(0, np.int64)
+        if len(pending) and self._chain is not None:
+            end = int(pending.max())
             self.advance(end - (end - self._chain.stamps[-1]) % self.span_ns)
-        elif self._t:
-            self.advance(int(np.concatenate(self._t).max()))
+        elif len(pending):
+            self.advance(int(pending.max()))
         if self._chain is None:
             if not self._before:
                 t = np.concatenate(self._t) if self._t else np.zeros(1, np.int64)

@@ -1,0 +1,177 @@
+"""Does the IMU's gyro agree with the LiDARs? The odometry's turn between knots against the gyro's.
+
+The odometry's knots (every 100 ms) are registered from the LiDARs' points;
+the gyro, integrated in cam0 through the rig's `T_cam0_imu`, shapes the turn
+between them. Over each knot interval the two turns are the same rotation
+when the IMU is right: on the simulated walks they differ by 0.2 % of the
+turn. An IMU whose clock runs 50 ms off the LiDARs' makes them differ by
+about 20 % on a handheld walk, 500 ms by 170 %; a gyro axis of the wrong sign
+or a wrong `T_cam0_imu` (an IMU mounted upside down) by 50-200 %, although
+the knots lean towards the gyro that shapes them. Every sample's motion
+compensation and dense GT's trajectory use that gyro, so the check runs
+before the first sample is made.
+
+The turn is only observable while the rig turns: below `MIN_TURN_DEG` per
+interval (median) the check says nothing. Where it disagrees, the shift of
+the IMU's stamps (within `MAX_LAG_MS`) under which they agree best tells a
+clock offset from a wrong orientation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from calibration.types import F64, I64
+from ingest.train.trajectory.clouds import GyroTrack
+from ingest.train.trajectory.rig_trajectory import RigTrajectory
+
+MIN_TURN_DEG = 0.5
+"""Median turn per knot interval (deg; 5 deg/s at 100 ms knots) below which the gyro's agreement with
+the odometry is not judged: a rig that barely turns shows neither a clock offset nor a wrong axis."""
+MIN_INTERVALS = 3
+"""Knot intervals (within the gyro's span) needed to judge the agreement."""
+WARN_MISMATCH = 0.15
+"""Median |gyro turn - knot turn| / median |knot turn| above which the IMU is said to disagree (a right
+IMU: 0.002-0.06 on the simulated walks, the higher with 2 cm range noise; its clock 50 ms off: 0.22)."""
+REFUSE_MISMATCH = 0.3
+"""The same ratio above which ingest refuses: the motion compensation and the trajectory would carry the
+error into every sample (a clock 50 ms off: 0.22, GT within 5 % of the right IMU's; an axis of the wrong
+sign: 0.54; an IMU upside down in the rig file: 0.75; 500 ms off: 1.7)."""
+MIN_DISAGREEMENT_DEG = 0.2
+"""The median disagreement per interval (deg) below which the IMU is not blamed whatever the ratio: the
+odometry's own knot-to-knot noise (about 0.1 deg with 2 cm range noise) over a slow turn."""
+MAX_LAG_MS = 1000
+"""The IMU stamp shifts (ms, either way) searched for a clock offset."""
+LAG_STEP_MS = 20
+"""The lag search's coarse step (ms); then 1 ms steps around the best."""
+MS = 1_000_000
+MAX_INTERVALS = 4000
+"""Knot intervals used at most (evenly spread): a long recording's lag search stays a fraction of a second."""
+
+
+@dataclass(frozen=True)
+class GyroAgreement:
+    """How the IMU's gyro agrees with the odometry's knots (for dataset.yaml and the summary).
+
+    `mismatch`: median |gyro turn - knot turn| over the knot intervals, as a
+    fraction of the median knot turn; `lag_ms`: the shift of the IMU's stamps
+    under which they agree best (positive: its stamps are late), with the
+    mismatch there.
+    """
+
+    imu: str
+    topic: str
+    intervals: int
+    median_turn_deg: float
+    mismatch: float
+    lag_ms: float
+    mismatch_at_lag: float
+
+    @property
+    def observable(self) -> bool:
+        return self.intervals >= MIN_INTERVALS and self.median_turn_deg >= MIN_TURN_DEG
+
+    @property
+    def disagrees(self) -> bool:
+        """Beyond `WARN_MISMATCH` of the turn and the odometry's noise (`MIN_DISAGREEMENT_DEG`)."""
+        noise = self.mismatch * self.median_turn_deg <= MIN_DISAGREEMENT_DEG
+        return self.observable and self.mismatch > WARN_MISMATCH and not noise
+
+    @property
+    def refused(self) -> bool:
+        return self.disagrees and self.mismatch > REFUSE_MISMATCH
+
+    def as_dict(self) -> dict[str, Any]:
+        out = asdict(self)
+        for key in ("median_turn_deg", "mismatch", "mismatch_at_lag"):
+            out[key] = round(out[key], 4)
+        out["observable"] = self.observable
+        return out
+
+    def line(self) -> str | None:
+        """One line naming the IMU and what its disagreement looks like; None where it agrees or cannot
+        be judged."""
+        if not self.disagrees:
+            return None
+        head = (
+            f"{self.imu} ({self.topic}): its gyro disagrees with the LiDARs' motion by "
+            f"{100 * self.mismatch:.0f} % of the turn (median over {self.intervals} intervals of the "
+            f"trajectory; a right IMU: under {100 * WARN_MISMATCH:.0f} %)"
+        )
+        if self.mismatch_at_lag <= min(WARN_MISMATCH, 0.5 * self.mismatch) and abs(self.lag_ms) >= 5:
+            late, later = ("late", "later") if self.lag_ms > 0 else ("early", "earlier")
+            lag = f"{abs(self.lag_ms):.0f} ms"
+            return (
+                f"{head}; read {lag} {later} it agrees to {100 * self.mismatch_at_lag:.0f} %: its stamps run "
+                f"{lag} {late} "
+                "against the LiDARs' clock; fix the IMU's stamps (or its clock sync)"
+            )
+        return (
+            f"{head}, and no shift of its stamps within +-{MAX_LAG_MS} ms explains it: its axes do not "
+            f"match the rig's imus.{self.imu}.T_cam0_imu (a wrong rotation, an axis of the wrong sign, or "
+            "rates not in rad/s); check it, or remove the IMU from the rig to ingest without it"
+        )
+
+
+def turning_stretch(gyro: GyroTrack, length_ns: int) -> tuple[int, int] | None:
+    """The `length_ns` of the gyro's span in which it turns most (first, last ns), or None where even
+    there its median turn per 100 ms stays under `MIN_TURN_DEG` (the check could not judge it)."""
+    t = gyro.stamps_ns
+    if len(t) < 2:
+        return None
+    grid = np.arange(t[0], t[-1] - 100_000_000 + 1, 100_000_000, dtype=np.int64)
+    if len(grid) < MIN_INTERVALS:
+        return None
+    turn_deg = np.degrees(
+        np.linalg.norm(Rotation.from_matrix(gyro.between(grid, grid + 100_000_000)).as_rotvec(), axis=1)
+    )
+    per = max(MIN_INTERVALS, min(len(grid), int(length_ns // 100_000_000)))
+    sums = np.convolve(turn_deg, np.ones(per), mode="valid")
+    first = int(np.argmax(sums))
+    if np.median(turn_deg[first : first + per]) < MIN_TURN_DEG:
+        return None
+    return int(grid[first]), int(grid[first + per - 1] + 100_000_000)
+
+
+def _mismatch(knot_turn: F64, gyro: GyroTrack, t0_ns: I64, t1_ns: I64, lag_ns: int) -> tuple[float, int]:
+    """(median |gyro - knot turn| / median |knot turn|, intervals) with the gyro read `lag_ns` later."""
+    inside = gyro.covers(t0_ns + lag_ns) & gyro.covers(t1_ns + lag_ns)
+    if inside.sum() < MIN_INTERVALS:
+        return float("inf"), int(inside.sum())
+    g = Rotation.from_matrix(gyro.between(t0_ns[inside] + lag_ns, t1_ns[inside] + lag_ns)).as_rotvec()
+    k = knot_turn[inside]
+    scale = float(np.median(np.linalg.norm(k, axis=1)))
+    if scale <= 0.0:
+        return float("inf"), int(inside.sum())
+    return float(np.median(np.linalg.norm(g - k, axis=1))) / scale, int(inside.sum())
+
+
+def gyro_agreement(traj: RigTrajectory, gyro: GyroTrack, imu: str, topic: str) -> GyroAgreement:
+    """The gyro's agreement with `traj`'s registered knots (intervals in LiDAR gaps left out), and the
+    stamp shift within +-`MAX_LAG_MS` that agrees best (`LAG_STEP_MS` steps, then 1 ms around the best)."""
+    k = np.flatnonzero(np.isfinite(traj.residual_m[1:]))
+    if len(k) > MAX_INTERVALS:
+        k = k[np.linspace(0, len(k) - 1, MAX_INTERVALS).astype(np.int64)]
+    t0, t1 = traj.stamps_ns[k], traj.stamps_ns[k + 1]
+    R = traj.R_world_cam0
+    knot_turn: F64 = (
+        Rotation.from_matrix(np.einsum("kji,kjl->kil", R[k], R[k + 1])).as_rotvec()
+        if len(k)
+        else np.zeros((0, 3))
+    )
+    mismatch, intervals = _mismatch(knot_turn, gyro, t0, t1, 0)
+    inside = gyro.covers(t0) & gyro.covers(t1)
+    turn_deg = (
+        float(np.degrees(np.median(np.linalg.norm(knot_turn[inside], axis=1)))) if inside.any() else 0.0
+    )
+    best = (mismatch, 0)
+    if GyroAgreement(imu, topic, intervals, turn_deg, mismatch, 0.0, mismatch).disagrees:
+        coarse = range(-MAX_LAG_MS, MAX_LAG_MS + 1, LAG_STEP_MS)
+        best = min([best] + [(_mismatch(knot_turn, gyro, t0, t1, lag * MS)[0], lag) for lag in coarse])
+        fine = range(best[1] - LAG_STEP_MS + 1, best[1] + LAG_STEP_MS)
+        best = min([best] + [(_mismatch(knot_turn, gyro, t0, t1, lag * MS)[0], lag) for lag in fine])
+    return GyroAgreement(imu, topic, intervals, turn_deg, mismatch, float(best[1]), best[0])

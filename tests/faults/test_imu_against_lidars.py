@@ -1,0 +1,171 @@
+"""Sweep 5: an IMU whose clock runs 500 ms off the LiDARs', whose gyro has its axes' signs flipped, or
+whose `T_cam0_imu` in the rig file is another IMU's (upside down) was ingested without a word, or blamed
+on a LiDAR's pose ("lidar_top's pose ... looks off by 0.71 deg"), and `calib refine` wrote a rig from it.
+
+Every sample's motion compensation and dense GT's trajectory use that gyro. Ingest now compares the
+gyro's turn between the odometry's knots with the knots' own (`ingest.train.trajectory.imu_check`): a
+right IMU agrees to 0.2 % of the turn on the walk; these faults are refused in one line naming the IMU
+and what its disagreement looks like (a clock offset, with its size, or axes that do not match the rig),
+a smaller clock offset (50 ms) is a warning, and the agreement is recorded in dataset.yaml.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from scipy.spatial.transform import Rotation
+
+from calibration.errors import CalibrationError
+from ingest.bags.decode import decode_imu
+from ingest.train.run.pipeline import ingest
+from ingest.train.run.settings import IngestConfig
+from ingest.train.trajectory.clouds import integrate_gyro
+from ingest.train.trajectory.imu_check import gyro_agreement
+from ingest.train.trajectory.rig_trajectory import RigTrajectory
+from sensorbox.messages import imu_msg
+from sensorbox.sim.truth import truth_dir
+from tests.faults.bags import INDOOR, Keep, rewrite
+from tests.faults.cli import sensorbox
+from tests.paths import FIXTURES_DIR
+
+WALK = FIXTURES_DIR / "outdoor_walk_mcap"
+IMU = "/livox/imu_192_168_1_12"
+FAST = {"workers": 1, "every": 5, "height_full": 64}
+
+LATE = re.compile(
+    r"^imu_top \(/livox/imu_192_168_1_12\): its gyro disagrees with the LiDARs' motion by (\d+) % of the turn "
+    r"\(median over \d+ intervals of the trajectory; a right IMU: under 15 %\); read (\d+) ms later it agrees "
+    r"to (\d+) %: its stamps run \2 ms late against the LiDARs' clock; fix the IMU's stamps \(or its clock "
+    r"sync\)$"
+)
+AXES = re.compile(
+    r"^imu_top \(/livox/imu_192_168_1_12\): its gyro disagrees with the LiDARs' motion by (\d+) % of the turn "
+    r"\(median over \d+ intervals of the trajectory; a right IMU: under 15 %\), and no shift of its stamps "
+    r"within \+-1000 ms explains it: its axes do not match the rig's imus\.imu_top\.T_cam0_imu \(a wrong "
+    r"rotation, an axis of the wrong sign, or rates not in rad/s\); check it, or remove the IMU from the rig "
+    r"to ingest without it$"
+)
+
+
+def _imu_late(ms: int) -> Keep:
+    def keep(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        if topic != IMU:
+            return [(topic, raw)]
+        s = decode_imu(raw)
+        return [(topic, imu_msg(s.stamp_ns + ms * 1_000_000, s.gyro_rad_s, s.acc))]
+
+    return keep
+
+
+def _gyro_flipped(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+    if topic != IMU:
+        return [(topic, raw)]
+    s = decode_imu(raw)
+    return [(topic, imu_msg(s.stamp_ns, -np.asarray(s.gyro_rad_s), s.acc))]
+
+
+def _refused(tmp_path: Path, bag: Path, rig: Path, gt: str) -> str:
+    out = tmp_path / f"ds-{gt}"
+    with pytest.raises(CalibrationError) as caught:
+        ingest([bag], IngestConfig(rig=rig, out=out, gt=gt, **FAST))  # type: ignore[arg-type]
+    assert not out.exists()  # nothing written, not even the trajectory file
+    return str(caught.value)
+
+
+@pytest.mark.parametrize("gt", ["sparse", "auto"])
+def test_an_imu_500_ms_late_is_refused_naming_the_offset(tmp_path: Path, gt: str) -> None:
+    bag, rig = rewrite(tmp_path / "late.mcap", _imu_late(500), src=WALK)
+    found = LATE.match(_refused(tmp_path, bag, rig, gt))
+    assert found, _refused(tmp_path, bag, rig, gt)
+    mismatch, lag_ms, at_lag = (int(v) for v in found.groups())
+    assert mismatch > 100 and 470 <= lag_ms <= 530 and at_lag < 15
+
+
+@pytest.mark.parametrize("gt", ["sparse", "auto"])
+def test_a_gyro_with_every_axis_flipped_is_refused_naming_the_rig_key(tmp_path: Path, gt: str) -> None:
+    bag, rig = rewrite(tmp_path / "flipped.mcap", _gyro_flipped, src=WALK)
+    found = AXES.match(_refused(tmp_path, bag, rig, gt))
+    assert found and int(found.group(1)) > 30
+
+
+def test_an_imu_upside_down_in_the_rig_is_refused_by_the_cli(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    doc = yaml.safe_load((truth_dir(WALK) / "rig.yaml").read_text())
+    T = np.array(doc["imus"]["imu_top"]["T_cam0_imu"], np.float64)
+    T[:3, :3] = T[:3, :3] @ Rotation.from_euler("x", 180, degrees=True).as_matrix()
+    doc["imus"]["imu_top"]["T_cam0_imu"] = T.tolist()
+    doc["camchain"] = str(truth_dir(WALK) / "camchain.yaml")
+    rig = tmp_path / "rig.yaml"
+    rig.write_text(yaml.safe_dump(doc, sort_keys=False))  # imu_top stays the first IMU, the one used
+    args = [
+        "ingest",
+        str(WALK),
+        "--rig",
+        str(rig),
+        "--out",
+        str(tmp_path / "ds"),
+        "--every",
+        "5",
+        "--workers",
+        "1",
+    ]
+    code, _, err = sensorbox(capsys, *args, "--gt", "sparse", "--no-preview")
+    assert code == 2
+    (line,) = [e for e in err if e.strip()]
+    assert line.startswith("error: ") and AXES.match(line[len("error: ") :]), line
+    assert not (tmp_path / "ds").exists()
+
+
+def test_an_imu_50_ms_late_is_a_warning_and_recorded(tmp_path: Path) -> None:
+    bag, rig = rewrite(tmp_path / "late.mcap", _imu_late(50), src=WALK)
+    out = tmp_path / "ds"
+    summary = ingest([bag], IngestConfig(rig=rig, out=out, gt="auto", **FAST))  # type: ignore[arg-type]
+    assert summary.written > 0
+    (line,) = [w for w in summary.warnings if w.startswith("imu_top ")]
+    found = LATE.match(line)
+    assert found and 40 <= int(found.group(2)) <= 60, line
+    (source,) = yaml.safe_load((out / "dataset.yaml").read_text())["sources"]
+    check = source["ground_truth"]["imu_check"]
+    assert check["imu"] == "imu_top" and check["observable"] and 40 <= check["lag_ms"] <= 60
+    assert 0.15 < check["mismatch"] <= 0.3
+
+
+@pytest.mark.parametrize("gt", ["sparse", "auto"])
+def test_a_right_imu_agrees_and_a_still_rig_is_not_judged(tmp_path: Path, gt: str) -> None:
+    out = tmp_path / "walk"
+    rig = truth_dir(WALK) / "rig.yaml"
+    summary = ingest([WALK], IngestConfig(rig=rig, out=out, gt=gt, **FAST))  # type: ignore[arg-type]
+    assert not any(w.startswith("imu_top ") for w in summary.warnings)
+    (source,) = yaml.safe_load((out / "dataset.yaml").read_text())["sources"]
+    check = source["ground_truth"]["imu_check"]
+    assert check["observable"] and check["mismatch"] < 0.05 and check["median_turn_deg"] > 1.0
+    room = IngestConfig(rig=truth_dir(INDOOR) / "rig.yaml", out=tmp_path / "room", gt="sparse", **FAST)  # type: ignore[arg-type]
+    still = ingest([INDOOR], room)
+    assert still.imu_check is None  # the rig never turned: nothing to compare
+
+
+def test_the_lag_search_finds_a_known_clock_offset_exactly() -> None:
+    """A synthetic turn (knots every 100 ms) and a gyro of the same turn stamped 137 ms late."""
+    t_ns = np.arange(0, 6_000_000_000, 5_000_000, dtype=np.int64)  # 200 Hz
+    rate = np.stack(
+        [
+            0.8 * np.sin(2 * np.pi * 1.3 * t_ns / 1e9),
+            0.5 * np.cos(2 * np.pi * 0.7 * t_ns / 1e9),
+            0.3 + 0 * t_ns,
+        ],
+        1,
+    )
+    truth = integrate_gyro(t_ns, rate, np.eye(3))
+    knots = t_ns[::20][5:-5]
+    R = truth.at(knots)
+    traj = RigTrajectory(knots, R, np.zeros((len(knots), 3)), np.zeros(len(knots)), None)
+    exact = gyro_agreement(traj, truth, "imu", "/imu")
+    assert exact.mismatch < 1e-6 and exact.line() is None
+    late = integrate_gyro(t_ns + 137_000_000, rate, np.eye(3))
+    found = gyro_agreement(traj, late, "imu", "/imu")
+    assert found.refused and found.lag_ms == 137.0 and found.mismatch_at_lag < 1e-6
