@@ -109,8 +109,13 @@ def trajectory_pass(
     where = bags.label
     last = {topic: -(2**62) for topic in lidar_topics}
     copies = FirstCopies()
-    start, stop = log_ns if log_ns is not None else (None, None)
-    for msg in bags.messages(topics=list(lidar_topics), start_ns=start, stop_ns=stop, progress=progress):
+    topics = list(lidar_topics)
+    reading = (
+        bags.messages(topics=topics, progress=progress)
+        if log_ns is None
+        else bags.messages(topics=topics, start_ns=log_ns[0], stop_ns=log_ns[1], progress=progress)
+    )
+    for msg in reading:
         sweep = bad.decoded(msg, where)
         assert sweep is None or isinstance(sweep, Sweep)
         if sweep is None or not len(sweep.stamps_ns) or not copies.sweep(msg.topic, sweep):
