@@ -11,11 +11,25 @@ the other core (dense ingest of a full-resolution walk, 2 workers: 87.1 s ->
 import contextlib
 import os
 import sys
+from pathlib import Path
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 
 INTERRUPTED = 130  # the shell's code for a command stopped by SIGINT
+USAGE = 2  # a user mistake (`sensorbox.cli.main`)
+
+
+def _streams_open() -> None:
+    """Exit 2 with one line when standard output is closed (`>&-`): every command prints its progress
+    and summary there, and coreutils refuse a closed stdout the same way ("write error: Bad file
+    descriptor"); `>/dev/null` discards it. A closed standard error (Python leaves it None) is
+    /dev/null's: the exit code still tells."""
+    if sys.stderr is None:
+        sys.stderr = Path(os.devnull).open("w")  # noqa: SIM115 (for the life of the process)
+    if sys.stdout is None:
+        sys.stderr.write("error: standard output is closed; give it a file, or >/dev/null to discard it\n")
+        raise SystemExit(USAGE)
 
 
 def run() -> None:
@@ -29,6 +43,7 @@ def run() -> None:
     exception", SIGABRT instead of 130). Nothing is lost: every file a command
     writes is whole when written (atomic renames), and the streams are flushed.
     """
+    _streams_open()
     try:
         try:
             from sensorbox.cli.main import main

@@ -15,6 +15,8 @@ from __future__ import annotations
 import logging
 import os
 import stat
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -170,3 +172,22 @@ def test_view_save_onto_a_full_disk_is_one_line_and_leaves_no_file(
     code, _, err = sensorbox(capsys, "view", str(tmp_path / "ds"), "--save", str(out))
     assert (code, err) == (3, [f"error: cannot write {out}: {full}"])
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ds"]
+
+
+def test_a_closed_standard_output_is_one_line_and_a_closed_standard_error_is_silent(tmp_path: Path) -> None:
+    """Sweep 6: `sensorbox ingest ... >&-` ended in a traceback (Python leaves a closed stream None)."""
+    python = f"{sys.executable} -m sensorbox.cli"
+    closed = subprocess.run(
+        ["bash", "-c", f"{python} ingest {INDOOR} --rig {RIG} --out {tmp_path / 'ds'} >&-"],
+        capture_output=True, text=True, cwd=ROOT,
+    )  # fmt: skip
+    assert closed.returncode == 2
+    assert closed.stderr == "error: standard output is closed; give it a file, or >/dev/null to discard it\n"
+    assert not (tmp_path / "ds").exists()
+    quiet = subprocess.run(
+        ["bash", "-c", f"{python} calib check {tmp_path / 'missing.yaml'} 2>&-"],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+    )
+    assert quiet.returncode == 2 and quiet.stderr == ""  # the error went nowhere; the exit code still tells
