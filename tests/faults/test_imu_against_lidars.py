@@ -44,10 +44,16 @@ LATE = re.compile(
 )
 AXES = re.compile(
     r"^imu_top \(/livox/imu_192_168_1_12\): its gyro disagrees with the LiDARs' motion by (\d+) % of the turn "
-    r"\(median over \d+ intervals of the trajectory; a right IMU: under 15 %\), and no shift of its stamps "
-    r"within \+-1000 ms explains it: its axes do not match the rig's imus\.imu_top\.T_cam0_imu \(a wrong "
-    r"rotation, an axis of the wrong sign, or rates not in rad/s\); check it, or remove the IMU from the rig "
-    r"to ingest without it$"
+    r"\(median over \d+ intervals of the trajectory; a right IMU: under 15 %\), and neither a shift of its "
+    r"stamps within \+-1000 ms nor a constant bias explains it: its axes do not match the rig's "
+    r"imus\.imu_top\.T_cam0_imu \(a wrong rotation, an axis of the wrong sign, or rates not in rad/s\); check "
+    r"it, or remove the IMU from the rig to ingest without it$"
+)
+BIAS = re.compile(
+    r"^imu_top \(/livox/imu_192_168_1_12\): its gyro disagrees with the LiDARs' motion by (\d+) % of the turn "
+    r"\(median over \d+ intervals of the trajectory; a right IMU: under 15 %\); less (0\.\d+) rad/s "
+    r"\(\d+\.\d deg/s\) about cam0's \[(-?\d\.\d\d), (-?\d\.\d\d), (-?\d\.\d\d)\] it agrees to (\d+) %: its "
+    r"gyro reads that bias; calibrate the gyro's bias, or remove the IMU from the rig to ingest without it$"
 )
 
 
@@ -66,6 +72,14 @@ def _gyro_flipped(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
         return [(topic, raw)]
     s = decode_imu(raw)
     return [(topic, imu_msg(s.stamp_ns, -np.asarray(s.gyro_rad_s), s.acc))]
+
+
+def _gyro_biased(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+    """0.3 rad/s added about the IMU's z axis (cam0's -y on this rig)."""
+    if topic != IMU:
+        return [(topic, raw)]
+    s = decode_imu(raw)
+    return [(topic, imu_msg(s.stamp_ns, np.asarray(s.gyro_rad_s) + np.array([0.0, 0.0, 0.3]), s.acc))]
 
 
 def _refused(tmp_path: Path, bag: Path, rig: Path, gt: str) -> str:
@@ -90,6 +104,19 @@ def test_a_gyro_with_every_axis_flipped_is_refused_naming_the_rig_key(tmp_path: 
     bag, rig = rewrite(tmp_path / "flipped.mcap", _gyro_flipped, src=WALK)
     found = AXES.match(_refused(tmp_path, bag, rig, gt))
     assert found and int(found.group(1)) > 30
+
+
+def test_a_gyro_bias_of_0_3_rad_s_is_refused_naming_its_size_and_axis(tmp_path: Path) -> None:
+    bag, rig = rewrite(tmp_path / "biased.mcap", _gyro_biased, src=WALK)
+    found = BIAS.match(_refused(tmp_path, bag, rig, "sparse"))
+    assert found, _refused(tmp_path, bag, rig, "sparse")
+    mismatch, size, _, y, _, left = found.groups()
+    assert (
+        int(mismatch) > 30
+        and 0.25 <= float(size) <= 0.32
+        and float(y) < -0.99
+        and int(left) <= int(mismatch) / 2
+    )
 
 
 def test_an_imu_upside_down_in_the_rig_is_refused_by_the_cli(

@@ -44,6 +44,9 @@ sign: 0.54; an IMU upside down in the rig file: 0.75; 500 ms off: 1.7)."""
 MIN_DISAGREEMENT_DEG = 0.2
 """The median disagreement per interval (deg) below which the IMU is not blamed whatever the ratio: the
 odometry's own knot-to-knot noise (about 0.1 deg with 2 cm range noise) over a slow turn."""
+MIN_BIAS_RAD_S = 0.02
+"""A constant excess rate (rad/s, 1.1 deg/s) that halves the disagreement is named as the gyro's bias from
+this size on (a MEMS gyro's own bias stays under about 0.01 rad/s once calibrated)."""
 MAX_LAG_MS = 1000
 """The IMU stamp shifts (ms, either way) searched for a clock offset."""
 LAG_STEP_MS = 20
@@ -60,7 +63,9 @@ class GyroAgreement:
     `mismatch`: median |gyro turn - knot turn| over the knot intervals, as a
     fraction of the median knot turn; `lag_ms`: the shift of the IMU's stamps
     under which they agree best (positive: its stamps are late), with the
-    mismatch there.
+    mismatch there; `bias_rad_s`: the constant rate (cam0, rad/s) the gyro
+    reads beyond the knots' turn (median per axis), with the mismatch once it
+    is taken off.
     """
 
     imu: str
@@ -70,6 +75,8 @@ class GyroAgreement:
     mismatch: float
     lag_ms: float
     mismatch_at_lag: float
+    bias_rad_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    mismatch_without_bias: float = float("inf")
 
     @property
     def observable(self) -> bool:
@@ -87,8 +94,9 @@ class GyroAgreement:
 
     def as_dict(self) -> dict[str, Any]:
         out = asdict(self)
-        for key in ("median_turn_deg", "mismatch", "mismatch_at_lag"):
+        for key in ("median_turn_deg", "mismatch", "mismatch_at_lag", "mismatch_without_bias"):
             out[key] = round(out[key], 4)
+        out["bias_rad_s"] = [round(v, 4) for v in self.bias_rad_s]
         out["observable"] = self.observable
         return out
 
@@ -110,10 +118,19 @@ class GyroAgreement:
                 f"{lag} {late} "
                 "against the LiDARs' clock; fix the IMU's stamps (or its clock sync)"
             )
+        bias = float(np.linalg.norm(self.bias_rad_s))
+        if self.mismatch_without_bias <= 0.5 * self.mismatch and bias >= MIN_BIAS_RAD_S:
+            axis = ", ".join(f"{v / bias:.2f}" for v in self.bias_rad_s)
+            return (
+                f"{head}; less {bias:.3f} rad/s ({np.degrees(bias):.1f} deg/s) about cam0's [{axis}] it "
+                f"agrees to {100 * self.mismatch_without_bias:.0f} %: its gyro reads that bias; calibrate "
+                "the gyro's bias, or remove the IMU from the rig to ingest without it"
+            )
         return (
-            f"{head}, and no shift of its stamps within +-{MAX_LAG_MS} ms explains it: its axes do not "
-            f"match the rig's imus.{self.imu}.T_cam0_imu (a wrong rotation, an axis of the wrong sign, or "
-            "rates not in rad/s); check it, or remove the IMU from the rig to ingest without it"
+            f"{head}, and neither a shift of its stamps within +-{MAX_LAG_MS} ms nor a constant bias "
+            f"explains it: its axes do not match the rig's imus.{self.imu}.T_cam0_imu (a wrong rotation, "
+            "an axis of the wrong sign, or rates not in rad/s); check it, or remove the IMU from the rig "
+            "to ingest without it"
         )
 
 
@@ -174,4 +191,24 @@ def gyro_agreement(traj: RigTrajectory, gyro: GyroTrack, imu: str, topic: str) -
         best = min([best] + [(_mismatch(knot_turn, gyro, t0, t1, lag * MS)[0], lag) for lag in coarse])
         fine = range(best[1] - LAG_STEP_MS + 1, best[1] + LAG_STEP_MS)
         best = min([best] + [(_mismatch(knot_turn, gyro, t0, t1, lag * MS)[0], lag) for lag in fine])
-    return GyroAgreement(imu, topic, intervals, turn_deg, mismatch, float(best[1]), best[0])
+    bias, unbiased = _bias(knot_turn, gyro, t0, t1)
+    return GyroAgreement(imu, topic, intervals, turn_deg, mismatch, float(best[1]), best[0], bias, unbiased)
+
+
+def _bias(
+    knot_turn: F64, gyro: GyroTrack, t0_ns: I64, t1_ns: I64
+) -> tuple[tuple[float, float, float], float]:
+    """(the gyro's constant excess rate in cam0, rad/s: the median per axis of (gyro - knot turn) / dt;
+    the mismatch with it taken off), over the intervals within the gyro's span."""
+    inside = gyro.covers(t0_ns) & gyro.covers(t1_ns)
+    if inside.sum() < MIN_INTERVALS:
+        return (0.0, 0.0, 0.0), float("inf")
+    dt_s = ((t1_ns - t0_ns)[inside] / 1e9)[:, None]
+    g = Rotation.from_matrix(gyro.between(t0_ns[inside], t1_ns[inside])).as_rotvec()
+    k = knot_turn[inside]
+    rate = np.median((g - k) / dt_s, axis=0)
+    scale = float(np.median(np.linalg.norm(k, axis=1)))
+    left = (
+        float(np.median(np.linalg.norm(g - rate * dt_s - k, axis=1))) / scale if scale > 0 else float("inf")
+    )
+    return (float(rate[0]), float(rate[1]), float(rate[2])), left
