@@ -8,6 +8,7 @@ topic and reason must count them.
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -344,3 +345,31 @@ def test_a_lidar_whose_every_point_time_is_0xffffffff_is_said_as_such(
             f"dropped as no sensor measures it ({n:,} points: {POINT_TIME})"
         ],
     )
+
+
+def test_livox_point_times_in_microseconds_are_refused_naming_the_unit(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Sweep 6: every offset_time written in microseconds (each sweep's 100 ms squeezed into 0.1 ms) was
+    ingested without a word: motion within a sweep went uncompensated, and on the walk the IMU was blamed.
+    No Mid-360 sends 200 million points a second."""
+
+    def micro(pts: Any) -> Any:
+        pts["offset_time"] //= 1000
+        return pts
+
+    def bad(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        return [(topic, _points(micro)(raw) if topic == LIDAR_TOP else raw)]
+
+    bag, rig = rewrite(tmp_path / "micro.mcap", bad, src=WALK)
+    code, _, err = sensorbox(capsys, "ingest", str(bag), "--rig", str(rig), "--out", str(tmp_path / "ds"))
+    assert code == 2 and len(err) == 1, err
+    found = re.fullmatch(
+        rf"error: {re.escape(str(bag))}: {LIDAR_TOP} \(the rig's lidar lidar_top\): each sweep's point times span "
+        r"(0\.\d+) ms \(median\), ([\d,]+) points/s against the 200,000 a Mid-360 sends: its point times look "
+        r"scaled \(offset_time in microseconds, not nanoseconds\?\); fix the driver's time unit",
+        err[0],
+    )
+    assert found, err[0]
+    assert 0.09 <= float(found.group(1)) <= 0.11 and int(found.group(2).replace(",", "")) > 100_000_000
+    assert not (tmp_path / "ds").exists()

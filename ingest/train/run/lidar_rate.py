@@ -36,6 +36,10 @@ MID360_POINTS_PER_S = 200_000
 """Points a Livox Mid-360 sends per second, whatever its publish rate (datasheet: 200,000 points/s, first
 return), 20,000 a sweep at the driver's 10 Hz."""
 
+CROWDED_FACTOR = 20
+"""A LiDAR whose sweeps' points come this many times faster than `MID360_POINTS_PER_S` has its point
+times squeezed (`LidarRates.crowded_lines`); a Mid-360's sweep spans its whole 100 ms."""
+
 
 @dataclass
 class LidarRates:
@@ -95,6 +99,24 @@ class LidarRates:
                 "(a driver set to drop points, or lost packets?)"
             )
         return out
+
+    def crowded(self, names: dict[str, str]) -> str | None:
+        """The first LiDAR (topic -> rig name) whose sweeps' points come `CROWDED_FACTOR` times faster than
+        a Mid-360 sends them, in one line: point times squeezed into a sliver of each sweep (offsets in
+        microseconds read as nanoseconds), which no Mid-360 gives and which would misplace every moving
+        point; None when there is none."""
+        for topic, name in names.items():
+            rates = self.per_sweep.get(topic)
+            if not rates or float(np.median(rates)) < CROWDED_FACTOR * MID360_POINTS_PER_S:
+                continue
+            rate = float(np.median(rates))
+            span_ms = 1e3 * (self.points[topic] / self.sweeps[topic]) / rate
+            return (
+                f"{topic} (the rig's lidar {name}): each sweep's point times span {span_ms:.3g} ms (median), "
+                f"{rate:,.0f} points/s against the {MID360_POINTS_PER_S:,} a Mid-360 sends: its point times "
+                "look scaled (offset_time in microseconds, not nanoseconds?); fix the driver's time unit"
+            )
+        return None
 
     def expected(self, topic: str, t_ns: int, window_ns: int) -> float:
         """Points the LiDAR's rate promises in [t - window, t + window] within the recording."""

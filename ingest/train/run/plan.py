@@ -206,6 +206,9 @@ def survey(
                 f"{bags.paths[0]}: no points on {topic} (the rig's lidar {name}) in the whole bag"
                 + _all_dropped(dropped.get(topic, {}), "point")
             )
+    crowded = rates.crowded(topics.lidars)
+    if crowded:
+        raise BagError(f"{bags.paths[0]}: {crowded}")
     if topics.imu and not len(seen[topics.imu]):  # the rig names it: motion and odometry rely on it
         raise BagError(
             f"{bags.paths[0]}: no readings on {topics.imu} (the rig's IMU) in the whole bag"
@@ -234,7 +237,15 @@ def survey(
         + [restamped_line(topic, stamps_ns) for topic, stamps_ns in copies.restamped.items()]
         + [overlapping_line(topic, firsts_ns) for topic, firsts_ns in copies.overlapping.items()]
     )
-    return Survey(seen, rates, duplicates, up, lo, gaps, warnings + rates.thin_lines(topics.lidars))
+    return Survey(
+        seen,
+        rates,
+        duplicates,
+        up,
+        lo,
+        gaps,
+        warnings + rates.thin_lines(topics.lidars),
+    )
 
 
 def restamped_line(topic: str, stamps_ns: list[int]) -> str:
