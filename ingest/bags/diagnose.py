@@ -139,6 +139,19 @@ def explain(path: Path, err: BaseException) -> str:
             "(it reads ros2msg and ros2idl); leave the topic out of the recording (ros2 bag convert, "
             "exclude_topics) or record it in a bag of its own"
         )
+    if (
+        path.suffix == ".mcap"
+        and isinstance(err, (TypeError, KeyError, AttributeError))
+        and (qos := unreadable_qos(path))
+    ):
+        topic, text = qos
+        shown = " ".join(text.split())
+        return (
+            f"{path}: {topic}: its channel's offered_qos_profiles metadata is not a list of ROS 2 QoS "
+            "profiles "
+            f"({shown[:80]!r}{'...' if len(shown) > 80 else ''}), which rosbags cannot read; rewrite the bag "
+            "without it (ros2 bag convert) or drop the channel's metadata"
+        )
     if path.is_dir():
         mcaps = sorted(path.glob("*.mcap"))
         if not (path / "metadata.yaml").exists():
@@ -222,6 +235,29 @@ def odd_mcap_encodings(path: Path) -> list[tuple[str, str]]:
         sid: sc.encoding for sid, sc in summary.schemas.items() if sc.encoding not in ("ros2msg", "ros2idl")
     }
     return [(ch.topic, odd[ch.schema_id]) for ch in summary.channels.values() if ch.schema_id in odd]
+
+
+def unreadable_qos(path: Path) -> tuple[str, str] | None:
+    """(topic, its offered_qos_profiles metadata) of the first channel of an .mcap whose QoS profiles
+    rosbags cannot parse (a recorder that wrote something else there); None when every one parses or the
+    summary cannot be read."""
+    from mcap.reader import make_reader
+    from rosbags.rosbag2.metadata import parse_qos
+
+    try:
+        with path.open("rb") as f:
+            summary = make_reader(f).get_summary()
+    except Exception:  # any failure: rosbags' own error stands
+        return None
+    for ch in summary.channels.values() if summary is not None else []:
+        text = ch.metadata.get("offered_qos_profiles", "")
+        if not text:
+            continue
+        try:
+            parse_qos(yaml.load(text, Loader=BoundedSafeLoader))
+        except Exception:  # rosbags' parser fails on any odd shape: that is what we look for
+            return ch.topic, text
+    return None
 
 
 def odd_definition_encodings(path: Path) -> list[tuple[str, str, str]]:

@@ -253,13 +253,16 @@ def test_path_errors(tmp_path):
 IMU_GZ = [0.25, -0.5]
 
 
-def mcap_with_schema(path, msgtype, schema_data, raws, topic="/t", encoding="ros2msg", schema=True):
-    """A ROS 2 mcap written with the mcap library, so the schema can be anything (e.g. empty)."""
+def mcap_with_schema(
+    path, msgtype, schema_data, raws, topic="/t", encoding="ros2msg", schema=True, channel_metadata=None
+):
+    """A ROS 2 mcap written with the mcap library, so the schema (e.g. empty) and the channel's metadata
+    can be anything."""
     with path.open("wb") as f:
         writer = McapWriter(f, compression=CompressionType.NONE)
         writer.start(profile="ros2", library="test")
         schema_id = writer.register_schema(msgtype, encoding, schema_data) if schema else 0
-        channel = writer.register_channel(topic, "cdr", schema_id)
+        channel = writer.register_channel(topic, "cdr", schema_id, channel_metadata or {})
         for i, raw in enumerate(raws):
             writer.add_message(channel, log_time=T0 + i, data=raw, publish_time=T0 + i)
         writer.finish()
@@ -572,6 +575,22 @@ def test_a_metadata_yaml_naming_another_storage_than_its_files_is_said(tmp_path)
     assert str(err.value) == (
         f"{meta}: storage_identifier 'mcap' (files .mcap) but it lists {name}; expected the storage of its "
         "files (a metadata.yaml of another recording?)"
+    )
+
+
+def test_a_channel_whose_qos_metadata_rosbags_cannot_parse_is_named(tmp_path):
+    """Sweep 6: garbage in an .mcap channel's offered_qos_profiles was 'cannot read bag: TypeError: string
+    indices must be integers, not 'str''."""
+    path = mcap_with_schema(
+        tmp_path / "q.mcap", IMU_TYPE, b"", [imu_raw(2, T0, 0.0)], topic="/imu",
+        channel_metadata={"offered_qos_profiles": "::: not yaml [[["},
+    )  # fmt: skip
+    with pytest.raises(BagError) as err:
+        open_bags(path)
+    assert str(err.value) == (
+        f"{path}: /imu: its channel's offered_qos_profiles metadata is not a list of ROS 2 QoS profiles "
+        "('::: not yaml [[['), which rosbags cannot read; rewrite the bag without it (ros2 bag convert) or "
+        "drop the channel's metadata"
     )
 
 
