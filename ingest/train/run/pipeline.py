@@ -99,6 +99,7 @@ from ingest.train.run.stream import (
 from ingest.train.run.summary import IngestSummary
 from ingest.train.sync import unsynced_line
 from ingest.train.trajectory.estimate import STATIC_WINDOW_NS, check_gyro, choose_method, run_trajectory_pass
+from ingest.train.trajectory.imu_check import no_imu_line
 from ingest.train.trajectory.rig_trajectory import RigTrajectory
 
 
@@ -142,6 +143,8 @@ def _gt_method(
         summary.imu_check = check_gyro(
             bags, topics.lidars, imu, topics.imu_name, rig, cfg.sample.min_range_m, bad
         )
+    if topics.imu is None:
+        summary.warnings.append(no_imu_line(cfg.rig))
     if summary.imu_check is not None and summary.imu_check.line():
         summary.warnings.append(str(summary.imu_check.line()))
     static = tsum is not None and tsum.static

@@ -20,6 +20,7 @@ clock offset from a wrong orientation.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -132,6 +133,16 @@ class GyroAgreement:
             "an axis of the wrong sign, or rates not in rad/s); check it, or remove the IMU from the rig "
             "to ingest without it"
         )
+
+
+def no_imu_line(rig_file: Path) -> str:
+    """The warning for a rig without an IMU: nothing measures its turns between a sweep's points."""
+    return (
+        f"{rig_file}: the rig names no IMU under 'imus': the rig's turns within each sweep and window are "
+        "not measured, so a moving rig's points are placed as if it held its pose or turned evenly (its GT "
+        "smears, and the LiDAR pose check may blame the LiDARs); add the IMU of a LiDAR (its topic, rate_hz "
+        "and T_cam0_imu)"
+    )
 
 
 def turning_stretch(gyro: GyroTrack, length_ns: int) -> tuple[int, int] | None:
