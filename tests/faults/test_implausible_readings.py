@@ -373,3 +373,31 @@ def test_livox_point_times_in_microseconds_are_refused_naming_the_unit(
     assert found, err[0]
     assert 0.09 <= float(found.group(1)) <= 0.11 and int(found.group(2).replace(",", "")) > 100_000_000
     assert not (tmp_path / "ds").exists()
+
+
+def test_livox_coordinates_in_centimetres_are_refused_naming_the_unit(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Sweep 6: every coordinate written in centimetres wrote 5 samples without one GT pixel (their
+    ranges beyond the depth PNG's 65.535 m) and blamed lidar_top's pose ("off by 8886 mm")."""
+
+    def centimetres(pts: Any) -> Any:
+        for axis in "xyz":
+            pts[axis] *= 100.0
+        return pts
+
+    def bad(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        return [(topic, _points(centimetres)(raw) if topic == LIDAR_TOP else raw)]
+
+    bag, rig = rewrite(tmp_path / "cm.mcap", bad, src=INDOOR)
+    code, _, err = sensorbox(capsys, "ingest", str(bag), "--rig", str(rig), "--out", str(tmp_path / "ds"))
+    assert code == 2 and len(err) == 1, err
+    found = re.fullmatch(
+        rf"error: {re.escape(str(bag))}: {LIDAR_TOP} \(the rig's lidar lidar_top\): its points lie ([\d,]+) m away "
+        r"\(median over 7 sweeps\), beyond the 70 m a Mid-360 reaches: coordinates in centimetres or millimetres "
+        r"read as metres\? Fix the driver's unit",
+        err[0],
+    )
+    assert found, err[0]
+    assert 150 <= int(found.group(1).replace(",", "")) <= 500  # a room's few metres, times 100
+    assert not (tmp_path / "ds").exists()

@@ -25,6 +25,7 @@ LiDAR thin over the whole recording is one warning line too (`thin_lines`).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -36,6 +37,11 @@ MID360_POINTS_PER_S = 200_000
 """Points a Livox Mid-360 sends per second, whatever its publish rate (datasheet: 200,000 points/s, first
 return), 20,000 a sweep at the driver's 10 Hz."""
 
+MID360_MAX_RANGE_M = 70
+"""A Livox Mid-360's farthest return (m, 80 % reflectivity; datasheet)."""
+FARTHEST_MEDIAN_RANGE_M = 100.0
+"""A LiDAR whose sweeps' median point lies farther (m) than this has coordinates in another unit: half
+of a Mid-360's points cannot lie beyond its reach (`LidarRates.too_far`)."""
 CROWDED_FACTOR = 20
 """A LiDAR whose sweeps' points come this many times faster than `MID360_POINTS_PER_S` has its point
 times squeezed (`LidarRates.crowded_lines`); a Mid-360's sweep spans its whole 100 ms."""
@@ -51,6 +57,29 @@ class LidarRates:
     points: dict[str, int] = field(default_factory=dict)  # per topic: every point of its sweeps
     sweeps: dict[str, int] = field(default_factory=dict)  # per topic: sweeps with a point
     span_ns: dict[str, tuple[int, int]] = field(default_factory=dict)  # per topic: first and last point
+    median_range_m: dict[str, list[float]] = field(default_factory=dict)  # per topic: each sweep's median
+
+    def add_ranges(self, topic: str, xyz_m: Any) -> None:
+        """Record one sweep's median point range (m; points at the origin, a Livox "no return", left out)."""
+        r = np.linalg.norm(np.asarray(xyz_m, np.float64), axis=1)
+        r = r[np.isfinite(r) & (r > 0)]
+        if len(r):
+            self.median_range_m.setdefault(topic, []).append(float(np.median(r)))
+
+    def too_far(self, names: dict[str, str]) -> str | None:
+        """The first LiDAR (topic -> rig name) whose sweeps' median point range exceeds
+        `FARTHEST_MEDIAN_RANGE_M`, in one line: coordinates in centimetres or millimetres read as metres;
+        None when there is none."""
+        for topic, name in names.items():
+            ranges = self.median_range_m.get(topic)
+            if not ranges or float(np.median(ranges)) <= FARTHEST_MEDIAN_RANGE_M:
+                continue
+            return (
+                f"{topic} (the rig's lidar {name}): its points lie {float(np.median(ranges)):,.0f} m away "
+                f"(median over {len(ranges)} sweeps), beyond the {MID360_MAX_RANGE_M} m a Mid-360 reaches: "
+                "coordinates in centimetres or millimetres read as metres? Fix the driver's unit"
+            )
+        return None
 
     def add(self, topic: str, stamps_ns: I64) -> None:
         """Record one sweep's point stamps (absolute ns); an empty sweep only counts for nothing."""

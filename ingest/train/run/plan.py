@@ -105,6 +105,7 @@ def _seen(
         if isinstance(sweep, Sweep) and len(sweep.stamps_ns) and copies.sweep(msg.topic, sweep):
             seen[msg.topic].append((msg.log_ns, *sweep.span_ns))
             rates.add(msg.topic, sweep.stamps_ns)
+            rates.add_ranges(msg.topic, sweep.xyz_m)
     return {t: np.array(v, np.int64).reshape(-1, 3) for t, v in seen.items()}, rates, copies
 
 
@@ -206,9 +207,9 @@ def survey(
                 f"{bags.paths[0]}: no points on {topic} (the rig's lidar {name}) in the whole bag"
                 + _all_dropped(dropped.get(topic, {}), "point")
             )
-    crowded = rates.crowded(topics.lidars)
-    if crowded:
-        raise BagError(f"{bags.paths[0]}: {crowded}")
+    odd = rates.crowded(topics.lidars) or rates.too_far(topics.lidars)
+    if odd:
+        raise BagError(f"{bags.paths[0]}: {odd}")
     if topics.imu and not len(seen[topics.imu]):  # the rig names it: motion and odometry rely on it
         raise BagError(
             f"{bags.paths[0]}: no readings on {topics.imu} (the rig's IMU) in the whole bag"
