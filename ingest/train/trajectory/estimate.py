@@ -142,7 +142,8 @@ def judged(agreement: GyroAgreement) -> GyroAgreement:
 
 CHECK_SPAN_NS = 4_000_000_000
 """The stretch of a recording (where its gyro turns most) whose LiDARs a run without a trajectory pass
-(sparse GT) registers to check the IMU (`check_gyro`): about a second of one core."""
+(sparse GT) registers to check the IMU (`check_gyro`): 4.4 CPU s on a 20 s walk (0.8 reading the gyro, 3.6
+the odometry)."""
 
 
 def check_gyro(
