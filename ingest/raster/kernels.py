@@ -77,6 +77,21 @@ def zbuffer_keys(
 
 
 @njit(cache=True, nogil=True)
+def _nearest(rows, cols, range_m, out):  # type: ignore[no-untyped-def]  # pragma: no cover
+    for i in range(rows.shape[0]):
+        if range_m[i] < out[rows[i], cols[i]]:
+            out[rows[i], cols[i]] = range_m[i]
+
+
+def nearest_range(rows: I64, cols: I64, range_m: F32, H: int, W: int) -> F32:
+    """(H, W) float32: the least of `range_m` (m) per pixel (rows, cols, inside the image); inf where none
+    (one compiled pass: a tenth of numpy's minimum.at)."""
+    out = np.full((H, W), np.inf, np.float32)
+    _nearest(rows, cols, range_m, out)
+    return out
+
+
+@njit(cache=True, nogil=True)
 def _snap(pts, normal, cols, rows, front_m, rays, ray_ok, radius, min_cos, step_abs, step_rel, out):  # type: ignore[no-untyped-def]  # pragma: no cover
     H, W = front_m.shape
     n_out = 0

@@ -49,7 +49,7 @@ from calibration.stereo import disparity_and_stability
 from calibration.types import F32, F64, I64, Bool
 from ingest.dataset.sparse import SparseImage
 from ingest.raster.edges import STEP_ABS_M, STEP_REL, edge_band
-from ingest.raster.kernels import snap_planar
+from ingest.raster.kernels import nearest_range, snap_planar
 from ingest.raster.lod import point_index
 from ingest.raster.params import RenderParams
 from ingest.raster.scan import Scan
@@ -158,8 +158,8 @@ def snap_to_pixel_rays(
     reach = 2 * radius_px + 1
     near = cv2.dilate(occupied, np.ones((reach, reach), np.uint8))
     closed = cv2.morphologyEx(occupied, cv2.MORPH_CLOSE, np.ones((close_px, close_px), np.uint8))
-    nearest_m = np.full((model.height, model.width), np.inf, np.float32)
-    np.minimum.at(nearest_m, (pix[ok, 1], pix[ok, 0]), np.linalg.norm(pts[ok], axis=1).astype(np.float32))
+    range_ok = np.linalg.norm(pts[ok], axis=1).astype(np.float32)
+    nearest_m = nearest_range(pix[ok, 1], pix[ok, 0], range_ok, model.height, model.width)
     front_m = np.where((closed > 0) & (near > 0), front_range(nearest_m, front_px), np.float32(np.inf))
     # a plane seen edge-on stays as its points: snapped it would give no value and leave its pixels
     # empty, for a nearer surface's surfels to spread over its silhouette into
@@ -339,8 +339,7 @@ def behind_near(model: CameraModel, pts: F64, range_m: F32, radius_px: int) -> B
     uv, ok = model.project(pts)
     pix = np.floor(np.nan_to_num(uv) + 0.5).astype(np.int64)
     ok &= (pix[:, 0] >= 0) & (pix[:, 0] < w) & (pix[:, 1] >= 0) & (pix[:, 1] < h)
-    nearest = np.full((h, w), np.finfo(np.float32).max, np.float32)
-    np.minimum.at(nearest, (pix[ok, 1], pix[ok, 0]), np.linalg.norm(pts[ok], axis=1).astype(np.float32))
+    nearest = nearest_range(pix[ok, 1], pix[ok, 0], np.linalg.norm(pts[ok], axis=1).astype(np.float32), h, w)
     d = np.arange(-radius_px, radius_px + 1)
     disc = (d[:, None] ** 2 + d[None, :] ** 2 <= radius_px**2).astype(np.uint8)
     near = cv2.erode(nearest, disc)  # the nearest point within the disc around each pixel
