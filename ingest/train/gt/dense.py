@@ -180,12 +180,13 @@ def front_range(nearest_m: F32, size_px: int) -> F32:
     that hold a point (-inf where none does).
 
     `nearest_m` is the nearest point's range per pixel (inf: no point). A
-    value at a pixel behind this by less than a range step has, in every
-    square around the pixel, a point at its own range or nearer: the pixel
-    lies inside the outline of the points at that range (a closing of them,
-    gaps without points left open to the points around). A value in front
-    of it by more has a square beside it that holds only farther points:
-    background seen past the surface's silhouette, not the surface. The
+    value at the pixel at most a range step in front of the result has, in
+    every square around the pixel that holds points, one within a range step
+    of its own range or nearer: the pixel lies inside the outline of the
+    points at the value's range or nearer (their closing by these squares;
+    a square without points says nothing). A value farther in front has a
+    square beside it that holds only farther points: background seen past
+    the surface's silhouette, not the surface. The
     squares are wider than the gaps between one surface's points (about
     one point per ten pixels at 1920x1200), so the farther points that the
     LiDARs saw through gaps of a nearer surface rarely fill one alone.
