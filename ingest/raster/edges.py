@@ -10,6 +10,9 @@ from numba import njit
 
 from calibration.types import Bool
 
+STEP_ABS_M = 0.05  # a range step of depth: more than this ...
+STEP_REL = 0.03  # ... and more than this fraction of the nearer range
+
 
 def valid_gt(gt: np.ndarray[Any, Any], mask: Bool | None = None) -> Bool:
     """GT pixels that count: finite, > 0 and inside `mask`."""
@@ -19,7 +22,7 @@ def valid_gt(gt: np.ndarray[Any, Any], mask: Bool | None = None) -> Bool:
 
 
 def edge_band(
-    gt: np.ndarray[Any, Any], band_px: int = 3, step_abs: float = 0.05, step_rel: float = 0.03
+    gt: np.ndarray[Any, Any], band_px: int = 3, step_abs: float = STEP_ABS_M, step_rel: float = STEP_REL
 ) -> Bool:
     """Valid-GT pixels within `band_px` of a discontinuity of the GT map itself.
 

@@ -453,6 +453,61 @@ def test_a_plane_seen_edge_on_keeps_its_points():
     assert len(snapped) > 500 + 3 * 500 and np.allclose(snapped[500:, 2], 3.0)
 
 
+def test_a_surfel_stops_at_the_outline_of_the_points_at_its_range_or_nearer():
+    """A pole's surfels do not reach onto the wall beside it, where the pixel-centre rays miss the pole.
+
+    Points on a 3 px grid of pixel positions (rows 80.5-119.5): a pole 3 m out at columns 151.3-163.3
+    (its silhouette at 150.6 and 163.7), a wall 6 m out at columns 140.5-149.5 and 152.5-179.5 (behind
+    the pole too: the LiDARs saw it past the pole). The pole's outermost points sit within a pixel of
+    its silhouette, so their 3x3 surfels reached columns 150 and 164 (80 pole values on rays that meet
+    the wall); there a square of `front_px` holds only wall points. Every pole pixel within a surfel of
+    a pole point keeps its value (13 columns x 40 rows), and the wall's surfels still reach the pole
+    (rows 81-120: the grid's pixels; a row beyond them lies outside the points' outline).
+    """
+    from calibration.fisheye import DoubleSphere
+
+    model = DoubleSphere(120.0, 120.0, 160.0, 100.0, -0.2, 0.6, 320, 200)
+    rows_px = np.arange(80.5, 120.0, 3.0)
+
+    def grid(cols_px: np.ndarray, z_m: float) -> np.ndarray:
+        uv = np.array([(u, v) for u in cols_px for v in rows_px])
+        rays, _ = model.unproject(uv)
+        return rays * (z_m / rays[:, 2])[:, None]
+
+    pole = grid(np.arange(151.3, 164.0, 3.0), 3.0)
+    wall = grid(np.r_[np.arange(140.5, 150.0, 3.0), np.arange(152.5, 180.0, 3.0)], 6.0)
+    pts = np.concatenate([pole, wall])
+    normals = Normals(np.tile([0.0, 0.0, 1.0], (len(pts), 1)), np.ones(len(pts), bool))
+    snapped = snap_to_pixel_rays(model, pts, normals, 1, 0.2)
+    uv, _ = model.project(snapped)
+    col, row = np.round(uv).astype(int).T
+    on_pole = np.abs(snapped[:, 2] - 3.0) < 1e-9
+    assert int((on_pole & ((col <= 150) | (col >= 164))).sum()) == 0
+    assert len(set(zip(row[on_pole], col[on_pole], strict=True))) == int(on_pole.sum()) == 13 * 40
+    assert {(r, c) for r, c in zip(row[~on_pole], col[~on_pole], strict=True) if c in (150, 164)} == {
+        (r, c) for r in range(81, 121) for c in (150, 164)
+    }
+
+
+def test_front_range_is_the_farthest_nearest_point_of_the_squares_around_a_pixel():
+    """3 px squares on a 9 x 9 image: a point at 3 m at (4, 4), points at 6 m down column 7.
+
+    (4, 4): every square around it holds the 3 m point. (4, 5): the square centred on (4, 6) holds only
+    6 m points, so a 3 m value there lies in front of that square's points (beyond the 3 m outline).
+    (2, 2): the squares around it that hold a point hold the 3 m one; the empty ones say nothing.
+    (0, 0): none holds a point. (8, 8): squares reaching past the image's edge hold what lies inside it.
+    """
+    from ingest.train.gt.dense import front_range
+
+    nearest = np.full((9, 9), np.inf, np.float32)
+    nearest[4, 4] = 3.0
+    nearest[:, 7] = 6.0
+    front = front_range(nearest, 3)
+    assert front.dtype == np.float32
+    assert (front[4, 4], front[4, 5], front[2, 2], front[8, 8]) == (3.0, 6.0, 3.0, 6.0)
+    assert front[0, 0] == -np.inf
+
+
 def test_gt_behind_a_point_near_it_is_dropped():
     """Background GT within the occlusion margin of a nearer point goes: a pole point 2 m out on the optical
     axis (pixel 160, 100) in front of GT at 5 m drops the Euclidean disc of 3 px around it (0.02 rad at
