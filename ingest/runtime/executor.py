@@ -21,6 +21,11 @@
 - `run(jobs)` keeps at most `max_in_flight` jobs submitted and yields the
   results in submission order; it pulls the next job only when there is room,
   so a generator of jobs streams.
+- A job may be a `Task` (`ingest.runtime.kept`): one that keeps a value on
+  the workers under a key (only its report comes back), or one that uses
+  earlier tasks' values, each reaching a worker once; a `Release` drops keys.
+  Pool workers keep values in files of a folder in `keep_in` (the system's
+  temporary folder by default), removed when the run ends.
 
 One `run` at a time per process: the shared state of a fork pool is this
 module's, inherited by the children it forks.
@@ -32,14 +37,16 @@ import multiprocessing
 import os
 import sys
 from collections import deque
-from collections.abc import Callable, Generator, Iterable
+from collections.abc import Callable, Generator, Iterable, Iterator
 from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, Generic, Literal, TypeVar
 
 import cv2
 import numpy as np
 
+from ingest.runtime.kept import FileStore, Kept, Release, Task, check_needs, dask_call, pool_call, report_of
 from ingest.runtime.lifetime import die_with_parent
 from ingest.runtime.transport import ArraySlots, SlotRef, slot_views
 
@@ -51,7 +58,9 @@ R = TypeVar("R")
 Arrays = tuple[np.ndarray[Any, Any], ...]
 Backend = Literal["inline", "fork", "spawn", "dask"]
 
-_WORKER: dict[str, Any] = {}  # "shared", "fn", "give": set before the pool forks, inherited by its workers
+_WORKER: dict[
+    str, Any
+] = {}  # "shared", "fn", "give", "store": set before the pool forks, inherited by its workers
 
 
 def usable_cpus() -> int:
@@ -108,9 +117,23 @@ class Handoff(Generic[J]):
 
 def _forked_call(job: Any, ref: SlotRef | None) -> Any:
     """One job in a forked worker: shared state and the job function come from the parent's memory."""
+    if isinstance(job, Task):
+        if ref is not None:
+            job = Task(_WORKER["give"](job.job, slot_views(ref)), job.key, job.needs)
+        return pool_call(_WORKER["fn"], _WORKER["shared"], job, _WORKER["store"])
     if ref is not None:
         job = _WORKER["give"](job, slot_views(ref))
     return _WORKER["fn"](_WORKER["shared"], job)
+
+
+def _inner(job: Any) -> Any:
+    """The job a `Task` wraps, or the job itself."""
+    return job.job if isinstance(job, Task) else job
+
+
+def _with_inner(job: Any, inner: Any) -> Any:
+    """`job` with `inner` as the job it wraps (a `Task`), or `inner` itself."""
+    return Task(inner, job.key, job.needs) if isinstance(job, Task) else inner
 
 
 def _terminate_workers(pool: ProcessPoolExecutor) -> None:
@@ -176,73 +199,141 @@ class Executor:
 
     def run(
         self,
-        fn: Callable[[Any, J], R],
-        jobs: Iterable[J],
+        fn: Callable[..., R],
+        jobs: Iterable[J | Task[J] | Release],
         *,
         shared: Any = None,
         handoff: Handoff[J] | None = None,
+        keep_in: Path | None = None,
     ) -> Generator[R, None, None]:
-        """Results of `fn(shared, job)` for every job, in the jobs' order."""
+        """Results of `fn(shared, job)` for every job, in the jobs' order (a `Task`: `fn(shared, job,
+        values)`, its report when keyed; a `Release` has none)."""
         if self.backend == "inline":
-            _init_worker(self.worker_init)
-            for job in jobs:
-                yield fn(shared, job)
+            yield from self._run_inline(fn, jobs, shared)
         elif self.backend == "dask":
             yield from self._run_dask(fn, jobs, shared)
         else:
-            yield from self._run_pool(fn, jobs, shared, handoff)
+            yield from self._run_pool(fn, jobs, shared, handoff, keep_in)
+
+    def _run_inline(
+        self, fn: Callable[..., R], jobs: Iterable[J | Task[J] | Release], shared: Any
+    ) -> Generator[R, None, None]:
+        _init_worker(self.worker_init)
+        kept: dict[str, Any] = {}
+        for job in jobs:
+            if isinstance(job, Release):
+                for key in job.keys:
+                    kept.pop(key, None)
+            elif isinstance(job, Task):
+                check_needs(job, kept)
+                result = fn(shared, job.job, {k: kept[k] for k in job.needs})
+                if job.key is not None:
+                    assert isinstance(result, Kept), f"task {job.key}: a keyed task's function returns Kept"
+                    kept[job.key], result = result.value, result.report
+                yield result
+            else:
+                yield fn(shared, job)
 
     def _run_pool(
-        self, fn: Callable[[Any, J], R], jobs: Iterable[J], shared: Any, handoff: Handoff[J] | None
+        self,
+        fn: Callable[..., R],
+        jobs: Iterable[J | Task[J] | Release],
+        shared: Any,
+        handoff: Handoff[J] | None,
+        keep_in: Path | None,
     ) -> Generator[R, None, None]:
         fork = self.backend == "fork"
         slots = ArraySlots(self.max_in_flight + 1, handoff.slot_bytes) if fork and handoff else None
-        _WORKER.update(shared=shared, fn=fn, give=handoff.give if handoff else None)
+        store = FileStore(keep_in)
+        _WORKER.update(shared=shared, fn=fn, give=handoff.give if handoff else None, store=store)
         ctx = multiprocessing.get_context("fork" if fork else "spawn")
         cv2_threads = _share_cv2_threads(self.workers) if fork else None
         pool = ProcessPoolExecutor(
             self.workers, mp_context=ctx, initializer=_init_worker, initargs=(self.worker_init, os.getpid())
         )
-        pending: deque[tuple[Future[R], SlotRef | None]] = deque()
+        # a Release waits in line (no future) until every job before it has finished
+        pending: deque[tuple[Future[R] | Release, SlotRef | None]] = deque()
+        kept: set[str] = set()
         finished = False
         try:
             for job in jobs:
-                ref = None
-                if slots is not None and handoff is not None:
-                    light, arrays = handoff.take(job)
-                    ref = slots.put(arrays)
-                    if ref is not None:
-                        job = light
-                if fork:
-                    pending.append((pool.submit(_forked_call, job, ref), ref))
-                else:  # spawned workers inherit nothing: the function and shared state travel with the job
-                    pending.append((pool.submit(fn, shared, job), None))
-                while pending and (len(pending) >= self.max_in_flight or pending[0][0].done()):
-                    yield self._collect(pending, slots)
+                if isinstance(job, Release):
+                    kept -= set(job.keys)
+                    pending.append((job, None))
+                else:
+                    if isinstance(job, Task):
+                        check_needs(job, kept)
+                        kept |= {job.key} if job.key is not None else set()
+                    pending.append(self._submit(pool, fn, shared, job, handoff, slots, store))
+                while pending and (
+                    self._in_flight(pending) >= self.max_in_flight or self._front_done(pending)
+                ):
+                    yield from self._collect(pending, slots, store)
             while pending:
-                yield self._collect(pending, slots)
+                yield from self._collect(pending, slots, store)
             finished = True
         finally:
             if not finished:  # an error, Ctrl-C or the consumer stopped: running jobs' results are unwanted
                 _terminate_workers(pool)
             pool.shutdown(cancel_futures=True)
             _WORKER.clear()
+            store.close()
             if cv2_threads is not None:
                 cv2.setNumThreads(cv2_threads)
             if slots is not None:
                 slots.close()
 
+    def _submit(
+        self,
+        pool: ProcessPoolExecutor,
+        fn: Callable[..., R],
+        shared: Any,
+        job: J | Task[J],
+        handoff: Handoff[J] | None,
+        slots: ArraySlots | None,
+        store: FileStore,
+    ) -> tuple[Future[R], SlotRef | None]:
+        """Submit one job (its arrays through a slot where they fit); spawned workers inherit nothing, so
+        the function and shared state travel with the job."""
+        if self.backend != "fork":
+            if isinstance(job, Task):
+                return pool.submit(pool_call, fn, shared, job, store), None
+            return pool.submit(fn, shared, job), None
+        ref = None
+        if slots is not None and handoff is not None:
+            light, arrays = handoff.take(_inner(job))
+            ref = slots.put(arrays) if arrays else None
+            if ref is not None:
+                job = _with_inner(job, light)
+        return pool.submit(_forked_call, job, ref), ref
+
     @staticmethod
-    def _collect(pending: deque[tuple[Future[R], SlotRef | None]], slots: ArraySlots | None) -> R:
+    def _in_flight(pending: deque[tuple[Any, SlotRef | None]]) -> int:
+        return sum(1 for f, _ in pending if not isinstance(f, Release))
+
+    @staticmethod
+    def _front_done(pending: deque[tuple[Any, SlotRef | None]]) -> bool:
+        front = pending[0][0]
+        return isinstance(front, Release) or bool(front.done())
+
+    @staticmethod
+    def _collect(
+        pending: deque[tuple[Future[R] | Release, SlotRef | None]], slots: ArraySlots | None, store: FileStore
+    ) -> Iterator[R]:
+        """The front job's result (a Release at the front: its keys dropped, nothing yielded)."""
         fut, ref = pending.popleft()
+        if isinstance(fut, Release):
+            store.drop(fut.keys)
+            return
         try:
-            return fut.result()
+            result = fut.result()
         finally:
             if slots is not None:
                 slots.release(ref)
+        yield result
 
     def _run_dask(
-        self, fn: Callable[[Any, J], R], jobs: Iterable[J], shared: Any
+        self, fn: Callable[..., R], jobs: Iterable[J | Task[J] | Release], shared: Any
     ) -> Generator[R, None, None]:
         self.connect()
         client = self._client
@@ -252,13 +343,42 @@ class Executor:
                 client.run(self.worker_init)
             shared_ref = client.scatter(shared, broadcast=True) if shared is not None else None  # type: ignore[no-untyped-call]
             pending: deque[Any] = deque()
+            kept: dict[str, Any] = {}  # key -> the future of its task's Kept, on the worker that made it
             for job in jobs:
-                # the job's data goes straight to a worker; the scheduler sees only its key
-                job_ref = client.scatter(job, direct=True, hash=False)  # type: ignore[no-untyped-call]
-                pending.append(client.submit(fn, shared_ref, job_ref, pure=False))
-                while pending and (len(pending) >= self.max_in_flight or pending[0].done()):
-                    yield pending.popleft().result()
+                if isinstance(job, Release):
+                    pending.append(job)
+                    for key in job.keys:
+                        kept.pop(key, None)  # the tasks that need it hold it until they are done
+                else:
+                    pending.append(self._submit_dask(client, fn, shared_ref, job, kept))
+                while pending and (
+                    sum(1 for p in pending if not isinstance(p, Release)) >= self.max_in_flight
+                    or isinstance(pending[0], Release)
+                    or pending[0].done()
+                ):
+                    front = pending.popleft()
+                    if not isinstance(front, Release):
+                        yield front.result()
             while pending:
-                yield pending.popleft().result()
+                front = pending.popleft()
+                if not isinstance(front, Release):
+                    yield front.result()
         finally:
             self.close()
+
+    @staticmethod
+    def _submit_dask(
+        client: Client, fn: Callable[..., R], shared_ref: Any, job: J | Task[J], kept: dict[str, Any]
+    ) -> Any:
+        """Submit one job; its data goes straight to a worker (the scheduler sees only its key), a task's
+        needed values as the futures of the tasks that keep them."""
+        job_ref = client.scatter(job, direct=True, hash=False)  # type: ignore[no-untyped-call]
+        if not isinstance(job, Task):
+            return client.submit(fn, shared_ref, job_ref, pure=False)
+        check_needs(job, kept)
+        needed = {k: kept[k] for k in job.needs}
+        future = client.submit(dask_call, fn, shared_ref, job_ref, needed, pure=False)
+        if job.key is None:
+            return future
+        kept[job.key] = future
+        return client.submit(report_of, future, pure=False)

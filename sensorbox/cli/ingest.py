@@ -173,7 +173,7 @@ def _pass_rows(s: IngestSummary) -> Rows:
                   f"{s.compile_s:.1f} s")  # fmt: skip
     if s.dense_warm_up_s is not None:
         rows.append(("dense GT start-up: kernels and pixel rays, once", f"{s.dense_warm_up_s:.1f} s"))
-    if s.dense_planes is not None:  # fitted and tested in the stream pass, beside the workers
+    if s.dense_planes is not None:  # fitted and tested as tasks of the workers (the workers' seconds)
         blocks, seconds = s.dense_planes
         rows.append(("dense GT blocks: planes and free space once, time", f"{blocks}, {seconds:.1f} s"))
     return rows

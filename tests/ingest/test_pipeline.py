@@ -516,6 +516,25 @@ def test_pool_workers_get_their_images_and_points_through_the_shared_slots(
     assert summary.written == len(used) > 0 and all(used)
 
 
+def test_a_dense_block_that_fails_on_a_worker_stops_the_run_with_its_one_line_and_no_partial_file(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Dense GT's blocks run as tasks on the pool's workers: a block whose fit raises stops the run with that
+    error's line, before any sample that needs the block is written, and leaves neither a temporary file
+    nor the folder the blocks' values were kept in."""
+    from ingest.train.run import block_jobs
+
+    def failing(*args: object) -> None:
+        raise DatasetError("block fit failed on purpose")
+
+    monkeypatch.setattr(block_jobs, "world_normals", failing)  # the workers fork after this
+    out = tmp_path / "ds"
+    with pytest.raises(DatasetError, match=r"^block fit failed on purpose$"):
+        ingest([INDOOR], IngestConfig(rig=_rig(INDOOR), out=out, workers=2, every=10, gt="dense"))
+    assert not [p for p in out.rglob("*") if p.name.startswith(".")]  # no temporary, no .kept folder
+    assert not list((out / "meta").glob("*.json"))  # every sample needs the first block
+
+
 @pytest.mark.parametrize(("cores", "helper"), [(2, False), (8, True)])
 def test_workers_use_a_helper_thread_only_when_a_core_is_free(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, cores: int, helper: bool

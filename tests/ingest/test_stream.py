@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import replace
 from pathlib import Path
 from types import SimpleNamespace
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 import pytest
@@ -13,8 +13,10 @@ import pytest
 from calibration.rig import read_rig
 from ingest.bags.decode import Sweep
 from ingest.bags.reader import open_bags
+from ingest.runtime.kept import Kept, Release, Task
 from ingest.runtime.transport import ArraySlots, slot_views
 from ingest.train.gt.block_planes import BlockPlanes, FreeSpaceSettings, PlaneSettings, world_normals
+from ingest.train.run.block_jobs import BlockReport, BlockTasks, ClearJob, FitJob, fill_window, run_block
 from ingest.train.run.handoff import _lidar_arrays, give_arrays, handoff_bytes_bound, take_arrays
 from ingest.train.run.plan import Plan, plan
 from ingest.train.run.resolved import resolve_run
@@ -126,9 +128,11 @@ class Streamed(NamedTuple):
 
 
 def _dense_jobs(
-    tmp_path: Path, every: int, window_ns: int, block_ns: int, free: FreeSpaceSettings | None = None
-) -> Streamed:
-    """The indoor fixture's dense jobs, streamed with block planes on a still trajectory."""
+    tmp_path: Path, every: int, window_ns: int, block_ns: int, free: FreeSpaceSettings | None = None,
+    events: list[Any] | None = None,
+) -> Streamed:  # fmt: skip
+    """The indoor fixture's dense jobs, streamed with block planes on a still trajectory (into `events`:
+    the same stream with the blocks as tasks, `BlockTasks`)."""
     cfg = IngestConfig(rig=_rig(INDOOR), out=tmp_path / "ds", workers=1, every=every)
     dense = replace(cfg.sample.dense, window_ns=window_ns)
     run = resolve_run(
@@ -154,6 +158,8 @@ def _dense_jobs(
         jobs = [
             j for j in stream_jobs(bags, topics, the_plan, run, planes=planes) if isinstance(j, StreamedJob)
         ]
+        if events is not None:
+            events += stream_jobs(bags, topics, the_plan, run, planes=BlockTasks(still, spans, settings))
     whole = BlockPlanes(still, spans, settings)
     whole.complete(sweeps, int(t_all.min()), int(t_all.max()), final=True)
     return Streamed(jobs, sweeps, whole, topics, still, settings, the_plan)
@@ -248,3 +254,48 @@ def test_dense_jobs_travel_through_the_shared_slots_whole(tmp_path: Path) -> Non
             _assert_same_windows(back, job)
     finally:
         slots.close()
+
+
+@DENSE_STREAMS
+def test_blocks_as_tasks_give_every_job_the_normals_and_bits_the_stream_pass_gave_it(
+    tmp_path: Path, every: int, window_ns: int, block_ns: int, n_jobs: int
+) -> None:
+    """With `BlockTasks` each block's fit and free-space test is a keyed task, due before the first job
+    that needs it and run once; a job carries no normals or bits, and the ones its worker puts together
+    from the blocks it needs are those `BlockPlanes` gave it in the stream pass, bit for bit. Every key is
+    released once no buffered sweep holds its rows, never before the last job that needs it."""
+    free = FreeSpaceSettings(window_ns, 0, 50_000_000)
+    events: list[Any] = []
+    run = _dense_jobs(tmp_path, every, window_ns, block_ns, free, events)
+    kept: dict[str, Any] = {}
+    made: list[str] = []
+    released: list[str] = []
+    jobs: list[StreamedJob] = []
+    for event in events:
+        if isinstance(event, Release):
+            released += event.keys
+            for key in event.keys:
+                del kept[key]
+            continue
+        assert isinstance(event, Task)
+        assert set(event.needs) <= set(kept)  # every needed block is due before the job
+        if isinstance(event.job, FitJob | ClearJob):
+            done = run_block(run.trajectory, event.job, {k: kept[k] for k in event.needs})
+            assert isinstance(done, Kept) and isinstance(done.report, BlockReport)
+            assert event.key is not None and event.key not in made
+            kept[event.key] = done.value
+            made.append(event.key)
+            continue
+        job = event.job
+        assert isinstance(job, StreamedJob) and job.blocks is not None
+        assert all(lp.normal_world is None and lp.clear_bits is None for lp in job.lidars)
+        values = {k: kept[k] for k in event.needs}
+        filled = zip(job.lidars, job.blocks.lidars, strict=True)
+        jobs.append(
+            replace(job, lidars=tuple(fill_window(lp, p, job.blocks.words, values) for lp, p in filled))
+        )
+    assert len(jobs) == len(run.jobs) == n_jobs
+    for got, want in zip(jobs, run.jobs, strict=True):
+        _assert_same_windows(got, want)
+    assert {k.split(":")[0] for k in made} == {"fit", "clear"}
+    assert set(released) <= set(made) and len(released) == len(set(released))

@@ -5,7 +5,9 @@ point's local plane (`ingest.train.gt.dense.snap_to_pixel_rays`). Fitted per
 sample, the k-NN plane fit of a +-500 ms window would be the largest cost of
 a sample (about 220 ms of one core at full resolution), and consecutive
 samples would fit nearly the same planes again: at every frame a point lies in
-30 windows. Here the stream pass fits them once: the recording is cut into
+30 windows. Here they are fitted once (`BlockPlanes` in the process that
+streams the bags; `ingest.train.run.block_jobs.BlockTasks` hands the same
+fits to the workers as tasks): the recording is cut into
 blocks of `DenseParams.plane_block_ns` (1 s, as many points as a window
 holds), each block's points are placed in the world with the trajectory
 and every point gets the normal of its k nearest neighbours in its block
@@ -313,62 +315,113 @@ class BlockPlanes:
         self.seconds += time.perf_counter() - t0
 
     def _placed(self, topic: str, sweep: Sweep) -> tuple[F64, I64]:
-        """`sweep`'s points in the world (NaN where filtered out or off every stretch) and their stretch."""
+        """`sweep`'s points in the world and their stretch (`placed`), once per sweep."""
         entry = self._world.get(id(sweep))
         if entry is None:
             T = self.settings.T_cam0_lidar[topic]
-            idx, _, cam0 = _kept_in_cam0(sweep.xyz_m, sweep.tag, T, self.settings.min_range_m)
-            stretch = np.full(len(sweep.stamps_ns), -1, np.int64)
-            stretch[idx] = self.traj.stretch_of(sweep.stamps_ns[idx])
-            placed = stretch[idx] >= 0
-            world = np.full((len(stretch), 3), np.nan)
-            world[idx[placed]] = self.traj.transform(rows(cam0, placed), sweep.stamps_ns[idx[placed]])
+            world, stretch = placed(sweep.xyz_m, sweep.tag, sweep.stamps_ns, T, self.traj, self.settings)
             entry = (sweep, world, stretch)
             self._world[id(sweep)] = entry
         return entry[1], entry[2]
 
     def _clear(self, sweeps: Mapping[str, list[Sweep]], lo: int, hi: int, k0: int, a: int, z: int) -> None:
         """The free-space bits of the points stamped in [lo, hi], from every slice in [a, z] (slice k0 on)."""
-        fs = self.settings.free_space
-        assert fs is not None
         t0 = time.perf_counter()
-        S, n_topics = fs.slice_ns, len(sweeps)
-        pts, stamps, lidar, stretch, normal, targets = [], [], [], [], [], []
+        inputs, targets = [], []
         for i, (topic, v) in enumerate(sweeps.items()):
             for s in v:
                 if s.span_ns[1] < a or s.span_ns[0] > z:
                     continue
                 world, on = self._placed(topic, s)
-                m = np.flatnonzero((s.stamps_ns >= a) & (s.stamps_ns <= z) & (on >= 0))
-                pts.append(rows(world, m))
-                normal.append(np.asarray(rows(self.normals(s), m), np.float64))
-                stamps.append(s.stamps_ns[m])
-                lidar.append(np.full(len(m), i, np.int64))
-                stretch.append(on[m])
-                targets.append((s, m))
-        if not pts:
-            return
-        all_pts, all_st, all_stretch = np.concatenate(pts), np.concatenate(stamps), np.concatenate(stretch)
-        all_lidar, all_normal = np.concatenate(lidar), np.concatenate(normal)
-        slice_id = (all_st // S) * n_topics + all_lidar
-        tested = (all_st >= lo) & (all_st <= hi)
-        bits = np.zeros((len(all_st), fs.words(self.settings.block_ns)), np.uint64)
-        origin_cam0 = np.array([self.settings.T_cam0_lidar[t][:3, 3] for t in sweeps]).reshape(-1, 3)
-        for st in np.unique(all_stretch[tested]):
-            sel = np.flatnonzero(all_stretch == st)
-            sids = np.unique(slice_id[sel])
-            k, which = sids // n_topics, sids % n_topics
-            t_mid = k * S + S // 2
-            origins = self.traj.transform(origin_cam0[which], t_mid)
-            refs = [(int(sid), o, int(kk - k0)) for sid, o, kk in zip(sids, origins, k, strict=True)]
-            ray_origin = self.traj.transform(origin_cam0[all_lidar[sel]], all_st[sel])  # each ray's own time
-            bits[sel] = free_space_bits(
-                rows(all_pts, sel), slice_id[sel], refs, fs.n_bits(self.settings.block_ns), fs.ray_test,
-                tested[sel], ray_origin, rows(all_normal, sel),
-            )  # fmt: skip
-        offset = 0
-        for s, m in targets:
-            mine = (s.stamps_ns[m] >= lo) & (s.stamps_ns[m] <= hi)
-            self.clear_bits(s)[m[mine]] = bits[offset : offset + len(m)][mine]
-            offset += len(m)
-        self.seconds += time.perf_counter() - t0
+                inputs.append(ClearInput(i, world, on, s.stamps_ns, self.normals(s)))
+                targets.append(s)
+        cleared = clear_block(inputs, list(sweeps), ClearSpan(lo, hi, k0, a, z), self.traj, self.settings)
+        for s, (m, bits) in zip(targets, cleared, strict=True):
+            self.clear_bits(s)[m] = bits
+        if inputs:
+            self.seconds += time.perf_counter() - t0
+
+
+def placed(
+    xyz_m: np.ndarray[Any, Any], tag: np.ndarray[Any, Any] | None, stamps_ns: I64, T_cam0_lidar: F64,
+    traj: RigTrajectory, settings: PlaneSettings,
+) -> tuple[F64, I64]:  # fmt: skip
+    """A sweep's points in the world (NaN where filtered out or off every stretch) and their stretch (-1:
+    none), placed with `traj` at their own times."""
+    idx, _, cam0 = _kept_in_cam0(xyz_m, tag, T_cam0_lidar, settings.min_range_m)
+    stretch = np.full(len(stamps_ns), -1, np.int64)
+    stretch[idx] = traj.stretch_of(stamps_ns[idx])
+    on = stretch[idx] >= 0
+    world = np.full((len(stretch), 3), np.nan)
+    world[idx[on]] = traj.transform(rows(cam0, on), stamps_ns[idx[on]])
+    return world, stretch
+
+
+@dataclass(frozen=True)
+class ClearInput:
+    """One sweep as a block's free-space test takes it: its LiDAR (index in the topics' order), its points
+    `placed` in the world with their stretch, their stamps and their world normals (NaN: none yet)."""
+
+    lidar: int
+    world: F64
+    stretch: I64
+    stamps_ns: I64
+    normal_world: F16
+
+
+@dataclass(frozen=True)
+class ClearSpan:
+    """A block's free-space test in time: its points are those in [lo, hi], its slices those in [a, z],
+    bit 0 is slice k0 (`FreeSpaceSettings.first_slice`)."""
+
+    lo: int
+    hi: int
+    k0: int
+    a: int
+    z: int
+
+
+def clear_block(
+    inputs: Sequence[ClearInput], topics: Sequence[str], span: ClearSpan, traj: RigTrajectory,
+    settings: PlaneSettings,
+) -> list[tuple[I64, U64]]:  # fmt: skip
+    """Per input sweep, (its rows stamped in [lo, hi] and placed, their free-space bits), the block's points
+    tested against every slice in [a, z] of every LiDAR of `topics` (within each stretch)."""
+    fs = settings.free_space
+    assert fs is not None
+    S, n_topics = fs.slice_ns, len(topics)
+    pts, stamps, lidar, stretch, normal, rows_of = [], [], [], [], [], []
+    for c in inputs:
+        m = np.flatnonzero((c.stamps_ns >= span.a) & (c.stamps_ns <= span.z) & (c.stretch >= 0))
+        pts.append(rows(c.world, m))
+        normal.append(np.asarray(rows(c.normal_world, m), np.float64))
+        stamps.append(c.stamps_ns[m])
+        lidar.append(np.full(len(m), c.lidar, np.int64))
+        stretch.append(c.stretch[m])
+        rows_of.append(m)
+    if not pts:
+        return []
+    all_pts, all_st, all_stretch = np.concatenate(pts), np.concatenate(stamps), np.concatenate(stretch)
+    all_lidar, all_normal = np.concatenate(lidar), np.concatenate(normal)
+    slice_id = (all_st // S) * n_topics + all_lidar
+    tested = (all_st >= span.lo) & (all_st <= span.hi)
+    bits = np.zeros((len(all_st), fs.words(settings.block_ns)), np.uint64)
+    origin_cam0 = np.array([settings.T_cam0_lidar[t][:3, 3] for t in topics]).reshape(-1, 3)
+    for st in np.unique(all_stretch[tested]):
+        sel = np.flatnonzero(all_stretch == st)
+        sids = np.unique(slice_id[sel])
+        k, which = sids // n_topics, sids % n_topics
+        t_mid = k * S + S // 2
+        origins = traj.transform(origin_cam0[which], t_mid)
+        refs = [(int(sid), o, int(kk - span.k0)) for sid, o, kk in zip(sids, origins, k, strict=True)]
+        ray_origin = traj.transform(origin_cam0[all_lidar[sel]], all_st[sel])  # each ray's own time
+        bits[sel] = free_space_bits(
+            rows(all_pts, sel), slice_id[sel], refs, fs.n_bits(settings.block_ns), fs.ray_test,
+            tested[sel], ray_origin, rows(all_normal, sel),
+        )  # fmt: skip
+    out, offset = [], 0
+    for c, m in zip(inputs, rows_of, strict=True):
+        mine = (c.stamps_ns[m] >= span.lo) & (c.stamps_ns[m] <= span.hi)
+        out.append((m[mine], bits[offset : offset + len(m)][mine]))
+        offset += len(m)
+    return out

@@ -55,12 +55,15 @@ def _refilled(points: LidarPoints, arrays: list[Array]) -> LidarPoints:
     return LidarPoints(points.name, xyz, stamps, tag, normal, bits, refl)
 
 
-def take_arrays(job: StreamedJob) -> tuple[StreamedJob, tuple[Array, ...]]:
+def take_arrays(job: Any) -> tuple[Any, tuple[Array, ...]]:
     """The job without its two messages' bytes and its LiDAR windows' arrays, and those as arrays (the
     executor's shared slots, instead of pickling ~15 MB of points through the task pipe per dense sample).
 
     The light job keeps each window's arrays cut to no rows: their dtypes and columns, and which are None.
+    Another job (a dense-GT block's task) is left whole, with no arrays.
     """
+    if not isinstance(job, StreamedJob):
+        return job, ()
     per_lidar = [_lidar_arrays(p) for p in job.lidars]
     emptied = [_refilled(p, [a[:0] for a in own]) for p, own in zip(job.lidars, per_lidar, strict=True)]
     light = replace(

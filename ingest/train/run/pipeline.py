@@ -14,7 +14,11 @@ Recipe:
 3. Each worker decodes the sample's two images and runs
    `ingest.train.run.sample.process_sample` (clouds -> GT -> images -> files); a
    local process pool by default, or a Dask cluster. The rig's geometry and
-   the trajectory go to each worker once, not with every job.
+   the trajectory go to each worker once, not with every job. Dense GT's
+   blocks (planes and free space, once per 1 s of points) are tasks of the
+   same workers, which the stream pass hands out when they are due
+   (`ingest.train.run.block_jobs`); each sample's job needs the blocks its
+   window holds.
 Finished samples (their meta/<id>.json exists, every file they wrote is
 whole) are skipped on a rerun, damaged ones written again, and a frame that
 another sample of the folder holds (the same stamps and images: a recording
@@ -48,8 +52,9 @@ from concurrent.futures import ThreadPoolExecutor
 from contextlib import ExitStack, contextmanager
 from dataclasses import replace
 from functools import partial
-from itertools import chain, islice
+from itertools import chain
 from pathlib import Path
+from typing import Any
 
 from calibration.rectify import stereo_warnings
 from calibration.rig import Rig, read_rig, write_rig
@@ -65,14 +70,16 @@ from ingest.errors import DatasetError, MessageDecodeError, OdometryError, Outpu
 from ingest.runtime.executor import Executor, Handoff, share_cores
 from ingest.runtime.heap import retain_freed_memory
 from ingest.runtime.jit import compiling
+from ingest.runtime.kept import Release, Task
 from ingest.train.bad_messages import BadMessages
 from ingest.train.gt.align_check import (
     SampleAlignments,
     check_calibration,
     from_records,
 )
-from ingest.train.gt.block_planes import BlockPlanes, PlaneSettings
+from ingest.train.gt.block_planes import PlaneSettings
 from ingest.train.plausible import check_imu_rate, check_time_order
+from ingest.train.run.block_jobs import BlockReport, BlockTasks
 from ingest.train.run.describe import (
     check_existing,
     check_format,
@@ -162,9 +169,9 @@ def _warming_up(geometry: Geometry, cfg: IngestConfig) -> Iterator[Callable[[], 
     and yields `ready`, which waits for it, raises what it raised and
     returns the dense warm-up's seconds (None without one). The
     thread is joined on the way out whatever happens, so no worker forks
-    while it runs. The trajectory pass and the first job (the stream pass's
-    first blocks) call no parallel (renderer) kernel, so numba's thread pool
-    is the warm-up's alone. With Dask the workers build their own. `--gt
+    while it runs. The trajectory pass and the stream pass up to its first
+    sample call no parallel (renderer) kernel, so numba's thread pool is the
+    warm-up's alone. With Dask the workers build their own. `--gt
     auto` may still choose sparse GT; its dense warm-up is then a few seconds
     of CPU spent beside the passes.
     """
@@ -329,10 +336,10 @@ def refine_rig(
 
 
 def _block_planes(
-    rig: Rig, topics: Topics, the_plan: Plan, run: ResolvedRun, traj: RigTrajectory | None, busy: bool
-) -> BlockPlanes | None:
-    """Dense GT's plane fit and free-space test, once per point in the stream pass
-    (`ingest.train.gt.block_planes`); None: sparse."""
+    rig: Rig, topics: Topics, the_plan: Plan, run: ResolvedRun, traj: RigTrajectory | None
+) -> BlockTasks | None:
+    """Dense GT's plane fit and free-space test, once per point, as tasks of the executor that the stream
+    pass hands out (`ingest.train.run.block_jobs`); None: sparse."""
     if run.sample.method != "dense" or traj is None:
         return None
     dense = run.sample.dense
@@ -340,7 +347,7 @@ def _block_planes(
         {t: rig.lidar(name).T_cam0_lidar for t, name in topics.lidars.items()}, dense.plane_block_ns,
         dense.plane_neighbours, dense.plane_max_flatness, run.sample.min_range_m, run.free_space,
     )  # fmt: skip
-    return BlockPlanes(traj, {t: the_plan.spans[t] for t in topics.lidars}, settings, 1 if busy else None)
+    return BlockTasks(traj, {t: the_plan.spans[t] for t in topics.lidars}, settings)
 
 
 FIRST_FRAMES_TRIED = 10
@@ -436,7 +443,7 @@ def _run(
             if progress:
                 progress(done, summary.planned)
 
-        planes = _block_planes(rig, topics, the_plan, run, traj, busy)
+        planes = _block_planes(rig, topics, the_plan, run, traj)
         sids = [sample_id(first_id + k) for k in range(len(the_plan.upper_ns))]
         resume = resume_state(run.out, sids, planned_stamps(the_plan))
         summary.damaged = list(resume.damaged.values())
@@ -444,10 +451,11 @@ def _run(
         damaged_held = {h.sid: h.problem for held in resume.same_stamps.values() for h in held if h.problem}
         settings = sample_settings(cfg, geometry, [Path(p) for p in bag_paths])  # into every sample's meta
 
-        def jobs() -> Iterator[StreamedJob]:
-            """The jobs to run; resumed and skipped samples are counted here, in stream order."""
+        def jobs() -> Iterator[StreamedJob | Task[Any] | Release]:
+            """The jobs to run (samples, dense GT's blocks); resumed and skipped samples are counted here, in
+            stream order."""
             for item in stream_jobs(bags, topics, the_plan, run, first_id, bad, planes, resume, settings):
-                if isinstance(item, StreamedJob):
+                if isinstance(item, StreamedJob | Task | Release):
                     yield item
                     continue
                 if isinstance(item, AlreadyDone):
@@ -456,35 +464,59 @@ def _run(
                     summary.skipped[item.reason] = summary.skipped.get(item.reason, 0) + 1
                 tick()
 
-        # the first job (for dense GT: the first blocks' planes and free space) is made while the warm-up
-        # ends on the other core; the workers fork with the first submitted job, after the warm-up
+        # the first sample's job (and the blocks' tasks before it) is made while the warm-up ends on the
+        # other core; the workers fork with the first submitted job, after the warm-up
         queued = jobs()
-        head = list(islice(queued, 1))
+        head = _through_first_sample(queued)
         warm_up_s = ready()  # before the workers fork: they inherit what it built
         summary.dense_warm_up_s = warm_up_s if run.sample.method == "dense" else None
-        bound = handoff_bytes_bound(geometry, head[0], the_plan.rates, run.window_ns) if head else 0
+        first_job = next((s for s in map(_sample_of, head) if s is not None), None)
+        bound = handoff_bytes_bound(geometry, first_job, the_plan.rates, run.window_ns) if first_job else 0
         handoff = Handoff(take_arrays, give_arrays, bound)
         results = executor.run(
-            run_streamed, chain(head, queued), shared=Shared(geometry, traj), handoff=handoff
-        )
+            run_streamed, chain(head, queued), shared=Shared(geometry, traj), handoff=handoff,
+            keep_in=run.out,
+        )  # fmt: skip
+        blocks: list[BlockReport] = []
         try:
-            _collect(results, summary, bad, damaged_held, tick)
+            _collect(results, summary, bad, damaged_held, tick, blocks)
         finally:
             results.close()
             if planes is not None:
-                summary.dense_planes = (planes.blocks_fitted, planes.seconds)
+                summary.dense_planes = (sum(b.fitted for b in blocks), sum(b.seconds for b in blocks))
+
+
+def _sample_of(item: object) -> StreamedJob | None:
+    """The sample job `item` is or wraps (a `Task`), None for a block's task or a release."""
+    job = item.job if isinstance(item, Task) else item
+    return job if isinstance(job, StreamedJob) else None
+
+
+def _through_first_sample(queued: Iterator[StreamedJob | Task[Any] | Release]) -> list[Any]:
+    """The jobs of `queued` up to its first sample's (the blocks' tasks before it), taken from it."""
+    head: list[Any] = []
+    for item in queued:
+        head.append(item)
+        if _sample_of(item) is not None:
+            break
+    return head
 
 
 def _collect(
-    results: Iterable[SampleResult],
+    results: Iterable[SampleResult | BlockReport],
     summary: IngestSummary,
     bad: BadMessages,
     damaged_held: Mapping[str, str],
     tick: Callable[[], None],
+    blocks: list[BlockReport],
 ) -> None:
     """Count every finished sample into `summary` in job order (its undecodable images into `bad`); one
-    written under the id of a damaged sample (`damaged_held`: id -> its damage) records that damage."""
+    written under the id of a damaged sample (`damaged_held`: id -> its damage) records that damage. The
+    reports of dense GT's blocks go to `blocks`."""
     for result in results:
+        if isinstance(result, BlockReport):
+            blocks.append(result)
+            continue
         for topic, log_ns, why in result.undecodable:  # decoded in the worker, counted here
             bad.add(topic, log_ns, why)
         summary.add(result)

@@ -40,9 +40,11 @@ from ingest.dataset.identity import HeldFrame, Resume, frame_digest, resume_stat
 from ingest.dataset.layout import sample_id
 from ingest.errors import BagError, MessageDecodeError
 from ingest.rows import rows
+from ingest.runtime.kept import Release, Task
 from ingest.train.bad_messages import BadMessages
 from ingest.train.gt.block_planes import NORMAL_DTYPE, BlockPlanes
 from ingest.train.repeats import FirstCopies
+from ingest.train.run.block_jobs import BlockTasks, ClearJob, FitJob, WindowBlocks, fill_window, run_block
 from ingest.train.run.lidar_rate import LidarRates
 from ingest.train.run.plan import Plan
 from ingest.train.run.sample import process_sample
@@ -98,6 +100,7 @@ class StreamedJob:
     lower_shift_ns: int = 0
     same_stamps: tuple[HeldFrame, ...] = ()  # samples of the folder with this frame's stamps (other ids)
     settings: dict[str, Any] = field(default_factory=dict)  # the dataset's (`describe.sample_settings`)
+    blocks: WindowBlocks | None = None  # dense GT on the workers: the normals and bits come from the blocks
 
     def sample_job(self, shared: Shared, upper_bgr: Array, lower_bgr: Array) -> SampleJob:
         """The `process_sample` job of this sample, with its decoded images."""
@@ -142,8 +145,23 @@ def decode_images(job: StreamedJob, shared: Shared) -> tuple[list[Array], list[t
     return images, errors
 
 
-def run_streamed(shared: Shared, job: StreamedJob) -> SampleResult:
-    """Decode the sample's two camera messages, then `process_sample` (the executor's job function).
+def run_streamed(
+    shared: Shared, job: StreamedJob | FitJob | ClearJob, values: dict[str, Any] | None = None
+) -> Any:
+    """The executor's job function: a dense-GT block's task (`run_block`, `values`: the blocks it needs),
+    or a sample (`run_sample`; `values`: the blocks its window's normals and bits come from)."""
+    if isinstance(job, FitJob | ClearJob):
+        assert shared.trajectory is not None  # blocks run for dense GT only
+        return run_block(shared.trajectory, job, values or {})
+    if job.blocks is not None:
+        filled = zip(job.lidars, job.blocks.lidars, strict=True)
+        lidars = tuple(fill_window(lp, parts, job.blocks.words, values or {}) for lp, parts in filled)
+        job = replace(job, lidars=lidars, blocks=None)
+    return run_sample(shared, job)
+
+
+def run_sample(shared: Shared, job: StreamedJob) -> SampleResult:
+    """Decode the sample's two camera messages, then `process_sample`.
 
     A message that does not decode skips the sample (`UNDECODABLE_IMAGE`) and
     is named in the result for the main process to count. A frame that a
@@ -171,14 +189,24 @@ def run_streamed(shared: Shared, job: StreamedJob) -> SampleResult:
 # ---------------------------------------------------------------- the stream pass
 
 
+def window_parts(sweeps: list[Sweep], t_c: int, w: int) -> list[tuple[Sweep, slice | I64]]:
+    """The sweeps overlapping +-`w` around `t_c` and the rows of each within it, in sweep order: a sweep
+    inside the window is taken whole (a slice), only the (at most two) at its ends are cut."""
+    lo, hi = t_c - w, t_c + w
+    near = [s for s in sweeps if s.span_ns[1] >= lo and s.span_ns[0] <= hi]
+    return [(s, slice(None) if lo <= s.span_ns[0] and s.span_ns[1] <= hi else
+             np.flatnonzero((s.stamps_ns >= lo) & (s.stamps_ns <= hi))) for s in near]  # fmt: skip
+
+
 def lidar_window(sweeps: list[Sweep], name: str, t_c: int, w: int, planes: BlockPlanes | None) -> LidarPoints:
     """The points of `sweeps` stamped within +-`w` of `t_c` as LiDAR `name`'s window, in sweep order
     (with their world normals and free-space bits when `planes` is given)."""
-    lo, hi = t_c - w, t_c + w
-    near = [s for s in sweeps if s.span_ns[1] >= lo and s.span_ns[0] <= hi]
-    # a sweep inside the window is taken whole; only the (at most two) at its ends are cut
-    parts = [(s, slice(None) if lo <= s.span_ns[0] and s.span_ns[1] <= hi else
-              np.flatnonzero((s.stamps_ns >= lo) & (s.stamps_ns <= hi))) for s in near]  # fmt: skip
+    return _window_points(window_parts(sweeps, t_c, w), name, planes)
+
+
+def _window_points(
+    parts: list[tuple[Sweep, slice | I64]], name: str, planes: BlockPlanes | None
+) -> LidarPoints:
     xyz = np.concatenate([_rows(s.xyz_m, m) for s, m in parts]) if parts else np.zeros((0, 3), np.float32)
     st = np.concatenate([_rows(s.stamps_ns, m) for s, m in parts]) if parts else np.zeros(0, np.int64)
     tags = [_rows(s.tag, m) for s, m in parts if s.tag is not None]
@@ -282,8 +310,9 @@ class NotRun:
     reason: str
 
 
-StreamEvent = StreamedJob | AlreadyDone | NotRun
-"""What the stream pass says of each planned sample, in plan order."""
+StreamEvent = StreamedJob | AlreadyDone | NotRun | Task[Any] | Release
+"""What the stream pass says of each planned sample, in plan order; with `BlockTasks`, a sample's job is a
+`Task` that needs its blocks, and the blocks' tasks and releases come between them."""
 
 
 def stream_jobs(
@@ -295,7 +324,10 @@ def stream_jobs(
 
     With `planes` (dense GT) every job's points carry their world normals (and
     free-space bits), and a job waits until the blocks its window overlaps
-    are done. `resume` is what the output folder holds of the planned samples
+    are done; with `BlockTasks` the blocks are tasks for the workers, yielded
+    as soon as they are due, and each job a `Task` that needs them (its
+    normals and bits filled in on the worker, `run_streamed`). `resume` is
+    what the output folder holds of the planned samples
     (`resume_state` of it when not given): a whole one is done, a damaged
     one goes again, and a job carries the folder's samples with its stamps.
     `settings` go into every sample's meta (`describe.sample_settings`).
@@ -357,9 +389,10 @@ class _Stream:
 
     def released(self) -> Iterator[StreamEvent]:
         """The next samples in plan order that are done already or have all they need, each followed by
-        forgetting the sweeps and readings no later sample can use."""
+        forgetting the sweeps and readings no later sample can use (and the block tasks due)."""
         while self.next_k < len(self.sids) and (self.sids[self.next_k] in self.resume.done or self._ready()):
             k = self.next_k
+            yield from self._block_tasks()
             if self.sids[k] in self.resume.done:
                 self.frames.pop(k, None)
                 yield AlreadyDone(self.sids[k])
@@ -368,6 +401,12 @@ class _Stream:
             self.next_k += 1
             if self.next_k < len(self.sids):
                 self._forget(int(self.plan.upper_exposure_ns[self.next_k]) - self.w)
+        yield from self._block_tasks()
+
+    def _block_tasks(self) -> Iterator[Task[Any] | Release]:
+        """The block tasks and releases due (`BlockTasks`), none for blocks done here."""
+        if isinstance(self.planes, BlockTasks):
+            yield from self.planes.take()
 
     def rest(self) -> Iterator[StreamEvent]:
         """After the bag's end: whatever is complete still goes, the rest is `NotRun`."""
@@ -380,6 +419,7 @@ class _Stream:
                 if self.planes is not None:
                     tc = int(self.plan.upper_exposure_ns[k])
                     self.planes.complete(self.sweeps, tc - self.w, tc + self.w, final=True)
+                    yield from self._block_tasks()
                 yield self._job(k)
 
     def _ready(self) -> bool:
@@ -406,12 +446,12 @@ class _Stream:
             self.planes.forget(self.sweeps)
         _forget_readings(self.imu_t, self.imu_g, horizon - IMU_MARGIN_NS)
 
-    def _job(self, k: int) -> StreamedJob:
+    def _job(self, k: int) -> StreamedJob | Task[StreamedJob]:
         the_plan, topics, run, w = self.plan, self.topics, self.run, self.w
         tc = int(the_plan.upper_exposure_ns[k])
-        lidars = tuple(
-            lidar_window(self.sweeps[t], name, tc, w, self.planes) for t, name in topics.lidars.items()
-        )
+        parts = [(window_parts(self.sweeps[t], tc, w), name) for t, name in topics.lidars.items()]
+        tasks = self.planes if isinstance(self.planes, BlockTasks) else None
+        lidars = tuple(_window_points(p, name, None if tasks else self.planes) for p, name in parts)
         thin = _thin_lidars(the_plan.rates, topics, lidars, tc, w)
         thin_sparse: tuple[str, ...] = ()
         if run.sample.gap_fallback:
@@ -421,8 +461,14 @@ class _Stream:
         imu = _imu_window(self.imu_t, self.imu_g, tc, w, topics.R_cam0_imu)
         f = self.frames.pop(k)
         sid = self.sids[k]
-        return StreamedJob(
+        blocks, needs = None, set()
+        if tasks is not None:
+            windows = [tasks.window(p) for p, _ in parts]
+            blocks = WindowBlocks(tuple(refs for refs, _ in windows), tasks.words)
+            needs = set().union(*(keys for _, keys in windows))
+        job = StreamedJob(
             run.out, sid, self.source, self.bags.label, int(the_plan.upper_ns[k]), int(the_plan.lower_ns[k]),
             f["upper"], f["lower"], lidars, imu, run.sample, thin, thin_sparse, the_plan.upper_shift_ns,
-            the_plan.lower_shift_ns, self.resume.same_stamps.get(sid, ()), dict(self.settings),
+            the_plan.lower_shift_ns, self.resume.same_stamps.get(sid, ()), dict(self.settings), blocks,
         )  # fmt: skip
+        return job if tasks is None else Task(job, needs=tuple(sorted(needs)))

@@ -45,7 +45,7 @@ class IngestSummary:
     seconds: float = 0.0
     dense_warm_up_s: float | None = None  # dense GT's kernels and pixel rays, before the samples
     compile_s: float = 0.0  # numba compiling in this process (`ingest.runtime.jit`): a checkout's first run
-    dense_planes: tuple[int, float] | None = None  # dense GT: (blocks fitted, seconds fitting and testing)
+    dense_planes: tuple[int, float] | None = None  # dense GT: (blocks fitted, workers' seconds on them)
     out: Path | None = None
     method: str = "sparse"
     decision: str = ""
