@@ -66,7 +66,7 @@ from ingest.dataset.layout import (
     sample_id,
 )
 from ingest.dataset.lock import hold_folder
-from ingest.errors import DatasetError, MessageDecodeError, OdometryError, OutputError, SettingError
+from ingest.errors import DatasetError, MessageDecodeError, OutputError, SettingError
 from ingest.runtime.executor import Executor, Handoff, share_cores
 from ingest.runtime.heap import retain_freed_memory
 from ingest.runtime.jit import compiling
@@ -88,10 +88,11 @@ from ingest.train.run.describe import (
     sample_settings,
     write_dataset_yaml,
 )
+from ingest.train.run.gt_method import dense_reach_ns, gt_method
 from ingest.train.run.handoff import give_arrays, handoff_bytes_bound, take_arrays
 from ingest.train.run.plan import LOST_REASON, Plan, Survey, plan, survey
 from ingest.train.run.refine import Refinement, refine
-from ingest.train.run.resolved import ResolvedRun, resolve_run
+from ingest.train.run.resolved import ResolvedRun
 from ingest.train.run.sample_job import Geometry, SampleParams, SampleResult
 from ingest.train.run.settings import IngestConfig, Topics, resolve_topics
 from ingest.train.run.stream import (
@@ -105,59 +106,7 @@ from ingest.train.run.stream import (
 )
 from ingest.train.run.summary import IngestSummary
 from ingest.train.sync import unsynced_line
-from ingest.train.trajectory.estimate import STATIC_WINDOW_NS, check_gyro, choose_method, run_trajectory_pass
-from ingest.train.trajectory.imu_check import no_imu_line
 from ingest.train.trajectory.rig_trajectory import RigTrajectory
-
-
-def _gt_method(
-    bags: BagSet, topics: Topics, rig: Rig, cfg: IngestConfig, summary: IngestSummary, bad: BadMessages,
-    trajectory_span_ns: tuple[int, int], busy: bool, progress: Progress | None = None,
-) -> tuple[ResolvedRun, RigTrajectory | None]:  # fmt: skip
-    """Run the trajectory pass when --gt dense/auto needs it (`progress`: its sweeps), decide the method:
-    the run as resolved (`resolve_run`; `busy`: every core runs a worker) and the trajectory of a dense run.
-
-    Dense GT streams every sweep within its window (`--gt-window-ms`); the
-    trajectory goes to `trajectories/<first bag>.tum` in the output and
-    spans `trajectory_span_ns` (`_dense_reach_ns` around the upper camera's stamps).
-    """
-    traj, tsum, failure = None, None, ""
-    if cfg.gt in ("dense", "auto"):
-        out_file = cfg.out / "trajectories" / f"{Path(bags.paths[0]).name}.tum"
-        try:
-            traj, tsum = run_trajectory_pass(
-                bags,
-                topics.lidars,
-                (topics.imu, topics.R_cam0_imu),
-                rig,
-                cfg.sample.min_range_m,
-                out_file,
-                bad=bad,
-                span_ns=trajectory_span_ns,
-                progress=progress,
-                imu_name=topics.imu_name,
-            )
-        except OdometryError as err:
-            if cfg.gt == "dense":
-                why = f"{bags.label}: {err}; dense GT needs a trajectory (--gt sparse does not)"
-                raise OdometryError(why) from err
-            failure = str(err)
-    method, decision = choose_method(cfg.gt, tsum, failure)
-    if tsum is not None:
-        summary.imu_check = tsum.imu_check
-    else:  # sparse GT: the IMU against the odometry of a few seconds of the recording
-        imu = (topics.imu, topics.R_cam0_imu)
-        summary.imu_check = check_gyro(
-            bags, topics.lidars, imu, topics.imu_name, rig, cfg.sample.min_range_m, bad
-        )
-    if topics.imu is None:
-        summary.warnings.append(no_imu_line(cfg.rig))
-    if summary.imu_check is not None and summary.imu_check.line():
-        summary.warnings.append(str(summary.imu_check.line()))
-    static = tsum is not None and tsum.static
-    run = resolve_run(cfg, method, decision, static, busy)
-    summary.method, summary.decision, summary.trajectory = method, run.sample.decision, tsum
-    return run, traj if method == "dense" else None
 
 
 @contextmanager
@@ -190,16 +139,6 @@ def _warming_up(geometry: Geometry, cfg: IngestConfig) -> Iterator[Callable[[], 
         return
     with ThreadPoolExecutor(1, thread_name_prefix="warm-up") as pool:
         yield pool.submit(warm).result
-
-
-def _dense_reach_ns(cfg: IngestConfig) -> int:
-    """How far around a frame dense GT may read sweeps (0 for sparse GT): its window, or the wider one
-    `--gt auto` may choose for a static rig."""
-    if cfg.gt == "sparse":
-        return 0
-    if cfg.gt == "auto" and cfg.widen_static:
-        return max(cfg.sample.dense.window_ns, STATIC_WINDOW_NS)
-    return cfg.sample.dense.window_ns
 
 
 @contextmanager
@@ -419,18 +358,16 @@ def _run(
     keeps the output folder locked (`hold_folder`) from before its first write on."""
     with open_bags(bag_paths, salvage=cfg.salvage) as bags:
         topics = resolve_topics(rig, bags.topics(), ", ".join(str(p) for p in bag_paths))
-        reach = _dense_reach_ns(cfg)
+        reach = dense_reach_ns(cfg)
         read = partial(passes, PASS_READ) if passes else None
         surveyed = _checked_survey(bags, topics, rig, max(cfg.lidar_window_ns, reach), bad, read)
         summary.imu_gaps_ms = [float(g) / 1e6 for g in surveyed.imu_gaps_ns]
         summary.warnings += surveyed.warnings
         summary.stale_temporaries = held.enter_context(_held_output(cfg.out))
-        first, last = surveyed.span_ns
         ready = held.enter_context(_warming_up(geometry, cfg))  # beside the trajectory pass
         odometry = partial(passes, PASS_TRAJECTORY) if passes else None
-        span = (first - reach, last + reach)
-        busy = executor.every_core_busy
-        run, traj = _gt_method(bags, topics, rig, cfg, summary, bad, span, busy, odometry)
+        span = (surveyed.span_ns[0] - reach, surveyed.span_ns[1] + reach)
+        run, traj = gt_method(bags, topics, rig, cfg, summary, bad, span, executor.every_core_busy, odometry)
         the_plan = plan(bags, topics, run, bad, surveyed)
         _count_plan(summary, the_plan, bags, bad)
         prepare_dirs(run.out, run.sample.exr)
