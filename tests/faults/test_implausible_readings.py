@@ -321,6 +321,20 @@ def test_a_lidar_whose_every_point_is_dropped_says_why(
     assert not out.exists()
 
 
+def _ingest_top_changed(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], change: Callable[[Any], Any], src: Path = INDOOR
+) -> tuple[Path, int, list[str]]:
+    """(bag, exit code, stderr lines) of `sensorbox ingest` on `src` with lidar_top's points rewritten by
+    `change` (a CustomMsg points array -> the points to encode)."""
+
+    def bad(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        return [(topic, _points(change)(raw) if topic == LIDAR_TOP else raw)]
+
+    bag, rig = rewrite(tmp_path / "changed.mcap", bad, src=src)
+    code, _, err = sensorbox(capsys, "ingest", str(bag), "--rig", str(rig), "--out", str(tmp_path / "ds"))
+    return bag, code, err
+
+
 def test_a_lidar_whose_every_point_time_is_0xffffffff_is_said_as_such(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -332,12 +346,8 @@ def test_a_lidar_whose_every_point_time_is_0xffffffff_is_said_as_such(
         pts["offset_time"][:] = 0xFFFFFFFF
         return pts
 
-    def bad(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
-        return [(topic, _points(all_max)(raw) if topic == LIDAR_TOP else raw)]
-
-    bag, rig = rewrite(tmp_path / "late.mcap", bad, src=INDOOR)
+    bag, code, err = _ingest_top_changed(tmp_path, capsys, all_max)
     n = sum(len(decode_custom_msg(m).points) for m in _messages(INDOOR, LIDAR_TOP))
-    code, _, err = sensorbox(capsys, "ingest", str(bag), "--rig", str(rig), "--out", str(tmp_path / "ds"))
     assert (code, err) == (
         2,
         [
@@ -358,11 +368,7 @@ def test_livox_point_times_in_microseconds_are_refused_naming_the_unit(
         pts["offset_time"] //= 1000
         return pts
 
-    def bad(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
-        return [(topic, _points(micro)(raw) if topic == LIDAR_TOP else raw)]
-
-    bag, rig = rewrite(tmp_path / "micro.mcap", bad, src=WALK)
-    code, _, err = sensorbox(capsys, "ingest", str(bag), "--rig", str(rig), "--out", str(tmp_path / "ds"))
+    bag, code, err = _ingest_top_changed(tmp_path, capsys, micro, src=WALK)
     assert code == 2 and len(err) == 1, err
     found = re.fullmatch(
         rf"error: {re.escape(str(bag))}: {LIDAR_TOP} \(the rig's lidar lidar_top\): each sweep's point times span "
@@ -386,11 +392,7 @@ def test_livox_coordinates_in_centimetres_are_refused_naming_the_unit(
             pts[axis] *= 100.0
         return pts
 
-    def bad(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
-        return [(topic, _points(centimetres)(raw) if topic == LIDAR_TOP else raw)]
-
-    bag, rig = rewrite(tmp_path / "cm.mcap", bad, src=INDOOR)
-    code, _, err = sensorbox(capsys, "ingest", str(bag), "--rig", str(rig), "--out", str(tmp_path / "ds"))
+    bag, code, err = _ingest_top_changed(tmp_path, capsys, centimetres)
     assert code == 2 and len(err) == 1, err
     found = re.fullmatch(
         rf"error: {re.escape(str(bag))}: {LIDAR_TOP} \(the rig's lidar lidar_top\): its points lie ([\d,]+) m away "
