@@ -46,8 +46,9 @@ AXES = re.compile(
     r"^imu_top \(/livox/imu_192_168_1_12\): its gyro disagrees with the LiDARs' motion by (\d+) % of the turn "
     r"\(median over \d+ intervals of the trajectory; a right IMU: under 15 %\), and neither a shift of its "
     r"stamps within \+-1000 ms nor a constant bias explains it: its axes do not match the rig's "
-    r"imus\.imu_top\.T_cam0_imu \(a wrong rotation, an axis of the wrong sign, or rates not in rad/s\); check "
-    r"it, or remove the IMU from the rig to ingest without it$"
+    r"imus\.imu_top\.T_cam0_imu \(a wrong rotation, an axis of the wrong sign, or rates not in rad/s\), or the "
+    r"LiDARs' points are misplaced \(a LiDAR's pose or clock\); check both, or remove the IMU from the rig to "
+    r"ingest without it$"
 )
 BIAS = re.compile(
     r"^imu_top \(/livox/imu_192_168_1_12\): its gyro disagrees with the LiDARs' motion by (\d+) % of the turn "

@@ -11,7 +11,7 @@ LiDAR has delivered points past its end.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -133,8 +133,15 @@ def trajectory_pass(
     return odo.result()
 
 
-def judged(agreement: GyroAgreement) -> GyroAgreement:
-    """`agreement`, or a CalibrationError with its line where the IMU disagrees too far to ingest with."""
+def judged(agreement: GyroAgreement, bad: BadMessages | None) -> GyroAgreement:
+    """`agreement`, or a CalibrationError with its line where the IMU disagrees too far to ingest with.
+
+    Where a LiDAR's sweeps carried no point times (`bad`'s untimed sweeps:
+    one warning line of their own) the odometry's knots are misplaced by the
+    rig's motion within each sweep; the agreement is recorded, not judged.
+    """
+    if bad is not None and bad.dropped.untimed:
+        return replace(agreement, lidars_timed=False)
     if agreement.refused:
         raise CalibrationError(str(agreement.line()))
     return agreement
@@ -171,7 +178,7 @@ def check_gyro(
         )
     except OdometryError:
         return None
-    return judged(gyro_agreement(traj, gyro, imu_name, imu[0]))
+    return judged(gyro_agreement(traj, gyro, imu_name, imu[0]), bad)
 
 
 def summarize(
@@ -233,7 +240,7 @@ def run_trajectory_pass(
         )
     agreement = None
     if gyro is not None and imu[0] is not None:
-        agreement = judged(gyro_agreement(traj, gyro, imu_name or imu[0], imu[0]))
+        agreement = judged(gyro_agreement(traj, gyro, imu_name or imu[0], imu[0]), bad)
     try:
         out_file.parent.mkdir(parents=True, exist_ok=True)
     except OSError as err:

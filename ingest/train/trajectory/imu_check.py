@@ -78,6 +78,7 @@ class GyroAgreement:
     mismatch_at_lag: float
     bias_rad_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
     mismatch_without_bias: float = float("inf")
+    lidars_timed: bool = True  # False: a LiDAR's sweeps carry no point times, so the knots are not judged by
 
     @property
     def observable(self) -> bool:
@@ -87,7 +88,7 @@ class GyroAgreement:
     def disagrees(self) -> bool:
         """Beyond `WARN_MISMATCH` of the turn and the odometry's noise (`MIN_DISAGREEMENT_DEG`)."""
         noise = self.mismatch * self.median_turn_deg <= MIN_DISAGREEMENT_DEG
-        return self.observable and self.mismatch > WARN_MISMATCH and not noise
+        return self.observable and self.lidars_timed and self.mismatch > WARN_MISMATCH and not noise
 
     @property
     def refused(self) -> bool:
@@ -130,8 +131,8 @@ class GyroAgreement:
         return (
             f"{head}, and neither a shift of its stamps within +-{MAX_LAG_MS} ms nor a constant bias "
             f"explains it: its axes do not match the rig's imus.{self.imu}.T_cam0_imu (a wrong rotation, "
-            "an axis of the wrong sign, or rates not in rad/s); check it, or remove the IMU from the rig "
-            "to ingest without it"
+            "an axis of the wrong sign, or rates not in rad/s), or the LiDARs' points are misplaced (a "
+            "LiDAR's pose or clock); check both, or remove the IMU from the rig to ingest without it"
         )
 
 
