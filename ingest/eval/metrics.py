@@ -37,6 +37,10 @@ from calibration.types import F64, Bool
 from ingest.raster.edges import edge_band, valid_gt
 
 BAD_THRESHOLDS_PX = (1.0, 2.0, 3.0)
+BAD_TOLERANCE_PX = 1e-4
+"""An error counts as over a bad-k threshold only beyond it by this much (px): a prediction exactly k px off,
+stored as float32 (1 part in 1e7 at a disparity of 100 px) or read against the disparity PNG's 1/256 px
+steps, is not bad-k for the rounding of its last bits. Far below any disparity a method resolves."""
 DELTA_BASE = 1.25
 HIST_BINS_PER_OCTAVE = 128
 HIST_MIN_EXP = -14  # errors below 2**-14 px (6e-5 px) go into the zero bin
@@ -163,7 +167,7 @@ class StereoAccumulator(_Pooling):
         n_gt, p, g = _scored(pred_px, gt_px, mask, pred_min_exclusive=False)
         err = np.abs(p - g)
         n = len(err)
-        bad = np.array([np.count_nonzero(err > t) for t in BAD_THRESHOLDS_PX], np.int64)
+        bad = np.array([np.count_nonzero(err > t + BAD_TOLERANCE_PX) for t in BAD_THRESHOLDS_PX], np.int64)
         total = float(err.sum())
         self.n_gt += n_gt
         self.n += n

@@ -35,6 +35,18 @@ def test_stereo_hand_example() -> None:
     assert (m.bad1, m.bad2, m.bad3) == (0.5, 0.5, 0.0)  # bad-k is "> k": an error of exactly 3 is not bad-3
 
 
+def test_a_prediction_exactly_k_px_off_in_float32_is_not_bad_k() -> None:
+    """Sweep 6: GT + 1.00 px stored as float32 scored bad-1 4.81 % (errors came out as 1.0000000185)."""
+    gt = np.linspace(0.3, 300.7, 4096).astype(np.float32).reshape(64, 64)
+    for k in (1.0, 2.0, 3.0):
+        pred = (gt.astype(np.float64) + k).astype(np.float32)
+        assert (pred.astype(np.float64) - gt > k).any()  # float32 rounding lands beyond k on some
+        m = stereo_metrics(pred, gt)
+        assert m.epe_px == pytest.approx(k, abs=1e-4)
+        assert [m.bad1, m.bad2, m.bad3] == [1.0 if t < k else 0.0 for t in (1.0, 2.0, 3.0)]
+    assert stereo_metrics((gt.astype(np.float64) + 1.001).astype(np.float32), gt).bad1 == 1.0
+
+
 def test_stereo_mask_restricts_the_pixels() -> None:
     gt = np.array([[1.0, 2.0, 3.0, 0.0], [4.0, 5.0, NAN, 6.0]], np.float32)
     pred = np.array([[1.5, 2.0, 6.0, 9.0], [6.5, NAN, 3.0, -1.0]], np.float32)
