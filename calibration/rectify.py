@@ -76,6 +76,9 @@ def rectify_stereo(T_cam1_cam0: F64, orientation: str = "vertical") -> StereoRec
 
 MIN_BASELINE_M = 1e-3
 MAX_PLAUSIBLE_BASELINE_M = 2.0  # a handheld rig; more is a camchain in millimetres, most likely
+MAX_BASELINE_TILT_DEG = 45.0
+"""The SensorBox's cameras are stacked: a lower camera whose centre lies further than this from the upper
+camera's down axis (y) sits beside it, which is a camchain of another rig or a transposed T_cn_cnm1."""
 
 
 def _lower_in_upper(rig: Rig) -> tuple[F64, str, str]:
@@ -102,7 +105,8 @@ def stereo_warnings(rig: Rig) -> list[str]:
 
     The rectified images point their "up" from the lower camera to the upper:
     a lower camera above the upper one in the upper's frame (y down) turns the
-    dataset upside down (roles swapped?). A baseline over 2 m is most likely
+    dataset upside down (roles swapped?); one beside it (`MAX_BASELINE_TILT_DEG`) is
+    a camchain of another rig. A baseline over 2 m is most likely
     a camchain in millimetres (Kalibr writes metres).
     """
     try:
@@ -116,11 +120,19 @@ def stereo_warnings(rig: Rig) -> list[str]:
             "(ingest refuses it)"
         ]
     out = []
-    if b[1] <= 0.0:
+    centre = f"its centre at [{b[0]:.4f}, {b[1]:.4f}, {b[2]:.4f}] m in {up}"
+    tilt_deg = float(np.degrees(np.arccos(np.clip(b[1] / np.linalg.norm(b), -1.0, 1.0))))
+    if MAX_BASELINE_TILT_DEG < tilt_deg < 180.0 - MAX_BASELINE_TILT_DEG:
         out.append(
-            f"{where}: the lower camera {low} is not below the upper camera {up} (its centre at "
-            f"[{b[0]:.4f}, {b[1]:.4f}, {b[2]:.4f}] m in {up}, whose y points down): rectified images and GT "
-            "will be upside down unless both cameras are mounted upside down; are the roles swapped?"
+            f"{where}: the lower camera {low} is beside the upper camera {up}, not below it ({centre}, "
+            f"{tilt_deg:.0f} deg from {up}'s y axis, which points down): the SensorBox's cameras are "
+            f"stacked; check {low}'s T_cn_cnm1 in the camchain"
+        )
+    elif b[1] <= 0.0:
+        out.append(
+            f"{where}: the lower camera {low} is not below the upper camera {up} ({centre}, whose y points "
+            "down): rectified images and GT will be upside down unless both cameras are mounted upside "
+            "down; are the roles swapped?"
         )
     if np.linalg.norm(b) > MAX_PLAUSIBLE_BASELINE_M:
         out.append(

@@ -2,6 +2,7 @@
 
 import json
 import math
+import re
 import shutil
 from pathlib import Path
 
@@ -275,6 +276,27 @@ def _rig_with_chain(tmp_path, scale: float):
     chain["cam1"]["T_cn_cnm1"] = T.tolist()
     (tmp_path / "sensorbox-camchain.yaml").write_text(yaml.safe_dump(chain))
     return path
+
+
+def test_a_lower_camera_beside_the_upper_one_is_named(tmp_path):
+    """Sweep 6: a camchain whose baseline runs along x passed `calib check` and ingest without a word; the
+    disparity GT was 2.8 px off the truth (median)."""
+    from calibration.rectify import stereo_warnings
+
+    path = _rig_with(tmp_path)
+    chain = yaml.safe_load((tmp_path / "sensorbox-camchain.yaml").read_text())
+    T = np.array(chain["cam1"]["T_cn_cnm1"], float)
+    T[:3, 3] = [-np.linalg.norm(T[:3, 3]), 0.0, 0.0]  # the same length, along x
+    chain["cam1"]["T_cn_cnm1"] = T.tolist()
+    (tmp_path / "sensorbox-camchain.yaml").write_text(yaml.safe_dump(chain))
+    (line,) = stereo_warnings(read_rig(path))
+    found = re.fullmatch(
+        r".*rig\.yaml: the lower camera cam1 is beside the upper camera cam0, not below it \(its centre at "
+        r"\[0\.1\d{3}, -?0\.0\d{3}, -?0\.0\d{3}\] m in cam0, (\d+) deg from cam0's y axis, which points down\): "
+        r"the SensorBox's cameras are stacked; check cam1's T_cn_cnm1 in the camchain",
+        line,
+    )
+    assert found and 80 <= int(found.group(1)) <= 100, line
 
 
 def test_stereo_layout_warnings_and_a_zero_baseline(tmp_path):
