@@ -13,6 +13,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import pytest
 
@@ -24,7 +25,8 @@ from ingest.train.plausible import NOISE_TAG_BITS
 from ingest.train.run.pipeline import ingest
 from ingest.train.run.sample_job import Geometry
 from ingest.train.run.settings import IngestConfig
-from tests.faults.bags import LIDAR_BOTTOM, LIDAR_TOP, rewrite
+from sensorbox.sim.truth import truth_dir
+from tests.faults.bags import INDOOR, LIDAR_BOTTOM, LIDAR_TOP, rewrite
 
 FAST = {"workers": 1, "every": 3, "height_full": 64}
 
@@ -110,3 +112,20 @@ def test_points_outside_the_imus_span_are_counted_and_the_counts_add_up(tmp_path
     for p in points:
         assert p.total == p.zero + p.non_finite + p.too_close + p.noise_tag + p.off_imu + p.kept
     assert sum(p.off_imu > 0 for p in points) >= 1
+
+
+def test_samples_with_depth_but_no_disparity_gt_are_one_warning(tmp_path: Path) -> None:
+    """Sweep 6: at `--height-full 64` every sample's disparity PNG held no valid pixel, without a word (96
+    rows keep some, 128 thousands)."""
+    rig = truth_dir(INDOOR) / "rig.yaml"
+    coarse = ingest([INDOOR], IngestConfig(rig=rig, out=tmp_path / "64", gt="sparse", **FAST))  # type: ignore[arg-type]
+    disp = sorted((tmp_path / "64" / "disp_equirect").glob("*.png"))
+    assert coarse.written == len(disp) > 0
+    assert all(not np.asarray(cv2.imread(str(p), cv2.IMREAD_UNCHANGED)).any() for p in disp)
+    assert [w for w in coarse.warnings if "disparity" in w] == [
+        f"{coarse.written} of {coarse.written} samples written hold depth GT but no disparity GT pixel: the "
+        "equirect pair is too coarse for the baseline's disparity (more --height-full rows keep it: 128 and up)"
+    ]
+    finer = {**FAST, "height_full": 128}
+    fine = ingest([INDOOR], IngestConfig(rig=rig, out=tmp_path / "128", gt="sparse", **finer))  # type: ignore[arg-type]
+    assert fine.without_disparity == 0 and not any("disparity" in w for w in fine.warnings)

@@ -24,7 +24,7 @@ from sensorbox.live.bagwriter import BagWriter
 from sensorbox.sim.truth import truth_dir
 from tests.faults.bags import INDOOR, LIDAR_TOP, LOWER, UPPER, rewrite
 
-FAST = {"workers": 1, "every": 3, "height_full": 64}
+FAST = {"workers": 1, "every": 3, "height_full": 96}  # 96 rows keep disparity GT
 IMU = "/livox/imu_192_168_1_12"
 
 

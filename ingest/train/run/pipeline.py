@@ -232,8 +232,9 @@ def ingest(
         if summary.calibration is not None:
             record_calibration(cfg.out, [Path(p) for p in bag_paths], summary.calibration.as_yaml())
             summary.warnings += summary.calibration.warnings(cfg.rig, refined=cfg.refine)
-        if summary.without_gt_line():
-            summary.warnings.append(summary.without_gt_line())
+        summary.warnings += [
+            line for line in (summary.without_gt_line(), summary.without_disparity_line()) if line
+        ]
     summary.seconds = time.perf_counter() - t_start
     summary.compile_s = compile_s[0]
     return summary

@@ -60,6 +60,7 @@ class IngestSummary:
     stale_temporaries: int = 0  # left in the output by a killed run, removed (`ingest.dataset.lock`)
     without_gt: int = 0  # samples written with no GT pixel in their depth PNG
     without_gt_points: dict[str, int] = field(default_factory=dict)  # their windows' points, by filter
+    without_disparity: int = 0  # samples written with depth GT but no disparity GT pixel
 
     def without_gt_line(self) -> str:
         """One warning line when written samples hold no GT pixel, with their points by filter ('' if none).
@@ -77,6 +78,18 @@ class IngestSummary:
             f"{self.without_gt} of {self.written} samples written hold no ground truth pixel; their windows' "
             f"LiDAR points: {counts.get('total', 0):,}{f' ({reasons})' if reasons else ''}"
             + (f"; {over:,} GT pixels {OVER_UINT16}" if over else "")
+        )
+
+    def without_disparity_line(self) -> str:
+        """One warning line when written samples hold depth GT but not one disparity GT pixel ('' if none):
+        the equirect pair's disparity is read from the same planes, so only too few rows lose it all (at
+        `--height-full 64` the 0.12 m baseline's disparity stays under what the GT keeps)."""
+        if not self.without_disparity:
+            return ""
+        return (
+            f"{self.without_disparity} of {self.written} samples written hold depth GT but no disparity GT "
+            "pixel: the equirect pair is too coarse for the baseline's disparity (more --height-full rows "
+            "keep it: 128 and up)"
         )
 
     held_elsewhere: int = 0  # of `resumed`: frames that samples of other ids hold (`ingest.dataset.identity`)
@@ -113,6 +126,8 @@ class IngestSummary:
         meta = result.meta
         assert meta is not None  # written samples carry their metadata
         self.density_by_method.setdefault(meta.gt.method, []).append(meta.gt.density)
+        if meta.gt.depth_pixels > 0 and meta.gt.disp_pixels == 0:
+            self.without_disparity += 1
         if meta.gt.depth_pixels == 0:
             self.without_gt += 1
             p = meta.points
