@@ -109,6 +109,18 @@ def _where(scope: Scope, item: Any) -> str:
     return f"{scope.file}:{line}" if line else str(scope.file)
 
 
+def _one_source_per_target(remaps: list[tuple[str, str]], where: str) -> None:
+    """A LaunchError at `where` when two of a node's remaps send different topics to one: two sensors'
+    messages would be recorded interleaved as one (two LiDARs on one topic at twice its rate)."""
+    source: dict[str, str] = {}
+    for frm, to in remaps:
+        if source.setdefault(to, frm) != frm:
+            raise LaunchError(
+                f"{where}: remaps {source[to]} -> {to} and {frm} -> {to} send two topics to one; their "
+                "messages would be recorded as one topic: give each its own"
+            )
+
+
 def _remap(f: Mapping[str, Any], scope: Scope, where: str) -> tuple[str, str]:
     """A remap's (from, to), each a valid topic name (`resolve_name`'s rules), else LaunchError at `where`:
     the bus would refuse a bad one only when the node starts, naming neither file nor line."""
@@ -343,6 +355,7 @@ class _Parser:
         for entry in _entries(f, "remap", "node", "remappings", where):
             rf = _fields("remap", entry, where, ("from", "to"), ("from", "to"))
             remaps.append(_remap(rf, scope, where))
+        _one_source_per_target(remaps, where)
         self.plan.nodes.append(NodeSpec(pkg, exe, name, namespace, params, tuple(remaps), where))
 
     def _param(

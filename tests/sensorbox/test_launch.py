@@ -264,6 +264,11 @@ BAD = [
     ("launch:\n- node: {exec: talker\n", "malformed YAML"),
     ("launch:\n- node: {exec: talker, exec: recorder}\n", "key 'exec' given twice"),
     ("launch: {node: {exec: talker}}\n", "`launch:` must be a list"),
+    (  # sweep 6: both LiDARs' topics remapped onto one were recorded interleaved as one, without a word
+        "launch:\n- node: {exec: talker, remap: [{from: /a, to: /lidar}, {from: /b, to: /lidar}]}\n",
+        r":2: remaps /a -> /lidar and /b -> /lidar send two topics to one; their messages would be recorded "
+        "as one topic: give each its own$",
+    ),
 ]
 
 
