@@ -91,6 +91,8 @@ class LidarCoverage:
     time_layout: str | None = None
     first_point_ns: int | None = None  # the earliest and latest point time of all sweeps
     last_point_ns: int | None = None
+    late_points: int = 0  # points whose time lies beyond any sweep (Livox offset_time over 3 s): left out
+    points_total: int = 0
 
 
 @dataclass(frozen=True)
@@ -204,6 +206,12 @@ class BagReport:
             f"{c0 / 1e9:.3f} s..{c1 / 1e9:.3f} s (the sensor's clock is not the cameras')"
             for topic, what, a, b in ranges
             if a is not None and b is not None and (b < c0 or a > c1)
+        ]
+        lines += [
+            f"{li.topic}: every point's time lies beyond its sweep ({li.late_points:,} points: a Livox "
+            "offset_time over 3 s, such as 0xFFFFFFFF); no sensor measures it, and ingest drops them all"
+            for li in self.lidars
+            if li.points_total and li.late_points == li.points_total
         ]
         lidars = {li.topic for li in self.lidars}
         offsets = {t.topic: t.log_offset_median_ms for t in self.topics if t.topic in lidars}

@@ -150,6 +150,7 @@ class _SweepAcc:
     time_layouts: dict[str, None] = field(default_factory=dict)  # insertion-ordered set
     first_point_ns: int | None = None
     last_point_ns: int | None = None
+    late_points: int = 0
 
 
 @dataclass
@@ -182,7 +183,8 @@ def _add_sweep(acc: _SweepAcc, sweep: Sweep) -> None:
     hit, el = _sweep_cells(xyz[valid])
     acc.points.append(len(xyz))
     acc.zeros.append(int(len(xyz) - np.count_nonzero(valid)))
-    stamps = sweep.stamps_ns
+    stamps = sweep.stamps_ns if sweep.late is None else sweep.stamps_ns[~sweep.late]
+    acc.late_points += len(sweep.stamps_ns) - len(stamps)  # times no sweep has (the decoder's verdict)
     acc.durations_ms.append(float(stamps.max() - stamps.min()) / 1e6 if len(stamps) else 0.0)
     if len(stamps):
         a, b = int(stamps.min()), int(stamps.max())
@@ -313,6 +315,8 @@ def _lidar_coverage(topic: str, acc: _SweepAcc) -> LidarCoverage:
         time_layout=layouts or None,
         first_point_ns=acc.first_point_ns,
         last_point_ns=acc.last_point_ns,
+        late_points=acc.late_points,
+        points_total=total,
     )
 
 

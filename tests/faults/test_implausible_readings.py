@@ -362,6 +362,18 @@ def test_a_lidar_whose_every_point_time_is_0xffffffff_is_said_as_such(
             f"dropped as no sensor measures it ({n:,} points: {POINT_TIME})"
         ],
     )
+    # sweep 6: `inspect` still blamed the clocks ("point times 1700000004.295 s.. do not overlap ...")
+    rig = bag.parent / f"{bag.name}.truth" / "rig.yaml"
+    _, out, err = sensorbox(capsys, "inspect", str(bag), "--rig", str(rig))
+    said = [
+        line
+        for line in err + out.splitlines()
+        if LIDAR_TOP in line and ("beyond" in line or "overlap" in line)
+    ]
+    assert said == [
+        f"warning: {LIDAR_TOP}: every point's time lies beyond its sweep ({n:,} points: a Livox offset_time over "
+        "3 s, such as 0xFFFFFFFF); no sensor measures it, and ingest drops them all"
+    ]
 
 
 def test_livox_point_times_in_microseconds_are_refused_naming_the_unit(
