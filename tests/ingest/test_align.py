@@ -160,6 +160,30 @@ def test_ingest_flags_a_lidar_turned_by_a_quarter_degree_and_not_the_exact_rig(t
     assert line.startswith("lidar_top's pose in cam0 looks off by 0.2") and "--refine" in line
 
 
+def test_lidars_are_compared_only_against_a_match_and_all_of_them_off_points_at_cam0() -> None:
+    """Sweep 6: cam0's images upside down gave "lidar_top's points match cam0's images far worse than
+    lidar_top's (-0.04 against -0.04)", and swapped camera cables blamed both LiDARs' poses alone."""
+    from ingest.train.gt.align_check import CalibrationCheck, Combined
+
+    off = np.eye(4)
+    off[:3, :3] = Rotation.from_euler("y", 0.7, degrees=True).as_matrix()
+    both = Combined({"top": _correction(off), "bottom": _correction(off)}, None, float("inf"), 5, 1.0)
+    none_match = CalibrationCheck({}, both, {"top": -0.04, "bottom": -0.30})
+    assert none_match.mismatched() == {}
+    (line,) = none_match.warnings("rig.yaml")
+    hint = (
+        "(from 5 samples' LiDAR points on cam0's images; every LiDAR looks off, so cam0 itself may be: its "
+        "intrinsics, its images or its clock)"
+    )
+    assert hint in line
+    one = Combined({"top": _correction(off), "bottom": _correction(np.eye(4))}, None, float("inf"), 5, 1.0)
+    (line,) = CalibrationCheck({}, one, {"top": 0.25, "bottom": 0.70}).warnings("rig.yaml")
+    assert (
+        line.startswith("top's points match cam0's images far worse than bottom's")
+        and "every LiDAR" not in line
+    )
+
+
 def test_check_calibration_of_no_alignment_is_none() -> None:
     assert check_calibration([({}, None), ({}, np.zeros(6))]) is None
 

@@ -158,7 +158,9 @@ class CalibrationCheck:
         if len(known) < 2:
             return {}
         best = max(known, key=lambda n: known[n])
-        return {n: best for n, c in known.items() if c < MATCH_RATIO * known[best]}
+        if known[best] <= 0.0:  # no LiDAR's points match the images: nothing to compare against
+            return {}
+        return {n: best for n, c in known.items() if n != best and c < MATCH_RATIO * known[best]}
 
     def mismatch_phrase(self, name: str, best: str) -> str:
         """What `mismatched` found about `name`, in words."""
@@ -204,6 +206,9 @@ class CalibrationCheck:
                 "with it, or ingest with --refine"
             )
         where = f"from {self.combined.samples} samples' LiDAR points on cam0's images"
+        names = self.combined.corrections.keys()
+        if len(names) > 1 and all(any(s.startswith(f"{n}'s ") for s in suspects) for n in names):
+            where += "; every LiDAR looks off, so cam0 itself may be: its intrinsics, its images or its clock"
         return [f"{'; '.join(suspects)} ({where}): {fix}"]
 
     def as_yaml(self) -> dict[str, object]:
