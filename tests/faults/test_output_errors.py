@@ -35,7 +35,7 @@ INGEST = [
     "--every",
     "20",
     "--height-full",
-    "64",
+    "96",  # the fewest rows that keep disparity GT (64 is one warning line)
     "--gt",
     "sparse",
 ]
