@@ -75,8 +75,9 @@ def gt_method(
         )
     if topics.imu is None:
         summary.warnings.append(no_imu_line(cfg.rig))
-    if summary.imu_check is not None and summary.imu_check.line():
-        summary.warnings.append(str(summary.imu_check.line()))
+    said = summary.imu_check.line() if summary.imu_check is not None else None
+    if said:
+        summary.warnings.append(said)
     static = tsum is not None and tsum.static
     run = resolve_run(cfg, method, decision, static, busy)
     summary.method, summary.decision, summary.trajectory = method, run.sample.decision, tsum

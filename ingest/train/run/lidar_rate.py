@@ -44,7 +44,7 @@ FARTHEST_MEDIAN_RANGE_M = 100.0
 of a Mid-360's points cannot lie beyond its reach (`LidarRates.too_far`)."""
 CROWDED_FACTOR = 20
 """A LiDAR whose sweeps' points come this many times faster than `MID360_POINTS_PER_S` has its point
-times squeezed (`LidarRates.crowded_lines`); a Mid-360's sweep spans its whole 100 ms."""
+times squeezed (`LidarRates.crowded`); a Mid-360's sweep spans its whole 100 ms."""
 
 
 @dataclass
@@ -59,7 +59,7 @@ class LidarRates:
     span_ns: dict[str, tuple[int, int]] = field(default_factory=dict)  # per topic: first and last point
     median_range_m: dict[str, list[float]] = field(default_factory=dict)  # per topic: each sweep's median
 
-    def add_ranges(self, topic: str, xyz_m: Any) -> None:
+    def add_ranges(self, topic: str, xyz_m: np.ndarray[Any, Any]) -> None:
         """Record one sweep's median point range (m; points at the origin, a Livox "no return", left out)."""
         r = np.linalg.norm(np.asarray(xyz_m, np.float64), axis=1)
         r = r[np.isfinite(r) & (r > 0)]

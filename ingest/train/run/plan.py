@@ -238,15 +238,7 @@ def survey(
         + [restamped_line(topic, stamps_ns) for topic, stamps_ns in copies.restamped.items()]
         + [overlapping_line(topic, firsts_ns) for topic, firsts_ns in copies.overlapping.items()]
     )
-    return Survey(
-        seen,
-        rates,
-        duplicates,
-        up,
-        lo,
-        gaps,
-        warnings + rates.thin_lines(topics.lidars),
-    )
+    return Survey(seen, rates, duplicates, up, lo, gaps, warnings + rates.thin_lines(topics.lidars))
 
 
 def restamped_line(topic: str, stamps_ns: list[int]) -> str:

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from calibration.types import F64, I64
+from calibration.types import F64, I64, Bool
 from ingest.train.trajectory.clouds import GyroTrack
 from ingest.train.trajectory.rig_trajectory import RigTrajectory
 
@@ -78,7 +78,7 @@ class GyroAgreement:
     mismatch_at_lag: float
     bias_rad_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
     mismatch_without_bias: float = float("inf")
-    lidars_timed: bool = True  # False: a LiDAR's sweeps carry no point times, so the knots are not judged by
+    lidars_timed: bool = True  # False: a LiDAR's sweeps carry no point times; the knots cannot judge the gyro
 
     @property
     def observable(self) -> bool:
@@ -166,17 +166,27 @@ def turning_stretch(gyro: GyroTrack, length_ns: int) -> tuple[int, int] | None:
     return int(grid[first]), int(grid[first + per - 1] + 100_000_000)
 
 
-def _mismatch(knot_turn: F64, gyro: GyroTrack, t0_ns: I64, t1_ns: I64, lag_ns: int) -> tuple[float, int]:
-    """(median |gyro - knot turn| / median |knot turn|, intervals) with the gyro read `lag_ns` later."""
-    inside = gyro.covers(t0_ns + lag_ns) & gyro.covers(t1_ns + lag_ns)
-    if inside.sum() < MIN_INTERVALS:
-        return float("inf"), int(inside.sum())
-    g = Rotation.from_matrix(gyro.between(t0_ns[inside] + lag_ns, t1_ns[inside] + lag_ns)).as_rotvec()
-    k = knot_turn[inside]
-    scale = float(np.median(np.linalg.norm(k, axis=1)))
-    if scale <= 0.0:
-        return float("inf"), int(inside.sum())
-    return float(np.median(np.linalg.norm(g - k, axis=1))) / scale, int(inside.sum())
+def _gyro_turns(gyro: GyroTrack, t0_ns: I64, t1_ns: I64, lag_ns: int) -> tuple[Bool, F64]:
+    """(which intervals the gyro covers read `lag_ns` later, the gyro's rotation vectors over those)."""
+    inside: Bool = gyro.covers(t0_ns + lag_ns) & gyro.covers(t1_ns + lag_ns)
+    if not inside.any():
+        return inside, np.zeros((0, 3))
+    g: F64 = Rotation.from_matrix(gyro.between(t0_ns[inside] + lag_ns, t1_ns[inside] + lag_ns)).as_rotvec()
+    return inside, g
+
+
+def _ratio(difference: F64, knot_turn: F64) -> float:
+    """median |difference| / median |knot turn| over the intervals; inf below `MIN_INTERVALS` or no turn."""
+    scale = float(np.median(np.linalg.norm(knot_turn, axis=1))) if len(knot_turn) else 0.0
+    if len(knot_turn) < MIN_INTERVALS or scale <= 0.0:
+        return float("inf")
+    return float(np.median(np.linalg.norm(difference, axis=1))) / scale
+
+
+def _mismatch(knot_turn: F64, gyro: GyroTrack, t0_ns: I64, t1_ns: I64, lag_ns: int) -> float:
+    """`_ratio` of gyro minus knot turn with the gyro read `lag_ns` later."""
+    inside, g = _gyro_turns(gyro, t0_ns, t1_ns, lag_ns)
+    return _ratio(g - knot_turn[inside], knot_turn[inside])
 
 
 def gyro_agreement(traj: RigTrajectory, gyro: GyroTrack, imu: str, topic: str) -> GyroAgreement:
@@ -192,35 +202,25 @@ def gyro_agreement(traj: RigTrajectory, gyro: GyroTrack, imu: str, topic: str) -
         if len(k)
         else np.zeros((0, 3))
     )
-    mismatch, intervals = _mismatch(knot_turn, gyro, t0, t1, 0)
-    inside = gyro.covers(t0) & gyro.covers(t1)
-    turn_deg = (
-        float(np.degrees(np.median(np.linalg.norm(knot_turn[inside], axis=1)))) if inside.any() else 0.0
-    )
+    inside, g = _gyro_turns(gyro, t0, t1, 0)
+    covered = knot_turn[inside]
+    mismatch, intervals = _ratio(g - covered, covered), len(covered)
+    turn_deg = float(np.degrees(np.median(np.linalg.norm(covered, axis=1)))) if intervals else 0.0
     best = (mismatch, 0)
     if GyroAgreement(imu, topic, intervals, turn_deg, mismatch, 0.0, mismatch).disagrees:
         coarse = range(-MAX_LAG_MS, MAX_LAG_MS + 1, LAG_STEP_MS)
-        best = min([best] + [(_mismatch(knot_turn, gyro, t0, t1, lag * MS)[0], lag) for lag in coarse])
+        best = min([best] + [(_mismatch(knot_turn, gyro, t0, t1, lag * MS), lag) for lag in coarse])
         fine = range(best[1] - LAG_STEP_MS + 1, best[1] + LAG_STEP_MS)
-        best = min([best] + [(_mismatch(knot_turn, gyro, t0, t1, lag * MS)[0], lag) for lag in fine])
-    bias, unbiased = _bias(knot_turn, gyro, t0, t1)
+        best = min([best] + [(_mismatch(knot_turn, gyro, t0, t1, lag * MS), lag) for lag in fine])
+    bias, unbiased = _bias(g, covered, ((t1 - t0)[inside] / 1e9)[:, None])
     return GyroAgreement(imu, topic, intervals, turn_deg, mismatch, float(best[1]), best[0], bias, unbiased)
 
 
-def _bias(
-    knot_turn: F64, gyro: GyroTrack, t0_ns: I64, t1_ns: I64
-) -> tuple[tuple[float, float, float], float]:
+def _bias(gyro_turn: F64, knot_turn: F64, dt_s: F64) -> tuple[tuple[float, float, float], float]:
     """(the gyro's constant excess rate in cam0, rad/s: the median per axis of (gyro - knot turn) / dt;
-    the mismatch with it taken off), over the intervals within the gyro's span."""
-    inside = gyro.covers(t0_ns) & gyro.covers(t1_ns)
-    if inside.sum() < MIN_INTERVALS:
+    the mismatch with it taken off), over the intervals the gyro covers (`dt_s`: (K, 1) their lengths)."""
+    if len(knot_turn) < MIN_INTERVALS:
         return (0.0, 0.0, 0.0), float("inf")
-    dt_s = ((t1_ns - t0_ns)[inside] / 1e9)[:, None]
-    g = Rotation.from_matrix(gyro.between(t0_ns[inside], t1_ns[inside])).as_rotvec()
-    k = knot_turn[inside]
-    rate = np.median((g - k) / dt_s, axis=0)
-    scale = float(np.median(np.linalg.norm(k, axis=1)))
-    left = (
-        float(np.median(np.linalg.norm(g - rate * dt_s - k, axis=1))) / scale if scale > 0 else float("inf")
-    )
+    rate = np.median((gyro_turn - knot_turn) / dt_s, axis=0)
+    left = _ratio(gyro_turn - rate * dt_s - knot_turn, knot_turn)
     return (float(rate[0]), float(rate[1]), float(rate[2])), left
