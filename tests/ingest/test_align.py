@@ -199,7 +199,7 @@ def test_the_stereo_pose_error_comes_back_from_both_images_corrections() -> None
     (E T10 X T10^-1) give E back, 0.3 deg and 5 mm; an exact stereo pose gives nothing."""
     from calibration.rig import REFERENCE_RIG, read_rig
     from ingest.train.gt.align_check import Combined
-    from ingest.train.run.refine import stereo_alignment
+    from ingest.train.run.lidar_poses import stereo_alignment
 
     rig = read_rig(REFERENCE_RIG)
     T10 = rig.lower.T_cam_cam0

@@ -48,7 +48,9 @@ class Combined:
     spread: float
 
 
-def combine(samples: SampleAlignments, iterations: int = 5) -> Combined | None:
+def combine(
+    samples: SampleAlignments, iterations: int = 5, rotation_only: frozenset[str] = frozenset()
+) -> Combined | None:
     """The rig-file correction of each LiDAR and the upper camera's clock offset from the per-sample
     alignments and cam0's twist at each sample (`(alignments by LiDAR, twist)` pairs).
 
@@ -58,22 +60,33 @@ def combine(samples: SampleAlignments, iterations: int = 5) -> Combined | None:
     velocity), weighted by its information; samples far from the model
     (a mover, a bad frame) are down-weighted (Cauchy on the Mahalanobis
     distance). The offset is solved only when the motion varied enough to
-    tell it from a constant correction (`MAX_OFFSET_SIGMA_MS`). None without
-    any alignment.
+    tell it from a constant correction (`MAX_OFFSET_SIGMA_MS`). The LiDARs
+    named in `rotation_only` keep their translation (its correction is held
+    at zero). None without any alignment.
     """
     names = sorted({name for found, _ in samples for name in found})
     if not names:
         return None
     with_twist = all(twist is not None for _, twist in samples)
-    result = _solve(samples, names, with_twist, iterations)
+    result = _solve(samples, names, with_twist, iterations, rotation_only)
     if with_twist and result.sigma_clock_ms > MAX_OFFSET_SIGMA_MS:
-        result = _solve(samples, names, False, iterations)
+        result = _solve(samples, names, False, iterations, rotation_only)
     return result
 
 
-def _solve(samples: SampleAlignments, names: list[str], offset: bool, iterations: int) -> Combined:
+PINNED_INFORMATION = 1e12
+"""The information (1/m^2) that holds a translation correction at zero (`combine`'s `rotation_only`)."""
+
+
+def _solve(
+    samples: SampleAlignments, names: list[str], offset: bool, iterations: int, rotation_only: frozenset[str]
+) -> Combined:
     """`combine` with (`offset`) or without the clock offset among the unknowns."""
     n = 6 * len(names) + (1 if offset else 0)
+    pinned: F64 = np.zeros((n, n))
+    for k, name in enumerate(names):
+        if name in rotation_only:
+            pinned[6 * k + 3 : 6 * k + 6, 6 * k + 3 : 6 * k + 6] = PINNED_INFORMATION * np.eye(3)
     terms = []  # (design (6, n), observed (6,), information (6, 6))
     for found, twist in samples:
         for name, al in found.items():
@@ -89,9 +102,7 @@ def _solve(samples: SampleAlignments, names: list[str], offset: bool, iterations
     H: F64 = np.eye(n)
     d2: F64 = np.zeros(len(terms))
     for _ in range(iterations):
-        H = sum(
-            (w * D.T @ info @ D for w, (D, _, info) in zip(weights, terms, strict=True)), np.zeros((n, n))
-        )
+        H = sum((w * D.T @ info @ D for w, (D, _, info) in zip(weights, terms, strict=True)), pinned)
         g = sum((w * D.T @ info @ obs for w, (D, obs, info) in zip(weights, terms, strict=True)), np.zeros(n))
         x = np.asarray(np.linalg.lstsq(H, g, rcond=None)[0], np.float64)
         d2 = np.array([float((obs - D @ x) @ info @ (obs - D @ x)) for D, obs, info in terms])
