@@ -12,6 +12,7 @@ writer's own exception. Nothing here needs root.
 from __future__ import annotations
 
 import errno
+import json
 import os
 import sqlite3
 from pathlib import Path
@@ -177,6 +178,34 @@ def test_output_files_that_are_a_device_or_fifo_are_refused_before_the_work(
         assert (code, out, err) == (3, "", [message]), args
     assert fifo.lstat().st_mode & 0o170000 == 0o010000 and link.readlink() == Path("/dev/null")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bench", "e.json", "h.png", "pred"]
+
+
+def test_an_eval_report_onto_a_file_eval_reads_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Sweep 7 S1: `eval --json PRED/.../000000.png` wrote the JSON report over that prediction, exit 0.
+    A report path in the dataset, among the predictions or in a mask folder is refused (exit 2), and
+    every input is left as it was; the top level of the prediction folder (the default report's) is fine."""
+    bench = make_benchmark(tmp_path / "bench")
+    pred = tmp_path / "pred"
+    write_predictions(bench, pred, "stereo")
+    one = sorted(pred.rglob("*.png"))[0]
+    gt = sorted(bench.rglob("*.png"))[0]
+    before = {p: p.read_bytes() for p in [*pred.rglob("*"), *bench.rglob("*")] if p.is_file()}
+    eval_args = ["eval", "--dataset", str(bench), "--pred", str(pred), "--task", "stereo"]
+    cases = [
+        (["--json", str(one)], f"error: --json {one}: among the predictions ({pred}), whose files eval reads; "
+                               f"give a path outside {pred} or at its top level"),
+        (["--heatmap", str(gt)], f"error: --heatmap {gt}: inside the dataset ({bench}), whose files eval reads; "
+                                 "give a path outside it"),
+    ]  # fmt: skip
+    for args, message in cases:
+        assert sensorbox(capsys, *eval_args, *args) == (2, "", [message]), args
+    assert {p: p.read_bytes() for p in [*pred.rglob("*"), *bench.rglob("*")] if p.is_file()} == before
+    code, _, _ = sensorbox(
+        capsys, *eval_args, "--image-type", "pano_crop", "--json", str(pred / "report.json")
+    )
+    assert code == 0 and json.loads((pred / "report.json").read_text())
 
 
 @pytest.mark.parametrize(
