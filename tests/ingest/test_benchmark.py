@@ -519,6 +519,13 @@ def test_an_image_size_whose_sphere_is_over_the_memory_budget_is_named_as_the_ca
         ({"points_per_px": float("inf")}, r"^--points-per-px inf: must be a finite number > 0$"),
         ({"size": "100000x100000"}, r"^--size 100000x100000: expected at most 16384 px a side$"),
         ({"pitch_deg": 200.0}, r"^--pitch 200\.0: must be within -90\.\.90 degrees \(up > 0\)$"),
+        (  # sweep 7 S3: two scenes of the same view, pixel for pixel
+            {"yaws_deg": (0.0, 360.0)},
+            r"^--yaw 360 \(the same as 0\) is given twice; its views would be rendered twice and weigh double "
+            r"in every score$",
+        ),
+        ({"baselines_mm": (65.0, 65.0)}, r"^--baseline 65 is given twice; its views would be rendered twice"),
+        ({"centers": ("s0", "s0")}, r"^--center s0 is given twice; its views would be rendered twice"),
         (
             {"fovs_deg": (140.0, 195.0), "pinhole_fovs": (120.0,)},
             r"^--pinhole-in 120: not one of the rendered FOVs \(140, 195\); the pinhole images go into those folders$",
