@@ -64,4 +64,14 @@ def _build_nodes(plan: LaunchPlan, bus: Bus, shutdown: Shutdown) -> list[Any]:
                 "give each node its own name"
             )
         first[node.name] = spec.where
+    publisher: dict[str, str] = {}  # one publisher per topic: two would be recorded interleaved as one
+    for spec, node in zip(plan.nodes, nodes, strict=True):
+        for topic in getattr(node, "publishes", ()):
+            if topic in publisher:
+                raise LaunchError(
+                    f"{spec.where}: node {node.name!r} publishes {topic}, as does {publisher[topic]}; their "
+                    "messages would be recorded as one topic: give each its own (a remap or its topic "
+                    "parameter)"
+                )
+            publisher[topic] = f"node {node.name!r} at {spec.where}"
     return nodes

@@ -53,6 +53,7 @@ class LivoxDriverNode:
         self.name = name
         self.config = config
         self.discovery_s = discovery_s
+        self.publishes: tuple[str, ...] = ()  # absolute topic names, set by the graph's factory
         self.discovered: list[Any] = []
 
         def relative(topic: str, msgtype: str, stamp_ns: int, raw: bytes) -> None:

@@ -219,6 +219,7 @@ def read_livox_json(path: Path) -> dict[str, Any]:
 
 def livox_driver_node(ctx: NodeContext, p: Params) -> Node:
     from sensorbox.livox import DriverConfig, LidarEndpoint, Ports
+    from sensorbox.livox.config import imu_topic, lidar_topic
 
     fmt = {0: "pointcloud2", 1: "custom"}.get(p.integer("xfer_format", 1))
     if fmt is None:
@@ -258,9 +259,18 @@ def livox_driver_node(ctx: NodeContext, p: Params) -> Node:
         imu=p.flag("imu", True), data_type=data_type, ports=ports,
     )  # fmt: skip
     config.validate()
-    return LivoxDriverNode(
+    node = LivoxDriverNode(
         ctx.name, config, ctx.publish, p.number("discovery_s", 0.0), p.flag("process", True)
     )
+    topics = []
+    for lidar in config.lidars:
+        ip = lidar.topic_ip or lidar.ip
+        topics += [
+            lidar_topic(ip, config.multi_topic),
+            *([imu_topic(ip, config.multi_topic)] if config.imu else []),
+        ]
+    node.publishes = tuple(ctx.resolve(t.lstrip("/")) for t in topics)  # published as relative names
+    return node
 
 
 # ---------------------------------------------------------------- cameras
