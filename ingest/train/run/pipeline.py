@@ -233,7 +233,13 @@ def ingest(
             record_calibration(cfg.out, [Path(p) for p in bag_paths], summary.calibration.as_yaml())
             summary.warnings += summary.calibration.warnings(cfg.rig, refined=cfg.refine)
         summary.warnings += [
-            line for line in (summary.without_gt_line(), summary.without_disparity_line()) if line
+            line
+            for line in (
+                summary.without_gt_line(),
+                summary.without_disparity_line(),
+                summary.off_image_line(),
+            )
+            if line
         ]
     summary.seconds = time.perf_counter() - t_start
     summary.compile_s = compile_s[0]
