@@ -8,7 +8,7 @@ import os
 import signal
 import sys
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 from types import FrameType
 from typing import Annotated, Any, Protocol
@@ -228,5 +228,7 @@ def print_warning(line: str, target: Console = err_console) -> None:
 
 
 def print_error(line: str) -> None:
-    """One plain "error: LINE" on stderr (no markup), as `sensorbox.cli.main` prints a SensorboxError."""
-    err_console.print(Text.assemble(("error:", "bold red"), " ", line), highlight=False, soft_wrap=True)
+    """One plain "error: LINE" on stderr (no markup), as `sensorbox.cli.main` prints a SensorboxError;
+    when stderr itself refuses it (`2> /dev/full`), nothing more can be said and the exit code speaks."""
+    with suppress(OSError):
+        err_console.print(Text.assemble(("error:", "bold red"), " ", line), highlight=False, soft_wrap=True)
