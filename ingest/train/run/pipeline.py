@@ -238,6 +238,7 @@ def ingest(
                 summary.without_gt_line(),
                 summary.without_disparity_line(),
                 summary.off_image_line(),
+                summary.range_line(rig.lidars[0].name),
             )
             if line
         ]
