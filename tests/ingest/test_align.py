@@ -237,7 +237,8 @@ def test_an_alignment_only_run_writes_no_sample_and_finds_what_the_metas_record(
     runs = {}
     for name, only in (("written", False), ("aligned", True)):
         cfg = IngestConfig(rig=rig_file, out=tmp_path / name, workers=1, gt="sparse")
-        runs[name] = ingest([bag], replace(cfg, sample=SampleParams(align_lower=True, alignment_only=only)))
+        sample = SampleParams(align_lower=True, lower_every=1, alignment_only=only)
+        runs[name] = ingest([bag], replace(cfg, sample=sample))
     files = [p for p in (tmp_path / "aligned").rglob("*") if p.is_file() and p.name != "dataset.yaml"]
     assert runs["aligned"].written == 0 and not [p for p in files if p.suffix in (".png", ".json", ".exr")]
     metas = [

@@ -39,6 +39,31 @@ def applies(correction: Alignment) -> bool:
     return certain or angle > 3 * sigma_deg or shift_mm > 3 * sigma_mm
 
 
+def stereo_record(stereo: StereoAlignment | None) -> dict[str, object]:
+    """The stereo pose check as dataset.yaml's `calibration_check` keeps it (deg, mm; none unchecked)."""
+    if stereo is None:
+        return {}
+    return {"stereo_pose": {
+        "lidar": stereo.lidar, "rotation_deg": round(stereo.rotation_deg, 4),
+        "translation_mm": round(stereo.translation_mm, 2), "sigma_deg": round(stereo.sigma_rotation_deg, 4),
+        "sigma_mm": round(stereo.sigma_translation_mm, 2), "off": stereo.disagrees,
+    }}  # fmt: skip
+
+
+def stereo_lines(stereo: StereoAlignment | None, rig: object) -> list[str]:
+    """One warning line when the LiDAR points on both images put the camchain's stereo pose off: the
+    lower image, warped by it, lies off the disparity GT."""
+    if stereo is None or not stereo.disagrees:
+        return []
+    return [
+        f"{stereo.lidar}'s points on both images put the camchain's stereo pose (cam1's T_cn_cnm1) "
+        f"{stereo.rotation_deg:.2f} deg and {stereo.translation_mm:.1f} mm off (1-sigma "
+        f"{stereo.sigma_rotation_deg:.2f} deg, {stereo.sigma_translation_mm:.1f} mm): the lower images, "
+        "warped by it, lie off the disparity GT; recalibrate the stereo pair (kalibr_calibrate_cameras) and "
+        f"give {rig} the new camchain, or check the lower camera's images"
+    ]
+
+
 @dataclass(frozen=True)
 class LidarRefinement:
     """One LiDAR's pose in cam0 from its points laid onto cam0's image (`ingest.train.gt.align`).

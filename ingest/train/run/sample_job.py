@@ -124,7 +124,8 @@ class SampleParams:
     decision: str = "asked"  # why `method` (written to every sample's meta)
     gap_fallback: bool = False  # dense: a frame in a trajectory gap gets sparse GT (--gt auto), not skipped
     dense: DenseParams = field(default_factory=DenseParams)
-    align_lower: bool = False  # also lay the points onto the lower image (`calib refine`'s stereo check)
+    align_lower: bool = True  # also lay the points onto the lower image (the stereo pose's check)
+    lower_every: int = 3  # ... of every n-th sample of a run that writes them (`calib refine`: of all)
     alignment_only: bool = False  # `calib refine`'s rounds: the alignments only (no GT, warps or files)
 
 

@@ -144,6 +144,7 @@ class IngestSummary:
     held_elsewhere: int = 0  # of `resumed`: frames that samples of other ids hold (`ingest.dataset.identity`)
     refinement: Refinement | None = None  # --refine: what `ingest.train.run.refine` found and the rig it made
     alignments: list[tuple[Mapping[str, Alignment], F64 | None]] = field(default_factory=list)  # per sample
+    alignments_lower: list[tuple[Mapping[str, Alignment], F64 | None]] = field(default_factory=list)  # cam1's
     calibration: CalibrationCheck | None = None  # the samples' alignments summed up (`ingest.train.gt.align`)
     damaged: list[str] = field(default_factory=list)  # finished samples found damaged, written again: why
     aligned: dict[str, SampleAlignment] = field(default_factory=dict)  # per sample id: alignment_only's
@@ -158,7 +159,9 @@ class IngestSummary:
         recording's calibration check, which covers every sample of it, not only this run's."""
         self.resumed += 1
         if meta.alignment:
-            self.alignments.extend(from_metas([meta])[0])
+            upper, lower = from_metas([meta])
+            self.alignments.extend(upper)
+            self.alignments_lower.extend((found, None) for found, _ in lower if found)
 
     def add(self, result: SampleResult) -> None:
         if result.reason == ALIGNED and result.aligned is not None:
@@ -189,7 +192,9 @@ class IngestSummary:
             ):  # fmt: skip
                 self.without_gt_points[why] = self.without_gt_points.get(why, 0) + n
         if meta.alignment:
-            self.alignments.extend(from_metas([meta])[0])
+            upper, lower = from_metas([meta])
+            self.alignments.extend(upper)
+            self.alignments_lower.extend((found, None) for found, _ in lower if found)
             if all(
                 a.shift_deg > max(OFF_IMAGE_DEG, OFF_IMAGE_PX * a.pixel_deg) for a in meta.alignment.values()
             ):
