@@ -28,6 +28,7 @@ from calibration.types import F64, U8
 from ingest.bags.decode import Frame, ImuSample
 from ingest.bags.reader import open_bags
 from ingest.errors import BagError
+from ingest.topic_map import missing_topic
 from ingest.train.gt.align import Alignment
 from ingest.train.gt.align_check import SampleAlignments, check_calibration, combine, corrected
 from ingest.train.run.lidar_poses import (
@@ -144,8 +145,7 @@ def _topic(topics: Sequence[str], wanted: str | None, what: str, where: str) -> 
     for cand in (wanted, f"{wanted}/compressed"):
         if cand is not None and cand in topics:
             return cand
-    listing = ", ".join(sorted(topics))
-    raise BagError(f"{where}: no topic {wanted!r} for {what} (from the rig); the bag has: {listing}")
+    raise BagError(missing_topic(where, wanted, what, topics))
 
 
 def _gray(frame: Frame, halvings: int) -> U8:
