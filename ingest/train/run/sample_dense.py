@@ -15,14 +15,13 @@ from ingest.rows import rows
 from ingest.runtime.background import Background
 from ingest.train.gt.block_planes import cleared_for
 from ingest.train.gt.dense import dense_ground_truth, free_space_filter, free_space_settings, may_matter
-from ingest.train.gt.groundtruth import in_view
-from ingest.train.gt.lidar_agreement import range_ratios
 from ingest.train.run.sample_job import SampleJob, SampleResult
 from ingest.train.run.sample_parts import (
     Equirects,
     alignment_fields,
     finish_sample,
     points_by_lidar,
+    range_ratio_field,
     silent_lidars,
     trajectory_twist,
 )
@@ -104,10 +103,6 @@ def process_dense(job: SampleJob, images: Background[Equirects], start_ms: float
     )  # fmt: skip
     ms["ground_truth"] = (time.perf_counter() - t1) * 1e3
     alignment = alignment_fields(job, placed, cloud, ms)
-    model = geo.rig.upper.model
-    seen, cols, rows_px = in_view(model, placed)
-    names = [lp.name for lp in job.lidars]
-    ratios = range_ratios(placed, seen, cols, rows_px, cloud.lidar, names, model.width)
     in_window = (traj.stamps_ns >= tc - prm.dense.window_ns) & (traj.stamps_ns <= tc + prm.dense.window_ns)
     residual = traj.residual_m[in_window]
     residual = residual[np.isfinite(residual)]
@@ -124,7 +119,7 @@ def process_dense(job: SampleJob, images: Background[Equirects], start_ms: float
             too_close=cloud.counts.too_close, noise_tag=cloud.counts.noise_tag, kept=int(covered.sum()),
             out_of_view=0, occluded=0,
             silent_lidars=silent_lidars(job), off_trajectory=int(len(covered) - covered.sum()),
-            range_ratio={name: [round(ratio, 5), pairs] for name, (ratio, pairs) in ratios.items()},
+            range_ratio=range_ratio_field(job, placed, cloud),
         ),
         gt=GtMeta(
             depth_pixels=dense.range_img.count, disp_pixels=dense.disp_img.count,

@@ -12,7 +12,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from calibration.types import F64, I64, U64
+from calibration.types import F64, I64, U64, Bool
 from ingest.dataset.identity import frame_digest
 from ingest.dataset.layout import SampleFiles, write_sample
 from ingest.dataset.meta import AlignmentMeta, SampleMeta
@@ -20,6 +20,8 @@ from ingest.dataset.sparse import SparseImage
 from ingest.rows import rows
 from ingest.runtime.background import Background
 from ingest.train.gt.align import ImageLevels, align_points
+from ingest.train.gt.groundtruth import in_view
+from ingest.train.gt.lidar_agreement import range_ratios
 from ingest.train.run.sample_job import SampleJob, SampleResult
 from ingest.train.trajectory.clouds import FilterCounts, filter_points
 from ingest.train.trajectory.rig_trajectory import RigTrajectory
@@ -194,3 +196,16 @@ def finish_sample(
     ms["write"] = (time.perf_counter() - t3) * 1e3
     helper = {"equirect warps": images.ms} if job.params.overlap_images else {}
     return SampleResult(job.sid, True, "", meta.written(job.sid, drops), ms, helper)
+
+
+def range_ratio_field(
+    job: SampleJob, pts_cam0: F64, cloud: WindowPoints, view: tuple[Bool, F64, F64] | None = None
+) -> dict[str, list[float]]:
+    """The meta's `points.range_ratio`: per LiDAR after the first, how its ranges agree with the first's
+    where cam0 sees a point of both in a pixel (`ingest.train.gt.lidar_agreement.range_ratios`); `view`
+    is `in_view` of `pts_cam0` when the caller has it."""
+    model = job.geometry.rig.upper.model
+    seen, cols, rows_px = in_view(model, pts_cam0) if view is None else view
+    names = [lp.name for lp in job.lidars]
+    found = range_ratios(pts_cam0, seen, cols, rows_px, cloud.lidar, names, model.width)
+    return {name: [round(ratio, 5), pairs] for name, (ratio, pairs) in found.items()}
