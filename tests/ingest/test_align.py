@@ -125,6 +125,27 @@ def test_combine_tells_a_pose_error_from_a_clock_offset() -> None:
     assert np.allclose(c.corrections["top"].vector, top, atol=5e-4)
 
 
+def test_two_samples_name_no_pose_or_clock_and_three_do() -> None:
+    """Sweep 7 U8: a right rig whose lower frames were thinned kept two aligned samples, and the check
+    called lidar_top 0.36 deg and 87 mm off from them: with fewer than three samples their spread, which
+    scales the sigmas, is a guess. The same samples, three of them, are named."""
+    from ingest.train.gt.align_check import MIN_POSE_SAMPLES, check_calibration
+
+    rng = np.random.default_rng(3)
+    top = np.r_[np.radians([0.4, 0.0, 0.0]), 0.02, 0.0, 0.0]
+
+    def samples(n: int) -> list[tuple[dict[str, Alignment], F64 | None]]:
+        return [({"top": _sample(top, np.zeros(6), rng)}, None) for _ in range(n)]
+
+    assert MIN_POSE_SAMPLES == 3
+    few = check_calibration(samples(2))
+    assert few is not None and few.suspects() == [] and few.warnings("rig.yaml") == []
+    enough = check_calibration(samples(3))
+    assert enough is not None and [s.split(" looks off")[0] for s in enough.suspects()] == [
+        "top's pose in cam0"
+    ]
+
+
 def _ingest(bag: Path, out: Path, R_top: F64 | None) -> tuple[dict[str, Any], list[str]]:
     rig = Truth.load(bag).rig
     if R_top is not None:

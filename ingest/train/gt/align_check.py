@@ -145,6 +145,10 @@ WARN_CLOCK_MS = 2.0
 `SIGNIFICANT` sigmas): on the simulated walks, an exact rig gives 0.01 deg, 1 mm and 0.05 ms, a
 0.25 deg or 5 ms error about 0.25 deg or 5 ms (bench/bench_refine.py)."""
 SIGNIFICANT = 3.0
+MIN_POSE_SAMPLES = 3
+"""A LiDAR pose or camera clock is called off from this many aligned samples or more: with fewer the
+samples' spread, which scales the sigmas, is a guess (two samples of a right rig on the walk, its lower
+frames thinned, said 0.36 deg and 87 mm)."""
 MATCH_RATIO = 0.6
 """A LiDAR whose points match cam0's images (median correlation of image intensity and reflectivity at
 the alignment) below this fraction of the best-matching LiDAR's is off by more than the alignment can
@@ -187,7 +191,7 @@ class CalibrationCheck:
         mismatched = self.mismatched()
         found = [self.mismatch_phrase(name, best) for name, best in mismatched.items()]
         for name, corr in self.combined.corrections.items():
-            if name in mismatched:
+            if name in mismatched or self.combined.samples < MIN_POSE_SAMPLES:
                 continue
             angle = float(np.degrees(np.linalg.norm(corr.rotation_rad)))
             shift_mm = float(np.linalg.norm(corr.translation_m) * 1e3)
@@ -196,7 +200,8 @@ class CalibrationCheck:
             if turned or moved:
                 found.append(f"{name}'s pose in cam0 looks off by {angle:.2f} deg and {shift_mm:.0f} mm")
         ms, sigma = self.combined.clock_offset_ms, self.combined.sigma_clock_ms
-        if ms is not None and abs(ms) > max(WARN_CLOCK_MS, SIGNIFICANT * sigma):
+        few = self.combined.samples < MIN_POSE_SAMPLES
+        if ms is not None and not few and abs(ms) > max(WARN_CLOCK_MS, SIGNIFICANT * sigma):
             found.append(f"the upper camera's exposure times look {ms:+.1f} ms off the LiDAR clock")
         return found
 
