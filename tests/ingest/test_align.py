@@ -277,3 +277,21 @@ def test_an_alignment_only_run_writes_no_sample_and_finds_what_the_metas_record(
             assert (twist is None) == (twist_recorded is None)
             if twist is not None and twist_recorded is not None:
                 assert np.abs(twist - twist_recorded).max() <= 1e-6
+
+
+def test_images_too_coarse_to_align_on_are_said_and_not_aligned() -> None:
+    """Sweep 6 U1: the tool's own 48x30 px emulated capture of a right rig was said to have lidar_top 10.4
+    deg and 641 mm off (4 deg pixels: the alignment cannot measure a pose there). Such images get one
+    line and no alignment; the reference rig's own images are aligned."""
+    from calibration.rig import REFERENCE_RIG, read_rig
+    from ingest.train.run.sample_job import Geometry
+    from sensorbox.sim.run import scaled_rig
+
+    coarse = Geometry.from_rig(scaled_rig(read_rig(REFERENCE_RIG), 0.025))
+    assert coarse.too_coarse_to_align
+    assert coarse.coarse_line() == (
+        "cam0's images (48x30 px, 3.7 deg a pixel) are too coarse to lay the LiDAR points on (over 2 "
+        "deg a pixel): the pose, clock and stereo checks were not run"
+    )
+    fine = Geometry.from_rig(read_rig(REFERENCE_RIG))
+    assert not fine.too_coarse_to_align and fine.coarse_line() == ""

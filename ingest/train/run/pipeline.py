@@ -206,6 +206,7 @@ def ingest(
     geometry = Geometry.from_rig(rig, cfg.height_full)
     check_existing(cfg, geometry, [Path(p) for p in bag_paths])  # settings, rig, data: before the passes
     summary = IngestSummary(out=cfg.out, warnings=stereo_warnings(rig), refinement=refinement)
+    summary.warnings += [line for line in (geometry.coarse_line(),) if line]
     if refinement is not None:
         summary.warnings += refinement.unobserved_lines()
     bad = BadMessages(cfg.max_bad, warn)

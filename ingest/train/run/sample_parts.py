@@ -95,6 +95,8 @@ def alignment_fields(
     """The meta's `alignment` and `alignment_lower` of the points `pts_cam0` (those of `cloud`, placed in
     cam0 at the exposure), timed as stage "alignment" in `ms`."""
     t0 = time.perf_counter()
+    if job.geometry.too_coarse_to_align:
+        return {"alignment": {}, "alignment_lower": {}}
     fields = {
         "alignment": _alignments(job, pts_cam0, cloud.reflectivity, cloud.lidar),
         "alignment_lower": _lower_alignments(job, pts_cam0, cloud.reflectivity, cloud.lidar),
