@@ -10,7 +10,14 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 from rich.table import Table
 
-from sensorbox.cli.common import check_out_file, console, path_param, print_warning, progress_bar
+from sensorbox.cli.common import (
+    check_not_an_input,
+    check_out_file,
+    console,
+    path_param,
+    print_warning,
+    progress_bar,
+)
 
 if TYPE_CHECKING:
     from calibration.report import RigReport
@@ -246,6 +253,11 @@ def calib_refine(
     if plot is not None:
         check_out_file("--plot", plot)
     given = read_rig(rig)
+    read = [rig, *([Path(given.camchain.source)] if given.camchain and given.camchain.source else []), *bags]
+    written = [("--out", out), ("--out", out.with_name(f"{out.stem}-camchain.yaml")), ("--plot", plot)]
+    for flag, target in written:
+        if target is not None:
+            check_not_an_input(flag, target, read, "which refine reads (the rig, its camchain or a bag)")
     with progress_bar("reading frames and gyro", "messages") as update:
         refinement = refine_rig(
             bags, given, workers, progress=update,

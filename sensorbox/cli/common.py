@@ -7,7 +7,7 @@ import errno
 import os
 import signal
 import sys
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager, suppress
 from pathlib import Path
 from types import FrameType
@@ -186,6 +186,20 @@ def check_out_file(flag: str, path: Path) -> None:
         raise DatasetError(f"{flag} {path}: is a folder; give a file path")
     refuse_special_target(path)
     _check_parents(flag, path)
+
+
+def check_not_an_input(flag: str, path: Path, inputs: Sequence[Path], what: str) -> None:
+    """Refuse an output file that is one of the command's inputs or lies in an input folder: the write
+    would replace what the command read (`what` names the inputs in the message)."""
+    from ingest.errors import DatasetError
+
+    where = path.resolve()
+    for given in inputs:
+        source = given.resolve()
+        if where == source:
+            raise DatasetError(f"{flag} {path}: is {given}, {what}; give another path")
+        if source.is_dir() and where.is_relative_to(source):
+            raise DatasetError(f"{flag} {path}: lies in {given}, {what}; give a path outside it")
 
 
 def _write_refused(folder: Path) -> str | None:

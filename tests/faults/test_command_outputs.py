@@ -208,6 +208,39 @@ def test_an_eval_report_onto_a_file_eval_reads_is_refused(
     assert code == 0 and json.loads((pred / "report.json").read_text())
 
 
+def test_refine_and_view_refuse_to_write_over_what_they_read(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Sweep 7 S1: `calib refine --out` onto the input rig's camchain replaced it with the refined rig (the
+    input rig no longer loaded), and `view --save` onto a GT depth PNG made it a Rerun recording; exit 0."""
+    rig = tmp_path / "rig" / "rig.yaml"
+    rig.parent.mkdir()
+    for name in ("rig.yaml", "camchain.yaml"):
+        (rig.parent / name).write_bytes((RIG.parent / name).read_bytes())
+    chain = rig.parent / "camchain.yaml"
+    kept = chain.read_bytes()
+    code, _, err = sensorbox(capsys, "calib", "refine", str(INDOOR), "--rig", str(rig), "--out", str(chain))
+    assert (code, err) == (2, [
+        f"error: --out {chain}: is {chain}, which refine reads (the rig, its camchain or a bag); give another path"
+    ])  # fmt: skip
+    assert chain.read_bytes() == kept
+    inside = INDOOR / "refined.yaml"
+    code, _, err = sensorbox(capsys, "calib", "refine", str(INDOOR), "--rig", str(rig), "--out", str(inside))
+    assert (code, err) == (2, [
+        f"error: --out {inside}: lies in {INDOOR}, which refine reads (the rig, its camchain or a bag); give a path "
+        "outside it"
+    ])  # fmt: skip
+    dataset = tmp_path / "ds"
+    (dataset / "depth_fisheye").mkdir(parents=True)
+    png = dataset / "depth_fisheye" / "000000.png"
+    png.write_bytes(b"a depth map")
+    code, _, err = sensorbox(capsys, "view", str(dataset), "--save", str(png))
+    assert (code, err) == (2, [
+        f"error: --save {png}: lies in {dataset}, the dataset the viewer reads; give a path outside it"
+    ])  # fmt: skip
+    assert png.read_bytes() == b"a depth map"
+
+
 @pytest.mark.parametrize(
     "kind", ["file", "under a file", "symlink loop", "under a symlink loop", "/dev/null"]
 )
