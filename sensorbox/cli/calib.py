@@ -168,7 +168,8 @@ def refine_table(refinement: Refinement) -> Table:
             cam.camera, f"{cam.rig_timeshift_ms:+.3f}",
             f"{e.timeshift_ms:+.3f}" if e.observable else "-", f"{e.sigma_ms:.3f}", str(e.pairs),
             f"{e.excitation_deg_s:.1f}", f"{e.residual_before_deg:.4f} -> {e.residual_after_deg:.4f}",
-            "estimate" if cam.applied else "rig's value kept (not observable)",
+            "estimate" if cam.applied else "rig's value kept (see below)" if cam.rejected
+            else "rig's value kept (not observable)",
         )  # fmt: skip
     return table
 

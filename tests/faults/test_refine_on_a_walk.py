@@ -120,3 +120,23 @@ def test_a_frame_under_its_neighbours_stamp_is_named_and_flagged(tmp_path: Path)
         "each image is not the one taken at its stamp (a frame published under another's stamp, or a camera "
         "clock that jumped); the samples are written and flagged in the summary: leave them out of training"
     ) in summary.warnings
+
+
+def test_a_clock_offset_its_own_lidar_check_rejects_is_not_written() -> None:
+    """Sweep 7 S8: refine on the indoor walk with the exact rig (no camera clock offset) wrote cam0's
+    timeshift +4.2 ms from the gyro, while its own check of the LiDAR points on cam0's images put that
+    clock +4.1 ms off (1-sigma 0.1). The rig's value is kept and one line names both."""
+    walk = FIXTURES_DIR / "indoor_walk_db3"
+    given = read_rig(truth_dir(walk) / "rig.yaml")
+    refinement = refine_rig([walk], given, workers=1)
+    cam0 = refinement.cameras[0]
+    assert cam0.estimate.observable and not cam0.applied
+    assert refinement.rig.upper.timeshift_cam_imu == given.upper.timeshift_cam_imu
+    assert refinement.image_clock_ms is not None
+    ms, sigma = refinement.image_clock_ms
+    assert abs(ms) > 3 * sigma and abs(ms) > 2.0
+    assert (
+        f"cam0: the gyro's estimate is not written: the LiDAR points on cam0's images put the clock it gives "
+        f"{ms:+.3f} ms off (1-sigma {sigma:.3f}), so the two disagree; the rig's value is kept: check the IMUs' "
+        "stamps against the LiDARs' clock"
+    ) in refinement.unobserved_lines()
