@@ -60,6 +60,11 @@ def read_description(path: Path, error: type[SensorboxError]) -> dict[str, Any]:
         raise error(f"existing dataset description {yaml_error_line(path, err)}") from err
     if not isinstance(doc, dict):
         raise error(f"{path}: not a SensorBox dataset description (expected a mapping)")
+    if (clash := sources_clash(doc)) is not None:
+        raise error(
+            f"{path}: {clash}: not what ingest writes; delete it (a rerun of ingest checks the samples "
+            "against their meta and writes it anew) or restore it"
+        )
     missing = cut_before(doc)
     if missing is not None:
         lines = text.count("\n") + (0 if text.endswith("\n") else 1)
@@ -69,3 +74,30 @@ def read_description(path: Path, error: type[SensorboxError]) -> dict[str, Any]:
             "it anew) or restore it"
         )
     return doc
+
+
+def sources_clash(doc: dict[str, Any]) -> str | None:
+    """Two sources of a training set's description that ingest would never write side by side, in words:
+    one recording's bags listed twice (ingest finds a recording's entry by its bags' names; a second entry
+    is never checked, its samples never resumed), or sample-id ranges that overlap; else None (also when
+    the sources cannot be read as such: `cut_before` and the readers name that). The same data under
+    other names is a source of its own, whose frames the first one's samples hold."""
+    sources = doc.get("sources") if doc.get("format") == FORMAT else None
+    if not isinstance(sources, list):
+        return None
+    seen: list[tuple[int, Any, int, int]] = []
+    for k, source in enumerate(sources):
+        try:
+            first, count, bags = int(source["first_id"]), int(source["samples"]), source["bags"]
+        except (KeyError, TypeError, ValueError):
+            return None
+        for j, other, lo, n in seen:
+            if bags == other:
+                return f"sources[{k}] lists the bags of sources[{j}] again ({', '.join(map(str, bags))})"
+            if first < lo + n and lo < first + count:
+                return (
+                    f"sources[{k}]'s samples {first}..{first + count - 1} overlap sources[{j}]'s "
+                    f"{lo}..{lo + n - 1}"
+                )
+        seen.append((k, bags, first, count))
+    return None

@@ -60,3 +60,33 @@ def test_a_dataset_yaml_cut_at_a_line_end_is_named_truncated_at_that_line(
         assert not (out / "stats.json").exists()
     path.write_text(whole)  # whole again: resumed, every sample already done
     assert ingest([INDOOR], IngestConfig(rig=RIG, out=out, **FAST)).resumed == 7  # type: ignore[arg-type]
+
+
+def test_a_dataset_yaml_listing_a_recording_twice_or_overlapping_ids_is_refused(tmp_path: Path) -> None:
+    """Sweep 7 S7: dataset.yaml whose `sources` listed its one source twice, the copy at first_id 5, was
+    resumed ('0 / 5') and written back, describing 10 samples of which 5 exist."""
+    out = tmp_path / "ds"
+    ingest([INDOOR], IngestConfig(rig=RIG, out=out, **FAST))  # type: ignore[arg-type]
+    path = out / "dataset.yaml"
+    whole = path.read_text()
+    doc = yaml.safe_load(whole)
+    source = doc["sources"][0]
+    advice = (
+        "not what ingest writes; delete it (a rerun of ingest checks the samples against their meta and writes it "
+        "anew) or restore it"
+    )
+    overlap = {**source, "bags": ["other.mcap"], "first_id": 3}
+    for extra, clash in (
+        (
+            {**source, "first_id": source["samples"]},
+            "sources[1] lists the bags of sources[0] again (indoor_static_mcap)",
+        ),
+        (overlap, "sources[1]'s samples 3..9 overlap sources[0]'s 0..6"),
+    ):
+        path.write_text(yaml.safe_dump({**doc, "sources": [source, extra]}, sort_keys=False))
+        with pytest.raises(DatasetError) as err:
+            ingest([INDOOR], IngestConfig(rig=RIG, out=out, **FAST))  # type: ignore[arg-type]
+        assert str(err.value) == f"{path}: {clash}: {advice}"
+    path.unlink()  # deleted: the rerun checks the samples against their meta and writes it anew
+    again = ingest([INDOOR], IngestConfig(rig=RIG, out=out, **FAST))  # type: ignore[arg-type]
+    assert again.resumed == 7 and len(yaml.safe_load(path.read_text())["sources"]) == 1

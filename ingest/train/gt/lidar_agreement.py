@@ -27,7 +27,7 @@ def range_ratios(
     """
     if len(names) < 2:
         return {}
-    pixel = (rows.astype(np.int64) * width + cols.astype(np.int64))[visible]
+    pixel = rows[visible].astype(np.int64) * width + cols[visible].astype(np.int64)  # NaN off the image
     range_m = np.linalg.norm(pts_cam0[visible], axis=1)
     lidar = which[visible]
     first = _nearest(pixel[lidar == 0], range_m[lidar == 0])
