@@ -105,6 +105,7 @@ from ingest.train.run.stream import (
     stream_jobs,
 )
 from ingest.train.run.summary import IngestSummary
+from ingest.train.run.trajectory_jobs import trajectory_split
 from ingest.train.sync import unsynced_line
 from ingest.train.trajectory.rig_trajectory import RigTrajectory
 
@@ -167,6 +168,8 @@ PASS_READ = "reading the bags"
 """`ingest`'s first pass: every message of the rig's topics read, every chunk checked (unit: messages)."""
 PASS_TRAJECTORY = "trajectory"
 """`ingest`'s trajectory pass for dense GT: every LiDAR sweep through the odometry (unit: sweeps)."""
+PASS_TRAJECTORY_JOBS = "trajectory in segments on the workers"
+"""The same pass in segments, jobs of the workers (`ingest.train.run.trajectory_jobs`; unit: jobs)."""
 
 
 def _init_worker(workers: int) -> None:
@@ -365,10 +368,18 @@ def _run(
         summary.imu_gaps_ms = [float(g) / 1e6 for g in surveyed.imu_gaps_ns]
         summary.warnings += surveyed.warnings
         summary.stale_temporaries = held.enter_context(_held_output(cfg.out))
-        ready = held.enter_context(_warming_up(geometry, cfg))  # beside the trajectory pass
-        odometry = partial(passes, PASS_TRAJECTORY) if passes else None
         span = (surveyed.span_ns[0] - reach, surveyed.span_ns[1] + reach)
-        run, traj = gt_method(bags, topics, rig, cfg, summary, bad, span, executor.every_core_busy, odometry)
+        jobs_done = partial(passes, PASS_TRAJECTORY_JOBS) if passes else None
+        sweeps = {t: surveyed.seen[t] for t in topics.lidars}
+        split = trajectory_split(bag_paths, cfg, executor, sweeps, span, jobs_done)
+        # the warm-up thread runs beside a trajectory pass in this process; a fork pool's segments go first
+        # (a process forked while another thread runs may inherit a lock that thread holds)
+        warm_first = split is None or executor.backend != "fork"
+        ready = held.enter_context(_warming_up(geometry, cfg)) if warm_first else None
+        odometry = partial(passes, PASS_TRAJECTORY) if passes else None
+        busy = executor.every_core_busy
+        run, traj = gt_method(bags, topics, rig, cfg, summary, bad, span, busy, odometry, split)
+        ready = ready or held.enter_context(_warming_up(geometry, cfg))  # beside the plan and stream passes
         the_plan = plan(bags, topics, run, bad, surveyed)
         _count_plan(summary, the_plan, bags, bad)
         prepare_dirs(run.out, run.sample.exr)
