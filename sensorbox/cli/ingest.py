@@ -311,10 +311,8 @@ def ingest_cmd(
         height_full=height_full, salvage=salvage, dask=dask, gt=gt, max_bad=max_bad, sample=sample,
         widen_static=gt_window_ms is None, refine=refine,
     )  # fmt: skip
-    units = {
-        PASS_REFINE: "messages", PASS_READ: "messages", PASS_TRAJECTORY: "LiDAR sweeps",
-        PASS_TRAJECTORY_JOBS: "segment jobs",
-    }  # fmt: skip
+    units = {PASS_REFINE: "messages", PASS_READ: "messages", PASS_TRAJECTORY: "LiDAR sweeps"}
+    units[PASS_TRAJECTORY_JOBS] = "segment jobs"
     try:
         cfg.validate()  # before the progress bar: a bad value is one line
         with progress_bar("ingesting", "samples") as update:
