@@ -248,7 +248,8 @@ def test_a_split_dense_run_matches_the_truth_and_records_its_join(walk3):
 
 def test_a_broken_join_on_the_fork_pool_runs_the_pass_again_as_one_job(walk3, monkeypatch):
     """The second segment's knots zigzag 30 mm (its odometry corrupted in the workers): the join is over the
-    bound, the recording runs again as one job, whose trajectory is the single pass's byte for byte."""
+    bound, the recording runs again as one job, whose trajectory is the single pass's byte for byte; a rerun
+    reuses the kept pass with its record."""
     first_segment_start = walk3["span"][0]
     real = trajectory_jobs.run_segment
 
@@ -269,6 +270,10 @@ def test_a_broken_join_on_the_fork_pool_runs_the_pass_again_as_one_job(walk3, mo
         assert split is not None and len(split.segments) == 2
         _, s = run_trajectory_pass(*args, walk3["root"] / "broken.tum", span_ns=walk3["span"], split=split)
         run_trajectory_pass(*args, walk3["root"] / "single.tum", span_ns=walk3["span"])
+        _, again = run_trajectory_pass(
+            *args, walk3["root"] / "broken.tum", span_ns=walk3["span"], split=split
+        )
+    assert again.reused and again.split == s.split  # a rerun reads the pass and its record back
     assert s.split is not None and (s.split.jobs, s.split.joins) == (3, ())
     (line,) = s.split.run_again
     a, b = ((t - walk3["span"][0]) / 1e9 for t in split.segments[1])
