@@ -4,13 +4,14 @@ A long recording's odometry (`ingest.train.trajectory.odometry.Odometry`)
 is sequential, about 0.8 CPU s per second of data: in the process that
 plans the run it would keep one core busy for as long as the recording
 lasts before the workers have anything to do. With more than one worker
-(or Dask) and a recording longer than two `SegmentParams.length_ns`, the
-span is cut into segments that overlap by `SegmentParams.overlap_ns`
-(`plan_segments`). Each segment is one job (`ingest.train.run.trajectory_jobs`): the worker
-opens the bags itself and reads only the messages logged while the
-segment's sweeps were (the plan pass's table of every sweep's log time and
-point times), so no point crosses the pipe; only the knots come back. Every
-segment's knots lie on one grid (its first knot on it: `Odometry.start_ns`).
+(or Dask) and LiDAR points spanning more than one `SegmentParams.length_ns`,
+the span is cut into segments that overlap by `SegmentParams.overlap_ns`
+(`plan_segments`). Each segment is one job
+(`ingest.train.run.trajectory_jobs`): the worker opens the bags itself and
+reads only the messages logged while the segment's sweeps were (the plan
+pass's table of every sweep's log time and point times), so no point
+crosses the pipe; only the knots come back. Every segment's knots lie on
+one grid (its first knot on it: `Odometry.start_ns`).
 
 Consecutive segments are joined by the rigid transform that maps the later
 segment's knots onto the earlier one's over their overlap (`fit_join`:
@@ -21,14 +22,15 @@ solves it again). Over the fitted overlap the joined trajectory blends the
 two segments' knots, from the earlier's alone to the later's alone
 (`joined`): each knot of two independent odometries is a few millimetres
 off on its own (2 cm range noise), and a hard switch from one to the other
-put that step into the relative error across it. A join whose RMS residual
+would put that step into the relative error across it. A join whose RMS residual
 over the overlap exceeds `MAX_JOIN_MM` or `MAX_JOIN_DEG`, or that has too
 few registered knots in common (a LiDAR gap over the overlap, a segment the
 odometry could not start), means the two odometries disagree: the two
 segments are run again as one job (`segmented_pass`), down to one job over
-the whole recording, which is the single pass itself. A join never lets a
-worse trajectory through; it costs time. Every join and every such rerun is
-recorded (`Join`, `SegmentedPass`).
+the whole recording, which is the single pass itself: two odometries that
+disagree never get joined, they cost time. Every join and every such rerun
+is recorded (`Join`, `SegmentedPass`). docs/speed.md compares the joined
+trajectory with the single pass against the simulator's truth.
 """
 
 from __future__ import annotations
