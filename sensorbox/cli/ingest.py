@@ -41,11 +41,18 @@ RigOpt = Annotated[
 OutOpt = Annotated[
     Path, typer.Option(help="Output folder (WideDepth train layout); reruns resume.", **path_param("--out"))
 ]
-WorkersOpt = Annotated[int, typer.Option(help="Local worker processes (1 = in this process).")]
+WorkersOpt = Annotated[
+    int,
+    typer.Option(
+        help="Local worker processes (1 = in this process). With more, a recording over 10 s runs its "
+        "trajectory pass as joined segments on them too."
+    ),
+]
 DaskOpt = Annotated[
     str | None,
     typer.Option(
-        help="dask.distributed scheduler address, e.g. tcp://host:8786; checked before anything is written."
+        help="dask.distributed scheduler address, e.g. tcp://host:8786; checked before anything is written. "
+        "The workers read the bags for the trajectory pass's segments at the paths given here."
     ),
 ]
 EveryOpt = Annotated[int, typer.Option(help="Keep every N-th eligible frame.")]
