@@ -9,26 +9,29 @@ two workers, and a deliberately broken join through the fork pool.
 import re
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import pytest
 import yaml
 from scipy.spatial.transform import Rotation
 
-from calibration.rig import read_rig
+from calibration.rig import Rig, read_rig
 from ingest.bags.decode import Sweep
 from ingest.bags.reader import open_bags
+from ingest.errors import BagError
 from ingest.runtime.executor import Executor
 from ingest.train.run import trajectory_jobs
 from ingest.train.run.pipeline import ingest
 from ingest.train.run.settings import IngestConfig, resolve_topics
 from ingest.train.run.trajectory_jobs import trajectory_split
 from ingest.train.trajectory.estimate import TrajectorySummary, run_trajectory_pass
+from ingest.train.trajectory.local_map import OdometryParams
 from ingest.train.trajectory.segments import (
     MAX_JOIN_DEG,
     MAX_JOIN_MM,
     Join,
+    SegmentInputs,
     SegmentJob,
     SegmentParams,
     SegmentResult,
@@ -123,7 +126,7 @@ def test_a_join_over_the_bound_runs_its_two_segments_again_as_one_job():
         "30.0 mm / 0.000 deg over the overlap, more than 10 mm / 0.1 deg; run again as one job"
     ]
     assert ran[-1] == whole and done.jobs == 3 and done.joins == []
-    np.testing.assert_array_equal(traj.stamps_ns, _segment(whole.span_ns).stamps_ns)
+    np.testing.assert_array_equal(traj.stamps_ns, _segment((T0, T0 + 3 * S)).stamps_ns)
 
 
 def test_a_segment_without_a_trajectory_is_run_again_with_the_one_before_it():
@@ -159,6 +162,17 @@ def test_one_worker_sparse_gt_and_short_recordings_keep_the_single_pass():
     split = trajectory_split([Path("bag")], cfg, Executor(2), sweeps, span)
     assert split is not None and split.segments == plan_segments((T0, T0 + 3 * S + 1), SHORT, KNOT)
     assert split.log_of(split.segments[0]) == (T0, T0 + 1)
+
+
+def test_a_worker_that_cannot_read_the_bags_says_so(tmp_path):
+    """A Dask worker on another machine finds no bag at the client's path: one line naming it."""
+    inputs = SegmentInputs((tmp_path / "walk.bag",), False, {}, cast(Rig, None), None, 0.3, OdometryParams())
+    with pytest.raises(BagError) as err:
+        trajectory_jobs.run_segment(inputs, SegmentJob((T0, T0 + S), (T0, T0 + S), T0))
+    assert str(err.value) == (
+        f"a worker running the trajectory pass cannot read the bags: {tmp_path / 'walk.bag'}: no such file or "
+        "directory"
+    )
 
 
 def test_a_single_pass_records_no_segments_a_split_one_its_joins():
