@@ -237,3 +237,14 @@ def stereo_topics(
             "names" if cams[0].reason.startswith("topic name") else "first two",
         )
     return None
+
+
+def missing_topic(where: str, wanted: str | None, what: str, topics: Iterable[str]) -> str:
+    """The line for a rig sensor's topic the bag does not have: the bag's topics listed (quoted where a
+    name holds whitespace or unprintable characters, which a plain listing hides), and a bag topic that
+    differs from `wanted` only by surrounding whitespace named as such."""
+    names = sorted(topics)
+    listing = ", ".join(n if n.isprintable() and n == n.strip() and " " not in n else repr(n) for n in names)
+    near = [n for n in names if wanted is not None and n != wanted and n.strip() == wanted.strip()]
+    hint = f" ({near[0]!r} differs from it only by whitespace)" if near else ""
+    return f"{where}: no topic {wanted!r} for {what} (from the rig){hint}; the bag has: {listing}"

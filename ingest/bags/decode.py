@@ -354,7 +354,8 @@ def decode_compressed_image(raw: Raw, ros_version: RosVersion = 2) -> Frame:
     with jpeg_warnings() as corrupt:
         if data.size:
             try:
-                image = cv2.imdecode(data, cv2.IMREAD_ANYCOLOR)
+                # the pixels as the sensor gave them: the camchain describes them, not an EXIF rotation
+                image = cv2.imdecode(data, cv2.IMREAD_ANYCOLOR | cv2.IMREAD_IGNORE_ORIENTATION)
             except cv2.error:
                 image = None
     what = f"CompressedImage (format {str(msg.format)!r}, {data.size} bytes)"

@@ -7,6 +7,7 @@ from __future__ import annotations
 import contextlib
 import sqlite3
 import stat
+import struct
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
@@ -32,6 +33,44 @@ def mcap_is_complete(path: Path) -> bool:
             return f.read() == MCAP_MAGIC
     except OSError:
         return False
+
+
+SUMMARY_OPCODES = {0x03, 0x04, 0x08, 0x0A, 0x0B, 0x0D, 0x0E}
+"""What an MCAP summary section may start with: schema, channel, chunk index, attachment index,
+statistics, metadata index, or summary offset records."""
+
+
+def mcap_footer_problem(path: Path) -> str | None:
+    """What is wrong with a complete MCAP file's footer, whose summary_start and summary_offset_start
+    must each be 0 or the offset of a summary record (`SUMMARY_OPCODES`, a summary offset record), else
+    None. A wrong offset makes the reader seek into the data and allocate what it reads there."""
+    try:
+        with path.open("rb") as f:
+            size = f.seek(0, 2)
+            if size < 2 * len(MCAP_MAGIC) + 29:
+                return None
+            f.seek(size - len(MCAP_MAGIC) - 29)
+            footer = f.read(29)
+            if footer[0] != 0x02:
+                return None
+            starts = struct.unpack_from("<QQ", footer, 9)
+            for name, start, allowed in zip(
+                ("summary_start", "summary_offset_start"), starts, (SUMMARY_OPCODES, {0x0E}), strict=True
+            ):
+                if start == 0:
+                    continue
+                opcode = b""
+                if len(MCAP_MAGIC) <= start < size - len(MCAP_MAGIC) - 29:
+                    f.seek(start)
+                    opcode = f.read(1)
+                if not opcode or opcode[0] not in allowed:
+                    return (
+                        f"its footer's {name} {start} points at no summary record (the file is {size} "
+                        "bytes): its index is damaged"
+                    )
+    except OSError:
+        return None
+    return None
 
 
 def refuse_special(path: Path) -> None:
@@ -132,6 +171,8 @@ def explain(path: Path, err: BaseException) -> str:
         return f"{path}: not an MCAP file: it starts like {other} (renamed?); give it that suffix"
     if path.suffix == ".mcap" and path.is_file() and not mcap_is_complete(path):
         return f"{path}: MCAP file is truncated or still being written (no closing magic); {SALVAGE_HINT}"
+    if path.suffix == ".mcap" and path.is_file() and (footer := mcap_footer_problem(path)) is not None:
+        return f"{path}: MCAP file: {footer}; {SALVAGE_HINT}"
     if path.suffix == ".mcap" and isinstance(err, KeyError) and (foreign := odd_mcap_encodings(path)):
         topic, encoding = foreign[0]
         return (
@@ -181,6 +222,9 @@ def explain(path: Path, err: BaseException) -> str:
         cut = [m.name for m in mcaps if not mcap_is_complete(m)]
         if cut:
             return f"{path}: {', '.join(cut)} truncated or still being written; {SALVAGE_HINT}"
+        for m in mcaps:
+            if (footer := mcap_footer_problem(m)) is not None:
+                return f"{m}: MCAP file: {footer}; {SALVAGE_HINT}"
     if "not indexed" in text:
         return (
             f"{path}: ROS 1 bag is not indexed (recording was interrupted); run `rosbag reindex` on it first"

@@ -141,7 +141,48 @@ def _open_reader(paths: list[Path], ros_version: RosVersion, guard: ChunkGuard) 
                 raise BagError(explain(path, single)) from err
         names = ", ".join(map(str, paths))
         raise BagError(f"cannot read these bags together ({names}): {type(err).__name__}: {err}") from err
+    try:
+        one_recording(reader.readers)
+    except BagError:
+        reader.close()
+        raise
     return reader
+
+
+def one_recording(readers: Sequence[Any]) -> None:
+    """`BagError` when two of the bags given together overlap in time on a topic they share and the later
+    one's first message there is not in the earlier one: two recordings of the same sensors, whose
+    messages would interleave, not the files of one (a split recording's files follow each other or
+    repeat each other's messages, which are read once; recorders of other topics are welcome)."""
+    spans = sorted(readers, key=lambda r: (int(r.start_time), str(r.path)))
+    for k, a in enumerate(spans):
+        for b in spans[k + 1 :]:
+            if int(b.start_time) >= int(a.end_time):
+                break
+            shared = {c.topic for c in a.connections} & {c.topic for c in b.connections}
+            if shared and not _repeats(a, b, shared):
+                raise BagError(
+                    f"{a.path} and {b.path} overlap in time ({_span(a)} and {_span(b)}) on {len(shared)} "
+                    f"topics such as {sorted(shared)[0]} with other messages: two recordings, not the files "
+                    "of one (a split recording's files follow each other); give them in two calls"
+                )
+
+
+def _repeats(a: Any, b: Any, topics: set[str]) -> bool:
+    """Whether `b`'s first message on one of `topics` is in `a` too (same topic, log time and bytes)."""
+    mine = [c for c in b.connections if c.topic in topics]
+    first = next(iter(b.messages(connections=mine)), None)
+    if first is None:
+        return True
+    conn, t_ns, raw = first
+    theirs = [c for c in a.connections if c.topic == conn.topic]
+    same_time = a.messages(connections=theirs, start=t_ns, stop=t_ns + 1)
+    return any(bytes(r) == bytes(raw) for _, _, r in same_time)
+
+
+def _span(reader: Any) -> str:
+    """A reader's log-time span, in seconds."""
+    return f"{int(reader.start_time) / 1e9:.3f}-{(int(reader.end_time) - 1) / 1e9:.3f} s"
 
 
 def _resolved(path: Path) -> Path:

@@ -122,6 +122,22 @@ def _empty_warning(scene: str, empty: list[str], stats: dict[str, dict[str, int]
     return f"{scene}: {what}; {frame_hint(scan)}"
 
 
+def without_disparity(stats: dict[str, dict[str, int]]) -> list[str]:
+    """Render keys of a scene whose surface has depth but whose disparity maps hold no pixel."""
+    return [k for k, st in stats.items() if st.get("disparity_px") == 0 and st["surface_px"] > 0]
+
+
+def _disparity_warning(scene: str, keys: list[str], state: RenderState) -> str:
+    rows = state.cfg.height_full
+    at = f"at --height-full {rows} " if rows is not None else ""
+    names = ", ".join(keys)
+    return (
+        f"{scene}: {len(keys)} renders draw a surface but their disparity maps hold no pixel ({names}): "
+        f"{at}the baseline's disparity is too small a part of a pixel to keep (more --height-full rows or a "
+        "longer --baseline keep it)"
+    )
+
+
 PASS_INDEX = "indexing the scans"
 """`run_benchmark`'s pass before the first view: each scan the views use sorted into its level-of-detail
 index (unit: scans)."""
@@ -235,7 +251,9 @@ def _render_tasks(
             if empty:
                 summary.empty[task.scene] = empty
                 doc["warnings"] = [_empty_warning(task.scene, empty, stats[task.scene], scans[view.center])]
-                summary.warnings += doc["warnings"]
+            if no_disparity := without_disparity(stats[task.scene]):
+                doc.setdefault("warnings", []).append(_disparity_warning(task.scene, no_disparity, state))
+            summary.warnings += doc.get("warnings", [])
             text = "# SensorBox benchmark scene (WideDepth layout)\n" + yaml.safe_dump(
                 doc, sort_keys=False, default_flow_style=None
             )

@@ -34,8 +34,14 @@ PLY_SIZES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort":
              "double": 8, "float64": 8}  # fmt: skip
 
 
+MAX_HEADER_BYTES = 1 << 20
+"""A PLY or PCD header ends within this (bytes): real ones take a few hundred; a file of zeros or of
+another kind would otherwise be read whole as its header."""
+
+
 def short_file(path: Path) -> str | None:
-    """What is missing from a PLY/PCD whose header promises more data than the file holds, else None.
+    """What is missing from a PLY/PCD whose header promises more data than the file holds, else None;
+    `ScanError` when no header ends within `MAX_HEADER_BYTES`.
 
     Binary files: bytes (PLY with fixed-size rows only, uncompressed PCD);
     ASCII files: lines. Other layouts are left to Open3D.
@@ -43,6 +49,11 @@ def short_file(path: Path) -> str | None:
     header: list[list[str]] = []
     with path.open("rb") as f:
         while raw := f.readline(4096):
+            if f.tell() > MAX_HEADER_BYTES:
+                raise ScanError(
+                    f"{path}: no end of a PLY or PCD header in its first {MAX_HEADER_BYTES >> 20} MiB "
+                    "('end_header' or 'DATA'); expected a point cloud file"
+                )
             header.append(raw.decode("ascii", "replace").split() or [""])
             if header[-1][0] not in ("end_header", "DATA"):
                 continue

@@ -4,6 +4,7 @@ bundles) and one task per camera."""
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -91,6 +92,11 @@ class BenchmarkConfig:
         ):
             if not all(math.isfinite(v) for v in values):
                 raise BenchmarkError(f"{option} {list(values)}: each value must be a finite number")
+        _given_once("--fov", self.fovs_deg)
+        _given_once("--baseline", self.baselines_mm)
+        _given_once("--yaw", self.yaws_deg, turn=True)
+        _given_once("--height", self.heights_m)
+        _given_once("--center", self.centers)
         if any(b > MAX_BASELINE_MM for b in self.baselines_mm):
             raise BenchmarkError(
                 f"--baseline {list(self.baselines_mm)}: each baseline must be at most {MAX_BASELINE_MM:g} mm"
@@ -124,6 +130,26 @@ class BenchmarkConfig:
             raise BenchmarkError(f"--bundle {self.bundle} and --workers {self.workers} must be >= 1")
         if not 0.0 < self.pinhole_crop <= 1.0 or not 0.0 < self.pinhole_fov_deg < 180.0:
             raise BenchmarkError("pinhole FOV must be in (0, 180) degrees and its crop fraction in (0, 1]")
+
+
+def _given_once(option: str, values: Sequence[float | str], turn: bool = False) -> None:
+    """Refuse a value given twice (`turn`: yaws, the same modulo 360 degrees): its views would be
+    rendered twice, as two scenes or folders weighing double in every score."""
+    seen: dict[float | str, float | str] = {}
+    for value in values:
+        key = value % 360.0 if turn and isinstance(value, float) else value
+        if key in seen:
+            first = seen[key]
+            same = "" if first == value else f" (the same as {_text(first)})"
+            raise BenchmarkError(
+                f"{option} {_text(value)}{same} is given twice; its views would be rendered twice and "
+                "weigh double in every score"
+            )
+        seen[key] = value
+
+
+def _text(value: float | str) -> str:
+    return f"{value:g}" if isinstance(value, float) else value
 
 
 @dataclass(frozen=True)

@@ -44,6 +44,7 @@ class _Writer:
 
     def __init__(self, state: RenderState, task: Task) -> None:
         self.state, self.task, self.dropped = state, task, 0
+        self.disparity_px = 0  # valid pixels of the disparity maps, at the first baseline folder
         self.files: dict[str, dict[str, Any]] = {}  # path in the scene -> its bytes and SHA-256
         cfg, t = state.cfg, task
         fovs = [f for f in cfg.pinhole_fovs if f in cfg.fovs_deg] if t.fov_deg is None else [t.fov_deg]
@@ -68,7 +69,10 @@ class _Writer:
         cache: dict[float, tuple[bytes, bytes | None]] = {}
         for folder, b in self.folders:
             if b not in cache:
-                cache[b] = self._encode(per_baseline(b), DISP_SCALE)
+                values = per_baseline(b)
+                if not cache:
+                    self.disparity_px += int(np.count_nonzero(values > 0))
+                cache[b] = self._encode(values, DISP_SCALE)
             self._put(folder / "disparity", name, *cache[b])
 
     def _encode(self, values: F32, scale: float) -> tuple[bytes, bytes | None]:
@@ -178,4 +182,6 @@ def run_task(s: RenderState, task: Task) -> tuple[Task, dict[str, int], dict[str
             raise BenchmarkError(f"unknown product {task.product!r}")
     stats = dict(rend.stats)
     stats["uint16_dropped"] = w.dropped
+    if center and task.product != "fisheye":
+        stats["disparity_px"] = w.disparity_px
     return task, stats, w.files

@@ -10,10 +10,18 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 from rich.table import Table
 
-from sensorbox.cli.common import check_out_file, console, path_param, print_warning, progress_bar
+from sensorbox.cli.common import (
+    check_not_an_input,
+    check_out_file,
+    console,
+    path_param,
+    print_warning,
+    progress_bar,
+)
 
 if TYPE_CHECKING:
     from calibration.report import RigReport
+    from ingest.train.run.lidar_poses import LidarRefinement
     from ingest.train.run.refine import Refinement
 
 PathArg = Annotated[
@@ -197,11 +205,22 @@ def lidar_table(refinement: Refinement) -> Table:
             lidar.lidar, f"{lidar.rotation_deg:.3f}, {lidar.translation_mm:.1f}",
             f"{lidar.sigma_rotation_deg:.3f}, {lidar.sigma_translation_mm:.1f}",
             f"{lidar.shift_before_deg:.3f} -> {lidar.shift_after_deg:.3f}", str(lidar.samples),
-            "pose refined" if lidar.applied else "rig's pose kept (its points match far worse than another "
-            "LiDAR's: off beyond refine's reach)" if lidar.mismatch else "rig's pose kept (uncertain and "
-            "insignificant)",
+            _lidar_outcome(lidar),
         )  # fmt: skip
     return table
+
+
+def _lidar_outcome(lidar: LidarRefinement) -> str:
+    """The lidar table's last column: what refine wrote for this LiDAR."""
+    from ingest.train.run.lidar_poses import MAX_TRANSLATION_SIGMA_MM
+
+    if lidar.applied and lidar.translation_held:
+        return f"rotation refined; position kept (1-sigma over {MAX_TRANSLATION_SIGMA_MM:.0f} mm)"
+    if lidar.applied:
+        return "pose refined"
+    if lidar.mismatch:
+        return "rig's pose kept (see the line below)"
+    return "rig's pose kept (uncertain and insignificant)"
 
 
 def stereo_line(refinement: Refinement) -> str:
@@ -234,6 +253,11 @@ def calib_refine(
     if plot is not None:
         check_out_file("--plot", plot)
     given = read_rig(rig)
+    read = [rig, *([Path(given.camchain.source)] if given.camchain and given.camchain.source else []), *bags]
+    written = [("--out", out), ("--out", out.with_name(f"{out.stem}-camchain.yaml")), ("--plot", plot)]
+    for flag, target in written:
+        if target is not None:
+            check_not_an_input(flag, target, read, "which refine reads (the rig, its camchain or a bag)")
     with progress_bar("reading frames and gyro", "messages") as update:
         refinement = refine_rig(
             bags, given, workers, progress=update,

@@ -7,8 +7,8 @@ import errno
 import os
 import signal
 import sys
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager, suppress
 from pathlib import Path
 from types import FrameType
 from typing import Annotated, Any, Protocol
@@ -188,6 +188,20 @@ def check_out_file(flag: str, path: Path) -> None:
     _check_parents(flag, path)
 
 
+def check_not_an_input(flag: str, path: Path, inputs: Sequence[Path], what: str) -> None:
+    """Refuse an output file that is one of the command's inputs or lies in an input folder: the write
+    would replace what the command read (`what` names the inputs in the message)."""
+    from ingest.errors import DatasetError
+
+    where = path.resolve()
+    for given in inputs:
+        source = given.resolve()
+        if where == source:
+            raise DatasetError(f"{flag} {path}: is {given}, {what}; give another path")
+        if source.is_dir() and where.is_relative_to(source):
+            raise DatasetError(f"{flag} {path}: lies in {given}, {what}; give a path outside it")
+
+
 def _write_refused(folder: Path) -> str | None:
     """Why this process may not create files in `folder` (an existing one), or None when it may."""
     if os.access(folder, os.W_OK | os.X_OK):
@@ -228,5 +242,7 @@ def print_warning(line: str, target: Console = err_console) -> None:
 
 
 def print_error(line: str) -> None:
-    """One plain "error: LINE" on stderr (no markup), as `sensorbox.cli.main` prints a SensorboxError."""
-    err_console.print(Text.assemble(("error:", "bold red"), " ", line), highlight=False, soft_wrap=True)
+    """One plain "error: LINE" on stderr (no markup), as `sensorbox.cli.main` prints a SensorboxError;
+    when stderr itself refuses it (`2> /dev/full`), nothing more can be said and the exit code speaks."""
+    with suppress(OSError):
+        err_console.print(Text.assemble(("error:", "bold red"), " ", line), highlight=False, soft_wrap=True)

@@ -138,6 +138,7 @@ def eval_cmd(
     for flag, path in (("--json", json_out), ("--heatmap", heatmap)):
         if path is not None:
             check_out_file(flag, path)
+            _not_an_input(flag, path, dataset, pred, [Path(m.partition("=")[2]) for m in mask or []])
     with progress_bar("scoring", "samples") as update:
         report = evaluate(dataset, pred, req.options, progress=update)
     if not report.samples and report.missing:
@@ -157,6 +158,24 @@ def eval_cmd(
     if heatmap is not None:
         _echo(f"\nHeatmap of {name} over FOV x baseline: {heatmap}")
     _echo(f"JSON report: {out}")
+
+
+def _not_an_input(flag: str, path: Path, dataset: Path, pred: Path, masks: list[Path]) -> None:
+    """Refuse a report path among the files eval reads: anywhere in the dataset, in the prediction
+    folder below its top level (the predictions mirror the dataset there), or in a mask folder."""
+    from ingest.errors import DatasetError
+
+    where = path.resolve()
+    for folder, what in [(dataset, "the dataset"), *((m, "a --mask folder") for m in masks)]:
+        if where.is_relative_to(folder.resolve()):
+            raise DatasetError(
+                f"{flag} {path}: inside {what} ({folder}), whose files eval reads; give a path outside it"
+            )
+    if where.is_relative_to(pred.resolve()) and where.parent != pred.resolve():
+        raise DatasetError(
+            f"{flag} {path}: among the predictions ({pred}), whose files eval reads; give a path outside "
+            f"{pred} or at its top level"
+        )
 
 
 def _print_stats(stats: DatasetStats, dataset: Path) -> None:

@@ -15,8 +15,10 @@ from __future__ import annotations
 
 import functools
 import logging
+import os
 import sys
 from collections.abc import Callable
+from pathlib import Path
 from typing import ParamSpec
 
 import typer
@@ -137,10 +139,22 @@ def main() -> None:
         print_error(str(err))
         sys.exit(2)
     except OSError as err:
-        where = f"{err.filename}: " if err.filename else ""
+        where = f"{err.filename}: " if err.filename else "standard output: " if _stdout_fails() else ""
         print_error(f"{where}{err.strerror or err}")
         sys.exit(3)
     sys.exit(done if isinstance(done, int) else 0)  # a typer.Exit's code, else the command's return value
+
+
+def _stdout_fails() -> bool:
+    """Whether standard output refuses writes (`> /dev/full`, a full disk); then it is left for
+    /dev/null, so that the interpreter's last flush does not print a traceback-like line."""
+    try:
+        sys.stdout.write("\n")  # a probe: an OSError without a file name is most often stdout's
+        sys.stdout.flush()
+    except OSError:
+        sys.stdout = Path(os.devnull).open("w")  # noqa: SIM115 - stands in for stdout until the process ends
+        return True
+    return False
 
 
 if __name__ == "__main__":

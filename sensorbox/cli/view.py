@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from sensorbox.cli.common import check_out_file, human_bytes, path_param, progress_bar
+from sensorbox.cli.common import check_not_an_input, check_out_file, human_bytes, path_param, progress_bar
 
 if TYPE_CHECKING:
     from sensorbox.analysis.view_files import ViewSummary
@@ -72,6 +72,8 @@ def view_cmd(
     unit = "samples" if detect_layout(dataset) == "train" else "scenes"
     if save is not None:
         check_out_file("--save", save)
+        if save.suffix != ".rrd":  # a recording inside the dataset is fine; one over its files is not
+            check_not_an_input("--save", save, [dataset], "the dataset the viewer reads")
     with progress_bar("viewing", unit) as update:
         summary = view_dataset(dataset, save, None if full_res else MAX_SIDE_PX, progress=update)
     typer.echo(summary_line(summary, dataset, save))

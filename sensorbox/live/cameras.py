@@ -223,6 +223,8 @@ class CameraNode:
         self.sources = list(sources)
         self.outputs = list(outputs)
         self.topics = [image_topic(o.topic, image) for o in outputs]
+        self.publishes = tuple(self.topics)  # what the launch checks no other node publishes
+        self.claims: tuple[str, ...] = ()  # the devices it opens, set by the graph's factory (the same)
         self._publish = publish
         self._shutdown = shutdown
         self.image: ImageFormat = image

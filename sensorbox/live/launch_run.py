@@ -64,4 +64,32 @@ def _build_nodes(plan: LaunchPlan, bus: Bus, shutdown: Shutdown) -> list[Any]:
                 "give each node its own name"
             )
         first[node.name] = spec.where
+    publisher: dict[str, str] = {}  # one publisher per topic: two would be recorded interleaved as one
+    for spec, node in zip(plan.nodes, nodes, strict=True):
+        for topic in getattr(node, "publishes", ()):
+            if topic in publisher:
+                raise LaunchError(
+                    f"{spec.where}: node {node.name!r} publishes {topic}, as does {publisher[topic]}; their "
+                    "messages would be recorded as one topic: give each its own (a remap or its topic "
+                    "parameter)"
+                )
+            publisher[topic] = f"node {node.name!r} at {spec.where}"
+    _one_source_per_device(plan, nodes)
     return nodes
+
+
+def _one_source_per_device(plan: LaunchPlan, nodes: list[Any]) -> None:
+    """LaunchError when two sources open one device (`claims`): a camera device or ZED serial given as
+    both cameras, two emulators on one address."""
+    opener: dict[str, tuple[str, str]] = {}
+    for spec, node in zip(plan.nodes, nodes, strict=True):
+        for device in getattr(node, "claims", ()):
+            if device not in opener:
+                opener[device] = (node.name, spec.where)
+                continue
+            name, where = opener[device]
+            also = " for both its cameras" if name == node.name else f", as does node {name!r} at {where}"
+            raise LaunchError(
+                f"{spec.where}: node {node.name!r} opens {device}{also}; one device cannot be two sources: "
+                "give each its own"
+            )

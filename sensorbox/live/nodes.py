@@ -46,7 +46,6 @@ from __future__ import annotations
 import importlib
 import ipaddress
 import itertools
-import json
 import logging
 import math
 import threading
@@ -57,7 +56,6 @@ from pathlib import Path
 from typing import Any
 
 from calibration.errors import SensorboxError
-from calibration.files import read_text
 from ingest.train.sync import pair_tolerance_ns
 from sensorbox.errors import GraphError
 from sensorbox.live.bus import (
@@ -70,7 +68,7 @@ from sensorbox.live.bus import (
     Shutdown,
     node_context,
 )
-from sensorbox.live.livox_node import LivoxDriverNode
+from sensorbox.live.livox_node import LivoxDriverNode, read_livox_json
 
 log = logging.getLogger(__name__)
 
@@ -171,54 +169,9 @@ class Params:
 # ---------------------------------------------------------------- Livox driver
 
 
-def read_livox_json(path: Path) -> dict[str, Any]:
-    """host_ip, ports (dict of Ports fields), lidars [(ip, extrinsic | None)] and data_type from a
-    livox_ros_driver2 user config (MID360_config.json)."""
-    text = read_text(Path(path), "Livox user config", "JSON", error=GraphError)  # a regular file, <= 4 MiB
-    try:
-        doc = json.loads(text)
-    except RecursionError as err:  # json's decoder recurses once per [ or {
-        raise GraphError(f"{path}: malformed JSON: nested too deeply for a Livox user config") from err
-    except json.JSONDecodeError as err:
-        raise GraphError(f"{path}: line {err.lineno}: malformed JSON: {err.msg}") from err
-    try:
-        mid = doc["MID360"]
-        host, dev = mid["host_net_info"], mid["lidar_net_info"]
-        ips = {host[k] for k in ("cmd_data_ip", "push_msg_ip", "point_data_ip", "imu_data_ip")}
-        if len(ips) != 1:
-            raise GraphError(f"{path}: MID360.host_net_info: SensorBox needs one host IP, got {sorted(ips)}")
-        ports = {
-            "lidar_cmd": dev["cmd_data_port"], "lidar_push": dev["push_msg_port"],
-            "lidar_point": dev["point_data_port"], "lidar_imu": dev["imu_data_port"],
-            "host_cmd": host["cmd_data_port"], "host_push": host["push_msg_port"],
-            "host_point": host["point_data_port"], "host_imu": host["imu_data_port"],
-        }  # fmt: skip
-        lidars = []
-        types = set()
-        for k, cfg in enumerate(doc["lidar_configs"]):
-            ext = cfg.get("extrinsic_parameter")
-            extrinsic = (
-                None
-                if ext is None
-                else tuple(float(ext[key]) for key in ("roll", "pitch", "yaw", "x", "y", "z"))
-            )
-            if extrinsic is not None and not any(extrinsic):
-                extrinsic = None  # identity: nothing to apply
-            lidars.append((str(cfg["ip"]), extrinsic))
-            types.add(int(cfg.get("pcl_data_type", 1)))
-            if int(cfg.get("pattern_mode", 0)) != 0:
-                raise GraphError(
-                    f"{path}: lidar_configs[{k}].pattern_mode: only 0 (non-repetitive) is supported"
-                )
-    except (KeyError, TypeError, ValueError) as err:
-        raise GraphError(f"{path}: not a livox_ros_driver2 MID360 config: missing or bad {err}") from err
-    if len(types) != 1:
-        raise GraphError(f"{path}: lidar_configs use different pcl_data_type values {sorted(types)}")
-    return {"host_ip": next(iter(ips)), "ports": ports, "lidars": lidars, "data_type": types.pop()}
-
-
 def livox_driver_node(ctx: NodeContext, p: Params) -> Node:
     from sensorbox.livox import DriverConfig, LidarEndpoint, Ports
+    from sensorbox.livox.config import imu_topic, lidar_topic
 
     fmt = {0: "pointcloud2", 1: "custom"}.get(p.integer("xfer_format", 1))
     if fmt is None:
@@ -258,9 +211,18 @@ def livox_driver_node(ctx: NodeContext, p: Params) -> Node:
         imu=p.flag("imu", True), data_type=data_type, ports=ports,
     )  # fmt: skip
     config.validate()
-    return LivoxDriverNode(
+    node = LivoxDriverNode(
         ctx.name, config, ctx.publish, p.number("discovery_s", 0.0), p.flag("process", True)
     )
+    topics = []
+    for lidar in config.lidars:
+        ip = lidar.topic_ip or lidar.ip
+        topics += [
+            lidar_topic(ip, config.multi_topic),
+            *([imu_topic(ip, config.multi_topic)] if config.imu else []),
+        ]
+    node.publishes = tuple(ctx.resolve(t.lstrip("/")) for t in topics)  # published as relative names
+    return node
 
 
 # ---------------------------------------------------------------- cameras
@@ -272,6 +234,8 @@ def _source(p: Params, kind: str, which: str, sim: Any, cam: int, name: str) -> 
     pre = f"{which}_" if which else ""
     if kind == "zed":
         serial = p.integer(pre + "serial", 0)
+        if serial < 0:
+            raise p._err(pre + "serial", serial, "a ZED serial number (0: the first camera found)")
         return ZedSource(serial or None, p.text("resolution", "HD1200"), int(p.number("fps", 30.0)), name)
     if kind == "opencv":
         device = p.text(pre + "device", str(cam))
@@ -307,9 +271,25 @@ def camera_node(ctx: NodeContext, p: Params) -> Node:
     out = CameraOutput(
         ctx.resolve(p.text("topic", default_topic)), p.text("frame_id", f"{ctx.name}_optical_frame")
     )
-    return CameraNode(
+    node = CameraNode(
         ctx.name, [source], [out], ctx.bus.publish, ctx.shutdown, on_open=on_open, **_image_opts(p)
     )
+    node.claims = _claims(p, kind, [""], [cam])
+    return node
+
+
+def _claims(p: Params, kind: str, which: list[str], cams: list[int]) -> tuple[str, ...]:
+    """The devices a camera node's sources open: OpenCV devices, ZED serials (0, the first camera found,
+    claims none): the launch refuses two sources on one."""
+    if kind == "opencv":
+        return tuple(
+            f"the camera device {p.text(f'{w}_device' if w else 'device', str(c))}"
+            for w, c in zip(which, cams, strict=True)
+        )
+    if kind == "zed":
+        serials = [p.integer(f"{w}_serial" if w else "serial", 0) for w in which]
+        return tuple(f"the ZED camera serial {s}" for s in serials if s > 0)
+    return ()
 
 
 def stereo_camera_node(ctx: NodeContext, p: Params, source: str | None = None) -> Node:
@@ -330,10 +310,12 @@ def stereo_camera_node(ctx: NodeContext, p: Params, source: str | None = None) -
         outputs.append(CameraOutput(topic, p.text(f"{which}_frame_id", f"cam{cam}_optical_frame")))
     fps = p.number("fps", 30.0)
     tol_ms = p.number("pair_tolerance_ms", pair_tolerance_ns(1e9 / fps) / 1e6)
-    return CameraNode(
+    node = CameraNode(
         ctx.name, sources, outputs, ctx.bus.publish, ctx.shutdown, pair_tolerance_ns=round(tol_ms * 1e6),
         on_open=on_open, **_image_opts(p),
     )  # fmt: skip
+    node.claims = _claims(p, kind, ["upper", "lower"], [0, 1])
+    return node
 
 
 # ---------------------------------------------------------------- recorder and talker

@@ -53,6 +53,12 @@ class DriverConfig:
         ips = [li.ip for li in self.lidars]
         if len(set(ips)) != len(ips):
             raise DriverError(f"DriverConfig.lidars lists an IP twice: {ips}")
+        if not self.multi_topic and len(ips) > 1:
+            raise DriverError(
+                f"multi_topic 0 with {len(ips)} lidars ({', '.join(ips)}) publishes every lidar on "
+                "/livox/lidar and every IMU on /livox/imu, one stream no rig can tell apart; set "
+                "multi_topic 1 (/livox/lidar_<ip>)"
+            )
         if self.host_ip in ips:
             raise DriverError(f"host_ip {self.host_ip} equals a lidar IP (the SDK drops such datagrams)")
         if self.data_type not in packets.POINT_DTYPES:

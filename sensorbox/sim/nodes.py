@@ -41,6 +41,7 @@ class EmulatorNode:
     def __init__(self, name: str, sim_cfg: Any, lidar: str, ip: str, loop_s: float, options: dict[str, Any]):
         self.name = name
         self.process = EmulatorProcess(EmulatorSpec(name, sim_cfg, lidar, ip, loop_s, options))
+        self.claims = (f"the Mid-360 address {ip}",)  # what the launch checks no other node opens
 
     def start(self) -> None:
         self.process.start()

@@ -141,6 +141,76 @@ def test_two_launch_nodes_of_one_name_are_refused_by_the_dry_run(
     )
 
 
+def test_two_nodes_publishing_one_topic_are_refused_by_the_dry_run(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Sweep 7: a second camera node on the same topics, or a Livox driver with multi_topic 0 and two
+    LiDARs, recorded two sensors interleaved on one topic, exit 0."""
+    launch = tmp_path / "x.launch.yaml"
+    camera = (
+        "{pkg: sensorbox, exec: camera, name: %s, param: [{name: source, value: opencv}, {name: device, value: '0'}, "
+        "{name: topic, value: /zed_upper/image}]}"
+    )
+    launch.write_text(f"launch:\n- node: {camera % 'cam_a'}\n- node: {camera % 'cam_b'}\n")
+    code, _, err = sensorbox(capsys, "launch", "--dry-run", str(launch))
+    topic = "/zed_upper/image/compressed"
+    assert (code, err) == (2, [
+        f"error: {launch}:3: node 'cam_b' publishes {topic}, as does node 'cam_a' at {launch}:2; their messages "
+        "would be recorded as one topic: give each its own (a remap or its topic parameter)"
+    ])  # fmt: skip
+    driver = tmp_path / "d.launch.yaml"
+    driver.write_text(
+        "launch:\n- node: {pkg: sensorbox, exec: livox_driver, name: drv, param: [{name: host_ip, value: 127.0.0.1}, "
+        "{name: lidar_ips, value: [127.0.0.12, 127.0.0.13]}, {name: multi_topic, value: false}]}\n"
+    )
+    code, _, err = sensorbox(capsys, "launch", "--dry-run", str(driver))
+    assert (code, err) == (2, [
+        f"error: node 'drv' (sensorbox/livox_driver) at {driver}:2: multi_topic 0 with 2 lidars (127.0.0.12, "
+        "127.0.0.13) publishes every lidar on /livox/lidar and every IMU on /livox/imu, one stream no rig can "
+        "tell apart; set multi_topic 1 (/livox/lidar_<ip>)"
+    ])  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (
+            ["camera:=opencv", "upper_device:=/dev/video0", "lower_device:=/dev/video0"],
+            ":49: node 'v4l2_stereo' opens the camera device /dev/video0 for both its cameras; one device cannot "
+            "be two sources: give each its own",
+        ),
+        (
+            ["upper_serial:=301234", "lower_serial:=301234"],
+            ":37: node 'zed_stereo' opens the ZED camera serial 301234 for both its cameras; one device cannot be "
+            "two sources: give each its own",
+        ),
+        (
+            ["upper_serial:=-5"],
+            ":37: parameter 'upper_serial' = -5: expected a ZED serial number (0: the first camera found)",
+        ),
+    ],
+)
+def test_one_camera_as_both_sources_is_refused_by_the_dry_run(
+    capsys: pytest.CaptureFixture[str], args: list[str], message: str
+) -> None:
+    """Sweep 6 U5: the dry run accepted one camera device or ZED serial as both cameras, and a serial of -5."""
+    code, _, err = sensorbox(capsys, "launch", "--dry-run", "launch/sensorbox.launch.yaml", "out:=x", *args)
+    assert code == 2 and len(err) == 1 and err[0].startswith("error: ") and err[0].endswith(message), err
+
+
+def test_two_emulators_on_one_address_are_refused_by_the_dry_run(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    launch = tmp_path / "x.launch.yaml"
+    node = "{pkg: sensorbox, exec: mid360_emulator, name: %s, param: [{name: ip, value: 127.0.0.12}]}"
+    launch.write_text(f"launch:\n- node: {node % 'a'}\n- node: {node % 'b'}\n")
+    code, _, err = sensorbox(capsys, "launch", "--dry-run", str(launch))
+    assert (code, err) == (2, [
+        f"error: {launch}:3: node 'b' opens the Mid-360 address 127.0.0.12, as does node 'a' at {launch}:2; one "
+        "device cannot be two sources: give each its own"
+    ])  # fmt: skip
+
+
 def test_a_launch_argument_given_twice_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """Sweep 3: `out:=a out:=b` ran into b without a word about a."""
     launch = ROOT / "launch" / "sim.launch.yaml"

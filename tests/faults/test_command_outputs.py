@@ -12,6 +12,7 @@ writer's own exception. Nothing here needs root.
 from __future__ import annotations
 
 import errno
+import json
 import os
 import sqlite3
 from pathlib import Path
@@ -177,6 +178,67 @@ def test_output_files_that_are_a_device_or_fifo_are_refused_before_the_work(
         assert (code, out, err) == (3, "", [message]), args
     assert fifo.lstat().st_mode & 0o170000 == 0o010000 and link.readlink() == Path("/dev/null")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bench", "e.json", "h.png", "pred"]
+
+
+def test_an_eval_report_onto_a_file_eval_reads_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Sweep 7 S1: `eval --json PRED/.../000000.png` wrote the JSON report over that prediction, exit 0.
+    A report path in the dataset, among the predictions or in a mask folder is refused (exit 2), and
+    every input is left as it was; the top level of the prediction folder (the default report's) is fine."""
+    bench = make_benchmark(tmp_path / "bench")
+    pred = tmp_path / "pred"
+    write_predictions(bench, pred, "stereo")
+    one = sorted(pred.rglob("*.png"))[0]
+    gt = sorted(bench.rglob("*.png"))[0]
+    before = {p: p.read_bytes() for p in [*pred.rglob("*"), *bench.rglob("*")] if p.is_file()}
+    eval_args = ["eval", "--dataset", str(bench), "--pred", str(pred), "--task", "stereo"]
+    cases = [
+        (["--json", str(one)], f"error: --json {one}: among the predictions ({pred}), whose files eval reads; "
+                               f"give a path outside {pred} or at its top level"),
+        (["--heatmap", str(gt)], f"error: --heatmap {gt}: inside the dataset ({bench}), whose files eval reads; "
+                                 "give a path outside it"),
+    ]  # fmt: skip
+    for args, message in cases:
+        assert sensorbox(capsys, *eval_args, *args) == (2, "", [message]), args
+    assert {p: p.read_bytes() for p in [*pred.rglob("*"), *bench.rglob("*")] if p.is_file()} == before
+    code, _, _ = sensorbox(
+        capsys, *eval_args, "--image-type", "pano_crop", "--json", str(pred / "report.json")
+    )
+    assert code == 0 and json.loads((pred / "report.json").read_text())
+
+
+def test_refine_and_view_refuse_to_write_over_what_they_read(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Sweep 7 S1: `calib refine --out` onto the input rig's camchain replaced it with the refined rig (the
+    input rig no longer loaded), and `view --save` onto a GT depth PNG made it a Rerun recording; exit 0."""
+    rig = tmp_path / "rig" / "rig.yaml"
+    rig.parent.mkdir()
+    for name in ("rig.yaml", "camchain.yaml"):
+        (rig.parent / name).write_bytes((RIG.parent / name).read_bytes())
+    chain = rig.parent / "camchain.yaml"
+    kept = chain.read_bytes()
+    code, _, err = sensorbox(capsys, "calib", "refine", str(INDOOR), "--rig", str(rig), "--out", str(chain))
+    assert (code, err) == (2, [
+        f"error: --out {chain}: is {chain}, which refine reads (the rig, its camchain or a bag); give another path"
+    ])  # fmt: skip
+    assert chain.read_bytes() == kept
+    inside = INDOOR / "refined.yaml"
+    code, _, err = sensorbox(capsys, "calib", "refine", str(INDOOR), "--rig", str(rig), "--out", str(inside))
+    assert (code, err) == (2, [
+        f"error: --out {inside}: lies in {INDOOR}, which refine reads (the rig, its camchain or a bag); give a path "
+        "outside it"
+    ])  # fmt: skip
+    dataset = tmp_path / "ds"
+    (dataset / "depth_fisheye").mkdir(parents=True)
+    png = dataset / "depth_fisheye" / "000000.png"
+    png.write_bytes(b"a depth map")
+    code, _, err = sensorbox(capsys, "view", str(dataset), "--save", str(png))
+    assert (code, err) == (2, [
+        f"error: --save {png}: lies in {dataset}, the dataset the viewer reads; give a path outside it"
+    ])  # fmt: skip
+    assert png.read_bytes() == b"a depth map"
 
 
 @pytest.mark.parametrize(

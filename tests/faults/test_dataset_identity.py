@@ -398,3 +398,35 @@ def test_a_benchmark_folder_is_not_ingested_into(tmp_path: Path, capsys: pytest.
         ],
     )
     assert sorted(p.name for p in out.iterdir()) == ["000_000_000"]
+
+
+WALK = INDOOR.parent / "outdoor_walk_mcap"
+
+
+@pytest.mark.parametrize("command", ["inspect", "ingest"])
+def test_two_recordings_given_together_are_refused_naming_both(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], command: str
+) -> None:
+    """Sweep 6 S6/U3: two recordings over the same 0.7 s of stamps on the same topics, given together,
+    were read as one: `inspect` suggested IMU rates of 4385.7 and 543.9 Hz (both run at 200), ingest
+    interleaved them. One line names both bags, their spans and a shared topic."""
+    extra = ["--rig", str(RIG), "--out", str(tmp_path / "ds")] if command == "ingest" else []
+    code, _, err = sensorbox(capsys, command, str(INDOOR), str(WALK), *extra)
+    assert (code, err) == (2, [
+        f"error: {INDOOR} and {WALK} overlap in time (1700000000.001-1700000000.702 s and "
+        "1700000000.001-1700000000.800 s) on 4 topics such as /livox/imu_192_168_1_12 with other messages: two "
+        "recordings, not the files of one (a split recording's files follow each other); give them in two calls"
+    ])  # fmt: skip
+    assert not (tmp_path / "ds").exists()
+
+
+def test_recorders_of_other_topics_at_the_same_time_are_one_recording(tmp_path: Path) -> None:
+    """Bags recorded side by side, one with the cameras and one with the LiDARs and IMUs, overlap in time
+    but share no topic: read together, they are the recording whole."""
+    cameras, _ = rewrite(tmp_path / "cameras.mcap", lambda t, k, raw: [(t, raw)] if "zed" in t else [])
+    livox, _ = rewrite(tmp_path / "livox.mcap", lambda t, k, raw: [] if "zed" in t else [(t, raw)])
+    with open_bags([cameras, livox]) as both, open_bags([INDOOR]) as whole:
+        assert both.topics() == whole.topics()
+        assert sorted((m.topic, m.log_ns) for m in both.messages()) == sorted(
+            (m.topic, m.log_ns) for m in whole.messages()
+        )

@@ -38,3 +38,16 @@ def test_a_rig_topic_declared_without_a_message_is_named_empty_exit_2(
         [sensor, topic, "in the bag but empty: 0 messages"]
     ]
     assert "every topic is in the bag" not in out
+
+
+def test_a_topic_differing_only_by_whitespace_is_named_as_such() -> None:
+    """Sweep 7 U6: a channel '/livox/imu_192_168_1_12 ' (a trailing space) was listed unquoted beside the
+    line saying '/livox/imu_192_168_1_12' is missing, so the line seemed to list the topic it missed."""
+    from ingest.topic_map import missing_topic
+
+    topics = ["/livox/imu_192_168_1_12 ", "/livox/imu_192_168_1_13", "/cam\timage"]
+    assert missing_topic("b.mcap", "/livox/imu_192_168_1_12", "imu imu_top", topics) == (
+        "b.mcap: no topic '/livox/imu_192_168_1_12' for imu imu_top (from the rig) ('/livox/imu_192_168_1_12 ' "
+        "differs from it only by whitespace); the bag has: '/cam\\timage', '/livox/imu_192_168_1_12 ', "
+        "/livox/imu_192_168_1_13"
+    )

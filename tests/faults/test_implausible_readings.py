@@ -422,3 +422,33 @@ def test_livox_coordinates_in_centimetres_are_refused_naming_the_unit(
     assert found, err[0]
     assert 150 <= int(found.group(1).replace(",", "")) <= 500  # a room's few metres, times 100
     assert not (tmp_path / "ds").exists()
+
+
+def _longer(pts: Any) -> Any:
+    for axis in "xyz":
+        pts[axis] *= 1.05
+    return pts
+
+
+RANGES = re.compile(
+    r"^lidar_bottom's ranges read (\d\.\d\d) % shorter than lidar_top's on the surfaces cam0 sees both on "
+    r"\(median over ([\d,]+) pixels of 7 samples; a right rig agrees to 0\.05 %\): one of them measures ranges "
+    r"wrong \(a range scale or offset\) or its pose is off along the view, and the depth GT mixes both: ingest "
+    r"with each alone \(the other left out of the rig\) to see which matches the images$"
+)
+
+
+def test_a_lidar_reading_its_ranges_5_percent_long_is_named(tmp_path: Path) -> None:
+    """Sweep 7 S4: lidar_top's points 5 % further out (a range-scale fault) passed every check: 44 % of the
+    depth GT outliers against truth, exit 0. Where cam0 sees both LiDARs in a pixel, their ranges differ by
+    that scale (an exact rig: under 0.05 %), and one line says so."""
+
+    def longer(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        return [(topic, _points(_longer)(raw) if topic == LIDAR_TOP else raw)]
+
+    summary, _ = _run(tmp_path, "long", longer, src=INDOOR, gt="sparse")
+    found = [m for line in summary.warnings if (m := RANGES.match(line))]
+    assert len(found) == 1, summary.warnings
+    assert float(found[0].group(1)) == pytest.approx(100 * (1 - 1 / 1.05), abs=0.1)  # 4.76 %
+    ratios = [ratio for ratio, _ in summary.range_ratios["lidar_bottom"]]
+    assert len(ratios) == 7 and all(abs(r - 1 / 1.05) < 0.002 for r in ratios)

@@ -495,7 +495,7 @@ def test_a_site_manifest_or_livox_user_config_that_is_a_fifo_is_refused(tmp_path
     )
     config = tmp_path / "MID360_config.json"
     os.mkfifo(config)
-    code = f"from sensorbox.live.nodes import read_livox_json; read_livox_json({str(config)!r})"
+    code = f"from sensorbox.live.livox_node import read_livox_json; read_livox_json({str(config)!r})"
     try:
         res = subprocess.run(
             [sys.executable, "-c", code], capture_output=True, text=True, timeout=60,

@@ -191,3 +191,23 @@ def test_a_closed_standard_output_is_one_line_and_a_closed_standard_error_is_sil
         cwd=ROOT,
     )
     assert quiet.returncode == 2 and quiet.stderr == ""  # the error went nowhere; the exit code still tells
+
+
+def test_a_full_standard_output_is_named_and_a_full_standard_error_keeps_the_exit_code(
+    tmp_path: Path,
+) -> None:
+    """Sweep 7: `inspect ... > /dev/full` said only "No space left on device" (naming neither stdout nor
+    a file), and `calib check MISSING 2> /dev/full` exited 1 instead of the documented 2."""
+    python = f"{sys.executable} -m sensorbox.cli"
+    full = subprocess.run(
+        ["bash", "-c", f"{python} inspect {INDOOR} --rig {RIG} > /dev/full"],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+    )
+    assert (full.returncode, full.stderr) == (3, "error: standard output: No space left on device\n")
+    quiet = subprocess.run(
+        ["bash", "-c", f"{python} calib check {tmp_path / 'missing.yaml'} 2> /dev/full"],
+        capture_output=True, text=True, cwd=ROOT,
+    )  # fmt: skip
+    assert (quiet.returncode, quiet.stdout) == (2, "")

@@ -60,3 +60,31 @@ def test_the_fixtures_full_sweeps_are_neither_thin_nor_warned_about(tmp_path: Pa
     summary = ingest([INDOOR], IngestConfig(rig=INDOOR.parent / "indoor_static_mcap.truth" / "rig.yaml",
                                             out=tmp_path / "ds", **FAST))  # type: ignore[arg-type]  # fmt: skip
     assert summary.written == 7 and summary.flagged == {} and summary.warnings == []
+
+
+def test_two_stretches_an_hour_apart_are_rated_over_the_time_they_cover() -> None:
+    """Sweep 6 U3: two recordings an hour apart in one call blamed the LiDARs (78 points/s, 'a driver set
+    to drop points'): the rate was taken over the hour between. Full sweeps an hour apart rate at a
+    Mid-360's 200,000 points/s, and a stretch thin in every sweep still is thin."""
+    import numpy as np
+
+    from ingest.train.run.lidar_rate import LidarRates
+
+    def sweeps(rates: LidarRates, start_ns: int, count: int, points: int) -> None:
+        for k in range(count):  # 100 ms sweeps, points evenly over each
+            t0 = start_ns + k * 100_000_000
+            rates.add("/lidar", t0 + np.linspace(0, 100_000_000, points, endpoint=False).astype(np.int64))
+
+    full = LidarRates()
+    sweeps(full, 0, 7, 20_000)
+    sweeps(full, 3_600_000_000_000, 7, 20_000)
+    got = full.recorded_per_s("/lidar")
+    assert got is not None and abs(got - 200_000) < 1_000
+    assert full.thin_lines({"/lidar": "lidar_top"}) == []
+    thin = LidarRates()
+    sweeps(thin, 0, 7, 2_000)
+    sweeps(thin, 3_600_000_000_000, 7, 2_000)
+    (line,) = thin.thin_lines({"/lidar": "lidar_top"})
+    assert line.startswith(
+        "/lidar (the rig's lidar lidar_top): 28,000 points in 14 sweeps (2,000 a sweep, 20,0"
+    )

@@ -125,6 +125,27 @@ def test_combine_tells_a_pose_error_from_a_clock_offset() -> None:
     assert np.allclose(c.corrections["top"].vector, top, atol=5e-4)
 
 
+def test_two_samples_name_no_pose_or_clock_and_three_do() -> None:
+    """Sweep 7 U8: a right rig whose lower frames were thinned kept two aligned samples, and the check
+    called lidar_top 0.36 deg and 87 mm off from them: with fewer than three samples their spread, which
+    scales the sigmas, is a guess. The same samples, three of them, are named."""
+    from ingest.train.gt.align_check import MIN_POSE_SAMPLES, check_calibration
+
+    rng = np.random.default_rng(3)
+    top = np.r_[np.radians([0.4, 0.0, 0.0]), 0.02, 0.0, 0.0]
+
+    def samples(n: int) -> list[tuple[dict[str, Alignment], F64 | None]]:
+        return [({"top": _sample(top, np.zeros(6), rng)}, None) for _ in range(n)]
+
+    assert MIN_POSE_SAMPLES == 3
+    few = check_calibration(samples(2))
+    assert few is not None and few.suspects() == [] and few.warnings("rig.yaml") == []
+    enough = check_calibration(samples(3))
+    assert enough is not None and [s.split(" looks off")[0] for s in enough.suspects()] == [
+        "top's pose in cam0"
+    ]
+
+
 def _ingest(bag: Path, out: Path, R_top: F64 | None) -> tuple[dict[str, Any], list[str]]:
     rig = Truth.load(bag).rig
     if R_top is not None:
@@ -199,7 +220,7 @@ def test_the_stereo_pose_error_comes_back_from_both_images_corrections() -> None
     (E T10 X T10^-1) give E back, 0.3 deg and 5 mm; an exact stereo pose gives nothing."""
     from calibration.rig import REFERENCE_RIG, read_rig
     from ingest.train.gt.align_check import Combined
-    from ingest.train.run.refine import stereo_alignment
+    from ingest.train.run.lidar_poses import stereo_alignment
 
     rig = read_rig(REFERENCE_RIG)
     T10 = rig.lower.T_cam_cam0
@@ -237,7 +258,8 @@ def test_an_alignment_only_run_writes_no_sample_and_finds_what_the_metas_record(
     runs = {}
     for name, only in (("written", False), ("aligned", True)):
         cfg = IngestConfig(rig=rig_file, out=tmp_path / name, workers=1, gt="sparse")
-        runs[name] = ingest([bag], replace(cfg, sample=SampleParams(align_lower=True, alignment_only=only)))
+        sample = SampleParams(align_lower=True, lower_every=1, alignment_only=only)
+        runs[name] = ingest([bag], replace(cfg, sample=sample))
     files = [p for p in (tmp_path / "aligned").rglob("*") if p.is_file() and p.name != "dataset.yaml"]
     assert runs["aligned"].written == 0 and not [p for p in files if p.suffix in (".png", ".json", ".exr")]
     metas = [
@@ -255,3 +277,21 @@ def test_an_alignment_only_run_writes_no_sample_and_finds_what_the_metas_record(
             assert (twist is None) == (twist_recorded is None)
             if twist is not None and twist_recorded is not None:
                 assert np.abs(twist - twist_recorded).max() <= 1e-6
+
+
+def test_images_too_coarse_to_align_on_are_said_and_not_aligned() -> None:
+    """Sweep 6 U1: the tool's own 48x30 px emulated capture of a right rig was said to have lidar_top 10.4
+    deg and 641 mm off (4 deg pixels: the alignment cannot measure a pose there). Such images get one
+    line and no alignment; the reference rig's own images are aligned."""
+    from calibration.rig import REFERENCE_RIG, read_rig
+    from ingest.train.run.sample_job import Geometry
+    from sensorbox.sim.run import scaled_rig
+
+    coarse = Geometry.from_rig(scaled_rig(read_rig(REFERENCE_RIG), 0.025))
+    assert coarse.too_coarse_to_align
+    assert coarse.coarse_line() == (
+        "cam0's images (48x30 px, 3.7 deg a pixel) are too coarse to lay the LiDAR points on (over 2 "
+        "deg a pixel): the pose, clock and stereo checks were not run"
+    )
+    fine = Geometry.from_rig(read_rig(REFERENCE_RIG))
+    assert not fine.too_coarse_to_align and fine.coarse_line() == ""

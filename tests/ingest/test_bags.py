@@ -1,6 +1,7 @@
 """Bag reading: every format and Livox package round trips; broken bags fail clearly or are salvaged."""
 
 import logging
+import struct
 from typing import Any
 
 import numpy as np
@@ -389,6 +390,26 @@ def test_truncated_mcap_fails_clearly_and_salvages_complete_chunks(blob_bag, tmp
         assert bags.topics() == {"/blob": TopicSummary(BLOB, len(salvaged))}
         assert_blobs(list(bags.messages(["/blob"])))
         assert [m.log_ns - T0 for m in bags.messages(start_ns=T0 + 2, stop_ns=T0 + 4)] == [2, 3]
+
+
+def test_a_footer_pointing_into_the_data_is_named_and_salvaged(blob_bag, tmp_path):
+    """Sweep 7 U5: the footer's summary_start moved by 7 bytes read as `cannot read bag: MemoryError: `."""
+    data = bytearray(next(blob_bag.glob("*.mcap")).read_bytes())
+    footer = (
+        len(data) - 8 - 29
+    )  # the footer record before the closing magic: opcode, length, then the offsets
+    (start,) = struct.unpack_from("<Q", data, footer + 9)
+    struct.pack_into("<Q", data, footer + 9, start + 7)
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(bytes(data))
+    with pytest.raises(BagError) as err:
+        open_bags(bad)
+    assert str(err.value) == (
+        f"{bad}: MCAP file: its footer's summary_start {start + 7} points at no summary record (the file is "
+        f"{len(data)} bytes): its index is damaged; rerun with --salvage to read its complete chunks"
+    )
+    with open_bags(bad, salvage=True) as bags:
+        assert_blobs(list(bags.messages()))
 
 
 def test_complete_mcap_salvages_everything(blob_bag):

@@ -391,13 +391,43 @@ def _ground_scan(up_axis: int) -> Scan:
     return Scan("ground", np.eye(4), xyz, rgb, source="ground.ply")
 
 
+NO_DISPARITY_64 = (
+    "000_000_000: 2 renders draw a surface but their disparity maps hold no pixel (120FOV/CENTER/pano, "
+    "120FOV/CENTER/cassini): at --height-full 64 the baseline's disparity is too small a part of a pixel to "
+    "keep (more --height-full rows or a longer --baseline keep it)"
+)
+
+
+def test_disparity_maps_without_a_pixel_are_named(tmp_path):
+    """Sweep 6 S5: at `--height-full 64` every angular disparity map was empty without a word. The line
+    names the renders whose disparity holds no pixel, and only those (the pinhole's f B / z keeps it)."""
+    cfg = BenchmarkConfig(fovs_deg=(120.0,), baselines_mm=(65.0,), width=48, height=32, height_full=64,
+                          yaws_deg=(90.0,), workers=1, exr=False)  # fmt: skip
+    ref = read_rig(RIG).camera("cam0").model
+    coarse = run_benchmark([_ground_scan(2)], ref, tmp_path / "c", cfg)
+    assert coarse.warnings == [NO_DISPARITY_64]
+    center = tmp_path / "c" / "000_000_000" / "120FOV" / "65mm" / "CENTER"
+    valid = {
+        p.name: int((cv2.imread(str(p), cv2.IMREAD_UNCHANGED) > 0).sum())
+        for p in (center / "disparity").glob("*.png")
+    }
+    assert valid["pano.png"] == valid["pano_crop.png"] == valid["cassini_crop.png"] == 0
+    assert valid["pinhole.png"] > 0
+    doc = yaml.safe_load((tmp_path / "c" / "000_000_000" / "scene.yaml").read_text())
+    assert doc["warnings"] == [NO_DISPARITY_64]
+    assert doc["stats"]["120FOV/CENTER/pano"]["disparity_px"] == 0
+    fine = run_benchmark([_ground_scan(2)], ref, tmp_path / "f", replace(cfg, height_full=512))
+    assert not fine.warnings
+    assert fine.stats["000_000_000"]["120FOV/CENTER/pano"]["disparity_px"] > 0
+
+
 def test_a_y_up_scan_renders_nothing_and_says_why(tmp_path):
     cfg = BenchmarkConfig(fovs_deg=(120.0,), baselines_mm=(65.0,), width=48, height=32, height_full=64,
                           yaws_deg=(90.0,), workers=1, exr=False)  # fmt: skip
     ref = read_rig(RIG).camera("cam0").model
     dropped = replace(_ground_scan(2), dropped_points=3)  # as read from a file with 3 NaN points
     z_up = run_benchmark([dropped], ref, tmp_path / "z", cfg)  # looks along +y: ground below
-    assert not z_up.warnings and not z_up.empty
+    assert z_up.warnings == [NO_DISPARITY_64] and not z_up.empty  # 64 rows keep no angular disparity
     doc = yaml.safe_load((tmp_path / "z" / "000_000_000" / "scene.yaml").read_text())
     assert (doc["scans"][0]["points"], doc["scans"][0]["dropped_points"]) == (40_000, 3)
     y_up = run_benchmark([_ground_scan(1)], ref, tmp_path / "y", cfg)  # "along +y" is the sky
@@ -489,6 +519,13 @@ def test_an_image_size_whose_sphere_is_over_the_memory_budget_is_named_as_the_ca
         ({"points_per_px": float("inf")}, r"^--points-per-px inf: must be a finite number > 0$"),
         ({"size": "100000x100000"}, r"^--size 100000x100000: expected at most 16384 px a side$"),
         ({"pitch_deg": 200.0}, r"^--pitch 200\.0: must be within -90\.\.90 degrees \(up > 0\)$"),
+        (  # sweep 7 S3: two scenes of the same view, pixel for pixel
+            {"yaws_deg": (0.0, 360.0)},
+            r"^--yaw 360 \(the same as 0\) is given twice; its views would be rendered twice and weigh double "
+            r"in every score$",
+        ),
+        ({"baselines_mm": (65.0, 65.0)}, r"^--baseline 65 is given twice; its views would be rendered twice"),
+        ({"centers": ("s0", "s0")}, r"^--center s0 is given twice; its views would be rendered twice"),
         (
             {"fovs_deg": (140.0, 195.0), "pinhole_fovs": (120.0,)},
             r"^--pinhole-in 120: not one of the rendered FOVs \(140, 195\); the pinhole images go into those folders$",

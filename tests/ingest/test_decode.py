@@ -396,6 +396,27 @@ def test_compressed_jpeg_round_trip(v):
     assert np.abs(frame.image.astype(int) - SMOOTH[:, :, ::-1]).mean() > 20  # BGR, not RGB
 
 
+def test_a_jpeg_exif_orientation_is_not_applied():
+    """Sweep 7 U7: an APP1 Exif segment with Orientation 3 turned cam0's images 180 deg while the depth GT
+    stayed the sensor's (blamed on a LiDAR pose). The camchain describes the sensor's pixels: the tag is
+    left unapplied, and the frame is the JPEG without it, pixel for pixel."""
+    _, jpg = cv2.imencode(".jpg", SMOOTH, [cv2.IMWRITE_JPEG_QUALITY, 95])
+    plain = jpg.tobytes()
+    tiff = b"II*\x00" + struct.pack("<I", 8) + struct.pack("<H", 1) + struct.pack("<HHII", 0x0112, 3, 1, 3)
+    tiff += struct.pack("<I", 0)  # one IFD entry (Orientation = 3: turned 180 deg), no next IFD
+    exif = b"Exif\x00\x00" + tiff
+    tagged = plain[:2] + b"\xff\xe1" + struct.pack(">H", len(exif) + 2) + exif + plain[2:]
+    assert (
+        np.abs(
+            cv2.imdecode(np.frombuffer(tagged, np.uint8), cv2.IMREAD_COLOR).astype(int) - SMOOTH[::-1, ::-1]
+        ).mean()
+        < 2
+    )
+    frame = decode_compressed_image(compressed_raw(2, "jpeg", tagged), 2)
+    expected = decode_compressed_image(compressed_raw(2, "jpeg", plain), 2)
+    np.testing.assert_array_equal(frame.image, expected.image)
+
+
 def test_compressed_grey_png_is_mono():
     _, png = cv2.imencode(".png", GREY)
     frame = decode_compressed_image(compressed_raw(2, "mono8; png compressed", png.tobytes()), 2)

@@ -243,7 +243,8 @@ def test_lidar_poses_come_back_through_two_alignment_rounds() -> None:
     20 mm, come back within 0.02 deg and 1 mm, each IMU moves with the LiDAR of its housing, and the
     table's numbers are the corrections applied."""
     from ingest.train.gt.align import Alignment
-    from ingest.train.run.refine import LidarRefinement, Refinement, _refine_lidars
+    from ingest.train.run.lidar_poses import LidarRefinement
+    from ingest.train.run.refine import Refinement, _refine_lidars
     from ingest.train.run.timeshift import StereoCheck
 
     truth = read_rig(REFERENCE_RIG)

@@ -409,3 +409,16 @@ def test_a_site_naming_two_scans_alike_is_refused(tmp_path):
         str(err.value)
         == f"{manifest}: scans[1].name 's0' is also scans[0]'s; expected a name of its own for each scan"
     )
+
+
+def test_a_scan_of_zeros_without_a_header_end_is_refused_after_its_first_mib(tmp_path):
+    """Sweep 7 T1: a 20 GiB sparse file of zeros named s0.ply was read whole as its header (MemoryError
+    after 71 s). A header that does not end within 1 MiB is refused naming the file."""
+    path = tmp_path / "s0.ply"
+    with path.open("wb") as f:
+        f.truncate(20 << 30)  # sparse: no disk used
+    with pytest.raises(ScanError) as err:
+        read_scans([path])
+    assert str(err.value) == (
+        f"{path}: no end of a PLY or PCD header in its first 1 MiB ('end_header' or 'DATA'); expected a point cloud file"
+    )

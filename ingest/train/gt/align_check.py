@@ -48,7 +48,9 @@ class Combined:
     spread: float
 
 
-def combine(samples: SampleAlignments, iterations: int = 5) -> Combined | None:
+def combine(
+    samples: SampleAlignments, iterations: int = 5, rotation_only: frozenset[str] = frozenset()
+) -> Combined | None:
     """The rig-file correction of each LiDAR and the upper camera's clock offset from the per-sample
     alignments and cam0's twist at each sample (`(alignments by LiDAR, twist)` pairs).
 
@@ -58,22 +60,33 @@ def combine(samples: SampleAlignments, iterations: int = 5) -> Combined | None:
     velocity), weighted by its information; samples far from the model
     (a mover, a bad frame) are down-weighted (Cauchy on the Mahalanobis
     distance). The offset is solved only when the motion varied enough to
-    tell it from a constant correction (`MAX_OFFSET_SIGMA_MS`). None without
-    any alignment.
+    tell it from a constant correction (`MAX_OFFSET_SIGMA_MS`). The LiDARs
+    named in `rotation_only` keep their translation (its correction is held
+    at zero). None without any alignment.
     """
     names = sorted({name for found, _ in samples for name in found})
     if not names:
         return None
     with_twist = all(twist is not None for _, twist in samples)
-    result = _solve(samples, names, with_twist, iterations)
+    result = _solve(samples, names, with_twist, iterations, rotation_only)
     if with_twist and result.sigma_clock_ms > MAX_OFFSET_SIGMA_MS:
-        result = _solve(samples, names, False, iterations)
+        result = _solve(samples, names, False, iterations, rotation_only)
     return result
 
 
-def _solve(samples: SampleAlignments, names: list[str], offset: bool, iterations: int) -> Combined:
+PINNED_INFORMATION = 1e12
+"""The information (1/m^2) that holds a translation correction at zero (`combine`'s `rotation_only`)."""
+
+
+def _solve(
+    samples: SampleAlignments, names: list[str], offset: bool, iterations: int, rotation_only: frozenset[str]
+) -> Combined:
     """`combine` with (`offset`) or without the clock offset among the unknowns."""
     n = 6 * len(names) + (1 if offset else 0)
+    pinned: F64 = np.zeros((n, n))
+    for k, name in enumerate(names):
+        if name in rotation_only:
+            pinned[6 * k + 3 : 6 * k + 6, 6 * k + 3 : 6 * k + 6] = PINNED_INFORMATION * np.eye(3)
     terms = []  # (design (6, n), observed (6,), information (6, 6))
     for found, twist in samples:
         for name, al in found.items():
@@ -89,9 +102,7 @@ def _solve(samples: SampleAlignments, names: list[str], offset: bool, iterations
     H: F64 = np.eye(n)
     d2: F64 = np.zeros(len(terms))
     for _ in range(iterations):
-        H = sum(
-            (w * D.T @ info @ D for w, (D, _, info) in zip(weights, terms, strict=True)), np.zeros((n, n))
-        )
+        H = sum((w * D.T @ info @ D for w, (D, _, info) in zip(weights, terms, strict=True)), pinned)
         g = sum((w * D.T @ info @ obs for w, (D, obs, info) in zip(weights, terms, strict=True)), np.zeros(n))
         x = np.asarray(np.linalg.lstsq(H, g, rcond=None)[0], np.float64)
         d2 = np.array([float((obs - D @ x) @ info @ (obs - D @ x)) for D, obs, info in terms])
@@ -134,6 +145,10 @@ WARN_CLOCK_MS = 2.0
 `SIGNIFICANT` sigmas): on the simulated walks, an exact rig gives 0.01 deg, 1 mm and 0.05 ms, a
 0.25 deg or 5 ms error about 0.25 deg or 5 ms (bench/bench_refine.py)."""
 SIGNIFICANT = 3.0
+MIN_POSE_SAMPLES = 3
+"""A LiDAR pose or camera clock is called off from this many aligned samples or more: with fewer the
+samples' spread, which scales the sigmas, is a guess (two samples of a right rig on the walk, its lower
+frames thinned, said 0.36 deg and 87 mm)."""
 MATCH_RATIO = 0.6
 """A LiDAR whose points match cam0's images (median correlation of image intensity and reflectivity at
 the alignment) below this fraction of the best-matching LiDAR's is off by more than the alignment can
@@ -176,7 +191,7 @@ class CalibrationCheck:
         mismatched = self.mismatched()
         found = [self.mismatch_phrase(name, best) for name, best in mismatched.items()]
         for name, corr in self.combined.corrections.items():
-            if name in mismatched:
+            if name in mismatched or self.combined.samples < MIN_POSE_SAMPLES:
                 continue
             angle = float(np.degrees(np.linalg.norm(corr.rotation_rad)))
             shift_mm = float(np.linalg.norm(corr.translation_m) * 1e3)
@@ -185,7 +200,8 @@ class CalibrationCheck:
             if turned or moved:
                 found.append(f"{name}'s pose in cam0 looks off by {angle:.2f} deg and {shift_mm:.0f} mm")
         ms, sigma = self.combined.clock_offset_ms, self.combined.sigma_clock_ms
-        if ms is not None and abs(ms) > max(WARN_CLOCK_MS, SIGNIFICANT * sigma):
+        few = self.combined.samples < MIN_POSE_SAMPLES
+        if ms is not None and not few and abs(ms) > max(WARN_CLOCK_MS, SIGNIFICANT * sigma):
             found.append(f"the upper camera's exposure times look {ms:+.1f} ms off the LiDAR clock")
         return found
 

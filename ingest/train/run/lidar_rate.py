@@ -47,6 +47,11 @@ CROWDED_FACTOR = 20
 times squeezed (`LidarRates.crowded`); a Mid-360's sweep spans its whole 100 ms."""
 
 
+MAX_SWEEP_GAP_NS = 1_000_000_000
+"""Sweeps further apart than this (ns) belong to stretches recorded apart: the time between is not the
+LiDAR's (`LidarRates.recorded_per_s`)."""
+
+
 @dataclass
 class LidarRates:
     """Per LiDAR topic the points-per-second of each sweep, and the span of all LiDAR points (ns)."""
@@ -57,6 +62,7 @@ class LidarRates:
     points: dict[str, int] = field(default_factory=dict)  # per topic: every point of its sweeps
     sweeps: dict[str, int] = field(default_factory=dict)  # per topic: sweeps with a point
     span_ns: dict[str, tuple[int, int]] = field(default_factory=dict)  # per topic: first and last point
+    sweep_spans_ns: dict[str, list[tuple[int, int]]] = field(default_factory=dict)  # per topic, per sweep
     median_range_m: dict[str, list[float]] = field(default_factory=dict)  # per topic: each sweep's median
 
     def add_ranges(self, topic: str, xyz_m: np.ndarray[Any, Any]) -> None:
@@ -92,6 +98,7 @@ class LidarRates:
         self.sweeps[topic] = self.sweeps.get(topic, 0) + 1
         first, last = self.span_ns.get(topic, (lo, hi))
         self.span_ns[topic] = (min(first, lo), max(last, hi))
+        self.sweep_spans_ns.setdefault(topic, []).append((lo, hi))
         if hi > lo:
             self.per_sweep.setdefault(topic, []).append((len(stamps_ns) - 1) * 1e9 / (hi - lo))
 
@@ -103,13 +110,22 @@ class LidarRates:
     def recorded_per_s(self, topic: str) -> float | None:
         """The points per second the LiDAR gave over the recording (None with less than 1 ms of points).
 
-        Its points over the span from its first to its last point, plus one point spacing of the
+        Its points over the time its sweeps cover, from first to last point less the gaps over
+        `MAX_SWEEP_GAP_NS` between sweeps (bags recorded an hour apart), plus one point spacing of the
         rate (so a sweep of one point each 100 ms gives 10 points/s).
         """
-        first, last = self.span_ns.get(topic, (0, 0))
         n = self.points.get(topic, 0)
-        spacing_ns = (last - first) / max(n - 1, 1)
-        span_ns = last - first + spacing_ns
+        spans = sorted(self.sweep_spans_ns.get(topic, []))
+        if not spans:
+            return None
+        covered_ns, (start, end) = 0, spans[0]
+        for lo, hi in spans[1:]:
+            if lo - end > MAX_SWEEP_GAP_NS:
+                covered_ns += end - start
+                start = lo
+            end = max(end, hi)
+        covered_ns += end - start
+        span_ns = covered_ns + covered_ns / max(n - 1, 1)
         return n * 1e9 / span_ns if span_ns >= 1_000_000 else None
 
     def thin_lines(self, names: dict[str, str]) -> list[str]:

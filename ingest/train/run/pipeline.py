@@ -73,11 +73,7 @@ from ingest.runtime.heap import retain_freed_memory
 from ingest.runtime.jit import compiling
 from ingest.runtime.kept import Release, Task
 from ingest.train.bad_messages import BadMessages
-from ingest.train.gt.align_check import (
-    SampleAlignments,
-    check_calibration,
-    from_records,
-)
+from ingest.train.gt.align_check import SampleAlignments, check_calibration, combine, from_records
 from ingest.train.gt.block_planes import PlaneSettings
 from ingest.train.plausible import check_imu_rate, check_time_order
 from ingest.train.run.block_jobs import BlockReport, BlockTasks
@@ -91,6 +87,7 @@ from ingest.train.run.describe import (
 )
 from ingest.train.run.gt_method import dense_reach_ns, gt_method
 from ingest.train.run.handoff import give_arrays, handoff_bytes_bound, take_arrays
+from ingest.train.run.lidar_poses import stereo_alignment, stereo_lines, stereo_record
 from ingest.train.run.plan import LOST_REASON, Plan, Survey, plan, survey
 from ingest.train.run.refine import Refinement, refine
 from ingest.train.run.resolved import ResolvedRun
@@ -213,6 +210,7 @@ def ingest(
     geometry = Geometry.from_rig(rig, cfg.height_full)
     check_existing(cfg, geometry, [Path(p) for p in bag_paths])  # settings, rig, data: before the passes
     summary = IngestSummary(out=cfg.out, warnings=stereo_warnings(rig), refinement=refinement)
+    summary.warnings += [line for line in (geometry.coarse_line(),) if line]
     if refinement is not None:
         summary.warnings += refinement.unobserved_lines()
     bad = BadMessages(cfg.max_bad, warn)
@@ -234,10 +232,20 @@ def ingest(
         summary.warnings += bad.dropped.lines()
         summary.calibration = check_calibration(summary.alignments)
         if summary.calibration is not None:
-            record_calibration(cfg.out, [Path(p) for p in bag_paths], summary.calibration.as_yaml())
+            stereo = stereo_alignment(rig, summary.calibration.combined, combine(summary.alignments_lower))
+            record = {**summary.calibration.as_yaml(), **stereo_record(stereo)}
+            record_calibration(cfg.out, [Path(p) for p in bag_paths], record)
             summary.warnings += summary.calibration.warnings(cfg.rig, refined=cfg.refine)
+            summary.warnings += stereo_lines(stereo, cfg.rig)
         summary.warnings += [
-            line for line in (summary.without_gt_line(), summary.without_disparity_line()) if line
+            line
+            for line in (
+                summary.without_gt_line(),
+                summary.without_disparity_line(),
+                summary.off_image_line(),
+                summary.range_line(rig.lidars[0].name),
+            )
+            if line
         ]
     summary.seconds = time.perf_counter() - t_start
     summary.compile_s = compile_s[0]

@@ -28,8 +28,17 @@ from calibration.types import F64, U8
 from ingest.bags.decode import Frame, ImuSample
 from ingest.bags.reader import open_bags
 from ingest.errors import BagError
+from ingest.topic_map import missing_topic
 from ingest.train.gt.align import Alignment
-from ingest.train.gt.align_check import Combined, SampleAlignments, check_calibration, combine, corrected
+from ingest.train.gt.align_check import SampleAlignments, check_calibration, combine, corrected
+from ingest.train.run.lidar_poses import (
+    LidarRefinement,
+    StereoAlignment,
+    applies,
+    common_cause,
+    held_translations,
+    stereo_alignment,
+)
 from ingest.train.run.timeshift import (
     TIMING_ROTATION_SIGMA_DEG,
     FrameRotations,
@@ -76,72 +85,6 @@ class ImuRefinement:
 
 
 @dataclass(frozen=True)
-class LidarRefinement:
-    """One LiDAR's pose in cam0 from its points laid onto cam0's image (`ingest.train.gt.align`).
-
-    `correction` is the total correction applied to the given rig's pose
-    (rotation and translation in cam0), `sigma_*` its 1-sigma (largest axis).
-    `shift_before_deg` and `shift_after_deg` are the median per-sample
-    misalignment with the given rig and with the refined one; `samples` how
-    many samples of each round aligned.
-    """
-
-    lidar: str
-    rotation_deg: float
-    translation_mm: float
-    sigma_rotation_deg: float
-    sigma_translation_mm: float
-    shift_before_deg: float
-    shift_after_deg: float
-    samples: int
-    applied: bool
-    mismatch: str = ""  # why the rig's pose was kept though off: its points match far worse than another's
-
-
-@dataclass(frozen=True)
-class StereoAlignment:
-    """The camchain's stereo pose checked through the LiDAR points: laid onto both images, a LiDAR's
-    correction in cam1 should be its correction in cam0 seen from cam1. What it is not is the error of
-    T_cam1_cam0: its rotation (deg) and the change of cam1's position (mm), with 1-sigmas, from the
-    LiDAR whose estimate is the surest. Reported, not applied."""
-
-    lidar: str
-    rotation_deg: float
-    translation_mm: float
-    sigma_rotation_deg: float
-    sigma_translation_mm: float
-
-    @property
-    def disagrees(self) -> bool:
-        """Beyond `STEREO_WARN_DEG` or `STEREO_WARN_MM`, and three sigma."""
-        turned = self.rotation_deg > max(STEREO_WARN_DEG, 3 * self.sigma_rotation_deg)
-        return turned or self.translation_mm > max(STEREO_WARN_MM, 3 * self.sigma_translation_mm)
-
-
-def stereo_alignment(rig: Rig, upper: Combined, lower: Combined | None) -> StereoAlignment | None:
-    """The stereo pose's error implied by each LiDAR's corrections onto cam0 (`upper`) and cam1
-    (`lower`): true T_cam1_cam0 = C1 T_cam1_cam0 C0^-1; the LiDAR with the smallest rotation sigma
-    speaks (None without a LiDAR aligned onto both)."""
-    if lower is None:
-        return None
-    T10 = rig.lower.T_cam_cam0
-    best: StereoAlignment | None = None
-    for name, c0 in upper.corrections.items():
-        c1 = lower.corrections.get(name)
-        if c1 is None:
-            continue
-        true = corrected(np.eye(4), c1) @ T10 @ np.linalg.inv(corrected(np.eye(4), c0))
-        error = true @ np.linalg.inv(T10)
-        angle = float(np.degrees(np.linalg.norm(cv2.Rodrigues(error[:3, :3])[0])))
-        moved = float(np.linalg.norm(true[:3, 3] - T10[:3, 3]) * 1e3)
-        sigma_deg = float(np.hypot(c0.sigma_rotation_deg, c1.sigma_rotation_deg))
-        sigma_mm = float(np.hypot(c0.sigma_translation_mm, c1.sigma_translation_mm))
-        if best is None or sigma_deg < best.sigma_rotation_deg:
-            best = StereoAlignment(name, angle, moved, sigma_deg, sigma_mm)
-    return best
-
-
-@dataclass(frozen=True)
 class Refinement:
     """What `refine` found; `rig` is the refined rig (the input's where nothing was observable)."""
 
@@ -167,11 +110,11 @@ class Refinement:
                     f"{e.excitation_deg_s:.1f} deg/s, 1-sigma {e.sigma_ms:.2f} ms); the rig's "
                     f"{cam.rig_timeshift_ms:+.3f} ms is kept: record the rig turned by hand for a few seconds"
                 )
-        lines += [
-            f"{lidar.lidar}: the rig's pose is kept: {lidar.mismatch}"
-            for lidar in self.lidars
-            if lidar.mismatch
-        ]
+        reasons: dict[str, list[str]] = {}
+        for lidar in self.lidars:
+            if lidar.mismatch:
+                reasons.setdefault(lidar.mismatch, []).append(lidar.lidar)
+        lines += [f"{', '.join(names)}: the rig's pose is kept: {why}" for why, names in reasons.items()]
         if self.stereo_alignment is not None and self.stereo_alignment.disagrees:
             a = self.stereo_alignment
             lines.append(
@@ -202,8 +145,7 @@ def _topic(topics: Sequence[str], wanted: str | None, what: str, where: str) -> 
     for cand in (wanted, f"{wanted}/compressed"):
         if cand is not None and cand in topics:
             return cand
-    listing = ", ".join(sorted(topics))
-    raise BagError(f"{where}: no topic {wanted!r} for {what} (from the rig); the bag has: {listing}")
+    raise BagError(missing_topic(where, wanted, what, topics))
 
 
 def _gray(frame: Frame, halvings: int) -> U8:
@@ -327,26 +269,9 @@ Aligner = Callable[[Rig, int], tuple[SampleAlignments, SampleAlignments]]
 """Per-sample LiDAR-to-image alignments of the recording under a rig, given how many frames cam0
 recorded: onto the upper images (with cam0's twist) and onto the lower ones (in cam1); a sparse ingest
 of some of the frames (`ingest.train.run.pipeline.refine_rig`)."""
-STEREO_WARN_DEG = 0.1
-STEREO_WARN_MM = 5.0
 ALIGN_ROUNDS = 2
 """Alignment rounds: the second starts from the first's rig, where each sample's linearisation and its
 visibility test are closer to the truth (a 1 deg, 3 cm error: 6.4 mm left after one round outdoors)."""
-MAX_LIDAR_SIGMA_DEG = 0.05
-MAX_LIDAR_SIGMA_MM = 5.0
-"""A LiDAR correction is applied when it is at least this certain (1-sigma), or when it is significant
-(over 3 sigma: the rig is surely off, and the estimate is nearer than the rig's value); else it is
-reported and the rig's pose kept. Outdoors, points far away leave the translation at 6 mm (1-sigma) while
-a 30 mm error is found to 3 mm (bench/bench_refine.py)."""
-
-
-def _applies(correction: Alignment) -> bool:
-    """Whether a LiDAR's combined correction is certain or significant enough to apply (see above)."""
-    angle = float(np.degrees(np.linalg.norm(correction.rotation_rad)))
-    shift_mm = float(np.linalg.norm(correction.translation_m) * 1e3)
-    sigma_deg, sigma_mm = correction.sigma_rotation_deg, correction.sigma_translation_mm
-    certain = sigma_deg <= MAX_LIDAR_SIGMA_DEG and sigma_mm <= MAX_LIDAR_SIGMA_MM
-    return certain or angle > 3 * sigma_deg or shift_mm > 3 * sigma_mm
 
 
 def refine(
@@ -374,6 +299,8 @@ def _refine_lidars(found: Refinement, align: Aligner) -> Refinement:
     clock: tuple[float, float] | None = None
     stereo: StereoAlignment | None = None
     mismatch: dict[str, str] = {}
+    held: set[str] = set()  # LiDARs whose translation the recording cannot place: their rotation only
+    kept: dict[str, str] = {}  # LiDARs kept for a cause common to every LiDAR (`_common_cause`)
     for _ in range(ALIGN_ROUNDS):
         samples, lower = align(rig, found.frames.get(rig.upper.name, 0))
         check = check_calibration(samples)
@@ -385,14 +312,17 @@ def _refine_lidars(found: Refinement, align: Aligner) -> Refinement:
             total[name] = np.eye(4)
         stereo = stereo_alignment(rig, check.combined, combine([(found_, None) for found_, _ in lower]))
         shifts.append(check.median_shift_deg)
-        combined = check.combined
+        combined = held_translations(samples, check.combined, held, set(mismatch))
         clock = (
             None if combined.clock_offset_ms is None else (combined.clock_offset_ms, combined.sigma_clock_ms)
         )
+        common = common_cause(combined, samples, set(mismatch))
         for name, corr in combined.corrections.items():
             counts[name] = sum(name in s for s, _ in samples)
             sigmas[name] = (corr.sigma_rotation_deg, corr.sigma_translation_mm)
-            if name in mismatch or not _applies(corr):
+            if common:
+                kept[name] = common
+            if name in mismatch or name in kept or not applies(corr):
                 continue
             rig = _with_lidar_corrected(rig, name, corr)
             total[name] = corrected(total[name], corr)
@@ -405,7 +335,7 @@ def _refine_lidars(found: Refinement, align: Aligner) -> Refinement:
         before, after = shifts[0].get(name, float("nan")), shifts[-1].get(name, float("nan"))
         lidars.append(LidarRefinement(
             name, angle, float(np.linalg.norm(T[:3, 3]) * 1e3), *sigmas[name], before, after, counts[name],
-            applied, mismatch.get(name, ""),
+            applied, mismatch.get(name, "") or kept.get(name, ""), name in held,
         ))  # fmt: skip
     return replace(found, rig=rig, lidars=tuple(lidars), image_clock_ms=clock, stereo_alignment=stereo)
 

@@ -21,6 +21,7 @@ from ingest.train.run.sample_parts import (
     alignment_fields,
     finish_sample,
     points_by_lidar,
+    range_ratio_field,
     silent_lidars,
     trajectory_twist,
 )
@@ -118,6 +119,7 @@ def process_dense(job: SampleJob, images: Background[Equirects], start_ms: float
             too_close=cloud.counts.too_close, noise_tag=cloud.counts.noise_tag, kept=int(covered.sum()),
             out_of_view=0, occluded=0,
             silent_lidars=silent_lidars(job), off_trajectory=int(len(covered) - covered.sum()),
+            range_ratio=range_ratio_field(job, placed, cloud),
         ),
         gt=GtMeta(
             depth_pixels=dense.range_img.count, disp_pixels=dense.disp_img.count,

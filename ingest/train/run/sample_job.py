@@ -24,6 +24,11 @@ from ingest.train.gt.dense import DenseParams, warm_up
 from ingest.train.gt.groundtruth import GtParams, px_per_rad
 from ingest.train.trajectory.rig_trajectory import RigTrajectory
 
+MAX_ALIGN_PIXEL_DEG = 2.0
+"""Images whose pixel at the centre spans more than this are too coarse for the LiDAR points' alignment:
+the tool's own 48x30 px emulated capture (3.75 deg pixels) of a right rig had every sample 9-16 deg
+"off" and both LiDARs' poses and the stereo pose called wrong."""
+
 
 @dataclass(frozen=True)
 class Geometry:
@@ -47,6 +52,23 @@ class Geometry:
                 "ray; expected a camera model that sees"
             )
         return cls(rig, rectify_rig(rig), Equirectangular(h), px_per_rad(model), valid)
+
+    @property
+    def too_coarse_to_align(self) -> bool:
+        """Whether cam0's pixel spans more than `MAX_ALIGN_PIXEL_DEG` at its centre: too coarse for the
+        LiDAR points' alignment on its images, which then is not run."""
+        return bool(np.degrees(1.0 / self.px_per_rad) > MAX_ALIGN_PIXEL_DEG)
+
+    def coarse_line(self) -> str:
+        """One warning line when the images are too coarse to align the LiDAR points on ('' otherwise)."""
+        if not self.too_coarse_to_align:
+            return ""
+        model = self.rig.upper.model
+        return (
+            f"cam0's images ({model.width}x{model.height} px, {np.degrees(1.0 / self.px_per_rad):.1f} deg a "
+            f"pixel) are too coarse to lay the LiDAR points on (over {MAX_ALIGN_PIXEL_DEG:g} deg a pixel): "
+            "the pose, clock and stereo checks were not run"
+        )
 
     def warm_maps(self) -> None:
         """Load or build both cameras' equirect remap maps into calibration.warp's cache now.
@@ -124,7 +146,8 @@ class SampleParams:
     decision: str = "asked"  # why `method` (written to every sample's meta)
     gap_fallback: bool = False  # dense: a frame in a trajectory gap gets sparse GT (--gt auto), not skipped
     dense: DenseParams = field(default_factory=DenseParams)
-    align_lower: bool = False  # also lay the points onto the lower image (`calib refine`'s stereo check)
+    align_lower: bool = True  # also lay the points onto the lower image (the stereo pose's check)
+    lower_every: int = 3  # ... of every n-th sample of a run that writes them (`calib refine`: of all)
     alignment_only: bool = False  # `calib refine`'s rounds: the alignments only (no GT, warps or files)
 
 

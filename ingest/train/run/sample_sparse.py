@@ -27,6 +27,7 @@ from ingest.train.run.sample_parts import (
     finish_sample,
     gyro_twist,
     points_by_lidar,
+    range_ratio_field,
     silent_lidars,
 )
 from ingest.train.trajectory.clouds import (
@@ -130,6 +131,7 @@ def process_sparse(job: SampleJob, images: Background[Equirects] | None, start_m
             total=counts.total, zero=counts.zero, non_finite=counts.non_finite, too_close=counts.too_close,
             noise_tag=counts.noise_tag, kept=counts.kept, out_of_view=int(len(seen) - seen.sum()),
             occluded=int(seen.sum() - visible.sum()), silent_lidars=silent_lidars(job), off_imu=off_imu,
+            range_ratio=range_ratio_field(job, pts, cloud, view),
         ),
         gt=GtMeta(
             depth_pixels=range_img.count, disp_pixels=disp_img.count, disp_unstable=unstable,

@@ -13,7 +13,7 @@ from calibration.rig import Camera, Rig
 from calibration.warp import HEIGHT_FULL_EXPECTED, MIN_HEIGHT_FULL
 from ingest.errors import BagError, SettingError
 from ingest.raster.params import backend_problem
-from ingest.topic_map import check_rig
+from ingest.topic_map import check_rig, missing_topic
 from ingest.train.run.sample_job import SampleParams
 from ingest.train.sync import DEFAULT_LIDAR_WINDOW_NS
 from ingest.train.trajectory.segments import MIN_OVERLAP_NS, SETTLE_NS, SegmentParams, min_length_ns
@@ -121,8 +121,7 @@ def resolve_topics(rig: Rig, bag_topics: dict[str, Any], where: str) -> Topics:
                 return cand
         if not bag_topics:
             raise BagError(f"{where}: no messages at all (an empty bag, or cut before its first message)")
-        listing = ", ".join(sorted(bag_topics))
-        raise BagError(f"{where}: no topic {topic!r} for {what} (from the rig); the bag has: {listing}")
+        raise BagError(missing_topic(where, topic, what, bag_topics))
 
     def camera_topic(camera: Camera, what: str) -> str:
         if camera.topic is None:  # the rig's entry says null and the camchain names no rostopic

@@ -1,0 +1,49 @@
+"""How the LiDARs' ranges agree on the surfaces they both see: where cam0 sees a point of two LiDARs in
+one pixel, both lie on the same surface along that pixel's ray, so their ranges from cam0 should be the
+same. A LiDAR whose ranges read a few per cent long (a range scale, a unit or an offset fault) passes
+every other check: its points still fall where its pose puts them, only too far out along the ray."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from calibration.types import F64, I64, Bool
+
+MIN_PAIRS = 50
+"""Pixels holding points of both LiDARs below which a sample says nothing about their agreement."""
+
+
+def range_ratios(
+    pts_cam0: F64, visible: Bool, cols: F64, rows: F64, which: I64, names: Sequence[str], width: int
+) -> dict[str, tuple[float, int]]:
+    """Per LiDAR after the first: the median ratio of its range (m, from cam0) to the first LiDAR's in the
+    pixels where cam0 sees a visible point of both (the nearest of each), and how many such pixels;
+    none with fewer than `MIN_PAIRS` (a LiDAR barely in view, or one LiDAR only).
+
+    `cols` and `rows` are each point's pixel (`ingest.train.gt.groundtruth.in_view`), `which` its LiDAR
+    (an index into `names`), `width` the image's width.
+    """
+    if len(names) < 2:
+        return {}
+    pixel = (rows.astype(np.int64) * width + cols.astype(np.int64))[visible]
+    range_m = np.linalg.norm(pts_cam0[visible], axis=1)
+    lidar = which[visible]
+    first = _nearest(pixel[lidar == 0], range_m[lidar == 0])
+    out = {}
+    for k in range(1, len(names)):
+        mine = _nearest(pixel[lidar == k], range_m[lidar == k])
+        shared, a, b = np.intersect1d(mine[0], first[0], assume_unique=True, return_indices=True)
+        if len(shared) >= MIN_PAIRS:
+            out[names[k]] = (float(np.median(mine[1][a] / first[1][b])), len(shared))
+    return out
+
+
+def _nearest(pixel: I64, range_m: F64) -> tuple[I64, F64]:
+    """Each pixel once (sorted), with the nearest of its points' ranges."""
+    order = np.lexsort((range_m, pixel))
+    pixel, range_m = pixel[order], range_m[order]
+    first = np.ones(len(pixel), bool)
+    first[1:] = pixel[1:] != pixel[:-1]
+    return pixel[first], range_m[first]

@@ -1,0 +1,58 @@
+"""Sweep 7 S6: nothing in ingest looked at the lower camera. A camchain whose cam1 is pitched 2 deg, whose
+baseline reads 150 mm for 120, or lower images shifted 8 px, wrote equirect pairs 5-9 px off their
+disparity GT (1.5 px median against truth for the baseline) without a word.
+
+Every third sample now also lays the LiDAR points onto the lower image; the stereo pose they imply is
+checked against the camchain's (`ingest.train.run.lidar_poses.stereo_alignment`) and recorded in
+dataset.yaml's calibration check, and a pose off beyond 0.1 deg / 5 mm and three sigma is one line.
+"""
+
+from __future__ import annotations
+
+import re
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from scipy.spatial.transform import Rotation
+
+from ingest.train.run.pipeline import ingest
+from ingest.train.run.settings import IngestConfig
+from sensorbox.sim.truth import truth_dir
+from tests.faults.bags import INDOOR
+
+OFF = re.compile(
+    r"^lidar_\w+'s points on both images put the camchain's stereo pose \(cam1's T_cn_cnm1\) (\d\.\d\d) deg and "
+    r"(\d+\.\d) mm off \(1-sigma 0\.\d\d deg, \d+\.\d mm\): the lower images, warped by it, lie off the disparity "
+    r"GT; recalibrate the stereo pair \(kalibr_calibrate_cameras\) and give .*rig\.yaml the new camchain, or "
+    r"check the lower camera's images$"
+)
+
+
+def _rig(tmp_path: Path, pitch_deg: float = 0.0, baseline_scale: float = 1.0) -> Path:
+    """The fixture's rig with cam1's T_cn_cnm1 turned about x by `pitch_deg` and its translation scaled."""
+    truth = truth_dir(INDOOR)
+    shutil.copy(truth / "rig.yaml", tmp_path / "rig.yaml")
+    chain = yaml.safe_load((truth / "camchain.yaml").read_text())
+    T = np.array(chain["cam1"]["T_cn_cnm1"], float)
+    T[:3, :3] = Rotation.from_euler("x", pitch_deg, degrees=True).as_matrix() @ T[:3, :3]
+    T[:3, 3] *= baseline_scale
+    chain["cam1"]["T_cn_cnm1"] = T.tolist()
+    (tmp_path / "camchain.yaml").write_text(yaml.safe_dump(chain))
+    return tmp_path / "rig.yaml"
+
+
+@pytest.mark.parametrize(("pitch_deg", "scale", "deg", "mm"), [(2.0, 1.0, 2.0, 0.0), (0.0, 1.25, 0.0, 30.0)])
+def test_a_stereo_pose_off_is_named(
+    tmp_path: Path, pitch_deg: float, scale: float, deg: float, mm: float
+) -> None:
+    rig = _rig(tmp_path, pitch_deg, scale)
+    summary = ingest([INDOOR], IngestConfig(rig=rig, out=tmp_path / "ds", workers=1, every=5, height_full=96))
+    found = [m for line in summary.warnings if (m := OFF.match(line))]
+    assert len(found) == 1, summary.warnings
+    assert float(found[0].group(1)) == pytest.approx(deg, abs=0.15)
+    assert float(found[0].group(2)) == pytest.approx(mm, abs=6.0)
+    check = yaml.safe_load((tmp_path / "ds" / "dataset.yaml").read_text())["sources"][0]["calibration_check"]
+    assert check["stereo_pose"]["off"] is True
