@@ -41,11 +41,18 @@ RigOpt = Annotated[
 OutOpt = Annotated[
     Path, typer.Option(help="Output folder (WideDepth train layout); reruns resume.", **path_param("--out"))
 ]
-WorkersOpt = Annotated[int, typer.Option(help="Local worker processes (1 = in this process).")]
+WorkersOpt = Annotated[
+    int,
+    typer.Option(
+        help="Local worker processes (1 = in this process). With more, a recording over 10 s runs its "
+        "trajectory pass as joined segments on them too."
+    ),
+]
 DaskOpt = Annotated[
     str | None,
     typer.Option(
-        help="dask.distributed scheduler address, e.g. tcp://host:8786; checked before anything is written."
+        help="dask.distributed scheduler address, e.g. tcp://host:8786; checked before anything is written. "
+        "The workers read the bags for the trajectory pass's segments at the paths given here."
     ),
 ]
 EveryOpt = Annotated[int, typer.Option(help="Keep every N-th eligible frame.")]
@@ -164,6 +171,13 @@ def _pass_rows(s: IngestSummary) -> Rows:
         residual = f"{t.residual_median_mm:.2f} / {t.residual_p95_mm:.2f} mm"
         took = f"{t.seconds:.1f} s" + (", the earlier run's pass reused" if t.reused else "")
         rows.append(("trajectory (knots, residual median / p95, time)", f"{t.knots}, {residual}, {took}"))
+        if t.split is not None:
+            mm, deg = t.split.worst()
+            rows.append((
+                "trajectory segments on the workers (segments, jobs, joins' largest RMS residual)",
+                f"{t.split.segments}, {t.split.jobs}, {mm:.1f} mm / {deg:.3f} deg",
+            ))  # fmt: skip
+            rows += [("trajectory segments run again as one job", line) for line in t.split.run_again]
         rows += _when(
             t.gaps, "trajectory gaps: knots carried by prediction (too few LiDAR points)", str(t.gaps)
         )
@@ -273,7 +287,13 @@ def ingest_cmd(
     """Turn recorded bags into the WideDepth training set (rectified equirect pairs + depth/disparity GT)."""
     from ingest.errors import DatasetError, SettingError
     from ingest.train.gt.dense import DenseParams
-    from ingest.train.run.pipeline import PASS_READ, PASS_REFINE, PASS_TRAJECTORY, ingest
+    from ingest.train.run.pipeline import (
+        PASS_READ,
+        PASS_REFINE,
+        PASS_TRAJECTORY,
+        PASS_TRAJECTORY_JOBS,
+        ingest,
+    )
     from ingest.train.run.sample_job import SampleParams
     from ingest.train.run.settings import IngestConfig
 
@@ -299,6 +319,7 @@ def ingest_cmd(
         widen_static=gt_window_ms is None, refine=refine,
     )  # fmt: skip
     units = {PASS_REFINE: "messages", PASS_READ: "messages", PASS_TRAJECTORY: "LiDAR sweeps"}
+    units[PASS_TRAJECTORY_JOBS] = "segment jobs"
     try:
         cfg.validate()  # before the progress bar: a bad value is one line
         with progress_bar("ingesting", "samples") as update:

@@ -224,7 +224,7 @@ class _OdometrySpy:
 
     last: "_OdometrySpy"
 
-    def __init__(self, gyro, params=None):
+    def __init__(self, gyro, params=None, start_ns=None):
         self.added: list[int] = []
         self.advanced: list[int] = []
         _OdometrySpy.last = self

@@ -21,6 +21,7 @@ from ingest.train.run.summary import IngestSummary
 from ingest.train.trajectory.estimate import STATIC_WINDOW_NS, check_gyro, choose_method, run_trajectory_pass
 from ingest.train.trajectory.imu_check import no_imu_line
 from ingest.train.trajectory.rig_trajectory import RigTrajectory
+from ingest.train.trajectory.segments import Split
 
 
 def dense_reach_ns(cfg: IngestConfig) -> int:
@@ -36,9 +37,11 @@ def dense_reach_ns(cfg: IngestConfig) -> int:
 def gt_method(
     bags: BagSet, topics: Topics, rig: Rig, cfg: IngestConfig, summary: IngestSummary, bad: BadMessages,
     trajectory_span_ns: tuple[int, int], busy: bool, progress: Progress | None = None,
+    split: Split | None = None,
 ) -> tuple[ResolvedRun, RigTrajectory | None]:  # fmt: skip
-    """Run the trajectory pass when --gt dense/auto needs it (`progress`: its sweeps), decide the method:
-    the run as resolved (`resolve_run`; `busy`: every core runs a worker) and the trajectory of a dense run.
+    """Run the trajectory pass when --gt dense/auto needs it (`progress`: its sweeps; `split`: in segments
+    on the workers, `ingest.train.run.trajectory_jobs`), decide the method: the run as resolved
+    (`resolve_run`; `busy`: every core runs a worker) and the trajectory of a dense run.
 
     Dense GT streams every sweep within its window (`--gt-window-ms`); the
     trajectory goes to `trajectories/<first bag>.tum` in the output and
@@ -59,6 +62,7 @@ def gt_method(
                 span_ns=trajectory_span_ns,
                 progress=progress,
                 imu_name=topics.imu_name,
+                split=split,
             )
         except OdometryError as err:
             if cfg.gt == "dense":

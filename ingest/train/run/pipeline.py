@@ -58,6 +58,7 @@ from typing import Any
 
 from calibration.rectify import stereo_warnings
 from calibration.rig import Rig, read_rig, write_rig
+from calibration.types import I64
 from ingest.bags.decode import Frame
 from ingest.bags.reader import BagSet, Progress, given_once, open_bags
 from ingest.dataset.identity import resume_state
@@ -102,6 +103,7 @@ from ingest.train.run.stream import (
     stream_jobs,
 )
 from ingest.train.run.summary import IngestSummary
+from ingest.train.run.trajectory_jobs import trajectory_split
 from ingest.train.sync import unsynced_line
 from ingest.train.trajectory.rig_trajectory import RigTrajectory
 
@@ -164,6 +166,8 @@ PASS_READ = "reading the bags"
 """`ingest`'s first pass: every message of the rig's topics read, every chunk checked (unit: messages)."""
 PASS_TRAJECTORY = "trajectory"
 """`ingest`'s trajectory pass for dense GT: every LiDAR sweep through the odometry (unit: sweeps)."""
+PASS_TRAJECTORY_JOBS = "trajectory in segments on the workers"
+"""The same pass in segments, jobs of the workers (`ingest.train.run.trajectory_jobs`; unit: jobs)."""
 
 
 def _init_worker(workers: int) -> None:
@@ -351,6 +355,29 @@ def _count_plan(summary: IngestSummary, the_plan: Plan, bags: BagSet, bad: BadMe
         summary.warnings.append(line)
 
 
+def _ground_truth(
+    bags: BagSet, bag_paths: list[Path], topics: Topics, rig: Rig, geometry: Geometry, cfg: IngestConfig,
+    summary: IngestSummary, bad: BadMessages, executor: Executor, sweeps: Mapping[str, I64],
+    span: tuple[int, int], held: ExitStack, passes: Callable[[str, int, int], None] | None,
+) -> tuple[ResolvedRun, RigTrajectory | None, Callable[[], float | None]]:  # fmt: skip
+    """The trajectory pass (in segments on the workers where `trajectory_split` says) and the method
+    (`gt_method`), with the warm-up (`_warming_up`, held by `held`) started beside what runs in this
+    process: before a single pass, after a fork pool's segments (a process forked while another thread
+    runs may inherit a lock that thread holds). Returns the run, its trajectory and the warm-up's `ready`.
+    """
+    split = trajectory_split(bag_paths, cfg, executor, sweeps, span, _pass(passes, PASS_TRAJECTORY_JOBS))
+    warm_first = split is None or executor.backend != "fork"
+    ready = held.enter_context(_warming_up(geometry, cfg)) if warm_first else None
+    odometry, busy = _pass(passes, PASS_TRAJECTORY), executor.every_core_busy
+    run, traj = gt_method(bags, topics, rig, cfg, summary, bad, span, busy, odometry, split)
+    return run, traj, ready or held.enter_context(_warming_up(geometry, cfg))
+
+
+def _pass(passes: Callable[[str, int, int], None] | None, name: str) -> Progress | None:
+    """`passes` told of the pass `name` (None: nobody listens)."""
+    return partial(passes, name) if passes else None
+
+
 def _run(
     bag_paths: list[Path],
     cfg: IngestConfig,
@@ -368,15 +395,16 @@ def _run(
     with open_bags(bag_paths, salvage=cfg.salvage) as bags:
         topics = resolve_topics(rig, bags.topics(), ", ".join(str(p) for p in bag_paths))
         reach = dense_reach_ns(cfg)
-        read = partial(passes, PASS_READ) if passes else None
+        read = _pass(passes, PASS_READ)
         surveyed = _checked_survey(bags, topics, rig, max(cfg.lidar_window_ns, reach), bad, read)
         summary.imu_gaps_ms = [float(g) / 1e6 for g in surveyed.imu_gaps_ns]
         summary.warnings += surveyed.warnings
         summary.stale_temporaries = held.enter_context(_held_output(cfg.out))
-        ready = held.enter_context(_warming_up(geometry, cfg))  # beside the trajectory pass
-        odometry = partial(passes, PASS_TRAJECTORY) if passes else None
         span = (surveyed.span_ns[0] - reach, surveyed.span_ns[1] + reach)
-        run, traj = gt_method(bags, topics, rig, cfg, summary, bad, span, executor.every_core_busy, odometry)
+        sweeps = {t: surveyed.seen[t] for t in topics.lidars}
+        run, traj, ready = _ground_truth(
+            bags, bag_paths, topics, rig, geometry, cfg, summary, bad, executor, sweeps, span, held, passes
+        )
         the_plan = plan(bags, topics, run, bad, surveyed)
         _count_plan(summary, the_plan, bags, bad)
         prepare_dirs(run.out, run.sample.exr)

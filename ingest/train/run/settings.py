@@ -16,6 +16,7 @@ from ingest.raster.params import backend_problem
 from ingest.topic_map import check_rig, missing_topic
 from ingest.train.run.sample_job import SampleParams
 from ingest.train.sync import DEFAULT_LIDAR_WINDOW_NS
+from ingest.train.trajectory.segments import MIN_OVERLAP_NS, SETTLE_NS, SegmentParams, min_length_ns
 
 
 @dataclass(frozen=True)
@@ -40,6 +41,8 @@ class IngestConfig:
     refine: bool = (
         False  # --refine: the cameras' clock offsets and LiDAR rotations refined from the bags first
     )
+    # the trajectory pass of a run with workers: segments of a long recording, jobs of the workers, joined
+    trajectory_segments: SegmentParams = field(default_factory=SegmentParams)
 
     def validate(self) -> None:
         """Values a run cannot start with: a `SettingError` naming the field (`sensorbox ingest` names
@@ -67,6 +70,14 @@ class IngestConfig:
         for ok, setting, value, expected in checks:
             if not ok:
                 raise SettingError(setting, value, expected)
+        seg = self.trajectory_segments
+        if seg.overlap_ns < MIN_OVERLAP_NS:
+            raise SettingError("trajectory_segments.overlap_ns", seg.overlap_ns, f">= {MIN_OVERLAP_NS}")
+        if seg.length_ns < min_length_ns(seg.overlap_ns):  # consecutive joins' overlaps apart
+            raise SettingError(
+                "trajectory_segments.length_ns", seg.length_ns,
+                "at least 3 x {trajectory_segments.overlap_ns} - " + f"{SETTLE_NS} (consecutive joins apart)",
+            )  # fmt: skip
         if self.height_full is not None and self.height_full < MIN_HEIGHT_FULL:
             raise SettingError("height_full", self.height_full, HEIGHT_FULL_EXPECTED)
         backend = dense.render.backend

@@ -5,7 +5,8 @@ would otherwise repeat the odometry, which takes about as long as the
 recording. The file is used only when everything the pass read and ran is
 the same: the bags (`bag_identity`), the LiDAR topics with their poses in
 the rig, the IMU topic and pose, the minimum range, the odometry's
-parameters, the time span, and the code (a digest of the `ingest` and
+parameters, the time span, how it was split into segments (`segments`),
+and the code (a digest of the `ingest` and
 `calibration` packages' sources, so that a new version computes it again).
 Anything else, or a file that cannot be read, means the pass runs again.
 """
@@ -31,6 +32,7 @@ from ingest.dataset.layout import write_atomic
 from ingest.train.trajectory.clouds import GyroTrack
 from ingest.train.trajectory.local_map import OdometryParams
 from ingest.train.trajectory.rig_trajectory import RigTrajectory
+from ingest.train.trajectory.segments import Split, SplitSummary
 
 _PACKAGES = (Path(__file__).resolve().parents[1], Path(__file__).resolve().parents[2] / "calibration")
 
@@ -54,8 +56,10 @@ def cache_key(
     min_range_m: float,
     params: OdometryParams,
     span_ns: tuple[int, int] | None,
+    split: Split | None = None,
 ) -> str:
-    """What decides the pass's result, as one JSON string (floats exact: json writes their repr)."""
+    """What decides the pass's result, as one JSON string (floats exact: json writes their repr); a single
+    pass's key has no "segments"."""
     doc: dict[str, Any] = {
         "bags": [bag_identity(Path(p)) for p in bags.paths],
         "lidars": {topic: rig.lidar(name).T_cam0_lidar.tolist() for topic, name in lidar_topics.items()},
@@ -65,6 +69,8 @@ def cache_key(
         "span_ns": None if span_ns is None else [int(span_ns[0]), int(span_ns[1])],
         "code": code_digest(),
     }
+    if split is not None:
+        doc["segments"] = [[int(a), int(b)] for a, b in split.segments]
     return json.dumps(doc, sort_keys=True)
 
 
@@ -80,8 +86,18 @@ def load(path: Path, key: str) -> RigTrajectory | None:
         return None
 
 
-def save(path: Path, key: str, traj: RigTrajectory) -> None:
-    """Keep `traj` in `path` under `key` (atomically: a killed run leaves the old file or none)."""
+def split_of(path: Path) -> SplitSummary | None:
+    """The record of the split pass kept in `path` (`save`), None for a single pass or an unreadable one."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return SplitSummary.from_dict(json.loads(str(z["split"]))) if "split" in z else None
+    except (OSError, ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile):
+        return None
+
+
+def save(path: Path, key: str, traj: RigTrajectory, split: SplitSummary | None = None) -> None:
+    """Keep `traj` in `path` under `key` (atomically: a killed run leaves the old file or none), with the
+    record of its split pass (`split_of`)."""
     arrays: dict[str, Any] = {
         "key": np.array(key),
         "stamps_ns": traj.stamps_ns,
@@ -89,6 +105,8 @@ def save(path: Path, key: str, traj: RigTrajectory) -> None:
         "p_world_cam0": traj.p_world_cam0,
         "residual_m": traj.residual_m,
     }
+    if split is not None:
+        arrays["split"] = np.array(json.dumps(split.as_dict()))
     if traj.gyro is not None:
         arrays |= {"gyro_stamps_ns": traj.gyro.stamps_ns, "gyro_rotations": traj.gyro.rotations}
     buf = io.BytesIO()

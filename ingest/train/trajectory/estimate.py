@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, replace
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -31,6 +32,7 @@ from ingest.train.trajectory.imu_check import GyroAgreement, gyro_agreement, tur
 from ingest.train.trajectory.local_map import OdometryParams
 from ingest.train.trajectory.odometry import Odometry
 from ingest.train.trajectory.rig_trajectory import RigTrajectory, still
+from ingest.train.trajectory.segments import SegmentInputs, SegmentJob, Split, SplitSummary, segmented_pass
 
 
 @dataclass(frozen=True)
@@ -48,6 +50,7 @@ class TrajectorySummary:
     max_rate_deg_s: float = 0.0  # fastest turn between knots
     reused: bool = False  # read from the pass an earlier run kept (`trajectory_cache`), not computed
     imu_check: GyroAgreement | None = None  # the IMU's gyro against the knots (`check_gyro`)
+    split: SplitSummary | None = None  # the pass ran in joined segments on the workers (`segments`)
 
     @property
     def static(self) -> bool:
@@ -57,6 +60,9 @@ class TrajectorySummary:
     def as_dict(self) -> dict[str, Any]:
         out = dict(self.__dict__)
         out.pop("imu_check")  # dataset.yaml has it beside the trajectory (`ground_truth.imu_check`)
+        split = out.pop("split")
+        if split is not None:  # a single pass's record stays as it was
+            out["segments"] = split.as_dict()
         return out
 
 
@@ -95,9 +101,10 @@ def trajectory_pass(
     bad: BadMessages | None = None,
     span_ns: tuple[int, int] | None = None,
     log_ns: tuple[int, int] | None = None,
+    start_ns: int | None = None,
 ) -> RigTrajectory:
     """Odometry over every sweep of `lidar_topics` (topic -> rig lidar name); `progress` hears of the
-    sweeps read (`BagSet.messages`).
+    sweeps read (`BagSet.messages`); `start_ns`: the first knot's time (`Odometry`).
 
     With `span_ns` (first, last) only points within it take part (no sample
     can use the others, and a stray sweep stamped years away would make the
@@ -105,7 +112,7 @@ def trajectory_pass(
     messages logged within it are read.
     """
     bad = bad or BadMessages()
-    odo = Odometry(gyro, params)
+    odo = Odometry(gyro, params, start_ns)
     where = bags.label
     last = {topic: -(2**62) for topic in lidar_topics}
     copies = FirstCopies()
@@ -187,6 +194,7 @@ def summarize(
     file: Path,
     reused: bool = False,
     imu_check: GyroAgreement | None = None,
+    split: SplitSummary | None = None,
 ) -> TrajectorySummary:
     res = traj.residual_m[1:]
     ok = res[np.isfinite(res)]
@@ -203,6 +211,7 @@ def summarize(
         max_rate_deg_s=rate,
         reused=reused,
         imu_check=imu_check,
+        split=split,
     )
 
 
@@ -218,9 +227,11 @@ def run_trajectory_pass(
     span_ns: tuple[int, int] | None = None,
     progress: Progress | None = None,
     imu_name: str = "",
+    split: Split | None = None,
 ) -> tuple[RigTrajectory, TrajectorySummary]:
     """Gyro, odometry (points within `span_ns`) and `out_file` (TUM, T_world_cam0), with the summary;
-    `progress` hears of the odometry's sweeps (`trajectory_pass`).
+    `progress` hears of the odometry's sweeps (`trajectory_pass`). With `split` the odometry runs in
+    joined segments, jobs of the run's executor (`ingest.train.trajectory.segments`), instead of here.
 
     The pass is kept beside it (`out_file` with suffix .npz, `trajectory_cache`)
     and read back instead of computed when a rerun would compute the same.
@@ -230,14 +241,23 @@ def run_trajectory_pass(
     t0 = time.perf_counter()
     params = params or OdometryParams()
     kept = out_file.with_suffix(".npz")
-    key = trajectory_cache.cache_key(bags, lidar_topics, imu, rig, min_range_m, params, span_ns)
+    key = trajectory_cache.cache_key(bags, lidar_topics, imu, rig, min_range_m, params, span_ns, split)
     traj = trajectory_cache.load(kept, key)
     reused = traj is not None
     gyro = read_gyro(bags, *imu, bad=bad)
-    if traj is None:
+    split_summary = trajectory_cache.split_of(kept) if reused else None
+    if traj is None and split is None:
         traj = trajectory_pass(
             bags, lidar_topics, rig, gyro, min_range_m, params, progress, bad=bad, span_ns=span_ns
         )
+    elif traj is None:
+        assert split is not None
+        inputs = SegmentInputs(split.bag_paths, split.salvage, lidar_topics, rig, gyro, min_range_m, params)
+        whole = SegmentJob(span_ns, None, None)  # the single pass, in a worker
+        traj, done = segmented_pass(
+            split.segments, whole, split.log_of, partial(split.run_jobs, inputs), gyro
+        )
+        split_summary = SplitSummary.of(split, done)
     agreement = None
     if gyro is not None and imu[0] is not None:
         agreement = judged(gyro_agreement(traj, gyro, imu_name or imu[0], imu[0]), bad)
@@ -247,8 +267,9 @@ def run_trajectory_pass(
         raise OutputError(f"cannot create {out_file.parent}: {err.strerror or err}") from err
     traj.write_tum(out_file)
     if not reused:
-        trajectory_cache.save(kept, key, traj)
-    return traj, summarize(traj, time.perf_counter() - t0, out_file, reused, agreement)
+        trajectory_cache.save(kept, key, traj, split_summary)
+    took = time.perf_counter() - t0
+    return traj, summarize(traj, took, out_file, reused, agreement, split_summary)
 
 
 STATIC_WINDOW_NS = 1_000_000_000

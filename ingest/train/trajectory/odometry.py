@@ -129,8 +129,13 @@ class Odometry:
     the rig) and given in cam0 at their own times.
     """
 
-    def __init__(self, gyro_track: GyroTrack | None, params: OdometryParams | None = None) -> None:
+    def __init__(
+        self, gyro_track: GyroTrack | None, params: OdometryParams | None = None, start_ns: int | None = None
+    ) -> None:
+        """`start_ns`: the first knot's time (at or before the first point; None: the first point's), so
+        that the knots of passes over parts of a recording fall on one grid (`segments`)."""
         self.params = params or OdometryParams()
+        self.start_ns = start_ns
         ok = gyro_track is not None and len(gyro_track.stamps_ns) > 1
         self.gyro = gyro_track if ok else None
         self._pts: list[F64] = []
@@ -157,10 +162,11 @@ class Odometry:
             complete_ns = min(complete_ns, int(self.gyro.stamps_ns[-1]))
         P, T = np.concatenate(self._pts), np.concatenate(self._t)
         if self._chain is None:
-            if complete_ns - int(T.min()) < 2 * self.span_ns:
+            t0 = int(T.min()) if self.start_ns is None or self._before else min(self.start_ns, int(T.min()))
+            if complete_ns - t0 < 2 * self.span_ns:
                 self._pts, self._t = [P], [T]
                 return
-            self._chain, rest = _start(P, T, self._map, self.gyro, self.params)
+            self._chain, rest = _start(P, T, t0, self._map, self.gyro, self.params)
             self._chain.refined = False
             sub = voxel_subsample(P[~rest], self.params.map_voxel_m)
             self._early = [(P[~rest][sub], T[~rest][sub])]
@@ -244,11 +250,11 @@ def _joined(chains: list[_Chain]) -> _Chain:
 
 
 def _start(
-    P: F64, T: I64, the_map: LocalMap, gyro: GyroTrack | None, prm: OdometryParams
+    P: F64, T: I64, t0: int, the_map: LocalMap, gyro: GyroTrack | None, prm: OdometryParams
 ) -> tuple[_Chain, Bool]:
-    """The first knots and map, from the first two chunks deskewed with the gyro and a fitted velocity."""
+    """The first knots (the first at `t0`, at or before the first point) and map, from the first two chunks
+    deskewed with the gyro and a fitted velocity."""
     span = prm.knot_ns * prm.knots_per_chunk
-    t0 = int(T.min())
     first = t0 + 2 * span > T
     p, t = P[first], T[first]
     t_mid = t0 + span
