@@ -391,6 +391,12 @@ def _ground_scan(up_axis: int) -> Scan:
     return Scan("ground", np.eye(4), xyz, rgb, source="ground.ply")
 
 
+def _png(path: Path) -> np.ndarray:
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    assert image is not None, path
+    return np.asarray(image)
+
+
 NO_DISPARITY_64 = (
     "000_000_000: 2 renders draw a surface but their disparity maps hold no pixel (120FOV/CENTER/pano, "
     "120FOV/CENTER/cassini): at --height-full 64 the baseline's disparity is too small a part of a pixel to "
@@ -407,10 +413,7 @@ def test_disparity_maps_without_a_pixel_are_named(tmp_path):
     coarse = run_benchmark([_ground_scan(2)], ref, tmp_path / "c", cfg)
     assert coarse.warnings == [NO_DISPARITY_64]
     center = tmp_path / "c" / "000_000_000" / "120FOV" / "65mm" / "CENTER"
-    valid = {
-        p.name: int((cv2.imread(str(p), cv2.IMREAD_UNCHANGED) > 0).sum())
-        for p in (center / "disparity").glob("*.png")
-    }
+    valid = {p.name: int(np.count_nonzero(_png(p))) for p in (center / "disparity").glob("*.png")}
     assert valid["pano.png"] == valid["pano_crop.png"] == valid["cassini_crop.png"] == 0
     assert valid["pinhole.png"] > 0
     doc = yaml.safe_load((tmp_path / "c" / "000_000_000" / "scene.yaml").read_text())
