@@ -23,7 +23,15 @@ from ingest.bags.reader import open_bags
 from ingest.bags.rostypes import POINTCLOUD2_TYPE, typestore
 from ingest.dataset.layout import GT_DIRS
 from ingest.errors import BagError
-from ingest.train.plausible import IMU_ACC, IMU_GYRO, IMU_NON_FINITE, POINT_FAR, POINT_REPEATED, POINT_TIME
+from ingest.train.plausible import (
+    IMU_ACC,
+    IMU_GYRO,
+    IMU_NON_FINITE,
+    IMU_SPIKE,
+    POINT_FAR,
+    POINT_REPEATED,
+    POINT_TIME,
+)
 from ingest.train.run.pipeline import ingest
 from ingest.train.run.settings import IngestConfig
 from ingest.train.run.summary import IngestSummary
@@ -452,3 +460,31 @@ def test_a_lidar_reading_its_ranges_5_percent_long_is_named(tmp_path: Path) -> N
     assert float(found[0].group(1)) == pytest.approx(100 * (1 - 1 / 1.05), abs=0.1)  # 4.76 %
     ratios = [ratio for ratio, _ in summary.range_ratios["lidar_bottom"]]
     assert len(ratios) == 7 and all(abs(r - 1 / 1.05) < 0.002 for r in ratios)
+
+
+def test_single_gyro_spikes_are_dropped_counted_and_give_the_gt_without_them(tmp_path: Path) -> None:
+    """Sweep 7 S9: +10 rad/s on one of every 40 readings (a knock; within the gyro's range) bent a walk
+    sample's motion compensation (8 % outliers against truth, 2 % clean) without a word. A reading that
+    leaves both neighbours by over 5 rad/s while they agree is dropped and counted: the GT is the bag's
+    without those readings."""
+    spiked = range(20, 140, 40)
+
+    def spike(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        if topic != IMU or k not in spiked:
+            return [(topic, raw)]
+        s = decode_imu(raw)
+        return [(topic, imu_msg(s.stamp_ns, np.asarray(s.gyro_rad_s) + np.array([10.0, 0.0, 0.0]), s.acc))]
+
+    def without(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        return [] if topic == IMU and k in spiked else [(topic, raw)]
+
+    summary, out = _run(tmp_path, "spiked", spike, gt="sparse")
+    clean, clean_out = _run(tmp_path, "without", without, gt="sparse")
+    assert summary.written == clean.written > 0
+    assert _gt_files(out) == _gt_files(clean_out)
+    assert summary.dropped == {IMU: {IMU_SPIKE: len(spiked)}} and clean.dropped == {}
+    assert any(
+        w.startswith(f"{IMU}: dropped {len(spiked)} readings: IMU gyro spike (over 5 rad/s off both neighbours, which "
+                     "agree) (first at stamp ")
+        for w in summary.warnings
+    )  # fmt: skip

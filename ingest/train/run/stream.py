@@ -24,14 +24,15 @@ decoded it itself (`--max-bad`).
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
+from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from calibration.types import I64
+from calibration.types import F64, I64, Bool
 from ingest.bags.decode import Frame, ImuSample, Sweep
 from ingest.bags.image_pixels import grey_as_bgr
 from ingest.bags.message import RawMessage
@@ -242,12 +243,17 @@ def _sweeps_needed(the_plan: Plan, topics: Topics, w: int) -> dict[int, dict[str
     return {k: {t: int(counts[t][k]) for t in topics.lidars} for k in range(len(tc))}
 
 
-def _imu_window(imu_t: list[int], imu_g: list[Any], tc: int, w: int, R_cam0_imu: Any) -> ImuWindow | None:
-    """The gyro readings within the sample's window (+ IMU_MARGIN_NS each side), or None without an IMU."""
+def _imu_window(
+    imu_t: list[int], imu_g: list[Any], tc: int, w: int, R_cam0_imu: Any, spikes: Callable[[I64, F64], Bool]
+) -> ImuWindow | None:
+    """The gyro readings within the sample's window (+ IMU_MARGIN_NS each side) less the `spikes` among
+    them, or None without an IMU."""
     if not imu_t or R_cam0_imu is None:
         return None
     readings = ImuWindow(np.array(imu_t, np.int64), np.array(imu_g), R_cam0_imu)
-    return readings.within(tc - w - IMU_MARGIN_NS, tc + w + IMU_MARGIN_NS)
+    near = readings.within(tc - w - IMU_MARGIN_NS, tc + w + IMU_MARGIN_NS)
+    keep = ~spikes(near.stamps_ns, near.gyro_rad_s)
+    return ImuWindow(near.stamps_ns[keep], near.gyro_rad_s[keep], R_cam0_imu)
 
 
 def _thin_lidars(
@@ -458,7 +464,8 @@ class _Stream:
             ws = run.sample.window_ns
             narrow = tuple(lp.within(tc - ws, tc + ws) for lp in lidars)
             thin_sparse = _thin_lidars(the_plan.rates, topics, narrow, tc, ws)
-        imu = _imu_window(self.imu_t, self.imu_g, tc, w, topics.R_cam0_imu)
+        spikes = partial(self.bad.dropped.spikes, topics.imu or "")
+        imu = _imu_window(self.imu_t, self.imu_g, tc, w, topics.R_cam0_imu, spikes)
         f = self.frames.pop(k)
         sid = self.sids[k]
         blocks, needs = None, set()

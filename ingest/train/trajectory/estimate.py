@@ -87,7 +87,9 @@ def read_gyro(
         rates.append(sample.gyro_rad_s)
     if len(stamps) < 2:
         return None
-    return integrate_gyro(np.array(stamps, np.int64), np.array(rates), R_cam0_imu)
+    stamps_ns, gyro = np.array(stamps, np.int64), np.array(rates)
+    keep = ~bad.dropped.spikes(imu_topic, stamps_ns, gyro)
+    return integrate_gyro(stamps_ns[keep], gyro[keep], R_cam0_imu)
 
 
 def trajectory_pass(
