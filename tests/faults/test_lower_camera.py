@@ -56,3 +56,37 @@ def test_a_stereo_pose_off_is_named(
     assert float(found[0].group(2)) == pytest.approx(mm, abs=6.0)
     check = yaml.safe_load((tmp_path / "ds" / "dataset.yaml").read_text())["sources"][0]["calibration_check"]
     assert check["stereo_pose"]["off"] is True
+
+
+def test_lower_images_upside_down_are_named(tmp_path: Path) -> None:
+    """Sweep 7: every lower image turned 180 deg: exit 0 with no line, the equirect pair no stereo pair of
+    the GT. The LiDAR points match the lower images far worse than the upper ones (the exact rig's match
+    alike, 0.7-0.8 each)."""
+    import cv2
+
+    from ingest.bags.decode import decode_compressed_image
+    from ingest.bags.rostypes import IMAGE_TYPE
+    from sensorbox.messages import image_msg
+    from tests.faults.bags import LOWER, rewrite
+
+    raw_lower = LOWER.removesuffix("/compressed")
+
+    def turned(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        if topic != LOWER:
+            return [(topic, raw)]
+        frame = decode_compressed_image(raw)
+        image = np.ascontiguousarray(cv2.rotate(frame.image, cv2.ROTATE_180))
+        return [(raw_lower, image_msg(frame.stamp_ns, frame.frame_id, image))]
+
+    bag, rig = rewrite(tmp_path / "turned.mcap", turned, declare={raw_lower: IMAGE_TYPE})
+    summary = ingest([bag], IngestConfig(rig=rig, out=tmp_path / "ds", workers=1, every=5, height_full=96))
+    found = [
+        line for line in summary.warnings if line.startswith("the LiDAR points match the lower camera's")
+    ]
+    assert len(found) == 1, summary.warnings
+    correlations = re.findall(r"lidar_\w+ (-?\d\.\d\d) against (\d\.\d\d)", found[0])
+    assert len(correlations) == 2 and all(float(low) < 0.6 * float(up) for low, up in correlations)
+    assert found[0].endswith(
+        "cam1's images are not what the camchain says (turned, mirrored, another camera's) or its intrinsics are "
+        "off; the equirect pair is not a stereo pair of the GT: check cam1's topic, images and camchain entry"
+    )

@@ -13,7 +13,7 @@ import numpy as np
 from calibration.rig import Rig
 from calibration.types import F64
 from ingest.train.gt.align import Alignment
-from ingest.train.gt.align_check import Combined, SampleAlignments, combine, corrected
+from ingest.train.gt.align_check import MATCH_RATIO, Combined, SampleAlignments, combine, corrected
 
 STEREO_WARN_DEG = 0.1
 STEREO_WARN_MM = 5.0
@@ -61,6 +61,29 @@ def stereo_lines(stereo: StereoAlignment | None, rig: object) -> list[str]:
         f"{stereo.sigma_rotation_deg:.2f} deg, {stereo.sigma_translation_mm:.1f} mm): the lower images, "
         "warped by it, lie off the disparity GT; recalibrate the stereo pair (kalibr_calibrate_cameras) and "
         f"give {rig} the new camchain, or check the lower camera's images"
+    ]
+
+
+def lower_mismatch_lines(upper: SampleAlignments, lower: SampleAlignments) -> list[str]:
+    """One warning line when every LiDAR's points match the lower camera's images far worse than the
+    upper's (median correlation below `MATCH_RATIO` of it): cam1's images are not what the camchain
+    says. On the fixtures both images match alike (0.52-0.79 each); the lower images upside down,
+    -0.35 and -0.05 against 0.70 and 0.79."""
+    names = sorted({n for found, _ in lower for n in found})
+    pairs = {}
+    for name in names:
+        up = [a.correlation for found, _ in upper if (a := found.get(name)) is not None]
+        low = [a.correlation for found, _ in lower if (a := found.get(name)) is not None]
+        if up and low:
+            pairs[name] = (float(np.median(low)), float(np.median(up)))
+    if not pairs or not all(up > 0 and low < MATCH_RATIO * up for low, up in pairs.values()):
+        return []
+    found = ", ".join(f"{n} {low:.2f} against {up:.2f}" for n, (low, up) in pairs.items())
+    return [
+        f"the LiDAR points match the lower camera's images far worse than the upper's (median correlation "
+        f"{found}): cam1's images are not what the camchain says (turned, mirrored, another camera's) or "
+        "its intrinsics are off; the equirect pair is not a stereo pair of the GT: check cam1's topic, "
+        "images and camchain entry"
     ]
 
 

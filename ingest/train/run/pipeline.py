@@ -87,7 +87,7 @@ from ingest.train.run.describe import (
 )
 from ingest.train.run.gt_method import dense_reach_ns, gt_method
 from ingest.train.run.handoff import give_arrays, handoff_bytes_bound, take_arrays
-from ingest.train.run.lidar_poses import stereo_alignment, stereo_lines, stereo_record
+from ingest.train.run.lidar_poses import lower_mismatch_lines, stereo_alignment, stereo_lines, stereo_record
 from ingest.train.run.plan import LOST_REASON, Plan, Survey, plan, survey
 from ingest.train.run.refine import Refinement, refine
 from ingest.train.run.resolved import ResolvedRun
@@ -237,6 +237,7 @@ def ingest(
             record_calibration(cfg.out, [Path(p) for p in bag_paths], record)
             summary.warnings += summary.calibration.warnings(cfg.rig, refined=cfg.refine)
             summary.warnings += stereo_lines(stereo, cfg.rig)
+            summary.warnings += lower_mismatch_lines(summary.alignments, summary.alignments_lower)
         summary.warnings += [
             line
             for line in (
