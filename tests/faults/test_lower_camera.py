@@ -75,7 +75,7 @@ def test_lower_images_upside_down_are_named(tmp_path: Path) -> None:
         if topic != LOWER:
             return [(topic, raw)]
         frame = decode_compressed_image(raw)
-        image = np.ascontiguousarray(cv2.rotate(frame.image, cv2.ROTATE_180))
+        image = np.ascontiguousarray(cv2.rotate(frame.image, cv2.ROTATE_180), np.uint8)
         return [(raw_lower, image_msg(frame.stamp_ns, frame.frame_id, image))]
 
     bag, rig = rewrite(tmp_path / "turned.mcap", turned, declare={raw_lower: IMAGE_TYPE})
