@@ -10,7 +10,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from calibration.rig import REFERENCE_RIG
+from calibration.rig import REFERENCE_RIG, read_rig
 from sensorbox.errors import GraphError
 from sensorbox.live.bus import PRIORITY_DEVICE, Node, NodeContext, NodeStatus
 from sensorbox.live.nodes import Params, stereo_camera_node
@@ -72,7 +72,12 @@ def mid360_emulator_node(ctx: NodeContext, p: Params) -> Node:
     loop_s = p.number("loop_s", 1.0, (MAX_DURATION_S, "s (the longest simulated recording)"))
     if loop_s < 0:
         raise GraphError(f"{p.where}: loop_s must be >= 0 (0 = simulate live), got {loop_s}")
-    return EmulatorNode(ctx.name, sim, p.text("lidar", "lidar_top"), ip, loop_s, options)
+    lidar = p.text("lidar", "lidar_top")
+    names = [li.name for li in read_rig(sim.rig).lidars]  # the dry run reads it too: a missing file, a name
+    if lidar not in names:
+        have = ", ".join(names) or "no lidar"
+        raise GraphError(f"{p.where}: lidar {lidar!r}: the rig {sim.rig} has {have}")
+    return EmulatorNode(ctx.name, sim, lidar, ip, loop_s, options)
 
 
 def sim_cameras(p: Params) -> tuple[SimCameras, Callable[[], None] | None]:

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import pytest
 
+from calibration.rig import REFERENCE_RIG
 from tests.faults.cli import sensorbox
 from tests.paths import ROOT
 
@@ -209,6 +210,25 @@ def test_two_emulators_on_one_address_are_refused_by_the_dry_run(
         f"error: {launch}:3: node 'b' opens the Mid-360 address 127.0.0.12, as does node 'a' at {launch}:2; one "
         "device cannot be two sources: give each its own"
     ])  # fmt: skip
+
+
+def test_an_emulator_whose_rig_lacks_its_lidar_is_refused_by_the_dry_run(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Sweep 7: the dry run passed an emulator of a LiDAR its rig lacks, or whose rig file is missing;
+    the run refused each only once started."""
+    launch = tmp_path / "x.launch.yaml"
+    node = "{pkg: sensorbox, exec: mid360_emulator, name: e, param: [{name: ip, value: 127.0.0.12}, %s]}"
+    launch.write_text(f"launch:\n- node: {node % '{name: lidar, value: lidar_middle}'}\n")
+    code, _, err = sensorbox(capsys, "launch", "--dry-run", str(launch))
+    assert code == 2 and len(err) == 1
+    assert err[0].startswith("error: node 'e' (sensorbox/mid360_emulator) at ") and err[0].endswith(
+        ": lidar 'lidar_middle': the rig " + str(REFERENCE_RIG) + " has lidar_top, lidar_bottom"
+    ), err
+    missing = tmp_path / "nothere.yaml"
+    launch.write_text(f"launch:\n- node: {node % ('{name: rig, value: ' + repr(str(missing)) + '}')}\n")
+    code, _, err = sensorbox(capsys, "launch", "--dry-run", str(launch))
+    assert code == 2 and err[0].endswith(f": {missing}: rig file not found"), err
 
 
 def test_a_launch_argument_given_twice_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
