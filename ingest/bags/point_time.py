@@ -112,6 +112,11 @@ def _offsets_ns(column: Any, unit: str, relative: bool, stamp_ns: int) -> I64 | 
     return offsets
 
 
+BIG_ENDIAN_HINT = (
+    " (read big-endian, as the message's is_bigendian says: a driver that sets it on little-endian data?)"
+)
+
+
 def _no_fit(name: str, column: Any, stamp_ns: int) -> MessageDecodeError:
     values = column.astype(np.float64)
     lo, hi = float(np.nanmin(values)), float(np.nanmax(values))
@@ -144,16 +149,17 @@ def point_times_ns(
     column = np.ascontiguousarray(points[name], dtype=dtype.newbyteorder("="))
     if len(column) == 0:
         return np.zeros(0, np.int64), None
+    big = BIG_ENDIAN_HINT if dtype.byteorder == ">" else ""
     if dtype.kind == "f" and not np.isfinite(column).all():
         bad = int(np.count_nonzero(~np.isfinite(column)))
-        raise MessageDecodeError(f"PointCloud2 point-time field {name!r} has {bad} non-finite values")
+        raise MessageDecodeError(f"PointCloud2 point-time field {name!r} has {bad} non-finite values{big}")
     fits = []
     for rank, (unit, relative) in enumerate(_readings(column.dtype)):
         offsets = _offsets_ns(column, unit, relative, stamp_ns)
         if offsets is not None:
             fits.append((int(np.abs(offsets).min()), rank, unit, relative, offsets))
     if not fits:
-        raise _no_fit(name, column, stamp_ns)
+        raise MessageDecodeError(f"{_no_fit(name, column, stamp_ns)}{big}")
     _, _, unit, relative, offsets = min(fits, key=lambda f: (f[0], f[1]))
     layout = PointTimeLayout(name, column.dtype.name, unit, relative)
     return offsets + np.int64(stamp_ns), layout

@@ -15,7 +15,7 @@ from mcap.writer import Writer as McapWriter
 
 from ingest.bags.decode import NO_POINT_TIME, Sweep, decode
 from ingest.bags.message import RawMessage
-from ingest.bags.point_time import MAX_OFFSET_NS
+from ingest.bags.point_time import MAX_OFFSET_NS, point_times_ns
 from ingest.bags.rostypes import POINTCLOUD2_TYPE, typestore
 from ingest.errors import MessageDecodeError
 from ingest.inspect import inspect_bags
@@ -218,3 +218,28 @@ def test_inspect_shows_each_lidar_topics_time_layout_and_the_unplaceable_one(tmp
     assert (lidars["/bad"].sweeps, lidars["/bad"].undecodable) == (0, 1)
     error = report.topic("/bad").error
     assert error is not None and "'time' (float32) holds 50.25..60" in error
+
+
+def test_a_big_endian_time_field_that_reads_wrong_names_the_flag() -> None:
+    """Sweep 6 U4: a PointCloud2 flagged is_bigendian on little-endian data said only "has 7 non-finite
+    values": the byte order it was read in, from the message's flag, is named."""
+    from ingest.bags.point_time import BIG_ENDIAN_HINT
+
+    little = np.array([1700000000.1, 1700000000.2, 1700000000.3], "<f8")
+    as_flagged = np.frombuffer(
+        little.tobytes(), np.dtype([("timestamp", ">f8")])
+    )  # the same bytes read big-endian
+    try:
+        point_times_ns(as_flagged, 1_700_000_000_000_000_000)
+    except MessageDecodeError as err:
+        assert str(err).endswith(BIG_ENDIAN_HINT), err
+        assert BIG_ENDIAN_HINT == (
+            " (read big-endian, as the message's is_bigendian says: a driver that sets it on little-endian data?)"
+        )
+    else:
+        raise AssertionError("little-endian times read big-endian were accepted")
+    right = np.frombuffer(little.astype(">f8").tobytes(), np.dtype([("timestamp", ">f8")]))
+    times, _ = point_times_ns(right, 1_700_000_000_000_000_000)
+    assert np.allclose(
+        times, [1_700_000_000_100_000_000, 1_700_000_000_200_000_000, 1_700_000_000_300_000_000], atol=1e3
+    )
