@@ -21,7 +21,8 @@ USAGE = 2  # a user mistake (`sensorbox.cli.main`)
 
 
 def _streams_open() -> None:
-    """Exit 2 with one line when standard output is closed (`>&-`): every command prints its progress
+    """Exit 2 with one line when standard output is closed (`>&-`) or the current directory is gone
+    (deleted while the shell stood in it): every command prints its progress
     and summary there, and coreutils refuse a closed stdout the same way ("write error: Bad file
     descriptor"); `>/dev/null` discards it. A closed standard error (Python leaves it None) is
     /dev/null's: the exit code still tells."""
@@ -30,6 +31,12 @@ def _streams_open() -> None:
     if sys.stdout is None:
         sys.stderr.write("error: standard output is closed; give it a file, or >/dev/null to discard it\n")
         raise SystemExit(USAGE)
+    try:  # relative paths mean nothing without it, and Open3D's oneMKL dies loading its library
+        Path.cwd()
+    except FileNotFoundError:
+        gone = "the current directory no longer exists (deleted since the shell entered it)"
+        sys.stderr.write(f"error: {gone}; cd to a folder that exists\n")
+        raise SystemExit(USAGE) from None
 
 
 def run() -> None:

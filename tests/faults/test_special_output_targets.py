@@ -211,3 +211,20 @@ def test_a_full_standard_output_is_named_and_a_full_standard_error_keeps_the_exi
         capture_output=True, text=True, cwd=ROOT,
     )  # fmt: skip
     assert (quiet.returncode, quiet.stdout) == (2, "")
+
+
+def test_a_deleted_working_directory_is_one_line(tmp_path: Path) -> None:
+    """Sweep 6 U6: run from a directory deleted meanwhile, ingest died in Open3D's oneMKL ("Cannot load
+    libOpen3D.so"), naming no cause."""
+    gone = tmp_path / "gone"
+    gone.mkdir()
+    python = f"{sys.executable} -m sensorbox.cli"
+    res = subprocess.run(
+        ["bash", "-c", f"cd {gone} && rmdir {gone} && PYTHONPATH={ROOT} {python} inspect {INDOOR}"],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert (res.returncode, res.stderr) == (
+        2,
+        "error: the current directory no longer exists (deleted since the shell entered it); cd to a folder that "
+        "exists\n",
+    )
