@@ -113,6 +113,11 @@ def _summary(result: GraphResult, title: str) -> None:
         console.print(f"Bag: {path} ({human_bytes(size)})", highlight=False)
     for line in silent_lidars(snap.nodes, snap.elapsed_s):
         print_warning(line)
+    if not any(snap.published.values()):
+        print_warning(
+            f"no message was published in {snap.elapsed_s:.1f} s: no node of the run publishes a topic (a "
+            "recorder alone records nothing), so no bag was written"
+        )
     # node errors other than the run's own (that one is the `error:` line `_finish` ends with)
     errors = [
         f"{name}: {st.error}" for name, st in snap.nodes.items() if st.error and st.error != result.error

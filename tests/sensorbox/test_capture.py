@@ -278,3 +278,20 @@ def test_a_live_emulator_sweeps_without_listing_its_run_first():
     sweeping.start()
     sweeping.join(60.0)  # it takes a second; listing the windows first took minutes and gigabytes
     assert first and first[0].timebase_ns == next(SimScan(setup, 0).sweeps()).timebase_ns
+
+
+@pytest.mark.realtime
+def test_a_launch_that_publishes_nothing_says_so(tmp_path: Path) -> None:
+    """Sweep 7: a launch file with a recorder alone 'recorded 2 s', an empty table, no bag and no line."""
+    launch = tmp_path / "rec.launch.yaml"
+    launch.write_text(
+        "launch:\n- node: {pkg: sensorbox, exec: recorder, name: rec, param: ["
+        f"{{name: out, value: '{tmp_path / 'bags'}'}}, {{name: duration_s, value: 1.0}}]}}\n"
+    )
+    res = run_cli("launch", str(launch))
+    assert res.returncode == 0, res.stderr
+    assert "warning: no message was published in " in res.stderr
+    assert res.stderr.rstrip().endswith(
+        "s: no node of the run publishes a topic (a recorder alone records nothing), so no bag was written"
+    )
+    assert not list(tmp_path.rglob("*.mcap"))
