@@ -100,6 +100,7 @@ def frames_table(report: RigReport) -> Table:
 
 def calib_check(path: PathArg, plot: PlotOpt = None) -> None:
     """Print each camera's model, parameters and true FOV, the baseline and the rig's frames."""
+    from calibration.housing import housing_warnings
     from calibration.rectify import stereo_warnings
     from calibration.report import describe_rig
     from calibration.rig import read_rig
@@ -115,7 +116,7 @@ def calib_check(path: PathArg, plot: PlotOpt = None) -> None:
     console.print(frames_table(report))
     if report.baseline_m is not None:
         console.print(f"Stereo baseline upper->lower: [bold]{report.baseline_m * 1000:.2f} mm[/bold]")
-    for line in stereo_warnings(rig):
+    for line in [*stereo_warnings(rig), *housing_warnings(rig)]:
         print_warning(line, console)
     if plot is not None:
         from sensorbox.analysis.plots import plot_rig
@@ -182,14 +183,17 @@ def imu_table(refinement: Refinement) -> Table:
     for col in ("imu", "lidar", "cam0 exposure on its clock [ms]", "rotation correction [deg]",
                 "1-sigma [deg]", "residual before -> after [deg]", "refined rig"):  # fmt: skip
         table.add_column(col, justify="left" if col in ("imu", "lidar", "refined rig") else "right")
+    moved = {lidar.lidar: lidar for lidar in refinement.lidars if lidar.applied}
     for imu in refinement.imus:
         t, r = imu.timeshift, imu.rotation
+        outcome = "rotation refined" if r.observable else "rig's rotation kept (not observable)"
+        if imu.lidar in moved:  # the housing turned as a whole by its LiDAR's pose correction
+            outcome += f"; then turned with {imu.lidar} ({moved[imu.lidar].rotation_deg:.3f} deg)"
         table.add_row(
             imu.imu, imu.lidar or "-",
             f"{t.timeshift_ms:+.3f} ± {t.sigma_ms:.3f}" if t.observable else "not observable",
             f"{r.correction_deg:.3f}" if r.observable else "-", f"{r.sigma_deg:.3f}",
-            f"{r.residual_before_deg:.4f} -> {r.residual_after_deg:.4f}",
-            "rotation refined" if r.observable else "rig's rotation kept (not observable)",
+            f"{r.residual_before_deg:.4f} -> {r.residual_after_deg:.4f}", outcome,
         )  # fmt: skip
     return table
 
@@ -246,6 +250,7 @@ def calib_refine(
     """
     import tempfile
 
+    from calibration.housing import housing_warnings
     from calibration.rig import read_rig, write_rig
     from ingest.dataset.layout import write_atomic_set
     from ingest.train.run.pipeline import refine_rig
@@ -254,6 +259,8 @@ def calib_refine(
     if plot is not None:
         check_out_file("--plot", plot)
     given = read_rig(rig)
+    for line in housing_warnings(given):
+        print_warning(line, console)
     read = [rig, *([Path(given.camchain.source)] if given.camchain and given.camchain.source else []), *bags]
     written = [("--out", out), ("--out", out.with_name(f"{out.stem}-camchain.yaml")), ("--plot", plot)]
     for flag, target in written:

@@ -4,6 +4,7 @@ import json
 import math
 import re
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -11,6 +12,7 @@ import pytest
 import yaml
 
 from calibration import CalibrationError, DoubleSphere, read_livox_config, read_rig, write_rig
+from calibration.rig import REFERENCE_RIG
 from calibration.transforms import livox_extrinsic_to_transform
 
 REF = Path(__file__).resolve().parents[2] / "calibration" / "sensorbox.yaml"
@@ -323,3 +325,25 @@ def test_stereo_layout_warnings_and_a_zero_baseline(tmp_path):
         match=r"rig\.yaml: cameras cam0 and cam1 are 0\.000 mm apart; a stereo pair needs a baseline of at least 1 mm$",
     ):
         rectify_rig(zero)
+
+
+def test_an_imu_off_its_lidars_housing_is_named(tmp_path):
+    """Sweep 6/7: a rig with lidar_top turned 2 deg and imu_top exact (a Mid-360's IMU sits in its LiDAR's
+    housing) passed every check; refine then turned the housing as a whole and moved the exact IMU."""
+    from scipy.spatial.transform import Rotation
+
+    from calibration.housing import housing_warnings
+
+    assert housing_warnings(read_rig(REFERENCE_RIG)) == []
+    rig = read_rig(REFERENCE_RIG)
+    top = rig.lidar("lidar_top")
+    T = top.T_cam0_lidar.copy()
+    T[:3, :3] = T[:3, :3] @ Rotation.from_euler("z", 2.0, degrees=True).as_matrix()
+    turned = replace(rig, lidars=tuple(replace(li, T_cam0_lidar=T) if li is top else li for li in rig.lidars))
+    (line,) = housing_warnings(turned)
+    assert re.fullmatch(
+        r".*: imu_top is 2\.00 deg and \d\.\d mm from where lidar_top's housing puts it \(a Mid-360's IMU sits "
+        r"unturned at \(11\.0, 23\.29, -44\.12\) mm in its LiDAR's frame\): one of the two poses is off; calib "
+        r"refine turns a housing as a whole, so check lidar_top's T_cam0_lidar and imu_top's T_cam0_imu first",
+        line,
+    ), line

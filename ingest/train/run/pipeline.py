@@ -56,6 +56,7 @@ from itertools import chain
 from pathlib import Path
 from typing import Any
 
+from calibration.housing import housing_warnings
 from calibration.rectify import stereo_warnings
 from calibration.rig import Rig, read_rig, write_rig
 from calibration.types import I64
@@ -197,7 +198,7 @@ def ingest(
     given_once(bag_paths)  # before the rig and the output are touched
     check_format(cfg.out)  # another tool's dataset.yaml is never overwritten
     retain_freed_memory()  # chunks and images: ~20 MB per sample pass through this process too
-    rig = read_rig(cfg.rig)
+    rig = given = read_rig(cfg.rig)
     refinement = None
     if (
         cfg.refine
@@ -209,8 +210,8 @@ def ingest(
         raise DatasetError(f"{cfg.rig}: the rig has no LiDAR under 'lidars'; ingest needs at least one")
     geometry = Geometry.from_rig(rig, cfg.height_full)
     check_existing(cfg, geometry, [Path(p) for p in bag_paths])  # settings, rig, data: before the passes
-    summary = IngestSummary(out=cfg.out, warnings=stereo_warnings(rig), refinement=refinement)
-    summary.warnings += [line for line in (geometry.coarse_line(),) if line]
+    lines = [*stereo_warnings(rig), *housing_warnings(given), *filter(None, [geometry.coarse_line()])]
+    summary = IngestSummary(out=cfg.out, warnings=lines, refinement=refinement)
     if refinement is not None:
         summary.warnings += refinement.unobserved_lines()
     bad = BadMessages(cfg.max_bad, warn)
@@ -238,16 +239,7 @@ def ingest(
             summary.warnings += summary.calibration.warnings(cfg.rig, refined=cfg.refine)
             summary.warnings += stereo_lines(stereo, cfg.rig)
             summary.warnings += lower_mismatch_lines(summary.alignments, summary.alignments_lower)
-        summary.warnings += [
-            line
-            for line in (
-                summary.without_gt_line(),
-                summary.without_disparity_line(),
-                summary.off_image_line(),
-                summary.range_line(rig.lidars[0].name),
-            )
-            if line
-        ]
+        summary.warnings += summary.closing_lines(rig.lidars[0].name)
     summary.seconds = time.perf_counter() - t_start
     summary.compile_s = compile_s[0]
     return summary

@@ -96,6 +96,12 @@ class IngestSummary:
             )
         return "; ".join(lines)
 
+    def closing_lines(self, first_lidar: str) -> list[str]:
+        """The warning lines the written samples give together, in order (`first_lidar`: the rig's first
+        LiDAR, the others' ranges are compared with)."""
+        found = [self.without_gt_line(), self.without_disparity_line(), self.off_image_line()]
+        return [line for line in (*found, self.range_line(first_lidar)) if line]
+
     def off_image_line(self) -> str:
         """One warning line naming the samples whose upper image lies off every LiDAR's points ('' if
         none): more than `OFF_IMAGE_DEG` (and `OFF_IMAGE_PX` pixels) for each LiDAR, while the rig's
