@@ -142,11 +142,31 @@ def _open_reader(paths: list[Path], ros_version: RosVersion, guard: ChunkGuard) 
         names = ", ".join(map(str, paths))
         raise BagError(f"cannot read these bags together ({names}): {type(err).__name__}: {err}") from err
     try:
+        indexed(reader.readers)
         one_recording(reader.readers)
     except BagError:
         reader.close()
         raise
     return reader
+
+
+UNINDEXED_BYTES = 64 * 1024
+"""A ROS 1 bag larger than this whose header counts no message holds messages its index does not list."""
+
+
+def indexed(readers: Sequence[Any]) -> None:
+    """`BagError` for a ROS 1 bag whose header and index count no message though the file is larger than
+    `UNINDEXED_BYTES`: its chunks are there, its index (header chunk_count, index records) is not."""
+    for r in readers:
+        path = Path(str(r.path))
+        if path.suffix != ".bag" or int(r.message_count) or not path.is_file():
+            continue
+        size = path.stat().st_size
+        if size > UNINDEXED_BYTES:
+            raise BagError(
+                f"{path}: ROS 1 bag whose header and index count no message though the file holds {size:,} "
+                "bytes: its index is damaged; run `rosbag reindex` on it first"
+            )
 
 
 def one_recording(readers: Sequence[Any]) -> None:

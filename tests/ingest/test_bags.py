@@ -507,6 +507,24 @@ def test_truncated_ros1_bag(tmp_path):
         open_bags(tmp_path / "cut.bag")
 
 
+def test_a_ros1_bag_whose_header_counts_no_chunk_is_named(tmp_path):
+    """Sweep 7: a 6 MB ROS 1 bag whose header said chunk_count 0 (its chunks and index whole) was 'no messages
+    at all (an empty bag, or cut before its first message)'; `rosbag reindex` was not suggested."""
+    from tests.paths import FIXTURES_DIR
+
+    data = bytearray((FIXTURES_DIR / "outdoor_static_bag.bag").read_bytes())
+    field = data.index(b"chunk_count=") + len(b"chunk_count=")
+    struct.pack_into("<I", data, field, 0)
+    bag = tmp_path / "lies.bag"
+    bag.write_bytes(bytes(data))
+    with pytest.raises(BagError) as err:
+        open_bags(bag)
+    assert str(err.value) == (
+        f"{bag}: ROS 1 bag whose header and index count no message though the file holds {len(data):,} bytes: "
+        "its index is damaged; run `rosbag reindex` on it first"
+    )
+
+
 def test_the_failing_bag_among_several_is_named(tmp_path, blob_bag):
     data = next(blob_bag.glob("*.mcap")).read_bytes()
     (tmp_path / "cut.mcap").write_bytes(data[: len(data) // 2])
