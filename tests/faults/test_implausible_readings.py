@@ -488,3 +488,32 @@ def test_single_gyro_spikes_are_dropped_counted_and_give_the_gt_without_them(tmp
                      "agree) (first at stamp ")
         for w in summary.warnings
     )  # fmt: skip
+
+
+def test_one_lidars_points_on_both_topics_are_refused(tmp_path: Path) -> None:
+    """Sweep 7: lidar_bottom's topic carrying lidar_top's points (its own stamps) was ingested, 28 % of the
+    depth GT outliers against truth, the line blaming lidar_bottom's pose, clock or IMU."""
+    tops = [decode_custom_msg(m) for m in _messages(INDOOR, LIDAR_TOP)]
+
+    def copied(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        if topic != LIDAR_BOTTOM:
+            return [(topic, raw)]
+        mine = decode_custom_msg(raw)
+        return [
+            (
+                topic,
+                encode_custom_msg(
+                    mine.stamp_ns, mine.frame_id, mine.timebase_ns, tops[k].points, mine.lidar_id
+                ),
+            )
+        ]
+
+    bag, rig = rewrite(tmp_path / "copied.mcap", copied, src=INDOOR)
+    with pytest.raises(BagError) as err:
+        ingest([bag], IngestConfig(rig=rig, out=tmp_path / "ds", **FAST))  # type: ignore[arg-type]
+    assert str(err.value) == (
+        f"{bag}: {LIDAR_BOTTOM} (the rig's lidar lidar_bottom) carries the same sweeps as {LIDAR_TOP} (lidar_top): "
+        f"{len(tops)} of {len(tops)} point for point; one LiDAR's points were sent to both topics (a remap, or a "
+        "driver or recorder that copied them): check the recording"
+    )
+    assert not (tmp_path / "ds").exists()

@@ -47,6 +47,8 @@ CROWDED_FACTOR = 20
 times squeezed (`LidarRates.crowded`); a Mid-360's sweep spans its whole 100 ms."""
 
 
+MIN_PRINT_POINTS = 100
+"""Measured points a sweep needs for `LidarRates.same_sweeps` to compare it with another LiDAR's."""
 MAX_SWEEP_GAP_NS = 1_000_000_000
 """Sweeps further apart than this (ns) belong to stretches recorded apart: the time between is not the
 LiDAR's (`LidarRates.recorded_per_s`)."""
@@ -64,6 +66,31 @@ class LidarRates:
     span_ns: dict[str, tuple[int, int]] = field(default_factory=dict)  # per topic: first and last point
     sweep_spans_ns: dict[str, list[tuple[int, int]]] = field(default_factory=dict)  # per topic, per sweep
     median_range_m: dict[str, list[float]] = field(default_factory=dict)  # per topic: each sweep's median
+    prints: dict[str, set[int]] = field(default_factory=dict)  # per topic: its sweeps' points, hashed
+
+    def add_points(self, topic: str, xyz_m: np.ndarray[Any, Any]) -> None:
+        """Record one sweep's measured points (a hash of their coordinates) for `same_sweeps`; a sweep
+        of fewer than `MIN_PRINT_POINTS` finite points off the origin (a Livox "no return") says nothing."""
+        xyz = np.asarray(xyz_m)
+        real = np.isfinite(xyz).all(axis=1) & xyz.any(axis=1)
+        if int(real.sum()) >= MIN_PRINT_POINTS:
+            self.prints.setdefault(topic, set()).add(hash(np.ascontiguousarray(xyz[real]).tobytes()))
+
+    def same_sweeps(self, names: dict[str, str]) -> str | None:
+        """The first two LiDARs (topic -> rig name) over half of whose sweeps are the same points (to the
+        bit), in one line: one sensor's data sent to both topics; None when there are none."""
+        topics = list(names)
+        for k, a in enumerate(topics):
+            for b in topics[k + 1 :]:
+                mine, theirs = self.prints.get(a, set()), self.prints.get(b, set())
+                shared = len(mine & theirs)
+                if mine and theirs and shared > 0.5 * min(len(mine), len(theirs)):
+                    return (
+                        f"{b} (the rig's lidar {names[b]}) carries the same sweeps as {a} ({names[a]}): "
+                        f"{shared:,} of {len(theirs):,} point for point; one LiDAR's points were sent to "
+                        "both topics (a remap, or a driver or recorder that copied them): check the recording"
+                    )
+        return None
 
     def add_ranges(self, topic: str, xyz_m: np.ndarray[Any, Any]) -> None:
         """Record one sweep's median point range (m; points at the origin, a Livox "no return", left out)."""

@@ -106,6 +106,7 @@ def _seen(
             seen[msg.topic].append((msg.log_ns, *sweep.span_ns))
             rates.add(msg.topic, sweep.stamps_ns)
             rates.add_ranges(msg.topic, sweep.xyz_m)
+            rates.add_points(msg.topic, sweep.xyz_m)
     return {t: np.array(v, np.int64).reshape(-1, 3) for t, v in seen.items()}, rates, copies
 
 
@@ -207,7 +208,7 @@ def survey(
                 f"{bags.paths[0]}: no points on {topic} (the rig's lidar {name}) in the whole bag"
                 + _all_dropped(dropped.get(topic, {}), "point")
             )
-    odd = rates.crowded(topics.lidars) or rates.too_far(topics.lidars)
+    odd = rates.crowded(topics.lidars) or rates.too_far(topics.lidars) or rates.same_sweeps(topics.lidars)
     if odd:
         raise BagError(f"{bags.paths[0]}: {odd}")
     if topics.imu and not len(seen[topics.imu]):  # the rig names it: motion and odometry rely on it
