@@ -423,8 +423,14 @@ def test_two_recordings_given_together_are_refused_naming_both(
 def test_recorders_of_other_topics_at_the_same_time_are_one_recording(tmp_path: Path) -> None:
     """Bags recorded side by side, one with the cameras and one with the LiDARs and IMUs, overlap in time
     but share no topic: read together, they are the recording whole."""
-    cameras, _ = rewrite(tmp_path / "cameras.mcap", lambda t, k, raw: [(t, raw)] if "zed" in t else [])
-    livox, _ = rewrite(tmp_path / "livox.mcap", lambda t, k, raw: [] if "zed" in t else [(t, raw)])
+    with open_bags([INDOOR]) as whole:
+        every = {t: s.msgtype for t, s in whole.topics().items()}  # each file declares every channel
+    cameras, _ = rewrite(
+        tmp_path / "cameras.mcap", lambda t, k, raw: [(t, raw)] if "zed" in t else [], declare=every
+    )
+    livox, _ = rewrite(
+        tmp_path / "livox.mcap", lambda t, k, raw: [] if "zed" in t else [(t, raw)], declare=every
+    )
     with open_bags([cameras, livox]) as both, open_bags([INDOOR]) as whole:
         assert both.topics() == whole.topics()
         assert sorted((m.topic, m.log_ns) for m in both.messages()) == sorted(
