@@ -23,6 +23,7 @@ import cv2
 import numpy as np
 
 from calibration.camera import CameraModel
+from calibration.housing import housing_lidar
 from calibration.rig import Imu, Lidar, Rig, with_timeshifts
 from calibration.types import F64, U8
 from ingest.bags.decode import Frame, ImuSample
@@ -178,13 +179,8 @@ def _halvings(width: int) -> int:
 
 
 def _housing_lidar(rig: Rig, imu: Imu, k: int) -> Lidar | None:
-    """The LiDAR built into the same Mid-360 as `imu`: the one whose address or topic suffix its topic
-    ends with, else the k-th."""
-    for lidar in rig.lidars:
-        key = lidar.ip.replace(".", "_") if lidar.ip else lidar.topic.rsplit("lidar", 1)[-1]
-        if key and imu.topic.endswith(key):
-            return lidar
-    return rig.lidars[k] if k < len(rig.lidars) else None
+    """The LiDAR built into the same Mid-360 as `imu` (`calibration.housing.housing_lidar`), else the k-th."""
+    return housing_lidar(rig, imu) or (rig.lidars[k] if k < len(rig.lidars) else None)
 
 
 def _read(bags: Sequence[Path], rig: Rig, progress: Callable[[int, int], None] | None) -> _Recording:
