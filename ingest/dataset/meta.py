@@ -125,6 +125,8 @@ class SampleMeta:
     alignment: dict[str, AlignmentMeta] = field(default_factory=dict)  # per LiDAR topic, with reflectivity
     twist_cam0: list[float] | None = None  # cam0's angular (rad/s) and linear (m/s) velocity in cam0
     alignment_lower: dict[str, AlignmentMeta] = field(default_factory=dict)  # onto the lower image, in cam1
+    lower_check: dict[str, AlignmentMeta] = field(default_factory=dict)  # every sample's (quick where the
+    # above is not made): does the lower image lie on the points?
 
     def written(
         self, sid: str, dropped: dict[str, int], files: dict[str, FileMeta] | None = None
@@ -159,6 +161,7 @@ class SampleMeta:
             clock_offset_ms=float(d.get("clock_offset_ms", 0.0)),
             alignment={str(k): AlignmentMeta(**v) for k, v in d.get("alignment", {}).items()},
             alignment_lower={str(k): AlignmentMeta(**v) for k, v in d.get("alignment_lower", {}).items()},
+            lower_check={str(k): AlignmentMeta(**v) for k, v in d.get("lower_check", {}).items()},
             twist_cam0=None if d.get("twist_cam0") is None else [float(v) for v in d["twist_cam0"]],
         )  # fmt: skip
 

@@ -61,6 +61,21 @@ def rewrite(
     return dst, truth_dir(dst) / "rig.yaml"
 
 
+def frames_swapped(src: Path, topic: str, first: int, second: int) -> Keep:
+    """The `first` and `second` messages of `topic` in `src` with each other's image, each under its own
+    stamp (a raw or compressed image's header stamp is its bytes 4..12)."""
+    with open_bags([src]) as bags:
+        raws = [bytes(m.raw) for m in bags.messages() if m.topic == topic]
+
+    def keep(on: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        if on != topic or k not in (first, second):
+            return [(on, raw)]
+        other = raws[second if k == first else first]
+        return [(on, raw[:12] + other[12:])]
+
+    return keep
+
+
 def raw_image(compressed: bytes, short_step: bool = False) -> bytes:
     """The fixture's CompressedImage as a raw bgra8 `Image`; `short_step`: a row `step` 4 bytes short."""
     frame = decode_compressed_image(compressed)

@@ -22,6 +22,7 @@ from ingest.train.run.pipeline import ingest
 from ingest.train.run.settings import IngestConfig
 from sensorbox.sim.truth import truth_dir
 from tests.faults.bags import INDOOR
+from tests.paths import FIXTURES_DIR
 
 OFF = re.compile(
     r"^lidar_\w+'s points on both images put the camchain's stereo pose \(cam1's T_cn_cnm1\) (\d\.\d\d) deg and "
@@ -90,3 +91,22 @@ def test_lower_images_upside_down_are_named(tmp_path: Path) -> None:
         "cam1's images are not what the camchain says (turned, mirrored, another camera's) or its intrinsics are "
         "off; the equirect pair is not a stereo pair of the GT: check cam1's topic, images and camchain entry"
     )
+
+
+def test_a_lower_frame_under_its_neighbours_stamp_is_named_and_flagged(tmp_path: Path) -> None:
+    """Sweep 7 S1 (counted run): the lower camera's 5th and 6th images exchanged, stamps kept: sample
+    000001's lower image was the one taken 33 ms away (its equirect_down_virt 2.95 px off), without a word.
+    Every sample's lower image is now laid onto the points; the other three are not named."""
+    from tests.faults.bags import frames_swapped, rewrite
+
+    walk = FIXTURES_DIR / "outdoor_walk_mcap"
+    lower = "/zed_lower/zed_node/rgb/color/rect/image"
+    bag, rig = rewrite(tmp_path / "swapped.mcap", frames_swapped(walk, lower, 4, 5), src=walk)
+    summary = ingest([bag], IngestConfig(rig=rig, out=tmp_path / "ds", workers=1, every=5, height_full=96))
+    assert summary.written == 4 and summary.off_lower == ["000001"] and summary.off_image == []
+    assert summary.flagged["lower image off every LiDAR's points (> 1 deg)"] == 1
+    assert (
+        "1 of 4 samples written have a lower image that lies off every LiDAR's points by over 1 deg (000001): "
+        "each image is not the one taken at its stamp (a frame published under another's stamp, or a camera "
+        "clock that jumped); the samples are written and flagged in the summary: leave them out of training"
+    ) in summary.warnings

@@ -21,12 +21,11 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from calibration.rig import read_rig
-from ingest.bags.reader import open_bags
 from ingest.train.run.lidar_poses import MAX_TRANSLATION_SIGMA_MM
 from ingest.train.run.pipeline import ingest, refine_rig
 from ingest.train.run.settings import IngestConfig
 from sensorbox.sim.truth import truth_dir
-from tests.faults.bags import Keep, rewrite
+from tests.faults.bags import Keep, frames_swapped, rewrite
 from tests.paths import FIXTURES_DIR
 
 WALK = FIXTURES_DIR / "outdoor_walk_mcap"
@@ -94,24 +93,10 @@ def test_cameras_40_ms_late_are_named_and_the_lidar_poses_kept(tmp_path: Path) -
     assert not any(r.applied for r in refinement.lidars)
 
 
-def _frames_swapped(first: int, second: int) -> Keep:
-    """cam0's frames `first` and `second` with each other's image, each under its own stamp."""
-    with open_bags([WALK]) as bags:
-        raws = [bytes(m.raw) for m in bags.messages() if m.topic == CAMERAS[0]]
-
-    def keep(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
-        if topic != CAMERAS[0] or k not in (first, second):
-            return [(topic, raw)]
-        other = raws[second if k == first else first]
-        return [(topic, raw[:12] + other[12:])]  # the header stamp (bytes 4..12) kept
-
-    return keep
-
-
 def test_a_frame_under_its_neighbours_stamp_is_named_and_flagged(tmp_path: Path) -> None:
     """Sweep 7 S5: cam0's 5th and 6th images exchanged (stamps kept): sample 000001 held the image taken
     33 ms away while its GT is for its stamp, and its own alignment said 2 deg, without a word."""
-    bag, rig = rewrite(tmp_path / "swapped.mcap", _frames_swapped(4, 5), src=WALK)
+    bag, rig = rewrite(tmp_path / "swapped.mcap", frames_swapped(WALK, CAMERAS[0], 4, 5), src=WALK)
     summary = ingest([bag], IngestConfig(rig=rig, out=tmp_path / "ds", workers=1, every=5, height_full=96))
     assert summary.written == 4 and summary.off_image == ["000001"]  # the three right frames are not named
     assert summary.flagged["upper image off every LiDAR's points (> 1 deg)"] == 1

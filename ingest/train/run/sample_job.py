@@ -148,6 +148,8 @@ class SampleParams:
     dense: DenseParams = field(default_factory=DenseParams)
     align_lower: bool = True  # also lay the points onto the lower image (the stereo pose's check)
     lower_every: int = 3  # ... of every n-th sample of a run that writes them (`calib refine`: of all)
+    lower_check_points: int = 4_000  # the other samples' quick lower alignment: points of all LiDARs ...
+    lower_check_width_px: int = 480  # ... on the lower image resized to at most this width
     alignment_only: bool = False  # `calib refine`'s rounds: the alignments only (no GT, warps or files)
 
 

@@ -19,7 +19,7 @@ from ingest.dataset.meta import AlignmentMeta, SampleMeta
 from ingest.dataset.sparse import SparseImage
 from ingest.rows import rows
 from ingest.runtime.background import Background
-from ingest.train.gt.align import ImageLevels, align_points
+from ingest.train.gt.align import MAX_POINTS, ImageLevels, align_points
 from ingest.train.gt.groundtruth import in_view
 from ingest.train.gt.lidar_agreement import range_ratios
 from ingest.train.run.sample_job import SampleJob, SampleResult
@@ -92,14 +92,16 @@ source image's channels: BGR or BGRA)."""
 def alignment_fields(
     job: SampleJob, pts_cam0: F64, cloud: WindowPoints, ms: dict[str, float]
 ) -> dict[str, Any]:
-    """The meta's `alignment` and `alignment_lower` of the points `pts_cam0` (those of `cloud`, placed in
-    cam0 at the exposure), timed as stage "alignment" in `ms`."""
+    """The meta's `alignment`, `alignment_lower` and `lower_check` of the points `pts_cam0` (those of
+    `cloud`, placed in cam0 at the exposure), timed as stage "alignment" in `ms`."""
     t0 = time.perf_counter()
     if job.geometry.too_coarse_to_align:
-        return {"alignment": {}, "alignment_lower": {}}
+        return {"alignment": {}, "alignment_lower": {}, "lower_check": {}}
+    lower = _lower_alignments(job, pts_cam0, cloud.reflectivity, cloud.lidar)
     fields = {
         "alignment": _alignments(job, pts_cam0, cloud.reflectivity, cloud.lidar),
-        "alignment_lower": _lower_alignments(job, pts_cam0, cloud.reflectivity, cloud.lidar),
+        "alignment_lower": lower,
+        "lower_check": lower or _lower_check(job, pts_cam0, cloud.reflectivity),
     }
     ms["alignment"] = (time.perf_counter() - t0) * 1e3
     return fields
@@ -115,31 +117,67 @@ def _alignments(
     return _aligned(job, job.upper_bgr, job.geometry.rig.upper.model, pts_cam0, reflectivity, which)
 
 
+def _in_cam1(job: SampleJob, pts_cam0: F64) -> F64:
+    """`pts_cam0` moved into cam1 by the camchain's stereo pose."""
+    T = job.geometry.rig.lower.T_cam_cam0
+    out: F64 = pts_cam0 @ T[:3, :3].T + T[:3, 3]
+    return out
+
+
 def _lower_alignments(
     job: SampleJob, pts_cam0: F64, reflectivity: F64 | None, which: I64
 ) -> dict[str, AlignmentMeta]:
-    """`_alignments` onto the lower image, the points moved into cam1 by the camchain's stereo pose
-    (`SampleParams.align_lower`; none without it); in a run that writes samples, of every
-    `SampleParams.lower_every`-th sample only: the stereo pose's check needs a few samples, and each
-    alignment costs as much as the upper one's (about 110 ms of a 400 ms sample at 960x600)."""
+    """`_alignments` onto the lower image, the points moved into cam1 (`SampleParams.align_lower`; none
+    without it); in a run that writes samples, of every `SampleParams.lower_every`-th sample only: the
+    stereo pose's check needs a few samples, and each alignment costs as much as the upper one's (about
+    110 ms of a 400 ms sample at 960x600)."""
     if reflectivity is None or not job.params.align_lower:
         return {}
     if not job.params.alignment_only and job.sid.isdigit() and int(job.sid) % job.params.lower_every:
         return {}
-    lower = job.geometry.rig.lower
-    pts_cam1 = pts_cam0 @ lower.T_cam_cam0[:3, :3].T + lower.T_cam_cam0[:3, 3]
-    return _aligned(job, job.lower_bgr, lower.model, pts_cam1, reflectivity, which)
+    return _aligned(
+        job, job.lower_bgr, job.geometry.rig.lower.model, _in_cam1(job, pts_cam0), reflectivity, which
+    )
+
+
+def _lower_check(job: SampleJob, pts_cam0: F64, reflectivity: F64 | None) -> dict[str, AlignmentMeta]:
+    """A quick alignment onto the lower image of a sample `_lower_alignments` leaves out: every LiDAR's
+    points as one cloud, at most `SampleParams.lower_check_points` of them, on the image resized to
+    `lower_check_width_px`, about a sixth of the full alignments' cost; keyed by the LiDARs' names joined
+    with "+". It finds a lower frame out of place (a degree and more off, where the samples lie within a
+    few tenths: `IngestSummary.off_lower`); too coarse for the stereo pose's check."""
+    if reflectivity is None or not job.params.align_lower or job.params.alignment_only:
+        return {}
+    image, model = _at_most(job.lower_bgr, job.geometry.rig.lower.model, job.params.lower_check_width_px)
+    levels = ImageLevels.from_bgr(image)
+    found = align_points(model, levels, _in_cam1(job, pts_cam0), reflectivity, job.params.lower_check_points)
+    return {} if found is None else {"+".join(lp.name for lp in job.lidars): found.to_meta()}
+
+
+def _at_most(image: np.ndarray[Any, Any], model: Any, width_px: int) -> tuple[np.ndarray[Any, Any], Any]:
+    """`image` and its camera `model` resized to at most `width_px` wide (area-averaged), or as they are."""
+    if model.width <= width_px:
+        return image, model
+    smaller = model.scaled(width_px / model.width)
+    return cv2.resize(image, (smaller.width, smaller.height), interpolation=cv2.INTER_AREA), smaller
 
 
 def _aligned(
-    job: SampleJob, image: np.ndarray[Any, Any], model: Any, pts: F64, reflectivity: F64, which: I64
+    job: SampleJob,
+    image: np.ndarray[Any, Any],
+    model: Any,
+    pts: F64,
+    reflectivity: F64,
+    which: I64,
+    max_points: int = MAX_POINTS,
 ) -> dict[str, AlignmentMeta]:
-    """Each LiDAR's `align_points` of `pts` (in the camera of `image` and `model`)."""
+    """Each LiDAR's `align_points` of `pts` (in the camera of `image` and `model`), of at most
+    `max_points` of its points."""
     levels = ImageLevels.from_bgr(image)
     out = {}
     for i, lp in enumerate(job.lidars):
         mine = which == i
-        found = align_points(model, levels, rows(pts, mine), reflectivity[mine])
+        found = align_points(model, levels, rows(pts, mine), reflectivity[mine], max_points)
         if found is not None:
             out[lp.name] = found.to_meta()
     return out

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from calibration.types import F64
-from ingest.dataset.meta import SampleMeta
+from ingest.dataset.meta import AlignmentMeta, SampleMeta
 from ingest.train.gt.align import Alignment
 from ingest.train.gt.align_check import CalibrationCheck, from_metas
 from ingest.train.run.lidar_rate import THIN_FRACTION
@@ -76,6 +76,8 @@ class IngestSummary:
     without_gt_points: dict[str, int] = field(default_factory=dict)  # their windows' points, by filter
     without_disparity: int = 0  # samples written with depth GT but no disparity GT pixel
     off_image: list[str] = field(default_factory=list)  # samples whose image lies off every LiDAR's points
+    off_lower: list[str] = field(default_factory=list)  # ... whose lower image does
+    lower_aligned: int = 0  # samples written with a lower image alignment
     range_ratios: dict[str, list[tuple[float, int]]] = field(default_factory=dict)  # per LiDAR, per sample
 
     def range_line(self, first: str) -> str:
@@ -98,24 +100,18 @@ class IngestSummary:
 
     def closing_lines(self, first_lidar: str) -> list[str]:
         """The warning lines the written samples give together, in order (`first_lidar`: the rig's first
-        LiDAR, the others' ranges are compared with)."""
-        found = [self.without_gt_line(), self.without_disparity_line(), self.off_image_line()]
+        LiDAR, the others' ranges are compared with). Lower images off in a minority of the samples are
+        flagged; off in most, the camchain's stereo pose or cam1's images are, and the stereo check's line
+        names that instead."""
+        lower = self.off_lower if 2 * len(self.off_lower) < self.lower_aligned else []
+        if lower:
+            self.flagged[f"lower image off every LiDAR's points (> {OFF_IMAGE_DEG:g} deg)"] = len(lower)
+        found = [
+            self.without_gt_line(), self.without_disparity_line(),
+            off_image_line("upper", self.off_image, self.written),
+            off_image_line("lower", lower, self.written),
+        ]  # fmt: skip
         return [line for line in (*found, self.range_line(first_lidar)) if line]
-
-    def off_image_line(self) -> str:
-        """One warning line naming the samples whose upper image lies off every LiDAR's points ('' if
-        none): more than `OFF_IMAGE_DEG` (and `OFF_IMAGE_PX` pixels) for each LiDAR, while the rig's
-        other samples lie within a few tenths of a degree; a frame published under another frame's
-        stamp, or a camera clock that jumped."""
-        if not self.off_image:
-            return ""
-        ids = ", ".join(self.off_image[:5]) + (", ..." if len(self.off_image) > 5 else "")
-        return (
-            f"{len(self.off_image)} of {self.written} samples written have an upper image that lies off "
-            f"every LiDAR's points by over {OFF_IMAGE_DEG:g} deg ({ids}): each image is not the one taken at "
-            "its stamp (a frame published under another's stamp, or a camera clock that jumped); the samples "
-            "are written and flagged in the summary: leave them out of training"
-        )
 
     def without_gt_line(self) -> str:
         """One warning line when written samples hold no GT pixel, with their points by filter ('' if none).
@@ -201,12 +197,14 @@ class IngestSummary:
             upper, lower = from_metas([meta])
             self.alignments.extend(upper)
             self.alignments_lower.extend((found, None) for found, _ in lower if found)
-            if all(
-                a.shift_deg > max(OFF_IMAGE_DEG, OFF_IMAGE_PX * a.pixel_deg) for a in meta.alignment.values()
-            ):
+            if _off(meta.alignment):
                 self.off_image.append(meta.id)
                 key = f"upper image off every LiDAR's points (> {OFF_IMAGE_DEG:g} deg)"
                 self.flagged[key] = self.flagged.get(key, 0) + 1
+        if meta.lower_check:
+            self.lower_aligned += 1
+            if _off(meta.lower_check):
+                self.off_lower.append(meta.id)
         self.skew_ms.extend(meta.lidar_skew_ms.values())
         for name, (ratio, pixels) in meta.points.range_ratio.items():
             self.range_ratios.setdefault(name, []).append((ratio, int(pixels)))
@@ -232,3 +230,25 @@ class IngestSummary:
             self.stage_ms.setdefault(k, []).append(v)
         for k, v in result.overlapped_ms.items():
             self.overlapped_ms.setdefault(k, []).append(v)
+
+
+def _off(alignment: Mapping[str, AlignmentMeta]) -> bool:
+    """Whether every LiDAR's alignment moves its points by over `OFF_IMAGE_DEG` and `OFF_IMAGE_PX`."""
+    return all(a.shift_deg > max(OFF_IMAGE_DEG, OFF_IMAGE_PX * a.pixel_deg) for a in alignment.values())
+
+
+def off_image_line(camera: str, ids: list[str], written: int) -> str:
+    """One warning line naming the samples whose `camera` ("upper" or "lower") image lies off every
+    LiDAR's points ('' if none): more than `OFF_IMAGE_DEG` (and `OFF_IMAGE_PX` pixels) for each LiDAR,
+    while the rig's other samples lie within a few tenths of a degree; a frame published under another
+    frame's stamp, or a camera clock that jumped."""
+    if not ids:
+        return ""
+    shown = ", ".join(ids[:5]) + (", ..." if len(ids) > 5 else "")
+    article = "an" if camera == "upper" else "a"
+    return (
+        f"{len(ids)} of {written} samples written have {article} {camera} image that lies off every LiDAR's "
+        f"points by over {OFF_IMAGE_DEG:g} deg ({shown}): each image is not the one taken at its stamp (a "
+        "frame published under another's stamp, or a camera clock that jumped); the samples are written and "
+        "flagged in the summary: leave them out of training"
+    )
