@@ -104,6 +104,16 @@ class AlignmentMeta:
 
 
 @dataclass(frozen=True)
+class FrameCheckMeta:
+    """A sample's two images on their own (`ingest.train.run.frame_check`): the fraction of each that is
+    one flat grey level, and whether they are the same pixels."""
+
+    upper_flat: float
+    lower_flat: float
+    identical: bool
+
+
+@dataclass(frozen=True)
 class SampleMeta:
     """One written sample; `id` and `dropped` (values too large for uint16, per image) come with the write."""
 
@@ -125,8 +135,9 @@ class SampleMeta:
     alignment: dict[str, AlignmentMeta] = field(default_factory=dict)  # per LiDAR topic, with reflectivity
     twist_cam0: list[float] | None = None  # cam0's angular (rad/s) and linear (m/s) velocity in cam0
     alignment_lower: dict[str, AlignmentMeta] = field(default_factory=dict)  # onto the lower image, in cam1
-    lower_check: dict[str, AlignmentMeta] = field(default_factory=dict)  # every sample's (quick where the
-    # above is not made): does the lower image lie on the points?
+    lower_check: dict[str, AlignmentMeta] = field(default_factory=dict)  # every sample's quick alignment
+    # onto the lower image: does it lie on the points?
+    frame_check: FrameCheckMeta | None = None
 
     def written(
         self, sid: str, dropped: dict[str, int], files: dict[str, FileMeta] | None = None
@@ -162,6 +173,7 @@ class SampleMeta:
             alignment={str(k): AlignmentMeta(**v) for k, v in d.get("alignment", {}).items()},
             alignment_lower={str(k): AlignmentMeta(**v) for k, v in d.get("alignment_lower", {}).items()},
             lower_check={str(k): AlignmentMeta(**v) for k, v in d.get("lower_check", {}).items()},
+            frame_check=None if d.get("frame_check") is None else FrameCheckMeta(**d["frame_check"]),
             twist_cam0=None if d.get("twist_cam0") is None else [float(v) for v in d["twist_cam0"]],
         )  # fmt: skip
 

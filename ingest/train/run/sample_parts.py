@@ -22,6 +22,7 @@ from ingest.runtime.background import Background
 from ingest.train.gt.align import MAX_POINTS, ImageLevels, align_points
 from ingest.train.gt.groundtruth import in_view
 from ingest.train.gt.lidar_agreement import range_ratios
+from ingest.train.run.frame_check import frame_check
 from ingest.train.run.sample_job import SampleJob, SampleResult
 from ingest.train.trajectory.clouds import FilterCounts, filter_points
 from ingest.train.trajectory.rig_trajectory import RigTrajectory
@@ -97,11 +98,10 @@ def alignment_fields(
     t0 = time.perf_counter()
     if job.geometry.too_coarse_to_align:
         return {"alignment": {}, "alignment_lower": {}, "lower_check": {}}
-    lower = _lower_alignments(job, pts_cam0, cloud.reflectivity, cloud.lidar)
     fields = {
         "alignment": _alignments(job, pts_cam0, cloud.reflectivity, cloud.lidar),
-        "alignment_lower": lower,
-        "lower_check": lower or _lower_check(job, pts_cam0, cloud.reflectivity),
+        "alignment_lower": _lower_alignments(job, pts_cam0, cloud.reflectivity, cloud.lidar),
+        "lower_check": _lower_check(job, pts_cam0, cloud.reflectivity),
     }
     ms["alignment"] = (time.perf_counter() - t0) * 1e3
     return fields
@@ -141,8 +141,8 @@ def _lower_alignments(
 
 
 def _lower_check(job: SampleJob, pts_cam0: F64, reflectivity: F64 | None) -> dict[str, AlignmentMeta]:
-    """A quick alignment onto the lower image of a sample `_lower_alignments` leaves out: every LiDAR's
-    points as one cloud, at most `SampleParams.lower_check_points` of them, on the image resized to
+    """A quick alignment onto the lower image of every sample (beside `_lower_alignments` of some): every
+    LiDAR's points as one cloud, at most `SampleParams.lower_check_points` of them, on the image resized to
     `lower_check_width_px`, about a sixth of the full alignments' cost; keyed by the LiDARs' names joined
     with "+". It finds a lower frame out of place (a degree and more off, where the samples lie within a
     few tenths: `IngestSummary.off_lower`); too coarse for the stereo pose's check."""
@@ -229,6 +229,7 @@ def finish_sample(
         meta,
         points=replace(meta.points, thin_lidars=list(job.thin_lidars)),
         frames_sha256=frame_digest(job.upper_bgr, job.lower_bgr),
+        frame_check=frame_check(job.upper_bgr, job.lower_bgr),
         settings=job.settings,
     )
     files = SampleFiles(job.upper_bgr, job.lower_bgr, up, down, gt[1], gt[0], meta)

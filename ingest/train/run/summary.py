@@ -10,9 +10,10 @@ from pathlib import Path
 import numpy as np
 
 from calibration.types import F64
-from ingest.dataset.meta import AlignmentMeta, SampleMeta
+from ingest.dataset.meta import SampleMeta
 from ingest.train.gt.align import Alignment
 from ingest.train.gt.align_check import CalibrationCheck, from_metas
+from ingest.train.run.frame_check import FrameRecord, flag_lines, frame_flags
 from ingest.train.run.lidar_rate import THIN_FRACTION
 from ingest.train.run.refine import Refinement
 from ingest.train.run.sample_dense import GAP_FALLBACK
@@ -29,11 +30,6 @@ RANGE_MIN_PIXELS = 200
 """A LiDAR's ranges disagree with the first LiDAR's beyond this fraction (median of the samples' median
 ratios, over at least this many pixels seen by both): on the simulated room and walk an exact rig agrees
 to 0.03 %, a LiDAR reading 5 % long gives 0.952, one reading 0.3 m long 0.93."""
-OFF_IMAGE_DEG = 1.0
-OFF_IMAGE_PX = 2.0
-"""A sample's upper image lies off its LiDAR points when every LiDAR's alignment moves them by more
-than this (deg, and pixels of cam0): on the simulated walk the samples lie 0.06-0.30 deg off; a frame
-published under its neighbour's stamp (33 ms away at 1.2 m/s), 1.9-2.0 deg."""
 
 
 @dataclass
@@ -75,9 +71,10 @@ class IngestSummary:
     without_gt: int = 0  # samples written with no GT pixel in their depth PNG
     without_gt_points: dict[str, int] = field(default_factory=dict)  # their windows' points, by filter
     without_disparity: int = 0  # samples written with depth GT but no disparity GT pixel
-    off_image: list[str] = field(default_factory=list)  # samples whose image lies off every LiDAR's points
-    off_lower: list[str] = field(default_factory=list)  # ... whose lower image does
-    lower_aligned: int = 0  # samples written with a lower image alignment
+    frame_records: list[FrameRecord] = field(
+        default_factory=list
+    )  # what `frame_check` needs of each written one
+    frame_flags: dict[str, list[str]] = field(default_factory=dict)  # its findings: kind -> sample ids
     range_ratios: dict[str, list[tuple[float, int]]] = field(default_factory=dict)  # per LiDAR, per sample
 
     def range_line(self, first: str) -> str:
@@ -100,17 +97,13 @@ class IngestSummary:
 
     def closing_lines(self, first_lidar: str) -> list[str]:
         """The warning lines the written samples give together, in order (`first_lidar`: the rig's first
-        LiDAR, the others' ranges are compared with). Lower images off in a minority of the samples are
-        flagged; off in most, the camchain's stereo pose or cam1's images are, and the stereo check's line
-        names that instead."""
-        lower = self.off_lower if 2 * len(self.off_lower) < self.lower_aligned else []
-        if lower:
-            self.flagged[f"lower image off every LiDAR's points (> {OFF_IMAGE_DEG:g} deg)"] = len(lower)
-        found = [
-            self.without_gt_line(), self.without_disparity_line(),
-            off_image_line("upper", self.off_image, self.written),
-            off_image_line("lower", lower, self.written),
-        ]  # fmt: skip
+        LiDAR, the others' ranges are compared with); the frames that stand out (`frame_flags`) are
+        flagged."""
+        flags = frame_flags(self.frame_records)
+        self.frame_flags = flags.found
+        for what, ids in flags.found.items():
+            self.flagged[what] = len(ids)
+        found = [self.without_gt_line(), self.without_disparity_line(), *flag_lines(flags, self.written)]
         return [line for line in (*found, self.range_line(first_lidar)) if line]
 
     def without_gt_line(self) -> str:
@@ -197,14 +190,7 @@ class IngestSummary:
             upper, lower = from_metas([meta])
             self.alignments.extend(upper)
             self.alignments_lower.extend((found, None) for found, _ in lower if found)
-            if _off(meta.alignment):
-                self.off_image.append(meta.id)
-                key = f"upper image off every LiDAR's points (> {OFF_IMAGE_DEG:g} deg)"
-                self.flagged[key] = self.flagged.get(key, 0) + 1
-        if meta.lower_check:
-            self.lower_aligned += 1
-            if _off(meta.lower_check):
-                self.off_lower.append(meta.id)
+        self.frame_records.append(FrameRecord.from_meta(meta))
         self.skew_ms.extend(meta.lidar_skew_ms.values())
         for name, (ratio, pixels) in meta.points.range_ratio.items():
             self.range_ratios.setdefault(name, []).append((ratio, int(pixels)))
@@ -230,25 +216,3 @@ class IngestSummary:
             self.stage_ms.setdefault(k, []).append(v)
         for k, v in result.overlapped_ms.items():
             self.overlapped_ms.setdefault(k, []).append(v)
-
-
-def _off(alignment: Mapping[str, AlignmentMeta]) -> bool:
-    """Whether every LiDAR's alignment moves its points by over `OFF_IMAGE_DEG` and `OFF_IMAGE_PX`."""
-    return all(a.shift_deg > max(OFF_IMAGE_DEG, OFF_IMAGE_PX * a.pixel_deg) for a in alignment.values())
-
-
-def off_image_line(camera: str, ids: list[str], written: int) -> str:
-    """One warning line naming the samples whose `camera` ("upper" or "lower") image lies off every
-    LiDAR's points ('' if none): more than `OFF_IMAGE_DEG` (and `OFF_IMAGE_PX` pixels) for each LiDAR,
-    while the rig's other samples lie within a few tenths of a degree; a frame published under another
-    frame's stamp, or a camera clock that jumped."""
-    if not ids:
-        return ""
-    shown = ", ".join(ids[:5]) + (", ..." if len(ids) > 5 else "")
-    article = "an" if camera == "upper" else "a"
-    return (
-        f"{len(ids)} of {written} samples written have {article} {camera} image that lies off every LiDAR's "
-        f"points by over {OFF_IMAGE_DEG:g} deg ({shown}): each image is not the one taken at its stamp (a "
-        "frame published under another's stamp, or a camera clock that jumped); the samples are written and "
-        "flagged in the summary: leave them out of training"
-    )

@@ -1,0 +1,224 @@
+"""Frames that are not what their stamp and topic say: each sample's two images checked on their own and
+against the LiDAR points, and the run's samples that stand out named once the run is over.
+
+A single frame out of place writes a sample whose images do not belong to its ground truth while every
+count looks right: a frame published under its neighbour's stamp, a frame from the other camera, a frame
+that is blank or torn, a frame turned over. Each is found by what it does to a measurement the run makes
+anyway, compared with the run's other samples, since the scene sets what "normal" is:
+
+- the two images are the same pixels (one camera's frame published on both topics);
+- an image is one flat grey level over much more of it than the run's others are (black, white, torn);
+- the LiDAR points' alignment with it moves them by over `OFF_IMAGE_DEG`;
+- the points match it far worse than they match the run's other images of that camera (correlation of
+  reflectivity and intensity below `POOR_MATCH` of the run's median).
+
+A sample is named for the first of these that it shows, per camera. Most of a run's samples showing one
+is not a frame out of place but a rig or camchain fault, which the calibration check names.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ingest.dataset.meta import AlignmentMeta, FrameCheckMeta, SampleMeta
+
+OFF_IMAGE_DEG = 1.0
+OFF_IMAGE_PX = 2.0
+"""A sample's image lies off its LiDAR points when every LiDAR's alignment moves them by more than this
+(deg, and pixels of the camera): on the simulated walk the samples lie 0.06-0.44 deg off; a frame
+published under its neighbour's stamp (33 ms away at 1.2 m/s), 1.9-2.0 deg."""
+POOR_MATCH = 0.6
+"""A sample's image matches the points far worse than the run's when every LiDAR's correlation is below
+this fraction of its median over the run's samples: on the simulated fixtures the samples of a run
+agree within 0.05 (0.55-0.80 by scene); an image turned over gives -0.35 to -0.05."""
+FLAT_STEP_PX = 4
+FLAT_BLOCK = 8
+FLAT_LEVELS = 2
+"""An image is flat where a block of `FLAT_BLOCK` x `FLAT_BLOCK` of its every `FLAT_STEP_PX`-th pixel
+(32 x 32 pixels) spans at most `FLAT_LEVELS` grey levels: a black or saturated area, or the dark corners
+of a fisheye."""
+FLAT_MORE = 0.2
+FLAT_ALL = 0.99
+"""A sample's image is blank when it is flat over `FLAT_MORE` more of its area than the run's median
+image of that camera (the corners a fisheye never lights are flat in every sample), or over `FLAT_ALL`."""
+MIN_MEDIAN = 0.2
+"""Below this median correlation the points do not match the run's images well enough to measure by."""
+MIN_SAMPLES = 3
+"""The run's medians need this many samples; with fewer only the absolute tests apply."""
+
+
+def flat_fraction(image: np.ndarray) -> float:
+    """The fraction of `image` (BGR, BGRA or grey uint8/uint16) that is flat (`FLAT_LEVELS`)."""
+    small = image[::FLAT_STEP_PX, ::FLAT_STEP_PX]
+    if small.ndim == 3:
+        code = cv2.COLOR_BGRA2GRAY if small.shape[2] == 4 else cv2.COLOR_BGR2GRAY
+        small = cv2.cvtColor(np.ascontiguousarray(small), code)
+    if small.dtype != np.uint8:
+        small = (small >> 8).astype(np.uint8)
+    rows, cols = small.shape[0] // FLAT_BLOCK, small.shape[1] // FLAT_BLOCK
+    if rows == 0 or cols == 0:
+        return float(np.ptp(small) <= FLAT_LEVELS)
+    blocks = small[: rows * FLAT_BLOCK, : cols * FLAT_BLOCK].reshape(rows, FLAT_BLOCK, cols, FLAT_BLOCK)
+    span = blocks.max(axis=(1, 3)).astype(np.int16) - blocks.min(axis=(1, 3))
+    return float(np.mean(span <= FLAT_LEVELS))
+
+
+def frame_check(upper: np.ndarray, lower: np.ndarray) -> FrameCheckMeta:
+    """What a sample's meta records of its two images: how flat each is and whether they are the same."""
+    same = upper.shape == lower.shape and bool(np.array_equal(upper, lower))
+    return FrameCheckMeta(round(flat_fraction(upper), 4), round(flat_fraction(lower), 4), same)
+
+
+@dataclass(frozen=True)
+class FrameRecord:
+    """What the run-level checks need of one written sample."""
+
+    id: str
+    check: FrameCheckMeta | None
+    upper: Mapping[str, AlignmentMeta]  # per LiDAR, onto the upper image
+    lower: Mapping[str, AlignmentMeta]  # the lower image's quick check
+
+    @classmethod
+    def from_meta(cls, meta: SampleMeta) -> FrameRecord:
+        return cls(meta.id, meta.frame_check, meta.alignment, meta.lower_check)
+
+
+CAMERAS = ("upper", "lower")
+
+
+def _off(alignment: Mapping[str, AlignmentMeta]) -> bool:
+    """Every LiDAR's alignment moves its points by over `OFF_IMAGE_DEG` and `OFF_IMAGE_PX`."""
+    return bool(alignment) and all(
+        a.shift_deg > max(OFF_IMAGE_DEG, OFF_IMAGE_PX * a.pixel_deg) for a in alignment.values()
+    )
+
+
+def _aligned(r: FrameRecord, camera: str) -> Mapping[str, AlignmentMeta]:
+    return r.upper if camera == "upper" else r.lower
+
+
+def _flat(r: FrameRecord, camera: str) -> float | None:
+    if r.check is None:
+        return None
+    return r.check.upper_flat if camera == "upper" else r.check.lower_flat
+
+
+@dataclass(frozen=True)
+class FrameFlags:
+    """The samples named by each finding (`kind` -> ids, in order) and the run's medians the relative
+    tests used (`flat_median`, `correlation_median`, per camera and LiDAR key)."""
+
+    found: dict[str, list[str]]
+    flat_median: dict[str, float]
+    correlation_median: dict[str, dict[str, float]]
+
+
+def kind(camera: str, what: str) -> str:
+    """The summary's flag of a finding (`what`: off, poor, blank; "identical" for both cameras)."""
+    if what == "identical":
+        return "upper and lower images identical"
+    return {
+        "off": f"{camera} image off every LiDAR's points (> {OFF_IMAGE_DEG:g} deg)",
+        "poor": f"{camera} image matching the points far worse than the run's",
+        "blank": f"{camera} image blank (one grey level) over much of it",
+    }[what]
+
+
+def frame_flags(records: list[FrameRecord]) -> FrameFlags:
+    """Each camera's samples that stand out, by the first finding they show (see the module docstring).
+    The lower images off their points in most samples name none: that is the camchain's stereo pose,
+    which the stereo check names."""
+    many = len(records) >= MIN_SAMPLES
+    found: dict[str, list[str]] = {}
+    identical = [r.id for r in records if r.check is not None and r.check.identical]
+    if identical:
+        found[kind("", "identical")] = identical
+    flat_median, corr_median = {}, {}
+    for camera in CAMERAS:
+        flats = [f for r in records if (f := _flat(r, camera)) is not None]
+        flat_median[camera] = float(np.median(flats)) if flats else 0.0
+        keys = {k for r in records for k in _aligned(r, camera)}
+        corr_median[camera] = {
+            k: float(np.median([a.correlation for r in records if (a := _aligned(r, camera).get(k))]))
+            for k in keys
+        }
+        taken = set(identical)
+        for what in ("blank", "off", "poor"):
+            ids = []
+            for r in records:
+                if what == "blank":
+                    hit = _blank(_flat(r, camera), flat_median[camera], many)
+                elif what == "off":
+                    hit = _off(_aligned(r, camera))
+                else:
+                    hit = many and _poor(_aligned(r, camera), corr_median[camera])
+                if hit and r.id not in taken:
+                    ids.append(r.id)
+            if ids and not (camera == "lower" and what == "off" and 2 * len(ids) >= len(records)):
+                found[kind(camera, what)] = ids
+                taken.update(ids)
+    return FrameFlags(found, flat_median, corr_median)
+
+
+def _blank(flat: float | None, median: float, many: bool) -> bool:
+    """Flat over `FLAT_ALL` of the image, or (`many` samples) `FLAT_MORE` beyond the run's median."""
+    return flat is not None and (flat >= FLAT_ALL or (many and flat > median + FLAT_MORE))
+
+
+def _poor(aligned: Mapping[str, AlignmentMeta], medians: Mapping[str, float]) -> bool:
+    """Every LiDAR's correlation below `POOR_MATCH` of its run median (a median under `MIN_MEDIAN` gives
+    no measure). A sample without alignment is not judged: a LiDAR silent in its window leaves it out, and
+    a blank image, which gives none, is found as blank."""
+    return bool(aligned) and all(
+        (m := medians.get(k, 0.0)) > MIN_MEDIAN and a.correlation < POOR_MATCH * m for k, a in aligned.items()
+    )
+
+
+def flag_lines(flags: FrameFlags, written: int) -> list[str]:
+    """One warning line per finding, naming its samples (the first five)."""
+    lines = []
+    for what, ids in flags.found.items():
+        shown = ", ".join(ids[:5]) + (", ..." if len(ids) > 5 else "")
+        lines.append(
+            f"{len(ids)} of {written} samples written have {_phrase(what, flags)} ({shown}): {_cause(what)}"
+        )
+    return lines
+
+
+def _phrase(what: str, flags: FrameFlags) -> str:
+    """The finding `what` (a `kind`) as the warning line says it."""
+    camera = "upper" if what.startswith("upper image") else "lower"
+    article = "an" if camera == "upper" else "a"
+    if what == kind("", "identical"):
+        return "identical upper and lower images"
+    if what == kind(camera, "off"):
+        return f"{article} {camera} image that lies off every LiDAR's points by over {OFF_IMAGE_DEG:g} deg"
+    if what == kind(camera, "poor"):
+        medians = ", ".join(f"{k} {v:.2f}" for k, v in sorted(flags.correlation_median[camera].items()))
+        return (
+            f"{article} {camera} image the LiDAR points match far worse than the run's others, "
+            f"(below {POOR_MATCH:g} of the median correlation: {medians})"
+        )
+    return (
+        f"{article} {camera} image that is one flat grey level over {FLAT_MORE:.0%} more of it than the "
+        f"run's others (median {flags.flat_median[camera]:.0%}) or over all of it"
+    )
+
+
+def _cause(what: str) -> str:
+    """What the finding `what` means and what to do."""
+    tail = "the samples are written and flagged in the summary: leave them out of training"
+    if what == kind("", "identical"):
+        return f"one camera's frame was published on both cameras' topics; {tail}"
+    if what.endswith("over much of it"):
+        return f"a black, saturated or torn frame; {tail}"
+    if "far worse" in what:
+        return f"each image is not this camera's frame of its stamp (another frame, turned or torn); {tail}"
+    return (
+        "each image is not the one taken at its stamp (a frame published under another's stamp, or a camera "
+        f"clock that jumped); {tail}"
+    )

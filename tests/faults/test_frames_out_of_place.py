@@ -1,0 +1,96 @@
+"""Sweep 8: one camera frame that is not what its stamp and topic say (a neighbour's or a later frame, the
+other camera's, black, saturated, torn, turned over, shifted) was written beside GT it does not belong to,
+exit 0 and no line. Each is now named in one warning line and flagged in the summary, and the walk's
+right frames are not (`ingest.train.run.frame_check`)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from ingest.bags.decode import decode_image
+from ingest.bags.reader import open_bags
+from ingest.train.run.pipeline import ingest
+from ingest.train.run.settings import IngestConfig
+from sensorbox.messages import image_msg
+from tests.faults.bags import Keep, rewrite
+from tests.paths import FIXTURES_DIR
+
+WALK = FIXTURES_DIR / "outdoor_walk_mcap"
+UPPER = "/zed_upper/zed_node/rgb/color/rect/image"
+LOWER = "/zed_lower/zed_node/rgb/color/rect/image"
+Edit = Callable[[np.ndarray, dict[tuple[str, int], np.ndarray]], np.ndarray]
+"""edit(this frame's BGR image, every frame's by (topic, index)) -> the image written in its place."""
+
+
+def _edited(topic: str, index: int, edit: Edit) -> Keep:
+    """The walk with frame `index` of `topic` replaced by `edit` of it, its stamp kept."""
+    with open_bags([WALK]) as bags:
+        frames = {}
+        for m in bags.messages():
+            if m.topic in (UPPER, LOWER):
+                k = sum(1 for t, _ in frames if t == m.topic)
+                frames[(m.topic, k)] = decode_image(m.raw)
+    images = {key: np.ascontiguousarray(f.image[..., :3]) for key, f in frames.items()}
+
+    def keep(on: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        if (on, k) != (topic, index):
+            return [(on, raw)]
+        frame = frames[(on, k)]
+        image = np.ascontiguousarray(edit(images[(on, k)], images), np.uint8)
+        return [(on, image_msg(frame.stamp_ns, frame.frame_id, image))]
+
+    return keep
+
+
+def _shifted(image: np.ndarray, px: int) -> np.ndarray:
+    return np.roll(image, px, axis=1)
+
+
+def _bottom_black(image: np.ndarray) -> np.ndarray:
+    out = image.copy()
+    out[image.shape[0] // 2 :] = 0
+    return out
+
+
+OFF, POOR, BLANK = (
+    "off every LiDAR's points (> 1 deg)",
+    "matching the points far worse than the run's",
+    ("blank (one grey level) over much of it"),
+)
+CASES: dict[str, tuple[str, int, Edit, str, str]] = {
+    # name: (topic, frame, edit, flag, sample)
+    "lower_5_is_4": (LOWER, 5, lambda im, all_: all_[(LOWER, 4)], f"lower image {OFF}", "000001"),
+    "lower_5_is_15": (LOWER, 5, lambda im, all_: all_[(LOWER, 15)], f"lower image {POOR}", "000001"),
+    "lower_10_is_upper_10": (LOWER, 10, lambda im, all_: all_[(UPPER, 10)], "upper and lower images identical", "000002"),
+    "upper_5_is_lower_5": (UPPER, 5, lambda im, all_: all_[(LOWER, 5)], "upper and lower images identical", "000001"),
+    "lower_5_black": (LOWER, 5, lambda im, all_: np.zeros_like(im), f"lower image {BLANK}", "000001"),
+    "lower_5_white": (LOWER, 5, lambda im, all_: np.full_like(im, 255), f"lower image {BLANK}", "000001"),
+    "upper_10_black": (UPPER, 10, lambda im, all_: np.zeros_like(im), f"upper image {BLANK}", "000002"),
+    "lower_10_bottom_half_black": (LOWER, 10, lambda im, all_: _bottom_black(im), f"lower image {BLANK}", "000002"),
+    "lower_5_upside_down": (LOWER, 5, lambda im, all_: cv2.rotate(im, cv2.ROTATE_180), f"lower image {OFF}", "000001"),
+    "lower_5_shifted_4px": (LOWER, 5, lambda im, all_: _shifted(im, 4), f"lower image {OFF}", "000001"),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_a_frame_out_of_place_is_named_and_flagged(tmp_path: Path, name: str) -> None:
+    topic, index, edit, flag, sample = CASES[name]
+    bag, rig = rewrite(tmp_path / f"{name}.mcap", _edited(topic, index, edit), src=WALK)
+    summary = ingest([bag], IngestConfig(rig=rig, out=tmp_path / "ds", workers=1, every=5, height_full=96))
+    assert summary.written == 4
+    assert summary.frame_flags == {flag: [sample]}
+    assert summary.flagged[flag] == 1
+    lines = [line for line in summary.warnings if line.startswith("1 of 4 samples written have ")]
+    assert len(lines) == 1 and f"({sample}): " in lines[0], summary.warnings
+    assert lines[0].endswith("the samples are written and flagged in the summary: leave them out of training")
+
+
+def test_the_walks_own_frames_are_not_named(tmp_path: Path) -> None:
+    summary = ingest([WALK], IngestConfig(rig=WALK.parent / "outdoor_walk_mcap.truth/rig.yaml",
+                                          out=tmp_path / "ds", workers=1, every=2, height_full=96))  # fmt: skip
+    assert summary.written == 10 and summary.frame_flags == {}
