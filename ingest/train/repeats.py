@@ -14,6 +14,9 @@ says so.
 from __future__ import annotations
 
 import zlib
+from typing import Any
+
+import numpy as np
 
 from ingest.bags.decode import Sweep
 
@@ -33,6 +36,21 @@ def fingerprint(raw: bytes | memoryview) -> tuple[int, int]:
     return len(raw), zlib.crc32(raw[-FINGERPRINT_TAIL:])
 
 
+MIN_PRINT_POINTS = 100
+"""Measured points a sweep needs for its `points_print` to tell it from another's."""
+
+
+def points_print(xyz_m: np.ndarray[Any, Any]) -> int | None:
+    """A hash of a sweep's measured points (finite and off the origin, a Livox "no return"), to the bit;
+    None for fewer than `MIN_PRINT_POINTS` of them, which say nothing. Two sweeps measured apart never
+    share it: every return carries its own range noise."""
+    xyz = np.asarray(xyz_m)
+    real = np.isfinite(xyz).all(axis=1) & xyz.any(axis=1)
+    if int(real.sum()) < MIN_PRINT_POINTS:
+        return None
+    return hash(np.ascontiguousarray(xyz[real]).tobytes())
+
+
 def sweep_key(sweep: Sweep) -> tuple[int, int, int]:
     """What makes a sweep the same as another: its first and last point time and its point count."""
     return int(sweep.span_ns[0]), int(sweep.span_ns[1]), len(sweep.stamps_ns)
@@ -47,6 +65,11 @@ class FirstCopies:
         self.repeats: dict[str, int] = {}  # per topic: copies seen after the first
         self.restamped: dict[str, list[int]] = {}  # per topic: stamps of repeats whose bytes differ
         self.overlapping: dict[str, list[int]] = {}  # per topic: first point times of sweeps left out
+        self.repeated_points: dict[str, list[tuple[int, str]]] = {}  # per topic: (first point time, the
+        # topic of the sweep whose points it repeats) of sweeps left out
+        self.crossed: dict[str, list[tuple[int, int]]] = {}  # per topic: point-time spans of sweeps whose
+        # points another LiDAR's sweep repeats, kept or not: which of the two is the LiDAR's is not known
+        self._prints: dict[int, tuple[str, int, int]] = {}  # kept sweeps' `points_print` -> (topic, span)
         self._seen: dict[tuple[str, object], tuple[int, object]] = {}
         self._spans: dict[str, list[tuple[int, int]]] = {}  # per topic: the kept sweeps' point-time spans
         self._newest: dict[str, int] = {}
@@ -76,6 +99,10 @@ class FirstCopies:
         """`first` for a sweep with points; False too, listed in `overlapping`, for a sweep whose point
         times lie mostly within a kept sweep's of the same LiDAR.
 
+        False too, listed in `repeated_points`, for a sweep whose points are an earlier kept sweep's to
+        the bit (`points_print`), of this LiDAR or another: a driver that sent a stale buffer again, or
+        one unit's points on the other's topic; where they were measured is not known.
+
         A LiDAR measures each moment once: its sweeps abut in time, whatever
         order they are logged in. A sweep whose points cover an earlier one's
         carries a stamp that is not its own (a driver that repeated the
@@ -90,7 +117,24 @@ class FirstCopies:
         if any(min(last, b) - max(first, a) > length // 2 for a, b in spans):
             self.overlapping.setdefault(topic, []).append(first)
             return False
+        mark = points_print(sweep.xyz_m)
+        if mark is not None and mark in self._prints:
+            other, a, b = self._prints[mark]
+            self.repeated_points.setdefault(topic, []).append((first, other))
+            if other != topic:
+                self.crossed.setdefault(other, []).append((a, b))
+                self.crossed.setdefault(topic, []).append((first, last))
+            return False
         spans.append((first, last))
         if len(spans) > 256:  # the recent ones: bags are read merged in time
             del spans[: len(spans) - 128]
+        if mark is not None:
+            self._remember(mark, topic, first, last)
         return True
+
+    def _remember(self, mark: int, topic: str, first_ns: int, last_ns: int) -> None:
+        """Keep a sweep's `points_print`; those `horizon_ns` behind the newest are forgotten."""
+        self._prints[mark] = (topic, first_ns, last_ns)
+        if len(self._prints) > 1024:
+            newest = max(t for _, _, t in self._prints.values())
+            self._prints = {k: v for k, v in self._prints.items() if v[2] >= newest - self.horizon_ns}

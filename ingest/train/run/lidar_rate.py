@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from calibration.types import I64
+from ingest.train.repeats import points_print
 
 THIN_FRACTION = 0.5
 """A window holding fewer than this share of the points the LiDAR's rate promises is thin."""
@@ -47,8 +48,6 @@ CROWDED_FACTOR = 20
 times squeezed (`LidarRates.crowded`); a Mid-360's sweep spans its whole 100 ms."""
 
 
-MIN_PRINT_POINTS = 100
-"""Measured points a sweep needs for `LidarRates.same_sweeps` to compare it with another LiDAR's."""
 MAX_SWEEP_GAP_NS = 1_000_000_000
 """Sweeps further apart than this (ns) belong to stretches recorded apart: the time between is not the
 LiDAR's (`LidarRates.recorded_per_s`)."""
@@ -69,12 +68,10 @@ class LidarRates:
     prints: dict[str, set[int]] = field(default_factory=dict)  # per topic: its sweeps' points, hashed
 
     def add_points(self, topic: str, xyz_m: np.ndarray[Any, Any]) -> None:
-        """Record one sweep's measured points (a hash of their coordinates) for `same_sweeps`; a sweep
-        of fewer than `MIN_PRINT_POINTS` finite points off the origin (a Livox "no return") says nothing."""
-        xyz = np.asarray(xyz_m)
-        real = np.isfinite(xyz).all(axis=1) & xyz.any(axis=1)
-        if int(real.sum()) >= MIN_PRINT_POINTS:
-            self.prints.setdefault(topic, set()).add(hash(np.ascontiguousarray(xyz[real]).tobytes()))
+        """Record one sweep's measured points (`points_print`) for `same_sweeps`."""
+        mark = points_print(xyz_m)
+        if mark is not None:
+            self.prints.setdefault(topic, set()).add(mark)
 
     def same_sweeps(self, names: dict[str, str]) -> str | None:
         """The first two LiDARs (topic -> rig name) over half of whose sweeps are the same points (to the

@@ -89,7 +89,7 @@ from ingest.train.run.describe import (
 from ingest.train.run.gt_method import dense_reach_ns, gt_method
 from ingest.train.run.handoff import give_arrays, handoff_bytes_bound, take_arrays
 from ingest.train.run.lidar_poses import lower_mismatch_lines, stereo_alignment, stereo_lines, stereo_record
-from ingest.train.run.plan import LOST_REASON, Plan, Survey, plan, survey
+from ingest.train.run.plan import CROSSED_REASON, LOST_REASON, Plan, Survey, plan, survey
 from ingest.train.run.refine import Refinement, refine
 from ingest.train.run.resolved import ResolvedRun
 from ingest.train.run.sample_job import Geometry, SampleParams, SampleResult
@@ -344,6 +344,8 @@ def _count_plan(summary: IngestSummary, the_plan: Plan, bags: BagSet, bad: BadMe
     summary.duplicates, summary.uncovered = the_plan.duplicates, the_plan.uncovered
     if the_plan.lost_samples:
         summary.skipped[LOST_REASON] = the_plan.lost_samples
+    if the_plan.crossed_samples:
+        summary.skipped[CROSSED_REASON] = the_plan.crossed_samples
     if (line := unsynced_line(the_plan.stereo_dt_ns, the_plan.upper_ns)) is not None:
         summary.warnings.append(line)
 

@@ -53,6 +53,7 @@ class Plan:
     duplicates: dict[str, int] = field(default_factory=dict)  # per topic: repeated messages, read once
     uncovered: int = 0  # stereo pairs with no LiDAR point within the window (never eligible)
     lost_samples: int = 0  # eligible, but their LiDAR/IMU window overlaps a corrupt chunk's messages
+    crossed_samples: int = 0  # eligible, but their LiDAR window holds a sweep another LiDAR's repeats
     imu_last_ns: int | None = None  # the IMU's latest reading in the bags (None without an IMU)
     upper_shift_ns: int = 0  # added to a camera's header stamps: its exposure times on the LiDAR clock
     lower_shift_ns: int = 0
@@ -71,6 +72,7 @@ class Plan:
 
 
 LOST_REASON = "LiDAR/IMU window overlaps a corrupt chunk (not planned)"
+CROSSED_REASON = "LiDAR window holds a sweep whose points another LiDAR's repeats (not planned)"
 
 
 def _seen(
@@ -102,11 +104,13 @@ def _seen(
                 seen[msg.topic].append((msg.log_ns, stamp, stamp))
             continue
         sweep = bad.decoded(msg, where)
-        if isinstance(sweep, Sweep) and len(sweep.stamps_ns) and copies.sweep(msg.topic, sweep):
+        if not isinstance(sweep, Sweep) or not len(sweep.stamps_ns):
+            continue
+        rates.add_points(msg.topic, sweep.xyz_m)  # every sweep: a topic that repeats another's is refused
+        if copies.sweep(msg.topic, sweep):
             seen[msg.topic].append((msg.log_ns, *sweep.span_ns))
             rates.add(msg.topic, sweep.stamps_ns)
             rates.add_ranges(msg.topic, sweep.xyz_m)
-            rates.add_points(msg.topic, sweep.xyz_m)
     return {t: np.array(v, np.int64).reshape(-1, 3) for t, v in seen.items()}, rates, copies
 
 
@@ -168,6 +172,7 @@ class Survey:
     lower_ns: I64
     imu_gaps_ns: I64 = field(default_factory=lambda: np.zeros(0, np.int64))  # `imu_gaps` of the IMU
     warnings: list[str] = field(default_factory=list)  # one line each (`lidar_clock_spread`, `thin_lines`)
+    crossed: dict[str, list[tuple[int, int]]] = field(default_factory=dict)  # `FirstCopies.crossed`
 
     @property
     def span_ns(self) -> tuple[int, int]:
@@ -238,8 +243,11 @@ def survey(
         ([spread] if spread else [])
         + [restamped_line(topic, stamps_ns) for topic, stamps_ns in copies.restamped.items()]
         + [overlapping_line(topic, firsts_ns) for topic, firsts_ns in copies.overlapping.items()]
+        + [repeated_points_line(topic, found) for topic, found in copies.repeated_points.items()]
     )
-    return Survey(seen, rates, duplicates, up, lo, gaps, warnings + rates.thin_lines(topics.lidars))
+    return Survey(
+        seen, rates, duplicates, up, lo, gaps, warnings + rates.thin_lines(topics.lidars), copies.crossed
+    )
 
 
 def restamped_line(topic: str, stamps_ns: list[int]) -> str:
@@ -261,6 +269,19 @@ def overlapping_line(topic: str, firsts_ns: list[int]) -> str:
         f"{topic}: {n} sweep{'' if n == 1 else 's'} with point times that cover an earlier sweep's (the "
         f"first: {_seconds(firsts_ns[0])}); left out, as {'its' if n == 1 else 'their'} time is not known "
         "(a driver that repeated a sweep's timebase, or a clock that stepped back)"
+    )
+
+
+def repeated_points_line(topic: str, found: list[tuple[int, str]]) -> str:
+    """One line for the sweeps of `topic` whose points repeat an earlier sweep's to the bit
+    (`FirstCopies.repeated_points`): each was left out, as where its points were measured is not known."""
+    n, (first_ns, other) = len(found), found[0]
+    whose = "its own earlier sweep's" if other == topic else f"a sweep's of {other}"
+    return (
+        f"{topic}: {n} sweep{'' if n == 1 else 's'} with the points of an earlier sweep to the bit (the "
+        f"first: {_seconds(first_ns)}, {whose}); left out, as where {'it was' if n == 1 else 'they were'} "
+        "measured is not known (a driver that sent a stale buffer again, or one unit's points on the other's "
+        "topic)"
     )
 
 
@@ -300,6 +321,9 @@ def plan(
     upper, lower = up[pairs.upper][chosen], lo[pairs.lower][chosen]
     keep = _untouched(bags, topics, sv.seen, upper + topics.upper_shift_ns, run)
     lost = int(len(keep) - keep.sum())
+    clear = untouched(upper + topics.upper_shift_ns, sv.crossed, dict.fromkeys(topics.lidars, run.window_ns))
+    crossed = int((keep & ~clear).sum())
+    keep &= clear
     return Plan(
         upper[keep],
         lower[keep],
@@ -309,6 +333,7 @@ def plan(
         sv.rates,
         duplicates=sv.duplicates,
         lost_samples=lost,
+        crossed_samples=crossed,
         uncovered=uncovered,
         imu_last_ns=int(sv.seen[topics.imu][:, 1].max()) if topics.imu else None,
         upper_shift_ns=topics.upper_shift_ns,
