@@ -106,11 +106,13 @@ class AlignmentMeta:
 @dataclass(frozen=True)
 class FrameCheckMeta:
     """A sample's two images on their own (`ingest.train.run.frame_check`): the fraction of each that is
-    one flat grey level, and whether they are the same pixels."""
+    one flat grey level, whether they are the same pixels, and which repeats its camera's frame before it
+    to the byte."""
 
     upper_flat: float
     lower_flat: float
     identical: bool
+    repeated: list[str] = field(default_factory=list)  # "upper", "lower": the frame repeats the one before
 
 
 @dataclass(frozen=True)

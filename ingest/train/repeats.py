@@ -69,6 +69,9 @@ class FirstCopies:
         # topic of the sweep whose points it repeats) of sweeps left out
         self.crossed: dict[str, list[tuple[int, int]]] = {}  # per topic: point-time spans of sweeps whose
         # points another LiDAR's sweep repeats, kept or not: which of the two is the LiDAR's is not known
+        self.same_as_before: dict[str, set[int]] = {}  # per topic: times of first copies whose content
+        # (a `fingerprint`) is the topic's previous first copy's: a frame that repeats the one before it
+        self._previous: dict[str, object] = {}
         self._prints: dict[int, tuple[str, int, int]] = {}  # kept sweeps' `points_print` -> (topic, span)
         self._seen: dict[tuple[str, object], tuple[int, object]] = {}
         self._spans: dict[str, list[tuple[int, int]]] = {}  # per topic: the kept sweeps' point-time spans
@@ -85,6 +88,10 @@ class FirstCopies:
                 self.restamped.setdefault(topic, []).append(t_ns)
             return False
         self._seen[(topic, key)] = (t_ns, content)
+        if content is not None:
+            if self._previous.get(topic) == content:
+                self.same_as_before.setdefault(topic, set()).add(t_ns)
+            self._previous[topic] = content
         self._newest[topic] = max(self._newest.get(topic, t_ns), t_ns)
         if len(self._seen) > self._bound:
             self._seen = {k: v for k, v in self._seen.items() if v[0] >= self._newest[k[0]] - self.horizon_ns}

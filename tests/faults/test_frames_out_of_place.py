@@ -64,7 +64,8 @@ OFF, POOR, BLANK = (
 )
 CASES: dict[str, tuple[str, int, Edit, str, str]] = {
     # name: (topic, frame, edit, flag, sample)
-    "lower_5_is_4": (LOWER, 5, lambda im, all_: all_[(LOWER, 4)], f"lower image {OFF}", "000001"),
+    "lower_5_is_4": (LOWER, 5, lambda im, all_: all_[(LOWER, 4)], "lower image repeating the frame before it", "000001"),
+    "upper_10_is_9": (UPPER, 10, lambda im, all_: all_[(UPPER, 9)], "upper image repeating the frame before it", "000002"),
     "lower_5_is_15": (LOWER, 5, lambda im, all_: all_[(LOWER, 15)], f"lower image {POOR}", "000001"),
     "lower_10_is_upper_10": (LOWER, 10, lambda im, all_: all_[(UPPER, 10)], "upper and lower images identical", "000002"),
     "upper_5_is_lower_5": (UPPER, 5, lambda im, all_: all_[(LOWER, 5)], "upper and lower images identical", "000001"),

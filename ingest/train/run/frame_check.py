@@ -8,6 +8,9 @@ anyway, compared with the run's other samples, since the scene sets what "normal
 
 - the two images are the same pixels (one camera's frame published on both topics);
 - an image is one flat grey level over much more of it than the run's others are (black, white, torn);
+- a frame repeats its camera's frame before it to the byte (a camera or driver that sent its last frame
+  again under a new stamp; a still rig's frames repeat in a simulator that adds no noise, so only a
+  minority of the samples is named);
 - the LiDAR points' alignment with it moves them by over `OFF_IMAGE_DEG`;
 - the points match it far worse than they match the run's other images of that camera (correlation of
   reflectivity and intensity below `POOR_MATCH` of the run's median).
@@ -67,10 +70,13 @@ def flat_fraction(image: np.ndarray) -> float:
     return float(np.mean(span <= FLAT_LEVELS))
 
 
-def frame_check(upper: np.ndarray, lower: np.ndarray) -> FrameCheckMeta:
-    """What a sample's meta records of its two images: how flat each is and whether they are the same."""
+def frame_check(upper: np.ndarray, lower: np.ndarray, repeated: tuple[str, ...] = ()) -> FrameCheckMeta:
+    """What a sample's meta records of its two images: how flat each is, whether they are the same, and
+    `repeated`, the cameras whose frame repeats the one before it (the plan pass's `same_as_before`)."""
     same = upper.shape == lower.shape and bool(np.array_equal(upper, lower))
-    return FrameCheckMeta(round(flat_fraction(upper), 4), round(flat_fraction(lower), 4), same)
+    return FrameCheckMeta(
+        round(flat_fraction(upper), 4), round(flat_fraction(lower), 4), same, list(repeated)
+    )
 
 
 @dataclass(frozen=True)
@@ -125,6 +131,7 @@ def kind(camera: str, what: str) -> str:
         "off": f"{camera} image off every LiDAR's points (> {OFF_IMAGE_DEG:g} deg)",
         "poor": f"{camera} image matching the points far worse than the run's",
         "blank": f"{camera} image blank (one grey level) over much of it",
+        "repeat": f"{camera} image repeating the frame before it",
     }[what]
 
 
@@ -147,21 +154,30 @@ def frame_flags(records: list[FrameRecord]) -> FrameFlags:
             for k in keys
         }
         taken = set(identical)
-        for what in ("blank", "off", "poor"):
+        for what in ("blank", "repeat", "off", "poor"):
             ids = []
             for r in records:
                 if what == "blank":
                     hit = _blank(_flat(r, camera), flat_median[camera], many)
+                elif what == "repeat":
+                    hit = r.check is not None and camera in r.check.repeated
                 elif what == "off":
                     hit = _off(_aligned(r, camera))
                 else:
                     hit = many and _poor(_aligned(r, camera), corr_median[camera])
                 if hit and r.id not in taken:
                     ids.append(r.id)
-            if ids and not (camera == "lower" and what == "off" and 2 * len(ids) >= len(records)):
+            if ids and not (_shared(camera, what) and 2 * len(ids) >= len(records)):
                 found[kind(camera, what)] = ids
                 taken.update(ids)
     return FrameFlags(found, flat_median, corr_median)
+
+
+def _shared(camera: str, what: str) -> bool:
+    """Findings that most samples sharing is not a frame out of place: frames repeating the one before
+    them (a still rig whose camera adds no noise, as the simulator's), lower images off their points (the
+    camchain's stereo pose)."""
+    return what == "repeat" or (camera == "lower" and what == "off")
 
 
 def _blank(flat: float | None, median: float, many: bool) -> bool:
@@ -197,6 +213,8 @@ def _phrase(what: str, flags: FrameFlags) -> str:
         return "identical upper and lower images"
     if what == kind(camera, "off"):
         return f"{article} {camera} image that lies off every LiDAR's points by over {OFF_IMAGE_DEG:g} deg"
+    if what == kind(camera, "repeat"):
+        return f"{article} {camera} image that repeats its camera's frame before it to the byte"
     if what == kind(camera, "poor"):
         medians = ", ".join(f"{k} {v:.2f}" for k, v in sorted(flags.correlation_median[camera].items()))
         return (
@@ -216,6 +234,8 @@ def _cause(what: str) -> str:
         return f"one camera's frame was published on both cameras' topics; {tail}"
     if what.endswith("over much of it"):
         return f"a black, saturated or torn frame; {tail}"
+    if what.endswith("the frame before it"):
+        return f"a camera or driver that sent its last frame again under a new stamp; {tail}"
     if "far worse" in what:
         return f"each image is not this camera's frame of its stamp (another frame, turned or torn); {tail}"
     return (

@@ -57,6 +57,8 @@ class Plan:
     imu_last_ns: int | None = None  # the IMU's latest reading in the bags (None without an IMU)
     upper_shift_ns: int = 0  # added to a camera's header stamps: its exposure times on the LiDAR clock
     lower_shift_ns: int = 0
+    repeated: dict[str, set[int]] = field(default_factory=dict)  # per camera topic: stamps of frames that
+    # repeat the frame before them to the byte (`FirstCopies.same_as_before`)
 
     @property
     def upper_exposure_ns(self) -> I64:
@@ -173,6 +175,7 @@ class Survey:
     imu_gaps_ns: I64 = field(default_factory=lambda: np.zeros(0, np.int64))  # `imu_gaps` of the IMU
     warnings: list[str] = field(default_factory=list)  # one line each (`lidar_clock_spread`, `thin_lines`)
     crossed: dict[str, list[tuple[int, int]]] = field(default_factory=dict)  # `FirstCopies.crossed`
+    same_as_before: dict[str, set[int]] = field(default_factory=dict)  # `FirstCopies.same_as_before`
 
     @property
     def span_ns(self) -> tuple[int, int]:
@@ -246,7 +249,15 @@ def survey(
         + [repeated_points_line(topic, found) for topic, found in copies.repeated_points.items()]
     )
     return Survey(
-        seen, rates, duplicates, up, lo, gaps, warnings + rates.thin_lines(topics.lidars), copies.crossed
+        seen,
+        rates,
+        duplicates,
+        up,
+        lo,
+        gaps,
+        warnings + rates.thin_lines(topics.lidars),
+        copies.crossed,
+        copies.same_as_before,
     )
 
 
@@ -338,4 +349,5 @@ def plan(
         imu_last_ns=int(sv.seen[topics.imu][:, 1].max()) if topics.imu else None,
         upper_shift_ns=topics.upper_shift_ns,
         lower_shift_ns=topics.lower_shift_ns,
+        repeated={t: sv.same_as_before.get(t, set()) for t in (topics.upper, topics.lower)},
     )

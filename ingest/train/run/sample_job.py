@@ -175,6 +175,7 @@ class SampleJob:
     settings: dict[str, Any] = field(default_factory=dict)  # the dataset's settings, for the meta
     upper_shift_ns: int = 0  # the rig's camera clock offsets: stamp + shift = exposure on the LiDAR clock
     lower_shift_ns: int = 0
+    repeated: tuple[str, ...] = ()  # "upper", "lower": the cameras whose frame repeats the one before it
 
     @property
     def exposure_ns(self) -> int:

@@ -229,7 +229,7 @@ def finish_sample(
         meta,
         points=replace(meta.points, thin_lidars=list(job.thin_lidars)),
         frames_sha256=frame_digest(job.upper_bgr, job.lower_bgr),
-        frame_check=frame_check(job.upper_bgr, job.lower_bgr),
+        frame_check=frame_check(job.upper_bgr, job.lower_bgr, job.repeated),
         settings=job.settings,
     )
     files = SampleFiles(job.upper_bgr, job.lower_bgr, up, down, gt[1], gt[0], meta)

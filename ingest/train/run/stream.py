@@ -102,6 +102,7 @@ class StreamedJob:
     same_stamps: tuple[HeldFrame, ...] = ()  # samples of the folder with this frame's stamps (other ids)
     settings: dict[str, Any] = field(default_factory=dict)  # the dataset's (`describe.sample_settings`)
     blocks: WindowBlocks | None = None  # dense GT on the workers: the normals and bits come from the blocks
+    repeated: tuple[str, ...] = ()  # "upper", "lower": the cameras whose frame repeats the one before it
 
     def sample_job(self, shared: Shared, upper_bgr: Array, lower_bgr: Array) -> SampleJob:
         """The `process_sample` job of this sample, with its decoded images."""
@@ -109,7 +110,7 @@ class StreamedJob:
             self.out, self.sid, self.source, self.upper_stamp_ns, self.lower_stamp_ns, upper_bgr, lower_bgr,
             self.lidars, self.imu, None, shared.geometry, self.params, shared.trajectory, self.thin_lidars,
             self.thin_lidars_sparse, settings=self.settings, upper_shift_ns=self.upper_shift_ns,
-            lower_shift_ns=self.lower_shift_ns,
+            lower_shift_ns=self.lower_shift_ns, repeated=self.repeated,
         )  # fmt: skip
 
 
@@ -290,6 +291,12 @@ def _forget_readings(imu_t: list[int], imu_g: list[Any], before_ns: int) -> None
         keep = [k for k, t in enumerate(imu_t) if t >= before_ns]
         imu_t[:] = [imu_t[k] for k in keep]
         imu_g[:] = [imu_g[k] for k in keep]
+
+
+def _repeated(the_plan: Plan, topics: Topics, k: int) -> tuple[str, ...]:
+    """The cameras whose frame of planned sample `k` repeats the frame before it (`Plan.repeated`)."""
+    stamps = (("upper", topics.upper, the_plan.upper_ns[k]), ("lower", topics.lower, the_plan.lower_ns[k]))
+    return tuple(side for side, topic, t in stamps if int(t) in the_plan.repeated.get(topic, ()))
 
 
 def planned_stamps(the_plan: Plan) -> list[tuple[int, int]]:
@@ -477,5 +484,6 @@ class _Stream:
             run.out, sid, self.source, self.bags.label, int(the_plan.upper_ns[k]), int(the_plan.lower_ns[k]),
             f["upper"], f["lower"], lidars, imu, run.sample, thin, thin_sparse, the_plan.upper_shift_ns,
             the_plan.lower_shift_ns, self.resume.same_stamps.get(sid, ()), dict(self.settings), blocks,
+            _repeated(the_plan, topics, k),
         )  # fmt: skip
         return job if tasks is None else Task(job, needs=tuple(sorted(needs)))
