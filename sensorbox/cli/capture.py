@@ -111,7 +111,7 @@ def _summary(result: GraphResult, title: str) -> None:
             sum(f.stat().st_size for f in Path(path).rglob("*") if f.is_file()) if Path(path).exists() else 0
         )
         console.print(f"Bag: {path} ({human_bytes(size)})", highlight=False)
-    for line in silent_lidars(snap.nodes, snap.elapsed_s):
+    for line in silent_lines(snap, bool(result.files)):
         print_warning(line)
     if not any(snap.published.values()):
         print_warning(
@@ -124,6 +124,19 @@ def _summary(result: GraphResult, title: str) -> None:
     ]
     for line in errors:
         err_console.print(f"[red]{escape(line)}[/red]")
+
+
+def silent_lines(snap: GraphSnapshot, recorded: bool) -> list[str]:
+    """One line per LiDAR that sent nothing (`silent_lidars`) and, when the run `recorded` a bag, per other
+    node that published nothing on a topic it publishes (a camera stopped before its first frame)."""
+    lines = silent_lidars(snap.nodes, snap.elapsed_s)
+    for name, topics in snap.silent_topics().items():
+        if recorded and not any(line.startswith(f"{name}: ") for line in lines):
+            lines.append(
+                f"{name}: published nothing on {', '.join(topics)} in {snap.elapsed_s:.1f} s; the recording "
+                "holds no message of it (a camera that had not started, or was unplugged)"
+            )
+    return lines
 
 
 def _setup_logging(verbose: bool) -> None:

@@ -202,6 +202,15 @@ class GraphSnapshot:
     rates_hz: dict[str, float]  # per topic, mean rate written (first recorder that has the topic)
     drops: dict[str, int]  # "node.stage" -> count
     nodes: dict[str, NodeStatus]
+    declared: dict[str, str] = field(default_factory=dict)  # topic -> the node that says it publishes it
+
+    def silent_topics(self) -> dict[str, list[str]]:
+        """Per node, the topics it says it publishes (`publishes`) on which nothing was published."""
+        out: dict[str, list[str]] = {}
+        for topic, node in sorted(self.declared.items()):
+            if not self.published.get(topic, 0):
+                out.setdefault(node, []).append(topic)
+        return out
 
     def counter(self, key: str) -> float | None:
         """The first node counter called `key` (e.g. disk_free_bytes), or None."""
@@ -239,7 +248,8 @@ def snapshot(nodes: Sequence[Node], bus: Bus, elapsed_s: float) -> GraphSnapshot
             rates.setdefault(topic, hz)
         for stage, n in st.drops.items():
             drops[f"{name}.{stage}"] = n
-    return GraphSnapshot(elapsed_s, bus.counts(), written, rates, drops, statuses)
+    declared = {topic: node.name for node in nodes for topic in getattr(node, "publishes", ())}
+    return GraphSnapshot(elapsed_s, bus.counts(), written, rates, drops, statuses, declared)
 
 
 def run_graph(

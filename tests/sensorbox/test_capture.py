@@ -295,3 +295,22 @@ def test_a_launch_that_publishes_nothing_says_so(tmp_path: Path) -> None:
         "s: no node of the run publishes a topic (a recorder alone records nothing), so no bag was written"
     )
     assert not list(tmp_path.rglob("*.mcap"))
+
+
+def test_a_camera_that_published_nothing_is_a_warning_after_the_recording() -> None:
+    """Sweep 8: capture --emulate stopped by SIGINT after 1.1 s wrote a bag with both LiDARs and IMUs and not
+    one camera frame, exit 0 and no line (the LiDARs had one, `silent_lidars`)."""
+    from sensorbox.cli.capture import silent_lines
+    from sensorbox.live.bus import GraphSnapshot, NodeStatus
+
+    upper, lower = "/zed_upper/zed_node/rgb/color/rect/image", "/zed_lower/zed_node/rgb/color/rect/image"
+    snap = GraphSnapshot(
+        1.13, {"/livox/lidar_192_168_1_12": 9, lower: 0}, {}, {}, {},
+        {"cameras": NodeStatus(), "livox": NodeStatus({"192.168.1.12.packets": 90.0, "192.168.1.12.imu_packets": 200.0})},
+        {upper: "cameras", lower: "cameras", "/livox/lidar_192_168_1_12": "livox"},
+    )  # fmt: skip
+    assert silent_lines(snap, recorded=True) == [
+        f"cameras: published nothing on {lower}, {upper} in 1.1 s; the recording holds no message of it (a camera "
+        "that had not started, or was unplugged)"
+    ]
+    assert silent_lines(snap, recorded=False) == []
