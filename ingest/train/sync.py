@@ -113,6 +113,26 @@ def unsynced_line(stereo_dt_ns: I64, upper_ns: I64) -> str | None:
     )
 
 
+def unpaired_line(upper_ns: I64, lower_ns: I64, tolerance_ns: int, pairs: int) -> str | None:
+    """One line when no upper frame found a lower one within `tolerance_ns` (`pairs` 0 of some frames on
+    both cameras; exposure times, the rig's camera clock offsets applied), naming how far apart the two
+    cameras' nearest frames lie; else None. Without it the run writes nothing and says only '0 pairs'."""
+    up, lo = np.sort(np.asarray(upper_ns, np.int64)), np.sort(np.asarray(lower_ns, np.int64))
+    if pairs or not len(up) or not len(lo):
+        return None
+    k = np.clip(np.searchsorted(lo, up), 1, max(len(lo) - 1, 1))
+    nearest = np.where(
+        np.abs(lo[k - 1] - up) <= np.abs(lo[np.minimum(k, len(lo) - 1)] - up), lo[k - 1], lo[k]
+    )
+    apart_ms = float(np.median(nearest - up)) / 1e6
+    return (
+        f"no upper frame has a lower frame within {tolerance_ns / 1e6:.1f} ms of its exposure (of {len(up)} "
+        f"upper and {len(lo)} lower frames; the nearest lie {apart_ms:+.1f} ms apart, median): nothing can "
+        "be written; check the camchain's timeshift_cam_imu of each camera and that both topics are the same "
+        "recording's"
+    )
+
+
 def lidar_covered(frame_ns: I64, lidar_spans_ns: list[tuple[int, int]], window_ns: int) -> Bool:
     """Which frames have LiDAR points within +-`window_ns`: some sweep overlaps [t - window, t + window].
 

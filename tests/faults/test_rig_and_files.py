@@ -773,3 +773,22 @@ def test_a_first_camera_with_a_pose_to_a_camera_before_it_is_warned_about(
         f"{chain}: cam0.T_cn_cnm1 ignored: the first camera of a chain is its origin, with no camera before it "
         "(Kalibr writes none for it; cameras in another order?)"
     ]
+
+
+def test_a_timeshift_that_pairs_no_frame_is_named(tmp_path: Path) -> None:
+    """Sweep 8: cam1's `timeshift_cam_imu: 0.999` (inside the +-1 s limit) left no lower frame within half a
+    frame of an upper one: 0 samples written, exit 0, and only '21 / 0 / 0' in the summary."""
+    from ingest.train.run.pipeline import ingest
+    from ingest.train.run.settings import IngestConfig
+
+    rig = _rig(tmp_path)
+    chain = tmp_path / "camchain.yaml"
+    topic = "  rostopic: /zed_lower/zed_node/rgb/color/rect/image\n"
+    chain.write_text(chain.read_text().replace(topic, f"{topic}  timeshift_cam_imu: 0.999\n"))
+    summary = ingest([INDOOR], IngestConfig(rig=rig, out=tmp_path / "ds", workers=1, height_full=64))
+    assert (summary.frames, summary.pairs, summary.written) == (21, 0, 0)
+    assert (
+        "no upper frame has a lower frame within 16.7 ms of its exposure (of 21 upper and 21 lower frames; the "
+        "nearest lie +665.7 ms apart, median): nothing can be written; check the camchain's timeshift_cam_imu of "
+        "each camera and that both topics are the same recording's"
+    ) in summary.warnings

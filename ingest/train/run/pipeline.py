@@ -346,6 +346,8 @@ def _count_plan(summary: IngestSummary, the_plan: Plan, bags: BagSet, bad: BadMe
         summary.skipped[LOST_REASON] = the_plan.lost_samples
     if the_plan.crossed_samples:
         summary.skipped[CROSSED_REASON] = the_plan.crossed_samples
+    if the_plan.unpaired is not None:
+        summary.warnings.append(the_plan.unpaired)
     if (line := unsynced_line(the_plan.stereo_dt_ns, the_plan.upper_ns)) is not None:
         summary.warnings.append(line)
 

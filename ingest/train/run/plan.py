@@ -33,6 +33,7 @@ from ingest.train.sync import (
     pair_stereo,
     pair_tolerance_ns,
     select_samples,
+    unpaired_line,
 )
 
 if TYPE_CHECKING:
@@ -59,6 +60,7 @@ class Plan:
     lower_shift_ns: int = 0
     repeated: dict[str, set[int]] = field(default_factory=dict)  # per camera topic: stamps of frames that
     # repeat the frame before them to the byte (`FirstCopies.same_as_before`)
+    unpaired: str | None = None  # `unpaired_line` when no frame found a partner
 
     @property
     def upper_exposure_ns(self) -> I64:
@@ -350,4 +352,5 @@ def plan(
         upper_shift_ns=topics.upper_shift_ns,
         lower_shift_ns=topics.lower_shift_ns,
         repeated={t: sv.same_as_before.get(t, set()) for t in (topics.upper, topics.lower)},
+        unpaired=unpaired_line(up_t, lo_t, tol, len(pairs.upper)),
     )
