@@ -104,6 +104,18 @@ def read_text(
         ) from err
 
 
+def resolved(path: Path, error: type[SensorboxError], expected: str = "") -> Path:
+    """`path` with every link followed; `error` in one line when its links lead round in a loop (pathlib
+    raises RuntimeError for that before Python 3.13, OSError after), `expected` saying what to give."""
+    try:
+        return path.resolve()
+    except (OSError, RuntimeError) as err:
+        raise error(
+            f"{path}: is a symbolic link that leads nowhere (a loop of links)"
+            + (f"; give {expected}" if expected else "")
+        ) from err
+
+
 def refuse_special_target(path: Path, error: type[SensorboxError]) -> None:
     """Refuse an output `path` that exists as a device, FIFO or socket (symlinks followed).
 

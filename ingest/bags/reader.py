@@ -57,6 +57,7 @@ from typing import Any
 import zstandard
 
 from calibration.errors import SensorboxError
+from calibration.files import resolved
 from ingest.bags.checked_readers import guard_readers
 from ingest.bags.chunks import ChunkGuard, CorruptChunkError, DeferredData, LostChunk
 from ingest.bags.decode import RosVersion
@@ -152,15 +153,8 @@ def _open_reader(paths: list[Path], ros_version: RosVersion, guard: ChunkGuard) 
 
 
 def _resolved(path: Path) -> Path:
-    """`path` with every link followed; one line when its links lead round in a loop (pathlib raises
-    RuntimeError for that before Python 3.13, OSError after)."""
-    try:
-        return path.resolve()
-    except (OSError, RuntimeError) as err:
-        raise BagError(
-            f"{path}: is a symbolic link that leads nowhere (a loop of links); "
-            "give a bag file or rosbag2 folder"
-        ) from err
+    """`path` with every link followed (`calibration.files.resolved`)."""
+    return resolved(path, BagError, "a bag file or rosbag2 folder")
 
 
 def given_once(bag_paths: Sequence[Path]) -> None:

@@ -119,7 +119,7 @@ def distinct_dirs(out: Path, names: Sequence[str]) -> None:
     damaged writes them again, one over the other."""
     seen: dict[Path, str] = {}
     for name in names:
-        real = (out / name).resolve()
+        real = files.resolved(out / name, DatasetError)
         if real in seen:
             links = [n for n in (seen[real], name) if (out / n).is_symlink()]
             how = (

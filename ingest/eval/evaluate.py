@@ -35,7 +35,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from calibration.files import check_regular_file, file_kind
+from calibration.files import check_regular_file, file_kind, resolved
 from calibration.types import F32
 from ingest.dataset.layout import DEPTH_SCALE, DISP_SCALE, read_png_u16, write_atomic
 from ingest.dataset.png import MAX_IMAGE_BYTES, read_image
@@ -84,7 +84,7 @@ def what_it_is(path: Path) -> str:
     /dev/zero)" and the like (`calibration.files.file_kind`)."""
     if path.is_file():
         return "a file"
-    target = path.resolve()
+    target = resolved(path, DatasetError)
     via = f" (a link to {target})" if target != path.absolute() else ""
     return f"{file_kind(path.stat().st_mode)}{via}"
 

@@ -191,11 +191,12 @@ def check_out_file(flag: str, path: Path) -> None:
 def check_not_an_input(flag: str, path: Path, inputs: Sequence[Path], what: str) -> None:
     """Refuse an output file that is one of the command's inputs or lies in an input folder: the write
     would replace what the command read (`what` names the inputs in the message)."""
+    from calibration.files import resolved
     from ingest.errors import DatasetError
 
-    where = path.resolve()
+    where = resolved(path, DatasetError)
     for given in inputs:
-        source = given.resolve()
+        source = resolved(given, DatasetError)
         if where == source:
             raise DatasetError(f"{flag} {path}: is {given}, {what}; give another path")
         if source.is_dir() and where.is_relative_to(source):

@@ -163,15 +163,17 @@ def eval_cmd(
 def _not_an_input(flag: str, path: Path, dataset: Path, pred: Path, masks: list[Path]) -> None:
     """Refuse a report path among the files eval reads: anywhere in the dataset, in the prediction
     folder below its top level (the predictions mirror the dataset there), or in a mask folder."""
+    from calibration.files import resolved
     from ingest.errors import DatasetError
 
-    where = path.resolve()
+    where = resolved(path, DatasetError)
     for folder, what in [(dataset, "the dataset"), *((m, "a --mask folder") for m in masks)]:
-        if where.is_relative_to(folder.resolve()):
+        if where.is_relative_to(resolved(folder, DatasetError)):
             raise DatasetError(
                 f"{flag} {path}: inside {what} ({folder}), whose files eval reads; give a path outside it"
             )
-    if where.is_relative_to(pred.resolve()) and where.parent != pred.resolve():
+    top = resolved(pred, DatasetError)
+    if where.is_relative_to(top) and where.parent != top:
         raise DatasetError(
             f"{flag} {path}: among the predictions ({pred}), whose files eval reads; give a path outside "
             f"{pred} or at its top level"

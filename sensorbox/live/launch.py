@@ -48,6 +48,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 
 import yaml
 
+from calibration.files import resolved
 from sensorbox.errors import GraphError, LaunchError
 from sensorbox.live.bus import resolve_name
 from sensorbox.live.launch_yaml import LineMap, join_ns, load_launch_yaml, param_file
@@ -213,7 +214,7 @@ class _Parser:
         self.stack: list[Path] = []
 
     def file(self, path: Path, scope: Scope) -> None:
-        path = path.resolve()
+        path = resolved(path, LaunchError, "a launch file")
         if path in self.stack:
             chain = " -> ".join(str(p) for p in [*self.stack, path])
             raise LaunchError(f"launch files include each other in a cycle: {chain}")

@@ -228,3 +228,24 @@ def test_a_deleted_working_directory_is_one_line(tmp_path: Path) -> None:
         "error: the current directory no longer exists (deleted since the shell entered it); cd to a folder that "
         "exists\n",
     )
+
+
+@pytest.mark.parametrize("which", ["--json", "--dataset", "--pred"])
+def test_a_symbolic_link_loop_given_to_eval_is_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], which: str
+) -> None:
+    """Sweep 8: `eval --json LOOP` or `--dataset LOOP` (a link to a link to the first) ended in pathlib's
+    `RuntimeError: Symlink loop` traceback, exit 1."""
+    loop = tmp_path / "loop"
+    (tmp_path / "loop2").symlink_to(loop)
+    loop.symlink_to(tmp_path / "loop2")
+    (tmp_path / "pred").mkdir()
+    paths = {"--dataset": str(INDOOR), "--pred": str(tmp_path / "pred"), "--json": str(tmp_path / "r.json")}
+    paths[which] = str(loop)
+    args = [a for flag, path in paths.items() for a in (flag, path)]
+    code, out, err = sensorbox(capsys, "eval", *args, "--task", "completion")
+    assert (code, out, err) == (
+        2,
+        "",
+        [f"error: {loop}: is a symbolic link that leads nowhere (a loop of links)"],
+    )
