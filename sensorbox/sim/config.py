@@ -137,7 +137,7 @@ class SimConfig:
         for ns in self.camera_offset_ns:
             if abs(ns) > MAX_CAMERA_OFFSET_NS:
                 raise SensorboxError(
-                    f"--camera-offset-ms {ns / 1e6:g}: expected within +-{MAX_CAMERA_OFFSET_NS / 1e6:g} ms"
+                    f"--camera-offset-ms {ns / 1e6:.9g}: expected within +-{MAX_CAMERA_OFFSET_NS / 1e6:g} ms"
                 )
 
     @property

@@ -212,14 +212,15 @@ def survey(
     seen, rates, copies = _seen(bags, topics, bad, progress)
     duplicates = copies.repeats
     dropped = bad.dropped.by_topic()
+    if odd := rates.same_sweeps(topics.lidars):  # first: the repeated sweeps of such a topic are left out
+        raise BagError(f"{bags.paths[0]}: {odd}")
     for topic, name in topics.lidars.items():
         if not len(seen[topic]):
             raise BagError(
                 f"{bags.paths[0]}: no points on {topic} (the rig's lidar {name}) in the whole bag"
                 + _all_dropped(dropped.get(topic, {}), "point")
             )
-    odd = rates.crowded(topics.lidars) or rates.too_far(topics.lidars) or rates.same_sweeps(topics.lidars)
-    if odd:
+    if odd := rates.crowded(topics.lidars) or rates.too_far(topics.lidars):
         raise BagError(f"{bags.paths[0]}: {odd}")
     if topics.imu and not len(seen[topics.imu]):  # the rig names it: motion and odometry rely on it
         raise BagError(
