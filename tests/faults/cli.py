@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import subprocess
 import sys
 
 import pytest
@@ -22,3 +23,12 @@ def sensorbox(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str,
         sys.argv = argv
     out, err = capsys.readouterr()
     return code, out, err.splitlines()
+
+
+def run_here(capsys: pytest.CaptureFixture[str], *args: str) -> subprocess.CompletedProcess[str]:
+    """`sensorbox ARGS` in this process, shaped as `subprocess.run`'s result (for tests written against
+    one): a subprocess per case costs seconds of imports (torch among them) and checks nothing more."""
+    code, out, err = sensorbox(capsys, *args)
+    return subprocess.CompletedProcess(
+        ["sensorbox", *args], code, out, "\n".join(err) + ("\n" if err else "")
+    )

@@ -26,6 +26,7 @@ from ingest.train.run.settings import IngestConfig
 from sensorbox.live.capture import CaptureConfig, capture_plan, check_config
 from sensorbox.live.launch import parse_launch
 from sensorbox.live.launch_run import run_launch
+from tests.faults.cli import run_here
 from tests.live import HANG_S, NO_DISK_GUARD
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -189,27 +190,28 @@ def test_port_base_and_jpeg_quality_limits(tmp_path):
         check_config(CaptureConfig(rig=REF, out=tmp_path, jpeg_quality=0))
 
 
-def test_cli_launch_dry_run_show_args_and_errors():
-    res = run_cli("launch", str(SIM_LAUNCH), "--dry-run", "scale:=0.5")
+def test_cli_launch_dry_run_show_args_and_errors(capsys: pytest.CaptureFixture[str]) -> None:
+    """`launch --dry-run`, `--show-args`, a bad argument and `--help`, in this process (`run_here`)."""
+    res = run_here(capsys, "launch", str(SIM_LAUNCH), "--dry-run", "scale:=0.5")
     assert res.returncode == 0, res.stderr
     assert "- livox_lidar_publisher (livox_ros_driver2/livox_ros_driver2_node), namespace /" in res.stdout
     assert "    remap /livox/lidar_127_0_0_12 -> /livox/lidar_192_168_1_12\n" in res.stdout
     assert "    param scale = 0.5\n" in res.stdout
-    res = run_cli("launch", str(SIM_LAUNCH), "--show-args")
+    res = run_here(capsys, "launch", str(SIM_LAUNCH), "--show-args")
     assert res.returncode == 0
     assert (
         "  duration:='0' (default '0')\n      seconds to record; 0 = until interrupted (Ctrl-C)\n"
         in res.stdout
     )
     assert "  scene:='indoor' (default 'indoor', one of indoor, outdoor)\n" in res.stdout
-    res = run_cli("launch", str(SIM_LAUNCH), "scene:=moon")
+    res = run_here(capsys, "launch", str(SIM_LAUNCH), "scene:=moon")
     lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
     assert res.returncode == 2 and len(lines) == 1
     assert "scene:='moon' is not one of indoor, outdoor" in lines[0] and "sim.launch.yaml" in lines[0]
-    res = run_cli("capture", "--rig", str(REF), "--out", "x", "--camera", "usb")
+    res = run_here(capsys, "capture", "--rig", str(REF), "--out", "x", "--camera", "usb")
     assert res.returncode == 2 and "--camera 'usb': expected one of zed, opencv" in res.stderr
     for args in (["launch", "--help"], ["capture", "--help"]):
-        res = run_cli(*args)
+        res = run_here(capsys, *args)
         assert res.returncode == 0 and "Usage" in res.stdout
 
 

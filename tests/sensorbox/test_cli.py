@@ -7,6 +7,8 @@ from pathlib import Path
 import cv2
 import pytest
 
+from tests.faults.cli import run_here
+
 ROOT = Path(__file__).resolve().parents[2]
 REF = ROOT / "calibration" / "sensorbox.yaml"
 
@@ -76,8 +78,13 @@ def test_the_cli_gives_numpys_blas_one_thread_unless_the_user_chose():
         assert out.stdout.strip() == expected
 
 
-def test_ingest_backend_is_checked_before_any_bag_is_read(tmp_path):
-    """`--backend` (the dense-GT renderer): an unknown one, or cuda without a GPU, is one line, exit 2."""
+def test_ingest_backend_is_checked_before_any_bag_is_read(tmp_path, capsys):
+    """`--backend` (the dense-GT renderer): an unknown one, or cuda without a GPU, is one line, exit 2 (run in
+    this process: each option's check is the CLI's own, and a subprocess per case imported torch anew)."""
+
+    def run(*args):
+        return run_here(capsys, *args)
+
     out = tmp_path / "out"
     args = ("ingest", str(tmp_path / "no.bag"), "--rig", str(REF), "--out", str(out), "--gt", "dense")
     res = run(*args, "--backend", "gpu")

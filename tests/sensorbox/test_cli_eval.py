@@ -9,11 +9,13 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pytest
 import typer
 from typer.testing import CliRunner
 
 from calibration.errors import SensorboxError
 from sensorbox.cli.eval import eval_cmd, stats_cmd
+from tests.faults.cli import run_here
 from tests.ingest.test_evaluate import make_benchmark, write_predictions
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -108,25 +110,25 @@ def _run(*args: str) -> subprocess.CompletedProcess[str]:
     )
 
 
-def test_errors_are_one_line_and_exit_2(tmp_path: Path) -> None:
+def test_errors_are_one_line_and_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     bench = make_benchmark(tmp_path / "bench")
     pred = tmp_path / "pred"
     files = write_predictions(bench, pred, "stereo")
     npy = next(p for p in files if p.suffix == ".npy")
     np.save(npy, np.zeros((3, 3)))
-    res = _run("eval", "--dataset", str(bench), "--pred", str(pred), "--task", "stereo")
+    res = run_here(capsys, "eval", "--dataset", str(bench), "--pred", str(pred), "--task", "stereo")
     assert res.returncode == 2, res.stdout + res.stderr
     lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and lines[0].startswith("error: "), res.stderr
     assert f"{npy}: prediction shape (3, 3) but the GT" in lines[0] and "is (6, 10)" in lines[0]
-    res = _run("eval", "--dataset", str(bench), "--pred", str(pred), "--task", "depth")
+    res = run_here(capsys, "eval", "--dataset", str(bench), "--pred", str(pred), "--task", "depth")
     assert res.returncode == 2 and "--task 'depth': expected one of stereo, mono, completion" in res.stderr
     npy.write_bytes(b"")  # an empty prediction file printed only "Aborted!" (issue 20, class 10)
-    res = _run("eval", "--dataset", str(bench), "--pred", str(pred), "--task", "stereo")
+    res = run_here(capsys, "eval", "--dataset", str(bench), "--pred", str(pred), "--task", "stereo")
     assert res.returncode == 2 and f"error: {npy}: cannot read the .npy file" in res.stderr, res.stderr
     empty = tmp_path / "empty"  # a prediction folder that matches nothing (wrong level, say)
     empty.mkdir()
-    res = _run("eval", "--dataset", str(bench), "--pred", str(empty), "--task", "stereo")
+    res = run_here(capsys, "eval", "--dataset", str(bench), "--pred", str(empty), "--task", "stereo")
     assert res.returncode == 2 and f"error: {empty}: no prediction for any of the 16 GT samples" in res.stderr
     assert (
         "(the prediction folder mirrors the dataset's)" in res.stderr
@@ -134,9 +136,9 @@ def test_errors_are_one_line_and_exit_2(tmp_path: Path) -> None:
     )
     gt = sorted(bench.rglob("depth/*.png"))[0]
     gt.write_bytes(gt.read_bytes()[:60])  # a GT PNG cut short
-    res = _run("stats", str(bench))
+    res = run_here(capsys, "stats", str(bench))
     assert res.returncode == 2, res.stdout + res.stderr
     assert f"error: {gt}: cannot be decoded (60 bytes: empty, cut short or not an image)" in res.stderr
     for cmd in ("eval", "stats"):
-        res = _run(cmd, "--help")
+        res = run_here(capsys, cmd, "--help")
         assert res.returncode == 0 and "Usage" in res.stdout
