@@ -102,7 +102,7 @@ def test_a_frame_under_its_neighbours_stamp_is_named_and_flagged(tmp_path: Path)
     assert summary.frame_flags == {"upper image off every LiDAR's points (> 1 deg)": ["000001"]}
     assert summary.flagged["upper image off every LiDAR's points (> 1 deg)"] == 1
     assert (
-        "1 of 4 samples written have an upper image that lies off every LiDAR's points by over 1 deg (000001): "
+        "1 of 4 samples have an upper image that lies off every LiDAR's points by over 1 deg (000001): "
         "each image is not the one taken at its stamp (a frame published under another's stamp, or a camera "
         "clock that jumped); the samples are written and flagged in the summary: leave them out of training"
     ) in summary.warnings

@@ -9,8 +9,8 @@ anyway, compared with the run's other samples, since the scene sets what "normal
 - the two images are the same pixels (one camera's frame published on both topics);
 - an image is one flat grey level over much more of it than the run's others are (black, white, torn);
 - a frame repeats its camera's frame before it to the byte (a camera or driver that sent its last frame
-  again under a new stamp; a still rig's frames repeat in a simulator that adds no noise, so only a
-  minority of the samples is named);
+  again under a new stamp; a still rig's frames all repeat in a simulator that adds no noise, so the
+  plan names them only when they are under half of the camera's frames);
 - the LiDAR points' alignment with it moves them by over `OFF_IMAGE_DEG`;
 - the points match it far worse than they match the run's other images of that camera (correlation of
   reflectivity and intensity below `POOR_MATCH` of the run's median).
@@ -119,6 +119,7 @@ class FrameFlags:
     tests used (`flat_median`, `correlation_median`, per camera and LiDAR key)."""
 
     found: dict[str, list[str]]
+    samples: int
     flat_median: dict[str, float]
     correlation_median: dict[str, dict[str, float]]
 
@@ -170,14 +171,13 @@ def frame_flags(records: list[FrameRecord]) -> FrameFlags:
             if ids and not (_shared(camera, what) and 2 * len(ids) >= len(records)):
                 found[kind(camera, what)] = ids
                 taken.update(ids)
-    return FrameFlags(found, flat_median, corr_median)
+    return FrameFlags(found, len(records), flat_median, corr_median)
 
 
 def _shared(camera: str, what: str) -> bool:
-    """Findings that most samples sharing is not a frame out of place: frames repeating the one before
-    them (a still rig whose camera adds no noise, as the simulator's), lower images off their points (the
+    """Findings that most samples sharing is not a frame out of place: lower images off their points (the
     camchain's stereo pose)."""
-    return what == "repeat" or (camera == "lower" and what == "off")
+    return camera == "lower" and what == "off"
 
 
 def _blank(flat: float | None, median: float, many: bool) -> bool:
@@ -194,14 +194,13 @@ def _poor(aligned: Mapping[str, AlignmentMeta], medians: Mapping[str, float]) ->
     )
 
 
-def flag_lines(flags: FrameFlags, written: int) -> list[str]:
-    """One warning line per finding, naming its samples (the first five)."""
+def flag_lines(flags: FrameFlags) -> list[str]:
+    """One warning line per finding, naming its samples (the first five), out of the samples judged."""
+    judged = flags.samples
     lines = []
     for what, ids in flags.found.items():
         shown = ", ".join(ids[:5]) + (", ..." if len(ids) > 5 else "")
-        lines.append(
-            f"{len(ids)} of {written} samples written have {_phrase(what, flags)} ({shown}): {_cause(what)}"
-        )
+        lines.append(f"{len(ids)} of {judged} samples have {_phrase(what, flags)} ({shown}): {_cause(what)}")
     return lines
 
 

@@ -231,9 +231,11 @@ def ingest(
             summary.undecodable, summary.dropped = bad.by_topic(), bad.dropped.by_topic()
             record_undecodable(cfg.out, [Path(p) for p in bag_paths], summary.undecodable, summary.dropped)
         summary.warnings += bad.dropped.lines()
-        summary.calibration = check_calibration(summary.alignments)
+        summary.flag_frames()
+        upper, lower = summary.unflagged_alignments()
+        summary.calibration = check_calibration(upper)
         if summary.calibration is not None:
-            stereo = stereo_alignment(rig, summary.calibration.combined, combine(summary.alignments_lower))
+            stereo = stereo_alignment(rig, summary.calibration.combined, combine(lower))
             record = {**summary.calibration.as_yaml(), **stereo_record(stereo)}
             record_calibration(cfg.out, [Path(p) for p in bag_paths], record)
             summary.warnings += summary.calibration.warnings(cfg.rig, refined=cfg.refine)

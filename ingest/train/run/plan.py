@@ -286,6 +286,12 @@ def overlapping_line(topic: str, firsts_ns: list[int]) -> str:
     )
 
 
+def _few(stamps: set[int], frames: int) -> set[int]:
+    """`stamps` of a camera's frames that repeat the frame before them, when they are under half of its
+    `frames`; none when most are (a still rig in a simulator that adds no image noise repeats them all)."""
+    return stamps if 2 * len(stamps) < frames else set()
+
+
 def repeated_points_line(topic: str, found: list[tuple[int, str]]) -> str:
     """One line for the sweeps of `topic` whose points repeat an earlier sweep's to the bit
     (`FirstCopies.repeated_points`): each was left out, as where its points were measured is not known."""
@@ -352,6 +358,9 @@ def plan(
         imu_last_ns=int(sv.seen[topics.imu][:, 1].max()) if topics.imu else None,
         upper_shift_ns=topics.upper_shift_ns,
         lower_shift_ns=topics.lower_shift_ns,
-        repeated={t: sv.same_as_before.get(t, set()) for t in (topics.upper, topics.lower)},
+        repeated={
+            t: _few(sv.same_as_before.get(t, set()), len(n))
+            for t, n in ((topics.upper, up), (topics.lower, lo))
+        },
         unpaired=unpaired_line(up_t, lo_t, tol, len(pairs.upper)),
     )

@@ -12,7 +12,7 @@ import numpy as np
 from calibration.types import F64
 from ingest.dataset.meta import SampleMeta
 from ingest.train.gt.align import Alignment
-from ingest.train.gt.align_check import CalibrationCheck, from_metas
+from ingest.train.gt.align_check import CalibrationCheck, SampleAlignments, from_metas
 from ingest.train.run.frame_check import FrameRecord, flag_lines, frame_flags
 from ingest.train.run.lidar_rate import THIN_FRACTION
 from ingest.train.run.refine import Refinement
@@ -22,6 +22,9 @@ from ingest.train.run.stream import ALREADY_HELD
 from ingest.train.trajectory.estimate import TrajectorySummary
 from ingest.train.trajectory.imu_check import GyroAgreement
 
+_OTHER = {"upper": "lower image", "lower": "upper image"}
+"""A camera's samples to leave out of its calibration check are those of every finding but the other
+camera's own (`IngestSummary.unflagged_alignments`)."""
 OVER_UINT16 = "over the depth PNG's 65.535 m, left empty"
 
 
@@ -75,6 +78,7 @@ class IngestSummary:
         default_factory=list
     )  # what `frame_check` needs of each written one
     frame_flags: dict[str, list[str]] = field(default_factory=dict)  # its findings: kind -> sample ids
+    _frame_lines: list[str] = field(default_factory=list)  # their warning lines (`flag_frames`)
     range_ratios: dict[str, list[tuple[float, int]]] = field(default_factory=dict)  # per LiDAR, per sample
 
     def range_line(self, first: str) -> str:
@@ -97,13 +101,8 @@ class IngestSummary:
 
     def closing_lines(self, first_lidar: str) -> list[str]:
         """The warning lines the written samples give together, in order (`first_lidar`: the rig's first
-        LiDAR, the others' ranges are compared with); the frames that stand out (`frame_flags`) are
-        flagged."""
-        flags = frame_flags(self.frame_records)
-        self.frame_flags = flags.found
-        for what, ids in flags.found.items():
-            self.flagged[what] = len(ids)
-        found = [self.without_gt_line(), self.without_disparity_line(), *flag_lines(flags, self.written)]
+        LiDAR, the others' ranges are compared with), with those of `flag_frames`."""
+        found = [self.without_gt_line(), self.without_disparity_line(), *self._frame_lines]
         return [line for line in (*found, self.range_line(first_lidar)) if line]
 
     def without_gt_line(self) -> str:
@@ -140,6 +139,7 @@ class IngestSummary:
     refinement: Refinement | None = None  # --refine: what `ingest.train.run.refine` found and the rig it made
     alignments: list[tuple[Mapping[str, Alignment], F64 | None]] = field(default_factory=list)  # per sample
     alignments_lower: list[tuple[Mapping[str, Alignment], F64 | None]] = field(default_factory=list)  # cam1's
+    alignment_ids: tuple[list[str], list[str]] = field(default_factory=lambda: ([], []))  # their samples' ids
     calibration: CalibrationCheck | None = None  # the samples' alignments summed up (`ingest.train.gt.align`)
     damaged: list[str] = field(default_factory=list)  # finished samples found damaged, written again: why
     aligned: dict[str, SampleAlignment] = field(default_factory=dict)  # per sample id: alignment_only's
@@ -153,10 +153,39 @@ class IngestSummary:
         """A sample an earlier run finished (`AlreadyDone`): counted, and its alignments join the
         recording's calibration check, which covers every sample of it, not only this run's."""
         self.resumed += 1
+        self._add_alignments(meta)
+        self.frame_records.append(FrameRecord.from_meta(meta))
+
+    def _add_alignments(self, meta: SampleMeta) -> None:
+        """A sample's alignments onto both images, for the calibration check, with its id."""
         if meta.alignment:
             upper, lower = from_metas([meta])
             self.alignments.extend(upper)
-            self.alignments_lower.extend((found, None) for found, _ in lower if found)
+            self.alignment_ids[0].append(meta.id)
+            if lower[0][0]:
+                self.alignments_lower.append((lower[0][0], None))
+                self.alignment_ids[1].append(meta.id)
+
+    def flag_frames(self) -> None:
+        """Name the samples whose frames stand out (`frame_check.frame_flags`), in `frame_flags` and
+        `flagged`; once, before the calibration check leaves them out (`unflagged_alignments`)."""
+        flags = frame_flags(self.frame_records)
+        self.frame_flags, self._frame_lines = flags.found, flag_lines(flags)
+        for what, ids in flags.found.items():
+            self.flagged[what] = len(ids)
+
+    def unflagged_alignments(self) -> tuple[SampleAlignments, SampleAlignments]:
+        """`alignments` and `alignments_lower` without the samples whose upper (lower) frame is flagged: a
+        frame out of place would pull the rig's pose and the stereo pose towards itself."""
+        out = []
+        for camera, found, ids in (
+            ("upper", self.alignments, self.alignment_ids[0]),
+            ("lower", self.alignments_lower, self.alignment_ids[1]),
+        ):
+            bad = {sid for what, flagged in self.frame_flags.items() if not what.startswith(_OTHER[camera])
+                   for sid in flagged}  # fmt: skip
+            out.append([a for a, sid in zip(found, ids, strict=True) if sid not in bad])
+        return out[0], out[1]
 
     def add(self, result: SampleResult) -> None:
         if result.reason == ALIGNED and result.aligned is not None:
@@ -186,10 +215,7 @@ class IngestSummary:
                 (OVER_UINT16, meta.dropped.get("depth_over_uint16", 0)),
             ):  # fmt: skip
                 self.without_gt_points[why] = self.without_gt_points.get(why, 0) + n
-        if meta.alignment:
-            upper, lower = from_metas([meta])
-            self.alignments.extend(upper)
-            self.alignments_lower.extend((found, None) for found, _ in lower if found)
+        self._add_alignments(meta)
         self.frame_records.append(FrameRecord.from_meta(meta))
         self.skew_ms.extend(meta.lidar_skew_ms.values())
         for name, (ratio, pixels) in meta.points.range_ratio.items():
