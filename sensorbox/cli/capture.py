@@ -22,7 +22,15 @@ from rich.table import Table
 from rich.text import Text
 
 from calibration.errors import SensorboxError
-from sensorbox.cli.common import LidarMsgOpt, console, err_console, human_bytes, path_param, print_warning
+from sensorbox.cli.common import (
+    LidarMsgOpt,
+    check_out_folder,
+    console,
+    err_console,
+    human_bytes,
+    path_param,
+    print_warning,
+)
 from sensorbox.live.bus import GraphResult, GraphSnapshot, Shutdown, stop_on_signals
 from sensorbox.live.livox_node import silent_lidars
 
@@ -342,6 +350,7 @@ def capture_cmd(
         duration_s=duration, split_size_mb=split_size, min_free_mb=min_free, emulate=emulate,
         port_base=port_base, scale=scale, monitor_port=monitor, monitor_host=monitor_host,
     )  # fmt: skip
+    check_out_folder("--out", out, "the bags")
     check_config(cfg)  # before the logging set-up, as the choices above: a refused option changes nothing
     _setup_logging(verbose)
     result = _run_live(lambda sd, tick: capture(cfg, shutdown=sd, on_tick=tick))

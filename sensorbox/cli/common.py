@@ -176,6 +176,13 @@ def _unresolved_link(path: Path) -> str | None:
     return None
 
 
+def refuse_link_loop(flag: str, path: Path, expected: str) -> None:
+    """Refuse an output `path` that is a symbolic link leading nowhere (a loop), before any work: the
+    write would fail after it with "File exists" or "Not a directory" naming a temporary."""
+    if (why := _unresolved_link(path)) is not None:
+        raise DatasetError(f"{flag} {path}: {why}; give {expected}")
+
+
 def check_out_file(flag: str, path: Path) -> None:
     """Refuse, before any work, an output file whose folder would have to be made where a file is,
     or cannot be written into, or that exists as a folder, device, FIFO or socket (the write would refuse
@@ -184,6 +191,7 @@ def check_out_file(flag: str, path: Path) -> None:
 
     if path.is_dir():  # the write would fail after the work with a bare "Is a directory"
         raise DatasetError(f"{flag} {path}: is a folder; give a file path")
+    refuse_link_loop(flag, path, "a file path")
     refuse_special_target(path)
     _check_parents(flag, path)
 

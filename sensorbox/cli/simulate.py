@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 from rich.table import Table
 
-from sensorbox.cli.common import LidarMsgOpt, console, human_bytes, path_param, progress_bar
+from sensorbox.cli.common import LidarMsgOpt, console, human_bytes, path_param, progress_bar, refuse_link_loop
 
 if TYPE_CHECKING:
     from sensorbox.sim.run import SimSummary
@@ -96,6 +96,7 @@ def simulate_cmd(
     from sensorbox.sim.config import SimConfig, with_mid360_imu_noise
     from sensorbox.sim.run import simulate
 
+    refuse_link_loop("--out", out, "a bag path")
     if not math.isfinite(lidar_offset_ms) or abs(lidar_offset_ms) > 1000:
         raise SensorboxError(
             f"--lidar-offset-ms must be a finite number within +-1000 ms, got {lidar_offset_ms}"

@@ -244,8 +244,40 @@ def test_a_symbolic_link_loop_given_to_eval_is_one_line(
     paths[which] = str(loop)
     args = [a for flag, path in paths.items() for a in (flag, path)]
     code, out, err = sensorbox(capsys, "eval", *args, "--task", "completion")
-    assert (code, out, err) == (
-        2,
-        "",
-        [f"error: {loop}: is a symbolic link that leads nowhere (a loop of links)"],
-    )
+    line = f"error: {loop}: is a symbolic link that leads nowhere (a loop of links)"
+    if which == "--json":  # an output: refused naming its option before anything is read
+        line = f"error: --json {loop}: is a symbolic link that leads nowhere (Too many levels of symbolic links); "
+        line += "give a file path"
+    assert (code, out, err) == (2, "", [line])
+
+
+@pytest.mark.parametrize(
+    ("command", "flag", "expected"),
+    [
+        (["calib", "check", "{rig}", "--plot"], "--plot", "a file path"),
+        (
+            ["calib", "refine", "{bag}", "--rig", "{rig}", "--out", "{tmp}/r.yaml", "--plot"],
+            "--plot",
+            "a file path",
+        ),
+        (["simulate", "--duration", "0.1", "--scale", "0.1", "--out"], "--out", "a bag path"),
+        (["capture", "--rig", "{rig}", "--emulate", "--duration", "1", "--out"], "--out", "a folder"),
+    ],
+)
+def test_an_output_that_is_a_symbolic_link_loop_is_refused_before_the_work(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], command: list[str], flag: str, expected: str
+) -> None:
+    """Sweep 8: `calib refine --plot LOOP` ended in pathlib's RuntimeError traceback after the whole refine;
+    `simulate --out LOOP` and `capture --out LOOP` said 'Not a directory' of a temporary or 'File exists',
+    exit 3."""
+    loop = tmp_path / "loop.png"
+    (tmp_path / "loop2.png").symlink_to(loop)
+    loop.symlink_to(tmp_path / "loop2.png")
+    rig = INDOOR.parent / "indoor_static_mcap.truth" / "rig.yaml"
+    args = [a.format(rig=rig, bag=INDOOR, tmp=tmp_path) for a in command]
+    code, _, err = sensorbox(capsys, *args, str(loop))
+    assert code == 2 and err == [
+        f"error: {flag} {loop}: is a symbolic link that leads nowhere (Too many levels of symbolic links); "
+        f"give {expected}"
+    ]
+    assert not (tmp_path / "r.yaml").exists()
