@@ -67,6 +67,8 @@ CASES: dict[str, tuple[str, int, Edit, str, str]] = {
     "lower_5_is_4": (LOWER, 5, lambda im, all_: all_[(LOWER, 4)], "lower image repeating the frame before it", "000001"),
     "upper_10_is_9": (UPPER, 10, lambda im, all_: all_[(UPPER, 9)], "upper image repeating the frame before it", "000002"),
     "lower_5_is_15": (LOWER, 5, lambda im, all_: all_[(LOWER, 15)], f"lower image {POOR}", "000001"),
+    "lower_5_mirrored": (LOWER, 5, lambda im, all_: np.ascontiguousarray(im[:, ::-1]), f"lower image {POOR}", "000001"),
+    "lower_5_top_half_of_4": (LOWER, 5, lambda im, all_: np.vstack([all_[(LOWER, 4)][: im.shape[0] // 2], im[im.shape[0] // 2 :]]), f"lower image {POOR}", "000001"),
     "lower_10_is_upper_10": (LOWER, 10, lambda im, all_: all_[(UPPER, 10)], "upper and lower images identical", "000002"),
     "upper_5_is_lower_5": (UPPER, 5, lambda im, all_: all_[(LOWER, 5)], "upper and lower images identical", "000001"),
     "lower_5_black": (LOWER, 5, lambda im, all_: np.zeros_like(im), f"lower image {BLANK}", "000001"),
@@ -165,3 +167,32 @@ def test_a_stalled_camera_is_named_and_left_out_of_the_stereo_check(tmp_path: Pa
     summary = ingest([bag], IngestConfig(rig=rig, out=tmp_path / "ds", workers=1, every=5, height_full=96))
     assert summary.frame_flags == {"lower image repeating the frame before it": ["000002", "000003"]}
     assert not [line for line in summary.warnings if "stereo pose" in line], summary.warnings
+
+
+def test_a_sweep_with_its_z_flipped_is_named(tmp_path: Path) -> None:
+    """Sweep 8: lidar_top's sweep 3 with every point's z negated: sample 000002 written from it (its GT off
+    the truth), exit 0, no line. lidar_top's points there match the upper image at 0.16 against the run's
+    0.56, while lidar_bottom's match as in every sample."""
+    from ingest.bags.livox_msg import decode_custom_msg, encode_custom_msg
+
+    def keep(on: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        if (on, k) != (LIDAR_TOP, 3):
+            return [(on, raw)]
+        msg = decode_custom_msg(raw)
+        points = msg.points.copy()
+        points["z"] = -points["z"]
+        return [(on, encode_custom_msg(msg.stamp_ns, msg.frame_id, msg.timebase_ns, points, msg.lidar_id))]
+
+    bag, rig = rewrite(tmp_path / "flipped.mcap", keep, src=WALK)
+    summary = ingest([bag], IngestConfig(rig=rig, out=tmp_path / "ds", workers=1, every=5, height_full=96))
+    assert summary.frame_flags == {
+        "lidar_top's points matching the upper image far worse than the run's": ["000002"]
+    }
+    line = next(
+        line for line in summary.warnings if line.startswith("1 of 4 samples have lidar_top's points")
+    )
+    assert line.endswith(
+        "(000002): the LiDAR's points in those windows are not where its pose puts them (a sweep with another "
+        "unit's points, an axis flipped, or a sweep whose time is wrong); the samples are written and flagged in "
+        "the summary: leave them out of training"
+    )

@@ -34,10 +34,11 @@ OFF_IMAGE_PX = 2.0
 """A sample's image lies off its LiDAR points when every LiDAR's alignment moves them by more than this
 (deg, and pixels of the camera): on the simulated walk the samples lie 0.06-0.44 deg off; a frame
 published under its neighbour's stamp (33 ms away at 1.2 m/s), 1.9-2.0 deg."""
-POOR_MATCH = 0.6
+POOR_MATCH = 0.75
 """A sample's image matches the points far worse than the run's when every LiDAR's correlation is below
-this fraction of its median over the run's samples: on the simulated fixtures the samples of a run
-agree within 0.05 (0.55-0.80 by scene); an image turned over gives -0.35 to -0.05."""
+this fraction of its median over the run's samples (one LiDAR's alone: its points are out of place): on
+the simulated fixtures a run's samples lie at 0.85-1.1 of its median (0.47-0.80 by scene); an image
+turned over gives -0.35 to -0.05, half of it from the frame before 0.68, a sweep with its z flipped 0.29."""
 FLAT_STEP_PX = 4
 FLAT_BLOCK = 8
 FLAT_LEVELS = 2
@@ -137,41 +138,75 @@ def kind(camera: str, what: str) -> str:
 
 
 def frame_flags(records: list[FrameRecord]) -> FrameFlags:
-    """Each camera's samples that stand out, by the first finding they show (see the module docstring).
-    The lower images off their points in most samples name none: that is the camchain's stereo pose,
-    which the stereo check names."""
+    """Each camera's samples that stand out, by the first finding they show (see the module docstring),
+    after the samples whose points of one LiDAR alone match far worse (that LiDAR's sweep is out of place,
+    which pulls both cameras' checks). The lower images off their points in most samples name none: that
+    is the camchain's stereo pose, which the stereo check names."""
     many = len(records) >= MIN_SAMPLES
     found: dict[str, list[str]] = {}
     identical = [r.id for r in records if r.check is not None and r.check.identical]
     if identical:
         found[kind("", "identical")] = identical
-    flat_median, corr_median = {}, {}
+    flat_median = {c: _median([f for r in records if (f := _flat(r, c)) is not None]) for c in CAMERAS}
+    corr_median = {c: _correlations(records, c) for c in CAMERAS}
+    apart = _lidars_apart(records, corr_median["upper"], set(identical)) if many else {}
+    found.update(apart)
     for camera in CAMERAS:
-        flats = [f for r in records if (f := _flat(r, camera)) is not None]
-        flat_median[camera] = float(np.median(flats)) if flats else 0.0
-        keys = {k for r in records for k in _aligned(r, camera)}
-        corr_median[camera] = {
-            k: float(np.median([a.correlation for r in records if (a := _aligned(r, camera).get(k))]))
-            for k in keys
-        }
-        taken = set(identical)
+        taken = set(identical).union(*apart.values())
         for what in ("blank", "repeat", "off", "poor"):
-            ids = []
-            for r in records:
-                if what == "blank":
-                    hit = _blank(_flat(r, camera), flat_median[camera], many)
-                elif what == "repeat":
-                    hit = r.check is not None and camera in r.check.repeated
-                elif what == "off":
-                    hit = _off(_aligned(r, camera))
-                else:
-                    hit = many and _poor(_aligned(r, camera), corr_median[camera])
-                if hit and r.id not in taken:
-                    ids.append(r.id)
+            ids = [
+                r.id
+                for r in records
+                if r.id not in taken and _hit(what, r, camera, flat_median, corr_median, many)
+            ]
             if ids and not (_shared(camera, what) and 2 * len(ids) >= len(records)):
                 found[kind(camera, what)] = ids
                 taken.update(ids)
     return FrameFlags(found, len(records), flat_median, corr_median)
+
+
+def _median(values: list[float]) -> float:
+    return float(np.median(values)) if values else 0.0
+
+
+def _correlations(records: list[FrameRecord], camera: str) -> dict[str, float]:
+    """Per alignment key (LiDAR) of `camera`, the median correlation over the samples."""
+    keys = {k for r in records for k in _aligned(r, camera)}
+    return {k: _median([a.correlation for r in records if (a := _aligned(r, camera).get(k))]) for k in keys}
+
+
+def _hit(
+    what: str, r: FrameRecord, camera: str, flat_median: Mapping[str, float],
+    corr_median: Mapping[str, Mapping[str, float]], many: bool,
+) -> bool:  # fmt: skip
+    """Whether sample `r`'s `camera` image shows finding `what`."""
+    if what == "blank":
+        return _blank(_flat(r, camera), flat_median[camera], many)
+    if what == "repeat":
+        return r.check is not None and camera in r.check.repeated
+    if what == "off":
+        return _off(_aligned(r, camera))
+    return many and _poor(_aligned(r, camera), corr_median[camera])
+
+
+def _lidars_apart(
+    records: list[FrameRecord], medians: Mapping[str, float], named: set[str]
+) -> dict[str, list[str]]:
+    """Per LiDAR, the samples not `named` yet whose points of it alone match the upper image far worse
+    than the run's (`POOR_MATCH`): a sweep out of place (another unit's points, an axis flipped)."""
+    found: dict[str, list[str]] = {}
+    for r in records:
+        if r.id in named or len(r.upper) < 2:
+            continue
+        for k, a in sorted(r.upper.items()):
+            if (m := medians.get(k, 0.0)) > MIN_MEDIAN and a.correlation < POOR_MATCH * m:
+                found.setdefault(lidar_kind(k), []).append(r.id)
+    return found
+
+
+def lidar_kind(lidar: str) -> str:
+    """The summary's flag of a sample whose points of `lidar` alone match the upper image far worse."""
+    return f"{lidar}'s points matching the upper image far worse than the run's"
 
 
 def _shared(camera: str, what: str) -> bool:
@@ -206,6 +241,13 @@ def flag_lines(flags: FrameFlags) -> list[str]:
 
 def _phrase(what: str, flags: FrameFlags) -> str:
     """The finding `what` (a `kind`) as the warning line says it."""
+    if what.endswith("'s points matching the upper image far worse than the run's"):
+        lidar = what.split("'s points")[0]
+        return (
+            f"{lidar}'s points matching the upper image far worse than in the run's other samples (below "
+            f"{POOR_MATCH:g} of its median correlation, {flags.correlation_median['upper'][lidar]:.2f}), "
+            "while the other LiDARs' match"
+        )
     camera = "upper" if what.startswith("upper image") else "lower"
     article = "an" if camera == "upper" else "a"
     if what == kind("", "identical"):
@@ -217,7 +259,7 @@ def _phrase(what: str, flags: FrameFlags) -> str:
     if what == kind(camera, "poor"):
         medians = ", ".join(f"{k} {v:.2f}" for k, v in sorted(flags.correlation_median[camera].items()))
         return (
-            f"{article} {camera} image the LiDAR points match far worse than the run's others, "
+            f"{article} {camera} image the LiDAR points match far worse than the run's others "
             f"(below {POOR_MATCH:g} of the median correlation: {medians})"
         )
     return (
@@ -235,6 +277,11 @@ def _cause(what: str) -> str:
         return f"a black, saturated or torn frame; {tail}"
     if what.endswith("the frame before it"):
         return f"a camera or driver that sent its last frame again under a new stamp; {tail}"
+    if what.endswith("'s points matching the upper image far worse than the run's"):
+        return (
+            "the LiDAR's points in those windows are not where its pose puts them (a sweep with another "
+            f"unit's points, an axis flipped, or a sweep whose time is wrong); {tail}"
+        )
     if "far worse" in what:
         return f"each image is not this camera's frame of its stamp (another frame, turned or torn); {tail}"
     return (
