@@ -138,6 +138,13 @@ def silent_lines(snap: GraphSnapshot, recorded: bool) -> list[str]:
     """One line per LiDAR that sent nothing (`silent_lidars`) and, when the run `recorded` a bag, per other
     node that published nothing on a topic it publishes (a camera stopped before its first frame)."""
     lines = silent_lidars(snap.nodes, snap.elapsed_s)
+    for topic, why in sorted(snap.expected.items()):
+        if recorded and not snap.published.get(topic, 0) and topic not in snap.declared:
+            lines.append(
+                f"{topic}: {why}, yet nothing was published on it in {snap.elapsed_s:.1f} s; the recording "
+                "holds none of it (a driver that does not list that sensor's address, or a remap that sends "
+                "it elsewhere)"
+            )
     for name, topics in snap.silent_topics().items():
         if recorded and not any(line.startswith(f"{name}: ") for line in lines):
             lines.append(

@@ -203,6 +203,7 @@ class GraphSnapshot:
     drops: dict[str, int]  # "node.stage" -> count
     nodes: dict[str, NodeStatus]
     declared: dict[str, str] = field(default_factory=dict)  # topic -> the node that says it publishes it
+    expected: dict[str, str] = field(default_factory=dict)  # topic -> why a node expects it (`expects`)
 
     def silent_topics(self) -> dict[str, list[str]]:
         """Per node, the topics it says it publishes (`publishes`) on which nothing was published."""
@@ -249,7 +250,8 @@ def snapshot(nodes: Sequence[Node], bus: Bus, elapsed_s: float) -> GraphSnapshot
         for stage, n in st.drops.items():
             drops[f"{name}.{stage}"] = n
     declared = {topic: node.name for node in nodes for topic in getattr(node, "publishes", ())}
-    return GraphSnapshot(elapsed_s, bus.counts(), written, rates, drops, statuses, declared)
+    expected = {topic: why for node in nodes for topic, why in getattr(node, "expects", {}).items()}
+    return GraphSnapshot(elapsed_s, bus.counts(), written, rates, drops, statuses, declared, expected)
 
 
 def run_graph(

@@ -224,6 +224,7 @@ class CameraNode:
         self.outputs = list(outputs)
         self.topics = [image_topic(o.topic, image) for o in outputs]
         self.publishes = tuple(self.topics)  # what the launch checks no other node publishes
+        self.expects: dict[str, str] = {}  # topics the rig this node writes names, and why (GraphSnapshot)
         self.claims: tuple[str, ...] = ()  # the devices it opens, set by the graph's factory (the same)
         self._publish = publish
         self._shutdown = shutdown

@@ -315,6 +315,10 @@ def stereo_camera_node(ctx: NodeContext, p: Params, source: str | None = None) -
         on_open=on_open, **_image_opts(p),
     )  # fmt: skip
     node.claims = _claims(p, kind, ["upper", "lower"], [0, 1])
+    if sim is not None and on_open is not None:  # it writes the rig: the recording should hold its sensors
+        rig, path = sim.setup.rig, p.text("write_rig", "")
+        sensors = [*((li.topic, li.name) for li in rig.lidars), *((imu.topic, imu.name) for imu in rig.imus)]
+        node.expects = {topic: f"{path} names it for {name}" for topic, name in sensors if topic}
     return node
 
 

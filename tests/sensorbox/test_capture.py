@@ -316,3 +316,22 @@ def test_a_camera_that_published_nothing_is_a_warning_after_the_recording() -> N
         "that had not started, or was unplugged)"
     ]
     assert silent_lines(snap, recorded=False) == []
+
+
+def test_a_rig_sensor_the_recording_lacks_is_a_warning() -> None:
+    """Sweep 8: a launch whose driver lists lidar_ips [127.0.0.12] only, while the rig its camera node
+    wrote beside the bag names both LiDARs: a bag without lidar_bottom or imu_bottom, exit 0 and no line
+    (inspect then refused the pair)."""
+    from sensorbox.cli.capture import silent_lines
+    from sensorbox.live.bus import GraphSnapshot
+
+    bottom = "/livox/lidar_192_168_1_13"
+    snap = GraphSnapshot(
+        3.3, {"/livox/lidar_192_168_1_12": 30}, {}, {}, {}, {}, {"/livox/lidar_192_168_1_12": "driver"},
+        {bottom: "out/rig.yaml names it for lidar_bottom", "/livox/lidar_192_168_1_12": "out/rig.yaml names it for lidar_top"},
+    )  # fmt: skip
+    assert silent_lines(snap, recorded=True) == [
+        f"{bottom}: out/rig.yaml names it for lidar_bottom, yet nothing was published on it in 3.3 s; the "
+        "recording holds none of it (a driver that does not list that sensor's address, or a remap that sends it "
+        "elsewhere)"
+    ]
