@@ -104,7 +104,20 @@ class Params:
             raise self._err(key, v, "a string")
         return str(v)
 
-    def number(self, key: str, default: float, at_most: tuple[float, str] | None = None) -> float:
+    def path(self, key: str, default: str) -> Path:
+        """A path; an empty one is refused: it would be the current folder (`out: ''` recorded there)."""
+        v = self.text(key, default)
+        if not v.strip():
+            raise self._err(key, v, "a path (an empty one would be the current folder)")
+        return Path(v)
+
+    def number(
+        self,
+        key: str,
+        default: float,
+        at_most: tuple[float, str] | None = None,
+        at_least: float | None = None,
+    ) -> float:
         """A finite float; text that Python reads as one counts too: YAML 1.1 types '1e-9' (no dot) as a
         string, and a launch argument substituted into a parameter arrives as text. `at_most` is an upper
         bound and its unit: a value no run can use (a disk reserve of 1e300 MiB) is refused here, where
@@ -120,6 +133,8 @@ class Params:
             raise self._err(key, given, "a finite number")  # as given: 'nan' stays text
         if at_most is not None and v > at_most[0]:
             raise self._err(key, given, f"at most {at_most[0]:g} {at_most[1]}")
+        if at_least is not None and v < at_least:
+            raise self._err(key, given, f"at least {at_least:g}")
         return float(v)
 
     def integer(self, key: str, default: int) -> int:
@@ -331,13 +346,14 @@ def recorder_node(ctx: NodeContext, p: Params) -> Node:
 
     topics = tuple(ctx.resolve(t) for t in p.texts("topics", []))
     cfg = RecorderConfig(
-        out=Path(p.text("out", "bags")), name=p.text("name", ""), topics=topics,
-        split_bytes=round(p.number("split_size_mb", 0.0, MAX_MIB) * MiB),
-        split_s=p.number("split_duration_s", 0.0, MAX_S), duration_s=p.number("duration_s", 0.0, MAX_S),
+        out=p.path("out", "bags"), name=p.text("name", ""), topics=topics,
+        split_bytes=round(p.number("split_size_mb", 0.0, MAX_MIB, 0.0) * MiB),
+        split_s=p.number("split_duration_s", 0.0, MAX_S, 0.0),
+        duration_s=p.number("duration_s", 0.0, MAX_S, 0.0),
         queue_msgs=p.integer("queue_size", 4096),
-        queue_bytes=round(p.number("queue_mb", 512.0, MAX_MIB) * MiB),
-        min_free_bytes=round(p.number("min_free_mb", 1024.0, MAX_MIB) * MiB),
-        compress=p.flag("compress", True), flush_s=p.number("flush_s", 1.0, MAX_S),
+        queue_bytes=round(p.number("queue_mb", 512.0, MAX_MIB, 0.0) * MiB),
+        min_free_bytes=round(p.number("min_free_mb", 1024.0, MAX_MIB, 0.0) * MiB),
+        compress=p.flag("compress", True), flush_s=p.number("flush_s", 1.0, MAX_S, 0.0),
     )  # fmt: skip
     rec = Recorder(cfg, ctx.name, ctx.shutdown, in_graph=True)
     rec.subscribe_to(ctx.bus, topics or None)

@@ -25,7 +25,7 @@ from sensorbox.sim.scan_source import SimScan
 def _sim_config(p: Params, **fixed: Any) -> Any:
     cfg = SimConfig(
         scene=p.text("scene", "indoor"), trajectory=p.text("trajectory", "static"), seed=p.integer("seed", 0),
-        rig=Path(p.text("rig", str(REFERENCE_RIG))), scale=p.number("scale", 1.0),
+        rig=p.path("rig", str(REFERENCE_RIG)), scale=p.number("scale", 1.0),
         supersample=p.integer("supersample", 1), **fixed,
     )  # fmt: skip
     cfg.validate()

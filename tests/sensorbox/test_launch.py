@@ -315,8 +315,9 @@ def test_node_parameters_are_checked_when_built(tmp_path):
         - node: {exec: talker, name: u, param: [{name: rate_hz, value: fast}]}
         - node: {exec: recorder, param: [{name: split_size_mb, value: -1}]}
         - node: {exec: recorder, param: [{name: duration_s, value: .nan}]}
+        - node: {exec: recorder, param: [{name: out, value: ''}]}
         """)  # fmt: skip
-    t, u, r, nan = parse_launch(f).nodes
+    t, u, r, nan, empty = parse_launch(f).nodes
     with pytest.raises(
         GraphError, match=r"parameter\(s\) colour not used by this node .*it reads: count, payload_bytes"
     ):
@@ -324,11 +325,15 @@ def test_node_parameters_are_checked_when_built(tmp_path):
     with pytest.raises(GraphError, match="parameter 'rate_hz' = 'fast': expected a finite number"):
         build_node(u, Bus(), Shutdown())
     with pytest.raises(
-        GraphError,
-        match=r"node 'recorder' \(sensorbox/recorder\) at .*n.launch.yaml:4: recorder split_bytes must be a finite "
-        r"number >= 0",
+        GraphError, match=r"at .*n.launch.yaml:4: parameter 'split_size_mb' = -1: expected at least 0$"
     ):
-        build_node(r, Bus(), Shutdown())
+        build_node(
+            r, Bus(), Shutdown()
+        )  # said 'recorder split_bytes ... got -1048576', a key the file has not
+    with pytest.raises(
+        GraphError, match=r"parameter 'out' = '': expected a path \(an empty one would be the current"
+    ):
+        build_node(empty, Bus(), Shutdown())  # sweep 8: recorded into the current folder
     with pytest.raises(GraphError, match=r"parameter 'duration_s' = nan: expected a finite number"):
         build_node(nan, Bus(), Shutdown())  # NaN passed '>= 0' and recorded forever
 
