@@ -22,7 +22,7 @@ is not a frame out of place but a rig or camchain fault, which the calibration c
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -123,6 +123,8 @@ class FrameFlags:
     samples: int
     flat_median: dict[str, float]
     correlation_median: dict[str, dict[str, float]]
+    lower_off_most: list[str] = field(default_factory=list)  # lower images off in most samples: not named
+    # here; the stereo pose's check explains them, or `lower_off_line` names them
 
 
 def kind(camera: str, what: str) -> str:
@@ -144,6 +146,7 @@ def frame_flags(records: list[FrameRecord]) -> FrameFlags:
     is the camchain's stereo pose, which the stereo check names."""
     many = len(records) >= MIN_SAMPLES
     found: dict[str, list[str]] = {}
+    most: list[str] = []
     identical = [r.id for r in records if r.check is not None and r.check.identical]
     if identical:
         found[kind("", "identical")] = identical
@@ -159,10 +162,12 @@ def frame_flags(records: list[FrameRecord]) -> FrameFlags:
                 for r in records
                 if r.id not in taken and _hit(what, r, camera, flat_median, corr_median, many)
             ]
-            if ids and not (_shared(camera, what) and 2 * len(ids) >= len(records)):
+            if ids and _shared(camera, what) and 2 * len(ids) >= len(records):
+                most = ids
+            elif ids:
                 found[kind(camera, what)] = ids
                 taken.update(ids)
-    return FrameFlags(found, len(records), flat_median, corr_median)
+    return FrameFlags(found, len(records), flat_median, corr_median, most)
 
 
 def _median(values: list[float]) -> float:
@@ -226,6 +231,20 @@ def _poor(aligned: Mapping[str, AlignmentMeta], medians: Mapping[str, float]) ->
     a blank image, which gives none, is found as blank."""
     return bool(aligned) and all(
         (m := medians.get(k, 0.0)) > MIN_MEDIAN and a.correlation < POOR_MATCH * m for k, a in aligned.items()
+    )
+
+
+def lower_off_line(ids: list[str], samples: int) -> str:
+    """One line for lower images off their points in most samples (`FrameFlags.lower_off_most`) that the
+    stereo pose's check does not explain: each sample's lower image lies off in its own way, so it is no
+    fixed pose error but frames out of place (reordered, or a lower camera whose stamps are not its own)."""
+    shown = ", ".join(ids[:5]) + (", ..." if len(ids) > 5 else "")
+    return (
+        f"{len(ids)} of {samples} samples have a lower image that lies off every LiDAR's points by over "
+        f"{OFF_IMAGE_DEG:g} deg ({shown}), each its own way (no stereo pose explains them): the lower "
+        "camera's frames are not the ones taken at their stamps (reordered, or stamped by another clock); "
+        "the samples are written and flagged in the summary: leave them out of training, and check cam1's "
+        "stamps"
     )
 
 

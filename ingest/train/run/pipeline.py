@@ -240,6 +240,8 @@ def ingest(
             record_calibration(cfg.out, [Path(p) for p in bag_paths], record)
             summary.warnings += summary.calibration.warnings(cfg.rig, refined=cfg.refine)
             summary.warnings += stereo_lines(stereo, cfg.rig)
+            if stereo is None or not stereo.disagrees:
+                summary.lower_off_unexplained()
             summary.warnings += lower_mismatch_lines(summary.alignments, summary.alignments_lower)
         summary.warnings += summary.closing_lines(rig.lidars[0].name)
     summary.seconds = time.perf_counter() - t_start
