@@ -158,8 +158,25 @@ def _deserialize(raw: Raw, msgtype: str, ros_version: RosVersion) -> Any:
         return store.deserialize_cdr(memoryview(raw), msgtype)
     except Exception as err:  # rosbags raises several types on malformed bytes
         raise MessageDecodeError(
-            f"{len(raw)} bytes are not a valid ROS {ros_version} {msgtype}: {err}"
+            f"{len(raw)} bytes are not a valid ROS {ros_version} {msgtype}: {err}{_compressed_hint(raw)}"
         ) from err
+
+
+COMPRESSED_MAGIC = {b"\x28\xb5\x2f\xfd": "zstd", b"\x04\x22\x4d\x18": "lz4", b"BZh": "bz2"}
+"""How a compressed block begins: a message that does begins so is compressed, not damaged."""
+
+
+def _compressed_hint(raw: Raw) -> str:
+    """A hint when undecodable bytes begin with a compressor's magic number: a rosbag2 whose metadata.yaml
+    says its messages are not compressed (message mode) while they are."""
+    head = bytes(memoryview(raw)[:4])
+    for magic, name in COMPRESSED_MAGIC.items():
+        if head.startswith(magic):
+            return (
+                f" (they begin with {name}'s magic number: the message is {name}-compressed, which the bag's "
+                "metadata does not say: check its compression_format and compression_mode)"
+            )
+    return ""
 
 
 def _stamp_ns(header: Any) -> int:

@@ -506,3 +506,20 @@ def test_a_sweeps_span_is_its_earliest_and_latest_point_whatever_their_order():
     sweep = Sweep(100, "lidar", np.zeros((3, 3)), np.array([150, 90, 120], np.int64))
     assert sweep.span_ns == (90, 150)
     assert Sweep(100, "lidar", np.zeros((0, 3)), np.zeros(0, np.int64)).span_ns == (100, 100)
+
+
+def test_a_compressed_message_in_a_bag_that_says_none_is_named_so() -> None:
+    """Sweep 8: a rosbag2 whose metadata.yaml says no compression while every blob is zstd: the line said
+    only 'Invalid or unsupported CDR encapsulation', as of a damaged message."""
+    import zstandard
+
+    from ingest.bags.decode import decode
+    from ingest.bags.rostypes import IMU_TYPE
+
+    raw = zstandard.ZstdCompressor().compress(b"\x00\x01\x00\x00" + bytes(300))
+    with pytest.raises(MessageDecodeError) as err:
+        decode(IMU_TYPE, raw)
+    assert str(err.value).endswith(
+        "(they begin with zstd's magic number: the message is zstd-compressed, which the bag's metadata does not "
+        "say: check its compression_format and compression_mode)"
+    )
