@@ -203,8 +203,9 @@ def _lidars_apart(
     for r in records:
         if r.id in named or len(r.upper) < 2:
             continue
-        for k, a in sorted(r.upper.items()):
-            if (m := medians.get(k, 0.0)) > MIN_MEDIAN and a.correlation < POOR_MATCH * m:
+        poor = [k for k, a in sorted(r.upper.items()) if _poor({k: a}, medians)]
+        if len(poor) < len(r.upper):  # every LiDAR's: the image's fault, found as such
+            for k in poor:
                 found.setdefault(lidar_kind(k), []).append(r.id)
     return found
 
