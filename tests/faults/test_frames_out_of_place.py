@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -29,11 +30,11 @@ Edit = Callable[[np.ndarray, dict[tuple[str, int], np.ndarray]], np.ndarray]
 
 def _edited(topic: str, index: int, edit: Edit) -> Keep:
     """The walk with frame `index` of `topic` replaced by `edit` of it, its stamp kept."""
+    frames: dict[tuple[str, int], Any] = {}
     with open_bags([WALK]) as bags:
-        frames = {}
         for m in bags.messages():
             if m.topic in (UPPER, LOWER):
-                k = sum(1 for t, _ in frames if t == m.topic)
+                k = sum(t == m.topic for t, _ in frames)
                 frames[(m.topic, k)] = decode_image(m.raw)
     images = {key: np.ascontiguousarray(f.image[..., :3]) for key, f in frames.items()}
 
@@ -208,7 +209,7 @@ def test_lower_frames_reordered_in_pairs_are_named(tmp_path: Path) -> None:
     from sensorbox.sim.truth import truth_dir
 
     walk = FIXTURES_DIR / "indoor_walk_db3"
-    lower = read_rig(truth_dir(walk) / "rig.yaml").lower.topic
+    lower = read_rig(truth_dir(walk) / "rig.yaml").lower.topic or ""
     with open_bags([walk]) as bags:
         raws = [bytes(m.raw) for m in bags.messages() if m.topic.startswith(lower)]
 

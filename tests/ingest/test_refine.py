@@ -216,7 +216,9 @@ def test_ingest_refine_times_the_samples_with_the_offsets_it_found(late_walk: Pa
     rig.parent.mkdir()
     write_rig(with_timeshifts(exact, {c.name: 0.0 for c in exact.cameras}), rig)
     out = tmp_path / "ds"
-    summary = ingest([late_walk], IngestConfig(rig=rig, out=out, workers=1, every=5, refine=True, height_full=96))
+    summary = ingest(
+        [late_walk], IngestConfig(rig=rig, out=out, workers=1, every=5, refine=True, height_full=96)
+    )
     assert summary.refinement is not None
     found_ms = summary.refinement.cameras[0].estimate.timeshift_ms
     assert abs(found_ms + 10.0) <= 1.5

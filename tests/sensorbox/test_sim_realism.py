@@ -156,7 +156,10 @@ def test_realism_switches_are_recorded_and_exact_runs_unchanged(tmp_path: Path) 
     [
         ({"range_noise_model": "gauss"}, r"--range-noise-model 'gauss': expected one of constant, mid360"),
         ({"camera_offset_ns": (2_000_000_000, 0)}, r"--camera-offset-ms 2000: expected within \+-1000 ms"),
-        ({"camera_offset_ns": (0, 1_000_001_000)}, r"--camera-offset-ms 1000.001: expected within \+-1000 ms"),
+        (
+            {"camera_offset_ns": (0, 1_000_001_000)},
+            r"--camera-offset-ms 1000.001: expected within \+-1000 ms",
+        ),
     ],
 )
 def test_a_bad_realism_setting_is_one_line(tmp_path: Path, change: dict[str, object], message: str) -> None:
