@@ -262,6 +262,11 @@ def test_a_symbolic_link_loop_given_to_eval_is_one_line(
         ),
         (["simulate", "--duration", "0.1", "--scale", "0.1", "--out"], "--out", "a bag path"),
         (["capture", "--rig", "{rig}", "--emulate", "--duration", "1", "--out"], "--out", "a folder"),
+        (
+            ["eval", "--dataset", "{bag}", "--pred", "{tmp}", "--task", "completion", "--heatmap"],
+            "--heatmap",
+            "a file path",
+        ),
     ],
 )
 def test_an_output_that_is_a_symbolic_link_loop_is_refused_before_the_work(
@@ -281,3 +286,27 @@ def test_an_output_that_is_a_symbolic_link_loop_is_refused_before_the_work(
         f"give {expected}"
     ]
     assert not (tmp_path / "r.yaml").exists()
+
+
+def test_a_launch_file_or_view_save_that_is_a_symbolic_link_loop_is_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Sweep 8: `launch --dry-run LOOP` and `view DATASET --save LOOP` ended in pathlib's RuntimeError
+    traceback, exit 1."""
+    loop = tmp_path / "loop.yaml"
+    (tmp_path / "loop2.yaml").symlink_to(loop)
+    loop.symlink_to(tmp_path / "loop2.yaml")
+    code, _, err = sensorbox(capsys, "launch", "--dry-run", str(loop))
+    assert (code, err) == (
+        2,
+        [f"error: {loop}: is a symbolic link that leads nowhere (a loop of links); give a launch file"],
+    )
+    for layout in ("disp_equirect", "depth_fisheye"):
+        (tmp_path / "ds" / layout).mkdir(parents=True)
+    code, _, err = sensorbox(capsys, "view", str(tmp_path / "ds"), "--save", str(loop))
+    assert (
+        code == 2
+        and len(err) == 1
+        and str(loop) in err[0]
+        and "is a symbolic link that leads nowhere" in err[0]
+    )
