@@ -36,6 +36,8 @@ def fingerprint(raw: bytes | memoryview) -> tuple[int, int]:
     return len(raw), zlib.crc32(raw[-FINGERPRINT_TAIL:])
 
 
+SAME_MOMENT_NS = 100_000_000
+"""Two LiDARs' sweeps with one set of points are one unit's sent twice when they begin this close (ns)."""
 MIN_PRINT_POINTS = 100
 """Measured points a sweep needs for its `points_print` to tell it from another's."""
 
@@ -72,6 +74,7 @@ class FirstCopies:
         self.same_as_before: dict[str, set[int]] = {}  # per topic: times of first copies whose content
         # (a `fingerprint`) is the topic's previous first copy's: a frame that repeats the one before it
         self._previous: dict[str, object] = {}
+        self._last_mark: dict[str, int | None] = {}  # per topic: the last kept sweep's `points_print`
         self._prints: dict[int, tuple[str, int, int]] = {}  # kept sweeps' `points_print` -> (topic, span)
         self._seen: dict[tuple[str, object], tuple[int, object]] = {}
         self._spans: dict[str, list[tuple[int, int]]] = {}  # per topic: the kept sweeps' point-time spans
@@ -106,9 +109,10 @@ class FirstCopies:
         """`first` for a sweep with points; False too, listed in `overlapping`, for a sweep whose point
         times lie mostly within a kept sweep's of the same LiDAR.
 
-        False too, listed in `repeated_points`, for a sweep whose points are an earlier kept sweep's to
-        the bit (`points_print`), of this LiDAR or another: a driver that sent a stale buffer again, or
-        one unit's points on the other's topic; where they were measured is not known.
+        False too, listed in `repeated_points`, for a sweep whose points are its LiDAR's previous sweep's
+        or another LiDAR's sweep's of the same moment, to the bit (`points_print`, `_repeats`): a driver
+        that sent a stale buffer again, or one unit's points on the other's topic; where they were
+        measured is not known.
 
         A LiDAR measures each moment once: its sweeps abut in time, whatever
         order they are logged in. A sweep whose points cover an earlier one's
@@ -125,7 +129,7 @@ class FirstCopies:
             self.overlapping.setdefault(topic, []).append(first)
             return False
         mark = points_print(sweep.xyz_m)
-        if mark is not None and mark in self._prints:
+        if mark is not None and self._repeats(mark, topic, first):
             other, a, b = self._prints[mark]
             self.repeated_points.setdefault(topic, []).append((first, other))
             if other != topic:
@@ -137,7 +141,20 @@ class FirstCopies:
             del spans[: len(spans) - 128]
         if mark is not None:
             self._remember(mark, topic, first, last)
+        self._last_mark[topic] = mark
         return True
+
+    def _repeats(self, mark: int, topic: str, first_ns: int) -> bool:
+        """Whether a sweep with `points_print` `mark` repeats a kept one: the LiDAR's previous sweep (a
+        driver that sent its buffer again), or another LiDAR's of the same moment (within
+        `SAME_MOMENT_NS`: one unit's points on the other's topic). A sweep equal to an older one of its own
+        LiDAR is a replay, as an emulator looping its scan sends (`loop_s`), and is kept."""
+        if mark not in self._prints:
+            return False
+        other, a, _ = self._prints[mark]
+        if other == topic:
+            return self._last_mark.get(topic) == mark
+        return abs(first_ns - a) <= SAME_MOMENT_NS
 
     def _remember(self, mark: int, topic: str, first_ns: int, last_ns: int) -> None:
         """Keep a sweep's `points_print`; those `horizon_ns` behind the newest are forgotten."""
