@@ -36,8 +36,6 @@ def fingerprint(raw: bytes | memoryview) -> tuple[int, int]:
     return len(raw), zlib.crc32(raw[-FINGERPRINT_TAIL:])
 
 
-SAME_MOMENT_NS = 100_000_000
-"""Two LiDARs' sweeps with one set of points are one unit's sent twice when they begin this close (ns)."""
 MIN_PRINT_POINTS = 100
 """Measured points a sweep needs for its `points_print` to tell it from another's."""
 
@@ -110,7 +108,7 @@ class FirstCopies:
         times lie mostly within a kept sweep's of the same LiDAR.
 
         False too, listed in `repeated_points`, for a sweep whose points are its LiDAR's previous sweep's
-        or another LiDAR's sweep's of the same moment, to the bit (`points_print`, `_repeats`): a driver
+        or another LiDAR's sweep's, to the bit (`points_print`, `_repeats`): a driver
         that sent a stale buffer again, or one unit's points on the other's topic; where they were
         measured is not known.
 
@@ -129,7 +127,7 @@ class FirstCopies:
             self.overlapping.setdefault(topic, []).append(first)
             return False
         mark = points_print(sweep.xyz_m)
-        if mark is not None and self._repeats(mark, topic, first):
+        if mark is not None and self._repeats(mark, topic):
             other, a, b = self._prints[mark]
             self.repeated_points.setdefault(topic, []).append((first, other))
             if other != topic:
@@ -144,17 +142,15 @@ class FirstCopies:
         self._last_mark[topic] = mark
         return True
 
-    def _repeats(self, mark: int, topic: str, first_ns: int) -> bool:
-        """Whether a sweep with `points_print` `mark` repeats a kept one: the LiDAR's previous sweep (a
-        driver that sent its buffer again), or another LiDAR's of the same moment (within
-        `SAME_MOMENT_NS`: one unit's points on the other's topic). A sweep equal to an older one of its own
+    def _repeats(self, mark: int, topic: str) -> bool:
+        """Whether a sweep with `points_print` `mark` repeats a kept one: the LiDAR's previous
+        sweep (a driver that sent its buffer again), or any sweep of another LiDAR (one unit's points on the
+        other's topic: two units never measure the same points). A sweep equal to an older one of its own
         LiDAR is a replay, as an emulator looping its scan sends (`loop_s`), and is kept."""
         if mark not in self._prints:
             return False
-        other, a, _ = self._prints[mark]
-        if other == topic:
-            return self._last_mark.get(topic) == mark
-        return abs(first_ns - a) <= SAME_MOMENT_NS
+        other = self._prints[mark][0]
+        return other != topic or self._last_mark.get(topic) == mark
 
     def _remember(self, mark: int, topic: str, first_ns: int, last_ns: int) -> None:
         """Keep a sweep's `points_print`; those `horizon_ns` behind the newest are forgotten."""
