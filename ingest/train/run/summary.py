@@ -13,7 +13,14 @@ from calibration.types import F64
 from ingest.dataset.meta import SampleMeta
 from ingest.train.gt.align import Alignment
 from ingest.train.gt.align_check import CalibrationCheck, SampleAlignments, from_metas
-from ingest.train.run.frame_check import FrameRecord, flag_lines, frame_flags, kind, lower_off_line
+from ingest.train.run.frame_check import (
+    FrameFlags,
+    FrameRecord,
+    flag_lines,
+    frame_flags,
+    kind,
+    lower_off_line,
+)
 from ingest.train.run.lidar_rate import THIN_FRACTION
 from ingest.train.run.refine import Refinement
 from ingest.train.run.sample_dense import GAP_FALLBACK
@@ -79,18 +86,7 @@ class IngestSummary:
     )  # what `frame_check` needs of each written one
     frame_flags: dict[str, list[str]] = field(default_factory=dict)  # its findings: kind -> sample ids
     _frame_lines: list[str] = field(default_factory=list)  # their warning lines (`flag_frames`)
-    _lower_off_most: list[str] = field(default_factory=list)  # `FrameFlags.lower_off_most`
-    _judged: int = 0
-
-    def lower_off_unexplained(self) -> None:
-        """Name the lower images off in most samples (`FrameFlags.lower_off_most`), when the stereo pose's
-        check found no pose error to explain them."""
-        if self._lower_off_most:
-            what = kind("lower", "off")
-            self.frame_flags[what] = self._lower_off_most
-            self.flagged[what] = len(self._lower_off_most)
-            self._frame_lines.append(lower_off_line(self._lower_off_most, self._judged))
-
+    _frames: FrameFlags | None = None  # what `flag_frames` found
     range_ratios: dict[str, list[tuple[float, int]]] = field(default_factory=dict)  # per LiDAR, per sample
 
     def range_line(self, first: str) -> str:
@@ -181,11 +177,19 @@ class IngestSummary:
     def flag_frames(self) -> None:
         """Name the samples whose frames stand out (`frame_check.frame_flags`), in `frame_flags` and
         `flagged`; once, before the calibration check leaves them out (`unflagged_alignments`)."""
-        flags = frame_flags(self.frame_records)
-        self.frame_flags, self._frame_lines = flags.found, flag_lines(flags)
-        self._lower_off_most, self._judged = flags.lower_off_most, flags.samples
+        self._frames = flags = frame_flags(self.frame_records)
+        self.frame_flags, self._frame_lines = dict(flags.found), flag_lines(flags)
         for what, ids in flags.found.items():
             self.flagged[what] = len(ids)
+
+    def lower_off_unexplained(self) -> None:
+        """Name the lower images off in most samples (`FrameFlags.lower_off_most`), when the stereo pose's
+        check found no pose error to explain them."""
+        if self._frames is not None and (ids := self._frames.lower_off_most):
+            what = kind("lower", "off")
+            self.frame_flags[what] = ids
+            self.flagged[what] = len(ids)
+            self._frame_lines.append(lower_off_line(ids, self._frames.samples))
 
     def unflagged_alignments(self) -> tuple[SampleAlignments, SampleAlignments]:
         """`alignments` and `alignments_lower` without the samples whose upper (lower) frame is flagged: a
