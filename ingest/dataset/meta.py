@@ -140,6 +140,8 @@ class SampleMeta:
     lower_check: dict[str, AlignmentMeta] = field(default_factory=dict)  # every sample's quick alignment
     # onto the lower image: does it lie on the points?
     frame_check: FrameCheckMeta | None = None
+    window_parts: dict[str, list[float | None]] = field(default_factory=dict)  # per LiDAR: each stretch of
+    # its window's point times matched with the upper image (`ingest.train.gt.align.part_correlations`)
 
     def written(
         self, sid: str, dropped: dict[str, int], files: dict[str, FileMeta] | None = None
@@ -177,6 +179,8 @@ class SampleMeta:
             lower_check={str(k): AlignmentMeta(**v) for k, v in d.get("lower_check", {}).items()},
             frame_check=None if d.get("frame_check") is None else FrameCheckMeta(**d["frame_check"]),
             twist_cam0=None if d.get("twist_cam0") is None else [float(v) for v in d["twist_cam0"]],
+            window_parts={str(k): [None if c is None else float(c) for c in v]
+                          for k, v in d.get("window_parts", {}).items()},
         )  # fmt: skip
 
 

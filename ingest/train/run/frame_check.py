@@ -13,7 +13,10 @@ anyway, compared with the run's other samples, since the scene sets what "normal
   plan names them only when they are under half of the camera's frames);
 - the LiDAR points' alignment with it moves them by over `OFF_IMAGE_DEG`;
 - the points match it far worse than they match the run's other images of that camera (correlation of
-  reflectivity and intensity below `POOR_MATCH` of the run's median).
+  reflectivity and intensity below `POOR_MATCH` of the run's median);
+- one stretch of a LiDAR's window matches the upper image far worse than the window's other stretches
+  (below `PART_MATCH` of their median): that LiDAR's sweep there is out of place (a glitched sweep turned,
+  moved or mirrored). This one needs no run median, so it holds however few samples share the fault.
 
 A sample is named for the first of these that it shows, per camera. Most of a run's samples showing one
 is not a frame out of place but a rig or camchain fault, which the calibration check names.
@@ -39,6 +42,13 @@ POOR_MATCH = 0.75
 this fraction of its median over the run's samples (one LiDAR's alone: its points are out of place): on
 the simulated fixtures a run's samples lie at 0.85-1.1 of its median (0.47-0.80 by scene); an image
 turned over gives -0.35 to -0.05, half of it from the frame before 0.68, a sweep with its z flipped 0.29."""
+PART_MATCH = 0.5
+MIN_PARTS = 4
+"""A stretch of a LiDAR's window is out of place when its correlation with the upper image is below
+`PART_MATCH` of the window's median stretch (`ingest.train.gt.align.part_correlations`, at least
+`MIN_PARTS` of them measured): on the simulated fixtures every stretch lies at 0.55 of the median or above
+(the emulated walk's scan pattern alternates 0.3 and 0.5); the stretches of a sweep turned 90 deg about
+its axis give -0.07 to 0.22 against 0.49."""
 FLAT_STEP_PX = 4
 FLAT_BLOCK = 8
 FLAT_LEVELS = 2
@@ -88,10 +98,11 @@ class FrameRecord:
     check: FrameCheckMeta | None
     upper: Mapping[str, AlignmentMeta]  # per LiDAR, onto the upper image
     lower: Mapping[str, AlignmentMeta]  # the lower image's quick check
+    parts: Mapping[str, list[float | None]] = field(default_factory=dict)  # `SampleMeta.window_parts`
 
     @classmethod
     def from_meta(cls, meta: SampleMeta) -> FrameRecord:
-        return cls(meta.id, meta.frame_check, meta.alignment, meta.lower_check)
+        return cls(meta.id, meta.frame_check, meta.alignment, meta.lower_check, meta.window_parts)
 
 
 CAMERAS = ("upper", "lower")
@@ -152,7 +163,11 @@ def frame_flags(records: list[FrameRecord]) -> FrameFlags:
         found[kind("", "identical")] = identical
     flat_median = {c: _median([f for r in records if (f := _flat(r, c)) is not None]) for c in CAMERAS}
     corr_median = {c: _correlations(records, c) for c in CAMERAS}
-    apart = _lidars_apart(records, corr_median["upper"], set(identical)) if many else {}
+    apart = _parts_apart(records, set(identical))
+    if many:
+        named = set(identical).union(*apart.values())
+        for what, ids in _lidars_apart(records, corr_median["upper"], named).items():
+            apart.setdefault(what, []).extend(ids)
     found.update(apart)
     for camera in CAMERAS:
         taken = set(identical).union(*apart.values())
@@ -210,6 +225,31 @@ def _lidars_apart(
     return found
 
 
+def _parts_apart(records: list[FrameRecord], named: set[str]) -> dict[str, list[str]]:
+    """Per LiDAR, the samples not `named` yet with a stretch of its window out of place (`_part_out`)."""
+    found: dict[str, list[str]] = {}
+    for r in records:
+        if r.id in named:
+            continue
+        for lidar, parts in sorted(r.parts.items()):
+            if _part_out(parts):
+                found.setdefault(part_kind(lidar), []).append(r.id)
+    return found
+
+
+def _part_out(parts: list[float | None]) -> bool:
+    """A stretch matches the image below `PART_MATCH` of the window's median stretch, which itself matches
+    (above `MIN_MEDIAN`); at least `MIN_PARTS` stretches measured."""
+    judged = [c for c in parts if c is not None]
+    median = _median(judged)
+    return len(judged) >= MIN_PARTS and median > MIN_MEDIAN and min(judged) < PART_MATCH * median
+
+
+def part_kind(lidar: str) -> str:
+    """The summary's flag of a sample with a stretch of `lidar`'s window out of place (`_part_out`)."""
+    return f"{lidar}'s points in a stretch of the window matching the upper image far worse than the rest"
+
+
 def lidar_kind(lidar: str) -> str:
     """The summary's flag of a sample whose points of `lidar` alone match the upper image far worse."""
     return f"{lidar}'s points matching the upper image far worse than the run's"
@@ -261,6 +301,12 @@ def flag_lines(flags: FrameFlags) -> list[str]:
 
 def _phrase(what: str, flags: FrameFlags) -> str:
     """The finding `what` (a `kind`) as the warning line says it."""
+    if what.endswith("far worse than the rest"):
+        lidar = what.split("'s points")[0]
+        return (
+            f"a stretch of {lidar}'s window whose points match the upper image below {PART_MATCH:g} of "
+            "what its other stretches do"
+        )
     if what.endswith("'s points matching the upper image far worse than the run's"):
         lidar = what.split("'s points")[0]
         return (
@@ -297,6 +343,11 @@ def _cause(what: str) -> str:
         return f"a black, saturated or torn frame; {tail}"
     if what.endswith("the frame before it"):
         return f"a camera or driver that sent its last frame again under a new stamp; {tail}"
+    if what.endswith("far worse than the rest"):
+        return (
+            "the LiDAR's sweep there is not where its pose and its own other points put it (a glitched "
+            f"sweep: points turned, moved or mirrored, or another moment's); {tail}"
+        )
     if what.endswith("'s points matching the upper image far worse than the run's"):
         return (
             "the LiDAR's points in those windows are not where its pose puts them (a sweep with another "

@@ -19,7 +19,7 @@ from ingest.dataset.meta import AlignmentMeta, SampleMeta
 from ingest.dataset.sparse import SparseImage
 from ingest.rows import rows
 from ingest.runtime.background import Background
-from ingest.train.gt.align import MAX_POINTS, ImageLevels, align_points
+from ingest.train.gt.align import MAX_POINTS, ImageLevels, align_points, part_correlations
 from ingest.train.gt.groundtruth import in_view
 from ingest.train.gt.lidar_agreement import range_ratios
 from ingest.train.run.frame_check import frame_check
@@ -93,13 +93,15 @@ source image's channels: BGR or BGRA)."""
 def alignment_fields(
     job: SampleJob, pts_cam0: F64, cloud: WindowPoints, ms: dict[str, float]
 ) -> dict[str, Any]:
-    """The meta's `alignment`, `alignment_lower` and `lower_check` of the points `pts_cam0` (those of
-    `cloud`, placed in cam0 at the exposure), timed as stage "alignment" in `ms`."""
+    """The meta's `alignment`, `alignment_lower`, `lower_check` and `window_parts` of the points
+    `pts_cam0` (those of `cloud`, placed in cam0 at the exposure), timed as stage "alignment" in `ms`."""
     t0 = time.perf_counter()
     if job.geometry.too_coarse_to_align:
-        return {"alignment": {}, "alignment_lower": {}, "lower_check": {}}
+        return {"alignment": {}, "alignment_lower": {}, "lower_check": {}, "window_parts": {}}
+    upper = ImageLevels.from_bgr(job.upper_bgr) if cloud.reflectivity is not None else None
     fields = {
-        "alignment": _alignments(job, pts_cam0, cloud.reflectivity, cloud.lidar),
+        "alignment": _alignments(job, upper, pts_cam0, cloud.reflectivity, cloud.lidar),
+        "window_parts": _window_parts(job, upper, pts_cam0, cloud),
         "alignment_lower": _lower_alignments(job, pts_cam0, cloud.reflectivity, cloud.lidar),
         "lower_check": _lower_check(job, pts_cam0, cloud.reflectivity),
     }
@@ -108,13 +110,30 @@ def alignment_fields(
 
 
 def _alignments(
-    job: SampleJob, pts_cam0: F64, reflectivity: F64 | None, which: I64
+    job: SampleJob, upper: ImageLevels | None, pts_cam0: F64, reflectivity: F64 | None, which: I64
 ) -> dict[str, AlignmentMeta]:
-    """Each LiDAR's photometric alignment with the upper image (`ingest.train.gt.align`), of the points
-    placed in cam0 at the exposure (`pts_cam0`, from LiDAR `which`); none without reflectivity."""
-    if reflectivity is None:
+    """Each LiDAR's photometric alignment with the upper image (its `upper` levels), of the points placed
+    in cam0 at the exposure (`pts_cam0`, from LiDAR `which`); none without reflectivity."""
+    if reflectivity is None or upper is None:
         return {}
-    return _aligned(job, job.upper_bgr, job.geometry.rig.upper.model, pts_cam0, reflectivity, which)
+    return _aligned(job, upper, job.geometry.rig.upper.model, pts_cam0, reflectivity, which)
+
+
+def _window_parts(
+    job: SampleJob, upper: ImageLevels | None, pts_cam0: F64, cloud: WindowPoints
+) -> dict[str, list[float | None]]:
+    """Per LiDAR, how each stretch of its window's point times matches the upper image
+    (`part_correlations`): a stretch far below the others is a sweep out of place
+    (`ingest.train.run.frame_check`); none without reflectivity."""
+    if cloud.reflectivity is None or upper is None:
+        return {}
+    model = job.geometry.rig.upper.model
+    out = {}
+    for i, lp in enumerate(job.lidars):
+        mine = cloud.lidar == i
+        pts, refl = rows(pts_cam0, mine), cloud.reflectivity[mine]
+        out[lp.name] = part_correlations(model, upper, pts, refl, cloud.stamps_ns[mine])
+    return out
 
 
 def _in_cam1(job: SampleJob, pts_cam0: F64) -> F64:
@@ -135,9 +154,8 @@ def _lower_alignments(
         return {}
     if not job.params.alignment_only and job.sid.isdigit() and int(job.sid) % job.params.lower_every:
         return {}
-    return _aligned(
-        job, job.lower_bgr, job.geometry.rig.lower.model, _in_cam1(job, pts_cam0), reflectivity, which
-    )
+    levels = ImageLevels.from_bgr(job.lower_bgr)
+    return _aligned(job, levels, job.geometry.rig.lower.model, _in_cam1(job, pts_cam0), reflectivity, which)
 
 
 def _lower_check(job: SampleJob, pts_cam0: F64, reflectivity: F64 | None) -> dict[str, AlignmentMeta]:
@@ -164,16 +182,15 @@ def _at_most(image: np.ndarray[Any, Any], model: Any, width_px: int) -> tuple[np
 
 def _aligned(
     job: SampleJob,
-    image: np.ndarray[Any, Any],
+    levels: ImageLevels,
     model: Any,
     pts: F64,
     reflectivity: F64,
     which: I64,
     max_points: int = MAX_POINTS,
 ) -> dict[str, AlignmentMeta]:
-    """Each LiDAR's `align_points` of `pts` (in the camera of `image` and `model`), of at most
+    """Each LiDAR's `align_points` of `pts` (in the camera of `levels` and `model`), of at most
     `max_points` of its points."""
-    levels = ImageLevels.from_bgr(image)
     out = {}
     for i, lp in enumerate(job.lidars):
         mine = which == i
