@@ -17,6 +17,7 @@ import numpy as np
 import yaml
 from scipy.spatial.transform import Rotation, Slerp
 
+from calibration.files import read_text
 from ingest.dataset.layout import DEPTH_SCALE, DISP_SCALE
 from ingest.dataset.png import read_image
 from ingest.errors import DatasetError
@@ -25,6 +26,9 @@ from ingest.eval.evaluate import Layout
 if TYPE_CHECKING:
     import rerun as rr
 
+MAX_TEXT_BYTES = 256 << 20
+"""A dataset's JSON, YAML and TUM files are KiB to MiB (a TUM of an hour at 20 knots/s: 7 MiB); a file
+beyond this is not one of them."""
 MAX_SIDE_PX = 960
 JPEG_QUALITY = 90
 VIEWER_FLUSH_S = 120.0  # a spawned viewer that takes nothing for this long did not start
@@ -165,7 +169,8 @@ def read_tum(path: Path) -> tuple[np.ndarray[Any, np.dtype[np.int64]], F64]:
     """A `trajectories/<bag>.tum` file: knot stamps (ns) and T_world_cam0 (N x 4 x 4, metres)."""
     stamps: list[int] = []
     poses: list[list[float]] = []
-    for n, line in enumerate(path.read_text().splitlines(), 1):
+    text = read_text(path, "trajectory", "TUM", MAX_TEXT_BYTES, DatasetError)
+    for n, line in enumerate(text.splitlines(), 1):
         words = line.split()
         if not words or words[0].startswith("#"):
             continue
@@ -202,9 +207,11 @@ def pose_at(stamps_ns: np.ndarray[Any, np.dtype[np.int64]], T_world_cam0: F64, t
     return T
 
 
-def read_json(path: Path) -> dict[str, Any]:
+def read_json(path: Path, what: str = "sample metadata") -> dict[str, Any]:
+    """A JSON object; `what` names the file in messages (a FIFO, a device or a binary file is refused)."""
+    text = read_text(path, what, "JSON", MAX_TEXT_BYTES, DatasetError)
     try:
-        doc = json.loads(path.read_text())
+        doc = json.loads(text)
     except (OSError, ValueError) as err:
         raise DatasetError(f"{path}: cannot be read as JSON ({err})") from err
     if not isinstance(doc, dict):
@@ -212,9 +219,11 @@ def read_json(path: Path) -> dict[str, Any]:
     return doc
 
 
-def read_yaml(path: Path) -> dict[str, Any]:
+def read_yaml(path: Path, what: str = "scene") -> dict[str, Any]:
+    """A YAML mapping; `what` names the file in messages (a FIFO, a device or a binary file is refused)."""
+    text = read_text(path, what, "YAML", MAX_TEXT_BYTES, DatasetError)
     try:
-        doc = yaml.safe_load(path.read_text())
+        doc = yaml.safe_load(text)
     except (OSError, yaml.YAMLError) as err:
         raise DatasetError(f"{path}: cannot be read as YAML ({err})") from err
     if not isinstance(doc, dict):

@@ -232,6 +232,18 @@ def test_a_sample_whose_metadata_is_not_json_is_named(dense_ds: Path, tmp_path: 
     assert not (tmp_path / "x.rrd").exists() and not (tmp_path / ".x.rrd.tmp").exists()
 
 
+def test_a_sample_whose_metadata_is_a_fifo_is_named_not_read(dense_ds: Path, tmp_path: Path) -> None:
+    """Sweep 9: a FIFO as meta/000001.json blocked `view` until it was killed (60 s), no line."""
+    broken = tmp_path / "ds"
+    shutil.copytree(dense_ds, broken)
+    (broken / "meta" / "000001.json").unlink()
+    os.mkfifo(broken / "meta" / "000001.json")
+    with pytest.raises(DatasetError) as err:
+        view_dataset(broken, tmp_path / "x.rrd")
+    assert str(err.value) == f"{broken}/meta/000001.json: is a FIFO (named pipe), not a sample metadata file"
+    assert not (tmp_path / "x.rrd").exists() and not (tmp_path / ".x.rrd.tmp").exists()
+
+
 def test_save_onto_a_folder_is_refused(dense_ds: Path, tmp_path: Path) -> None:
     res = _cli("view", str(dense_ds), "--save", str(tmp_path))
     assert res.returncode == 2
