@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from calibration.files import read_text
 from calibration.opencv_yaml import yaml_error_line
 from calibration.pinhole import Pinhole
 from calibration.virtual import partner_pose
@@ -79,8 +80,9 @@ def setup_doc(
 
 def read_scene(path: Path) -> dict[str, Any]:
     """A finished scene's scene.yaml ({} when it holds no mapping); BenchmarkError when it cannot be read."""
+    text = read_text(path, "finished scene description", error=BenchmarkError)
     try:
-        doc = yaml.safe_load(path.read_text())
+        doc = yaml.safe_load(text)
     except yaml.YAMLError as err:
         raise BenchmarkError(f"finished scene {yaml_error_line(path, err)}") from err
     except (OSError, ValueError) as err:

@@ -381,6 +381,20 @@ def test_a_dataset_without_its_rig_copy_is_not_resumed_with_another_rig(tmp_path
     assert not (out / "rig").exists()
 
 
+def test_a_fifo_as_the_datasets_camchain_is_named_not_read(tmp_path: Path) -> None:
+    """A FIFO in place of the dataset's rig/camchain.yaml: a rerun would block reading it to compare the
+    rig; it is one line naming the file, and nothing is written."""
+    out = tmp_path / "ds"
+    ingest([INDOOR], _cfg(out, every=7))
+    yaml_before = (out / "dataset.yaml").read_bytes()
+    (out / "rig" / "camchain.yaml").unlink()
+    os.mkfifo(out / "rig" / "camchain.yaml")
+    with pytest.raises(DatasetError) as err:
+        ingest([INDOOR], _cfg(out, every=7))
+    assert str(err.value) == f"{out / 'rig' / 'camchain.yaml'}: is a FIFO (named pipe), not a dataset rig file"
+    assert (out / "dataset.yaml").read_bytes() == yaml_before
+
+
 def test_a_benchmark_folder_is_not_ingested_into(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """Sweep 3: ingest --out a render-benchmark folder wrote 5 samples beside its scene, exit 0; stats then
     described the folder as a 'train layout' of 5 depth maps, the benchmark's views out of sight."""

@@ -10,6 +10,7 @@ epipolar line; and against OpenCV's SGBM on the rendered images.
 import subprocess
 import sys
 from dataclasses import replace
+import os
 from pathlib import Path
 from typing import Any
 
@@ -478,6 +479,11 @@ def test_a_damaged_finished_scene_is_rendered_again_and_another_scan_pose_refuse
     )
     with pytest.raises(BenchmarkError, match=r"\(scan ground: source: ground.ply -> other.ply\)"):
         run_benchmark([replace(scan, source="other.ply")], ref, out, cfg)
+    (scene / "scene.yaml").unlink()  # a FIFO in its place would block the rerun's read of it
+    os.mkfifo(scene / "scene.yaml")
+    with pytest.raises(BenchmarkError) as fifo:
+        run_benchmark([scan], ref, out, cfg)
+    assert str(fifo.value) == f"{scene}/scene.yaml: is a FIFO (named pipe), not a finished scene description file"
 
 
 def test_an_equirect_beyond_memory_is_refused_before_any_work(tmp_path):

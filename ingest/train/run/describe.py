@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import yaml
 
+from calibration.files import read_text
 from ingest.dataset.compare import first_difference
 from ingest.dataset.description import FORMAT, read_description
 from ingest.dataset.identity import bag_identity
@@ -323,8 +324,8 @@ def _rig_difference(geometry: Geometry, rig_dir: Path) -> str:
         for name in ("rig.yaml", "camchain.yaml"):
             new = yaml.safe_load((Path(tmp) / name).read_text())
             try:
-                old = yaml.safe_load((rig_dir / name).read_text())
-            except (OSError, ValueError, yaml.YAMLError) as err:
+                old = yaml.safe_load(read_text(rig_dir / name, "dataset rig", error=DatasetError))
+            except (ValueError, yaml.YAMLError) as err:
                 raise DatasetError(f"{rig_dir / name}: cannot read the dataset's rig: {err}") from err
             if isinstance(old, dict) and isinstance(new, dict):
                 old.pop("name", None)
