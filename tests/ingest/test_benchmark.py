@@ -7,10 +7,10 @@ seen by the partner camera, must land `disparity` pixels away along the
 epipolar line; and against OpenCV's SGBM on the rendered images.
 """
 
+import os
 import subprocess
 import sys
 from dataclasses import replace
-import os
 from pathlib import Path
 from typing import Any
 
