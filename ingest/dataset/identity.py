@@ -127,6 +127,22 @@ def _stamp(ns: int) -> str:
     return f"{sec}.{nsec:09d} s"
 
 
+def _no_copies(
+    meta_dir: Path, done: dict[str, SampleMeta], others: dict[tuple[int, int], list[tuple[str, SampleMeta]]]
+) -> None:
+    """DatasetError when a sample of another id (`others`, by stamps) holds a done sample's very frames
+    (`frames_sha256`): a sample copied within the folder, the same frame twice in the training set."""
+    for sid, meta in done.items():
+        for other, held in others.get((meta.stamp_ns, meta.lower_stamp_ns), []):
+            if meta.frames_sha256 and held.frames_sha256 == meta.frames_sha256:
+                raise DatasetError(
+                    f"{meta_dir / f'{other}.json'}: sample {other} holds the same frames as sample {sid} (the "
+                    f"frame at {_stamp(meta.stamp_ns)}, frames_sha256 {meta.frames_sha256[:12]}...): the frame "
+                    f"twice in the dataset, a sample copied within it; delete sample {other}'s files or choose "
+                    "a new --out"
+                )
+
+
 def resume_state(out: Path, sids: list[str], stamps_ns: list[tuple[int, int]]) -> Resume:
     """The planned samples `sids` (upper and lower header stamps `stamps_ns`) against what `out` holds.
 
@@ -135,7 +151,8 @@ def resume_state(out: Path, sids: list[str], stamps_ns: list[tuple[int, int]]) -
     run overwrites (DatasetError). One without is compared, by stamps,
     with every other sample of the folder (whose content the worker then
     compares: `frame_digest`). A sample with the same stamps that records no
-    digest (an older SensorBox) cannot be told apart: DatasetError naming it.
+    digest (an older SensorBox) cannot be told apart: DatasetError naming it;
+    so is a sample of another id with a done sample's very frames (`_no_copies`).
     """
     meta_dir = out / "meta"
     if not meta_dir.is_dir():
@@ -167,6 +184,7 @@ def resume_state(out: Path, sids: list[str], stamps_ns: list[tuple[int, int]]) -
         problems = dict(zip(finished, checked, strict=True))
     damaged.update({sid: problem for sid, problem in problems.items() if problem})
     done = {sid: finished[sid] for sid, problem in problems.items() if not problem}
+    _no_copies(meta_dir, done, by_stamps)
     same: dict[str, tuple[HeldFrame, ...]] = {}
     for sid, key in own.items():
         if sid in done or sid in damaged or key not in by_stamps:

@@ -381,6 +381,32 @@ def test_a_dataset_without_its_rig_copy_is_not_resumed_with_another_rig(tmp_path
     assert not (out / "rig").exists()
 
 
+def test_a_sample_copied_under_another_id_is_named(tmp_path: Path) -> None:
+    """Sweep 9: a finished dataset with sample 000004's files copied as 000005 (its meta's id changed): a
+    rerun said 'written 0 / already done 5', exit 0, and the folder kept the frame twice."""
+    out = tmp_path / "ds"
+    ingest([INDOOR], _cfg(out, every=7))
+    done = sorted(p.stem for p in (out / "meta").glob("*.json"))
+    last, extra = done[-1], f"{int(done[-1]) + 1:06d}"
+    for folder in out.iterdir():
+        for f in folder.glob(f"{last}.*") if folder.is_dir() else ():
+            (folder / f"{extra}{f.suffix}").write_bytes(f.read_bytes())
+    meta = json.loads((out / "meta" / f"{extra}.json").read_text())
+    meta["id"] = extra
+    (out / "meta" / f"{extra}.json").write_text(json.dumps(meta))
+    yaml_before = (out / "dataset.yaml").read_bytes()
+    with pytest.raises(DatasetError) as err:
+        ingest([INDOOR], _cfg(out, every=7))
+    stamp = meta["stamp_ns"]
+    assert str(err.value) == (
+        f"{out / 'meta' / f'{extra}.json'}: sample {extra} holds the same frames as sample {last} (the frame "
+        f"at {stamp // 10**9}.{stamp % 10**9:09d} s, frames_sha256 {meta['frames_sha256'][:12]}...): the "
+        f"frame twice in the dataset, a sample copied within it; delete sample {extra}'s files or choose a "
+        "new --out"
+    )
+    assert (out / "dataset.yaml").read_bytes() == yaml_before
+
+
 def test_a_fifo_as_the_datasets_camchain_is_named_not_read(tmp_path: Path) -> None:
     """A FIFO in place of the dataset's rig/camchain.yaml: a rerun would block reading it to compare the
     rig; it is one line naming the file, and nothing is written."""
@@ -391,7 +417,9 @@ def test_a_fifo_as_the_datasets_camchain_is_named_not_read(tmp_path: Path) -> No
     os.mkfifo(out / "rig" / "camchain.yaml")
     with pytest.raises(DatasetError) as err:
         ingest([INDOOR], _cfg(out, every=7))
-    assert str(err.value) == f"{out / 'rig' / 'camchain.yaml'}: is a FIFO (named pipe), not a dataset rig file"
+    assert (
+        str(err.value) == f"{out / 'rig' / 'camchain.yaml'}: is a FIFO (named pipe), not a dataset rig file"
+    )
     assert (out / "dataset.yaml").read_bytes() == yaml_before
 
 
