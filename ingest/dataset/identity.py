@@ -135,11 +135,12 @@ def _no_copies(
     for sid, meta in done.items():
         for other, held in others.get((meta.stamp_ns, meta.lower_stamp_ns), []):
             if meta.frames_sha256 and held.frames_sha256 == meta.frames_sha256:
+                digest = meta.frames_sha256[:12]
                 raise DatasetError(
-                    f"{meta_dir / f'{other}.json'}: sample {other} holds the same frames as sample {sid} (the "
-                    f"frame at {_stamp(meta.stamp_ns)}, frames_sha256 {meta.frames_sha256[:12]}...): the frame "
-                    f"twice in the dataset, a sample copied within it; delete sample {other}'s files or choose "
-                    "a new --out"
+                    f"{meta_dir / f'{other}.json'}: sample {other} holds the same frames as sample {sid} "
+                    f"(the frame at {_stamp(meta.stamp_ns)}, frames_sha256 {digest}...): the frame twice in "
+                    f"the dataset, a sample copied within it; delete sample {other}'s files or choose a new "
+                    "--out"
                 )
 
 
