@@ -131,8 +131,9 @@ class GyroAgreement:
         return (
             f"{head}, and neither a shift of its stamps within +-{MAX_LAG_MS} ms nor a constant bias "
             f"explains it: its axes do not match the rig's imus.{self.imu}.T_cam0_imu (a wrong rotation, "
-            "an axis of the wrong sign, or rates not in rad/s), or the LiDARs' points are misplaced (a "
-            "LiDAR's pose or clock); check both, or remove the IMU from the rig to ingest without it"
+            "an axis of the wrong sign, or rates not in rad/s), its gyro reads a bias large enough to pull "
+            "the odometry with it, or the LiDARs' points are misplaced (a LiDAR's pose or clock); check "
+            "them, or remove the IMU from the rig to ingest without it"
         )
 
 
@@ -183,15 +184,22 @@ def _ratio(difference: F64, knot_turn: F64) -> float:
     return float(np.median(np.linalg.norm(difference, axis=1))) / scale
 
 
-def _mismatch(knot_turn: F64, gyro: GyroTrack, t0_ns: I64, t1_ns: I64, lag_ns: int) -> float:
-    """`_ratio` of gyro minus knot turn with the gyro read `lag_ns` later."""
+def _mismatch(knot_turn: F64, gyro: GyroTrack, t0_ns: I64, t1_ns: I64, lag_ns: int, need: int) -> float:
+    """`_ratio` of gyro minus knot turn with the gyro read `lag_ns` later; inf where it covers fewer than
+    `need` intervals (a lag that leaves a short recording's few first or last intervals agrees by chance)."""
     inside, g = _gyro_turns(gyro, t0_ns, t1_ns, lag_ns)
+    if int(inside.sum()) < need:
+        return float("inf")
     return _ratio(g - knot_turn[inside], knot_turn[inside])
 
 
 def gyro_agreement(traj: RigTrajectory, gyro: GyroTrack, imu: str, topic: str) -> GyroAgreement:
     """The gyro's agreement with `traj`'s registered knots (intervals in LiDAR gaps left out), and the
-    stamp shift within +-`MAX_LAG_MS` that agrees best (`LAG_STEP_MS` steps, then 1 ms around the best)."""
+    stamp shift within +-`MAX_LAG_MS` that agrees best (`LAG_STEP_MS` steps, then 1 ms around the best)
+    over at least half of the intervals. A gyro whose turn is the same over every interval (within
+    `MIN_DISAGREEMENT_DEG`) has no shift searched: read at any time it reads the same, so no clock offset
+    can show (a still rig's biased gyro agreed with the odometry's first knots, which took its turn, at
+    every shift that kept them)."""
     k = np.flatnonzero(np.isfinite(traj.residual_m[1:]))
     if len(k) > MAX_INTERVALS:
         k = k[np.linspace(0, len(k) - 1, MAX_INTERVALS).astype(np.int64)]
@@ -207,11 +215,13 @@ def gyro_agreement(traj: RigTrajectory, gyro: GyroTrack, imu: str, topic: str) -
     mismatch, intervals = _ratio(g - covered, covered), len(covered)
     turn_deg = float(np.degrees(np.median(np.linalg.norm(covered, axis=1)))) if intervals else 0.0
     best = (mismatch, 0)
-    if GyroAgreement(imu, topic, intervals, turn_deg, mismatch, 0.0, mismatch).disagrees:
+    steady = intervals and np.degrees(np.abs(g - np.median(g, axis=0)).max()) < MIN_DISAGREEMENT_DEG
+    if not steady and GyroAgreement(imu, topic, intervals, turn_deg, mismatch, 0.0, mismatch).disagrees:
+        need = max(MIN_INTERVALS, (intervals + 1) // 2)
         coarse = range(-MAX_LAG_MS, MAX_LAG_MS + 1, LAG_STEP_MS)
-        best = min([best] + [(_mismatch(knot_turn, gyro, t0, t1, lag * MS), lag) for lag in coarse])
+        best = min([best] + [(_mismatch(knot_turn, gyro, t0, t1, lag * MS, need), lag) for lag in coarse])
         fine = range(best[1] - LAG_STEP_MS + 1, best[1] + LAG_STEP_MS)
-        best = min([best] + [(_mismatch(knot_turn, gyro, t0, t1, lag * MS), lag) for lag in fine])
+        best = min([best] + [(_mismatch(knot_turn, gyro, t0, t1, lag * MS, need), lag) for lag in fine])
     bias, unbiased = _bias(g, covered, ((t1 - t0)[inside] / 1e9)[:, None])
     return GyroAgreement(imu, topic, intervals, turn_deg, mismatch, float(best[1]), best[0], bias, unbiased)
 
