@@ -142,6 +142,8 @@ class SampleMeta:
     frame_check: FrameCheckMeta | None = None
     window_parts: dict[str, list[float | None]] = field(default_factory=dict)  # per LiDAR: each stretch of
     # its window's point times matched with the upper image (`ingest.train.gt.align.part_correlations`)
+    window_fit: dict[str, list[float | None]] = field(default_factory=dict)  # per LiDAR: each stretch's
+    # share of points near the window's other stretches' (`ingest.train.gt.window_fit.stretch_shares`)
 
     def written(
         self, sid: str, dropped: dict[str, int], files: dict[str, FileMeta] | None = None
@@ -181,6 +183,8 @@ class SampleMeta:
             twist_cam0=None if d.get("twist_cam0") is None else [float(v) for v in d["twist_cam0"]],
             window_parts={str(k): [None if c is None else float(c) for c in v]
                           for k, v in d.get("window_parts", {}).items()},
+            window_fit={str(k): [None if c is None else float(c) for c in v]
+                        for k, v in d.get("window_fit", {}).items()},
         )  # fmt: skip
 
 

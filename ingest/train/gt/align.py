@@ -40,6 +40,7 @@ from calibration.camera import CameraModel
 from calibration.types import F64, I64
 from ingest.dataset.meta import AlignmentMeta
 from ingest.train.gt.groundtruth import px_per_rad
+from ingest.train.gt.window_fit import WINDOW_PARTS, stretch_of
 
 SIGMAS_PX = (8.0, 4.0, 2.0, 1.0)
 """The image blur of each coarse-to-fine level (Gaussian sigma, pixels of a 1920-wide image)."""
@@ -243,9 +244,6 @@ def align_points(
     )  # fmt: skip
 
 
-WINDOW_PARTS = 8
-"""`part_correlations` splits a LiDAR's window into this many equal stretches of point time (25 ms of a
-100 ms window: a quarter of a Mid-360 sweep)."""
 MIN_PART_POINTS = 300
 """Visible points a stretch needs for its correlation to be measured (noise about +-0.03 at 1,500)."""
 
@@ -253,10 +251,10 @@ MIN_PART_POINTS = 300
 def part_correlations(
     model: CameraModel, image: ImageLevels, pts_cam0: F64, reflectivity: F64, stamps_ns: I64
 ) -> list[float | None]:
-    """The correlation of image intensity (the coarsest level) and reflectivity of each of `WINDOW_PARTS`
-    equal stretches of the points' times, where no correction is applied: one LiDAR's points placed in
-    cam0 at the exposure (N, 3, m) with their stamps (ns). None for a stretch with under
-    `MIN_PART_POINTS` visible points.
+    """The correlation of image intensity (the coarsest level) and reflectivity of each stretch of the
+    points' times (`ingest.train.gt.window_fit.stretch_of`), where no correction is applied: one LiDAR's
+    points placed in cam0 at the exposure (N, 3, m) with their stamps (ns). None for a stretch with
+    under `MIN_PART_POINTS` visible points.
 
     Every stretch of a sweep meets the same image through the same pose, so they match it alike (the
     simulated fixtures' stretches lie within 0.84 of each other's correlation); a stretch whose points
@@ -271,8 +269,7 @@ def part_correlations(
     px, ok = model.project(pts)
     ok &= model.in_image(px)
     ok[ok] = nearest_in_cell(px[ok], np.linalg.norm(pts[ok], axis=1))
-    edges = np.linspace(float(stamps.min()), float(stamps.max()) + 1.0, WINDOW_PARTS + 1)
-    part = np.clip(np.searchsorted(edges, stamps, side="right") - 1, 0, WINDOW_PARTS - 1)
+    part = stretch_of(stamps)
     for k in range(WINDOW_PARTS):
         mine = ok & (part == k)
         if mine.sum() < MIN_PART_POINTS or np.std(refl[mine]) == 0:

@@ -15,8 +15,9 @@ anyway, compared with the run's other samples, since the scene sets what "normal
 - the points match it far worse than they match the run's other images of that camera (correlation of
   reflectivity and intensity below `POOR_MATCH` of the run's median);
 - one stretch of a LiDAR's window matches the upper image far worse than the window's other stretches
-  (below `PART_MATCH` of their median): that LiDAR's sweep there is out of place (a glitched sweep turned,
-  moved or mirrored). This one needs no run median, so it holds however few samples share the fault.
+  (below `PART_MATCH` of their median), or its points lie far from theirs (`FIT_MATCH`): that LiDAR's
+  sweep there is out of place (a glitched sweep turned, moved or mirrored). This one needs no run median,
+  so it holds however few samples share the fault.
 
 A sample is named for the first of these that it shows, per camera. Most of a run's samples showing one
 is not a frame out of place but a rig or camchain fault, which the calibration check names.
@@ -42,6 +43,13 @@ POOR_MATCH = 0.75
 this fraction of its median over the run's samples (one LiDAR's alone: its points are out of place): on
 the simulated fixtures a run's samples lie at 0.85-1.1 of its median (0.47-0.80 by scene); an image
 turned over gives -0.35 to -0.05, half of it from the frame before 0.68, a sweep with its z flipped 0.29."""
+FIT_MATCH = 0.6
+MIN_FIT = 0.3
+"""A stretch of a LiDAR's window is out of place too when the share of its points near the window's other
+stretches' (`ingest.train.gt.window_fit.stretch_shares`) is below `FIT_MATCH` of the median stretch's,
+where that median is above `MIN_FIT` (a sparse LiDAR's stretches barely meet: nothing to judge by). On
+the simulated fixtures the stretches lie at 0.78 of the median and above; a sweep turned 5 deg about x
+gives 0.40-0.45, the 90 deg turn 0.24-0.51."""
 PART_MATCH = 0.5
 MIN_PARTS = 4
 """A stretch of a LiDAR's window is out of place when its correlation with the upper image is below
@@ -99,10 +107,13 @@ class FrameRecord:
     upper: Mapping[str, AlignmentMeta]  # per LiDAR, onto the upper image
     lower: Mapping[str, AlignmentMeta]  # the lower image's quick check
     parts: Mapping[str, list[float | None]] = field(default_factory=dict)  # `SampleMeta.window_parts`
+    fit: Mapping[str, list[float | None]] = field(default_factory=dict)  # `SampleMeta.window_fit`
 
     @classmethod
     def from_meta(cls, meta: SampleMeta) -> FrameRecord:
-        return cls(meta.id, meta.frame_check, meta.alignment, meta.lower_check, meta.window_parts)
+        return cls(
+            meta.id, meta.frame_check, meta.alignment, meta.lower_check, meta.window_parts, meta.window_fit
+        )
 
 
 CAMERAS = ("upper", "lower")
@@ -231,23 +242,25 @@ def _parts_apart(records: list[FrameRecord], named: set[str]) -> dict[str, list[
     for r in records:
         if r.id in named:
             continue
-        for lidar, parts in sorted(r.parts.items()):
-            if _part_out(parts):
+        for lidar in sorted({*r.parts, *r.fit}):
+            if _part_out(r.parts.get(lidar, []), PART_MATCH, MIN_MEDIAN) or _part_out(
+                r.fit.get(lidar, []), FIT_MATCH, MIN_FIT
+            ):
                 found.setdefault(part_kind(lidar), []).append(r.id)
     return found
 
 
-def _part_out(parts: list[float | None]) -> bool:
-    """A stretch matches the image below `PART_MATCH` of the window's median stretch, which itself matches
-    (above `MIN_MEDIAN`); at least `MIN_PARTS` stretches measured."""
+def _part_out(parts: list[float | None], ratio: float, least: float) -> bool:
+    """A stretch's measure is below `ratio` of the window's median stretch's, which is above `least` (it
+    measures something); at least `MIN_PARTS` stretches measured."""
     judged = [c for c in parts if c is not None]
     median = _median(judged)
-    return len(judged) >= MIN_PARTS and median > MIN_MEDIAN and min(judged) < PART_MATCH * median
+    return len(judged) >= MIN_PARTS and median > least and min(judged) < ratio * median
 
 
 def part_kind(lidar: str) -> str:
     """The summary's flag of a sample with a stretch of `lidar`'s window out of place (`_part_out`)."""
-    return f"{lidar}'s points in a stretch of the window matching the upper image far worse than the rest"
+    return f"{lidar}'s points in a stretch of the window out of place against the rest"
 
 
 def lidar_kind(lidar: str) -> str:
@@ -301,11 +314,11 @@ def flag_lines(flags: FrameFlags) -> list[str]:
 
 def _phrase(what: str, flags: FrameFlags) -> str:
     """The finding `what` (a `kind`) as the warning line says it."""
-    if what.endswith("far worse than the rest"):
+    if what.endswith("out of place against the rest"):
         lidar = what.split("'s points")[0]
         return (
             f"a stretch of {lidar}'s window whose points match the upper image below {PART_MATCH:g} of "
-            "what its other stretches do"
+            f"what its other stretches do, or lie near their points below {FIT_MATCH:g} as often"
         )
     if what.endswith("'s points matching the upper image far worse than the run's"):
         lidar = what.split("'s points")[0]
@@ -343,7 +356,7 @@ def _cause(what: str) -> str:
         return f"a black, saturated or torn frame; {tail}"
     if what.endswith("the frame before it"):
         return f"a camera or driver that sent its last frame again under a new stamp; {tail}"
-    if what.endswith("far worse than the rest"):
+    if what.endswith("out of place against the rest"):
         return (
             "the LiDAR's sweep there is not where its pose and its own other points put it (a glitched "
             f"sweep: points turned, moved or mirrored, or another moment's); {tail}"

@@ -22,6 +22,7 @@ from ingest.runtime.background import Background
 from ingest.train.gt.align import MAX_POINTS, ImageLevels, align_points, part_correlations
 from ingest.train.gt.groundtruth import in_view
 from ingest.train.gt.lidar_agreement import range_ratios
+from ingest.train.gt.window_fit import stretch_shares
 from ingest.train.run.frame_check import frame_check
 from ingest.train.run.sample_job import SampleJob, SampleResult
 from ingest.train.trajectory.clouds import FilterCounts, filter_points
@@ -93,15 +94,23 @@ source image's channels: BGR or BGRA)."""
 def alignment_fields(
     job: SampleJob, pts_cam0: F64, cloud: WindowPoints, ms: dict[str, float]
 ) -> dict[str, Any]:
-    """The meta's `alignment`, `alignment_lower`, `lower_check` and `window_parts` of the points
-    `pts_cam0` (those of `cloud`, placed in cam0 at the exposure), timed as stage "alignment" in `ms`."""
+    """The meta's `alignment`, `alignment_lower`, `lower_check`, `window_parts` and `window_fit` of the
+    points `pts_cam0` (those of `cloud`, placed in cam0 at the exposure), timed as stage "alignment" in
+    `ms`."""
     t0 = time.perf_counter()
     if job.geometry.too_coarse_to_align:
-        return {"alignment": {}, "alignment_lower": {}, "lower_check": {}, "window_parts": {}}
+        return {
+            "alignment": {},
+            "alignment_lower": {},
+            "lower_check": {},
+            "window_parts": {},
+            "window_fit": {},
+        }
     upper = ImageLevels.from_bgr(job.upper_bgr) if cloud.reflectivity is not None else None
     fields = {
         "alignment": _alignments(job, upper, pts_cam0, cloud.reflectivity, cloud.lidar),
         "window_parts": _window_parts(job, upper, pts_cam0, cloud),
+        "window_fit": _window_fit(job, pts_cam0, cloud),
         "alignment_lower": _lower_alignments(job, pts_cam0, cloud.reflectivity, cloud.lidar),
         "lower_check": _lower_check(job, pts_cam0, cloud.reflectivity),
     }
@@ -134,6 +143,16 @@ def _window_parts(
         pts, refl = rows(pts_cam0, mine), cloud.reflectivity[mine]
         out[lp.name] = part_correlations(model, upper, pts, refl, cloud.stamps_ns[mine])
     return out
+
+
+def _window_fit(job: SampleJob, pts_cam0: F64, cloud: WindowPoints) -> dict[str, list[float | None]]:
+    """Per LiDAR, how each stretch of its window's point times sits among its other stretches' points
+    (`stretch_shares`): a stretch far below the others is a sweep out of place
+    (`ingest.train.run.frame_check`)."""
+    return {
+        lp.name: stretch_shares(rows(pts_cam0, cloud.lidar == i), cloud.stamps_ns[cloud.lidar == i])
+        for i, lp in enumerate(job.lidars)
+    }
 
 
 def _in_cam1(job: SampleJob, pts_cam0: F64) -> F64:
