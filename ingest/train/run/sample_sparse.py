@@ -40,6 +40,9 @@ from ingest.train.trajectory.clouds import (
 from ingest.train.trajectory.planes import Normals
 from ingest.train.trajectory.rig_trajectory import RigTrajectory
 
+IMU_SILENT_REASON = "IMU silent over the window (no rotation to compensate with)"
+"""A sample whose window holds no reading of the rig's IMU (one that stopped, or a gap in its readings) is
+left out: its points would be placed without the rig's turn."""
 VELOCITY_SIGMAS = 4.0  # an estimated velocity counts when its norm exceeds this many standard errors
 
 
@@ -84,6 +87,8 @@ def process_sparse(job: SampleJob, images: Background[Equirects] | None, start_m
     geo, prm = job.geometry, job.params
     cloud = points_by_lidar(job)
     counts, gyro, off_imu = cloud.counts, None, 0
+    if job.imu is not None and len(job.imu.stamps_ns) < 2 and prm.motion != "off":
+        return SampleResult(job.sid, False, IMU_SILENT_REASON, None, {})
     if job.imu is not None and len(job.imu.stamps_ns) >= 2:
         gyro = integrate_gyro(job.imu.stamps_ns, job.imu.gyro_rad_s, job.imu.R_cam0_imu)
         covered = gyro.covers(cloud.stamps_ns)  # rotations outside the IMU's span are unknown: dropped

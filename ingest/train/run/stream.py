@@ -248,9 +248,11 @@ def _imu_window(
     imu_t: list[int], imu_g: list[Any], tc: int, w: int, R_cam0_imu: Any, spikes: Callable[[I64, F64], Bool]
 ) -> ImuWindow | None:
     """The gyro readings within the sample's window (+ IMU_MARGIN_NS each side) less the `spikes` among
-    them, or None without an IMU."""
-    if not imu_t or R_cam0_imu is None:
+    them (none when the IMU is silent there), or None without an IMU."""
+    if R_cam0_imu is None:
         return None
+    if not imu_t:
+        return ImuWindow(np.zeros(0, np.int64), np.zeros((0, 3)), R_cam0_imu)
     readings = ImuWindow(np.array(imu_t, np.int64), np.array(imu_g), R_cam0_imu)
     near = readings.within(tc - w - IMU_MARGIN_NS, tc + w + IMU_MARGIN_NS)
     keep = ~spikes(near.stamps_ns, near.gyro_rad_s)
