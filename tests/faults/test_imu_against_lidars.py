@@ -205,8 +205,12 @@ def test_samples_after_the_imu_stopped_are_left_out_and_counted(tmp_path: Path) 
         return [] if topic.startswith("/livox/imu_") and k >= 50 else [(topic, raw)]
 
     bag, rig = rewrite(tmp_path / "stops.mcap", stops, src=WALK)
-    summary = ingest([bag], IngestConfig(rig=rig, out=tmp_path / "ds", gt="sparse", **FAST))
-    ingest([WALK], IngestConfig(rig=rig, out=tmp_path / "whole", gt="sparse", **FAST))
+    summary = ingest(
+        [bag], IngestConfig(rig=rig, out=tmp_path / "ds", gt="sparse", workers=1, every=5, height_full=64)
+    )
+    ingest(
+        [WALK], IngestConfig(rig=rig, out=tmp_path / "whole", gt="sparse", workers=1, every=5, height_full=64)
+    )
     assert summary.skipped.get(IMU_SILENT_REASON) == 3 and summary.written == 2, summary.skipped
     first = "depth_fisheye/000000.png"  # its window lies wholly before the stop
     assert (tmp_path / "ds" / first).read_bytes() == (tmp_path / "whole" / first).read_bytes()
@@ -242,7 +246,9 @@ def test_a_rig_without_an_imu_is_said_once(tmp_path: Path) -> None:
     doc["camchain"] = str(truth_dir(WALK) / "camchain.yaml")
     rig = tmp_path / "rig.yaml"
     rig.write_text(yaml.safe_dump(doc, sort_keys=False))
-    summary = ingest([WALK], IngestConfig(rig=rig, out=tmp_path / "ds", gt="sparse", **FAST))  # type: ignore[arg-type]
+    summary = ingest(
+        [WALK], IngestConfig(rig=rig, out=tmp_path / "ds", gt="sparse", workers=1, every=5, height_full=64)
+    )  # type: ignore[arg-type]
     assert [w for w in summary.warnings if "no IMU" in w] == [
         f"{rig}: the rig names no IMU under 'imus': the rig's turns within each sweep and window are not "
         "measured, so a moving rig's points are placed as if it held its pose or turned evenly (its GT smears, "
