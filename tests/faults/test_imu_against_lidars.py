@@ -248,7 +248,7 @@ def test_a_rig_without_an_imu_is_said_once(tmp_path: Path) -> None:
     rig.write_text(yaml.safe_dump(doc, sort_keys=False))
     summary = ingest(
         [WALK], IngestConfig(rig=rig, out=tmp_path / "ds", gt="sparse", workers=1, every=5, height_full=64)
-    )  # type: ignore[arg-type]
+    )
     assert [w for w in summary.warnings if "no IMU" in w] == [
         f"{rig}: the rig names no IMU under 'imus': the rig's turns within each sweep and window are not "
         "measured, so a moving rig's points are placed as if it held its pose or turned evenly (its GT smears, "
