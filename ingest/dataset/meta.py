@@ -106,13 +106,15 @@ class AlignmentMeta:
 @dataclass(frozen=True)
 class FrameCheckMeta:
     """A sample's two images on their own (`ingest.train.run.frame_check`): the fraction of each that is
-    one flat grey level, whether they are the same pixels, and which repeats its camera's frame before it
-    to the byte."""
+    one flat grey level, whether they are the same pixels, which repeats its camera's frame before it
+    to the byte, and each one's colour balance (red against blue)."""
 
     upper_flat: float
     lower_flat: float
     identical: bool
     repeated: list[str] = field(default_factory=list)  # "upper", "lower": the frame repeats the one before
+    upper_red_blue: float | None = None  # log(mean red / mean blue) of the lit pixels; None: not colour
+    lower_red_blue: float | None = None
 
 
 @dataclass(frozen=True)

@@ -78,6 +78,7 @@ CASES: dict[str, tuple[str, int, Edit, str, str]] = {
     "lower_10_bottom_half_black": (LOWER, 10, lambda im, all_: _bottom_black(im), f"lower image {BLANK}", "000002"),
     "lower_5_upside_down": (LOWER, 5, lambda im, all_: cv2.rotate(im, cv2.ROTATE_180), f"lower image {OFF}", "000001"),
     "lower_5_shifted_4px": (LOWER, 5, lambda im, all_: _shifted(im, 4), f"lower image {OFF}", "000001"),
+    "lower_5_red_blue_swapped": (LOWER, 5, lambda im, all_: im[..., ::-1], "upper and lower images with red and blue swapped against each other", "000001"),
 }  # fmt: skip
 
 

@@ -7,6 +7,8 @@ that is blank or torn, a frame turned over. Each is found by what it does to a m
 anyway, compared with the run's other samples, since the scene sets what "normal" is:
 
 - the two images are the same pixels (one camera's frame published on both topics);
+- the two images have red and blue swapped against each other (`SWAP_MIN`: a camera or a frame whose
+  encoding says bgr8 for rgb8 bytes, or the reverse);
 - an image is one flat grey level over much more of it than the run's others are (black, white, torn);
 - a frame repeats its camera's frame before it to the byte (a camera or driver that sent its last frame
   again under a new stamp; a still rig's frames all repeat in a simulator that adds no noise, so the
@@ -57,6 +59,13 @@ MIN_PARTS = 4
 `MIN_PARTS` of them measured): on the simulated fixtures every stretch lies at 0.55 of the median or above
 (the emulated walk's scan pattern alternates 0.3 and 0.5); the stretches of a sweep turned 90 deg about
 its axis give -0.07 to 0.22 against 0.49."""
+SWAP_MIN = 0.2
+SWAP_LEFT = 0.25
+"""A sample's two images have red and blue swapped against each other when their colour balances
+(`red_blue`, log red/blue) differ by over `SWAP_MIN` and swapping one would leave under `SWAP_LEFT` of
+that difference: the simulated fixtures' two cameras agree within 0.01 (balances -0.16 to 0.07); the walk
+with its lower camera's red and blue swapped differs by 0.26-0.32, with 0.01 left after a swap back. A
+scene too grey to tell (a balance within 0.1 of zero) is not judged: a swap there hardly shows."""
 FLAT_STEP_PX = 4
 FLAT_BLOCK = 8
 FLAT_LEVELS = 2
@@ -89,13 +98,28 @@ def flat_fraction(image: np.ndarray) -> float:
     return float(np.mean(span <= FLAT_LEVELS))
 
 
+def red_blue(image: np.ndarray) -> float | None:
+    """log(mean red / mean blue) over the lit pixels (every channel within 17..249) of every
+    `FLAT_STEP_PX`-th pixel of a BGR or BGRA image; None for a grey image or one with under 100 of them."""
+    if image.ndim != 3 or image.shape[2] < 3 or image.dtype != np.uint8:
+        return None
+    small = image[::FLAT_STEP_PX, ::FLAT_STEP_PX, :3].reshape(-1, 3)
+    lit = small[((small > 16) & (small < 250)).all(axis=1)].astype(np.float64)
+    if len(lit) < 100:
+        return None
+    blue, _, red = lit.mean(axis=0)
+    return round(float(np.log(red / blue)), 4)
+
+
 def frame_check(upper: np.ndarray, lower: np.ndarray, repeated: tuple[str, ...] = ()) -> FrameCheckMeta:
-    """What a sample's meta records of its two images: how flat each is, whether they are the same, and
-    `repeated`, the cameras whose frame repeats the one before it (the plan pass's `same_as_before`)."""
+    """What a sample's meta records of its two images: how flat each is, whether they are the same,
+    `repeated`, the cameras whose frame repeats the one before it (the plan pass's `same_as_before`), and
+    each one's `red_blue`."""
     same = upper.shape == lower.shape and bool(np.array_equal(upper, lower))
     return FrameCheckMeta(
-        round(flat_fraction(upper), 4), round(flat_fraction(lower), 4), same, list(repeated)
-    )
+        round(flat_fraction(upper), 4), round(flat_fraction(lower), 4), same, list(repeated),
+        red_blue(upper), red_blue(lower),
+    )  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -153,6 +177,8 @@ def kind(camera: str, what: str) -> str:
     """The summary's flag of a finding (`what`: off, poor, blank; "identical" for both cameras)."""
     if what == "identical":
         return "upper and lower images identical"
+    if what == "swapped":
+        return "upper and lower images with red and blue swapped against each other"
     return {
         "off": f"{camera} image off every LiDAR's points (> {OFF_IMAGE_DEG:g} deg)",
         "poor": f"{camera} image matching the points far worse than the run's",
@@ -172,6 +198,10 @@ def frame_flags(records: list[FrameRecord]) -> FrameFlags:
     identical = [r.id for r in records if r.check is not None and r.check.identical]
     if identical:
         found[kind("", "identical")] = identical
+    swapped = [r.id for r in records if r.id not in identical and _swapped(r.check)]
+    if swapped:
+        found[kind("", "swapped")] = swapped
+        identical = identical + swapped  # named once: the other findings leave them out
     flat_median = {c: _median([f for r in records if (f := _flat(r, c)) is not None]) for c in CAMERAS}
     corr_median = {c: _correlations(records, c) for c in CAMERAS}
     apart = _parts_apart(records, set(identical))
@@ -194,6 +224,16 @@ def frame_flags(records: list[FrameRecord]) -> FrameFlags:
                 found[kind(camera, what)] = ids
                 taken.update(ids)
     return FrameFlags(found, len(records), flat_median, corr_median, most)
+
+
+def _swapped(check: FrameCheckMeta | None) -> bool:
+    """The two images' colour balances differ by over `SWAP_MIN` and are each other's negative (within
+    `SWAP_LEFT` of that difference): one camera's red and blue are the other order."""
+    if check is None or check.upper_red_blue is None or check.lower_red_blue is None:
+        return False
+    upper, lower = check.upper_red_blue, check.lower_red_blue
+    apart = abs(upper - lower)
+    return apart > SWAP_MIN and abs(upper + lower) < SWAP_LEFT * apart
 
 
 def _median(values: list[float]) -> float:
@@ -331,6 +371,11 @@ def _phrase(what: str, flags: FrameFlags) -> str:
     article = "an" if camera == "upper" else "a"
     if what == kind("", "identical"):
         return "identical upper and lower images"
+    if what == kind("", "swapped"):
+        return (
+            f"upper and lower images whose colour balances (log red/blue) differ by over {SWAP_MIN:g} and "
+            "are each other's negative"
+        )
     if what == kind(camera, "off"):
         return f"{article} {camera} image that lies off every LiDAR's points by over {OFF_IMAGE_DEG:g} deg"
     if what == kind(camera, "repeat"):
@@ -352,6 +397,11 @@ def _cause(what: str) -> str:
     tail = "the samples are written and flagged in the summary: leave them out of training"
     if what == kind("", "identical"):
         return f"one camera's frame was published on both cameras' topics; {tail}"
+    if what == kind("", "swapped"):
+        return (
+            "one camera's images carry red and blue in the other order (a driver publishing rgb8 bytes as "
+            f"bgr8 or the reverse, or a frame labelled with another encoding than its camera's); {tail}"
+        )
     if what.endswith("over much of it"):
         return f"a black, saturated or torn frame; {tail}"
     if what.endswith("the frame before it"):
