@@ -483,7 +483,10 @@ def test_a_damaged_finished_scene_is_rendered_again_and_another_scan_pose_refuse
     os.mkfifo(scene / "scene.yaml")
     with pytest.raises(BenchmarkError) as fifo:
         run_benchmark([scan], ref, out, cfg)
-    assert str(fifo.value) == f"{scene}/scene.yaml: is a FIFO (named pipe), not a finished scene description file"
+    assert (
+        str(fifo.value)
+        == f"{scene}/scene.yaml: is a FIFO (named pipe), not a finished scene description file"
+    )
 
 
 def test_an_equirect_beyond_memory_is_refused_before_any_work(tmp_path):
