@@ -388,3 +388,14 @@ def test_a_clock_offset_between_the_lidars_is_named(tmp_path: Path) -> None:
     assert len([w for w in summary.warnings if re.match(line, w)]) == 1
     assert [p for p in inspect_bags(bag).clock_problems() if re.match(line, p)]
     assert ingest([INDOOR], _config(tmp_path / "synced")).warnings == []
+    # calib refine lays each LiDAR's points onto cam0's images by their times: sweep 9 found it turning
+    # the walk's lidar_top by 0.98 deg to absorb a 35 ms clock error; it refuses instead, nothing written
+    from calibration.errors import CalibrationError
+    from calibration.rig import read_rig
+    from ingest.train.run.pipeline import refine_rig
+
+    with pytest.raises(CalibrationError) as refused:
+        refine_rig([bag], read_rig(rig), workers=1)
+    assert re.match(line[:-1] + "; refine lays each LiDAR's points onto cam0's images by their times, so a pose "
+                    "refined from them would take the clock error in: sync the LiDARs and record again, then "
+                    "refine$", str(refused.value))  # fmt: skip

@@ -90,7 +90,7 @@ from ingest.train.run.gt_method import dense_reach_ns, gt_method
 from ingest.train.run.handoff import give_arrays, handoff_bytes_bound, take_arrays
 from ingest.train.run.lidar_poses import lower_mismatch_lines, stereo_alignment, stereo_lines, stereo_record
 from ingest.train.run.plan import CROSSED_REASON, LOST_REASON, Plan, Survey, plan, survey
-from ingest.train.run.refine import Refinement, refine
+from ingest.train.run.refine import Refinement, refine, refuse_unsynced
 from ingest.train.run.resolved import ResolvedRun
 from ingest.train.run.sample_job import Geometry, SampleParams, SampleResult
 from ingest.train.run.settings import IngestConfig, Topics, resolve_topics
@@ -278,6 +278,7 @@ def refine_rig(
                 rig=rig_file, out=out, workers=workers, every=every, gt="sparse", sample=sample
             )
             summary = ingest(bags, cfg, progress=aligning)
+            refuse_unsynced(summary.clock_spread)
             found = [summary.aligned[sid] for sid in sorted(summary.aligned)]
             return from_records([(a.upper, a.lower, a.twist_cam0) for a in found])
 
@@ -398,8 +399,7 @@ def _run(
         reach = dense_reach_ns(cfg)
         read = _pass(passes, PASS_READ)
         surveyed = _checked_survey(bags, topics, rig, max(cfg.lidar_window_ns, reach), bad, read)
-        summary.imu_gaps_ms = [float(g) / 1e6 for g in surveyed.imu_gaps_ns]
-        summary.warnings += surveyed.warnings
+        summary.add_survey(surveyed)
         summary.stale_temporaries = held.enter_context(_held_output(cfg.out))
         span = (surveyed.span_ns[0] - reach, surveyed.span_ns[1] + reach)
         sweeps = {t: surveyed.seen[t] for t in topics.lidars}

@@ -178,6 +178,7 @@ class Survey:
     warnings: list[str] = field(default_factory=list)  # one line each (`lidar_clock_spread`, `thin_lines`)
     crossed: dict[str, list[tuple[int, int]]] = field(default_factory=dict)  # `FirstCopies.crossed`
     same_as_before: dict[str, set[int]] = field(default_factory=dict)  # `FirstCopies.same_as_before`
+    clock_spread: str | None = None  # `lidar_clock_spread`'s line (also among `warnings`): the LiDARs' clocks
 
     @property
     def span_ns(self) -> tuple[int, int]:
@@ -261,6 +262,7 @@ def survey(
         warnings + rates.thin_lines(topics.lidars),
         copies.crossed,
         copies.same_as_before,
+        spread,
     )
 
 

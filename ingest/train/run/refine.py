@@ -23,6 +23,7 @@ import cv2
 import numpy as np
 
 from calibration.camera import CameraModel
+from calibration.errors import CalibrationError
 from calibration.housing import housing_lidar
 from calibration.rig import Imu, Lidar, Rig, with_timeshifts
 from calibration.types import F64, U8
@@ -276,6 +277,17 @@ of some of the frames (`ingest.train.run.pipeline.refine_rig`)."""
 ALIGN_ROUNDS = 2
 """Alignment rounds: the second starts from the first's rig, where each sample's linearisation and its
 visibility test are closer to the truth (a 1 deg, 3 cm error: 6.4 mm left after one round outdoors)."""
+
+
+def refuse_unsynced(clock_spread: str | None) -> None:
+    """CalibrationError when the recording's LiDARs seem to be on clocks apart (`clock_spread`, the
+    survey's `lidar_clock_spread` line): a LiDAR's points placed at wrong times land off cam0's images,
+    and a pose refined from them would take the clock error in (35 ms on the walk: 0.98 deg)."""
+    if clock_spread:
+        raise CalibrationError(
+            f"{clock_spread}; refine lays each LiDAR's points onto cam0's images by their times, so a pose "
+            "refined from them would take the clock error in: sync the LiDARs and record again, then refine"
+        )
 
 
 def refine(

@@ -6,6 +6,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -28,6 +29,9 @@ from ingest.train.run.sample_job import ALIGNED, SampleAlignment, SampleResult
 from ingest.train.run.stream import ALREADY_HELD
 from ingest.train.trajectory.estimate import TrajectorySummary
 from ingest.train.trajectory.imu_check import GyroAgreement
+
+if TYPE_CHECKING:
+    from ingest.train.run.plan import Survey
 
 _OTHER = {"upper": "lower image", "lower": "upper image"}
 """A camera's samples to leave out of its calibration check are those of every finding but the other
@@ -76,6 +80,9 @@ class IngestSummary:
     duplicates: dict[str, int] = field(default_factory=dict)  # per topic: repeated stamps, first read
     uncovered: int = 0  # stereo pairs without LiDAR points within the window: not planned
     imu_gaps_ms: list[float] = field(default_factory=list)  # IMU intervals over 5 periods (plan.imu_gaps)
+    clock_spread: str | None = (
+        None  # the survey's line on the LiDARs' clocks disagreeing (`lidar_clock_spread`)
+    )
     warnings: list[str] = field(default_factory=list)  # about the inputs, one line each (the rig's layout)
     stale_temporaries: int = 0  # left in the output by a killed run, removed (`ingest.dataset.lock`)
     without_gt: int = 0  # samples written with no GT pixel in their depth PNG
@@ -173,6 +180,12 @@ class IngestSummary:
             if lower[0][0]:
                 self.alignments_lower.append((lower[0][0], None))
                 self.alignment_ids[1].append(meta.id)
+
+    def add_survey(self, surveyed: Survey) -> None:
+        """What the first pass found of the inputs: the IMU's gaps, the warning lines, the LiDARs' clocks."""
+        self.imu_gaps_ms = [float(g) / 1e6 for g in surveyed.imu_gaps_ns]
+        self.warnings += surveyed.warnings
+        self.clock_spread = surveyed.clock_spread
 
     def flag_frames(self) -> None:
         """Name the samples whose frames stand out (`frame_check.frame_flags`), in `frame_flags` and
