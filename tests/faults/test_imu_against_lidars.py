@@ -216,6 +216,29 @@ def test_samples_after_the_imu_stopped_are_left_out_and_counted(tmp_path: Path) 
     assert (tmp_path / "ds" / first).read_bytes() == (tmp_path / "whole" / first).read_bytes()
 
 
+def test_a_gyro_reading_exactly_zero_throughout_is_refused_as_dead(tmp_path: Path) -> None:
+    """Sweep 9: imu_top's gyro 0 in every reading (a dead gyro) on the walk: 4 samples written with their
+    points placed without the rig's turn (10.6-19.4 % of GT off the truth, about 2 % with the gyro), exit
+    0; the gyro check looks where the gyro turns most, and this one never turns. A gyro exactly 0
+    throughout is checked over the recording's start instead, where the LiDARs show the rig turning."""
+
+    def dead(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        if topic != IMU:
+            return [(topic, raw)]
+        s = decode_imu(raw)
+        return [(topic, imu_msg(s.stamp_ns, np.zeros(3), s.acc))]
+
+    bag, rig = rewrite(tmp_path / "dead.mcap", dead, src=WALK)
+    line = _refused(tmp_path, bag, rig, "sparse")
+    assert re.match(
+        r"^imu_top \(/livox/imu_192_168_1_12\): its gyro disagrees with the LiDARs' motion by 100 % of the turn "
+        r"\(median over \d+ intervals of the trajectory; a right IMU: under 15 %\): its gyro reads no turn at all "
+        r"\(every rate exactly 0 rad/s\) while the LiDARs' motion turns \d+\.\d deg per interval: a dead gyro, or "
+        r"a driver that sends no rates; fix the IMU, or remove it from the rig to ingest without it$",
+        line,
+    ), line
+
+
 def test_the_lag_search_finds_a_known_clock_offset_exactly() -> None:
     """A synthetic turn (knots every 100 ms) and a gyro of the same turn stamped 137 ms late."""
     t_ns = np.arange(0, 6_000_000_000, 5_000_000, dtype=np.int64)  # 200 Hz

@@ -173,9 +173,14 @@ def check_gyro(
 ) -> GyroAgreement | None:
     """The IMU's gyro against the odometry of the `CHECK_SPAN_NS` in which it turns most (`judged`: a
     CalibrationError where it disagrees too far); None without an IMU, or where the rig hardly turns or
-    the stretch cannot be registered (nothing to judge)."""
+    the stretch cannot be registered (nothing to judge). A gyro whose every reading is exactly zero (a
+    real one reads its bias and noise even at rest: a dead gyro, or a driver that sends no rates) while
+    its accelerometer's readings vary is checked over the recording's first `CHECK_SPAN_NS`: the LiDARs
+    show whether the rig turned. (A simulated still rig reads exactly zero and one constant acceleration.)"""
     gyro = read_gyro(bags, *imu, bad=bad)
     stretch = turning_stretch(gyro, CHECK_SPAN_NS) if gyro is not None else None
+    if gyro is not None and stretch is None and not gyro.steps.any() and _accelerates(bags, imu[0], bad):
+        stretch = (int(gyro.stamps_ns[0]), int(gyro.stamps_ns[0]) + CHECK_SPAN_NS)
     if gyro is None or stretch is None or imu[0] is None:
         return None
     span, reach = None, None  # a recording not much longer than the stretch: all of it
@@ -188,6 +193,22 @@ def check_gyro(
     except OdometryError:
         return None
     return judged(gyro_agreement(traj, gyro, imu_name, imu[0]), bad)
+
+
+def _accelerates(bags: BagSet, imu_topic: str | None, bad: BadMessages | None) -> bool:
+    """Whether the IMU's acceleration readings differ from each other at all (a sensor that is alive)."""
+    if imu_topic is None:
+        return False
+    first: Any = None
+    for msg in bags.messages(topics=[imu_topic]):
+        sample = (bad or BadMessages()).decoded(msg, bags.label)
+        if not isinstance(sample, ImuSample):
+            continue
+        if first is None:
+            first = np.asarray(sample.acc)
+        elif not np.array_equal(first, sample.acc):
+            return True
+    return False
 
 
 def summarize(

@@ -78,6 +78,7 @@ class GyroAgreement:
     mismatch_at_lag: float
     bias_rad_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
     mismatch_without_bias: float = float("inf")
+    gyro_still: bool = False  # the gyro read no turn at all over the intervals (every rate exactly zero)
     lidars_timed: bool = True  # False: a LiDAR's sweeps carry no point times; the knots cannot judge the gyro
 
     @property
@@ -112,6 +113,12 @@ class GyroAgreement:
             f"{100 * self.mismatch:.0f} % of the turn (median over {self.intervals} intervals of the "
             f"trajectory; a right IMU: under {100 * WARN_MISMATCH:.0f} %)"
         )
+        if self.gyro_still:
+            return (
+                f"{head}: its gyro reads no turn at all (every rate exactly 0 rad/s) while the LiDARs' "
+                f"motion turns {self.median_turn_deg:.1f} deg per interval: a dead gyro, or a driver that "
+                "sends no rates; fix the IMU, or remove it from the rig to ingest without it"
+            )
         if self.mismatch_at_lag <= min(WARN_MISMATCH, 0.5 * self.mismatch) and abs(self.lag_ms) >= 5:
             late, later = ("late", "later") if self.lag_ms > 0 else ("early", "earlier")
             lag = f"{abs(self.lag_ms):.0f} ms"
@@ -223,7 +230,10 @@ def gyro_agreement(traj: RigTrajectory, gyro: GyroTrack, imu: str, topic: str) -
         fine = range(best[1] - LAG_STEP_MS + 1, best[1] + LAG_STEP_MS)
         best = min([best] + [(_mismatch(knot_turn, gyro, t0, t1, lag * MS, need), lag) for lag in fine])
     bias, unbiased = _bias(g, covered, ((t1 - t0)[inside] / 1e9)[:, None])
-    return GyroAgreement(imu, topic, intervals, turn_deg, mismatch, float(best[1]), best[0], bias, unbiased)
+    still = bool(intervals) and not g.any()
+    return GyroAgreement(
+        imu, topic, intervals, turn_deg, mismatch, float(best[1]), best[0], bias, unbiased, gyro_still=still
+    )
 
 
 def _bias(gyro_turn: F64, knot_turn: F64, dt_s: F64) -> tuple[tuple[float, float, float], float]:
