@@ -66,6 +66,12 @@ they agree within half of it is a spike no rigid turn makes (a handheld rig's ra
 milliseconds): single readings 10 rad/s off, one in 40, bent a walk's motion compensation (8 % outliers
 against truth, 2 % clean)."""
 IMU_SPIKE = f"IMU gyro spike (over {GYRO_SPIKE_RAD_S:g} rad/s off both neighbours, which agree)"
+FROZEN_RUN = 3
+"""Readings in a row whose gyro repeats the one before it exactly, turning (not all zero), from which a
+gyro counts as frozen: a live gyro's noise changes its least bit every reading while the rig turns."""
+IMU_FROZEN = (
+    f"IMU gyro repeating its reading before exactly, {FROZEN_RUN}+ in a row while turning (a frozen IMU)"
+)
 IMU_NON_FINITE = "IMU reading with NaN or inf"
 IMU_GYRO = f"IMU gyro beyond {math.degrees(GYRO_LIMIT_RAD_S):.0f} deg/s"
 IMU_ACC = f"IMU acceleration beyond {ACC_LIMIT:.0f} (32 g in m/s^2)"
@@ -75,7 +81,17 @@ POINT_REPEATED = "LiDAR point repeated within its sweep (same time and coordinat
 NOISE_TAG = "point with a Livox noise tag"
 """A point whose Livox tag marks a doubtful echo (`NOISE_TAG_BITS`): the sensor's own verdict, counted but
 not warned about (a few per sweep are normal)."""
-REASONS = (IMU_NON_FINITE, IMU_GYRO, IMU_ACC, IMU_SPIKE, POINT_TIME, POINT_FAR, POINT_REPEATED, NOISE_TAG)
+REASONS = (
+    IMU_NON_FINITE,
+    IMU_GYRO,
+    IMU_ACC,
+    IMU_SPIKE,
+    IMU_FROZEN,
+    POINT_TIME,
+    POINT_FAR,
+    POINT_REPEATED,
+    NOISE_TAG,
+)
 """Why a reading or point was dropped, in the order the summary lists them."""
 
 
@@ -101,6 +117,21 @@ def gyro_spikes(gyro_rad_s: F64) -> np.ndarray[Any, np.dtype[np.bool_]]:
     off = np.linalg.norm(here - 0.5 * (before + after), axis=1) > GYRO_SPIKE_RAD_S
     agree = np.linalg.norm(after - before, axis=1) < 0.5 * GYRO_SPIKE_RAD_S
     out[1:-1] = off & agree
+    return out
+
+
+def gyro_frozen(gyro_rad_s: F64) -> np.ndarray[Any, np.dtype[np.bool_]]:
+    """Which readings of a gyro series (N, 3) in time order repeat the reading before them exactly (not
+    all zero) in a run of at least `FROZEN_RUN`; the first reading of a run, the last one measured, is not."""
+    g = np.asarray(gyro_rad_s)
+    out = np.zeros(len(g), bool)
+    if len(g) < 2:
+        return out
+    same = (g[1:] == g[:-1]).all(axis=1) & (g[1:] != 0).any(axis=1)
+    edges = np.diff(np.concatenate([[0], same.astype(np.int8), [0]]))
+    for start, stop in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1), strict=True):
+        if stop - start >= FROZEN_RUN:
+            out[start + 1 : stop + 1] = True
     return out
 
 
@@ -256,11 +287,15 @@ class Dropped:
         return decoded
 
     def spikes(self, topic: str, stamps_ns: I64, gyro_rad_s: F64) -> np.ndarray[Any, np.dtype[np.bool_]]:
-        """Which readings of a gyro series are spikes (`gyro_spikes`), each counted once by its stamp."""
-        spiked = gyro_spikes(gyro_rad_s)
+        """Which readings of a gyro series are spikes (`gyro_spikes`) or frozen (`gyro_frozen`), each
+        counted once by its stamp."""
+        spiked, frozen = gyro_spikes(gyro_rad_s), gyro_frozen(gyro_rad_s)
         for stamp in stamps_ns[spiked]:
             self.by_message[(topic, int(stamp))] = {IMU_SPIKE: 1}
-        return spiked
+        for stamp in stamps_ns[frozen & ~spiked]:
+            self.by_message[(topic, int(stamp))] = {IMU_FROZEN: 1}
+        out: np.ndarray[Any, np.dtype[np.bool_]] = spiked | frozen
+        return out
 
     def by_topic(self) -> dict[str, dict[str, int]]:
         """Per topic (sorted), per reason (in `REASONS` order): readings or points dropped."""
@@ -290,7 +325,7 @@ class Dropped:
                 first = min(log for (t, log), c in self.by_message.items() if t == topic and why in c)
                 what = "reading" if why.startswith("IMU") else "point"
                 sec, nsec = divmod(first, 1_000_000_000)
-                when = "stamp" if why == IMU_SPIKE else "log time"
+                when = "stamp" if why in (IMU_SPIKE, IMU_FROZEN) else "log time"
                 out.append(
                     f"{topic}: dropped {n:,} {what}{'' if n == 1 else 's'}: {why} "
                     f"(first at {when} {sec}.{nsec:09d} s)"

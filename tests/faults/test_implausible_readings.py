@@ -490,6 +490,33 @@ def test_single_gyro_spikes_are_dropped_counted_and_give_the_gt_without_them(tmp
     )  # fmt: skip
 
 
+def test_a_frozen_gyro_is_dropped_counted_and_its_samples_left_out(tmp_path: Path) -> None:
+    """Sweep 9: imu_top stuck from reading 70 on (every later reading repeats reading 69's, a frozen IMU):
+    sample 000003 was written with 11.9 % of its GT off the truth (2.1 % clean), its lines blaming both
+    images. Readings whose gyro repeats the one before exactly, turning, 3+ in a row are dropped and
+    counted; the samples whose windows they held have no IMU reading left, and are left out."""
+    from ingest.train.plausible import IMU_FROZEN
+    from ingest.train.run.sample_sparse import IMU_SILENT_REASON
+
+    readings = [decode_imu(m) for m in _messages(WALK, IMU)]
+
+    def stuck(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        if topic != IMU or k < 70:
+            return [(topic, raw)]
+        frozen = readings[69]
+        return [(topic, imu_msg(readings[k].stamp_ns, frozen.gyro_rad_s, frozen.acc))]
+
+    summary, _ = _run(tmp_path, "stuck", stuck, gt="sparse", workers=1, every=5, height_full=64)
+    frozen = len(readings) - 70
+    assert summary.dropped == {IMU: {IMU_FROZEN: frozen}}
+    assert summary.skipped.get(IMU_SILENT_REASON) == 2, summary.skipped
+    assert any(
+        w.startswith(f"{IMU}: dropped {frozen} readings: IMU gyro repeating its reading before exactly, 3+ in a "
+                     "row while turning (a frozen IMU) (first at stamp ")
+        for w in summary.warnings
+    )  # fmt: skip
+
+
 def test_one_lidars_points_on_both_topics_are_refused(tmp_path: Path) -> None:
     """Sweep 7: lidar_bottom's topic carrying lidar_top's points (its own stamps) was ingested, 28 % of the
     depth GT outliers against truth, the line blaming lidar_bottom's pose, clock or IMU."""
