@@ -67,8 +67,10 @@ milliseconds): single readings 10 rad/s off, one in 40, bent a walk's motion com
 against truth, 2 % clean)."""
 IMU_SPIKE = f"IMU gyro spike (over {GYRO_SPIKE_RAD_S:g} rad/s off both neighbours, which agree)"
 FROZEN_RUN = 3
-"""Readings in a row whose gyro repeats the one before it exactly, turning (not all zero), from which a
-gyro counts as frozen: a live gyro's noise changes its least bit every reading while the rig turns."""
+FROZEN_TURN_RAD_S = 0.1
+"""Readings in a row whose gyro repeats the one before it exactly while reading a turn over
+`FROZEN_TURN_RAD_S` (5.7 deg/s), from which a gyro counts as frozen: while the rig turns, its motion and
+the gyro's noise change every reading. (At rest a quantised gyro may repeat its bias for a while.)"""
 IMU_FROZEN = (
     f"IMU gyro repeating its reading before exactly, {FROZEN_RUN}+ in a row while turning (a frozen IMU)"
 )
@@ -121,13 +123,14 @@ def gyro_spikes(gyro_rad_s: F64) -> np.ndarray[Any, np.dtype[np.bool_]]:
 
 
 def gyro_frozen(gyro_rad_s: F64) -> np.ndarray[Any, np.dtype[np.bool_]]:
-    """Which readings of a gyro series (N, 3) in time order repeat the reading before them exactly (not
-    all zero) in a run of at least `FROZEN_RUN`; the first reading of a run, the last one measured, is not."""
+    """Which readings of a gyro series (N, 3) in time order repeat the reading before them exactly, turning
+    (`FROZEN_TURN_RAD_S`), in a run of at least `FROZEN_RUN`; a run's first reading, the last one
+    measured, is not."""
     g = np.asarray(gyro_rad_s)
     out = np.zeros(len(g), bool)
     if len(g) < 2:
         return out
-    same = (g[1:] == g[:-1]).all(axis=1) & (g[1:] != 0).any(axis=1)
+    same = (g[1:] == g[:-1]).all(axis=1) & (np.linalg.norm(g[1:], axis=1) > FROZEN_TURN_RAD_S)
     edges = np.diff(np.concatenate([[0], same.astype(np.int8), [0]]))
     for start, stop in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1), strict=True):
         if stop - start >= FROZEN_RUN:
