@@ -21,8 +21,9 @@ MIN_STRETCH_POINTS = 400
 """Points a stretch needs to be measured."""
 QUERY_POINTS = 400
 """Points of a stretch looked up (evenly spread over its order), and `TREE_POINTS` of each other stretch
-searched: enough for a share to +-0.03, at about 5 ms per LiDAR and sample."""
+searched, among them `NEIGHBOURS` nearest: enough for a share to +-0.03."""
 TREE_POINTS = 4000
+NEIGHBOURS = 16
 NEAR_M = 0.03
 NEAR_RANGE = 0.01
 """A point has a neighbour when another stretch holds one within `NEAR_M` plus `NEAR_RANGE` of its range."""
@@ -47,23 +48,24 @@ def _spread(n: int, limit: int) -> I64:
 def stretch_shares(pts_cam0: F64, stamps_ns: I64) -> list[float | None]:
     """Per stretch of one LiDAR's window (`stretch_of`): the share of its points with a neighbour among
     the other stretches' points (m, in cam0 at the exposure); None for a stretch under
-    `MIN_STRETCH_POINTS`."""
+    `MIN_STRETCH_POINTS`.
+
+    One tree holds every stretch's `TREE_POINTS`; a point's `NEIGHBOURS` nearest in it are searched for
+    one of another stretch (a point's own stretch crowds its scan line, so its nearest are often its own).
+    """
     out: list[float | None] = [None] * WINDOW_PARTS
     finite = np.isfinite(pts_cam0).all(axis=1)
     pts, part = pts_cam0[finite], stretch_of(stamps_ns[finite])
     members = [np.flatnonzero(part == k) for k in range(WINDOW_PARTS)]
-    trees = {
-        k: cKDTree(pts[idx[_spread(len(idx), TREE_POINTS)]])
-        for k, idx in enumerate(members)
-        if len(idx) >= MIN_STRETCH_POINTS
-    }
-    for k in trees:
+    measured = [k for k, idx in enumerate(members) if len(idx) >= MIN_STRETCH_POINTS]
+    if len(measured) < 2:
+        return out
+    held = np.concatenate([members[k][_spread(len(members[k]), TREE_POINTS)] for k in measured])
+    tree, label = cKDTree(pts[held], balanced_tree=False), np.append(part[held], -1)  # -1: no neighbour
+    for k in measured:
         q = pts[members[k][_spread(len(members[k]), QUERY_POINTS)]]
         bound = NEAR_M + NEAR_RANGE * np.linalg.norm(q, axis=1)
-        near = np.zeros(len(q), bool)
-        for other, tree in trees.items():
-            if other != k:
-                d, _ = tree.query(q, distance_upper_bound=float(bound.max()))
-                near |= d <= bound
-        out[k] = round(float(near.mean()), 4)
+        d, j = tree.query(q, k=NEIGHBOURS, distance_upper_bound=float(bound.max()))
+        other = (label[j] != k) & (label[j] >= 0) & (d <= bound[:, None])
+        out[k] = round(float(other.any(axis=1).mean()), 4)
     return out
