@@ -277,15 +277,17 @@ def _lidars_apart(
 
 
 def _parts_apart(records: list[FrameRecord], named: set[str]) -> dict[str, list[str]]:
-    """Per LiDAR, the samples not `named` yet with a stretch of its window out of place (`_part_out`)."""
+    """Per LiDAR, the samples not `named` yet with a stretch of its window out of place (`_part_out`); by
+    the image only where the image does not lie off every LiDAR's points (`_off`: the frame's fault, named
+    as such)."""
     found: dict[str, list[str]] = {}
     for r in records:
         if r.id in named:
             continue
+        image_off = _off(r.upper)  # the image lies off every LiDAR: its stretches' matches say nothing
         for lidar in sorted({*r.parts, *r.fit}):
-            if _part_out(r.parts.get(lidar, []), PART_MATCH, MIN_MEDIAN) or _part_out(
-                r.fit.get(lidar, []), FIT_MATCH, MIN_FIT
-            ):
+            by_image = not image_off and _part_out(r.parts.get(lidar, []), PART_MATCH, MIN_MEDIAN)
+            if by_image or _part_out(r.fit.get(lidar, []), FIT_MATCH, MIN_FIT):
                 found.setdefault(part_kind(lidar), []).append(r.id)
     return found
 
