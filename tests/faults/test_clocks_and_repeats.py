@@ -228,7 +228,9 @@ def test_a_lidar_gap_skips_the_dense_samples_it_touches(tmp_path: Path) -> None:
         return [] if topic in (LIDAR_TOP, LIDAR_BOTTOM) and k in (3, 4) else [(topic, raw)]
 
     bag, rig = rewrite(tmp_path / "bag.mcap", gap)
-    dense = ingest([bag], IngestConfig(rig=rig, out=tmp_path / "dense", workers=1, every=1, gt="dense"))
+    dense = ingest(
+        [bag], IngestConfig(rig=rig, out=tmp_path / "dense", workers=1, every=1, gt="dense", height_full=96)
+    )
     assert dense.trajectory is not None and dense.trajectory.gaps >= 1
     assert dense.skipped.get(GAP_REASON, 0) >= 1
     assert dense.written + sum(dense.skipped.values()) == dense.planned
@@ -249,8 +251,12 @@ def test_a_lidar_gap_skips_the_dense_samples_it_touches(tmp_path: Path) -> None:
     }
 
     # --gt auto keeps dense GT and gives the frames in the gap the sparse GT a sparse run gives them
-    auto = ingest([bag], IngestConfig(rig=rig, out=tmp_path / "auto", workers=1, every=1, gt="auto"))
-    sparse = ingest([bag], IngestConfig(rig=rig, out=tmp_path / "sparse", workers=1, every=1, gt="sparse"))
+    auto = ingest(
+        [bag], IngestConfig(rig=rig, out=tmp_path / "auto", workers=1, every=1, gt="auto", height_full=96)
+    )
+    sparse = ingest(
+        [bag], IngestConfig(rig=rig, out=tmp_path / "sparse", workers=1, every=1, gt="sparse", height_full=96)
+    )
     assert auto.method == "dense" and "in LiDAR gaps: frames there get sparse GT" in auto.decision
     # frames with no LiDAR point within +-50 ms are skipped, as a sparse run leaves them unplanned; the
     # frames past the trajectory's ends are skipped as in a dense run
