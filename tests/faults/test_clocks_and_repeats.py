@@ -307,7 +307,9 @@ def test_a_lidar_gap_skips_the_dense_samples_it_touches(tmp_path: Path) -> None:
     with pytest.raises(
         DatasetError, match=r"before with sparse GT over \+-50 ms, now dense GT over \+-1000 ms \(auto: "
     ):
-        ingest([bag], IngestConfig(rig=rig, out=tmp_path / "auto", workers=1, every=1, gt="auto"))
+        ingest(
+            [bag], IngestConfig(rig=rig, out=tmp_path / "auto", workers=1, every=1, gt="auto", height_full=96)
+        )
 
 
 @pytest.mark.parametrize("gt", ["dense", "auto"])
