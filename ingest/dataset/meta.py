@@ -50,7 +50,8 @@ class PointMeta:
     off_trajectory: int = 0  # dense: points without a registered pose near the frame (a gap, the ends)
     off_imu: int = 0  # sparse: points outside the IMU readings' span (their rotation unknown), left out
     range_ratio: dict[str, list[float]] = field(default_factory=dict)  # sparse: per LiDAR after the first,
-    # [median ratio of its range to the first's where cam0 sees both in a pixel, pixels] (lidar_agreement)
+    # [median ratio of its range to the first's where cam0 sees both in a pixel, pixels, the ratios' robust
+    # 1-sigma scatter] (lidar_agreement)
 
 
 @dataclass(frozen=True)

@@ -1,7 +1,10 @@
 """How the LiDARs' ranges agree on the surfaces they both see: where cam0 sees a point of two LiDARs in
 one pixel, both lie on the same surface along that pixel's ray, so their ranges from cam0 should be the
 same. A LiDAR whose ranges read a few per cent long (a range scale, a unit or an offset fault) passes
-every other check: its points still fall where its pose puts them, only too far out along the ray."""
+every other check: its points still fall where its pose puts them, only too far out along the ray. The
+same pixels' ratios scatter by the two LiDARs' range noise: a LiDAR far noisier than a Mid-360 (or one
+whose points land apart from the other's: a time or pose error that varies over the window) scatters them
+as no other check sees, since its points still lie around the right surfaces."""
 
 from __future__ import annotations
 
@@ -13,14 +16,18 @@ from calibration.types import F64, I64, Bool
 
 MIN_PAIRS = 50
 """Pixels holding points of both LiDARs below which a sample says nothing about their agreement."""
+MAD_TO_SIGMA = 1.4826
+"""A normal distribution's 1-sigma per median absolute deviation."""
 
 
 def range_ratios(
     pts_cam0: F64, visible: Bool, cols: F64, rows: F64, which: I64, names: Sequence[str], width: int
-) -> dict[str, tuple[float, int]]:
+) -> dict[str, tuple[float, int, float]]:
     """Per LiDAR after the first: the median ratio of its range (m, from cam0) to the first LiDAR's in the
-    pixels where cam0 sees a visible point of both (the nearest of each), and how many such pixels;
-    none with fewer than `MIN_PAIRS` (a LiDAR barely in view, or one LiDAR only).
+    pixels where cam0 sees a visible point of both (the nearest of each), how many such pixels, and the
+    ratios' scatter (the robust 1-sigma of their log, `MAD_TO_SIGMA` times its median absolute deviation:
+    a fraction of range, sqrt(2) times each LiDAR's relative range noise when they are alike); none with
+    fewer than `MIN_PAIRS` (a LiDAR barely in view, or one LiDAR only).
 
     `cols` and `rows` are each point's pixel (`ingest.train.gt.groundtruth.in_view`), `which` its LiDAR
     (an index into `names`), `width` the image's width.
@@ -36,7 +43,10 @@ def range_ratios(
         mine = _nearest(pixel[lidar == k], range_m[lidar == k])
         shared, a, b = np.intersect1d(mine[0], first[0], assume_unique=True, return_indices=True)
         if len(shared) >= MIN_PAIRS:
-            out[names[k]] = (float(np.median(mine[1][a] / first[1][b])), len(shared))
+            ratio = mine[1][a] / first[1][b]
+            log_ratio = np.log(ratio)
+            scatter = MAD_TO_SIGMA * np.median(np.abs(log_ratio - np.median(log_ratio)))
+            out[names[k]] = (float(np.median(ratio)), len(shared), float(scatter))
     return out
 
 

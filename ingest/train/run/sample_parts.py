@@ -285,4 +285,4 @@ def range_ratio_field(
     seen, cols, rows_px = in_view(model, pts_cam0) if view is None else view
     names = [lp.name for lp in job.lidars]
     found = range_ratios(pts_cam0, seen, cols, rows_px, cloud.lidar, names, model.width)
-    return {name: [round(ratio, 5), pairs] for name, (ratio, pairs) in found.items()}
+    return {name: [round(r, 5), pairs, round(spread, 5)] for name, (r, pairs, spread) in found.items()}

@@ -44,6 +44,10 @@ RANGE_MIN_PIXELS = 200
 """A LiDAR's ranges disagree with the first LiDAR's beyond this fraction (median of the samples' median
 ratios, over at least this many pixels seen by both): on the simulated room and walk an exact rig agrees
 to 0.03 %, a LiDAR reading 5 % long gives 0.952, one reading 0.3 m long 0.93."""
+RANGE_SCATTER = 0.02
+"""The LiDARs' ranges scatter beyond this (median over the samples of the ratios' robust 1-sigma,
+`ingest.train.gt.lidar_agreement.range_ratios`, over at least `RANGE_MIN_PIXELS` pixels): the simulated
+fixtures with a Mid-360's 2 cm noise give 0.1-0.9 %, ranges with 0.1 m noise 3.2-3.5 %, 0.3 m 9-10 %."""
 
 
 @dataclass
@@ -94,14 +98,16 @@ class IngestSummary:
     frame_flags: dict[str, list[str]] = field(default_factory=dict)  # its findings: kind -> sample ids
     _frame_lines: list[str] = field(default_factory=list)  # their warning lines (`flag_frames`)
     _frames: FrameFlags | None = None  # what `flag_frames` found
-    range_ratios: dict[str, list[tuple[float, int]]] = field(default_factory=dict)  # per LiDAR, per sample
+    range_ratios: dict[str, list[tuple[float, int, float | None]]] = field(
+        default_factory=dict
+    )  # per LiDAR, per sample: `SampleMeta.points.range_ratio` (scatter None in an older meta)
 
     def range_line(self, first: str) -> str:
         """One warning line on the LiDARs whose ranges disagree with the rig's first LiDAR's (`first`) by
         over `RANGE_DISAGREE`, median over the samples, where cam0 sees both in a pixel ('' if none)."""
         lines = []
         for name, found in self.range_ratios.items():
-            ratio, pixels = float(np.median([r for r, _ in found])), sum(n for _, n in found)
+            ratio, pixels = float(np.median([r for r, _, _ in found])), sum(n for _, n, _ in found)
             if abs(ratio - 1.0) <= RANGE_DISAGREE or pixels < RANGE_MIN_PIXELS:
                 continue
             how = f"{100 * abs(ratio - 1):.2f} % {'longer' if ratio > 1 else 'shorter'}"
@@ -114,11 +120,21 @@ class IngestSummary:
             )
         return "; ".join(lines)
 
+    def scatter_line(self, first: str) -> str:
+        """One warning line on the LiDARs whose ranges scatter against the first LiDAR's (`first`) beyond
+        `RANGE_SCATTER` where cam0 sees both in a pixel ('' if none)."""
+        return "; ".join(
+            line
+            for name, found in self.range_ratios.items()
+            if (line := _scatter_line(name, first, found, sum(n for _, n, _ in found)))
+        )
+
     def closing_lines(self, first_lidar: str) -> list[str]:
         """The warning lines the written samples give together, in order (`first_lidar`: the rig's first
         LiDAR, the others' ranges are compared with), with those of `flag_frames`."""
         found = [self.without_gt_line(), self.without_disparity_line(), *self._frame_lines]
-        return [line for line in (*found, self.range_line(first_lidar)) if line]
+        ranges = (self.range_line(first_lidar), self.scatter_line(first_lidar))
+        return [line for line in (*found, *ranges) if line]
 
     def without_gt_line(self) -> str:
         """One warning line when written samples hold no GT pixel, with their points by filter ('' if none).
@@ -248,8 +264,9 @@ class IngestSummary:
         self._add_alignments(meta)
         self.frame_records.append(FrameRecord.from_meta(meta))
         self.skew_ms.extend(meta.lidar_skew_ms.values())
-        for name, (ratio, pixels) in meta.points.range_ratio.items():
-            self.range_ratios.setdefault(name, []).append((ratio, int(pixels)))
+        for name, (ratio, pixels, *scatter) in meta.points.range_ratio.items():
+            spread = scatter[0] if scatter else None
+            self.range_ratios.setdefault(name, []).append((ratio, int(pixels), spread))
         self.stereo_dt_ms.append(meta.stereo_dt_ms)
         for name in meta.points.silent_lidars:
             key = f"{name} silent in the window"
@@ -272,3 +289,19 @@ class IngestSummary:
             self.stage_ms.setdefault(k, []).append(v)
         for k, v in result.overlapped_ms.items():
             self.overlapped_ms.setdefault(k, []).append(v)
+
+
+def _scatter_line(name: str, first: str, found: list[tuple[float, int, float | None]], pixels: int) -> str:
+    """One warning line when LiDAR `name`'s ranges scatter against the first LiDAR's (`first`) beyond
+    `RANGE_SCATTER` (median over the samples that measured it; '' otherwise)."""
+    measured = [s for _, _, s in found if s is not None]
+    if not measured or pixels < RANGE_MIN_PIXELS or (scatter := float(np.median(measured))) <= RANGE_SCATTER:
+        return ""
+    return (
+        f"{name}'s and {first}'s ranges scatter by {100 * scatter:.1f} % against each other on the surfaces "
+        f"cam0 sees both on (robust 1-sigma of their ratio, median over {len(measured)} samples and "
+        f"{pixels:,} pixels; two Mid-360s agree within about 1 %): one of them or both measure with range "
+        "noise far beyond a Mid-360's 2 cm (a degraded or wrong sensor), or their points land apart (a "
+        "clock or pose error that varies over the window), and the depth GT carries that noise: ingest with "
+        "each alone (the other left out of the rig) to see which matches the images"
+    )
