@@ -147,6 +147,8 @@ class SampleMeta:
     # its window's point times matched with the upper image (`ingest.train.gt.align.part_correlations`)
     window_fit: dict[str, list[float | None]] = field(default_factory=dict)  # per LiDAR: each stretch's
     # share of points near the window's other stretches' (`ingest.train.gt.window_fit.stretch_shares`)
+    stereo_offset: list[float] | None = None  # the lower rectified image's shift against the upper at the
+    # disparity GT's pixels: [across, along the epipolar lines (px), pixels] (`ingest.train.gt.stereo_offset`)
 
     def written(
         self, sid: str, dropped: dict[str, int], files: dict[str, FileMeta] | None = None
@@ -188,6 +190,7 @@ class SampleMeta:
                           for k, v in d.get("window_parts", {}).items()},
             window_fit={str(k): [None if c is None else float(c) for c in v]
                         for k, v in d.get("window_fit", {}).items()},
+            stereo_offset=None if d.get("stereo_offset") is None else [float(v) for v in d["stereo_offset"]],
         )  # fmt: skip
 
 

@@ -19,7 +19,11 @@ anyway, compared with the run's other samples, since the scene sets what "normal
 - one stretch of a LiDAR's window matches the upper image far worse than the window's other stretches
   (below `PART_MATCH` of their median), or its points lie far from theirs (`FIT_MATCH`): that LiDAR's
   sweep there is out of place (a glitched sweep turned, moved or mirrored). This one needs no run median,
-  so it holds however few samples share the fault.
+  so it holds however few samples share the fault;
+- (of a sample none of these names) the lower rectified image sits shifted against the upper one at the
+  disparity GT's pixels by over `PAIR_SHIFT_PX` more than the run's other pairs
+  (`ingest.train.gt.stereo_offset`: one camera's frame moved by a readout glitch, a frame of another
+  moment, a camera knocked).
 
 A sample is named for the first of these that it shows, per camera. Most of a run's samples showing one
 is not a frame out of place but a rig or camchain fault, which the calibration check names.
@@ -76,6 +80,12 @@ FLAT_MORE = 0.2
 FLAT_ALL = 0.99
 """A sample's image is blank when it is flat over `FLAT_MORE` more of its area than the run's median
 image of that camera (the corners a fisheye never lights are flat in every sample), or over `FLAT_ALL`."""
+PAIR_SHIFT_PX = 0.5
+"""A sample's pair is shifted when its lower image's shift against the upper (`SampleMeta.stereo_offset`)
+differs from the run's median by over this, across or along the epipolar lines (px of the rectified
+equirect): the simulated fixtures' pairs lie within 0.08 px of it, the walk with one lower frame moved 1 px
+right (1.08 px of its 512-px equirect) 1.2 px off; a LiDAR's alignment onto a 480-px fisheye cannot tell
+that frame from its others (0.98 against 0.57 px)."""
 MIN_MEDIAN = 0.2
 """Below this median correlation the points do not match the run's images well enough to measure by."""
 MIN_SAMPLES = 3
@@ -132,12 +142,15 @@ class FrameRecord:
     lower: Mapping[str, AlignmentMeta]  # the lower image's quick check
     parts: Mapping[str, list[float | None]] = field(default_factory=dict)  # `SampleMeta.window_parts`
     fit: Mapping[str, list[float | None]] = field(default_factory=dict)  # `SampleMeta.window_fit`
+    pair_shift: tuple[float, float] | None = None  # `SampleMeta.stereo_offset`'s shift (px)
 
     @classmethod
     def from_meta(cls, meta: SampleMeta) -> FrameRecord:
+        shift = None if meta.stereo_offset is None else (meta.stereo_offset[0], meta.stereo_offset[1])
         return cls(
-            meta.id, meta.frame_check, meta.alignment, meta.lower_check, meta.window_parts, meta.window_fit
-        )
+            meta.id, meta.frame_check, meta.alignment, meta.lower_check, meta.window_parts, meta.window_fit,
+            shift,
+        )  # fmt: skip
 
 
 CAMERAS = ("upper", "lower")
@@ -171,6 +184,7 @@ class FrameFlags:
     correlation_median: dict[str, dict[str, float]]
     lower_off_most: list[str] = field(default_factory=list)  # lower images off in most samples: not named
     # here; the stereo pose's check explains them, or `lower_off_line` names them
+    pair_shift_median: tuple[float, float] = (0.0, 0.0)  # the run's median `FrameRecord.pair_shift` (px)
 
 
 def kind(camera: str, what: str) -> str:
@@ -179,6 +193,8 @@ def kind(camera: str, what: str) -> str:
         return "upper and lower images identical"
     if what == "swapped":
         return "upper and lower images with red and blue swapped against each other"
+    if what == "shifted":
+        return "upper and lower images shifted against each other"
     return {
         "off": f"{camera} image off every LiDAR's points (> {OFF_IMAGE_DEG:g} deg)",
         "poor": f"{camera} image matching the points far worse than the run's",
@@ -223,7 +239,26 @@ def frame_flags(records: list[FrameRecord]) -> FrameFlags:
             elif ids:
                 found[kind(camera, what)] = ids
                 taken.update(ids)
-    return FrameFlags(found, len(records), flat_median, corr_median, most)
+    shift_median = _shift_median(records)
+    taken = set(identical).union(*found.values())
+    shifted = [r.id for r in records if many and r.id not in taken and _shifted(r.pair_shift, shift_median)]
+    if shifted:
+        found[kind("", "shifted")] = shifted
+    return FrameFlags(found, len(records), flat_median, corr_median, most, shift_median)
+
+
+def _shift_median(records: list[FrameRecord]) -> tuple[float, float]:
+    """The run's median pair shift (px, across and along the epipolar lines)."""
+    shifts = [r.pair_shift for r in records if r.pair_shift is not None]
+    if not shifts:
+        return (0.0, 0.0)
+    dx, dy = np.median(np.asarray(shifts, np.float64), axis=0)
+    return (float(dx), float(dy))
+
+
+def _shifted(shift: tuple[float, float] | None, median: tuple[float, float]) -> bool:
+    """The pair's shift differs from the run's median by over `PAIR_SHIFT_PX` across or along the lines."""
+    return shift is not None and max(abs(shift[0] - median[0]), abs(shift[1] - median[1])) > PAIR_SHIFT_PX
 
 
 def _swapped(check: FrameCheckMeta | None) -> bool:
@@ -373,6 +408,13 @@ def _phrase(what: str, flags: FrameFlags) -> str:
     article = "an" if camera == "upper" else "a"
     if what == kind("", "identical"):
         return "identical upper and lower images"
+    if what == kind("", "shifted"):
+        dx, dy = flags.pair_shift_median
+        return (
+            f"a lower image shifted against its upper image by over {PAIR_SHIFT_PX:g} px more than the "
+            "run's other pairs, across or along the epipolar lines, where the disparity GT lays one onto the "
+            f"other (the run's median shift {dx:+.2f} px across, {dy:+.2f} px along)"
+        )
     if what == kind("", "swapped"):
         return (
             f"upper and lower images whose colour balances (log red/blue) differ by over {SWAP_MIN:g} and "
@@ -399,6 +441,11 @@ def _cause(what: str) -> str:
     tail = "the samples are written and flagged in the summary: leave them out of training"
     if what == kind("", "identical"):
         return f"one camera's frame was published on both cameras' topics; {tail}"
+    if what == kind("", "shifted"):
+        return (
+            "one camera's frame is moved against the other's and against the GT (a readout glitch, a frame "
+            f"of another moment, a camera knocked), so the disparity GT does not hold for the pair; {tail}"
+        )
     if what == kind("", "swapped"):
         return (
             "one camera's images carry red and blue in the other order (a driver publishing rgb8 bytes as "

@@ -22,6 +22,7 @@ from ingest.runtime.background import Background
 from ingest.train.gt.align import MAX_POINTS, ImageLevels, align_points, part_correlations
 from ingest.train.gt.groundtruth import in_view
 from ingest.train.gt.lidar_agreement import range_ratios
+from ingest.train.gt.stereo_offset import pair_offset
 from ingest.train.gt.window_fit import stretch_shares
 from ingest.train.run.frame_check import frame_check
 from ingest.train.run.sample_job import SampleJob, SampleResult
@@ -267,6 +268,7 @@ def finish_sample(
         frames_sha256=frame_digest(job.upper_bgr, job.lower_bgr),
         frame_check=frame_check(job.upper_bgr, job.lower_bgr, job.repeated),
         settings=job.settings,
+        stereo_offset=None if (offset := pair_offset(up, down, gt[1])) is None else offset.to_meta(),
     )
     files = SampleFiles(job.upper_bgr, job.lower_bgr, up, down, gt[1], gt[0], meta)
     drops = write_sample(job.out, job.sid, files, job.params.exr, job.params.png_level)
