@@ -94,7 +94,7 @@ def view_dataset(
         if tmp is not None:
             tmp.unlink(missing_ok=True)
             if _write_failed(err):
-                raise OutputError(f"cannot write {save}: {err}") from err
+                raise OutputError(f"cannot write {save}: {_write_problem(err, tmp.parent)}") from err
         raise
     rec.disconnect()
     if save is not None and tmp is not None:
@@ -108,8 +108,21 @@ def view_dataset(
 
 def _write_failed(err: BaseException) -> bool:
     """Whether Rerun's binding failed writing the .rrd: it reports an OS error (a full disk) as a plain
-    RuntimeError whose text names it ("... No space left on device (os error 28)")."""
-    return isinstance(err, RuntimeError) and "(os error " in str(err)
+    RuntimeError whose text names it ("... No space left on device (os error 28)"), or, when its writer
+    thread died of one first, as "File-writer thread shut down prematurely"."""
+    return isinstance(err, RuntimeError) and ("(os error " in str(err) or "File-writer" in str(err))
+
+
+def _write_problem(err: BaseException, folder: Path) -> str:
+    """What stopped the .rrd's writer in `folder`: Rerun's own words, and the space left there when its
+    words name no OS error (a writer thread that died of a full disk says only that it stopped)."""
+    if "(os error " in str(err):
+        return str(err)
+    try:
+        free = shutil.disk_usage(folder).free
+    except OSError:
+        return f"Rerun's file writer stopped ({err})"
+    return f"Rerun's file writer stopped ({err}); {free:,} bytes free on its file system"
 
 
 def display_problem(env: Mapping[str, str], platform: str) -> str | None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -35,6 +36,7 @@ from sensorbox.analysis.view_files import (
     read_tum,
 )
 from sensorbox.analysis.view_train import train_layout
+from tests.faults.cli import sensorbox
 from tests.paths import FIXTURES_DIR, ROOT
 
 rerun_chunk = pytest.importorskip("rerun.chunk")
@@ -242,6 +244,29 @@ def test_a_sample_whose_metadata_is_a_fifo_is_named_not_read(dense_ds: Path, tmp
         view_dataset(broken, tmp_path / "x.rrd")
     assert str(err.value) == f"{broken}/meta/000001.json: is a FIFO (named pipe), not a sample metadata file"
     assert not (tmp_path / "x.rrd").exists() and not (tmp_path / ".x.rrd.tmp").exists()
+
+
+def test_a_writer_that_dies_of_a_full_disk_is_one_line_and_exit_3(
+    dense_ds: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Sweep 10: `view --save` onto a full file system ended in a traceback ('RuntimeError: File-writer
+    thread shut down prematurely', from Rerun's flush: its writer thread died of the full disk first and
+    says only that). It is the output refused (exit 3, one line naming the file and the space left), and
+    no partial recording is left."""
+    import rerun
+
+    def died(self: object, *args: object, **kwargs: object) -> None:
+        raise RuntimeError("File-writer thread shut down prematurely")
+
+    monkeypatch.setattr(rerun.RecordingStream, "flush", died)
+    code, _, lines = sensorbox(capsys, "view", str(dense_ds), "--save", str(tmp_path / "out" / "v.rrd"))
+    assert code == 3
+    assert len(lines) == 1 and re.fullmatch(
+        rf"error: cannot write {re.escape(str(tmp_path / 'out' / 'v.rrd'))}: Rerun's file writer stopped "
+        r"\(File-writer thread shut down prematurely\); [\d,]+ bytes free on its file system",
+        lines[0],
+    ), lines
+    assert list((tmp_path / "out").iterdir()) == []
 
 
 def test_save_onto_a_folder_is_refused(dense_ds: Path, tmp_path: Path) -> None:
