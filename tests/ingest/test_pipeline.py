@@ -59,6 +59,9 @@ def test_static_indoor_depth_and_disparity_match_the_truth(full_res_static: tupl
         assert score.depth_median_abs_m <= 0.002
         assert score.depth_outlier_rate <= 0.005, score
         assert score.disp_median_abs_px <= 0.05 and score.disp_over_1px_rate <= 0.005, score
+        # the pair as written lies where its disparity GT lays one image onto the other
+        dx_px, dy_px, pixels = read_meta(out, score.sid).stereo_offset or [np.nan] * 3
+        assert abs(dx_px) < 0.05 and abs(dy_px) < 0.05 and pixels == 5000, (dx_px, dy_px)
 
 
 def test_walk_outdoor_with_motion_compensation(tmp_path: Path) -> None:

@@ -86,6 +86,11 @@ differs from the run's median by over this, across or along the epipolar lines (
 equirect): the simulated fixtures' pairs lie within 0.08 px of it, the walk with one lower frame moved 1 px
 right (1.08 px of its 512-px equirect) 1.2 px off; a LiDAR's alignment onto a 480-px fisheye cannot tell
 that frame from its others (0.98 against 0.57 px)."""
+PAIR_OFF_PX = 0.25
+"""The run's pairs sit off their disparity GT when the median pair shift (`SampleMeta.stereo_offset`, over
+at least `MIN_SAMPLES`) passes this across or along the epipolar lines (px of the rectified equirect): the
+simulated fixtures' runs lie within 0.05 px; the room with the camchain's baseline 10 mm (8 %) short 0.47 px
+along (its disparity GT 0.51 px off the truth), 2 mm short 0.1 px."""
 MIN_MEDIAN = 0.2
 """Below this median correlation the points do not match the run's images well enough to measure by."""
 MIN_SAMPLES = 3
@@ -185,6 +190,7 @@ class FrameFlags:
     lower_off_most: list[str] = field(default_factory=list)  # lower images off in most samples: not named
     # here; the stereo pose's check explains them, or `lower_off_line` names them
     pair_shift_median: tuple[float, float] = (0.0, 0.0)  # the run's median `FrameRecord.pair_shift` (px)
+    pair_shift_samples: int = 0  # ... over this many samples
 
 
 def kind(camera: str, what: str) -> str:
@@ -239,21 +245,21 @@ def frame_flags(records: list[FrameRecord]) -> FrameFlags:
             elif ids:
                 found[kind(camera, what)] = ids
                 taken.update(ids)
-    shift_median = _shift_median(records)
+    shift_median, shifts = _shift_median(records)
     taken = set(identical).union(*found.values())
     shifted = [r.id for r in records if many and r.id not in taken and _shifted(r.pair_shift, shift_median)]
     if shifted:
         found[kind("", "shifted")] = shifted
-    return FrameFlags(found, len(records), flat_median, corr_median, most, shift_median)
+    return FrameFlags(found, len(records), flat_median, corr_median, most, shift_median, shifts)
 
 
-def _shift_median(records: list[FrameRecord]) -> tuple[float, float]:
-    """The run's median pair shift (px, across and along the epipolar lines)."""
+def _shift_median(records: list[FrameRecord]) -> tuple[tuple[float, float], int]:
+    """The run's median pair shift (px, across and along the epipolar lines) and the samples measured."""
     shifts = [r.pair_shift for r in records if r.pair_shift is not None]
     if not shifts:
-        return (0.0, 0.0)
+        return (0.0, 0.0), 0
     dx, dy = np.median(np.asarray(shifts, np.float64), axis=0)
-    return (float(dx), float(dy))
+    return (float(dx), float(dy)), len(shifts)
 
 
 def _shifted(shift: tuple[float, float] | None, median: tuple[float, float]) -> bool:
@@ -379,10 +385,27 @@ def lower_off_line(ids: list[str], samples: int) -> str:
     )
 
 
+def pair_off_line(flags: FrameFlags) -> str:
+    """One line when the run's median pair shift passes `PAIR_OFF_PX` ('' otherwise): every pair sits off
+    where its disparity GT lays the lower image onto the upper, which no frame fault does to most samples
+    alike, so the camchain's stereo pose (baseline length or rotation) is not the cameras'."""
+    dx, dy = flags.pair_shift_median
+    if flags.pair_shift_samples < MIN_SAMPLES or max(abs(dx), abs(dy)) <= PAIR_OFF_PX:
+        return ""
+    return (
+        f"the lower images sit {dx:+.2f} px across and {dy:+.2f} px along the epipolar lines from where the "
+        f"disparity GT lays them onto the upper images (median over {flags.pair_shift_samples} samples; a "
+        f"right camchain gives under {PAIR_OFF_PX:g} px): the camchain's stereo pose (its baseline length or "
+        "rotation, T_cn_cnm1) is not the cameras', so the disparity GT does not hold for the pairs; "
+        "calibrate the pair again or correct the camchain"
+    )
+
+
 def flag_lines(flags: FrameFlags) -> list[str]:
-    """One warning line per finding, naming its samples (the first five), out of the samples judged."""
+    """One warning line per finding, naming its samples (the first five), out of the samples judged, and
+    `pair_off_line` when it has one."""
     judged = flags.samples
-    lines = []
+    lines = [line] if (line := pair_off_line(flags)) else []
     for what, ids in flags.found.items():
         shown = ", ".join(ids[:5]) + (", ..." if len(ids) > 5 else "")
         lines.append(f"{len(ids)} of {judged} samples have {_phrase(what, flags)} ({shown}): {_cause(what)}")
