@@ -149,6 +149,8 @@ class SampleMeta:
     # share of points near the window's other stretches' (`ingest.train.gt.window_fit.stretch_shares`)
     stereo_offset: list[float] | None = None  # the lower rectified image's shift against the upper at the
     # disparity GT's pixels: [across, along the epipolar lines (px), pixels] (`ingest.train.gt.stereo_offset`)
+    stereo_offset_quadrants: list[list[float] | None] = field(default_factory=list)  # the same shift in each
+    # quadrant of those pixels: upper left, upper right, lower left, lower right, [across, along] or null
 
     def written(
         self, sid: str, dropped: dict[str, int], files: dict[str, FileMeta] | None = None
@@ -191,6 +193,8 @@ class SampleMeta:
             window_fit={str(k): [None if c is None else float(c) for c in v]
                         for k, v in d.get("window_fit", {}).items()},
             stereo_offset=None if d.get("stereo_offset") is None else [float(v) for v in d["stereo_offset"]],
+            stereo_offset_quadrants=[None if q is None else [float(v) for v in q]
+                                     for q in d.get("stereo_offset_quadrants", [])],
         )  # fmt: skip
 
 

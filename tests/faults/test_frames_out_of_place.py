@@ -151,6 +151,28 @@ def test_a_lower_frame_moved_by_one_pixel_is_named_by_the_pair_shift(tmp_path: P
         assert abs(shifts[sid][0]) < 0.1 and abs(shifts[sid][1]) < 0.1, shifts
 
 
+def _turned(image: np.ndarray, deg: float) -> np.ndarray:
+    """`image` turned by `deg` about its centre (a glitched frame)."""
+    h, w = image.shape[:2]
+    turn = cv2.getRotationMatrix2D(((w - 1) / 2, (h - 1) / 2), deg, 1.0)
+    return cv2.warpAffine(image, turn, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+
+
+def test_an_upper_frame_turned_by_one_degree_is_named_by_its_quadrants(tmp_path: Path) -> None:
+    """Sweep 10: the walk's upper frame 10 turned 1 deg about its centre (4 px at the edge of 480) wrote
+    sample 000002 without a word: its whole pair shift is 0.29 px, the LiDAR alignments see a fraction of a
+    pixel. Its GT pixels' quadrants shift apart (up to 1.0 px off the run's median of each; the fixtures'
+    within 0.36): named as a pair shifted against each other."""
+    bag, rig = rewrite(
+        tmp_path / "turned.mcap", _edited(UPPER, 10, lambda im, all_: _turned(im, 1.0)), src=WALK
+    )
+    summary = ingest([bag], IngestConfig(rig=rig, out=tmp_path / "ds", workers=1, every=5))
+    assert summary.frame_flags == {"upper and lower images shifted against each other": ["000002"]}
+    meta = json.loads((tmp_path / "ds" / "meta" / "000002.json").read_text())
+    assert abs(meta["stereo_offset"][0]) < 0.5 and abs(meta["stereo_offset"][1]) < 0.5
+    assert max(abs(v) for q in meta["stereo_offset_quadrants"] for v in q) > 0.6
+
+
 LIDAR_TOP, LIDAR_BOTTOM = "/livox/lidar_192_168_1_12", "/livox/lidar_192_168_1_13"
 
 

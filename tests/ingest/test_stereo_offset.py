@@ -67,3 +67,21 @@ def test_too_few_disparity_pixels_or_a_flat_pair_give_no_shift() -> None:
     assert pair_offset(upper, lower, few) is None
     flat = np.full_like(upper, 128)
     assert pair_offset(flat, flat, _sparse()) is None
+
+
+def test_a_pair_torn_down_the_middle_shifts_its_quadrants_apart() -> None:
+    """The lower image's left half moved 1 px across the lines, its right half not: the left quadrants
+    come back at 1 px, the right ones at 0, and the whole between."""
+    upper, moved = _pair(1.0, 0.0)
+    _, kept = _pair(0.0, 0.0)
+    lower = kept.copy()
+    lower[:, : W // 2] = moved[:, : W // 2]
+    found = pair_offset(upper, lower, _sparse())
+    assert found is not None and len(found.quadrants) == 4 and all(q is not None for q in found.quadrants)
+    (ul, ur, ll, lr) = found.quadrants
+    assert ul is not None and ll is not None and ur is not None and lr is not None
+    for left in (ul, ll):
+        assert left[0] == pytest.approx(1.0, abs=0.1) and abs(left[1]) < 0.06
+    for right in (ur, lr):
+        assert abs(right[0]) < 0.06 and abs(right[1]) < 0.06
+    assert 0.2 < found.dx_px < 0.8

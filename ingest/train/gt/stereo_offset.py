@@ -36,14 +36,21 @@ views of a surface)."""
 
 @dataclass(frozen=True)
 class PairOffset:
-    """The lower image's shift against the upper (px of the rectified equirect) and the pixels used."""
+    """The lower image's shift against the upper (px of the rectified equirect), the pixels used, and the
+    same shift fitted in each quadrant of them (split at their median column and row: upper left, upper
+    right, lower left, lower right; None for one under `MIN_PIXELS` / 4): a frame turned, torn or half of
+    another moment shifts its quadrants apart while their mean may stay near 0."""
 
     dx_px: float  # across the epipolar lines (columns)
     dy_px: float  # along them (rows): a disparity bias
     pixels: int
+    quadrants: tuple[tuple[float, float] | None, ...] = ()
 
     def to_meta(self) -> list[float]:
         return [round(self.dx_px, 3), round(self.dy_px, 3), self.pixels]
+
+    def quadrants_meta(self) -> list[list[float] | None]:
+        return [None if q is None else [round(q[0], 3), round(q[1], 3)] for q in self.quadrants]
 
 
 def _grey(image: np.ndarray) -> F32:
@@ -68,29 +75,30 @@ def _spread(n: int, limit: int) -> I64:
     return np.linspace(0, n - 1, limit).round().astype(np.int64)
 
 
-def pair_offset(upper: np.ndarray, lower: np.ndarray, disparity: SparseImage) -> PairOffset | None:
-    """The shift of the `lower` rectified image against the `upper` one (both 8-bit, same shape) that best
-    lays it onto the upper image at `disparity`'s pixels (px of the full sphere, the equirects' pitch), with
-    a gain and offset between the cameras; None with under `MIN_PIXELS` of them inside both images or no
-    texture there."""
-    if len(disparity.pixel) < MIN_PIXELS or upper.shape[:2] != lower.shape[:2]:
-        return None
-    keep = _spread(len(disparity.pixel), MAX_PIXELS)
-    width = disparity.shape[1]
-    rows, cols = np.divmod(disparity.pixel[keep], width)
-    up, down = _grey(upper), _grey(lower)
-    ref = up[rows, cols].astype(np.float64)
-    lower_rows = rows - disparity.value[keep].astype(np.float64)
-    grad_x: F32 = cv2.Sobel(down, cv2.CV_32F, 1, 0, ksize=3) * np.float32(0.125)  # per pixel
-    grad_y: F32 = cv2.Sobel(down, cv2.CV_32F, 0, 1, ksize=3) * np.float32(0.125)
+@dataclass(frozen=True)
+class _Pair:
+    """The lower image and its gradients (per pixel), and the GT pixels: their upper grey levels, columns
+    and the lower rows their disparity puts them at."""
+
+    lower: F32
+    grad_x: F32
+    grad_y: F32
+    ref: F64
+    cols: F64
+    lower_rows: F64
+
+
+def _fit(pair: _Pair, idx: I64, least: int) -> tuple[float, float, int] | None:
+    """The shift (dx, dy px) that best lays the lower image onto the upper at the GT pixels `idx`, from no
+    shift, with a gain and offset; None with under `least` of them inside the image or no texture."""
     shift, affine = np.zeros(2), np.array([1.0, 0.0])  # lower = gain * upper + offset
-    used = 0
+    ref, used = pair.ref[idx], 0
     for _ in range(ITERATIONS):
-        x, y = cols + shift[0], lower_rows + shift[1]
-        sampled = np.stack([_at(down, x, y), _at(grad_x, x, y), _at(grad_y, x, y)], axis=1)
+        x, y = pair.cols[idx] + shift[0], pair.lower_rows[idx] + shift[1]
+        sampled = np.stack([_at(pair.lower, x, y), _at(pair.grad_x, x, y), _at(pair.grad_y, x, y)], axis=1)
         ok = np.isfinite(sampled).all(axis=1)
         used = int(ok.sum())
-        if used < MIN_PIXELS:
+        if used < least:
             return None
         value, gx, gy = sampled[ok].T
         residual = value - (affine[0] * ref[ok] + affine[1])
@@ -108,4 +116,32 @@ def pair_offset(upper: np.ndarray, lower: np.ndarray, disparity: SparseImage) ->
         affine += delta[2:]
     if not np.isfinite(shift).all():
         return None
-    return PairOffset(float(shift[0]), float(shift[1]), used)
+    return float(shift[0]), float(shift[1]), used
+
+
+def pair_offset(upper: np.ndarray, lower: np.ndarray, disparity: SparseImage) -> PairOffset | None:
+    """The shift of the `lower` rectified image against the `upper` one (both 8-bit, same shape) that best
+    lays it onto the upper image at `disparity`'s pixels (px of the full sphere, the equirects' pitch), with
+    a gain and offset between the cameras, over them all and per quadrant; None with under `MIN_PIXELS` of
+    them inside both images or no texture there."""
+    if len(disparity.pixel) < MIN_PIXELS or upper.shape[:2] != lower.shape[:2]:
+        return None
+    keep = _spread(len(disparity.pixel), MAX_PIXELS)
+    rows, cols = np.divmod(disparity.pixel[keep], disparity.shape[1])
+    down = _grey(lower)
+    pair = _Pair(
+        down, cv2.Sobel(down, cv2.CV_32F, 1, 0, ksize=3) * np.float32(0.125),
+        cv2.Sobel(down, cv2.CV_32F, 0, 1, ksize=3) * np.float32(0.125),
+        _grey(upper)[rows, cols].astype(np.float64), cols.astype(np.float64),
+        rows - disparity.value[keep].astype(np.float64),
+    )  # fmt: skip
+    whole = _fit(pair, np.arange(len(keep)), MIN_PIXELS)
+    if whole is None:
+        return None
+    right, low = cols >= np.median(cols), rows >= np.median(rows)
+    quadrants = tuple(
+        None if (found := _fit(pair, np.flatnonzero((low == b) & (right == r)), MIN_PIXELS // 4)) is None
+        else found[:2]
+        for b in (False, True) for r in (False, True)
+    )  # fmt: skip
+    return PairOffset(*whole, quadrants)

@@ -86,6 +86,12 @@ differs from the run's median by over this, across or along the epipolar lines (
 equirect): the simulated fixtures' pairs lie within 0.08 px of it, the walk with one lower frame moved 1 px
 right (1.08 px of its 512-px equirect) 1.2 px off; a LiDAR's alignment onto a 480-px fisheye cannot tell
 that frame from its others (0.98 against 0.57 px)."""
+PAIR_QUADRANT_PX = 0.6
+QUADRANTS = 4
+"""... or one quadrant of its GT pixels' shift (`SampleMeta.stereo_offset_quadrants`) differs from the
+run's median of that quadrant by over this: the fixtures' quadrants lie within 0.36 px of theirs (the dense
+walk; sparse 0.2); an upper frame turned 1 deg about its centre (4 px at the edge of 480) 1.0 px, with its
+whole shift 0.29."""
 PAIR_OFF_PX = 0.25
 """The run's pairs sit off their disparity GT when the median pair shift (`SampleMeta.stereo_offset`, over
 at least `MIN_SAMPLES`) passes this across or along the epipolar lines (px of the rectified equirect): the
@@ -148,13 +154,15 @@ class FrameRecord:
     parts: Mapping[str, list[float | None]] = field(default_factory=dict)  # `SampleMeta.window_parts`
     fit: Mapping[str, list[float | None]] = field(default_factory=dict)  # `SampleMeta.window_fit`
     pair_shift: tuple[float, float] | None = None  # `SampleMeta.stereo_offset`'s shift (px)
+    pair_quadrants: tuple[tuple[float, float] | None, ...] = ()  # `SampleMeta.stereo_offset_quadrants`
 
     @classmethod
     def from_meta(cls, meta: SampleMeta) -> FrameRecord:
         shift = None if meta.stereo_offset is None else (meta.stereo_offset[0], meta.stereo_offset[1])
+        quadrants = tuple(None if q is None else (q[0], q[1]) for q in meta.stereo_offset_quadrants)
         return cls(
             meta.id, meta.frame_check, meta.alignment, meta.lower_check, meta.window_parts, meta.window_fit,
-            shift,
+            shift, quadrants,
         )  # fmt: skip
 
 
@@ -246,8 +254,12 @@ def frame_flags(records: list[FrameRecord]) -> FrameFlags:
                 found[kind(camera, what)] = ids
                 taken.update(ids)
     shift_median, shifts = _shift_median(records)
+    quadrant_medians = _quadrant_medians(records)
     taken = set(identical).union(*found.values())
-    shifted = [r.id for r in records if many and r.id not in taken and _shifted(r.pair_shift, shift_median)]
+    shifted = [
+        r.id for r in records
+        if many and r.id not in taken and _shifted(r, shift_median, quadrant_medians)
+    ]  # fmt: skip
     if shifted:
         found[kind("", "shifted")] = shifted
     return FrameFlags(found, len(records), flat_median, corr_median, most, shift_median, shifts)
@@ -262,9 +274,32 @@ def _shift_median(records: list[FrameRecord]) -> tuple[tuple[float, float], int]
     return (float(dx), float(dy)), len(shifts)
 
 
-def _shifted(shift: tuple[float, float] | None, median: tuple[float, float]) -> bool:
-    """The pair's shift differs from the run's median by over `PAIR_SHIFT_PX` across or along the lines."""
-    return shift is not None and max(abs(shift[0] - median[0]), abs(shift[1] - median[1])) > PAIR_SHIFT_PX
+def _quadrant_medians(records: list[FrameRecord]) -> list[tuple[float, float] | None]:
+    """Per quadrant of the pairs' GT pixels, the run's median shift (None where no sample measured it)."""
+    out: list[tuple[float, float] | None] = []
+    for k in range(QUADRANTS):
+        found = [q for r in records if len(r.pair_quadrants) == QUADRANTS and (q := r.pair_quadrants[k])]
+        out.append(None if not found else (_median([q[0] for q in found]), _median([q[1] for q in found])))
+    return out
+
+
+def _apart(a: tuple[float, float], b: tuple[float, float]) -> float:
+    return max(abs(a[0] - b[0]), abs(a[1] - b[1]))
+
+
+def _shifted(
+    r: FrameRecord, median: tuple[float, float], quadrant_medians: list[tuple[float, float] | None]
+) -> bool:
+    """The pair's shift differs from the run's median by over `PAIR_SHIFT_PX` across or along the lines,
+    or one quadrant's from the run's median of that quadrant by over `PAIR_QUADRANT_PX`."""
+    if r.pair_shift is None:
+        return False
+    if _apart(r.pair_shift, median) > PAIR_SHIFT_PX:
+        return True
+    return any(
+        q is not None and m is not None and _apart(q, m) > PAIR_QUADRANT_PX
+        for q, m in zip(r.pair_quadrants, quadrant_medians, strict=False)
+    )
 
 
 def _swapped(check: FrameCheckMeta | None) -> bool:
@@ -434,9 +469,10 @@ def _phrase(what: str, flags: FrameFlags) -> str:
     if what == kind("", "shifted"):
         dx, dy = flags.pair_shift_median
         return (
-            f"a lower image shifted against its upper image by over {PAIR_SHIFT_PX:g} px more than the "
-            "run's other pairs, across or along the epipolar lines, where the disparity GT lays one onto the "
-            f"other (the run's median shift {dx:+.2f} px across, {dy:+.2f} px along)"
+            f"a lower image shifted against its upper image by over {PAIR_SHIFT_PX:g} px (or a quadrant of "
+            f"it by over {PAIR_QUADRANT_PX:g} px) more than the run's other pairs, across or along the "
+            "epipolar lines, where the disparity GT lays one onto the other (the run's median shift "
+            f"{dx:+.2f} px across, {dy:+.2f} px along)"
         )
     if what == kind("", "swapped"):
         return (

@@ -269,6 +269,7 @@ def finish_sample(
         frame_check=frame_check(job.upper_bgr, job.lower_bgr, job.repeated),
         settings=job.settings,
         stereo_offset=None if (offset := pair_offset(up, down, gt[1])) is None else offset.to_meta(),
+        stereo_offset_quadrants=[] if offset is None else offset.quadrants_meta(),
     )
     files = SampleFiles(job.upper_bgr, job.lower_bgr, up, down, gt[1], gt[0], meta)
     drops = write_sample(job.out, job.sid, files, job.params.exr, job.params.png_level)
