@@ -14,14 +14,8 @@ from calibration.types import F64
 from ingest.dataset.meta import SampleMeta
 from ingest.train.gt.align import Alignment
 from ingest.train.gt.align_check import CalibrationCheck, SampleAlignments, from_metas
-from ingest.train.run.frame_check import (
-    FrameFlags,
-    FrameRecord,
-    flag_lines,
-    frame_flags,
-    kind,
-    lower_off_line,
-)
+from ingest.train.run.frame_check import FrameFlags, FrameRecord, frame_flags, kind
+from ingest.train.run.frame_lines import flag_lines, lower_off_line
 from ingest.train.run.lidar_rate import THIN_FRACTION
 from ingest.train.run.refine import Refinement
 from ingest.train.run.sample_dense import GAP_FALLBACK
