@@ -48,7 +48,11 @@ META_NOT_SCALARS = frozenset(
     {"id", "stamp_ns", "exposure_ns", "lower_stamp_ns", "frames_sha256", "files", "settings", "source_bag"}
 )
 # names of a list's elements, by its key (else x, y, z for three, else the index)
-ELEMENT_NAMES = {"twist_cam0": ("angular_x", "angular_y", "angular_z", "linear_x", "linear_y", "linear_z")}
+ELEMENT_NAMES = {
+    "twist_cam0": ("angular_x", "angular_y", "angular_z", "linear_x", "linear_y", "linear_z"),
+    "range_ratio": ("ratio", "pixels", "scatter"),  # per LiDAR: named by the key above it
+    "stereo_offset": ("across_px", "along_px", "pixels"),
+}
 XYZ = ("x", "y", "z")
 SAMPLE_ID = re.compile(r"^\d+$")
 BENCHMARK_FOLDER = re.compile(r"^(?P<fov>[\d.]+)FOV/(?P<baseline>[\d.]+)mm/(?P<camera>[A-Z]+)$")
@@ -141,16 +145,18 @@ def meta_scalars(meta: Mapping[str, Any], prefix: tuple[str, ...] = ()) -> dict[
             if all(isinstance(v, str) for v in value):
                 out[path] = float(len(value))
             elif all(isinstance(v, int | float) and not isinstance(v, bool) for v in value):
-                names = element_names(str(key), len(value))
+                names = element_names(path, len(value))
                 out.update({(*path, name): float(v) for name, v in zip(names, value, strict=True)})
     return out
 
 
-def element_names(key: str, n: int) -> tuple[str, ...]:
-    """Names of the `n` elements of the list under `key`: its own (ELEMENT_NAMES), x/y/z, else 0, 1, ..."""
-    named = ELEMENT_NAMES.get(key)
-    if named is not None and len(named) == n:
-        return named
+def element_names(path: tuple[str, ...], n: int) -> tuple[str, ...]:
+    """Names of the `n` elements of the list at key `path`: its key's own (ELEMENT_NAMES) or those of the
+    key above it (a list per LiDAR), x/y/z, else 0, 1, ..."""
+    for key in path[::-1][:2]:
+        named = ELEMENT_NAMES.get(key)
+        if named is not None and len(named) == n:
+            return named
     return XYZ if n == 3 else tuple(str(k) for k in range(n))
 
 

@@ -115,7 +115,7 @@ def test_train_dataset_saved_and_read_back(dense_ds: Path, tmp_path: Path) -> No
     lines = res.stdout.strip().splitlines()
     assert len(lines) == 1
     assert lines[0].startswith(
-        f"{dense_ds} (train layout): 4 samples; 16 images; 8 depth images; 141 series (512 values); "
+        f"{dense_ds} (train layout): 4 samples; 16 images; 8 depth images; 145 series (528 values); "
         "4 on the trajectory; 5 rig frames; saved "
     )
     assert not list(tmp_path.glob(".*.tmp"))
@@ -153,6 +153,8 @@ def test_train_dataset_saved_and_read_back(dense_ds: Path, tmp_path: Path) -> No
             "meta/motion/predicted_motion_px": meta["motion"]["predicted_motion_px"],
             "meta/stereo_dt_ms": meta["stereo_dt_ms"],
             "meta/twist_cam0/linear_z": meta["twist_cam0"][5],
+            "meta/points/range_ratio/lidar_bottom/scatter": meta["points"]["range_ratio"]["lidar_bottom"][2],
+            "meta/stereo_offset/across_px": meta["stereo_offset"][0],
         }
         for name in ("lidar_top", "lidar_bottom"):
             for field in ("shift_deg", "correlation", "points"):
