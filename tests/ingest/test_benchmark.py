@@ -85,6 +85,7 @@ def _folder(b, fov, base, cam):
     return b["dir"] / f"{fov}FOV" / f"{base}mm" / cam
 
 
+@pytest.mark.xdist_group("bench")  # one worker renders the module's benchmark once
 def test_indexing_reports_each_scan_before_the_first_view(bench):
     from ingest.render.benchmark import PASS_INDEX
 
@@ -92,6 +93,7 @@ def test_indexing_reports_each_scan_before_the_first_view(bench):
     assert bench["passes"] == [(PASS_INDEX, k, n) for k in range(n + 1)]
 
 
+@pytest.mark.xdist_group("bench")  # one worker renders the module's benchmark once
 def test_layout_files_and_types(bench):
     s = bench["summary"]
     # CENTER: pinhole + 3 per FOV; per baseline: DOWN pinhole + 2 per FOV, RIGHT pinhole + 3 per FOV
@@ -134,6 +136,7 @@ def test_layout_files_and_types(bench):
         assert np.abs(exr * 1000 - a).max() <= 0.5 and ((exr > 0) == (a > 0)).all()
 
 
+@pytest.mark.xdist_group("bench")  # one worker renders the module's benchmark once
 def test_scene_yaml_describes_every_camera(bench):
     doc, ref = bench["doc"], bench["ref"]
     assert doc["view"]["bundle"] == ["s0", "s1", "s2"] and doc["view"]["center_scan"] == "s0"
@@ -165,6 +168,7 @@ def _rays(model, cols, rows):
     return rays
 
 
+@pytest.mark.xdist_group("bench")  # one worker renders the module's benchmark once
 def test_vertical_disparity_is_where_the_down_camera_sees_the_point(bench):
     cam = bench["doc"]["cameras"]["120FOV"]["pano_crop"]
     eq = Equirectangular(640).crop(cam["row_offset"], cam["col_offset"], cam["height"], cam["width"])
@@ -192,6 +196,7 @@ def _bad3(gt, est):
     return float((np.abs(gt - est)[ok] > 3.0).mean()), int(ok.sum())
 
 
+@pytest.mark.xdist_group("bench")  # one worker renders the module's benchmark once
 def test_sgbm_agrees_with_the_vertical_pair_gt(bench):
     c, d = _folder(bench, 120, 120, "CENTER"), _folder(bench, 120, 120, "DOWN")
     up, down = (_img(f / "pano_crop.png", cv2.IMREAD_GRAYSCALE) for f in (c, d))
@@ -208,6 +213,7 @@ def test_sgbm_agrees_with_the_vertical_pair_gt(bench):
     assert shifted > 0.8  # a GT 5 px off would be caught
 
 
+@pytest.mark.xdist_group("bench")  # one worker renders the module's benchmark once
 def test_horizontal_pinhole_pair(bench):
     ph = bench["doc"]["cameras"]["120FOV"]["pinhole"]
     model = Pinhole(ph["fx"], ph["fy"], ph["cx"], ph["cy"], ph["width"], ph["height"])
@@ -260,6 +266,7 @@ def _release_configs(fovs, baselines):
             yield from ((fov, base, i, p) for i in images for p in ("DOWN", "RIGHT"))
 
 
+@pytest.mark.xdist_group("bench")  # one worker renders the module's benchmark once
 def test_every_release_configuration_has_aligned_files(bench):
     configs = list(_release_configs((120, 195), (120, 300)))
     assert len(configs) == 2 * (8 + 4)  # 120FOV: 8 per baseline, 195FOV: 4
@@ -269,6 +276,7 @@ def test_every_release_configuration_has_aligned_files(bench):
         assert len(shapes) == 1, (fov, base, image, partner, shapes)
 
 
+@pytest.mark.xdist_group("bench")  # one worker renders the module's benchmark once
 def test_vertical_pinhole_pair_shares_f_b_over_z(bench):
     c, d = _folder(bench, 120, 300, "CENTER"), _folder(bench, 120, 300, "DOWN")
     gt = _exr(c / "disparity" / "pinhole.exr")
@@ -285,6 +293,7 @@ def test_vertical_pinhole_pair_shares_f_b_over_z(bench):
     assert shifted > 0.8
 
 
+@pytest.mark.xdist_group("bench")  # one worker renders the module's benchmark once
 def test_right_pano_is_the_right_camera_in_center_orientation(bench):
     """RIGHT/pano warped to the Cassini window equals RIGHT/cassini_crop (another render of that camera)."""
     cam = bench["doc"]["cameras"]["120FOV"]["cassini_crop"]
@@ -310,6 +319,7 @@ def test_right_pano_is_the_right_camera_in_center_orientation(bench):
     )
 
 
+@pytest.mark.xdist_group("bench")  # one worker renders the module's benchmark once
 def test_cassini_pair_disparity_runs_along_rows(bench):
     cam = bench["doc"]["cameras"]["195FOV"]["cassini_crop"]
     m = CroppedModel(
@@ -325,6 +335,7 @@ def test_cassini_pair_disparity_runs_along_rows(bench):
     np.testing.assert_allclose(uv[:, 1], rows, atol=2e-3)
 
 
+@pytest.mark.xdist_group("bench")  # one worker renders the module's benchmark once
 def test_rerun_skips_finished_scenes_and_bad_setups_are_refused(bench):
     stamp = (bench["dir"] / "scene.yaml").stat().st_mtime_ns
     again = run_benchmark(bench["scans"], bench["ref"], bench["out"], CFG)
@@ -364,6 +375,7 @@ def _cli(*args):
                           check=False)  # fmt: skip
 
 
+@pytest.mark.xdist_group("bench")  # one worker renders the module's benchmark once
 def test_cli_renders_and_summarises(bench, tmp_path):
     res = _cli("render-benchmark", str(bench["root"] / "site" / "site.yaml"), "--rig", str(RIG), "--out",
                str(tmp_path / "b"), "--size", "96x64", "--fov", "140", "--baseline", "65", "--center", "s1",

@@ -126,6 +126,7 @@ def late_walk(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return out
 
 
+@pytest.mark.xdist_group("late_walk")  # one worker renders the module's walk once
 def test_refine_recovers_the_camera_offsets_of_a_rendered_walk(late_walk: Path) -> None:
     """The rig without its offsets and with the top LiDAR (and its IMU) turned by 1 deg: the offsets come
     back within 3 sigma and 1.5 ms at this resolution; the rotation is found to within its sigma but
@@ -203,6 +204,7 @@ def test_refine_cli_writes_the_refined_rig_and_says_what_it_could_not_see(
     assert not (tmp_path / "x.yaml").exists()
 
 
+@pytest.mark.xdist_group("late_walk")  # one worker renders the module's walk once
 def test_ingest_refine_times_the_samples_with_the_offsets_it_found(late_walk: Path, tmp_path: Path) -> None:
     """`ingest --refine` with a rig that has no offsets: every sample's exposure is its stamp plus the
     estimate (within 1.5 ms of the truth), the summary carries the refinement, dataset.yaml says where

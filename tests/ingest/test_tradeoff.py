@@ -162,6 +162,7 @@ def runs(tmp_path_factory: pytest.TempPathFactory) -> list[Measurement]:
     )  # fmt: skip
 
 
+@pytest.mark.xdist_group("tradeoff_runs")  # one worker measures the runs once
 def test_runner_measures_and_scores_each_alternative(runs: list[Measurement]) -> None:
     default, off = runs
     assert (default.alternative, off.alternative) == ("default", "occlusion filter off")
@@ -188,6 +189,7 @@ def test_sgbm_finds_a_vertical_shift() -> None:
     assert num_disparities_for(512 / np.pi, 0.12, 0.5) == 48
 
 
+@pytest.mark.xdist_group("tradeoff_runs")  # one worker measures the runs once
 def test_equirect_vs_cubemap_on_a_fixture_sample(runs: list[Measurement]) -> None:
     out = runs[0].out
     assert out is not None

@@ -45,6 +45,9 @@ INDOOR = FIXTURES_DIR / "indoor_static_mcap"
 IMAGE_ENTITIES = ("cam0/fisheye", "cam1/fisheye", "equirect/up", "equirect/down_virt")
 
 
+pytestmark = pytest.mark.xdist_group("view")  # one worker builds the module's datasets once
+
+
 @pytest.fixture(scope="module")
 def dense_ds(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("view") / "ds"
