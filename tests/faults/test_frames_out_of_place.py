@@ -324,25 +324,32 @@ STRETCH_LINE = (
 )
 
 
+def _sweep_turned(topic: str, index: int, axes: tuple[str, str], deg: float) -> Keep:
+    """Sweep `index` of `topic` with its points turned by `deg` in the plane of `axes` (("y", "z"): about
+    the sensor's x; ("x", "y"): about its z)."""
+    from ingest.bags.livox_msg import decode_custom_msg, encode_custom_msg
+
+    c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
+    a, b = axes
+
+    def keep(on: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        if (on, k) != (topic, index):
+            return [(on, raw)]
+        msg = decode_custom_msg(raw)
+        points = msg.points.copy()
+        u, v = msg.points[a].astype(np.float64), msg.points[b].astype(np.float64)
+        points[a], points[b] = c * u - s * v, s * u + c * v
+        return [(on, encode_custom_msg(msg.stamp_ns, msg.frame_id, msg.timebase_ns, points, msg.lidar_id))]
+
+    return keep
+
+
 def test_a_sweep_tilted_5_deg_is_named_by_its_points_off_the_others(tmp_path: Path) -> None:
     """Sweep 9: lidar_bottom's sweep 3 turned 5 deg about the sensor's x: samples 000002 and 000003 at 7.3
     and 7.2 % of their GT off the truth (2.2 % clean), exit 0, no line. The stretches of their windows that
     the sweep covers still match the image's texture (0.30-0.37 against 0.5), but their points lie near
     the window's other points at 0.40-0.45 of the median stretch's share (the fixtures': 0.78 and above)."""
-    from ingest.bags.livox_msg import decode_custom_msg, encode_custom_msg
-
-    c, s = np.cos(np.radians(5.0)), np.sin(np.radians(5.0))
-
-    def keep(on: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
-        if (on, k) != (LIDAR_BOTTOM, 3):
-            return [(on, raw)]
-        msg = decode_custom_msg(raw)
-        points = msg.points.copy()
-        y, z = msg.points["y"].astype(np.float64), msg.points["z"].astype(np.float64)
-        points["y"], points["z"] = c * y - s * z, s * y + c * z
-        return [(on, encode_custom_msg(msg.stamp_ns, msg.frame_id, msg.timebase_ns, points, msg.lidar_id))]
-
-    bag, rig = rewrite(tmp_path / "tilted.mcap", keep, src=WALK)
+    bag, rig = rewrite(tmp_path / "tilted.mcap", _sweep_turned(LIDAR_BOTTOM, 3, ("y", "z"), 5.0), src=WALK)
     summary = ingest([bag], IngestConfig(rig=rig, out=tmp_path / "ds", workers=1, every=5))
     assert summary.frame_flags == {STRETCH: ["000002", "000003"]}
     assert STRETCH_LINE in summary.warnings
@@ -353,22 +360,10 @@ def test_a_sweep_turned_2_deg_in_a_still_room_is_named_by_the_lidars_ranges(tmp_
     of its GT off the truth (0.37-0.51 % clean), exit 0, no line. The sweep covers most of the window, so
     its stretches agree with each other; but where cam0 sees both LiDARs in a pixel, lidar_bottom's ranges
     scatter against lidar_top's by 2.7 % there, against 0.12-0.17 % in the run's other samples."""
-    from ingest.bags.livox_msg import decode_custom_msg, encode_custom_msg
     from ingest.train.run.frame_check import scatter_kind
     from tests.faults.bags import INDOOR
 
-    c, s = np.cos(np.radians(2.0)), np.sin(np.radians(2.0))
-
-    def keep(on: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
-        if (on, k) != (LIDAR_BOTTOM, 3):
-            return [(on, raw)]
-        msg = decode_custom_msg(raw)
-        points = msg.points.copy()
-        x, y = msg.points["x"].astype(np.float64), msg.points["y"].astype(np.float64)
-        points["x"], points["y"] = c * x - s * y, s * x + c * y
-        return [(on, encode_custom_msg(msg.stamp_ns, msg.frame_id, msg.timebase_ns, points, msg.lidar_id))]
-
-    bag, rig = rewrite(tmp_path / "turned.mcap", keep, src=INDOOR)
+    bag, rig = rewrite(tmp_path / "turned.mcap", _sweep_turned(LIDAR_BOTTOM, 3, ("x", "y"), 2.0), src=INDOOR)
     summary = ingest([bag], IngestConfig(rig=rig, out=tmp_path / "ds", workers=1, every=5, height_full=96))
     assert summary.frame_flags == {scatter_kind("lidar_bottom"): ["000002"]}
     scatter = [s for _, _, s in summary.range_ratios["lidar_bottom"]]
