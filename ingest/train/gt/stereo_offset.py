@@ -29,6 +29,8 @@ ITERATIONS = 6
 """Gauss-Newton steps from no shift: made pairs shifted by 1 px converge to 0.001 px in three; the walk's
 pair with its lower frame moved 1 px reaches 1.20 of the 1.21 px that twelve give (robust weights settle
 slowly)."""
+QUADRANT_ITERATIONS = 3
+"""Steps of each quadrant's fit, from the whole pair's shift, gain and offset."""
 CAUCHY_SCALE = 2.0
 """Residuals weighted down beyond this many robust sigmas (occlusion edges, speculars, the pair's two
 views of a surface)."""
@@ -88,12 +90,16 @@ class _Pair:
     lower_rows: F64
 
 
-def _fit(pair: _Pair, idx: I64, least: int) -> tuple[float, float, int] | None:
-    """The shift (dx, dy px) that best lays the lower image onto the upper at the GT pixels `idx`, from no
-    shift, with a gain and offset; None with under `least` of them inside the image or no texture."""
-    shift, affine = np.zeros(2), np.array([1.0, 0.0])  # lower = gain * upper + offset
+def _fit(
+    pair: _Pair, idx: I64, least: int, start: F64 | None = None, iterations: int = ITERATIONS
+) -> tuple[F64, int] | None:
+    """The shift (dx, dy px) and the gain and offset (lower = gain * upper + offset) that best lay the
+    lower image onto the upper at the GT pixels `idx`, from `start` (those four; default: no shift, gain
+    1), and the pixels used; None with under `least` of them inside the image or no texture."""
+    state = np.array([0.0, 0.0, 1.0, 0.0]) if start is None else start.copy()
+    shift, affine = state[:2], state[2:]  # views: updated in place
     ref, used = pair.ref[idx], 0
-    for _ in range(ITERATIONS):
+    for _ in range(iterations):
         x, y = pair.cols[idx] + shift[0], pair.lower_rows[idx] + shift[1]
         sampled = np.stack([_at(pair.lower, x, y), _at(pair.grad_x, x, y), _at(pair.grad_y, x, y)], axis=1)
         ok = np.isfinite(sampled).all(axis=1)
@@ -114,9 +120,9 @@ def _fit(pair: _Pair, idx: I64, least: int) -> tuple[float, float, int] | None:
             return None
         shift += delta[:2]
         affine += delta[2:]
-    if not np.isfinite(shift).all():
+    if not np.isfinite(state).all():
         return None
-    return float(shift[0]), float(shift[1]), used
+    return state, used
 
 
 def pair_offset(upper: np.ndarray, lower: np.ndarray, disparity: SparseImage) -> PairOffset | None:
@@ -138,10 +144,10 @@ def pair_offset(upper: np.ndarray, lower: np.ndarray, disparity: SparseImage) ->
     whole = _fit(pair, np.arange(len(keep)), MIN_PIXELS)
     if whole is None:
         return None
+    state, used = whole
     right, low = cols >= np.median(cols), rows >= np.median(rows)
-    quadrants = tuple(
-        None if (found := _fit(pair, np.flatnonzero((low == b) & (right == r)), MIN_PIXELS // 4)) is None
-        else found[:2]
-        for b in (False, True) for r in (False, True)
-    )  # fmt: skip
-    return PairOffset(*whole, quadrants)
+    quadrants = []
+    for part in ((~low) & (~right), (~low) & right, low & (~right), low & right):
+        found = _fit(pair, np.flatnonzero(part), MIN_PIXELS // 4, state, QUADRANT_ITERATIONS)
+        quadrants.append(None if found is None else (float(found[0][0]), float(found[0][1])))
+    return PairOffset(float(state[0]), float(state[1]), used, tuple(quadrants))

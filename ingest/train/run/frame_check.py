@@ -92,8 +92,8 @@ that frame from its others (0.98 against 0.57 px)."""
 PAIR_QUADRANT_PX = 0.6
 QUADRANTS = 4
 """... or one quadrant of its GT pixels' shift (`SampleMeta.stereo_offset_quadrants`) differs from the
-run's median of that quadrant by over this: the fixtures' quadrants lie within 0.36 px of theirs (the dense
-walk; sparse 0.2); an upper frame turned 1 deg about its centre (4 px at the edge of 480) 1.0 px, with its
+run's median of that quadrant by over this: the fixtures' quadrants lie within 0.32 px of theirs (the dense
+walk; sparse 0.2); an upper frame turned 1 deg about its centre (4 px at the edge of 480) 0.94 px, with its
 whole shift 0.29."""
 SCATTER_OUT = 3.0
 SCATTER_MIN = 0.01
