@@ -97,24 +97,22 @@ def alignment_fields(
 ) -> dict[str, Any]:
     """The meta's `alignment`, `alignment_lower`, `lower_check`, `window_parts` and `window_fit` of the
     points `pts_cam0` (those of `cloud`, placed in cam0 at the exposure), timed as stage "alignment" in
-    `ms`."""
+    `ms`; of an alignment-only job (`calib refine`'s rounds, which combine the alignments alone) the first
+    two, the checks of a sample's frames and sweeps left empty."""
     t0 = time.perf_counter()
+    empty: dict[str, Any] = {"lower_check": {}, "window_parts": {}, "window_fit": {}}
     if job.geometry.too_coarse_to_align:
-        return {
-            "alignment": {},
-            "alignment_lower": {},
-            "lower_check": {},
-            "window_parts": {},
-            "window_fit": {},
-        }
+        return {"alignment": {}, "alignment_lower": {}, **empty}
     upper = ImageLevels.from_bgr(job.upper_bgr) if cloud.reflectivity is not None else None
     fields = {
         "alignment": _alignments(job, upper, pts_cam0, cloud.reflectivity, cloud.lidar),
-        "window_parts": _window_parts(job, upper, pts_cam0, cloud),
-        "window_fit": _window_fit(job, pts_cam0, cloud),
         "alignment_lower": _lower_alignments(job, pts_cam0, cloud.reflectivity, cloud.lidar),
-        "lower_check": _lower_check(job, pts_cam0, cloud.reflectivity),
+        **empty,
     }
+    if not job.params.alignment_only:
+        fields["window_parts"] = _window_parts(job, upper, pts_cam0, cloud)
+        fields["window_fit"] = _window_fit(job, pts_cam0, cloud)
+        fields["lower_check"] = _lower_check(job, pts_cam0, cloud.reflectivity)
     ms["alignment"] = (time.perf_counter() - t0) * 1e3
     return fields
 
@@ -184,7 +182,7 @@ def _lower_check(job: SampleJob, pts_cam0: F64, reflectivity: F64 | None) -> dic
     `lower_check_width_px`, about a sixth of the full alignments' cost; keyed by the LiDARs' names joined
     with "+". It finds a lower frame out of place (a degree and more off, where the samples lie within a
     few tenths: `IngestSummary.off_lower`); too coarse for the stereo pose's check."""
-    if reflectivity is None or not job.params.align_lower or job.params.alignment_only:
+    if reflectivity is None or not job.params.align_lower:
         return {}
     image, model = _at_most(job.lower_bgr, job.geometry.rig.lower.model, job.params.lower_check_width_px)
     levels = ImageLevels.from_bgr(image)
