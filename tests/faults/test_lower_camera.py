@@ -116,9 +116,10 @@ def test_a_lower_frame_under_its_neighbours_stamp_is_named_and_flagged(tmp_path:
 PAIR_OFF = re.compile(
     r"^the lower images sit ([+-]\d\.\d\d) px across and ([+-]\d\.\d\d) px along the epipolar lines from where "
     r"the disparity GT lays them onto the upper images \(median over 5 samples; a right camchain gives under "
-    r"0\.25 px\): the camchain's stereo pose \(its baseline length or rotation, T_cn_cnm1\) is not the "
-    r"cameras', so the disparity GT does not hold for the pairs; calibrate the pair again or correct the "
-    r"camchain$"
+    r"0\.25 px\), so the disparity GT does not hold for the pairs: the camchain's stereo pose \(its baseline "
+    r"length or rotation, T_cn_cnm1\) is not the cameras', or the GT's points are not where the images saw "
+    r"them \(a clock offset or range noise, which the other warnings then name\); with none, calibrate the "
+    r"pair again or correct the camchain$"
 )
 
 

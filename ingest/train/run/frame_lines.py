@@ -38,16 +38,18 @@ def lower_off_line(ids: list[str], samples: int) -> str:
 def pair_off_line(flags: FrameFlags) -> str:
     """One line when the run's median pair shift passes `PAIR_OFF_PX` ('' otherwise): every pair sits off
     where its disparity GT lays the lower image onto the upper, which no frame fault does to most samples
-    alike, so the camchain's stereo pose (baseline length or rotation) is not the cameras'."""
+    alike: the camchain's stereo pose (baseline length or rotation) is not the cameras', or the GT's points
+    are not where the images saw them (a clock offset, range noise), which the run's other lines name."""
     dx, dy = flags.pair_shift_median
     if flags.pair_shift_samples < MIN_SAMPLES or max(abs(dx), abs(dy)) <= PAIR_OFF_PX:
         return ""
     return (
         f"the lower images sit {dx:+.2f} px across and {dy:+.2f} px along the epipolar lines from where the "
         f"disparity GT lays them onto the upper images (median over {flags.pair_shift_samples} samples; a "
-        f"right camchain gives under {PAIR_OFF_PX:g} px): the camchain's stereo pose (its baseline length or "
-        "rotation, T_cn_cnm1) is not the cameras', so the disparity GT does not hold for the pairs; "
-        "calibrate the pair again or correct the camchain"
+        f"right camchain gives under {PAIR_OFF_PX:g} px), so the disparity GT does not hold for the pairs: "
+        "the camchain's stereo pose (its baseline length or rotation, T_cn_cnm1) is not the cameras', or the "
+        "GT's points are not where the images saw them (a clock offset or range noise, which the other "
+        "warnings then name); with none, calibrate the pair again or correct the camchain"
     )
 
 
