@@ -37,7 +37,7 @@ import cv2
 import numpy as np
 
 from calibration.camera import CameraModel
-from calibration.types import F64, I64
+from calibration.types import F32, F64, I64
 from ingest.dataset.meta import AlignmentMeta
 from ingest.train.gt.groundtruth import px_per_rad
 from ingest.train.gt.window_fit import WINDOW_PARTS, stretch_of
@@ -133,6 +133,15 @@ def apply(rotation_rad: F64, translation_m: F64, pts: F64) -> F64:
     return out
 
 
+def grey_levels(image: np.ndarray) -> F32:
+    """A BGR, BGRA or grey 8-bit image as float32 grey levels."""
+    if image.ndim == 3:
+        code = cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY
+        image = cv2.cvtColor(np.ascontiguousarray(image), code)
+    out: F32 = image.astype(np.float32)
+    return out
+
+
 @dataclass(frozen=True)
 class ImageLevels:
     """cam0's image as the alignment reads it: per coarse-to-fine level the blurred intensity and its
@@ -144,10 +153,7 @@ class ImageLevels:
     @classmethod
     def from_bgr(cls, image: np.ndarray) -> ImageLevels:
         """The levels of a BGR, BGRA or grey uint8 image (sigmas scaled to its width)."""
-        if image.ndim == 3:
-            code = cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY
-            image = cv2.cvtColor(image, code)
-        grey = image.astype(np.float32)
+        grey = grey_levels(image)
         scale = grey.shape[1] / REFERENCE_WIDTH_PX
         levels = []
         for sigma in SIGMAS_PX:

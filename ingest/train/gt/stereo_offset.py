@@ -19,6 +19,9 @@ import numpy as np
 
 from calibration.types import F32, F64, I64
 from ingest.dataset.sparse import SparseImage
+from ingest.train.gt.align import grey_levels
+from ingest.train.gt.lidar_agreement import MAD_TO_SIGMA
+from ingest.train.gt.window_fit import evenly_spread
 
 MIN_PIXELS = 300
 """Disparity pixels a sample needs for its shift to be measured."""
@@ -55,26 +58,11 @@ class PairOffset:
         return [None if q is None else [round(q[0], 3), round(q[1], 3)] for q in self.quadrants]
 
 
-def _grey(image: np.ndarray) -> F32:
-    """An 8-bit BGR, BGRA or grey image as float32 grey levels."""
-    if image.ndim == 3:
-        code = cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY
-        image = cv2.cvtColor(np.ascontiguousarray(image), code)
-    out: F32 = image.astype(np.float32)
-    return out
-
-
 def _at(image: F32, cols: F64, rows: F64) -> F64:
     """`image` at sub-pixel positions (bilinear); NaN off the image."""
     x, y = cols.astype(np.float32).reshape(-1, 1), rows.astype(np.float32).reshape(-1, 1)
     out = cv2.remap(image, x, y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=float("nan"))
     return out.ravel().astype(np.float64)
-
-
-def _spread(n: int, limit: int) -> I64:
-    if n <= limit:
-        return np.arange(n, dtype=np.int64)
-    return np.linspace(0, n - 1, limit).round().astype(np.int64)
 
 
 @dataclass(frozen=True)
@@ -108,7 +96,7 @@ def _fit(
             return None
         value, gx, gy = sampled[ok].T
         residual = value - (affine[0] * ref[ok] + affine[1])
-        spread = 1.4826 * float(np.median(np.abs(residual - np.median(residual))))
+        spread = MAD_TO_SIGMA * float(np.median(np.abs(residual - np.median(residual))))
         if not spread > 0:
             return None
         weight = 1.0 / (1.0 + (residual / (CAUCHY_SCALE * spread)) ** 2)
@@ -132,13 +120,13 @@ def pair_offset(upper: np.ndarray, lower: np.ndarray, disparity: SparseImage) ->
     them inside both images or no texture there."""
     if len(disparity.pixel) < MIN_PIXELS or upper.shape[:2] != lower.shape[:2]:
         return None
-    keep = _spread(len(disparity.pixel), MAX_PIXELS)
+    keep = evenly_spread(len(disparity.pixel), MAX_PIXELS)
     rows, cols = np.divmod(disparity.pixel[keep], disparity.shape[1])
-    down = _grey(lower)
+    down = grey_levels(lower)
     pair = _Pair(
         down, cv2.Sobel(down, cv2.CV_32F, 1, 0, ksize=3) * np.float32(0.125),
         cv2.Sobel(down, cv2.CV_32F, 0, 1, ksize=3) * np.float32(0.125),
-        _grey(upper)[rows, cols].astype(np.float64), cols.astype(np.float64),
+        grey_levels(upper)[rows, cols].astype(np.float64), cols.astype(np.float64),
         rows - disparity.value[keep].astype(np.float64),
     )  # fmt: skip
     whole = _fit(pair, np.arange(len(keep)), MIN_PIXELS)

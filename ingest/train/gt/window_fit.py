@@ -38,7 +38,7 @@ def stretch_of(stamps_ns: I64, parts: int = WINDOW_PARTS) -> I64:
     return out
 
 
-def _spread(n: int, limit: int) -> I64:
+def evenly_spread(n: int, limit: int) -> I64:
     """At most `limit` indices evenly spread over range(n) (deterministic)."""
     if n <= limit:
         return np.arange(n, dtype=np.int64)
@@ -60,10 +60,10 @@ def stretch_shares(pts_cam0: F64, stamps_ns: I64) -> list[float | None]:
     measured = [k for k, idx in enumerate(members) if len(idx) >= MIN_STRETCH_POINTS]
     if len(measured) < 2:
         return out
-    held = np.concatenate([members[k][_spread(len(members[k]), TREE_POINTS)] for k in measured])
+    held = np.concatenate([members[k][evenly_spread(len(members[k]), TREE_POINTS)] for k in measured])
     tree, label = cKDTree(pts[held], balanced_tree=False), np.append(part[held], -1)  # -1: no neighbour
     for k in measured:
-        q = pts[members[k][_spread(len(members[k]), QUERY_POINTS)]]
+        q = pts[members[k][evenly_spread(len(members[k]), QUERY_POINTS)]]
         bound = NEAR_M + NEAR_RANGE * np.linalg.norm(q, axis=1)
         d, j = tree.query(q, k=NEIGHBOURS, distance_upper_bound=float(bound.max()))
         other = (label[j] != k) & (label[j] >= 0) & (d <= bound[:, None])

@@ -100,19 +100,21 @@ def alignment_fields(
     `ms`; of an alignment-only job (`calib refine`'s rounds, which combine the alignments alone) the first
     two, the checks of a sample's frames and sweeps left empty."""
     t0 = time.perf_counter()
-    empty: dict[str, Any] = {"lower_check": {}, "window_parts": {}, "window_fit": {}}
+    checks: dict[str, Any] = {"lower_check": {}, "window_parts": {}, "window_fit": {}}
     if job.geometry.too_coarse_to_align:
-        return {"alignment": {}, "alignment_lower": {}, **empty}
+        return {"alignment": {}, "alignment_lower": {}, **checks}
     upper = ImageLevels.from_bgr(job.upper_bgr) if cloud.reflectivity is not None else None
+    if not job.params.alignment_only:
+        checks = {
+            "lower_check": _lower_check(job, pts_cam0, cloud.reflectivity),
+            "window_parts": _window_parts(job, upper, pts_cam0, cloud),
+            "window_fit": _window_fit(job, pts_cam0, cloud),
+        }
     fields = {
         "alignment": _alignments(job, upper, pts_cam0, cloud.reflectivity, cloud.lidar),
         "alignment_lower": _lower_alignments(job, pts_cam0, cloud.reflectivity, cloud.lidar),
-        **empty,
+        **checks,
     }
-    if not job.params.alignment_only:
-        fields["window_parts"] = _window_parts(job, upper, pts_cam0, cloud)
-        fields["window_fit"] = _window_fit(job, pts_cam0, cloud)
-        fields["lower_check"] = _lower_check(job, pts_cam0, cloud.reflectivity)
     ms["alignment"] = (time.perf_counter() - t0) * 1e3
     return fields
 
