@@ -370,6 +370,32 @@ def check_imu_rate(
     )
 
 
+UNITS_FRACTION = 0.1
+"""An IMU more than this fraction of whose readings lie beyond `GYRO_LIMIT_RAD_S` (or `ACC_LIMIT`) is refused:
+a knock or a glitch spikes a few readings, a gyro publishing deg/s (57 times rad/s) or an accelerometer
+publishing mg most of them, and the readings under the bound are as wrong as those beyond it."""
+UNITS_HINT = {
+    IMU_GYRO: "a gyro publishing deg/s where sensor_msgs/Imu has rad/s, or a driver scaling its rates wrong",
+    IMU_ACC: "an accelerometer publishing mg or cm/s^2, not the m/s^2 of sensor_msgs/Imu or the g of Livox's "
+    "driver, or a driver scaling its readings wrong",
+}
+
+
+def check_imu_units(where: str, topic: str, kept: int, dropped: dict[str, int]) -> None:
+    """Raise `BagError` when more than `UNITS_FRACTION` of an IMU topic's readings were dropped as beyond
+    the gyro's or the accelerometer's bound (`kept`: its readings that passed, `dropped`: its counts by
+    reason, `Dropped.by_topic`): the readings are in other units, so those under the bound are wrong too."""
+    readings = kept + sum(n for why, n in dropped.items() if why.startswith("IMU"))
+    for why, hint in UNITS_HINT.items():
+        n = dropped.get(why, 0)
+        if n >= 3 and n > UNITS_FRACTION * readings:
+            raise BagError(
+                f"{where}: {topic}: {n:,} of {readings:,} IMU readings ({n / readings:.0%}) dropped as {why}, "
+                f"where a knock spikes a few: {hint}; the readings under the bound are as wrong, so nothing "
+                "is written: fix the IMU driver's units"
+            )
+
+
 BACKWARDS_FRACTION = 0.1
 """A topic whose header stamps step back, in log order, in more than this fraction of its steps (and at
 least twice) is refused: a message delivered late steps back once, a clock or a bag running backwards

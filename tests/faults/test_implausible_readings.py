@@ -114,6 +114,46 @@ def test_the_dropped_readings_are_one_warning_line_each_reason(
     assert "dropped, IMU gyro beyond 2200 deg/s" in out
 
 
+def _in_other_units(raw: bytes, gyro_scale: float, acc_scale: float) -> bytes:
+    s = decode_imu(raw)
+    return imu_msg(s.stamp_ns, np.asarray(s.gyro_rad_s) * gyro_scale, np.asarray(s.acc) * acc_scale)
+
+
+@pytest.mark.parametrize(
+    ("gyro_scale", "acc_scale", "dropped", "why", "hint"),
+    [
+        (180 / np.pi, 1.0, 77, IMU_GYRO, "a gyro publishing deg/s where sensor_msgs/Imu has rad/s"),
+        (1.0, 1000.0, 140, IMU_ACC, "an accelerometer publishing mg or cm/s^2, not the m/s^2"),  # g -> mg
+    ],
+    ids=["gyro-deg-s", "acc-mg"],
+)
+def test_an_imu_publishing_other_units_is_refused_naming_them(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], gyro_scale: float, acc_scale: float, dropped: int,
+    why: str, hint: str,
+) -> None:  # fmt: skip
+    """Sweep 11: imu_top's gyro in deg/s on the walk: 77 of 140 readings passed 2200 deg/s and were dropped
+    (one line), the other 63 were taken as rad/s, 57 times too fast: 93 % depth GT outliers against truth,
+    exit 0, every other line blaming the LiDARs. A knock spikes a few readings; most of them beyond the
+    bound is the unit, and the readings under it are as wrong: refused before anything is written."""
+
+    def scaled(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        return [(topic, _in_other_units(raw, gyro_scale, acc_scale) if topic == IMU else raw)]
+
+    bag, rig = rewrite(tmp_path / "units", scaled, src=WALK)
+    for gt in ("sparse", "dense"):
+        out = tmp_path / f"ds-{gt}"
+        code, _, err = sensorbox(capsys, "ingest", str(bag), "--rig", str(rig), "--out", str(out), "--gt", gt,
+                                 "--workers", "1", "--every", "3", "--height-full", "64", "--no-preview")  # fmt: skip
+        assert code == 2
+        assert err[-1] == (
+            f"error: {bag}: {IMU}: {dropped} of 140 IMU readings ({dropped / 140:.0%}) dropped as {why}, where a "
+            f"knock spikes a few: {hint}{err[-1].split(hint)[1]}"
+        )
+        assert err[-1].endswith("the readings under the bound are as wrong, so nothing is written: fix the IMU "
+                                "driver's units")  # fmt: skip
+        assert not (out / "dataset.yaml").exists() and not list(out.glob("*/*.png"))
+
+
 def test_an_imu_at_another_rate_than_the_rig_says_is_refused_naming_both(tmp_path: Path) -> None:
     def tenth(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
         return [(topic, raw)] if topic != IMU or k % 20 == 0 else []  # 200 Hz -> 10 Hz

@@ -25,6 +25,7 @@ from ingest.bags.decode import ImuSample, Sweep
 from ingest.bags.reader import BagSet, Progress
 from ingest.errors import OdometryError, OutputError
 from ingest.train.bad_messages import BadMessages
+from ingest.train.plausible import check_imu_units
 from ingest.train.repeats import FirstCopies
 from ingest.train.trajectory import cache as trajectory_cache
 from ingest.train.trajectory.clouds import GyroTrack, filter_points, integrate_gyro
@@ -69,7 +70,8 @@ class TrajectorySummary:
 def read_gyro(
     bags: BagSet, imu_topic: str | None, R_cam0_imu: F64 | None, bad: BadMessages | None = None
 ) -> GyroTrack | None:
-    """The integrated gyro of the rig's IMU, or None without one (undecodable readings: see `bad`)."""
+    """The integrated gyro of the rig's IMU, or None without one (undecodable readings: see `bad`); a
+    `BagError` when its readings are in other units (`check_imu_units`)."""
     bad = bad or BadMessages()
     if imu_topic is None or R_cam0_imu is None:
         return None
@@ -85,6 +87,7 @@ def read_gyro(
             continue
         stamps.append(sample.stamp_ns)
         rates.append(sample.gyro_rad_s)
+    check_imu_units(where, imu_topic, len(stamps), bad.dropped.by_topic().get(imu_topic, {}))
     if len(stamps) < 2:
         return None
     stamps_ns, gyro = np.array(stamps, np.int64), np.array(rates)
