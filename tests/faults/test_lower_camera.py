@@ -93,6 +93,50 @@ def test_lower_images_upside_down_are_named(tmp_path: Path) -> None:
     )
 
 
+@pytest.mark.parametrize("flip", ["mirrored", "upside_down"])
+def test_upper_images_mirrored_or_upside_down_are_named_and_no_lidar_is_blamed(
+    tmp_path: Path, flip: str
+) -> None:
+    """Sweep 11: every upper image mirrored left-right (or turned 180 deg), stamps and LiDARs right: exit 0,
+    no sample flagged (all alike), and the only line blamed a LiDAR ("lidar_bottom's points match cam0's
+    images far worse than lidar_top's", or its pose 1.02 deg off). Every LiDAR's points match the upper
+    images far worse than the lower ones: the upper images are named, and no LiDAR is judged from them."""
+    import cv2
+
+    from ingest.bags.decode import decode_compressed_image
+    from ingest.bags.rostypes import IMAGE_TYPE
+    from sensorbox.messages import image_msg
+    from tests.faults.bags import UPPER, rewrite
+
+    stored = UPPER + "/compressed"
+
+    def flipped(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+        if topic != stored:
+            return [(topic, raw)]
+        frame = decode_compressed_image(raw)
+        image = cv2.flip(frame.image, 1) if flip == "mirrored" else cv2.rotate(frame.image, cv2.ROTATE_180)
+        return [(UPPER, image_msg(frame.stamp_ns, frame.frame_id, np.ascontiguousarray(image, np.uint8)))]
+
+    bag, rig = rewrite(tmp_path / "flipped.mcap", flipped, declare={UPPER: IMAGE_TYPE})
+    summary = ingest([bag], IngestConfig(rig=rig, out=tmp_path / "ds", workers=1, every=3, height_full=128))
+    found = [
+        line for line in summary.warnings if line.startswith("the LiDAR points match the upper camera's")
+    ]
+    assert len(found) == 1, summary.warnings
+    correlations = re.findall(r"lidar_\w+ (-?\d\.\d\d) against (\d\.\d\d)", found[0])
+    assert len(correlations) == 2 and all(float(up) < 0.6 * float(low) for up, low in correlations)
+    assert found[0].endswith(
+        "cam0's images are not what the camchain says (turned, mirrored, another camera's) or its intrinsics are "
+        "off; the GT is drawn for the view these images do not show, and the LiDARs' poses cannot be judged from "
+        "them: check cam0's topic, images and camchain entry"
+    )
+    assert not [
+        line
+        for line in summary.warnings
+        if "pose in cam0 looks off" in line or "cam0's images far worse than lidar" in line
+    ]
+
+
 def test_a_lower_frame_under_its_neighbours_stamp_is_named_and_flagged(tmp_path: Path) -> None:
     """Sweep 7 S1 (counted run): the lower camera's 5th and 6th images exchanged, stamps kept: sample
     000001's lower image was the one taken 33 ms away (its equirect_down_virt 2.95 px off), without a word.

@@ -64,26 +64,45 @@ def stereo_lines(stereo: StereoAlignment | None, rig: object) -> list[str]:
     ]
 
 
-def lower_mismatch_lines(upper: SampleAlignments, lower: SampleAlignments) -> list[str]:
-    """One warning line when every LiDAR's points match the lower camera's images far worse than the
-    upper's (median correlation below `MATCH_RATIO` of it): cam1's images are not what the camchain
-    says. On the fixtures both images match alike (0.52-0.79 each); the lower images upside down,
-    -0.35 and -0.05 against 0.70 and 0.79."""
-    names = sorted({n for found, _ in lower for n in found})
+def _median_correlations(worse: SampleAlignments, other: SampleAlignments) -> dict[str, tuple[float, float]]:
+    """Per LiDAR aligned onto both cameras: the median correlation of its points with `worse`'s images and
+    with `other`'s."""
     pairs = {}
-    for name in names:
-        up = [a.correlation for found, _ in upper if (a := found.get(name)) is not None]
-        low = [a.correlation for found, _ in lower if (a := found.get(name)) is not None]
-        if up and low:
-            pairs[name] = (float(np.median(low)), float(np.median(up)))
-    if not pairs or not all(up > 0 and low < MATCH_RATIO * up for low, up in pairs.values()):
+    for name in sorted({n for found, _ in worse for n in found}):
+        mine = [a.correlation for found, _ in worse if (a := found.get(name)) is not None]
+        theirs = [a.correlation for found, _ in other if (a := found.get(name)) is not None]
+        if mine and theirs:
+            pairs[name] = (float(np.median(mine)), float(np.median(theirs)))
+    return pairs
+
+
+def camera_mismatch_lines(upper: SampleAlignments, lower: SampleAlignments) -> tuple[list[str], list[str]]:
+    """(upper, lower): one warning line each when every LiDAR's points match that camera's images far worse
+    than the other's (`_mismatch_line`)."""
+    return _mismatch_line(upper, lower, ("upper", "lower")), _mismatch_line(lower, upper, ("lower", "upper"))
+
+
+def _mismatch_line(worse: SampleAlignments, other: SampleAlignments, which: tuple[str, str]) -> list[str]:
+    """One warning line when every LiDAR's points match one camera's images (`worse`) far worse than the
+    other's (median correlation below `MATCH_RATIO` of it): that camera's images are not what the
+    camchain says. `which`: the two cameras' words. On the fixtures both images match alike (0.52-0.79
+    each); the lower images upside down, -0.35 and -0.05 against 0.70 and 0.79; the upper images
+    mirrored, -0.01 and 0.23 against about 0.7."""
+    pairs = _median_correlations(worse, other)
+    if not pairs or not all(theirs > 0 and mine < MATCH_RATIO * theirs for mine, theirs in pairs.values()):
         return []
-    found = ", ".join(f"{n} {low:.2f} against {up:.2f}" for n, (low, up) in pairs.items())
+    found = ", ".join(f"{n} {mine:.2f} against {theirs:.2f}" for n, (mine, theirs) in pairs.items())
+    camera = "cam1" if which[0] == "lower" else "cam0"
+    what = (
+        "the equirect pair is not a stereo pair of the GT"
+        if camera == "cam1"
+        else "the GT is drawn for the view these images do not show, and the LiDARs' poses cannot be judged "
+        "from them"
+    )
     return [
-        f"the LiDAR points match the lower camera's images far worse than the upper's (median correlation "
-        f"{found}): cam1's images are not what the camchain says (turned, mirrored, another camera's) or "
-        "its intrinsics are off; the equirect pair is not a stereo pair of the GT: check cam1's topic, "
-        "images and camchain entry"
+        f"the LiDAR points match the {which[0]} camera's images far worse than the {which[1]}'s (median "
+        f"correlation {found}): {camera}'s images are not what the camchain says (turned, mirrored, another "
+        f"camera's) or its intrinsics are off; {what}: check {camera}'s topic, images and camchain entry"
     ]
 
 

@@ -7,10 +7,9 @@ Recipe:
    --salvage it is skipped, its messages are counted as lost, and samples
    whose LiDAR/IMU window overlaps them are not planned (`ingest.train.run.lost`).
 2. Stream (second pass, log-time order, `ingest.train.run.stream`): keep the
-   planned camera messages as stored (compressed or raw bytes, not decoded;
-   an image that ends its MCAP chunk as that chunk's compressed bytes)
-   and a sliding buffer of sweeps and the IMU; a sample is handed to a worker
-   as soon as every sweep overlapping its +-window has arrived.
+   planned camera messages as stored (compressed or raw bytes, not decoded; an image that ends its
+   MCAP chunk as that chunk's compressed bytes) and a sliding buffer of sweeps and the IMU; a sample
+   is handed to a worker as soon as every sweep overlapping its +-window has arrived.
 3. Each worker decodes the sample's two images and runs
    `ingest.train.run.sample.process_sample` (clouds -> GT -> images -> files); a
    local process pool by default, or a Dask cluster. The rig's geometry and
@@ -88,7 +87,7 @@ from ingest.train.run.describe import (
 )
 from ingest.train.run.gt_method import dense_reach_ns, gt_method
 from ingest.train.run.handoff import give_arrays, handoff_bytes_bound, take_arrays
-from ingest.train.run.lidar_poses import lower_mismatch_lines, stereo_alignment, stereo_lines, stereo_record
+from ingest.train.run.lidar_poses import camera_mismatch_lines, stereo_alignment, stereo_lines, stereo_record
 from ingest.train.run.plan import CROSSED_REASON, LOST_REASON, Plan, Survey, plan, survey
 from ingest.train.run.refine import Refinement, refine, refuse_unsynced
 from ingest.train.run.resolved import ResolvedRun
@@ -238,11 +237,12 @@ def ingest(
             stereo = stereo_alignment(rig, summary.calibration.combined, combine(lower))
             record = {**summary.calibration.as_yaml(), **stereo_record(stereo)}
             record_calibration(cfg.out, [Path(p) for p in bag_paths], record)
-            summary.warnings += summary.calibration.warnings(cfg.rig, refined=cfg.refine)
+            upper_off, lower_off = camera_mismatch_lines(summary.alignments, summary.alignments_lower)
+            summary.warnings += upper_off or summary.calibration.warnings(cfg.rig, refined=cfg.refine)
             summary.warnings += stereo_lines(stereo, cfg.rig)
             if stereo is None or not stereo.disagrees:
                 summary.lower_off_unexplained()
-            summary.warnings += lower_mismatch_lines(summary.alignments, summary.alignments_lower)
+            summary.warnings += lower_off
         summary.warnings += summary.closing_lines(rig.lidars[0].name)
     summary.seconds = time.perf_counter() - t_start
     summary.compile_s = compile_s[0]
