@@ -184,3 +184,35 @@ def test_a_baseline_10_mm_short_is_named_by_the_pairs(tmp_path: Path) -> None:
     assert len(found) == 1, summary.warnings
     assert abs(float(found[0].group(1))) < 0.06 and -0.55 <= float(found[0].group(2)) <= -0.4
     assert all(-0.55 <= dy <= -0.4 for _, dy, _ in shifts), shifts
+
+
+def test_lidars_reporting_reflectivity_on_other_scales_check_the_lower_image_alike(tmp_path: Path) -> None:
+    """Sweep 11: lidar_top's intensity normalised to 0..1 (the other 0..255) flagged a right sample's lower
+    image as off every LiDAR's points: the quick check lays all LiDARs' points onto the lower image with one
+    gain from reflectivity to intensity. Each LiDAR's reflectivity is now standardised among its own points:
+    lidar_top's reflectivity divided by 50 checks the lower images as the exact bag does (before: correlation
+    -0.04 to -0.19 and 0.6-0.95 deg, against 0.7-0.8 and under 0.25 deg)."""
+    import json
+
+    from tests.faults.bags import LIDAR_TOP, rewrite
+    from tests.faults.test_implausible_readings import _points
+
+    def dim(pts: np.ndarray) -> np.ndarray:
+        pts["reflectivity"] = (pts["reflectivity"] // 50).astype(pts["reflectivity"].dtype)
+        return pts
+
+    checks = {}
+    for name, change in (("exact", None), ("dim", dim)):
+        bag, rig = rewrite(
+            tmp_path / name,
+            lambda t, k, raw, f=change: [(t, _points(f)(raw) if f and t == LIDAR_TOP else raw)],
+        )
+        summary = ingest(
+            [bag], IngestConfig(rig=rig, out=tmp_path / f"{name}-ds", workers=1, every=3, height_full=128)
+        )
+        assert summary.written == 7 and not summary.frame_flags, summary.warnings
+        metas = [json.loads(p.read_text()) for p in sorted((tmp_path / f"{name}-ds" / "meta").glob("*.json"))]
+        checks[name] = [m["lower_check"]["lidar_top+lidar_bottom"] for m in metas]
+    for exact, dimmed in zip(checks["exact"], checks["dim"], strict=True):
+        assert dimmed["correlation"] > 0.6 and abs(dimmed["correlation"] - exact["correlation"]) < 0.03
+        assert dimmed["shift_deg"] < 0.3 and abs(dimmed["shift_deg"] - exact["shift_deg"]) < 0.05

@@ -106,7 +106,7 @@ def alignment_fields(
     upper = ImageLevels.from_bgr(job.upper_bgr) if cloud.reflectivity is not None else None
     if not job.params.alignment_only:
         checks = {
-            "lower_check": _lower_check(job, pts_cam0, cloud.reflectivity),
+            "lower_check": _lower_check(job, pts_cam0, _standardised(cloud.reflectivity, cloud.lidar)),
             "window_parts": _window_parts(job, upper, pts_cam0, cloud),
             "window_fit": _window_fit(job, pts_cam0, cloud),
         }
@@ -190,6 +190,21 @@ def _lower_check(job: SampleJob, pts_cam0: F64, reflectivity: F64 | None) -> dic
     levels = ImageLevels.from_bgr(image)
     found = align_points(model, levels, _in_cam1(job, pts_cam0), reflectivity, job.params.lower_check_points)
     return {} if found is None else {"+".join(lp.name for lp in job.lidars): found.to_meta()}
+
+
+def _standardised(reflectivity: F64 | None, which: I64) -> F64 | None:
+    """Each LiDAR's reflectivity to zero mean and unit spread among its own points, so that the points of
+    LiDARs reporting it on other scales (0..255, 0..1) share one gain in an alignment of them all."""
+    if reflectivity is None:
+        return None
+    out = np.zeros(len(reflectivity))
+    for k in np.unique(which):
+        mine = which == k
+        values = reflectivity[mine]
+        finite = np.isfinite(values)
+        spread = float(np.std(values[finite])) if finite.any() else 0.0
+        out[mine] = (values - (float(np.mean(values[finite])) if finite.any() else 0.0)) / (spread or 1.0)
+    return out
 
 
 def _at_most(image: np.ndarray[Any, Any], model: Any, width_px: int) -> tuple[np.ndarray[Any, Any], Any]:
