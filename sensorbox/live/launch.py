@@ -51,7 +51,7 @@ import yaml
 from calibration.files import resolved
 from sensorbox.errors import GraphError, LaunchError
 from sensorbox.live.bus import resolve_name
-from sensorbox.live.launch_yaml import LineMap, join_ns, load_launch_yaml, param_file
+from sensorbox.live.launch_yaml import LineMap, join_ns, load_launch_yaml, param_file, ros_namespace
 from sensorbox.live.substitutions import Scope, bool_word, evaluate_parts, parse_substitutions
 
 if TYPE_CHECKING:
@@ -294,7 +294,7 @@ class _Parser:
 
     def push_ros_namespace(self, body: Any, scope: Scope, where: str) -> None:
         f = _fields("push_ros_namespace", body, where, ("namespace",), ("namespace",))
-        ns = _text(f["namespace"], scope, where, "namespace")
+        ns = ros_namespace(_text(f["namespace"], scope, where, "namespace"), where)
         scope.namespace = ns if ns.startswith("/") else join_ns(scope.namespace, ns)
 
     def set_remap(self, body: Any, scope: Scope, where: str) -> None:
@@ -330,10 +330,22 @@ class _Parser:
         if not target.exists():
             raise LaunchError(f"{where}: included launch file {target} not found")
         inner = scope.child()
+        inner.used = set()  # what the included file reads, apart from what its includer does
+        passed = []
         for a in _entries(f, "arg", "include", "arguments", where):
             af = _fields("include arg", a, where, ("name", "value"), ("name", "value"))
-            inner.configs[_text(af["name"], scope, where, "name")] = _text(af["value"], scope, where, "value")
+            passed.append(_text(af["name"], scope, where, "name"))
+            inner.configs[passed[-1]] = _text(af["value"], scope, where, "value")
+        first = len(self.plan.arguments)
         self.file(target, inner)
+        scope.used |= inner.used
+        known = {a.name for a in self.plan.arguments[first:]}
+        if unknown := sorted(set(passed) - known - inner.used):
+            declared = ", ".join(sorted(known)) or "none"
+            raise LaunchError(
+                f"{where}: include {target}: argument(s) {', '.join(unknown)} neither declared nor read "
+                f"there (a misspelled name would be dropped without a word); its arguments: {declared}"
+            )
 
     def node(self, body: Any, scope: Scope, where: str) -> None:
         allowed = ("pkg", "exec", "name", "namespace", "param", "remap", "output", "exec_name")
@@ -347,7 +359,7 @@ class _Parser:
                 f"{where}: unknown node type pkg {pkg!r} exec {exe!r}; known: {', '.join(known_node_types())}"
             )
         name = _text(f["name"], scope, where, "name") if "name" in f else None
-        ns = _text(f.get("namespace", ""), scope, where, "namespace")
+        ns = ros_namespace(_text(f.get("namespace", ""), scope, where, "namespace"), where)
         namespace = ns if ns.startswith("/") else join_ns(scope.namespace, ns)
         params: dict[str, Any] = {}
         for entry in _entries(f, "param", "node", "parameters", where):

@@ -3,6 +3,7 @@ twice is an error), and ROS 2 parameter files (`param_file`), for `sensorbox.liv
 
 from __future__ import annotations
 
+import re
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
@@ -49,6 +50,22 @@ def load_launch_yaml(path: Path) -> Any:
         raise LaunchError(f"{path}:{err}") from err
     except yaml.YAMLError as err:
         raise LaunchError(yaml_error_line(path, err)) from err
+
+
+ROS_NAME_PART = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+"""One part of a ROS name between slashes: letters, digits and underscores, not starting with a digit."""
+
+
+def ros_namespace(ns: str, where: str) -> str:
+    """`ns` when every part of it is a ROS name part (`ROS_NAME_PART`), else a `LaunchError`: a topic under
+    it would be no ROS name, and the launch file's absolute remaps would not reach it."""
+    bad = [part for part in ns.split("/") if part and not ROS_NAME_PART.fullmatch(part)]
+    if bad:
+        raise LaunchError(
+            f"{where}: namespace {ns!r}: {bad[0]!r} is not a ROS name (letters, digits and _, not starting "
+            "with a digit; parts joined by /)"
+        )
+    return ns
 
 
 def join_ns(base: str, ns: str) -> str:

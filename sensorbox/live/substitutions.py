@@ -208,9 +208,11 @@ class Scope:
     configs: dict[str, str]
     namespace: str = "/"
     remaps: list[tuple[str, str]] = field(default_factory=list)
+    used: set[str] = field(default_factory=set)  # configurations read by $(var ...), shared with children
 
     def child(self, keep_configs: bool = True) -> Scope:
-        return Scope(self.file, dict(self.configs) if keep_configs else {}, self.namespace, list(self.remaps))
+        configs = dict(self.configs) if keep_configs else {}
+        return Scope(self.file, configs, self.namespace, list(self.remaps), self.used)
 
 
 KNOWN_SUBSTITUTIONS = (
@@ -256,6 +258,7 @@ def _apply(sub: Substitution, scope: Scope, where: str) -> str:
                 f"{where}: $(var {args[0]}): no launch configuration {args[0]!r}"
                 f" (declare it with `arg` or `let`; known here: {known})"
             )
+        scope.used.add(args[0])
         return scope.configs[args[0]]
     if name in ("env", "optenv"):
         need(1, 2)

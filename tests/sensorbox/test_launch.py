@@ -302,6 +302,54 @@ def test_error_line_numbers_and_include_cycles(tmp_path):
         parse_launch(tmp_path / "none.launch.yaml")
 
 
+def test_an_include_argument_the_file_neither_declares_nor_reads_is_refused(tmp_path):
+    """Sweep 11: an include passing `durration` (a typo) to a file declaring `duration` (default 0: record
+    until Ctrl-C) was dropped without a word. An argument the included files neither declare nor read as
+    $(var ...) is refused, naming it and the file; one they read without declaring it is ROS 2's own use."""
+    inc = write(tmp_path / "inc.launch.yaml", """\
+        launch:
+        - arg: {name: duration, default: "0"}
+        - node: {exec: recorder, param: [{name: duration_s, value: $(var duration)}, {name: topics, value: $(var extra)}]}
+        """)  # fmt: skip
+    typo = write(tmp_path / "typo.launch.yaml", """\
+        launch:
+        - include:
+            file: inc.launch.yaml
+            arg: [{name: durration, value: "5"}, {name: extra, value: /a}]
+        """)  # fmt: skip
+    with pytest.raises(LaunchError) as info:
+        parse_launch(typo)
+    assert str(info.value) == (
+        f"{typo}:2: include {inc}: argument(s) durration neither declared nor read there (a misspelled name "
+        "would be dropped without a word); its arguments: duration"
+    )
+    right = write(tmp_path / "right.launch.yaml", """\
+        launch:
+        - include:
+            file: inc.launch.yaml
+            arg: [{name: duration, value: "5"}, {name: extra, value: /a}]
+        """)  # fmt: skip
+    (node,) = parse_launch(right).nodes
+    assert node.params["duration_s"] == 5 and node.params["topics"] == "/a"
+
+
+@pytest.mark.parametrize(("namespace", "part"), [("my ns", "my ns"), ("/rig/2nd", "2nd"), ("a-b", "a-b")])
+def test_a_namespace_that_is_no_ros_name_is_refused(tmp_path, namespace, part):
+    """Sweep 11: `push_ros_namespace: {namespace: 'my ns'}` recorded topics '/my ns/livox/...' (no ROS
+    names), and the file's absolute remaps no longer reached them."""
+    for entity in (
+        f"push_ros_namespace: {{namespace: '{namespace}'}}",
+        f"node: {{exec: talker, namespace: '{namespace}'}}",
+    ):
+        f = write(tmp_path / "ns.launch.yaml", f"launch:\n- {entity}\n")
+        with pytest.raises(LaunchError) as info:
+            parse_launch(f)
+        assert str(info.value) == (
+            f"{f}:2: namespace {namespace!r}: {part!r} is not a ROS name (letters, digits and _, not starting "
+            "with a digit; parts joined by /)"
+        )
+
+
 @pytest.mark.parametrize("bad", ["out", "=x", "a b:=c"])
 def test_cli_argument_syntax(bad):
     with pytest.raises(LaunchError, match="expected NAME:=VALUE"):
