@@ -17,9 +17,13 @@ from sensorbox.live.nodes import Params, stereo_camera_node
 from sensorbox.sim.camera_source import SimCameras, SimCameraSource
 from sensorbox.sim.config import MAX_DURATION_S, SimConfig
 from sensorbox.sim.emulator_process import EmulatorProcess, EmulatorSpec
+from sensorbox.sim.lidar import SWEEP_PERIOD_NS
 from sensorbox.sim.mid360 import Mid360Emulator
 from sensorbox.sim.run import setup_sim
 from sensorbox.sim.scan_source import SimScan
+
+MIN_LOOP_S = 2 * SWEEP_PERIOD_NS / 1e9
+"""The shortest emulator loop (s) besides 0: two sweeps, so that it holds a whole one whatever its phase."""
 
 
 def _sim_config(p: Params, **fixed: Any) -> Any:
@@ -72,6 +76,11 @@ def mid360_emulator_node(ctx: NodeContext, p: Params) -> Node:
     loop_s = p.number("loop_s", 1.0, (MAX_DURATION_S, "s (the longest simulated recording)"))
     if loop_s < 0:
         raise GraphError(f"{p.where}: loop_s must be >= 0 (0 = simulate live), got {loop_s}")
+    if 0 < loop_s < MIN_LOOP_S:  # the loop's scan is a simulated recording of loop_s seconds
+        raise GraphError(
+            f"{p.where}: loop_s {loop_s:g}: expected 0 (simulate live) or at least {MIN_LOOP_S:g} s "
+            "(two 10 Hz sweeps: a shorter loop may hold no whole sweep to replay)"
+        )
     lidar = p.text("lidar", "lidar_top")
     names = [li.name for li in read_rig(sim.rig).lidars]  # the dry run reads it too: a missing file, a name
     if lidar not in names:

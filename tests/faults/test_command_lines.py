@@ -54,12 +54,22 @@ def test_a_launch_number_in_exponent_form_is_a_number(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     """Sweep 3: `loop_s:=1e-9` was "parameter 'loop_s' = '1e-9': expected a finite number" (YAML 1.1 reads
-    1e-9, without a dot, as text); text that is no number still names its value."""
+    1e-9, without a dot, as text); text that is no number still names its value. Sweep 11: a loop too short
+    for a sweep failed only in the run, naming `--duration`, which launch has not."""
     launch = ROOT / "launch" / "sim.launch.yaml"
     node_line = 1 + launch.read_text().splitlines().index("  - node:")  # the first emulator's
     out = f"out:={tmp_path / 'bags'}"
-    code, _, err = sensorbox(capsys, "launch", "--dry-run", str(launch), out, "loop_s:=1e-9")
+    code, _, err = sensorbox(capsys, "launch", "--dry-run", str(launch), out, "loop_s:=5e-1")
     assert (code, err) == (0, [])
+    code, _, err = sensorbox(capsys, "launch", "--dry-run", str(launch), out, "loop_s:=1e-3")  # sweep 11
+    assert (code, err) == (
+        2,
+        [
+            "error: node 'lidar_top_emulator' (sensorbox/mid360_emulator) at "
+            f"{ROOT}/sensorbox/share/launch/sim.launch.yaml:{node_line}: loop_s 0.001: expected 0 (simulate "
+            "live) or at least 0.2 s (two 10 Hz sweeps: a shorter loop may hold no whole sweep to replay)"
+        ],
+    )
     code, _, err = sensorbox(capsys, "launch", "--dry-run", str(launch), out, "loop_s:=1e-9s")
     assert (code, err) == (
         2,
