@@ -20,4 +20,8 @@ def first_difference(old: Any, new: Any, path: str = "") -> str:
             if found:
                 return found
         return ""
-    return "" if old == new else f" ({path.rstrip('.') or 'value'}: {old} -> {new})"
+    if old == new:
+        return ""
+    if str(old) == str(new):  # '128' in a hand-edited file against the number 128: say which is which
+        old, new = f"{old!r} ({type(old).__name__})", f"{new!r} ({type(new).__name__})"
+    return f" ({path.rstrip('.') or 'value'}: {old} -> {new})"

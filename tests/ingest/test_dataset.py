@@ -48,3 +48,14 @@ def test_gt_beyond_uint16_is_zero_in_the_png_counted_in_the_meta_and_kept_in_the
     assert disp is not None and disp.reshape(-1).tolist() == [0, 0, 0, 65535, 0, 1]
     exr = OpenEXR.File(str(tmp_path / "depth_fisheye_exr" / "000000.exr")).channels()["Y"].pixels
     assert exr.reshape(-1).tolist() == pytest.approx([1.5, 65.535, 0, 0, 70.25, 0])
+
+
+def test_a_difference_that_prints_alike_names_both_types() -> None:
+    """Sweep 11: a hand-edited dataset.yaml with `height_full: '128'` was refused "(value: 128 -> 128)"."""
+    from ingest.dataset.compare import first_difference
+
+    assert first_difference({"height_full": "128"}, {"height_full": 128}) == (
+        " (height_full: '128' (str) -> 128 (int))"
+    )
+    assert first_difference({"a": {"every": 5}}, {"a": {"every": 7}}) == " (a.every: 5 -> 7)"
+    assert first_difference(128, 128.0) == ""  # equal values are no difference, whatever their types
