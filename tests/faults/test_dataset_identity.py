@@ -478,3 +478,33 @@ def test_recorders_of_other_topics_at_the_same_time_are_one_recording(tmp_path: 
         assert sorted((m.topic, m.log_ns) for m in both.messages()) == sorted(
             (m.topic, m.log_ns) for m in whole.messages()
         )
+
+
+def test_a_sample_of_other_settings_copied_in_is_refused_naming_it(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Sweep 11: sample 000001's files and meta replaced by the same frame's sample of a --window-ms 20 run
+    (its meta records 20 ms): the rerun took it as done ("0 / 5") in a dataset whose dataset.yaml says
+    50 ms. Every sample's recorded settings are compared with the run's, dataset.yaml present or not."""
+    out, other = tmp_path / "ds", tmp_path / "other"
+    args = ["ingest", str(INDOOR), "--rig", str(RIG), "--workers", "1", "--every", "5", "--height-full", "64"]
+    args += ["--gt", "sparse", "--no-preview"]
+    assert sensorbox(capsys, *args, "--out", str(out))[0] == 0
+    assert sensorbox(capsys, *args, "--out", str(other), "--window-ms", "20")[0] == 0
+    copied = [p for p in other.rglob("000001.*") if p.is_file()]
+    assert len(copied) >= 5
+    for p in copied:
+        (out / p.relative_to(other)).write_bytes(p.read_bytes())
+    code, _, err = sensorbox(capsys, *args, "--out", str(out))
+    assert (code, err) == (
+        2,
+        [
+            f"error: {out}/meta/000001.json: this sample was made with a different 'params' (lidar_window_ns: "
+            f"20000000 -> 50000000) than {out}/dataset.yaml describes and this run asks (a sample copied in "
+            "from another dataset?); delete its files (the run writes it again) or choose a new --out"
+        ],
+    )
+    for p in copied:
+        (out / p.relative_to(other)).unlink()
+    code, stdout, _ = sensorbox(capsys, *args, "--out", str(out))
+    assert code == 0 and _row(stdout, "written / already done (resumed)") == "1 / 4"

@@ -121,11 +121,15 @@ def sample_settings(asked: IngestConfig, geometry: Geometry, bags: list[Path]) -
     return settings
 
 
-def _check_samples(asked: IngestConfig, geometry: Geometry, bags: list[Path]) -> None:
+def _check_samples(
+    asked: IngestConfig, geometry: Geometry, bags: list[Path], described: bool = False
+) -> None:
     """DatasetError when a sample of `asked.out` was made with other settings than `asked` (its meta's
     `settings`; metadata without them, from an older SensorBox, by its sparse GT window alone).
 
-    For a folder whose dataset.yaml is missing: a run must not describe samples it did not make.
+    For a folder whose dataset.yaml is missing: a run must not describe samples it did not make. For one
+    whose dataset.yaml agrees with the run (`described`): a sample copied in from another dataset would
+    be taken as done, and the dataset would hold a sample its dataset.yaml does not describe.
     """
     want = sample_settings(asked, geometry, bags)
     window_ms = asked.lidar_window_ns / 1e6
@@ -143,6 +147,13 @@ def _check_samples(asked: IngestConfig, geometry: Geometry, bags: list[Path]) ->
         key, where = next(((k, w) for k, w in differs if w), ("", ""))
         if not where:
             continue
+        if described:
+            yaml_path = asked.out / "dataset.yaml"
+            raise DatasetError(
+                f"{path}: this sample was made with a different {key!r}{where} than {yaml_path} describes "
+                "and this run asks (a sample copied in from another dataset?); delete its files (the run "
+                "writes it again) or choose a new --out"
+            )
         raise DatasetError(
             f"{path}: the folder's samples were made with a different {key!r}{where} and "
             f"{asked.out / 'dataset.yaml'} is missing; choose a new --out or the settings they were made with"
@@ -206,6 +217,7 @@ def check_existing(asked: IngestConfig, geometry: Geometry, bags: list[Path]) ->
                 f"{path}: an existing dataset was made with a different {key!r}{where}; "
                 "choose a new --out or delete it"
             )
+    _check_samples(asked, geometry, bags, described=True)
     if not (asked.out / "rig" / "rig.yaml").is_file():  # written before the first sample: deleted since
         raise DatasetError(
             f"{asked.out / 'rig' / 'rig.yaml'}: missing, so the rig the dataset's samples were made with "
