@@ -9,7 +9,6 @@ from dataclasses import replace
 
 import numpy as np
 
-from calibration.types import F64, I64
 from ingest.dataset.meta import GtMeta, MotionMeta, PointMeta, SampleMeta
 from ingest.rows import rows
 from ingest.runtime.background import Background
@@ -20,6 +19,7 @@ from ingest.train.run.sample_parts import (
     Equirects,
     alignment_fields,
     finish_sample,
+    free_space_slices,
     points_by_lidar,
     range_ratio_field,
     silent_lidars,
@@ -29,7 +29,6 @@ from ingest.train.run.sample_sparse import process_sparse
 from ingest.train.sync import IMU_MARGIN_NS
 from ingest.train.trajectory.clouds import REFERENCE_RANGE_M
 from ingest.train.trajectory.planes import Normals
-from ingest.train.trajectory.rig_trajectory import RigTrajectory
 
 GAP_REASON = "frame in a trajectory gap (LiDAR points missing around it)"
 GAP_FALLBACK = "auto: frame in a trajectory gap, sparse GT"
@@ -87,7 +86,9 @@ def process_dense(job: SampleJob, images: Background[Equirects], start_ms: float
             fs, block_ns = free_space_settings(prm.dense), prm.dense.plane_block_ns
             keep = ~(test & cleared_for(cloud.clear_bits, stamps, tc, fs, block_ns))
         else:
-            slice_id, refs, ray_origin = _slices(job, traj, stamps, cloud.lidar)
+            slice_id, refs, ray_origin = free_space_slices(
+                job, traj, stamps, cloud.lidar, prm.dense.free_slice_ns, prm.dense.free_reference_ns
+            )
             normal = None if normals is None else np.where(normals.planar[:, None], normals.normal, np.nan)
             keep = free_space_filter(
                 placed, slice_id, refs, prm.dense, test, ray_origin, normal, max(len(job.lidars), 1)
@@ -140,29 +141,3 @@ def _in_gap(job: SampleJob, images: Background[Equirects], start_ms: float) -> S
     if not any(len(lp.stamps_ns) for lp in sparse.lidars):  # a sparse run does not plan it either
         return SampleResult(job.sid, False, GAP_REASON, None, {})
     return process_sparse(sparse, images, start_ms)
-
-
-def _slices(
-    job: SampleJob, traj: RigTrajectory, stamps: I64, which: I64
-) -> tuple[I64, list[tuple[int, F64]], F64]:
-    """Slice id per point (LiDAR x `free_slice_ns`), the frame's own slices with their LiDAR origins,
-    and each point's ray origin (its LiDAR at the point's time).
-
-    Origins are in cam0 at the frame time, where `traj.to_frame` put the points.
-    """
-    prm, tc = job.params.dense, job.exposure_ns
-    k = (stamps - tc) // prm.free_slice_ns
-    n_lidars = max(len(job.lidars), 1)
-    slice_id = k * n_lidars + which
-    own = slice_id if not prm.free_reference_ns else slice_id[np.abs(stamps - tc) <= prm.free_reference_ns]
-    origins_lidar = np.array([job.geometry.rig.lidar(lidar.name).T_cam0_lidar[:3, 3] for lidar in job.lidars])
-    ray_origin = traj.to_frame(origins_lidar[which], stamps, tc)
-    if len(own) == 0:
-        return slice_id, [], ray_origin
-    # the window spans a few dozen slices: a bincount finds them without sorting every point
-    lo = int(own.min())
-    sids = lo + np.flatnonzero(np.bincount(own - lo))
-    t_mid = tc + (sids // n_lidars) * prm.free_slice_ns + prm.free_slice_ns // 2
-    origins = traj.to_frame(origins_lidar[sids % n_lidars], t_mid, tc)
-    refs = [(int(sid), origin) for sid, origin in zip(sids, origins, strict=True)]
-    return slice_id, refs, ray_origin

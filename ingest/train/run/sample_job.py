@@ -146,6 +146,11 @@ class SampleParams:
     decision: str = "asked"  # why `method` (written to every sample's meta)
     gap_fallback: bool = False  # dense: a frame in a trajectory gap gets sparse GT (--gt auto), not skipped
     dense: DenseParams = field(default_factory=DenseParams)
+    # sparse GT: the free-space test of the window's own slices (`DenseParams`' ray rule and agreeing slices),
+    # so that a point the other sweeps saw through (rain, dust, a stray echo, a mover's earlier place) is
+    # removed, not drawn in front of the surface behind it
+    sparse_free_space: bool = True
+    sparse_free_slice_ns: int = 10_000_000  # ... its slices: a 50 ms window holds five of each LiDAR
     align_lower: bool = True  # also lay the points onto the lower image (the stereo pose's check)
     lower_every: int = 3  # ... of every n-th sample of a run that writes them (`calib refine`: of all)
     lower_check_points: int = 4_000  # the other samples' quick lower alignment: points of all LiDARs ...

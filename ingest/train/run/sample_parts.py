@@ -192,6 +192,33 @@ def _lower_check(job: SampleJob, pts_cam0: F64, reflectivity: F64 | None) -> dic
     return {} if found is None else {"+".join(lp.name for lp in job.lidars): found.to_meta()}
 
 
+def free_space_slices(
+    job: SampleJob, traj: RigTrajectory, stamps: I64, which: I64, slice_ns: int, reference_ns: int = 0
+) -> tuple[I64, list[tuple[int, F64]], F64]:
+    """Slice id per point (LiDAR x `slice_ns`), the frame's own slices with their LiDAR origins (those within
+    `reference_ns` of the frame time; 0: all), and each point's ray origin (its LiDAR at the point's time),
+    for the free-space test (`ingest.train.gt.free_space`).
+
+    Origins are in cam0 at the frame time, where `traj.to_frame` put the points.
+    """
+    tc = job.exposure_ns
+    k = (stamps - tc) // slice_ns
+    n_lidars = max(len(job.lidars), 1)
+    slice_id = k * n_lidars + which
+    own = slice_id if not reference_ns else slice_id[np.abs(stamps - tc) <= reference_ns]
+    origins_lidar = np.array([job.geometry.rig.lidar(lidar.name).T_cam0_lidar[:3, 3] for lidar in job.lidars])
+    ray_origin = traj.to_frame(origins_lidar[which], stamps, tc)
+    if len(own) == 0:
+        return slice_id, [], ray_origin
+    # the window spans a few dozen slices: a bincount finds them without sorting every point
+    lo = int(own.min())
+    sids = lo + np.flatnonzero(np.bincount(own - lo))
+    t_mid = tc + (sids // n_lidars) * slice_ns + slice_ns // 2
+    origins = traj.to_frame(origins_lidar[sids % n_lidars], t_mid, tc)
+    refs = [(int(sid), origin) for sid, origin in zip(sids, origins, strict=True)]
+    return slice_id, refs, ray_origin
+
+
 def _standardised(reflectivity: F64 | None, which: I64) -> F64 | None:
     """Each LiDAR's reflectivity to zero mean and unit spread among its own points, so that the points of
     LiDARs reporting it on other scales (0..255, 0..1) share one gain in an alignment of them all."""

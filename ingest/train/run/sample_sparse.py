@@ -9,9 +9,10 @@ from dataclasses import replace
 
 import numpy as np
 
-from calibration.types import F64, I64
+from calibration.types import F64, I64, Bool
 from ingest.dataset.meta import GtMeta, MotionMeta, PointMeta, SampleMeta
 from ingest.runtime.background import Background
+from ingest.train.gt.dense import free_space_filter
 from ingest.train.gt.groundtruth import (
     equirect_disparity,
     fisheye_range,
@@ -23,8 +24,10 @@ from ingest.train.gt.groundtruth import (
 from ingest.train.run.sample_job import ALIGNED, SampleAlignment, SampleJob, SampleResult
 from ingest.train.run.sample_parts import (
     Equirects,
+    WindowPoints,
     alignment_fields,
     finish_sample,
+    free_space_slices,
     gyro_twist,
     points_by_lidar,
     range_ratio_field,
@@ -79,6 +82,26 @@ def _compensated(
     return pts, velocity, motion
 
 
+def _not_seen_through(
+    job: SampleJob, pts: F64, cloud: WindowPoints, gyro: GyroTrack | None, velocity: F64 | None, moved: bool,
+    test: Bool,
+) -> Bool:  # fmt: skip
+    """Keep mask: the points (cam0 at the frame time) that the window's other slices did not see through
+    (`ingest.train.gt.free_space`), tested where `test` (those in the upper camera's view). A rain drop,
+    a dust echo the LiDAR did not tag or a mover's earlier place is hit in one slice and passed by the
+    rays of the others, which return from the surface behind it; a thin static object is hit throughout
+    the window. `moved`: the points were placed by the gyro's turn and `velocity` (`_compensated`), else
+    as measured."""
+    prm, tc = job.params, job.exposure_ns
+    span = (int(cloud.stamps_ns.min()), int(cloud.stamps_ns.max()))
+    turn = gyro if moved and prm.motion != "off" else None
+    traj = RigTrajectory.over_window(turn, velocity, tc, span)
+    slice_id, refs, origin = free_space_slices(
+        job, traj, cloud.stamps_ns, cloud.lidar, prm.sparse_free_slice_ns
+    )
+    return free_space_filter(pts, slice_id, refs, prm.dense, test, origin, None, max(len(job.lidars), 1))
+
+
 def process_sparse(job: SampleJob, images: Background[Equirects] | None, start_ms: float) -> SampleResult:
     """Sparse GT: the frame's own sweeps, motion-compensated to the frame time; without `images` (the
     warps), the points' alignments only (`SampleParams.alignment_only`)."""
@@ -110,6 +133,12 @@ def process_sparse(job: SampleJob, images: Background[Equirects] | None, start_m
         return SampleResult(job.sid, False, ALIGNED, None, ms, aligned=aligned)
     model = geo.rig.upper.model
     view = in_view(model, pts)
+    removed = 0
+    if prm.sparse_free_space and len(pts):
+        v_used = velocity if motion.applied else None
+        keep = _not_seen_through(job, pts, cloud, gyro, v_used, motion.applied, view[0])
+        removed, pts, cloud = int((~keep).sum()), pts[keep], cloud.where(keep)
+        view = (view[0][keep], view[1][keep], view[2][keep])
     seen = view[0]
     normals = surface_normals(pts, prm.gt.plane_neighbours, prm.gt.plane_max_flatness, query=seen)
     visible = occlusion_filter(model, pts, prm.gt, view)  # a subset of `seen`
@@ -141,7 +170,7 @@ def process_sparse(job: SampleJob, images: Background[Equirects] | None, start_m
         gt=GtMeta(
             depth_pixels=range_img.count, disp_pixels=disp_img.count, disp_unstable=unstable,
             density=range_img.count / geo.fisheye_valid_px, window_ms=prm.window_ns / 1e6,
-            decision=prm.decision,
+            decision=prm.decision, removed_moving=removed,
         ),
     )  # fmt: skip
     return finish_sample(job, images, start_ms, ms, (range_img, disp_img), meta)
