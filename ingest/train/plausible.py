@@ -390,9 +390,9 @@ def check_imu_units(where: str, topic: str, kept: int, dropped: dict[str, int]) 
         n = dropped.get(why, 0)
         if n >= 3 and n > UNITS_FRACTION * readings:
             raise BagError(
-                f"{where}: {topic}: {n:,} of {readings:,} IMU readings ({n / readings:.0%}) dropped as {why}, "
-                f"where a knock spikes a few: {hint}; the readings under the bound are as wrong, so nothing "
-                "is written: fix the IMU driver's units"
+                f"{where}: {topic}: {n:,} of {readings:,} IMU readings ({n / readings:.0%}) dropped as "
+                f"{why}, where a knock spikes a few: {hint}; the readings under the bound are as wrong, so "
+                "nothing is written: fix the IMU driver's units"
             )
 
 
