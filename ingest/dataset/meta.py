@@ -52,6 +52,10 @@ class PointMeta:
     range_ratio: dict[str, list[float]] = field(default_factory=dict)  # sparse: per LiDAR after the first,
     # [median ratio of its range to the first's where cam0 sees both in a pixel, pixels, the ratios' robust
     # 1-sigma scatter] (lidar_agreement)
+    plane_scatter: dict[str, list[float]] = field(
+        default_factory=dict
+    )  # per LiDAR: [robust 1-sigma (m) of its
+    # points about the other LiDARs' local planes, points measured] (lidar_agreement.plane_scatter)
 
 
 @dataclass(frozen=True)

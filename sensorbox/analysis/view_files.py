@@ -51,6 +51,7 @@ META_NOT_SCALARS = frozenset(
 ELEMENT_NAMES = {
     "twist_cam0": ("angular_x", "angular_y", "angular_z", "linear_x", "linear_y", "linear_z"),
     "range_ratio": ("ratio", "pixels", "scatter"),  # per LiDAR: named by the key above it
+    "plane_scatter": ("sigma_m", "points"),  # per LiDAR
     "stereo_offset": ("across_px", "along_px", "pixels"),
 }
 XYZ = ("x", "y", "z")

@@ -118,7 +118,7 @@ def test_train_dataset_saved_and_read_back(dense_ds: Path, tmp_path: Path) -> No
     lines = res.stdout.strip().splitlines()
     assert len(lines) == 1
     assert lines[0].startswith(
-        f"{dense_ds} (train layout): 4 samples; 16 images; 8 depth images; 145 series (528 values); "
+        f"{dense_ds} (train layout): 4 samples; 16 images; 8 depth images; 149 series (544 values); "
         "4 on the trajectory; 5 rig frames; saved "
     )
     assert not list(tmp_path.glob(".*.tmp"))

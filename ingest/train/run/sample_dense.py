@@ -20,6 +20,7 @@ from ingest.train.run.sample_parts import (
     alignment_fields,
     finish_sample,
     free_space_slices,
+    plane_scatter_field,
     points_by_lidar,
     range_ratio_field,
     silent_lidars,
@@ -121,6 +122,7 @@ def process_dense(job: SampleJob, images: Background[Equirects], start_ms: float
             out_of_view=0, occluded=0,
             silent_lidars=silent_lidars(job), off_trajectory=int(len(covered) - covered.sum()),
             range_ratio=range_ratio_field(job, placed, cloud),
+            plane_scatter=plane_scatter_field(job, placed, cloud),
         ),
         gt=GtMeta(
             depth_pixels=dense.range_img.count, disp_pixels=dense.disp_img.count,

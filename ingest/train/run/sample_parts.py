@@ -21,7 +21,7 @@ from ingest.rows import rows
 from ingest.runtime.background import Background
 from ingest.train.gt.align import MAX_POINTS, ImageLevels, align_points, part_correlations
 from ingest.train.gt.groundtruth import in_view
-from ingest.train.gt.lidar_agreement import range_ratios
+from ingest.train.gt.lidar_agreement import plane_scatter, range_ratios
 from ingest.train.gt.stereo_offset import pair_offset
 from ingest.train.gt.window_fit import stretch_shares
 from ingest.train.run.frame_check import frame_check
@@ -331,3 +331,16 @@ def range_ratio_field(
     names = [lp.name for lp in job.lidars]
     found = range_ratios(pts_cam0, seen, cols, rows_px, cloud.lidar, names, model.width)
     return {name: [round(r, 5), pairs, round(spread, 5)] for name, (r, pairs, spread) in found.items()}
+
+
+def plane_scatter_field(
+    job: SampleJob, pts_cam0: F64, cloud: WindowPoints, seen: Bool | None = None
+) -> dict[str, list[float]]:
+    """The meta's `points.plane_scatter`: per LiDAR, how far its points in cam0's view scatter about the
+    other LiDARs' local planes (`ingest.train.gt.lidar_agreement.plane_scatter`); `seen`: which points
+    cam0 sees, when the caller has it."""
+    if seen is None:
+        seen = in_view(job.geometry.rig.upper.model, pts_cam0)[0]
+    names = [lp.name for lp in job.lidars]
+    found = plane_scatter(pts_cam0[seen], cloud.lidar[seen], names)
+    return {name: [round(sigma_m, 5), n] for name, (sigma_m, n) in found.items()}

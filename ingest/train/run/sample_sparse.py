@@ -29,6 +29,7 @@ from ingest.train.run.sample_parts import (
     finish_sample,
     free_space_slices,
     gyro_twist,
+    plane_scatter_field,
     points_by_lidar,
     range_ratio_field,
     silent_lidars,
@@ -166,6 +167,7 @@ def process_sparse(job: SampleJob, images: Background[Equirects] | None, start_m
             noise_tag=counts.noise_tag, kept=counts.kept, out_of_view=int(len(seen) - seen.sum()),
             occluded=int(seen.sum() - visible.sum()), silent_lidars=silent_lidars(job), off_imu=off_imu,
             range_ratio=range_ratio_field(job, pts, cloud, view),
+            plane_scatter=plane_scatter_field(job, pts, cloud, seen),
         ),
         gt=GtMeta(
             depth_pixels=range_img.count, disp_pixels=disp_img.count, disp_unstable=unstable,

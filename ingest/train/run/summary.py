@@ -43,6 +43,12 @@ RANGE_SCATTER = 0.02
 `ingest.train.gt.lidar_agreement.range_ratios`, over at least `RANGE_MIN_PIXELS` pixels): the simulated
 fixtures with a Mid-360's 2 cm noise give 0.1-0.9 %, ranges with 0.1 m noise 3.2-3.5 %, 0.3 m 9-10 %."""
 
+PLANE_SCATTER_M = 0.03
+"""A LiDAR's points scatter about the other LiDARs' local planes beyond this (m, median over the samples of
+`ingest.train.gt.lidar_agreement.plane_scatter`): a Mid-360 measures within 2 cm (1-sigma at 10 m, 3 cm at
+0.2 m); the simulated fixtures give 0-8 mm without range noise and 18-22 mm with 2 cm on both LiDARs, 5 cm
+on one 40-43 mm for it (12-20 mm for the other)."""
+
 
 @dataclass
 class IngestSummary:
@@ -95,6 +101,7 @@ class IngestSummary:
     range_ratios: dict[str, list[tuple[float, int, float | None]]] = field(
         default_factory=dict
     )  # per LiDAR, per sample: `SampleMeta.points.range_ratio` (scatter None in an older meta)
+    plane_scatters: dict[str, list[float]] = field(default_factory=dict)  # per LiDAR, per sample (m)
 
     def range_line(self, first: str) -> str:
         """One warning line on the LiDARs whose ranges disagree with the rig's first LiDAR's (`first`) by
@@ -123,11 +130,29 @@ class IngestSummary:
             if (line := _scatter_line(name, first, found, sum(n for _, n, _ in found)))
         )
 
+    def plane_line(self) -> str:
+        """One warning line on the LiDARs whose points scatter about the other LiDARs' surfaces beyond
+        `PLANE_SCATTER_M`, median over the samples ('' if none)."""
+        medians = {name: float(np.median(found)) for name, found in self.plane_scatters.items() if found}
+        lines = []
+        for name, sigma_m in medians.items():
+            if sigma_m <= PLANE_SCATTER_M:
+                continue
+            others = ", ".join(f"{o}'s {1e3 * m:.0f} mm" for o, m in medians.items() if o != name)
+            lines.append(
+                f"{name}'s points scatter {1e3 * sigma_m:.0f} mm (robust 1-sigma, median over "
+                f"{len(self.plane_scatters[name])} samples) about the surfaces the other LiDARs' points give "
+                f"({others} about its); a Mid-360 measures within 20 mm: {name} measures with range noise "
+                "beyond its specification (a degraded or wrong sensor) and the depth GT carries it: ingest "
+                "without it (leave it out of the rig) to compare"
+            )
+        return "; ".join(lines)
+
     def closing_lines(self, first_lidar: str) -> list[str]:
         """The warning lines the written samples give together, in order (`first_lidar`: the rig's first
         LiDAR, the others' ranges are compared with), with those of `flag_frames`."""
         found = [self.without_gt_line(), self.without_disparity_line(), *self._frame_lines]
-        ranges = (self.range_line(first_lidar), self.scatter_line(first_lidar))
+        ranges = (self.range_line(first_lidar), self.scatter_line(first_lidar), self.plane_line())
         return [line for line in (*found, *ranges) if line]
 
     def without_gt_line(self) -> str:
@@ -261,6 +286,8 @@ class IngestSummary:
         for name, (ratio, pixels, *scatter) in meta.points.range_ratio.items():
             spread = scatter[0] if scatter else None
             self.range_ratios.setdefault(name, []).append((ratio, int(pixels), spread))
+        for name, (sigma_m, _) in meta.points.plane_scatter.items():
+            self.plane_scatters.setdefault(name, []).append(float(sigma_m))
         self.stereo_dt_ms.append(meta.stereo_dt_ms)
         for name in meta.points.silent_lidars:
             key = f"{name} silent in the window"
