@@ -241,6 +241,11 @@ def _sample_rows(s: IngestSummary) -> Rows:
         ("motion compensation applied", f"{s.motion_applied} / {s.written}"),
         *_alignment_rows(s),
         *((f"dense GT points (all samples): {k}", f"{n:,}") for k, n in s.dense_points.items()),
+        *(
+            [("sparse GT points removed: the window's other slices saw through them", f"{s.seen_through:,}")]
+            if s.seen_through
+            else []
+        ),
         *((f"time: {k}", f"{np.mean(v):.0f} ms/sample") for k, v in s.stage_ms.items()),
         *((f"time: {k} (helper thread, beside clouds + GT)", f"{np.mean(v):.0f} ms/sample")
           for k, v in s.overlapped_ms.items()),

@@ -667,6 +667,7 @@ def test_points_in_front_of_the_surfaces_that_other_slices_see_through_leave_the
         removed = [
             json.loads(p.read_text())["gt"]["removed_moving"] for p in sorted((out / "meta").glob("*.json"))
         ]
+        assert summary.seen_through == sum(removed)  # the summary's row is the metadata's total
         if name == "rain":
             assert all(n >= 100 for n in removed[1:]), removed  # the first: a window cut by the bag's start
         if name == "clean":

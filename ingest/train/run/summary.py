@@ -68,6 +68,7 @@ class IngestSummary:
     stereo_dt_ms: list[float] = field(default_factory=list)  # lower minus upper header stamp, per sample
     motion_applied: int = 0
     dense_points: dict[str, int] = field(default_factory=dict)  # dense GT: totals over the samples
+    seen_through: int = 0  # sparse GT: points removed that the window's other slices saw through, in all
     stage_ms: dict[str, list[float]] = field(default_factory=dict)  # sequential: they add up per sample
     overlapped_ms: dict[str, list[float]] = field(default_factory=dict)  # helper threads beside them
     seconds: float = 0.0
@@ -306,6 +307,8 @@ class IngestSummary:
                 ("left out: no registered pose near the frame", meta.points.off_trajectory),
             ):
                 self.dense_points[key] = self.dense_points.get(key, 0) + n
+        else:
+            self.seen_through += meta.gt.removed_moving
         for k, v in result.stage_ms.items():
             self.stage_ms.setdefault(k, []).append(v)
         for k, v in result.overlapped_ms.items():
