@@ -81,16 +81,23 @@ def test_lower_images_upside_down_are_named(tmp_path: Path) -> None:
 
     bag, rig = rewrite(tmp_path / "turned.mcap", turned, declare={raw_lower: IMAGE_TYPE})
     summary = ingest([bag], IngestConfig(rig=rig, out=tmp_path / "ds", workers=1, every=5, height_full=96))
-    found = [
-        line for line in summary.warnings if line.startswith("the LiDAR points match the lower camera's")
-    ]
-    assert len(found) == 1, summary.warnings
-    correlations = re.findall(r"lidar_\w+ (-?\d\.\d\d) against (\d\.\d\d)", found[0])
-    assert len(correlations) == 2 and all(float(low) < 0.6 * float(up) for low, up in correlations)
-    assert found[0].endswith(
+    assert _camera_named(summary.warnings, "lower", "upper").endswith(
         "cam1's images are not what the camchain says (turned, mirrored, another camera's) or its intrinsics are "
         "off; the equirect pair is not a stereo pair of the GT: check cam1's topic, images and camchain entry"
     )
+
+
+def _camera_named(warnings: list[str], worse: str, other: str) -> str:
+    """The one line saying every LiDAR's points match the `worse` camera's images far worse than the
+    `other`'s, each LiDAR's two correlations in it below and above 0.6 of each other."""
+    found = [line for line in warnings if line.startswith(f"the LiDAR points match the {worse} camera's")]
+    assert len(found) == 1, warnings
+    assert found[0].startswith(
+        f"the LiDAR points match the {worse} camera's images far worse than the {other}'s"
+    )
+    correlations = re.findall(r"lidar_\w+ (-?\d\.\d\d) against (\d\.\d\d)", found[0])
+    assert len(correlations) == 2 and all(float(mine) < 0.6 * float(theirs) for mine, theirs in correlations)
+    return found[0]
 
 
 @pytest.mark.parametrize("flip", ["mirrored", "upside_down"])
@@ -119,13 +126,7 @@ def test_upper_images_mirrored_or_upside_down_are_named_and_no_lidar_is_blamed(
 
     bag, rig = rewrite(tmp_path / "flipped.mcap", flipped, declare={UPPER: IMAGE_TYPE})
     summary = ingest([bag], IngestConfig(rig=rig, out=tmp_path / "ds", workers=1, every=3, height_full=128))
-    found = [
-        line for line in summary.warnings if line.startswith("the LiDAR points match the upper camera's")
-    ]
-    assert len(found) == 1, summary.warnings
-    correlations = re.findall(r"lidar_\w+ (-?\d\.\d\d) against (\d\.\d\d)", found[0])
-    assert len(correlations) == 2 and all(float(up) < 0.6 * float(low) for up, low in correlations)
-    assert found[0].endswith(
+    assert _camera_named(summary.warnings, "upper", "lower").endswith(
         "cam0's images are not what the camchain says (turned, mirrored, another camera's) or its intrinsics are "
         "off; the GT is drawn for the view these images do not show, and the LiDARs' poses cannot be judged from "
         "them: check cam0's topic, images and camchain entry"
