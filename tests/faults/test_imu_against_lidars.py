@@ -38,13 +38,13 @@ FAST = {"workers": 1, "every": 5, "height_full": 64}
 
 LATE = re.compile(
     r"^imu_top \(/livox/imu_192_168_1_12\): its gyro disagrees with the LiDARs' motion by (\d+) % of the turn "
-    r"\(median over \d+ intervals of the trajectory; a right IMU: under 15 %\); read (\d+) ms later it agrees "
+    r"\(median over \d+ intervals of the trajectory; a right IMU: under 10 %\); read (\d+) ms later it agrees "
     r"to (\d+) %: its stamps run \2 ms late against the LiDARs' clock; fix the IMU's stamps \(or its clock "
     r"sync\)$"
 )
 AXES = re.compile(
     r"^imu_top \(/livox/imu_192_168_1_12\): its gyro disagrees with the LiDARs' motion by (\d+) % of the turn "
-    r"\(median over \d+ intervals of the trajectory; a right IMU: under 15 %\), and neither a shift of its "
+    r"\(median over \d+ intervals of the trajectory; a right IMU: under 10 %\), and neither a shift of its "
     r"stamps within \+-1000 ms nor a constant bias explains it: its axes do not match the rig's "
     r"imus\.imu_top\.T_cam0_imu \(a wrong rotation, an axis of the wrong sign, or rates not in rad/s\), its gyro "
     r"reads a bias large enough to pull the odometry with it, or the LiDARs' points are misplaced \(a LiDAR's "
@@ -52,7 +52,7 @@ AXES = re.compile(
 )
 BIAS = re.compile(
     r"^imu_top \(/livox/imu_192_168_1_12\): its gyro disagrees with the LiDARs' motion by (\d+) % of the turn "
-    r"\(median over \d+ intervals of the trajectory; a right IMU: under 15 %\); less (0\.\d+) rad/s "
+    r"\(median over \d+ intervals of the trajectory; a right IMU: under 10 %\); less (0\.\d+) rad/s "
     r"\(\d+\.\d deg/s\) about cam0's \[(-?\d\.\d\d), (-?\d\.\d\d), (-?\d\.\d\d)\] it agrees to (\d+) %: its "
     r"gyro reads that bias; calibrate the gyro's bias, or remove the IMU from the rig to ingest without it$"
 )
@@ -183,6 +183,27 @@ def test_an_imu_50_ms_late_is_a_warning_and_recorded(tmp_path: Path) -> None:
     assert 0.15 < check["mismatch"] <= 0.3
 
 
+def _gyro_xy_exchanged(topic: str, k: int, raw: bytes) -> list[tuple[str, bytes]]:
+    if topic != IMU:
+        return [(topic, raw)]
+    s = decode_imu(raw)
+    x, y, z = np.asarray(s.gyro_rad_s)
+    return [(topic, imu_msg(s.stamp_ns, np.array([y, x, z]), s.acc))]
+
+
+@pytest.mark.parametrize("gt", ["sparse", "auto"])
+def test_a_gyro_with_its_x_and_y_axes_exchanged_is_named(tmp_path: Path, gt: str) -> None:
+    """Sweep 11: imu_top's gyro x and y exchanged on the walk (z, acceleration and stamps right): 8.6 % depth
+    outliers against truth (right: 2.2 %), exit 0, nothing naming the IMU: its mismatch with the odometry,
+    0.13 of the turn (the knots lean towards the gyro that shapes them), was under the 0.15 the check warned
+    from; a right IMU reads 0.002-0.06 on the simulated walks."""
+    bag, rig = rewrite(tmp_path / "xy.mcap", _gyro_xy_exchanged, src=WALK)
+    summary = ingest([bag], IngestConfig(rig=rig, out=tmp_path / "ds", gt=gt, **FAST))  # type: ignore[arg-type]
+    (line,) = [w for w in summary.warnings if w.startswith("imu_top ")]
+    found = AXES.match(line)
+    assert found and 10 < int(found.group(1)) < 30, line
+
+
 @pytest.mark.parametrize("gt", ["sparse", "auto"])
 def test_a_right_imu_agrees_and_a_still_rig_is_not_judged(tmp_path: Path, gt: str) -> None:
     out = tmp_path / "walk"
@@ -235,7 +256,7 @@ def test_a_gyro_reading_exactly_zero_throughout_is_refused_as_dead(tmp_path: Pat
     line = _refused(tmp_path, bag, rig, "sparse")
     assert re.match(
         r"^imu_top \(/livox/imu_192_168_1_12\): its gyro disagrees with the LiDARs' motion by 100 % of the turn "
-        r"\(median over \d+ intervals of the trajectory; a right IMU: under 15 %\): its gyro reads no turn at all "
+        r"\(median over \d+ intervals of the trajectory; a right IMU: under 10 %\): its gyro reads no turn at all "
         r"\(every rate exactly 0 rad/s\) while the LiDARs' motion turns \d+\.\d deg per interval: a dead gyro, or "
         r"a driver that sends no rates; fix the IMU, or remove it from the rig to ingest without it$",
         line,
