@@ -95,13 +95,15 @@ def rectify_rig(rig: Rig, reference: str = "upper", other: str = "lower") -> Ste
     if (apart_mm := float(np.linalg.norm(b)) * 1e3) < MIN_BASELINE_M * 1e3:
         raise CalibrationError(
             f"{rig.source or rig.name}: cameras {ref.name} and {oth.name} are {apart_mm:.3f} mm apart; "
-            f"a stereo pair needs a baseline of at least {MIN_BASELINE_M * 1e3:g} mm"
+            f"a stereo pair needs a baseline of at least {MIN_BASELINE_M * 1e3:g} mm: check {oth.name}'s "
+            "T_cn_cnm1 in the camchain"
         )
     return rectify_stereo(T_oth_ref, "vertical")
 
 
 def stereo_warnings(rig: Rig) -> list[str]:
-    """What looks wrong in the upper/lower pair's layout, one line each (nothing for a rig without both).
+    """What looks wrong in the upper/lower pair's layout, one line each (nothing for a rig without both, or
+    whose cameras are no stereo pair: `rectify_rig` refuses that).
 
     The rectified images point their "up" from the lower camera to the upper:
     a lower camera above the upper one in the upper's frame (y down) turns the
@@ -114,11 +116,8 @@ def stereo_warnings(rig: Rig) -> list[str]:
     except CalibrationError:  # no upper or lower role
         return []
     where = f"{rig.source or rig.name}"
-    if float(np.linalg.norm(b)) < MIN_BASELINE_M:
-        return [
-            f"{where}: cameras {up} and {low} are {np.linalg.norm(b) * 1e3:.3f} mm apart: not a stereo pair "
-            "(ingest refuses it)"
-        ]
+    if float(np.linalg.norm(b)) < MIN_BASELINE_M:  # no pair at all: `rectify_rig` refuses it
+        return []
     out = []
     centre = f"its centre at [{b[0]:.4f}, {b[1]:.4f}, {b[2]:.4f}] m in {up}"
     tilt_deg = float(np.degrees(np.arccos(np.clip(b[1] / np.linalg.norm(b), -1.0, 1.0))))

@@ -101,7 +101,7 @@ def frames_table(report: RigReport) -> Table:
 def calib_check(path: PathArg, plot: PlotOpt = None) -> None:
     """Print each camera's model, parameters and true FOV, the baseline and the rig's frames."""
     from calibration.housing import housing_warnings
-    from calibration.rectify import stereo_warnings
+    from calibration.rectify import MIN_BASELINE_M, rectify_rig, stereo_warnings
     from calibration.report import describe_rig
     from calibration.rig import read_rig
 
@@ -118,6 +118,8 @@ def calib_check(path: PathArg, plot: PlotOpt = None) -> None:
         console.print(f"Stereo baseline upper->lower: [bold]{report.baseline_m * 1000:.2f} mm[/bold]")
     for line in [*stereo_warnings(rig), *housing_warnings(rig)]:
         print_warning(line, console)
+    if report.baseline_m is not None and report.baseline_m < MIN_BASELINE_M:
+        rectify_rig(rig)  # refuses it as ingest does: the cameras are no stereo pair
     if plot is not None:
         from sensorbox.analysis.plots import plot_rig
 

@@ -317,14 +317,28 @@ def test_stereo_layout_warnings_and_a_zero_baseline(tmp_path):
         "rig.yaml: stereo baseline 4.812 m; is the camchain in millimetres? (Kalibr writes metres)"
     )
     zero = read_rig(_rig_with_chain(tmp_path / "c", 0.0))
-    assert stereo_warnings(zero) == [
-        f"{zero.source}: cameras cam0 and cam1 are 0.000 mm apart: not a stereo pair (ingest refuses it)"
-    ]
+    assert stereo_warnings(zero) == []  # no pair at all: refused, not warned about
     with pytest.raises(
         CalibrationError,
-        match=r"rig\.yaml: cameras cam0 and cam1 are 0\.000 mm apart; a stereo pair needs a baseline of at least 1 mm$",
+        match=r"rig\.yaml: cameras cam0 and cam1 are 0\.000 mm apart; a stereo pair needs a baseline of at least 1 mm: "
+        r"check cam1's T_cn_cnm1 in the camchain$",
     ):
         rectify_rig(zero)
+
+
+def test_calib_check_refuses_cameras_that_are_no_stereo_pair(tmp_path, capsys):
+    """Sweep 11: a camchain whose cam1 T_cn_cnm1 is the identity (baseline 0) passed `calib check` with exit 0
+    and a warning that ingest refuses it. The check now refuses it as ingest does, after its report."""
+    from tests.faults.cli import sensorbox
+
+    rig = _rig_with_chain(tmp_path, 0.0)
+    code, out, err = sensorbox(capsys, "calib", "check", str(rig))
+    assert code == 2
+    assert err == [
+        f"error: {rig}: cameras cam0 and cam1 are 0.000 mm apart; a stereo pair needs a baseline of at least "
+        "1 mm: check cam1's T_cn_cnm1 in the camchain"
+    ]
+    assert "Stereo baseline upper->lower: 0.00 mm" in out  # the report first: what the file says
 
 
 def test_an_imu_off_its_lidars_housing_is_named(tmp_path):
