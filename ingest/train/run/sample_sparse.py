@@ -134,7 +134,7 @@ def process_sparse(job: SampleJob, images: Background[Equirects] | None, start_m
         return SampleResult(job.sid, False, ALIGNED, None, ms, aligned=aligned)
     model = geo.rig.upper.model
     view = in_view(model, pts)
-    removed = 0
+    removed, measured = 0, (pts, cloud)  # the alignments lay every point: as refine's rounds do
     if prm.sparse_free_space and len(pts):
         v_used = velocity if motion.applied else None
         keep = _not_seen_through(job, pts, cloud, gyro, v_used, motion.applied, view[0])
@@ -156,7 +156,7 @@ def process_sparse(job: SampleJob, images: Background[Equirects] | None, start_m
     meta = SampleMeta(
         **job.timing(), source_bag=job.source, lidar_skew_ms=cloud.skew_ms,
         twist_cam0=gyro_twist(job, velocity if motion.applied else None),
-        **alignment_fields(job, pts, cloud, ms),
+        **alignment_fields(job, *measured, ms),
         motion=MotionMeta(
             applied=motion.applied, source=motion.source, max_rotation_deg=motion.max_rotation_deg,
             speed_mps=motion.speed_mps, predicted_motion_px=motion.motion_px,
