@@ -87,8 +87,8 @@ def process_dense(job: SampleJob, images: Background[Equirects], start_ms: float
             fs, block_ns = free_space_settings(prm.dense), prm.dense.plane_block_ns
             keep = ~(test & cleared_for(cloud.clear_bits, stamps, tc, fs, block_ns))
         else:
-            fs = (prm.dense.free_slice_ns, prm.dense.free_reference_ns)
-            slice_id, refs, ray_origin = free_space_slices(job, traj, stamps, cloud.lidar, *fs)
+            slicing = (prm.dense.free_slice_ns, prm.dense.free_reference_ns)
+            slice_id, refs, ray_origin = free_space_slices(job, traj, stamps, cloud.lidar, *slicing)
             normal = None if normals is None else np.where(normals.planar[:, None], normals.normal, np.nan)
             keep = free_space_filter(
                 placed, slice_id, refs, prm.dense, test, ray_origin, normal, max(len(job.lidars), 1)
