@@ -74,8 +74,9 @@ from typing import Any, TypeVar
 
 import cv2
 import numpy as np
-import open3d as o3d
 from scipy.spatial import cKDTree
+
+from ingest.runtime.o3d import o3d
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import OUT_DIR, machine_line, markdown_table, median_seconds

@@ -192,7 +192,7 @@ def read_mask_points(path: Path) -> F32:
 
 def _read_open3d(path: Path) -> Any:
     """An Open3D tensor point cloud with at least one point, or a ScanError naming the file."""
-    import open3d as o3d
+    from ingest.runtime.o3d import o3d
 
     check_cloud_file(path)
     short = short_file(path)
@@ -217,7 +217,7 @@ def _open3d_quiet() -> Iterator[None]:
     /dev/null only for the call and is restored after it; scans are read before
     any progress display or worker starts, so nothing else writes there meanwhile.
     """
-    import open3d as o3d
+    from ingest.runtime.o3d import o3d
 
     sys.stderr.flush()
     saved_fd = os.dup(2)

@@ -10,9 +10,9 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-import open3d as o3d
 
 from calibration.types import F64
+from ingest.runtime.o3d import o3d
 
 Tri = np.ndarray[Any, np.dtype[np.int64]]
 Mesh = tuple[F64, Tri]

@@ -10,10 +10,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import open3d as o3d
 
 from calibration.errors import SensorboxError
 from calibration.types import F64, I64
+from ingest.runtime.o3d import o3d
 
 
 @dataclass(frozen=True)

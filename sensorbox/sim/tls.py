@@ -30,13 +30,13 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-import open3d as o3d
 import yaml
 from scipy.spatial.transform import Rotation
 
 from calibration.camera import CameraModel
 from calibration.errors import SensorboxError
 from calibration.types import F32, F64, U8, Bool
+from ingest.runtime.o3d import o3d
 from sensorbox.sim.appearance import Texture, shade
 from sensorbox.sim.raycast import Hits, RayCaster, write_ply
 from sensorbox.sim.scenes import Scene

@@ -184,7 +184,7 @@ def test_a_block_whose_sweeps_never_all_came_is_fitted_at_the_end():
 
 @pytest.mark.parametrize("threads", [None, 1])
 def test_a_fit_leaves_open3ds_thread_count_as_it_found_it(threads):
-    import open3d as o3d
+    from ingest.runtime.o3d import o3d
 
     before = o3d.utility.get_max_threads()
     traj = _trajectory(1.0)

@@ -5,11 +5,11 @@ from functools import partial
 import cv2
 import numba
 import numpy as np
-import open3d as o3d
 import pytest
 
 from ingest.runtime import executor as executor_module
 from ingest.runtime.executor import Executor, share_cores, usable_cpus
+from ingest.runtime.o3d import o3d
 
 
 def _threads(shared: object, job: int) -> tuple[int, int]:

@@ -6,7 +6,6 @@ import struct
 import uuid
 
 import numpy as np
-import open3d as o3d
 import pye57
 import pytest
 from pye57 import libe57
@@ -14,6 +13,7 @@ from scipy.spatial.transform import Rotation
 
 from ingest.errors import ScanError
 from ingest.render.scans import read_cloud, read_e57, read_mask_points, read_scans
+from ingest.runtime.o3d import o3d
 from sensorbox.sim.appearance import Texture
 from sensorbox.sim.scenes import build_scene
 from sensorbox.sim.tls import TlsParams, bundle_poses, simulate_scan, write_site

@@ -43,12 +43,12 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-import open3d as o3d
 
 from calibration.types import F64, I64, U64, Bool
 from ingest.bags.decode import Sweep
 from ingest.raster.z_order import z_order
 from ingest.rows import rows
+from ingest.runtime.o3d import o3d
 from ingest.train.gt.free_space import RayTest, free_space_bits, stale_slices
 from ingest.train.trajectory.clouds import filter_points
 from ingest.train.trajectory.planes import plane_normals

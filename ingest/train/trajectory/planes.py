@@ -17,10 +17,10 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-import open3d as o3d
 
 from calibration.linalg3 import sym3_smallest
 from calibration.types import F64, Bool
+from ingest.runtime.o3d import o3d
 
 
 @dataclass(frozen=True)
