@@ -246,7 +246,8 @@ def align_points(
     corr = np.corrcoef(step.intensity, step.reflectivity)[0, 1] if np.std(step.reflectivity) > 0 else 0.0
     return Alignment(
         w_rad, t_m, step.information, step.points, float(np.nan_to_num(corr)),
-        float(np.degrees(np.median(shift))), step.range_m, 1.0 / px_per_rad(model),
+        float(np.degrees(np.median(shift))), float(np.median(np.linalg.norm(step.points_m, axis=1))),
+        1.0 / px_per_rad(model),
     )  # fmt: skip
 
 
@@ -296,7 +297,7 @@ class _Step:
     delta: F64  # (rotation, translation, gain, offset) increments
     information: F64  # 6x6, the affine intensity model marginalised out
     points: int  # the points the step used
-    range_m: float  # their median range
+    points_m: F64  # the corrected points it used (N, 3)
     intensity: F64  # the image at them, and their reflectivity (for the correlation)
     reflectivity: F64
 
@@ -330,5 +331,4 @@ def _gauss_newton(
         info = (pose - across @ np.linalg.solve(H[6:, 6:], across.T)) / variance
     except np.linalg.LinAlgError:
         return None
-    range_m = float(np.median(np.linalg.norm(p, axis=1)))
-    return _Step(delta, info, len(p), range_m, intensity, rf)
+    return _Step(delta, info, len(p), p, intensity, rf)
