@@ -30,3 +30,16 @@ def _map_cache_in_a_temporary_folder(tmp_path_factory: pytest.TempPathFactory) -
     folder = root / "map_cache"
     folder.mkdir(exist_ok=True)
     os.environ[MAP_CACHE_ENV] = str(folder)
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Tests of an xdist group first, in collection order otherwise.
+
+    `--dist loadgroup` runs a group on one worker, so that its module fixtures
+    (the dense walks, the benchmark scenes, the viewer's datasets) are built once;
+    it hands work out in collection order, and a heavy group handed out last ran
+    alone at the end while the other worker idled. First, the two workers share
+    the groups and the single tests fill in behind them.
+    """
+    grouped = [item for item in items if item.get_closest_marker("xdist_group") is not None]
+    items[:] = grouped + [item for item in items if item.get_closest_marker("xdist_group") is None]
