@@ -90,6 +90,45 @@ def test_without_texture_there_is_nothing_to_align(frame) -> None:
     assert align_points(model, ImageLevels.from_bgr(np.full_like(image, 128)), pts, refl) is None
 
 
+def test_the_compiled_normal_equations_are_the_robust_cost_written_out(frame) -> None:
+    """`normal_equations` against the cost of the module docstring in numpy, the image read by OpenCV's
+    bilinear remap: the same H and g (to OpenCV's float32 sampling), spread, points and intensities."""
+    import cv2
+
+    from ingest.train.gt.align_kernels import normal_equations
+
+    model, image, pts, refl = frame
+    level = ImageLevels.from_bgr(image).levels[1]
+    p = pts[::7]
+    px, ok = model.project(p)
+    ok &= model.in_image(px)
+    px = np.where(ok[:, None], px, 0.0)
+    rng = np.random.default_rng(5)
+    J = rng.normal(0.0, 300.0, (len(p), 2, 3))
+    affine = np.array([0.8, 12.0])
+    H, g, n, spread, weighted_sq, intensity, used_refl, used_p = normal_equations(
+        px, ok, p, J, refl[::7], level, affine, 2.0
+    )
+    x, y = (np.ascontiguousarray(px[ok, k], np.float32).reshape(-1, 1) for k in (0, 1))
+    sampled = cv2.remap(level, x, y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(-1, 3)
+    grad = np.einsum("ni,nik->nk", sampled[:, 1:].astype(np.float64), J[ok])
+    rf = refl[::7][ok]
+    rows = np.c_[np.cross(p[ok], grad), grad, -rf, -np.ones(len(rf))]
+    residual = sampled[:, 0] - (affine[0] * rf + affine[1])
+    mad = 1.4826 * np.median(np.abs(residual - np.median(residual)))
+    weight = 1.0 / (1.0 + (residual / (2.0 * mad)) ** 2)
+    assert n == ok.sum() > 1000
+    np.testing.assert_allclose(intensity, sampled[:, 0], atol=2e-3)
+    np.testing.assert_array_equal(used_refl, rf)
+    np.testing.assert_array_equal(used_p, p[ok])
+    assert spread == pytest.approx(mad, rel=1e-3)
+    np.testing.assert_allclose(H, (rows * weight[:, None]).T @ rows, rtol=1e-3, atol=1e-6 * np.abs(H).max())
+    np.testing.assert_allclose(
+        g, (rows * weight[:, None]).T @ residual, rtol=1e-3, atol=1e-6 * np.abs(g).max()
+    )
+    assert weighted_sq == pytest.approx(float(np.sum(weight * residual**2)), rel=1e-3)
+
+
 def _sample(delta: F64, twist: F64, rng: np.random.Generator, sigma_rad: float = 2e-4) -> Alignment:
     info = np.diag([1 / sigma_rad**2] * 3 + [1 / (sigma_rad * 3) ** 2] * 3)
     noisy = delta + rng.normal(0, 1, 6) * np.r_[[sigma_rad] * 3, [sigma_rad * 3] * 3]

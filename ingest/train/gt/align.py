@@ -307,28 +307,22 @@ def _gauss_newton(
 ) -> _Step | None:
     """One robust Gauss-Newton step of the photometric cost at the corrected points `p`, with the
     projection's Jacobian `J` (N, 2, 3) and the intensity model `affine` (gain, offset)."""
+    from ingest.train.gt.align_kernels import normal_equations  # numba: loaded with the first alignment
+
     px, ok = model.project(p)
     ok &= model.in_image(px)
     if ok.sum() < MIN_POINTS:
         return None
-    p, px, J, rf = p[ok], px[ok], J[ok], refl[ok]
-    sampled = _sample(level, px)
-    intensity = sampled[:, 0]
-    grad_p = np.einsum("ni,nik->nk", sampled[:, 1:], J)  # dI/dp
-    # d(R(dw) p)/d(dw) = -[p]x, so dI/d(dw) = grad_p . (dw x p) / dw = p x grad_p
-    rows = np.concatenate([np.cross(p, grad_p), grad_p, -rf[:, None], -np.ones((len(p), 1))], axis=1)
-    residual = intensity - (affine[0] * rf + affine[1])
-    spread = 1.4826 * float(np.median(np.abs(residual - np.median(residual))))
+    H, g, n, spread, weighted_sq, intensity, rf, used = normal_equations(
+        px, ok, p, J, refl, level, affine, CAUCHY_SCALE
+    )
     if not spread > 0:
         return None
-    weight = 1.0 / (1.0 + (residual / (CAUCHY_SCALE * spread)) ** 2)
-    weighted = rows * weight[:, None]
-    H, g = weighted.T @ rows, weighted.T @ residual
     try:
-        delta = -np.linalg.solve(H, g)
+        delta: F64 = np.negative(np.linalg.solve(H, g))
         pose, across = H[:6, :6], H[:6, 6:]
-        variance = float(np.sum(weight * residual**2) / max(1, len(p) - 8))
-        info = (pose - across @ np.linalg.solve(H[6:, 6:], across.T)) / variance
+        variance = weighted_sq / max(1, n - 8)
+        info: F64 = (pose - across @ np.linalg.solve(H[6:, 6:], across.T)) / variance
     except np.linalg.LinAlgError:
         return None
-    return _Step(delta, info, len(p), p, intensity, rf)
+    return _Step(delta, info, n, used, intensity, rf)
