@@ -34,10 +34,13 @@ demo: setup
 # The suite in two runs: everything else in parallel, then the live paths (sockets, threads on a
 # clock, subprocess timing: marker `realtime`) one at a time, so two of them never share the cores.
 # ROS 1's own rosbag (Debian's python3-rosbag) reads and writes bags in the interop tests.
+# The suite's processes write their bytecode caches (__pycache__, ignored by git) even where
+# PYTHONDONTWRITEBYTECODE is set: it starts about 100 Python processes (the commands' tests, ingest
+# workers), and each would otherwise compile every module it imports again (2-3 CPU s a process).
 test: setup
 	@bash tools/ensure_ros1.sh
-	$(BIN)/python -m pytest -q -n 2 --dist loadgroup -m "not realtime" tests
-	$(BIN)/python -m pytest -q -m realtime tests
+	env -u PYTHONDONTWRITEBYTECODE $(BIN)/python -m pytest -q -n 2 --dist loadgroup -m "not realtime" tests
+	env -u PYTHONDONTWRITEBYTECODE $(BIN)/python -m pytest -q -m realtime tests
 
 bench: setup
 	$(BIN)/python bench/bench_models.py
