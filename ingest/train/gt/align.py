@@ -179,12 +179,12 @@ def nearest_in_cell(px: F64, range_m: F64) -> np.ndarray:
         return np.zeros(0, bool)
     cell = np.floor(px / CELL_PX).astype(np.int64)
     key = cell[:, 1] * (1 << 20) + cell[:, 0]
-    order = np.lexsort((range_m, key))
-    k = key[order]
-    first = np.r_[True, k[1:] != k[:-1]]
-    nearest = range_m[order][np.maximum.accumulate(np.where(first, np.arange(len(k)), 0))]
+    order = np.argsort(key, kind="stable")  # each cell's points together
+    k, ranges = key[order], range_m[order]
+    first = np.flatnonzero(np.r_[True, k[1:] != k[:-1]])
+    nearest = np.repeat(np.minimum.reduceat(ranges, first), np.diff(np.r_[first, len(k)]))
     keep = np.zeros(len(px), bool)
-    keep[order] = range_m[order] <= nearest * (1 + NEAREST_TOLERANCE)
+    keep[order] = ranges <= nearest * (1 + NEAREST_TOLERANCE)
     return keep
 
 
@@ -193,13 +193,10 @@ def _projected(model: CameraModel, pts: F64) -> tuple[F64, F64, np.ndarray]:
     and which points project into the image."""
     px, ok = model.project(pts)
     ok &= model.in_image(px)
-    J = np.empty((len(pts), 2, 3))
-    for k in range(3):
-        step = np.zeros(3)
-        step[k] = JACOBIAN_STEP_M
-        moved, _ = model.project(pts + step)
-        J[:, :, k] = (moved - px) / JACOBIAN_STEP_M
-    ok &= np.isfinite(J).all(axis=(1, 2))
+    steps = np.eye(3) * JACOBIAN_STEP_M
+    moved, _ = model.project(pts[None, :, :] + steps[:, None, :])  # (3, N, 2): one call for all three
+    J = np.ascontiguousarray(((moved - px) / JACOBIAN_STEP_M).transpose(1, 2, 0))
+    ok &= np.isfinite(J.reshape(len(J), 6).sum(axis=1))  # a sum of finite entries is finite, NaN/inf spread
     return px, J, ok
 
 
