@@ -207,7 +207,7 @@ def estimate_velocity(
     returned as is: iterating on noise only makes it wander. None when the
     scene does not constrain all three directions.
     """
-    from scipy.spatial import cKDTree
+    from ingest.train.trajectory.voxel_hash import VoxelHash  # numba: loaded with the first estimate
 
     if len(pts_cam0) < 200:
         return None
@@ -227,9 +227,9 @@ def estimate_velocity(
         if fitted_at is None or np.linalg.norm(v - fitted_at) * span_s > refit_m:
             planes, own = plane_normals(qe, neighbours, 0.02), plane_normals(ql, neighbours, 0.02)
             fitted_at = v
-        dist, j = cKDTree(qe, leafsize=32, balanced_tree=False).query(ql, k=1, distance_upper_bound=max_gap_m)
-        i = np.nonzero(np.isfinite(dist))[0]
-        j = j[i]
+        dist, j = VoxelHash.build(qe, max_gap_m).query(ql, 1, max_gap_m)
+        i = np.nonzero(np.isfinite(dist[:, 0]))[0]
+        j = j[i, 0]
         n = planes.normal[j]
         # both ends on a plane, the same plane: a pair across a corner would pull v off
         same = np.abs(np.einsum("ij,ij->i", n, own.normal[i])) >= min_cos
