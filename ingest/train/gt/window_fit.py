@@ -11,7 +11,6 @@ floor stays on it; one turned by a few degrees about a horizontal axis still mat
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from calibration.types import F64, I64
 
@@ -50,9 +49,12 @@ def stretch_shares(pts_cam0: F64, stamps_ns: I64) -> list[float | None]:
     the other stretches' points (m, in cam0 at the exposure); None for a stretch under
     `MIN_STRETCH_POINTS`.
 
-    One tree holds every stretch's `TREE_POINTS`; a point's `NEIGHBOURS` nearest in it are searched for
-    one of another stretch (a point's own stretch crowds its scan line, so its nearest are often its own).
+    One voxel hash (`ingest.train.trajectory.voxel_hash`, exact within its radius) holds every
+    stretch's `TREE_POINTS`; a point's `NEIGHBOURS` nearest in it are searched for one of another
+    stretch (a point's own stretch crowds its scan line, so its nearest are often its own).
     """
+    from ingest.train.trajectory.voxel_hash import VoxelHash  # numba: loaded with the first window
+
     out: list[float | None] = [None] * WINDOW_PARTS
     finite = np.isfinite(pts_cam0).all(axis=1)
     pts, part = pts_cam0[finite], stretch_of(stamps_ns[finite])
@@ -61,11 +63,13 @@ def stretch_shares(pts_cam0: F64, stamps_ns: I64) -> list[float | None]:
     if len(measured) < 2:
         return out
     held = np.concatenate([members[k][evenly_spread(len(members[k]), TREE_POINTS)] for k in measured])
-    tree, label = cKDTree(pts[held], balanced_tree=False), np.append(part[held], -1)  # -1: no neighbour
-    for k in measured:
-        q = pts[members[k][evenly_spread(len(members[k]), QUERY_POINTS)]]
-        bound = NEAR_M + NEAR_RANGE * np.linalg.norm(q, axis=1)
-        d, j = tree.query(q, k=NEIGHBOURS, distance_upper_bound=float(bound.max()))
+    label = np.append(part[held], -1)  # -1: no neighbour
+    queries = {k: pts[members[k][evenly_spread(len(members[k]), QUERY_POINTS)]] for k in measured}
+    bounds = {k: NEAR_M + NEAR_RANGE * np.linalg.norm(q, axis=1) for k, q in queries.items()}
+    index = VoxelHash.build(pts[held], float(max(b.max() for b in bounds.values())))
+    for k, q in queries.items():
+        bound = bounds[k]
+        d, j = index.query(q, NEIGHBOURS, float(bound.max()))
         other = (label[j] != k) & (label[j] >= 0) & (d <= bound[:, None])
         out[k] = round(float(other.any(axis=1).mean()), 4)
     return out
