@@ -64,6 +64,7 @@ def _normal_equations(  # type: ignore[no-untyped-def]  # pragma: no cover
     for m in range(n):
         px_, py_, pz_ = used_p[m, 0], used_p[m, 1], used_p[m, 2]
         gx, gy, gz = grad[m, 0], grad[m, 1], grad[m, 2]
+        # d(R(dw) p)/d(dw) = -[p]x, so dI/d(dw) = p x grad: the rotation's part of the row
         row[0], row[1], row[2] = py_ * gz - pz_ * gy, pz_ * gx - px_ * gz, px_ * gy - py_ * gx
         row[3], row[4], row[5], row[6], row[7] = gx, gy, gz, -used_refl[m], -1.0
         u = r[m] / (cauchy_scale * spread)
