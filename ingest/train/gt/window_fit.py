@@ -63,7 +63,7 @@ def stretch_shares(pts_cam0: F64, stamps_ns: I64) -> list[float | None]:
     if len(measured) < 2:
         return out
     held = np.concatenate([members[k][evenly_spread(len(members[k]), TREE_POINTS)] for k in measured])
-    label = np.append(part[held], -1)  # -1: no neighbour
+    label = np.append(part[held], -1)  # -1: no neighbour (the index the hash gives a missing one reads it)
     queries = {k: pts[members[k][evenly_spread(len(members[k]), QUERY_POINTS)]] for k in measured}
     bounds = {k: NEAR_M + NEAR_RANGE * np.linalg.norm(q, axis=1) for k, q in queries.items()}
     index = VoxelHash.build(pts[held], float(max(b.max() for b in bounds.values())))
