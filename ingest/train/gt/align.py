@@ -189,15 +189,18 @@ def nearest_in_cell(px: F64, range_m: F64) -> np.ndarray:
 
 
 def _projected(model: CameraModel, pts: F64) -> tuple[F64, F64, np.ndarray]:
-    """Pixels of `pts`, the projection's Jacobian d(pixel)/d(point) (N, 2, 3) by forward differences,
-    and which points project into the image."""
+    """Pixels of `pts`, which points project into the image with a finite Jacobian, and at those points
+    the projection's Jacobian d(pixel)/d(point) (M, 2, 3) by forward differences (M of them: the others
+    are never sampled, and about half of a LiDAR's points lie outside a fisheye's view)."""
     px, ok = model.project(pts)
     ok &= model.in_image(px)
+    inside = pts[ok]
     steps = np.eye(3) * JACOBIAN_STEP_M
-    moved, _ = model.project(pts[None, :, :] + steps[:, None, :])  # (3, N, 2): one call for all three
-    J = np.ascontiguousarray(((moved - px) / JACOBIAN_STEP_M).transpose(1, 2, 0))
-    ok &= np.isfinite(J.reshape(len(J), 6).sum(axis=1))  # a sum of finite entries is finite, NaN/inf spread
-    return px, J, ok
+    moved, _ = model.project(inside[None, :, :] + steps[:, None, :])  # (3, M, 2): one call for all three
+    J = ((moved - px[ok]) / JACOBIAN_STEP_M).transpose(1, 2, 0)
+    finite = np.isfinite(J.reshape(len(J), 6).sum(axis=1))  # a sum of finite entries is finite, NaN/inf spread
+    ok[ok] = finite
+    return px, np.ascontiguousarray(J[finite]), ok
 
 
 def _thinned(pts: F64, reflectivity: F64, limit: int) -> tuple[F64, F64]:
@@ -226,10 +229,11 @@ def align_points(
     step: _Step | None = None
     for level in image.levels:
         px, J, ok = _projected(model, apply(w_rad, t_m, pts))
-        ok[ok] = nearest_in_cell(px[ok], np.linalg.norm(pts[ok], axis=1))
+        nearest = nearest_in_cell(px[ok], np.linalg.norm(pts[ok], axis=1))
+        ok[ok] = nearest
         if ok.sum() < MIN_POINTS:
             return None
-        visible, J, rf = pts[ok], J[ok], refl[ok]
+        visible, J, rf = pts[ok], J[nearest], refl[ok]
         for _ in range(ITERATIONS_PER_LEVEL):
             step = _gauss_newton(model, level, apply(w_rad, t_m, visible), J, rf, affine)
             if step is None:
