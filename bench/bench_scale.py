@@ -1,13 +1,17 @@
 """Past one machine: how much of a dense ingest's CPU the client spends, and the speed-up that leaves.
 
 Input: a simulated half-resolution outdoor walk (`sensorbox simulate --scene
-outdoor --trajectory walk --scale 0.5`, `--seconds`, 2 cm range noise) in a
-temporary folder, or `--bag PATH` (rig from its truth folder). Each run is
-the command `sensorbox ingest BAG --gt dense --every N --workers 2
+outdoor --trajectory walk --scale 0.5`, `--seconds`, default 20, 2 cm range
+noise) in a temporary folder, or `--bag PATH` (rig from its truth folder).
+Each run is the command `sensorbox ingest BAG --gt dense --every N --workers 2
 --no-preview` into a fresh folder (no trajectory cache to reuse), as a child
 process of this one, either with its fork pool or with `--dask` on a local
 cluster of 2 single-threaded worker processes (a fresh cluster per run,
-started in a helper process before the run and not counted).
+started in a helper process before the run and not counted); each of the two
+once as it runs by default (the trajectory pass in 10 s segments on the
+workers, where the recording is longer than one) and once with `--segment-s
+inf` (the single pass, in the client), so the split's wall time and the
+client's share are measured against the single pass's in the same session.
 
 The CPU figures are the processes' own, from the kernel's counters
 (`/proc/PID/stat`), not wall time:
@@ -31,8 +35,8 @@ unmeasured ingest of a few samples compiles (or loads) the numba kernels,
 so no measured run pays for compiling, and writes every module's bytecode
 (into a temporary folder, `PYTHONPYCACHEPREFIX`, whatever
 PYTHONDONTWRITEBYTECODE says) for the measured runs to read. Fork-pool and
-Dask runs alternate (`--runs` rounds) and the table gives each one's
-median. Writes a chart of the CPU split and the speed-ups to
+Dask runs, split and single, alternate (`--runs` rounds) and the table gives
+each one's median. Writes a chart of the CPU split and the speed-ups to
 out/bench/bench_scale.png.
 """
 
@@ -123,7 +127,7 @@ def tree_cpu_s(pid: int) -> tuple[float, dict[int, float]]:
 class Run:
     """One ingest's CPU split (seconds) and times."""
 
-    mode: str  # "fork" or "dask"
+    mode: str  # a `MODES` key
     client_s: float
     workers_s: float
     scheduler_s: float
@@ -146,9 +150,20 @@ class Run:
         return 1.0 / (self.share + (1.0 - self.share) / workers)
 
 
-def ingest_args(bag: Path, rig: Path, out: Path, every: int, dask: str | None) -> list[str]:
+MODES = {
+    "fork": "fork pool (--workers 2)",
+    "fork, one pass": "fork pool, --segment-s inf",
+    "dask": "Dask (2 local workers)",
+    "dask, one pass": "Dask, --segment-s inf",
+}
+"""The runs' executors and trajectory passes, as the table's columns name them."""
+
+
+def ingest_args(
+    bag: Path, rig: Path, out: Path, every: int, dask: str | None, one_pass: bool = False
+) -> list[str]:
     args = [str(bag), "--rig", str(rig), "--out", str(out), "--gt", "dense", "--every", str(every)]
-    args += ["--workers", "2", "--no-preview"]
+    args += ["--workers", "2", "--no-preview"] + (["--segment-s", "inf"] if one_pass else [])
     return args + (["--dask", dask] if dask else [])
 
 
@@ -219,16 +234,17 @@ def dask_cluster(workers: int) -> Iterator[tuple[str, int]]:
 
 
 def measure(mode: str, bag: Path, rig: Path, root: Path, every: int) -> Run:
-    """One measured ingest (`mode` "fork" or "dask") into a fresh folder under `root`."""
-    out = Path(tempfile.mkdtemp(prefix=f"{mode}_", dir=root)) / "ds"
-    if mode == "fork":
-        own, kids, wall, text = run_client(ingest_args(bag, rig, out, every, None))
+    """One measured ingest (`mode` a `MODES` key) into a fresh folder under `root`."""
+    out = Path(tempfile.mkdtemp(prefix=f"{mode.split(',')[0]}_", dir=root)) / "ds"
+    one_pass = mode.endswith("one pass")
+    if mode.startswith("fork"):
+        own, kids, wall, text = run_client(ingest_args(bag, rig, out, every, None, one_pass))
         run = Run(mode, own, kids, 0.0, wall, *run_facts(out, text))
     else:
         with dask_cluster(2) as (address, helper):
             time.sleep(1.0)  # the workers' own start-up settles
             sched0, under0 = tree_cpu_s(helper)
-            own, _, wall, text = run_client(ingest_args(bag, rig, out, every, address))
+            own, _, wall, text = run_client(ingest_args(bag, rig, out, every, address, one_pass))
             sched1, under1 = tree_cpu_s(helper)
         workers = sum(s - under0.get(p, 0.0) for p, s in under1.items())
         run = Run(mode, own, workers, sched1 - sched0, wall, *run_facts(out, text))
@@ -249,12 +265,19 @@ def med(values: list[float]) -> float:
     return statistics.median(values) if values else float("nan")
 
 
-def table(runs: dict[str, list[Run]]) -> list[list[str]]:
-    """One column per mode: the medians of its runs."""
+def table(runs: dict[str, list[Run]]) -> tuple[list[str], list[list[str]]]:
+    """The header and rows: one column per mode run, the medians of its runs."""
+    modes = [m for m in MODES if runs.get(m)]
 
     def col(mode: str, fmt: str, f: object) -> str:
-        vals = [f(r) for r in runs[mode]]  # type: ignore[operator]
-        return fmt.format(med(vals)) if vals else "not run"
+        return fmt.format(med([f(r) for r in runs[mode]]))  # type: ignore[operator]
+
+    def against_one_pass(mode: str) -> str:
+        single = runs.get(f"{mode}, one pass") if not mode.endswith("one pass") else None
+        if not single:
+            return "-"
+        ratio = med([r.trajectory_s for r in runs[mode]]) / med([r.trajectory_s for r in single])
+        return f"{ratio:.2f}"
 
     rows = [
         ("samples written", "{:.0f}", lambda r: r.written),
@@ -263,12 +286,14 @@ def table(runs: dict[str, list[Run]]) -> list[list[str]]:
         ("CPU s: workers", "{:.1f}", lambda r: r.workers_s),
         ("CPU s: Dask scheduler and nannies", "{:.1f}", lambda r: r.scheduler_s),
         ("client's share of the run's CPU", "{:.1%}", lambda r: r.share),
-        ("trajectory pass, wall s (in the client)", "{:.1f}", lambda r: r.trajectory_s),
+        ("trajectory pass, wall s", "{:.1f}", lambda r: r.trajectory_s),
         ("dense GT blocks", "{:.0f}", lambda r: r.blocks),
         ("dense GT blocks, s (summary)", "{:.1f}", lambda r: r.blocks_s),
         *((f"Amdahl speed-up at {n} workers", "{:.1f}x", lambda r, n=n: r.amdahl(n)) for n in WORKER_COUNTS),
     ]
-    return [[name, col("fork", fmt, f), col("dask", fmt, f)] for name, fmt, f in rows]
+    body = [[name, *(col(m, fmt, f) for m in modes)] for name, fmt, f in rows]
+    body.insert(7, ["trajectory pass, wall: split / one pass", *(against_one_pass(m) for m in modes)])
+    return ["measure", *(MODES[m] for m in modes)], body
 
 
 def chart(runs: dict[str, list[Run]], path: Path) -> None:
@@ -306,11 +331,12 @@ def chart(runs: dict[str, list[Run]], path: Path) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
-    ap.add_argument("--runs", type=int, default=2, help="rounds of one fork-pool and one Dask run; default 2")
-    ap.add_argument("--seconds", type=float, default=4.0, help="simulated walk seconds; default 4")
-    ap.add_argument("--every", type=int, default=2, help="ingest every N-th frame pair; default 2")
+    ap.add_argument("--runs", type=int, default=1, help="rounds of one run of each mode; default 1")
+    ap.add_argument("--seconds", type=float, default=20.0, help="simulated walk seconds; default 20")
+    ap.add_argument("--every", type=int, default=8, help="ingest every N-th frame pair; default 8")
     ap.add_argument("--bag", type=Path, default=None, help="a recording with <bag>.truth/ beside it")
     ap.add_argument("--no-dask", action="store_true", help="skip the Dask runs")
+    ap.add_argument("--no-one-pass", action="store_true", help="skip the runs with --segment-s inf")
     ap.add_argument("--out", type=Path, default=OUT_DIR / "bench_scale.png", help="chart path")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory(prefix="bench_scale_") as tmp:
@@ -322,8 +348,9 @@ def main() -> None:
             bag, rig = args.bag, Path(f"{args.bag}.truth") / "rig.yaml"
         PYCACHE["prefix"] = str(root / "pycache")
         run_client(ingest_args(bag, rig, root / "warm", 30, None))  # bytecode written, numba's kernels cached
-        runs: dict[str, list[Run]] = {"fork": [], "dask": []}
-        modes = ("fork",) if args.no_dask else ("fork", "dask")
+        modes = [m for m in MODES if not (args.no_dask and m.startswith("dask"))]
+        modes = [m for m in modes if not (args.no_one_pass and m.endswith("one pass"))]
+        runs: dict[str, list[Run]] = {m: [] for m in modes}
         for _ in range(max(1, args.runs)):
             for mode in modes:
                 r = measure(mode, bag, rig, root, args.every)
@@ -336,7 +363,7 @@ def main() -> None:
         print(machine_line())
         print(f"input: {bag} (--every {args.every}, --gt dense, 2 workers); medians of {args.runs} run(s)")
         print()
-        markdown_table(["measure", "fork pool (--workers 2)", "Dask (2 local workers)"], table(runs))
+        markdown_table(*table(runs))
         print(f"\ntarget (issue 46): client's share <= {CLIENT_SHARE_TARGET:.0%}")
         chart(runs, args.out)
 

@@ -28,6 +28,7 @@ from sensorbox.cli.common import (
 if TYPE_CHECKING:
     from ingest.errors import SettingError
     from ingest.train.run.summary import IngestSummary
+    from ingest.train.trajectory.segments import SegmentParams
 
 BagsArg = Annotated[
     list[Path],
@@ -109,6 +110,15 @@ RefineOpt = Annotated[
         help="First estimate each camera's clock offset and each LiDAR's rotation from the bags "
         "(`sensorbox calib refine`) and ingest with the refined rig; what the recording cannot reveal "
         "(a rig that stood still) keeps the rig's value, with a warning.",
+    ),
+]
+SegmentOpt = Annotated[
+    float,
+    typer.Option(
+        "--segment-s",
+        help="Dense GT with --workers 2 or more, or --dask: the trajectory pass runs as segments of at most "
+        "this many seconds, overlapping by 3 s, each a job of the workers, joined into one trajectory; at "
+        "least 8.5. A recording no longer than this, or 'inf', runs it as one pass.",
     ),
 ]
 PreviewOpt = Annotated[
@@ -206,6 +216,7 @@ OPTIONS: dict[str, tuple[str, float | None]] = {
     "every": ("--every", None),
     "height_full": ("--height-full", None),
     "dask": ("--dask", None),
+    "trajectory_segments.length_ns": ("--segment-s", 1e-9),
 }
 """The option that sets each `IngestConfig` setting (a dotted field) and the factor from the field's unit
 to the option's (ns -> ms), so that an error names what the user typed."""
@@ -281,13 +292,30 @@ def summary_table(summary: IngestSummary, out: Path) -> Table:
     return table
 
 
+def _segments(segment_s: float) -> SegmentParams:
+    """The trajectory pass's segments of `--segment-s` (s; inf: one pass), the overlap the default's."""
+    from ingest.errors import DatasetError
+    from ingest.train.trajectory.segments import ONE_PASS_NS, SegmentParams, min_length_ns
+
+    overlap_ns = SegmentParams().overlap_ns
+    shortest_s = min_length_ns(overlap_ns) / 1e9
+    if math.isnan(segment_s) or segment_s < shortest_s:
+        raise DatasetError(
+            f"--segment-s {segment_s:g}: expected at least {shortest_s:g} s (three times the segments' "
+            f"{overlap_ns / 1e9:g} s overlap less half a second: consecutive joins apart), "
+            "or inf for one pass"
+        )
+    length_ns = ONE_PASS_NS if segment_s * 1e9 >= ONE_PASS_NS else round(segment_s * 1e9)
+    return SegmentParams(length_ns=length_ns, overlap_ns=overlap_ns)
+
+
 def ingest_cmd(
     bags: BagsArg, rig: RigOpt, out: OutOpt, workers: WorkersOpt = 2, dask: DaskOpt = None,
     every: EveryOpt = 1, window_ms: WindowOpt = 50.0, exr: ExrOpt = False, png_level: PngLevelOpt = 1,
     height_full: HeightFullOpt = None, min_range: MinRangeOpt = 0.3, motion: MotionOpt = "full",
     salvage: SalvageOpt = False, gt: GtOpt = "auto", gt_window_ms: GtWindowOpt = None,
     max_bad: MaxBadOpt = 0, preview: PreviewOpt = True, backend: BackendOpt = "numba",
-    refine: RefineOpt = False,
+    refine: RefineOpt = False, segment_s: SegmentOpt = 10.0,
 ) -> None:  # fmt: skip
     """Turn recorded bags into the WideDepth training set (rectified equirect pairs + depth/disparity GT)."""
     from ingest.errors import DatasetError, SettingError
@@ -315,13 +343,14 @@ def ingest_cmd(
             raise DatasetError(f"{name} {value:g}: expected at most {MAX_WINDOW_MS:g} ms (an hour)")
         if 0 < value < 0.5e-6:  # rounds to 0 ns, which the check after round() would call 0
             raise DatasetError(f"{name} {value:g}: under 1 ns, the resolution of the stamps; expected > 0")
+    segments = _segments(segment_s)
     dense = DenseParams(window_ns=round(given * 1e6))
     dense = replace(dense, render=replace(dense.render, backend=backend))  # type: ignore[arg-type]  # validated
     sample = SampleParams(min_range_m=min_range, exr=exr, png_level=png_level, motion=motion, dense=dense)  # type: ignore[arg-type]
     cfg = IngestConfig(
         rig=rig, out=out, workers=workers, every=every, lidar_window_ns=round(window_ms * 1e6),
         height_full=height_full, salvage=salvage, dask=dask, gt=gt, max_bad=max_bad, sample=sample,
-        widen_static=gt_window_ms is None, refine=refine,
+        widen_static=gt_window_ms is None, refine=refine, trajectory_segments=segments,
     )  # fmt: skip
     units = {PASS_REFINE: "messages", PASS_READ: "messages", PASS_TRAJECTORY: "LiDAR sweeps"}
     units[PASS_TRAJECTORY_JOBS] = "segment jobs"

@@ -78,6 +78,41 @@ def test_the_cli_gives_numpys_blas_one_thread_unless_the_user_chose():
         assert out.stdout.strip() == expected
 
 
+def test_segment_s_sets_the_trajectory_passs_segments(tmp_path, capsys, monkeypatch):
+    """`--segment-s` reaches the run's `trajectory_segments` (inf: one pass, whatever the recording's
+    length); a length under three overlaps less half a second, or NaN, is one line and exit 2."""
+    import ingest.train.run.pipeline as pipeline
+    from ingest.errors import DatasetError
+    from ingest.train.trajectory.segments import ONE_PASS_NS, SegmentParams, plan_segments
+
+    asked = []
+
+    def captured(bags, cfg, **kwargs):
+        asked.append(cfg.trajectory_segments)
+        raise DatasetError("stopped before reading")
+
+    monkeypatch.setattr(pipeline, "ingest", captured)
+    args = ("ingest", str(tmp_path / "no.bag"), "--rig", str(REF), "--out", str(tmp_path / "out"))
+    for value in ("10", "12.5", "inf"):
+        res = run_here(capsys, *args, "--segment-s", value)
+        assert res.returncode == 2 and res.stderr.strip() == "error: stopped before reading"
+    assert asked == [
+        SegmentParams(),
+        SegmentParams(length_ns=12_500_000_000, overlap_ns=3_000_000_000),
+        SegmentParams(length_ns=ONE_PASS_NS, overlap_ns=3_000_000_000),
+    ]
+    day_ns = 86_400_000_000_000
+    assert plan_segments((0, day_ns), asked[2], 50_000_000) == [(0, day_ns)]
+    assert len(plan_segments((0, day_ns), asked[1], 50_000_000)) > 1
+    for value in ("8", "nan", "-inf"):
+        res = run_here(capsys, *args, "--segment-s", value)
+        assert res.returncode == 2 and res.stderr.strip() == (
+            f"error: --segment-s {float(value):g}: expected at least 8.5 s (three times the segments' 3 s "
+            "overlap less half a second: consecutive joins apart), or inf for one pass"
+        )
+    assert len(asked) == 3
+
+
 def test_ingest_backend_is_checked_before_any_bag_is_read(tmp_path, capsys):
     """`--backend` (the dense-GT renderer): an unknown one, or cuda without a GPU, is one line, exit 2 (run in
     this process: each option's check is the CLI's own, and a subprocess per case imported torch anew)."""

@@ -88,6 +88,10 @@ class SegmentParams:
     overlap_ns: int = 3_000_000_000
 
 
+ONE_PASS_NS = 1 << 62
+"""A `SegmentParams.length_ns` longer than any recording (146 years): the trajectory pass as one job."""
+
+
 def min_length_ns(overlap_ns: int) -> int:
     """The shortest `SegmentParams.length_ns` for `overlap_ns`: 3 overlaps less `SETTLE_NS`.
 
