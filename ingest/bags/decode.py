@@ -73,6 +73,10 @@ __all__ = [
 ]
 
 
+MIN_PRINT_POINTS = 100
+"""Measured points a sweep needs for its `Sweep.points_print` to tell it from another's."""
+
+
 @dataclass(frozen=True)
 class Sweep:
     """One LiDAR message as points, each with its own absolute time.
@@ -103,6 +107,18 @@ class Sweep:
         if len(self.stamps_ns) == 0:
             return self.stamp_ns, self.stamp_ns
         return int(self.stamps_ns.min()), int(self.stamps_ns.max())
+
+    @cached_property
+    def points_print(self) -> int | None:
+        """A hash of the sweep's measured points (finite and off the origin, a Livox "no return"), to the
+        bit; None for fewer than `MIN_PRINT_POINTS` of them, which say nothing. Two sweeps measured apart
+        never share it: every return carries its own range noise. Computed once a sweep: the plan pass
+        asks it for the same sweep twice (`ingest.train.repeats`, `ingest.train.run.lidar_rate`)."""
+        xyz = np.asarray(self.xyz_m)
+        real = np.isfinite(xyz).all(axis=1) & xyz.any(axis=1)
+        if int(real.sum()) < MIN_PRINT_POINTS:
+            return None
+        return hash(np.ascontiguousarray(xyz[real]).tobytes())
 
 
 @dataclass(frozen=True)

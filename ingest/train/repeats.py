@@ -14,9 +14,6 @@ says so.
 from __future__ import annotations
 
 import zlib
-from typing import Any
-
-import numpy as np
 
 from ingest.bags.decode import Sweep
 
@@ -34,21 +31,6 @@ def fingerprint(raw: bytes | memoryview) -> tuple[int, int]:
     """What tells two messages with one header stamp apart without hashing megabytes: the length and the
     CRC-32 of the last `FINGERPRINT_TAIL` bytes."""
     return len(raw), zlib.crc32(raw[-FINGERPRINT_TAIL:])
-
-
-MIN_PRINT_POINTS = 100
-"""Measured points a sweep needs for its `points_print` to tell it from another's."""
-
-
-def points_print(xyz_m: np.ndarray[Any, Any]) -> int | None:
-    """A hash of a sweep's measured points (finite and off the origin, a Livox "no return"), to the bit;
-    None for fewer than `MIN_PRINT_POINTS` of them, which say nothing. Two sweeps measured apart never
-    share it: every return carries its own range noise."""
-    xyz = np.asarray(xyz_m)
-    real = np.isfinite(xyz).all(axis=1) & xyz.any(axis=1)
-    if int(real.sum()) < MIN_PRINT_POINTS:
-        return None
-    return hash(np.ascontiguousarray(xyz[real]).tobytes())
 
 
 def sweep_key(sweep: Sweep) -> tuple[int, int, int]:
@@ -72,8 +54,8 @@ class FirstCopies:
         self.same_as_before: dict[str, set[int]] = {}  # per topic: times of first copies whose content
         # (a `fingerprint`) is the topic's previous first copy's: a frame that repeats the one before it
         self._previous: dict[str, object] = {}
-        self._last_mark: dict[str, int | None] = {}  # per topic: the last kept sweep's `points_print`
-        self._prints: dict[int, tuple[str, int, int]] = {}  # kept sweeps' `points_print` -> (topic, span)
+        self._last_mark: dict[str, int | None] = {}  # per topic: the last kept sweep's `Sweep.points_print`
+        self._prints: dict[int, tuple[str, int, int]] = {}  # kept sweeps' points' prints -> (topic, span)
         self._seen: dict[tuple[str, object], tuple[int, object]] = {}
         self._spans: dict[str, list[tuple[int, int]]] = {}  # per topic: the kept sweeps' point-time spans
         self._newest: dict[str, int] = {}
@@ -108,7 +90,7 @@ class FirstCopies:
         times lie mostly within a kept sweep's of the same LiDAR.
 
         False too, listed in `repeated_points`, for a sweep whose points are its LiDAR's previous sweep's
-        or another LiDAR's sweep's, to the bit (`points_print`, `_repeats`): a driver
+        or another LiDAR's sweep's, to the bit (`Sweep.points_print`, `_repeats`): a driver
         that sent a stale buffer again, or one unit's points on the other's topic; where they were
         measured is not known.
 
@@ -126,7 +108,7 @@ class FirstCopies:
         if any(min(last, b) - max(first, a) > length // 2 for a, b in spans):
             self.overlapping.setdefault(topic, []).append(first)
             return False
-        mark = points_print(sweep.xyz_m)
+        mark = sweep.points_print
         if mark is not None and self._repeats(mark, topic):
             other, a, b = self._prints[mark]
             self.repeated_points.setdefault(topic, []).append((first, other))

@@ -30,7 +30,6 @@ from typing import Any
 import numpy as np
 
 from calibration.types import I64
-from ingest.train.repeats import points_print
 
 THIN_FRACTION = 0.5
 """A window holding fewer than this share of the points the LiDAR's rate promises is thin."""
@@ -67,9 +66,8 @@ class LidarRates:
     median_range_m: dict[str, list[float]] = field(default_factory=dict)  # per topic: each sweep's median
     prints: dict[str, set[int]] = field(default_factory=dict)  # per topic: its sweeps' points, hashed
 
-    def add_points(self, topic: str, xyz_m: np.ndarray[Any, Any]) -> None:
-        """Record one sweep's measured points (`points_print`) for `same_sweeps`."""
-        mark = points_print(xyz_m)
+    def add_print(self, topic: str, mark: int | None) -> None:
+        """Record one sweep's measured points (its `Sweep.points_print`; None: too few) for `same_sweeps`."""
         if mark is not None:
             self.prints.setdefault(topic, set()).add(mark)
 

@@ -110,7 +110,7 @@ def _seen(
         sweep = bad.decoded(msg, where)
         if not isinstance(sweep, Sweep) or not len(sweep.stamps_ns):
             continue
-        rates.add_points(msg.topic, sweep.xyz_m)  # every sweep: a topic that repeats another's is refused
+        rates.add_print(msg.topic, sweep.points_print)  # every sweep: a topic repeating another's is refused
         if copies.sweep(msg.topic, sweep):
             seen[msg.topic].append((msg.log_ns, *sweep.span_ns))
             rates.add(msg.topic, sweep.stamps_ns)
