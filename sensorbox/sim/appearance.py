@@ -35,9 +35,13 @@ class Texture:
         self.norm = float(np.sqrt(np.sum(self.amps**2) / 2))
 
     def __call__(self, points_world: F64) -> F64:
-        # float32: half the time of float64 sines, and 3e-3 rad phase error at 50 m is invisible
-        # einsum instead of BLAS matmuls: see camera.render
-        arg = np.einsum("ij,kj->ik", points_world.astype(np.float32), self.waves.astype(np.float32))
+        # float32: half the time of float64 sines, and 3e-3 rad phase error at 50 m is invisible.
+        # Each phase summed over the three axes in order, as einsum("ij,kj->ik") sums them (the same
+        # bits) at a third less time; not a BLAS matmul, which may sum otherwise: see camera.render
+        p, waves = points_world.astype(np.float32), self.waves.astype(np.float32)
+        arg = np.multiply(p[:, 0:1], waves[:, 0])
+        arg += p[:, 1:2] * waves[:, 1]
+        arg += p[:, 2:3] * waves[:, 2]
         arg += self.phases.astype(np.float32)
         s = np.einsum("ij,j->i", np.sin(arg, out=arg), self.amps.astype(np.float32))
         out: F64 = 0.5 + 0.5 * np.tanh(2.0 * s.astype(np.float64) / self.norm)
