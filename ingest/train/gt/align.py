@@ -198,7 +198,7 @@ def _projected(model: CameraModel, pts: F64) -> tuple[F64, F64, np.ndarray]:
     steps = np.eye(3) * JACOBIAN_STEP_M
     moved, _ = model.project(inside[None, :, :] + steps[:, None, :])  # (3, M, 2): one call for all three
     J = ((moved - px[ok]) / JACOBIAN_STEP_M).transpose(1, 2, 0)
-    finite = np.isfinite(J.reshape(len(J), 6).sum(axis=1))  # a sum of finite entries is finite, NaN/inf spread
+    finite = np.isfinite(J.reshape(len(J), 6).sum(axis=1))  # NaN and inf spread to the sum
     ok[ok] = finite
     return px, np.ascontiguousarray(J[finite]), ok
 
