@@ -343,14 +343,13 @@ def ingest_cmd(
             raise DatasetError(f"{name} {value:g}: expected at most {MAX_WINDOW_MS:g} ms (an hour)")
         if 0 < value < 0.5e-6:  # rounds to 0 ns, which the check after round() would call 0
             raise DatasetError(f"{name} {value:g}: under 1 ns, the resolution of the stamps; expected > 0")
-    segments = _segments(segment_s)
     dense = DenseParams(window_ns=round(given * 1e6))
     dense = replace(dense, render=replace(dense.render, backend=backend))  # type: ignore[arg-type]  # validated
     sample = SampleParams(min_range_m=min_range, exr=exr, png_level=png_level, motion=motion, dense=dense)  # type: ignore[arg-type]
     cfg = IngestConfig(
         rig=rig, out=out, workers=workers, every=every, lidar_window_ns=round(window_ms * 1e6),
         height_full=height_full, salvage=salvage, dask=dask, gt=gt, max_bad=max_bad, sample=sample,
-        widen_static=gt_window_ms is None, refine=refine, trajectory_segments=segments,
+        widen_static=gt_window_ms is None, refine=refine, trajectory_segments=_segments(segment_s),
     )  # fmt: skip
     units = {PASS_REFINE: "messages", PASS_READ: "messages", PASS_TRAJECTORY: "LiDAR sweeps"}
     units[PASS_TRAJECTORY_JOBS] = "segment jobs"
