@@ -116,9 +116,9 @@ SegmentOpt = Annotated[
     float,
     typer.Option(
         "--segment-s",
-        help="Dense GT with --workers 2 or more, or --dask: the trajectory pass runs as segments of at most "
-        "this many seconds, overlapping by 3 s, each a job of the workers, joined into one trajectory; at "
-        "least 8.5. A recording no longer than this, or 'inf', runs it as one pass.",
+        help="--gt dense or auto with --workers 2 or more, or --dask: the trajectory pass runs as segments "
+        "of at most this many seconds, overlapping by 3 s, each a job of the workers, joined into one "
+        "trajectory; at least 8.5. A recording no longer than this, or 'inf', runs it as one pass.",
     ),
 ]
 PreviewOpt = Annotated[
