@@ -2,7 +2,8 @@
 
 Input: a simulated half-resolution outdoor walk (`sensorbox simulate --scene
 outdoor --trajectory walk --scale 0.5`, `--seconds`, default 20, 2 cm range
-noise) in a temporary folder, or `--bag PATH` (rig from its truth folder).
+noise, its images JPEG as `sensorbox capture` records them, or `--image
+raw`) in a temporary folder, or `--bag PATH` (rig from its truth folder).
 Each run is the command `sensorbox ingest BAG --gt dense --every N --workers 2
 --no-preview` into a fresh folder (no trajectory cache to reuse), as a child
 process of this one, either with its fork pool or with `--dask` on a local
@@ -252,11 +253,13 @@ def measure(mode: str, bag: Path, rig: Path, root: Path, every: int) -> Run:
     return run
 
 
-def make_bag(seconds: float, root: Path) -> tuple[Path, Path]:
-    """The half-resolution outdoor walk, simulated into `root` by `sensorbox simulate`."""
+def make_bag(seconds: float, image: str, root: Path) -> tuple[Path, Path]:
+    """The half-resolution outdoor walk, simulated into `root` by `sensorbox simulate` (`image`: jpeg or
+    raw)."""
     bag = root / "walk"
     cmd = sensorbox("simulate", "--out", str(bag), "--scene", "outdoor", "--trajectory", "walk",
-                    "--scale", "0.5", "--duration", f"{seconds:g}", "--range-noise", "0.02")  # fmt: skip
+                    "--scale", "0.5", "--duration", f"{seconds:g}", "--range-noise", "0.02",
+                    "--image", image)  # fmt: skip
     subprocess.run(cmd, env=child_env(), check=True, stdout=subprocess.DEVNULL)
     return bag, root / "walk.truth" / "rig.yaml"
 
@@ -334,6 +337,8 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=1, help="rounds of one run of each mode; default 1")
     ap.add_argument("--seconds", type=float, default=20.0, help="simulated walk seconds; default 20")
     ap.add_argument("--every", type=int, default=8, help="ingest every N-th frame pair; default 8")
+    images = "the simulated walk's images; default jpeg, as `sensorbox capture` records them"
+    ap.add_argument("--image", choices=("jpeg", "raw"), default="jpeg", help=images)
     ap.add_argument("--bag", type=Path, default=None, help="a recording with <bag>.truth/ beside it")
     ap.add_argument("--no-dask", action="store_true", help="skip the Dask runs")
     ap.add_argument("--no-one-pass", action="store_true", help="skip the runs with --segment-s inf")
@@ -342,8 +347,9 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="bench_scale_") as tmp:
         root = Path(tmp)
         if args.bag is None:
-            print(f"simulating a {args.seconds:g} s half-resolution outdoor walk ...", flush=True)
-            bag, rig = make_bag(args.seconds, root)
+            walk = f"a {args.seconds:g} s half-resolution outdoor walk ({args.image} images)"
+            print(f"simulating {walk} ...", flush=True)
+            bag, rig = make_bag(args.seconds, args.image, root)
         else:
             bag, rig = args.bag, Path(f"{args.bag}.truth") / "rig.yaml"
         PYCACHE["prefix"] = str(root / "pycache")
@@ -361,7 +367,8 @@ def main() -> None:
                       f"{r.blocks_s:.1f} s; load {os.getloadavg()[0]:.1f}", flush=True)  # fmt: skip
         print()
         print(machine_line())
-        print(f"input: {bag} (--every {args.every}, --gt dense, 2 workers); medians of {args.runs} run(s)")
+        given = f"{bag} ({args.image} images)" if args.bag is None else str(bag)
+        print(f"input: {given} (--every {args.every}, --gt dense, 2 workers); medians of {args.runs} run(s)")
         print()
         markdown_table(*table(runs))
         print(f"\ntarget (issue 46): client's share <= {CLIENT_SHARE_TARGET:.0%}")
