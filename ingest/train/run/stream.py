@@ -231,10 +231,8 @@ def _rows(a: np.ndarray[Any, Any], which: slice | I64) -> np.ndarray[Any, Any]:
 
 def _sweeps_needed(the_plan: Plan, topics: Topics, w: int) -> dict[int, dict[str, int]]:
     """Per planned sample, per LiDAR topic: how many sweeps overlap its +-w window (from the plan pass).
-
     A sweep [a, b] (a <= b) overlaps [lo, hi] unless b < lo or a > hi, and no sweep is both, so the count
-    is #(a <= hi) - #(b < lo): two binary searches per sample instead of a walk over every sweep.
-    """
+    is #(a <= hi) - #(b < lo): two binary searches per sample instead of a walk over every sweep."""
     tc = np.asarray(the_plan.upper_exposure_ns, np.int64)
     counts = {}
     for t in topics.lidars:
@@ -274,10 +272,8 @@ def _file_reading(
     topic: str, decoded: Sweep | Frame | ImuSample | None, imu_t: list[int], imu_g: list[Any],
     sweeps: dict[str, list[Sweep]], copies: FirstCopies,
 ) -> None:  # fmt: skip
-    """Keep an IMU reading or a LiDAR sweep (with points) for the samples; None was skipped as undecodable.
-
-    A repeated reading (`copies`; the plan pass counted it) is left out.
-    """
+    """Keep an IMU reading or a LiDAR sweep (with points) for the samples, but not a repeated one (`copies`;
+    the plan pass counted it); None was skipped as undecodable."""
     if isinstance(decoded, ImuSample):
         if copies.stamped(topic, decoded.stamp_ns):
             imu_t.append(decoded.stamp_ns)
@@ -381,6 +377,9 @@ class _Stream:
         self.imu_last = the_plan.imu_last_ns if topics.imu else None
         self.imu_max = -(1 << 62)
         self.next_k = 0
+        self.exposure_ns = the_plan.upper_exposure_ns
+        self.sweeps_read = 0  # LiDAR messages taken and forgets: `_ready`'s sweep checks change only with it
+        self.short_of_sweeps: tuple[int, int] | None = None  # (sample, sweeps_read) the sweeps fell short at
         self.source = ",".join(p.name for p in bags.paths)
 
     def take(self, msg: RawMessage) -> None:
@@ -401,6 +400,8 @@ class _Stream:
         )
         if msg.topic == topics.imu and self.imu_t:
             self.imu_max = max(self.imu_max, self.imu_t[-1])
+        elif msg.topic in self.sweeps:
+            self.sweeps_read += 1
 
     def released(self) -> Iterator[StreamEvent]:
         """The next samples in plan order that are done already or have all they need, each followed by
@@ -415,7 +416,7 @@ class _Stream:
                 yield self._job(k)
             self.next_k += 1
             if self.next_k < len(self.sids):
-                self._forget(int(self.plan.upper_exposure_ns[self.next_k]) - self.w)
+                self._forget(int(self.exposure_ns[self.next_k]) - self.w)
         yield from self._block_tasks()
 
     def _block_tasks(self) -> Iterator[Task[Any] | Release]:
@@ -432,24 +433,30 @@ class _Stream:
                 yield NotRun(self.sids[k], MISSING_IMAGE)
             else:
                 if self.planes is not None:
-                    tc = int(self.plan.upper_exposure_ns[k])
+                    tc = int(self.exposure_ns[k])
                     self.planes.complete(self.sweeps, tc - self.w, tc + self.w, final=True)
                     yield from self._block_tasks()
                 yield self._job(k)
 
     def _ready(self) -> bool:
+        """Whether the next sample has its frames, the gyro past its window, its window's sweeps and their
+        blocks (dense GT). Called after every message: the sweep checks rerun only once a sweep came or went
+        since they fell short (with the same sweeps `BlockPlanes.complete` would fit nothing new)."""
         k, w = self.next_k, self.w
-        tc = int(self.plan.upper_exposure_ns[k])
+        if len(self.frames.get(k, {})) != 2 or self.short_of_sweeps == (k, self.sweeps_read):
+            return False
+        tc = int(self.exposure_ns[k])
+        if self.imu_last is not None and self.imu_max < min(tc + w + IMU_MARGIN_NS, self.imu_last):
+            return False
         have = {
             t: sum(1 for s in v if s.span_ns[1] >= tc - w and s.span_ns[0] <= tc + w)
             for t, v in self.sweeps.items()
         }
-        return (
-            len(self.frames.get(k, {})) == 2
-            and all(have[t] >= n for t, n in self.need[k].items())
-            and (self.imu_last is None or self.imu_max >= min(tc + w + IMU_MARGIN_NS, self.imu_last))
-            and (self.planes is None or self.planes.complete(self.sweeps, tc - w, tc + w))
-        )
+        ready = all(have[t] >= n for t, n in self.need[k].items())
+        ready = ready and (self.planes is None or self.planes.complete(self.sweeps, tc - w, tc + w))
+        if not ready:
+            self.short_of_sweeps = (k, self.sweeps_read)
+        return ready
 
     def _forget(self, horizon: int) -> None:
         """Drop the sweeps and IMU readings that end before `horizon` (ns); a block is fitted whole, and
@@ -457,13 +464,14 @@ class _Stream:
         kept_from = horizon if self.planes is None else self.planes.keep_from(horizon)
         for t in self.sweeps:
             self.sweeps[t] = [s for s in self.sweeps[t] if s.span_ns[1] >= kept_from]
+        self.sweeps_read += 1
         if self.planes is not None:
             self.planes.forget(self.sweeps)
         _forget_readings(self.imu_t, self.imu_g, horizon - IMU_MARGIN_NS)
 
     def _job(self, k: int) -> StreamedJob | Task[StreamedJob]:
         the_plan, topics, run, w = self.plan, self.topics, self.run, self.w
-        tc = int(the_plan.upper_exposure_ns[k])
+        tc = int(self.exposure_ns[k])
         parts = [(window_parts(self.sweeps[t], tc, w), name) for t, name in topics.lidars.items()]
         tasks = self.planes if isinstance(self.planes, BlockTasks) else None
         lidars = tuple(_window_points(p, name, None if tasks else self.planes) for p, name in parts)
