@@ -256,6 +256,46 @@ def test_dense_jobs_travel_through_the_shared_slots_whole(tmp_path: Path) -> Non
         slots.close()
 
 
+def test_block_tasks_travel_through_the_shared_slots_whole(tmp_path: Path) -> None:
+    """Every dense-GT block's fit and free-space test leaves its sweeps' arrays (rows, points, stamps,
+    tags) in a slot sized from the first job, the LiDARs' fastest sweep and the longest task's span, keeps
+    none of their rows itself, and runs on what comes back out of the slot to the value it has whole."""
+    window_ns = 300_000_000
+    events: list[Any] = []
+    run = _dense_jobs(
+        tmp_path, 1, window_ns, 400_000_000, FreeSpaceSettings(window_ns, 0, 50_000_000), events
+    )
+    geometry = Geometry.from_rig(read_rig(_rig(INDOOR)), 64)
+    first = next(e.job for e in events if isinstance(e, Task) and isinstance(e.job, StreamedJob))
+    span_ns = run.settings.task_span_ns
+    assert span_ns == run.settings.free_space.n_bits(400_000_000) * 50_000_000 > 400_000_000  # type: ignore[union-attr]
+    bound = handoff_bytes_bound(geometry, first, run.the_plan.rates, window_ns, span_ns)
+    assert bound > handoff_bytes_bound(geometry, first, run.the_plan.rates, window_ns)
+    tasks = [e for e in events if isinstance(e, Task) and isinstance(e.job, FitJob | ClearJob)]
+    assert {type(t.job) for t in tasks} == {FitJob, ClearJob}
+    kept: dict[str, Any] = {}
+    slots = ArraySlots(2, bound)
+    try:
+        for task in tasks:
+            light, arrays = take_arrays(task.job)
+            items = light.parts if isinstance(light, FitJob) else light.sweeps
+            assert len(items) > 0 and all(len(i.xyz_m) == len(i.stamps_ns) == 0 for i in items)
+            ref = slots.put(arrays)
+            assert ref is not None, f"{task.key}: {sum(a.nbytes for a in arrays)} bytes, slot {bound}"
+            back = give_arrays(light, slot_views(ref))
+            slots.release(ref)
+            needs = {k: kept[k] for k in task.needs}
+            got, want = run_block(run.trajectory, back, needs), run_block(run.trajectory, task.job, needs)
+            assert isinstance(got, Kept) and isinstance(want, Kept) and task.key is not None
+            assert got.value.rows.keys() == want.value.rows.keys()
+            for serial, (rows, value) in want.value.rows.items():
+                np.testing.assert_array_equal(got.value.rows[serial][0], rows)
+                np.testing.assert_array_equal(got.value.rows[serial][1], value)
+            kept[task.key] = want.value
+    finally:
+        slots.close()
+
+
 @DENSE_STREAMS
 def test_blocks_as_tasks_give_every_job_the_normals_and_bits_the_stream_pass_gave_it(
     tmp_path: Path, every: int, window_ns: int, block_ns: int, n_jobs: int

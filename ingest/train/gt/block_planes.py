@@ -98,6 +98,13 @@ class PlaneSettings:
     min_range_m: float
     free_space: FreeSpaceSettings | None = None  # None: no free-space test
 
+    @property
+    def task_span_ns(self) -> int:
+        """The longest time whose sweeps one block's fit or free-space test takes (ns): the test's slices
+        (`n_bits` of `slice_ns`: the block and its reach each side), or the block without a test."""
+        fs = self.free_space
+        return self.block_ns if fs is None else max(self.block_ns, fs.n_bits(self.block_ns) * fs.slice_ns)
+
 
 def world_normals(
     parts: Sequence[tuple[np.ndarray[Any, Any], I64, np.ndarray[Any, Any] | None, F64]],

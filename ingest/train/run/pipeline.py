@@ -62,10 +62,7 @@ from calibration.types import I64
 from ingest.bags.decode import Frame
 from ingest.bags.reader import BagSet, Progress, given_once, open_bags
 from ingest.dataset.identity import resume_state
-from ingest.dataset.layout import (
-    prepare_dirs,
-    sample_id,
-)
+from ingest.dataset.layout import prepare_dirs, sample_id
 from ingest.dataset.lock import hold_folder
 from ingest.errors import DatasetError, MessageDecodeError, OutputError, SettingError
 from ingest.runtime.executor import Executor, Handoff, share_cores
@@ -439,15 +436,16 @@ def _run(
                     summary.skipped[item.reason] = summary.skipped.get(item.reason, 0) + 1
                 tick()
 
-        # the first sample's job (and the blocks' tasks before it) is made while the warm-up ends on the
-        # other core; the workers fork with the first submitted job, after the warm-up
+        # the first sample's job (and the blocks' tasks before it) is made while the warm-up ends on the other
+        # core; the workers fork with the first submitted job, after the warm-up. Its arrays size the slots.
         queued = jobs()
         head = _through_first_sample(queued)
         warm_up_s = ready()  # before the workers fork: they inherit what it built
         summary.dense_warm_up_s = warm_up_s if run.sample.method == "dense" else None
         first_job = next((s for s in map(_sample_of, head) if s is not None), None)
-        bound = handoff_bytes_bound(geometry, first_job, the_plan.rates, run.window_ns) if first_job else 0
-        handoff = Handoff(take_arrays, give_arrays, bound)
+        longest = planes.settings.task_span_ns if planes is not None else 0
+        bound = first_job and handoff_bytes_bound(geometry, first_job, the_plan.rates, run.window_ns, longest)
+        handoff = Handoff(take_arrays, give_arrays, bound or 0)
         results = executor.run(
             run_streamed, chain(head, queued), shared=Shared(geometry, traj), handoff=handoff,
             keep_in=run.out,
