@@ -63,17 +63,20 @@ def take_arrays(job: Any) -> tuple[Any, tuple[Array, ...]]:
     sweeps' arrays, and those as arrays (the executor's shared slots, instead of pickling them through the
     task pipe). The light job keeps each array cut to no rows: its dtype and columns, and which are None.
     Any other job is left whole, with no arrays."""
-    if isinstance(job, FitJob | ClearJob):
-        light, arrays = _lift(job.parts if isinstance(job, FitJob) else job.sweeps)
-        return (replace(job, parts=light) if isinstance(job, FitJob) else replace(job, sweeps=light)), arrays
+    if isinstance(job, FitJob):
+        parts, arrays = _lift(job.parts)
+        return replace(job, parts=parts), arrays
+    if isinstance(job, ClearJob):
+        sweeps, arrays = _lift(job.sweeps)
+        return replace(job, sweeps=sweeps), arrays
     if not isinstance(job, StreamedJob):
         return job, ()
     per_lidar = [_lidar_arrays(p) for p in job.lidars]
     emptied = [_refilled(p, [a[:0] for a in own]) for p, own in zip(job.lidars, per_lidar, strict=True)]
-    light_job = replace(
+    light = replace(
         job, upper=_with_payload(job.upper, b""), lower=_with_payload(job.lower, b""), lidars=tuple(emptied)
     )
-    return light_job, (_payload(job.upper), _payload(job.lower), *(a for arrays in per_lidar for a in arrays))
+    return light, (_payload(job.upper), _payload(job.lower), *(a for arrays in per_lidar for a in arrays))
 
 
 def give_arrays(job: Any, arrays: tuple[Array, ...]) -> Any:
