@@ -5,13 +5,14 @@ import pytest
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from calibration.linalg3 import sym3_smallest
 from ingest.train.trajectory.clouds import integrate_gyro
 from ingest.train.trajectory.odometry_kernels import (
     chain_points,
-    covariances,
     gyro_between,
     log_rotations,
-    normal_equations,
+    neighbourhood_planes,
+    plane_system,
 )
 from ingest.train.trajectory.planes import neighbour_covariances
 from ingest.train.trajectory.rig_trajectory import RigTrajectory
@@ -43,16 +44,6 @@ def test_search_finds_what_a_kd_tree_finds(cell_m, k, radius_m):
     np.testing.assert_array_equal(idx, idx_kd)
     np.testing.assert_array_equal(np.isinf(d), np.isinf(d_kd))
     np.testing.assert_allclose(d[np.isfinite(d)], d_kd[np.isfinite(d_kd)], atol=1e-12)
-
-
-def test_a_seeded_search_gives_the_same_answer():
-    pts, rng = _scene()
-    grid = VoxelHash.build(pts, 0.5)
-    queries = pts[:2000] + rng.normal(0, 0.03, (2000, 3))
-    plain = grid.query(queries, 1, 0.5)[1]
-    seed = rng.integers(-1, len(pts), len(queries))  # good, bad and no guesses
-    seed[:500] = plain[:500, 0]
-    np.testing.assert_array_equal(grid.query(queries, 1, 0.5, seed=seed)[1], plain)
 
 
 def test_empty_inputs():
@@ -135,21 +126,45 @@ def test_gyro_between_and_log_rotations_match_numpy_and_scipy():
         np.testing.assert_allclose(log_rotations(Rotation.from_rotvec(v).as_matrix()), v, atol=1e-9)
 
 
-def test_covariances_and_normal_equations_match_numpy():
+def test_neighbourhood_planes_match_numpys_covariances_and_eigen_solve():
     rng = np.random.default_rng(4)
     pts = rng.normal(0, 3, (500, 3))
     idx = rng.integers(0, 500, (200, 10))
-    np.testing.assert_allclose(covariances(pts, idx), neighbour_covariances(pts, idx), atol=1e-12)
-    n = len(pts)
-    a, nrm = rng.normal(0, 3, (n, 3)), rng.normal(size=(n, 3))
-    r, w, f = rng.normal(0, 0.01, n), rng.uniform(0.1, 1, n), rng.uniform(0, 1, n)
-    seg = rng.integers(0, 3, n)
+    flat = np.column_stack([rng.uniform(-1, 1, (10, 2)), np.zeros(10)])  # a plane: exact normal +-z
+    line = np.column_stack([np.linspace(0, 1, 10), np.zeros((10, 2))])  # two zero eigenvalues: LAPACK's
+    pts = np.concatenate([pts, flat, line])
+    idx = np.concatenate([idx, np.arange(500, 510)[None], np.arange(510, 520)[None]])
+    evals, normal = neighbourhood_planes(pts, idx)
+    ref_evals, ref_normal = sym3_smallest(neighbour_covariances(pts, idx))
+    np.testing.assert_allclose(evals, ref_evals, atol=1e-12)
+    np.testing.assert_allclose(np.abs(np.einsum("ij,ij->i", normal, ref_normal)), 1.0, atol=1e-9)
+    np.testing.assert_allclose(np.abs(normal[-2]), [0, 0, 1], atol=1e-12)
+
+
+def test_plane_system_is_the_weighted_dense_jacobians_system():
+    rng = np.random.default_rng(4)
+    n, m = 500, 300
+    a, world = rng.normal(0, 3, (n, 3)), rng.normal(0, 3, (n, 3))
+    map_xyz = world[rng.integers(0, n, m)] + rng.normal(0, 0.02, (m, 3))
+    nrm = rng.normal(size=(m, 3))
+    nrm /= np.linalg.norm(nrm, axis=1)[:, None]
+    planar = rng.uniform(size=m) < 0.8
+    j = rng.integers(-1, m, n)  # unmatched, matched to a non-planar point, matched
+    f, seg = rng.uniform(0, 1, n), rng.integers(0, 3, n)
     free = np.array([1, 2, 3], np.int64)
-    H, g = normal_equations(a, nrm, r, w, seg, f, free)
-    J = np.zeros((n, 18))
+    H, g, residual, used = plane_system(a, world, j, planar, nrm, map_xyz, seg, f, free)
+    ok = np.flatnonzero((j >= 0) & planar[np.maximum(j, 0)])
+    nn = nrm[j[ok]]
+    r = np.einsum("ij,ij->i", nn, world[ok] - map_xyz[j[ok]])
+    scale = max(1.4826 * np.median(np.abs(r)), 0.005)
+    w = 1.0 / (1.0 + (r / scale) ** 2)
+    J = np.zeros((len(ok), 18))
     for u, k in enumerate(free):  # the dense Jacobian the kernel stands for
-        wt = np.where(seg == k - 1, f, 0.0) + np.where(seg == k, 1.0 - f, 0.0)
-        J[:, 6 * u : 6 * u + 3] = np.cross(a, nrm) * wt[:, None]
-        J[:, 6 * u + 3 : 6 * u + 6] = nrm * wt[:, None]
+        wt = np.where(seg[ok] == k - 1, f[ok], 0.0) + np.where(seg[ok] == k, 1.0 - f[ok], 0.0)
+        J[:, 6 * u : 6 * u + 3] = np.cross(a[ok], nn) * wt[:, None]
+        J[:, 6 * u + 3 : 6 * u + 6] = nn * wt[:, None]
+    assert used == len(ok) > 300
     np.testing.assert_allclose(H, J.T @ (J * w[:, None]), atol=1e-9)
     np.testing.assert_allclose(g, J.T @ (w * r), atol=1e-12)
+    assert residual == pytest.approx(np.sqrt(np.average(r**2, weights=w)), rel=1e-12)
+    assert np.isnan(plane_system(a, world, j, planar, nrm, map_xyz, seg, f, free, min_points=used + 1)[2])

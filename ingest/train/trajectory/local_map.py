@@ -8,8 +8,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from calibration.types import F64, I64, Bool
-from ingest.train.trajectory.odometry_kernels import covariances
-from ingest.train.trajectory.planes import normals_from_covariances
+from ingest.train.trajectory.odometry_kernels import neighbourhood_planes
+from ingest.train.trajectory.planes import planar_normals
 from ingest.train.trajectory.voxel_hash import VoxelHash, VoxelSet, first_free, voxel_keys
 
 
@@ -30,7 +30,12 @@ class OdometryParams:
     map_max_flatness: float = 0.05
     max_correspondence_m: float = 0.5
     iterations: int = 15
-    tol_m: float = 5e-5  # stop when no knot moves by more than this (rotation: this at 1 m)
+    # Gauss-Newton stops once no knot moves by more than `tol_m` and no point within `tol_range_m` of it
+    # turns by more. From a chunk's prediction (gyro and velocity) the steps about halve each time: 3-5 of
+    # them, where 0.05 mm took 10, to the same error against truth (docs/speed.md, six simulated walks);
+    # a wrong prediction (an IMU with a bias, or late stamps) keeps stepping until the LiDARs decide
+    tol_m: float = 1e-3
+    tol_range_m: float = 10.0
     refine_start_s: float = 1.0  # then the start's knots are solved again against the map built since
     min_segment_points: int = 50  # a knot is solved only when the knot interval before it has this many
     max_jump_m: float = 0.5  # a solved knot this far from its predicted position is a failed solve
@@ -95,6 +100,6 @@ class LocalMap:
         todo, idx = todo[idx[:, -1] >= 0], idx[idx[:, -1] >= 0]  # too few neighbours: never planar
         if len(todo) == 0:
             return
-        cov = covariances(self.xyz, idx)
-        fit = normals_from_covariances(cov, self.xyz[todo] - self.origin[todo], prm.map_max_flatness)
+        evals, normal = neighbourhood_planes(self.xyz, idx)
+        fit = planar_normals(evals, normal, self.xyz[todo] - self.origin[todo], prm.map_max_flatness)
         self.normal[todo], self.planar[todo] = fit.normal, fit.planar

@@ -47,7 +47,7 @@ from ingest.train.trajectory.odometry_kernels import (
     chain_points,
     gyro_between,
     log_rotations,
-    normal_equations,
+    plane_system,
 )
 from ingest.train.trajectory.rig_trajectory import RigTrajectory
 
@@ -95,29 +95,24 @@ def _solve_knots(
     )
     free_k = np.array(free, np.int64)
     residual = math.nan
-    j = np.full(len(t_ns), -1, np.int64)
     for _ in range(prm.iterations):
         R_k = np.array(R)
         E = np.matmul(np.swapaxes(np.matmul(R_k[:-1], shape_next), 1, 2), R_k[1:])
         a, world = chain_points(pts_cam0, seg, f, rel, R_k, np.array(p), log_rotations(E))
-        j = the_map.grid.query(world, 1, prm.max_correspondence_m, seed=j)[1][:, 0]
-        ok = j >= 0
-        the_map.normals_at(j[ok])
-        ok[ok] &= the_map.planar[j[ok]]
-        idx = np.flatnonzero(ok)
-        if len(idx) < 50:
+        j = the_map.grid.query(world, 1, prm.max_correspondence_m)[1][:, 0]
+        the_map.normals_at(j[j >= 0])
+        H, g, res, used = plane_system(
+            a, world, j, the_map.planar, the_map.normal, the_map.xyz, seg, f, free_k
+        )
+        if used < 50:
             break
-        n = the_map.normal[j[idx]]
-        r = np.einsum("ij,ij->i", n, world[idx] - the_map.xyz[j[idx]])
-        scale = max(1.4826 * float(np.median(np.abs(r))), 0.005)
-        w = 1.0 / (1.0 + (r / scale) ** 2)  # Cauchy weights: gross outliers (movers, wrong matches) fade
-        H, g = normal_equations(a[idx], n, r, w, seg[idx], f[idx], free_k)
         dx = np.asarray(np.linalg.solve(H + 1e-9 * np.eye(len(g)), -g), np.float64)
         for u, k in enumerate(free):
             R[k] = rotvec_to_matrix(dx[6 * u : 6 * u + 3][None])[0] @ R[k]
             p[k] = p[k] + dx[6 * u + 3 : 6 * u + 6]
-        residual = float(np.sqrt(np.average(r**2, weights=w)))
-        if np.abs(dx).max() < prm.tol_m:
+        residual = res
+        steps = np.abs(dx).reshape(-1, 2, 3).max(axis=(0, 2))  # (rotation rad, translation m)
+        if steps[0] * prm.tol_range_m < prm.tol_m and steps[1] < prm.tol_m:
             break
     return R, p, residual
 

@@ -19,7 +19,8 @@ import numpy as np
 from numba import njit
 from scipy.spatial.transform import Rotation
 
-from calibration.types import F64, I64
+from calibration.linalg3 import DEGENERATE_GAP
+from calibration.types import F64, I64, Bool
 from ingest.train.trajectory.clouds import GyroTrack
 
 
@@ -67,13 +68,32 @@ def chain_points(pts: F64, seg: I64, f: F64, rel: F64, R_knot: F64, p_knot: F64,
 
 
 @njit(cache=True, nogil=True)
-def _normal_equations(a, n, r, w, seg, f, free, H, g):  # type: ignore[no-untyped-def]  # pragma: no cover
+def _plane_system(a, world, j, planar, normal, map_xyz, seg, f, free, min_points, min_scale, H, g, r, used):  # type: ignore[no-untyped-def]  # pragma: no cover
+    m = 0
+    for i in range(j.shape[0]):  # the residuals of the points matched to a planar map point
+        q = j[i]
+        if q < 0 or not planar[q]:
+            continue
+        d0, d1, d2 = world[i, 0] - map_xyz[q, 0], world[i, 1] - map_xyz[q, 1], world[i, 2] - map_xyz[q, 2]
+        r[m] = normal[q, 0] * d0 + normal[q, 1] * d1 + normal[q, 2] * d2
+        used[m] = i
+        m += 1
+    if m < min_points:
+        return m, math.nan
+    scale = max(1.4826 * np.median(np.abs(r[:m])), min_scale)
     n_free = free.shape[0]
     J = np.zeros(6 * n_free)
-    for i in range(a.shape[0]):
-        rot0 = a[i, 1] * n[i, 2] - a[i, 2] * n[i, 1]
-        rot1 = a[i, 2] * n[i, 0] - a[i, 0] * n[i, 2]
-        rot2 = a[i, 0] * n[i, 1] - a[i, 1] * n[i, 0]
+    sum_w = 0.0
+    sum_wr2 = 0.0
+    for t in range(m):
+        i, q, ri = used[t], j[used[t]], r[t]
+        wi = 1.0 / (1.0 + (ri / scale) ** 2)  # Cauchy weights: gross outliers (movers, wrong matches) fade
+        sum_w += wi
+        sum_wr2 += wi * ri * ri
+        n0, n1, n2 = normal[q, 0], normal[q, 1], normal[q, 2]
+        rot0 = a[i, 1] * n2 - a[i, 2] * n1
+        rot1 = a[i, 2] * n0 - a[i, 0] * n2
+        rot2 = a[i, 0] * n1 - a[i, 1] * n0
         for u in range(n_free):  # knot k ends segment k - 1 (weight f) and starts segment k (1 - f)
             k = free[u]
             wt = 0.0
@@ -84,30 +104,44 @@ def _normal_equations(a, n, r, w, seg, f, free, H, g):  # type: ignore[no-untype
             J[6 * u + 0] = rot0 * wt
             J[6 * u + 1] = rot1 * wt
             J[6 * u + 2] = rot2 * wt
-            J[6 * u + 3] = n[i, 0] * wt
-            J[6 * u + 4] = n[i, 1] * wt
-            J[6 * u + 5] = n[i, 2] * wt
-        wi = w[i]
+            J[6 * u + 3] = n0 * wt
+            J[6 * u + 4] = n1 * wt
+            J[6 * u + 5] = n2 * wt
         for p in range(6 * n_free):
             if J[p] == 0.0:
                 continue
-            g[p] += wi * J[p] * r[i]
-            for q in range(6 * n_free):
-                H[p, q] += wi * J[p] * J[q]
+            g[p] += wi * J[p] * ri
+            for c in range(6 * n_free):
+                H[p, c] += wi * J[p] * J[c]
+    return m, math.sqrt(sum_wr2 / sum_w)
 
 
-def normal_equations(a: F64, n: F64, r: F64, w: F64, seg: I64, f: F64, free: I64) -> tuple[F64, F64]:
-    """(J^T W J, J^T W r) of the point-to-plane residuals `r` (N,) with weights `w` (N,).
+def plane_system(
+    a: F64, world: F64, j: I64, planar: Bool, normal: F64, map_xyz: F64, seg: I64, f: F64, free: I64,
+    min_points: int = 50, min_scale_m: float = 0.005,
+) -> tuple[F64, F64, float, int]:  # fmt: skip
+    """One Gauss-Newton step of point-to-plane ICP: (J^T W J, J^T W r, weighted RMS residual m, points used).
 
-    Point i (rotated `a[i]`, map normal `n[i]`) in segment `seg[i]` at
-    fraction `f[i]` moves with the knots `free` (6 unknowns each: rotation
-    vector, then translation, both in the world frame); its Jacobian is
-    (a x n, n) times its weight between the two knots of its segment.
+    Point i (rotated `a[i]`, placed `world[i]`, both (N, 3)) matched to map
+    point `j[i]` (-1: none) counts where that one is `planar`; its residual is
+    r = n . (world - map_xyz[j]) along the map point's `normal`, its weight
+    Cauchy's, 1 / (1 + (r / s)^2) with s = 1.4826 median |r| (at least
+    `min_scale_m`), so gross outliers (movers, wrong matches) fade. It lies in
+    segment `seg[i]` at fraction `f[i]` and moves with the knots `free` (6
+    unknowns each: rotation vector, then translation, both in the world
+    frame); its Jacobian is (a x n, n) times its weight between the two knots
+    of its segment. With fewer than `min_points` used the system is zeros and
+    the residual NaN. One compiled pass over the points, where numpy would
+    make a dozen.
     """
-    H = np.zeros((6 * len(free), 6 * len(free)))
-    g = np.zeros(6 * len(free))
-    _normal_equations(a, n, r, w, seg, f, np.asarray(free, np.int64), H, g)
-    return H, g
+    size = 6 * len(free)
+    H, g = np.zeros((size, size)), np.zeros(size)
+    r, used = np.empty(len(j)), np.empty(len(j), np.int64)
+    m, residual = _plane_system(
+        a, world, j, planar, normal, map_xyz, seg, f, np.asarray(free, np.int64), min_points, min_scale_m,
+        H, g, r, used,
+    )  # fmt: skip
+    return H, g, float(residual), int(m)
 
 
 @njit(cache=True, nogil=True)
@@ -161,43 +195,95 @@ def blend_points(pts: F64, a: I64, g: F64, R_n: F64, p_n: F64) -> F64:
     return out
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _det_shifted(c, lam):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """(det(C - lam I), its derivative in lam) of a symmetric 3x3 `c`."""
+    c00, c11, c22 = c[0, 0] - lam, c[1, 1] - lam, c[2, 2] - lam
+    a01, a02, a12 = c[0, 1], c[0, 2], c[1, 2]
+    m0, m1, m2 = c11 * c22 - a12 * a12, c00 * c22 - a02 * a02, c00 * c11 - a01 * a01
+    return c00 * m0 - a01 * (a01 * c22 - a12 * a02) + a02 * (a01 * a12 - c11 * a02), -(m0 + m1 + m2)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _polished(c, lam, scale):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """Two Newton steps on det(C - lam I), each taken only while small against `scale` (`linalg3._newton`)."""
+    for _ in range(2):
+        det, slope = _det_shifted(c, lam)
+        if slope != 0.0:
+            step = det / slope
+            if math.isfinite(step) and abs(step) <= 1e-6 * scale:
+                lam -= step
+    return lam
+
+
 @njit(cache=True, nogil=True)
-def _covariances(xyz, idx, out):  # type: ignore[no-untyped-def]  # pragma: no cover
+def _planes(xyz, idx, gap, cov, evals, vec, ok):  # type: ignore[no-untyped-def]  # pragma: no cover
     k = idx.shape[1]
+    m = np.empty((3, 3))
     for i in range(idx.shape[0]):
-        mx = my = mz = 0.0
-        for j in range(k):
-            mx += xyz[idx[i, j], 0]
-            my += xyz[idx[i, j], 1]
-            mz += xyz[idx[i, j], 2]
-        mx /= k
-        my /= k
-        mz /= k
-        sxx = sxy = sxz = syy = syz = szz = 0.0
-        for j in range(k):
-            x = xyz[idx[i, j], 0] - mx
-            y = xyz[idx[i, j], 1] - my
-            z = xyz[idx[i, j], 2] - mz
-            sxx += x * x
-            sxy += x * y
-            sxz += x * z
-            syy += y * y
-            syz += y * z
-            szz += z * z
-        out[i, 0, 0], out[i, 0, 1], out[i, 0, 2] = sxx / k, sxy / k, sxz / k
-        out[i, 1, 0], out[i, 1, 1], out[i, 1, 2] = sxy / k, syy / k, syz / k
-        out[i, 2, 0], out[i, 2, 1], out[i, 2, 2] = sxz / k, syz / k, szz / k
+        c = cov[i]
+        mean = np.zeros(3)
+        for t in range(k):
+            for a in range(3):
+                mean[a] += xyz[idx[i, t], a]
+        mean /= k
+        c[:] = 0.0
+        for t in range(k):
+            for a in range(3):
+                for b in range(a, 3):
+                    c[a, b] += (xyz[idx[i, t], a] - mean[a]) * (xyz[idx[i, t], b] - mean[b])
+        for a in range(3):
+            for b in range(a, 3):
+                c[a, b] /= k
+                c[b, a] = c[a, b]
+        # eigenvalues: the trigonometric method, Newton-polished (`calibration.linalg3.sym3_eigvals`)
+        q = (c[0, 0] + c[1, 1] + c[2, 2]) / 3.0
+        b00, b11, b22 = c[0, 0] - q, c[1, 1] - q, c[2, 2] - q
+        p = math.sqrt((b00**2 + b11**2 + b22**2 + 2.0 * (c[0, 1] ** 2 + c[0, 2] ** 2 + c[1, 2] ** 2)) / 6.0)
+        safe = p if p > 0 else 1.0
+        det = (
+            b00 * (b11 * b22 - c[1, 2] * c[1, 2])
+            - c[0, 1] * (c[0, 1] * b22 - c[1, 2] * c[0, 2])
+            + c[0, 2] * (c[0, 1] * c[1, 2] - b11 * c[0, 2])
+        ) / safe**3
+        phi = math.acos(min(max(det / 2.0, -1.0), 1.0)) / 3.0
+        hi = _polished(c, q + 2.0 * p * math.cos(phi), p)
+        lo = _polished(c, q + 2.0 * p * math.cos(phi + 2.0 * math.pi / 3.0), p)
+        evals[i, 0], evals[i, 1], evals[i, 2] = lo, 3.0 * q - hi - lo, hi
+        # eigenvector of the smallest: the largest cross product of two rows of C - lo I (`sym3_smallest`)
+        m[:] = c
+        for a in range(3):
+            m[a, a] -= lo
+        best = -1.0
+        for u, v in ((0, 1), (0, 2), (1, 2)):
+            x = m[u, 1] * m[v, 2] - m[u, 2] * m[v, 1]
+            y = m[u, 2] * m[v, 0] - m[u, 0] * m[v, 2]
+            z = m[u, 0] * m[v, 1] - m[u, 1] * m[v, 0]
+            if x * x + y * y + z * z > best:
+                best, vec[i, 0], vec[i, 1], vec[i, 2] = x * x + y * y + z * z, x, y, z
+        size = math.sqrt(best)
+        ok[i] = size > gap * (hi - lo) ** 2
+        if ok[i]:
+            vec[i, 0], vec[i, 1], vec[i, 2] = vec[i, 0] / size, vec[i, 1] / size, vec[i, 2] / size
 
 
-def covariances(xyz: F64, idx: I64) -> F64:
-    """Covariance (N, 3, 3, m^2) of each neighbourhood `xyz[idx[i]]` (idx: N x k), divided by k.
+def neighbourhood_planes(xyz: F64, idx: I64) -> tuple[F64, F64]:
+    """Ascending eigenvalues (N, 3, m^2) of each neighbourhood's covariance and the unit eigenvector (N, 3)
+    of the smallest: the plane through the points `xyz[idx[i]]` (idx: N x k), covariance divided by k.
 
-    `ingest.train.trajectory.planes.neighbour_covariances` in one pass, without the (N, k, 3) gather.
+    `planes.neighbour_covariances` and `calibration.linalg3.sym3_smallest` in
+    one compiled pass, without the (N, k, 3) gather; rows where the two
+    smallest eigenvalues (nearly) coincide go to `np.linalg.eigh`, as there.
     """
-    out = np.empty((len(idx), 3, 3))
-    if len(idx):
-        _covariances(np.ascontiguousarray(xyz, np.float64), np.ascontiguousarray(idx, np.int64), out)
-    return out
+    n = len(idx)
+    cov, evals, vec, ok = np.empty((n, 3, 3)), np.empty((n, 3)), np.empty((n, 3)), np.ones(n, np.bool_)
+    if n:
+        _planes(np.ascontiguousarray(xyz, np.float64), np.ascontiguousarray(idx, np.int64), DEGENERATE_GAP,
+                cov, evals, vec, ok)  # fmt: skip
+    if not ok.all():
+        w, v = np.linalg.eigh(cov[~ok])
+        evals[~ok], vec[~ok] = w, v[:, :, 0]
+    return evals, vec
 
 
 @njit(cache=True, nogil=True, inline="always")

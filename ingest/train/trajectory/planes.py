@@ -92,7 +92,12 @@ def normals_from_covariances(cov: F64, pts: F64, max_flatness: float) -> Normals
     "plane" through several surfaces). This is the numpy reference of
     `plane_normals`' Open3D path.
     """
-    evals, normal = sym3_smallest(cov)  # ascending
+    return planar_normals(*sym3_smallest(cov), pts, max_flatness)
+
+
+def planar_normals(evals: F64, normal: F64, pts: F64, max_flatness: float) -> Normals:
+    """`normals_from_covariances` given each covariance's ascending eigenvalues (N, 3) and the unit
+    eigenvector (N, 3) of the smallest (as `odometry_kernels.neighbourhood_planes` solves them)."""
     lam_min, lam_max, total = evals[:, 0], evals[:, 2], evals.sum(axis=1)
     return Normals(normal, _planar(lam_min, lam_max, total, np.linalg.norm(pts, axis=1), max_flatness))
 

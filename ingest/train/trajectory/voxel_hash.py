@@ -10,10 +10,11 @@ cube's packed key to its bucket.
 A search visits the cubes around the query's own in shells of growing
 Chebyshev radius r, skipping cubes whose box lies farther than the best
 distance found so far. After shell r every point within r * cell_m of the
-query has been seen (the query lies inside the centre cube), so the search
-stops as soon as its answer lies that close: the result is exact, the same
-neighbours a k-d tree returns within the radius (up to ties), not an
-approximation. Most queries of a registered scan end after the first shell.
+query, plus its distance to the nearest face of its own cube, has been seen,
+so the search stops as soon as its answer lies that close: the result is
+exact, the same neighbours a k-d tree returns within the radius (up to ties),
+not an approximation. Most queries of a registered scan end after the own
+cube or the first shell.
 
 Kernels are compiled on first use and cached on disk (`cache=True`).
 """
@@ -153,6 +154,9 @@ def _knn(queries, xyz_sorted, order, start, table_key, table_bucket, cell_m, rad
     for i in range(queries.shape[0]):
         qx, qy, qz = queries[i, 0], queries[i, 1], queries[i, 2]
         cx, cy, cz = math.floor(qx / cell_m), math.floor(qy / cell_m), math.floor(qz / cell_m)
+        # the query's distance to its own cube's nearest face: shell r reaches every point r cubes plus this
+        margin = min(qx - cx * cell_m, qy - cy * cell_m, qz - cz * cell_m)
+        margin = max(min(margin, (cx + 1) * cell_m - qx, (cy + 1) * cell_m - qy, (cz + 1) * cell_m - qz), 0.0)
         worst = best[i, k - 1]
         for r in range(r_max + 1):
             for dx in range(-r, r + 1):
@@ -182,7 +186,7 @@ def _knn(queries, xyz_sorted, order, start, table_key, table_bucket, cell_m, rad
                                 best[i, j] = d2
                                 idx[i, j] = order[s]
                                 worst = best[i, k - 1]
-            seen = r * cell_m  # every point this close to the query has been seen
+            seen = r * cell_m + margin  # every point this close to the query has been seen
             if idx[i, k - 1] >= 0 and worst <= seen * seen:
                 break
 
@@ -290,24 +294,15 @@ class VoxelHash:
         """Occupied cubes."""
         return len(self.start) - 1
 
-    def query(self, queries: F64, k: int, radius_m: float, seed: I64 | None = None) -> tuple[F64, I64]:
+    def query(self, queries: F64, k: int, radius_m: float) -> tuple[F64, I64]:
         """Distances (M, k, metres, ascending) and indices (M, k) of each query's k nearest within `radius_m`.
 
         Neighbours closer than `radius_m` only (strictly); missing ones are
-        distance inf and index -1, as scipy's cKDTree reports them. With k = 1,
-        `seed` (M,) may name a point near each query (-1: none), such as the
-        previous iteration's match: the search then skips every cube farther
-        than it, and the answer is the same.
+        distance inf and index -1, as scipy's cKDTree reports them.
         """
         q = np.ascontiguousarray(queries, np.float64).reshape(-1, 3)
         idx = np.full((len(q), k), -1, np.int64)
         d2 = np.full((len(q), k), float(radius_m) ** 2)
-        if seed is not None and k == 1 and len(self.xyz):  # an empty index has nothing to seed from
-            idx[:, 0] = seed
-            guess = np.einsum("ij,ij->i", self.xyz[seed] - q, self.xyz[seed] - q)
-            use = (seed >= 0) & (guess < d2[:, 0])
-            idx[~use, 0] = -1
-            d2[use, 0] = guess[use]
         if len(q) and len(self.xyz) and k > 0:
             _knn(q, self.xyz_sorted, self.order, self.start, self.table_key, self.table_bucket,
                  self.cell_m, float(radius_m), d2, idx)  # fmt: skip
