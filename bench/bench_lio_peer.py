@@ -10,15 +10,17 @@ each in a child process pinned to the same single CPU, one after the other,
 (`getrusage`, every thread) around the odometry alone: SensorBox's pass
 reads and decodes the bag itself; RKO-LIO gets the sweeps and IMU readings
 as arrays the SensorBox child decoded and saved, so its time holds no bag
-reading. Per LiDAR point: CPU over the points each was given (SensorBox
-both LiDARs', RKO-LIO the top one's). Accuracy: median relative error over
+reading. The SensorBox child also times its odometry alone on the sweeps
+and gyro it read before (`odometry_alone`: `trajectory_pass`'s loop without
+the bag), as RKO-LIO is timed. Per LiDAR point: CPU over the points each was
+given (SensorBox both LiDARs', RKO-LIO the top one's). Accuracy: median relative error over
 1 s against the simulator's truth (translation mm, rotation deg), at RKO-LIO's
 scan times.
 
 RKO-LIO is not a dependency of the project: it lives in its own virtual
 environment, `--rko-python` (default /work/rkovenv/bin/python; made with
 `python3 -m venv /work/rkovenv && /work/rkovenv/bin/pip install rko_lio==0.4.0`).
-The trajectory pass itself is not changed here. Writes out/bench/bench_lio_peer.png.
+Writes out/bench/bench_lio_peer.png.
 """
 
 from __future__ import annotations
@@ -89,12 +91,13 @@ def sensorbox_child(bag: Path, work: Path, out: Path) -> None:
     from ingest.bags.decode import ImuSample, Sweep
     from ingest.bags.reader import open_bags
     from ingest.train.run.settings import resolve_topics
-    from ingest.train.trajectory.estimate import run_trajectory_pass
+    from ingest.train.trajectory.estimate import read_gyro, run_trajectory_pass
 
     rig = read_rig(Path(f"{bag}.truth") / "rig.yaml")
     with open_bags([bag]) as bags:
         topics = resolve_topics(rig, bags.topics(), str(bag))
         sweeps: dict[str, list[Sweep]] = {t: [] for t in topics.lidars}
+        in_order: list[tuple[str, Sweep]] = []
         imu: list[ImuSample] = []
         top = rig.lidars[0]
         imu_top = next(i for i in rig.imus if i.name == top.name.replace("lidar", "imu"))
@@ -102,6 +105,7 @@ def sensorbox_child(bag: Path, work: Path, out: Path) -> None:
             d = msg.decoded(bags.label)
             if isinstance(d, Sweep) and len(d.stamps_ns):
                 sweeps[msg.topic].append(d)
+                in_order.append((msg.topic, d))
             elif isinstance(d, ImuSample):
                 imu.append(d)
         first = min(s.span_ns[0] for v in sweeps.values() for s in v)
@@ -112,9 +116,10 @@ def sensorbox_child(bag: Path, work: Path, out: Path) -> None:
         r0, w0 = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter()
         run_trajectory_pass(*args, out.with_suffix(".tum"))
         r1, w1 = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter()
+        alone_s = odometry_alone(in_order, read_gyro(bags, topics.imu, topics.R_cam0_imu), rig, topics.lidars)
     points = sum(len(s.stamps_ns) for v in sweeps.values() for s in v)
     doc = {"cpu_s": r1.ru_utime + r1.ru_stime - r0.ru_utime - r0.ru_stime, "wall_s": w1 - w0,
-           "points": points, "seconds": (last - first) / 1e9}  # fmt: skip
+           "points": points, "seconds": (last - first) / 1e9, "alone_cpu_s": alone_s}  # fmt: skip
     out.write_text(json.dumps(doc))
     arrays = work / "rko_input.npz"
     if not arrays.exists():
@@ -133,6 +138,28 @@ def sensorbox_child(bag: Path, work: Path, out: Path) -> None:
             stamps=np.concatenate([s.stamps_ns for s in mine]),
             T_cam0_lidar=top.T_cam0_lidar,
         )
+
+
+def odometry_alone(in_order: list[tuple[str, Any]], gyro: Any, rig: Any, lidars: dict[str, str]) -> float:
+    """CPU s of SensorBox's odometry on sweeps already decoded and a gyro already read, as RKO-LIO is
+    measured: `trajectory_pass`'s loop without the bag (its reading, decoding and message checks)."""
+    from ingest.train.trajectory.clouds import filter_points
+    from ingest.train.trajectory.odometry import Odometry
+
+    r0 = resource.getrusage(resource.RUSAGE_SELF)
+    odo = Odometry(gyro)
+    last = {topic: -(2**62) for topic in lidars}
+    for topic, sweep in in_order:
+        keep, _ = filter_points(sweep.xyz_m, sweep.tag, 0.3)
+        T = rig.lidar(lidars[topic]).T_cam0_lidar
+        xyz = np.asarray(sweep.xyz_m, np.float64)[keep]
+        if len(xyz):
+            odo.add(xyz @ T[:3, :3].T + T[:3, 3], sweep.stamps_ns[keep])
+        last[topic] = max(last[topic], sweep.span_ns[1])
+        odo.advance(min(last.values()))
+    odo.result()
+    r1 = resource.getrusage(resource.RUSAGE_SELF)
+    return r1.ru_utime + r1.ru_stime - r0.ru_utime - r0.ru_stime
 
 
 def read_tum(path: Path) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
@@ -258,6 +285,8 @@ def main() -> None:
 
     ours_cpu, rko_cpu = med([r["cpu_s"] for r in ours]), med([r["cpu_s"] for r in theirs])
     ours_us = ours_cpu / ours[0]["points"] * 1e6
+    alone_cpu = med([r["alone_cpu_s"] for r in ours])
+    alone_us = alone_cpu / ours[0]["points"] * 1e6
     rko_us = rko_cpu / theirs[0]["points"] * 1e6
     print()
     print(machine_line())
@@ -269,6 +298,10 @@ def main() -> None:
         ["CPU s per second of data", f"{ours_cpu / seconds:.2f}", f"{rko_cpu / seconds:.2f}",
          f"{ours_cpu / rko_cpu:.2f}"],
         ["CPU us per LiDAR point", f"{ours_us:.2f}", f"{rko_us:.2f}", f"{ours_us / rko_us:.2f}"],
+        ["... odometry alone: CPU s (sweeps and gyro as arrays)", f"{alone_cpu:.1f}", f"{rko_cpu:.1f}",
+         f"{alone_cpu / rko_cpu:.2f}"],
+        ["... odometry alone: CPU us per LiDAR point", f"{alone_us:.2f}", f"{rko_us:.2f}",
+         f"{alone_us / rko_us:.2f}"],
         ["relative error over 1 s, median mm", f"{err_ours[0]:.1f}", f"{err_rko[0]:.1f}", ""],
         ["relative error over 1 s, median deg", f"{err_ours[1]:.3f}", f"{err_rko[1]:.3f}", ""],
     ]  # fmt: skip

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -68,6 +69,8 @@ class LocalMap:
     grid: VoxelHash | None = None
     voxels: VoxelSet = field(default_factory=VoxelSet)  # the voxels the points hold; ids: dropped + index
     dropped: int = 0  # points that left so far
+    store: dict[str, np.ndarray[Any, Any]] = field(default_factory=dict)  # the arrays above are windows of
+    store_from: int = 0  # ... these, from this row, with room after them (`_joined`)
 
     def add(self, pts_world: F64, t_ns: int, origin_world: F64) -> None:
         """A registered chunk joins (one point per free voxel); points older than the horizon leave.
@@ -82,13 +85,30 @@ class LocalMap:
         self.dropped += first
         fresh = self.voxels.claim(near_keys, self.dropped)  # one point per voxel the map does not hold yet
         m = len(fresh)
-        self.xyz = np.concatenate([self.xyz[first:], near[fresh]])
-        self.normal = np.concatenate([self.normal[first:], np.zeros((m, 3))])
-        self.planar = np.concatenate([self.planar[first:], np.zeros(m, bool)])
-        self.known = np.concatenate([self.known[first:], np.zeros(m, bool)])
-        self.origin = np.concatenate([self.origin[first:], np.broadcast_to(origin_world, (m, 3))])
-        self.added_ns = np.concatenate([self.added_ns[first:], np.full(m, t_ns, np.int64)])
+        self._joined(first, {
+            "xyz": near[fresh], "normal": np.zeros((m, 3)), "planar": np.zeros(m, bool),
+            "known": np.zeros(m, bool), "origin": np.broadcast_to(origin_world, (m, 3)),
+            "added_ns": np.full(m, t_ns, np.int64),
+        })  # fmt: skip
         self.grid = VoxelHash.build(self.xyz, prm.map_cell_m, self.grid.buckets if self.grid else 0)
+
+    def _joined(self, first: int, rows: dict[str, np.ndarray[Any, Any]]) -> None:
+        """The first `first` points leave and `rows` join (per field): each field stays a window of a
+        `store` array with room after it, so that a chunk costs its own rows, not the whole map's. When the
+        room runs out the live rows move to the front of arrays twice their size."""
+        live, m = len(self.xyz) - first, len(rows["xyz"])
+        lo = self.store_from + first
+        if not self.store or lo + live + m > len(self.store["xyz"]):
+            size = 2 * (live + m) + 1024
+            store = {}
+            for name, new in rows.items():
+                store[name] = np.empty((size, *new.shape[1:]), new.dtype)
+                store[name][:live] = getattr(self, name)[first:]
+            self.store, lo = store, 0
+        for name, new in rows.items():
+            self.store[name][lo + live : lo + live + m] = new
+            setattr(self, name, self.store[name][lo : lo + live + m])
+        self.store_from = lo
 
     def normals_at(self, j: I64) -> None:
         """Compute the normals of map points `j` that have none yet."""

@@ -155,6 +155,8 @@ class Odometry:
             return
         if self.gyro is not None:  # no knot past the IMU: its rotation there would be a guess
             complete_ns = min(complete_ns, int(self.gyro.stamps_ns[-1]))
+        if self._chain is not None and self._chain.stamps[-1] + self.span_ns > complete_ns:
+            return  # no chunk complete yet: the points wait as they came
         P, T = np.concatenate(self._pts), np.concatenate(self._t)
         if self._chain is None:
             t0 = int(T.min()) if self.start_ns is None or self._before else min(self.start_ns, int(T.min()))
