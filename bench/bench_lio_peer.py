@@ -2,13 +2,14 @@
 
 Issue 46, item 5 (the measurement only): SensorBox's trajectory pass
 (`run_trajectory_pass`, both LiDARs and the gyro, as `sensorbox ingest
---gt dense` runs it) and RKO-LIO (`rko_lio` on PyPI: one LiDAR and its IMU)
+--gt dense` runs it: the IMU's readings from the run's first pass, the
+sweeps read from the bag) and RKO-LIO (`rko_lio` on PyPI: one LiDAR and its IMU)
 on the same simulated outdoor walk (`--seconds`, 2 cm range noise; images
 at scale 0.125, which the odometry never reads), side by side in one run:
 each in a child process pinned to the same single CPU, one after the other,
 `--runs` rounds interleaved (medians). CPU seconds are each child's own
 (`getrusage`, every thread) around the odometry alone: SensorBox's pass
-reads and decodes the bag itself; RKO-LIO gets the sweeps and IMU readings
+reads and decodes the LiDARs' sweeps from the bag itself; RKO-LIO gets the sweeps and IMU readings
 as arrays the SensorBox child decoded and saved, so its time holds no bag
 reading. The SensorBox child also times its odometry alone on the sweeps
 and gyro it read before (`odometry_alone`: `trajectory_pass`'s loop without
@@ -91,7 +92,7 @@ def sensorbox_child(bag: Path, work: Path, out: Path) -> None:
     from ingest.bags.decode import ImuSample, Sweep
     from ingest.bags.reader import open_bags
     from ingest.train.run.settings import resolve_topics
-    from ingest.train.trajectory.estimate import read_gyro, run_trajectory_pass
+    from ingest.train.trajectory.estimate import GyroReadings, read_gyro, run_trajectory_pass
 
     rig = read_rig(Path(f"{bag}.truth") / "rig.yaml")
     with open_bags([bag]) as bags:
@@ -101,22 +102,29 @@ def sensorbox_child(bag: Path, work: Path, out: Path) -> None:
         imu: list[ImuSample] = []
         top = rig.lidars[0]
         imu_top = next(i for i in rig.imus if i.name == top.name.replace("lidar", "imu"))
-        for msg in bags.messages(topics=[*topics.lidars, imu_top.topic]):
+        readings = GyroReadings()  # the trajectory pass's gyro readings, as ingest's survey hands them over
+        assert topics.imu is not None
+        for msg in bags.messages(topics=list({*topics.lidars, imu_top.topic, topics.imu})):
             d = msg.decoded(bags.label)
             if isinstance(d, Sweep) and len(d.stamps_ns):
                 sweeps[msg.topic].append(d)
                 in_order.append((msg.topic, d))
             elif isinstance(d, ImuSample):
-                imu.append(d)
+                if msg.topic == imu_top.topic:
+                    imu.append(d)
+                if msg.topic == topics.imu:
+                    readings.add(d)
         first = min(s.span_ns[0] for v in sweeps.values() for s in v)
         last = max(s.span_ns[1] for v in sweeps.values() for s in v)
         args = (bags, topics.lidars, (topics.imu, topics.R_cam0_imu), rig, 0.3)
         # fresh files each round: a pass finds the one an earlier round kept beside its file and reuses it
-        run_trajectory_pass(*args, out.with_suffix(".warm.tum"), span_ns=(first, first + 2_000_000_000))
+        warm = out.with_suffix(".warm.tum")
+        run_trajectory_pass(*args, warm, span_ns=(first, first + 2_000_000_000), readings=readings)
         r0, w0 = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter()
-        run_trajectory_pass(*args, out.with_suffix(".tum"))
+        run_trajectory_pass(*args, out.with_suffix(".tum"), readings=readings)
         r1, w1 = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter()
-        alone_s = odometry_alone(in_order, read_gyro(bags, topics.imu, topics.R_cam0_imu), rig, topics.lidars)
+        gyro = read_gyro(bags, topics.imu, topics.R_cam0_imu, readings=readings)
+        alone_s = odometry_alone(in_order, gyro, rig, topics.lidars)
     points = sum(len(s.stamps_ns) for v in sweeps.values() for s in v)
     doc = {"cpu_s": r1.ru_utime + r1.ru_stime - r0.ru_utime - r0.ru_stime, "wall_s": w1 - w0,
            "points": points, "seconds": (last - first) / 1e9, "alone_cpu_s": alone_s}  # fmt: skip

@@ -349,3 +349,26 @@ def test_motion_from_is_the_largest_turn_and_shift_over_the_interval():
     flat = RigTrajectory(t[[0, -1]], np.tile(np.eye(3), (2, 1, 1)), np.zeros((2, 3)), np.zeros(2), wobble)
     turn, shift = flat.motion_from(0, 0, 100_000_000)
     assert turn == pytest.approx(0.05, abs=2e-3) and shift == 0.0
+
+
+def test_the_surveys_imu_readings_integrate_to_the_gyro_read_from_the_bags():
+    """The run's first pass keeps the IMU's readings, so the trajectory pass need not read every chunk again."""
+    from calibration.rig import read_rig
+    from ingest.bags.reader import open_bags
+    from ingest.train.bad_messages import BadMessages
+    from ingest.train.run.plan import survey
+    from ingest.train.run.settings import resolve_topics
+    from tests.paths import FIXTURES_DIR
+
+    bag = FIXTURES_DIR / "outdoor_walk_mcap"
+    rig = read_rig(FIXTURES_DIR / "outdoor_walk_mcap.truth" / "rig.yaml")
+    with open_bags([bag]) as bags:
+        topics = resolve_topics(rig, bags.topics(), str(bag))
+        bad = BadMessages()
+        kept = survey(bags, topics, 50_000_000, bad).gyro
+        assert kept is not None and len(kept.stamps_ns) > 100
+        read = trajectory.read_gyro(bags, topics.imu, topics.R_cam0_imu, bad)
+        given = trajectory.read_gyro(bags, topics.imu, topics.R_cam0_imu, bad, readings=kept)
+    assert read is not None and given is not None
+    np.testing.assert_array_equal(given.stamps_ns, read.stamps_ns)
+    np.testing.assert_array_equal(given.rotations, read.rotations)

@@ -18,7 +18,13 @@ from ingest.train.bad_messages import BadMessages
 from ingest.train.run.resolved import ResolvedRun, resolve_run
 from ingest.train.run.settings import IngestConfig, Topics
 from ingest.train.run.summary import IngestSummary
-from ingest.train.trajectory.estimate import STATIC_WINDOW_NS, check_gyro, choose_method, run_trajectory_pass
+from ingest.train.trajectory.estimate import (
+    STATIC_WINDOW_NS,
+    GyroReadings,
+    check_gyro,
+    choose_method,
+    run_trajectory_pass,
+)
 from ingest.train.trajectory.imu_check import no_imu_line
 from ingest.train.trajectory.rig_trajectory import RigTrajectory
 from ingest.train.trajectory.segments import Split
@@ -37,10 +43,11 @@ def dense_reach_ns(cfg: IngestConfig) -> int:
 def gt_method(
     bags: BagSet, topics: Topics, rig: Rig, cfg: IngestConfig, summary: IngestSummary, bad: BadMessages,
     trajectory_span_ns: tuple[int, int], busy: bool, progress: Progress | None = None,
-    split: Split | None = None,
+    split: Split | None = None, gyro: GyroReadings | None = None,
 ) -> tuple[ResolvedRun, RigTrajectory | None]:  # fmt: skip
     """Run the trajectory pass when --gt dense/auto needs it (`progress`: its sweeps; `split`: in segments
-    on the workers, `ingest.train.run.trajectory_jobs`), decide the method: the run as resolved
+    on the workers, `ingest.train.run.trajectory_jobs`; `gyro`: the IMU's readings as the survey kept
+    them), decide the method: the run as resolved
     (`resolve_run`; `busy`: every core runs a worker) and the trajectory of a dense run.
 
     Dense GT streams every sweep within its window (`--gt-window-ms`); the
@@ -63,6 +70,7 @@ def gt_method(
                 progress=progress,
                 imu_name=topics.imu_name,
                 split=split,
+                readings=gyro,
             )
         except OdometryError as err:
             if cfg.gt == "dense":
@@ -75,7 +83,7 @@ def gt_method(
     else:  # sparse GT: the IMU against the odometry of a few seconds of the recording
         imu = (topics.imu, topics.R_cam0_imu)
         summary.imu_check = check_gyro(
-            bags, topics.lidars, imu, topics.imu_name, rig, cfg.sample.min_range_m, bad
+            bags, topics.lidars, imu, topics.imu_name, rig, cfg.sample.min_range_m, bad, gyro
         )
     if topics.imu is None:
         summary.warnings.append(no_imu_line(cfg.rig))

@@ -58,7 +58,6 @@ from typing import Any
 from calibration.housing import housing_warnings
 from calibration.rectify import stereo_warnings
 from calibration.rig import Rig, read_rig, write_rig
-from calibration.types import I64
 from ingest.bags.decode import Frame
 from ingest.bags.reader import BagSet, Progress, given_once, open_bags
 from ingest.dataset.identity import resume_state
@@ -356,7 +355,7 @@ def _count_plan(summary: IngestSummary, the_plan: Plan, bags: BagSet, bad: BadMe
 
 def _ground_truth(
     bags: BagSet, bag_paths: list[Path], topics: Topics, rig: Rig, geometry: Geometry, cfg: IngestConfig,
-    summary: IngestSummary, bad: BadMessages, executor: Executor, sweeps: Mapping[str, I64],
+    summary: IngestSummary, bad: BadMessages, executor: Executor, surveyed: Survey,
     span: tuple[int, int], held: ExitStack, passes: Callable[[str, int, int], None] | None,
 ) -> tuple[ResolvedRun, RigTrajectory | None, Callable[[], float | None]]:  # fmt: skip
     """The trajectory pass (in segments on the workers where `trajectory_split` says) and the method
@@ -364,11 +363,12 @@ def _ground_truth(
     process: before a single pass, after a fork pool's segments (a process forked while another thread
     runs may inherit a lock that thread holds). Returns the run, its trajectory and the warm-up's `ready`.
     """
+    sweeps = {t: surveyed.seen[t] for t in topics.lidars}
     split = trajectory_split(bag_paths, cfg, executor, sweeps, span, _pass(passes, PASS_TRAJECTORY_JOBS))
     warm_first = split is None or executor.backend != "fork"
     ready = held.enter_context(_warming_up(geometry, cfg)) if warm_first else None
     odometry, busy = _pass(passes, PASS_TRAJECTORY), executor.every_core_busy
-    run, traj = gt_method(bags, topics, rig, cfg, summary, bad, span, busy, odometry, split)
+    run, traj = gt_method(bags, topics, rig, cfg, summary, bad, span, busy, odometry, split, surveyed.gyro)
     return run, traj, ready or held.enter_context(_warming_up(geometry, cfg))
 
 
@@ -399,9 +399,8 @@ def _run(
         summary.add_survey(surveyed)
         summary.stale_temporaries = held.enter_context(_held_output(cfg.out))
         span = (surveyed.span_ns[0] - reach, surveyed.span_ns[1] + reach)
-        sweeps = {t: surveyed.seen[t] for t in topics.lidars}
         run, traj, ready = _ground_truth(
-            bags, bag_paths, topics, rig, geometry, cfg, summary, bad, executor, sweeps, span, held, passes
+            bags, bag_paths, topics, rig, geometry, cfg, summary, bad, executor, surveyed, span, held, passes
         )
         the_plan = plan(bags, topics, run, bad, surveyed)
         _count_plan(summary, the_plan, bags, bad)

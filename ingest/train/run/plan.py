@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from calibration.types import I64
-from ingest.bags.decode import Sweep
+from ingest.bags.decode import ImuSample, Sweep
 from ingest.bags.reader import READAHEAD_THREADS, BagSet, Progress
 from ingest.errors import BagError
 from ingest.runtime.executor import usable_cpus
@@ -35,6 +35,7 @@ from ingest.train.sync import (
     select_samples,
     unpaired_line,
 )
+from ingest.train.trajectory.estimate import GyroReadings
 
 if TYPE_CHECKING:
     from ingest.train.run.resolved import ResolvedRun
@@ -81,7 +82,7 @@ CROSSED_REASON = "LiDAR window holds a sweep whose points another LiDAR's repeat
 
 def _seen(
     bags: BagSet, topics: Topics, bad: BadMessages, progress: Progress | None = None
-) -> tuple[dict[str, I64], LidarRates, FirstCopies]:
+) -> tuple[dict[str, I64], LidarRates, FirstCopies, GyroReadings]:
     """Per camera, LiDAR and IMU topic: (log_ns, first stamp, last stamp) of each message, as (N, 3).
 
     A sweep's stamps are its first and last point's (empty sweeps are left
@@ -91,7 +92,8 @@ def _seen(
     counted by `bad`; each LiDAR's point rate is measured on the way.
     A message seen before (the same sweep, or a frame or IMU reading with the
     same stamp) is left out and counted per topic (the third value's
-    `repeats`; its `restamped` lists those whose bytes differ).
+    `repeats`; its `restamped` lists those whose bytes differ). The fourth:
+    the IMU's readings, decoded (`read_gyro` integrates them).
     """
     where = bags.label
     imu = [topics.imu] if topics.imu else []
@@ -100,12 +102,15 @@ def _seen(
     }
     rates = LidarRates()
     copies = FirstCopies()
+    gyro = GyroReadings()
     readahead = min(READAHEAD_THREADS, usable_cpus())
     for msg in bags.messages(topics=list(seen), readahead=readahead, progress=progress):
         if msg.topic not in topics.lidars:
             stamp = bad.stamp(msg, where)
             if stamp is not None and copies.stamped(msg.topic, stamp, fingerprint(msg.raw)):
                 seen[msg.topic].append((msg.log_ns, stamp, stamp))
+                if msg.topic == topics.imu and isinstance(reading := bad.decoded(msg, where), ImuSample):
+                    gyro.add(reading)  # the trajectory pass's gyro, without reading the bags again
             continue
         sweep = bad.decoded(msg, where)
         if not isinstance(sweep, Sweep) or not len(sweep.stamps_ns):
@@ -115,7 +120,7 @@ def _seen(
             seen[msg.topic].append((msg.log_ns, *sweep.span_ns))
             rates.add(msg.topic, sweep.stamps_ns)
             rates.add_ranges(msg.topic, sweep.xyz_m)
-    return {t: np.array(v, np.int64).reshape(-1, 3) for t, v in seen.items()}, rates, copies
+    return {t: np.array(v, np.int64).reshape(-1, 3) for t, v in seen.items()}, rates, copies, gyro
 
 
 def _untouched(bags: BagSet, topics: Topics, seen: dict[str, I64], tc_ns: I64, run: ResolvedRun) -> Any:
@@ -179,6 +184,7 @@ class Survey:
     crossed: dict[str, list[tuple[int, int]]] = field(default_factory=dict)  # `FirstCopies.crossed`
     same_as_before: dict[str, set[int]] = field(default_factory=dict)  # `FirstCopies.same_as_before`
     clock_spread: str | None = None  # `lidar_clock_spread`'s line (also among `warnings`): the LiDARs' clocks
+    gyro: GyroReadings | None = None  # the IMU's readings (None without one), for `read_gyro`
 
     @property
     def span_ns(self) -> tuple[int, int]:
@@ -210,7 +216,7 @@ def survey(
     takes minutes: `progress` hears of the messages read (`BagSet.messages`).
     """
     bad = bad or BadMessages()
-    seen, rates, copies = _seen(bags, topics, bad, progress)
+    seen, rates, copies, gyro = _seen(bags, topics, bad, progress)
     duplicates = copies.repeats
     dropped = bad.dropped.by_topic()
     if odd := rates.same_sweeps(topics.lidars):  # first: the repeated sweeps of such a topic are left out
@@ -263,6 +269,7 @@ def survey(
         copies.crossed,
         copies.same_as_before,
         spread,
+        gyro if topics.imu else None,
     )
 
 

@@ -11,7 +11,7 @@ LiDAR has delivered points past its end.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -67,26 +67,42 @@ class TrajectorySummary:
         return out
 
 
+@dataclass
+class GyroReadings:
+    """An IMU's angular rates as read (rad/s, IMU frame) with their header stamps (ns): each stamp's
+    first decoded, plausible reading."""
+
+    stamps_ns: list[int] = field(default_factory=list)
+    rates_rad_s: list[F64] = field(default_factory=list)
+
+    def add(self, sample: ImuSample) -> None:
+        self.stamps_ns.append(sample.stamp_ns)
+        self.rates_rad_s.append(np.asarray(sample.gyro_rad_s, np.float64))
+
+
 def read_gyro(
-    bags: BagSet, imu_topic: str | None, R_cam0_imu: F64 | None, bad: BadMessages | None = None
-) -> GyroTrack | None:
+    bags: BagSet, imu_topic: str | None, R_cam0_imu: F64 | None, bad: BadMessages | None = None,
+    readings: GyroReadings | None = None,
+) -> GyroTrack | None:  # fmt: skip
     """The integrated gyro of the rig's IMU, or None without one (undecodable readings: see `bad`); a
-    `BagError` when its readings are in other units (`check_imu_units`)."""
+    `BagError` when its readings are in other units (`check_imu_units`). `readings`: the IMU's, as the
+    run's first pass kept them (`ingest.train.run.plan.survey`), instead of reading the bags once more
+    (every chunk decompressed again: about a tenth of a trajectory pass)."""
     bad = bad or BadMessages()
     if imu_topic is None or R_cam0_imu is None:
         return None
     where = bags.label
-    stamps, rates = [], []
-    copies = FirstCopies()
-    for msg in bags.messages(topics=[imu_topic]):
-        sample = bad.decoded(msg, where)
-        if sample is None:
-            continue
-        assert isinstance(sample, ImuSample)
-        if not copies.stamped(imu_topic, sample.stamp_ns):
-            continue
-        stamps.append(sample.stamp_ns)
-        rates.append(sample.gyro_rad_s)
+    if readings is None:
+        readings = GyroReadings()
+        copies = FirstCopies()
+        for msg in bags.messages(topics=[imu_topic]):
+            sample = bad.decoded(msg, where)
+            if sample is None:
+                continue
+            assert isinstance(sample, ImuSample)
+            if copies.stamped(imu_topic, sample.stamp_ns):
+                readings.add(sample)
+    stamps, rates = readings.stamps_ns, readings.rates_rad_s
     check_imu_units(where, imu_topic, len(stamps), bad.dropped.by_topic().get(imu_topic, {}))
     if len(stamps) < 2:
         return None
@@ -173,6 +189,7 @@ def check_gyro(
     rig: Rig,
     min_range_m: float,
     bad: BadMessages | None = None,
+    readings: GyroReadings | None = None,
 ) -> GyroAgreement | None:
     """The IMU's gyro against the odometry of the `CHECK_SPAN_NS` in which it turns most (`judged`: a
     CalibrationError where it disagrees too far); None without an IMU, or where the rig hardly turns or
@@ -180,7 +197,7 @@ def check_gyro(
     real one reads its bias and noise even at rest: a dead gyro, or a driver that sends no rates) while
     its accelerometer's readings vary is checked over the recording's first `CHECK_SPAN_NS`: the LiDARs
     show whether the rig turned. (A simulated still rig reads exactly zero and one constant acceleration.)"""
-    gyro = read_gyro(bags, *imu, bad=bad)
+    gyro = read_gyro(bags, *imu, bad=bad, readings=readings)
     stretch = turning_stretch(gyro, CHECK_SPAN_NS) if gyro is not None else None
     if gyro is not None and stretch is None and not gyro.steps.any() and _accelerates(bags, imu[0], bad):
         stretch = (int(gyro.stamps_ns[0]), int(gyro.stamps_ns[0]) + CHECK_SPAN_NS)
@@ -254,6 +271,7 @@ def run_trajectory_pass(
     progress: Progress | None = None,
     imu_name: str = "",
     split: Split | None = None,
+    readings: GyroReadings | None = None,
 ) -> tuple[RigTrajectory, TrajectorySummary]:
     """Gyro, odometry (points within `span_ns`) and `out_file` (TUM, T_world_cam0), with the summary;
     `progress` hears of the odometry's sweeps (`trajectory_pass`). With `split` the odometry runs in
@@ -262,7 +280,8 @@ def run_trajectory_pass(
     The pass is kept beside it (`out_file` with suffix .npz, `trajectory_cache`)
     and read back instead of computed when a rerun would compute the same.
     The IMU (`imu_name`) is checked against the knots first (`judged`: a
-    CalibrationError, and no file, where it disagrees too far).
+    CalibrationError, and no file, where it disagrees too far). `readings`: the IMU's as the run's first
+    pass kept them (`read_gyro`).
     """
     t0 = time.perf_counter()
     params = params or OdometryParams()
@@ -270,7 +289,7 @@ def run_trajectory_pass(
     key = trajectory_cache.cache_key(bags, lidar_topics, imu, rig, min_range_m, params, span_ns, split)
     traj = trajectory_cache.load(kept, key)
     reused = traj is not None
-    gyro = read_gyro(bags, *imu, bad=bad)
+    gyro = read_gyro(bags, *imu, bad=bad, readings=readings)
     split_summary = trajectory_cache.split_of(kept) if reused else None
     if traj is None and split is None:
         traj = trajectory_pass(

@@ -101,10 +101,8 @@ def _solve_knots(
         a, world = chain_points(pts_cam0, seg, f, rel, R_k, np.array(p), log_rotations(E))
         j = the_map.grid.query(world, 1, prm.max_correspondence_m)[1][:, 0]
         the_map.normals_at(j[j >= 0])
-        H, g, res, used = plane_system(
-            a, world, j, the_map.planar, the_map.normal, the_map.xyz, seg, f, free_k
-        )
-        if used < 50:
+        H, g, res, _ = plane_system(a, world, j, the_map.planar, the_map.normal, the_map.xyz, seg, f, free_k)
+        if math.isnan(res):  # under `plane_system`'s 50 points matched to the map's planes
             break
         dx = np.asarray(np.linalg.solve(H + 1e-9 * np.eye(len(g)), -g), np.float64)
         for u, k in enumerate(free):

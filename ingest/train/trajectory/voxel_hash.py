@@ -145,8 +145,8 @@ def _shift(table_key):  # type: ignore[no-untyped-def]  # pragma: no cover
 def _knn(queries, xyz_sorted, order, start, table_key, table_bucket, cell_m, radius_m, best, idx):  # type: ignore[no-untyped-def]  # pragma: no cover
     """The k nearest points within `radius_m` of each query, nearest first (-1: none).
 
-    best (M, k) and idx (M, k) come in holding a bound and a guess per query
-    (radius_m^2 and -1 without one) and leave holding the answer.
+    best (M, k) and idx (M, k) come in holding radius_m^2 and -1 and leave
+    holding the squared distances and indices.
     """
     shift = _shift(table_key)
     k = best.shape[1]
