@@ -69,8 +69,8 @@ class TrajectorySummary:
 
 @dataclass
 class GyroReadings:
-    """An IMU's angular rates as read (rad/s, IMU frame) with their header stamps (ns): each stamp's
-    first decoded, plausible reading."""
+    """An IMU's angular rates as read (rad/s, IMU frame) with their header stamps (ns): one reading per
+    stamp (the first copy), each one that decodes and is plausible (`BadMessages.decoded`)."""
 
     stamps_ns: list[int] = field(default_factory=list)
     rates_rad_s: list[F64] = field(default_factory=list)
