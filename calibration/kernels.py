@@ -67,15 +67,22 @@ def _finite3(x, y, z):  # type: ignore[no-untyped-def]  # pragma: no cover
 
 
 @njit(cache=True, nogil=True, error_model="numpy")  # x / 0 gives inf or NaN, as numpy
+def double_sphere_pixel(x, y, z, fx, fy, cx, cy, xi, alpha, w2):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """One point's Double Sphere pixel (u, v) and whether the projection is valid there (before the
+    pixel's own finiteness check): the formula every compiled Double Sphere projection calls."""
+    r2 = x * x + y * y
+    d1 = math.sqrt(z * z + r2)
+    k = d1 * xi + z
+    n = math.sqrt(k * k + r2) * alpha + k * (1.0 - alpha)
+    good = _finite3(x, y, z) and z > -w2 * d1 and n > 0.0
+    return x / n * fx + cx, y / n * fy + cy, good
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def _double_sphere(p, fx, fy, cx, cy, xi, alpha, w2, uv, ok):  # type: ignore[no-untyped-def]  # pragma: no cover
     for i in range(p.shape[0]):
-        x, y, z = p[i, 0], p[i, 1], p[i, 2]
-        r2 = x * x + y * y
-        d1 = math.sqrt(z * z + r2)
-        k = d1 * xi + z
-        n = math.sqrt(k * k + r2) * alpha + k * (1.0 - alpha)
-        good = _finite3(x, y, z) and z > -w2 * d1 and n > 0.0
-        _store(i, x / n * fx + cx, y / n * fy + cy, good, uv, ok)
+        u, v, good = double_sphere_pixel(p[i, 0], p[i, 1], p[i, 2], fx, fy, cx, cy, xi, alpha, w2)
+        _store(i, u, v, good, uv, ok)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")  # x / 0 gives inf or NaN, as numpy

@@ -129,6 +129,73 @@ def test_the_compiled_normal_equations_are_the_robust_cost_written_out(frame) ->
     assert weighted_sq == pytest.approx(float(np.sum(weight * residual**2)), rel=1e-3)
 
 
+def _edge_points(pts: F64) -> F64:
+    """`pts` with points the projection refuses (behind the fold, NaN, the origin) and points whose
+    forward differences cross the image border or the validity limit, where the compiled paths must
+    agree with numpy bit for bit."""
+    behind = pts[:50] * np.array([1.0, 1.0, -40.0])
+    special = np.array([[np.nan, 0.0, 1.0], [0.0, 0.0, 0.0], [0.0, 0.0, -1.0], [1e-300, 0.0, 1e-300]])
+    return np.concatenate([pts, behind, special])
+
+
+def test_the_compiled_projection_and_jacobians_are_numpys_to_the_bit(frame) -> None:
+    """`visible_jacobians` and `pixels_in_image` against `CameraModel.project`, `in_image` and numpy's
+    forward differences: the same pixels (NaN where numpy has NaN), the same points kept, the same
+    Jacobians, bit for bit (the alignments they feed are then unchanged)."""
+    from ingest.train.gt.align import JACOBIAN_STEP_M
+    from ingest.train.gt.align_kernels import pixels_in_image, visible_jacobians
+
+    model, _, pts, _ = frame
+    p = _edge_points(pts)
+    px, ok = model.project(p)
+    ok &= model.in_image(px)
+    steps = np.eye(3) * JACOBIAN_STEP_M
+    moved, _ = model.project(p[ok][None, :, :] + steps[:, None, :])
+    J = ((moved - px[ok]) / JACOBIAN_STEP_M).transpose(1, 2, 0)
+    finite = np.isfinite(J.reshape(len(J), 6).sum(axis=1))
+    kept = ok.copy()
+    kept[ok] = finite
+    got_px, got_ok = pixels_in_image(model, p)
+    np.testing.assert_array_equal(got_px, px)  # NaN where numpy's are
+    np.testing.assert_array_equal(got_ok, ok)
+    got_px, got_J, got_kept = visible_jacobians(model, p, JACOBIAN_STEP_M)
+    np.testing.assert_array_equal(got_px, px)
+    np.testing.assert_array_equal(got_kept, kept)
+    assert kept.sum() > 1000
+    np.testing.assert_array_equal(got_J, J[finite])
+
+
+def test_the_compiled_nearest_in_cell_is_the_sorted_z_buffer(frame) -> None:
+    """`nearest_in_cell` against a z-buffer written with numpy's sort: each point kept when within
+    `NEAREST_TOLERANCE` of its cell's nearest range, on the frame's points and on crafted cells."""
+    from ingest.train.gt.align import CELL_PX, NEAREST_TOLERANCE, nearest_in_cell
+
+    def sorted_z_buffer(px: F64, range_m: F64) -> np.ndarray:
+        cell = np.floor(px / CELL_PX).astype(np.int64)
+        key = cell[:, 1] * (1 << 20) + cell[:, 0]
+        order = np.argsort(key, kind="stable")
+        k, ranges = key[order], range_m[order]
+        first = np.flatnonzero(np.r_[True, k[1:] != k[:-1]])
+        nearest = np.repeat(np.minimum.reduceat(ranges, first), np.diff(np.r_[first, len(k)]))
+        keep = np.zeros(len(px), bool)
+        keep[order] = ranges <= nearest * (1 + NEAREST_TOLERANCE)
+        return keep
+
+    model, _, pts, _ = frame
+    px, ok = model.project(pts)
+    ok &= model.in_image(px)
+    range_m = np.linalg.norm(pts[ok], axis=1)
+    keep = nearest_in_cell(px[ok], range_m)
+    np.testing.assert_array_equal(keep, sorted_z_buffer(px[ok], range_m))
+    assert 0 < (~keep).sum() < keep.sum()  # some hidden, most seen
+    # 2-px cells: (-0.5, 0) alone in cell (-1, 0); two points in cell (0, 0), two in cell (1, 0)
+    crafted = np.array([[-0.5, 0.0], [1.9, 1.9], [0.1, 0.1], [2.0, 0.0], [3.9, 1.0]])
+    assert nearest_in_cell(crafted, np.array([50.0, 10.0, 10.2, 4.0, 4.1])).all()
+    behind = nearest_in_cell(crafted, np.array([50.0, 10.4, 10.0, 4.0, 4.2]))
+    assert behind.tolist() == [True, False, True, True, False]
+    assert nearest_in_cell(np.zeros((0, 2)), np.zeros(0)).shape == (0,)
+
+
 def _sample(delta: F64, twist: F64, rng: np.random.Generator, sigma_rad: float = 2e-4) -> Alignment:
     info = np.diag([1 / sigma_rad**2] * 3 + [1 / (sigma_rad * 3) ** 2] * 3)
     noisy = delta + rng.normal(0, 1, 6) * np.r_[[sigma_rad] * 3, [sigma_rad * 3] * 3]

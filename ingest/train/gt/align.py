@@ -37,6 +37,7 @@ import cv2
 import numpy as np
 
 from calibration.camera import CameraModel
+from calibration.fisheye import DoubleSphere
 from calibration.types import F32, F64, I64
 from ingest.dataset.meta import AlignmentMeta
 from ingest.train.gt.groundtruth import px_per_rad
@@ -173,25 +174,22 @@ def _sample(image: np.ndarray, px: F64) -> F64:
 
 
 def nearest_in_cell(px: F64, range_m: F64) -> np.ndarray:
-    """Whether each projected point is within `NEAREST_TOLERANCE` of the nearest range in its
-    `CELL_PX` cell (a z-buffer: the others are hidden from the camera or lie on a mixed edge)."""
-    if len(px) == 0:
-        return np.zeros(0, bool)
-    cell = np.floor(px / CELL_PX).astype(np.int64)
-    key = cell[:, 1] * (1 << 20) + cell[:, 0]
-    order = np.argsort(key, kind="stable")  # each cell's points together
-    k, ranges = key[order], range_m[order]
-    first = np.flatnonzero(np.r_[True, k[1:] != k[:-1]])
-    nearest = np.repeat(np.minimum.reduceat(ranges, first), np.diff(np.r_[first, len(k)]))
-    keep = np.zeros(len(px), bool)
-    keep[order] = ranges <= nearest * (1 + NEAREST_TOLERANCE)
-    return keep
+    """Whether each projected point (pixels inside the image) is within `NEAREST_TOLERANCE` of the
+    nearest range in its `CELL_PX` cell (a z-buffer: the others are hidden from the camera or lie on a
+    mixed edge)."""
+    from ingest.train.gt import align_kernels  # numba: loaded with the first alignment
+
+    return align_kernels.nearest_in_cell(px, range_m, CELL_PX, NEAREST_TOLERANCE)
 
 
 def _projected(model: CameraModel, pts: F64) -> tuple[F64, F64, np.ndarray]:
     """Pixels of `pts`, which points project into the image with a finite Jacobian, and at those points
     the projection's Jacobian d(pixel)/d(point) (M, 2, 3) by forward differences (M of them: the others
     are never sampled, and about half of a LiDAR's points lie outside a fisheye's view)."""
+    if isinstance(model, DoubleSphere):  # the rig's cameras: one compiled pass
+        from ingest.train.gt.align_kernels import visible_jacobians  # numba: loaded with the first alignment
+
+        return visible_jacobians(model, pts, JACOBIAN_STEP_M)
     px, ok = model.project(pts)
     ok &= model.in_image(px)
     inside = pts[ok]
@@ -201,6 +199,16 @@ def _projected(model: CameraModel, pts: F64) -> tuple[F64, F64, np.ndarray]:
     finite = np.isfinite(J.reshape(len(J), 6).sum(axis=1))  # NaN and inf spread to the sum
     ok[ok] = finite
     return px, np.ascontiguousarray(J[finite]), ok
+
+
+def _in_image(model: CameraModel, pts: F64) -> tuple[F64, np.ndarray]:
+    """`model.project(pts)` and which of those pixels lie in the image."""
+    if isinstance(model, DoubleSphere):  # the rig's cameras: one compiled pass
+        from ingest.train.gt.align_kernels import pixels_in_image  # numba: loaded with the first alignment
+
+        return pixels_in_image(model, pts)
+    px, ok = model.project(pts)
+    return px, ok & model.in_image(px)
 
 
 def _thinned(pts: F64, reflectivity: F64, limit: int) -> tuple[F64, F64]:
@@ -274,8 +282,7 @@ def part_correlations(
     if finite.sum() < MIN_PART_POINTS:
         return out
     pts, refl, stamps = pts_cam0[finite], np.asarray(reflectivity, np.float64)[finite], stamps_ns[finite]
-    px, ok = model.project(pts)
-    ok &= model.in_image(px)
+    px, ok = _in_image(model, pts)
     ok[ok] = nearest_in_cell(px[ok], np.linalg.norm(pts[ok], axis=1))
     part = stretch_of(stamps)
     for k in range(WINDOW_PARTS):
@@ -310,8 +317,7 @@ def _gauss_newton(
     projection's Jacobian `J` (N, 2, 3) and the intensity model `affine` (gain, offset)."""
     from ingest.train.gt.align_kernels import normal_equations  # numba: loaded with the first alignment
 
-    px, ok = model.project(p)
-    ok &= model.in_image(px)
+    px, ok = _in_image(model, p)
     if ok.sum() < MIN_POINTS:
         return None
     H, g, n, spread, weighted_sq, intensity, rf, used = normal_equations(

@@ -1,9 +1,13 @@
-"""The photometric alignment's Gauss-Newton step as one compiled pass (`ingest.train.gt.align`).
+"""The photometric alignment's hot loops as compiled passes (`ingest.train.gt.align`).
 
-At 15-40k points a sample, the step's numpy form spends most of its time on
-temporaries (the sampled channels, the (N, 8) Jacobian rows, their weighted
-copy); this pass reads each point once to sample the image and form its
-residual, and once more to add its weighted row to the normal equations.
+At 15-40k points a sample, numpy's form of a Gauss-Newton step spends most
+of its time on temporaries (the sampled channels, the (N, 8) Jacobian rows,
+their weighted copy); the step here reads each point once to sample the image
+and form its residual, and once more to add its weighted row to the normal
+equations. The projection into a Double Sphere camera with its
+forward-difference Jacobian, and the 2-pixel z-buffer, are one pass each
+too, with numpy's operations in numpy's order: the alignments are the same
+to the bit.
 """
 
 from __future__ import annotations
@@ -13,7 +17,9 @@ import math
 import numpy as np
 from numba import njit
 
-from calibration.types import F32, F64
+from calibration.fisheye import DoubleSphere
+from calibration.kernels import double_sphere_pixel
+from calibration.types import F32, F64, Bool
 
 
 @njit(cache=True, nogil=True)
@@ -30,6 +36,104 @@ def _bilinear(level, x, y, out):  # type: ignore[no-untyped-def]  # pragma: no c
         top = level[ya, xa, c] * (1.0 - fx) + level[ya, xb, c] * fx
         bottom = level[yb, xa, c] * (1.0 - fx) + level[yb, xb, c] * fx
         out[c] = top * (1.0 - fy) + bottom * fy
+
+
+@njit(cache=True, nogil=True, error_model="numpy")  # x / 0 gives inf or NaN, as numpy
+def _pixel(p, i, ds, u_end, v_end, px):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """Point i's Double Sphere pixel into px[i] (NaN where the projection is invalid, as
+    `calibration.kernels` stores it) and whether it lies in the image (`CameraModel.in_image`)."""
+    u, v, good = double_sphere_pixel(
+        p[i, 0], p[i, 1], p[i, 2], ds[0], ds[1], ds[2], ds[3], ds[4], ds[5], ds[6]
+    )
+    good = good and math.isfinite(u) and math.isfinite(v)
+    px[i, 0] = u if good else np.nan
+    px[i, 1] = v if good else np.nan
+    return good and u >= -0.5 and u < u_end and v >= -0.5 and v < v_end
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _in_image(p, ds, u_end, v_end, px, ok):  # type: ignore[no-untyped-def]  # pragma: no cover
+    for i in range(p.shape[0]):
+        ok[i] = _pixel(p, i, ds, u_end, v_end, px)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _visible_jacobians(p, ds, u_end, v_end, step, px, ok, J):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """`_in_image`, with `ok` only where the forward-difference Jacobian is finite too, and those
+    Jacobians into the first rows of `J` in the points' order; return how many. The operations of
+    `ingest.train.gt.align`'s numpy form, point by point."""
+    m = 0
+    moved = np.empty((3, 2))
+    shifted = np.empty((1, 3))
+    for i in range(p.shape[0]):
+        ok[i] = False
+        if not _pixel(p, i, ds, u_end, v_end, px):
+            continue
+        for k in range(3):  # the point moved by `step` along axis k (0.0 added to the others, as numpy)
+            for a in range(3):
+                shifted[0, a] = p[i, a] + (step if a == k else 0.0)
+            _pixel(shifted, 0, ds, u_end, v_end, moved[k:])
+        total = 0.0
+        for a in range(2):
+            for k in range(3):
+                J[m, a, k] = (moved[k, a] - px[i, a]) / step
+                total += J[m, a, k]
+        if math.isfinite(total):
+            ok[i] = True
+            m += 1
+    return m
+
+
+def _camera(model: DoubleSphere) -> tuple[F64, float, float]:
+    ds = np.array([model.fx, model.fy, model.cx, model.cy, model.xi, model.alpha, model.w2], np.float64)
+    return ds, model.width - 0.5, model.height - 0.5
+
+
+def pixels_in_image(model: DoubleSphere, p: F64) -> tuple[F64, Bool]:
+    """`model.project(p)` and `model.in_image` of its pixels in one pass: pixels (N, 2, NaN where the
+    projection is invalid) and which lie in the image (N,)."""
+    px, ok = np.empty((len(p), 2)), np.empty(len(p), np.bool_)
+    _in_image(np.ascontiguousarray(p, np.float64), *_camera(model), px, ok)
+    return px, ok
+
+
+def visible_jacobians(model: DoubleSphere, p: F64, step: float) -> tuple[F64, F64, Bool]:
+    """Pixels (N, 2) of the points `p` (N, 3, m) through `model`, NaN where the projection is invalid;
+    the forward-difference Jacobians d(pixel)/d(point) (M, 2, 3, px/m, steps of `step` m) of the M points
+    inside the image with a finite one; and which those are (N,)."""
+    px, ok = np.empty((len(p), 2)), np.empty(len(p), np.bool_)
+    J = np.empty((len(p), 2, 3))
+    m = _visible_jacobians(np.ascontiguousarray(p, np.float64), *_camera(model), float(step), px, ok, J)
+    return px, J[:m], ok
+
+
+@njit(cache=True, nogil=True)
+def _nearest_in_cell(px, range_m, cell_px, tolerance, keep):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """Into `keep`, whether each range is within `tolerance` of the nearest in its `cell_px` cell: the
+    cells' minima on a grid over the pixels' bounding box."""
+    n = px.shape[0]
+    cols, rows = np.empty(n, np.int64), np.empty(n, np.int64)
+    for i in range(n):
+        cols[i], rows[i] = math.floor(px[i, 0] / cell_px), math.floor(px[i, 1] / cell_px)
+    c0, r0 = cols.min(), rows.min()
+    width = cols.max() - c0 + 1
+    nearest = np.full((rows.max() - r0 + 1) * width, np.inf)
+    for i in range(n):
+        cell = (rows[i] - r0) * width + cols[i] - c0
+        nearest[cell] = min(nearest[cell], range_m[i])
+    factor = 1.0 + tolerance
+    for i in range(n):
+        keep[i] = range_m[i] <= nearest[(rows[i] - r0) * width + cols[i] - c0] * factor
+
+
+def nearest_in_cell(px: F64, range_m: F64, cell_px: float, tolerance: float) -> Bool:
+    """Whether each pixel's (N, 2, finite) range (N, m) is within `tolerance` (a fraction) of the
+    nearest range in its `cell_px` cell (a z-buffer over the pixels' bounding box)."""
+    keep = np.empty(len(px), np.bool_)
+    if len(px):
+        _nearest_in_cell(np.ascontiguousarray(px, np.float64), np.ascontiguousarray(range_m, np.float64),
+                         float(cell_px), float(tolerance), keep)  # fmt: skip
+    return keep
 
 
 @njit(cache=True, nogil=True)
