@@ -13,15 +13,9 @@ ROOT = Path(__file__).resolve().parents[2]
 REF = ROOT / "calibration" / "sensorbox.yaml"
 
 
-def run(*args):
-    return subprocess.run(
-        [sys.executable, "-m", "sensorbox.cli", *args], capture_output=True, text=True, cwd=ROOT, check=False
-    )
-
-
-def test_calib_check_reference_rig(tmp_path):
+def test_calib_check_reference_rig(tmp_path, capsys):
     png = tmp_path / "rig.png"
-    res = run("calib", "check", str(REF), "--plot", str(png))
+    res = run_here(capsys, "calib", "check", str(REF), "--plot", str(png))
     assert res.returncode == 0, res.stderr
     assert "181.7°" in res.stdout and "182.1°" in res.stdout  # true HFOV of cam0 / cam1
     assert "120.31 mm" in res.stdout
@@ -31,10 +25,10 @@ def test_calib_check_reference_rig(tmp_path):
     assert img is not None and img.shape[0] > 400 and img.shape[1] > 800
 
 
-def test_bad_input_is_one_line_and_exit_2(tmp_path):
+def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys):
     bad = tmp_path / "bad.yaml"
     bad.write_text("cam0:\n  camera_model: fancy\n")
-    res = run("calib", "check", str(bad))
+    res = run_here(capsys, "calib", "check", str(bad))
     assert res.returncode == 2
     lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1, res.stderr
@@ -42,24 +36,24 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path):
     assert "Traceback" not in res.stderr
 
 
-def test_help_texts():
+def test_help_texts(capsys):
     for args in ([], ["calib"], ["calib", "check"]):
-        res = run(*args, "--help")
+        res = run_here(capsys, *args, "--help")
         assert res.returncode == 0 and "Usage" in res.stdout
 
 
-def test_errors_print_brackets_as_they_are(tmp_path):
+def test_errors_print_brackets_as_they_are(tmp_path, capsys):
     """A path with [v2] in it is named as it is, not eaten as markup (issue 20, class 5)."""
     rig = tmp_path / "rig[v2].yaml"
     rig.write_text("cameras: [/b]\n")
-    res = run("calib", "check", str(rig))
+    res = run_here(capsys, "calib", "check", str(rig))
     assert res.returncode == 2, res.stderr
     lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and lines[0].startswith("error: ") and "rig[v2].yaml" in lines[0], res.stderr
 
 
-def test_os_errors_on_the_output_side_are_one_line_and_exit_3(tmp_path):
-    res = run("calib", "check", str(REF), "--plot", "/proc/sensorbox-nothere/rig.png")
+def test_os_errors_on_the_output_side_are_one_line_and_exit_3(tmp_path, capsys):
+    res = run_here(capsys, "calib", "check", str(REF), "--plot", "/proc/sensorbox-nothere/rig.png")
     assert res.returncode == 3, res.stderr
     lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
     assert lines == ["error: /proc/sensorbox-nothere: No such file or directory"], res.stderr
@@ -117,12 +111,9 @@ def test_ingest_backend_is_checked_before_any_bag_is_read(tmp_path, capsys):
     """`--backend` (the dense-GT renderer): an unknown one, or cuda without a GPU, is one line, exit 2 (run in
     this process: each option's check is the CLI's own, and a subprocess per case imported torch anew)."""
 
-    def run(*args):
-        return run_here(capsys, *args)
-
     out = tmp_path / "out"
     args = ("ingest", str(tmp_path / "no.bag"), "--rig", str(REF), "--out", str(out), "--gt", "dense")
-    res = run(*args, "--backend", "gpu")
+    res = run_here(capsys, *args, "--backend", "gpu")
     lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
     assert res.returncode == 2 and len(lines) == 1, res.stderr
     assert lines[0] == "error: --backend 'gpu': expected numba, numpy, torch or cuda"
@@ -133,19 +124,21 @@ def test_ingest_backend_is_checked_before_any_bag_is_read(tmp_path, capsys):
         ("--motion", "off", "error: --motion 'off': expected full with --gt 'dense', which places every point "
          "with the trajectory (--motion chooses the motion model of sparse GT: --gt sparse or auto)"),
     ):  # fmt: skip
-        res = run(*args, option, value)
+        res = run_here(capsys, *args, option, value)
         assert res.returncode == 2 and [ln for ln in res.stderr.splitlines() if ln.strip()] == [line], (
             res.stderr
         )
     sparse = [a if a != "dense" else "sparse" for a in args]
-    res = run(
-        *sparse, "--gt-window-ms", "300"
+    res = run_here(
+        capsys, *sparse, "--gt-window-ms", "300"
     )  # dense GT's window, given for sparse GT: not silently ignored
     assert res.returncode == 2 and res.stderr.strip() == (
         "error: --gt-window-ms sets the window of dense GT (--gt dense or auto); sparse GT's is --window-ms"
     )
     auto = [a if a != "dense" else "auto" for a in args]
-    res = run(*auto, "--gt-window-ms", "40", "--window-ms", "80")  # the gaps' sparse GT reads within it
+    res = run_here(
+        capsys, *auto, "--gt-window-ms", "40", "--window-ms", "80"
+    )  # the gaps' sparse GT reads within it
     assert res.returncode == 2 and " ".join(res.stderr.split()) == (
         "error: --gt-window-ms 40: expected at least --window-ms with --gt 'auto': the sparse GT it gives "
         "frames in trajectory gaps reads --window-ms of points from the dense window"
@@ -155,7 +148,7 @@ def test_ingest_backend_is_checked_before_any_bag_is_read(tmp_path, capsys):
     except ImportError:
         return
     if not torch.cuda.is_available():
-        res = run(*args, "--backend", "cuda")
+        res = run_here(capsys, *args, "--backend", "cuda")
         assert (
             res.returncode == 2
             and "--backend 'cuda': expected a renderer this machine runs (torch" in res.stderr

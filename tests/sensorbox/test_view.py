@@ -11,8 +11,6 @@ import json
 import os
 import re
 import shutil
-import subprocess
-import sys
 from collections import defaultdict
 from pathlib import Path
 from typing import Any
@@ -36,7 +34,7 @@ from sensorbox.analysis.view_files import (
     read_tum,
 )
 from sensorbox.analysis.view_train import train_layout
-from tests.faults.cli import sensorbox
+from tests.faults.cli import run_here, sensorbox
 from tests.paths import FIXTURES_DIR, ROOT
 
 rerun_chunk = pytest.importorskip("rerun.chunk")
@@ -100,20 +98,11 @@ def _jpeg_shape(row: dict[str, Any]) -> tuple[int, ...]:
     return tuple(image.shape)
 
 
-def _cli(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "sensorbox.cli", *args],
-        capture_output=True,
-        text=True,
-        cwd=ROOT,
-        check=False,
-        env=env,
-    )
-
-
-def test_train_dataset_saved_and_read_back(dense_ds: Path, tmp_path: Path) -> None:
+def test_train_dataset_saved_and_read_back(
+    dense_ds: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     rrd = tmp_path / "ds.rrd"
-    res = _cli("view", str(dense_ds), "--save", str(rrd))
+    res = run_here(capsys, "view", str(dense_ds), "--save", str(rrd))
     assert res.returncode == 0, res.stderr
     lines = res.stdout.strip().splitlines()
     assert len(lines) == 1
@@ -187,16 +176,16 @@ def test_full_res_keeps_the_equirect_whole(dense_ds: Path, tmp_path: Path) -> No
         assert _jpeg_shape(row) == (512, 1024, 3)
 
 
-def test_not_a_dataset_is_one_line_and_exit_2(tmp_path: Path) -> None:
+def test_not_a_dataset_is_one_line_and_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     (tmp_path / "empty").mkdir()
-    res = _cli("view", str(tmp_path / "empty"), "--save", str(tmp_path / "x.rrd"))
+    res = run_here(capsys, "view", str(tmp_path / "empty"), "--save", str(tmp_path / "x.rrd"))
     assert res.returncode == 2 and res.stdout == ""
     assert res.stderr.strip().splitlines() == [
         f"error: {tmp_path / 'empty'}: neither the WideDepth train layout (disp_equirect/, depth_fisheye/) "
         "nor the benchmark layout (<scene>/<FOV>FOV/<B>mm/CENTER/) is there"
     ]
     (tmp_path / "unfinished" / "depth_fisheye").mkdir(parents=True)
-    res = _cli("view", str(tmp_path / "unfinished"), "--save", str(tmp_path / "x.rrd"))
+    res = run_here(capsys, "view", str(tmp_path / "unfinished"), "--save", str(tmp_path / "x.rrd"))
     assert res.returncode == 2
     assert res.stderr.strip().splitlines() == [
         f"error: {tmp_path / 'unfinished'}: no finished sample (meta/<id>.json); nothing to view"
@@ -204,11 +193,13 @@ def test_not_a_dataset_is_one_line_and_exit_2(tmp_path: Path) -> None:
     assert not list(tmp_path.glob("*.rrd")) and not list(tmp_path.glob(".*.tmp"))
 
 
-def test_a_damaged_image_is_named_and_no_recording_is_left(dense_ds: Path, tmp_path: Path) -> None:
+def test_a_damaged_image_is_named_and_no_recording_is_left(
+    dense_ds: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     broken = tmp_path / "ds"
     shutil.copytree(dense_ds, broken)
     (broken / "depth_fisheye" / "000002.png").write_bytes(b"\x89PNG\r\n\x1a\n cut")
-    res = _cli("view", str(broken), "--save", str(tmp_path / "out" / "x.rrd"))
+    res = run_here(capsys, "view", str(broken), "--save", str(tmp_path / "out" / "x.rrd"))
     assert res.returncode == 2
     assert res.stderr.strip().splitlines() == [
         f"error: {broken / 'depth_fisheye' / '000002.png'}: cannot be decoded "
@@ -217,11 +208,13 @@ def test_a_damaged_image_is_named_and_no_recording_is_left(dense_ds: Path, tmp_p
     assert list((tmp_path / "out").iterdir()) == []
 
 
-def test_a_missing_image_is_counted_and_named(dense_ds: Path, tmp_path: Path) -> None:
+def test_a_missing_image_is_counted_and_named(
+    dense_ds: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     thin = tmp_path / "ds"
     shutil.copytree(dense_ds, thin)
     (thin / "right_fisheye" / "000001.png").unlink()
-    res = _cli("view", str(thin), "--save", str(tmp_path / "x.rrd"))
+    res = run_here(capsys, "view", str(thin), "--save", str(tmp_path / "x.rrd"))
     assert res.returncode == 0, res.stderr
     assert ": 4 samples; 15 images; 8 depth images; " in res.stdout
     assert "; missing files: 1 (first: right_fisheye/000001.png); saved " in res.stdout
@@ -274,8 +267,10 @@ def test_a_writer_that_dies_of_a_full_disk_is_one_line_and_exit_3(
     assert list((tmp_path / "out").iterdir()) == []
 
 
-def test_save_onto_a_folder_is_refused(dense_ds: Path, tmp_path: Path) -> None:
-    res = _cli("view", str(dense_ds), "--save", str(tmp_path))
+def test_save_onto_a_folder_is_refused(
+    dense_ds: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    res = run_here(capsys, "view", str(dense_ds), "--save", str(tmp_path))
     assert res.returncode == 2
     assert res.stderr.strip().splitlines() == [f"error: --save {tmp_path}: is a folder; give a file path"]
 
@@ -364,10 +359,10 @@ def _write_benchmark(root: Path) -> dict[str, Any]:
     return written
 
 
-def test_benchmark_dataset_saved_and_read_back(tmp_path: Path) -> None:
+def test_benchmark_dataset_saved_and_read_back(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     written = _write_benchmark(tmp_path / "bench")
     rrd = tmp_path / "b.rrd"
-    res = _cli("view", str(tmp_path / "bench"), "--save", str(rrd))
+    res = run_here(capsys, "view", str(tmp_path / "bench"), "--save", str(rrd))
     assert res.returncode == 0, res.stderr
     assert res.stdout.startswith(
         f"{tmp_path / 'bench'} (benchmark layout): 2 scenes; 4 images; 4 depth images; "
@@ -448,9 +443,12 @@ def test_a_rendered_benchmark_has_every_view_and_number(rendered: Path, tmp_path
     assert valid["Scalars:scalars"] == [float(doc["stats"]["120FOV/120mm/DOWN/fisheye"]["valid_px"])]
 
 
-def test_without_a_display_the_viewer_is_refused_in_one_line(dense_ds: Path) -> None:
-    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
-    res = _cli("view", str(dense_ds), env=env)
+def test_without_a_display_the_viewer_is_refused_in_one_line(
+    dense_ds: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    for name in ("DISPLAY", "WAYLAND_DISPLAY"):
+        monkeypatch.delenv(name, raising=False)
+    res = run_here(capsys, "view", str(dense_ds))
     assert res.returncode == 2 and res.stdout == ""
     assert res.stderr.strip().splitlines() == [
         "error: no display for the Rerun viewer (DISPLAY and WAYLAND_DISPLAY are unset); save the recording "
@@ -488,15 +486,15 @@ def test_the_default_layout_charts_density_misalignment_points_and_motion() -> N
     assert train_layout({"/meta/stereo_dt_ms"}) == []
 
 
-def test_help_and_a_missing_argument() -> None:
-    res = _cli("view", "--help")
+def test_help_and_a_missing_argument(capsys: pytest.CaptureFixture[str]) -> None:
+    res = run_here(capsys, "view", "--help")
     assert res.returncode == 0 and "--save" in res.stdout and "--full-res" in res.stdout
-    res = _cli("view")
+    res = run_here(capsys, "view")
     assert res.returncode == 2
     assert res.stderr.strip().splitlines() == [
         "error: Missing argument 'dataset'. (see 'sensorbox view --help')"
     ]
-    res = _cli("view", str(ROOT), "--save", "")
+    res = run_here(capsys, "view", str(ROOT), "--save", "")
     assert res.returncode == 2
     assert res.stderr.strip().splitlines() == [
         "error: --save '': empty path (that is the current folder); give a path"
