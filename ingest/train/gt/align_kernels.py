@@ -127,8 +127,9 @@ def _nearest_in_cell(px, range_m, cell_px, tolerance, keep):  # type: ignore[no-
 
 
 def nearest_in_cell(px: F64, range_m: F64, cell_px: float, tolerance: float) -> Bool:
-    """Whether each pixel's (N, 2, finite) range (N, m) is within `tolerance` (a fraction) of the
-    nearest range in its `cell_px` cell (a z-buffer over the pixels' bounding box)."""
+    """Whether each pixel's (N, 2) range (N, m) is within `tolerance` (a fraction) of the nearest range
+    in its `cell_px` cell (a z-buffer over the pixels' bounding box: pixels and ranges finite, the
+    pixels those of one image)."""
     keep = np.empty(len(px), np.bool_)
     if len(px):
         _nearest_in_cell(np.ascontiguousarray(px, np.float64), np.ascontiguousarray(range_m, np.float64),
