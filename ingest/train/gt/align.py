@@ -190,8 +190,7 @@ def _projected(model: CameraModel, pts: F64) -> tuple[F64, F64, np.ndarray]:
         from ingest.train.gt.align_kernels import visible_jacobians  # numba: loaded with the first alignment
 
         return visible_jacobians(model, pts, JACOBIAN_STEP_M)
-    px, ok = model.project(pts)
-    ok &= model.in_image(px)
+    px, ok = _in_image(model, pts)
     inside = pts[ok]
     steps = np.eye(3) * JACOBIAN_STEP_M
     moved, _ = model.project(inside[None, :, :] + steps[:, None, :])  # (3, M, 2): one call for all three
